@@ -175,7 +175,7 @@ def ik_fn() -> ca.Function:
 def jacobian_fn() -> ca.Function:
     """``(q, g) -> J`` (3x3)."""
     q, g = _sym("q", 3), _sym("g", NG)
-    return ca.Function("jac", [q, g], [inverse_jacobian(q, g)], ["q", "g"], ["J"])
+    return ca.Function("inverse_jacobian", [q, g], [inverse_jacobian(q, g)], ["q", "g"], ["J"])
 
 
 @lru_cache(maxsize=None)
