@@ -1,0 +1,96 @@
+"""Compile generated C into the FMU's shared library and pack the ``.fmu`` archive.
+
+The library is built with ``-fvisibility=hidden``: only the ``fmi2*``/``fmi3*`` functions, which
+the FMI headers mark visible, are exported, so many FMUs (and many instances) share one process.
+:func:`exported_symbols` reads the dynamic symbol table back with ``nm`` to check it.
+"""
+from __future__ import annotations
+
+import os
+import platform
+import shutil
+import subprocess
+import zipfile
+from functools import lru_cache
+from pathlib import Path
+
+from .errors import BuildError
+
+#: Compiler flags; part of the cache key.
+CFLAGS = ("-O2", "-std=c99", "-fPIC", "-fvisibility=hidden", "-Wall", "-Wno-unused-variable",
+          "-Wno-unused-function", "-Wno-unused-but-set-variable")
+LDFLAGS = ("-shared", "-Wl,-z,defs", "-lm")
+
+
+def compiler() -> str:
+    """The C compiler: ``$CC`` or ``gcc`` (``cc`` as a fallback)."""
+    cc = os.environ.get("CC") or shutil.which("gcc") or shutil.which("cc")
+    if not cc:
+        raise BuildError("no C compiler found: install gcc (Debian: apt-get install gcc) or set $CC")
+    return cc
+
+
+@lru_cache(maxsize=None)
+def compiler_version(cc: str) -> str:
+    """First line of ``cc --version`` (part of the cache key)."""
+    try:
+        out = subprocess.run([cc, "--version"], capture_output=True, text=True, timeout=30)
+    except OSError as exc:
+        raise BuildError(f"cannot run the C compiler {cc!r}: {exc}") from None
+    return (out.stdout.splitlines() or ["unknown"])[0]
+
+
+def platform_dirs() -> tuple[str, str]:
+    """``binaries/`` folder names for FMI 2.0 and FMI 3.0 on this machine."""
+    system = platform.system()
+    machine = platform.machine().lower()
+    if system == "Linux" and machine in ("x86_64", "amd64"):
+        return "linux64", "x86_64-linux"
+    if system == "Linux" and machine in ("aarch64", "arm64"):
+        return "linux64", "aarch64-linux"  # FMI 2 has no standard aarch64 name
+    if system == "Darwin":
+        return "darwin64", f"{'aarch64' if machine == 'arm64' else 'x86_64'}-darwin"
+    raise BuildError(f"building FMUs on {system}/{machine} is not supported (Linux and macOS are)")
+
+
+def library_suffix() -> str:
+    return ".dylib" if platform.system() == "Darwin" else ".so"
+
+
+def compile_library(src_dir: Path, sources: list[str], out: Path, *, block_name: str) -> None:
+    """``cc CFLAGS sources -o out LDFLAGS``; a failure raises :class:`BuildError` with the log's head."""
+    cc = compiler()
+    cmd = [cc, *CFLAGS, f"-I{src_dir}", *[str(src_dir / s) for s in sources], "-o", str(out), *LDFLAGS]
+    if platform.system() == "Darwin":
+        cmd = [c for c in cmd if c != "-Wl,-z,defs"]
+    res = subprocess.run(cmd, capture_output=True, text=True)
+    if res.returncode != 0:
+        log = (res.stderr or res.stdout).strip().splitlines()
+        head = " | ".join(log[:6])
+        raise BuildError(f"block {block_name}: the C compiler failed (exit {res.returncode}): {head}")
+
+
+def exported_symbols(library: Path) -> list[str]:
+    """Names of the functions and data a shared library exports (``nm -D --defined-only``)."""
+    nm = shutil.which("nm")
+    if not nm:
+        raise BuildError("cannot list exported symbols: 'nm' (binutils) is not installed")
+    res = subprocess.run([nm, "-D", "--defined-only", str(library)], capture_output=True, text=True)
+    if res.returncode != 0:
+        raise BuildError(f"nm failed on {library}: {res.stderr.strip()}")
+    names = []
+    for line in res.stdout.splitlines():
+        parts = line.split()
+        if len(parts) >= 3 and parts[1] in "TDBRVWtdbr":
+            names.append(parts[2])
+    return names
+
+
+def pack(fmu: Path, members: dict[str, bytes]) -> None:
+    """Write the ``.fmu`` zip with fixed timestamps (same inputs, same bytes)."""
+    with zipfile.ZipFile(fmu, "w", compression=zipfile.ZIP_DEFLATED) as zf:
+        for name in sorted(members):
+            info = zipfile.ZipInfo(name, date_time=(2020, 1, 1, 0, 0, 0))
+            info.compress_type = zipfile.ZIP_DEFLATED
+            info.external_attr = 0o644 << 16
+            zf.writestr(info, members[name])

@@ -1,0 +1,319 @@
+"""The FMU's variable table and its ``modelDescription.xml`` (FMI 2.0 and 3.0 co-simulation).
+
+Value references (shared with the C core, ``fmus/c/rpr_core.h``): 0 is ``time``, then the
+parameters, states, inputs and outputs in the block's declaration order.
+
+- parameters: ``causality="parameter"``, ``variability="tunable"`` (``"fixed"`` when structural:
+  settable until the end of initialisation), ``initial="exact"``;
+- states: ``causality="local"``, ``initial="exact"`` with their start value when ``start(p)`` does
+  not depend on the parameters (they may then be set before the end of initialisation), else
+  ``initial="calculated"`` (they follow the parameters);
+- inputs: ``start`` 0; outputs: ``initial="calculated"``.
+
+Units are parsed into SI base-unit exponents (``kg.m2``, ``m/s2``, ``N.m.s/rad``...) so that
+``UnitDefinitions`` carries real ``BaseUnit`` elements; an unknown symbol is a build error.
+"""
+from __future__ import annotations
+
+import math
+import re
+import xml.etree.ElementTree as ET
+from dataclasses import dataclass, field
+
+import casadi as ca
+import numpy as np
+
+from models.block import Block
+
+from .errors import BuildError
+
+GENERATION_TOOL = "rpr-cosim fmus"
+
+_BASE = ("kg", "m", "s", "A", "K", "mol", "cd", "rad")
+
+
+def _u(factor: float = 1.0, **exp: int) -> tuple[float, dict[str, int]]:
+    return factor, exp
+
+
+#: Unit symbols: factor to SI and base-unit exponents.
+UNIT_SYMBOLS: dict[str, tuple[float, dict[str, int]]] = {
+    "kg": _u(kg=1), "m": _u(m=1), "s": _u(s=1), "A": _u(A=1), "K": _u(K=1), "mol": _u(mol=1),
+    "cd": _u(cd=1), "rad": _u(rad=1),
+    "N": _u(kg=1, m=1, s=-2), "J": _u(kg=1, m=2, s=-2), "W": _u(kg=1, m=2, s=-3),
+    "V": _u(kg=1, m=2, s=-3, A=-1), "Ohm": _u(kg=1, m=2, s=-3, A=-2), "H": _u(kg=1, m=2, s=-2, A=-2),
+    "Wb": _u(kg=1, m=2, s=-2, A=-1), "C": _u(A=1, s=1), "Hz": _u(s=-1), "Pa": _u(kg=1, m=-1, s=-2),
+    "g": _u(1e-3, kg=1), "mm": _u(1e-3, m=1), "cm": _u(1e-2, m=1), "km": _u(1e3, m=1),
+    "ms": _u(1e-3, s=1), "min": _u(60.0, s=1), "mA": _u(1e-3, A=1), "mH": _u(1e-3, kg=1, m=2, s=-2, A=-2),
+    "mV": _u(1e-3, kg=1, m=2, s=-3, A=-1), "deg": _u(math.pi / 180, rad=1),
+    "rpm": _u(2 * math.pi / 60, rad=1, s=-1),
+}
+_FACTOR = re.compile(r"^([A-Za-z]+)(-?\d+)?$")
+#: Structured FMI names without quoted identifiers: ``a.b[1].c``.
+_NAME = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*(\[\d+(,\d+)*\])?(\.[A-Za-z_][A-Za-z0-9_]*(\[\d+(,\d+)*\])?)*$")
+
+
+def parse_unit(unit: str) -> tuple[float, dict[str, int]]:
+    """``unit`` -> (factor to SI, base exponents).  Grammar: ``term ['/' term]``, a term being
+    ``1`` or factors joined by ``.`` (or ``*``), each a symbol of :data:`UNIT_SYMBOLS` with an
+    optional integer exponent (``m2``, ``s-1``); the denominator may be parenthesised."""
+    text = unit.strip()
+    if text.count("/") > 1:
+        raise ValueError("more than one '/'")
+    num, _, den = text.partition("/")
+    den = den.strip()
+    if den.startswith("(") and den.endswith(")"):
+        den = den[1:-1]
+    factor, exps = 1.0, {b: 0 for b in _BASE}
+    for part, sign in ((num, 1), (den, -1)):
+        part = part.strip()
+        if part in ("", "1"):
+            if sign == -1 and part == "" and "/" in text:
+                raise ValueError("empty denominator")
+            continue
+        for tok in re.split(r"[.*]", part):
+            m = _FACTOR.match(tok.strip())
+            if not m or m.group(1) not in UNIT_SYMBOLS:
+                raise ValueError(f"unknown unit symbol {tok!r}")
+            f, e = UNIT_SYMBOLS[m.group(1)]
+            k = int(m.group(2) or 1) * sign
+            factor *= f ** k
+            for b, v in e.items():
+                exps[b] += v * k
+    return factor, {b: v for b, v in exps.items() if v}
+
+
+@dataclass(frozen=True)
+class FmuVariable:
+    """One scalar variable of the FMU (see the module docstring for the conventions)."""
+
+    vr: int
+    name: str
+    kind: str  # "time", "parameter", "state", "input", "output"
+    causality: str
+    variability: str
+    initial: str | None
+    start: float | None
+    unit: str
+    description: str
+    min: float | None = None
+    max: float | None = None
+
+
+@dataclass
+class Interface:
+    """Everything the XML and the C header need to know about a block's FMU."""
+
+    block: Block
+    variables: list[FmuVariable]
+    #: output vr -> vrs of the inputs and states it depends on during stepping
+    output_deps: dict[int, list[int]] = field(default_factory=dict)
+    #: output vr -> vrs of the parameters, inputs and exact-start states it depends on at init
+    initial_deps: dict[int, list[int]] = field(default_factory=dict)
+
+    def of_kind(self, kind: str) -> list[FmuVariable]:
+        return [v for v in self.variables if v.kind == kind]
+
+    @property
+    def units(self) -> list[str]:
+        seen: list[str] = []
+        for v in self.variables:
+            if v.unit and v.unit not in seen:
+                seen.append(v.unit)
+        return seen
+
+
+def _finite(x: float) -> float | None:
+    return float(x) if math.isfinite(x) else None
+
+
+def check_names(block: Block) -> None:
+    """Every variable name must be a legal structured FMI name, and ``time`` is reserved."""
+    for kind, seq in (("parameter", block.params), ("input", block.inputs), ("output", block.outputs),
+                      ("state", block.states)):
+        for v in seq:
+            if v.name == "time":
+                raise BuildError(f"block {block.name}: {kind} 'time' clashes with the FMU's independent "
+                                 f"variable; rename it")
+            if not _NAME.match(v.name):
+                raise BuildError(f"block {block.name}: {kind} name {v.name!r} is not a structured FMI name "
+                                 f"(expected e.g. 'leg[1].s' or 'platform.x')")
+    for kind, seq in (("parameter", block.params), ("input", block.inputs), ("output", block.outputs),
+                      ("state", block.states)):
+        for v in seq:
+            if v.unit:
+                try:
+                    parse_unit(v.unit)
+                except ValueError as exc:
+                    raise BuildError(f"block {block.name}: {kind} {v.name!r} has unit {v.unit!r} that the "
+                                     f"exporter cannot read ({exc}); write SI symbols joined by '.', with "
+                                     f"integer exponents and one '/', e.g. 'N.m', 'kg.m2', 'm/s2'") from None
+
+
+def interface(block: Block) -> Interface:
+    """The variable table and ModelStructure dependencies of ``block`` (already checked)."""
+    p0 = block.param_defaults
+    x_start = np.asarray(block.functions()["start"](p0), dtype=float).reshape(-1)
+    exact = [not ca.depends_on(block.start[i], block.p) if block.p.numel() else True
+             for i in range(block.x.numel())]
+    state_var = "discrete" if block.integrator == "discrete" else "continuous"
+    vs: list[FmuVariable] = [FmuVariable(0, "time", "time", "independent", "continuous", None, None, "s",
+                                         "simulation time")]
+    for prm in block.params:
+        vs.append(FmuVariable(len(vs), prm.name, "parameter", "parameter",
+                              "fixed" if prm.structural else "tunable", "exact", float(prm.default),
+                              prm.unit, prm.description, _finite(prm.lower), _finite(prm.upper)))
+    for i, st in enumerate(block.states):
+        vs.append(FmuVariable(len(vs), st.name, "state", "local", state_var,
+                              "exact" if exact[i] else "calculated",
+                              float(x_start[i]) if exact[i] else None, st.unit,
+                              st.description or "state"))
+    for v in block.inputs:
+        vs.append(FmuVariable(len(vs), v.name, "input", "input", "continuous", None, 0.0, v.unit, v.description))
+    for v in block.outputs:
+        vs.append(FmuVariable(len(vs), v.name, "output", "output", "continuous", "calculated", None, v.unit,
+                              v.description))
+    iface = Interface(block, vs)
+    vr_p = [v.vr for v in iface.of_kind("parameter")]
+    vr_x = [v.vr for v in iface.of_kind("state")]
+    vr_u = [v.vr for v in iface.of_kind("input")]
+    vr_y = [v.vr for v in iface.of_kind("output")]
+    ny = len(vr_y)
+    if ny:
+        sp_u = ca.jacobian_sparsity(block.out, block.u) if block.u.numel() else None
+        sp_x = ca.jacobian_sparsity(block.out, block.x) if block.x.numel() else None
+        # at initialisation: calculated states follow start(p), exact ones are knowns
+        xs_init = ca.vertcat(*[block.x[i] if exact[i] else block.start[i] for i in range(block.x.numel())]) \
+            if block.x.numel() else block.x
+        y_init = ca.substitute(block.out, block.x, xs_init) if block.x.numel() else block.out
+        sp_init = {name: (ca.jacobian_sparsity(y_init, sym) if sym.numel() else None)
+                   for name, sym in (("p", block.p), ("u", block.u), ("x", block.x))}
+        for k, vr in enumerate(vr_y):
+            dep = [vr_x[j] for j in range(len(vr_x)) if sp_x is not None and sp_x.has_nz(k, j)]
+            dep += [vr_u[j] for j in range(len(vr_u)) if sp_u is not None and sp_u.has_nz(k, j)]
+            iface.output_deps[vr] = sorted(dep)
+            ini = [vr_p[j] for j in range(len(vr_p)) if sp_init["p"] is not None and sp_init["p"].has_nz(k, j)]
+            ini += [vr_x[j] for j in range(len(vr_x)) if exact[j] and sp_init["x"] is not None
+                    and sp_init["x"].has_nz(k, j)]
+            ini += [vr_u[j] for j in range(len(vr_u)) if sp_init["u"] is not None and sp_init["u"].has_nz(k, j)]
+            iface.initial_deps[vr] = sorted(ini)
+    return iface
+
+
+# --- XML ------------------------------------------------------------------------------------
+LOG_CATEGORIES = (
+    ("logStatusError", "errors: wrong calls, refused values, failed evaluations"),
+    ("logStatusDiscard", "discarded steps: Newton non-convergence or a non-finite state"),
+    ("logStatusWarning", "warnings"),
+    ("logNonlinearSystems", "Radau IIA Newton residual of every step"),
+    ("logCalls", "instantiation and other calls"),
+)
+
+
+def _fmt(x: float) -> str:
+    return repr(float(x))
+
+
+def _unit_definitions(parent: ET.Element, units: list[str]) -> None:
+    if not units:
+        return
+    defs = ET.SubElement(parent, "UnitDefinitions")
+    for name in units:
+        factor, exps = parse_unit(name)
+        unit = ET.SubElement(defs, "Unit", name=name)
+        attrs = {k: str(v) for k, v in exps.items()}
+        if factor != 1.0:
+            attrs["factor"] = _fmt(factor)
+        ET.SubElement(unit, "BaseUnit", attrs)
+
+
+def model_description(iface: Interface, *, fmi_version: str, guid: str, model_identifier: str,
+                      sources: list[str], stop_time: float = 1.0) -> str:
+    """The ``modelDescription.xml`` text for FMI ``"2.0"`` or ``"3.0"``."""
+    blk = iface.block
+    fmi3 = fmi_version == "3.0"
+    root = ET.Element("fmiModelDescription", {"fmiVersion": fmi_version, "modelName": model_identifier,
+                                              ("instantiationToken" if fmi3 else "guid"): guid,
+                                              "description": blk.description or blk.name,
+                                              "generationTool": GENERATION_TOOL,
+                                              "variableNamingConvention": "structured"})
+    if not fmi3:
+        root.set("numberOfEventIndicators", "0")
+    cs = {"modelIdentifier": model_identifier, "needsExecutionTool": "false",
+          "canHandleVariableCommunicationStepSize": "true",
+          "canBeInstantiatedOnlyOncePerProcess": "false"}
+    if fmi3:
+        cs.update({"canGetAndSetFMUState": "true", "canSerializeFMUState": "true",
+                   "providesDirectionalDerivatives": "true", "hasEventMode": "false",
+                   "canReturnEarlyAfterIntermediateUpdate": "false"})
+    else:
+        cs.update({"canInterpolateInputs": "false", "maxOutputDerivativeOrder": "0",
+                   "canRunAsynchronuously": "false", "canNotUseMemoryManagementFunctions": "true",
+                   "canGetAndSetFMUstate": "true", "canSerializeFMUstate": "true",
+                   "providesDirectionalDerivative": "true"})
+    cs_el = ET.SubElement(root, "CoSimulation", cs)
+    if not fmi3 and sources:
+        files = ET.SubElement(cs_el, "SourceFiles")
+        for s in sources:
+            ET.SubElement(files, "File", name=s)
+    _unit_definitions(root, iface.units)
+    cats = ET.SubElement(root, "LogCategories")
+    for name, text in LOG_CATEGORIES:
+        ET.SubElement(cats, "Category", name=name, description=text)
+    step = float(blk.sample_period) if blk.integrator == "discrete" else 1e-3
+    ET.SubElement(root, "DefaultExperiment", startTime="0.0", stopTime=_fmt(stop_time), stepSize=_fmt(step))
+    mv = ET.SubElement(root, "ModelVariables")
+    for v in iface.variables:
+        attrs = {"name": v.name, "valueReference": str(v.vr), "causality": v.causality,
+                 "variability": v.variability}
+        if v.initial:
+            attrs["initial"] = v.initial
+        if v.description:
+            attrs["description"] = v.description
+        typed = {}
+        if v.unit:
+            typed["unit"] = v.unit
+        if v.min is not None:
+            typed["min"] = _fmt(v.min)
+        if v.max is not None:
+            typed["max"] = _fmt(v.max)
+        if v.start is not None:
+            typed["start"] = _fmt(v.start)
+        if fmi3:
+            ET.SubElement(mv, "Float64", {**attrs, **typed})
+        else:
+            sv = ET.SubElement(mv, "ScalarVariable", attrs)
+            ET.SubElement(sv, "Real", typed)
+    ms = ET.SubElement(root, "ModelStructure")
+    outputs = iface.of_kind("output")
+
+    def deps(vrs: list[int]) -> dict[str, str]:
+        refs = [str(r) if fmi3 else str(r + 1) for r in vrs]  # FMI 2 uses 1-based indices
+        return {"dependencies": " ".join(refs), "dependenciesKind": " ".join(["dependent"] * len(refs))}
+
+    if fmi3:
+        for v in outputs:
+            ET.SubElement(ms, "Output", {"valueReference": str(v.vr), **deps(iface.output_deps[v.vr])})
+        for v in outputs:
+            ET.SubElement(ms, "InitialUnknown", {"valueReference": str(v.vr), **deps(iface.initial_deps[v.vr])})
+    else:
+        if outputs:
+            el = ET.SubElement(ms, "Outputs")
+            for v in outputs:
+                ET.SubElement(el, "Unknown", {"index": str(v.vr + 1), **deps(iface.output_deps[v.vr])})
+            el = ET.SubElement(ms, "InitialUnknowns")
+            for v in outputs:
+                ET.SubElement(el, "Unknown", {"index": str(v.vr + 1), **deps(iface.initial_deps[v.vr])})
+    ET.indent(root)
+    return '<?xml version="1.0" encoding="UTF-8"?>\n' + ET.tostring(root, encoding="unicode") + "\n"
+
+
+def build_description(model_identifier: str, sources: list[str]) -> str:
+    """FMI 3.0 ``sources/buildDescription.xml`` listing the C sources to compile."""
+    root = ET.Element("fmiBuildDescription", fmiVersion="3.0")
+    conf = ET.SubElement(root, "BuildConfiguration", modelIdentifier=model_identifier)
+    fs = ET.SubElement(conf, "SourceFileSet", language="C99")
+    for s in sources:
+        ET.SubElement(fs, "SourceFile", name=s)
+    ET.indent(root)
+    return '<?xml version="1.0" encoding="UTF-8"?>\n' + ET.tostring(root, encoding="unicode") + "\n"

@@ -1,0 +1,289 @@
+"""Embedded integrators: the one-communication-step map of a :class:`~models.block.Block`.
+
+These are the exact CasADi functions that :mod:`fmus` code-generates into an FMU, so a test can
+evaluate in Python precisely what the FMU runs in C.
+
+Conventions
+-----------
+- Inputs ``u`` are held constant over a communication step (zero-order hold); blocks are
+  autonomous (time does not appear in ``ode``/``out``).
+- The step *kernel* has the signature ``(x, u, p, h) -> (x_next, ok, err)``:
+
+  ``rk4``
+      classic explicit Runge-Kutta of order 4 with ``block.substeps`` equal substeps of ``h/substeps``;
+      ``ok`` is 1 when ``x_next`` is finite.
+  ``radau``
+      implicit Radau IIA, 3 stages, order 5 (stiffly accurate, L-stable), ``block.substeps`` equal
+      substeps.  The stage equations are solved by a code-generatable Newton iteration (CasADi
+      ``fast_newton`` with a sparse QR); because ``fast_newton`` stops after ``max_iter``
+      iterations without saying whether it converged, the kernel recomputes the stage residual
+      at the returned point and accepts only if every component satisfies
+      ``|R_j| <= atol + rtol (|x_j| + |Z_j|)`` (``err`` is the largest such ratio, ``ok`` = err <= 1
+      and finite).
+  ``discrete``
+      ``ode`` is the update map ``x[k+1] = f(x[k], u, p)``; the kernel applies it once (one sample)
+      and ignores ``h``.  A communication step of ``h = n * sample_period`` applies it ``n`` times
+      (see :meth:`Stepper.samples`); any other ``h`` is refused.
+  ``none``
+      no states: ``x_next`` is empty and ``ok`` is 1.
+
+- ``err`` is 0 for the explicit kernels.
+- ``ok`` is 0.0 or 1.0.  A caller (the FMU) that gets ``ok = 0`` must discard ``x_next`` and keep
+  the state it had before the step.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from functools import cached_property
+
+import casadi as ca
+import numpy as np
+
+from .block import Block, BlockError
+
+#: Newton acceptance test of the Radau kernel: ``|R_j| <= ATOL + RTOL (|x_j| + |Z_j|)``.
+RADAU_RTOL = 1e-9
+RADAU_ATOL = 1e-12
+#: Newton iterations per Radau substep (linear problems converge in one).
+RADAU_MAX_ITER = 12
+
+_S6 = math.sqrt(6.0)
+#: Radau IIA (s = 3) Butcher tableau; ``b`` equals the last row of ``A`` (stiffly accurate).
+RADAU_A = np.array([
+    [(88 - 7 * _S6) / 360, (296 - 169 * _S6) / 1800, (-2 + 3 * _S6) / 225],
+    [(296 + 169 * _S6) / 1800, (88 + 7 * _S6) / 360, (-2 - 3 * _S6) / 225],
+    [(16 - _S6) / 36, (16 + _S6) / 36, 1 / 9],
+])
+RADAU_C = np.array([(4 - _S6) / 10, (4 + _S6) / 10, 1.0])
+
+#: Relative tolerance of "h is a multiple of the sample period" (shared with the C wrapper).
+SAMPLE_TOL = 1e-9
+
+
+class IntegratorError(BlockError):
+    """A step that cannot be taken as asked (e.g. ``h`` not a multiple of the sample period)."""
+
+
+def _all_finite(v: ca.SX | ca.MX):
+    """1 if every entry of ``v`` is finite (NaN and inf propagate through the sum), else 0."""
+    if v.numel() == 0:
+        return 1
+    return ca.sum1(ca.fabs(ca.vec(v))) < ca.inf
+
+
+def rk4_kernel(block: Block) -> ca.Function:
+    """``(x, u, p, h) -> (x_next, ok, err)``: RK4 with ``block.substeps`` substeps."""
+    f = block.functions()["ode"]
+    x, u, p, h = (ca.MX.sym(n, s) for n, s in (("x", block.x.numel()), ("u", block.u.numel()),
+                                                ("p", block.p.numel()), ("h", 1)))
+    xs, us, ps, hs = (ca.SX.sym(n, s) for n, s in (("x", block.x.numel()), ("u", block.u.numel()),
+                                                    ("p", block.p.numel()), ("h", 1)))
+    k1 = f(xs, us, ps)
+    k2 = f(xs + hs / 2 * k1, us, ps)
+    k3 = f(xs + hs / 2 * k2, us, ps)
+    k4 = f(xs + hs * k3, us, ps)
+    sub = ca.Function(f"{block.name}_rk4_sub", [xs, us, ps, hs], [xs + hs / 6 * (k1 + 2 * k2 + 2 * k3 + k4)])
+    m = block.substeps
+    xn = x
+    if m == 1:
+        xn = sub(x, u, p, h)
+    else:
+        acc = sub.mapaccum(f"{block.name}_rk4_acc", m)
+        xn = acc(x, ca.repmat(u, 1, m), ca.repmat(p, 1, m), ca.repmat(h / m, 1, m))[:, -1]
+    return ca.Function(f"{block.name}_step", [x, u, p, h], [xn, _all_finite(xn), ca.MX(0)],
+                       ["x", "u", "p", "h"], ["x_next", "ok", "err"])
+
+
+def _radau_residual(block: Block) -> ca.Function:
+    """``(Z, x, u, p, h) -> R``: the stage equations ``Z_i - h sum_j a_ij f(x + Z_j, u, p)`` with
+    the three stage increments stacked in ``Z`` (3 nx)."""
+    n = block.x.numel()
+    f = block.functions()["ode"]
+    xs, us, ps, hs = (ca.SX.sym(nm, s) for nm, s in (("x", n), ("u", block.u.numel()),
+                                                      ("p", block.p.numel()), ("h", 1)))
+    Z = ca.SX.sym("Z", 3 * n)
+    Zi = [Z[i * n:(i + 1) * n] for i in range(3)]
+    F = [f(xs + Zi[i], us, ps) for i in range(3)]
+    R = ca.vertcat(*[Zi[i] - hs * sum(float(RADAU_A[i, j]) * F[j] for j in range(3)) for i in range(3)])
+    return ca.Function(f"{block.name}_radau_res", [Z, xs, us, ps, hs], [R], ["Z", "x", "u", "p", "h"], ["R"])
+
+
+def radau_stages(block: Block, *, rtol: float = RADAU_RTOL, atol: float = RADAU_ATOL,
+                 max_iter: int = RADAU_MAX_ITER) -> ca.Function:
+    """``(x, u, p, h) -> (Z, ok, err)``: the converged stage increments of one Radau IIA step,
+    with the acceptance flag and ratio of the module docstring (Newton from ``Z = 0``)."""
+    n, nu, npar = block.x.numel(), block.u.numel(), block.p.numel()
+    res = _radau_residual(block)
+    Z, th = ca.SX.sym("Z", 3 * n), ca.SX.sym("theta", n + nu + npar + 1)
+    xs, us, ps, hs = th[:n], th[n:n + nu], th[n + nu:n + nu + npar], th[-1]
+    R = res(Z, xs, us, ps, hs)
+    sc_x = ca.repmat(atol + rtol * ca.fabs(xs), 3, 1)
+    # Row scaling by a function of the parameters leaves the Newton iterates unchanged; it turns
+    # fast_newton's absolute test (abstol = 1) into a relative one in the state's own units.
+    g = ca.Function(f"{block.name}_radau_scaled", [Z, th], [R / sc_x])
+    rf = ca.rootfinder(f"{block.name}_radau_newton", "fast_newton", g,
+                       {"linear_solver": "qr", "max_iter": int(max_iter), "abstol": 1.0,
+                        "abstolStep": 0.0})
+    # acceptance: the residual at the returned point, against a scale that also counts |Z|
+    ratio = ca.Function(f"{block.name}_radau_check", [Z, th], [ca.fabs(R) / (sc_x + rtol * ca.fabs(Z))])
+    x, u, p, h = (ca.MX.sym(nm, s) for nm, s in (("x", n), ("u", nu), ("p", npar), ("h", 1)))
+    theta = ca.vertcat(x, u, p, h)
+    Zsol = rf(ca.MX.zeros(3 * n), theta)
+    r = ratio(Zsol, theta)
+    err = ca.mmax(r)
+    ok = ca.logic_and(ca.logic_and(err <= 1.0, _all_finite(r)), _all_finite(Zsol))
+    return ca.Function(f"{block.name}_radau_stages", [x, u, p, h], [Zsol, ok, err],
+                       ["x", "u", "p", "h"], ["Z", "ok", "err"])
+
+
+def radau_substep(block: Block, **newton) -> ca.Function:
+    """One Radau IIA step ``(x, u, p, h) -> (x_next, ok, err)``; ``x_next = x + Z_3`` since the
+    method is stiffly accurate."""
+    n = block.x.numel()
+    stages = radau_stages(block, **newton)
+    x, u, p, h = (ca.MX.sym(nm, s) for nm, s in (("x", n), ("u", block.u.numel()),
+                                                  ("p", block.p.numel()), ("h", 1)))
+    Z, ok, err = stages(x, u, p, h)
+    return ca.Function(f"{block.name}_radau_sub", [x, u, p, h], [x + Z[2 * n:3 * n], ok, err],
+                       ["x", "u", "p", "h"], ["x_next", "ok", "err"])
+
+
+def radau_kernel(block: Block, **newton) -> ca.Function:
+    """``(x, u, p, h) -> (x_next, ok, err)``: Radau IIA with ``block.substeps`` substeps.
+
+    ``ok`` is the minimum over substeps and ``err`` the maximum."""
+    sub = radau_substep(block, **newton)
+    x, u, p, h = (ca.MX.sym(nm, s) for nm, s in (("x", block.x.numel()), ("u", block.u.numel()),
+                                                  ("p", block.p.numel()), ("h", 1)))
+    m = block.substeps
+    if m == 1:
+        xn, ok, err = sub(x, u, p, h)
+    else:
+        acc = sub.mapaccum(f"{block.name}_radau_acc", m)
+        xs, oks, errs = acc(x, ca.repmat(u, 1, m), ca.repmat(p, 1, m), ca.repmat(h / m, 1, m))
+        xn, ok, err = xs[:, -1], ca.mmin(oks), ca.mmax(errs)
+    return ca.Function(f"{block.name}_step", [x, u, p, h], [xn, ok, err],
+                       ["x", "u", "p", "h"], ["x_next", "ok", "err"])
+
+
+def discrete_kernel(block: Block) -> ca.Function:
+    """``(x, u, p, h) -> (x_next, ok, err)``: one application of the update map (``h`` unused)."""
+    x, u, p, h = (ca.SX.sym(nm, s) for nm, s in (("x", block.x.numel()), ("u", block.u.numel()),
+                                                  ("p", block.p.numel()), ("h", 1)))
+    xn = block.functions()["ode"](x, u, p)
+    return ca.Function(f"{block.name}_step", [x, u, p, h], [xn, _all_finite(xn), ca.SX(0)],
+                       ["x", "u", "p", "h"], ["x_next", "ok", "err"])
+
+
+def none_kernel(block: Block) -> ca.Function:
+    """``(x, u, p, h) -> (x_next, ok, err)`` for a block without states."""
+    x, u, p, h = (ca.SX.sym(nm, s) for nm, s in (("x", 0), ("u", block.u.numel()),
+                                                  ("p", block.p.numel()), ("h", 1)))
+    return ca.Function(f"{block.name}_step", [x, u, p, h], [ca.SX(0, 1), ca.SX(1), ca.SX(0)],
+                       ["x", "u", "p", "h"], ["x_next", "ok", "err"])
+
+
+@dataclass
+class Stepper:
+    """The step kernel of ``block`` and the functions an FMU needs besides it.
+
+    ``step(x, u, p, h)`` runs ``samples(h)`` kernel calls, as the FMU does, and returns
+    ``(x_next, ok)``; on failure ``x_next`` is the unchanged ``x``.
+    """
+
+    block: Block
+
+    def __post_init__(self) -> None:
+        blk = self.block
+        blk.check()
+        if blk.integrator == "none" and blk.x.numel():
+            raise BlockError(f"block {blk.name}: integrator 'none' but {blk.x.numel()} states "
+                             f"({', '.join(v.name for v in blk.states)}); choose rk4, radau or discrete")
+        if blk.integrator != "none" and blk.x.numel() == 0:
+            raise BlockError(f"block {blk.name}: integrator {blk.integrator!r} but the block has no "
+                             f"states; use integrator='none'")
+
+    @cached_property
+    def kernel(self) -> ca.Function:
+        """``(x, u, p, h) -> (x_next, ok, err)`` (see the module docstring)."""
+        kind = self.block.integrator
+        return {"rk4": rk4_kernel, "radau": radau_kernel, "discrete": discrete_kernel,
+                "none": none_kernel}[kind](self.block)
+
+    @cached_property
+    def out(self) -> ca.Function:
+        """``(x, u, p) -> y``."""
+        return self.block.functions()["out"]
+
+    @cached_property
+    def start(self) -> ca.Function:
+        """``p -> x0``."""
+        return self.block.functions()["start"]
+
+    @cached_property
+    def out_jacobian(self) -> ca.Function:
+        """``(x, u, p) -> [dy/dx, dy/du, dy/dp]``: a dense ``ny x (nx + nu + np)`` matrix, the
+        partial derivatives the FMU's directional-derivative call returns."""
+        b = self.block
+        J = ca.jacobian(b.out, ca.vertcat(b.x, b.u, b.p)) if b.out.numel() else ca.SX(0, b.x.numel() + b.u.numel() + b.p.numel())
+        return ca.Function(f"{b.name}_out_jac", [b.x, b.u, b.p], [ca.densify(J)], ["x", "u", "p"], ["J"])
+
+    def samples(self, h: float) -> int:
+        """Kernel calls for a communication step ``h`` [s]: ``h / sample_period`` for a discrete
+        block (refused unless a whole multiple), else 1."""
+        if not (h > 0 and math.isfinite(h)):
+            raise IntegratorError(f"block {self.block.name}: communication step h = {h} must be positive and finite")
+        if self.block.integrator != "discrete":
+            return 1
+        ts = float(self.block.sample_period)
+        n = round(h / ts)
+        if n < 1 or abs(n * ts - h) > SAMPLE_TOL * max(h, ts):
+            raise IntegratorError(f"block {self.block.name}: communication step h = {h} s is not a whole "
+                                  f"multiple of the sample period {ts} s")
+        return n
+
+    def step(self, x, u, p, h: float) -> tuple[np.ndarray, bool]:
+        """Advance the state by one communication step ``h`` [s]; ``(x_next, ok)``."""
+        x0 = np.asarray(x, dtype=float).reshape(-1)
+        xk = x0
+        for _ in range(self.samples(h)):
+            xn, ok, _err = self.kernel(xk, u, p, h)
+            if float(ok) != 1.0:
+                return x0.copy(), False
+            xk = np.asarray(xn, dtype=float).reshape(-1)
+        return xk, True
+
+
+def step_jacobian(block: Block, **newton) -> ca.Function:
+    """``(x, u, p, h) -> (dx_next/dx, dx_next/du)`` of one communication step.
+
+    For Radau the derivatives come from the implicit function theorem at the converged stages
+    (``dZ = -R_Z^-1 (R_x dx + R_u du)``, chained over substeps), never by differentiating through
+    the rootfinder, which would blow up the generated code.  For RK4 they are the algorithmic
+    derivatives of the explicit map; for a discrete block, of one sample."""
+    b = block
+    nx, nu = b.x.numel(), b.u.numel()
+    x, u, p, h = (ca.MX.sym(nm, s) for nm, s in (("x", nx), ("u", nu), ("p", b.p.numel()), ("h", 1)))
+    if b.integrator != "radau":
+        xn = Stepper(b).kernel(x, u, p, h)[0]
+        return ca.Function(f"{b.name}_step_jac", [x, u, p, h], [ca.jacobian(xn, x), ca.jacobian(xn, u)],
+                           ["x", "u", "p", "h"], ["A", "B"])
+    stages = radau_stages(b, **newton)
+    res = _radau_residual(b)
+    Zs, xs, us, ps, hs = (ca.SX.sym(nm, s) for nm, s in (("Z", 3 * nx), ("x", nx), ("u", nu),
+                                                          ("p", b.p.numel()), ("h", 1)))
+    R = res(Zs, xs, us, ps, hs)
+    sens = ca.Function(f"{b.name}_radau_sens", [Zs, xs, us, ps, hs],
+                       [ca.jacobian(R, Zs), ca.jacobian(R, xs), ca.jacobian(R, us)])
+    hk = h / b.substeps
+    A, B, xk = ca.MX.eye(nx), ca.MX(nx, nu), x
+    for _ in range(b.substeps):
+        Zk = stages(xk, u, p, hk)[0]
+        RZ, Rx, Ru = sens(Zk, xk, u, p, hk)
+        dZ = -ca.solve(RZ, ca.horzcat(Rx, Ru))
+        Ax = ca.MX.eye(nx) + dZ[2 * nx:3 * nx, :nx]
+        Bu = dZ[2 * nx:3 * nx, nx:]
+        A, B = Ax @ A, Ax @ B + Bu
+        xk = xk + Zk[2 * nx:3 * nx]
+    return ca.Function(f"{b.name}_step_jac", [x, u, p, h], [A, B], ["x", "u", "p", "h"], ["A", "B"])
