@@ -71,6 +71,8 @@ def check_block(block: Block) -> Stepper:
         raise BuildError(f"block {block.name!r}: the name must be a C identifier (letters, digits, '_', "
                          f"starting with a letter)")
     check_names(block)
+    if isinstance(block.substeps, bool) or not isinstance(block.substeps, (int, np.integer)):
+        raise BuildError(f"block {block.name}: substeps must be a whole number, got {block.substeps!r}")
     try:
         stepper = Stepper(block)
     except BlockError as exc:

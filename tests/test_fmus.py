@@ -8,7 +8,9 @@ from __future__ import annotations
 
 import math
 import shutil
+import sys
 import threading
+import types
 import xml.etree.ElementTree as ET
 import zipfile
 from ctypes import byref
@@ -489,6 +491,7 @@ MALFORMED = {
     "unknown unit": (lambda: _renamed("y", "Nm"), {}, r"bad.*'y' has unit 'Nm'"),
     "none integrator with states": (_none_with_states, {}, r"msd.*integrator 'none' but 2 states"),
     "bad block name": (_bad_block_name, {}, r"my-lag.*C identifier"),
+    "substeps not whole": (lambda: msd_block(integrator="rk4", substeps=2.5), {}, r"msd.*substeps must be a whole"),
     "bad FMI version": (lambda: msd_block(), {"fmi_version": "1.0"}, r"fmi_version '1.0'"),
 }
 
@@ -499,3 +502,52 @@ def test_malformed_block_fails_before_any_c_is_compiled(case, tmp_path, monkeypa
     monkeypatch.setattr(fmus.build, "compile_library", lambda *a, **k: pytest.fail("the compiler ran"))
     with pytest.raises(BuildError, match=pattern):
         fmus.build_fmu(make(), cache_dir=tmp_path, **kwargs)
+
+
+# --- the CLI ------------------------------------------------------------------------------------
+@pytest.fixture
+def fake_catalog(monkeypatch):
+    """A stand-in ``models.blocks`` with the test blocks, so the CLI is tested on its own."""
+    mod = types.ModuleType("models.blocks")
+    mod.catalog = lambda: {"msd": ["radau", "rk4"], "lag": ["default"]}
+
+    def make(model, fidelity=None, **options):
+        if model == "msd":
+            return msd_block(integrator=fidelity or "radau", **options)
+        return lag_block(**options)
+
+    mod.make = make
+    monkeypatch.setitem(sys.modules, "models.blocks", mod)
+    return mod
+
+
+def test_cli_build_with_overrides_and_list(fake_catalog, cache, tmp_path, capsys):
+    from cosim import cli
+
+    rc = cli.main(["fmu", "build", "msd", "--fidelity", "rk4", "--set", "k=250", "--set", "substeps=3",
+                   "--fmi", "3", "--cache", str(cache), "--out", str(tmp_path)])
+    out, err = capsys.readouterr()
+    assert rc == 0
+    path = Path(out.strip())
+    assert path.parent == tmp_path and path.is_file() and "[fmu] msd" in err
+    md = fmpy.read_model_description(str(path))
+    assert md.fmiVersion == "3.0" and {v.name: float(v.start) for v in md.modelVariables if v.start}["k"] == 250.0
+    rc = cli.main(["fmu", "list", "--cache", str(cache)])
+    out, _ = capsys.readouterr()
+    assert rc == 0 and "radau, rk4" in out and "msd" in out and "cached FMUs" in out
+
+
+@pytest.mark.parametrize("argv,message", [
+    (["fmu", "build", "robot"], "unknown model 'robot'"),
+    (["fmu", "build", "msd", "--fidelity", "euler"], "no fidelity 'euler'"),
+    (["fmu", "build", "msd", "--set", "k"], "expected NAME=VALUE"),
+    (["fmu", "build", "msd", "--set", "m=-2"], "parameter 'm' = -2.0 is outside"),
+])
+def test_cli_mistakes_are_one_line(fake_catalog, cache, capsys, argv, message):
+    from cosim import cli
+
+    rc = cli.main(argv + ["--cache", str(cache)])
+    _, err = capsys.readouterr()
+    assert rc == 2
+    lines = [ln for ln in err.splitlines() if ln.startswith("rpr-cosim")]
+    assert len(lines) == 1 and message in lines[0], err

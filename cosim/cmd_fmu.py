@@ -1,0 +1,132 @@
+"""``rpr-cosim fmu``: build co-simulation FMUs from the model catalog and list the cache.
+
+    rpr-cosim fmu build MODEL [--fidelity F] [--set name=value ...] [--fmi 2|3] [--out DIR] [--cache DIR]
+    rpr-cosim fmu list [--cache DIR]
+    rpr-cosim fmu check FMU
+
+``build`` prints the FMU's path on stdout (progress goes to stderr).  ``--set`` values that are
+numbers and name a parameter of the block override its default (the FMU's start value); any
+other ``--set`` is a construction option of ``models.blocks.make`` (e.g. ``config=cross_leg``).
+"""
+from __future__ import annotations
+
+import argparse
+import shutil
+import sys
+from pathlib import Path
+
+from .errors import UserError
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("fmu", help="build co-simulation FMUs and list the FMU cache",
+                       description="Build FMI 2.0/3.0 co-simulation FMUs from the model catalog.")
+    verbs = p.add_subparsers(dest="fmu_verb", metavar="ACTION")
+    verbs.required = True
+    b = verbs.add_parser("build", help="build (or fetch from the cache) one FMU")
+    b.add_argument("model", help="catalog model, e.g. mechanism, dc_motor, pid, pose_setpoint")
+    b.add_argument("--fidelity", help="fidelity level (default: the model's first)")
+    b.add_argument("--set", dest="sets", action="append", default=[], metavar="NAME=VALUE",
+                   help="parameter override or construction option; repeatable")
+    b.add_argument("--fmi", choices=["2", "3"], default="2", help="FMI version (default 2)")
+    b.add_argument("--out", type=Path, help="also copy the FMU into this directory")
+    b.add_argument("--cache", type=Path, help="cache directory (default $RPR_COSIM_CACHE or ~/.cache/rpr-cosim/fmus)")
+    b.set_defaults(handler=_build)
+    ls = verbs.add_parser("list", help="show the model catalog and the cached FMUs")
+    ls.add_argument("--cache", type=Path, help="cache directory")
+    ls.set_defaults(handler=_list)
+    ck = verbs.add_parser("check", help="validate an FMU's modelDescription.xml (FMPy's checks)")
+    ck.add_argument("fmu", type=Path)
+    ck.set_defaults(handler=_check)
+
+
+def _blocks():
+    try:
+        import models.blocks as blocks
+    except ModuleNotFoundError as exc:
+        if exc.name in ("models.blocks",):
+            raise UserError("the model catalog (models.blocks) is not installed in this build") from None
+        raise
+    return blocks
+
+
+def _parse_sets(items: list[str]) -> tuple[dict[str, str], dict[str, int | float]]:
+    """Split ``NAME=VALUE`` items into words and numbers (int when the text is a whole number)."""
+    words: dict[str, str] = {}
+    numbers: dict[str, int | float] = {}
+    for item in items:
+        name, sep, value = item.partition("=")
+        name, value = name.strip(), value.strip()
+        if not sep or not name or not value:
+            raise UserError(f"--set {item!r}: expected NAME=VALUE, e.g. --set Kp=30 or --set config=cross_leg")
+        for kind in (int, float):
+            try:
+                numbers[name] = kind(value)
+                break
+            except ValueError:
+                continue
+        else:
+            words[name] = value
+    return words, numbers
+
+
+def _build(args: argparse.Namespace) -> int:
+    import fmus
+
+    blocks = _blocks()
+    catalog = blocks.catalog()
+    if args.model not in catalog:
+        raise UserError(f"unknown model {args.model!r}; expected one of {', '.join(sorted(catalog))}")
+    if args.fidelity is not None and args.fidelity not in catalog[args.model]:
+        raise UserError(f"model {args.model!r} has no fidelity {args.fidelity!r}; expected one of "
+                        f"{', '.join(catalog[args.model])}")
+    words, numbers = _parse_sets(args.sets)
+    block = blocks.make(args.model, args.fidelity, **words)
+    names = {p.name for p in block.params}
+    overrides = {k: v for k, v in numbers.items() if k in names}
+    options = {k: v for k, v in numbers.items() if k not in names}
+    if options:  # numeric construction options: let make() judge them
+        block = blocks.make(args.model, args.fidelity, **words, **options)
+    path = fmus.build_fmu(block, fmi_version=args.fmi + ".0", cache_dir=args.cache, params=overrides,
+                          progress=lambda msg: print(f"[fmu] {msg}", file=sys.stderr))
+    if args.out:
+        args.out.mkdir(parents=True, exist_ok=True)
+        dest = args.out / path.name
+        shutil.copyfile(path, dest)
+        path = dest
+    print(path)
+    return 0
+
+
+def _list(args: argparse.Namespace) -> int:
+    import fmus
+
+    try:
+        catalog = _blocks().catalog()
+    except UserError as exc:
+        print(f"catalog: {exc}")
+    else:
+        print("catalog:")
+        for model in sorted(catalog):
+            print(f"  {model:<14} {', '.join(catalog[model])}")
+    rows = fmus.cached_fmus(args.cache)
+    print(f"cached FMUs in {fmus.cache_root(args.cache)}: {len(rows)}")
+    if rows:
+        print(f"  {'model identifier':<24} {'FMI':>3} {'integrator':<10} {'states':>6} {'build s':>7}  file")
+        for path, rec in rows:
+            print(f"  {rec.get('model_identifier', path.stem):<24} {rec.get('fmi_version', '?'):>3} "
+                  f"{rec.get('integrator', '?'):<10} {rec.get('states', '?'):>6} "
+                  f"{rec.get('total_s', float('nan')):>7.2f}  {path}")
+    return 0
+
+
+def _check(args: argparse.Namespace) -> int:
+    from fmpy.validation import validate_fmu
+
+    if not args.fmu.is_file():
+        raise UserError(f"{args.fmu}: no such FMU file")
+    problems = validate_fmu(str(args.fmu))
+    for p in problems:
+        print(p)
+    print(f"{args.fmu}: {len(problems)} problem(s)", file=sys.stderr)
+    return min(len(problems), 100)
