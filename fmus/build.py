@@ -15,7 +15,7 @@ from models.block import Block
 from . import codegen
 from .cache import EXPORTER_VERSION, KEY_LENGTH, atomic_write, cache_root, content_key
 from .compile import (CFLAGS, LDFLAGS, compile_library, compiler, compiler_version, exported_symbols,
-                      library_suffix, pack, platform_dirs)
+                      library_suffix, optimisation, pack, platform_dirs)
 from .errors import BuildError
 from .model_description import build_description, model_description
 
@@ -62,7 +62,8 @@ def build_fmu(block: Block, *, fmi_version: str = "2.0", cache_dir: Path | None 
     xml = model_description(gen.iface, fmi_version=version, guid=_PLACEHOLDER, model_identifier=ident,
                             sources=c_sources)
     cc = compiler()
-    key = content_key([("exporter", EXPORTER_VERSION), ("fmi", version), ("cflags", " ".join(CFLAGS)),
+    opt = optimisation(len(files["rpr_casadi.c"]))
+    key = content_key([("exporter", EXPORTER_VERSION), ("fmi", version), ("cflags", " ".join((opt, *CFLAGS))),
                        ("ldflags", " ".join(LDFLAGS)), ("cc", compiler_version(cc)), ("xml", xml),
                        *((f"src/{n}", t) for n, t in files.items())])
     guid = "{" + str(uuid.UUID(key[:32])) + "}"
@@ -82,7 +83,7 @@ def build_fmu(block: Block, *, fmi_version: str = "2.0", cache_dir: Path | None 
             (tmp / name).write_text(text)
         lib = tmp / f"{ident}{library_suffix()}"
         t1 = time.perf_counter()
-        compile_library(tmp, c_sources, lib, block_name=blk.name)
+        compile_library(tmp, c_sources, lib, block_name=blk.name, opt=opt)
         t_cc = time.perf_counter() - t1
         prefix = "fmi2" if version == "2.0" else "fmi3"
         leaked = [s for s in exported_symbols(lib) if not s.startswith(prefix) and not s.startswith("_")]
@@ -106,7 +107,7 @@ def build_fmu(block: Block, *, fmi_version: str = "2.0", cache_dir: Path | None 
                   "states": len(blk.states), "inputs": len(blk.inputs), "outputs": len(blk.outputs),
                   "parameters": {p.name: p.default for p in blk.params},
                   "codegen_s": round(t_gen, 4), "compile_s": round(t_cc, 4), "total_s": round(total, 4),
-                  "c_bytes": c_bytes, "fmu_bytes": out.stat().st_size,
+                  "c_bytes": c_bytes, "optimisation": opt, "fmu_bytes": out.stat().st_size,
                   "created": time.strftime("%Y-%m-%dT%H:%M:%S%z")}
         atomic_write(target.with_name("build.json"), json.dumps(record, indent=2).encode())
         out.replace(target)  # atomic: a concurrent build of the same key writes the same bytes
