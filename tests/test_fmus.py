@@ -246,6 +246,21 @@ def test_discard_is_logged_with_the_block_name(cache):
     sl.free()
 
 
+@pytest.mark.parametrize("version", VERSIONS)
+def test_debug_logging_categories(version, cache):
+    logs: list = []
+    sl = Slave(fmus.build_fmu(stiff_block(), fmi_version=version, cache_dir=cache), logs=logs)
+    sl.step(1e-3)
+    assert not any("residual/tolerance" in m for _, m in logs)  # off by default
+    sl.fmu.setDebugLogging(True, ["logNonlinearSystems"])
+    sl.step(1e-3)
+    assert any(status == 0 and "Radau IIA residual/tolerance" in m for status, m in logs)
+    with pytest.raises(FMICallException):
+        sl.fmu.setDebugLogging(True, ["logNoSuchThing"])
+    assert any("unknown log category 'logNoSuchThing'" in m for _, m in logs)
+    sl.free()
+
+
 # --- instances, rollback, serialisation -----------------------------------------------------------
 @pytest.mark.parametrize("version", VERSIONS)
 def test_two_instances_with_different_parameters_in_one_process(version, cache):
