@@ -282,6 +282,22 @@ def test_two_instances_with_different_parameters_in_one_process(version, cache):
     b.free()
 
 
+def test_two_fmus_with_the_same_model_identifier_in_one_process(cache):
+    """Builds of one block with different defaults share the identifier 'msd' (and the library
+    name); loaded together, each runs its own code and defaults."""
+    soft = Slave(fmus.build_fmu(msd_block(), cache_dir=cache, params={"k": 100.0}), "soft")
+    hard = Slave(fmus.build_fmu(msd_block(), cache_dir=cache, params={"k": 250.0}), "hard")
+    for _ in range(50):
+        soft.step(0.02)
+        hard.step(0.02)
+    # Radau at h w = 0.2 and 0.32: errors ~1e-8 and ~1e-7; the two solutions differ by ~1e-2
+    np.testing.assert_allclose(soft.get("body.s", "body.v"), msd_exact(1.0, m=1, k=100, c=2, s0=0.01), atol=1e-7)
+    np.testing.assert_allclose(hard.get("body.s", "body.v"), msd_exact(1.0, m=1, k=250, c=2, s0=0.01), atol=1e-6)
+    assert np.max(np.abs(soft.get("body.s", "body.v") - hard.get("body.s", "body.v"))) > 5e-3
+    soft.free()
+    hard.free()
+
+
 @pytest.mark.parametrize("version", VERSIONS)
 @pytest.mark.parametrize("case", ["stiff_radau", "msd_rk4", "lag_discrete"])
 def test_rollback_is_bit_exact(case, version, cache):
