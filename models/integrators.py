@@ -14,12 +14,12 @@ Conventions
       ``ok`` is 1 when ``x_next`` is finite.
   ``radau``
       implicit Radau IIA, 3 stages, order 5 (stiffly accurate, L-stable), ``block.substeps`` equal
-      substeps.  The stage equations are solved by a code-generatable Newton iteration (CasADi
-      ``fast_newton`` with a sparse QR); because ``fast_newton`` stops after ``max_iter``
-      iterations without saying whether it converged, the kernel recomputes the stage residual
-      at the returned point and accepts only if every component satisfies
-      ``|R_j| <= atol + rtol (|x_j| + |Z_j|)`` (``err`` is the largest such ratio, ``ok`` = err <= 1
-      and finite).
+      substeps.  The stage equations are solved by a code-generatable simplified Newton
+      iteration (CasADi ``fast_newton`` with a sparse QR, see :func:`radau_stages`).  Because
+      ``fast_newton`` stops after ``max_iter`` iterations without saying whether it converged,
+      the kernel takes one more Newton correction ``dZ`` at the returned point and accepts only
+      if every component satisfies ``|dZ_j| <= atol + rtol (|x_j| + |Z_j|)`` (``err`` is the
+      largest such ratio, ``ok`` = err <= 1 and finite).
   ``discrete``
       ``ode`` is the update map ``x[k+1] = f(x[k], u, p)``; the kernel applies it once (one sample)
       and ignores ``h``.  A communication step of ``h = n * sample_period`` applies it ``n`` times
@@ -42,11 +42,13 @@ import numpy as np
 
 from .block import Block, BlockError
 
-#: Newton acceptance test of the Radau kernel: ``|R_j| <= ATOL + RTOL (|x_j| + |Z_j|)``.
+#: Newton acceptance test of the Radau kernel: ``|dZ_j| <= ATOL + RTOL (|x_j| + |Z_j|)``.
 RADAU_RTOL = 1e-9
 RADAU_ATOL = 1e-12
 #: Simplified-Newton iterations per Radau substep (linear problems converge in one).
 RADAU_MAX_ITER = 30
+#: The Newton iteration stops once a correction is below this fraction of ``ATOL + RTOL |x|``.
+NEWTON_STEP = 0.1
 
 _S6 = math.sqrt(6.0)
 #: Radau IIA (s = 3) Butcher tableau; ``b`` equals the last row of ``A`` (stiffly accurate).
@@ -115,41 +117,53 @@ def radau_stages(block: Block, *, rtol: float = RADAU_RTOL, atol: float = RADAU_
     """``(x, u, p, h) -> (Z, ok, err)``: the converged stage increments of one Radau IIA step,
     with the acceptance flag and ratio of the module docstring.
 
-    Simplified Newton from ``Z = 0``: the iteration matrix is ``I - h A (x) J0`` with the ODE
+    Simplified Newton from ``Z = 0``: the iteration matrix is ``M0 = I - h A (x) J0`` with the ODE
     Jacobian ``J0 = df/dx`` taken once, at the start of the step (the classic choice of Radau5).
     ``J0`` enters the rootfinder as a parameter and the ODE calls are wrapped in ``stop_diff``,
     so the generated code holds ``f`` and ``df/dx`` once each, never a derivative of the stage
-    equations (exact Newton would inline three copies of ``df/dx`` and triple the C).  The
-    residual itself is exact, so a converged point solves the true stage equations."""
+    equations (exact Newton would inline three copies of ``df/dx``).  The unknowns are scaled by
+    ``sc = atol + rtol |x|`` (Newton is affine invariant, so the iterates do not change) and the
+    iteration stops once a correction is below ``NEWTON_STEP * sc``.
+
+    Acceptance uses the size of one more simplified-Newton correction ``M0^-1 R(Z)`` at the
+    returned point, i.e. the error left in ``Z``, not the raw residual: a residual of a stiff
+    component carries round-off of order ``eps * k * |x|`` that ``M0^-1`` damps away."""
     n, nu, npar = block.x.numel(), block.u.numel(), block.p.numel()
     f = block.functions()["ode"]
     jac = ca.jacobian(block.ode, block.x)
     sp = jac.sparsity()
     J_nz = ca.vertcat(*jac.nonzeros()) if jac.nnz() else ca.SX(0, 1)
     fx = ca.Function(f"{block.name}_ode_jac", [block.x, block.u, block.p], [J_nz], ["x", "u", "p"], ["J_nz"])
-    Z = ca.MX.sym("Z", 3 * n)
+    A = ca.DM(RADAU_A)
+
+    def iteration_matrix(J0, h):
+        return ca.MX.eye(3 * n) - h * ca.kron(A, J0)
+
+    W = ca.MX.sym("W", 3 * n)
     th = ca.MX.sym("theta", n + nu + npar + 1 + sp.nnz())
     xs, us, ps, hs = th[:n], th[n:n + nu], th[n + nu:n + nu + npar], th[n + nu + npar]
     J0 = ca.MX(sp, th[n + nu + npar + 1:]) if sp.nnz() else ca.MX(n, n)
+    sc = ca.repmat(atol + rtol * ca.fabs(xs), 3, 1)
+    Z = sc * W
     Zi = [Z[i * n:(i + 1) * n] for i in range(3)]
     F = [f(xs + Zi[i], us, ps) for i in range(3)]
     hAF = ca.vertcat(*[hs * sum(float(RADAU_A[i, j]) * F[j] for j in range(3)) for i in range(3)])
     JZ = [ca.mtimes(J0, Zi[j]) for j in range(3)]
     MZ = ca.vertcat(*[hs * sum(float(RADAU_A[i, j]) * JZ[j] for j in range(3)) for i in range(3)])
-    # value: Z - h A F(x + Z) exactly (the bracket is 0.0); derivative: I - h A (x) J0
+    # value: Z - h A F(x + Z) exactly (the bracket is 0.0); derivative: (I - h A (x) J0) diag(sc)
     R = (Z - ca.stop_diff(hAF, 1)) - (MZ - ca.stop_diff(MZ, 1))
-    sc_x = ca.repmat(atol + rtol * ca.fabs(xs), 3, 1)
-    # Row scaling by a function of the parameters leaves the Newton iterates unchanged; it turns
-    # fast_newton's absolute test (abstol = 1) into a relative one in the state's own units.
-    g = ca.Function(f"{block.name}_radau_scaled", [Z, th], [R / sc_x])
+    g = ca.Function(f"{block.name}_radau_scaled", [W, th], [R / sc])
     rf = ca.rootfinder(f"{block.name}_radau_newton", "fast_newton", g,
-                       {"linear_solver": "qr", "max_iter": int(max_iter), "abstol": 1.0,
-                        "abstolStep": 0.0, "error_on_fail": False})
-    # acceptance: the exact residual at the returned point, against a scale that also counts |Z|
+                       {"linear_solver": "qr", "max_iter": int(max_iter), "abstol": 0.0,
+                        "abstolStep": NEWTON_STEP, "error_on_fail": False})
     res = _radau_residual(block)
     x, u, p, h = (ca.MX.sym(nm, s) for nm, s in (("x", n), ("u", nu), ("p", npar), ("h", 1)))
-    Zsol = rf(ca.MX.zeros(3 * n), ca.vertcat(x, u, p, h, fx(x, u, p)))
-    r = ca.fabs(res(Zsol, x, u, p, h)) / (ca.repmat(atol + rtol * ca.fabs(x), 3, 1) + rtol * ca.fabs(Zsol))
+    jx = fx(x, u, p)
+    scale = ca.repmat(atol + rtol * ca.fabs(x), 3, 1)
+    Zsol = scale * rf(ca.MX.zeros(3 * n), ca.vertcat(x, u, p, h, jx))
+    M0 = iteration_matrix(ca.MX(sp, jx) if sp.nnz() else ca.MX(n, n), h)
+    dZ = ca.solve(M0, res(Zsol, x, u, p, h), "qr")
+    r = ca.fabs(dZ) / (scale + rtol * ca.fabs(Zsol))
     err = ca.mmax(r)
     ok = ca.logic_and(ca.logic_and(err <= 1.0, _all_finite(r)), _all_finite(Zsol))
     return ca.Function(f"{block.name}_radau_stages", [x, u, p, h], [Zsol, ok, err],
