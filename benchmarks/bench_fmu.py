@@ -104,11 +104,50 @@ def _lag() -> Block:
                        sample_period=1e-3)
 
 
+def _chain(nb: int = 7) -> Block:
+    """``nb`` planar rigid bodies (0.3 m, 1 kg, 0.03 kg m2) in a chain, joined end to end by
+    stiff spring-dampers (1e8 N/m, 2000 N s/m): a stand-in of the multibody mechanism's size
+    (6 nb states) and stiffness."""
+    x, u, p = ca.SX.sym("x", 6 * nb), ca.SX.sym("u", 3), ca.SX.sym("p", 4)
+    k, c, m, inertia = p[0], p[1], p[2], p[3]
+    half = 0.15
+    wrench = [[0, 0, 0] for _ in range(nb)]
+    for i in range(nb - 1):
+        a, b = x[6 * i:6 * i + 6], x[6 * i + 6:6 * i + 12]
+        ra = half * ca.vertcat(ca.cos(a[2]), ca.sin(a[2]))
+        rb = -half * ca.vertcat(ca.cos(b[2]), ca.sin(b[2]))
+        va = a[3:5] + a[5] * ca.vertcat(-ra[1], ra[0])
+        vb = b[3:5] + b[5] * ca.vertcat(-rb[1], rb[0])
+        f = k * (b[0:2] + rb - a[0:2] - ra) + c * (vb - va)
+        for j, (r, sgn) in ((i, (ra, 1)), (i + 1, (rb, -1))):
+            wrench[j] = [wrench[j][0] + sgn * f[0], wrench[j][1] + sgn * f[1],
+                         wrench[j][2] + sgn * (r[0] * f[1] - r[1] * f[0])]
+    wrench[0][0] += u[0]
+    wrench[0][1] += u[1]
+    wrench[-1][2] += u[2]
+    ode = []
+    for i in range(nb):
+        ode += [x[6 * i + 3], x[6 * i + 4], x[6 * i + 5], wrench[i][0] / m, wrench[i][1] / m, wrench[i][2] / inertia]
+    start = []
+    for i in range(nb):
+        start += [2 * half * i, 0.0, 0.0, 0.0, 0.0, 0.0]
+    states = [Var(f"body[{i + 1}].{q}") for i in range(nb) for q in ("x", "y", "phi", "vx", "vy", "omega")]
+    return Block.build("ref_chain", description="stiff chain of planar bodies",
+                       params=[Param("k", 1e8, "N/m", 0.0), Param("c", 2000.0, "N.s/m", 0.0),
+                               Param("m", 1.0, "kg", 1e-9), Param("I", 0.03, "kg.m2", 1e-12)],
+                       inputs=[Var("fx", "N"), Var("fy", "N"), Var("tz", "N.m")],
+                       outputs=[Var(f"position[{i + 1}].x", "m") for i in range(nb)],
+                       states=states,
+                       p=p, u=u, x=x, ode=ca.vertcat(*ode), out=ca.vertcat(*[x[6 * i] for i in range(nb)]),
+                       start=ca.DM(start), integrator="radau")
+
+
 def reference_blocks() -> list[tuple[str, Block, float]]:
     """(label, block, build-time target [s])."""
     return [("ref msd rk4 x4", _msd("ref_msd", 1.0, 100.0, 2.0, "rk4", 4), 5.0),
             ("ref stiff joint radau", _msd("ref_stiff", 1.0, 1e8, 2000.0, "radau", 1), 5.0),
-            ("ref lag discrete", _lag(), 5.0)]
+            ("ref lag discrete", _lag(), 5.0),
+            ("ref 7-body stiff chain", _chain(), 30.0)]
 
 
 def catalog_blocks() -> list[tuple[str, Block, float]]:

@@ -44,7 +44,7 @@ from .block import Block, BlockError
 
 #: Newton acceptance test of the Radau kernel: ``|dZ_j| <= ATOL + RTOL (|x_j| + |Z_j|)``.
 RADAU_RTOL = 1e-9
-RADAU_ATOL = 1e-12
+RADAU_ATOL = 1e-10
 #: Simplified-Newton iterations per Radau substep (linear problems converge in one).
 RADAU_MAX_ITER = 30
 #: The Newton iteration stops once a correction is below this fraction of ``ATOL + RTOL |x|``.
@@ -58,6 +58,27 @@ RADAU_A = np.array([
     [(16 - _S6) / 36, (16 + _S6) / 36, 1 / 9],
 ])
 RADAU_C = np.array([(4 - _S6) / 10, (4 + _S6) / 10, 1.0])
+
+
+
+def _radau_transformation() -> tuple[np.ndarray, np.ndarray]:
+    """``T`` and ``L = T^-1 A^-1 T = [[g, 0, 0], [0, a, b], [0, -b, a]]``, the real block form of
+    the inverse Radau matrix (Hairer & Wanner's Radau5 transformation): in these coordinates the
+    simplified-Newton matrix splits into an ``n x n`` and a ``2n x 2n`` block."""
+    Ai = np.linalg.inv(RADAU_A)
+    w, V = np.linalg.eig(Ai)
+    i = int(np.argmin(np.abs(w.imag)))
+    j = next(k for k in range(3) if k != i and w[k].imag > 0)
+    T = np.column_stack([V[:, i].real, V[:, j].real, V[:, j].imag])
+    L = np.zeros((3, 3))
+    L[0, 0] = w[i].real
+    L[1, 1] = L[2, 2] = w[j].real
+    L[1, 2], L[2, 1] = w[j].imag, -w[j].imag
+    assert np.allclose(np.linalg.solve(T, Ai @ T), L, atol=1e-12)
+    return T, L
+
+
+RADAU_T, RADAU_L = _radau_transformation()
 
 #: Relative tolerance of "h is a multiple of the sample period" (shared with the C wrapper).
 SAMPLE_TOL = 1e-9
@@ -117,52 +138,61 @@ def radau_stages(block: Block, *, rtol: float = RADAU_RTOL, atol: float = RADAU_
     """``(x, u, p, h) -> (Z, ok, err)``: the converged stage increments of one Radau IIA step,
     with the acceptance flag and ratio of the module docstring.
 
-    Simplified Newton from ``Z = 0``: the iteration matrix is ``M0 = I - h A (x) J0`` with the ODE
-    Jacobian ``J0 = df/dx`` taken once, at the start of the step (the classic choice of Radau5).
-    ``J0`` enters the rootfinder as a parameter and the ODE calls are wrapped in ``stop_diff``,
-    so the generated code holds ``f`` and ``df/dx`` once each, never a derivative of the stage
-    equations (exact Newton would inline three copies of ``df/dx``).  The unknowns are scaled by
-    ``sc = atol + rtol |x|`` (Newton is affine invariant, so the iterates do not change) and the
-    iteration stops once a correction is below ``NEWTON_STEP * sc``.
+    Simplified Newton from ``Z = 0`` as in Hairer & Wanner's Radau5: the ODE Jacobian
+    ``J0 = df/dx`` is taken once, at the start of the step, and the stage equations are solved in
+    the coordinates ``Z = (T (x) I) W`` that make the iteration matrix block diagonal,
+    ``L (x) I - h I (x) J0`` (one ``n x n`` and one ``2n x 2n`` block), so the sparse QR works on
+    far smaller systems than ``I - h A (x) J0``.  ``J0`` enters the rootfinder as a parameter and
+    the ODE calls are wrapped in ``stop_diff``: the generated code holds ``f`` and ``df/dx`` once
+    each and never differentiates the stage equations.  The unknowns are scaled by
+    ``sc = atol + rtol |x|`` (Newton is affine invariant) and the iteration stops once a
+    correction, or the residual of the scaled equations, is below ``NEWTON_STEP * sc``.
 
-    Acceptance uses the size of one more simplified-Newton correction ``M0^-1 R(Z)`` at the
-    returned point, i.e. the error left in ``Z``, not the raw residual: a residual of a stiff
-    component carries round-off of order ``eps * k * |x|`` that ``M0^-1`` damps away."""
+    Acceptance uses one more simplified-Newton correction ``dZ`` at the returned point, i.e. the
+    error left in ``Z``, not the raw residual: a residual of a stiff component carries round-off
+    of order ``eps * k * |x|`` that the iteration matrix damps away."""
     n, nu, npar = block.x.numel(), block.u.numel(), block.p.numel()
     f = block.functions()["ode"]
     jac = ca.jacobian(block.ode, block.x)
     sp = jac.sparsity()
     J_nz = ca.vertcat(*jac.nonzeros()) if jac.nnz() else ca.SX(0, 1)
     fx = ca.Function(f"{block.name}_ode_jac", [block.x, block.u, block.p], [J_nz], ["x", "u", "p"], ["J_nz"])
-    A = ca.DM(RADAU_A)
+    Tk, Tik, Lk = (ca.sparsify(ca.DM(np.kron(m, np.eye(n)))) for m in (RADAU_T, np.linalg.inv(RADAU_T), RADAU_L))
 
-    def iteration_matrix(J0, h):
-        return ca.MX.eye(3 * n) - h * ca.kron(A, J0)
+    def stage_values(W, xs, us, ps, hs):
+        """``(T (x) I) W`` split into the three stage increments, and ``h (T^-1 (x) I) F``."""
+        Z = ca.mtimes(Tk, W)
+        F = ca.vertcat(*[f(xs + Z[i * n:(i + 1) * n], us, ps) for i in range(3)])
+        return Z, hs * ca.mtimes(Tik, F)
 
-    W = ca.MX.sym("W", 3 * n)
+    def block_jacobian(J0, hs, W):
+        """``h (I (x) J0) W`` (three products with the sparse ``J0``)."""
+        return ca.vertcat(*[hs * ca.mtimes(J0, W[i * n:(i + 1) * n]) for i in range(3)])
+
+    V = ca.MX.sym("V", 3 * n)
     th = ca.MX.sym("theta", n + nu + npar + 1 + sp.nnz())
     xs, us, ps, hs = th[:n], th[n:n + nu], th[n + nu:n + nu + npar], th[n + nu + npar]
     J0 = ca.MX(sp, th[n + nu + npar + 1:]) if sp.nnz() else ca.MX(n, n)
     sc = ca.repmat(atol + rtol * ca.fabs(xs), 3, 1)
-    Z = sc * W
-    Zi = [Z[i * n:(i + 1) * n] for i in range(3)]
-    F = [f(xs + Zi[i], us, ps) for i in range(3)]
-    hAF = ca.vertcat(*[hs * sum(float(RADAU_A[i, j]) * F[j] for j in range(3)) for i in range(3)])
-    JZ = [ca.mtimes(J0, Zi[j]) for j in range(3)]
-    MZ = ca.vertcat(*[hs * sum(float(RADAU_A[i, j]) * JZ[j] for j in range(3)) for i in range(3)])
-    # value: Z - h A F(x + Z) exactly (the bracket is 0.0); derivative: (I - h A (x) J0) diag(sc)
-    R = (Z - ca.stop_diff(hAF, 1)) - (MZ - ca.stop_diff(MZ, 1))
-    g = ca.Function(f"{block.name}_radau_scaled", [W, th], [R / sc])
+    W = sc * V
+    _, hTF = stage_values(W, xs, us, ps, hs)
+    hJW = block_jacobian(J0, hs, W)
+    # value: (L (x) I) W - h (T^-1 (x) I) F(x + Z) exactly (the bracket is 0.0);
+    # derivative: (L (x) I - h I (x) J0) diag(sc)
+    G = (ca.mtimes(Lk, W) - ca.stop_diff(hTF, 1)) - (hJW - ca.stop_diff(hJW, 1))
+    g = ca.Function(f"{block.name}_radau_scaled", [V, th], [G / sc])
     rf = ca.rootfinder(f"{block.name}_radau_newton", "fast_newton", g,
-                       {"linear_solver": "qr", "max_iter": int(max_iter), "abstol": 0.0,
+                       {"linear_solver": "qr", "max_iter": int(max_iter), "abstol": NEWTON_STEP,
                         "abstolStep": NEWTON_STEP, "error_on_fail": False})
-    res = _radau_residual(block)
     x, u, p, h = (ca.MX.sym(nm, s) for nm, s in (("x", n), ("u", nu), ("p", npar), ("h", 1)))
     jx = fx(x, u, p)
     scale = ca.repmat(atol + rtol * ca.fabs(x), 3, 1)
-    Zsol = scale * rf(ca.MX.zeros(3 * n), ca.vertcat(x, u, p, h, jx))
-    M0 = iteration_matrix(ca.MX(sp, jx) if sp.nnz() else ca.MX(n, n), h)
-    dZ = ca.solve(M0, res(Zsol, x, u, p, h), "qr")
+    Wsol = scale * rf(ca.MX.zeros(3 * n), ca.vertcat(x, u, p, h, jx))
+    Zsol, hTF = stage_values(Wsol, x, u, p, h)
+    # one more correction, in the block-diagonal coordinates: dW = (L (x) I - h I (x) J0)^-1 G
+    Jx = ca.MX(sp, jx) if sp.nnz() else ca.MX(n, n)
+    M = Lk - h * ca.kron(ca.MX.eye(3), Jx)
+    dZ = ca.mtimes(Tk, ca.solve(M, ca.mtimes(Lk, Wsol) - hTF, "qr"))
     r = ca.fabs(dZ) / (scale + rtol * ca.fabs(Zsol))
     err = ca.mmax(r)
     ok = ca.logic_and(ca.logic_and(err <= 1.0, _all_finite(r)), _all_finite(Zsol))
