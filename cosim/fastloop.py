@@ -1,0 +1,189 @@
+"""The compiled inner loop of the fixed-step master (Jacobi and Gauss-Seidel).
+
+A small C function, compiled on demand with the system C compiler into the cache directory
+(keyed by a hash of its source and the compiler; never committed), steps FMUs through their
+``fmi2DoStep``/``fmi2GetReal``/``fmi2SetReal`` (or FMI 3.0 ``Float64``) entry points, which it
+receives as function pointers.  It implements exactly the algorithms of :mod:`cosim.master`
+(see there for the conventions); the Python loop is the reference it is tested against.
+
+All values live in one float64 vector ``v`` owned by the master: each slave reads its bound
+variables into ``v[out_off : out_off + n_out]`` and takes its connected inputs from
+``v[in_src[j]]``, copied into ``v[in_off : in_off + n_in]`` before being set.
+"""
+from __future__ import annotations
+
+import ctypes
+import hashlib
+import os
+import subprocess
+import sys
+import tempfile
+from ctypes import POINTER, c_double, c_int32, c_int64, c_void_p
+from functools import lru_cache
+from pathlib import Path
+
+from .errors import UserError
+
+SOURCE = r"""
+#include <stdint.h>
+#include <stddef.h>
+#include <stdbool.h>
+#include <time.h>
+
+typedef int (*step2_t)(void *, double, double, int);
+typedef int (*io2_t)(void *, const uint32_t *, size_t, double *);
+typedef int (*step3_t)(void *, double, double, bool, bool *, bool *, bool *, double *);
+typedef int (*io3_t)(void *, const uint32_t *, size_t, double *, size_t);
+
+typedef struct {
+    int32_t fmi3, n_in, n_out, in_off, out_off, pad;
+    void *inst, *do_step, *get, *set;
+    const uint32_t *in_vr;
+    const int64_t *in_src;
+    const uint32_t *out_vr;
+    int64_t calls, ns;
+} rpr_slave;
+
+enum { ST_OK = 0, ST_WARNING = 1, ST_STOP = 100 };
+
+static inline int64_t now_ns(void) {
+    struct timespec ts;
+    clock_gettime(CLOCK_MONOTONIC, &ts);
+    return (int64_t)ts.tv_sec * 1000000000LL + ts.tv_nsec;
+}
+
+static inline int push(rpr_slave *s, double *v) {
+    int j;
+    double *in = v + s->in_off;
+    if (!s->n_in) return 0;
+    for (j = 0; j < s->n_in; ++j) in[j] = v[s->in_src[j]];
+    if (s->fmi3) return ((io3_t)s->set)(s->inst, s->in_vr, (size_t)s->n_in, in, (size_t)s->n_in);
+    return ((io2_t)s->set)(s->inst, s->in_vr, (size_t)s->n_in, in);
+}
+
+static inline int pull(rpr_slave *s, double *v) {
+    if (!s->n_out) return 0;
+    if (s->fmi3) return ((io3_t)s->get)(s->inst, s->out_vr, (size_t)s->n_out, v + s->out_off, (size_t)s->n_out);
+    return ((io2_t)s->get)(s->inst, s->out_vr, (size_t)s->n_out, v + s->out_off);
+}
+
+static inline int step(rpr_slave *s, double t, double h) {
+    s->calls++;
+    if (s->fmi3) {
+        bool ev = 0, term = 0, early = 0;
+        double last = t;
+        int st = ((step3_t)s->do_step)(s->inst, t, h, 1, &ev, &term, &early, &last);
+        if (st <= ST_WARNING && term) return ST_STOP;
+        return st;
+    }
+    return ((step2_t)s->do_step)(s->inst, t, h, 0);
+}
+
+#define CHECK(expr, who) do { int st_ = (expr); if (st_ > ST_WARNING) { *fail_slave = (who); \
+    *fail_status = st_; goto out; } } while (0)
+#define TICK(i) do { if (timing) { int64_t t_ = now_ns(); S[i].ns += t_ - tprev; tprev = t_; } } while (0)
+
+/* Run up to nsteps macro steps from step index k0.  algorithm 0 = Jacobi, 1 = Gauss-Seidel
+   (slaves in `order`).  After every `rec_every`-th step a row (t, v[rec_idx]...) is appended to
+   rec.  Returns the number of steps completed; on a failure *fail_slave >= 0. */
+int64_t rpr_run(rpr_slave *S, int32_t n, const int32_t *order, int32_t algorithm, double *v,
+                int64_t k0, int64_t nsteps, int64_t step_ns, int32_t timing,
+                const int64_t *rec_idx, int32_t n_rec, int64_t rec_every, double *rec, int64_t *n_rows,
+                int32_t *fail_slave, int32_t *fail_status, int64_t *master_ns) {
+    int64_t k, done = 0, rows = 0, t_start = timing ? now_ns() : 0, tprev = t_start;
+    int64_t slave_ns0 = 0, slave_ns1 = 0;
+    int32_t i, c;
+    double h = (double)step_ns / 1e9;
+    for (i = 0; i < n; ++i) slave_ns0 += S[i].ns;
+    *fail_slave = -1;
+    *fail_status = 0;
+    for (k = k0; k < k0 + nsteps; ++k) {
+        double t = (double)(k * step_ns) / 1e9;
+        if (timing) tprev = now_ns();  /* time since the last slave call is the master's own */
+        if (algorithm == 0) {
+            for (i = 0; i < n; ++i) { CHECK(push(&S[i], v), i); TICK(i); }
+            for (i = 0; i < n; ++i) { CHECK(step(&S[i], t, h), i); TICK(i); }
+            for (i = 0; i < n; ++i) { CHECK(pull(&S[i], v), i); TICK(i); }
+        } else {
+            for (c = 0; c < n; ++c) {
+                i = order[c];
+                CHECK(push(&S[i], v), i);
+                CHECK(step(&S[i], t, h), i);
+                CHECK(pull(&S[i], v), i);
+                TICK(i);
+            }
+        }
+        ++done;
+        if ((k + 1) % rec_every == 0) {
+            double *row = rec + rows * (n_rec + 1);
+            row[0] = (double)((k + 1) * step_ns) / 1e9;
+            for (c = 0; c < n_rec; ++c) row[c + 1] = v[rec_idx[c]];
+            ++rows;
+        }
+    }
+out:
+    *n_rows = rows;
+    if (timing) {
+        for (i = 0; i < n; ++i) slave_ns1 += S[i].ns;
+        *master_ns += (now_ns() - t_start) - (slave_ns1 - slave_ns0);
+    }
+    return done;
+}
+"""
+
+
+class CSlave(ctypes.Structure):
+    """Mirror of ``rpr_slave`` in :data:`SOURCE`."""
+
+    _fields_ = [("fmi3", c_int32), ("n_in", c_int32), ("n_out", c_int32), ("in_off", c_int32),
+                ("out_off", c_int32), ("pad", c_int32), ("inst", c_void_p), ("do_step", c_void_p),
+                ("get", c_void_p), ("set", c_void_p), ("in_vr", c_void_p), ("in_src", c_void_p),
+                ("out_vr", c_void_p), ("calls", c_int64), ("ns", c_int64)]
+
+
+def _cache_dir() -> Path:
+    from fmus.cache import cache_root
+
+    return cache_root().parent / "master"
+
+
+@lru_cache(maxsize=1)
+def library() -> ctypes.CDLL:
+    """Compile (once per source and compiler, cached on disk) and load the loop library.
+    Raises :class:`UserError` when no C compiler works."""
+    cc = os.environ.get("CC", "gcc")
+    try:
+        version = subprocess.run([cc, "--version"], capture_output=True, text=True, check=True).stdout
+    except (OSError, subprocess.CalledProcessError) as exc:
+        raise UserError(f"the compiled master loop needs a C compiler ({cc}: {exc}); "
+                        f"set master.engine: python to use the Python loop") from None
+    key = hashlib.sha256((SOURCE + version + sys.platform).encode()).hexdigest()[:20]
+    root = _cache_dir()
+    root.mkdir(parents=True, exist_ok=True)
+    lib = root / f"rpr_loop_{key}.so"
+    if not lib.exists():
+        with tempfile.TemporaryDirectory(dir=root) as tmp:
+            src = Path(tmp) / "loop.c"
+            src.write_text(SOURCE)
+            out = Path(tmp) / lib.name
+            res = subprocess.run([cc, "-O2", "-shared", "-fPIC", "-std=c99", "-D_POSIX_C_SOURCE=199309L",
+                                  "-o", str(out), str(src)], capture_output=True, text=True)
+            if res.returncode != 0:
+                raise UserError(f"compiling the master loop failed: {res.stderr.strip()[:500]}")
+            os.replace(out, lib)
+    dll = ctypes.CDLL(str(lib))
+    fn = dll.rpr_run
+    fn.restype = c_int64
+    fn.argtypes = [POINTER(CSlave), c_int32, c_void_p, c_int32, c_void_p, c_int64, c_int64, c_int64, c_int32,
+                   c_void_p, c_int32, c_int64, c_void_p, POINTER(c_int64), POINTER(c_int32), POINTER(c_int32),
+                   POINTER(c_int64)]
+    return dll
+
+
+def available() -> bool:
+    """True when the loop library can be built and loaded here."""
+    try:
+        library()
+    except UserError:
+        return False
+    return True

@@ -1,0 +1,661 @@
+"""Master algorithms: fixed-step Jacobi and Gauss-Seidel behind one base class and a registry.
+
+Structure (after libcosim and scipy.integrate): a :class:`CoupledSystem` lays the slaves'
+connected and recorded variables out in one float64 vector and precomputes every value
+reference and index; an :class:`Algorithm` owns the public :meth:`Algorithm.step` and its
+status, subclasses implement only :meth:`Algorithm._step_impl`; algorithms are found by name in
+:data:`ALGORITHMS`; :func:`simulate` is the ~15-line run loop (algorithm, then observers).
+Recording is the observers' business (:mod:`cosim.trace`), never the algorithm's.
+
+Time is counted in whole steps of an integer number of nanoseconds: ``t_k = k * step_ns / 1e9``
+exactly (no accumulated drift).  Communication step ``h = step_ns / 1e9``.
+
+Conventions at communication point ``t_k`` (inputs are held constant over a step):
+
+Jacobi
+    1. every connected input takes the value its source output had when last read, i.e. the
+       output at ``t_k`` read after the *previous* exchange;  2. every slave steps ``t_k -> t_k+1``;
+    3. every slave's outputs are read.  So a slave's input over ``[t_k, t_k+1]`` is its source's
+    output at ``t_k`` -- and for an output with direct feedthrough, that output was evaluated at
+    ``t_k`` with its own inputs from ``t_k-1``: each feedthrough hop adds one step of delay
+    (the "one-step delay" convention).
+Gauss-Seidel
+    slaves step one after another in a fixed order; each takes its inputs just before its own
+    step, so an input whose source has already stepped sees the source's output at ``t_k+1``,
+    the others see it at ``t_k``.  The default order is a topological order of the slave graph
+    after cutting the fewest connections that close cycles (an exact search for cycles of up to
+    seven slaves, a greedy one beyond); ``master.order`` in a scene overrides it.
+Initialisation
+    in initialisation mode every slave's outputs are read, then feedthrough outputs are
+    propagated in a topological order of the port graph (output -> input connections plus
+    input -> output feedthrough inside slaves), so the values at ``t_0`` are consistent.  A
+    cycle in that graph is an algebraic loop and is refused (:func:`find_algebraic_loop`).
+
+Failure: a Discard, Error or Fatal status from any call stops the run (a fixed-step master
+cannot retry); the status and the slave's last log message become the run's reason.  An FMI 3.0
+``terminateSimulation`` stops it too, as status "stopped".
+"""
+from __future__ import annotations
+
+import difflib
+import itertools
+import time
+from abc import ABC, abstractmethod
+from collections.abc import Callable, Iterable, Sequence
+from dataclasses import dataclass, field
+from typing import ClassVar
+
+import numpy as np
+
+from .errors import UserError
+from .slaves import FAILING, Slave, Status
+
+_ns = time.perf_counter_ns
+
+
+# --- graphs -----------------------------------------------------------------------------------
+def find_algebraic_loop(edges: Iterable[tuple[object, object]]) -> list | None:
+    """A directed cycle in the graph ``edges`` (as a node list, first node repeated at the end),
+    or None.  Used on the port graph: output -> input connections and input -> output
+    feedthrough inside a slave; a cycle there is an algebraic loop."""
+    succ: dict[object, list] = {}
+    for a, b in edges:
+        succ.setdefault(a, []).append(b)
+        succ.setdefault(b, [])
+    colour = {n: 0 for n in succ}  # 0 new, 1 on the stack, 2 done
+    parent: dict[object, object] = {}
+    for root in succ:
+        if colour[root]:
+            continue
+        stack = [(root, iter(succ[root]))]
+        colour[root] = 1
+        while stack:
+            node, it = stack[-1]
+            for nxt in it:
+                if colour[nxt] == 0:
+                    colour[nxt], parent[nxt] = 1, node
+                    stack.append((nxt, iter(succ[nxt])))
+                    break
+                if colour[nxt] == 1:  # back edge: the cycle is nxt -> ... -> node -> nxt
+                    cyc = [node]
+                    while cyc[-1] != nxt:
+                        cyc.append(parent[cyc[-1]])
+                    cyc.reverse()
+                    return cyc + [nxt]
+            else:
+                colour[node] = 2
+                stack.pop()
+    return None
+
+
+def topological_order(nodes: Sequence, edges: Iterable[tuple[object, object]]) -> list:
+    """Kahn's order, ties broken by the order of ``nodes``; raises ValueError on a cycle."""
+    rank = {n: i for i, n in enumerate(nodes)}
+    indeg = {n: 0 for n in nodes}
+    succ: dict[object, list] = {n: [] for n in nodes}
+    for a, b in set(edges):
+        succ[a].append(b)
+        indeg[b] += 1
+    ready = sorted((n for n in nodes if indeg[n] == 0), key=rank.__getitem__)
+    out = []
+    while ready:
+        n = ready.pop(0)
+        out.append(n)
+        for m in succ[n]:
+            indeg[m] -= 1
+            if indeg[m] == 0:
+                ready.append(m)
+                ready.sort(key=rank.__getitem__)
+    if len(out) != len(nodes):
+        raise ValueError("the graph has a cycle")
+    return out
+
+
+def _sccs(n: int, succ: list[set[int]]) -> list[list[int]]:
+    """Tarjan's strongly connected components, in reverse topological order."""
+    index, low, on, stack, out, counter = {}, {}, set(), [], [], [0]
+
+    def visit(v: int) -> None:
+        index[v] = low[v] = counter[0]
+        counter[0] += 1
+        stack.append(v)
+        on.add(v)
+        for w in sorted(succ[v]):
+            if w not in index:
+                visit(w)
+                low[v] = min(low[v], low[w])
+            elif w in on:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            comp = []
+            while True:
+                w = stack.pop()
+                on.discard(w)
+                comp.append(w)
+                if w == v:
+                    break
+            out.append(sorted(comp))
+
+    for v in range(n):
+        if v not in index:
+            visit(v)
+    return out
+
+
+def gauss_seidel_order(n: int, edges: Iterable[tuple[int, int]]) -> list[int]:
+    """Stepping order of ``n`` slaves for Gauss-Seidel: sources before the slaves they feed.
+
+    ``edges`` are (source slave, destination slave) pairs.  Strongly connected groups are
+    ordered topologically; inside a group the order cuts the fewest edges (edges that go
+    backwards, whose destination sees the source's output from the previous point) -- found by
+    exhaustive search up to seven slaves, greedily (by out-degree minus in-degree) beyond;
+    ties go to the declaration order."""
+    e = {(a, b) for a, b in edges if a != b}
+    succ = [set() for _ in range(n)]
+    for a, b in e:
+        succ[a].add(b)
+    comps = _sccs(n, succ)[::-1]  # topological order of the condensation
+    comp_of = {v: ci for ci, c in enumerate(comps) for v in c}
+    cedges = {(comp_of[a], comp_of[b]) for a, b in e if comp_of[a] != comp_of[b]}
+    corder = topological_order(list(range(len(comps))), cedges)
+    order: list[int] = []
+    for ci in corder:
+        comp = comps[ci]
+        inner = [(a, b) for a, b in e if a in comp and b in comp]
+        if len(comp) <= 7:
+            best = min(itertools.permutations(comp),
+                       key=lambda p: (sum(p.index(a) > p.index(b) for a, b in inner), p))
+            order.extend(best)
+        else:
+            rest, seq = set(comp), []
+            while rest:
+                v = max(sorted(rest), key=lambda x: sum((x, y) in e for y in rest) - sum((y, x) in e for y in rest))
+                seq.append(v)
+                rest.discard(v)
+            order.extend(seq)
+    return order
+
+
+# --- the coupled system -----------------------------------------------------------------------
+@dataclass(frozen=True)
+class Link:
+    """A signal connection between slaves by index: ``slaves[src].src_var -> slaves[dst].dst_var``."""
+
+    src: int
+    src_var: str
+    dst: int
+    dst_var: str
+
+
+class CoupledSystem:
+    """Slaves, their connections and the recorded variables, laid out for stepping.
+
+    One float64 vector ``v`` holds, per slave, the variables it reads (connected outputs and
+    recorded variables) and then, per slave, its connected inputs.  Value references and the
+    gather indices are computed once here, so a step allocates nothing.
+    """
+
+    def __init__(self, slaves: Sequence[Slave], links: Sequence[Link], record: Sequence[tuple[int, str]] = ()):
+        self.slaves = list(slaves)
+        self.links = list(links)
+        n = len(self.slaves)
+        names = [s.name for s in self.slaves]
+        if len(set(names)) != n:
+            raise UserError(f"slave names must be unique, got {names}")
+        reads: list[list[str]] = [[] for _ in range(n)]
+        ins: list[list[tuple[str, int, str]]] = [[] for _ in range(n)]
+        seen_in: set[tuple[int, str]] = set()
+        for ln in self.links:
+            if (ln.dst, ln.dst_var) in seen_in:
+                raise UserError(f"input {names[ln.dst]}.{ln.dst_var} is connected twice")
+            seen_in.add((ln.dst, ln.dst_var))
+            if ln.src_var not in reads[ln.src]:
+                reads[ln.src].append(ln.src_var)
+            ins[ln.dst].append((ln.dst_var, ln.src, ln.src_var))
+        source = {(ln.dst, ln.dst_var): (ln.src, ln.src_var) for ln in self.links}
+        for i, var in record:
+            if (i, var) in source:
+                continue  # recorded as the value of its source output
+            if var not in reads[i]:
+                reads[i].append(var)
+        out_off, off = [], 0
+        for r in reads:
+            out_off.append(off)
+            off += len(r)
+        in_off = []
+        for r in ins:
+            in_off.append(off)
+            off += len(r)
+        self.v = np.zeros(off)
+        self.index: dict[tuple[int, str], int] = {}
+        for i, r in enumerate(reads):
+            for j, var in enumerate(r):
+                self.index[(i, var)] = out_off[i] + j
+        self.out_vrs = [np.array([s.vr(var) for var in r], dtype=np.uint32) for s, r in zip(self.slaves, reads)]
+        self.in_vrs = [np.array([s.vr(var) for var, _, _ in r], dtype=np.uint32) for s, r in zip(self.slaves, ins)]
+        self.in_src = [np.array([self.index[(si, sv)] for _, si, sv in r], dtype=np.int64) for r in ins]
+        self.out_off, self.in_off = out_off, in_off
+        self.reads, self.inputs = reads, [[var for var, _, _ in r] for r in ins]
+        self.out_buf = [self.v[o:o + len(r)] for o, r in zip(out_off, reads)]
+        self.in_buf = [self.v[o:o + len(r)] for o, r in zip(in_off, ins)]
+        self.record_names = [f"{names[i]}.{var}" for i, var in record]
+        self.record_idx = np.array([self.index[source.get((i, var), (i, var))] for i, var in record], dtype=np.int64)
+
+    @property
+    def names(self) -> list[str]:
+        return [s.name for s in self.slaves]
+
+    def slave_edges(self) -> list[tuple[int, int]]:
+        return [(ln.src, ln.dst) for ln in self.links]
+
+    def port_edges(self) -> list[tuple[tuple[int, str], tuple[int, str]]]:
+        """Edges of the port graph: connections, plus feedthrough inside each slave."""
+        edges = [((ln.src, ln.src_var), (ln.dst, ln.dst_var)) for ln in self.links]
+        for i, s in enumerate(self.slaves):
+            for y in self.reads[i]:
+                for u in s.description.feedthrough.get(y, []):
+                    edges.append(((i, u), (i, y)))
+        return edges
+
+    def init_sequence(self) -> list[int]:
+        """Slaves to update (push inputs, pull outputs), in order, so that every feedthrough
+        output at ``t_0`` sees inputs that are already consistent."""
+        edges = self.port_edges()
+        nodes = list(dict.fromkeys([a for a, _ in edges] + [b for _, b in edges]))
+        try:
+            order = topological_order(nodes, edges)
+        except ValueError:
+            loop = find_algebraic_loop(edges)
+            text = " -> ".join(f"{self.slaves[i].name}.{v}" for i, v in loop)
+            raise UserError(f"algebraic loop: {text}") from None
+        seq: list[int] = []
+        for i, var in order:
+            fed = set(self.slaves[i].description.feedthrough.get(var, [])) & set(self.inputs[i])
+            if var in self.reads[i] and fed and (not seq or seq[-1] != i):
+                seq.append(i)
+        return seq
+
+    # lifecycle -----------------------------------------------------------------------------------
+    def bind(self) -> None:
+        for i, s in enumerate(self.slaves):
+            s.bind(self.in_vrs[i], self.in_buf[i], self.out_vrs[i], self.out_buf[i])
+
+    def gather(self, i: int) -> None:
+        np.take(self.v, self.in_src[i], out=self.in_buf[i])
+
+
+# --- algorithms -------------------------------------------------------------------------------
+class Algorithm(ABC):
+    """Base class of master algorithms.  The public :meth:`step` advances one macro step and
+    keeps :attr:`status` (``"running"``, ``"failed"``, ``"stopped"``); a subclass implements
+    :meth:`_step_impl` and may name a compiled variant (:attr:`native_code`, see
+    :mod:`cosim.fastloop`).  Numerical failure comes back as a status and :attr:`message`, never
+    as an exception; bad arguments raise at once."""
+
+    name: ClassVar[str]
+    #: algorithm code of the compiled loop implementing the same steps, or None
+    native_code: ClassVar[int | None] = None
+
+    def __init__(self, system: CoupledSystem, step_ns: int, *, order: Sequence[int] | None = None,
+                 timing: bool = True):
+        if not (isinstance(step_ns, (int, np.integer)) and step_ns > 0):
+            raise UserError(f"the communication step must be a positive whole number of nanoseconds, got {step_ns!r}")
+        self.system = system
+        self.step_ns = int(step_ns)
+        self.h = self.step_ns / 1e9
+        self.k = 0
+        self.status = "running"
+        self.message = ""
+        self.failed_slave: int | None = None
+        n = len(system.slaves)
+        self.order = list(order) if order is not None else gauss_seidel_order(n, system.slave_edges())
+        if sorted(self.order) != list(range(n)):
+            raise UserError(f"master order must list every slave once, got {self.order}")
+        self.calls = np.zeros(n, dtype=np.int64)
+        self.slave_ns = np.zeros(n, dtype=np.int64)
+        self.master_ns = 0
+        self.timing = timing
+        s = system.slaves
+        self._push = [x.push for x in s]
+        self._pull = [x.pull for x in s]
+        self._do = [x.do_step for x in s]
+        self._gather = [(lambda v=system.v, src=system.in_src[i], buf=system.in_buf[i]: np.take(v, src, out=buf))
+                        for i in range(n)]
+
+    @property
+    def t(self) -> float:
+        """Current communication point [s] (``k * step_ns / 1e9``)."""
+        return self.k * self.step_ns / 1e9
+
+    def step(self) -> bool:
+        """One macro step ``t_k -> t_k+1``; False (with :attr:`status`, :attr:`message`) on failure."""
+        if self.status != "running":
+            raise RuntimeError(f"{self.name}: cannot step a run that is {self.status}")
+        t = self.k * self.step_ns / 1e9
+        t0 = _ns()
+        s0 = int(self.slave_ns.sum())
+        bad = self._step_impl(t, self.h)
+        self.master_ns += (_ns() - t0) - (int(self.slave_ns.sum()) - s0)
+        if bad is None:
+            self.k += 1
+            return True
+        self._fail(bad[0], bad[1], t)
+        return False
+
+    @abstractmethod
+    def _step_impl(self, t: float, h: float) -> tuple[int, int] | None:
+        """Advance every slave from ``t`` by ``h``; return ``(slave index, status)`` of the first
+        failing call, or None."""
+
+    def _fail(self, i: int, status: int, t: float) -> None:
+        sl = self.system.slaves[i]
+        self.failed_slave = i
+        if status == Status.STOP_REQUESTED:
+            self.status = "stopped"
+            self.message = f"{sl.name} asked to terminate the simulation at t = {t:.9g} s (step {self.k})"
+        else:
+            self.status = "failed"
+            name = Status(status).name if status in Status._value2member_map_ else str(status)
+            self.message = (f"{sl.name} returned {name} in the step from t = {t:.9g} s (step {self.k})"
+                            + (f": {sl.last_message}" if sl.last_message else ""))
+
+    # helpers for subclasses: one slave's part of a step, timed ----------------------------------------
+    def _io(self, i: int, fn: Callable[[], int]) -> int:
+        t0 = _ns()
+        st = fn()
+        self.slave_ns[i] += _ns() - t0
+        return st
+
+    def _advance(self, i: int, t: float, h: float) -> int:
+        t0 = _ns()
+        st = self._do[i](t, h)
+        self.slave_ns[i] += _ns() - t0
+        self.calls[i] += 1
+        return st
+
+
+ALGORITHMS: dict[str, type[Algorithm]] = {}
+
+
+def register(cls: type[Algorithm]) -> type[Algorithm]:
+    """Class decorator: make an algorithm available by its ``name``."""
+    ALGORITHMS[cls.name] = cls
+    return cls
+
+
+def algorithm(name: str) -> type[Algorithm]:
+    """The algorithm class called ``name``; :class:`UserError` with the closest names otherwise."""
+    try:
+        return ALGORITHMS[name]
+    except KeyError:
+        close = difflib.get_close_matches(str(name), ALGORITHMS, n=1)
+        hint = f"; did you mean {close[0]!r}?" if close else ""
+        raise UserError(f"unknown master algorithm {name!r}{hint} (known: {', '.join(sorted(ALGORITHMS))})") from None
+
+
+@register
+class Jacobi(Algorithm):
+    """All slaves take inputs from outputs read at ``t_k``, then all step in parallel (in
+    principle), then all outputs are read (see the module docstring for the delay convention)."""
+
+    name = "jacobi"
+    native_code = 0
+
+    def _step_impl(self, t, h):
+        n = len(self._do)
+        for i in range(n):
+            self._gather[i]()
+            st = self._io(i, self._push[i])
+            if st in FAILING:
+                return i, st
+        for i in range(n):
+            st = self._advance(i, t, h)
+            if st in FAILING or st == Status.STOP_REQUESTED:
+                return i, st
+        for i in range(n):
+            st = self._io(i, self._pull[i])
+            if st in FAILING:
+                return i, st
+        return None
+
+
+@register
+class GaussSeidel(Algorithm):
+    """Slaves step one after another in :attr:`order`; each reads the freshest outputs."""
+
+    name = "gauss_seidel"
+    native_code = 1
+
+    def _step_impl(self, t, h):
+        for i in self.order:
+            self._gather[i]()
+            st = self._io(i, self._push[i])
+            if st in FAILING:
+                return i, st
+            st = self._advance(i, t, h)
+            if st in FAILING or st == Status.STOP_REQUESTED:
+                return i, st
+            st = self._io(i, self._pull[i])
+            if st in FAILING:
+                return i, st
+        return None
+
+
+# --- engines: who runs the steps ----------------------------------------------------------------
+class _Compiled:
+    """Runs an algorithm's steps in the compiled loop (:mod:`cosim.fastloop`)."""
+
+    def __init__(self, alg: Algorithm):
+        import ctypes
+
+        from . import fastloop
+
+        self.lib = fastloop.library()
+        sysm = alg.system
+        n = len(sysm.slaves)
+        self.arr = (fastloop.CSlave * n)()
+        self.keep = []
+        for i, s in enumerate(sysm.slaves):
+            ne = s.native()
+            if ne is None:
+                raise UserError(f"{s.name} has no C entry points; use master.engine: python")
+            c = self.arr[i]
+            c.fmi3, c.n_in, c.n_out = int(ne.fmi3), len(sysm.in_vrs[i]), len(sysm.out_vrs[i])
+            c.in_off, c.out_off = sysm.in_off[i], sysm.out_off[i]
+            c.inst, c.do_step, c.get, c.set = ne.instance, ne.do_step, ne.get_real, ne.set_real
+            for arr in (sysm.in_vrs[i], sysm.in_src[i], sysm.out_vrs[i]):
+                self.keep.append(arr)
+            c.in_vr = sysm.in_vrs[i].ctypes.data if c.n_in else None
+            c.in_src = sysm.in_src[i].ctypes.data if c.n_in else None
+            c.out_vr = sysm.out_vrs[i].ctypes.data if c.n_out else None
+        self.order = np.array(alg.order, dtype=np.int32)
+        self.rec_idx = sysm.record_idx
+        self.alg = alg
+        self.c = ctypes
+        self.n_rows = ctypes.c_int64()
+        self.fail_slave = ctypes.c_int32()
+        self.fail_status = ctypes.c_int32()
+        self.master_ns = ctypes.c_int64()
+
+    def run(self, nsteps: int, rec_every: int, rec: np.ndarray) -> int:
+        alg, sysm = self.alg, self.alg.system
+        self.master_ns.value = 0
+        done = self.lib.rpr_run(self.arr, len(self.arr), self.order.ctypes.data, alg.native_code,
+                                sysm.v.ctypes.data, alg.k, nsteps, alg.step_ns, int(alg.timing),
+                                self.rec_idx.ctypes.data if self.rec_idx.size else None, len(self.rec_idx),
+                                rec_every, rec.ctypes.data, self.c.byref(self.n_rows),
+                                self.c.byref(self.fail_slave), self.c.byref(self.fail_status),
+                                self.c.byref(self.master_ns))
+        for i, c in enumerate(self.arr):
+            alg.calls[i], alg.slave_ns[i] = c.calls, c.ns
+        alg.master_ns += self.master_ns.value
+        t_fail = (alg.k + done) * alg.step_ns / 1e9
+        alg.k += int(done)
+        if self.fail_slave.value >= 0:
+            alg._fail(self.fail_slave.value, self.fail_status.value, t_fail)
+        return int(self.n_rows.value)
+
+
+def _python_run(alg: Algorithm, nsteps: int, rec_every: int, rec: np.ndarray) -> int:
+    v, idx = alg.system.v, alg.system.record_idx
+    rows = 0
+    for _ in range(nsteps):
+        if not alg.step():
+            break
+        if alg.k % rec_every == 0:
+            rec[rows, 0] = alg.k * alg.step_ns / 1e9
+            np.take(v, idx, out=rec[rows, 1:])
+            rows += 1
+    return rows
+
+
+# --- the run loop -----------------------------------------------------------------------------
+@dataclass
+class RunStats:
+    """Statistics of one run: per-slave doStep calls and wall time [s] (inside its FMI calls),
+    the master's own time [s] (everything else in the stepping loop), totals."""
+
+    algorithm: str
+    engine: str
+    step: float
+    steps_planned: int
+    steps_done: int = 0
+    status: str = "running"
+    reason: str = ""
+    init_s: float = 0.0
+    wall_s: float = 0.0
+    master_s: float = 0.0
+    slaves: dict[str, dict[str, float]] = field(default_factory=dict)
+
+    @property
+    def simulated_s(self) -> float:
+        return self.steps_done * self.step
+
+    @property
+    def real_time_factor(self) -> float:
+        """Simulated time over wall time of the stepping loop (> 1: faster than real time)."""
+        return self.simulated_s / self.wall_s if self.wall_s > 0 else float("inf")
+
+    def as_dict(self) -> dict:
+        return {"algorithm": self.algorithm, "engine": self.engine, "step": self.step,
+                "steps_planned": self.steps_planned, "steps_done": self.steps_done, "status": self.status,
+                "reason": self.reason, "init_s": self.init_s, "wall_s": self.wall_s, "master_s": self.master_s,
+                "simulated_s": self.simulated_s, "real_time_factor": self.real_time_factor, "slaves": self.slaves}
+
+
+def initialize(system: CoupledSystem, start_values: Sequence[dict[str, float]], *, start_time: float = 0.0,
+               stop_time: float) -> None:
+    """Instantiate, set start values, run the initial exchange (feedthrough order) and leave
+    initialisation mode; afterwards ``system.v`` holds every bound variable at ``t_0``."""
+    seq = system.init_sequence()
+    for s, start in zip(system.slaves, start_values):
+        s.instantiate()
+        s.set_start(start)
+    system.bind()
+    for s in system.slaves:
+        s.enter_initialization(start_time, stop_time)
+    for i, s in enumerate(system.slaves):
+        _check(s, s.pull(), "reading outputs in initialisation mode")
+    for i in seq:
+        system.gather(i)
+        _check(system.slaves[i], system.slaves[i].push(), "setting inputs in initialisation mode")
+        _check(system.slaves[i], system.slaves[i].pull(), "reading outputs in initialisation mode")
+    for i, s in enumerate(system.slaves):
+        system.gather(i)
+        _check(s, s.push(), "setting inputs in initialisation mode")
+        s.exit_initialization()
+    for s in system.slaves:
+        _check(s, s.pull(), "reading outputs at the start time")
+
+
+def _check(slave: Slave, status: int, what: str) -> None:
+    if status in FAILING:
+        raise UserError(f"{slave.name}: {what} returned {Status(status).name}"
+                        + (f": {slave.last_message}" if slave.last_message else ""))
+
+
+def choose_engine(system: CoupledSystem, alg_cls: type[Algorithm], engine: str) -> str:
+    """``"compiled"`` or ``"python"`` for ``engine`` in auto | compiled | python."""
+    if engine not in ("auto", "compiled", "python"):
+        raise UserError(f"master.engine must be auto, compiled or python, got {engine!r}")
+    if engine == "python":
+        return "python"
+    native = alg_cls.native_code is not None and all(s.native() is not None for s in system.slaves)
+    if engine == "compiled":
+        if not native:
+            raise UserError(f"master.engine: compiled needs FMU slaves and an algorithm with a compiled loop "
+                            f"({alg_cls.name} / {', '.join(s.name for s in system.slaves if s.native() is None) or 'all FMUs'})")
+        return "compiled"
+    from . import fastloop
+
+    return "compiled" if native and fastloop.available() else "python"
+
+
+def simulate(system: CoupledSystem, algorithm_name: str, *, step_ns: int, n_steps: int, record_every: int = 1,
+             observers: Sequence = (), start_values: Sequence[dict[str, float]] | None = None,
+             engine: str = "auto", order: Sequence[int] | None = None, timing: bool = True,
+             progress: Callable[[int, int], None] | None = None, meta: dict | None = None) -> RunStats:
+    """Initialise ``system`` and run ``n_steps`` macro steps of ``step_ns`` nanoseconds.
+
+    Observers receive ``start(columns, meta)``, ``record(rows)`` (rows of time and the recorded
+    values, at ``t_0`` and every ``record_every`` steps) and ``finish(status, reason, stats)``,
+    also when the run fails or is interrupted (then the exception propagates after ``finish``).
+    """
+    cls = algorithm(algorithm_name)
+    if record_every < 1:
+        raise UserError(f"record_every must be >= 1, got {record_every}")
+    stats = RunStats(cls.name, "", step_ns / 1e9, n_steps)
+    columns = ["time"] + system.record_names
+    status, reason = "failed", ""
+    for obs in observers:
+        obs.start(columns, dict(meta or {}, algorithm=cls.name, step=step_ns / 1e9))
+    alg, t_loop = None, None
+    try:
+        t0 = time.perf_counter()
+        initialize(system, start_values or [{} for _ in system.slaves], stop_time=n_steps * step_ns / 1e9)
+        alg = cls(system, step_ns, order=order, timing=timing)
+        stats.engine = choose_engine(system, cls, engine)
+        runner = _Compiled(alg).run if stats.engine == "compiled" else (lambda n, e, r: _python_run(alg, n, e, r))
+        stats.init_s = time.perf_counter() - t0
+        row0 = np.concatenate([[0.0], system.v[system.record_idx]])[None, :]
+        for obs in observers:
+            obs.record(row0)
+        chunk, t_loop = min(64, n_steps) or 1, time.perf_counter()
+        rec = np.empty((max(1, chunk // record_every + 1), len(columns)))
+        while alg.k < n_steps and alg.status == "running":
+            n = min(chunk, n_steps - alg.k)
+            if rec.shape[0] < n // record_every + 1:
+                rec = np.empty((n // record_every + 1, len(columns)))
+            tc = time.perf_counter()
+            rows = runner(n, record_every, rec)
+            dt = time.perf_counter() - tc
+            for obs in observers:
+                obs.record(rec[:rows])
+            if progress:
+                progress(alg.k, n_steps)
+            if dt < 0.05 and chunk < 1 << 20:  # aim at ~0.1 s per chunk: responsive to Ctrl-C
+                chunk *= 2
+        stats.wall_s = time.perf_counter() - t_loop
+        status, reason = ("ok", "") if alg.status == "running" else (alg.status, alg.message)
+    except KeyboardInterrupt:
+        status = "interrupted"
+        reason = "interrupted by the user (KeyboardInterrupt)" + (f" at t = {alg.t:.9g} s" if alg else "")
+        raise
+    except BaseException as exc:
+        status, reason = "failed", f"{type(exc).__name__}: {exc}"
+        raise
+    finally:
+        stats.status, stats.reason = status, reason
+        if alg is not None:
+            stats.steps_done = alg.k
+            stats.master_s = alg.master_ns / 1e9
+            stats.slaves = {s.name: {"do_step_calls": int(alg.calls[i]), "wall_s": alg.slave_ns[i] / 1e9}
+                            for i, s in enumerate(system.slaves)}
+        if stats.wall_s == 0.0 and t_loop is not None:
+            stats.wall_s = time.perf_counter() - t_loop
+        for obs in observers:
+            obs.finish(status, reason, stats.as_dict())
+        for s in system.slaves:
+            s.terminate()
+            s.free()
+    return stats

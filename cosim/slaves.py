@@ -1,0 +1,533 @@
+"""Slaves: what the master steps.  An FMU (FMI 2.0 or 3.0) is one kind; an analytic linear
+system is another (for algorithm tests and as a known plant); a hardware rig will be a third.
+
+A slave is described *before* it runs by a :class:`SlaveDescription` (variable names, causality,
+direct feedthrough, flanges, sample period): that is what scene validation checks connections
+against.  At run time the master talks to it through :class:`Slave`, always in this order::
+
+    instantiate()                      load and create the instance
+    set_start(values)                  parameters and start values (by name), before initialisation
+    enter_initialization(t0, t_stop)
+    bind(in_vrs, in_buf, out_vrs, out_buf)
+    [push(); pull()] ...               initial exchange (inputs from in_buf, outputs into out_buf)
+    exit_initialization()
+    loop: push(); do_step(t, h) -> status; pull()
+    terminate(); free()
+
+``in_buf`` and ``out_buf`` are numpy float64 arrays owned by the master (views of its value
+vector); ``push``/``pull`` move values between them and the slave with no allocation, so the
+master's inner loop allocates nothing.  A slave that can expose C entry points
+(:meth:`Slave.native`) can also be stepped by the compiled loop of :mod:`cosim.fastloop`.
+
+Status codes follow FMI (:class:`Status`); ``do_step`` returns one of them, and
+:attr:`Status.STOP_REQUESTED` when an FMI 3.0 slave sets ``terminateSimulation``.
+"""
+from __future__ import annotations
+
+import atexit
+import ctypes
+import enum
+import math
+import shutil
+import tempfile
+from abc import ABC, abstractmethod
+from collections import deque
+from ctypes import POINTER, c_bool, c_char_p, c_double, c_int, c_size_t, c_uint32, c_void_p
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import scipy.linalg
+
+from models.block import Block, Flange
+
+from .errors import UserError
+
+
+class Status(enum.IntEnum):
+    """FMI status codes (identical in FMI 2.0 and 3.0), plus the master's own stop request."""
+
+    OK = 0
+    WARNING = 1
+    DISCARD = 2
+    ERROR = 3
+    FATAL = 4
+    PENDING = 5
+    STOP_REQUESTED = 100  # FMI 3.0 terminateSimulation
+
+
+#: Status codes at which a fixed-step run stops (Discard included: a fixed-step master cannot retry).
+FAILING = frozenset({Status.DISCARD, Status.ERROR, Status.FATAL, Status.PENDING})
+
+
+@dataclass(frozen=True)
+class Variable:
+    """One scalar variable: FMI ``causality`` (parameter, calculatedParameter, input, output,
+    local, independent), ``variability``, ``type`` (``Real`` for FMI 2 Real and FMI 3 Float64/32),
+    ``start`` (None when it has none), unit and value reference (None until an FMU exists)."""
+
+    name: str
+    causality: str
+    variability: str = "continuous"
+    type: str = "Real"
+    start: float | None = None
+    unit: str = ""
+    description: str = ""
+    vr: int | None = None
+
+
+@dataclass
+class SlaveDescription:
+    """What a scene needs to know about a component before anything runs.
+
+    ``feedthrough`` maps each output to the inputs it depends on *directly* (within one
+    communication point); ``flanges`` are its power ports; ``sample_period`` [s] is set for a
+    sampled (discrete) slave, whose communication step must be a whole multiple of it.
+    """
+
+    kind: str  # "block", "fmu" or "python"
+    source: str  # "model/fidelity", the FMU path, or the class name
+    variables: dict[str, Variable]
+    feedthrough: dict[str, list[str]]
+    flanges: list[Flange] = field(default_factory=list)
+    sample_period: float | None = None
+    fmi_version: str | None = None
+    can_get_set_state: bool = False
+
+    def of(self, *causalities: str) -> list[str]:
+        """Names of the variables with one of the given causalities, in declaration order."""
+        return [v.name for v in self.variables.values() if v.causality in causalities]
+
+    def flange(self, name: str) -> Flange | None:
+        for f in self.flanges:
+            if f.name == name:
+                return f
+        return None
+
+
+def describe_block(block: Block, source: str = "") -> SlaveDescription:
+    """The description of ``block`` as its exported FMU will present it (value references are
+    unknown until the FMU exists)."""
+    vs: dict[str, Variable] = {}
+    for p in block.params:
+        vs[p.name] = Variable(p.name, "parameter", "fixed" if p.structural else "tunable", "Real",
+                              float(p.default), p.unit, p.description)
+    for s in block.states:
+        vs[s.name] = Variable(s.name, "local", "discrete" if block.integrator == "discrete" else "continuous",
+                              "Real", None, s.unit, s.description)
+    for u in block.inputs:
+        vs[u.name] = Variable(u.name, "input", "continuous", "Real", 0.0, u.unit, u.description)
+    for y in block.outputs:
+        vs[y.name] = Variable(y.name, "output", "continuous", "Real", None, y.unit, y.description)
+    period = float(block.sample_period) if block.integrator == "discrete" and block.sample_period else None
+    return SlaveDescription("block", source or block.name, vs, block.feedthrough(), list(block.flanges),
+                            period, None, True)
+
+
+_FMI_TYPES = {"Real": "Real", "Float64": "Real", "Float32": "Real32", "Integer": "Integer", "Int32": "Integer",
+              "Boolean": "Boolean", "String": "String", "Enumeration": "Enumeration"}
+
+
+def describe_fmu(path: Path) -> SlaveDescription:
+    """Read an FMU's ``modelDescription.xml``.  Raises :class:`UserError` naming the file when it
+    is not a readable co-simulation FMU."""
+    import fmpy
+
+    path = Path(path)
+    if not path.is_file():
+        raise UserError(f"{path}: no such FMU file")
+    try:
+        md = fmpy.read_model_description(str(path), validate=False)
+    except Exception as exc:  # fmpy raises bare Exceptions for any malformed archive or XML
+        raise UserError(f"{path}: not a readable FMU ({exc})") from None
+    if md.coSimulation is None:
+        raise UserError(f"{path}: the FMU has no co-simulation interface (model exchange only)")
+    vs: dict[str, Variable] = {}
+    for v in md.modelVariables:
+        start = None
+        if v.start is not None:
+            try:
+                start = float(v.start)
+            except (TypeError, ValueError):
+                start = None
+        vs[v.name] = Variable(v.name, v.causality or "local", v.variability or "continuous",
+                              _FMI_TYPES.get(v.type, v.type), start, v.unit or "", v.description or "",
+                              v.valueReference)
+    inputs = [v.name for v in md.modelVariables if v.causality == "input"]
+    ft: dict[str, list[str]] = {}
+    listed = {u.variable.name: u for u in md.outputs}
+    for v in md.modelVariables:
+        if v.causality != "output":
+            continue
+        unknown = listed.get(v.name)
+        if unknown is None or unknown.dependencies is None:
+            ft[v.name] = list(inputs)  # FMI: no dependency list means "depends on every known"
+        else:
+            ft[v.name] = [d.name for d in unknown.dependencies if d.causality == "input"]
+    period = None
+    cs = md.coSimulation
+    can_state = bool(getattr(cs, "canGetAndSetFMUstate", False) or getattr(cs, "canGetAndSetFMUState", False))
+    return SlaveDescription("fmu", str(path), vs, ft, [], period, md.fmiVersion, can_state)
+
+
+# --- the interface ----------------------------------------------------------------------------
+@dataclass(frozen=True)
+class NativeEntry:
+    """C entry points of a slave for the compiled loop: the instance pointer and the addresses of
+    its doStep, GetReal/GetFloat64 and SetReal/SetFloat64 functions."""
+
+    fmi3: bool
+    instance: int
+    do_step: int
+    get_real: int
+    set_real: int
+
+
+class Slave(ABC):
+    """A steppable component (see the module docstring for the call order)."""
+
+    name: str
+    description: SlaveDescription
+
+    def __init__(self, name: str, description: SlaveDescription):
+        self.name = name
+        self.description = description
+        self.messages: deque[str] = deque(maxlen=20)
+
+    @property
+    def last_message(self) -> str:
+        """The slave's most recent log message ('' if none)."""
+        return self.messages[-1] if self.messages else ""
+
+    def vr(self, name: str) -> int:
+        var = self.description.variables.get(name)
+        if var is None or var.vr is None:
+            raise UserError(f"{self.name}: no variable {name!r}")
+        return var.vr
+
+    @abstractmethod
+    def instantiate(self) -> None: ...
+
+    @abstractmethod
+    def set_start(self, values: dict[str, float]) -> None:
+        """Parameter and start values by variable name, before initialisation."""
+
+    @abstractmethod
+    def enter_initialization(self, start_time: float, stop_time: float) -> None: ...
+
+    @abstractmethod
+    def bind(self, in_vrs: np.ndarray, in_buf: np.ndarray, out_vrs: np.ndarray, out_buf: np.ndarray) -> None:
+        """Fix the inputs written by :meth:`push` (from ``in_buf``) and the variables read by
+        :meth:`pull` (into ``out_buf``); the arrays are owned by the master and must stay alive."""
+
+    @abstractmethod
+    def push(self) -> int:
+        """Set the bound inputs from ``in_buf``; returns a :class:`Status`."""
+
+    @abstractmethod
+    def pull(self) -> int:
+        """Read the bound variables into ``out_buf``; returns a :class:`Status`."""
+
+    @abstractmethod
+    def exit_initialization(self) -> None: ...
+
+    @abstractmethod
+    def do_step(self, t: float, h: float) -> int:
+        """Advance from communication point ``t`` [s] by ``h`` [s]; returns a :class:`Status`."""
+
+    def terminate(self) -> None:
+        """End the simulation (the instance may still be read)."""
+
+    def free(self) -> None:
+        """Release the instance and its resources."""
+
+    def native(self) -> NativeEntry | None:
+        """C entry points for the compiled loop, or None (the Python loop is used)."""
+        return None
+
+
+# --- FMUs -------------------------------------------------------------------------------------
+_UNZIPPED: dict[tuple[str, float], str] = {}
+
+
+def _cleanup() -> None:
+    for d in _UNZIPPED.values():
+        shutil.rmtree(d, ignore_errors=True)
+
+
+atexit.register(_cleanup)
+
+
+def _unzip(path: Path) -> str:
+    import fmpy
+
+    key = (str(path.resolve()), path.stat().st_mtime)
+    if key not in _UNZIPPED:
+        _UNZIPPED[key] = fmpy.extract(str(path), unzipdir=tempfile.mkdtemp(prefix="rpr-fmu-"))
+    return _UNZIPPED[key]
+
+
+_DoStep2 = ctypes.CFUNCTYPE(c_int, c_void_p, c_double, c_double, c_int)
+_IO2 = ctypes.CFUNCTYPE(c_int, c_void_p, POINTER(c_uint32), c_size_t, POINTER(c_double))
+_DoStep3 = ctypes.CFUNCTYPE(c_int, c_void_p, c_double, c_double, c_bool, POINTER(c_bool), POINTER(c_bool),
+                            POINTER(c_bool), POINTER(c_double))
+_IO3 = ctypes.CFUNCTYPE(c_int, c_void_p, POINTER(c_uint32), c_size_t, POINTER(c_double), c_size_t)
+
+
+def _addr(fn) -> int:
+    return ctypes.cast(fn, c_void_p).value
+
+
+class FmuSlave(Slave):
+    """A co-simulation FMU (FMI 2.0 or 3.0).  FMPy loads the library and handles instantiation,
+    initialisation and termination; the per-step calls go straight to the FMI functions through
+    ctypes with preallocated buffers (or through the compiled loop via :meth:`native`)."""
+
+    def __init__(self, name: str, path: Path, description: SlaveDescription | None = None):
+        self.path = Path(path)
+        super().__init__(name, description or describe_fmu(self.path))
+        self.fmi3 = str(self.description.fmi_version).startswith("3")
+        self.fmu = None
+        self._terminated = False
+        self._empty_vr = (c_uint32 * 1)()
+        self._empty_val = (c_double * 1)()
+
+    # lifecycle ---------------------------------------------------------------------------------
+    def instantiate(self) -> None:
+        import fmpy
+        from fmpy.fmi2 import FMU2Slave, defaultCallbacks, fmi2CallbackFunctions, fmi2CallbackLoggerTYPE
+        from fmpy.fmi3 import FMU3Slave, fmi3LogMessageCallback
+
+        md = fmpy.read_model_description(str(self.path), validate=False)
+        ident = md.coSimulation.modelIdentifier
+        unzip = _unzip(self.path)
+        try:
+            if self.fmi3:
+                self._log = fmi3LogMessageCallback(self._on_log3)
+                self.fmu = FMU3Slave(guid=md.guid, unzipDirectory=unzip, modelIdentifier=ident,
+                                     instanceName=self.name)
+                self.fmu.instantiate(logMessage=self._log)
+            else:
+                cb = fmi2CallbackFunctions()
+                cb.logger = fmi2CallbackLoggerTYPE(self._on_log2)
+                cb.allocateMemory = defaultCallbacks.allocateMemory
+                cb.freeMemory = defaultCallbacks.freeMemory
+                self._callbacks = cb
+                self.fmu = FMU2Slave(guid=md.guid, unzipDirectory=unzip, modelIdentifier=ident,
+                                     instanceName=self.name)
+                self.fmu.instantiate(callbacks=cb)
+        except Exception as exc:  # fmpy raises bare Exceptions for a missing binary or failed call
+            raise UserError(f"{self.name}: cannot instantiate {self.path} ({exc}"
+                            f"{'; ' + self.last_message if self.last_message else ''})") from None
+        dll = self.fmu.dll
+        if self.fmi3:
+            self._step3 = _DoStep3(_addr(dll.fmi3DoStep))
+            self._get = _IO3(_addr(dll.fmi3GetFloat64))
+            self._set = _IO3(_addr(dll.fmi3SetFloat64))
+            self._flags = [c_bool(), c_bool(), c_bool()]  # eventHandlingNeeded, terminateSimulation, earlyReturn
+            self._last_t = c_double()
+            self._p_flags = [ctypes.byref(f) for f in self._flags]
+            self._p_last = ctypes.byref(self._last_t)
+        else:
+            self._step2 = _DoStep2(_addr(dll.fmi2DoStep))
+            self._get = _IO2(_addr(dll.fmi2GetReal))
+            self._set = _IO2(_addr(dll.fmi2SetReal))
+        self._inst = c_void_p(self.fmu.component)
+
+    def _on_log2(self, env, instance, status, category, message) -> None:
+        self.messages.append(f"[{Status(status).name if status in Status._value2member_map_ else status}] "
+                             f"{(message or b'').decode(errors='replace')}")
+
+    def _on_log3(self, env, status, category, message) -> None:
+        self.messages.append(f"[{Status(status).name if status in Status._value2member_map_ else status}] "
+                             f"{(message or b'').decode(errors='replace')}")
+
+    def _call(self, what: str, fn, *args) -> None:
+        try:
+            fn(*args)
+        except Exception as exc:  # fmpy's FMICallException and friends
+            detail = f": {self.last_message}" if self.last_message else ""
+            raise UserError(f"{self.name}: {what} failed ({exc}){detail}") from None
+
+    def set_start(self, values: dict[str, float]) -> None:
+        if not values:
+            return
+        vrs = [self.vr(n) for n in values]
+        vals = [float(v) for v in values.values()]
+        self._call(f"setting start values {', '.join(values)}",
+                   self.fmu.setFloat64 if self.fmi3 else self.fmu.setReal, vrs, vals)
+
+    def enter_initialization(self, start_time: float, stop_time: float) -> None:
+        if self.fmi3:
+            self._call("fmi3EnterInitializationMode", self.fmu.enterInitializationMode,
+                       None, start_time, stop_time)
+        else:
+            self._call("fmi2SetupExperiment", self.fmu.setupExperiment, None, start_time, stop_time)
+            self._call("fmi2EnterInitializationMode", self.fmu.enterInitializationMode)
+
+    def exit_initialization(self) -> None:
+        self._call("exitInitializationMode", self.fmu.exitInitializationMode)
+
+    def bind(self, in_vrs, in_buf, out_vrs, out_buf) -> None:
+        self._in_vr = np.ascontiguousarray(in_vrs, dtype=np.uint32)
+        self._out_vr = np.ascontiguousarray(out_vrs, dtype=np.uint32)
+        for buf in (in_buf, out_buf):
+            if buf.dtype != np.float64 or not buf.flags.c_contiguous:
+                raise ValueError(f"{self.name}: buffers must be contiguous float64 arrays")
+        self._in_buf, self._out_buf = in_buf, out_buf
+        self._n_in, self._n_out = len(self._in_vr), len(self._out_vr)
+        pu, pd = POINTER(c_uint32), POINTER(c_double)
+        self._p_in_vr = self._in_vr.ctypes.data_as(pu) if self._n_in else self._empty_vr
+        self._p_in = in_buf.ctypes.data_as(pd) if self._n_in else self._empty_val
+        self._p_out_vr = self._out_vr.ctypes.data_as(pu) if self._n_out else self._empty_vr
+        self._p_out = out_buf.ctypes.data_as(pd) if self._n_out else self._empty_val
+        if self.fmi3:
+            n_in, n_out, inst, setf, getf = self._n_in, self._n_out, self._inst, self._set, self._get
+            a_in, v_in, a_out, v_out = self._p_in_vr, self._p_in, self._p_out_vr, self._p_out
+            self.push = (lambda: setf(inst, a_in, n_in, v_in, n_in)) if n_in else (lambda: 0)
+            self.pull = (lambda: getf(inst, a_out, n_out, v_out, n_out)) if n_out else (lambda: 0)
+        else:
+            n_in, n_out, inst, setf, getf = self._n_in, self._n_out, self._inst, self._set, self._get
+            a_in, v_in, a_out, v_out = self._p_in_vr, self._p_in, self._p_out_vr, self._p_out
+            self.push = (lambda: setf(inst, a_in, n_in, v_in)) if n_in else (lambda: 0)
+            self.pull = (lambda: getf(inst, a_out, n_out, v_out)) if n_out else (lambda: 0)
+
+    def push(self) -> int:  # replaced per instance by bind()
+        raise RuntimeError(f"{self.name}: push() before bind()")
+
+    def pull(self) -> int:  # replaced per instance by bind()
+        raise RuntimeError(f"{self.name}: pull() before bind()")
+
+    def do_step(self, t: float, h: float) -> int:
+        if self.fmi3:
+            st = self._step3(self._inst, t, h, True, *self._p_flags, self._p_last)
+            if st < 2 and self._flags[1].value:
+                return Status.STOP_REQUESTED
+            return st
+        return self._step2(self._inst, t, h, 0)
+
+    def terminate(self) -> None:
+        if self.fmu is not None and not self._terminated:
+            self._terminated = True
+            try:
+                self.fmu.terminate()
+            except Exception:  # terminating after an Error/Fatal status may itself fail
+                pass
+
+    def free(self) -> None:
+        if self.fmu is not None:
+            try:
+                self.fmu.freeInstance()
+            except Exception:  # after Fatal, freeInstance is undefined: nothing more to do
+                pass
+            self.fmu = None
+
+    def native(self) -> NativeEntry | None:
+        if self.fmu is None:
+            return None
+        dll = self.fmu.dll
+        if self.fmi3:
+            return NativeEntry(True, self.fmu.component, _addr(dll.fmi3DoStep), _addr(dll.fmi3GetFloat64),
+                               _addr(dll.fmi3SetFloat64))
+        return NativeEntry(False, self.fmu.component, _addr(dll.fmi2DoStep), _addr(dll.fmi2GetReal),
+                           _addr(dll.fmi2SetReal))
+
+
+# --- analytic slaves --------------------------------------------------------------------------
+class LinearSlave(Slave):
+    """A continuous linear system ``x' = A x + B u``, ``y = C x + D u`` stepped *exactly* under a
+    zero-order hold on ``u``: ``x+ = Ad x + Bd u`` with ``[Ad Bd] = expm([[A, B], [0, 0]] h)[:n]``.
+
+    Inputs are named ``u[1]..u[m]``, outputs ``y[1]..y[p]``, states ``x[1]..x[n]`` unless names are
+    given; outputs with a nonzero column in ``D`` have direct feedthrough from that input.  The
+    start state is settable by name (``set_start``) before initialisation.  This is the analytic
+    slave of the master's tests (a coupled pair has a known discrete solution) and a known plant.
+    """
+
+    def __init__(self, name: str, A, B, C, D=None, *, x0=None, inputs: list[str] | None = None,
+                 outputs: list[str] | None = None, states: list[str] | None = None):
+        A = np.atleast_2d(np.asarray(A, float))
+        B = np.asarray(B, float).reshape(A.shape[0], -1)
+        C = np.asarray(C, float).reshape(-1, A.shape[0])
+        D = np.zeros((C.shape[0], B.shape[1])) if D is None else np.asarray(D, float).reshape(C.shape[0], B.shape[1])
+        self.A, self.B, self.C, self.D = A, B, C, D
+        n, m, p = A.shape[0], B.shape[1], C.shape[0]
+        inputs = inputs or [f"u[{i + 1}]" for i in range(m)]
+        outputs = outputs or [f"y[{i + 1}]" for i in range(p)]
+        states = states or [f"x[{i + 1}]" for i in range(n)]
+        self.x = np.zeros(n) if x0 is None else np.asarray(x0, float).copy()
+        vs: dict[str, Variable] = {}
+        for i, s in enumerate(states):
+            vs[s] = Variable(s, "local", "continuous", "Real", float(self.x[i]), vr=i)
+        for i, u in enumerate(inputs):
+            vs[u] = Variable(u, "input", "continuous", "Real", 0.0, vr=n + i)
+        for i, y in enumerate(outputs):
+            vs[y] = Variable(y, "output", "continuous", "Real", None, vr=n + m + i)
+        ft = {y: [inputs[j] for j in range(m) if D[i, j] != 0.0] for i, y in enumerate(outputs)}
+        super().__init__(name, SlaveDescription("python", type(self).__name__, vs, ft, can_get_set_state=True))
+        self.u = np.zeros(m)
+        self._n, self._m = n, m
+        self._h = None
+
+    def instantiate(self) -> None:
+        pass
+
+    def set_start(self, values: dict[str, float]) -> None:
+        for k, v in values.items():
+            vr = self.vr(k)
+            if vr < self._n:
+                self.x[vr] = v
+            elif vr < self._n + self._m:
+                self.u[vr - self._n] = v
+            else:
+                raise UserError(f"{self.name}: {k!r} is an output; it has no start value")
+
+    def enter_initialization(self, start_time: float, stop_time: float) -> None:
+        pass
+
+    def exit_initialization(self) -> None:
+        pass
+
+    def bind(self, in_vrs, in_buf, out_vrs, out_buf) -> None:
+        self._in_idx = np.asarray(in_vrs, dtype=np.int64) - self._n
+        self._out_vrs = np.asarray(out_vrs, dtype=np.int64)
+        self._in_buf, self._out_buf = in_buf, out_buf
+
+    def push(self) -> int:
+        self.u[self._in_idx] = self._in_buf
+        return Status.OK
+
+    def pull(self) -> int:
+        allv = np.concatenate([self.x, self.u, self.C @ self.x + self.D @ self.u])
+        self._out_buf[:] = allv[self._out_vrs]
+        return Status.OK
+
+    def discretize(self, h: float) -> tuple[np.ndarray, np.ndarray]:
+        """``(Ad, Bd)`` of the exact zero-order-hold step of length ``h`` [s]."""
+        n, m = self._n, self._m
+        M = np.zeros((n + m, n + m))
+        M[:n, :n], M[:n, n:] = self.A, self.B
+        E = scipy.linalg.expm(M * h)
+        return E[:n, :n], E[:n, n:]
+
+    def do_step(self, t: float, h: float) -> int:
+        if self._h != h:
+            self._Ad, self._Bd = self.discretize(h)
+            self._h = h
+        self.x = self._Ad @ self.x + self._Bd @ self.u
+        return Status.OK if np.all(np.isfinite(self.x)) else Status.DISCARD
+
+    def get_state(self) -> tuple[np.ndarray, np.ndarray]:
+        return self.x.copy(), self.u.copy()
+
+    def set_state(self, state: tuple[np.ndarray, np.ndarray]) -> None:
+        self.x, self.u = state[0].copy(), state[1].copy()
+
+
+def finite_or_none(x) -> float | None:
+    """``float(x)`` if it is a finite number, else None."""
+    try:
+        v = float(x)
+    except (TypeError, ValueError):
+        return None
+    return v if math.isfinite(v) else None
