@@ -173,7 +173,10 @@ def save_map(result: WorkspaceResult, name: str, path: Path) -> Path:
     ax = fig.add_subplot(1, 1, 1)
     cmap = matplotlib.colormaps["RdBu_r" if name == "det" else "viridis"].with_extremes(bad=(1.0, 1.0, 1.0, 0.0))
     data = np.ma.masked_invalid(maps.map(name))
-    x0, x1, y0, y1 = (100.0 * v for v in maps.grid.extent)
+    # pixels centred on the grid points, so the image and the singularity curves line up
+    hx, hy = maps.grid.step_x / 2, maps.grid.step_y / 2
+    x0, x1 = 100.0 * (maps.grid.x[0] - hx), 100.0 * (maps.grid.x[-1] + hx)
+    y0, y1 = 100.0 * (maps.grid.y[0] - hy), 100.0 * (maps.grid.y[-1] + hy)
     kw = {}
     if name == "det" and data.count():
         lim = float(np.max(np.abs(data))) or 1.0

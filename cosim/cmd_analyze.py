@@ -71,11 +71,15 @@ def run(args: argparse.Namespace) -> int:
 
     from . import analysis_report as R
 
-    names = [n.strip() for n in args.config.split(",")] if args.config != "all" else list(A.CONFIGURATIONS)
-    for name in names:
-        if name not in PRESETS:
+    names: list[str] = []
+    for name in (n.strip() for n in args.config.split(",")):
+        if name == "all":
+            names += [n for n in A.CONFIGURATIONS if n not in names]
+        elif name not in PRESETS:
             raise UserError(f"--config {name!r}: unknown configuration; expected one of "
                             f"{', '.join(PRESETS)} or all")
+        elif name not in names:
+            names.append(name)
     grid = None if args.grid is None else _whole("--grid", args.grid, 2, A.MAX_GRID)
     phi = _angle("--phi", args.phi)
     if args.study not in STUDIES:

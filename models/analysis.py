@@ -240,7 +240,8 @@ def dexterity_maps(m: Manipulator, grid: Grid, phi: float = 0.0,
     outside = ~inside
     maps = {}
     for name, values in zip(("det",) + DSI_NAMES, (det, *dsi)):
-        values = np.array(np.broadcast_to(values, inside.shape), dtype=float)
+        if values.shape != inside.shape:  # a map constant over the grid comes back unbroadcast
+            values = np.array(np.broadcast_to(values, inside.shape), dtype=float)
         values[outside] = np.nan
         maps[name] = values
     return DexterityMaps(m, grid, float(phi), float(length_scale), inside, **maps)
