@@ -1,0 +1,1021 @@
+"""Scenes: YAML files that assemble components into a co-simulation, checked before anything runs.
+
+Format (every key but ``components`` and ``connections`` optional; lines starting ``#`` are comments)::
+
+    name: pid_step
+    description: free text
+    include: base.yaml          # another scene, merged under this one (paths relative to this file)
+    stop_time: 5.0              # [s]
+    components:                 # a mapping name -> spec (or a list of specs with a 'name:' key)
+      mech:   {model: mechanism, fidelity: rigid, options: {config: cross_leg}, params: {leg[1].m_act: 0.058}}
+      pid1:   {model: pid, params: {Kp: 30, Ki: 80, Kd: 20, u_max: 12}}
+      plant:  {fmu: plant.fmu, params: {k: 1e4}, start: {x: 0.1}}    # any external FMU
+    connections:
+      - target.leg[1].s -> pid1.setpoint        # signal: output -> input
+      - motor1.flange <-> mech.leg[1]           # power bond between two flanges
+    master: {algorithm: gauss_seidel, step: 1e-3, order: [target, pid1, motor1, mech],
+             engine: auto, output_interval: 1e-3}
+    outputs: ["mech.platform.*", "mech.leg[*].f"]   # fnmatch over "component.variable"
+
+Component spec: ``model`` (a name of :func:`models.blocks.catalog`) with optional ``fidelity``
+and ``options`` (construction options of :func:`models.blocks.make`), or ``fmu`` (a path);
+``params`` sets parameters by name (structural ones go to ``make``, the others are set on the
+instance at start-up, so one compiled FMU serves every value); ``start`` sets start values of
+inputs and states; ``fmi`` picks the FMI version of a built FMU ("2.0" default, or "3.0").
+
+A bond ``a.p <-> b.q`` joins two flanges: the side whose flange computes the effort
+(``effort_out``) feeds its effort output to the other side's effort input, and the other side
+feeds its flow output back; both sides must differ in causality.
+
+Includes merge deeply: mappings key by key (the including file wins; ``null`` deletes), a
+component whose ``model``/``fmu`` changes is replaced whole, ``connections`` extend the included
+ones (a connection into an input, or a bond on a flange, that the included scene already feeds
+replaces it), other lists are replaced.  ``--set path=value`` overrides work the same way:
+``master.step=5e-4``, ``components.pid1.params.Kp=40``, ``components.mech.params.leg[1].m_act=0.06``
+(everything after ``params.`` or ``start.`` is one variable name).
+
+Validation collects every problem (file, line, message with the closest valid name) and raises
+:class:`SceneError` listing them all; warnings (e.g. an unconnected input without a start value)
+are kept on :attr:`Scene.warnings`.
+"""
+from __future__ import annotations
+
+import copy
+import difflib
+import fnmatch
+import hashlib
+import json
+import math
+import re
+from collections.abc import Iterable, Mapping, Sequence
+from dataclasses import dataclass, field
+from functools import lru_cache
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from .errors import UserError
+from .master import ALGORITHMS, find_algebraic_loop
+from .slaves import SlaveDescription, describe_block, describe_fmu
+
+Loc = tuple[str, int]  # (file, line); line 0 = no line (a --set override)
+
+TOP_KEYS = ("name", "description", "include", "stop_time", "components", "connections", "master", "outputs")
+COMPONENT_KEYS = ("model", "fidelity", "options", "params", "start", "fmu", "fmi", "description")
+MASTER_KEYS = ("algorithm", "step", "order", "engine", "output_interval")
+ENGINES = ("auto", "compiled", "python")
+FMI_VERSIONS = ("2.0", "3.0")
+
+
+# --- problems ---------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class Problem:
+    """One finding of validation: where, what, and how bad."""
+
+    file: str
+    line: int
+    message: str
+    severity: str = "error"
+
+    def __str__(self) -> str:
+        where = f"{self.file}:{self.line}" if self.line else self.file
+        return f"{where}: {self.severity}: {self.message}"
+
+
+class SceneError(UserError):
+    """A scene that cannot run; :attr:`problems` lists every error (and warning) found."""
+
+    def __init__(self, problems: Sequence[Problem]):
+        self.problems = list(problems)
+        errors = [p for p in self.problems if p.severity == "error"]
+        super().__init__("\n".join(str(p) for p in errors) or "invalid scene")
+
+
+def suggest(name: str, choices: Iterable[str]) -> str:
+    """``"; did you mean 'x'?"`` for the closest of ``choices`` (difflib), else ``""``."""
+    close = difflib.get_close_matches(str(name), list(choices), n=1, cutoff=0.5)
+    return f"; did you mean {close[0]!r}?" if close else ""
+
+
+# --- YAML with line numbers -------------------------------------------------------------------
+class YMap(dict):
+    """A mapping that remembers where it and each of its keys were written."""
+
+    where: Loc = ("", 0)
+
+    def __init__(self, *a, **kw):
+        super().__init__(*a, **kw)
+        self.locs: dict[Any, Loc] = {}
+
+    def loc(self, key: Any) -> Loc:
+        return self.locs.get(key, self.where)
+
+
+class YList(list):
+    """A list that remembers where it and each item were written."""
+
+    where: Loc = ("", 0)
+
+    def __init__(self, *a):
+        super().__init__(*a)
+        self.locs: list[Loc] = []
+
+    def loc(self, i: int) -> Loc:
+        return self.locs[i] if i < len(self.locs) else self.where
+
+
+class _Loader(yaml.SafeLoader):
+    """SafeLoader that builds :class:`YMap`/:class:`YList` with source lines, reports duplicate
+    keys, and reads ``1e-3`` as a number (YAML 1.2 floats)."""
+
+    def __init__(self, stream, filename: str):
+        super().__init__(stream)
+        self.filename = filename
+        self.duplicates: list[Problem] = []
+
+
+_FLOAT = re.compile(r"^[-+]?(?:\d[\d_]*(?:\.[\d_]*)?|\.\d[\d_]*)(?:[eE][-+]?\d+)?$|^[-+]?\.(?:inf|Inf|INF)$|^\.(?:nan|NaN|NAN)$")
+_Loader.add_implicit_resolver("tag:yaml.org,2002:float", _FLOAT, list("-+0123456789."))
+
+
+def _construct_map(loader: _Loader, node: yaml.MappingNode) -> YMap:
+    m = YMap()
+    m.where = (loader.filename, node.start_mark.line + 1)
+    loader.flatten_mapping(node)
+    for knode, vnode in node.value:
+        key = loader.construct_object(knode, deep=True)
+        line = knode.start_mark.line + 1
+        if key in m:
+            loader.duplicates.append(Problem(loader.filename, line, f"duplicate key {key!r} (first at line "
+                                                                     f"{m.locs[key][1]}); the last one would win"))
+        m[key] = loader.construct_object(vnode, deep=True)
+        m.locs[key] = (loader.filename, line)
+    return m
+
+
+def _construct_seq(loader: _Loader, node: yaml.SequenceNode) -> YList:
+    seq = YList()
+    seq.where = (loader.filename, node.start_mark.line + 1)
+    for item in node.value:
+        seq.append(loader.construct_object(item, deep=True))
+        seq.locs.append((loader.filename, item.start_mark.line + 1))
+    return seq
+
+
+_Loader.add_constructor(yaml.resolver.BaseResolver.DEFAULT_MAPPING_TAG, _construct_map)
+_Loader.add_constructor(yaml.resolver.BaseResolver.DEFAULT_SEQUENCE_TAG, _construct_seq)
+
+
+def _display(path: Path) -> str:
+    try:
+        return str(path.resolve().relative_to(Path.cwd().resolve()))
+    except ValueError:
+        return str(path)
+
+
+def read_yaml(path: Path) -> tuple[Any, list[Problem]]:
+    """Parse one YAML file into YMap/YList; syntax errors and duplicate keys become problems."""
+    name = _display(path)
+    try:
+        text = Path(path).read_text()
+    except OSError as exc:
+        return None, [Problem(name, 0, f"cannot read the scene: {exc.strerror or exc}")]
+    loader = _Loader(text, name)
+    try:
+        data = loader.get_single_data()
+    except yaml.MarkedYAMLError as exc:
+        mark = exc.problem_mark or exc.context_mark
+        line = mark.line + 1 if mark else 0
+        what = exc.problem or str(exc)
+        hint = ""
+        if "found character '*'" in str(exc) or "alias" in str(exc):
+            hint = " (quote strings that start with '*', e.g. \"*.x\")"
+        elif "'['" in str(exc) or "flow" in str(exc):
+            hint = " (quote names with brackets inside [ ] lists, e.g. [\"mech.leg[*].f\"])"
+        return None, [Problem(name, line, f"YAML syntax: {what}{hint}")]
+    finally:
+        loader.dispose()
+    return data, loader.duplicates
+
+
+# --- include and merge ------------------------------------------------------------------------
+def _components_as_map(node: Any, problems: list[Problem]) -> Any:
+    """Accept ``components`` as a list of specs with ``name:`` and turn it into a mapping."""
+    if not isinstance(node, YList):
+        return node
+    out = YMap()
+    out.where = node.where
+    for i, item in enumerate(node):
+        if not isinstance(item, YMap) or "name" not in item:
+            problems.append(Problem(*node.loc(i), "a component in a list needs a 'name:' key"))
+            continue
+        spec = YMap({k: v for k, v in item.items() if k != "name"})
+        spec.where, spec.locs = item.where, {k: v for k, v in item.locs.items() if k != "name"}
+        out[str(item["name"])] = spec
+        out.locs[str(item["name"])] = node.loc(i)
+    return out
+
+
+def _kind(spec: Any) -> tuple[str, Any]:
+    if isinstance(spec, Mapping):
+        if "fmu" in spec:
+            return "fmu", spec.get("fmu")
+        if "model" in spec:
+            return "model", spec.get("model")
+    return "", None
+
+
+def merge(base: Any, over: Any, *, path: str = "") -> Any:
+    """Deep merge of ``over`` onto ``base`` (see the module docstring); returns a new tree."""
+    if isinstance(base, YMap) and isinstance(over, YMap):
+        out = YMap(base)
+        out.where, out.locs = base.where, dict(base.locs)
+        for k, v in over.items():
+            sub = f"{path}.{k}" if path else str(k)
+            if v is None:
+                out.pop(k, None)
+                out.locs.pop(k, None)
+                continue
+            if path == "components" and k in out and _kind(out[k])[0] and _kind(v)[0] and _kind(out[k]) != _kind(v):
+                out[k] = v  # a different model or FMU: the old spec means nothing any more
+            elif sub == "connections" and isinstance(out.get(k), YList) and isinstance(v, YList):
+                out[k] = _merge_connections(out[k], v)
+            elif k in out:
+                out[k] = merge(out[k], v, path=sub)
+            else:
+                out[k] = v
+            out.locs[k] = over.loc(k)
+        return out
+    return over
+
+
+_ARROW = re.compile(r"^\s*(\S+)\s*(<->|->)\s*(\S+)\s*$")
+
+
+def _conn_keys(text: Any) -> set[str]:
+    """What a connection occupies: the input it feeds, or both flanges of a bond."""
+    m = _ARROW.match(str(text))
+    if not m:
+        return set()
+    a, arrow, b = m.groups()
+    return {b} if arrow == "->" else {a, b}
+
+
+def _merge_connections(base: YList, over: YList) -> YList:
+    taken = set().union(*(_conn_keys(c) for c in over)) if over else set()
+    out = YList()
+    out.where = base.where
+    for i, c in enumerate(base):
+        if not (_conn_keys(c) & taken):
+            out.append(c)
+            out.locs.append(base.loc(i))
+    for i, c in enumerate(over):
+        out.append(c)
+        out.locs.append(over.loc(i))
+    return out
+
+
+def load_raw(path: Path, problems: list[Problem], _chain: tuple[Path, ...] = ()) -> YMap | None:
+    """The scene tree of ``path`` with its includes merged in (problems appended, not raised)."""
+    path = Path(path)
+    rp = path.resolve()
+    if rp in _chain:
+        cycle = " -> ".join(_display(p) for p in _chain + (rp,))
+        problems.append(Problem(_display(path), 0, f"include cycle: {cycle}"))
+        return None
+    data, found = read_yaml(path)
+    problems.extend(found)
+    if data is None:
+        if not found:
+            problems.append(Problem(_display(path), 1, "the scene is empty; expected a mapping with "
+                                                        "'components:' and 'connections:'"))
+        return None
+    if not isinstance(data, YMap):
+        problems.append(Problem(_display(path), 1, f"a scene is a mapping of keys (name, components, "
+                                                    f"connections, ...), not a {type(data).__name__}"))
+        return None
+    if "components" in data:
+        data["components"] = _components_as_map(data["components"], problems)
+    inc = data.pop("include", None)
+    if inc is None:
+        return data
+    loc = data.loc("include")
+    data.locs.pop("include", None)
+    incs = inc if isinstance(inc, list) else [inc]
+    merged: YMap | None = None
+    for item in incs:
+        if not isinstance(item, str):
+            problems.append(Problem(*loc, f"include must be a file name (or a list of them), got {item!r}"))
+            continue
+        target = (path.parent / item)
+        if not target.is_file():
+            near = suggest(item, [p.name for p in path.parent.glob("*.yaml")])
+            problems.append(Problem(*loc, f"included scene {item!r} not found next to {path.name}{near}"))
+            continue
+        sub = load_raw(target, problems, _chain + (rp,))
+        if sub is not None:
+            merged = sub if merged is None else merge(merged, sub)
+    return data if merged is None else merge(merged, data)
+
+
+def parse_set(item: str) -> tuple[str, Any]:
+    """``"path=value"`` -> (path, value parsed as YAML, so numbers, lists and words work)."""
+    path, sep, text = str(item).partition("=")
+    path = path.strip()
+    if not sep or not path:
+        raise UserError(f"--set {item!r}: expected PATH=VALUE, e.g. --set master.step=5e-4 or "
+                        f"--set components.pid1.params.Kp=40")
+    loader = _Loader(text.strip() or "''", f"--set {item}")
+    try:
+        value = loader.get_single_data()
+    except yaml.YAMLError:
+        value = text.strip()
+    finally:
+        loader.dispose()
+    return path, value
+
+
+def _split_path(path: str) -> list[str]:
+    parts = path.split(".")
+    for i, p in enumerate(parts):
+        if p in ("params", "start", "options") and i >= 2 and parts[0] == "components" and i + 1 < len(parts):
+            return parts[:i + 1] + [".".join(parts[i + 1:])]
+    return parts
+
+
+def apply_overrides(tree: YMap, overrides: Mapping[str, Any] | Sequence[str] | None) -> YMap:
+    """Apply ``--set`` style overrides (a mapping path -> value, or ``"path=value"`` strings)."""
+    if not overrides:
+        return tree
+    items = list(overrides.items()) if isinstance(overrides, Mapping) else [parse_set(s) for s in overrides]
+    for path, value in items:
+        keys = _split_path(path)
+        label = (f"--set {path}={value}", 0)
+        over: Any = _to_y(value, label)
+        for k in reversed(keys):
+            m = YMap({k: over})
+            m.where, m.locs = label, {k: label}
+            over = m
+        tree = merge(tree, over)
+    return tree
+
+
+def _to_y(value: Any, where: Loc) -> Any:
+    if isinstance(value, Mapping):
+        m = YMap({k: _to_y(v, where) for k, v in value.items()})
+        m.where, m.locs = where, {k: where for k in value}
+        return m
+    if isinstance(value, (list, tuple)):
+        s = YList([_to_y(v, where) for v in value])
+        s.where, s.locs = where, [where] * len(value)
+        return s
+    return value
+
+
+def plain(node: Any) -> Any:
+    """The tree as plain dicts and lists (for hashing, JSON and worker processes)."""
+    if isinstance(node, Mapping):
+        return {str(k): plain(v) for k, v in node.items()}
+    if isinstance(node, (list, tuple)):
+        return [plain(v) for v in node]
+    return node
+
+
+# --- the validated scene ----------------------------------------------------------------------
+@dataclass
+class Component:
+    """A validated component: how to build it and what it looks like."""
+
+    name: str
+    kind: str  # "model" or "fmu"
+    description: SlaveDescription
+    model: str | None = None
+    fidelity: str | None = None
+    options: dict[str, Any] = field(default_factory=dict)
+    params: dict[str, float] = field(default_factory=dict)  # set on the instance at start-up
+    start: dict[str, float] = field(default_factory=dict)
+    fmu: Path | None = None
+    fmi: str = "2.0"
+    block: Any = None  # the models.block.Block of a model component
+    where: Loc = ("", 0)
+
+    @property
+    def label(self) -> str:
+        return f"{self.model}/{self.fidelity}" if self.kind == "model" else (self.fmu.name if self.fmu else "?")
+
+    def start_values(self) -> dict[str, float]:
+        """Everything to set before initialisation: parameters, then start values."""
+        return {**self.params, **self.start}
+
+
+@dataclass(frozen=True)
+class Connection:
+    """A signal ``src.src_var -> dst.dst_var``; ``bond`` names the bond it comes from, if any."""
+
+    src: str
+    src_var: str
+    dst: str
+    dst_var: str
+    bond: str | None = None
+    where: Loc = ("", 0)
+
+    def __str__(self) -> str:
+        return f"{self.src}.{self.src_var} -> {self.dst}.{self.dst_var}"
+
+
+@dataclass
+class MasterSettings:
+    algorithm: str
+    step: float  # [s]
+    step_ns: int
+    order: list[str] | None
+    engine: str
+    record_every: int  # output interval in steps
+
+
+@dataclass
+class Scene:
+    """A validated scene, ready to run (see :func:`load`)."""
+
+    name: str
+    path: Path | None
+    description: str
+    stop_time: float
+    n_steps: int
+    components: dict[str, Component]
+    connections: list[Connection]
+    bonds: list[tuple[str, str, str, str]]  # (comp, flange, comp, flange)
+    master: MasterSettings
+    outputs: list[str]
+    data: dict  # the merged tree as plain data
+    hash: str
+    warnings: list[Problem] = field(default_factory=list)
+
+
+# --- catalog access ---------------------------------------------------------------------------
+def default_catalog():
+    """The model catalog module :mod:`models.blocks`."""
+    try:
+        import models.blocks as blocks
+    except ModuleNotFoundError as exc:
+        if exc.name == "models.blocks":
+            raise UserError("the model catalog (models.blocks) is not installed in this build; "
+                            "only 'fmu:' components can be used") from None
+        raise
+    return blocks
+
+
+@lru_cache(maxsize=64)
+def _make(catalog, model: str, fidelity: str, frozen: tuple) -> Any:
+    return catalog.make(model, fidelity, **dict(frozen))
+
+
+def make_block(catalog, model: str, fidelity: str, options: Mapping[str, Any]):
+    """``catalog.make`` with a cache keyed by the arguments (blocks are immutable in use)."""
+    try:
+        frozen = tuple(sorted((k, v if not isinstance(v, list) else tuple(v)) for k, v in options.items()))
+        hash(frozen)
+    except TypeError:
+        return catalog.make(model, fidelity, **options)
+    return _make(catalog, model, fidelity, frozen)
+
+
+# --- validation -------------------------------------------------------------------------------
+def _is_number(v: Any) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool)
+
+
+class _Checker:
+    def __init__(self, tree: YMap, path: Path | None, catalog):
+        self.tree, self.path, self.catalog = tree, path, catalog
+        self.problems: list[Problem] = []
+
+    def err(self, where: Loc, msg: str) -> None:
+        self.problems.append(Problem(where[0], where[1], msg))
+
+    def warn(self, where: Loc, msg: str) -> None:
+        self.problems.append(Problem(where[0], where[1], msg, "warning"))
+
+    def number(self, node: YMap, key: str, what: str, *, required: bool = False, default=None):
+        if key not in node:
+            if required:
+                self.err(node.where, f"{what} is missing; expected a number in seconds")
+            return default
+        v = node[key]
+        if not _is_number(v) or not math.isfinite(v):
+            self.err(node.loc(key), f"{what} = {v!r} is not a finite number")
+            return None
+        return float(v)
+
+    def unknown_keys(self, node: YMap, allowed: Sequence[str], what: str) -> None:
+        for k in node:
+            if k not in allowed:
+                self.err(node.loc(k), f"unknown key {k!r} in {what}{suggest(str(k), allowed)} "
+                                      f"(expected: {', '.join(allowed)})")
+
+    # components ---------------------------------------------------------------------------------
+    def component(self, name: str, spec: Any, where: Loc) -> Component | None:
+        if not re.match(r"^[A-Za-z_][A-Za-z0-9_]*$", str(name)):
+            self.err(where, f"component name {name!r} must be an identifier (letters, digits, '_'; no dots)")
+            return None
+        if not isinstance(spec, YMap):
+            self.err(where, f"component {name!r}: expected a mapping with 'model:' or 'fmu:', got {spec!r}")
+            return None
+        self.unknown_keys(spec, COMPONENT_KEYS, f"component {name!r}")
+        for key in ("options", "params", "start"):
+            if key in spec and not isinstance(spec[key], YMap):
+                self.err(spec.loc(key), f"component {name!r}: {key} must be a mapping name: value, got {spec[key]!r}")
+                return None
+        fmi = spec.get("fmi", "2.0")
+        fmi = {2: "2.0", 3: "3.0", 2.0: "2.0", 3.0: "3.0"}.get(fmi, str(fmi)) if not isinstance(fmi, bool) else str(fmi)
+        if fmi not in FMI_VERSIONS:
+            self.err(spec.loc("fmi"), f"component {name!r}: fmi = {spec.get('fmi')!r}; expected \"2.0\" or \"3.0\"")
+            return None
+        if "model" in spec and "fmu" in spec:
+            self.err(spec.where, f"component {name!r} has both 'model:' and 'fmu:'; keep one")
+            return None
+        if "fmu" in spec:
+            return self._fmu_component(name, spec, fmi)
+        if "model" in spec:
+            return self._model_component(name, spec, fmi)
+        self.err(spec.where, f"component {name!r} needs 'model:' (a catalog model) or 'fmu:' (a file)")
+        return None
+
+    def _fmu_component(self, name: str, spec: YMap, fmi: str) -> Component | None:
+        where = spec.loc("fmu")
+        rel = spec["fmu"]
+        if not isinstance(rel, str):
+            self.err(where, f"component {name!r}: fmu must be a file path, got {rel!r}")
+            return None
+        base = Path(where[0]).parent if where[1] else (self.path.parent if self.path else Path.cwd())
+        fpath = (base / rel) if not Path(rel).is_absolute() else Path(rel)
+        if not fpath.is_file():
+            near = suggest(Path(rel).name, [p.name for p in fpath.parent.glob("*.fmu")]) if fpath.parent.is_dir() else ""
+            self.err(where, f"component {name!r}: FMU file {rel!r} not found (looked in {_display(fpath.parent)}){near}")
+            return None
+        for key in ("fidelity", "options"):
+            if key in spec:
+                self.err(spec.loc(key), f"component {name!r}: '{key}' applies to catalog models, not to an FMU")
+        try:
+            desc = describe_fmu(fpath)
+        except UserError as exc:
+            self.err(where, f"component {name!r}: {exc}")
+            return None
+        comp = Component(name, "fmu", desc, fmu=fpath.resolve(), fmi=desc.fmi_version or fmi, where=spec.where)
+        self._values(comp, spec)
+        return comp
+
+    def _model_component(self, name: str, spec: YMap, fmi: str) -> Component | None:
+        try:
+            catalog = self.catalog if self.catalog is not None else default_catalog()
+        except UserError as exc:
+            self.err(spec.loc("model"), f"component {name!r}: {exc}")
+            return None
+        cat = catalog.catalog()
+        model = spec["model"]
+        if model not in cat:
+            self.err(spec.loc("model"), f"component {name!r}: unknown model {model!r}{suggest(str(model), cat)} "
+                                        f"(catalog: {', '.join(sorted(cat))})")
+            return None
+        fidelity = spec.get("fidelity", cat[model][0])
+        if fidelity not in cat[model]:
+            self.err(spec.loc("fidelity"), f"component {name!r}: model {model} has no fidelity {fidelity!r}"
+                                           f"{suggest(str(fidelity), cat[model])} (expected one of "
+                                           f"{', '.join(cat[model])})")
+            return None
+        options = dict(spec.get("options", {}))
+        known_opts = getattr(catalog, "options", None)
+        if known_opts is not None:
+            allowed = list(known_opts(model, fidelity))
+            bad = [k for k in options if k not in allowed]
+            for k in bad:
+                self.err(spec["options"].loc(k), f"component {name!r}: {model}/{fidelity} has no option {k!r}"
+                                                 f"{suggest(str(k), allowed)} (options: {', '.join(allowed) or 'none'})")
+            if bad:
+                return None
+        from models.block import BlockError
+
+        try:
+            block = make_block(catalog, model, fidelity, options)
+        except (BlockError, ValueError, TypeError) as exc:
+            self.err(spec.loc("options") if "options" in spec else spec.loc("model"), f"component {name!r}: {exc}")
+            return None
+        params = spec.get("params", YMap())
+        structural = {p.name for p in block.params if p.structural}
+        fixed = {k: params[k] for k in params if k in structural}
+        if fixed:
+            try:
+                block = make_block(catalog, model, fidelity, {**options, **fixed})
+            except (BlockError, ValueError, TypeError) as exc:
+                self.err(params.loc(next(iter(fixed))), f"component {name!r}: {exc}")
+                return None
+        desc = describe_block(block, f"{model}/{fidelity}")
+        comp = Component(name, "model", desc, model=model, fidelity=fidelity, options=options, fmi=fmi,
+                         block=block, where=spec.where)
+        self._values(comp, spec, skip=set(fixed))
+        return comp
+
+    def _values(self, comp: Component, spec: YMap, skip: set[str] = frozenset()) -> None:
+        """Check ``params`` and ``start`` against the component's variables."""
+        vs = comp.description.variables
+        params = spec.get("params", YMap())
+        pnames = [v.name for v in vs.values() if v.causality == "parameter"]
+        bounds = {p.name: (p.lower, p.upper, p.unit) for p in comp.block.params} if comp.block is not None else {}
+        for k, val in params.items():
+            where = params.loc(k)
+            if k in skip:
+                continue
+            if k not in vs or vs[k].causality != "parameter":
+                if comp.kind == "model" and k in ("config", "form", "integrator", "substeps", "rotor", "profile",
+                                                  "derivative", "anti_windup", "sample_period"):
+                    self.err(where, f"component {comp.name!r}: {k!r} is a construction option, not a parameter; "
+                                    f"put it under 'options:'")
+                elif k in vs:
+                    self.err(where, f"component {comp.name!r}: {k!r} is a{'n' if vs[k].causality[0] in 'aeiou' else ''} "
+                                    f"{vs[k].causality}, not a parameter; use 'start:' for start values")
+                else:
+                    self.err(where, f"component {comp.name!r} ({comp.label}) has no parameter {k!r}"
+                                    f"{suggest(str(k), pnames)}")
+                continue
+            if vs[k].type != "Real":
+                self.err(where, f"component {comp.name!r}: parameter {k!r} is {vs[k].type}; only Real parameters "
+                                f"can be set from a scene")
+                continue
+            if not _is_number(val) or not math.isfinite(val):
+                self.err(where, f"component {comp.name!r}: parameter {k} = {val!r} is not a finite number")
+                continue
+            if k in bounds:
+                lo, hi, unit = bounds[k]
+                if not (lo <= val <= hi):
+                    self.err(where, f"component {comp.name!r}: parameter {k} = {val} is outside [{lo}, {hi}]"
+                                    f"{' ' + unit if unit else ''}")
+                    continue
+            if vs[k].variability in ("constant",):
+                self.err(where, f"component {comp.name!r}: parameter {k!r} is a constant and cannot be set")
+                continue
+            comp.params[k] = float(val)
+        start = spec.get("start", YMap())
+        settable = [v.name for v in vs.values() if v.causality in ("input", "local", "output")]
+        for k, val in start.items():
+            where = start.loc(k)
+            if k not in vs:
+                self.err(where, f"component {comp.name!r} ({comp.label}) has no variable {k!r}{suggest(str(k), settable)}")
+                continue
+            var = vs[k]
+            if var.causality == "parameter":
+                self.err(where, f"component {comp.name!r}: {k!r} is a parameter; set it under 'params:'")
+                continue
+            if var.causality == "output":
+                self.err(where, f"component {comp.name!r}: {k!r} is an output; outputs are computed and have no "
+                                f"start value to set")
+                continue
+            if not _is_number(val) or not math.isfinite(val):
+                self.err(where, f"component {comp.name!r}: start value {k} = {val!r} is not a finite number")
+                continue
+            if var.causality == "local" and comp.block is not None and not _exact_start(comp.block, k):
+                self.err(where, f"component {comp.name!r}: state {k!r} starts from the parameters (its start is "
+                                f"calculated); set those parameters instead")
+                continue
+            comp.start[k] = float(val)
+
+    # connections ----------------------------------------------------------------------------------
+    def endpoint(self, text: str, comps: dict[str, Component], where: Loc, side: str) -> tuple[str, str] | None:
+        name, dot, var = text.partition(".")
+        if not dot or not var:
+            self.err(where, f"{side} {text!r} must be component.variable (e.g. mech.leg[1].s)")
+            return None
+        if name not in comps:
+            self.err(where, f"unknown component {name!r} in {text!r}{suggest(name, comps)}")
+            return None
+        return name, var
+
+    def signal(self, src: str, sv: str, dst: str, dv: str, comps: dict[str, Component], where: Loc,
+               bond: str | None = None) -> Connection | None:
+        a, b = comps[src].description.variables, comps[dst].description.variables
+        ok = True
+        for comp, var, vs in ((src, sv, a), (dst, dv, b)):
+            if var not in vs:
+                flange = comps[comp].description.flange(var)
+                if flange is not None:
+                    self.err(where, f"{comp}.{var} is a flange; join flanges with '<->' (a bond), not '->'")
+                else:
+                    cands = [n for n in vs if vs[n].causality in ("input", "output")]
+                    self.err(where, f"component {comp!r} ({comps[comp].label}) has no variable {var!r}"
+                                    f"{suggest(var, cands)}")
+                ok = False
+        if not ok:
+            return None
+        ca_, cb = a[sv].causality, b[dv].causality
+        lhs, rhs = f"{src}.{sv}", f"{dst}.{dv}"
+        if ca_ == "output" and cb == "output":
+            self.err(where, f"connects two outputs ({lhs} and {rhs}); a connection goes from an output to an input")
+            return None
+        if ca_ == "input" and cb == "input":
+            self.err(where, f"connects two inputs ({lhs} and {rhs}); a connection goes from an output to an input")
+            return None
+        if ca_ == "input" and cb == "output":
+            self.err(where, f"is reversed: {lhs} is an input and {rhs} an output; write '{rhs} -> {lhs}'")
+            return None
+        if ca_ != "output":
+            self.err(where, f"{lhs} is a{'n' if ca_[0] in 'aeiou' else ''} {ca_}, not an output; "
+                            f"only outputs can feed a connection")
+            return None
+        if cb != "input":
+            hint = f"; set it under components.{dst}.params" if cb == "parameter" else ""
+            self.err(where, f"{rhs} is a{'n' if cb[0] in 'aeiou' else ''} {cb}, not an input{hint}")
+            return None
+        ta, tb = a[sv].type, b[dv].type
+        if ta != tb:
+            self.err(where, f"type mismatch: {lhs} is {ta} but {rhs} is {tb}")
+            return None
+        if ta != "Real":
+            self.err(where, f"{lhs} -> {rhs}: only Real (Float64) signals can be connected so far, not {ta}")
+            return None
+        return Connection(src, sv, dst, dv, bond, where)
+
+    def connections(self, comps: dict[str, Component]) -> tuple[list[Connection], list[tuple]]:
+        node = self.tree.get("connections", YList())
+        if not isinstance(node, list):
+            self.err(self.tree.loc("connections"), "connections must be a list of 'a.out -> b.in' or "
+                                                   "'a.flange <-> b.flange' strings")
+            return [], []
+        conns: list[Connection] = []
+        bonds: list[tuple] = []
+        fed: dict[tuple[str, str], Connection] = {}
+        bonded: dict[tuple[str, str], Loc] = {}
+        for i, item in enumerate(node):
+            where = node.loc(i) if isinstance(node, YList) else self.tree.loc("connections")
+            m = _ARROW.match(item) if isinstance(item, str) else None
+            if not m:
+                self.err(where, f"connection {item!r} must read 'a.out -> b.in' (a signal) or "
+                                f"'a.flange <-> b.flange' (a power bond)")
+                continue
+            lhs, arrow, rhs = m.groups()
+            a = self.endpoint(lhs, comps, where, "left side")
+            b = self.endpoint(rhs, comps, where, "right side")
+            if a is None or b is None:
+                continue
+            new: list[Connection] = []
+            if arrow == "->":
+                c = self.signal(*a, *b, comps, where)
+                if c is not None:
+                    new.append(c)
+            else:
+                fa, fb = comps[a[0]].description.flange(a[1]), comps[b[0]].description.flange(b[1])
+                bad = False
+                for (cn, fn), fl in ((a, fa), (b, fb)):
+                    if fl is None:
+                        names = [f.name for f in comps[cn].description.flanges]
+                        kind = " is a variable, not a flange" if fn in comps[cn].description.variables else ""
+                        self.err(where, f"component {cn!r} ({comps[cn].label}) has no flange {fn!r}{kind}"
+                                        f"{suggest(fn, names)} (flanges: {', '.join(names) or 'none'})")
+                        bad = True
+                    elif (cn, fn) in bonded:
+                        self.err(where, f"flange {cn}.{fn} is already bonded (line {bonded[(cn, fn)][1]}); "
+                                        f"a flange takes one bond")
+                        bad = True
+                if bad:
+                    continue
+                if fa.causality == fb.causality:
+                    what = "effort" if fa.causality == "effort_out" else "flow"
+                    self.err(where, f"bond {lhs} <-> {rhs}: both flanges compute the {what} ({fa.causality}); "
+                                    f"one side must take it as input")
+                    continue
+                eff, flo = ((a, fa), (b, fb)) if fa.causality == "effort_out" else ((b, fb), (a, fa))
+                label = f"{lhs} <-> {rhs}"
+                for c in (self.signal(eff[0][0], eff[1].effort, flo[0][0], flo[1].effort, comps, where, label),
+                          self.signal(flo[0][0], flo[1].flow, eff[0][0], eff[1].flow, comps, where, label)):
+                    if c is not None:
+                        new.append(c)
+                if len(new) == 2:
+                    bonds.append((a[0], a[1], b[0], b[1]))
+                    bonded[a] = bonded[b] = where
+            for c in new:
+                key = (c.dst, c.dst_var)
+                if key in fed:
+                    self.err(where, f"input {c.dst}.{c.dst_var} is already connected (from "
+                                    f"{fed[key].src}.{fed[key].src_var}, line {fed[key].where[1]}); an input takes "
+                                    f"one source")
+                    continue
+                fed[key] = c
+                conns.append(c)
+        return conns, bonds
+
+    def unconnected(self, comps: dict[str, Component], conns: list[Connection]) -> None:
+        fed = {(c.dst, c.dst_var) for c in conns}
+        for comp in comps.values():
+            for u in comp.description.of("input"):
+                if (comp.name, u) not in fed and u not in comp.start:
+                    start = comp.description.variables[u].start
+                    self.warn(comp.where, f"input {comp.name}.{u} is not connected and has no start value in the "
+                                          f"scene; it keeps its default start value {start if start is not None else 0.0}")
+
+    def algebraic_loops(self, comps: dict[str, Component], conns: list[Connection]) -> None:
+        edges = [((c.src, c.src_var), (c.dst, c.dst_var)) for c in conns]
+        for comp in comps.values():
+            for y, us in comp.description.feedthrough.items():
+                edges += [((comp.name, u), (comp.name, y)) for u in us]
+        cyc = find_algebraic_loop(edges)
+        if cyc:
+            text = " -> ".join(f"{c}.{v}" for c, v in cyc)
+            first = next((c for c in conns if (c.src, c.src_var) in cyc and (c.dst, c.dst_var) in cyc), conns[0])
+            self.err(first.where, f"algebraic loop (a cycle of direct feedthrough): {text}; break it with a "
+                                  f"component that has a state on the path (e.g. a motor with inductance, "
+                                  f"fidelity full, or a continuous PID)")
+
+    # master, time, outputs ------------------------------------------------------------------------------
+    def master(self, comps: dict[str, Component]) -> MasterSettings | None:
+        node = self.tree.get("master", YMap())
+        if not isinstance(node, YMap):
+            self.err(self.tree.loc("master"), f"master must be a mapping (algorithm, step, ...), got {node!r}")
+            return None
+        self.unknown_keys(node, MASTER_KEYS, "master")
+        alg = node.get("algorithm", "gauss_seidel")
+        ok = True
+        if alg not in ALGORITHMS:
+            self.err(node.loc("algorithm"), f"unknown master algorithm {alg!r}{suggest(str(alg), ALGORITHMS)} "
+                                            f"(known: {', '.join(sorted(ALGORITHMS))})")
+            ok = False
+        step = self.number(node, "step", "master.step", required=True)
+        step_ns = None
+        if step is not None:
+            if step <= 0:
+                self.err(node.loc("step"), f"master.step = {step} must be positive (seconds)")
+                ok = False
+            else:
+                step_ns = round(step * 1e9)
+                if step_ns < 1 or abs(step_ns - step * 1e9) > 1e-6 * max(1.0, step * 1e9):
+                    self.err(node.loc("step"), f"master.step = {step} s is not a whole number of nanoseconds")
+                    ok = False
+        else:
+            ok = False
+        engine = node.get("engine", "auto")
+        if engine not in ENGINES:
+            self.err(node.loc("engine"), f"master.engine = {engine!r}{suggest(str(engine), ENGINES)}; "
+                                         f"expected one of {', '.join(ENGINES)}")
+            ok = False
+        order = node.get("order")
+        if order is not None:
+            if not isinstance(order, list) or not all(isinstance(x, str) for x in order):
+                self.err(node.loc("order"), "master.order must be a list of component names")
+                ok = False
+            else:
+                for x in order:
+                    if x not in comps:
+                        self.err(node.loc("order"), f"master.order names unknown component {x!r}{suggest(x, comps)}")
+                        ok = False
+                dup = sorted({x for x in order if order.count(x) > 1})
+                missing = [c for c in comps if c not in order]
+                if dup:
+                    self.err(node.loc("order"), f"master.order lists {', '.join(dup)} more than once")
+                    ok = False
+                if missing and ok:
+                    self.err(node.loc("order"), f"master.order must list every component; missing: {', '.join(missing)}")
+                    ok = False
+        record_every = 1
+        if "output_interval" in node and step_ns:
+            oi = self.number(node, "output_interval", "master.output_interval")
+            if oi is not None:
+                k = round(oi * 1e9 / step_ns)
+                if oi <= 0 or k < 1 or abs(k * step_ns - oi * 1e9) > 1e-6 * oi * 1e9:
+                    self.err(node.loc("output_interval"), f"master.output_interval = {oi} s must be a positive "
+                                                          f"whole multiple of master.step = {step} s")
+                    ok = False
+                else:
+                    record_every = k
+        if step_ns:
+            for comp in comps.values():
+                ts = comp.description.sample_period
+                if ts:
+                    n = round(step / ts)
+                    if n < 1 or abs(n * ts - step) > 1e-9 * max(ts, step):
+                        good = ts * max(1, n)
+                        self.err(node.loc("step"), f"master.step = {step} s is not a whole multiple of the sample "
+                                                   f"period {ts} s of {comp.name} ({comp.label}); a sampled block "
+                                                   f"advances whole samples: use e.g. step: {good:g}")
+                        ok = False
+        if not ok or step_ns is None:
+            return None
+        return MasterSettings(alg, step_ns / 1e9, step_ns, list(order) if order else None, engine, record_every)
+
+    def stop(self, master: MasterSettings | None) -> tuple[float | None, int | None]:
+        stop = self.number(self.tree, "stop_time", "stop_time", required=True)
+        if stop is None:
+            return None, None
+        if stop <= 0:
+            self.err(self.tree.loc("stop_time"), f"stop_time = {stop} must be positive (seconds from the start)")
+            return None, None
+        if master is None:
+            return stop, None
+        n = round(stop * 1e9 / master.step_ns)
+        if abs(n * master.step_ns - stop * 1e9) > 1e-6 * stop * 1e9:
+            lo, hi = math.floor(stop * 1e9 / master.step_ns), math.ceil(stop * 1e9 / master.step_ns)
+            self.err(self.tree.loc("stop_time"), f"stop_time = {stop} s is not a whole number of steps of "
+                                                 f"{master.step} s; use {lo * master.step:g} or {hi * master.step:g}")
+            return None, None
+        return stop, n
+
+    def outputs(self, comps: dict[str, Component]) -> list[str]:
+        node = self.tree.get("outputs")
+        signals = [f"{c.name}.{v}" for c in comps.values() for v in c.description.of("output", "input")]
+        if node is None:
+            return [f"{c.name}.{v}" for c in comps.values() for v in c.description.of("output")]
+        if isinstance(node, str):
+            node = [node]
+        if not isinstance(node, list):
+            self.err(self.tree.loc("outputs"), "outputs must be a list of 'component.variable' patterns")
+            return []
+        every = {f"{c.name}.{v}": var for c in comps.values() for v, var in c.description.variables.items()
+                 if var.type == "Real" and var.causality != "independent"}
+        out: list[str] = []
+        for i, pat in enumerate(node):
+            where = node.loc(i) if isinstance(node, YList) else self.tree.loc("outputs")
+            if not isinstance(pat, str):
+                self.err(where, f"output pattern {pat!r} must be a string 'component.variable'")
+                continue
+            if pat in every:
+                hits = [pat]
+            else:
+                rx = re.compile(fnmatch.translate(pat.replace("[", "\0").replace("]", "\1"))
+                                .replace("\0", r"\[").replace("\1", r"\]"))
+                hits = [s for s in signals if rx.match(s)]
+            if not hits:
+                self.err(where, f"output pattern {pat!r} matches no input or output{suggest(pat, signals)}")
+            out.extend(h for h in hits if h not in out)
+        return out
+
+
+def _exact_start(block, state: str) -> bool:
+    import casadi as ca
+
+    i = block.index("states", state)
+    return not (block.p.numel() and ca.depends_on(block.start[i], block.p))
+
+
+def _hash(data: dict, comps: Mapping[str, Component]) -> str:
+    h = hashlib.sha256(json.dumps(data, sort_keys=True, default=str).encode())
+    for name in sorted(comps):
+        c = comps[name]
+        if c.fmu is not None:
+            h.update(name.encode() + hashlib.sha256(c.fmu.read_bytes()).digest())
+    return h.hexdigest()
+
+
+def validate(tree: YMap, path: Path | None = None, *, catalog=None, problems: list[Problem] | None = None) -> Scene:
+    """Check a merged scene tree; raises :class:`SceneError` with every problem found."""
+    ck = _Checker(tree, path, catalog)
+    ck.problems.extend(problems or [])
+    ck.unknown_keys(tree, [k for k in TOP_KEYS if k != "include"], "the scene")
+    node = tree.get("components")
+    comps: dict[str, Component] = {}
+    if not isinstance(node, YMap) or not node:
+        ck.err(tree.loc("components") if "components" in tree else tree.where,
+               "the scene needs 'components:', a mapping of name -> {model: ...} or {fmu: ...}")
+    else:
+        for name, spec in node.items():
+            c = ck.component(str(name), spec, node.loc(name))
+            if c is not None:
+                comps[c.name] = c
+    broken = isinstance(node, YMap) and len(comps) != len(node)
+    conns, bonds = ck.connections(comps) if comps else ([], [])
+    master = ck.master(comps)
+    stop, n_steps = ck.stop(master)
+    outputs = ck.outputs(comps) if comps else []
+    if comps and not broken:
+        ck.unconnected(comps, conns)
+    if conns:
+        ck.algebraic_loops(comps, conns)
+    errors = [p for p in ck.problems if p.severity == "error"]
+    if errors:
+        raise SceneError(ck.problems)
+    data = plain(tree)
+    name = tree.get("name") or (path.stem if path else "scene")
+    return Scene(str(name), path, str(tree.get("description", "")), stop, n_steps, comps, conns, bonds, master,
+                 outputs, data, _hash(data, comps), [p for p in ck.problems if p.severity == "warning"])
+
+
+def load(path: Path | str, overrides: Mapping[str, Any] | Sequence[str] | None = None, *, catalog=None) -> Scene:
+    """Read, merge (includes), override and validate the scene at ``path``.
+
+    Raises :class:`SceneError` listing every problem, each as ``file:line: error: message``."""
+    path = Path(path)
+    problems: list[Problem] = []
+    tree = load_raw(path, problems)
+    if tree is None:
+        raise SceneError(problems)
+    tree = apply_overrides(tree, overrides)
+    return validate(tree, path, catalog=catalog, problems=problems)
+
+
+def from_dict(data: Mapping[str, Any], *, base_dir: Path | None = None, catalog=None) -> Scene:
+    """Validate a scene given as plain data (e.g. built in Python or sent to a worker); relative
+    FMU paths are taken from ``base_dir`` (default: the working directory)."""
+    where = (str((base_dir or Path.cwd()) / "<dict>"), 0)
+    tree = _to_y(copy.deepcopy(dict(data)), where)
+    if "components" in tree:
+        probs: list[Problem] = []
+        tree["components"] = _components_as_map(tree["components"], probs)
+        if probs:
+            raise SceneError(probs)
+    return validate(tree, (base_dir or Path.cwd()) / "<dict>", catalog=catalog)
