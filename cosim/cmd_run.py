@@ -1,0 +1,151 @@
+"""``rpr-cosim run``: run a scene and report.
+
+    rpr-cosim run SCENE.yaml [--set PATH=VALUE ...] [--out DIR] [--plot] [--animate] [--check]
+
+The trace streams to ``DIR/<scene>.csv`` (default ``DIR`` = ``runs/<scene>``) with a sidecar
+``<scene>.json``; a progress bar goes to stderr for long runs and a summary table (per-slave
+steps and time, real-time factor, final values) to stdout.  A scene with problems prints one
+line per problem (``file:line: error: ...``) and exits with code 2; a run that fails or is
+stopped keeps its partial trace and exits with code 1.
+"""
+from __future__ import annotations
+
+import argparse
+import re
+import sys
+from pathlib import Path
+
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("run", help="run a scene (YAML) as an FMI co-simulation",
+                       description="Run a scene: build its FMUs (cached), step them with the scene's master "
+                                   "algorithm, stream the trace to CSV and print a summary.")
+    p.add_argument("scene", type=Path, help="scene file, e.g. scenarios/pid_step.yaml")
+    p.add_argument("--set", dest="sets", action="append", default=[], metavar="PATH=VALUE",
+                   help="override a scene value, e.g. master.step=5e-4 or components.pid1.params.Kp=40; repeatable")
+    p.add_argument("--out", type=Path, help="output directory (default runs/<scene name>)")
+    p.add_argument("--plot", action="store_true", help="also write <scene>.png with the recorded outputs")
+    p.add_argument("--animate", action="store_true", help="also write <scene>.gif of the platform and legs")
+    p.add_argument("--check", action="store_true", help="only validate the scene and print what it contains")
+    p.add_argument("--engine", choices=["auto", "compiled", "python"], help="override master.engine")
+    p.add_argument("--cache", type=Path, help="FMU cache directory (default $RPR_COSIM_CACHE or ~/.cache/rpr-cosim/fmus)")
+    p.set_defaults(handler=_run)
+
+
+def _say(msg: str) -> None:
+    print(msg, file=sys.stderr)
+
+
+def _run(args: argparse.Namespace) -> int:
+    from .run import progress_bar, run
+    from .scenario import SceneError, load
+
+    try:
+        scene = load(args.scene, args.sets)
+    except SceneError as exc:
+        for p in exc.problems:
+            _say(str(p))
+        n = sum(p.severity == "error" for p in exc.problems)
+        _say(f"rpr-cosim run: {args.scene}: {n} problem{'s' if n != 1 else ''}; nothing was run")
+        return 2
+    for w in scene.warnings:
+        _say(str(w))
+    if args.check:
+        _describe(scene)
+        return 0
+    out = args.out or Path("runs") / scene.name
+    try:
+        res = run(scene, out_dir=out, cache_dir=args.cache, engine=args.engine, progress=progress_bar(),
+                  log=lambda m: _say(f"[fmu] {m}"))
+    except KeyboardInterrupt:
+        _say(f"rpr-cosim run: interrupted; the partial trace and the reason are in {out / (scene.name + '.csv')}")
+        raise
+    _summary(res)
+    if args.plot and len(res.trace.data):
+        _say(f"plot: {_plot(res.trace, out / f'{scene.name}.png', scene.name)}")
+    if args.animate and len(res.trace.data):
+        from .animate import animate, manipulator_for, pose_component
+
+        comp = pose_component(res.trace)
+        c = scene.components.get(comp)
+        m = manipulator_for(c.options, c.params) if c is not None else None
+        _say(f"animation: {animate(res.trace, out / f'{scene.name}.gif', manipulator=m, component=comp, title=scene.name)}")
+    if not res.ok:
+        _say(f"rpr-cosim run: {res.status}: {res.reason}")
+        return 1
+    return 0
+
+
+def _describe(scene) -> None:
+    print(f"scene {scene.name}: {len(scene.components)} components, {len(scene.connections)} connections "
+          f"({len(scene.bonds)} bonds), {scene.master.algorithm} at {scene.master.step:g} s, "
+          f"stop {scene.stop_time:g} s ({scene.n_steps} steps)")
+    for name, c in scene.components.items():
+        extra = ", ".join(f"{k}={v:g}" for k, v in c.start_values().items())
+        print(f"  {name:<12} {c.label:<28} {extra}")
+    for c in scene.connections:
+        print(f"  {c}" + (f"   [bond {c.bond}]" if c.bond else ""))
+    print(f"  outputs: {len(scene.outputs)} ({', '.join(scene.outputs[:6])}{', ...' if len(scene.outputs) > 6 else ''})")
+
+
+def _summary(res) -> None:
+    st = res.stats
+    n = max(1, st["steps_done"])
+    print(f"scene {res.scene.name} [{res.scene.hash[:12]}]: {res.status}"
+          + (f" ({res.reason})" if res.reason else ""))
+    print(f"  {st['algorithm']} ({st['engine']} loop), step {st['step']:g} s, {st['steps_done']}/{st['steps_planned']} "
+          f"steps, simulated {st['simulated_s']:.6g} s in {st['wall_s']:.3f} s "
+          f"(real-time factor {st['real_time_factor']:.1f}); build {res.build_s:.2f} s, init {st['init_s']:.3f} s")
+    print(f"  {'slave':<12} {'FMU':<28} {'doStep':>8} {'time ms':>9} {'us/step':>8} {'share':>6}")
+    total = st["wall_s"] or 1.0
+    for name, s in st["slaves"].items():
+        comp = res.scene.components.get(name)
+        print(f"  {name:<12} {(comp.label if comp else ''):<28} {s['do_step_calls']:>8} {1e3 * s['wall_s']:>9.2f} "
+              f"{1e6 * s['wall_s'] / n:>8.2f} {100 * s['wall_s'] / total:>5.1f}%")
+    print(f"  {'master':<12} {'':<28} {'':>8} {1e3 * st['master_s']:>9.2f} {1e6 * st['master_s'] / n:>8.2f} "
+          f"{100 * st['master_s'] / total:>5.1f}%")
+    final = res.trace.final()
+    if final:
+        t_end = res.trace.time[-1]
+        print(f"  final values at t = {t_end:.6g} s:")
+        width = max(len(k) for k in final)
+        for k, v in final.items():
+            print(f"    {k:<{width}} {v: .6g}")
+    if res.trace_path:
+        print(f"  trace: {res.trace_path}")
+
+
+def _plot(trace, path: Path, title: str) -> Path:
+    """One subplot per group of like variables (``pid1.y``, ``pid2.y`` together; ``leg[1..3].s`` together)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    groups: dict[str, list[str]] = {}
+    for name in trace.names:
+        key = re.sub(r"\[\d+\]", "[*]", re.sub(r"^([A-Za-z_]+?)\d+\.", r"\1*.", name))
+        groups.setdefault(key, []).append(name)
+    keys = list(groups)[:24]
+    ncol = 2 if len(keys) > 1 else 1
+    nrow = -(-len(keys) // ncol)
+    fig, axes = plt.subplots(nrow, ncol, figsize=(6 * ncol, 2.2 * nrow), sharex=True, squeeze=False)
+    for ax, key in zip(axes.flat, keys):
+        for name in groups[key]:
+            ax.plot(trace.time, trace[name], lw=1, label=name)
+        ax.set_title(key, fontsize=9)
+        ax.grid(alpha=0.3)
+        if len(groups[key]) > 1:
+            ax.legend(fontsize=7, loc="best")
+    for ax in list(axes.flat)[len(keys):]:
+        ax.set_visible(False)
+    for ax in axes[-1]:
+        ax.set_xlabel("time [s]")
+    fig.suptitle(title)
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+    return path
+
