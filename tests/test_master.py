@@ -1,0 +1,307 @@
+"""Master algorithms against exact discrete solutions, the continuous solution's first-order
+convergence, the compiled loop against the Python loop on real FMUs, integer time, failures,
+interrupts and the algorithm registry.
+
+The analytic problem: two first-order systems stepped *exactly* under a zero-order hold
+(:class:`cosim.slaves.LinearSlave`), coupled both ways, one of them with direct feedthrough:
+
+    A:  x_a' = -a x_a + u_a,            y_a = x_a
+    B:  x_b' = -b x_b + u_b,            y_b = c x_b + d u_b
+    y_a -> u_b,  y_b -> u_a
+
+so every macro step is an exact linear map whose form follows from the documented conventions
+(Jacobi: inputs from the outputs read at t_k, feedthrough evaluated with the previous inputs;
+Gauss-Seidel: A first, then B with A's fresh output).
+"""
+from __future__ import annotations
+
+import json
+import math
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import scipy.linalg
+
+from cosim.errors import UserError
+from cosim.master import (ALGORITHMS, Algorithm, CoupledSystem, Link, algorithm, find_algebraic_loop,
+                          gauss_seidel_order, register, simulate)
+from cosim.slaves import FmuSlave, LinearSlave, Status
+from cosim.trace import CsvTrace, MemoryTrace, read_trace
+
+sys.path.insert(0, str(Path(__file__).parent))
+
+A_, B_, C_, D_ = 1.0, 3.0, 0.8, 0.5
+XA0, XB0 = 1.0, -0.4
+
+
+def pair(d: float = D_) -> CoupledSystem:
+    a = LinearSlave("a", [[-A_]], [[1.0]], [[1.0]], x0=[XA0])
+    b = LinearSlave("b", [[-B_]], [[1.0]], [[C_]], [[d]], x0=[XB0])
+    return CoupledSystem([a, b], [Link(0, "y[1]", 1, "u[1]"), Link(1, "y[1]", 0, "u[1]")],
+                         [(0, "y[1]"), (1, "y[1]"), (0, "u[1]"), (1, "x[1]")])
+
+
+def run(system: CoupledSystem, alg: str, step_ns: int, n: int, **kw):
+    mem = MemoryTrace()
+    stats = simulate(system, alg, step_ns=step_ns, n_steps=n, observers=[mem], **kw)
+    return mem.trace, stats
+
+
+def expected(alg: str, h: float, n: int, d: float = D_) -> np.ndarray:
+    """Rows (y_a, y_b, u_a, x_b) at t_0..t_n from the hand-written step maps of the conventions."""
+    ea, eb = math.exp(-A_ * h), math.exp(-B_ * h)
+    ga, gb = (1 - ea) / A_, (1 - eb) / B_
+    xa, xb = XA0, XB0
+    yb = C_ * xb + d * xa  # initial exchange: B's feedthrough sees A's start output
+    rows = [(xa, yb, yb, xb)]
+    for _ in range(n):
+        if alg == "jacobi":
+            ua, ub = yb, xa
+            xa, xb = ea * xa + ga * ua, eb * xb + gb * ub
+            yb = C_ * xb + d * ub  # evaluated with the input held over the step just taken
+        else:
+            ua = yb
+            xa = ea * xa + ga * ua
+            ub = xa  # fresh output of A
+            xb = eb * xb + gb * ub
+            yb = C_ * xb + d * ub
+        rows.append((xa, yb, yb, xb))
+    return np.array(rows)
+
+
+@pytest.mark.parametrize("alg", ["jacobi", "gauss_seidel"])
+@pytest.mark.parametrize("d", [0.0, D_], ids=["no-feedthrough", "feedthrough"])
+def test_exact_discrete_solution_of_the_coupled_pair(alg, d):
+    tr, stats = run(pair(d), alg, 50_000_000, 40)  # h = 0.05 s
+    np.testing.assert_allclose(tr.data[:, 1:], expected(alg, 0.05, 40, d), rtol=0, atol=1e-14)
+    assert stats.status == "ok" and stats.steps_done == 40
+    assert stats.slaves["a"]["do_step_calls"] == stats.slaves["b"]["do_step_calls"] == 40
+
+
+def test_jacobi_and_gauss_seidel_differ_by_the_fresh_value():
+    """A sanity check that the two conventions are really different maps on this problem."""
+    j, _ = run(pair(), "jacobi", 50_000_000, 10)
+    g, _ = run(pair(), "gauss_seidel", 50_000_000, 10)
+    assert np.max(np.abs(j.data[1:, 1:] - g.data[1:, 1:])) > 1e-3
+
+
+def continuous(t: float) -> np.ndarray:
+    """Monolithic solution: x_a' = -a x_a + c x_b + d x_a, x_b' = -b x_b + x_a."""
+    M = np.array([[-A_ + D_, C_], [1.0, -B_]])
+    return scipy.linalg.expm(M * t) @ np.array([XA0, XB0])
+
+
+@pytest.mark.parametrize("alg", ["jacobi", "gauss_seidel"])
+def test_first_order_convergence_to_the_monolithic_solution(alg):
+    errs = []
+    for k in (1, 2, 4):
+        h_ns = 20_000_000 // k
+        tr, _ = run(pair(), alg, h_ns, 50 * k)  # to t = 1 s
+        errs.append(abs(tr.data[-1, 1] - continuous(1.0)[0]))
+    assert errs[0] / errs[1] == pytest.approx(2.0, rel=0.1)
+    assert errs[1] / errs[2] == pytest.approx(2.0, rel=0.05)
+
+
+def test_time_is_an_integer_count_of_nanosecond_steps():
+    """t_k = k * step_ns / 1e9 exactly: no accumulated drift even for a step of 0.1 s."""
+    seen = []
+
+    class Spy(LinearSlave):
+        def do_step(self, t, h):
+            seen.append((t, h))
+            return super().do_step(t, h)
+
+    s = Spy("s", [[-1.0]], [[1.0]], [[1.0]])
+    tr, _ = run(CoupledSystem([s], [], [(0, "y[1]")]), "jacobi", 100_000_000, 1000)
+    ts = np.array([t for t, _ in seen])
+    assert np.array_equal(ts, np.arange(1000) * 100_000_000 / 1e9)
+    assert tr.time[-1] == 100.0
+    assert sum(0.1 for _ in range(1000)) != 100.0  # what naive accumulation would give
+
+
+class Failing(LinearSlave):
+    def __init__(self, *a, fail_at: int, status: int = Status.DISCARD, **kw):
+        super().__init__(*a, **kw)
+        self.fail_at, self.status, self.k = fail_at, status, 0
+
+    def do_step(self, t, h):
+        self.k += 1
+        if self.k == self.fail_at:
+            self.messages.append("[DISCARD] the test slave refuses this step")
+            return self.status
+        return super().do_step(t, h)
+
+
+@pytest.mark.parametrize("status,expect", [(Status.DISCARD, "failed"), (Status.ERROR, "failed"),
+                                           (Status.STOP_REQUESTED, "stopped")])
+def test_a_failing_slave_stops_the_run_and_keeps_the_partial_trace(tmp_path, status, expect):
+    bad = Failing("bad", [[-1.0]], [[1.0]], [[1.0]], fail_at=7, status=status)
+    ok = LinearSlave("ok", [[-2.0]], [[1.0]], [[1.0]], x0=[1.0])
+    system = CoupledSystem([ok, bad], [Link(0, "y[1]", 1, "u[1]")], [(0, "y[1]"), (1, "y[1]")])
+    csv = CsvTrace(tmp_path / "t.csv")
+    mem = MemoryTrace()
+    stats = simulate(system, "gauss_seidel", step_ns=10_000_000, n_steps=100, observers=[mem, csv])
+    assert stats.status == expect and stats.steps_done == 6
+    assert "bad" in stats.reason and "t = 0.06 s" in stats.reason
+    if expect == "failed":
+        assert Status(status).name in stats.reason and "refuses this step" in stats.reason
+    back = read_trace(tmp_path / "t.csv")
+    assert back.status == expect and back.reason == stats.reason
+    assert len(back.data) == 7 and back.time[-1] == pytest.approx(0.06)
+    np.testing.assert_array_equal(back.data, mem.trace.data)
+    side = json.loads((tmp_path / "t.json").read_text())
+    assert side["status"] == expect and side["reason"] == stats.reason and side["rows"] == 7
+
+
+def test_an_interrupt_leaves_the_partial_trace_and_the_reason(tmp_path):
+    class Interrupting(MemoryTrace):
+        def record(self, rows):
+            super().record(rows)
+            if self.trace is not None and sum(len(c) for c in self._chunks) > 100:
+                raise KeyboardInterrupt
+
+    csv = CsvTrace(tmp_path / "t.csv")
+    with pytest.raises(KeyboardInterrupt):
+        simulate(pair(), "jacobi", step_ns=1_000_000, n_steps=10_000, observers=[csv, Interrupting()])
+    back = read_trace(tmp_path / "t.csv")
+    assert back.status == "interrupted" and "KeyboardInterrupt" in back.reason
+    assert 100 < len(back.data) < 10_001
+    assert json.loads((tmp_path / "t.json").read_text())["status"] == "interrupted"
+
+
+# --- real FMUs: compiled loop vs Python loop ----------------------------------------------------
+@pytest.fixture(scope="module")
+def fmu_paths(tmp_path_factory):
+    import fmus
+    from test_fmu_integrators import gain_block, msd_block
+
+    cache = tmp_path_factory.getbasetemp() / "fmu-cache"
+    out = {}
+    for v in ("2.0", "3.0"):
+        out[("msd", v)] = fmus.build_fmu(msd_block(), fmi_version=v, cache_dir=cache)
+        out[("gain", v)] = fmus.build_fmu(gain_block(K=-40.0), fmi_version=v, cache_dir=cache)
+    return out
+
+
+def fmu_system(paths, v_msd: str, v_gain: str) -> CoupledSystem:
+    """A mass-spring-damper under feedback force f = -40 s from a gain FMU (feedthrough)."""
+    sl = [FmuSlave("m", paths[("msd", v_msd)]), FmuSlave("g", paths[("gain", v_gain)])]
+    return CoupledSystem(sl, [Link(0, "body.s", 1, "u"), Link(1, "y", 0, "f")],
+                         [(0, "body.s"), (0, "body.v"), (0, "body.a"), (1, "y"), (0, "f")])
+
+
+@pytest.mark.parametrize("alg", ["jacobi", "gauss_seidel"])
+@pytest.mark.parametrize("versions", [("2.0", "2.0"), ("3.0", "3.0"), ("2.0", "3.0")], ids=["fmi2", "fmi3", "mixed"])
+def test_compiled_loop_equals_the_python_loop_bit_for_bit(fmu_paths, alg, versions):
+    py, s1 = run(fmu_system(fmu_paths, *versions), alg, 1_000_000, 500, engine="python")
+    cc, s2 = run(fmu_system(fmu_paths, *versions), alg, 1_000_000, 500, engine="compiled")
+    assert (s1.engine, s2.engine) == ("python", "compiled")
+    assert np.array_equal(py.data, cc.data)
+    assert s2.slaves["m"]["do_step_calls"] == 500 and s2.slaves["m"]["wall_s"] > 0
+
+
+@pytest.mark.parametrize("alg", ["jacobi", "gauss_seidel"])
+def test_fmu_pair_follows_the_conventions_on_a_linear_problem(fmu_paths, alg):
+    """msd (Radau IIA, order 5: exact to ~1e-12 here) under f = -40 s from a gain FMU.  Gauss-Seidel
+    steps the msd first and the gain after it, so the msd's force over [t_k, t_k+1] is K s(t_k);
+    under Jacobi the gain's output read at t_k was evaluated with its input of the previous
+    exchange, so the force is K s(t_k-1): one step of delay through the feedthrough."""
+    tr, _ = run(fmu_system(fmu_paths, "2.0", "2.0"), alg, 1_000_000, 300)
+    m, k, c, K = 1.0, 100.0, 2.0, -40.0
+    M = np.zeros((3, 3))
+    M[0, 1], M[1, 0], M[1, 1], M[1, 2] = 1.0, -k / m, -c / m, 1 / m
+    E = scipy.linalg.expm(M * 1e-3)
+    x = np.array([0.01, 0.0])
+    s = [x[0]]
+    for j in range(300):
+        f = K * (s[j] if alg == "gauss_seidel" else s[max(j - 1, 0)])
+        x = E[:2, :2] @ x + E[:2, 2] * f
+        s.append(x[0])
+    s = np.array(s)
+    np.testing.assert_allclose(tr["m.body.s"], s, rtol=0, atol=1e-12)
+    lagged = s if alg == "gauss_seidel" else np.concatenate([[s[0]], s[:-1]])
+    np.testing.assert_allclose(tr["g.y"], K * lagged, rtol=0, atol=1e-12)
+
+
+def test_a_diverging_fmu_discards_and_the_run_reports_it(tmp_path):
+    import fmus
+    from test_fmu_integrators import stiff_block
+
+    path = fmus.build_fmu(stiff_block(integrator="rk4"), cache_dir=tmp_path / "cache")
+    system = CoupledSystem([FmuSlave("stiff", path)], [], [(0, "body.s")])
+    tr, st = run(system, "jacobi", 1_000_000, 1000)
+    assert st.status == "failed" and st.engine == "compiled"
+    assert "stiff returned DISCARD" in st.reason and "non-finite" in st.reason
+    assert 1 < st.steps_done < 1000 and len(tr.data) == st.steps_done + 1
+
+
+# --- structure ---------------------------------------------------------------------------------
+@pytest.mark.parametrize("n,edges,order", [
+    (3, [(0, 1), (1, 2)], [0, 1, 2]),
+    (3, [(2, 1), (1, 0)], [2, 1, 0]),
+    (2, [(0, 1), (1, 0)], [0, 1]),
+    # pid_step-like: source 0 -> pid 1; loop pid 1 -> motor 2 -> mech 3 -> motor 2, mech 3 -> pid 1;
+    # the fewest cut edges (one: motor -> mech) puts the mechanism first
+    (4, [(0, 1), (1, 2), (2, 3), (3, 2), (3, 1)], [0, 3, 1, 2]),
+])
+def test_gauss_seidel_order_cuts_the_fewest_connections(n, edges, order):
+    assert gauss_seidel_order(n, edges) == order
+
+
+@pytest.mark.parametrize("edges,has_loop", [
+    ([("a.y", "b.u"), ("b.u", "b.y"), ("b.y", "a.u")], False),
+    ([("a.y", "b.u"), ("b.u", "b.y"), ("b.y", "a.u"), ("a.u", "a.y")], True),
+])
+def test_algebraic_loop_detection(edges, has_loop):
+    cyc = find_algebraic_loop(edges)
+    assert (cyc is not None) == has_loop
+    if cyc:
+        assert cyc[0] == cyc[-1] and all((a, b) in edges for a, b in zip(cyc, cyc[1:]))
+
+
+def test_the_master_refuses_an_algebraic_loop_of_feedthrough_slaves():
+    a = LinearSlave("a", [[-1.0]], [[1.0]], [[1.0]], [[1.0]])
+    b = LinearSlave("b", [[-1.0]], [[1.0]], [[1.0]], [[1.0]])
+    system = CoupledSystem([a, b], [Link(0, "y[1]", 1, "u[1]"), Link(1, "y[1]", 0, "u[1]")], [(0, "y[1]")])
+    with pytest.raises(UserError, match=r"algebraic loop: .*a\.y\[1\] -> b\.u\[1\]"):
+        simulate(system, "jacobi", step_ns=1_000_000, n_steps=3)
+
+
+def test_registry_suggests_the_closest_algorithm():
+    with pytest.raises(UserError, match="did you mean 'gauss_seidel'"):
+        algorithm("gauss_siedel")
+    assert set(ALGORITHMS) >= {"jacobi", "gauss_seidel"}
+
+
+def test_a_registered_algorithm_runs_through_the_same_loop():
+    """The extension point: a subclass implementing only _step_impl (here Gauss-Seidel in the
+    reverse order) is found by name and produces the map its convention implies."""
+
+    @register
+    class Reverse(Algorithm):
+        name = "test_reverse_gs"
+
+        def _step_impl(self, t, h):
+            for i in reversed(range(len(self._do))):
+                self._gather[i]()
+                for st in (self._io(i, self._push[i]), self._advance(i, t, h), self._io(i, self._pull[i])):
+                    if st >= Status.DISCARD:
+                        return i, st
+            return None
+
+    try:
+        tr, st = run(pair(0.0), "test_reverse_gs", 50_000_000, 20)
+        assert st.engine == "python"  # no compiled variant
+        # B first with A's old output, then A with B's fresh output
+        ea, eb = math.exp(-A_ * 0.05), math.exp(-B_ * 0.05)
+        ga, gb = (1 - ea) / A_, (1 - eb) / B_
+        xa, xb = XA0, XB0
+        for _ in range(20):
+            xb = eb * xb + gb * xa
+            xa = ea * xa + ga * C_ * xb
+        assert tr.data[-1, 1] == pytest.approx(xa, abs=1e-14)
+        assert tr.data[-1, 4] == pytest.approx(xb, abs=1e-14)
+    finally:
+        ALGORITHMS.pop("test_reverse_gs")
