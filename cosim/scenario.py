@@ -767,7 +767,7 @@ class _Checker:
                 for (cn, fn), fl in ((a, fa), (b, fb)):
                     if fl is None:
                         names = [f.name for f in comps[cn].description.flanges]
-                        kind = " is a variable, not a flange" if fn in comps[cn].description.variables else ""
+                        kind = f" ({fn!r} is a variable, not a flange)" if fn in comps[cn].description.variables else ""
                         self.err(where, f"component {cn!r} ({comps[cn].label}) has no flange {fn!r}{kind}"
                                         f"{suggest(fn, names)} (flanges: {', '.join(names) or 'none'})")
                         bad = True
