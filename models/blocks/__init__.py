@@ -1,0 +1,129 @@
+"""The model catalog: the thesis's components as :class:`~models.block.Block` objects.
+
+``make(model, fidelity=None, **options)`` builds one block; ``options`` are construction options
+(listed by :func:`options`) and overrides of parameter defaults by parameter name.  Every mistake
+raises :class:`~models.block.BlockError` with a one-line message naming the model, fidelity and
+the bad name, with the closest valid name as a suggestion.
+
+| model | fidelities (first = default) | module |
+|---|---|---|
+| ``mechanism`` | ``rigid``, ``multibody``, ``kinematic`` | :mod:`.mechanism` |
+| ``dc_motor`` | ``full``, ``quasistatic``, ``ideal`` | :mod:`.motor` |
+| ``pid`` | ``continuous``, ``discrete`` | :mod:`.pid` |
+| ``pose_setpoint`` | ``default`` | :mod:`.setpoint` |
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass
+from typing import Any, Callable
+
+from ..block import Block, BlockError
+from . import mechanism, motor, pid, setpoint
+from ._common import CONFIG, SUBSTEPS, Option, integrator_option, positive_float, suggest
+
+
+@dataclass(frozen=True)
+class _Entry:
+    build: Callable[..., Block]
+    options: tuple[Option, ...]
+
+
+def _entries() -> dict[str, dict[str, _Entry]]:
+    sample = Option("sample_period", 1e-3, "sample period [s] of the discrete controller", check=positive_float)
+    pid_opts = (Option("form", "parallel", "PID form: parallel gains (Kp, Ki, Kd, Tf) or the 20-sim standard "
+                                           "form (Kp, Ti, Td, beta)", choices=pid.FORMS),
+                Option("derivative", "error", "signal the derivative acts on", choices=pid.DERIVATIVE),
+                Option("anti_windup", "none", "integrator anti-windup at the output limit", choices=pid.ANTI_WINDUP))
+    rotor = Option("rotor", "lumped", "rotor inertia: 'lumped' (DESIGN option (b), inertia-free motor; lump "
+                                      "m_reflected into the mechanism's leg[i].m_act) or 'state' (option (a): rotor "
+                                      "state and a stiff spring-damper bond)", choices=motor.ROTOR)
+    return {
+        "mechanism": {
+            "rigid": _Entry(mechanism.rigid, (CONFIG, integrator_option("rk4"), SUBSTEPS)),
+            "multibody": _Entry(mechanism.multibody, (CONFIG, integrator_option("radau"), SUBSTEPS)),
+            "kinematic": _Entry(mechanism.kinematic, (CONFIG,)),
+        },
+        "dc_motor": {
+            "full": _Entry(motor.full, (rotor, integrator_option("radau"), SUBSTEPS)),
+            "quasistatic": _Entry(motor.quasistatic, (rotor, integrator_option("radau"), SUBSTEPS)),
+            "ideal": _Entry(motor.ideal, ()),
+        },
+        "pid": {
+            "continuous": _Entry(pid.continuous, pid_opts + (integrator_option("rk4"), SUBSTEPS)),
+            "discrete": _Entry(pid.discrete, pid_opts + (sample,)),
+        },
+        "pose_setpoint": {
+            "default": _Entry(setpoint.pose_setpoint, (CONFIG, Option("profile", "step", "trajectory profile",
+                                                                      choices=setpoint.PROFILES))),
+        },
+    }
+
+
+_CATALOG = _entries()
+
+
+def catalog() -> dict[str, list[str]]:
+    """Model name -> its fidelities (the first is the default)."""
+    return {model: list(fids) for model, fids in _CATALOG.items()}
+
+
+def _entry(model: str, fidelity: str | None) -> tuple[str, _Entry]:
+    if model not in _CATALOG:
+        raise BlockError(f"unknown model {model!r}{suggest(str(model), list(_CATALOG))} "
+                         f"(expected one of {', '.join(_CATALOG)})")
+    fids = _CATALOG[model]
+    if fidelity is None:
+        fidelity = next(iter(fids))
+    if fidelity not in fids:
+        raise BlockError(f"{model}: unknown fidelity {fidelity!r}{suggest(str(fidelity), list(fids))} "
+                         f"(expected one of {', '.join(fids)})")
+    return fidelity, fids[fidelity]
+
+
+def options(model: str, fidelity: str | None = None) -> dict[str, Option]:
+    """The construction options of ``model`` at ``fidelity`` (name -> :class:`Option`)."""
+    _, entry = _entry(model, fidelity)
+    return {o.name: o for o in entry.options}
+
+
+def make(model: str, fidelity: str | None = None, **opts: Any) -> Block:
+    """Build the block ``model`` at ``fidelity`` (default: the model's first fidelity).
+
+    ``opts`` holds construction options (see :func:`options`) and parameter overrides by name
+    (they become the parameters' defaults, i.e. the FMU's start values; bounds are checked)."""
+    fidelity, entry = _entry(model, fidelity)
+    where = f"{model} ({fidelity})"
+    known = {o.name: o for o in entry.options}
+    construction = {name: o.default for name, o in known.items()}
+    overrides: dict[str, Any] = {}
+    for name, value in opts.items():
+        if name in known:
+            construction[name] = known[name].validate(where, value)
+        else:
+            overrides[name] = value
+    blk = entry.build(**construction)
+    if overrides:
+        index = {p.name: i for i, p in enumerate(blk.params)}
+        params = list(blk.params)
+        for name, value in overrides.items():
+            if name not in index:
+                valid = list(known) + list(index)
+                raise BlockError(f"{where}: unknown option or parameter {name!r}{suggest(name, valid)} "
+                                 f"(options: {', '.join(known) or 'none'}; parameters: {', '.join(index)})")
+            prm = params[index[name]]
+            try:
+                v = float(value)
+            except (TypeError, ValueError):
+                raise BlockError(f"{where}: parameter {name}={value!r} must be a number [{prm.unit or '1'}]") from None
+            if isinstance(value, bool) or not math.isfinite(v) or not (prm.lower <= v <= prm.upper):
+                raise BlockError(f"{where}: parameter {name}={value!r} is outside [{prm.lower}, {prm.upper}] "
+                                 f"[{prm.unit or '1'}]")
+            params[index[name]] = dataclasses.replace(prm, default=v)
+        blk = dataclasses.replace(blk, params=params)
+        blk.check()
+    return blk
+
+
+__all__ = ["make", "catalog", "options", "Option"]

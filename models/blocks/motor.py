@@ -1,0 +1,154 @@
+"""DC motor driving a leg through a rack and pinion (thesis Table 6.7, SPEC §6).
+
+Interface: input ``u`` [V] (armature voltage) and the flange ``flange``: flow ``flange.v`` [m/s]
+in (the leg's extension rate), effort ``flange.f`` [N] out (force along the leg, positive
+extending).  The rack turns shaft speed into leg speed, ``v = rack * w`` with ``rack`` = 0.05 m/rad,
+and shaft torque into leg force, ``f = torque / rack``.
+
+Electrical part ("full"): ``L di/dt = u - R i - kt w``; torque ``kt i``; the back-EMF constant
+equals the torque constant.  "quasistatic" sets ``L = 0``: ``i = (u - kt w) / R``.  "ideal" is a
+force source ``f = gain * u``.
+
+Rotor inertia ``J`` and viscous friction ``b`` (construction option ``rotor``):
+
+- ``"lumped"`` (default, DESIGN option (b)): the motor is inertia-free.  Its friction is a
+  function of the input speed, so it stays inside: ``f = (kt i - b w) / rack``.  The rotor's
+  inertia cannot (that would need ``dv/dt``, a derivative of an input): the motor reports it as the
+  output ``m_reflected = J / rack**2`` [kg] (0.058 kg with Table 6.7), to be lumped into the
+  mechanism's ``leg[i].m_act``.  No stiffness at the interface.
+- ``"state"`` (option (a)): the rotor keeps its speed ``w`` as a state and the bond to the leg is a
+  stiff spring-damper, ``f = k_bond * d + c_bond * (rack w - v)`` with ``dd/dt = rack w - v``,
+  ``J dw/dt = kt i - b w - rack f`` (defaults: the thesis's parasitic 1e8 N/m and 2000 N s/m).
+  Stiff at the interface: the case where co-simulation master algorithms differ.
+
+Torque constant.  Table 6.7 prints the gyrator as "145" without a unit.  Read as a speed constant
+of 145 rpm/V it gives ``kt = 60 / (2 pi 145) = 0.0659 N m/A``; 0.145 N m/A is the other
+candidate (SPEC §6).  Both were run in the closed-loop scene of Table 6.10 (monolithic CasADi/CVODES
+at 1e-9: rigid mechanism with ``leg[i].m_act = J/rack**2``, three full motors, parallel PID
+Kp = 30, Ki = 80, Kd = 20 with a 1 ms derivative filter on the error, +/-12 V, step from
+(-0.15, -0.15, 0) to (-0.2, -0.15, 0.2)); Table 6.10 shows phi peaking at ~0.30 rad near 1.3 s,
+x dipping to ~-0.22 m and L1 peaking at ~0.355 m:
+
+=============  ===============  ========  =======  ==============================  ====================
+kt [N m/A]     phi peak [rad]   x min     L1 peak  pose at 5 s                     torque after 50 ms
+=============  ===============  ========  =======  ==============================  ====================
+0.0659         0.3027 @ 1.31 s  -0.2225   0.3556   (-0.2023, -0.1499, 0.2080)      -0.025 .. 0.092 N m
+0.145          0.2967 @ 1.38 s  -0.2191   0.3541   (-0.2022, -0.1500, 0.2097)      -0.029 .. 0.035 N m
+=============  ===============  ========  =======  ==============================  ====================
+
+(The first milliseconds saturate at 12 V, the derivative kick of the setpoint step.)  The default
+is ``kt = 0.0659`` N m/A: it matches all three figures of Table 6.10 (0.145 peaks later, lower and
+shallower) and the 0.2 N m torque scale of Table 6.11.  A 10 ms derivative filter would instead
+cut the phi peak to 0.267 rad for either constant, which is why the PID's default ``Tf`` is 1 ms.
+"""
+from __future__ import annotations
+
+import math
+
+import casadi as ca
+
+from ..block import Block, Flange, Var
+from ._common import INF, ParamSet
+
+ROTOR = ("lumped", "state")
+KT_RPM_PER_V = 60.0 / (2 * math.pi * 145.0)  # 145 rpm/V as N m/A (= V s/rad)
+
+#: Default torque constant [N m/A]: 145 rpm/V (module docstring: the closed-loop study).
+KT_DEFAULT = KT_RPM_PER_V
+
+FLANGE = Flange("flange", effort="flange.f", flow="flange.v", causality="effort_out")
+INPUTS = [Var("u", "V", "armature voltage"), Var("flange.v", "m/s", "leg extension rate (rack speed)")]
+
+
+def _params(ps: ParamSet, electrical: bool, rotor: str) -> dict[str, ca.SX]:
+    p = {}
+    if electrical:
+        p["R"] = ps.add("R", 0.574, "Ohm", "armature resistance (Table 6.7)", lower=0.0)
+        p["kt"] = ps.add("kt", KT_DEFAULT, "N.m/A", "torque constant = back-EMF constant [V s/rad]", lower=0.0)
+    p["J"] = ps.add("J", 1.45e-4, "kg.m2", "rotor inertia (Table 6.7: 1450 g cm2)", lower=0.0)
+    p["b"] = ps.add("b", 86e-6, "N.m.s/rad", "rotor viscous friction (Table 6.7: 86 uN m s/rad)", lower=0.0)
+    p["rack"] = ps.add("rack", 0.05, "m/rad", "rack-and-pinion ratio: leg speed per shaft speed", lower=0.0)
+    if rotor == "state":
+        p["k_bond"] = ps.add("k_bond", 1e8, "N/m", "stiffness of the rack-leg bond (option (a))", lower=0.0)
+        p["c_bond"] = ps.add("c_bond", 2000.0, "N.s/m", "damping of the rack-leg bond (option (a))", lower=0.0)
+    return p
+
+
+def _build(fidelity: str, rotor: str, integrator: str, substeps: int) -> Block:
+    ps = ParamSet()
+    electrical = fidelity in ("full", "quasistatic")
+    p = _params(ps, electrical, rotor)
+    if fidelity == "full":
+        p["L"] = ps.add("L", 0.251e-3, "H", "armature inductance (Table 6.7: 0.251 mH)", lower=0.0)
+    u = ca.SX.sym("uin", 2)
+    volt, v = u[0], u[1]
+    xs_list, ode, states, start = [], [], [], []
+    if fidelity == "full":
+        i_sym = ca.SX.sym("i_state")
+        xs_list.append(i_sym)
+        states.append(Var("state.i", "A", "armature current"))
+        start.append(0.0)
+    if rotor == "state":
+        w_sym, d_sym = ca.SX.sym("w_state"), ca.SX.sym("d_state")
+        xs_list += [w_sym, d_sym]
+        states += [Var("state.w", "rad/s", "shaft speed"), Var("state.d", "m", "deflection of the rack-leg bond")]
+        start += [0.0, 0.0]
+        w = w_sym
+    else:
+        w = v / p["rack"]
+    if fidelity == "full":
+        i = i_sym
+        di = (volt - p["R"] * i - p["kt"] * w) / p["L"]
+    else:
+        i = (volt - p["kt"] * w) / p["R"]
+    torque = p["kt"] * i
+    if rotor == "state":
+        f = p["k_bond"] * d_sym + p["c_bond"] * (p["rack"] * w - v)
+        dw = (torque - p["b"] * w - p["rack"] * f) / p["J"]
+        dd = p["rack"] * w - v
+    else:
+        f = (torque - p["b"] * w) / p["rack"]
+    if fidelity == "full":
+        ode.append(di)
+    if rotor == "state":
+        ode += [dw, dd]
+    outputs = [Var("flange.f", "N", "force on the leg, positive extending"),
+               Var("i", "A", "armature current"), Var("torque", "N.m", "electromagnetic torque kt i"),
+               Var("w", "rad/s", "shaft speed")]
+    out = [f, i, torque, w]
+    if rotor == "lumped":
+        outputs.append(Var("m_reflected", "kg", "rotor inertia seen at the leg, J/rack^2: lump into the "
+                                                "mechanism's leg[i].m_act"))
+        out.append(p["J"] / p["rack"] ** 2)
+    xs = ca.vertcat(*xs_list) if xs_list else ca.SX(0, 1)
+    return Block.build(
+        "dc_motor", description=f"DC motor with rack and pinion ({fidelity}, rotor {rotor}; thesis Table 6.7)",
+        params=ps.params, inputs=list(INPUTS), outputs=outputs, states=states, p=ps.vector(), u=u, x=xs,
+        ode=ca.vertcat(*ode) if ode else ca.SX(0, 1), out=ca.vertcat(*out),
+        start=ca.vertcat(*[ca.SX(s) for s in start]) if start else ca.SX(0, 1),
+        integrator=integrator if xs_list else "none", substeps=substeps, flanges=[FLANGE], fidelity=fidelity)
+
+
+def full(rotor: str = "lumped", integrator: str = "radau", substeps: int = 1) -> Block:
+    """Armature current state (pole ``-R/L`` ~ -2290 1/s: stiff, Radau by default)."""
+    return _build("full", rotor, integrator, substeps)
+
+
+def quasistatic(rotor: str = "lumped", integrator: str = "radau", substeps: int = 1) -> Block:
+    """``L = 0``: the current follows the voltage at once.  No state with ``rotor="lumped"``."""
+    return _build("quasistatic", rotor, integrator, substeps)
+
+
+def ideal() -> Block:
+    """Force source ``flange.f = gain * u``; ``gain`` defaults to the stall force per volt of the
+    full motor, ``kt / (R rack)`` [N/V]."""
+    ps = ParamSet()
+    gain = ps.add("gain", KT_DEFAULT / (0.574 * 0.05), "N/V", "force per volt (default: stall force per volt "
+                                                           "kt/(R rack) of the Table 6.7 motor)", lower=-INF)
+    rack = ps.add("rack", 0.05, "m/rad", "rack-and-pinion ratio (for the shaft-speed output)", lower=0.0)
+    u = ca.SX.sym("uin", 2)
+    return Block.build(
+        "dc_motor", description="ideal force source f = gain u", params=ps.params, inputs=list(INPUTS),
+        outputs=[Var("flange.f", "N", "force on the leg, positive extending"), Var("w", "rad/s", "shaft speed")],
+        states=[], p=ps.vector(), u=u, x=ca.SX(0, 1), ode=ca.SX(0, 1), out=ca.vertcat(gain * u[0], u[1] / rack),
+        start=ca.SX(0, 1), integrator="none", flanges=[FLANGE], fidelity="ideal")

@@ -1,0 +1,115 @@
+"""PID controller with a filtered derivative, an output limiter and optional anti-windup.
+
+Inputs ``setpoint`` and ``measurement`` (any unit; leg lengths [m] in the thesis's scene);
+outputs ``y`` (the limited control, [V] for a motor) and ``e = setpoint - measurement``.
+
+Forms (construction option ``form``):
+
+- ``"parallel"``: ``y = Kp e + I + D`` with ``dI/dt = Ki e`` and a first-order filtered derivative
+  ``Tf dD/dt + D = Kd ds/dt``;
+- ``"standard"`` (20-sim's PID): ``y = Kp (e + I' + uD)`` with ``dI'/dt = e / Ti`` and
+  ``beta Td duD/dt + uD = Td ds/dt`` (beta = 0.1); the filter time constant is ``beta Td``.
+
+``s`` is the signal the derivative acts on (option ``derivative``): ``"error"`` (default, as in
+20-sim and the thesis; a setpoint step gives a kick of ``Kd * step / Tf``, clipped by the limiter)
+or ``"measurement"`` (``s = -measurement``: no setpoint kick).  The filter is realised with a
+state ``w`` tracking ``s``: ``dw/dt = (s - w) / Tf`` and ``D = Kd (s - w) / Tf``, so the state has
+the unit of ``s``; its start value ``w0`` should equal the initial ``s`` to avoid a start kick.
+The default ``Tf`` = 1 ms is close to the pure derivative of the thesis's parallel reading (the
+closed-loop scene's phi peak is 0.303 rad with 1 ms, 0.307 with 0.1 ms, 0.267 with 10 ms; see
+:mod:`models.blocks.motor`) and keeps the filter pole (-1000 1/s) stable for RK4 at a 1 ms step.
+
+States: ``state.I``, the integral part of the output in output units (so a gain change does
+not bump the output), and ``state.w``.
+
+Output limit ``y = clip(v, -u_max, u_max)`` of the unlimited ``v``.  Anti-windup (option
+``anti_windup``): ``"none"``; ``"clamp"`` (conditional integration: the integral is frozen while
+the output is limited and the error drives further into the limit); ``"backcalc"`` (back
+calculation: ``dI/dt = Ki e + (y - v) / Tt``; Åström's rule of thumb ``Tt ~ sqrt(Ti Td)`` is
+0.5 s for the thesis's gains).
+
+Fidelities: ``continuous`` (RK4) and ``discrete`` at ``sample_period`` ``T``: at each sample
+``I += T (dI/dt)`` (forward Euler) and ``w += (1 - exp(-T/Tf)) (s - w)`` (the filter's exact
+zero-order-hold update); the output is computed from the inputs at the sample.  Both tend to the
+continuous controller as ``T -> 0``.
+"""
+from __future__ import annotations
+
+import casadi as ca
+
+from ..block import Block, Var
+from ._common import INF, ParamSet
+
+FORMS = ("parallel", "standard")
+DERIVATIVE = ("error", "measurement")
+ANTI_WINDUP = ("none", "clamp", "backcalc")
+
+
+def _law(form: str, derivative: str, anti_windup: str):
+    """Parameters, symbols and the continuous right-hand side ``(dI/dt, dw/dt, Tf)`` plus outputs."""
+    ps = ParamSet()
+    if form == "parallel":
+        Kp = ps.add("Kp", 30.0, "1", "proportional gain (output unit per input unit; Table 6.7)")
+        Ki = ps.add("Ki", 80.0, "1/s", "integral gain (Table 6.7 read as parallel gains)")
+        Kd = ps.add("Kd", 20.0, "s", "derivative gain (Table 6.7 read as parallel gains)")
+        Tf = ps.add("Tf", 1e-3, "s", "derivative filter time constant", lower=1e-9)
+        ki, kd = Ki, Kd
+    else:
+        Kp = ps.add("Kp", 30.0, "1", "proportional gain (Table 6.7)")
+        Ti = ps.add("Ti", 80.0, "s", "integral time (Table 6.7)", lower=1e-12)
+        Td = ps.add("Td", 20.0, "s", "derivative time (Table 6.7)", lower=1e-12)
+        beta = ps.add("beta", 0.1, "1", "derivative filter: time constant beta Td (20-sim)", lower=1e-9)
+        ki, kd, Tf = Kp / Ti, Kp * Td, beta * Td
+    u_max = ps.add("u_max", 12.0, "", "output limit: y in [-u_max, u_max] (Table 6.7: 12 V)", lower=0.0)
+    Tt = ps.add("Tt", 0.5, "s", "anti-windup tracking time constant (backcalc only)", lower=1e-9) \
+        if anti_windup == "backcalc" else None
+    I0 = ps.add("I0", 0.0, "", "start value of the integral part")
+    w0 = ps.add("w0", 0.0, "", "start value of the derivative filter state (the initial derivative "
+                                        "signal avoids a start kick)")
+    u = ca.SX.sym("uin", 2)
+    sp, meas = u[0], u[1]
+    xs = ca.SX.sym("xs", 2)
+    I, w = xs[0], xs[1]
+    e = sp - meas
+    s = e if derivative == "error" else -meas
+    D = kd * (s - w) / Tf
+    v = Kp * e + I + D
+    y = ca.fmin(ca.fmax(v, -u_max), u_max)
+    dI = ki * e
+    if anti_windup == "clamp":
+        pushing = ca.logic_or(ca.logic_and(v > u_max, dI > 0), ca.logic_and(v < -u_max, dI < 0))
+        dI = ca.if_else(pushing, 0.0, dI)
+    elif anti_windup == "backcalc":
+        dI = dI + (y - v) / Tt
+    dw = (s - w) / Tf
+    return ps, u, xs, (dI, dw, Tf, s), ca.vertcat(y, e), ca.vertcat(I0, w0)
+
+
+_INPUTS = [Var("setpoint", "", "reference value"), Var("measurement", "", "measured value")]
+_OUTPUTS = [Var("y", "", "limited control output"), Var("e", "", "error setpoint - measurement")]
+_STATES = [Var("state.I", "", "integral part of the output"), Var("state.w", "", "derivative filter state")]
+
+
+def continuous(form: str = "parallel", derivative: str = "error", anti_windup: str = "none",
+               integrator: str = "rk4", substeps: int = 1) -> Block:
+    """Continuous PID (RK4 by default; the filter pole is ``-1/Tf``)."""
+    ps, u, xs, (dI, dw, _, _), out, start = _law(form, derivative, anti_windup)
+    return Block.build(
+        "pid", description=f"PID controller, {form} form, derivative on {derivative}, anti-windup {anti_windup}",
+        params=ps.params, inputs=list(_INPUTS), outputs=list(_OUTPUTS), states=list(_STATES), p=ps.vector(),
+        u=u, x=xs, ode=ca.vertcat(dI, dw), out=out, start=start, integrator=integrator, substeps=substeps,
+        fidelity="continuous")
+
+
+def discrete(form: str = "parallel", derivative: str = "error", anti_windup: str = "none",
+             sample_period: float = 1e-3) -> Block:
+    """Sampled PID: forward-Euler integral, exact zero-order-hold update of the derivative filter."""
+    T = float(sample_period)
+    ps, u, xs, (dI, dw, Tf, s), out, start = _law(form, derivative, anti_windup)
+    I, w = xs[0], xs[1]
+    update = ca.vertcat(I + T * dI, w + (1 - ca.exp(-T / Tf)) * (s - w))
+    return Block.build(
+        "pid", description=f"discrete PID (T = {T:g} s), {form} form, derivative on {derivative}, "
+                           f"anti-windup {anti_windup}",
+        params=ps.params, inputs=list(_INPUTS), outputs=list(_OUTPUTS), states=list(_STATES), p=ps.vector(),
+        u=u, x=xs, ode=update, out=out, start=start, integrator="discrete", sample_period=T, fidelity="discrete")
