@@ -218,7 +218,8 @@ def multibody(config: str, integrator: str = "radau", substeps: int = 1) -> Bloc
     for i in LEGS:
         ell = lengths[i - 1]
         grad = ca.gradient(ell, qg)
-        conv = ca.jtimes(ca.jtimes(ell, qg, qgd), qg, qgd)  # qd^T Hess(ell) qd
+        hess, _ = ca.hessian(ell, qg)
+        conv = ca.dot(qgd, hess @ qgd)  # the part of d2(ell)/dt2 that is not grad . qdd
         rhs = rhs - m_act[i - 1] * conv * grad
         grads.append(grad)
     acc = dinv * rhs
