@@ -26,7 +26,7 @@ import casadi as ca
 from ..block import Block, Flange, Var
 from ..kinematics import inverse_jacobian, inverse_kinematics, joint_offsets, leg_motion
 from ..virtual_work import actuator_forces, mass_matrix_and_bias
-from ._common import INF, ParamSet, geometry_params, inertia_params
+from ._common import ParamSet, geometry_params, inertia_params
 
 LEGS = (1, 2, 3)
 POSE_OUTPUTS = [

@@ -38,7 +38,8 @@ kt [N m/A]     phi peak [rad]   x min     L1 peak  pose at 5 s                  
 
 (The first milliseconds saturate at 12 V, the derivative kick of the setpoint step.)  The default
 is ``kt = 0.0659`` N m/A: it matches all three figures of Table 6.10 (0.145 peaks later, lower and
-shallower) and the 0.2 N m torque scale of Table 6.11.  A 10 ms derivative filter would instead
+shallower), and its torques after the kick are nearer Table 6.11's -0.13 .. 0.20 N m (0.145 needs
+about a third of the torque for the same motion).  A 10 ms derivative filter would instead
 cut the phi peak to 0.267 rad for either constant, which is why the PID's default ``Tf`` is 1 ms.
 """
 from __future__ import annotations

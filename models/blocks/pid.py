@@ -38,7 +38,7 @@ from __future__ import annotations
 import casadi as ca
 
 from ..block import Block, Var
-from ._common import INF, ParamSet
+from ._common import ParamSet
 
 FORMS = ("parallel", "standard")
 DERIVATIVE = ("error", "measurement")
