@@ -38,8 +38,8 @@ def cache(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def pid_rigid(cache):
-    """pid_step at 1 ms Gauss-Seidel, run on to 12 s to see it settle."""
-    return run(SCENES / "pid_step.yaml", ["stop_time=12"], cache_dir=cache)
+    """pid_step (Gauss-Seidel at 0.1 ms), run on to 15 s to see it settle."""
+    return run(SCENES / "pid_step.yaml", ["stop_time=15"], cache_dir=cache)
 
 
 def leg_error(tr) -> np.ndarray:
@@ -60,9 +60,9 @@ def test_pid_step_reproduces_the_shape_of_table_6_10(pid_rigid):
     tr = pid_rigid.trace
     t, phi, x = tr.time, tr["mech.platform.phi"], tr["mech.platform.x"]
     k = int(np.argmax(phi))
-    assert 0.25 < phi[k] < 0.33 and 0.9 < t[k] < 1.5, (phi[k], t[k])
-    assert -0.23 < x.min() < -0.21 and 0.9 < t[np.argmin(x)] < 1.5
-    assert 0.345 < tr["mech.leg[1].s"].max() < 0.36
+    assert 0.28 < phi[k] < 0.32 and 1.1 < t[k] < 1.5, (phi[k], t[k])
+    assert -0.23 < x.min() < -0.215 and 1.1 < t[np.argmin(x)] < 1.5
+    assert 0.35 < tr["mech.leg[1].s"].max() < 0.36
     # one overshoot, then it comes back through the target (an underdamped step)
     assert phi[t > t[k]].min() < TARGET_POSE[2]
 
@@ -72,8 +72,8 @@ def test_pid_step_settles_on_the_target_within_the_thesis_band(pid_rigid):
     t = tr.time
     out = (leg_error(tr) > BAND_LEG) | (np.abs(tr["mech.platform.phi"] - TARGET_POSE[2]) > BAND_PHI)
     settle = t[np.nonzero(out)[0][-1] + 1]
-    assert 3.0 < settle < 10.0, settle
-    # after settling the error keeps shrinking (integral action): at 12 s well inside the band
+    assert 3.0 < settle < 12.0, settle
+    # after settling the error keeps shrinking (integral action): at 15 s well inside the band
     assert leg_error(tr)[-1] < BAND_LEG / 2
     assert abs(tr["mech.platform.phi"][-1] - TARGET_POSE[2]) < BAND_PHI
     # at 5 s (the thesis's horizon): the end state beside Table 6.12's, within a few millimetres
@@ -83,17 +83,16 @@ def test_pid_step_settles_on_the_target_within_the_thesis_band(pid_rigid):
     assert abs(at5["mech.platform.phi"] - THESIS_END_POSE[2]) < 0.01
 
 
-@pytest.fixture(scope="module")
-def pid_multibody(cache):
-    return run(SCENES / "pid_step_multibody.yaml", cache_dir=cache)
-
-
-def test_pid_step_multibody_agrees_with_rigid(pid_rigid, pid_multibody):
+def test_pid_step_multibody_agrees_with_rigid(cache):
     """Stiff parasitic joints (1e8 N/m) deflect by f/k ~ 1e-7 m: the closed loop must not notice.
-    Stated tolerance: 3e-5 m on the leg lengths and platform position, 1e-4 rad on phi, over the
-    whole 5 s (measured: 1.4e-5 m)."""
-    a, b = pid_rigid.trace, pid_multibody.trace
-    assert pid_multibody.ok, pid_multibody.reason
+    Both fidelities run with the same coupling (Gauss-Seidel at 1 ms, to keep the 600 us Radau
+    steps of the 42-state multibody FMU affordable here).  Stated tolerance: 3e-5 m on the leg
+    lengths and platform position, 1e-4 rad on phi, over the whole 5 s."""
+    a = run(SCENES / "pid_step.yaml", ["master.step=1e-3"], cache_dir=cache).trace
+    mb = run(SCENES / "pid_step_multibody.yaml", ["master.step=1e-3"], cache_dir=cache)
+    b = mb.trace
+    assert mb.ok, mb.reason
+    assert mb.scene.components["mech"].fidelity == "multibody" and len(b.time) == 5001
     n = len(b.time)
     assert np.array_equal(a.time[:n], b.time)
     for name in [f"mech.leg[{i}].s" for i in LEGS] + ["mech.platform.x", "mech.platform.y"]:
@@ -205,7 +204,7 @@ def test_pid_step_fmus_in_ecospy_give_our_jacobi_trajectory_bit_for_bit(cache):
     trajectory equals ours exactly.  (It reads outputs after setting the next inputs, so only
     outputs without feedthrough are compared.)"""
     ecospy = pytest.importorskip("ecospy", reason="ecospy (PyPI) with Debian libtbb12 is needed for this peer check")
-    sc = load(SCENES / "pid_step.yaml", ["master.algorithm=jacobi", "stop_time=1.0"])
+    sc = load(SCENES / "pid_step.yaml", ["master.algorithm=jacobi", "stop_time=1.0", "master.output_interval=1e-4"])
     paths = build_components(sc, cache_dir=cache)
     ss = ecospy.EcosSimulationStructure()
     for n, p in paths.items():
@@ -334,9 +333,9 @@ def test_cli_run_writes_trace_sidecar_plot_and_animation(tmp_path, cache):
     tr = read_trace(out / "pid_step.csv")
     assert tr.status == "ok" and len(tr.time) == 301 and tr.time[-1] == pytest.approx(0.3)
     assert tr.meta["algorithm"] == "gauss_seidel" and tr.meta["scene_hash"] and "fmpy" in tr.meta["versions"]
-    assert tr.stats["steps_done"] == 300 and set(tr.stats["slaves"]) >= {"mech", "pid1", "motor3"}
+    assert tr.stats["steps_done"] == 3000 and set(tr.stats["slaves"]) >= {"mech", "pid1", "motor3"}
     side = json.loads((out / "pid_step.json").read_text())
-    assert side["status"] == "ok" and side["scene_data"]["master"]["step"] == 1e-3
+    assert side["status"] == "ok" and side["scene_data"]["master"]["step"] == 1e-4
     from PIL import Image
 
     assert Image.open(out / "pid_step.png").size[0] > 300
