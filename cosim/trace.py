@@ -228,7 +228,8 @@ class CsvTrace(Observer):
 
 
 def read_trace(path: Path) -> Trace:
-    """Read a CSV trace written by :class:`CsvTrace` (partial or complete)."""
+    """Read a CSV trace written by :class:`CsvTrace` (partial or complete; a last row cut short by
+    a crash is dropped)."""
     path = Path(path)
     if not path.is_file():
         raise UserError(f"{path}: no such trace file")
@@ -236,23 +237,30 @@ def read_trace(path: Path) -> Trace:
     columns: list[str] | None = None
     rows: list[list[float]] = []
     with open(path, newline="") as fh:
-        for lineno, line in enumerate(fh, 1):
-            if line.startswith("#"):
-                key, sep, value = line[1:].strip().partition(": ")
-                if sep:
-                    try:
-                        meta[key] = json.loads(value)
-                    except ValueError:
-                        meta[key] = value
-                continue
-            if columns is None:
-                columns = next(csv.reader([line]))
-                continue
-            if line.strip():
+        lines = fh.readlines()
+    last_data = max((i for i, ln in enumerate(lines) if ln.strip() and not ln.startswith("#")), default=-1)
+    for lineno, line in enumerate(lines, 1):
+        if line.startswith("#"):
+            key, sep, value = line[1:].strip().partition(": ")
+            if sep:
                 try:
-                    rows.append([float(x) for x in line.split(",")])
+                    meta[key] = json.loads(value)
                 except ValueError:
-                    raise UserError(f"{path}:{lineno}: not a row of numbers") from None
+                    meta[key] = value
+            continue
+        if columns is None:
+            columns = next(csv.reader([line]))
+            continue
+        if line.strip():
+            try:
+                row = [float(x) for x in line.split(",")]
+                if len(row) != len(columns):
+                    raise ValueError
+                rows.append(row)
+            except ValueError:
+                if lineno - 1 == last_data and not line.endswith("\n"):
+                    continue  # a row cut short by a crash while it was being written
+                raise UserError(f"{path}:{lineno}: expected {len(columns)} numbers separated by commas") from None
     if columns is None:
         raise UserError(f"{path}: no column header; is this an rpr-cosim trace?")
     data = np.array(rows, dtype=float).reshape(-1, len(columns))

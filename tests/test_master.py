@@ -305,3 +305,17 @@ def test_a_registered_algorithm_runs_through_the_same_loop():
         assert tr.data[-1, 4] == pytest.approx(xb, abs=1e-14)
     finally:
         ALGORITHMS.pop("test_reverse_gs")
+
+
+def test_a_trace_cut_short_by_a_crash_reads_back_without_its_broken_row(tmp_path):
+    csv = CsvTrace(tmp_path / "t.csv")
+    simulate(pair(), "jacobi", step_ns=1_000_000, n_steps=50, observers=[csv])
+    text = (tmp_path / "t.csv").read_text()
+    data_end = text.index("# status")
+    cut = text[:data_end - 20]  # the writer died in the middle of the last row
+    (tmp_path / "t.csv").write_text(cut)
+    back = read_trace(tmp_path / "t.csv")
+    assert back.status == "" and len(back.data) == 50 and back.time[-1] == pytest.approx(0.049)
+    (tmp_path / "bad.csv").write_text(cut[:cut.index("\n0.01")] + "\n0.01,oops,1,2,3\n" + cut[cut.index("\n0.01"):])
+    with pytest.raises(UserError, match=r"bad\.csv:\d+: expected 5 numbers separated by commas"):
+        read_trace(tmp_path / "bad.csv")

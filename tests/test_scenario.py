@@ -301,3 +301,13 @@ def test_cli_prints_one_line_per_problem_and_exits_2(tmp_path):
     assert "Traceback" not in res.stderr
     assert lines[-1].endswith("2 problems; nothing was run")
     assert not (tmp_path / "out").exists()
+
+
+def test_cli_check_validates_and_describes_without_running(tmp_path):
+    p = write(tmp_path, BASE)
+    res = subprocess.run([sys.executable, "-m", "cosim", "run", str(p), "--check"], cwd=ROOT, capture_output=True,
+                         text=True, timeout=120)
+    assert res.returncode == 0, res.stderr
+    assert "scene small: 4 components, 5 connections (1 bonds), gauss_seidel at 0.001 s, stop 1 s (1000 steps)" in res.stdout
+    assert "motor1.flange.f -> mech.leg[1].f   [bond motor1.flange <-> mech.leg[1]]" in res.stdout
+    assert res.stderr.count("warning: input mech.leg[") == 2
