@@ -18,7 +18,7 @@ import os
 import subprocess
 import sys
 import tempfile
-from ctypes import POINTER, c_double, c_int32, c_int64, c_void_p
+from ctypes import POINTER, c_int32, c_int64, c_void_p
 from functools import lru_cache
 from pathlib import Path
 

@@ -27,12 +27,11 @@ from __future__ import annotations
 import atexit
 import ctypes
 import enum
-import math
 import shutil
 import tempfile
 from abc import ABC, abstractmethod
 from collections import deque
-from ctypes import POINTER, c_bool, c_char_p, c_double, c_int, c_size_t, c_uint32, c_void_p
+from ctypes import POINTER, c_bool, c_double, c_int, c_size_t, c_uint32, c_void_p
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -523,11 +522,3 @@ class LinearSlave(Slave):
     def set_state(self, state: tuple[np.ndarray, np.ndarray]) -> None:
         self.x, self.u = state[0].copy(), state[1].copy()
 
-
-def finite_or_none(x) -> float | None:
-    """``float(x)`` if it is a finite number, else None."""
-    try:
-        v = float(x)
-    except (TypeError, ValueError):
-        return None
-    return v if math.isfinite(v) else None
