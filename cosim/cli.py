@@ -11,7 +11,7 @@ import importlib
 import sys
 from collections.abc import Sequence
 
-from .errors import UserError, user_error_types
+from .errors import user_error_types
 
 #: Modules that contribute verbs, in the order they appear in ``--help``.
 VERB_MODULES = ("cosim.cmd_analyze", "cosim.cmd_fmu", "cosim.cmd_run")

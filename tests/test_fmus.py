@@ -549,6 +549,9 @@ def fake_catalog(monkeypatch):
 
     mod.make = make
     monkeypatch.setitem(sys.modules, "models.blocks", mod)
+    # ``import models.blocks as b`` reads the attribute of the parent package first.
+    import models
+    monkeypatch.setattr(models, "blocks", mod, raising=False)
     return mod
 
 
