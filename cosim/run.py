@@ -126,12 +126,15 @@ def run(scene: Scene | str | Path, overrides: Mapping[str, Any] | Sequence[str] 
 
 def progress_bar(stream=sys.stderr, *, min_s: float = 0.5) -> Callable[[int, int], None]:
     """A ``progress(done, total)`` callback drawing a bar on ``stream`` for runs longer than
-    ``min_s`` seconds (short runs print nothing)."""
-    t0 = time.perf_counter()
-    state = {"shown": False, "last": 0.0}
+    ``min_s`` seconds (short runs print nothing).  The clock starts at the first call, i.e. when
+    the stepping starts, so FMU builds before it do not distort the time left."""
+    state = {"shown": False, "last": 0.0, "t0": None}
 
     def update(done: int, total: int) -> None:
         now = time.perf_counter()
+        if state["t0"] is None:
+            state["t0"] = now
+        t0 = state["t0"]
         if now - t0 < min_s and done < total:
             return
         if done < total and now - state["last"] < 0.1:

@@ -34,8 +34,9 @@ class BlockError(ValueError):
 class Param:
     """A real parameter: ``name``, SI ``unit``, ``default``, closed bounds, description.
 
-    ``structural`` parameters change the equations (they are baked into the generated code and
-    part of the build-cache key); the others stay settable after instantiation.
+    ``structural`` parameters change the equations: they are baked into the generated code, are
+    part of the build-cache key and are exported as ``fixed`` (visible, not settable); the others
+    are ``tunable``, settable after instantiation.
     """
 
     name: str
