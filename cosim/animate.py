@@ -75,7 +75,7 @@ def animate(trace: Trace, path: Path, *, manipulator: Manipulator | None = None,
     pts = np.vstack([A, B.reshape(-1, 2)])
     lo, hi = pts.min(axis=0), pts.max(axis=0)
     pad = 0.08 * float(np.max(hi - lo))
-    fig, ax = plt.subplots(figsize=(5.2, 5.2), dpi=80)
+    fig, ax = plt.subplots(figsize=(5.2, 5.2), dpi=80, layout="constrained")
     ax.set_aspect("equal")
     ax.set_xlim(lo[0] - pad, hi[0] + pad)
     ax.set_ylim(lo[1] - pad, hi[1] + pad)
