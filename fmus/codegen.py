@@ -14,6 +14,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import casadi as ca
+import fmpy
 import numpy as np
 
 from models.block import Block, BlockError
@@ -167,6 +168,7 @@ def generate(block: Block, stepper: Stepper, *, guid: str, ident: str) -> Genera
 
 
 C_DIR = Path(__file__).with_name("c")
+FMI_HEADER_DIR = Path(fmpy.__file__).with_name("c-code")  # the standard's headers, as FMPy ships them
 CORE_SOURCES = ("rpr_core.c", "rpr_core.h")
 FMI_HEADERS = {"2.0": ("fmi2Functions.h", "fmi2FunctionTypes.h", "fmi2TypesPlatform.h"),
                "3.0": ("fmi3Functions.h", "fmi3FunctionTypes.h", "fmi3PlatformTypes.h")}
@@ -174,9 +176,9 @@ WRAPPERS = {"2.0": "fmi2_wrapper.c", "3.0": "fmi3_wrapper.c"}
 
 
 def static_sources(fmi_version: str) -> dict[str, str]:
-    """The hand-written C files (core, wrapper, FMI headers) for ``fmi_version``."""
-    names = CORE_SOURCES + (WRAPPERS[fmi_version],) + FMI_HEADERS[fmi_version]
-    return {n: (C_DIR / n).read_text() for n in names}
+    """The hand-written C files (core, wrapper) and the FMI headers for ``fmi_version``."""
+    ours = {n: (C_DIR / n).read_text() for n in CORE_SOURCES + (WRAPPERS[fmi_version],)}
+    return ours | {n: (FMI_HEADER_DIR / n).read_text() for n in FMI_HEADERS[fmi_version]}
 
 
 __all__ = ["check_block", "generate", "with_parameters", "model_identifier", "static_sources",
