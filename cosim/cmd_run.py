@@ -27,6 +27,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--out", type=Path, help="output directory (default runs/<scene name>)")
     p.add_argument("--plot", action="store_true", help="also write <scene>.png with the recorded outputs")
     p.add_argument("--animate", action="store_true", help="also write <scene>.gif of the platform and legs")
+    p.add_argument("--reference", action="store_true",
+                   help="also integrate the scene as one ODE (CVODES) into <scene>_reference.csv and report the "
+                        "co-simulation's error against it (catalog components only)")
     p.add_argument("--check", action="store_true", help="only validate the scene and print what it contains")
     p.add_argument("--engine", choices=["auto", "compiled", "python"], help="override master.engine")
     p.add_argument("--cache", type=Path, help="FMU cache directory (default $RPR_COSIM_CACHE or ~/.cache/rpr-cosim/fmus)")
@@ -71,10 +74,30 @@ def _run(args: argparse.Namespace) -> int:
         c = scene.components.get(comp)
         m = manipulator_for(c.options, c.params) if c is not None else None
         _say(f"animation: {animate(res.trace, out / f'{scene.name}.gif', manipulator=m, component=comp, title=scene.name)}")
+    if args.reference:
+        _reference(scene, res, out, args.plot)
     if not res.ok:
         _say(f"rpr-cosim run: {res.status}: {res.reason}")
         return 1
     return 0
+
+
+def _reference(scene, res, out: Path, plot: bool) -> None:
+    """Run the monolithic reference and print (and plot) the co-simulation's error against it."""
+    from .compare import compare, format_table, plot_comparison
+    from .reference import reference
+    from .run import progress_bar
+
+    ref = reference(scene, out_dir=out, progress=progress_bar())
+    st = ref.stats
+    print(f"monolithic reference ({ref.trace.meta.get('method', 'CVODES')}, {ref.trace.meta.get('states')} states): "
+          f"{ref.status}{' (' + ref.reason + ')' if ref.reason else ''}, {st['wall_s']:.2f} s; trace: {ref.trace_path}")
+    if len(ref.trace.data) and len(res.trace.data):
+        diffs = compare(res.trace, ref.trace)
+        print("co-simulation against the reference:")
+        print(format_table(diffs, most=12))
+        if plot:
+            _say(f"plot: {plot_comparison(res.trace, ref.trace, diffs, out / f'{scene.name}_vs_reference.png', labels=(scene.master.algorithm, 'reference'))}")
 
 
 def _describe(scene) -> None:

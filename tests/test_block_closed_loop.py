@@ -7,42 +7,9 @@ import numpy as np
 import pytest
 
 import models.blocks as B
+from models.compose import compose
 
 J_ROTOR, RACK = 1.45e-4, 0.05
-
-
-def compose(blocks: dict, params: dict, wires: list[tuple[str, str, str, str]]):
-    """One ODE from blocks: ``wires`` are (source block, output, destination block, input).
-    Outputs are evaluated in dependency order from the blocks' declared feedthrough."""
-    xs = {n: ca.SX.sym(f"x_{n}", b.x.numel()) for n, b in blocks.items()}
-    fns = {n: b.functions() for n, b in blocks.items()}
-    feeds = {(d, i): (s, o) for s, o, d, i in wires}
-    outs: dict[str, ca.SX] = {}
-    ins: dict[str, ca.SX] = {}
-    pending = list(blocks)
-    while pending:
-        progressed = False
-        for n in list(pending):
-            b = blocks[n]
-            needed = {i for ys in b.feedthrough().values() for i in ys}
-            srcs = [feeds[(n, v.name)] for v in b.inputs]
-            if any(v.name in needed and s not in outs for v, (s, _) in zip(b.inputs, srcs)):
-                continue
-            # inputs without feedthrough may come from blocks not evaluated yet: use placeholders
-            u = ca.vertcat(*[outs[s][blocks[s].index("outputs", o)] if s in outs else ca.SX.sym(f"{n}_{v.name}")
-                             for v, (s, o) in zip(b.inputs, srcs)]) if b.inputs else ca.SX(0, 1)
-            outs[n] = fns[n]["out"](xs[n], u, params[n])
-            pending.remove(n)
-            progressed = True
-        assert progressed, "algebraic loop"
-    for n, b in blocks.items():
-        ins[n] = ca.vertcat(*[outs[s][blocks[s].index("outputs", o)] for s, o in
-                              (feeds[(n, v.name)] for v in b.inputs)]) if b.inputs else ca.SX(0, 1)
-        outs[n] = fns[n]["out"](xs[n], ins[n], params[n])
-    X = ca.vertcat(*xs.values())
-    ode = ca.vertcat(*[fns[n]["ode"](xs[n], ins[n], params[n]) for n in blocks if blocks[n].x.numel()])
-    x0 = ca.vertcat(*[fns[n]["start"](params[n]) for n in blocks if blocks[n].x.numel()])
-    return X, ode, np.array(x0).ravel(), outs
 
 
 def thesis_scene(mechanism="rigid", motor="full", stop=5.0, n=5001):
@@ -58,12 +25,12 @@ def thesis_scene(mechanism="rigid", motor="full", stop=5.0, n=5001):
                   (f"pid{i}", "y", f"motor{i}", "u"), ("mech", f"leg[{i}].v", f"motor{i}", "flange.v"),
                   (f"motor{i}", "flange.f", "mech", f"leg[{i}].f")]
     params = {k: b.param_defaults for k, b in blocks.items()}
-    X, ode, x0, outs = compose(blocks, params, wires)
+    c = compose(blocks, params, wires)
     ts = np.linspace(0.0, stop, n)
-    I = ca.integrator("I", "cvodes", {"x": X, "ode": ode}, 0.0, ts,
+    I = ca.integrator("I", "cvodes", {"x": c.x, "ode": c.ode}, 0.0, ts,
                       {"abstol": 1e-9, "reltol": 1e-9, "max_num_steps": 10 ** 6})
-    xs = np.array(I(x0=x0)["xf"])
-    y = ca.Function("y", [X], [outs["mech"]])
+    xs = np.array(I(x0=c.x0)["xf"])
+    y = c.signal_function([("mech", v.name) for v in mech.outputs])
     return ts, np.array(y.map(len(ts))(xs)).T, mech
 
 

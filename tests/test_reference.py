@@ -1,0 +1,150 @@
+"""The monolithic reference of a scene (cosim.reference) and trace comparison (cosim.compare):
+against an analytic path, against the co-simulation converging at first order as the step
+shrinks (two independent formulations: FMUs under a master vs one ODE under CVODES), and the
+CLI's errors and outputs."""
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from cosim import cli
+from cosim.compare import compare, format_table
+from cosim.errors import UserError
+from cosim.reference import composite, reference
+from cosim.run import run
+from cosim.scenario import from_dict
+from cosim.trace import CsvTrace, Trace, read_trace
+from models.geometry import preset
+from models.kinematics import ik
+
+ROOT = Path(__file__).resolve().parents[1]
+SCENES = ROOT / "scenarios"
+
+
+@pytest.fixture(scope="module")
+def cache(tmp_path_factory):
+    return tmp_path_factory.getbasetemp() / "fmu-cache"
+
+
+def sine_scene(**master):
+    """The Chapter 7 path (SPEC §5) into the kinematic mechanism."""
+    sig = ["x", "y", "phi", "vx", "vy", "omega", "ax", "ay", "alpha"]
+    return {
+        "name": "sine_kinematic", "stop_time": 2.0,
+        "components": {"path": {"model": "pose_setpoint", "options": {"profile": "sine"}},
+                       "ref": {"model": "mechanism", "fidelity": "kinematic"}},
+        "connections": [f"path.platform.{s} -> ref.platform.{s}" for s in sig],
+        "master": {"algorithm": "gauss_seidel", "step": 1e-3, "output_interval": 1e-2, **master},
+        "outputs": ["ref.leg[*].s", "path.platform.*"],
+    }
+
+
+def test_reference_of_the_sine_path_equals_inverse_kinematics_of_the_analytic_pose():
+    res = reference(from_dict(sine_scene()))
+    assert res.ok, res.reason
+    t = res.trace.time
+    assert np.allclose(t, np.arange(201) * 1e-2, atol=1e-12)
+    pose = np.vstack([-0.25 + 0.05 * np.sin(math.pi * t), -0.15 + 0.05 * np.sin(math.pi * t), 0 * t])
+    L, _ = ik(preset(), pose)
+    for i in (1, 2, 3):
+        assert np.abs(res.trace[f"ref.leg[{i}].s"] - L[i - 1]).max() < 1e-9
+
+
+@pytest.fixture(scope="module")
+def pid_reference():
+    return reference(SCENES / "pid_step.yaml", ["stop_time=1"])
+
+
+def test_cosimulation_converges_to_the_reference_at_first_order(pid_reference, cache):
+    """Gauss-Seidel with held inputs is first order: halving the step halves the pose error
+    against the monolithic solution (measured ratios 2.00, 2.01)."""
+    assert pid_reference.ok, pid_reference.reason
+    errors = []
+    for h in (5e-4, 2.5e-4, 1.25e-4):
+        res = run(SCENES / "pid_step.yaml", ["stop_time=1", f"master.step={h}"], cache_dir=cache)
+        d = {x.name: x.max_abs for x in compare(res.trace, pid_reference.trace, ["mech.platform.*"])}
+        errors.append(max(d["mech.platform.x"], d["mech.platform.y"]))
+    r1, r2 = errors[0] / errors[1], errors[1] / errors[2]
+    assert 1.8 < r1 < 2.2 and 1.8 < r2 < 2.2, errors
+    assert errors[-1] < 2e-3  # 0.125 ms: the position error over the overshoot is below 2 mm
+
+
+def test_reference_writes_a_trace_the_reader_and_compare_accept(tmp_path, pid_reference):
+    res = reference(SCENES / "pid_step.yaml", ["stop_time=0.2"], out_dir=tmp_path)
+    back = read_trace(tmp_path / "pid_step_reference.csv")
+    assert back.columns == res.trace.columns and np.array_equal(back.data, res.trace.data)
+    assert back.status == "ok" and back.meta["method"].startswith("monolithic")
+    # the first 0.2 s of the 1 s reference: the same solution up to the solver tolerance
+    d = compare(back, pid_reference.trace, ["mech.*"])
+    assert max(x.max_abs for x in d) < 1e-7
+
+
+def test_scene_with_a_sampled_or_external_component_has_no_reference(tmp_path):
+    data = sine_scene()
+    data["components"]["pid"] = {"model": "pid", "fidelity": "discrete"}
+    data["connections"] += ["path.leg[1].s -> pid.setpoint", "ref.leg[1].s -> pid.measurement"]
+    with pytest.raises(UserError, match=r"no monolithic reference: block pid .* is sampled \(discrete\)"):
+        composite(from_dict(data))
+
+
+def synthetic(name_values: dict, t: np.ndarray) -> Trace:
+    return Trace(["time", *name_values], np.column_stack([t, *name_values.values()]))
+
+
+def test_compare_interpolates_the_reference_and_reports_absolute_and_relative_errors():
+    t_ref = np.linspace(0, 2, 2001)
+    ref = synthetic({"a.x": np.sin(t_ref), "a.c": 0 * t_ref + 3.0, "only.ref": t_ref}, t_ref)
+    t = np.linspace(0, 2.5, 26)  # beyond the reference: compared on [0, 2] only
+    test = synthetic({"a.x": np.sin(t) + 1e-3 * t, "a.c": 0 * t + 3.0}, t)
+    d = {x.name: x for x in compare(test, ref)}
+    assert set(d) == {"a.x", "a.c"}
+    assert d["a.x"].max_abs == pytest.approx(2e-3, rel=1e-5) and d["a.x"].at == pytest.approx(2.0)
+    # range of the reference at the compared instants 0, 0.1, ..., 2: sin(0) .. sin(1.6)
+    assert d["a.x"].scale == pytest.approx(math.sin(1.6), rel=1e-6)
+    assert d["a.c"].max_abs == 0 and d["a.c"].scale == 3.0 and d["a.c"].relative == 0
+    assert "a.x" in format_table(list(d.values())).splitlines()[1]
+
+
+def test_compare_mistakes_are_user_errors():
+    t = np.linspace(0, 1, 11)
+    with pytest.raises(UserError, match="no variable matching mech.* in common"):
+        compare(synthetic({"a.x": t}, t), synthetic({"a.x": t}, t), ["mech.*"])
+    with pytest.raises(UserError, match="do not overlap in time"):
+        compare(synthetic({"a.x": t}, t), synthetic({"a.x": t}, t + 5))
+
+
+def write(path: Path, trace: Trace) -> Path:
+    w = CsvTrace(path)
+    w.start(trace.columns, {"scene": path.stem})
+    w.record(trace.data)
+    w.finish("ok", "", {})
+    return path
+
+
+def test_cli_compare_table_plot_and_tolerance_exit_code(tmp_path, capsys):
+    t = np.linspace(0, 1, 101)
+    a = write(tmp_path / "a.csv", synthetic({"m.leg[1].s": np.cos(t), "m.v": t}, t))
+    b = write(tmp_path / "b.csv", synthetic({"m.leg[1].s": np.cos(t) + 1e-4, "m.v": t}, t))
+    assert cli.main(["compare", str(a), str(b), "--only", "m.leg[*].s", "--plot", str(tmp_path / "d.png")]) == 0
+    out = capsys.readouterr().out
+    assert "m.leg[1].s" in out and "m.v" not in out and (tmp_path / "d.png").stat().st_size > 1000
+    assert cli.main(["compare", str(a), str(b), "--tol", "1e-2"]) == 0
+    assert cli.main(["compare", str(a), str(b), "--tol", "1e-5"]) == 1
+    assert "beyond the relative tolerance 1e-05 (worst: m.leg[1].s)" in capsys.readouterr().err
+    assert cli.main(["compare", str(a), str(tmp_path / "missing.csv")]) == 2
+    assert "missing.csv: no such trace file" in capsys.readouterr().err
+
+
+def test_cli_run_with_reference_reports_the_error_table(tmp_path, capsys, cache):
+    rc = cli.main(["run", str(SCENES / "pid_step.yaml"), "--set", "stop_time=0.3", "--set", "master.step=5e-4",
+                   "--reference", "--out", str(tmp_path), "--cache", str(cache)])
+    out = capsys.readouterr().out
+    assert rc == 0
+    assert "monolithic reference" in out and "co-simulation against the reference:" in out
+    assert (tmp_path / "pid_step_reference.csv").is_file()
+    table = out.split("co-simulation against the reference:")[1]
+    row = next(ln for ln in table.splitlines() if ln.strip().startswith("mech.platform.phi "))
+    assert 0 < float(row.split()[1]) < 0.05  # max |diff| of phi at 0.5 ms over 0.3 s
