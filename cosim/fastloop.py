@@ -34,14 +34,22 @@ typedef int (*step2_t)(void *, double, double, int);
 typedef int (*io2_t)(void *, const uint32_t *, size_t, double *);
 typedef int (*step3_t)(void *, double, double, bool, bool *, bool *, bool *, double *);
 typedef int (*io3_t)(void *, const uint32_t *, size_t, double *, size_t);
+typedef int (*der2_t)(void *, const uint32_t *, size_t, const int32_t *, const double *);
 
 typedef struct {
-    int32_t fmi3, n_in, n_out, in_off, out_off, pad;
+    int32_t fmi3, n_in, n_out, in_off, out_off, interp;
     void *inst, *do_step, *get, *set;
     const uint32_t *in_vr;
     const int64_t *in_src;
     const uint32_t *out_vr;
     int64_t calls, ns;
+    /* linear inputs (interp = 1): fmi2SetRealInputDerivatives, orders (all 1), per input whether
+       it is interpolated (its source already stepped) or extrapolated, the source's previous
+       value and the slope buffer */
+    void *set_der;
+    const int32_t *orders;
+    const int8_t *fresh;
+    double *hist, *slope;
 } rpr_slave;
 
 enum { ST_OK = 0, ST_WARNING = 1, ST_STOP = 100 };
@@ -52,13 +60,22 @@ static inline int64_t now_ns(void) {
     return (int64_t)ts.tv_sec * 1000000000LL + ts.tv_nsec;
 }
 
-static inline int push(rpr_slave *s, double *v) {
-    int j;
+static inline int push(rpr_slave *s, double *v, double inv_h) {
+    int j, st;
     double *in = v + s->in_off;
     if (!s->n_in) return 0;
     for (j = 0; j < s->n_in; ++j) in[j] = v[s->in_src[j]];
     if (s->fmi3) return ((io3_t)s->set)(s->inst, s->in_vr, (size_t)s->n_in, in, (size_t)s->n_in);
-    return ((io2_t)s->set)(s->inst, s->in_vr, (size_t)s->n_in, in);
+    if (!s->interp) return ((io2_t)s->set)(s->inst, s->in_vr, (size_t)s->n_in, in);
+    for (j = 0; j < s->n_in; ++j) {
+        double now = in[j];
+        s->slope[j] = (now - s->hist[j]) * inv_h;
+        if (s->fresh[j]) in[j] = s->hist[j];
+        s->hist[j] = now;
+    }
+    st = ((io2_t)s->set)(s->inst, s->in_vr, (size_t)s->n_in, in);
+    if (st > ST_WARNING) return st;
+    return ((der2_t)s->set_der)(s->inst, s->in_vr, (size_t)s->n_in, s->orders, s->slope);
 }
 
 static inline int pull(rpr_slave *s, double *v) {
@@ -93,7 +110,7 @@ int64_t rpr_run(rpr_slave *S, int32_t n, const int32_t *order, int32_t algorithm
     int64_t k, done = 0, rows = 0, t_start = timing ? now_ns() : 0, tprev = t_start;
     int64_t slave_ns0 = 0, slave_ns1 = 0;
     int32_t i, c;
-    double h = (double)step_ns / 1e9;
+    double h = (double)step_ns / 1e9, inv_h = 1.0 / h;
     for (i = 0; i < n; ++i) slave_ns0 += S[i].ns;
     *fail_slave = -1;
     *fail_status = 0;
@@ -101,13 +118,13 @@ int64_t rpr_run(rpr_slave *S, int32_t n, const int32_t *order, int32_t algorithm
         double t = (double)(k * step_ns) / 1e9;
         if (timing) tprev = now_ns();  /* time since the last slave call is the master's own */
         if (algorithm == 0) {
-            for (i = 0; i < n; ++i) { CHECK(push(&S[i], v), i); TICK(i); }
+            for (i = 0; i < n; ++i) { CHECK(push(&S[i], v, inv_h), i); TICK(i); }
             for (i = 0; i < n; ++i) { CHECK(step(&S[i], t, h), i); TICK(i); }
             for (i = 0; i < n; ++i) { CHECK(pull(&S[i], v), i); TICK(i); }
         } else {
             for (c = 0; c < n; ++c) {
                 i = order[c];
-                CHECK(push(&S[i], v), i);
+                CHECK(push(&S[i], v, inv_h), i);
                 CHECK(step(&S[i], t, h), i);
                 CHECK(pull(&S[i], v), i);
                 TICK(i);
@@ -136,9 +153,10 @@ class CSlave(ctypes.Structure):
     """Mirror of ``rpr_slave`` in :data:`SOURCE`."""
 
     _fields_ = [("fmi3", c_int32), ("n_in", c_int32), ("n_out", c_int32), ("in_off", c_int32),
-                ("out_off", c_int32), ("pad", c_int32), ("inst", c_void_p), ("do_step", c_void_p),
+                ("out_off", c_int32), ("interp", c_int32), ("inst", c_void_p), ("do_step", c_void_p),
                 ("get", c_void_p), ("set", c_void_p), ("in_vr", c_void_p), ("in_src", c_void_p),
-                ("out_vr", c_void_p), ("calls", c_int64), ("ns", c_int64)]
+                ("out_vr", c_void_p), ("calls", c_int64), ("ns", c_int64), ("set_der", c_void_p),
+                ("orders", c_void_p), ("fresh", c_void_p), ("hist", c_void_p), ("slope", c_void_p)]
 
 
 def _cache_dir() -> Path:

@@ -10,7 +10,8 @@ Recording is the observers' business (:mod:`cosim.trace`), never the algorithm's
 Time is counted in whole steps of an integer number of nanoseconds: ``t_k = k * step_ns / 1e9``
 exactly (no accumulated drift).  Communication step ``h = step_ns / 1e9``.
 
-Conventions at communication point ``t_k`` (inputs are held constant over a step):
+Conventions at communication point ``t_k`` (with ``inputs="hold"``, the default, inputs are held
+constant over a step):
 
 Jacobi
     1. every connected input takes the value its source output had when last read, i.e. the
@@ -25,6 +26,13 @@ Gauss-Seidel
     the others see it at ``t_k``.  The default order is a topological order of the slave graph
     after cutting the fewest connections that close cycles (an exact search for cycles of up to
     seven slaves, a greedy one beyond); ``master.order`` in a scene overrides it.
+Linear inputs (``inputs="linear"``)
+    a slave that can follow input slopes (FMI 2.0 ``canInterpolateInputs``) also gets, per
+    input, a slope for the coming step: an input whose source has already stepped (Gauss-Seidel)
+    is *interpolated*, set to the source's value at ``t_k`` with slope ``(y_k+1 - y_k) / h``; the
+    others are *extrapolated*, set to ``y_k`` with slope ``(y_k - y_k-1) / h`` (zero in the first
+    step).  Holding makes the coupling first order in ``h``; this makes it second order.  Slaves
+    that cannot interpolate keep holding.
 Initialisation
     in initialisation mode every slave's outputs are read, then feedthrough outputs are
     propagated in a topological order of the port graph (output -> input connections plus
@@ -319,9 +327,11 @@ class Algorithm(ABC):
     name: ClassVar[str]
     #: algorithm code of the compiled loop implementing the same steps, or None
     native_code: ClassVar[int | None] = None
+    #: slaves step one after another in :attr:`order` (later ones see earlier ones' new outputs)
+    sequential: ClassVar[bool] = False
 
     def __init__(self, system: CoupledSystem, step_ns: int, *, order: Sequence[int] | None = None,
-                 timing: bool = True):
+                 timing: bool = True, inputs: str = "hold"):
         if not (isinstance(step_ns, (int, np.integer)) and step_ns > 0):
             raise UserError(f"the communication step must be a positive whole number of nanoseconds, got {step_ns!r}")
         self.system = system
@@ -344,6 +354,47 @@ class Algorithm(ABC):
         self._pull = [x.pull for x in s]
         self._do = [x.do_step for x in s]
         self._gather = [_gatherer(system, i) for i in range(n)]
+        self._setup_inputs(inputs)
+
+    def _setup_inputs(self, inputs: str) -> None:
+        """Per slave: whether it gets input slopes (:attr:`interpolating`), the slope buffer, the
+        inputs' previous source values (:attr:`hist`, from ``system.v`` at the current point) and
+        which inputs are interpolated rather than extrapolated (:attr:`fresh`)."""
+        if inputs not in ("hold", "linear"):
+            raise UserError(f"inputs must be 'hold' or 'linear', got {inputs!r}")
+        sysm, n = self.system, len(self.system.slaves)
+        self.inputs = inputs
+        self.slopes = [np.zeros(len(b)) for b in sysm.in_buf]
+        self.hist = [sysm.v[src].copy() for src in sysm.in_src]
+        self.fresh = [np.zeros(len(b), dtype=bool) for b in sysm.in_buf]
+        self.interpolating = [False] * n
+        if inputs == "hold":
+            return
+        pos = {s: k for k, s in enumerate(self.order)}
+        for i, slave in enumerate(sysm.slaves):
+            if not slave.bind_slopes(self.slopes[i]):
+                continue
+            self.interpolating[i] = True
+            if self.sequential:
+                self.fresh[i][:] = [pos[ln.src] < pos[i] for ln in sysm.links if ln.dst == i]
+            self._push[i] = self._linear_push(i)
+
+    def _linear_push(self, i: int) -> Callable[[], int]:
+        """Slave i's push with slopes (after its gather; see the module docstring)."""
+        buf, hist, slope, fresh = self.system.in_buf[i], self.hist[i], self.slopes[i], self.fresh[i]
+        tmp, inv_h = np.empty_like(buf), 1.0 / self.h
+        slave = self.system.slaves[i]
+        push, push_slopes = slave.push, slave.push_slopes
+
+        def push_linear() -> int:
+            np.subtract(buf, hist, out=slope)
+            np.multiply(slope, inv_h, out=slope)
+            np.copyto(tmp, buf)
+            np.copyto(buf, hist, where=fresh)
+            np.copyto(hist, tmp)
+            st = push()
+            return st if st in FAILING else push_slopes()
+        return push_linear
 
     @property
     def t(self) -> float:
@@ -458,6 +509,7 @@ class GaussSeidel(Algorithm):
 
     name = "gauss_seidel"
     native_code = 1
+    sequential = True
 
     def _step_impl(self, t, h):
         gather, push, do, pull, acc, calls = (self._gather, self._push, self._do, self._pull, self.slave_ns,
@@ -499,6 +551,12 @@ class _Compiled:
                 raise UserError(f"{s.name} has no C entry points; use master.engine: python")
             c = self.arr[i]
             c.fmi3, c.n_in, c.n_out = int(ne.fmi3), len(sysm.in_vrs[i]), len(sysm.out_vrs[i])
+            if alg.interpolating[i]:
+                orders, fresh = np.ones(c.n_in, dtype=np.int32), alg.fresh[i].astype(np.int8)
+                self.keep += [orders, fresh]
+                c.interp, c.set_der = 1, ne.set_input_derivatives
+                c.orders, c.fresh = orders.ctypes.data, fresh.ctypes.data
+                c.hist, c.slope = alg.hist[i].ctypes.data, alg.slopes[i].ctypes.data
             c.in_off, c.out_off = sysm.in_off[i], sysm.out_off[i]
             c.inst, c.do_step, c.get, c.set = ne.instance, ne.do_step, ne.get_real, ne.set_real
             for arr in (sysm.in_vrs[i], sysm.in_src[i], sysm.out_vrs[i]):
@@ -632,8 +690,10 @@ def choose_engine(system: CoupledSystem, alg_cls: type[Algorithm], engine: str) 
 def simulate(system: CoupledSystem, algorithm_name: str, *, step_ns: int, n_steps: int, record_every: int = 1,
              observers: Sequence = (), start_values: Sequence[dict[str, float]] | None = None,
              engine: str = "auto", order: Sequence[int] | None = None, timing: bool = True,
-             progress: Callable[[int, int], None] | None = None, meta: dict | None = None) -> RunStats:
-    """Initialise ``system`` and run ``n_steps`` macro steps of ``step_ns`` nanoseconds.
+             progress: Callable[[int, int], None] | None = None, meta: dict | None = None,
+             inputs: str = "hold") -> RunStats:
+    """Initialise ``system`` and run ``n_steps`` macro steps of ``step_ns`` nanoseconds, inputs
+    held or linear over each step (``inputs``, see the module docstring).
 
     Observers receive ``start(columns, meta)``, ``record(rows)`` (rows of time and the recorded
     values, at ``t_0`` and every ``record_every`` steps) and ``finish(status, reason, stats)``,
@@ -651,7 +711,7 @@ def simulate(system: CoupledSystem, algorithm_name: str, *, step_ns: int, n_step
     try:
         t0 = time.perf_counter()
         initialize(system, start_values or [{} for _ in system.slaves], stop_time=n_steps * step_ns / 1e9)
-        alg = cls(system, step_ns, order=order, timing=timing)
+        alg = cls(system, step_ns, order=order, timing=timing, inputs=inputs)
         stats.engine = choose_engine(system, cls, engine)
         runner = _Compiled(alg).run if stats.engine == "compiled" else (lambda n, e, r: _python_run(alg, n, e, r))
         stats.init_s = time.perf_counter() - t0

@@ -112,7 +112,7 @@ def run(scene: Scene | str | Path, overrides: Mapping[str, Any] | Sequence[str] 
         observers.append(CsvTrace(trace_path, extra={"scene_data": scene.data}))
     meta = {"scene": scene.name, "scene_file": str(scene.path) if scene.path else None, "scene_hash": scene.hash,
             "stop_time": scene.stop_time, "output_interval": scene.master.record_every * scene.master.step,
-            "components": {n: c.label for n, c in scene.components.items()},
+            "inputs": scene.master.inputs, "components": {n: c.label for n, c in scene.components.items()},
             "connections": [str(c) for c in scene.connections],
             "overrides": list(overrides.items()) if isinstance(overrides, Mapping) else list(overrides or [])}
     index = {n: i for i, n in enumerate(scene.components)}
@@ -120,7 +120,8 @@ def run(scene: Scene | str | Path, overrides: Mapping[str, Any] | Sequence[str] 
     stats = simulate(system, scene.master.algorithm, step_ns=scene.master.step_ns, n_steps=scene.n_steps,
                      record_every=scene.master.record_every, observers=observers,
                      start_values=[c.start_values() for c in scene.components.values()],
-                     engine=engine or scene.master.engine, order=order, progress=progress, meta=meta)
+                     engine=engine or scene.master.engine, order=order, progress=progress, meta=meta,
+                     inputs=scene.master.inputs)
     return RunResult(scene, stats.status, stats.reason, memory.trace, stats.as_dict(), paths, trace_path, build_s)
 
 

@@ -63,7 +63,9 @@ Loc = tuple[str, int]  # (file, line); line 0 = no line (a --set override)
 
 TOP_KEYS = ("name", "description", "include", "stop_time", "components", "connections", "master", "outputs")
 COMPONENT_KEYS = ("model", "fidelity", "options", "params", "start", "fmu", "fmi", "description")
-MASTER_KEYS = ("algorithm", "step", "order", "engine", "output_interval")
+MASTER_KEYS = ("algorithm", "step", "order", "engine", "output_interval", "inputs")
+#: How a slave's inputs vary over a communication step (see :mod:`cosim.master`).
+INPUT_MODES = ("hold", "linear")
 ENGINES = ("auto", "compiled", "python")
 FMI_VERSIONS = ("2.0", "3.0")
 
@@ -432,6 +434,7 @@ class MasterSettings:
     order: list[str] | None
     engine: str
     record_every: int  # output interval in steps
+    inputs: str = "hold"  # "hold" or "linear" (first-order hold, FMUs that can interpolate inputs)
 
 
 @dataclass
@@ -855,6 +858,12 @@ class _Checker:
             self.err(node.loc("engine"), f"master.engine = {engine!r}{suggest(str(engine), ENGINES)}; "
                                          f"expected one of {', '.join(ENGINES)}")
             ok = False
+        inputs = node.get("inputs", "hold")
+        if inputs not in INPUT_MODES:
+            self.err(node.loc("inputs"), f"master.inputs = {inputs!r}{suggest(str(inputs), INPUT_MODES)}; expected "
+                                         f"hold (zero-order hold) or linear (inputs interpolated or extrapolated "
+                                         f"over the step)")
+            ok = False
         order = node.get("order")
         if order is not None:
             if not isinstance(order, list) or not all(isinstance(x, str) for x in order):
@@ -897,7 +906,8 @@ class _Checker:
                         ok = False
         if not ok or step_ns is None:
             return None
-        return MasterSettings(alg, step_ns / 1e9, step_ns, list(order) if order else None, engine, record_every)
+        return MasterSettings(alg, step_ns / 1e9, step_ns, list(order) if order else None, engine, record_every,
+                              inputs)
 
     def stop(self, master: MasterSettings | None) -> tuple[float | None, int | None]:
         stop = self.number(self.tree, "stop_time", "stop_time", required=True)

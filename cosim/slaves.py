@@ -92,6 +92,7 @@ class SlaveDescription:
     sample_period: float | None = None
     fmi_version: str | None = None
     can_get_set_state: bool = False
+    can_interpolate_inputs: bool = False  # follows first-order input slopes (FMI 2.0 canInterpolateInputs)
 
     def of(self, *causalities: str) -> list[str]:
         """Names of the variables with one of the given causalities, in declaration order."""
@@ -166,20 +167,23 @@ def describe_fmu(path: Path) -> SlaveDescription:
     period = None
     cs = md.coSimulation
     can_state = bool(getattr(cs, "canGetAndSetFMUstate", False) or getattr(cs, "canGetAndSetFMUState", False))
-    return SlaveDescription("fmu", str(path), vs, ft, [], period, md.fmiVersion, can_state)
+    interp = md.fmiVersion.startswith("2") and bool(getattr(cs, "canInterpolateInputs", False))
+    return SlaveDescription("fmu", str(path), vs, ft, [], period, md.fmiVersion, can_state, interp)
 
 
 # --- the interface ----------------------------------------------------------------------------
 @dataclass(frozen=True)
 class NativeEntry:
     """C entry points of a slave for the compiled loop: the instance pointer and the addresses of
-    its doStep, GetReal/GetFloat64 and SetReal/SetFloat64 functions."""
+    its doStep, GetReal/GetFloat64 and SetReal/SetFloat64 functions, and of
+    fmi2SetRealInputDerivatives (0 when the slave does not interpolate inputs)."""
 
     fmi3: bool
     instance: int
     do_step: int
     get_real: int
     set_real: int
+    set_input_derivatives: int = 0
 
 
 class Slave(ABC):
@@ -227,6 +231,16 @@ class Slave(ABC):
     def pull(self) -> int:
         """Read the bound variables into ``out_buf``; returns a :class:`Status`."""
 
+    def bind_slopes(self, slope_buf: np.ndarray) -> bool:
+        """Offer a buffer of first-order slopes [unit/s] of the bound inputs for
+        :meth:`push_slopes`; False (the default) when the slave holds its inputs over a step."""
+        return False
+
+    def push_slopes(self) -> int:
+        """Set the bound inputs' slopes from the buffer of :meth:`bind_slopes`, valid for the next
+        step only; returns a :class:`Status`."""
+        raise RuntimeError(f"{self.name}: this slave does not interpolate its inputs")
+
     @abstractmethod
     def exit_initialization(self) -> None: ...
 
@@ -271,6 +285,7 @@ _IO2 = ctypes.CFUNCTYPE(c_int, c_void_p, POINTER(c_uint32), c_size_t, POINTER(c_
 _DoStep3 = ctypes.CFUNCTYPE(c_int, c_void_p, c_double, c_double, c_bool, POINTER(c_bool), POINTER(c_bool),
                             POINTER(c_bool), POINTER(c_double))
 _IO3 = ctypes.CFUNCTYPE(c_int, c_void_p, POINTER(c_uint32), c_size_t, POINTER(c_double), c_size_t)
+_SetDer2 = ctypes.CFUNCTYPE(c_int, c_void_p, POINTER(c_uint32), c_size_t, POINTER(c_int), POINTER(c_double))
 
 
 def _addr(fn) -> int:
@@ -391,6 +406,19 @@ class FmuSlave(Slave):
             self.push = (lambda: setf(inst, a_in, n_in, v_in)) if n_in else (lambda: 0)
             self.pull = (lambda: getf(inst, a_out, n_out, v_out)) if n_out else (lambda: 0)
 
+    def bind_slopes(self, slope_buf: np.ndarray) -> bool:
+        if self.fmi3 or not self.description.can_interpolate_inputs or not self._n_in:
+            return False
+        if slope_buf.dtype != np.float64 or not slope_buf.flags.c_contiguous or len(slope_buf) != self._n_in:
+            raise ValueError(f"{self.name}: the slope buffer must be {self._n_in} contiguous float64 values")
+        self._slope_buf = slope_buf
+        self._orders = np.ones(self._n_in, dtype=np.int32)
+        self._set_der = _SetDer2(_addr(self.fmu.dll.fmi2SetRealInputDerivatives))
+        setder, inst, n_in, a_in = self._set_der, self._inst, self._n_in, self._p_in_vr
+        p_ord, p_slope = self._orders.ctypes.data_as(POINTER(c_int)), slope_buf.ctypes.data_as(POINTER(c_double))
+        self.push_slopes = lambda: setder(inst, a_in, n_in, p_ord, p_slope)
+        return True
+
     def push(self) -> int:  # replaced per instance by bind()
         raise RuntimeError(f"{self.name}: push() before bind()")
 
@@ -429,7 +457,8 @@ class FmuSlave(Slave):
             return NativeEntry(True, self.fmu.component, _addr(dll.fmi3DoStep), _addr(dll.fmi3GetFloat64),
                                _addr(dll.fmi3SetFloat64))
         return NativeEntry(False, self.fmu.component, _addr(dll.fmi2DoStep), _addr(dll.fmi2GetReal),
-                           _addr(dll.fmi2SetReal))
+                           _addr(dll.fmi2SetReal),
+                           _addr(dll.fmi2SetRealInputDerivatives) if self.description.can_interpolate_inputs else 0)
 
 
 # --- analytic slaves --------------------------------------------------------------------------

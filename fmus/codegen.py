@@ -21,7 +21,7 @@ from models.block import Block, BlockError
 from models.integrators import SAMPLE_TOL, IntegratorError, Stepper
 
 from .errors import BuildError
-from .model_description import Interface, check_names, interface
+from .model_description import Interface, can_interpolate_inputs, check_names, interface
 
 _IDENT = re.compile(r"^[A-Za-z][A-Za-z0-9_]*$")
 _INTEGRATOR_CODE = {"none": 0, "rk4": 1, "radau": 2, "discrete": 3}
@@ -153,6 +153,7 @@ def generate(block: Block, stepper: Stepper, *, guid: str, ident: str) -> Genera
         f"#define RPR_INTEGRATOR {_INTEGRATOR_CODE[block.integrator]}\n",
         f"#define RPR_SAMPLE_PERIOD {_c_double(float(block.sample_period or 0.0))}\n",
         f"#define RPR_SAMPLE_TOL {_c_double(SAMPLE_TOL)}\n",
+        f"#define RPR_CAN_INTERPOLATE {int(can_interpolate_inputs(block))}\n",
         f"#define RPR_F_STEP {names['step']}\n#define RPR_F_OUT {names['out']}\n",
         f"#define RPR_F_START {names['start']}\n#define RPR_F_JAC {names['jac']}\n",
         _c_array("double", "rpr_p_default", [_c_double(v.start) for v in pv]),

@@ -227,6 +227,13 @@ def _unit_definitions(parent: ET.Element, units: list[str]) -> None:
         ET.SubElement(unit, "BaseUnit", attrs)
 
 
+def can_interpolate_inputs(block: Block) -> bool:
+    """Whether the FMU follows first-order input slopes over a step (FMI 2.0
+    ``canInterpolateInputs``): every continuous block; a sampled block reads its inputs at its
+    samples."""
+    return block.integrator != "discrete"
+
+
 def model_description(iface: Interface, *, fmi_version: str, guid: str, model_identifier: str,
                       sources: list[str], stop_time: float = 1.0) -> str:
     """The ``modelDescription.xml`` text for FMI ``"2.0"`` or ``"3.0"``."""
@@ -247,7 +254,7 @@ def model_description(iface: Interface, *, fmi_version: str, guid: str, model_id
                    "providesDirectionalDerivatives": "true", "hasEventMode": "false",
                    "canReturnEarlyAfterIntermediateUpdate": "false"})
     else:
-        cs.update({"canInterpolateInputs": "false", "maxOutputDerivativeOrder": "0",
+        cs.update({"canInterpolateInputs": "true" if can_interpolate_inputs(blk) else "false", "maxOutputDerivativeOrder": "0",
                    "canRunAsynchronuously": "false", "canNotUseMemoryManagementFunctions": "true",
                    "canGetAndSetFMUstate": "true", "canSerializeFMUstate": "true",
                    "providesDirectionalDerivative": "true"})

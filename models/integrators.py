@@ -5,9 +5,11 @@ evaluate in Python precisely what the FMU runs in C.
 
 Conventions
 -----------
-- Inputs ``u`` are held constant over a communication step (zero-order hold); blocks are
-  autonomous (time does not appear in ``ode``/``out``).
-- The step *kernel* has the signature ``(x, u, p, h) -> (x_next, ok, err)``:
+- Inputs follow ``u(tau) = u + du tau`` over a communication step (``tau`` from 0 to ``h``):
+  ``du = 0`` is the zero-order hold; a master that knows the inputs' slopes (FMI 2.0
+  ``fmi2SetRealInputDerivatives``, first order) passes them as ``du``.  Blocks are autonomous
+  (time does not appear in ``ode``/``out``).
+- The step *kernel* has the signature ``(x, u, p, h, du) -> (x_next, ok, err)``:
 
   ``rk4``
       classic explicit Runge-Kutta of order 4 with ``block.substeps`` equal substeps of ``h/substeps``;
@@ -22,8 +24,9 @@ Conventions
       largest such ratio, ``ok`` = err <= 1 and finite).
   ``discrete``
       ``ode`` is the update map ``x[k+1] = f(x[k], u, p)``; the kernel applies it once (one sample)
-      and ignores ``h``.  A communication step of ``h = n * sample_period`` applies it ``n`` times
-      (see :meth:`Stepper.samples`); any other ``h`` is refused.
+      and ignores ``h`` and ``du`` (a sampled block reads its inputs at the samples).  A
+      communication step of ``h = n * sample_period`` applies it ``n`` times (see
+      :meth:`Stepper.samples`); any other ``h`` is refused.
   ``none``
       no states: ``x_next`` is empty and ``ok`` is 1.
 
@@ -99,27 +102,50 @@ def _all_finite(v: ca.SX | ca.MX):
     return ca.sum1(ca.fabs(ca.vec(v))) < ca.inf
 
 
-def rk4_kernel(block: Block) -> ca.Function:
-    """``(x, u, p, h) -> (x_next, ok, err)``: RK4 with ``block.substeps`` substeps."""
-    f = block.functions()["ode"]
-    x, u, p, h = (ca.MX.sym(n, s) for n, s in (("x", block.x.numel()), ("u", block.u.numel()),
-                                                ("p", block.p.numel()), ("h", 1)))
-    xs, us, ps, hs = (ca.SX.sym(n, s) for n, s in (("x", block.x.numel()), ("u", block.u.numel()),
-                                                    ("p", block.p.numel()), ("h", 1)))
-    k1 = f(xs, us, ps)
-    k2 = f(xs + hs / 2 * k1, us, ps)
-    k3 = f(xs + hs / 2 * k2, us, ps)
-    k4 = f(xs + hs * k3, us, ps)
-    sub = ca.Function(f"{block.name}_rk4_sub", [xs, us, ps, hs], [xs + hs / 6 * (k1 + 2 * k2 + 2 * k3 + k4)])
+def _syms(block: Block, kind=ca.MX, nx: int | None = None) -> tuple:
+    """Symbols ``x, u, p, h, du`` of a kernel's arguments."""
+    nu = block.u.numel()
+    return tuple(kind.sym(n, s) for n, s in (("x", block.x.numel() if nx is None else nx), ("u", nu),
+                                              ("p", block.p.numel()), ("h", 1), ("du", nu)))
+
+
+def _kernel(block: Block, args: tuple, x_next, ok, err) -> ca.Function:
+    return ca.Function(f"{block.name}_step", list(args), [x_next, ok, err], ["x", "u", "p", "h", "du"],
+                       ["x_next", "ok", "err"])
+
+
+def _substeps(block: Block, sub: ca.Function, x, u, p, h, du) -> tuple:
+    """``block.substeps`` calls of ``sub(x, u_j, p, h/m, du) -> (x_next, ...)``, substep ``j``
+    starting from the input ``u_j = u + du j h/m``; returns the last substep's outputs, with
+    ``ok`` the minimum and ``err`` the maximum over substeps when ``sub`` has them."""
     m = block.substeps
-    xn = x
     if m == 1:
-        xn = sub(x, u, p, h)
-    else:
-        acc = sub.mapaccum(f"{block.name}_rk4_acc", m)
-        xn = acc(x, ca.repmat(u, 1, m), ca.repmat(p, 1, m), ca.repmat(h / m, 1, m))[:, -1]
-    return ca.Function(f"{block.name}_step", [x, u, p, h], [xn, _all_finite(xn), ca.MX(0)],
-                       ["x", "u", "p", "h"], ["x_next", "ok", "err"])
+        res = sub(x, u, p, h, du)
+        return tuple(res) if isinstance(res, (list, tuple)) else (res,)
+    hs = h / m
+    starts = ca.repmat(u, 1, m) + ca.mtimes(du, ca.DM(np.arange(m)).T) * hs
+    acc = sub.mapaccum(f"{sub.name()}_acc", m)
+    res = acc(x, starts, ca.repmat(p, 1, m), ca.repmat(hs, 1, m), ca.repmat(du, 1, m))
+    res = res if isinstance(res, (list, tuple)) else [res]
+    out = [res[0][:, -1]]
+    if len(res) == 3:
+        out += [ca.mmin(res[1]), ca.mmax(res[2])]
+    return tuple(out)
+
+
+def rk4_kernel(block: Block) -> ca.Function:
+    """``(x, u, p, h, du) -> (x_next, ok, err)``: RK4 with ``block.substeps`` substeps; the
+    stages see the input at their own times (``u``, ``u + du h/2``, ``u + du h``)."""
+    f = block.functions()["ode"]
+    xs, us, ps, hs, dus = _syms(block, ca.SX)
+    k1 = f(xs, us, ps)
+    k2 = f(xs + hs / 2 * k1, us + hs / 2 * dus, ps)
+    k3 = f(xs + hs / 2 * k2, us + hs / 2 * dus, ps)
+    k4 = f(xs + hs * k3, us + hs * dus, ps)
+    sub = ca.Function(f"{block.name}_rk4_sub", [xs, us, ps, hs, dus], [xs + hs / 6 * (k1 + 2 * k2 + 2 * k3 + k4)])
+    args = _syms(block)
+    (xn,) = _substeps(block, sub, *args)
+    return _kernel(block, args, xn, _all_finite(xn), ca.MX(0))
 
 
 def _radau_residual(block: Block) -> ca.Function:
@@ -139,8 +165,9 @@ def _radau_residual(block: Block) -> ca.Function:
 
 def radau_stages(block: Block, *, rtol: float = RADAU_RTOL, atol: float = RADAU_ATOL,
                  max_iter: int = RADAU_MAX_ITER) -> ca.Function:
-    """``(x, u, p, h) -> (Z, ok, err)``: the converged stage increments of one Radau IIA step,
-    with the acceptance flag and ratio of the module docstring.
+    """``(x, u, p, h, du) -> (Z, ok, err)``: the converged stage increments of one Radau IIA step
+    (stage ``i`` sees the input ``u + du c_i h``), with the acceptance flag and ratio of the
+    module docstring.
 
     Simplified Newton from ``Z = 0`` as in Hairer & Wanner's Radau5: the ODE Jacobian
     ``J0 = df/dx`` is taken once, at the start of the step, and the stage equations are solved in
@@ -163,10 +190,10 @@ def radau_stages(block: Block, *, rtol: float = RADAU_RTOL, atol: float = RADAU_
     fx = ca.Function(f"{block.name}_ode_jac", [block.x, block.u, block.p], [J_nz], ["x", "u", "p"], ["J_nz"])
     Tk, Tik, Lk = (ca.sparsify(ca.DM(np.kron(m, np.eye(n)))) for m in (RADAU_T, np.linalg.inv(RADAU_T), RADAU_L))
 
-    def stage_values(W, xs, us, ps, hs):
+    def stage_values(W, xs, us, ps, hs, dus):
         """``(T (x) I) W`` split into the three stage increments, and ``h (T^-1 (x) I) F``."""
         Z = ca.mtimes(Tk, W)
-        F = ca.vertcat(*[f(xs + Z[i * n:(i + 1) * n], us, ps) for i in range(3)])
+        F = ca.vertcat(*[f(xs + Z[i * n:(i + 1) * n], us + float(RADAU_C[i]) * hs * dus, ps) for i in range(3)])
         return Z, hs * ca.mtimes(Tik, F)
 
     def block_jacobian(J0, hs, W):
@@ -174,12 +201,13 @@ def radau_stages(block: Block, *, rtol: float = RADAU_RTOL, atol: float = RADAU_
         return ca.vertcat(*[hs * ca.mtimes(J0, W[i * n:(i + 1) * n]) for i in range(3)])
 
     V = ca.MX.sym("V", 3 * n)
-    th = ca.MX.sym("theta", n + nu + npar + 1 + sp.nnz())
+    th = ca.MX.sym("theta", n + 2 * nu + npar + 1 + sp.nnz())
     xs, us, ps, hs = th[:n], th[n:n + nu], th[n + nu:n + nu + npar], th[n + nu + npar]
-    J0 = ca.MX(sp, th[n + nu + npar + 1:]) if sp.nnz() else ca.MX(n, n)
+    dus = th[n + nu + npar + 1:n + 2 * nu + npar + 1]
+    J0 = ca.MX(sp, th[n + 2 * nu + npar + 1:]) if sp.nnz() else ca.MX(n, n)
     sc = ca.repmat(atol + rtol * ca.fabs(xs), 3, 1)
     W = sc * V
-    _, hTF = stage_values(W, xs, us, ps, hs)
+    _, hTF = stage_values(W, xs, us, ps, hs, dus)
     hJW = block_jacobian(J0, hs, W)
     # value: (L (x) I) W - h (T^-1 (x) I) F(x + Z) exactly (the bracket is 0.0);
     # derivative: (L (x) I - h I (x) J0) diag(sc)
@@ -188,11 +216,11 @@ def radau_stages(block: Block, *, rtol: float = RADAU_RTOL, atol: float = RADAU_
     rf = ca.rootfinder(f"{block.name}_radau_newton", "fast_newton", g,
                        {"linear_solver": "qr", "max_iter": int(max_iter), "abstol": NEWTON_STEP,
                         "abstolStep": NEWTON_STEP, "error_on_fail": False})
-    x, u, p, h = (ca.MX.sym(nm, s) for nm, s in (("x", n), ("u", nu), ("p", npar), ("h", 1)))
+    x, u, p, h, du = _syms(block)
     jx = fx(x, u, p)
     scale = ca.repmat(atol + rtol * ca.fabs(x), 3, 1)
-    Wsol = scale * rf(ca.MX.zeros(3 * n), ca.vertcat(x, u, p, h, jx))
-    Zsol, hTF = stage_values(Wsol, x, u, p, h)
+    Wsol = scale * rf(ca.MX.zeros(3 * n), ca.vertcat(x, u, p, h, du, jx))
+    Zsol, hTF = stage_values(Wsol, x, u, p, h, du)
     # one more correction, in the block-diagonal coordinates: dW = (L (x) I - h I (x) J0)^-1 G
     Jx = ca.MX(sp, jx) if sp.nnz() else ca.MX(n, n)
     M = Lk - h * ca.kron(ca.MX.eye(3), Jx)
@@ -200,62 +228,47 @@ def radau_stages(block: Block, *, rtol: float = RADAU_RTOL, atol: float = RADAU_
     r = ca.fabs(dZ) / (scale + rtol * ca.fabs(Zsol))
     err = ca.mmax(r)
     ok = ca.logic_and(ca.logic_and(err <= 1.0, _all_finite(r)), _all_finite(Zsol))
-    return ca.Function(f"{block.name}_radau_stages", [x, u, p, h], [Zsol, ok, err],
-                       ["x", "u", "p", "h"], ["Z", "ok", "err"])
+    return ca.Function(f"{block.name}_radau_stages", [x, u, p, h, du], [Zsol, ok, err],
+                       ["x", "u", "p", "h", "du"], ["Z", "ok", "err"])
 
 
 def radau_substep(block: Block, **newton) -> ca.Function:
-    """One Radau IIA step ``(x, u, p, h) -> (x_next, ok, err)``; ``x_next = x + Z_3`` since the
-    method is stiffly accurate."""
+    """One Radau IIA step ``(x, u, p, h, du) -> (x_next, ok, err)``; ``x_next = x + Z_3`` since
+    the method is stiffly accurate."""
     n = block.x.numel()
     stages = radau_stages(block, **newton)
-    x, u, p, h = (ca.MX.sym(nm, s) for nm, s in (("x", n), ("u", block.u.numel()),
-                                                  ("p", block.p.numel()), ("h", 1)))
-    Z, ok, err = stages(x, u, p, h)
-    return ca.Function(f"{block.name}_radau_sub", [x, u, p, h], [x + Z[2 * n:3 * n], ok, err],
-                       ["x", "u", "p", "h"], ["x_next", "ok", "err"])
+    x, u, p, h, du = _syms(block)
+    Z, ok, err = stages(x, u, p, h, du)
+    return ca.Function(f"{block.name}_radau_sub", [x, u, p, h, du], [x + Z[2 * n:3 * n], ok, err],
+                       ["x", "u", "p", "h", "du"], ["x_next", "ok", "err"])
 
 
 def radau_kernel(block: Block, **newton) -> ca.Function:
-    """``(x, u, p, h) -> (x_next, ok, err)``: Radau IIA with ``block.substeps`` substeps.
+    """``(x, u, p, h, du) -> (x_next, ok, err)``: Radau IIA with ``block.substeps`` substeps.
 
     ``ok`` is the minimum over substeps and ``err`` the maximum."""
-    sub = radau_substep(block, **newton)
-    x, u, p, h = (ca.MX.sym(nm, s) for nm, s in (("x", block.x.numel()), ("u", block.u.numel()),
-                                                  ("p", block.p.numel()), ("h", 1)))
-    m = block.substeps
-    if m == 1:
-        xn, ok, err = sub(x, u, p, h)
-    else:
-        acc = sub.mapaccum(f"{block.name}_radau_acc", m)
-        xs, oks, errs = acc(x, ca.repmat(u, 1, m), ca.repmat(p, 1, m), ca.repmat(h / m, 1, m))
-        xn, ok, err = xs[:, -1], ca.mmin(oks), ca.mmax(errs)
-    return ca.Function(f"{block.name}_step", [x, u, p, h], [xn, ok, err],
-                       ["x", "u", "p", "h"], ["x_next", "ok", "err"])
+    args = _syms(block)
+    return _kernel(block, args, *_substeps(block, radau_substep(block, **newton), *args))
 
 
 def discrete_kernel(block: Block) -> ca.Function:
-    """``(x, u, p, h) -> (x_next, ok, err)``: one application of the update map (``h`` unused)."""
-    x, u, p, h = (ca.SX.sym(nm, s) for nm, s in (("x", block.x.numel()), ("u", block.u.numel()),
-                                                  ("p", block.p.numel()), ("h", 1)))
-    xn = block.functions()["ode"](x, u, p)
-    return ca.Function(f"{block.name}_step", [x, u, p, h], [xn, _all_finite(xn), ca.SX(0)],
-                       ["x", "u", "p", "h"], ["x_next", "ok", "err"])
+    """``(x, u, p, h, du) -> (x_next, ok, err)``: one application of the update map (``h`` and
+    ``du`` unused)."""
+    args = _syms(block, ca.SX)
+    xn = block.functions()["ode"](*args[:3])
+    return _kernel(block, args, xn, _all_finite(xn), ca.SX(0))
 
 
 def none_kernel(block: Block) -> ca.Function:
-    """``(x, u, p, h) -> (x_next, ok, err)`` for a block without states."""
-    x, u, p, h = (ca.SX.sym(nm, s) for nm, s in (("x", 0), ("u", block.u.numel()),
-                                                  ("p", block.p.numel()), ("h", 1)))
-    return ca.Function(f"{block.name}_step", [x, u, p, h], [ca.SX(0, 1), ca.SX(1), ca.SX(0)],
-                       ["x", "u", "p", "h"], ["x_next", "ok", "err"])
+    """``(x, u, p, h, du) -> (x_next, ok, err)`` for a block without states."""
+    return _kernel(block, _syms(block, ca.SX, nx=0), ca.SX(0, 1), ca.SX(1), ca.SX(0))
 
 
 @dataclass
 class Stepper:
     """The step kernel of ``block`` and the functions an FMU needs besides it.
 
-    ``step(x, u, p, h)`` runs ``samples(h)`` kernel calls, as the FMU does, and returns
+    ``step(x, u, p, h, du)`` runs ``samples(h)`` kernel calls, as the FMU does, and returns
     ``(x_next, ok)``; on failure ``x_next`` is the unchanged ``x``.
     """
 
@@ -273,7 +286,7 @@ class Stepper:
 
     @cached_property
     def kernel(self) -> ca.Function:
-        """``(x, u, p, h) -> (x_next, ok, err)`` (see the module docstring)."""
+        """``(x, u, p, h, du) -> (x_next, ok, err)`` (see the module docstring)."""
         kind = self.block.integrator
         return {"rk4": rk4_kernel, "radau": radau_kernel, "discrete": discrete_kernel,
                 "none": none_kernel}[kind](self.block)
@@ -310,12 +323,14 @@ class Stepper:
                                   f"multiple of the sample period {ts} s")
         return n
 
-    def step(self, x, u, p, h: float) -> tuple[np.ndarray, bool]:
-        """Advance the state by one communication step ``h`` [s]; ``(x_next, ok)``."""
+    def step(self, x, u, p, h: float, du=None) -> tuple[np.ndarray, bool]:
+        """Advance the state by one communication step ``h`` [s] with inputs ``u + du tau``
+        (``du`` None: held); ``(x_next, ok)``."""
         x0 = np.asarray(x, dtype=float).reshape(-1)
+        du = np.zeros(self.block.u.numel()) if du is None else du
         xk = x0
         for _ in range(self.samples(h)):
-            xn, ok, _err = self.kernel(xk, u, p, h)
+            xn, ok, _err = self.kernel(xk, u, p, h, du)
             if float(ok) != 1.0:
                 return x0.copy(), False
             xk = np.asarray(xn, dtype=float).reshape(-1)
@@ -323,7 +338,7 @@ class Stepper:
 
 
 def step_jacobian(block: Block, **newton) -> ca.Function:
-    """``(x, u, p, h) -> (dx_next/dx, dx_next/du)`` of one communication step.
+    """``(x, u, p, h) -> (dx_next/dx, dx_next/du)`` of one communication step with held inputs.
 
     For Radau the derivatives come from the implicit function theorem at the converged stages
     (``dZ = -R_Z^-1 (R_x dx + R_u du)``, chained over substeps), never by differentiating through
@@ -332,8 +347,9 @@ def step_jacobian(block: Block, **newton) -> ca.Function:
     b = block
     nx, nu = b.x.numel(), b.u.numel()
     x, u, p, h = (ca.MX.sym(nm, s) for nm, s in (("x", nx), ("u", nu), ("p", b.p.numel()), ("h", 1)))
+    du0 = ca.MX.zeros(nu)
     if b.integrator != "radau":
-        xn = Stepper(b).kernel(x, u, p, h)[0]
+        xn = Stepper(b).kernel(x, u, p, h, du0)[0]
         return ca.Function(f"{b.name}_step_jac", [x, u, p, h], [ca.jacobian(xn, x), ca.jacobian(xn, u)],
                            ["x", "u", "p", "h"], ["A", "B"])
     stages = radau_stages(b, **newton)
@@ -346,7 +362,7 @@ def step_jacobian(block: Block, **newton) -> ca.Function:
     hk = h / b.substeps
     A, B, xk = ca.MX.eye(nx), ca.MX(nx, nu), x
     for _ in range(b.substeps):
-        Zk = stages(xk, u, p, hk)[0]
+        Zk = stages(xk, u, p, hk, du0)[0]
         RZ, Rx, Ru = sens(Zk, xk, u, p, hk)
         dZ = -ca.solve(RZ, ca.horzcat(Rx, Ru))
         Ax = ca.MX.eye(nx) + dZ[2 * nx:3 * nx, :nx]

@@ -181,9 +181,9 @@ def test_radau_reports_non_convergence_instead_of_a_wrong_state(substeps):
     blk = Block.build("cubic", params=[Param("k", 10.0)], inputs=[], outputs=[Var("y")], states=[Var("z")],
                       p=p, u=u, x=x, ode=-p[0] * x ** 3, out=x, start=ca.DM([1.0]), integrator="radau",
                       substeps=substeps)
-    _, ok, err = I.radau_kernel(blk, max_iter=1)([1.0], [], [10.0], 0.1)
+    _, ok, err = I.radau_kernel(blk, max_iter=1)([1.0], [], [10.0], 0.1, [])
     assert float(ok) == 0.0 and float(err) > 1.0
-    xn, ok, err = I.radau_kernel(blk)([1.0], [], [10.0], 0.1)
+    xn, ok, err = I.radau_kernel(blk)([1.0], [], [10.0], 0.1, [])
     assert float(ok) == 1.0 and float(err) <= 1.0
     exact = 1 / math.sqrt(1 + 2 * 10.0 * 0.1)
     assert abs(float(xn) - exact) < (3e-4 if substeps == 1 else 1e-8)
@@ -197,7 +197,7 @@ def test_radau_discards_a_step_too_large_for_simplified_newton():
     blk = Block.build("cubic", params=[Param("k", 1e4)], inputs=[], outputs=[Var("y")], states=[Var("z")],
                       p=p, u=ca.SX.sym("u", 0), x=x, ode=-p[0] * x ** 3, out=x, start=ca.DM([1.0]),
                       integrator="radau")
-    _, ok, err = I.radau_kernel(blk)([1.0], [], [1e4], 1e-3)
+    _, ok, err = I.radau_kernel(blk)([1.0], [], [1e4], 1e-3, [])
     assert float(ok) == 0.0 and float(err) > 1.0
 
 
@@ -243,9 +243,9 @@ def test_step_jacobian_matches_central_differences(integrator, substeps):
     x0, u0, p0, h = np.array([0.7, -0.4]), np.array([0.2]), np.array([9.81]), 0.05
     A, B = (np.asarray(m) for m in J(x0, u0, p0, h))
     eps = 1e-6
-    fd_A = np.column_stack([(np.asarray(kern(x0 + eps * e, u0, p0, h)[0]) - np.asarray(kern(x0 - eps * e, u0, p0, h)[0])).ravel()
+    fd_A = np.column_stack([(np.asarray(kern(x0 + eps * e, u0, p0, h, 0)[0]) - np.asarray(kern(x0 - eps * e, u0, p0, h, 0)[0])).ravel()
                             / (2 * eps) for e in np.eye(2)])
-    fd_B = ((np.asarray(kern(x0, u0 + eps, p0, h)[0]) - np.asarray(kern(x0, u0 - eps, p0, h)[0])) / (2 * eps)).reshape(2, 1)
+    fd_B = ((np.asarray(kern(x0, u0 + eps, p0, h, 0)[0]) - np.asarray(kern(x0, u0 - eps, p0, h, 0)[0])) / (2 * eps)).reshape(2, 1)
     np.testing.assert_allclose(A, fd_A, rtol=1e-6, atol=1e-8)
     np.testing.assert_allclose(B, fd_B, rtol=1e-6, atol=1e-8)
 

@@ -585,3 +585,73 @@ def test_cli_mistakes_are_one_line(fake_catalog, cache, capsys, argv, message):
     assert rc == 2
     lines = [ln for ln in err.splitlines() if ln.startswith("rpr-cosim")]
     assert len(lines) == 1 and message in lines[0], err
+
+
+# --- input slopes (FMI 2.0 canInterpolateInputs) ---------------------------------------------------
+def ramp_solution(t: np.ndarray, f0: float, df: float, m=1.0, k=100.0, c=2.0, s0=0.01) -> np.ndarray:
+    """``m s'' + c s' + k s = f0 + df t`` from (s0, 0), by SciPy at tight tolerances."""
+    from scipy.integrate import solve_ivp
+
+    sol = solve_ivp(lambda tt, y: [y[1], (f0 + df * tt - k * y[0] - c * y[1]) / m], (0, t[-1]), [s0, 0.0],
+                    t_eval=t, rtol=1e-12, atol=1e-14, method="DOP853")
+    return sol.y.T
+
+
+@pytest.mark.parametrize("case", ["msd_radau", "msd_rk4"])
+def test_input_slopes_make_a_ramp_input_exact_to_the_integrator_order(case, cache):
+    """Driven by f = f0 + df t, one call of fmi2SetRealInputDerivatives per step makes the FMU
+    follow the ramp inside the step: error against SciPy at the integrator's accuracy, where
+    holding the input (its value at the step's start) is first-order wrong; and the FMU equals
+    the CasADi step map with the same slope."""
+    blk = CASES[case]()
+    path = fmus.build_fmu(blk, fmi_version="2.0", cache_dir=cache)
+    md = fmpy.read_model_description(str(path))
+    assert md.coSimulation.canInterpolateInputs
+    f0, df, h, n = 2.0, 30.0, 0.01, 50
+    exact = ramp_solution(np.arange(n + 1) * h, f0, df)
+    st, p = I.Stepper(blk), blk.param_defaults
+    finals = {}
+    for slopes in (True, False):
+        sl = Slave(path)
+        x = np.array([0.01, 0.0])  # msd_block's start (s0, 0)
+        for k in range(n):
+            sl.set(f=f0 + df * k * h)
+            if slopes:
+                sl.fmu.setRealInputDerivatives([sl.vr["f"]], [1], [df])
+            sl.step(h)
+            x, ok = st.step(x, [f0 + df * k * h], p, h, [df] if slopes else None)
+            assert ok
+        got = sl.get("body.s", "body.v")
+        np.testing.assert_allclose(got, x, rtol=0, atol=1e-12)
+        if slopes:
+            assert sl.get("f")[0] == pytest.approx(f0 + df * n * h)  # the input followed the ramp to t_n
+        finals[slopes] = np.abs(got - exact[-1]).max()
+        sl.free()
+    assert finals[True] < 1e-8 < 1e-5 < finals[False], finals
+
+
+def test_input_slopes_are_refused_by_a_sampled_fmu_and_beyond_first_order(cache):
+    lag = Slave(fmus.build_fmu(lag_block(), fmi_version="2.0", cache_dir=cache))
+    assert not lag.md.coSimulation.canInterpolateInputs
+    with pytest.raises(FMICallException):
+        lag.fmu.setRealInputDerivatives([lag.vr["u"]], [1], [1.0])
+    assert any("a sampled block reads its inputs at its samples" in m for _, m in lag.logs)
+    msd = Slave(fmus.build_fmu(msd_block(integrator="radau"), fmi_version="2.0", cache_dir=cache))
+    with pytest.raises(FMICallException):
+        msd.fmu.setRealInputDerivatives([msd.vr["f"]], [2], [1.0])
+    assert any("derivative order 2" in m for _, m in msd.logs)
+
+
+def test_rollback_restores_the_input_slopes(cache):
+    sl = Slave(fmus.build_fmu(msd_block(integrator="rk4", substeps=4), fmi_version="2.0", cache_dir=cache))
+    sl.set(f=1.0)
+    sl.fmu.setRealInputDerivatives([sl.vr["f"]], [1], [50.0])
+    s = sl.get_state()
+    sl.step(0.01)
+    first = sl.get("body.s", "body.v", "f")
+    sl.set_state(s)
+    sl.t = 0.0
+    sl.step(0.01)
+    assert np.array_equal(sl.get("body.s", "body.v", "f"), first)
+    sl.step(0.01)  # the slope was consumed: the next step holds f = 1.5
+    assert sl.get("f")[0] == pytest.approx(1.5)

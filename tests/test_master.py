@@ -225,6 +225,54 @@ def test_fmu_pair_follows_the_conventions_on_a_linear_problem(fmu_paths, alg):
     np.testing.assert_allclose(tr["g.y"], K * lagged, rtol=0, atol=1e-12)
 
 
+def linear_input_solution(alg: str, n: int, h: float = 1e-3) -> np.ndarray:
+    """msd positions at t_0..t_n under f = -40 s with linear inputs, from the conventions (module
+    docstring of cosim.master) and the exact step of the msd under a ramp force (augmented
+    matrix exponential of (s, v, f, df/dt))."""
+    m, k, c, K = 1.0, 100.0, 2.0, -40.0
+    M = np.zeros((4, 4))
+    M[0, 1], M[1, 0], M[1, 1], M[1, 2], M[2, 3] = 1.0, -k / m, -c / m, 1 / m, 1.0
+    E = scipy.linalg.expm(M * h)[:2]
+    x = np.array([0.01, 0.0])
+    s = [x[0]]
+    y = [K * s[0]]  # the gain's output as read at t_0, t_1, ...
+    for j in range(n):
+        if alg == "gauss_seidel":  # msd first: the gain's output is extrapolated from t_j-1, t_j
+            f, df = K * s[j], K * (s[j] - s[max(j - 1, 0)]) / h
+        else:  # Jacobi: the gain's output read at t_j, extrapolated through its own input slope
+            f, df = y[j], (y[j] - y[max(j - 1, 0)]) / h
+            y.append(K * (2 * s[j] - s[j - 1]) if j >= 1 else K * s[0])
+        x = E @ np.array([x[0], x[1], f, df])
+        s.append(x[0])
+    return np.array(s)
+
+
+@pytest.mark.parametrize("alg", ["jacobi", "gauss_seidel"])
+def test_fmu_pair_with_linear_inputs_follows_the_conventions(fmu_paths, alg):
+    """inputs="linear": the msd's force is extrapolated from the gain's last two outputs (the gain
+    steps after it), the gain's input is interpolated (Gauss-Seidel) or extrapolated (Jacobi);
+    the trajectory equals the hand-written recurrence, in both engines, and is far closer to the
+    continuous closed loop than holding."""
+    want = linear_input_solution(alg, 300)
+    for engine in ("python", "compiled"):
+        tr, st = run(fmu_system(fmu_paths, "2.0", "2.0"), alg, 1_000_000, 300, inputs="linear", engine=engine)
+        assert st.engine == engine
+        np.testing.assert_allclose(tr["m.body.s"], want, rtol=0, atol=1e-12)
+    held, _ = run(fmu_system(fmu_paths, "2.0", "2.0"), alg, 1_000_000, 300)
+    wn = math.sqrt(140.0 - 1.0)  # continuous loop: s'' + 2 s' + 140 s = 0 from (0.01, 0)
+    t = np.arange(301) * 1e-3
+    exact = 0.01 * np.exp(-t) * (np.cos(wn * t) + np.sin(wn * t) / wn)
+    assert np.abs(tr["m.body.s"] - exact).max() < np.abs(held["m.body.s"] - exact).max() / 20
+
+
+@pytest.mark.parametrize("alg", ["jacobi", "gauss_seidel"])
+def test_linear_inputs_leave_fmi3_slaves_holding(fmu_paths, alg):
+    """FMI 3.0 has no input derivatives: such slaves keep holding, bit for bit."""
+    lin, _ = run(fmu_system(fmu_paths, "3.0", "3.0"), alg, 1_000_000, 100, inputs="linear")
+    hold, _ = run(fmu_system(fmu_paths, "3.0", "3.0"), alg, 1_000_000, 100)
+    assert np.array_equal(lin.data, hold.data)
+
+
 def test_a_diverging_fmu_discards_and_the_run_reports_it(tmp_path):
     import fmus
     from test_fmu_integrators import stiff_block

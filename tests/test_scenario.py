@@ -123,6 +123,8 @@ CASES = [
      13, r"master\.step = 0\.001 s is not a whole multiple of the sample period 0\.002 s of pid1"),
     ("unknown-algorithm", edit("gauss_seidel", "gauss_siedel"), 13, r"unknown master algorithm 'gauss_siedel'; did you mean 'gauss_seidel'\?"),
     ("unknown-engine", edit("step: 1e-3}", "step: 1e-3, engine: compild}"), 13, r"master\.engine = 'compild'; did you mean 'compiled'\?"),
+    ("unknown-inputs", edit("step: 1e-3}", "step: 1e-3, inputs: linaer}"), 13,
+     r"master\.inputs = 'linaer'; did you mean 'linear'\?.*expected hold .* or linear"),
     ("order-incomplete", edit("step: 1e-3}", "step: 1e-3, order: [mech, pid1]}"), 13, r"master\.order must list every component; missing: target, motor1"),
     ("order-unknown", edit("step: 1e-3}", "step: 1e-3, order: [mech, pid1, motor1, targt]}"), 13,
      r"master\.order names unknown component 'targt'; did you mean 'target'\?"),

@@ -36,7 +36,7 @@ def cache(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def pid_rigid(cache):
-    """pid_step (Gauss-Seidel at 0.1 ms), run on to 15 s to see it settle."""
+    """pid_step (Gauss-Seidel at 1 ms, linear inputs), run on to 15 s to see it settle."""
     return run(SCENES / "pid_step.yaml", ["stop_time=15"], cache_dir=cache)
 
 
@@ -83,12 +83,11 @@ def test_pid_step_settles_on_the_target_within_the_thesis_band(pid_rigid):
 
 def test_pid_step_multibody_agrees_with_rigid(cache):
     """Stiff parasitic joints (1e8 N/m) deflect by f/k ~ 1e-7 m: the closed loop must not notice.
-    Both fidelities run with the same coupling (Gauss-Seidel at 1 ms, to keep the 600 us Radau
-    steps of the 42-state multibody FMU affordable here).  Stated tolerance: 5e-6 m on the leg
-    lengths and platform position, 2e-5 rad on phi, over the whole 5 s (measured 1.5e-6 m and
-    4.6e-6 rad)."""
-    a = run(SCENES / "pid_step.yaml", ["master.step=1e-3"], cache_dir=cache).trace
-    mb = run(SCENES / "pid_step_multibody.yaml", ["master.step=1e-3"], cache_dir=cache)
+    Both fidelities run with the scene's coupling (Gauss-Seidel at 1 ms, linear inputs).  Stated
+    tolerance: 5e-6 m on the leg lengths and platform position, 2e-5 rad on phi, over the whole
+    5 s (measured 1.0e-6 m and 7.1e-6 rad)."""
+    a = run(SCENES / "pid_step.yaml", [], cache_dir=cache).trace
+    mb = run(SCENES / "pid_step_multibody.yaml", [], cache_dir=cache)
     b = mb.trace
     assert mb.ok, mb.reason
     assert mb.scene.components["mech"].fidelity == "multibody" and len(b.time) == 5001
@@ -206,7 +205,8 @@ def test_pid_step_fmus_in_ecospy_give_our_jacobi_trajectory_bit_for_bit(cache):
         import ecospy
     except (ImportError, OSError) as exc:  # OSError: its C++ library cannot load (Debian libtbb12 missing)
         pytest.skip(f"ecospy (PyPI, with Debian libtbb12) is needed for this peer check: {exc}")
-    sc = load(SCENES / "pid_step.yaml", ["master.algorithm=jacobi", "stop_time=1.0", "master.output_interval=1e-4"])
+    sc = load(SCENES / "pid_step.yaml", ["master.algorithm=jacobi", "master.inputs=hold", "master.step=1e-4",
+                                         "stop_time=1.0", "master.output_interval=1e-4"])
     paths = build_components(sc, cache_dir=cache)
     ss = ecospy.EcosSimulationStructure()
     for n, p in paths.items():
@@ -334,10 +334,10 @@ def test_cli_run_writes_trace_sidecar_plot_and_animation(tmp_path, cache):
     assert "real-time factor" in res.stdout and "mech.platform.phi" in res.stdout
     tr = read_trace(out / "pid_step.csv")
     assert tr.status == "ok" and len(tr.time) == 301 and tr.time[-1] == pytest.approx(0.3)
-    assert tr.meta["algorithm"] == "gauss_seidel" and tr.meta["scene_hash"] and "fmpy" in tr.meta["versions"]
-    assert tr.stats["steps_done"] == 3000 and set(tr.stats["slaves"]) >= {"mech", "pid1", "motor3"}
+    assert tr.meta["algorithm"] == "gauss_seidel" and tr.meta["inputs"] == "linear" and tr.meta["scene_hash"] and "fmpy" in tr.meta["versions"]
+    assert tr.stats["steps_done"] == 300 and set(tr.stats["slaves"]) >= {"mech", "pid1", "motor3"}
     side = json.loads((out / "pid_step.json").read_text())
-    assert side["status"] == "ok" and side["scene_data"]["master"]["step"] == 1e-4
+    assert side["status"] == "ok" and side["scene_data"]["master"]["step"] == 1e-3
     from PIL import Image
 
     assert Image.open(out / "pid_step.png").size[0] > 300
@@ -348,8 +348,9 @@ def test_cli_run_writes_trace_sidecar_plot_and_animation(tmp_path, cache):
 def test_fmi3_components_give_the_fmi2_trajectory(cache):
     """The same scene with every catalog component exported as FMI 3.0: bit-identical trace."""
     names = ["target", "pid1", "pid2", "pid3", "motor1", "motor2", "motor3", "mech"]
-    v2 = run(SCENES / "pid_step.yaml", ["stop_time=0.5"], cache_dir=cache)
-    v3 = run(SCENES / "pid_step.yaml", ["stop_time=0.5"] + [f"components.{n}.fmi=3.0" for n in names], cache_dir=cache)
+    held = ["stop_time=0.5", "master.inputs=hold"]  # FMI 3.0 has no input derivatives
+    v2 = run(SCENES / "pid_step.yaml", held, cache_dir=cache)
+    v3 = run(SCENES / "pid_step.yaml", held + [f"components.{n}.fmi=3.0" for n in names], cache_dir=cache)
     assert v3.ok and v3.stats["engine"] == "compiled"
     assert all(str(p).endswith(".fmu") for p in v3.fmus.values()) and v3.fmus["mech"] != v2.fmus["mech"]
     np.testing.assert_array_equal(v2.trace.data, v3.trace.data)

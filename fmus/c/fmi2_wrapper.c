@@ -170,9 +170,8 @@ fmi2Status fmi2GetDirectionalDerivative(fmi2Component c, const fmi2ValueReferenc
 /* --- co-simulation ----------------------------------------------------------------------- */
 fmi2Status fmi2SetRealInputDerivatives(fmi2Component c, const fmi2ValueReference vr[], size_t nvr,
                                        const fmi2Integer order[], const fmi2Real value[]) {
-    (void)vr; (void)nvr; (void)order; (void)value;
     CHECK(c);
-    return st(rpr_unsupported(CORE(c), "fmi2SetRealInputDerivatives (canInterpolateInputs is false)"));
+    return st(rpr_set_input_derivatives(CORE(c), vr, nvr, order, value));
 }
 fmi2Status fmi2GetRealOutputDerivatives(fmi2Component c, const fmi2ValueReference vr[], size_t nvr,
                                         const fmi2Integer order[], fmi2Real value[]) {

@@ -2,7 +2,7 @@
  *
  * The generated "rpr_model.h" supplies the sizes, defaults, bounds, names and the CasADi
  * functions (generated C, see fmus/codegen.py):
- *   RPR_F_STEP  (x, u, p, h) -> (x_next, ok, err)   one kernel call (models/integrators.py)
+ *   RPR_F_STEP  (x, u, p, h, du) -> (x_next, ok, err)   one kernel call (models/integrators.py)
  *   RPR_F_OUT   (x, u, p) -> y
  *   RPR_F_START (p) -> x0
  *   RPR_F_JAC   (x, u, p) -> dense [dy/dx dy/du dy/dp]   (ny x (nx + nu + np), column-major)
@@ -57,6 +57,7 @@ typedef struct {
     unsigned long long guid_hash;
     long long nv, nx, mode, y_valid;
     double v[RPR_NV];
+    double du[RPR_MAX1(RPR_NU)];
     unsigned char x_set[RPR_MAX1(RPR_NX)];
 } RprSnapshot;
 
@@ -70,6 +71,8 @@ struct RprInstance {
     int y_valid;
     int discarded;
     double v[RPR_NV];
+    /* input slopes [unit/s] for the next doStep: u(t + tau) = u + du tau (0: held) */
+    double du[RPR_MAX1(RPR_NU)];
     unsigned char x_set[RPR_MAX1(RPR_NX)];
     double xa[RPR_MAX1(RPR_NX)], xb[RPR_MAX1(RPR_NX)], x0[RPR_MAX1(RPR_NX)];
     double jac[RPR_MAX1(RPR_NJAC)];
@@ -130,7 +133,7 @@ static int fail(RprInstance *c, const char *fmt, ...) {
 
 static int call(RprInstance *c, rpr_casadi_fn f, const double *a0, const double *a1,
                 const double *a2, const double *a3, double *r0, double *r1, double *r2) {
-    c->arg[0] = a0; c->arg[1] = a1; c->arg[2] = a2; c->arg[3] = a3;
+    c->arg[0] = a0; c->arg[1] = a1; c->arg[2] = a2; c->arg[3] = a3; c->arg[4] = c->du;
     c->res[0] = r0; c->res[1] = r1; c->res[2] = r2;
     return f(c->arg, c->res, c->iw, c->w, 0);
 }
@@ -143,6 +146,7 @@ static int call(RprInstance *c, rpr_casadi_fn f, const double *a0, const double 
 static void set_defaults(RprInstance *c) {
     int i;
     memset(c->v, 0, sizeof c->v);
+    memset(c->du, 0, sizeof c->du);
     for (i = 0; i < RPR_NP; ++i) c->v[RPR_P0 + i] = rpr_p_default[i];
     for (i = 0; i < RPR_NU; ++i) c->v[RPR_U0 + i] = rpr_u_start[i];
     memset(c->x_set, 0, sizeof c->x_set);
@@ -204,7 +208,7 @@ RprInstance *rpr_instantiate(const char *name, const char *token, RprLogger logg
         if (iw > si) si = iw;
         if (w > sw) sw = w;
     }
-    if (sa < 4) sa = 4;
+    if (sa < 5) sa = 5;
     if (sr < 3) sr = 3;
     c->arg = (const double **)calloc((size_t)sa, sizeof(double *));
     c->res = (double **)calloc((size_t)sr, sizeof(double *));
@@ -341,6 +345,28 @@ int rpr_set_real(RprInstance *c, const unsigned int vr[], size_t n, const double
     return RPR_OK;
 }
 
+int rpr_set_input_derivatives(RprInstance *c, const unsigned int vr[], size_t n, const int order[],
+                              const double value[]) {
+    size_t i;
+    if (n == 0) return RPR_OK;
+    if (require_mode(c, "setRealInputDerivatives", M_INIT | M_STEP)) return RPR_ERROR;
+    if (!RPR_CAN_INTERPOLATE)
+        return rpr_unsupported(c, "setRealInputDerivatives (a sampled block reads its inputs at its samples)");
+    for (i = 0; i < n; ++i) {
+        if (vr[i] < RPR_U0 || vr[i] >= RPR_Y0)
+            return fail(c, "setRealInputDerivatives: '%s' (vr %u) is not an input",
+                        vr[i] < RPR_NV ? rpr_names[vr[i]] : "?", vr[i]);
+        if (order[i] != 1)
+            return fail(c, "setRealInputDerivatives: derivative order %d of '%s' is not supported (only 1)",
+                        order[i], rpr_names[vr[i]]);
+        if (!isfinite(value[i]))
+            return fail(c, "setRealInputDerivatives: the slope of '%s' is not finite (%g)", rpr_names[vr[i]],
+                        value[i]);
+    }
+    for (i = 0; i < n; ++i) c->du[vr[i] - RPR_U0] = value[i];
+    return RPR_OK;
+}
+
 int rpr_no_such_variables(RprInstance *c, const char *function, const unsigned int vr[], size_t n) {
     (void)vr;
     if (n == 0) return RPR_OK;
@@ -395,6 +421,9 @@ int rpr_do_step(RprInstance *c, double t, double h) {
 #else
     (void)k; (void)xa; (void)xb; (void)tmp; (void)ok;
 #endif
+    /* the inputs were followed to the end of the step: they now hold u + du h; the slopes are
+       consumed (a master that interpolates sets them again before the next step) */
+    for (k = 0; k < RPR_NU; ++k) { U_(c)[k] += c->du[k] * h; c->du[k] = 0.0; }
 #if RPR_INTEGRATOR == RPR_INTEGRATOR_RADAU
     rpr_log(c, RPR_OK, RPR_LOG_NONLINEAR, "doStep(t=%.17g, h=%.17g): Radau IIA residual/tolerance %.3g",
             t, h, err);
@@ -413,6 +442,7 @@ static void snapshot(const RprInstance *c, RprSnapshot *s) {
     s->mode = c->mode;
     s->y_valid = c->y_valid;
     memcpy(s->v, c->v, sizeof c->v);
+    memcpy(s->du, c->du, sizeof c->du);
     memcpy(s->x_set, c->x_set, sizeof c->x_set);
 }
 
@@ -443,6 +473,7 @@ int rpr_set_state(RprInstance *c, const void *state) {
     c->mode = (int)s->mode;
     c->y_valid = (int)s->y_valid;
     memcpy(c->v, s->v, sizeof c->v);
+    memcpy(c->du, s->du, sizeof c->du);
     memcpy(c->x_set, s->x_set, sizeof c->x_set);
     c->discarded = 0;
     return RPR_OK;

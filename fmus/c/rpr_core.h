@@ -50,6 +50,9 @@ int rpr_reset(RprInstance *c);
 
 int rpr_get_real(RprInstance *c, const unsigned int vr[], size_t n, double value[]);
 int rpr_set_real(RprInstance *c, const unsigned int vr[], size_t n, const double value[]);
+/* first-order input slopes for the next doStep only (FMI 2.0 canInterpolateInputs) */
+int rpr_set_input_derivatives(RprInstance *c, const unsigned int vr[], size_t n, const int order[],
+                              const double value[]);
 /* other FMI types: the model has none, so only an empty request succeeds */
 int rpr_no_such_variables(RprInstance *c, const char *function, const unsigned int vr[], size_t n);
 
