@@ -51,11 +51,12 @@ def ring(n: int, path: Path) -> tuple[list[FmuSlave], list[Link]]:
     return slaves, links
 
 
-def bench_ours(path: Path, n: int, steps: int, alg: str, engine: str, timing: bool = True) -> float:
+def bench_ours(path: Path, n: int, steps: int, alg: str, engine: str, timing: bool = True,
+               inputs: str = "hold") -> float:
     slaves, links = ring(n, path)
     system = CoupledSystem(slaves, links, [(0, "y")])
     st = simulate(system, alg, step_ns=1_000_000, n_steps=steps, engine=engine, timing=timing,
-                  start_values=[{"x": 1.0}] + [{} for _ in range(n - 1)])
+                  start_values=[{"x": 1.0}] + [{} for _ in range(n - 1)], inputs=inputs)
     assert st.status == "ok" and st.engine == engine, (st.status, st.reason)
     return st.wall_s
 
@@ -121,16 +122,17 @@ def scenes() -> None:
     from cosim.run import run
 
     print("\nreal-time factor of the thesis's scenes (compiled loop; stepping loop only, FMUs prebuilt):")
-    print(f"  {'scene':<22} {'algorithm':<13} {'step s':>7} {'steps':>6} {'wall s':>8} {'RTF':>8} {'us/step':>8} "
-          f"{'master us/step':>15}")
+    print(f"  {'scene':<22} {'algorithm':<13} {'inputs':<7} {'step s':>7} {'steps':>6} {'wall s':>8} {'RTF':>8} "
+          f"{'us/step':>8} {'master us/step':>15}")
     for scene, sets in (("pid_step", []), ("pid_step", ["master.algorithm=jacobi"]),
-                        ("pid_step", ["master.step=1e-3"]), ("pid_step_multibody", ["master.step=1e-3"]),
+                        ("pid_step", ["master.step=1e-4", "master.inputs=hold"]), ("pid_step_multibody", []),
                         ("vw_compare", [])):
         res = run(ROOT / "scenarios" / f"{scene}.yaml", sets)
         st = res.stats
         n = max(1, st["steps_done"])
-        print(f"  {scene:<22} {st['algorithm']:<13} {st['step']:>7.0e} {n:>6} {st['wall_s']:>8.3f} {st['real_time_factor']:>8.1f} "
-              f"{1e6 * st['wall_s'] / n:>8.2f} {1e6 * st['master_s'] / n:>15.3f}")
+        print(f"  {scene:<22} {st['algorithm']:<13} {res.scene.master.inputs:<7} {st['step']:>7.0e} {n:>6} "
+              f"{st['wall_s']:>8.3f} {st['real_time_factor']:>8.1f} {1e6 * st['wall_s'] / n:>8.2f} "
+              f"{1e6 * st['master_s'] / n:>15.3f}")
 
 
 def main() -> None:
@@ -146,6 +148,8 @@ def main() -> None:
         "rpr-cosim compiled, Jacobi": lambda: bench_ours(path, n, steps, "jacobi", "compiled"),
         "rpr-cosim compiled, Gauss-Seidel": lambda: bench_ours(path, n, steps, "gauss_seidel", "compiled"),
         "rpr-cosim compiled, Jacobi, no timing": lambda: bench_ours(path, n, steps, "jacobi", "compiled", False),
+        "rpr-cosim compiled, Gauss-Seidel, linear": lambda: bench_ours(path, n, steps, "gauss_seidel", "compiled",
+                                                                       inputs="linear"),
         "rpr-cosim Python loop, Jacobi": lambda: bench_ours(path, n, max(1000, steps // 10), "jacobi", "python"),
         "fmpy FMU2Slave loop": lambda: bench_fmpy(path, n, max(1000, steps // 10)),
         "ecospy": lambda: bench_ecospy(path, n, steps),
