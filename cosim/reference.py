@@ -22,9 +22,8 @@ from models.block import BlockError
 from models.compose import Composite, compose
 
 from .errors import UserError
-from .run import RunResult
+from .run import RunResult, scene_meta, scene_observers
 from .scenario import Scene, load
-from .trace import CsvTrace, MemoryTrace
 
 #: CVODES tolerances of the reference (relative, absolute).
 RTOL, ATOL = 1e-10, 1e-12
@@ -66,15 +65,9 @@ def reference(scene: Scene | str | Path, overrides=None, *, out_dir: Path | None
     names = [tuple(o.split(".", 1)) for o in scene.outputs]
     signals = comp.signal_function(names)
     columns = ["time", *scene.outputs]
-    memory = MemoryTrace()
-    observers: list = [memory]
-    trace_path = None
-    if out_dir is not None:
-        trace_path = Path(out_dir) / f"{scene.name}_reference.csv"
-        observers.append(CsvTrace(trace_path, extra={"scene_data": scene.data}))
-    meta = {"scene": scene.name, "scene_file": str(scene.path) if scene.path else None, "scene_hash": scene.hash,
-            "stop_time": scene.stop_time, "output_interval": dt, "method": "monolithic ODE, CVODES (BDF)",
-            "rtol": rtol, "atol": atol, "states": int(comp.x.numel())}
+    memory, observers, trace_path = scene_observers(scene, out_dir, "_reference")
+    meta = {**scene_meta(scene), "method": "monolithic ODE, CVODES (BDF)", "rtol": rtol, "atol": atol,
+            "states": int(comp.x.numel())}
     for ob in observers:
         ob.start(columns, meta)
     t0 = time.perf_counter()

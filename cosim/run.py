@@ -66,6 +66,22 @@ def couple(scene: Scene, slaves: Sequence[Slave]) -> CoupledSystem:
     return CoupledSystem(slaves, links, record)
 
 
+def scene_observers(scene: Scene, out_dir: Path | None, suffix: str = "") -> tuple[MemoryTrace, list, Path | None]:
+    """The observers of a run of ``scene``: a :class:`MemoryTrace` and, with ``out_dir``, a
+    :class:`CsvTrace` streaming to ``out_dir/<name><suffix>.csv`` (returned as the trace path)."""
+    memory = MemoryTrace()
+    if out_dir is None:
+        return memory, [memory], None
+    path = Path(out_dir) / f"{scene.name}{suffix}.csv"
+    return memory, [memory, CsvTrace(path, extra={"scene_data": scene.data})], path
+
+
+def scene_meta(scene: Scene) -> dict:
+    """Trace metadata identifying the scene a run comes from."""
+    return {"scene": scene.name, "scene_file": str(scene.path) if scene.path else None, "scene_hash": scene.hash,
+            "stop_time": scene.stop_time, "output_interval": scene.master.record_every * scene.master.step}
+
+
 def run(scene: Scene | str | Path, overrides: Mapping[str, Any] | Sequence[str] | None = None, *,
         out_dir: Path | None = None, catalog=None, cache_dir: Path | None = None,
         progress: Callable[[int, int], None] | None = None, log: Callable[[str], None] | None = None,
@@ -104,15 +120,9 @@ def run(scene: Scene | str | Path, overrides: Mapping[str, Any] | Sequence[str] 
             raise UserError(f"slaves must match the scene's components in order: {list(scene.components)}")
     build_s = time.perf_counter() - t0
     system = couple(scene, slaves)
-    memory = MemoryTrace()
-    observers: list = [memory]
-    trace_path = None
-    if out_dir is not None:
-        trace_path = Path(out_dir) / f"{scene.name}.csv"
-        observers.append(CsvTrace(trace_path, extra={"scene_data": scene.data}))
-    meta = {"scene": scene.name, "scene_file": str(scene.path) if scene.path else None, "scene_hash": scene.hash,
-            "stop_time": scene.stop_time, "output_interval": scene.master.record_every * scene.master.step,
-            "inputs": scene.master.inputs, "components": {n: c.label for n, c in scene.components.items()},
+    memory, observers, trace_path = scene_observers(scene, out_dir)
+    meta = {**scene_meta(scene), "inputs": scene.master.inputs,
+            "components": {n: c.label for n, c in scene.components.items()},
             "connections": [str(c) for c in scene.connections],
             "overrides": list(overrides.items()) if isinstance(overrides, Mapping) else list(overrides or [])}
     index = {n: i for i, n in enumerate(scene.components)}
