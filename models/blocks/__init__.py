@@ -11,6 +11,7 @@ the bad name, with the closest valid name as a suggestion.
 | ``dc_motor`` | ``full``, ``quasistatic``, ``ideal`` | :mod:`.motor` |
 | ``pid`` | ``continuous``, ``discrete`` | :mod:`.pid` |
 | ``pose_setpoint`` | ``default`` | :mod:`.setpoint` |
+| ``oscillator`` | ``linear`` | :mod:`.oscillator` (master-algorithm test scenes) |
 """
 from __future__ import annotations
 
@@ -20,7 +21,7 @@ from dataclasses import dataclass
 from typing import Any, Callable
 
 from ..block import Block, BlockError
-from . import mechanism, motor, pid, setpoint
+from . import mechanism, motor, oscillator, pid, setpoint
 from ._common import CONFIG, SUBSTEPS, Option, integrator_option, positive_float, suggest
 
 
@@ -57,6 +58,13 @@ def _entries() -> dict[str, dict[str, _Entry]]:
         "pose_setpoint": {
             "default": _Entry(setpoint.pose_setpoint, (CONFIG, Option("profile", "step", "trajectory profile",
                                                                       choices=setpoint.PROFILES))),
+        },
+        "oscillator": {
+            "linear": _Entry(oscillator.oscillator, (
+                Option("coupling", "none", "interface: 'none' (force in) or 'spring' (velocity in, coupling spring "
+                                           "force out)", choices=oscillator.COUPLING),
+                integrator_option("rk4"), Option("substeps", 40, "integrator substeps per communication step",
+                                                 check=SUBSTEPS.check))),
         },
     }
 
