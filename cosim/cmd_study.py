@@ -2,12 +2,19 @@
 
     rpr-cosim study stability SCENE.yaml --vary PATH=LO:HI [--steps LO:HI] [--n N]
                                         [--variant ALG/INPUTS ...] [--out DIR]
+    rpr-cosim study precision SCENE.yaml [--steps H,H,...] [--variant ALG/INPUTS ...] [--stop T]
+                                        [--only GLOB ...] [--tol REL] [--out DIR]
 
 ``stability`` maps where each master algorithm variant stays stable over the communication step
 and one scene parameter (both on log axes), writes ``<scene>_stability.csv`` (one row per cell,
 with the reason of every unstable or failed run) and ``<scene>_stability.png`` (cells coloured
 stable / unstable / failed, with the analytic boundary for linear scenes), and prints how the
 measured map agrees with the analytic one.
+
+``precision`` measures every variant and step against the scene's monolithic reference and writes
+``<scene>_precision.csv`` (per run and per signal) and ``<scene>_precision.png`` (worst relative
+error against wall time, one curve per variant), and prints the observed orders and the cheapest
+run within ``--tol``.
 """
 from __future__ import annotations
 
@@ -36,15 +43,32 @@ def register(sub: argparse._SubParsersAction) -> None:
     s.add_argument("--out", type=Path, help="output directory (default runs/<scene>_stability)")
     s.add_argument("--cache", type=Path, help="FMU cache directory")
     s.set_defaults(handler=_stability)
+    q = studies.add_parser("precision", help="error against cost (work-precision) of master algorithm variants",
+                           description="Run the scene for every algorithm variant and communication step, measure "
+                                       "each run against the scene's monolithic reference (max error relative to "
+                                       "each signal's range) and its cost, print the table and draw the "
+                                       "work-precision chart.")
+    q.add_argument("scene", type=Path, help="scene file of catalog components, e.g. scenarios/pid_step.yaml")
+    q.add_argument("--steps", metavar="H,H,...", help="communication steps [s], each halving the previous "
+                                                      "(default: 4x the scene's step down to 1/8 of it)")
+    q.add_argument("--variant", action="append", default=[], metavar="ALG/INPUTS",
+                   help="algorithm variant, e.g. gauss_seidel/linear; repeatable (default: every algorithm, hold and "
+                        "linear)")
+    q.add_argument("--stop", type=float, metavar="T", help="simulated time per run [s] (default: the scene's)")
+    q.add_argument("--only", action="append", default=[], metavar="GLOB", help="compare only these signals")
+    q.add_argument("--tol", type=float, default=1e-3, metavar="REL",
+                   help="report the cheapest run whose worst relative error is within REL (default 1e-3)")
+    q.add_argument("--out", type=Path, help="output directory (default runs/<scene>_precision)")
+    q.add_argument("--cache", type=Path, help="FMU cache directory")
+    q.set_defaults(handler=_precision)
 
 
 def _variants(texts: list[str]) -> list[tuple[str, str]]:
     from .errors import UserError
     from .master import ALGORITHMS
-    from .study.stability import DEFAULT_VARIANTS
 
     if not texts:
-        return list(DEFAULT_VARIANTS)
+        return [(alg, inputs) for alg in ALGORITHMS for inputs in ("hold", "linear")]
     out = []
     for t in texts:
         alg, _, inputs = t.partition("/")
@@ -85,5 +109,42 @@ def _stability(args: argparse.Namespace) -> int:
         print(f"{v[0] + '/' + v[1]:<24} {count['stable']:>7} {count['unstable']:>9} {count['failed']:>7}  {agree:>20}")
     if not smap.analytic:
         print(f"no analytic boundary: {smap.analytic_note}")
+    print(f"table: {csv_path}\nchart: {png_path}", file=sys.stderr)
+    return 0
+
+
+def _precision(args: argparse.Namespace) -> int:
+    from .errors import UserError
+    from .study.precision import plot_study, precision_study
+
+    steps = None
+    if args.steps:
+        try:
+            steps = [float(x) for x in args.steps.split(",")]
+        except ValueError:
+            raise UserError(f"--steps {args.steps}: expected comma-separated steps in seconds, e.g. 4e-3,2e-3,1e-3") \
+                from None
+    if args.stop is not None and not args.stop > 0:
+        raise UserError(f"--stop {args.stop}: expected a positive simulated time [s]")
+    if not args.tol > 0:
+        raise UserError(f"--tol {args.tol}: expected a positive relative tolerance")
+    study = precision_study(args.scene, _variants(args.variant), steps, stop_time=args.stop, only=args.only or None,
+                            cache_dir=args.cache, progress=lambda m: print(f"  {m}", file=sys.stderr, flush=True))
+    out = args.out or Path("runs") / f"{study.scene}_precision"
+    out.mkdir(parents=True, exist_ok=True)
+    csv_path, png_path = out / f"{study.scene}_precision.csv", out / f"{study.scene}_precision.png"
+    study.write_csv(csv_path)
+    plot_study(study, png_path)
+    print(f"{study.scene}: {len(study.rows)} runs over {study.stop_time:g} s against the monolithic reference "
+          f"({study.reference_wall_s:.3f} s)")
+    print(f"{'variant':<22} {'step s':>9} {'status':>8} {'worst rel':>10} {'signal':<22} {'wall s':>8} {'doSteps':>8}")
+    for r in study.rows:
+        print(f"{r.algorithm + '/' + r.inputs:<22} {r.step:>9.4g} {r.status:>8} {r.worst:>10.3e} {r.worst_signal:<22} "
+              f"{r.wall_s:>8.3f} {r.do_steps:>8}")
+    for v in study.variants():
+        print(f"observed order {v[0]}/{v[1]}: {study.order(v):.2f}")
+    best = study.cheapest_within(args.tol)
+    print(f"cheapest within {args.tol:g}: " + (f"{best.algorithm}/{best.inputs} at {best.step:g} s "
+                                               f"({best.worst:.2e}, {best.wall_s:.3f} s)" if best else "none"))
     print(f"table: {csv_path}\nchart: {png_path}", file=sys.stderr)
     return 0

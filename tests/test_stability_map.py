@@ -157,3 +157,49 @@ def test_cli_bad_arguments_are_one_line(argv, message, capsys):
     rc = main(["study", "stability", str(SCENE), *argv])
     err = capsys.readouterr().err
     assert rc == 2 and message in err and len(err.strip().splitlines()) == 1
+
+
+# --- work-precision ---------------------------------------------------------------------------
+@pytest.fixture(scope="module")
+def two_mass_precision():
+    from cosim.study.precision import precision_study
+
+    return precision_study(SCENE, DEFAULT_VARIANTS, [4e-3, 2e-3, 1e-3, 5e-4], stop_time=4.0)
+
+
+@pytest.mark.parametrize("variant, order", [(("jacobi", "hold"), 1), (("gauss_seidel", "hold"), 1),
+                                            (("jacobi", "linear"), 2), (("gauss_seidel", "linear"), 2)],
+                         ids=lambda v: "/".join(v) if isinstance(v, tuple) else str(v))
+def test_precision_study_observes_the_theoretical_coupling_order(two_mass_precision, variant, order):
+    """Holding inputs is a first-order coupling, linear extrapolation/interpolation second order
+    (the coupling error dominates: each slave's RK4 with 40 substeps is far more accurate)."""
+    assert two_mass_precision.order(variant) == pytest.approx(order, abs=0.3)
+    rows = [r for r in two_mass_precision.rows if (r.algorithm, r.inputs) == variant]
+    assert all(r.status == "ok" for r in rows) and all(a.worst > b.worst for a, b in zip(rows, rows[1:]))
+
+
+def test_precision_study_cheapest_within_tolerance(two_mass_precision):
+    best = two_mass_precision.cheapest_within(5e-3)
+    assert best is not None and best.worst <= 5e-3 and best.inputs == "linear"
+    assert two_mass_precision.cheapest_within(1e-12) is None
+
+
+def test_cli_precision_writes_table_and_chart(tmp_path, capsys):
+    rc = main(["study", "precision", str(SCENE), "--steps", "4e-3,2e-3", "--variant", "gauss_seidel/linear",
+               "--stop", "1", "--out", str(tmp_path)])
+    assert rc == 0
+    out = capsys.readouterr().out
+    assert "observed order gauss_seidel/linear" in out and "cheapest within 0.001" in out
+    assert len((tmp_path / "two_mass_precision.csv").read_text().splitlines()) == 3
+    assert (tmp_path / "two_mass_precision.png").stat().st_size > 10_000
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["--steps", "4e-3,3e-3"], "does not divide"),
+    (["--steps", "a,b"], "comma-separated"),
+    (["--stop", "-1"], "positive simulated time"),
+])
+def test_cli_precision_bad_arguments_are_one_line(argv, message, capsys):
+    rc = main(["study", "precision", str(SCENE), *argv])
+    err = capsys.readouterr().err
+    assert rc == 2 and message in err and len(err.strip().splitlines()) == 1
