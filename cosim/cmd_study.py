@@ -4,6 +4,7 @@
                                         [--variant ALG/INPUTS ...] [--out DIR]
     rpr-cosim study precision SCENE.yaml [--steps H,H,...] [--variant ALG/INPUTS ...] [--stop T]
                                         [--only GLOB ...] [--tol REL] [--out DIR]
+    rpr-cosim study fidelity SCENE.yaml [--tol REL] [--only GLOB ...] [--set PATH=VALUE ...]
 
 ``stability`` maps where each master algorithm variant stays stable over the communication step
 and one scene parameter (both on log axes), writes ``<scene>_stability.csv`` (one row per cell,
@@ -15,6 +16,11 @@ measured map agrees with the analytic one.
 ``<scene>_precision.csv`` (per run and per signal) and ``<scene>_precision.png`` (worst relative
 error against wall time, one curve per variant), and prints the observed orders and the cheapest
 run within ``--tol``.
+
+``fidelity`` runs every combination of the scene's fidelity levels (components of one model share a
+level) against the most detailed one and prints error and cost per combination and the cheapest
+within ``--tol``; ``fidelity: auto`` in a scene uses the same study (see
+:mod:`cosim.study.fidelity`).
 """
 from __future__ import annotations
 
@@ -61,6 +67,18 @@ def register(sub: argparse._SubParsersAction) -> None:
     q.add_argument("--out", type=Path, help="output directory (default runs/<scene>_precision)")
     q.add_argument("--cache", type=Path, help="FMU cache directory")
     q.set_defaults(handler=_precision)
+    f = studies.add_parser("fidelity", help="error and cost of every fidelity combination; the cheapest within --tol",
+                           description="Run the scene with every combination of its models' fidelity levels, "
+                                       "measure each against the most detailed combination and its cost, and name the "
+                                       "cheapest combination within the tolerance.")
+    f.add_argument("scene", type=Path, help="scene file of catalog components, e.g. scenarios/pid_step.yaml")
+    f.add_argument("--tol", type=float, default=1e-3, metavar="REL",
+                   help="largest error relative to each signal's range (default 1e-3)")
+    f.add_argument("--only", action="append", default=[], metavar="GLOB", help="compare only these signals")
+    f.add_argument("--set", dest="sets", action="append", default=[], metavar="PATH=VALUE",
+                   help="override a scene value first, e.g. stop_time=1")
+    f.add_argument("--cache", type=Path, help="FMU cache directory")
+    f.set_defaults(handler=_fidelity)
 
 
 def _variants(texts: list[str]) -> list[tuple[str, str]]:
@@ -147,4 +165,25 @@ def _precision(args: argparse.Namespace) -> int:
     print(f"cheapest within {args.tol:g}: " + (f"{best.algorithm}/{best.inputs} at {best.step:g} s "
                                                f"({best.worst:.2e}, {best.wall_s:.3f} s)" if best else "none"))
     print(f"table: {csv_path}\nchart: {png_path}", file=sys.stderr)
+    return 0
+
+
+def _fidelity(args: argparse.Namespace) -> int:
+    from .errors import UserError
+    from .study.fidelity import fidelity_study
+
+    if not args.tol > 0:
+        raise UserError(f"--tol {args.tol}: expected a positive relative tolerance")
+    study = fidelity_study(args.scene, args.sets, only=args.only or None, cache_dir=args.cache,
+                           progress=lambda m: print(f"  {m}", file=sys.stderr, flush=True))
+    top = study.rows[0]
+    print(f"{study.scene}: {len(study.rows)} fidelity combinations against the most detailed ({top.label})")
+    print(f"{'combination':<62} {'status':>8} {'worst rel':>10} {'signal':<22} {'wall s':>8} {'speed-up':>8}")
+    for r in study.rows:
+        speed = top.wall_s / r.wall_s if r.status == "ok" and r.wall_s > 0 else float("nan")
+        print(f"{r.label:<62} {r.status:>8} {r.worst:>10.3e} {r.worst_signal:<22} {r.wall_s:>8.3f} {speed:>8.1f}"
+              + (f"  ({r.reason})" if r.status != "ok" and r.reason else ""))
+    best = study.cheapest_within(args.tol)
+    print(f"cheapest within {args.tol:g}: {best.label} ({best.worst:.2e}, {top.wall_s / best.wall_s:.1f}x faster "
+          f"than the most detailed)" if best else f"cheapest within {args.tol:g}: none")
     return 0

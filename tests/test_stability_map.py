@@ -203,3 +203,39 @@ def test_cli_precision_bad_arguments_are_one_line(argv, message, capsys):
     rc = main(["study", "precision", str(SCENE), *argv])
     err = capsys.readouterr().err
     assert rc == 2 and message in err and len(err.strip().splitlines()) == 1
+
+
+# --- fidelity ---------------------------------------------------------------------------------
+PID_STEP = SCENE.with_name("pid_step.yaml")
+
+
+def _auto_scene(tmp_path: Path, tol: float) -> Path:
+    path = tmp_path / f"auto_{tol:g}.yaml"
+    path.write_text(f"include: {PID_STEP}\nstop_time: 0.5\nfidelity_tolerance: {tol}\n"
+                    "fidelity_signals: [mech.platform.x, mech.platform.phi]\n"
+                    "components:\n  mech: {fidelity: auto}\n")
+    return path
+
+
+@pytest.mark.parametrize("tol, picked", [(1e-4, "rigid"), (1e-6, "multibody")])
+def test_fidelity_auto_picks_by_measured_difference(tmp_path, monkeypatch, tol, picked):
+    """Rigid and multibody pid_step differ by ~2e-5 of range in x and phi (measured, the start
+    transient of the parasitic joints): at 1e-4 the rigid mechanism is good enough and cheaper, at
+    1e-6 only the multibody one is.  The choice is cached with the scene's hash."""
+    from cosim.scenario import load
+
+    monkeypatch.setenv("RPR_COSIM_FIDELITY_CACHE", str(tmp_path / "fidelity"))
+    scene = load(_auto_scene(tmp_path, tol))
+    assert scene.components["mech"].fidelity == picked
+    notes = [str(w) for w in scene.warnings if w.severity == "note"]
+    assert len(notes) == 1 and f"mechanism={picked}" in notes[0] and "fidelity auto" in notes[0]
+    assert list((tmp_path / "fidelity").glob("*.json"))
+    again = load(_auto_scene(tmp_path, tol))  # from the cache: no runs
+    assert again.components["mech"].fidelity == picked
+
+
+
+def test_cli_fidelity_table(capsys):
+    rc = main(["study", "fidelity", str(SCENE.with_name("two_mass.yaml")), "--set", "stop_time=1"])
+    assert rc == 2  # the oscillator has one level only: a one-line refusal
+    assert "no catalog component has more than one fidelity level" in capsys.readouterr().err

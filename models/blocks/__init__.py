@@ -77,6 +77,19 @@ def catalog() -> dict[str, list[str]]:
     return {model: list(fids) for model, fids in _CATALOG.items()}
 
 
+#: Fidelity levels from the most to the least detailed, where that differs from the catalog's order
+#: (whose first level is the default).
+_DETAIL = {"mechanism": ("multibody", "rigid", "kinematic"), "dc_motor": ("full", "quasistatic", "ideal"),
+           "pid": ("continuous", "discrete")}
+
+
+def detail_order(model: str) -> list[str]:
+    """The fidelity levels of ``model``, most detailed first."""
+    levels = list(_CATALOG[model]) if model in _CATALOG else []
+    ranked = [f for f in _DETAIL.get(model, ()) if f in levels]
+    return ranked + [f for f in levels if f not in ranked]
+
+
 def _entry(model: str, fidelity: str | None) -> tuple[str, _Entry]:
     if model not in _CATALOG:
         raise BlockError(f"unknown model {model!r}{suggest(str(model), list(_CATALOG))} "
@@ -134,4 +147,4 @@ def make(model: str, fidelity: str | None = None, **opts: Any) -> Block:
     return blk
 
 
-__all__ = ["make", "catalog", "options", "Option"]
+__all__ = ["make", "catalog", "options", "detail_order", "Option"]
