@@ -691,7 +691,7 @@ def simulate(system: CoupledSystem, algorithm_name: str, *, step_ns: int, n_step
              observers: Sequence = (), start_values: Sequence[dict[str, float]] | None = None,
              engine: str = "auto", order: Sequence[int] | None = None, timing: bool = True,
              progress: Callable[[int, int], None] | None = None, meta: dict | None = None,
-             inputs: str = "hold") -> RunStats:
+             inputs: str = "hold", options: dict | None = None) -> RunStats:
     """Initialise ``system`` and run ``n_steps`` macro steps of ``step_ns`` nanoseconds, inputs
     held or linear over each step (``inputs``, see the module docstring).
 
@@ -700,6 +700,12 @@ def simulate(system: CoupledSystem, algorithm_name: str, *, step_ns: int, n_step
     also when the run fails or is interrupted (then the exception propagates after ``finish``).
     """
     cls = algorithm(algorithm_name)
+    if getattr(cls, "variable_step", False):
+        from .adaptive import simulate_variable
+
+        return simulate_variable(system, cls, step_ns=step_ns, n_steps=n_steps, observers=observers,
+                                 start_values=start_values, order=order, progress=progress, meta=meta,
+                                 options=options)
     if record_every < 1:
         raise UserError(f"record_every must be >= 1, got {record_every}")
     stats = RunStats(cls.name, "", step_ns / 1e9, n_steps)
@@ -760,3 +766,6 @@ def simulate(system: CoupledSystem, algorithm_name: str, *, step_ns: int, n_step
             s.terminate()
             s.free()
     return stats
+
+
+from . import adaptive as _adaptive  # noqa: E402,F401  (registers the variable-step algorithm "adaptive")

@@ -64,7 +64,7 @@ Loc = tuple[str, int]  # (file, line); line 0 = no line (a --set override)
 TOP_KEYS = ("name", "description", "include", "stop_time", "components", "connections", "master", "outputs",
             "fidelity_tolerance", "fidelity_signals")
 COMPONENT_KEYS = ("model", "fidelity", "options", "params", "start", "fmu", "fmi", "description")
-MASTER_KEYS = ("algorithm", "step", "order", "engine", "output_interval", "inputs")
+MASTER_KEYS = ("algorithm", "step", "order", "engine", "output_interval", "inputs", "options")
 #: How a slave's inputs vary over a communication step (see :mod:`cosim.master`).
 INPUT_MODES = ("hold", "linear")
 ENGINES = ("auto", "compiled", "python")
@@ -436,6 +436,7 @@ class MasterSettings:
     engine: str
     record_every: int  # output interval in steps
     inputs: str = "hold"  # "hold" or "linear" (first-order hold, FMUs that can interpolate inputs)
+    options: dict[str, float] = field(default_factory=dict)  # the algorithm's own options (its declaration)
 
 
 @dataclass
@@ -905,10 +906,32 @@ class _Checker:
                                                    f"period {ts} s of {comp.name} ({comp.label}); a sampled block "
                                                    f"advances whole samples: use e.g. step: {good:g}")
                         ok = False
+        options = self._algorithm_options(node, alg) if alg in ALGORITHMS else {}
+        if options is None:
+            ok = False
         if not ok or step_ns is None:
             return None
         return MasterSettings(alg, step_ns / 1e9, step_ns, list(order) if order else None, engine, record_every,
-                              inputs)
+                              inputs, options)
+
+    def _algorithm_options(self, node: YMap, alg: str) -> dict[str, float] | None:
+        """``master.options`` checked against the options the algorithm declares (None on error)."""
+        declared = getattr(ALGORITHMS[alg], "options", ())
+        given = node.get("options", YMap())
+        if not isinstance(given, YMap):
+            self.err(node.loc("options"), f"master.options must be a mapping of option -> value, got {given!r}")
+            return None
+        if given and not declared:
+            self.err(node.loc("options"), f"master algorithm {alg} has no options")
+            return None
+        from .adaptive import option_values
+
+        try:
+            return option_values(dict(given), declared)
+        except ValueError as exc:
+            bad = next((k for k in given if str(k) in str(exc)), None)
+            self.err(given.loc(bad) if bad is not None else node.loc("options"), f"master.options: {exc}")
+            return None
 
     def stop(self, master: MasterSettings | None) -> tuple[float | None, int | None]:
         stop = self.number(self.tree, "stop_time", "stop_time", required=True)
