@@ -1077,7 +1077,8 @@ class _Checker:
         if stop is None:
             return None, None, start, start_ns
         if stop <= start:
-            self.err(self.tree.loc("stop_time"), f"stop_time = {stop} must be after the start time {start} s")
+            self.err(self.tree.loc("stop_time"), f"stop_time = {stop} must be positive (seconds from the start)"
+                     if start == 0 else f"stop_time = {stop} must be after the start time {start} s")
             return None, None, start, start_ns
         if master is None:
             return stop, None, start, start_ns
@@ -1086,7 +1087,7 @@ class _Checker:
         if abs(n * master.step_ns - span) > 1e-6 * span:
             lo, hi = math.floor(span / master.step_ns), math.ceil(span / master.step_ns)
             self.err(self.tree.loc("stop_time"), f"stop_time = {stop} s is not a whole number of steps of "
-                                                 f"{master.step} s from the start {start:g} s; use "
+                                                 f"{master.step} s{f' from the start {start:g} s' if start else ''}; use "
                                                  f"{start + lo * master.step:g} or {start + hi * master.step:g}")
             return None, None, start, start_ns
         return stop, n, start, start_ns
