@@ -35,6 +35,7 @@ import shutil
 import tempfile
 from abc import ABC, abstractmethod
 from collections import deque
+from collections.abc import Callable
 from ctypes import POINTER, c_bool, c_double, c_int, c_size_t, c_uint32, c_void_p
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -345,6 +346,8 @@ _IO2 = ctypes.CFUNCTYPE(c_int, c_void_p, POINTER(c_uint32), c_size_t, POINTER(c_
 _DoStep3 = ctypes.CFUNCTYPE(c_int, c_void_p, c_double, c_double, c_bool, POINTER(c_bool), POINTER(c_bool),
                             POINTER(c_bool), POINTER(c_double))
 _IO3 = ctypes.CFUNCTYPE(c_int, c_void_p, POINTER(c_uint32), c_size_t, POINTER(c_double), c_size_t)
+_RAW2 = ctypes.CFUNCTYPE(c_int, c_void_p, c_void_p, c_size_t, c_void_p)
+_RAW3 = ctypes.CFUNCTYPE(c_int, c_void_p, c_void_p, c_size_t, c_void_p, c_size_t)
 _SetDer2 = ctypes.CFUNCTYPE(c_int, c_void_p, POINTER(c_uint32), c_size_t, POINTER(c_int), POINTER(c_double))
 
 
@@ -454,6 +457,29 @@ class FmuSlave(Slave):
         ft = TYPES[var.type]
         vals = parse_start(value, ft, var.size, name)
         self._accessor("set", var.type)([var.vr], [v.item() if hasattr(v, "item") else v for v in vals])
+
+    def raw_io(self, verb: str, type_name: str, vrs: list[int], n_values: int) -> tuple[Callable[[], int], np.ndarray]:
+        """A no-argument call of fmi2/3 ``Get``/``Set`` (``verb``) of numeric type ``type_name`` on
+        ``vrs`` (``n_values`` values in all) and the numpy buffer it reads into or writes from (the
+        FMI storage type: FMI 2.0 Boolean and Enumeration are int32); returns the FMI status."""
+        from .fmitypes import TYPES
+
+        ft = TYPES[type_name]
+        if self.fmi3:
+            dtype = np.bool_ if type_name == "Boolean" else ft.dtype
+            proto = _RAW3
+        else:
+            dtype = np.float64 if type_name == "Real" else np.int32
+            proto = _RAW2
+        fname = f"fmi{'3' if self.fmi3 else '2'}{verb.capitalize()}{ft.fmi3 if self.fmi3 else ft.fmi2}"
+        fn = proto(_addr(getattr(self.fmu.dll, fname)))
+        vr = np.ascontiguousarray(vrs, dtype=np.uint32)
+        buf = np.zeros(n_values, dtype=dtype)
+        inst, p_vr, n_vr, p_buf = self._inst, vr.ctypes.data, len(vr), buf.ctypes.data
+        keep = (vr, buf)
+        if self.fmi3:
+            return (lambda: fn(inst, p_vr, n_vr, p_buf, n_values) if keep else 0), buf
+        return (lambda: fn(inst, p_vr, n_vr, p_buf) if keep else 0), buf
 
     def get_values(self, type_name: str, vrs: list[int], n_values: int) -> list:
         """Values of the variables ``vrs`` of one type (``n_values`` in all, arrays flattened)."""

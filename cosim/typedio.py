@@ -96,16 +96,36 @@ class TypedPorts:
         groups: dict[str, list[str]] = {}
         for var in self.reads[i]:
             groups.setdefault(variable(s, var).type, []).append(var)
-        plan = [(t, names, [variable(s, n).vr for n in names], [variable(s, n).size for n in names])
-                for t, names in groups.items()]
         bufs, mirrors, v = self.reads[i], self.mirrors[i], self.v
+        raw_plan, slow_plan = [], []
+        for t, names in groups.items():
+            vrs, sizes = [variable(s, n).vr for n in names], [variable(s, n).size for n in names]
+            if TYPES[t].numeric and hasattr(s, "raw_io"):
+                call, raw = s.raw_io("get", t, vrs, sum(sizes))
+                copies, k = [], 0
+                for n, size in zip(names, sizes):
+                    if raw.dtype == bufs[n].dtype:
+                        bufs[n] = raw[k:k + size]  # a view: filled by the call itself
+                    else:
+                        copies.append((bufs[n], raw[k:k + size]))
+                    k += size
+                raw_plan.append((call, copies))
+            else:
+                slow_plan.append((t, names, vrs, sizes))
+        mirror_plan = [(v[off:off + len(bufs[var])], bufs[var]) for var, off in mirrors]
 
         def pull() -> int:
             st = fast_pull()
             if st > Status.WARNING:
                 return st
+            for call, copies in raw_plan:
+                st = call()
+                if st > Status.WARNING:
+                    return st
+                for dst, src in copies:
+                    dst[:] = src
             try:
-                for t, names, vrs, sizes in plan:
+                for t, names, vrs, sizes in slow_plan:
                     vals = s.get_values(t, vrs, sum(sizes))
                     k = 0
                     for n, size in zip(names, sizes):
@@ -113,24 +133,31 @@ class TypedPorts:
                         k += size
             except Exception as exc:  # fmpy raises on a failing status; the log has the reason
                 return _status_of(exc)
-            for var, off in mirrors:
-                b = bufs[var]
-                v[off:off + len(b)] = b
-            return st
+            for dst, src in mirror_plan:
+                dst[:] = src
+            return Status.OK
         return pull
 
     def _push(self, i: int, s: Slave, fast_push: Callable[[], int]) -> Callable[[], int]:
-        items = []
+        raw_items, slow_items = [], []
         for var, source in self.inputs[i]:
             desc = variable(s, var)
-            items.append((desc, TYPES[desc.type], source))
+            t = TYPES[desc.type]
+            if t.numeric and hasattr(s, "raw_io"):
+                call, buf = s.raw_io("set", desc.type, [desc.vr], desc.size)
+                raw_items.append((call, buf, source))
+            else:
+                slow_items.append((desc, source))
 
         def push() -> int:
+            for call, buf, source in raw_items:
+                buf[:] = source()
+                st = call()
+                if st > Status.WARNING:
+                    return st
             try:
-                for desc, t, source in items:
-                    vals = source()
-                    vals = np.asarray(vals).astype(t.dtype).tolist() if t.numeric else list(vals)
-                    s._accessor("set", desc.type)([desc.vr], vals)
+                for desc, source in slow_items:
+                    s._accessor("set", desc.type)([desc.vr], list(source()))
             except Exception as exc:  # fmpy raises on a failing status
                 return _status_of(exc)
             return fast_push()
