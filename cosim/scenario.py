@@ -5,13 +5,15 @@ Format (every key but ``components`` and ``connections`` optional; lines startin
     name: pid_step
     description: free text
     include: base.yaml          # another scene, merged under this one (paths relative to this file)
-    stop_time: 5.0              # [s]
+    start_time: 0.0             # [s] (default: the FMUs' DefaultExperiment, else 0)
+    stop_time: 5.0              # [s] (default: the FMUs' DefaultExperiment)
     components:                 # a mapping name -> spec (or a list of specs with a 'name:' key)
       mech:   {model: mechanism, fidelity: rigid, options: {config: cross_leg}, params: {leg[1].m_act: 0.058}}
       pid1:   {model: pid, params: {Kp: 30, Ki: 80, Kd: 20, u_max: 12}}
       plant:  {fmu: plant.fmu, params: {k: 1e4}, start: {x: 0.1}}    # any external FMU
     connections:
       - target.leg[1].s -> pid1.setpoint        # signal: output -> input
+      - stair.counter -> plant.u as Float64     # an explicit type conversion (cosim.fmitypes)
       - motor1.flange <-> mech.leg[1]           # power bond between two flanges
     master: {algorithm: gauss_seidel, step: 1e-3, order: [target, pid1, motor1, mech],
              engine: auto, output_interval: 1e-3}
@@ -21,7 +23,8 @@ Component spec: ``model`` (a name of :func:`models.blocks.catalog`) with optiona
 and ``options`` (construction options of :func:`models.blocks.make`), or ``fmu`` (a path);
 ``params`` sets parameters by name (structural ones go to ``make``, the others are set on the
 instance at start-up, so one compiled FMU serves every value); ``start`` sets start values of
-inputs and states; ``fmi`` picks the FMI version of a built FMU ("2.0" default, or "3.0").
+inputs and states (for an FMU: inputs and variables with initial = exact or approx; parameters
+and FMI 3.0 structural parameters go under ``params``, any FMI type, arrays as lists); ``fmi`` picks the FMI version of a built FMU ("2.0" default, or "3.0").
 
 A bond ``a.p <-> b.q`` joins two flanges: the side whose flange computes the effort
 (``effort_out``) feeds its effort output to the other side's effort input, and the other side
