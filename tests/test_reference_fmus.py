@@ -183,6 +183,17 @@ def test_stop_request_cli_exit_code_and_sidecar(reference_fmus, tmp_path, fmi):
     assert side["status"] == "stopped" and side["reason"].startswith("stopped by s at t = 9 s")
 
 
+@pytest.mark.parametrize("fmi", ["2.0", "3.0"])
+def test_stop_request_in_the_compiled_loop(reference_fmus, fmi):
+    """Nothing typed recorded: Stair runs in the compiled loop, which hands the stop request (FMI 3.0
+    terminateSimulation, FMI 2.0 Discard + fmi2Terminated) back; the end point t = 9 s is recorded."""
+    res = run(from_dict({"name": "stair", "outputs": [], "master": {"engine": "compiled", "output_interval": 2.0},
+                         "components": {"s": {"fmu": str(reference_fmus[f"{fmi}/Stair"])}}}))
+    assert res.stats["engine"] == "compiled"
+    assert res.status == "stopped" and res.reason.startswith("stopped by s at t = 9 s"), res.reason
+    np.testing.assert_allclose(res.trace.time, [0, 2, 4, 6, 8, 9], rtol=0, atol=ATOL)
+
+
 # --- start values and parameters -------------------------------------------------------------------
 def _check(reference_fmus, comp: dict, key: str = "3.0/VanDerPol", **extra):
     comp = {"fmu": str(reference_fmus[key]), **comp}
