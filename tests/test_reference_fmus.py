@@ -194,6 +194,20 @@ def test_stop_request_in_the_compiled_loop(reference_fmus, fmi):
     np.testing.assert_allclose(res.trace.time, [0, 2, 4, 6, 8, 9], rtol=0, atol=ATOL)
 
 
+def test_string_and_binary_are_recorded_as_text_in_the_csv(reference_fmus, tmp_path):
+    """Feedthrough copies its String and Binary inputs to its outputs; the CSV keeps them as text
+    events that read_trace gives back."""
+    from cosim.trace import read_trace
+
+    res = run(from_dict({"name": "txt", "stop_time": 0.3, "master": {"step": 0.1},
+                         "components": {"f": {"fmu": str(reference_fmus["3.0/Feedthrough"]),
+                                              "start": {"String_input": "grüße", "Binary_input": "00ff10"}}},
+                         "outputs": ["f.String_output", "f.Binary_output", "f.Int8_output"]}), out_dir=tmp_path)
+    back = read_trace(res.trace_path)
+    assert back.text == res.trace.text == {"f.String_output": [(0.0, "grüße")], "f.Binary_output": [(0.0, "00ff10")]}
+    assert back.names == ["f.Int8_output"] and len(back.time) == 4
+
+
 # --- start values and parameters -------------------------------------------------------------------
 def _check(reference_fmus, comp: dict, key: str = "3.0/VanDerPol", **extra):
     comp = {"fmu": str(reference_fmus[key]), **comp}
