@@ -66,9 +66,12 @@ FAILING = frozenset({Status.DISCARD, Status.ERROR, Status.FATAL, Status.PENDING}
 
 @dataclass(frozen=True)
 class Variable:
-    """One scalar variable: FMI ``causality`` (parameter, calculatedParameter, input, output,
-    local, independent), ``variability``, ``type`` (``Real`` for FMI 2 Real and FMI 3 Float64/32),
-    ``start`` (None when it has none), unit and value reference (None until an FMU exists)."""
+    """One variable (a scalar, or an FMI 3.0 array of ``shape``): FMI ``causality`` (parameter,
+    structuralParameter, calculatedParameter, input, output, local, independent),
+    ``variability``, canonical ``type`` (:mod:`cosim.fmitypes`: ``Real`` for FMI 2.0 Real and FMI 3.0
+    Float64, ``Integer`` for Integer/Int32, else the FMI 3.0 name), ``start`` (a float for numeric
+    scalars, None when it has none or is not a number; ``raw_start`` as written), unit and value
+    reference (None until an FMU exists)."""
 
     name: str
     causality: str
