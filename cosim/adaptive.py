@@ -113,12 +113,12 @@ class AdaptiveStepper:
     order_p_linear, order_p_hold = 2.0, 1.0
     k_i, k_p = 0.7, 0.4
 
-    def __init__(self, system, order: Sequence[int], options: dict[str, float], h_init: float, stop_ns: int):
+    def __init__(self, system, order: Sequence[int], options: dict[str, float], start_ns: int, stop_ns: int):
         self.system = system
         self.order = list(order)
         self.opt = options
         self.stop_ns = stop_ns
-        self.t_ns = 0
+        self.t_ns = start_ns
         sysm, n = system, len(system.slaves)
         for s in sysm.slaves:
             if not s.can_rollback:
@@ -253,13 +253,13 @@ class AdaptiveStepper:
         return True
 
 
-def run_adaptive(system, *, stop_ns: int, h_init: float, options: dict | None, order: Sequence[int],
+def run_adaptive(system, *, start_ns: int = 0, stop_ns: int, options: dict | None, order: Sequence[int],
                  observers: Sequence = (), progress: Callable[[int, int], None] | None = None,
                  stats=None) -> AdaptiveStepper:
     """Step an initialised ``system`` to ``stop_ns`` (see the module docstring), recording every
     accepted step to ``observers``; ``stats`` (a :class:`cosim.master.RunStats`) is filled in."""
     opts = option_values(options)
-    stepper = AdaptiveStepper(system, order, opts, h_init, stop_ns)
+    stepper = AdaptiveStepper(system, order, opts, start_ns, stop_ns)
     v, idx = system.v, system.record_idx
     rows = np.empty((256, 1 + len(idx)))
     n = 0
@@ -277,13 +277,13 @@ def run_adaptive(system, *, stop_ns: int, h_init: float, options: dict | None, o
             n = 0
         now = time.perf_counter()
         if progress and now - last_progress > 0.1:
-            progress(stepper.t_ns, stop_ns)
+            progress(stepper.t_ns - start_ns, stop_ns - start_ns)
             last_progress = now
     if n:
         for obs in observers:
             obs.record(rows[:n])
     if progress:
-        progress(stepper.t_ns, stop_ns)
+        progress(stepper.t_ns - start_ns, stop_ns - start_ns)
     if stats is not None:
         stats.wall_s = time.perf_counter() - t_loop
     return stepper
@@ -322,11 +322,12 @@ class Adaptive(Algorithm):
 def simulate_variable(system, cls, *, step_ns: int, n_steps: int, observers: Sequence = (),
                       start_values: Sequence[dict[str, float]] | None = None, order: Sequence[int] | None = None,
                       progress: Callable[[int, int], None] | None = None, meta: dict | None = None,
-                      options: dict | None = None, **_ignored):
+                      options: dict | None = None, start_ns: int = 0,
+                      tolerances: Sequence[float | None] | None = None, **_ignored):
     """:func:`cosim.master.simulate` for a variable-step algorithm: initialise, run
     :func:`run_adaptive` to ``n_steps * step_ns`` (the scene's stop time; ``step_ns`` is the first
     step tried) and report to the observers as the fixed-step loop does."""
-    stop_ns = n_steps * step_ns
+    stop_ns = start_ns + n_steps * step_ns
     stats = VariableStats(cls.name, "python", step_ns / 1e9, n_steps)
     columns = ["time"] + system.record_names
     opts = option_values(options)
@@ -335,13 +336,14 @@ def simulate_variable(system, cls, *, step_ns: int, n_steps: int, observers: Seq
     status, reason, stepper = "failed", "", None
     try:
         t0 = time.perf_counter()
-        initialize(system, start_values or [{} for _ in system.slaves], stop_time=stop_ns / 1e9)
+        initialize(system, start_values or [{} for _ in system.slaves], start_time=start_ns / 1e9,
+                   stop_time=stop_ns / 1e9, tolerances=tolerances)
         seq = list(order) if order is not None else gauss_seidel_order(len(system.slaves), system.slave_edges())
         stats.init_s = time.perf_counter() - t0
-        row0 = np.concatenate([[0.0], system.v[system.record_idx]])[None, :]
+        row0 = np.concatenate([[start_ns / 1e9], system.v[system.record_idx]])[None, :]
         for obs in observers:
             obs.record(row0)
-        stepper = run_adaptive(system, stop_ns=stop_ns, h_init=step_ns / 1e9, options=opts, order=seq,
+        stepper = run_adaptive(system, start_ns=start_ns, stop_ns=stop_ns, options=opts, order=seq,
                                observers=observers, progress=progress, stats=stats)
         status, reason = ("ok", "") if stepper.status == "running" else (stepper.status, stepper.message)
     except KeyboardInterrupt:
