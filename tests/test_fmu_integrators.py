@@ -189,6 +189,37 @@ def test_radau_reports_non_convergence_instead_of_a_wrong_state(substeps):
     assert abs(float(xn) - exact) < (3e-4 if substeps == 1 else 1e-8)
 
 
+def cubic_block(k: float = 10.0) -> Block:
+    """``z' = -k z^3`` from ``z = 1`` (exact ``1/sqrt(1 + 2 k t)``)."""
+    p, x = ca.SX.sym("p", 1), ca.SX.sym("x", 1)
+    return Block.build("cubic", params=[Param("k", k)], inputs=[], outputs=[Var("y")], states=[Var("z")],
+                       p=p, u=ca.SX.sym("u", 0), x=x, ode=-p[0] * x ** 3, out=x, start=ca.DM([1.0]),
+                       integrator="radau")
+
+
+@pytest.mark.parametrize("ratio", [0.98, 1.02])
+def test_radau_accepts_a_step_exactly_up_to_its_tolerance(ratio):
+    """The acceptance threshold itself: ``ok`` iff the error estimate ``err`` is at most 1.
+
+    One simplified-Newton iteration (``max_iter=1``) leaves a stage error that does not depend on
+    the tolerance (the iteration is affine invariant), while ``err`` is that error over
+    ``atol`` (``rtol = 0``): so ``atol`` places ``err`` just below or just above 1.  Independently
+    of the kernel's own estimate, the step's true error -- its distance from the converged Radau
+    step -- is then about ``ratio * atol``: a step is accepted exactly when it is within its
+    tolerance.  (Relies on ``radau_kernel(block, rtol=, atol=, max_iter=)`` returning
+    ``(x_next, ok, err)``.)"""
+    blk, args = cubic_block(), ([1.0], [], [10.0], 0.1, [])
+    _, _, err_ref = I.radau_kernel(blk, max_iter=1, rtol=0.0, atol=1e-10)(*args)
+    atol = 1e-10 * float(err_ref) / ratio
+    xn, ok, err = I.radau_kernel(blk, max_iter=1, rtol=0.0, atol=atol)(*args)
+    assert float(err) == pytest.approx(ratio, rel=1e-6)
+    assert float(ok) == (1.0 if ratio < 1 else 0.0)
+    converged, ok_c, _ = I.radau_kernel(blk)(*args)
+    assert float(ok_c) == 1.0
+    true_ratio = abs(float(xn) - float(converged)) / atol
+    assert 0.5 * ratio < true_ratio < 2.0 * ratio, true_ratio
+
+
 def test_radau_discards_a_step_too_large_for_simplified_newton():
     """A stiff, strongly nonlinear step (the state falls 80 % within the step) defeats the
     simplified Newton iteration: the kernel must say so, not return an unconverged state."""
