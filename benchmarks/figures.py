@@ -6,7 +6,7 @@ the values themselves, so every figure the README quotes comes from a command.  
 tests' helpers (the Lagrange formulation, the virtual-work error measure) rather than writing
 those equations a second time.
 
-    python benchmarks/figures.py            # models: thesis tables, Lagrange, stiffness series (~20 s)
+    python benchmarks/figures.py            # models: thesis tables (Ch. 4-7), Lagrange, stiffness series (~30 s)
     python benchmarks/figures.py --scenes   # also the scenes: pid_step, multibody, vw_compare (~2 min)
 """
 from __future__ import annotations
@@ -57,7 +57,28 @@ def models_figures() -> None:
         worst = max(worst, np.abs(V.inverse_dynamics(cross, q, qd, qdd) - ref).max() / np.abs(ref).max())
     print(f"virtual work against Lagrange's equations ({len(STATES)} random states): max relative "
           f"difference {worst:.1e}")
+    chapter_4_figures()
     stiffness_series()
+
+
+def chapter_4_figures() -> None:
+    """Tables 4.5 and 4.9 against the thesis (the values themselves: ``rpr-cosim analyze --study all``)."""
+    from models import analysis as A
+    from models import geometry as G
+    from test_analysis import RATIOS, TABLE_4_5, TABLE_4_9_HIGHEST_X, TABLE_4_9_HIGHEST_Y
+
+    rows = {name: A.table_4_5_row(G.preset(name)) for name in ("config1", "config2", "config3", "config4")}
+    for name, want in sorted(TABLE_4_5.items()):
+        got = np.array([rows[name][c] for c in A.SUMMARY_COLUMNS])
+        print(f"Table 4.5 {name}: max relative deviation over its 8 values {np.max(np.abs(got / want - 1)):.1e}")
+    print("Table 4.5 overall DSI of the singular designs (numerical zero): "
+          + ", ".join(f"{n} {rows[n]['mu_max']:.1e} (N = {rows[n].grid_n})" for n in ("config1", "config3")))
+    study = {r.ratio: r.summary for r in A.platform_size_study(RATIOS)}
+    for col, ref in (("mu_x_max", TABLE_4_9_HIGHEST_X), ("mu_y_max", TABLE_4_9_HIGHEST_Y)):
+        dev = max(abs(study[r][col] / ref[i] - 1) for i, r in enumerate(RATIOS))
+        print(f"Table 4.9 highest {col[3]} DSI over the 12 ratios: max relative deviation {100 * dev:.2f} %")
+    print(f"Table 4.9 highest overall DSI at ratio 0.1: {study[0.1]['mu_max']:.4g} on a "
+          f"{A.PLATFORM_STUDY_GRID}x{A.PLATFORM_STUDY_GRID} grid (thesis: 4.4563)")
 
 
 def stiffness_series() -> None:
@@ -91,6 +112,9 @@ def scene_figures(cache: Path) -> None:
     print("  at 5 s, from Table 6.12's end state: legs " + " / ".join(f"{1e3 * d:.2f}" for d in legs5)
           + f" mm, phi {abs(tr.at('mech.platform.phi', 5.0) - THESIS_END_POSE[2]):.4f} rad "
           f"(the thesis's band: {BAND_LEG * 1e3:g} mm, {BAND_PHI:g} rad)")
+    print("  at 5 s, from the target: legs " + " / ".join(
+        f"{1e3 * abs(tr.at(f'mech.leg[{i}].s', 5.0) - tr.at(f'target.leg[{i}].s', 5.0)):.2f}" for i in LEGS)
+        + f" mm, phi {abs(tr.at('mech.platform.phi', 5.0) - TARGET_POSE[2]):.4f} rad")
     out = (leg_error(tr) > BAND_LEG) | (np.abs(phi - TARGET_POSE[2]) > BAND_PHI)
     print(f"  enters the thesis's band for good at {t[np.nonzero(out)[0][-1] + 1]:.2f} s")
     rigid = run(SCENES / "pid_step.yaml", [], cache_dir=cache).trace

@@ -162,6 +162,24 @@ def test_forward_kinematics_outside_stroke_is_empty():
     assert K.forward_kinematics(CROSS, [0.05, 0.3, 0.3]).shape == (0, 3)
 
 
+@pytest.mark.parametrize("limit", ["Lmin", "Lmax"])
+def test_a_leg_exactly_at_its_stroke_limit_is_inside_the_stroke(limit):
+    """SPEC §1: the stroke is the closed interval [0.10, 0.60] m.  A pose whose leg 1 is at the
+    limit to 1e-9 m (found by bisection along x) keeps its assembly modes with L1 set exactly to
+    the limit; a micrometre beyond, none."""
+    from scipy.optimize import brentq
+
+    bound = getattr(CROSS, limit)
+    y, lo, hi = (-0.15, 0.45, 0.5) if limit == "Lmax" else (0.05, -0.1, -0.05)  # the other legs well inside
+    x = brentq(lambda x: K.ik(CROSS, (x, y, 0.0))[0][0] - bound, lo, hi, xtol=1e-14)
+    L = np.array(K.ik(CROSS, (x, y, 0.0))[0], dtype=float)
+    assert abs(L[0] - bound) < 1e-9 and np.all((L[1:] > CROSS.Lmin) & (L[1:] < CROSS.Lmax))
+    L[0] = bound
+    assert len(K.forward_kinematics(CROSS, L)) >= 1
+    L[0] = bound + (1e-6 if limit == "Lmax" else -1e-6)
+    assert K.forward_kinematics(CROSS, L).shape == (0, 3)
+
+
 # --- numpy replay equals CasADi -------------------------------------------------------------------
 def test_numpy_map_equals_casadi_evaluation():
     x = np.linspace(-0.4, 0.2, 7)

@@ -68,7 +68,7 @@ def test_pid_step_reproduces_the_shape_of_table_6_10(pid_rigid):
 def test_pid_step_settles_on_the_target_within_the_thesis_band(pid_rigid):
     """The band is the thesis's (its bond graph's end state agrees with the target to 0.5 mm and
     0.003 rad).  The thesis's plant is inside it at 5 s; this rigid plant with the parallel gains
-    is not (SPEC §6: 2-3 mm / 0.01 rad short at 5 s) and enters it later: measured 8.05 s.
+    is not (SPEC §6: 2-3 mm / 0.01 rad off at 5 s) and enters it later: measured 8.05 s.
     Bounds below are the measured values with their margin stated, not the thesis's band."""
     tr = pid_rigid.trace
     t = tr.time
@@ -80,8 +80,8 @@ def test_pid_step_settles_on_the_target_within_the_thesis_band(pid_rigid):
     assert leg_error(tr)[-1] < 3e-5
     assert abs(tr["mech.platform.phi"][-1] - TARGET_POSE[2]) < 2e-4
     # at 5 s (the thesis's horizon), beside Table 6.12's end state: legs 1.15 / 0.49 / 2.63 mm and
-    # phi 0.0048 rad away (SPEC §6's "2-3 mm / 0.01 rad short"); bounds 1.3x measured, and phi at
-    # SPEC's 0.01 rad
+    # phi 0.0048 rad away (SPEC §6: the rigid plant ends 2-3 mm / 0.01 rad off at 5 s); bounds
+    # 1.3x measured, and phi at SPEC's 0.01 rad
     at5 = {n: tr.at(n, 5.0) for n in tr.names}
     for i, measured in zip(LEGS, (1.15e-3, 0.49e-3, 2.63e-3)):
         assert abs(at5[f"mech.leg[{i}].s"] - THESIS_END_LEGS[i - 1]) < 1.3 * measured, i
