@@ -266,6 +266,25 @@ def test_fmu_pair_with_linear_inputs_follows_the_conventions(fmu_paths, alg):
     assert np.abs(tr["m.body.s"] - exact).max() < np.abs(held["m.body.s"] - exact).max() / 20
 
 
+@pytest.mark.parametrize("engine", ["python", "compiled"])
+def test_a_slave_feeding_itself_extrapolates_its_own_output(fmu_paths, engine):
+    """Gauss-Seidel, linear inputs, the msd's position wired to its own force (a spring of
+    -1 N/m): the source has not stepped when the slave takes its input, so the input is
+    extrapolated -- ``s_k`` with slope ``(s_k - s_k-1) / h`` -- never interpolated."""
+    m = FmuSlave("m", fmu_paths[("msd", "2.0")])
+    system = CoupledSystem([m], [Link(0, "body.s", 0, "f")], [(0, "body.s")])
+    tr, st = run(system, "gauss_seidel", 1_000_000, 200, inputs="linear", engine=engine)
+    assert st.engine == engine
+    M = np.zeros((4, 4))
+    M[0, 1], M[1, 0], M[1, 1], M[1, 2], M[2, 3] = 1.0, -100.0, -2.0, 1.0, 1.0
+    E = scipy.linalg.expm(M * 1e-3)[:2]
+    x, s = np.array([0.01, 0.0]), [0.01]
+    for j in range(200):
+        x = E @ np.array([x[0], x[1], s[j], (s[j] - s[max(j - 1, 0)]) / 1e-3])
+        s.append(x[0])
+    np.testing.assert_allclose(tr["m.body.s"], s, rtol=0, atol=1e-12)
+
+
 @pytest.mark.parametrize("alg", ["jacobi", "gauss_seidel"])
 def test_linear_inputs_leave_fmi3_slaves_holding(fmu_paths, alg):
     """FMI 3.0 has no input derivatives: such slaves keep holding, bit for bit."""
