@@ -135,15 +135,16 @@ class Failing(LinearSlave):
         return super().do_step(t, h)
 
 
+@pytest.mark.parametrize("alg", ["jacobi", "gauss_seidel"])
 @pytest.mark.parametrize("status,expect", [(Status.DISCARD, "failed"), (Status.ERROR, "failed"),
                                            (Status.STOP_REQUESTED, "stopped")])
-def test_a_failing_slave_stops_the_run_and_keeps_the_partial_trace(tmp_path, status, expect):
+def test_a_failing_slave_stops_the_run_and_keeps_the_partial_trace(tmp_path, status, expect, alg):
     bad = Failing("bad", [[-1.0]], [[1.0]], [[1.0]], fail_at=7, status=status)
     ok = LinearSlave("ok", [[-2.0]], [[1.0]], [[1.0]], x0=[1.0])
     system = CoupledSystem([ok, bad], [Link(0, "y[1]", 1, "u[1]")], [(0, "y[1]"), (1, "y[1]")])
     csv = CsvTrace(tmp_path / "t.csv")
     mem = MemoryTrace()
-    stats = simulate(system, "gauss_seidel", step_ns=10_000_000, n_steps=100, observers=[mem, csv])
+    stats = simulate(system, alg, step_ns=10_000_000, n_steps=100, observers=[mem, csv])
     assert stats.status == expect and stats.steps_done == 6
     assert "bad" in stats.reason and "t = 0.06 s" in stats.reason
     if expect == "failed":
@@ -303,6 +304,8 @@ def test_a_diverging_fmu_discards_and_the_run_reports_it(tmp_path):
     assert st.status == "failed" and st.engine == "compiled"
     assert "stiff returned DISCARD" in st.reason and "non-finite" in st.reason
     assert 1 < st.steps_done < 1000 and len(tr.data) == st.steps_done + 1
+    # the failing step is the one after the last completed: from t = steps_done * h
+    assert f"in the step from t = {st.steps_done * 1e-3:.9g} s (step {st.steps_done})" in st.reason
 
 
 # --- Gauss-Seidel order on more than two slaves, both engines -------------------------------------
@@ -381,6 +384,17 @@ def test_gauss_seidel_steps_slaves_in_its_order_not_the_declaration_order(affine
 ])
 def test_gauss_seidel_order_cuts_the_fewest_connections(n, edges, order):
     assert gauss_seidel_order(n, edges) == order
+
+
+def test_gauss_seidel_order_of_a_large_group_follows_the_greedy_rule():
+    """Beyond seven slaves the order is greedy, by out-degree minus in-degree among the slaves
+    not yet placed: on a chain of nine closed by one connection back (at least one cut) that
+    rule finds the single cut."""
+    edges = [(k, k + 1) for k in range(8)] + [(8, 0)]
+    order = gauss_seidel_order(9, edges)
+    pos = {v: k for k, v in enumerate(order)}
+    assert sorted(order) == list(range(9))
+    assert sum(pos[a] > pos[b] for a, b in edges) == 1
 
 
 def test_gauss_seidel_order_cuts_the_fewest_connections_in_a_group_of_seven():
