@@ -373,6 +373,31 @@ def test_gauss_seidel_steps_slaves_in_its_order_not_the_declaration_order(affine
     assert np.abs(ring_exact(want, 30) - ring_exact(range(4), 30)).max() > 0.1
 
 
+# --- the compiled loop's own build -----------------------------------------------------------------
+@pytest.fixture
+def fresh_loop_library(tmp_path, monkeypatch):
+    """The loop library forgotten, with an empty cache under ``tmp_path``; forgotten again after."""
+    from cosim import fastloop
+
+    monkeypatch.setenv("RPR_COSIM_CACHE", str(tmp_path / "fmus"))
+    fastloop.library.cache_clear()
+    yield fastloop
+    fastloop.library.cache_clear()
+
+
+def test_the_compiled_loop_builds_into_an_empty_cache(fresh_loop_library, tmp_path):
+    dll = fresh_loop_library.library()
+    assert dll.rpr_run is not None
+    assert len(list((tmp_path / "master").glob("rpr_loop_*.so"))) == 1
+
+
+def test_without_a_c_compiler_the_compiled_loop_says_so(fresh_loop_library, monkeypatch):
+    monkeypatch.setenv("CC", "/nonexistent/cc")
+    with pytest.raises(UserError, match="needs a C compiler .*master.engine: python"):
+        fresh_loop_library.library()
+    assert not fresh_loop_library.available()
+
+
 # --- structure ---------------------------------------------------------------------------------
 @pytest.mark.parametrize("n,edges,order", [
     (3, [(0, 1), (1, 2)], [0, 1, 2]),
