@@ -91,6 +91,17 @@ def _new_number(v):
     return 1.0 if v == 0 else v * 10
 
 
+_SOURCES: dict[str, str] = {}
+
+
+def source(path: str) -> str:
+    """The module's text as it was when first read: mutants stay consistent with the scratch
+    copy even if the working tree changes during a run."""
+    if path not in _SOURCES:
+        _SOURCES[path] = (ROOT / path).read_text()
+    return _SOURCES[path]
+
+
 class _Sites(ast.NodeTransformer):
     """Walks a module in a fixed order; numbers every mutable node; with ``apply`` set, mutates
     only that node.  Skips docstrings, ``raise`` and ``assert`` statements and type annotations."""
@@ -177,7 +188,7 @@ SKIP_LINE = re.compile(r"perf_counter|_ns\(\)|now_ns|TICK|slave_ns|master_ns|\.n
 
 
 def python_mutants(path: str) -> list[Mutant]:
-    text = (ROOT / path).read_text()
+    text = source(path)
     lines = text.splitlines()
     sites = _Sites()
     sites.visit(ast.parse(text))
@@ -186,7 +197,7 @@ def python_mutants(path: str) -> list[Mutant]:
 
 
 def python_mutated(path: str, site: int) -> str:
-    tree = ast.parse((ROOT / path).read_text())
+    tree = ast.parse(source(path))
     tr = _Sites(apply=site)
     tree = ast.fix_missing_locations(tr.visit(copy.deepcopy(tree)))
     return ast.unparse(tree) + "\n"
@@ -202,7 +213,7 @@ _C_RULES = [(r"order\[c\]", "c"), (r"(?<=[\w)\]]) \+ (?=[\w(])", " - "), (r"(?<=
 def c_mutants(path: str) -> list[Mutant]:
     """Mutants of the C source held in the module's ``SOURCE = r\"\"\"...\"\"\"`` string, code lines
     only (no comments, preprocessor lines or declarations of types)."""
-    text = (ROOT / path).read_text()
+    text = source(path)
     start = text.index('SOURCE = r"""') + len('SOURCE = r"""')
     end = text.index('"""', start)
     out = []
@@ -231,7 +242,7 @@ def mutants_of(path: str) -> list[Mutant]:
 def mutated_text(m: Mutant) -> str:
     if m.site >= 0:
         return python_mutated(m.path, m.site)
-    text = (ROOT / m.path).read_text()
+    text = source(m.path)
     return text[:m.span[0]] + m.repl + text[m.span[1]:]
 
 
@@ -313,6 +324,8 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     equivalent = load_equivalent()
     repo = scratch_copy()
+    for p in paths:  # the modules exactly as the mutants were made from them
+        (repo / p).write_text(source(p))
     try:
         budget = {}
         for p in sorted({m.path for m in chosen}):
