@@ -453,8 +453,12 @@ def test_the_master_refuses_an_algebraic_loop_of_feedthrough_slaves():
     a = LinearSlave("a", [[-1.0]], [[1.0]], [[1.0]], [[1.0]])
     b = LinearSlave("b", [[-1.0]], [[1.0]], [[1.0]], [[1.0]])
     system = CoupledSystem([a, b], [Link(0, "y[1]", 1, "u[1]"), Link(1, "y[1]", 0, "u[1]")], [(0, "y[1]")])
+    mem = MemoryTrace()
     with pytest.raises(UserError, match=r"algebraic loop: .*a\.y\[1\] -> b\.u\[1\]"):
-        simulate(system, "jacobi", step_ns=1_000_000, n_steps=3)
+        simulate(system, "jacobi", step_ns=1_000_000, n_steps=3, observers=[mem])
+    # refused before any step: the observers hear so, with no step counted
+    assert mem.trace.status == "failed" and "algebraic loop" in mem.trace.reason
+    assert mem.trace.stats["steps_done"] == 0 and mem.trace.stats["steps_planned"] == 3
 
 
 def test_registry_suggests_the_closest_algorithm():
