@@ -78,6 +78,7 @@ def test_exact_discrete_solution_of_the_coupled_pair(alg, d):
     tr, stats = run(pair(d), alg, 50_000_000, 40)  # h = 0.05 s
     np.testing.assert_allclose(tr.data[:, 1:], expected(alg, 0.05, 40, d), rtol=0, atol=1e-14)
     assert stats.status == "ok" and stats.steps_done == 40
+    assert tr.meta["step"] == stats.step == 0.05 and tr.meta["algorithm"] == alg
     assert stats.slaves["a"]["do_step_calls"] == stats.slaves["b"]["do_step_calls"] == 40
 
 
