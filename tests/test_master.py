@@ -205,6 +205,20 @@ def test_compiled_loop_equals_the_python_loop_bit_for_bit(fmu_paths, alg, versio
     assert s2.slaves["m"]["do_step_calls"] == 500 and s2.slaves["m"]["wall_s"] > 0
 
 
+@pytest.mark.parametrize("every", [3, 7])
+def test_compiled_loop_records_every_nth_point_like_the_python_loop(fmu_paths, every):
+    """Recording every n-th communication point: the same rows (t = 0, n h, 2 n h, ...) in both
+    engines, and the same values as the every-point trace at those instants."""
+    py, _ = run(fmu_system(fmu_paths, "2.0", "2.0"), "gauss_seidel", 1_000_000, 100, engine="python",
+                record_every=every)
+    cc, _ = run(fmu_system(fmu_paths, "2.0", "2.0"), "gauss_seidel", 1_000_000, 100, engine="compiled",
+                record_every=every)
+    full, _ = run(fmu_system(fmu_paths, "2.0", "2.0"), "gauss_seidel", 1_000_000, 100, engine="compiled")
+    np.testing.assert_allclose(cc.time, np.arange(0, 101, every) * 1e-3, rtol=0, atol=1e-15)
+    assert np.array_equal(py.data, cc.data)
+    assert np.array_equal(cc.data, full.data[::every])
+
+
 @pytest.mark.parametrize("alg", ["jacobi", "gauss_seidel"])
 def test_fmu_pair_follows_the_conventions_on_a_linear_problem(fmu_paths, alg):
     """msd (Radau IIA, order 5: exact to ~1e-12 here) under f = -40 s from a gain FMU.  Gauss-Seidel
