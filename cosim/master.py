@@ -187,12 +187,20 @@ def gauss_seidel_order(n: int, edges: Iterable[tuple[int, int]]) -> list[int]:
 # --- the coupled system -----------------------------------------------------------------------
 @dataclass(frozen=True)
 class Link:
-    """A signal connection between slaves by index: ``slaves[src].src_var -> slaves[dst].dst_var``."""
+    """A signal connection between slaves by index: ``slaves[src].src_var -> slaves[dst].dst_var``,
+    optionally through a linear transformation ``dst = factor * src + offset`` (SSP's
+    LinearTransformation and unit conversions; the Python loop applies it in the gather)."""
 
     src: int
     src_var: str
     dst: int
     dst_var: str
+    factor: float = 1.0
+    offset: float = 0.0
+
+    @property
+    def transformed(self) -> bool:
+        return self.factor != 1.0 or self.offset != 0.0
 
 
 class CoupledSystem:
@@ -220,7 +228,7 @@ class CoupledSystem:
             if ln.src_var not in reads[ln.src]:
                 reads[ln.src].append(ln.src_var)
             ins[ln.dst].append((ln.dst_var, ln.src, ln.src_var))
-        source = {(ln.dst, ln.dst_var): (ln.src, ln.src_var) for ln in self.links}
+        source = {(ln.dst, ln.dst_var): (ln.src, ln.src_var) for ln in self.links if not ln.transformed}
         for i, var in record:
             if (i, var) in source:
                 continue  # recorded as the value of its source output
@@ -247,7 +255,17 @@ class CoupledSystem:
         self.out_buf = [self.v[o:o + len(r)] for o, r in zip(out_off, reads)]
         self.in_buf = [self.v[o:o + len(r)] for o, r in zip(in_off, ins)]
         self.record_names = [f"{names[i]}.{var}" for i, var in record]
+        for i, r in enumerate(ins):  # a transformed input is recorded as the value set on its slave
+            for j, (var, _, _) in enumerate(r):
+                self.index.setdefault((i, var), in_off[i] + j)
         self.record_idx = np.array([self.index[source.get((i, var), (i, var))] for i, var in record], dtype=np.int64)
+        #: per slave, (factor, offset) arrays of its inputs when any of its links is transformed
+        self.in_affine: list[tuple[np.ndarray, np.ndarray] | None] = [None] * n
+        for i, r in enumerate(ins):
+            lns = [next(ln for ln in self.links if ln.dst == i and ln.dst_var == var) for var, _, _ in r]
+            if any(ln.transformed for ln in lns):
+                self.in_affine[i] = (np.array([ln.factor for ln in lns]), np.array([ln.offset for ln in lns]))
+        self.transformed = any(a is not None for a in self.in_affine)
 
     @property
     def names(self) -> list[str]:
@@ -290,6 +308,16 @@ class CoupledSystem:
 
     def gather(self, i: int) -> None:
         np.take(self.v, self.in_src[i], out=self.in_buf[i])
+        if self.in_affine[i] is not None:
+            self.in_buf[i] *= self.in_affine[i][0]
+            self.in_buf[i] += self.in_affine[i][1]
+
+    def source_values(self, i: int) -> np.ndarray:
+        """Slave i's inputs as its sources give them now (transformations applied), a new array."""
+        vals = self.v[self.in_src[i]]
+        if self.in_affine[i] is not None:
+            vals = vals * self.in_affine[i][0] + self.in_affine[i][1]
+        return vals
 
 
 # --- algorithms -------------------------------------------------------------------------------
@@ -299,6 +327,8 @@ def _gatherer(system: CoupledSystem, i: int) -> Callable[[], None]:
     src = [int(x) for x in system.in_src[i]]
     if not src:
         return lambda: None
+    if system.in_affine[i] is not None:
+        return lambda: system.gather(i)
     if len(src) > 8:
         v, idx, buf = system.v, system.in_src[i], system.in_buf[i]
         return lambda: np.take(v, idx, out=buf)
@@ -365,7 +395,7 @@ class Algorithm(ABC):
         sysm, n = self.system, len(self.system.slaves)
         self.inputs = inputs
         self.slopes = [np.zeros(len(b)) for b in sysm.in_buf]
-        self.hist = [sysm.v[src].copy() for src in sysm.in_src]
+        self.hist = [sysm.source_values(i) for i in range(n)]
         self.fresh = [np.zeros(len(b), dtype=bool) for b in sysm.in_buf]
         self.interpolating = [False] * n
         if inputs == "hold":
@@ -677,6 +707,10 @@ def choose_engine(system: CoupledSystem, alg_cls: type[Algorithm], engine: str) 
     if engine == "python":
         return "python"
     native = alg_cls.native_code is not None and all(s.native() is not None for s in system.slaves)
+    if engine == "compiled" and system.transformed:
+        raise UserError("master.engine: compiled copies connections as they are; connections with a linear "
+                        "transformation (factor, offset) run in the Python loop: use master.engine: python or auto")
+    native = native and not system.transformed
     if engine == "compiled":
         if not native:
             raise UserError(f"master.engine: compiled needs FMU slaves and an algorithm with a compiled loop "

@@ -58,7 +58,7 @@ def build_components(scene: Scene, *, cache_dir: Path | None = None,
 def couple(scene: Scene, slaves: Sequence[Slave]) -> CoupledSystem:
     """The coupled system of ``scene`` over ``slaves`` (one per component, in scene order)."""
     index = {s.name: i for i, s in enumerate(slaves)}
-    links = [Link(index[c.src], c.src_var, index[c.dst], c.dst_var) for c in scene.connections]
+    links = [Link(index[c.src], c.src_var, index[c.dst], c.dst_var, c.factor, c.offset) for c in scene.connections]
     record = []
     for name in scene.outputs:
         comp, _, var = name.partition(".")
