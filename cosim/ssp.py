@@ -384,8 +384,8 @@ class _Reader:
         tree.where = self.loc(root)
         ok = self.unsupported(system)
         comps = self.components(system)
-        if comps is None or not ok:
-            return None
+        if not ok or any(p.severity == "error" for p in self.problems):
+            return None  # connections to a refused component would only repeat the reason
         for bind_el, binding in self.bindings(system, prefix_required=True):
             self.apply(binding, comps, bind_el, None)
         master, outputs, name = self.master(root, comps)
