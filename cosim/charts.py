@@ -87,8 +87,11 @@ def plot_run(trace: Trace, path: Path, title: str, *, units: Mapping[str, str] |
     nrow = -(-len(panels) // ncol)
     fig, axes = plt.subplots(nrow, ncol, figsize=(6 * ncol, 2.2 * nrow), sharex=True, squeeze=False)
     for ax, panel in zip(axes.flat, panels):
+        colour: dict[str, str] = {}
         for i, (name, dashed) in enumerate(panel.lines):
-            ax.plot(trace.time, trace[name], lw=1, ls="--" if dashed else "-",
+            c = colour.get((pairs or {}).get(name, ""), f"C{i}") if dashed else f"C{i}"
+            colour[name] = c  # a setpoint takes the colour of the signal it commands
+            ax.plot(trace.time, trace[name], lw=1, ls="--" if dashed else "-", color=c,
                     label=f"{name} (setpoint)" if dashed else name)
         ax.set_title(panel.title, fontsize=9)
         ax.set_ylabel(panel.ylabel, fontsize=8)
