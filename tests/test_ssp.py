@@ -269,3 +269,60 @@ def test_malformed_ssp_is_one_line_naming_the_element(kind, expected, foreign_fm
     assert len(problems) == 1, err
     assert expected in problems[0] and path.name in problems[0]
     assert not (tmp_path / "out").exists()
+
+
+# --- a linear transformation written in a scene, through the master and through an SSP --------
+TRANSFORM_SCENE = """\
+name: scaled
+stop_time: 0.01
+components:
+  sp:  {model: pose_setpoint, params: {x1: -0.2}}
+  ctl: {model: pid, params: {Kp: 500, Ki: 0, Kd: 0, u_max: 1000}, start: {measurement: 0.1}}
+connections:
+  - sp.leg[1].s -> ctl.setpoint * 2.0 + 0.005
+master: {algorithm: jacobi, step: 1e-3}
+outputs: ["sp.leg[1].s", ctl.y, ctl.setpoint]
+"""
+
+
+@pytest.mark.parametrize("through_ssp", [False, True])
+def test_scene_transformation_runs_in_the_python_loop(through_ssp, cache, tmp_path):
+    (tmp_path / "scaled.yaml").write_text(TRANSFORM_SCENE)
+    sc = load(tmp_path / "scaled.yaml")
+    assert (sc.connections[0].factor, sc.connections[0].offset) == (2.0, 0.005)
+    if through_ssp:
+        sc = load(export(sc, tmp_path / "scaled.ssp", cache_dir=cache))
+        assert (sc.connections[0].factor, sc.connections[0].offset) == (2.0, 0.005)
+    res = run(sc, cache_dir=cache)
+    assert res.ok and res.stats["engine"] == "python"
+    s, y = res.trace["sp.leg[1].s"], res.trace["ctl.y"]
+    assert np.allclose(y[1:], 500.0 * (2.0 * s[:-1] + 0.005 - 0.1), rtol=1e-12)
+    assert np.allclose(res.trace["ctl.setpoint"][1:], 2.0 * s[:-1] + 0.005, rtol=1e-12)
+
+
+@pytest.mark.parametrize("text, expected", [
+    ("sp.leg[1].s -> ctl.setpoint * two", "a transformation reads '* FACTOR + OFFSET'"),
+    ("sp.leg[1].s -> ctl.setpoint * 1e999", "a transformation reads '* FACTOR + OFFSET'"),
+])
+def test_scene_transformation_mistakes_are_named(text, expected, tmp_path):
+    (tmp_path / "bad.yaml").write_text(TRANSFORM_SCENE.replace("sp.leg[1].s -> ctl.setpoint * 2.0 + 0.005", text))
+    with pytest.raises(SceneError) as err:
+        load(tmp_path / "bad.yaml")
+    assert str(err.value).count("\n") == 0 and expected in str(err.value) and "bad.yaml:7" in str(err.value)
+
+
+def test_compiled_engine_refuses_a_transformation(cache, tmp_path):
+    (tmp_path / "scaled.yaml").write_text(TRANSFORM_SCENE)
+    with pytest.raises(SceneError.__mro__[1], match="linear transformation"):
+        run(tmp_path / "scaled.yaml", cache_dir=cache, engine="compiled")
+
+
+def test_cli_export_prints_the_path_and_keeps_an_existing_archive(cache, tmp_path, capsys):
+    dest = tmp_path / "p.ssp"
+    args = ["ssp", "export", str(SCENES / "pid_step.yaml"), "-o", str(dest), "--cache", str(cache)]
+    assert main(args) == 0
+    assert capsys.readouterr().out.strip() == str(dest)
+    assert main(args) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "exists" in err[0] and "--force" in err[0]
+    assert main(args + ["--force"]) == 0
