@@ -78,8 +78,12 @@ def scene_observers(scene: Scene, out_dir: Path | None, suffix: str = "") -> tup
 
 def scene_meta(scene: Scene) -> dict:
     """Trace metadata identifying the scene a run comes from."""
+    from .charts import units_of
+
+    units = units_of(scene)
     return {"scene": scene.name, "scene_file": str(scene.path) if scene.path else None, "scene_hash": scene.hash,
-            "stop_time": scene.stop_time, "output_interval": scene.master.record_every * scene.master.step}
+            "stop_time": scene.stop_time, "output_interval": scene.master.record_every * scene.master.step,
+            "units": {name: units.get(name, "") for name in scene.outputs}}
 
 
 def run(scene: Scene | str | Path, overrides: Mapping[str, Any] | Sequence[str] | None = None, *,

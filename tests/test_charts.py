@@ -87,3 +87,14 @@ def test_cli_run_plot_writes_the_chart(tmp_path, cache):
     assert main(["run", str(SCENES / "pid_step.yaml"), "--set", "stop_time=0.02", "--plot", "--out", str(out),
                  "--cache", str(cache)]) == 0
     assert (out / "pid_step.png").stat().st_size > 10_000
+
+
+def test_traces_carry_units_for_compare(tmp_path, cache):
+    from cosim.trace import read_trace
+
+    out = tmp_path / "run"
+    assert main(["run", str(SCENES / "pid_step.yaml"), "--set", "stop_time=0.01", "--out", str(out),
+                 "--cache", str(cache)]) == 0
+    tr = read_trace(out / "pid_step.csv")
+    assert tr.meta["units"]["mech.leg[1].s"] == "m" and tr.meta["units"]["motor2.i"] == "A"
+    assert set(tr.meta["units"]) == set(tr.names)
