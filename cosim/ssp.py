@@ -32,7 +32,6 @@ from __future__ import annotations
 
 import hashlib
 import json
-import math
 import os
 import tempfile
 import zipfile
@@ -365,8 +364,9 @@ class _Reader:
         """``member`` extracted under the FMU cache (``ssp/<archive hash>/``), once."""
         from fmus import cache_root
 
-        digest = hashlib.sha256(self.path.read_bytes()).hexdigest()[:16]
-        dest = cache_root(self.cache_dir) / "ssp" / digest / member
+        if not hasattr(self, "digest"):
+            self.digest = hashlib.sha256(self.path.read_bytes()).hexdigest()[:16]
+        dest = cache_root(self.cache_dir) / "ssp" / self.digest / member
         if not dest.is_file():
             dest.parent.mkdir(parents=True, exist_ok=True)
             fd, tmp = tempfile.mkstemp(dir=dest.parent)
