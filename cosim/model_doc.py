@@ -50,6 +50,7 @@ class Info:
     feedthrough: dict[str, list[str]]
     integrator: str
     options: list[tuple[str, str, str]] = field(default_factory=list)  # name, default, description
+    from_file: bool = False  # an FMU file: flanges are not declared in a modelDescription
 
 
 def _integrator(block) -> str:
@@ -119,7 +120,7 @@ def fmu_info(path: Path | str) -> Info:
     return Info(path.name, md.description or md.modelName,
                 [var(v) for v in md.modelVariables if v.causality == "input"],
                 [var(v) for v in md.modelVariables if v.causality == "output"],
-                [var(v) for v in locals_], params, [], desc.feedthrough, integrator)
+                [var(v) for v in locals_], params, [], desc.feedthrough, integrator, from_file=True)
 
 
 # --- rendering --------------------------------------------------------------------------------
@@ -150,6 +151,8 @@ def text(info: Info) -> str:
     if info.flanges:
         lines.append("  flanges:")
         lines += [f"    {n}: effort {e}, flow {f}; computes the {c.split('_')[0]} ({c})" for n, e, f, c in info.flanges]
+    elif info.from_file:
+        lines.append("  flanges: not declared in an FMU file (a catalog model lists its own)")
     ft = _ft(info)
     lines.append("  direct feedthrough: " + ("; ".join(ft) if ft else "none"))
     lines.append(f"  parameters: {len(info.params)}")
