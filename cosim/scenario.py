@@ -13,6 +13,7 @@ Format (every key but ``components`` and ``connections`` optional; lines startin
     connections:
       - target.leg[1].s -> pid1.setpoint        # signal: output -> input
       - motor1.flange <-> mech.leg[1]           # power bond between two flanges
+      - mech.leg[1].s -> pid1.measurement * 1000 + 0.5   # signal through a linear transformation
     master: {algorithm: gauss_seidel, step: 1e-3, order: [target, pid1, motor1, mech],
              engine: auto, output_interval: 1e-3}
     outputs: ["mech.platform.*", "mech.leg[*].f"]   # fnmatch over "component.variable"
