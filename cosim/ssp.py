@@ -7,7 +7,7 @@ Export (:func:`export`) writes one FMU per distinct component binary under ``res
 scene's parameters and start values as one system-level parameter set ``resources/<scene>.ssv``
 (hierarchical names ``component.variable``), every signal connection (a power bond becomes its two
 signals, each tagged with an ``org.rpr-cosim.bond`` annotation), the units the connectors and
-parameters use with their SI base units, ``DefaultExperiment`` (start 0, the scene's stop time)
+parameters use with their SI base units, ``DefaultExperiment`` (the scene's start and stop times)
 and, as an ``org.rpr-cosim.master`` annotation of the default experiment, our master settings
 (algorithm, step, input mode, output interval, order, engine) and the recorded outputs.  Both XML
 files are validated against the SSP 1.0 schemas that FMPy ships before the archive is written.
@@ -26,7 +26,7 @@ Refused at load with the element named (one line each): a missing or malformed `
 violation, nested systems, signal dictionaries, non-FMU or model-exchange components, a component
 source not in the archive, a connector that the FMU does not have or with the wrong kind,
 connections to the system's own connectors, Boolean/Integer/Enumeration mappings, parameter
-mappings, non-Real parameter values, units that do not convert, a start time other than 0.
+mappings, non-Real parameter values, units that do not convert.
 """
 from __future__ import annotations
 
@@ -232,7 +232,8 @@ def ssd_document(scene, fmu_sources: dict[str, str], ssv_source: str):
                 ann = etree.SubElement(anns, _q("ssc", "Annotation"), type=BOND_ANNOTATION)
                 etree.SubElement(ann, _q("rpr", "Bond"), bond=c.bond, nsmap={"rpr": NS["rpr"]})
     _units_xml(root, units, "ssd")
-    exp = etree.SubElement(root, _q("ssd", "DefaultExperiment"), startTime="0.0", stopTime=_num(scene.stop_time))
+    exp = etree.SubElement(root, _q("ssd", "DefaultExperiment"), startTime=_num(getattr(scene, "start_time", 0.0)),
+                           stopTime=_num(scene.stop_time))
     m = scene.master
     attrs = {"algorithm": m.algorithm, "step": _num(m.step), "inputs": m.inputs, "engine": m.engine,
              "outputInterval": _num(m.record_every * m.step), "scene": scene.name}
@@ -403,6 +404,9 @@ class _Reader:
             stop = 1.0
         tree["stop_time"] = stop
         tree.locs["stop_time"] = self.loc(exp if exp is not None else root)
+        if exp is not None and exp.get("startTime") is not None and float(exp.get("startTime")) != 0.0:
+            tree["start_time"] = float(exp.get("startTime"))
+            tree.locs["start_time"] = self.loc(exp)
         cmap = YMap()
         cmap.where = self.loc(system)
         for cname, (el, spec, _) in comps.items():
@@ -644,9 +648,6 @@ class _Reader:
         from .scenario import YList, YMap
 
         exp = root.find("ssd:DefaultExperiment", NS)
-        if exp is not None and float(exp.get("startTime", 0.0)) != 0.0:
-            self.err(exp.sourceline, f"DefaultExperiment startTime = {exp.get('startTime')}: rpr-cosim runs start "
-                                     f"at 0 s")
         ann = root.find(f"ssd:DefaultExperiment/ssd:Annotations/ssc:Annotation[@type='{MASTER_ANNOTATION}']/rpr:Master",
                         NS)
         node = YMap()
