@@ -6,12 +6,12 @@ The trace streams to ``DIR/<scene>.csv`` (default ``DIR`` = ``runs/<scene>``) wi
 ``<scene>.json``; a progress bar goes to stderr for long runs and a summary table (per-slave
 steps and time, real-time factor, final values) to stdout.  A scene with problems prints one
 line per problem (``file:line: error: ...``) and exits with code 2; a run that fails or is
-stopped keeps its partial trace and exits with code 1.
+interrupted keeps its partial trace and exits with code 1; a run that a component asked to stop
+(FMI terminate request) ends with its last point recorded, "stopped by C at t", and code 0.
 """
 from __future__ import annotations
 
 import argparse
-import re
 import sys
 from pathlib import Path
 
@@ -66,7 +66,9 @@ def _run(args: argparse.Namespace) -> int:
         raise
     _summary(res)
     if args.plot and len(res.trace.data):
-        _say(f"plot: {_plot(res.trace, out / f'{scene.name}.png', scene.name)}")
+        from .charts import plot_run, setpoint_pairs, units_of
+
+        _say(f"plot: {plot_run(res.trace, out / f'{scene.name}.png', scene.name, units=units_of(scene, res.fmus), pairs=setpoint_pairs(scene))}")
     if args.animate and len(res.trace.data):
         from .animate import animate, manipulator_for, pose_component
 
@@ -76,6 +78,9 @@ def _run(args: argparse.Namespace) -> int:
         _say(f"animation: {animate(res.trace, out / f'{scene.name}.gif', manipulator=m, component=comp, title=scene.name)}")
     if args.reference:
         _reference(scene, res, out, args.plot)
+    if res.status == "stopped":  # a component asked to end the simulation: a normal end (FMI)
+        _say(f"rpr-cosim run: {res.reason}")
+        return 0
     if not res.ok:
         _say(f"rpr-cosim run: {res.status}: {res.reason}")
         return 1
@@ -97,7 +102,9 @@ def _reference(scene, res, out: Path, plot: bool) -> None:
         print("co-simulation against the reference:")
         print(format_table(diffs, most=12))
         if plot:
-            _say(f"plot: {plot_comparison(res.trace, ref.trace, diffs, out / f'{scene.name}_vs_reference.png', labels=(scene.master.algorithm, 'reference'))}")
+            from .charts import units_of
+
+            _say(f"plot: {plot_comparison(res.trace, ref.trace, diffs, out / f'{scene.name}_vs_reference.png', labels=(scene.master.algorithm, 'reference'), units=units_of(scene, res.fmus))}")
 
 
 def _describe(scene) -> None:
@@ -105,7 +112,7 @@ def _describe(scene) -> None:
           f"({len(scene.bonds)} bonds), {scene.master.algorithm} at {scene.master.step:g} s, "
           f"stop {scene.stop_time:g} s ({scene.n_steps} steps)")
     for name, c in scene.components.items():
-        extra = ", ".join(f"{k}={v:g}" for k, v in c.start_values().items())
+        extra = ", ".join(f"{k}={v:g}" if isinstance(v, float) else f"{k}={v}" for k, v in c.start_values().items())
         print(f"  {name:<12} {c.label:<28} {extra}")
     for c in scene.connections:
         print(f"  {c}" + (f"   [bond {c.bond}]" if c.bond else ""))
@@ -137,38 +144,3 @@ def _summary(res) -> None:
             print(f"    {k:<{width}} {v: .6g}")
     if res.trace_path:
         print(f"  trace: {res.trace_path}")
-
-
-def _plot(trace, path: Path, title: str) -> Path:
-    """One subplot per group of like variables (``pid1.y``, ``pid2.y`` together; ``leg[1..3].s`` together)."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    groups: dict[str, list[str]] = {}
-    for name in trace.names:
-        key = re.sub(r"\[\d+\]", "[*]", re.sub(r"^([A-Za-z_]+?)\d+\.", r"\1*.", name))
-        groups.setdefault(key, []).append(name)
-    keys = list(groups)[:24]
-    ncol = 2 if len(keys) > 1 else 1
-    nrow = -(-len(keys) // ncol)
-    fig, axes = plt.subplots(nrow, ncol, figsize=(6 * ncol, 2.2 * nrow), sharex=True, squeeze=False)
-    for ax, key in zip(axes.flat, keys):
-        for name in groups[key]:
-            ax.plot(trace.time, trace[name], lw=1, label=name)
-        ax.set_title(key, fontsize=9)
-        ax.grid(alpha=0.3)
-        if len(groups[key]) > 1:
-            ax.legend(fontsize=7, loc="best")
-    for ax in list(axes.flat)[len(keys):]:
-        ax.set_visible(False)
-    for ax in axes[-1]:
-        ax.set_xlabel("time [s]")
-    fig.suptitle(title)
-    fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=90)
-    plt.close(fig)
-    return path
-

@@ -58,7 +58,7 @@ def build_components(scene: Scene, *, cache_dir: Path | None = None,
 def couple(scene: Scene, slaves: Sequence[Slave]) -> CoupledSystem:
     """The coupled system of ``scene`` over ``slaves`` (one per component, in scene order)."""
     index = {s.name: i for i, s in enumerate(slaves)}
-    links = [Link(index[c.src], c.src_var, index[c.dst], c.dst_var) for c in scene.connections]
+    links = [Link(index[c.src], c.src_var, index[c.dst], c.dst_var, c.factor, c.offset) for c in scene.connections]
     record = []
     for name in scene.outputs:
         comp, _, var = name.partition(".")
@@ -78,8 +78,13 @@ def scene_observers(scene: Scene, out_dir: Path | None, suffix: str = "") -> tup
 
 def scene_meta(scene: Scene) -> dict:
     """Trace metadata identifying the scene a run comes from."""
+    from .charts import units_of
+
+    units = units_of(scene)
     return {"scene": scene.name, "scene_file": str(scene.path) if scene.path else None, "scene_hash": scene.hash,
-            "stop_time": scene.stop_time, "output_interval": scene.master.record_every * scene.master.step}
+            "start_time": scene.start_time, "stop_time": scene.stop_time,
+            "output_interval": scene.master.record_every * scene.master.step,
+            "units": {name: units.get(name, "") for name in scene.outputs}}
 
 
 def run(scene: Scene | str | Path, overrides: Mapping[str, Any] | Sequence[str] | None = None, *,
@@ -113,7 +118,8 @@ def run(scene: Scene | str | Path, overrides: Mapping[str, Any] | Sequence[str] 
     t0 = time.perf_counter()
     if slaves is None:
         paths = build_components(scene, cache_dir=cache_dir, progress=log)
-        slaves = [FmuSlave(name, paths[name]) for name in scene.components]
+        slaves = [FmuSlave(name, paths[name], c.description if c.kind == "fmu" else None)
+                  for name, c in scene.components.items()]
     else:
         paths = {}
         if [s.name for s in slaves] != list(scene.components):
@@ -131,7 +137,9 @@ def run(scene: Scene | str | Path, overrides: Mapping[str, Any] | Sequence[str] 
                      record_every=scene.master.record_every, observers=observers,
                      start_values=[c.start_values() for c in scene.components.values()],
                      engine=engine or scene.master.engine, order=order, progress=progress, meta=meta,
-                     inputs=scene.master.inputs)
+                     inputs=scene.master.inputs, start_ns=scene.start_ns,
+                     tolerances=[c.description.default_experiment.get("tolerance")
+                                 for c in scene.components.values()])
     return RunResult(scene, stats.status, stats.reason, memory.trace, stats.as_dict(), paths, trace_path, build_s)
 
 
