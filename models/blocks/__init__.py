@@ -11,6 +11,7 @@ the bad name, with the closest valid name as a suggestion.
 | ``dc_motor`` | ``full``, ``quasistatic``, ``ideal`` | :mod:`.motor` |
 | ``pid`` | ``continuous``, ``discrete`` | :mod:`.pid` |
 | ``pose_setpoint`` | ``default`` | :mod:`.setpoint` |
+| ``linear_actuator`` | ``rig``, ``single`` | :mod:`.actuator` |
 """
 from __future__ import annotations
 
@@ -20,7 +21,7 @@ from dataclasses import dataclass
 from typing import Any, Callable
 
 from ..block import Block, BlockError
-from . import mechanism, motor, pid, setpoint
+from . import actuator, mechanism, motor, pid, setpoint
 from ._common import CONFIG, SUBSTEPS, Option, integrator_option, positive_float, suggest
 
 
@@ -39,6 +40,8 @@ def _entries() -> dict[str, dict[str, _Entry]]:
     rotor = Option("rotor", "lumped", "rotor inertia: 'lumped' (DESIGN option (b), inertia-free motor; lump "
                                       "m_reflected into the mechanism's leg[i].m_act) or 'state' (option (a): rotor "
                                       "state and a stiff spring-damper bond)", choices=motor.ROTOR)
+    act = Option("actuator", "fa200", "actuator preset giving the parameter defaults: Firgelli FA-200-L-12 or "
+                                      "the thesis's 'X' actuator", choices=tuple(actuator.ACTUATORS))
     return {
         "mechanism": {
             "rigid": _Entry(mechanism.rigid, (CONFIG, integrator_option("rk4"), SUBSTEPS)),
@@ -57,6 +60,10 @@ def _entries() -> dict[str, dict[str, _Entry]]:
         "pose_setpoint": {
             "default": _Entry(setpoint.pose_setpoint, (CONFIG, Option("profile", "step", "trajectory profile",
                                                                       choices=setpoint.PROFILES))),
+        },
+        "linear_actuator": {
+            "rig": _Entry(actuator.rig, (act, integrator_option("rk4"), SUBSTEPS)),
+            "single": _Entry(actuator.single, (act, integrator_option("rk4"), SUBSTEPS)),
         },
     }
 
