@@ -131,7 +131,7 @@ def run(scene: Scene | str | Path, overrides: Mapping[str, Any] | Sequence[str] 
                      record_every=scene.master.record_every, observers=observers,
                      start_values=[c.start_values() for c in scene.components.values()],
                      engine=engine or scene.master.engine, order=order, progress=progress, meta=meta,
-                     inputs=scene.master.inputs)
+                     inputs=scene.master.inputs, realtime=scene.master.realtime)
     return RunResult(scene, stats.status, stats.reason, memory.trace, stats.as_dict(), paths, trace_path, build_s)
 
 

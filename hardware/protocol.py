@@ -131,7 +131,8 @@ def new_nonce() -> bytes:
 # --- keys -------------------------------------------------------------------------------------
 def write_key(path: Path | str) -> Path:
     """Create a new random key file (hex, owner-only permissions 0600); never overwrites."""
-    path = Path(path)
+    path = Path(path).expanduser()
+    path.parent.mkdir(parents=True, exist_ok=True, mode=0o700)
     fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
     with os.fdopen(fd, "w") as fh:
         fh.write(os.urandom(KEY_LEN).hex() + "\n")
@@ -141,7 +142,7 @@ def write_key(path: Path | str) -> Path:
 
 def read_key(path: Path | str) -> bytes:
     """The key in ``path`` (64 hex digits); ValueError naming the file otherwise."""
-    path = Path(path)
+    path = Path(path).expanduser()
     try:
         text = path.read_text().strip()
     except OSError as exc:
