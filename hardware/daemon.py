@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import logging
 import math
+import os
 import select
 import signal
 import socket
@@ -93,6 +94,8 @@ class Daemon:
         self.tick_ns = int(round(1e9 / rate))
         self.safety = safety or Safety()
         self.legs = [_Leg(f) for f in resolve(self.root, pins)]
+        # the ADC channels stay open: pread at offset 0 makes sysfs convert again (no open per tick)
+        self._adc_fd = [os.open(leg.files.adc, os.O_RDONLY) for leg in self.legs]
         self.state = P.IDLE
         self.faults = 0
         self.session: Session | None = None
@@ -177,11 +180,11 @@ class Daemon:
     # --- sensing ---------------------------------------------------------------------------------
     def _sample(self, now: int) -> None:
         s = self.safety
-        for i, leg in enumerate(self.legs, start=1):
+        for i, (leg, fd) in enumerate(zip(self.legs, self._adc_fd), start=1):
             try:
-                leg.raw = read_int(leg.files.adc)
+                leg.raw = int(os.pread(fd, 16, 0))
                 leg.raw_ok_ns = now
-            except (PinError, ValueError):
+            except (OSError, ValueError):
                 if leg.raw_ok_ns and now - leg.raw_ok_ns > s.adc_stale_s * 1e9:
                     self._fault(P.F_ADC_STALE, f"leg {i}: ADC unreadable for {(now - leg.raw_ok_ns) / 1e6:.0f} ms")
                 continue
@@ -382,6 +385,9 @@ class Daemon:
                     pass
         finally:
             self.sock.close()
+            for fd in self._adc_fd:
+                os.close(fd)
+            self._adc_fd = []
             log.info("daemon stopped; counters %s", self.counters)
 
 

@@ -56,7 +56,7 @@ def board(tmp_path):
     key = os.urandom(32)
     d = daemon.Daemon(key, root=tree, listen=("127.0.0.1", 0), rate=1000.0)
     yield d, Master(d, key), tree
-    d.sock.close()
+    d.close()
 
 
 def outputs(d: daemon.Daemon) -> list[tuple[int, int]]:
