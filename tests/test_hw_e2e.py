@@ -44,7 +44,7 @@ def virtual_board(tmp_path_factory):
     key = P.write_key(d / "board.key")
     cmd = [sys.executable, "-m", "cosim", "board", "virtual", "--key", str(key), "--listen", "127.0.0.1:0"]
     if PRIORITY:
-        cmd += ["--rt-priority", str(PRIORITY)]
+        cmd += ["--rt-priority", str(PRIORITY + 10)]  # the board (safety) above the loop
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, text=True, env=dict(os.environ, PYTHONPATH=str(ROOT)))
     line = proc.stdout.readline()
     assert "listening on" in line, line
