@@ -105,23 +105,45 @@ def test_missing_board_is_an_fmi_error_not_a_hang(hil_fmu, tmp_path, board):
 
 
 def test_board_fault_is_an_fmi_error_with_the_reason(hil_fmu, keyfile, tmp_path):
+    from fmpy.fmi2 import FMU2Slave, defaultCallbacks, fmi2CallbackFunctions, fmi2CallbackLoggerTYPE
+
     tree = faketree.make_fake_tree(tmp_path / "tree")  # nothing moves the ADC: driving looks stuck
     d = daemon.Daemon(P.read_key(keyfile), root=tree, listen=("127.0.0.1", 0))
-    th = threading.Thread(target=d.serve_forever, args=(10.0,), daemon=True)
+    th = threading.Thread(target=d.serve_forever, args=(20.0,), daemon=True)
     th.start()
+    md = fmpy.read_model_description(hil_fmu)
+    vr = {v.name: v.valueReference for v in md.modelVariables}
     messages = []
-    inp = np.array([(0.0, 12.0, 0.0, 0.0)], dtype=[("time", float), ("leg[1].u", float), ("leg[2].u", float),
-                                                    ("leg[3].u", float)])
+    cb = fmi2CallbackFunctions()
+    cb.logger = fmi2CallbackLoggerTYPE(lambda env, name, status, cat, msg: messages.append(msg.decode()))
+    cb.allocateMemory, cb.freeMemory = defaultCallbacks.allocateMemory, defaultCallbacks.freeMemory
+    fmu = FMU2Slave(guid=md.guid, unzipDirectory=fmpy.extract(hil_fmu), modelIdentifier="rpr_hil_board",
+                    instanceName="rig")
+    fmu.instantiate(callbacks=cb)
+    error, steps = None, 0
     try:
+        fmu.setString([vr["address"]], [f"127.0.0.1:{d.address[1]}"])
+        fmu.setReal([vr["timeout"]], [0.2])
+        fmu.setupExperiment(startTime=0.0)
+        fmu.enterInitializationMode()
+        fmu.exitInitializationMode()
+        fmu.setReal([vr["leg[1].u"]], [12.0])
         t0 = time.monotonic()
-        with pytest.raises(Exception, match="status 3"):
-            fmpy.simulate_fmu(hil_fmu, stop_time=1e4, step_size=1e-3, input=inp,
-                              start_values={"address": f"127.0.0.1:{d.address[1]}", "timeout": 0.2},
-                              logger=lambda *a: messages.append(str(a[-1])))
-        assert time.monotonic() - t0 < 5.0
+        while time.monotonic() - t0 < 5.0:
+            try:
+                fmu.doStep(steps * 1e-3, 1e-3)
+            except Exception as exc:  # fmpy's FMICallException
+                error = exc
+                break
+            steps += 1
+            time.sleep(1e-3)
+        state, fault = fmu.getReal([vr["state"], vr["fault"]])
     finally:
+        fmu.terminate()
+        fmu.freeInstance()
         d.stop()
         th.join()
-    assert d.faults & P.F_ADC_STUCK
-    assert any("fault (position stuck while driven)" in m for m in messages)
+    assert error is not None and "status 3" in str(error)
+    assert steps > 0 and d.faults & P.F_ADC_STUCK and state == P.FAULT and int(fault) & P.F_ADC_STUCK
+    assert any("is in fault (position stuck while driven)" in m for m in messages)
     assert [leg.files.duty.read_text() for leg in d.legs] == ["0", "0", "0"]
