@@ -225,7 +225,7 @@ class Daemon:
         self.counters["ticks"] += 1
         self._sample(now)
         if self.state in (P.ARMED, P.RUNNING) and now - self.last_cmd_ns > self.safety.watchdog_s * 1e9:
-            self._fault(P.F_WATCHDOG, f"no valid command for {(now - self.last_cmd_ns) / 1e6:.0f} ms")
+            self._fault(P.F_WATCHDOG, f"no valid command for {(now - self.last_cmd_ns) / 1e6:.1f} ms")
         if self.state != P.FAULT:
             self._apply(now)
 

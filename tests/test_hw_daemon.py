@@ -8,7 +8,9 @@ from __future__ import annotations
 
 import math
 import os
+import re
 import signal
+import struct
 import subprocess
 import sys
 import time
@@ -245,12 +247,14 @@ def _env():
 
 
 MASTER_SCRIPT = """
-import sys, time
+import os, struct, sys, time
 from hardware import client, protocol as P
 c = client.BoardClient(("127.0.0.1", int(sys.argv[1])), P.read_key(sys.argv[2]))
+stamp = os.open(sys.argv[3], os.O_WRONLY | os.O_CREAT, 0o600)
 c.hello(); c.command(P.ARM)
 print("running", flush=True)
 while True:
+    os.pwrite(stamp, struct.pack("<q", time.time_ns()), 0)  # when the last command left
     c.command(P.RUN, (6.0, -6.0, 6.0)); time.sleep(0.001)
 """
 
@@ -259,12 +263,17 @@ def test_sigkill_of_the_master_stops_the_motors_within_the_watchdog(tmp_path):
     tree = faketree.make_fake_tree(tmp_path / "tree")
     keyfile = P.write_key(tmp_path / "k.key")
     rate = 1000.0
+    # as on the rig, the daemon runs under SCHED_FIFO when it may (root), so that a busy machine
+    # cannot delay its watchdog; otherwise at normal priority, and the check allows 10 ms more
+    fifo = os.geteuid() == 0
     dmn = subprocess.Popen([sys.executable, "-m", "cosim", "board", "serve", "--key", str(keyfile), "--listen",
-                            "127.0.0.1:0", "--root", str(tree), "--rate", str(rate)], stdout=subprocess.PIPE,
-                           text=True, env=_env())
+                            "127.0.0.1:0", "--root", str(tree), "--rate", str(rate)]
+                           + (["--rt-priority", "20"] if fifo else []) + ["-v"], stdout=subprocess.PIPE,
+                           stderr=subprocess.PIPE, text=True, env=_env())
     try:
         port = int(dmn.stdout.readline().split("listening on ")[1].split()[0].rsplit(":", 1)[1])
-        master = subprocess.Popen([sys.executable, "-c", MASTER_SCRIPT, str(port), str(keyfile)],
+        stamp = tmp_path / "last_command"
+        master = subprocess.Popen([sys.executable, "-c", MASTER_SCRIPT, str(port), str(keyfile), str(stamp)],
                                   stdout=subprocess.PIPE, text=True, env=_env())
         assert master.stdout.readline().strip() == "running"
         duty = [leg.duty for leg in _legs(tree)]
@@ -273,15 +282,22 @@ def test_sigkill_of_the_master_stops_the_motors_within_the_watchdog(tmp_path):
         while _read(duty) != [25_000, 25_000, 25_000] and time.monotonic() < deadline:
             time.sleep(0.001)
         assert _read(duty) == [25_000, 25_000, 25_000] and _read(dirs)[1] == 1
+        t_kill = time.time_ns()
         master.send_signal(signal.SIGKILL)
-        t_kill = time.monotonic()
         master.wait()
-        while (_read(duty) != [0, 0, 0] or _read(dirs) != [0, 0, 0]) and time.monotonic() - t_kill < 2:
-            time.sleep(0.0005)
-        took = time.monotonic() - t_kill
+        while (_read(duty) != [0, 0, 0] or _read(dirs) != [0, 0, 0]) and time.time_ns() - t_kill < 2e9:
+            time.sleep(0.001)
         assert _read(duty) == [0, 0, 0] and _read(dirs) == [0, 0, 0]
-        print(f"outputs safe {took * 1e3:.1f} ms after SIGKILL")
-        assert took <= 0.100 + 2 / rate + 0.010  # 10 ms: this test's own polling and scheduling on a loaded CI box
+        # the master stopped when its last command left (it may have been descheduled before the
+        # kill); the tree showed the safe outputs when the daemon wrote them (the files' times, so
+        # this test's own polling delay does not count)
+        t_stop = struct.unpack("<q", stamp.read_bytes()[:8])[0]
+        took = (max(p.stat().st_mtime_ns for p in duty + dirs) - t_stop) / 1e9
+        print(f"outputs safe {took * 1e3:.1f} ms after the master's last command "
+              f"({(t_kill - t_stop) / 1e6:.1f} ms before the SIGKILL)")
+        # end to end: 100 ms + two ticks, + 5 ms for the last datagram's way from the master's send
+        # to the daemon's read on a loaded shared machine (0.5-2 ms here; more without SCHED_FIFO)
+        assert took <= 0.100 + 2 / rate + (0.005 if fifo else 0.015)
         from hardware import client
         c = client.BoardClient(("127.0.0.1", port), P.read_key(keyfile), timeout=1.0)
         c.hello()  # a new master may connect, but the fault stays latched ...
@@ -292,7 +308,10 @@ def test_sigkill_of_the_master_stops_the_motors_within_the_watchdog(tmp_path):
         assert c.command(P.RESET)["state"] == P.IDLE  # ... until an explicit reset
     finally:
         dmn.send_signal(signal.SIGTERM)
-        dmn.wait(timeout=5)
+        _, log = dmn.communicate(timeout=5)
+    # the daemon's own part: from the last valid command it read to the zeroed outputs
+    waited = float(re.search(r"watchdog \(no valid command for ([0-9.]+) ms\)", log).group(1)) / 1e3
+    assert 0.100 < waited <= 0.100 + 2 / rate
 
 
 def _legs(tree):
