@@ -142,5 +142,6 @@ def build_hil_fmu(*, address: str = "127.0.0.1:5005", key_file: str | Path = "bo
     files["hil_config.h"] = config_header(address, key_file, calibration, timeout)
     xml = model_description(address, key_file, calibration, timeout)
     return build_from_sources(IDENT, files, list(C_SOURCES), xml, cache_dir=cache_dir, progress=progress,
-                              record={"kind": "hardware", "address": address, "key_file": key_file},
+                              record={"kind": "hardware", "integrator": "board", "states": 0, "address": address,
+                                      "key_file": key_file},
                               label="hardware FMU")
