@@ -603,12 +603,13 @@ class _Checker:
                 self.err(spec.loc(k), f"component {name!r}: '{k}' does not apply to a hardware component")
                 return None
         try:
-            fpath = build_hil_fmu(address=address, key_file=keyfile.resolve())
+            fpath = build_hil_fmu()  # one build; address and key are string start values
         except (ValueError, OSError) as exc:
             self.err(where, f"component {name!r}: {exc}")
             return None
         comp = Component(name, "fmu", describe_fmu(fpath), fmu=fpath, where=spec.where)
         self._values(comp, spec)
+        comp.params.update(address=address, key_file=str(keyfile.resolve()))
         return comp
 
     def _model_component(self, name: str, spec: YMap, fmi: str) -> Component | None:

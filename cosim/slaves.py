@@ -364,6 +364,11 @@ class FmuSlave(Slave):
             raise UserError(f"{self.name}: {what} failed ({exc}){detail}") from None
 
     def set_start(self, values: dict[str, float]) -> None:
+        strings = {k: v for k, v in values.items() if isinstance(v, str)}  # String parameters (FMI 2)
+        values = {k: v for k, v in values.items() if k not in strings}
+        if strings:
+            self._call(f"setting start values {', '.join(strings)}", self.fmu.setString,
+                       [self.vr(n) for n in strings], list(strings.values()))
         if not values:
             return
         vrs = [self.vr(n) for n in values]

@@ -127,10 +127,12 @@ def config_header(address: str, key_file: str, cal: Calibration, timeout: float)
         f"#define HIL_S_OFFSET {float(cal.s_offset)!r}", ""])
 
 
-def build_hil_fmu(*, address: str = "127.0.0.1:5005", key_file: str | Path = "board.key",
+def build_hil_fmu(*, address: str = "127.0.0.1:5005", key_file: str | Path = "~/.config/rpr-cosim/board.key",
                   calibration: Calibration = RIG_CALIBRATION, timeout: float = 0.05, cache_dir: Path | None = None,
                   progress: Callable[[str], None] | None = None) -> Path:
-    """The hardware FMU with these start values (built on a cache miss, about a second)."""
+    """The hardware FMU with these start values (built on a cache miss, about a second).  Scenes
+    build it with the defaults and set ``address`` and ``key_file`` as start values; a leading
+    ``~/`` of ``key_file`` is the user's home directory."""
     from fmus import build_from_sources
     from fmus.codegen import FMI_HEADER_DIR, FMI_HEADERS
 

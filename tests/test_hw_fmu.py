@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 from fmpy.validation import validate_fmu
 
-from hardware import daemon, faketree, protocol as P
+from hardware import convert, daemon, faketree, protocol as P
 from hardware.fmu import C_DIR, build_hil_fmu
 
 
@@ -49,8 +49,9 @@ def keyfile(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def hil_fmu(keyfile):
-    """One build; each test points it at its board through the string parameter ``address``."""
-    return str(build_hil_fmu(address="127.0.0.1:5005", key_file=keyfile))
+    """One build (the default start values); each test points it at its board and key through
+    the string parameters ``address`` and ``key_file``."""
+    return str(build_hil_fmu())
 
 
 def test_hardware_fmu_validates_and_cannot_roll_back(hil_fmu):
@@ -73,7 +74,7 @@ def _free_port() -> int:
 
 
 @pytest.mark.parametrize("board", ["absent", "silent", "wrong_key"])
-def test_missing_board_is_an_fmi_error_not_a_hang(hil_fmu, tmp_path, board):
+def test_missing_board_is_an_fmi_error_not_a_hang(hil_fmu, keyfile, tmp_path, board):
     listener = None
     if board == "absent":
         port = _free_port()
@@ -91,7 +92,7 @@ def test_missing_board_is_an_fmi_error_not_a_hang(hil_fmu, tmp_path, board):
     t0 = time.monotonic()
     try:
         with pytest.raises(Exception, match="status 3"):
-            fmpy.simulate_fmu(hil_fmu, stop_time=0.01, step_size=1e-3, start_values={"address": f"127.0.0.1:{port}"},
+            fmpy.simulate_fmu(hil_fmu, stop_time=0.01, step_size=1e-3, start_values={"address": f"127.0.0.1:{port}", "key_file": str(keyfile)},
                               logger=lambda *a: messages.append(a[-1].decode() if isinstance(a[-1], bytes) else str(a[-1])))
     finally:
         if isinstance(listener, daemon.Daemon):
@@ -122,7 +123,7 @@ def test_board_fault_is_an_fmi_error_with_the_reason(hil_fmu, keyfile, tmp_path)
     fmu.instantiate(callbacks=cb)
     error, steps = None, 0
     try:
-        fmu.setString([vr["address"]], [f"127.0.0.1:{d.address[1]}"])
+        fmu.setString([vr["address"], vr["key_file"]], [f"127.0.0.1:{d.address[1]}", str(keyfile)])
         fmu.setReal([vr["timeout"]], [0.2])
         fmu.setupExperiment(startTime=0.0)
         fmu.enterInitializationMode()
@@ -147,3 +148,25 @@ def test_board_fault_is_an_fmi_error_with_the_reason(hil_fmu, keyfile, tmp_path)
     assert steps > 0 and d.faults & P.F_ADC_STUCK and state == P.FAULT and int(fault) & P.F_ADC_STUCK
     assert any("is in fault (position stuck while driven)" in m for m in messages)
     assert [leg.files.duty.read_text() for leg in d.legs] == ["0", "0", "0"]
+
+
+def test_fmpy_runs_the_hardware_fmu_against_a_board_with_a_home_relative_key(hil_fmu, tmp_path, monkeypatch):
+    home = tmp_path / "home"
+    key = P.write_key(home / ".config" / "rpr-cosim" / "board.key")
+    monkeypatch.setenv("HOME", str(home))  # the FMU expands a leading ~/ with $HOME
+    tree = faketree.make_fake_tree(tmp_path / "tree", adc_counts=(1000, 2000, 3000))
+    d = daemon.Daemon(P.read_key(key), root=tree, listen=("127.0.0.1", 0))
+    th = threading.Thread(target=d.serve_forever, args=(20.0,), daemon=True)
+    th.start()
+    try:
+        res = fmpy.simulate_fmu(hil_fmu, stop_time=0.02, step_size=1e-3,
+                                start_values={"address": f"127.0.0.1:{d.address[1]}",
+                                              "key_file": "~/.config/rpr-cosim/board.key"},
+                                output=["leg[1].raw", "leg[3].s", "state"])
+    finally:
+        d.stop()
+        th.join()
+    cal = convert.Calibration(s_offset=0.1)  # the FMU's default calibration (the virtual rig's)
+    assert res["leg[1].raw"][-1] == 1000 and res["leg[3].s"][-1] == pytest.approx(cal.leg_length(3000))
+    assert res["state"][-1] == P.RUNNING
+    assert d.state == P.IDLE  # fmi2Terminate stopped the board: outputs zero, no fault

@@ -105,9 +105,8 @@ def test_paced_run_reports_lateness_and_rtf(tmp_path):
 
 def test_rollback_algorithms_are_refused_with_a_slave_that_cannot_roll_back(tmp_path):
     from hardware.fmu import build_hil_fmu
-    from hardware.protocol import write_key
 
-    fmu = build_hil_fmu(key_file=write_key(tmp_path / "k.key"))
+    fmu = build_hil_fmu()
 
     @M.register
     class NeedsRollback(M.GaussSeidel):

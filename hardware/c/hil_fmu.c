@@ -141,10 +141,15 @@ static int random_bytes(uint8_t *out, size_t n) {
 /* --- key and socket ---------------------------------------------------------------------- */
 static int read_key(Hil *h) {
     FILE *f;
-    char text[130];
+    char text[130], path[1280];
     struct stat sb;
     size_t n, i;
-    if (stat(h->keyfile, &sb) != 0) {
+    const char *home = getenv("HOME");
+    if (h->keyfile[0] == '~' && h->keyfile[1] == '/' && home) /* ~/ as in a shell */
+        snprintf(path, sizeof path, "%s%s", home, h->keyfile + 1);
+    else
+        snprintf(path, sizeof path, "%s", h->keyfile);
+    if (stat(path, &sb) != 0) {
         say(h, fmi2Error, "logStatusError", "key file '%s': %s", h->keyfile, strerror(errno));
         return -1;
     }
@@ -152,7 +157,7 @@ static int read_key(Hil *h) {
         say(h, fmi2Error, "logStatusError", "key file '%s' is readable by others; chmod 600 it", h->keyfile);
         return -1;
     }
-    f = fopen(h->keyfile, "r");
+    f = fopen(path, "r");
     if (!f) {
         say(h, fmi2Error, "logStatusError", "key file '%s': %s", h->keyfile, strerror(errno));
         return -1;
