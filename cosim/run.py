@@ -139,7 +139,7 @@ def run(scene: Scene | str | Path, overrides: Mapping[str, Any] | Sequence[str] 
                      engine=engine or scene.master.engine, order=order, progress=progress, meta=meta,
                      inputs=scene.master.inputs, start_ns=scene.start_ns,
                      tolerances=[c.description.default_experiment.get("tolerance")
-                                 for c in scene.components.values()])
+                                 for c in scene.components.values()], realtime=scene.master.realtime)
     return RunResult(scene, stats.status, stats.reason, memory.trace, stats.as_dict(), paths, trace_path, build_s)
 
 

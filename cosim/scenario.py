@@ -69,8 +69,8 @@ Loc = tuple[str, int]  # (file, line); line 0 = no line (a --set override)
 
 TOP_KEYS = ("name", "description", "include", "start_time", "stop_time", "components", "connections", "master",
             "outputs", "fidelity_tolerance", "fidelity_signals")
-COMPONENT_KEYS = ("model", "fidelity", "options", "params", "start", "fmu", "fmi", "description")
-MASTER_KEYS = ("algorithm", "step", "order", "engine", "output_interval", "inputs")
+COMPONENT_KEYS = ("model", "fidelity", "options", "params", "start", "fmu", "fmi", "description", "hardware")
+MASTER_KEYS = ("algorithm", "step", "order", "engine", "output_interval", "inputs", "realtime")
 #: How a slave's inputs vary over a communication step (see :mod:`cosim.master`).
 INPUT_MODES = ("hold", "linear")
 ENGINES = ("auto", "compiled", "python")
@@ -232,6 +232,8 @@ def _kind(spec: Any) -> tuple[str, Any]:
             return "fmu", spec.get("fmu")
         if "model" in spec:
             return "model", spec.get("model")
+        if "hardware" in spec:
+            return "hardware", "board"
     return "", None
 
 
@@ -476,6 +478,7 @@ class MasterSettings:
     engine: str
     record_every: int  # output interval in steps
     inputs: str = "hold"  # "hold" or "linear" (first-order hold, FMUs that can interpolate inputs)
+    realtime: Any = None  # cosim.realtime.RealtimeSettings when the run is paced on the wall clock
 
 
 @dataclass
@@ -581,6 +584,8 @@ class _Checker:
         if "model" in spec and "fmu" in spec:
             self.err(spec.where, f"component {name!r} has both 'model:' and 'fmu:'; keep one")
             return None
+        if "hardware" in spec:
+            return self._hardware_component(name, spec)
         if "fmu" in spec:
             return self._fmu_component(name, spec, fmi)
         if "model" in spec:
@@ -610,6 +615,43 @@ class _Checker:
             return None
         comp = Component(name, "fmu", desc, fmu=fpath.resolve(), fmi=desc.fmi_version or fmi, where=spec.where)
         self._values(comp, spec)
+        return comp
+
+    def _hardware_component(self, name: str, spec: YMap) -> Component | None:
+        """``{hardware: {address: HOST:PORT, key: FILE}}``: the hardware FMU (:mod:`hardware.fmu`),
+        built and cached with these start values; then an FMU component like any other."""
+        node, where = spec["hardware"], spec.loc("hardware")
+        if not isinstance(node, Mapping) or any(k not in ("address", "key") for k in node):
+            self.err(where, f"component {name!r}: hardware must be a mapping {{address: HOST:PORT, key: FILE}}, "
+                            f"got {node!r}")
+            return None
+        from hardware.fmu import build_hil_fmu
+        from hardware.protocol import parse_address
+
+        address, key = str(node.get("address", "127.0.0.1:5005")), str(node.get("key", "board.key"))
+        try:
+            parse_address(address)
+        except ValueError as exc:
+            self.err(where, f"component {name!r}: {exc}")
+            return None
+        base = Path(where[0]).parent if where[1] else (self.path.parent if self.path else Path.cwd())
+        keyfile = base / Path(key).expanduser()
+        if not keyfile.is_file():
+            self.err(where, f"component {name!r}: key file {_display(keyfile)} not found; make one with "
+                            f"'rpr-cosim board keygen {key}' and copy it to the board")
+            return None
+        for k in ("model", "fidelity", "options", "fmu"):
+            if k in spec:
+                self.err(spec.loc(k), f"component {name!r}: '{k}' does not apply to a hardware component")
+                return None
+        try:
+            fpath = build_hil_fmu()  # one build; address and key are string start values
+        except (ValueError, OSError) as exc:
+            self.err(where, f"component {name!r}: {exc}")
+            return None
+        comp = Component(name, "fmu", describe_fmu(fpath), fmu=fpath, where=spec.where)
+        self._values(comp, spec)
+        comp.params.update(address=address, key_file=str(keyfile.resolve()))
         return comp
 
     def _model_component(self, name: str, spec: YMap, fmi: str) -> Component | None:
@@ -1078,10 +1120,34 @@ class _Checker:
                                                    f"period {ts} s of {comp.name} ({comp.label}); a sampled block "
                                                    f"advances whole samples: use e.g. step: {good:g}")
                         ok = False
-        if not ok or step_ns is None:
+        realtime = self.realtime(node)
+        if not ok or step_ns is None or realtime is False:
             return None
         return MasterSettings(alg, step_ns / 1e9, step_ns, list(order) if order else None, engine, record_every,
-                              inputs)
+                              inputs, realtime)
+
+    def realtime(self, node: YMap):
+        """``master.realtime``: true/false or {max_misses: N, spin: S, priority: P}; the settings,
+        None (not paced) or False (invalid, reported)."""
+        from .realtime import RealtimeSettings
+
+        rt = node.get("realtime", False)
+        if rt is False or rt is None:
+            return None
+        if rt is True:
+            return RealtimeSettings()
+        if not isinstance(rt, Mapping):
+            self.err(node.loc("realtime"), f"master.realtime = {rt!r}; expected true, false or "
+                                           f"{{max_misses: N, spin: seconds, priority: P}}")
+            return False
+        bad = [k for k in rt if k not in ("max_misses", "spin", "priority")]
+        mm, spin, prio = rt.get("max_misses", 50), rt.get("spin", 300e-6), rt.get("priority", 0)
+        whole = [isinstance(v, int) and not isinstance(v, bool) for v in (mm, prio)]
+        if bad or not all(whole) or mm < 1 or not 0 <= prio <= 99 or not _is_number(spin) or not 0 <= spin < 0.1:
+            self.err(node.loc("realtime"), f"master.realtime = {dict(rt)!r}; expected max_misses: a whole number "
+                                           f">= 1, spin: seconds in [0, 0.1), priority: 0 (normal) .. 99 (SCHED_FIFO)")
+            return False
+        return RealtimeSettings(int(mm), float(spin), int(prio))
 
     def fmu_default(self, comps: dict[str, Component], key: str, what: str) -> float | None:
         """The FMUs' DefaultExperiment value ``key`` (start, stop, step) when they agree; an error
