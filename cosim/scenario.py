@@ -176,16 +176,62 @@ def _display(path: Path) -> str:
         return str(path)
 
 
+#: Largest number of YAML values a scene may expand to (aliases count at every use).
+MAX_YAML_NODES = 200_000
+
+
+def _expanded_size(root: Any) -> int:
+    """Number of values the YAML node graph ``root`` stands for with every alias expanded,
+    counted without expanding (memoised on the shared nodes; a recursive alias or anything past
+    :data:`MAX_YAML_NODES` counts as too many)."""
+    too_many = MAX_YAML_NODES + 1
+    memo: dict[int, int] = {}
+    open_: set[int] = set()
+    stack = [(root, False)] if root is not None else []
+    while stack:
+        node, done = stack.pop()
+        kids = ([k for pair in node.value for k in pair] if isinstance(node, yaml.MappingNode)
+                else node.value if isinstance(node, yaml.SequenceNode) else [])
+        if done:
+            open_.discard(id(node))
+            memo[id(node)] = min(1 + sum(memo.get(id(k), too_many) for k in kids), too_many)
+            continue
+        if id(node) in memo:
+            continue
+        if id(node) in open_:
+            return too_many  # an alias inside its own anchor
+        open_.add(id(node))
+        stack.append((node, True))
+        for k in kids:
+            if id(k) in open_:
+                return too_many
+            if id(k) not in memo:
+                stack.append((k, False))
+    return memo.get(id(root), 0)
+
+
 def read_yaml(path: Path) -> tuple[Any, list[Problem]]:
     """Parse one YAML file into YMap/YList; syntax errors and duplicate keys become problems."""
     name = _display(path)
     try:
-        text = Path(path).read_text()
+        raw = Path(path).read_bytes()
     except OSError as exc:
         return None, [Problem(name, 0, f"cannot read the scene: {exc.strerror or exc}")]
+    try:
+        text = raw.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        line = raw[:exc.start].count(b"\n") + 1
+        col = exc.start - raw.rfind(b"\n", 0, exc.start)
+        return None, [Problem(name, line, f"the scene is not UTF-8 text (byte 0x{raw[exc.start]:02x} at column "
+                                          f"{col}); save it as UTF-8")]
     loader = _Loader(text, name)
     try:
-        data = loader.get_single_data()
+        node = loader.get_single_node()
+        size = _expanded_size(node)
+        if size > MAX_YAML_NODES:
+            return None, [Problem(name, 1, f"the scene expands to more than {MAX_YAML_NODES:,} YAML values "
+                                           f"(anchors and aliases repeat content); write it out plainly")]
+        data = loader.construct_document(node) if node is not None else None
     except yaml.MarkedYAMLError as exc:
         mark = exc.problem_mark or exc.context_mark
         line = mark.line + 1 if mark else 0
@@ -999,8 +1045,13 @@ def validate(tree: YMap, path: Path | None = None, *, catalog=None, problems: li
     errors = [p for p in ck.problems if p.severity == "error"]
     if errors:
         raise SceneError(ck.problems)
+    from .outputs import name_problem, stem_name
+
+    name = tree.get("name") or stem_name(path.stem if path else "scene")
+    if name_problem(name):
+        ck.err(tree.loc("name"), name_problem(name))
+        raise SceneError(ck.problems)
     data = plain(tree)
-    name = tree.get("name") or (path.stem if path else "scene")
     return Scene(str(name), path, str(tree.get("description", "")), stop, n_steps, comps, conns, bonds, master,
                  outputs, data, _hash(data, comps), [p for p in ck.problems if p.severity == "warning"])
 

@@ -1,0 +1,69 @@
+"""Signals that end a run honestly: SIGTERM, SIGHUP and SIGINT become :class:`Interrupted` (a
+KeyboardInterrupt) in the main thread, so the run's ``finally`` blocks write the status and
+reason, close whole rows and remove temporary FMU folders, as for Ctrl-C.
+
+The default action of SIGTERM and SIGHUP kills the process without any of that (the sidecar
+would keep saying "running").  The stepping loop returns to Python at least every 0.25 s
+(:mod:`cosim.fastloop`), so a signal takes effect within a second at any point of a run.
+"""
+from __future__ import annotations
+
+import signal
+import sys
+import threading
+from collections.abc import Iterator
+from contextlib import contextmanager
+
+#: Signals turned into :class:`Interrupted`.
+SIGNALS = tuple(s for s in (signal.SIGTERM, signal.SIGHUP, signal.SIGINT) if s is not None)
+
+
+class Interrupted(KeyboardInterrupt):
+    """A run ended by a signal; ``str()`` names it (e.g. ``SIGTERM (signal 15)``)."""
+
+    def __init__(self, signum: int):
+        self.signum = int(signum)
+        super().__init__(f"{signal.Signals(signum).name} (signal {self.signum})")
+
+
+_ACTIVE = {"depth": 0, "raised": False}
+
+
+def _handler(signum, frame) -> None:
+    if _ACTIVE["raised"]:  # already stopping: let the clean-up finish
+        print(f"rpr-cosim: {signal.Signals(signum).name} again; still writing the status, please wait "
+              f"(SIGKILL would leave the run to be marked 'killed' later)", file=sys.stderr)
+        return
+    _ACTIVE["raised"] = True
+    raise Interrupted(signum)
+
+
+@contextmanager
+def signals_as_interrupts() -> Iterator[None]:
+    """Within the block, :data:`SIGNALS` raise :class:`Interrupted` (main thread only; nested
+    uses are no-ops; the previous handlers come back afterwards)."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    if _ACTIVE["depth"]:
+        _ACTIVE["depth"] += 1
+        try:
+            yield
+        finally:
+            _ACTIVE["depth"] -= 1
+        return
+    previous = {s: signal.getsignal(s) for s in SIGNALS}
+    for s in SIGNALS:
+        signal.signal(s, _handler)
+    _ACTIVE.update(depth=1, raised=False)
+    try:
+        yield
+    finally:
+        for s, h in previous.items():
+            signal.signal(s, h)
+        _ACTIVE.update(depth=0, raised=False)
+
+
+def exit_code(exc: BaseException) -> int:
+    """Shell exit code for an interrupt: 128 + signal number (130 for a plain Ctrl-C)."""
+    return 128 + getattr(exc, "signum", signal.SIGINT)
