@@ -61,11 +61,19 @@ def _run(args: argparse.Namespace) -> int:
     from .outputs import OutputLock, check_out_dir, safe_name
     from .run import check_trace_size
 
-    est = check_trace_size(scene, args.max_trace)
+    from .errors import UserError
+    from .run import estimate
+
     if args.check:
         _describe(scene)
-        print(f"  expected: {est}")
+        print(f"  expected: {estimate(scene)}")
+        try:
+            check_trace_size(scene, args.max_trace)
+        except UserError as exc:
+            _say(f"rpr-cosim run: {exc}")
+            return 2
         return 0
+    check_trace_size(scene, args.max_trace)
     out = args.out or Path("runs") / safe_name(scene.name)
     check_out_dir(out)
     with OutputLock(out, log=lambda m: _say(f"[run] {m}")):

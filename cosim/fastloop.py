@@ -183,8 +183,13 @@ def library() -> ctypes.CDLL:
         raise UserError(f"the compiled master loop needs a C compiler ({cc}: {exc}); "
                         f"set master.engine: python to use the Python loop") from None
     key = hashlib.sha256((SOURCE + version + sys.platform).encode()).hexdigest()[:20]
+    from fmus.cache import writable_root
+
     root = _cache_dir()
-    root.mkdir(parents=True, exist_ok=True)
+    if not (root / f"rpr_loop_{key}.so").exists():
+        fallback = writable_root(root)
+        root = fallback if fallback == root else fallback / "master"
+        root.mkdir(parents=True, exist_ok=True)
     lib = root / f"rpr_loop_{key}.so"
     if not lib.exists():
         with tempfile.TemporaryDirectory(dir=root) as tmp:

@@ -23,6 +23,7 @@ import os
 import re
 import socket
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -84,8 +85,12 @@ def check_out_dir(out_dir: Path) -> Path:
         out.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         raise UserError(f"--out {out}: cannot create the output directory ({exc.strerror or exc})") from None
-    if not os.access(out, os.W_OK | os.X_OK):
-        raise UserError(f"--out {out}: the output directory is not writable; choose another one or fix its permissions")
+    try:  # a real write: permissions, read-only file systems and ACLs all answer here
+        with tempfile.TemporaryFile(dir=out, prefix=".rpr-cosim-probe-"):
+            pass
+    except OSError as exc:
+        raise UserError(f"--out {out}: the output directory is not writable ({exc.strerror or exc}); "
+                        f"choose another one or fix its permissions") from None
     return out
 
 
@@ -206,6 +211,12 @@ def holder(out_dir: Path) -> int | None:
         os.close(fd)
 
 
+def _warn(message: str) -> None:
+    import logging
+
+    logging.getLogger("cosim.outputs").warning(message)
+
+
 def settle_if_stale(out_dir: Path, log=None) -> list[str]:
     """When ``out_dir`` has a lock left by a dead run, settle that run (:func:`settle_stale`) and
     remove the lock; returns the notes (nothing happens in a directory one cannot write)."""
@@ -213,7 +224,7 @@ def settle_if_stale(out_dir: Path, log=None) -> list[str]:
     try:
         if not path.is_file() or not _read_lock(path).get("pid") or holder(out_dir) is not None:
             return []
-        with OutputLock(out_dir, log=log) as lock:
+        with OutputLock(out_dir, log=log or _warn) as lock:
             return lock.notes
     except (OSError, UserError):
         return []
