@@ -115,7 +115,7 @@ def _reference(scene, res, out: Path, plot: bool) -> None:
     from .reference import reference
     from .run import progress_bar
 
-    ref = reference(scene, out_dir=out, progress=progress_bar())
+    ref = reference(scene, out_dir=out, progress=progress_bar(), log=lambda m: _say(f"[reference] {m}"))
     st = ref.stats
     print(f"monolithic reference ({ref.trace.meta.get('method', 'CVODES')}, {ref.trace.meta.get('states')} states): "
           f"{ref.status}{' (' + ref.reason + ')' if ref.reason else ''}, {st['wall_s']:.2f} s; trace: {ref.trace_path}")

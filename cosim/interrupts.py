@@ -26,7 +26,7 @@ class Interrupted(KeyboardInterrupt):
         super().__init__(f"{signal.Signals(signum).name} (signal {self.signum})")
 
 
-_ACTIVE = {"depth": 0, "raised": False}
+_ACTIVE: dict = {"depth": 0, "raised": False, "last": None}
 
 
 def _handler(signum, frame) -> None:
@@ -35,7 +35,14 @@ def _handler(signum, frame) -> None:
               f"(SIGKILL would leave the run to be marked 'killed' later)", file=sys.stderr)
         return
     _ACTIVE["raised"] = True
+    _ACTIVE["last"] = Interrupted(signum)
     raise Interrupted(signum)
+
+
+def last_signal() -> Interrupted | None:
+    """The signal that interrupted the current :func:`signals_as_interrupts` block, if any (for
+    code whose callee swallowed the exception, e.g. a solver that reports a failed callback)."""
+    return _ACTIVE.get("last")
 
 
 @contextmanager
@@ -55,13 +62,13 @@ def signals_as_interrupts() -> Iterator[None]:
     previous = {s: signal.getsignal(s) for s in SIGNALS}
     for s in SIGNALS:
         signal.signal(s, _handler)
-    _ACTIVE.update(depth=1, raised=False)
+    _ACTIVE.update(depth=1, raised=False, last=None)
     try:
         yield
     finally:
         for s, h in previous.items():
             signal.signal(s, h)
-        _ACTIVE.update(depth=0, raised=False)
+        _ACTIVE.update(depth=0, raised=False, last=None)
 
 
 def exit_code(exc: BaseException) -> int:
