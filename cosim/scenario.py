@@ -224,7 +224,11 @@ def read_yaml(path: Path) -> tuple[Any, list[Problem]]:
         col = exc.start - raw.rfind(b"\n", 0, exc.start)
         return None, [Problem(name, line, f"the scene is not UTF-8 text (byte 0x{raw[exc.start]:02x} at column "
                                           f"{col}); save it as UTF-8")]
-    loader = _Loader(text, name)
+    try:
+        loader = _Loader(text, name)
+    except yaml.YAMLError as exc:  # the reader refuses control characters (NUL, ...) up front
+        line = text[:getattr(exc, "position", 0) or 0].count("\n") + 1
+        return None, [Problem(name, line, f"YAML: {str(exc).splitlines()[0]}")]
     try:
         node = loader.get_single_node()
         size = _expanded_size(node)
@@ -242,6 +246,9 @@ def read_yaml(path: Path) -> tuple[Any, list[Problem]]:
         elif "'['" in str(exc) or "flow" in str(exc):
             hint = " (quote names with brackets inside [ ] lists, e.g. [\"mech.leg[*].f\"])"
         return None, [Problem(name, line, f"YAML syntax: {what}{hint}")]
+    except yaml.YAMLError as exc:  # e.g. a NUL or other control character
+        line = text[:getattr(exc, "position", 0) or 0].count("\n") + 1
+        return None, [Problem(name, line, f"YAML: {str(exc).splitlines()[0]}")]
     finally:
         loader.dispose()
     return data, loader.duplicates
@@ -623,12 +630,12 @@ class _Checker:
             return None
         cat = catalog.catalog()
         model = spec["model"]
-        if model not in cat:
+        if not isinstance(model, str) or model not in cat:
             self.err(spec.loc("model"), f"component {name!r}: unknown model {model!r}{suggest(str(model), cat)} "
                                         f"(catalog: {', '.join(sorted(cat))})")
             return None
         fidelity = spec.get("fidelity", cat[model][0])
-        if fidelity not in cat[model]:
+        if not isinstance(fidelity, str) or fidelity not in cat[model]:
             self.err(spec.loc("fidelity"), f"component {name!r}: model {model} has no fidelity {fidelity!r}"
                                            f"{suggest(str(fidelity), cat[model])} (expected one of "
                                            f"{', '.join(cat[model])})")
@@ -882,15 +889,15 @@ class _Checker:
         self.unknown_keys(node, MASTER_KEYS, "master")
         alg = node.get("algorithm", "gauss_seidel")
         ok = True
-        if alg not in ALGORITHMS:
+        if not isinstance(alg, str) or alg not in ALGORITHMS:
             self.err(node.loc("algorithm"), f"unknown master algorithm {alg!r}{suggest(str(alg), ALGORITHMS)} "
                                             f"(known: {', '.join(sorted(ALGORITHMS))})")
             ok = False
         step = self.number(node, "step", "master.step", required=True)
         step_ns = None
         if step is not None:
-            if step <= 0:
-                self.err(node.loc("step"), f"master.step = {step} must be positive (seconds)")
+            if not 0 < step <= 1e6:
+                self.err(node.loc("step"), f"master.step = {step} must be positive and at most 1e6 (seconds)")
                 ok = False
             else:
                 step_ns = round(step * 1e9)
@@ -932,7 +939,7 @@ class _Checker:
         if "output_interval" in node and step_ns:
             oi = self.number(node, "output_interval", "master.output_interval")
             if oi is not None:
-                k = round(oi * 1e9 / step_ns)
+                k = round(oi * 1e9 / step_ns) if 0 < oi <= 1e9 else 0
                 if oi <= 0 or k < 1 or abs(k * step_ns - oi * 1e9) > 1e-6 * oi * 1e9:
                     self.err(node.loc("output_interval"), f"master.output_interval = {oi} s must be a positive "
                                                           f"whole multiple of master.step = {step} s")
@@ -959,8 +966,9 @@ class _Checker:
         stop = self.number(self.tree, "stop_time", "stop_time", required=True)
         if stop is None:
             return None, None
-        if stop <= 0:
-            self.err(self.tree.loc("stop_time"), f"stop_time = {stop} must be positive (seconds from the start)")
+        if not 0 < stop < 1e12:
+            self.err(self.tree.loc("stop_time"), f"stop_time = {stop} must be a positive, finite number of seconds "
+                                                 f"(below 1e12)")
             return None, None
         if master is None:
             return stop, None
