@@ -217,6 +217,9 @@ def _reference(scene, out_dir, rtol, atol, progress, max_wall_s, max_steps, log)
         elif last_signal() or "KeyboardInterrupt" in printed.first or "KeyboardInterrupt" in str(exc):
             interrupt = last_signal()
             status, reason = "interrupted", f"interrupted by {interrupt or 'the user (KeyboardInterrupt)'} at t = {done * dt:g} s"
+        elif "TOO_MUCH_WORK" in text:
+            status, reason = "failed", (f"the reference reached its cap of {per_interval:,} CVODES steps between two "
+                                        f"output instants after t = {done * dt:g} s (a diverging or very stiff scene?)")
         else:
             status, reason = "failed", f"CVODES failed after t = {done * dt:g} s: {text}"
     except KeyboardInterrupt as exc:

@@ -235,6 +235,10 @@ def _run(scene, overrides, out_dir, catalog, cache_dir, progress, log, engine, s
             if getattr(ob, "note", ""):
                 log(ob.note)
     t = memory.trace
+    for ob in observers:  # a trace writer that failed at the end turns "ok" into "failed"
+        if getattr(ob, "status", stats["status"]) != stats["status"]:
+            stats = dict(stats, status=ob.status, reason=ob.reason)
+            t.status, t.reason = ob.status, ob.reason
     return RunResult(scene, stats["status"], stats["reason"], t, stats, paths, trace_path, build_s)
 
 

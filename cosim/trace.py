@@ -278,6 +278,8 @@ class CsvTrace(Observer):
                 reason = (reason + "; " if reason else "") + text
             if status == "ok":
                 status = "failed"
+            stats = dict(stats or {}, status=status, reason=reason)
+        self.status, self.reason = status, reason
         trailer = (_comment("status", status) + _comment("reason", reason) + _comment("rows", rows)
                    + _comment("statistics", stats))
         try:
@@ -289,7 +291,6 @@ class CsvTrace(Observer):
                 pass
         os.close(self._fd)
         self._fd = None
-        self.status = status
         self._write_sidecar({"status": status, "reason": reason, "rows": rows, "statistics": stats})
         from .outputs import place
 
