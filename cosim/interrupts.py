@@ -26,7 +26,7 @@ class Interrupted(KeyboardInterrupt):
         super().__init__(f"{signal.Signals(signum).name} (signal {self.signum})")
 
 
-_ACTIVE: dict = {"depth": 0, "raised": False, "last": None}
+_ACTIVE: dict = {"depth": 0, "raised": False, "last": None, "defer": 0, "pending": None}
 
 
 def _handler(signum, frame) -> None:
@@ -35,8 +35,31 @@ def _handler(signum, frame) -> None:
               f"(SIGKILL would leave the run to be marked 'killed' later)", file=sys.stderr)
         return
     _ACTIVE["raised"] = True
-    _ACTIVE["last"] = Interrupted(signum)
-    raise Interrupted(signum)
+    exc = _ACTIVE["last"] = Interrupted(signum)
+    if _ACTIVE["defer"]:
+        _ACTIVE["pending"] = exc
+        return
+    raise exc
+
+
+def pending() -> bool:
+    """True when a signal arrived inside a :func:`deferred` block and waits to be raised."""
+    return _ACTIVE["pending"] is not None
+
+
+@contextmanager
+def deferred() -> Iterator[None]:
+    """A block a signal must not cut in the middle (queue and lock operations): a signal that
+    arrives inside it is raised when it ends.  Long waits inside should poll :func:`pending`."""
+    _ACTIVE["defer"] += 1
+    try:
+        yield
+    finally:
+        _ACTIVE["defer"] -= 1
+        exc = _ACTIVE["pending"]
+        if exc is not None and not _ACTIVE["defer"]:
+            _ACTIVE["pending"] = None
+            raise exc
 
 
 def last_signal() -> Interrupted | None:
@@ -62,13 +85,13 @@ def signals_as_interrupts() -> Iterator[None]:
     previous = {s: signal.getsignal(s) for s in SIGNALS}
     for s in SIGNALS:
         signal.signal(s, _handler)
-    _ACTIVE.update(depth=1, raised=False, last=None)
+    _ACTIVE.update(depth=1, raised=False, last=None, defer=0, pending=None)
     try:
         yield
     finally:
         for s, h in previous.items():
             signal.signal(s, h)
-        _ACTIVE.update(depth=0, raised=False, last=None)
+        _ACTIVE.update(depth=0, raised=False, last=None, defer=0, pending=None)
 
 
 def exit_code(exc: BaseException) -> int:

@@ -290,8 +290,7 @@ def _unzip(path: Path) -> str:
 
     key = (str(path.resolve()), path.stat().st_mtime)
     if key not in _UNZIPPED:
-        if not _UNZIPPED:
-            _sweep_dead_unzips()
+        _sweep_dead_unzips()
         _UNZIPPED[key] = fmpy.extract(str(path), unzipdir=tempfile.mkdtemp(prefix=f"rpr-fmu-{os.getpid()}-"))
     return _UNZIPPED[key]
 

@@ -170,7 +170,7 @@ class CsvTrace(Observer):
     SIDECAR_RESERVE = 64 * 1024
 
     def __init__(self, path: Path, *, flush_every_s: float = 0.5, extra: dict | None = None,
-                 max_queued_bytes: int = 64 << 20) -> None:
+                 max_queued_bytes: int = 8 << 20) -> None:
         """``extra``: data for the sidecar only (e.g. the whole scene), kept out of the CSV header."""
         from .outputs import part_path
 
@@ -249,24 +249,34 @@ class CsvTrace(Observer):
                                   f"{getattr(exc, 'strerror', None) or exc} ({self._count_rows()} whole rows kept)")
 
     def record(self, rows) -> None:
+        from .interrupts import deferred, pending
+
         self._raise_if_failed()
         if not len(rows):
             return
         arr = np.array(rows, dtype=float, copy=True)
-        with self._cond:  # back-pressure: wait while the writer is far behind
-            while self._queued > 0 and self._queued + arr.nbytes > self.max_queued_bytes and self._error is None:
-                self._cond.wait(0.2)
-            self._queued += arr.nbytes
-        self._queue.put(arr)
-        self.rows += len(rows)
+        with deferred():  # a signal must not cut the queue's or the counter's locks
+            with self._cond:  # back-pressure: wait while the writer is far behind
+                while (self._queued > 0 and self._queued + arr.nbytes > self.max_queued_bytes
+                       and self._error is None and not pending()):
+                    self._cond.wait(0.05)
+                self._queued += arr.nbytes
+            self._queue.put(arr)
+            self.rows += len(rows)
         self._raise_if_failed()
 
     def finish(self, status, reason, stats) -> None:
+        from .interrupts import deferred
+
+        with deferred():  # a signal now waits until the status is written and the files are in place
+            self._finish(status, reason, stats)
+
+    def _finish(self, status, reason, stats) -> None:
         if self._fd is None:
             return
         if self._thread is not None:
             self._queue.put(None)
-            while self._thread.is_alive():  # a join that a signal can still interrupt
+            while self._thread.is_alive():
                 self._thread.join(0.2)
             self._thread = None
         rows = self.rows
