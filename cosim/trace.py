@@ -170,7 +170,7 @@ class CsvTrace(Observer):
     SIDECAR_RESERVE = 64 * 1024
 
     def __init__(self, path: Path, *, flush_every_s: float = 0.5, extra: dict | None = None,
-                 max_queued_bytes: int = 8 << 20) -> None:
+                 max_queued_bytes: int = 1 << 20) -> None:
         """``extra``: data for the sidecar only (e.g. the whole scene), kept out of the CSV header."""
         from .outputs import part_path
 
@@ -255,14 +255,16 @@ class CsvTrace(Observer):
         if not len(rows):
             return
         arr = np.array(rows, dtype=float, copy=True)
-        with deferred():  # a signal must not cut the queue's or the counter's locks
-            with self._cond:  # back-pressure: wait while the writer is far behind
-                while (self._queued > 0 and self._queued + arr.nbytes > self.max_queued_bytes
-                       and self._error is None and not pending()):
-                    self._cond.wait(0.05)
-                self._queued += arr.nbytes
-            self._queue.put(arr)
-            self.rows += len(rows)
+        step = max(1, (self.max_queued_bytes // 4) // max(1, arr.itemsize * arr.shape[1]))
+        for piece in (arr[i:i + step] for i in range(0, len(arr), step)):
+            with deferred():  # a signal must not cut the queue's or the counter's locks
+                with self._cond:  # back-pressure: wait while the writer is far behind
+                    while (self._queued > 0 and self._queued + piece.nbytes > self.max_queued_bytes
+                           and self._error is None and not pending()):
+                        self._cond.wait(0.05)
+                    self._queued += piece.nbytes
+                self._queue.put(piece)
+                self.rows += len(piece)
         self._raise_if_failed()
 
     def finish(self, status, reason, stats) -> None:
