@@ -81,7 +81,7 @@ def scene_observers(scene: Scene, out_dir: Path | None, suffix: str = "") -> tup
 def scene_meta(scene: Scene) -> dict:
     """Trace metadata identifying the scene a run comes from."""
     return {"scene": scene.name, "scene_file": str(scene.path) if scene.path else None, "scene_hash": scene.hash,
-            "stop_time": scene.stop_time, "output_interval": scene.master.record_every * scene.master.step}
+            "start_time": scene.start_time, "stop_time": scene.stop_time, "output_interval": scene.master.record_every * scene.master.step}
 
 
 @dataclass(frozen=True)
@@ -206,7 +206,8 @@ def _run(scene, overrides, out_dir, catalog, cache_dir, progress, log, engine, s
     t0 = time.perf_counter()
     if slaves is None:
         paths = build_components(scene, cache_dir=cache_dir, progress=log)
-        slaves = [FmuSlave(name, paths[name]) for name in scene.components]
+        slaves = [FmuSlave(name, paths[name], c.description if c.kind == "fmu" else None)
+                  for name, c in scene.components.items()]
     else:
         paths = {}
         if [s.name for s in slaves] != list(scene.components):
@@ -225,7 +226,9 @@ def _run(scene, overrides, out_dir, catalog, cache_dir, progress, log, engine, s
                          record_every=scene.master.record_every, observers=observers,
                          start_values=[c.start_values() for c in scene.components.values()],
                          engine=engine or scene.master.engine, order=order, progress=progress, meta=meta,
-                         inputs=scene.master.inputs).as_dict()
+                         inputs=scene.master.inputs, start_ns=scene.start_ns,
+                         tolerances=[c.description.default_experiment.get("tolerance")
+                                     for c in scene.components.values()]).as_dict()
     except TraceWriteError:  # disk full: the observers finished with the reason; report it as a status
         if memory.trace is None or not memory.trace.stats:
             raise

@@ -6,7 +6,8 @@ column 0 is time [s], the others the recorded variables named ``component.variab
 
 :class:`CsvTrace` streams rows to a CSV file as the run goes: comment lines ``# key: <JSON>``
 carry the metadata (scene hash, algorithm, step, package versions) before the data and the
-outcome (status, reason, statistics) after it, and a sidecar ``<name>.json`` holds the same
+outcome (status, reason, statistics) after it, String and Binary values are comment lines
+``# text: [t, "component.variable", "value"]`` among the rows (written when the value changes), and a sidecar ``<name>.json`` holds the same
 metadata and is rewritten at the end, so an interrupted or failed run leaves its partial trace
 and the reason on disk.  :func:`read_trace` reads such a file back.
 """
@@ -56,6 +57,10 @@ class Observer(ABC):
     @abstractmethod
     def finish(self, status: str, reason: str, stats: dict) -> None: ...
 
+    def record_text(self, t: float, column: str, value: str) -> None:
+        """A String or Binary variable (``column``) took ``value`` (Binary as hexadecimal) at ``t``
+        [s]; called when it changes, between ``record`` calls.  Ignored by default."""
+
 
 @dataclass
 class Trace:
@@ -67,6 +72,7 @@ class Trace:
     status: str = ""
     reason: str = ""
     stats: dict = field(default_factory=dict)
+    text: dict[str, list[tuple[float, str]]] = field(default_factory=dict)  # String/Binary: (t, value) changes
 
     @property
     def time(self) -> np.ndarray:
@@ -119,6 +125,9 @@ class MemoryTrace(Observer):
     def record(self, rows) -> None:
         if len(rows):
             self._chunks.append(np.array(rows, dtype=float, copy=True))
+
+    def record_text(self, t, column, value) -> None:
+        self.trace.text.setdefault(column, []).append((float(t), str(value)))
 
     def _collect(self) -> None:
         if self._chunks:
@@ -233,13 +242,16 @@ class CsvTrace(Observer):
                 return
             try:
                 if self._error is None:
+                    if isinstance(rows, str):  # a text event, in order with the rows
+                        self._write(rows.encode())
+                        continue
                     text = "\n".join(",".join(map(repr, r)) for r in rows.tolist()) + "\n"
                     self._write(text.encode())
             except BaseException as exc:  # reported by record() and finish(); stops the run
                 self._error = exc
             finally:
                 with self._cond:
-                    self._queued -= rows.nbytes
+                    self._queued -= getattr(rows, "nbytes", 0)
                     self._cond.notify_all()
 
     def _raise_if_failed(self) -> None:
@@ -266,6 +278,13 @@ class CsvTrace(Observer):
                 self._queue.put(piece)
                 self.rows += len(piece)
         self._raise_if_failed()
+
+    def record_text(self, t, column, value) -> None:
+        from .interrupts import deferred
+
+        if self._queue is not None:
+            with deferred():
+                self._queue.put(_comment("text", [float(t), column, str(value)]))
 
     def finish(self, status, reason, stats) -> None:
         from .interrupts import deferred
@@ -346,26 +365,31 @@ def read_trace(path: Path) -> Trace:
     if not path.is_file():
         raise UserError(f"{path}: no such trace file")
     meta: dict = {}
+    text: dict[str, list[tuple[float, str]]] = {}
     columns: list[str] | None = None
     rows: list[list[float]] = []
     try:
-        text = path.read_bytes().decode("utf-8")
+        content = path.read_bytes().decode("utf-8")
     except UnicodeDecodeError as exc:
         raise UserError(f"{path}: not an rpr-cosim trace (binary or not UTF-8 text at byte {exc.start})") from None
     except OSError as exc:
         raise UserError(f"{path}: cannot read the trace ({exc.strerror or exc})") from None
-    if "\0" in text:
+    if "\0" in content:
         raise UserError(f"{path}: not an rpr-cosim trace (binary data)")
-    lines = text.splitlines(keepends=True)
+    lines = io.StringIO(content, newline="").readlines()
     last_data = max((i for i, ln in enumerate(lines) if ln.strip() and not ln.startswith("#")), default=-1)
     for lineno, line in enumerate(lines, 1):
         if line.startswith("#"):
             key, sep, value = line[1:].strip().partition(": ")
             if sep:
                 try:
-                    meta[key] = json.loads(value)
+                    parsed = json.loads(value)
                 except ValueError:
-                    meta[key] = value
+                    parsed = value
+                if key == "text" and isinstance(parsed, list) and len(parsed) == 3:
+                    text.setdefault(parsed[1], []).append((float(parsed[0]), str(parsed[2])))
+                else:
+                    meta[key] = parsed
             continue
         if columns is None:
             columns = next(csv.reader([line]))
@@ -385,7 +409,7 @@ def read_trace(path: Path) -> Trace:
     data = np.array(rows, dtype=float).reshape(-1, len(columns))
     if "status" not in meta:  # no status line: the run died; its sidecar may say why
         meta.update(_sidecar_outcome(path))
-    return Trace(columns, data, meta, meta.pop("status", ""), meta.pop("reason", ""), meta.pop("statistics", {}))
+    return Trace(columns, data, meta, meta.pop("status", ""), meta.pop("reason", ""), meta.pop("statistics", {}), text)
 
 
 def _sidecar_outcome(path: Path) -> dict:
