@@ -137,7 +137,7 @@ class OutputLock:
             _HELD[key][1] += 1
             return self
         path = key / LOCK_NAME
-        for _ in range(20):
+        for attempt in range(20):
             fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
             try:
                 fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
@@ -145,6 +145,9 @@ class OutputLock:
                 os.close(fd)
                 if exc.errno not in (errno.EWOULDBLOCK, errno.EAGAIN, errno.EACCES):
                     raise
+                if attempt < 3:  # a reader's brief shared lock (:func:`holder`) is not a run
+                    time.sleep(0.05)
+                    continue
                 held = _read_lock(path)
                 raise UserError(f"output directory {self.dir} is in use by another run (pid {held.get('pid', '?')}"
                                 f"{', ' + held['command'] if held.get('command') else ''}, started "
