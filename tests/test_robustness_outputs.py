@@ -401,3 +401,24 @@ def test_fmu_verbs_have_descriptions_in_help(capsys, verb, words):
     with pytest.raises(SystemExit):
         cli.main(["fmu", verb, "--help"])
     assert words in " ".join(capsys.readouterr().out.split())
+
+
+@pytest.mark.parametrize("member", ["ABS", "../escaped.fmu", "resources/../../escaped.fmu"])
+def test_an_ssp_whose_source_leaves_the_archive_is_refused_and_writes_nothing_outside(tmp_path, cache, capsys,
+                                                                                     member):
+    from test_ssp import FOREIGN_SSD, FOREIGN_SSV, SSD
+
+    from cosim.run import build_components
+
+    member = str(tmp_path / "escaped.fmu") if member == "ABS" else member
+    paths = build_components(load(PID), cache_dir=cache)
+    path = tmp_path / "evil.ssp"
+    with zipfile.ZipFile(path, "w") as zf:
+        zf.writestr(SSD, FOREIGN_SSD.replace('source="resources/pid.fmu"', f'source="{member}"'))
+        zf.writestr("resources/ctl.ssv", FOREIGN_SSV)
+        zf.write(paths["target"], "resources/setpoint.fmu")
+        zf.writestr(zipfile.ZipInfo(member), Path(paths["pid1"]).read_bytes())
+    rc = cli.main(["run", str(path), "--out", str(tmp_path / "out"), "--cache", str(cache)])
+    err = capsys.readouterr().err
+    assert rc == 2 and "points outside the archive" in err
+    assert not (tmp_path / "escaped.fmu").exists() and not list(cache.rglob("escaped.fmu"))
