@@ -715,6 +715,8 @@ class _Compiled:
         self.fail_slave = ctypes.c_int32()
         self.fail_status = ctypes.c_int32()
         self.master_ns = ctypes.c_int64()
+        #: wall time after which one call returns early [ns]: signals are handled between calls
+        self.budget_ns = fastloop.CALL_BUDGET_NS
 
     def run(self, nsteps: int, rec_every: int, rec: np.ndarray) -> int:
         alg, sysm = self.alg, self.alg.system
@@ -724,7 +726,7 @@ class _Compiled:
                                 self.rec_idx.ctypes.data if self.rec_idx.size else None, len(self.rec_idx),
                                 rec_every, rec.ctypes.data, self.c.byref(self.n_rows),
                                 self.c.byref(self.fail_slave), self.c.byref(self.fail_status),
-                                self.c.byref(self.master_ns))
+                                self.c.byref(self.master_ns), self.budget_ns)
         for i, c in enumerate(self.arr):
             alg.calls[i], alg.slave_ns[i] = c.calls, c.ns
         alg.master_ns += self.master_ns.value
@@ -930,9 +932,10 @@ def simulate(system: CoupledSystem, algorithm_name: str, *, step_ns: int, n_step
         if stats.engine == "python":  # the compiled loop measures its own share itself
             alg.master_ns = max(0, int(stepping * 1e9) - sum(alg.slave_ns))
         status, reason = ("ok", "") if alg.status == "running" else (alg.status, alg.message)
-    except KeyboardInterrupt:
+    except KeyboardInterrupt as exc:
         status = "interrupted"
-        reason = "interrupted by the user (KeyboardInterrupt)" + (f" at t = {alg.t:.9g} s" if alg else "")
+        reason = (f"interrupted by {str(exc) or 'the user (KeyboardInterrupt)'}"
+                  + (f" at t = {alg.t:.9g} s" if alg else ""))
         raise
     except BaseException as exc:
         status, reason = "failed", f"{type(exc).__name__}: {exc}"

@@ -183,16 +183,66 @@ def _display(path: Path) -> str:
         return str(path)
 
 
+#: Largest number of YAML values a scene may expand to (aliases count at every use).
+MAX_YAML_NODES = 200_000
+
+
+def _expanded_size(root: Any) -> int:
+    """Number of values the YAML node graph ``root`` stands for with every alias expanded,
+    counted without expanding (memoised on the shared nodes; a recursive alias or anything past
+    :data:`MAX_YAML_NODES` counts as too many)."""
+    too_many = MAX_YAML_NODES + 1
+    memo: dict[int, int] = {}
+    open_: set[int] = set()
+    stack = [(root, False)] if root is not None else []
+    while stack:
+        node, done = stack.pop()
+        kids = ([k for pair in node.value for k in pair] if isinstance(node, yaml.MappingNode)
+                else node.value if isinstance(node, yaml.SequenceNode) else [])
+        if done:
+            open_.discard(id(node))
+            memo[id(node)] = min(1 + sum(memo.get(id(k), too_many) for k in kids), too_many)
+            continue
+        if id(node) in memo:
+            continue
+        if id(node) in open_:
+            return too_many  # an alias inside its own anchor
+        open_.add(id(node))
+        stack.append((node, True))
+        for k in kids:
+            if id(k) in open_:
+                return too_many
+            if id(k) not in memo:
+                stack.append((k, False))
+    return memo.get(id(root), 0)
+
+
 def read_yaml(path: Path) -> tuple[Any, list[Problem]]:
     """Parse one YAML file into YMap/YList; syntax errors and duplicate keys become problems."""
     name = _display(path)
     try:
-        text = Path(path).read_text()
+        raw = Path(path).read_bytes()
     except OSError as exc:
         return None, [Problem(name, 0, f"cannot read the scene: {exc.strerror or exc}")]
-    loader = _Loader(text, name)
     try:
-        data = loader.get_single_data()
+        text = raw.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        line = raw[:exc.start].count(b"\n") + 1
+        col = exc.start - raw.rfind(b"\n", 0, exc.start)
+        return None, [Problem(name, line, f"the scene is not UTF-8 text (byte 0x{raw[exc.start]:02x} at column "
+                                          f"{col}); save it as UTF-8")]
+    try:
+        loader = _Loader(text, name)
+    except yaml.YAMLError as exc:  # the reader refuses control characters (NUL, ...) up front
+        line = text[:getattr(exc, "position", 0) or 0].count("\n") + 1
+        return None, [Problem(name, line, f"YAML: {str(exc).splitlines()[0]}")]
+    try:
+        node = loader.get_single_node()
+        size = _expanded_size(node)
+        if size > MAX_YAML_NODES:
+            return None, [Problem(name, 1, f"the scene expands to more than {MAX_YAML_NODES:,} YAML values "
+                                           f"(anchors and aliases repeat content); write it out plainly")]
+        data = loader.construct_document(node) if node is not None else None
     except yaml.MarkedYAMLError as exc:
         mark = exc.problem_mark or exc.context_mark
         line = mark.line + 1 if mark else 0
@@ -203,6 +253,9 @@ def read_yaml(path: Path) -> tuple[Any, list[Problem]]:
         elif "'['" in str(exc) or "flow" in str(exc):
             hint = " (quote names with brackets inside [ ] lists, e.g. [\"mech.leg[*].f\"])"
         return None, [Problem(name, line, f"YAML syntax: {what}{hint}")]
+    except yaml.YAMLError as exc:  # e.g. a NUL or other control character
+        line = text[:getattr(exc, "position", 0) or 0].count("\n") + 1
+        return None, [Problem(name, line, f"YAML: {str(exc).splitlines()[0]}")]
     finally:
         loader.dispose()
     return data, loader.duplicates
@@ -662,12 +715,12 @@ class _Checker:
             return None
         cat = catalog.catalog()
         model = spec["model"]
-        if model not in cat:
+        if not isinstance(model, str) or model not in cat:
             self.err(spec.loc("model"), f"component {name!r}: unknown model {model!r}{suggest(str(model), cat)} "
                                         f"(catalog: {', '.join(sorted(cat))})")
             return None
         fidelity = spec.get("fidelity", cat[model][0])
-        if fidelity not in cat[model]:
+        if not isinstance(fidelity, str) or fidelity not in cat[model]:
             self.err(spec.loc("fidelity"), f"component {name!r}: model {model} has no fidelity {fidelity!r}"
                                            f"{suggest(str(fidelity), cat[model])} (expected one of "
                                            f"{', '.join(cat[model])})")
@@ -1049,7 +1102,7 @@ class _Checker:
         self.unknown_keys(node, MASTER_KEYS, "master")
         alg = node.get("algorithm", "gauss_seidel")
         ok = True
-        if alg not in ALGORITHMS:
+        if not isinstance(alg, str) or alg not in ALGORITHMS:
             self.err(node.loc("algorithm"), f"unknown master algorithm {alg!r}{suggest(str(alg), ALGORITHMS)} "
                                             f"(known: {', '.join(sorted(ALGORITHMS))})")
             ok = False
@@ -1059,8 +1112,8 @@ class _Checker:
         step = default_step or self.number(node, "step", "master.step", required=True)
         step_ns = None
         if step is not None:
-            if step <= 0:
-                self.err(node.loc("step"), f"master.step = {step} must be positive (seconds)")
+            if not 0 < step <= 1e6:
+                self.err(node.loc("step"), f"master.step = {step} must be positive and at most 1e6 (seconds)")
                 ok = False
             else:
                 step_ns = round(step * 1e9)
@@ -1102,7 +1155,7 @@ class _Checker:
         if "output_interval" in node and step_ns:
             oi = self.number(node, "output_interval", "master.output_interval")
             if oi is not None:
-                k = round(oi * 1e9 / step_ns)
+                k = round(oi * 1e9 / step_ns) if 0 < oi <= 1e9 else 0
                 if oi <= 0 or k < 1 or abs(k * step_ns - oi * 1e9) > 1e-6 * oi * 1e9:
                     self.err(node.loc("output_interval"), f"master.output_interval = {oi} s must be a positive "
                                                           f"whole multiple of master.step = {step} s")
@@ -1170,6 +1223,9 @@ class _Checker:
             start = self.number(self.tree, "start_time", "start_time")
         else:
             start = self.fmu_default(comps, "start", "start_time") or 0.0
+        if start is not None and not abs(start) < 1e12:
+            self.err(self.tree.loc("start_time"), f"start_time = {start} must be a finite number of seconds below 1e12")
+            start = None
         if start is not None:
             start_ns = round(start * 1e9)
             if abs(start_ns - start * 1e9) > 1e-6 * max(1.0, abs(start) * 1e9):
@@ -1185,6 +1241,9 @@ class _Checker:
                 self.err(self.tree.where, "stop_time is missing; expected a number in seconds (no FMU of the scene "
                                           "gives one in its default experiment)")
         if stop is None:
+            return None, None, start, start_ns
+        if not stop < 1e12:
+            self.err(self.tree.loc("stop_time"), f"stop_time = {stop} must be a finite number of seconds below 1e12")
             return None, None, start, start_ns
         if stop <= start:
             self.err(self.tree.loc("stop_time"), f"stop_time = {stop} must be positive (seconds from the start)"
@@ -1296,8 +1355,13 @@ def validate(tree: YMap, path: Path | None = None, *, catalog=None, problems: li
     errors = [p for p in ck.problems if p.severity == "error"]
     if errors:
         raise SceneError(ck.problems)
+    from .outputs import name_problem, stem_name
+
+    name = tree.get("name") or stem_name(path.stem if path else "scene")
+    if name_problem(name):
+        ck.err(tree.loc("name"), name_problem(name))
+        raise SceneError(ck.problems)
     data = plain(tree)
-    name = tree.get("name") or (path.stem if path else "scene")
     return Scene(str(name), path, str(tree.get("description", "")), stop, n_steps, comps, conns, bonds, master,
                  outputs, data, _hash(data, comps), [p for p in ck.problems if p.severity != "error"], start, start_ns)
 

@@ -31,6 +31,7 @@ import atexit
 import ctypes
 import dataclasses
 import enum
+import os
 import shutil
 import tempfile
 from abc import ABC, abstractmethod
@@ -203,6 +204,9 @@ def describe_fmu(path: Path) -> SlaveDescription:
         md = fmpy.read_model_description(str(path), validate=False)
     except Exception as exc:  # fmpy raises bare Exceptions for any malformed archive or XML
         raise UserError(f"{path}: not a readable FMU ({exc})") from None
+    if not str(md.fmiVersion or "").startswith(("2", "3")):
+        raise UserError(f"{path}: FMI {md.fmiVersion} FMUs are not supported; export it as FMI 2.0 or 3.0 "
+                        f"co-simulation")
     kinds = _interfaces(md)
     if md.coSimulation is None:
         raise UserError(f"{path}: the FMU has no co-simulation interface (it has "
@@ -335,12 +339,23 @@ def _cleanup() -> None:
 atexit.register(_cleanup)
 
 
+def _sweep_dead_unzips() -> None:
+    """Remove the FMU folders of processes that died without their atexit (SIGKILL)."""
+    from .outputs import pid_alive
+
+    for d in Path(tempfile.gettempdir()).glob("rpr-fmu-*-*"):
+        pid = d.name.split("-")[2]
+        if pid.isdigit() and int(pid) != os.getpid() and not pid_alive(int(pid)):
+            shutil.rmtree(d, ignore_errors=True)
+
+
 def _unzip(path: Path) -> str:
     import fmpy
 
     key = (str(path.resolve()), path.stat().st_mtime)
     if key not in _UNZIPPED:
-        _UNZIPPED[key] = fmpy.extract(str(path), unzipdir=tempfile.mkdtemp(prefix="rpr-fmu-"))
+        _sweep_dead_unzips()
+        _UNZIPPED[key] = fmpy.extract(str(path), unzipdir=tempfile.mkdtemp(prefix=f"rpr-fmu-{os.getpid()}-"))
     return _UNZIPPED[key]
 
 

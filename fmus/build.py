@@ -13,7 +13,8 @@ from pathlib import Path
 from models.block import Block
 
 from . import codegen
-from .cache import EXPORTER_VERSION, KEY_LENGTH, atomic_write, cache_root, content_key
+from .cache import (EXPORTER_VERSION, KEY_LENGTH, atomic_write, cache_root, content_key, file_digest, verify,
+                    writable_root)
 from .compile import (CFLAGS, LDFLAGS, compile_library, compiler, compiler_version, exported_symbols,
                       library_suffix, optimisation, pack, platform_dirs)
 from .errors import BuildError
@@ -96,9 +97,18 @@ def build_from_sources(ident: str, files: Mapping[str, str], c_sources: list[str
     source_names = sorted(files)
     root = cache_root(cache_dir)
     target = root / key[:KEY_LENGTH] / f"{ident}.fmu"
+    if not target.exists():
+        fallback = writable_root(root, say)
+        if fallback != root:
+            root, target = fallback, fallback / key[:KEY_LENGTH] / f"{ident}.fmu"
     if target.exists():
-        say(f"{ident}: FMI {version} FMU up to date ({target}), checked in {t_gen:.2f} s")
-        return target
+        damage = verify(target)
+        if not damage:
+            say(f"{ident}: FMI {version} FMU up to date ({target}), checked in {time.perf_counter() - t0:.2f} s")
+            return target
+        say(f"{ident}: the cached FMU {target} is damaged ({damage}); rebuilding it")
+        root = writable_root(root, say)
+        target = root / key[:KEY_LENGTH] / f"{ident}.fmu"
     say(f"{ident}: {announce} (FMI {version})")
     files = {n: t.replace(_PLACEHOLDER, guid) for n, t in files.items()}
     xml = xml.replace(_PLACEHOLDER, guid)
@@ -129,7 +139,7 @@ def build_from_sources(ident: str, files: Mapping[str, str], c_sources: list[str
         rec = {"block": label, **dict(record or {}), "model_identifier": ident, "fmi_version": version, "guid": guid,
                "key": key, "exporter_version": EXPORTER_VERSION, "compile_s": round(t_cc, 4),
                "total_s": round(total, 4), "optimisation": opt, "fmu_bytes": out.stat().st_size,
-               "created": time.strftime("%Y-%m-%dT%H:%M:%S%z")}
+               "fmu_sha256": file_digest(out), "created": time.strftime("%Y-%m-%dT%H:%M:%S%z")}
         atomic_write(target.with_name("build.json"), json.dumps(rec, indent=2).encode())
         out.replace(target)  # atomic: a concurrent build of the same key writes the same bytes
     finally:
