@@ -50,6 +50,7 @@ from typing import Any
 import numpy as np
 
 from ..errors import UserError
+from ..scenario import TOP_KEYS as SCENE_KEYS
 from ..scenario import Problem, SceneError, YList, YMap, apply_overrides, load_raw, read_yaml, suggest, validate
 from .metrics import MEASURES, NEEDS_TARGET, MetricSpec
 
@@ -253,7 +254,7 @@ def _axis(ck: _Checker, name: Any, node: Any, where: Loc, components: Sequence[s
         if not isinstance(path, str):
             ck.err(node.loc("path"), f"axis {name!r}: path must be a scene path like components.pid1.params.Kp")
             return None
-    elif "." not in name:
+    elif "." not in name and name not in SCENE_KEYS:
         ck.err(where, f"axis {name!r} is not a scene path; give one with path: (e.g. {{path: "
                       f"components.pid1.params.Kp, values: [...]}}) or use the path as the name")
         return None
@@ -314,7 +315,7 @@ def _random_axis(ck: _Checker, name: str, node: Any, where: Loc, paths: tuple[st
     return Axis(name, paths, (), Distribution(kind, a, b), where, ())
 
 
-def _axes(ck: _Checker, tree: YMap, key: str, components: Sequence[str]) -> list[Axis]:
+def _axes(ck: _Checker, tree: YMap, key: str, components: Sequence[str], kind: str | None = None) -> list[Axis]:
     node = ck.mapping(tree, key, f"{key} (axis name -> values)")
     if node is None:
         return []
@@ -322,7 +323,7 @@ def _axes(ck: _Checker, tree: YMap, key: str, components: Sequence[str]) -> list
         ck.err(tree.loc(key), f"{key} has no axes")
     out = []
     for name, spec in node.items():
-        ax = _axis(ck, name, spec, node.loc(name), components, key)
+        ax = _axis(ck, name, spec, node.loc(name), components, kind or key)
         if ax is not None:
             out.append(ax)
     return out
@@ -345,7 +346,7 @@ def _random(ck: _Checker, tree: YMap, components: Sequence[str]) -> tuple[list[A
         ck.err(node.loc("samples") if "samples" in node else node.where,
                f"random.samples = {samples!r} must be a whole number of runs (1 or more)")
         samples = 0
-    axes = _axes(ck, node, "axes", components) if "axes" in node else []
+    axes = _axes(ck, node, "axes", components, "random") if "axes" in node else []
     if "axes" not in node:
         ck.err(node.where, "random needs axes: (name -> {path:, dist:, ...})")
     return axes, seed, samples
@@ -488,8 +489,8 @@ def _report(ck: _Checker, tree: YMap, columns: Sequence[str], axes: Sequence[str
     return sort, plots
 
 
-def _check_paths(ck: _Checker, base: YMap, scene_path: Path, fixed: dict, axes: Sequence[Axis],
-                 set_loc: Loc, catalog=None) -> None:
+def _check_paths(ck: _Checker, base: YMap, scene_path: Path, fixed: dict, grid: Sequence[Axis],
+                 zipped: Sequence[Axis], rnd: Sequence[Axis], set_loc: Loc, catalog=None) -> None:
     """Apply each axis value (alone, over the fixed overrides) to the base scene and validate it,
     so that a wrong path or value is reported at the batch file's line."""
     def trial(over: dict) -> str:
@@ -504,7 +505,7 @@ def _check_paths(ck: _Checker, base: YMap, scene_path: Path, fixed: dict, axes: 
     if msg:
         ck.err(set_loc, f"set: {msg}")
         return
-    for ax in axes:
+    for ax in [*grid, *rnd]:
         values = ax.values if ax.dist is None else (ax.dist.typical(),)
         locs = ax.value_locs or (ax.where,) * len(values)
         for v, loc in zip(values, locs):
@@ -512,6 +513,12 @@ def _check_paths(ck: _Checker, base: YMap, scene_path: Path, fixed: dict, axes: 
             if msg:
                 ck.err(loc, f"axis {ax.name!r} = {v!r}: {msg}")
                 break
+    for i in range(len(zipped[0].values) if zipped else 0):  # zipped values go together
+        msg = trial({**fixed, **{p: ax.values[i] for ax in zipped for p in ax.paths}})
+        if msg:
+            row = ", ".join(f"{ax.name}={ax.values[i]!r}" for ax in zipped)
+            ck.err(zipped[0].value_locs[i], f"zip item {i + 1} ({row}): {msg}")
+            break
 
 
 def load_batch(path: Path | str, *, catalog=None) -> Batch:
@@ -561,7 +568,7 @@ def load_batch(path: Path | str, *, catalog=None) -> Batch:
     grid = _axes(ck, data, "grid", comps)
     zipped = _axes(ck, data, "zip", comps)
     rnd, seed, samples = _random(ck, data, comps)
-    if not ("grid" in data or "zip" in data or "random" in data):
+    if not ("grid" in data or "zip" in data or "random" in data) and not ck.problems:
         ck.err(data.where, "the batch varies nothing; add grid:, zip: or random: axes")
     if zipped and len({len(a.values) for a in zipped}) > 1:
         lens = ", ".join(f"{a.name!r} has {len(a.values)} (line {a.where[1]})" for a in zipped)
@@ -583,7 +590,7 @@ def load_batch(path: Path | str, *, catalog=None) -> Batch:
     columns = base_columns(names, [m.column for m in metrics])
     sort, plots = _report(ck, data, columns, names, [m.column for m in metrics])
     if not ck.problems:
-        _check_paths(ck, base, scene_path, fixed, [*grid, *zipped, *rnd], data.loc("set"), catalog)
+        _check_paths(ck, base, scene_path, fixed, grid, zipped, rnd, data.loc("set"), catalog)
     if not ck.problems:
         _check_signals(ck, base, scene_path, fixed, metrics, plots, catalog)
     if any(p.severity == "error" for p in ck.problems):
