@@ -22,7 +22,7 @@ from cosim.batch.report import run_trace_path
 
 ROOT = Path(__file__).resolve().parents[1]
 SCENE = ROOT / "scenarios" / "pid_step.yaml"
-TIMING = {"init_s", "loop_s", "real_time_factor", "wall_s", "worker"}
+TIMING = {"init_s", "loop_s", "real_time_factor", "run_s", "wall_s", "worker"}
 
 GRID24 = f"""\
 name: grid24

@@ -180,8 +180,10 @@ def _axis_values(rows: Sequence[dict], axis: str) -> list:
     return sorted(vals) if numeric else vals
 
 
-def plot_lines(rows, metric: str, x: str, lines: str | None, others: Sequence[str], path: Path) -> Path:
-    """``metric`` against axis ``x``, one line per value of ``lines`` (and of any other axis)."""
+def plot_lines(rows, metric: str, x: str, lines: str | None, others: Sequence[str], path: Path, *,
+               scatter: bool = False) -> Path:
+    """``metric`` against axis ``x``, one line per value of ``lines`` (and of the ``others``
+    axes); points only (``scatter``) for a random axis."""
     plt = _plt()
     ok = [r for r in rows if r.get("outcome") == "ok"]
     xs = _axis_values(ok, x)
@@ -195,7 +197,8 @@ def plot_lines(rows, metric: str, x: str, lines: str | None, others: Sequence[st
         pts = groups[key]
         px = [v for v in xs if v in pts]
         label = ", ".join(f"{a}={_fmt(v)}" for a, v in zip(group_axes, key)) or None
-        ax.plot([xs.index(v) for v in px] if not numeric else px, [pts[v] for v in px], "o-", ms=4, label=label)
+        ax.plot([xs.index(v) for v in px] if not numeric else px, [pts[v] for v in px], "o" if scatter else "o-",
+                ms=4, label=label)
     if not numeric:
         ax.set_xticks(range(len(xs)), [str(v) for v in xs])
     ax.set_xlabel(x)
@@ -230,9 +233,12 @@ def plot_heatmap(rows, metric: str, x: str, y: str, path: Path) -> Path:
     fig, ax = plt.subplots(figsize=(1.0 * len(xs) + 2.5, 0.7 * len(ys) + 1.8), layout="constrained")
     cmap = plt.get_cmap("viridis").copy()
     cmap.set_bad("0.85")
-    im = ax.imshow(np.ma.masked_invalid(grid), origin="lower", aspect="auto", cmap=cmap)
     fin = grid[np.isfinite(grid)]
-    mid = (fin.min() + fin.max()) / 2 if len(fin) else 0.0
+    lo, hi = (float(fin.min()), float(fin.max())) if len(fin) else (0.0, 1.0)
+    if len(fin) > 4 and hi - lo > 10 * (np.percentile(fin, 80) - lo):  # an outlier would flatten the rest
+        hi = float(np.percentile(fin, 80))
+    im = ax.imshow(np.ma.masked_invalid(grid), origin="lower", aspect="auto", cmap=cmap, vmin=lo, vmax=hi)
+    mid = (lo + hi) / 2
     for j in range(len(ys)):
         for i in range(len(xs)):
             text = "x" if (i, j) in failed else ("inf" if inf[j, i] else (f"{grid[j, i]:.3g}" if np.isfinite(grid[j, i]) else ""))
@@ -242,7 +248,7 @@ def plot_heatmap(rows, metric: str, x: str, y: str, path: Path) -> Path:
     ax.set_yticks(range(len(ys)), [_fmt(v) for v in ys])
     ax.set_xlabel(x)
     ax.set_ylabel(y)
-    fig.colorbar(im, ax=ax, label=metric)
+    fig.colorbar(im, ax=ax, label=metric, extend="max" if len(fin) and hi < fin.max() else "neither")
     ax.set_title(metric + (" (x: failed, inf: not settled)" if failed or inf.any() else ""), fontsize=9)
     return _save(fig, plt, path)
 
@@ -329,17 +335,20 @@ def default_plots(batch: Batch) -> list[PlotSpec]:
 def make_plots(batch: Batch, out: Path, rows: Sequence[dict], sort: str | None) -> list[Path]:
     """Write the batch's charts into ``out/plots``; returns their paths."""
     axes = [a.name for a in batch.axes]
+    swept = [a.name for a in [*batch.grid, *batch.zip]]
+    random = {a.name for a in batch.random}
     made = []
     for p in batch.plots or default_plots(batch):
         d = Path(out) / "plots"
         if p.kind == "lines":
-            made.append(plot_lines(rows, p.metric, p.x, p.y, axes, d / f"lines_{_safe(p.metric)}_vs_{_safe(p.x)}.png"))
+            made.append(plot_lines(rows, p.metric, p.x, p.y, swept, d / f"lines_{_safe(p.metric)}_vs_{_safe(p.x)}.png",
+                                   scatter=p.x in random))
         elif p.kind == "heatmap":
             made.append(plot_heatmap(rows, p.metric, p.x, p.y, d / f"heatmap_{_safe(p.metric)}.png"))
         elif p.kind == "hist":
             made.append(plot_hist(rows, p.metric, d / f"hist_{_safe(p.metric)}.png"))
         else:
-            made.append(plot_traces(out, rows, p.signal, p.runs, sort, axes, d / f"traces_{_safe(p.signal)}.png"))
+            made.append(plot_traces(out, rows, p.signal, p.runs, sort, swept or axes, d / f"traces_{_safe(p.signal)}.png"))
     return made
 
 

@@ -5,8 +5,9 @@ Columns: ``run_id`` (the first 16 hex digits of the resolved scene's hash; the r
 ``runs/<run_id>/``), ``index`` (position in the batch), one column per axis (its value),
 ``outcome`` (ok, failed, stopped) and ``reason``, one column per metric, then the statistics
 ``steps`` (macro steps done), ``simulated_s``, ``init_s`` (instantiation and initialisation),
-``loop_s`` (the stepping loop), ``real_time_factor``, ``wall_s`` (the whole run on its worker:
-reset, run, reference, metrics), ``attempts`` (2 when a worker died and the run was retried) and
+``loop_s`` (the stepping loop), ``real_time_factor``, ``run_s`` (all of :func:`cosim.run.run`:
+initialisation, loop, trace files), ``wall_s`` (the whole run on its worker: instances, run,
+reference, metrics), ``attempts`` (2 when a worker died and the run was retried) and
 ``worker`` (host:pid).
 
 Rows are appended as runs finish, each with one ``write`` and an ``fsync``, so an interrupted
@@ -25,7 +26,8 @@ from typing import Any
 
 from ..errors import UserError
 
-STAT_COLUMNS = ("steps", "simulated_s", "init_s", "loop_s", "real_time_factor", "wall_s", "attempts", "worker")
+STAT_COLUMNS = ("steps", "simulated_s", "init_s", "loop_s", "real_time_factor", "run_s", "wall_s", "attempts",
+                "worker")
 TEXT_COLUMNS = frozenset({"run_id", "outcome", "reason", "worker"})
 INT_COLUMNS = frozenset({"index", "steps", "attempts"})
 

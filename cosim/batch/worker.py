@@ -128,7 +128,7 @@ def worker_id() -> str:
 def _stats(stats: dict) -> dict[str, Any]:
     return {"steps": stats.get("steps_done", 0), "simulated_s": stats.get("simulated_s", 0.0),
             "init_s": stats.get("init_s"), "loop_s": stats.get("wall_s"),
-            "real_time_factor": stats.get("real_time_factor")}
+            "real_time_factor": stats.get("real_time_factor"), "run_s": stats.get("run_s")}
 
 
 def _monolithic(scene: Scene, out_dir: Path) -> tuple[Trace | None, str]:
@@ -154,8 +154,10 @@ def execute(task: Task, shared: Shared) -> Outcome:
         for name in task.scene.components:
             digest = task.fmus[name]
             slaves.append(STATE.take(name, digest, STATE.fmu_path(digest, shared.blobs), shared.reuse))
+        t_run = time.perf_counter()
         res = run(task.scene, out_dir=out_dir, slaves=slaves)
-        status, reason, stats, trace = res.status, res.reason, res.stats, res.trace
+        status, reason, stats, trace = res.status, res.reason, dict(res.stats), res.trace
+        stats["run_s"] = time.perf_counter() - t_run
     except UserError as exc:
         reason = str(exc)
     except Exception as exc:  # a run never takes the batch down: its failure is its row
