@@ -46,6 +46,9 @@ class Progress:
         if done:
             self.stream.write(f"[batch] {done} of {total} runs already in the table; running the other "
                               f"{total - done}\n")
+
+    def show(self) -> None:
+        """Print the line now (e.g. when the runs are handed out)."""
         self._show(force=True)
 
     def started(self, run_id: str) -> None:

@@ -265,6 +265,9 @@ def run_batch(batch: Batch, *, out: Path | None = None, executor=None, cache_dir
                     if progress is not None:
                         progress.finished(task.run_id, outcome.status == "ok", getattr(ex, "capacity", 1))
 
+                if progress is not None:
+                    progress.capacity = getattr(ex, "capacity", 1)
+                    progress.show()
                 try:
                     ex.run(tasks, shared, finished, started)
                 finally:

@@ -584,7 +584,7 @@ def load_batch(path: Path | str, *, catalog=None) -> Batch:
             seen[p] = ax
     names = [a.name for a in [*grid, *zipped, *rnd]]
     reference = _reference(ck, data, path.parent)
-    metrics = _metrics(ck, data, reference is not None)
+    metrics = _metrics(ck, data, "reference" in data)  # a bad reference is one problem, not one per metric
     from .results import base_columns
 
     columns = base_columns(names, [m.column for m in metrics])

@@ -51,10 +51,6 @@ class Shared:
     reference: Trace | None = None
     reuse: bool = True  # keep instances between runs (FMI reset) instead of loading them again
 
-    @property
-    def key(self) -> tuple:
-        return tuple(sorted(self.blobs)), id(self.reference), self.reuse
-
 
 @dataclass
 class Outcome:
