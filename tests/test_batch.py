@@ -19,6 +19,7 @@ from cosim.batch import load_batch, run_batch
 from cosim.batch.executors import DaskExecutor, LocalExecutor
 from cosim.batch.results import read_rows
 from cosim.batch.report import run_trace_path
+from cosim.cli import main
 
 ROOT = Path(__file__).resolve().parents[1]
 SCENE = ROOT / "scenarios" / "pid_step.yaml"
@@ -65,19 +66,54 @@ def dask_scheduler():
     cluster.close()
 
 
-def test_grid_on_local_processes_and_dask_agree(tmp_path, dask_scheduler):
-    batch = load_batch(write(tmp_path, GRID24))
-    local = run_batch(batch, out=tmp_path / "local", executor=LocalExecutor(2))
-    remote = run_batch(batch, out=tmp_path / "dask", executor=DaskExecutor(dask_scheduler))
+@pytest.fixture(scope="module")
+def local_grid(tmp_path_factory):
+    """The 24-run grid on two local worker processes: (batch file, output directory, outcome)."""
+    tmp = tmp_path_factory.mktemp("grid")
+    path = write(tmp, GRID24)
+    res = run_batch(load_batch(path), out=tmp / "local", executor=LocalExecutor(2))
+    return path, tmp / "local", res
+
+
+def test_grid_on_local_processes_and_dask_agree(local_grid, tmp_path, dask_scheduler):
+    path, out, local = local_grid
+    remote = run_batch(load_batch(path), out=tmp_path / "dask", executor=DaskExecutor(dask_scheduler))
     assert local.ran == remote.ran == 24 and local.failed == remote.failed == 0
-    a, b = stable(read_rows(tmp_path / "local" / "results.csv")[1]), stable(read_rows(tmp_path / "dask" / "results.csv")[1])
+    a, b = stable(read_rows(out / "results.csv")[1]), stable(read_rows(tmp_path / "dask" / "results.csv")[1])
     assert len(a) == 24 and a == b
     assert {r["Kp"] for r in a.values()} == {20, 30, 40, 50} and all(r["steps"] == 200 for r in a.values())
     for rid in a:
-        ta, tb = run_trace_path(tmp_path / "local", rid), run_trace_path(tmp_path / "dask", rid)
+        ta, tb = run_trace_path(out, rid), run_trace_path(tmp_path / "dask", rid)
         assert ta.name == tb.name == "pid_step.csv"
         assert data_lines(ta) == data_lines(tb)
         assert (ta.parent / "pid_step.json").is_file() and (tb.parent / "pid_step.json").is_file()
+
+
+def test_rerunning_a_finished_batch_runs_nothing_and_prints_the_sorted_table(local_grid, capsys):
+    path, out, _ = local_grid
+    assert main(["batch", str(path), "--out", str(out), "--sort", "mech.platform.phi:overshoot", "--most", "30"]) == 0
+    text = capsys.readouterr().out
+    assert "24 runs (24 ok, 0 not ok); this time 0 ran, 24 were in the table already" in text
+    lines = text.split("sorted by mech.platform.phi:overshoot:\n")[1].splitlines()
+    col = [h.endswith("overshoot") for h in lines[0].split()].index(True)
+    values = [float(ln.split()[col]) for ln in lines[1:25]]
+    expected = sorted(r["mech.platform.phi:overshoot"] for r in read_rows(out / "results.csv")[1])
+    assert values == pytest.approx(expected, rel=1e-3)
+    for name in ("heatmap_mech.platform.phi_max.png", "lines_mech.platform.phi_max_vs_Kp.png",
+                 "traces_mech.platform.phi.png"):
+        assert (out / "plots" / name).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_compare_every_run_against_one_reference(local_grid, capsys):
+    """One run's own trace as the reference: that run differs by exactly 0, every other by more."""
+    _, out, res = local_grid
+    ref_id = res.rows[0]["run_id"]
+    assert main(["compare", str(out), str(run_trace_path(out, ref_id)), "--only", "mech.platform.*"]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert lines[0].startswith("24 runs of") and len(lines) == 2 + 24
+    rel = {ln.split()[0]: float(ln.split()[-1]) for ln in lines[2:]}
+    assert rel[ref_id] == 0.0 and all(v > 0 for k, v in rel.items() if k != ref_id)
+    assert main(["compare", str(out), str(run_trace_path(out, ref_id)), "--tol", "1e-3"]) == 1
 
 
 def test_reusing_instances_changes_no_bit(tmp_path):
@@ -170,9 +206,11 @@ def test_an_interrupted_batch_resumes_with_only_the_missing_runs(tmp_path, sig):
     deadline = time.monotonic() + 120
     while _rows_in(table) < 3 and proc.poll() is None and time.monotonic() < deadline:
         time.sleep(0.01)
+    seen = _rows_in(table)
+    status = Path(f"/proc/{proc.pid}/status").read_text() if proc.poll() is None else "exited"
     os.killpg(proc.pid, sig)
     _, err = proc.communicate(timeout=60)
-    assert proc.returncode == (130 if sig == signal.SIGINT else -signal.SIGKILL), err
+    assert proc.returncode == (130 if sig == signal.SIGINT else -signal.SIGKILL), (seen, status, err)
     if sig == signal.SIGINT:
         assert "interrupted; the finished runs are in" in err
     for _ in range(100):  # the workers die with the batch: nothing keeps writing into its runs
