@@ -55,6 +55,8 @@ def _batch(args: argparse.Namespace) -> int:
         raise UserError("--scheduler and --dask exclude each other: --dask starts a local cluster")
     try:
         batch = load_batch(args.batch)
+        for note in batch.notes:
+            _say(str(note))
         if args.sort is not None:
             from .batch.results import base_columns
 

@@ -238,8 +238,8 @@ def plot_heatmap(rows, metric: str, x: str, y: str, path: Path) -> Path:
     cmap.set_bad("0.85")
     fin = grid[np.isfinite(grid)]
     lo, hi = (float(fin.min()), float(fin.max())) if len(fin) else (0.0, 1.0)
-    if len(fin) > 4 and hi - lo > 10 * (np.percentile(fin, 80) - lo):  # an outlier would flatten the rest
-        hi = float(np.percentile(fin, 80))
+    if len(fin) > 4 and hi - lo > 3 * (np.percentile(fin, 90) - lo):  # an outlier would flatten the rest
+        hi = float(np.percentile(fin, 90))
     im = ax.imshow(np.ma.masked_invalid(grid), origin="lower", aspect="auto", cmap=cmap, vmin=lo, vmax=hi)
     mid = (lo + hi) / 2
     for j in range(len(ys)):

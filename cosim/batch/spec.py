@@ -140,6 +140,7 @@ class Batch:
     plots: list[PlotSpec]
     base_tree: YMap = field(repr=False, default=None)
     where: dict[str, Loc] = field(default_factory=dict)
+    notes: list[Problem] = field(default_factory=list)  # warnings and notes (e.g. the 'auto' fidelity chosen)
 
     @property
     def axes(self) -> list[Axis]:
@@ -169,6 +170,10 @@ class _Checker:
 
     def err(self, where: Loc, msg: str) -> None:
         self.problems.append(Problem(where[0] or self.file, where[1], msg))
+
+    @property
+    def failed(self) -> bool:
+        return any(p.severity == "error" for p in self.problems)
 
     def keys(self, node: YMap, allowed: Sequence[str], what: str) -> bool:
         ok = True
@@ -521,6 +526,24 @@ def _check_paths(ck: _Checker, base: YMap, scene_path: Path, fixed: dict, grid: 
             break
 
 
+def _resolve_auto(ck: _Checker, base: YMap, scene_path: Path, fixed: dict, where: Loc) -> YMap:
+    """``fidelity: auto`` in the base scene is resolved once (as :func:`cosim.scenario.load`
+    does), with the batch's fixed overrides; every run then uses the levels chosen."""
+    comps = base.get("components")
+    if not (isinstance(comps, YMap) and any(isinstance(c, YMap) and c.get("fidelity") == "auto" and "model" in c
+                                            for c in comps.values())):
+        return base
+    from ..study.fidelity import resolve_auto
+
+    try:
+        tree, note = resolve_auto(apply_overrides(base, fixed), scene_path)
+    except UserError as exc:
+        ck.err(where, f"fidelity: auto: {exc}")
+        return base
+    ck.problems.append(Problem(where[0], where[1], note, "note"))
+    return tree
+
+
 def load_batch(path: Path | str, *, catalog=None) -> Batch:
     """Read and check a batch file; raises :class:`BatchError` listing every problem (each one
     line, ``file:line: error: message``)."""
@@ -565,10 +588,11 @@ def load_batch(path: Path | str, *, catalog=None) -> Batch:
             ck.err(node.loc(k), f"set: {msg}")
         for p in paths:
             fixed[p], fixed_locs[p] = v, node.loc(k)
+    base = _resolve_auto(ck, base, scene_path, fixed, data.loc("scene"))
     grid = _axes(ck, data, "grid", comps)
     zipped = _axes(ck, data, "zip", comps)
     rnd, seed, samples = _random(ck, data, comps)
-    if not ("grid" in data or "zip" in data or "random" in data) and not ck.problems:
+    if not ("grid" in data or "zip" in data or "random" in data) and not ck.failed:
         ck.err(data.where, "the batch varies nothing; add grid:, zip: or random: axes")
     if zipped and len({len(a.values) for a in zipped}) > 1:
         lens = ", ".join(f"{a.name!r} has {len(a.values)} (line {a.where[1]})" for a in zipped)
@@ -589,15 +613,15 @@ def load_batch(path: Path | str, *, catalog=None) -> Batch:
 
     columns = base_columns(names, [m.column for m in metrics])
     sort, plots = _report(ck, data, columns, names, [m.column for m in metrics])
-    if not ck.problems:
+    if not ck.failed:
         _check_paths(ck, base, scene_path, fixed, grid, zipped, rnd, data.loc("set"), catalog)
-    if not ck.problems:
+    if not ck.failed:
         _check_signals(ck, base, scene_path, fixed, metrics, plots, catalog)
     if any(p.severity == "error" for p in ck.problems):
         raise BatchError(ck.problems)
     return Batch(str(data.get("name") or path.stem), path, str(data.get("description", "")), scene_path, fixed,
                  grid, zipped, rnd, seed, samples, reference, metrics, sort, plots, base,
-                 {k: data.loc(k) for k in data})
+                 {k: data.loc(k) for k in data}, [p for p in ck.problems if p.severity != "error"])
 
 
 def _check_signals(ck: _Checker, base: YMap, scene_path: Path, fixed: dict, metrics: Sequence[MetricSpec],
