@@ -200,7 +200,11 @@ def test_an_interrupted_batch_resumes_with_only_the_missing_runs(tmp_path, sig):
     path, out = write(tmp_path, RESUME), tmp_path / "out"
     table = out / "results.csv"
     env = {**os.environ, "PYTHONPATH": str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", "")}
-    proc = subprocess.Popen([sys.executable, "-m", "cosim", "batch", str(path), "--out", str(out), "--workers", "1",
+    # as typed at a terminal: Ctrl-C interrupts (a shell starts background jobs with SIGINT ignored, and a child
+    # keeps that, so the handler is set explicitly)
+    cli = ("import signal, sys; signal.signal(signal.SIGINT, signal.default_int_handler); "
+           "from cosim.cli import main; sys.exit(main(sys.argv[1:]))")
+    proc = subprocess.Popen([sys.executable, "-c", cli, "batch", str(path), "--out", str(out), "--workers", "1",
                              "--no-plots"], cwd=tmp_path, env=env, start_new_session=True,
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     deadline = time.monotonic() + 120
