@@ -233,3 +233,24 @@ def test_an_interrupted_batch_resumes_with_only_the_missing_runs(tmp_path, sig):
     assert table.read_bytes().startswith(before)
     header, rows = read_rows(table)
     assert len(rows) == len({r["run_id"] for r in rows}) == 24
+
+
+def test_random_samples_do_not_depend_on_the_number_of_workers(tmp_path):
+    text = f"""\
+scene: {SCENE}
+set: {{stop_time: 0.1}}
+random:
+  seed: 11
+  samples: 4
+  axes:
+    m_p: {{path: components.mech.params.m_p, dist: normal, mean: 1.7, std: 0.17}}
+    b: {{path: "components.motor*.params.b", dist: log_uniform, low: 4.0e-5, high: 2.0e-4}}
+metrics:
+  mech.platform.phi: [max]
+"""
+    batch = load_batch(write(tmp_path, text))
+    one = run_batch(batch, out=tmp_path / "one", executor=LocalExecutor(1))
+    two = run_batch(batch, out=tmp_path / "two", executor=LocalExecutor(2))
+    a = {r["index"]: (r["run_id"], r["m_p"], r["b"], r["mech.platform.phi:max"]) for r in one.rows}
+    b = {r["index"]: (r["run_id"], r["m_p"], r["b"], r["mech.platform.phi:max"]) for r in two.rows}
+    assert a == b and len(a) == 4 and len({v[1] for v in a.values()}) == 4

@@ -234,8 +234,7 @@ def plot_heatmap(rows, metric: str, x: str, y: str, path: Path) -> Path:
         grid[j, i] = m if math.isfinite(m) else np.nan
         inf[j, i] = math.isinf(m)
     fig, ax = plt.subplots(figsize=(1.0 * len(xs) + 2.5, 0.7 * len(ys) + 1.8), layout="constrained")
-    cmap = plt.get_cmap("viridis").copy()
-    cmap.set_bad("0.85")
+    cmap = plt.get_cmap("viridis").with_extremes(bad="0.85")
     fin = grid[np.isfinite(grid)]
     lo, hi = (float(fin.min()), float(fin.max())) if len(fin) else (0.0, 1.0)
     if len(fin) > 4 and hi - lo > 3 * (np.percentile(fin, 90) - lo):  # an outlier would flatten the rest
