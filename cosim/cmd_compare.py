@@ -62,7 +62,7 @@ def _compare_batch(args: argparse.Namespace) -> int:
 
     axes, found = compare_batch(args.test, read_trace(args.reference), args.only)
     print(f"{len(found)} runs of {args.test} against {args.reference} (worst variable of each, worst run first):")
-    print(format_batch_comparison(axes, found[:args.most] if args.most else found))
+    print(format_batch_comparison(axes, found, most=args.most))
     if args.tol is not None:
         bad = [r for r, diffs in found if not max(d.relative for d in diffs) <= args.tol]
         if bad:

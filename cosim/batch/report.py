@@ -381,13 +381,15 @@ def compare_batch(out: Path, reference, patterns: Sequence[str] | None = None) -
     return axes, found
 
 
-def format_batch_comparison(axes: Sequence[str], found: Sequence[tuple[dict, list]]) -> str:
-    """One line per run, worst relative error first: its axes, worst variable and its error."""
+def format_batch_comparison(axes: Sequence[str], found: Sequence[tuple[dict, list]], *, most: int | None = None) -> str:
+    """One line per run, worst relative error first (``most`` lines at most): its axes, worst
+    variable and its error."""
     items = []
     for r, diffs in found:
         worst = max(diffs, key=lambda d: d.relative)
         items.append((worst.relative, r, worst))
     items.sort(key=lambda it: -it[0])
+    items = items[:most] if most else items
     wv = max(len(it[2].name) for it in items)
     head = "  ".join(f"{a:>10}" for a in axes)
     lines = [f"  {'run_id':<16}  {head}  {'worst variable':<{wv}}  {'max |diff|':>11}  {'at t [s]':>9}  {'max/range':>9}"]
