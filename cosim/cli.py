@@ -15,7 +15,7 @@ from .errors import user_error_types
 
 #: Modules that contribute verbs, in the order they appear in ``--help``.
 VERB_MODULES = ("cosim.cmd_analyze", "cosim.cmd_fmu", "cosim.cmd_run", "cosim.cmd_compare", "cosim.cmd_study",
-                "cosim.cmd_ssp", "cosim.cmd_board")
+                "cosim.cmd_ssp", "cosim.cmd_board", "cosim.cmd_batch")
 
 
 def build_parser() -> argparse.ArgumentParser:

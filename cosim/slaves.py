@@ -387,8 +387,16 @@ class FmuSlave(Slave):
         self._empty_vr = (c_uint32 * 1)()
         self._empty_val = (c_double * 1)()
 
+    #: Keep the instance when a run ends (:meth:`free` leaves it alive) so that the next run's
+    #: :meth:`instantiate` resets it (fmi2Reset / fmi3Reset) instead of loading the FMU again;
+    #: :meth:`release` frees it for good.  Used by batches (:mod:`cosim.batch`).
+    reuse: bool = False
+
     # lifecycle ---------------------------------------------------------------------------------
     def instantiate(self) -> None:
+        if self.fmu is not None:  # kept from a previous run (reuse): back to the instantiated state
+            self.reset()
+            return
         import fmpy
         from fmpy.fmi2 import FMU2Slave, defaultCallbacks, fmi2CallbackFunctions, fmi2CallbackLoggerTYPE
         from fmpy.fmi3 import FMU3Slave, fmi3LogMessageCallback
@@ -603,7 +611,19 @@ class FmuSlave(Slave):
             except Exception:  # terminating after an Error/Fatal status may itself fail
                 pass
 
+    def reset(self) -> None:
+        """Return the instance to its state right after instantiation (FMI reset): every
+        variable back to its default, ready for :meth:`set_start` and another run."""
+        self.messages.clear()
+        self._call("reset", self.fmu.reset)
+        self._terminated = False
+
     def free(self) -> None:
+        if not self.reuse:
+            self.release()
+
+    def release(self) -> None:
+        """Free the instance and its resources (also one kept for reuse)."""
         if self.fmu is not None:
             try:
                 self.fmu.freeInstance()

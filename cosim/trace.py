@@ -23,6 +23,7 @@ import threading
 import time
 from abc import ABC, abstractmethod
 from dataclasses import dataclass, field
+from functools import lru_cache
 from pathlib import Path
 
 import numpy as np
@@ -34,6 +35,12 @@ FORMAT = "rpr-cosim trace 1"
 
 def package_versions() -> dict[str, str]:
     """Versions of Python and the packages a run depends on."""
+    return dict(_package_versions())
+
+
+@lru_cache(maxsize=1)
+def _package_versions() -> dict[str, str]:
+    """:func:`package_versions`, read once per process (importlib.metadata takes ~50 ms)."""
     from importlib import metadata
 
     out = {"python": platform.python_version()}
