@@ -357,6 +357,7 @@ def simulate_variable(system, cls, *, step_ns: int, n_steps: int, observers: Seq
         stats.status, stats.reason = status, reason
         if stepper is not None:
             stats.steps_done, stats.t_end, stats.adaptive = stepper.stats.accepted, stepper.t, stepper.stats.as_dict()
+            stats.steps_planned = stats.steps_done  # no plan: the controller chose every step
             stats.slaves = {s.name: {"do_step_calls": int(stepper.calls[i]), "wall_s": stepper.slave_ns[i] / 1e9}
                             for i, s in enumerate(system.slaves)}
             stats.master_s = max(0.0, stats.wall_s - sum(stepper.slave_ns) / 1e9)

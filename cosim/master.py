@@ -56,6 +56,7 @@ import time
 from abc import ABC, abstractmethod
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
+from functools import lru_cache
 from typing import ClassVar
 
 import numpy as np
@@ -166,7 +167,13 @@ def gauss_seidel_order(n: int, edges: Iterable[tuple[int, int]]) -> list[int]:
     backwards, whose destination sees the source's output from the previous point) -- found by
     exhaustive search up to seven slaves, greedily (by out-degree minus in-degree) beyond;
     ties go to the declaration order."""
-    e = {(a, b) for a, b in edges if a != b}
+    return list(_gauss_seidel_order(n, frozenset((a, b) for a, b in edges if a != b)))
+
+
+@lru_cache(maxsize=128)
+def _gauss_seidel_order(n: int, e: frozenset[tuple[int, int]]) -> tuple[int, ...]:
+    """:func:`gauss_seidel_order`, cached: the exhaustive search costs ~0.2 s for eight slaves,
+    and a batch asks it again for every run of the same scene."""
     succ = [set() for _ in range(n)]
     for a, b in e:
         succ[a].add(b)
@@ -189,18 +196,26 @@ def gauss_seidel_order(n: int, edges: Iterable[tuple[int, int]]) -> list[int]:
                 seq.append(v)
                 rest.discard(v)
             order.extend(seq)
-    return order
+    return tuple(order)
 
 
 # --- the coupled system -----------------------------------------------------------------------
 @dataclass(frozen=True)
 class Link:
-    """A signal connection between slaves by index: ``slaves[src].src_var -> slaves[dst].dst_var``."""
+    """A signal connection between slaves by index: ``slaves[src].src_var -> slaves[dst].dst_var``,
+    optionally through a linear transformation ``dst = factor * src + offset`` (SSP's
+    LinearTransformation and unit conversions; the Python loop applies it in the gather)."""
 
     src: int
     src_var: str
     dst: int
     dst_var: str
+    factor: float = 1.0
+    offset: float = 0.0
+
+    @property
+    def transformed(self) -> bool:
+        return self.factor != 1.0 or self.offset != 0.0
 
 
 class CoupledSystem:
@@ -228,6 +243,9 @@ class CoupledSystem:
                 raise UserError(f"input {names[ln.dst]}.{ln.dst_var} is connected twice")
             seen_in.add((ln.dst, ln.dst_var))
             if not is_fast(self.slaves[ln.dst], ln.dst_var):
+                if ln.transformed:
+                    raise UserError(f"input {names[ln.dst]}.{ln.dst_var}: a linear transformation applies to "
+                                    f"scalar Float64 (Real) signals only")
                 typed_in.append(ln)  # a typed input: fed by the typed ports
                 if is_fast(self.slaves[ln.src], ln.src_var) and ln.src_var not in reads[ln.src]:
                     reads[ln.src].append(ln.src_var)
@@ -235,7 +253,8 @@ class CoupledSystem:
             if is_fast(self.slaves[ln.src], ln.src_var) and ln.src_var not in reads[ln.src]:
                 reads[ln.src].append(ln.src_var)
             ins[ln.dst].append((ln.dst_var, ln.src, ln.src_var))
-        source = {(ln.dst, ln.dst_var): (ln.src, ln.src_var) for ln in self.links if ln not in typed_in}
+        source = {(ln.dst, ln.dst_var): (ln.src, ln.src_var) for ln in self.links
+                  if ln not in typed_in and not ln.transformed}  # a transformed input is read from its slave
         for i, var in record:
             if (i, var) in source or not is_fast(self.slaves[i], var):
                 continue  # recorded as the value of its source output, or a typed variable
@@ -294,6 +313,13 @@ class CoupledSystem:
             columns += [(f"{names[i]}.{e}", self.index[(key[0], se)]) for e, se in zip(els, src_els)]
         self.record_names = [c for c, _ in columns]
         self.record_idx = np.array([k for _, k in columns], dtype=np.int64)
+        #: per slave, (factor, offset) arrays of its inputs when any of its links is transformed
+        self.in_affine: list[tuple[np.ndarray, np.ndarray] | None] = [None] * n
+        for i, r in enumerate(ins):
+            lns = [next(ln for ln in self.links if ln.dst == i and ln.dst_var == var) for var, _, _ in r]
+            if any(ln.transformed for ln in lns):
+                self.in_affine[i] = (np.array([ln.factor for ln in lns]), np.array([ln.offset for ln in lns]))
+        self.transformed = any(a is not None for a in self.in_affine)
 
     @property
     def names(self) -> list[str]:
@@ -338,6 +364,16 @@ class CoupledSystem:
 
     def gather(self, i: int) -> None:
         np.take(self.v, self.in_src[i], out=self.in_buf[i])
+        if self.in_affine[i] is not None:
+            self.in_buf[i] *= self.in_affine[i][0]
+            self.in_buf[i] += self.in_affine[i][1]
+
+    def source_values(self, i: int) -> np.ndarray:
+        """Slave i's inputs as its sources give them now (transformations applied), a new array."""
+        vals = self.v[self.in_src[i]]
+        if self.in_affine[i] is not None:
+            vals = vals * self.in_affine[i][0] + self.in_affine[i][1]
+        return vals
 
 
 # --- algorithms -------------------------------------------------------------------------------
@@ -347,6 +383,8 @@ def _gatherer(system: CoupledSystem, i: int) -> Callable[[], None]:
     src = [int(x) for x in system.in_src[i]]
     if not src:
         return lambda: None
+    if system.in_affine[i] is not None:
+        return lambda: system.gather(i)
     if len(src) > 8:
         v, idx, buf = system.v, system.in_src[i], system.in_buf[i]
         return lambda: np.take(v, idx, out=buf)
@@ -415,7 +453,7 @@ class Algorithm(ABC):
         sysm, n = self.system, len(self.system.slaves)
         self.inputs = inputs
         self.slopes = [np.zeros(len(b)) for b in sysm.in_buf]
-        self.hist = [sysm.v[src].copy() for src in sysm.in_src]
+        self.hist = [sysm.source_values(i) for i in range(len(sysm.in_src))]
         self.fresh = [np.zeros(len(b), dtype=bool) for b in sysm.in_buf]
         self.interpolating = [False] * n
         if inputs == "hold":
@@ -684,6 +722,8 @@ class _Compiled:
         self.fail_slave = ctypes.c_int32()
         self.fail_status = ctypes.c_int32()
         self.master_ns = ctypes.c_int64()
+        #: wall time after which one call returns early [ns]: signals are handled between calls
+        self.budget_ns = fastloop.CALL_BUDGET_NS
 
     def run(self, nsteps: int, rec_every: int, rec: np.ndarray) -> int:
         alg, sysm = self.alg, self.alg.system
@@ -693,7 +733,7 @@ class _Compiled:
                                 self.rec_idx.ctypes.data if self.rec_idx.size else None, len(self.rec_idx),
                                 rec_every, rec.ctypes.data, self.c.byref(self.n_rows),
                                 self.c.byref(self.fail_slave), self.c.byref(self.fail_status),
-                                self.c.byref(self.master_ns))
+                                self.c.byref(self.master_ns), self.budget_ns)
         for i, c in enumerate(self.arr):
             alg.calls[i], alg.slave_ns[i] = c.calls, c.ns
         alg.master_ns += self.master_ns.value
@@ -745,6 +785,7 @@ class RunStats:
     wall_s: float = 0.0
     master_s: float = 0.0
     slaves: dict[str, dict[str, float]] = field(default_factory=dict)
+    realtime: dict | None = None  # lateness statistics of a paced run (cosim.realtime)
 
     @property
     def simulated_s(self) -> float:
@@ -759,7 +800,8 @@ class RunStats:
         return {"algorithm": self.algorithm, "engine": self.engine, "step": self.step,
                 "steps_planned": self.steps_planned, "steps_done": self.steps_done, "status": self.status,
                 "reason": self.reason, "init_s": self.init_s, "wall_s": self.wall_s, "master_s": self.master_s,
-                "simulated_s": self.simulated_s, "real_time_factor": self.real_time_factor, "slaves": self.slaves}
+                "simulated_s": self.simulated_s, "real_time_factor": self.real_time_factor, "slaves": self.slaves,
+                **({"realtime": self.realtime} if self.realtime is not None else {})}
 
 
 def initialize(system: CoupledSystem, start_values: Sequence[dict[str, float]], *, start_time: float = 0.0,
@@ -804,12 +846,15 @@ def choose_engine(system: CoupledSystem, alg_cls: type[Algorithm], engine: str, 
     if engine == "python":
         return "python"
     native = alg_cls.native_code is not None and all(s.native() is not None for s in system.slaves)
+    if engine == "compiled" and system.transformed:
+        raise UserError("master.engine: compiled copies connections as they are; connections with a linear "
+                        "transformation (factor, offset) run in the Python loop: use master.engine: python or auto")
     if engine == "compiled" and system.typed.active:
         raise UserError("master.engine: compiled carries scalar Float64 variables only; this scene connects or "
                         "records other types or arrays: use engine auto or python")
     if engine == "compiled" and start_ns:
         raise UserError("master.engine: compiled runs from start_time 0; use engine auto or python")
-    native = native and not system.typed.active and not start_ns
+    native = native and not system.typed.active and not start_ns and not system.transformed
     if engine == "compiled":
         if not native:
             raise UserError(f"master.engine: compiled needs FMU slaves and an algorithm with a compiled loop "
@@ -825,15 +870,22 @@ def simulate(system: CoupledSystem, algorithm_name: str, *, step_ns: int, n_step
              engine: str = "auto", order: Sequence[int] | None = None, timing: bool = True,
              progress: Callable[[int, int], None] | None = None, meta: dict | None = None,
              inputs: str = "hold", start_ns: int = 0, tolerances: Sequence[float | None] | None = None,
-             options: dict | None = None) -> RunStats:
+             realtime=None, options: dict | None = None) -> RunStats:
     """Initialise ``system`` and run ``n_steps`` macro steps of ``step_ns`` nanoseconds, inputs
     held or linear over each step (``inputs``, see the module docstring).
 
     Observers receive ``start(columns, meta)``, ``record(rows)`` (rows of time and the recorded
     values, at ``t_0`` and every ``record_every`` steps) and ``finish(status, reason, stats)``,
     also when the run fails or is interrupted (then the exception propagates after ``finish``).
+    ``realtime`` (a :class:`cosim.realtime.RealtimeSettings`) paces every step on the wall clock.
     """
     cls = algorithm(algorithm_name)
+    if getattr(cls, "needs_rollback", False):
+        fixed = [s.name for s in system.slaves if not s.can_rollback]
+        if fixed:
+            raise UserError(f"master algorithm {cls.name} needs rollback (get/set state) but {', '.join(fixed)} "
+                            f"cannot roll back (canGetAndSetFMUstate=false, e.g. hardware); use a fixed-step "
+                            f"algorithm such as gauss_seidel or jacobi")
     if getattr(cls, "variable_step", False):
         from .adaptive import simulate_variable
 
@@ -847,7 +899,7 @@ def simulate(system: CoupledSystem, algorithm_name: str, *, step_ns: int, n_step
     status, reason = "failed", ""
     for obs in observers:
         obs.start(columns, dict(meta or {}, algorithm=cls.name, step=step_ns / 1e9))
-    alg, t_loop = None, None
+    alg, t_loop, pacer = None, None, None
     try:
         t0 = time.perf_counter()
         initialize(system, start_values or [{} for _ in system.slaves], start_time=start_ns / 1e9,
@@ -864,8 +916,15 @@ def simulate(system: CoupledSystem, algorithm_name: str, *, step_ns: int, n_step
                 if hasattr(obs, "record_text"):
                     obs.record_text(alg.t, c, x)
         chunk, t_loop, stepping = min(64, n_steps) or 1, time.perf_counter(), 0.0
+        if realtime is not None:
+            from .realtime import Pacer
+
+            pacer, chunk = Pacer(step_ns, n_steps, realtime), 1
         rec = np.empty((max(1, chunk // record_every + 1), len(columns)))
         while alg.k < n_steps and alg.status == "running":
+            if pacer is not None and not pacer.wait(alg.k):
+                alg.status, alg.message = "failed", pacer.reason
+                break
             n = min(chunk, n_steps - alg.k)
             if rec.shape[0] < n // record_every + 1:
                 rec = np.empty((n // record_every + 1, len(columns)))
@@ -880,15 +939,16 @@ def simulate(system: CoupledSystem, algorithm_name: str, *, step_ns: int, n_step
             alg.text_events.clear()
             if progress:
                 progress(alg.k, n_steps)
-            if dt < 0.05 and chunk < 1 << 20:  # aim at ~0.1 s per chunk: responsive to Ctrl-C
+            if dt < 0.05 and chunk < 1 << 20 and pacer is None:  # aim at ~0.1 s per chunk: responsive to Ctrl-C
                 chunk *= 2
         stats.wall_s = time.perf_counter() - t_loop
         if stats.engine == "python":  # the compiled loop measures its own share itself
             alg.master_ns = max(0, int(stepping * 1e9) - sum(alg.slave_ns))
         status, reason = ("ok", "") if alg.status == "running" else (alg.status, alg.message)
-    except KeyboardInterrupt:
+    except KeyboardInterrupt as exc:
         status = "interrupted"
-        reason = "interrupted by the user (KeyboardInterrupt)" + (f" at t = {alg.t:.9g} s" if alg else "")
+        reason = (f"interrupted by {str(exc) or 'the user (KeyboardInterrupt)'}"
+                  + (f" at t = {alg.t:.9g} s" if alg else ""))
         raise
     except BaseException as exc:
         status, reason = "failed", f"{type(exc).__name__}: {exc}"
@@ -902,6 +962,8 @@ def simulate(system: CoupledSystem, algorithm_name: str, *, step_ns: int, n_step
                             for i, s in enumerate(system.slaves)}
         if stats.wall_s == 0.0 and t_loop is not None:
             stats.wall_s = time.perf_counter() - t_loop
+        if pacer is not None:
+            stats.realtime = pacer.finish()
         for obs in observers:
             obs.finish(status, reason, stats.as_dict())
         for s in system.slaves:
