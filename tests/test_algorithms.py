@@ -142,10 +142,14 @@ def test_fmu_state_rollback_is_bit_exact(two_mass_fmu_slaves):
     ({"rtol": 2.0}, "rtol = 2.0 is outside"),
     ({"h_min": 0.1, "h_max": 0.01}, "h_min = 0.1 s is larger than h_max"),
 ])
-def test_master_options_are_checked_against_the_algorithm_declaration(options, message):
+def test_master_options_are_checked_against_the_algorithm_declaration(tmp_path, options, message):
+    scene = tmp_path / "opts.yaml"
+    body = ", ".join(f"{k}: {v}" for k, v in options.items())
+    scene.write_text(f"include: {SCENARIOS / 'two_mass.yaml'}\nmaster:\n  algorithm: adaptive\n"
+                     f"  options: {{{body}}}\n")
     with pytest.raises(SceneError) as exc:
-        load(SCENARIOS / "two_mass.yaml", {"master.algorithm": "adaptive", "master.options": options})
-    assert message in str(exc.value) and "two_mass.yaml" in str(exc.value)
+        load(scene)
+    assert message in str(exc.value) and "opts.yaml:4" in str(exc.value)
 
 
 def test_fixed_step_algorithms_have_no_options():
