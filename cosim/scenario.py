@@ -689,7 +689,11 @@ class _Checker:
             self.err(where, f"component {name!r}: {exc}")
             return None
         base = Path(where[0]).parent if where[1] else (self.path.parent if self.path else Path.cwd())
-        keyfile = base / Path(key).expanduser()
+        try:
+            keyfile = base / Path(key).expanduser()
+        except RuntimeError as exc:  # '~user' that does not exist, or no home directory
+            self.err(where, f"component {name!r}: key file {key!r}: {exc}")
+            return None
         if not keyfile.is_file():
             self.err(where, f"component {name!r}: key file {_display(keyfile)} not found; make one with "
                             f"'rpr-cosim board keygen {key}' and copy it to the board")
@@ -1175,7 +1179,7 @@ class _Checker:
                                                    f"advances whole samples: use e.g. step: {good:g}")
                         ok = False
         realtime = self.realtime(node)
-        options = self._algorithm_options(node, alg) if alg in ALGORITHMS else {}
+        options = self._algorithm_options(node, alg) if isinstance(alg, str) and alg in ALGORITHMS else {}
         if options is None:
             ok = False
         if not ok or step_ns is None or realtime is False:

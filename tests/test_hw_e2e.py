@@ -62,7 +62,10 @@ def runs(virtual_board, tmp_path_factory):
     pure = run(SCENES / "rig_step.yaml", [STOP], out_dir=out)
     hil = run(SCENES / "rig_step_hil.yaml", [STOP, f"components.rig.hardware.address={address}",
                                              f"components.rig.hardware.key={key}",
-                                             f"master.realtime.priority={PRIORITY}"], out_dir=out)
+                                             f"master.realtime.priority={PRIORITY}",
+                                             # a shared CI runner may stall for tens of ms: count misses
+                                             # rather than fail; the real-time factor is asserted below
+                                             "master.realtime.max_misses=1000"], out_dir=out)
     return pure, hil, out
 
 

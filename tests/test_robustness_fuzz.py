@@ -14,7 +14,8 @@ from cosim.scenario import from_dict, load
 
 ROOT = Path(__file__).resolve().parents[1]
 SCENES = ROOT / "scenarios"
-SHIPPED = sorted(p.stem for p in SCENES.glob("*.yaml"))
+# the shipped scenes (batch files, scenarios/batch_*.yaml, are a different format: tests/test_batch_spec.py)
+SHIPPED = sorted(p.stem for p in SCENES.glob("*.yaml") if not p.stem.startswith("batch_"))
 
 #: Values a mutation puts somewhere: wrong types, extremes, names that try to leave a directory,
 #: nested structures, YAML look-alikes.
@@ -101,8 +102,20 @@ def _accept(fn) -> None:
 
 
 @pytest.fixture(scope="module")
-def shipped_trees():
-    return {name: load(SCENES / f"{name}.yaml").data for name in SHIPPED}
+def shipped_trees(tmp_path_factory):
+    """The shipped scenes as validated plain trees; a hardware component's key file (which lives in
+    the user's home on a real setup) points at a fresh key."""
+    from cosim.scenario import Problem, load_raw
+    from hardware.protocol import write_key
+
+    key = write_key(tmp_path_factory.mktemp("key") / "board.key")
+    trees = {}
+    for name in SHIPPED:
+        raw = load_raw(SCENES / f"{name}.yaml", list[Problem]())
+        sets = {f"components.{c}.hardware.key": str(key) for c, spec in (raw.get("components") or {}).items()
+                if isinstance(spec, dict) and "hardware" in spec}
+        trees[name] = load(SCENES / f"{name}.yaml", sets).data
+    return trees
 
 
 @pytest.mark.parametrize("scene", SHIPPED)
