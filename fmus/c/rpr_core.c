@@ -31,6 +31,7 @@
 #define RPR_INTEGRATOR_RK4 1
 #define RPR_INTEGRATOR_RADAU 2
 #define RPR_INTEGRATOR_DISCRETE 3
+#define RPR_INTEGRATOR_EXACT 4
 
 typedef long long rpr_int; /* casadi_int of the generated code */
 typedef int (*rpr_casadi_fn)(const double **arg, double **res, rpr_int *iw, double *w, int mem);
