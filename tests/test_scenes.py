@@ -149,17 +149,13 @@ def test_vw_compare_every_recorded_force_is_the_reference_force_at_its_time_stam
     """Issue 8: each force column of the CSV (the drive's output and the mechanisms' inputs) is
     the virtual-work force of its own row's time, within 1e-5 of the force's range -- no column
     is shifted by part of a step."""
-    import csv
-
-    with open(vw.trace_path, newline="") as fh:
-        rows = list(csv.reader(fh))
-    head, data = rows[0], np.array(rows[1:], dtype=float)
-    forces = [c for c in head if c.endswith(".f") and ".leg[" in c and not c.startswith("ref.")]
+    tr = read_trace(vw.trace_path)
+    forces = [c for c in tr.names if c.endswith(".f") and ".leg[" in c and not c.startswith("ref.")]
     assert {f"drive.leg[{i}].f" for i in LEGS} <= set(forces), forces
     for name in forces:
         i = name.split(".leg[")[1][0]
-        ref = data[:, head.index(f"ref.leg[{i}].f")]
-        err = np.max(np.abs(data[:, head.index(name)] - ref)) / np.max(np.abs(ref))
+        ref = tr[f"ref.leg[{i}].f"]
+        err = np.max(np.abs(tr[name] - ref)) / np.max(np.abs(ref))
         assert err < 1e-5, (name, err)
 
 
