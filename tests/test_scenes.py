@@ -198,9 +198,13 @@ def stiffness_sweep(cache):
 @pytest.mark.parametrize("k", [1e5, 1e6, 1e7])
 def test_vw_error_falls_like_the_joint_compliance(stiffness_sweep, kind, k):
     """Joint deflection ~ f/k: ten times stiffer joints, about ten times smaller errors (until the
-    co-simulation's own floor, ~1e-6)."""
+    co-simulation's own floor, ~1e-6).  From 1e7 to 1e8 N/m the floor is reached: the rigid
+    mechanism's own error in the same scene is 2.8e-7 on lengths (forces entering as linear
+    inputs; 1.4e-7 with the former mid-step hold), beside the multibody's 4.3e-7 at 1e8 N/m, so
+    that decade gains a factor 4 on lengths instead of 10."""
     ratio = stiffness_sweep[k][kind] / stiffness_sweep[10 * k][kind]
-    assert 5 < ratio < 20, (k, kind, stiffness_sweep)
+    low = 3 if k >= 1e7 else 5
+    assert low < ratio < 20, (k, kind, stiffness_sweep)
 
 
 @pytest.mark.parametrize("kind", ["s", "v", "a", "f"])
