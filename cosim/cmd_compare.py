@@ -40,7 +40,8 @@ def _compare(args: argparse.Namespace) -> int:
     print(f"{args.test} against {args.reference}: {len(diffs)} variables")
     print(format_table(diffs, most=args.most))
     if args.plot:
-        path = plot_comparison(test, ref, diffs, args.plot, labels=(args.test.stem, args.reference.stem))
+        units = {**ref.meta.get("units", {}), **test.meta.get("units", {})}  # recorded by rpr-cosim runs
+        path = plot_comparison(test, ref, diffs, args.plot, labels=(args.test.stem, args.reference.stem), units=units)
         print(f"plot: {path}", file=sys.stderr)
     if args.tol is not None:
         bad = [d for d in diffs if not d.relative <= args.tol]
