@@ -149,8 +149,8 @@ def solver_params(ps: ParamSet, integrator: str) -> None:
     from ..integrators import RADAU_ATOL, RADAU_RTOL, SOLVER_ATOL, SOLVER_RTOL
     if integrator == "radau":
         ps.add(SOLVER_RTOL, RADAU_RTOL, "1", "relative tolerance of the Radau Newton iteration", lower=1e-15, upper=1e-2)
-        ps.add(SOLVER_ATOL, RADAU_ATOL, "", "absolute tolerance of the Radau Newton iteration (state units)",
-               lower=1e-20, upper=1.0)
+        ps.add(SOLVER_ATOL, RADAU_ATOL, "1", "absolute tolerance of the Radau Newton iteration (applied to "
+               "each state in its own unit)", lower=1e-20, upper=1.0)
 
 
 def integrator_option(default: str, choices: tuple[str, ...] = ("rk4", "radau")) -> Option:
