@@ -415,14 +415,16 @@ def exact_kernel(block: Block) -> ca.Function:
     pade = ca.Function(f"{block.name}_exact_pade", [X], [_pade_expm(Xb / 2 ** s), s, d])
     x, u, p, h, du = _syms(block)
     E, sq, d = pade(Nf(u, p, h, du))
-    # 2^j squarings for every bit j of s: at most SQUARING_BITS conditional calls
+    # 2^j squarings for every bit j of s: at most SQUARING_BITS conditional calls; group j calls
+    # group j-1 twice (the generated code holds one squaring, not 63 unrolled ones)
+    keep = ca.Function(f"{block.name}_exact_keep", [X], [X])
+    group = ca.Function(f"{block.name}_exact_square0", [X], [ca.mtimes(X, X)])
+    Xm = ca.MX.sym("X", n + 2, n + 2)
     for j in range(SQUARING_BITS):
-        Y = X
-        for _ in range(2 ** j):
-            Y = ca.mtimes(Y, Y)
-        keep = ca.Function(f"{block.name}_exact_keep{j}", [X], [X])
-        group = ca.Function(f"{block.name}_exact_square{j}", [X], [Y])
+        if j:
+            group = ca.Function(f"{block.name}_exact_square{j}", [Xm], [prev(prev(Xm))])
         E = ca.Function.conditional(f"{block.name}_exact_bit{j}", [keep], group)(ca.fmod(ca.floor(sq / 2 ** j), 2), E)
+        prev = group
     # [D E D^-1 (x, 1, 0)]_x
     xn = d[:n] * (ca.mtimes(E[:n, :n], x / d[:n]) + E[:n, n] / d[n])
     ok = ca.logic_and(_all_finite(xn), sq <= EXPM_MAX_SQUARINGS)
