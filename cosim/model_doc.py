@@ -58,6 +58,8 @@ def _integrator(block) -> str:
         return f"discrete update every {block.sample_period:g} s"
     if block.integrator == "none" or not block.states:
         return "none (no continuous states; outputs are algebraic)"
+    if block.integrator == "exact":
+        return "exact (matrix exponential of the linear equations: exact and stable at any step)"
     name = {"rk4": "RK4 (explicit, 4th order)", "radau": "Radau IIA (implicit, 5th order)"}.get(block.integrator,
                                                                                                    block.integrator)
     return f"{name}, {block.substeps} substep{'s' if block.substeps != 1 else ''} per communication step"

@@ -17,7 +17,7 @@ from collections.abc import Iterable
 from pathlib import Path
 
 #: Bump when the C core, the wrapper conventions or the generated layout change meaning.
-EXPORTER_VERSION = "1.0"
+EXPORTER_VERSION = "1.1"
 ENV_VAR = "RPR_COSIM_CACHE"
 KEY_LENGTH = 24
 

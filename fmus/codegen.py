@@ -24,7 +24,7 @@ from .errors import BuildError
 from .model_description import Interface, can_interpolate_inputs, check_names, interface
 
 _IDENT = re.compile(r"^[A-Za-z][A-Za-z0-9_]*$")
-_INTEGRATOR_CODE = {"none": 0, "rk4": 1, "radau": 2, "discrete": 3}
+_INTEGRATOR_CODE = {"none": 0, "rk4": 1, "radau": 2, "discrete": 3, "exact": 4}
 
 
 def with_parameters(block: Block, overrides: Mapping[str, float] | None) -> Block:

@@ -23,7 +23,7 @@ from typing import Literal
 import casadi as ca
 import numpy as np
 
-Integrator = Literal["rk4", "radau", "discrete", "none"]
+Integrator = Literal["rk4", "radau", "exact", "discrete", "none"]
 
 
 class BlockError(ValueError):
@@ -139,7 +139,7 @@ class Block:
                                  f"[{prm.lower}, {prm.upper}]")
             if not math.isfinite(prm.default):
                 raise BlockError(f"block {n}: parameter {prm.name!r} needs a finite default (start) value")
-        if self.integrator not in ("rk4", "radau", "discrete", "none"):
+        if self.integrator not in ("rk4", "radau", "exact", "discrete", "none"):
             raise BlockError(f"block {n}: unknown integrator {self.integrator!r}")
         if self.integrator == "discrete" and not (self.sample_period and self.sample_period > 0):
             raise BlockError(f"block {n}: a discrete block needs a positive sample_period")

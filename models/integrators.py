@@ -16,12 +16,19 @@ Conventions
       ``ok`` is 1 when ``x_next`` is finite.
   ``radau``
       implicit Radau IIA, 3 stages, order 5 (stiffly accurate, L-stable), ``block.substeps`` equal
-      substeps.  The stage equations are solved by a code-generatable simplified Newton
-      iteration (CasADi ``fast_newton`` with a sparse QR, see :func:`radau_stages`).  Because
-      ``fast_newton`` stops after ``max_iter`` iterations without saying whether it converged,
-      the kernel takes one more Newton correction ``dZ`` at the returned point and accepts only
-      if every component satisfies ``|dZ_j| <= atol + rtol (|x_j| + |Z_j|)`` (``err`` is the
-      largest such ratio, ``ok`` = err <= 1 and finite).
+      substeps.  The stage equations are solved by simplified Newton with the Jacobian taken and
+      the iteration matrix factorised once per step (a symbolic sparse QR, see
+      :func:`radau_stages`); the iteration stops once a correction is below ``NEWTON_STEP`` of
+      the tolerance, or after ``max_iter`` iterations, and the kernel then takes one more
+      Newton correction ``dZ`` at the returned point and accepts only if every component
+      satisfies ``|dZ_j| <= atol + rtol (|x_j| + |Z_j|)`` (``err`` is the largest such ratio,
+      ``ok`` = :func:`radau_accepts` (err) and finite).  ``rtol``/``atol`` are the block's
+      parameters ``solver.rtol``/``solver.atol`` when it declares them.
+  ``exact``
+      for a block whose ``ode`` is affine in ``x`` and ``u`` (``dx/dt = A x + B u + c`` with
+      ``A, B, c`` functions of the parameters only): the exact solution over the step for inputs
+      ``u + du tau``, from the matrix exponential of an augmented matrix (:func:`exact_kernel`).
+      Stable and exact at any step; ``err`` is 0.
   ``discrete``
       ``ode`` is the update map ``x[k+1] = f(x[k], u, p)``; the kernel applies it once (one sample)
       and ignores ``h`` and ``du`` (a sampled block reads its inputs at the samples).  A
@@ -45,9 +52,14 @@ import numpy as np
 
 from .block import Block, BlockError
 
-#: Newton acceptance test of the Radau kernel: ``|dZ_j| <= ATOL + RTOL (|x_j| + |Z_j|)``.
+#: Newton acceptance test of the Radau kernel: ``|dZ_j| <= ATOL + RTOL (|x_j| + |Z_j|)``;
+#: defaults of the block parameters ``solver.rtol``/``solver.atol`` (:func:`tolerances`).
 RADAU_RTOL = 1e-9
 RADAU_ATOL = 1e-10
+#: Names of the tolerance parameters a block with an implicit integrator may declare.
+SOLVER_RTOL, SOLVER_ATOL = "solver.rtol", "solver.atol"
+#: A Radau step is accepted when its error ratio ``err`` is at most this (:func:`radau_accepts`).
+RADAU_ACCEPT_RATIO = 1.0
 #: Simplified-Newton iterations per Radau substep (linear problems converge in one).
 RADAU_MAX_ITER = 30
 #: The Newton iteration stops once a correction is below this fraction of ``ATOL + RTOL |x|``.
@@ -163,8 +175,67 @@ def _radau_residual(block: Block) -> ca.Function:
     return ca.Function(f"{block.name}_radau_res", [Z, xs, us, ps, hs], [R], ["Z", "x", "u", "p", "h"], ["R"])
 
 
-def radau_stages(block: Block, *, rtol: float = RADAU_RTOL, atol: float = RADAU_ATOL,
-                 max_iter: int = RADAU_MAX_ITER) -> ca.Function:
+def radau_accepts(err):
+    """The Radau kernel's acceptance test on its error ratio ``err`` (a CasADi expression or a
+    number): the step is taken when ``err <= RADAU_ACCEPT_RATIO`` (and ``err`` is finite)."""
+    return err <= RADAU_ACCEPT_RATIO
+
+
+def tolerances(block: Block, p) -> tuple:
+    """``(rtol, atol)`` of ``block``'s implicit solver: its parameters ``solver.rtol`` and
+    ``solver.atol`` (entries of ``p``) when it declares them, else the module defaults."""
+    names = [prm.name for prm in block.params]
+    out = []
+    for name, default in ((SOLVER_RTOL, RADAU_RTOL), (SOLVER_ATOL, RADAU_ATOL)):
+        out.append(p[names.index(name)] if name in names else default)
+    return tuple(out)
+
+
+def _newton_factors(block: Block) -> tuple[ca.Function, ca.Function, ca.Function]:
+    """``factor(J_nz, h) -> F`` and ``solve(F, r) -> W`` for the simplified-Newton matrix
+    ``L (x) I - h I (x) J0`` of :func:`radau_stages`, plus ``J0`` itself.
+
+    The matrix splits into the real block ``g I - h J0`` (n x n) and the complex pair's real block
+    ``[[a I - h J0, b I], [-b I, a I - h J0]]`` (2n x 2n).  Both are factorised by a sparse
+    Householder QR (``casadi.qr_sparse``) done *symbolically*: the factorisation is an SX
+    expression of ``J0``'s nonzeros and ``h`` whose structure (fill-in, ordering) is fixed when the
+    code is generated, and ``F`` packs the nonzeros of its factors.  ``solve`` applies them (two
+    Householder sweeps and triangular solves, no refactorisation), so a Newton iteration costs
+    one ODE evaluation per stage and one ``solve``."""
+    n = block.x.numel()
+    jac = ca.jacobian(block.ode, block.x)
+    sp = jac.sparsity()
+    J_nz = ca.vertcat(*jac.nonzeros()) if jac.nnz() else ca.SX(0, 1)
+    fx = ca.Function(f"{block.name}_ode_jac", [block.x, block.u, block.p], [J_nz], ["x", "u", "p"], ["J_nz"])
+    g, a, b = float(RADAU_L[0, 0]), float(RADAU_L[1, 1]), float(RADAU_L[1, 2])
+    Jn = ca.SX.sym("J_nz", sp.nnz())
+    hs = ca.SX.sym("h")
+    J = ca.SX(sp, Jn) if sp.nnz() else ca.SX(n, n)
+    I = ca.SX.eye(n)
+    Mr = g * I - hs * J
+    # the complex pair's block with real and imaginary parts interleaved state by state: the
+    # fill-in of its QR is 20 % lower (measured on the multibody mechanism: 99k against 119k ops)
+    inter = [int(k) for k in np.arange(2 * n).reshape(2, n).T.ravel()]
+    back = [int(k) for k in np.argsort(inter)]
+    Mc = ca.blockcat([[a * I - hs * J, b * I], [-b * I, a * I - hs * J]])[inter, inter]
+    r = ca.SX.sym("r", 3 * n)
+    factors = [ca.qr_sparse(M, True) for M in (Mr, Mc)]
+    F = ca.vertcat(*[ca.vertcat(*m.nonzeros()) for fac in factors for m in fac[:3]])
+    factor = ca.Function(f"{block.name}_radau_factor", [Jn, hs], [F], ["J_nz", "h"], ["F"])
+    Fs = ca.SX.sym("F", F.numel())
+    k, sols = 0, []
+    for (V, R, beta, prinv, pc), rhs in zip(factors, (r[:n], r[n:][inter])):
+        packed = []
+        for m in (V, R, beta):
+            packed.append(ca.SX(m.sparsity(), Fs[k:k + m.nnz()]))
+            k += m.nnz()
+        sols.append(ca.qr_solve(rhs, *packed, prinv, pc))
+    solve = ca.Function(f"{block.name}_radau_solve", [Fs, r], [ca.vertcat(sols[0], sols[1][back])],
+                        ["F", "r"], ["W"])
+    return fx, factor, solve
+
+
+def radau_stages(block: Block, *, rtol=None, atol=None, max_iter: int = RADAU_MAX_ITER) -> ca.Function:
     """``(x, u, p, h, du) -> (Z, ok, err)``: the converged stage increments of one Radau IIA step
     (stage ``i`` sees the input ``u + du c_i h``), with the acceptance flag and ratio of the
     module docstring.
@@ -172,62 +243,57 @@ def radau_stages(block: Block, *, rtol: float = RADAU_RTOL, atol: float = RADAU_
     Simplified Newton from ``Z = 0`` as in Hairer & Wanner's Radau5: the ODE Jacobian
     ``J0 = df/dx`` is taken once, at the start of the step, and the stage equations are solved in
     the coordinates ``Z = (T (x) I) W`` that make the iteration matrix block diagonal,
-    ``L (x) I - h I (x) J0`` (one ``n x n`` and one ``2n x 2n`` block), so the sparse QR works on
-    far smaller systems than ``I - h A (x) J0``.  ``J0`` enters the rootfinder as a parameter and
-    the ODE calls are wrapped in ``stop_diff``: the generated code holds ``f`` and ``df/dx`` once
-    each and never differentiates the stage equations.  The unknowns are scaled by
-    ``sc = atol + rtol |x|`` (Newton is affine invariant) and the iteration stops once a
-    correction, or the residual of the scaled equations, is below ``NEWTON_STEP * sc``.
+    ``L (x) I - h I (x) J0`` (one ``n x n`` and one ``2n x 2n`` block).  The matrix is
+    factorised **once per step** (:func:`_newton_factors`); every iteration reuses the factors.
+    The loop is ``max_iter`` calls of a conditional iteration (``casadi.Function.conditional``):
+    once a correction is below ``NEWTON_STEP * sc`` (``sc = atol + rtol |x|``) the remaining
+    calls skip their body, so a converged step pays for the iterations it used only.
 
     Acceptance uses one more simplified-Newton correction ``dZ`` at the returned point, i.e. the
     error left in ``Z``, not the raw residual: a residual of a stiff component carries round-off
-    of order ``eps * k * |x|`` that the iteration matrix damps away."""
+    of order ``eps * k * |x|`` that the iteration matrix damps away.  ``err`` is the largest
+    ``|dZ_j| / (atol + rtol (|x_j| + |Z_j|))`` and the step is accepted by :func:`radau_accepts`.
+
+    ``rtol``/``atol`` (numbers) override the tolerances; by default they are the block's
+    parameters ``solver.rtol``/``solver.atol`` when declared (:func:`tolerances`), else
+    ``RADAU_RTOL``/``RADAU_ATOL``."""
     n, nu, npar = block.x.numel(), block.u.numel(), block.p.numel()
     f = block.functions()["ode"]
-    jac = ca.jacobian(block.ode, block.x)
-    sp = jac.sparsity()
-    J_nz = ca.vertcat(*jac.nonzeros()) if jac.nnz() else ca.SX(0, 1)
-    fx = ca.Function(f"{block.name}_ode_jac", [block.x, block.u, block.p], [J_nz], ["x", "u", "p"], ["J_nz"])
+    fx, factor, solve = _newton_factors(block)
     Tk, Tik, Lk = (ca.sparsify(ca.DM(np.kron(m, np.eye(n)))) for m in (RADAU_T, np.linalg.inv(RADAU_T), RADAU_L))
 
-    def stage_values(W, xs, us, ps, hs, dus):
-        """``(T (x) I) W`` split into the three stage increments, and ``h (T^-1 (x) I) F``."""
+    def residual(W, xs, us, ps, hs, dus):
+        """``(L (x) I) W - h (T^-1 (x) I) F(x + (T (x) I) W)`` and the stage increments ``Z``."""
         Z = ca.mtimes(Tk, W)
         F = ca.vertcat(*[f(xs + Z[i * n:(i + 1) * n], us + float(RADAU_C[i]) * hs * dus, ps) for i in range(3)])
-        return Z, hs * ca.mtimes(Tik, F)
+        return ca.mtimes(Lk, W) - hs * ca.mtimes(Tik, F), Z
 
-    def block_jacobian(J0, hs, W):
-        """``h (I (x) J0) W`` (three products with the sparse ``J0``)."""
-        return ca.vertcat(*[hs * ca.mtimes(J0, W[i * n:(i + 1) * n]) for i in range(3)])
+    # one conditional simplified-Newton iteration: (W, x, u, p, h, du, F, sc) -> (dW, going)
+    W, xs, us, ps, hs, dus = (ca.MX.sym(nm, s) for nm, s in (("W", 3 * n), ("x", n), ("u", nu), ("p", npar),
+                                                               ("h", 1), ("du", nu)))
+    Fs, scs = ca.MX.sym("F", factor.size1_out(0)), ca.MX.sym("sc", 3 * n)
+    G, _ = residual(W, xs, us, ps, hs, dus)
+    dW = -solve(Fs, G)
+    going = ca.mmax(ca.fabs(dW) / scs) > NEWTON_STEP
+    body = ca.Function(f"{block.name}_radau_iter", [W, xs, us, ps, hs, dus, Fs, scs], [dW, going])
+    iterate = ca.Function.conditional(f"{block.name}_radau_iter_if", body)
 
-    V = ca.MX.sym("V", 3 * n)
-    th = ca.MX.sym("theta", n + 2 * nu + npar + 1 + sp.nnz())
-    xs, us, ps, hs = th[:n], th[n:n + nu], th[n + nu:n + nu + npar], th[n + nu + npar]
-    dus = th[n + nu + npar + 1:n + 2 * nu + npar + 1]
-    J0 = ca.MX(sp, th[n + 2 * nu + npar + 1:]) if sp.nnz() else ca.MX(n, n)
-    sc = ca.repmat(atol + rtol * ca.fabs(xs), 3, 1)
-    W = sc * V
-    _, hTF = stage_values(W, xs, us, ps, hs, dus)
-    hJW = block_jacobian(J0, hs, W)
-    # value: (L (x) I) W - h (T^-1 (x) I) F(x + Z) exactly (the bracket is 0.0);
-    # derivative: (L (x) I - h I (x) J0) diag(sc)
-    G = (ca.mtimes(Lk, W) - ca.stop_diff(hTF, 1)) - (hJW - ca.stop_diff(hJW, 1))
-    g = ca.Function(f"{block.name}_radau_scaled", [V, th], [G / sc])
-    rf = ca.rootfinder(f"{block.name}_radau_newton", "fast_newton", g,
-                       {"linear_solver": "qr", "max_iter": int(max_iter), "abstol": NEWTON_STEP,
-                        "abstolStep": NEWTON_STEP, "error_on_fail": False})
     x, u, p, h, du = _syms(block)
-    jx = fx(x, u, p)
-    scale = ca.repmat(atol + rtol * ca.fabs(x), 3, 1)
-    Wsol = scale * rf(ca.MX.zeros(3 * n), ca.vertcat(x, u, p, h, du, jx))
-    Zsol, hTF = stage_values(Wsol, x, u, p, h, du)
-    # one more correction, in the block-diagonal coordinates: dW = (L (x) I - h I (x) J0)^-1 G
-    Jx = ca.MX(sp, jx) if sp.nnz() else ca.MX(n, n)
-    M = Lk - h * ca.kron(ca.MX.eye(3), Jx)
-    dZ = ca.mtimes(Tk, ca.solve(M, ca.mtimes(Lk, Wsol) - hTF, "qr"))
-    r = ca.fabs(dZ) / (scale + rtol * ca.fabs(Zsol))
+    tol_r, tol_a = tolerances(block, p)
+    tol_r = tol_r if rtol is None else rtol
+    tol_a = tol_a if atol is None else atol
+    scale = ca.repmat(tol_a + tol_r * ca.fabs(x), 3, 1)
+    fac = factor(fx(x, u, p), h)
+    Wk, going = ca.MX.zeros(3 * n), ca.MX(1)
+    for _ in range(int(max_iter)):
+        dWk, going = iterate(going, Wk, x, u, p, h, du, fac, scale)
+        Wk = Wk + dWk
+    # one more correction with the same factors: the error left in Z
+    Gk, Zsol = residual(Wk, x, u, p, h, du)
+    dZ = ca.mtimes(Tk, solve(fac, Gk))
+    r = ca.fabs(dZ) / (scale + tol_r * ca.fabs(Zsol))
     err = ca.mmax(r)
-    ok = ca.logic_and(ca.logic_and(err <= 1.0, _all_finite(r)), _all_finite(Zsol))
+    ok = ca.logic_and(ca.logic_and(radau_accepts(err), _all_finite(r)), _all_finite(Zsol))
     return ca.Function(f"{block.name}_radau_stages", [x, u, p, h, du], [Zsol, ok, err],
                        ["x", "u", "p", "h", "du"], ["Z", "ok", "err"])
 
@@ -249,6 +315,120 @@ def radau_kernel(block: Block, **newton) -> ca.Function:
     ``ok`` is the minimum over substeps and ``err`` the maximum."""
     args = _syms(block)
     return _kernel(block, args, *_substeps(block, radau_substep(block, **newton), *args))
+
+
+#: Pade degree and the largest ``||X||_1`` it is used at (Higham 2005, theta_7): below it the
+#: [7/7] approximant of ``exp(X)`` is exact to double precision (backward error < 2^-53).
+PADE_DEGREE, PADE_THETA = 7, 0.9504178996162932
+#: Squarings of the exact kernel come in groups of 2^j, j < SQUARING_BITS (one conditional call
+#: per bit of their number ``s``): at most 2^6 - 1 = 63 squarings bring any ``||N h||_1`` below
+#: ~8e18 into the Pade range; a larger one (or a non-finite one) makes the step fail (``ok`` = 0).
+SQUARING_BITS = 6
+EXPM_MAX_SQUARINGS = 2 ** SQUARING_BITS - 1
+
+
+def affine_parts(block: Block) -> tuple[ca.SX, ca.SX, ca.SX] | None:
+    """``(A, B, c)`` with ``ode = A x + B u + c`` when the block's ``ode`` is affine in ``x`` and
+    ``u`` (its Jacobians depend on the parameters only), else ``None``."""
+    xu = ca.vertcat(block.x, block.u)
+    A = ca.jacobian(block.ode, block.x)
+    B = ca.jacobian(block.ode, block.u)
+    if ca.depends_on(A, xu) or ca.depends_on(B, xu):
+        return None
+    c = ca.substitute(block.ode, xu, ca.DM.zeros(xu.numel()))
+    return A, B, c
+
+
+def _pade_expm(X: ca.SX) -> ca.SX:
+    """The [7/7] Pade approximant of ``exp(X)`` (accurate for ``||X||_1 <= PADE_THETA``)."""
+    m = PADE_DEGREE
+    coef = [math.factorial(2 * m - k) * math.factorial(m) / (math.factorial(2 * m) * math.factorial(k)
+                                                             * math.factorial(m - k)) for k in range(m + 1)]
+    eye = ca.SX.eye(X.size1())
+    Pk, num, den = eye, coef[0] * eye, coef[0] * eye
+    for k in range(1, m + 1):
+        Pk = ca.mtimes(Pk, X)
+        num = num + coef[k] * Pk
+        den = den + (-1) ** k * coef[k] * Pk
+    return ca.solve(den, num)
+
+
+#: Sweeps of the diagonal balancing applied before the exponential (:func:`_balance`).
+BALANCE_SWEEPS = 3
+
+
+def _balance(X: ca.SX) -> tuple[ca.SX, ca.SX]:
+    """``(D^-1 X D, d)`` with ``D = diag(d)``: Parlett-Reinsch balancing (each sweep makes every
+    row's off-diagonal 1-norm equal its column's) with a fixed number of sweeps.  A badly scaled matrix (the motor's 1e8 N/m
+    bond beside its 1e-6 m deflection) loses digits in the Pade approximant and its squarings
+    (5e-5 relative, measured); balanced, the step agrees with the eigen-decomposition solution
+    to 1e-14."""
+    m = X.size1()
+    e = [[X[i, j] for j in range(m)] for i in range(m)]
+    d = [ca.SX(1.0) for _ in range(m)]
+    for _ in range(BALANCE_SWEEPS):
+        for i in range(m):
+            c = sum(ca.fabs(e[j][i]) for j in range(m) if j != i)
+            r = sum(ca.fabs(e[i][j]) for j in range(m) if j != i)
+            f = ca.if_else(ca.logic_and(c > 0, r > 0), ca.sqrt(r / c), 1.0)
+            fi = 1.0 / f
+            for j in range(m):
+                if j != i:
+                    e[j][i] = e[j][i] * f
+                    e[i][j] = e[i][j] * fi
+            d[i] = d[i] * f
+    X = ca.vertcat(*[ca.horzcat(*row) for row in e])
+    return X, ca.vertcat(*d)
+
+
+def exact_kernel(block: Block) -> ca.Function:
+    """``(x, u, p, h, du) -> (x_next, ok, err)``: the exact step of an affine block.
+
+    With ``dx/dt = A x + B (u + du tau) + c`` the augmented state ``z = (x, 1, tau)`` obeys
+    ``dz/dt = N z``, ``N = [[A, B u + c, B du], [0, 0, 0], [0, 1, 0]]``, so
+    ``x(h) = [exp(N h) z(0)]_x`` with ``z(0) = (x, 1, 0)``.  ``N h`` is balanced
+    (:func:`_balance`), then its exponential is evaluated by scaling and squaring: ``s = max(0, ceil(log2(||N h||_1 / PADE_THETA)))`` squarings of the [7/7] Pade
+    approximant of ``exp(N h / 2^s)`` (Higham's method with one fixed degree).  The squarings are
+    grouped by the bits of ``s`` (``2^j`` squarings when bit ``j`` is set) in conditional calls
+    (``casadi.Function.conditional``), so a step pays only for the ``s`` squarings it needs.  Exact (to round-off) and stable at any ``h``, whatever the block's time constants:
+    why the linear blocks (PID, DC motor) use it.  ``err`` is 0; ``ok`` is 0 when the state is
+    not finite or ``s > EXPM_MAX_SQUARINGS``.
+
+    The exponential is evaluated at every call, not cached per step size: it depends on the
+    inputs through ``B u + c`` (the augmented matrix is ``n + 2`` square, 4 for the PID), and
+    costs about a microsecond, less than one Radau step of the same block."""
+    parts = affine_parts(block)
+    if parts is None:
+        raise BlockError(f"block {block.name}: integrator 'exact' needs an ode affine in the states and "
+                         f"inputs; this one is not (use radau)")
+    A, B, c = parts
+    n = block.x.numel()
+    _, _, _, hs, dus = _syms(block, ca.SX)
+    us, ps = block.u, block.p
+    Ns = ca.blockcat([[A, B @ us + c, B @ dus], [ca.SX(2, n), ca.SX(ca.DM([[0, 0], [1, 0]]))]]) * hs
+    Nf = ca.Function(f"{block.name}_exact_matrix", [us, ps, hs, dus], [Ns])
+    X = ca.SX.sym("X", n + 2, n + 2)
+    Xb, d = _balance(X)
+    norm = ca.mmax(ca.sum1(ca.fabs(Xb)))
+    s = ca.fmax(0, ca.ceil(ca.log(norm / PADE_THETA) / math.log(2.0)))
+    # exp(N h) = D exp(D^-1 N h D) D^-1, and D commutes with the squarings
+    pade = ca.Function(f"{block.name}_exact_pade", [X], [_pade_expm(Xb / 2 ** s), s, d])
+    x, u, p, h, du = _syms(block)
+    E, sq, d = pade(Nf(u, p, h, du))
+    # 2^j squarings for every bit j of s: at most SQUARING_BITS conditional calls; group j calls
+    # group j-1 twice (the generated code holds one squaring, not 63 unrolled ones)
+    keep = ca.Function(f"{block.name}_exact_keep", [X], [X])
+    group = ca.Function(f"{block.name}_exact_square0", [X], [ca.mtimes(X, X)])
+    Xm = ca.MX.sym("X", n + 2, n + 2)
+    for j in range(SQUARING_BITS):
+        if j:
+            group = ca.Function(f"{block.name}_exact_square{j}", [Xm], [prev(prev(Xm))])
+        E = ca.Function.conditional(f"{block.name}_exact_bit{j}", [keep], group)(ca.fmod(ca.floor(sq / 2 ** j), 2), E)
+        prev = group
+    # [D E D^-1 (x, 1, 0)]_x
+    xn = d[:n] * (ca.mtimes(E[:n, :n], x / d[:n]) + E[:n, n] / d[n])
+    ok = ca.logic_and(_all_finite(xn), sq <= EXPM_MAX_SQUARINGS)
+    return _kernel(block, (x, u, p, h, du), xn, ok, ca.MX(0))
 
 
 def discrete_kernel(block: Block) -> ca.Function:
@@ -289,7 +469,7 @@ class Stepper:
         """``(x, u, p, h, du) -> (x_next, ok, err)`` (see the module docstring)."""
         kind = self.block.integrator
         return {"rk4": rk4_kernel, "radau": radau_kernel, "discrete": discrete_kernel,
-                "none": none_kernel}[kind](self.block)
+                "exact": exact_kernel, "none": none_kernel}[kind](self.block)
 
     @cached_property
     def out(self) -> ca.Function:

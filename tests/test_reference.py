@@ -75,14 +75,16 @@ def test_held_inputs_converge_to_the_reference_at_first_order(pid_reference, cac
 
 
 def test_linear_inputs_converge_faster_and_are_far_closer_at_1_ms(pid_reference, cache):
-    """The scene's own setting (linear inputs, 1 ms) is within 1e-4 m of the monolithic solution,
-    over 100 times closer than holding at the same step; halving the step from 0.5 ms divides
-    the error by more than 3 (second order, blunted by the voltage limiter's kink)."""
+    """The scene's own setting (linear inputs, 1 ms) is within 2e-4 m of the monolithic solution
+    (1.25e-4 m measured with the exact PID and motor kernels; 6.5e-5 m with RK4 PIDs, whose own
+    error partly cancelled the coupling error), over 100 times closer than holding at the same
+    step; halving the step from 0.5 ms divides the error by more than 3 (second order, blunted by
+    the voltage limiter's kink)."""
     lin = {h: pose_error(run(SCENES / "pid_step.yaml", ["stop_time=1", f"master.step={h}"], cache_dir=cache),
                          pid_reference) for h in (1e-3, 5e-4, 2.5e-4)}
     held = pose_error(run(SCENES / "pid_step.yaml", ["stop_time=1", "master.inputs=hold"], cache_dir=cache),
                       pid_reference)
-    assert lin[1e-3] < 1e-4 and lin[1e-3] < held / 100, (lin, held)
+    assert lin[1e-3] < 2e-4 and lin[1e-3] < held / 100, (lin, held)
     assert lin[5e-4] / lin[2.5e-4] > 3, lin
 
 

@@ -148,8 +148,22 @@ def vw_errors(tr, mech: str, t_from: float = 0.05) -> dict[str, float]:
 
 
 @pytest.fixture(scope="module")
-def vw(cache):
-    return run(SCENES / "vw_compare.yaml", cache_dir=cache)
+def vw(cache, tmp_path_factory):
+    return run(SCENES / "vw_compare.yaml", cache_dir=cache, out_dir=tmp_path_factory.mktemp("vw_compare"))
+
+
+def test_vw_compare_every_recorded_force_is_the_reference_force_at_its_time_stamp(vw):
+    """Issue 8: each force column of the CSV (the drive's output and the mechanisms' inputs) is
+    the virtual-work force of its own row's time, within 1e-5 of the force's range -- no column
+    is shifted by part of a step."""
+    tr = read_trace(vw.trace_path)
+    forces = [c for c in tr.names if c.endswith(".f") and ".leg[" in c and not c.startswith("ref.")]
+    assert {f"drive.leg[{i}].f" for i in LEGS} <= set(forces), forces
+    for name in forces:
+        i = name.split(".leg[")[1][0]
+        ref = tr[f"ref.leg[{i}].f"]
+        err = np.max(np.abs(tr[name] - ref)) / np.max(np.abs(ref))
+        assert err < 1e-5, (name, err)
 
 
 # Table 7.7 (accelerations) and 7.9 (forces) match the path at the thesis's t = 0.5 s, which is
@@ -197,9 +211,13 @@ def stiffness_sweep(cache):
 @pytest.mark.parametrize("k", [1e5, 1e6, 1e7])
 def test_vw_error_falls_like_the_joint_compliance(stiffness_sweep, kind, k):
     """Joint deflection ~ f/k: ten times stiffer joints, about ten times smaller errors (until the
-    co-simulation's own floor, ~1e-6)."""
+    co-simulation's own floor, ~1e-6).  From 1e7 to 1e8 N/m the floor is reached: the rigid
+    mechanism's own error in the same scene is 2.8e-7 on lengths (forces entering as linear
+    inputs; 1.4e-7 with the former mid-step hold), beside the multibody's 4.3e-7 at 1e8 N/m, so
+    that decade gains a factor 4 on lengths instead of 10."""
     ratio = stiffness_sweep[k][kind] / stiffness_sweep[10 * k][kind]
-    assert 5 < ratio < 20, (k, kind, stiffness_sweep)
+    low = 3 if k >= 1e7 else 5
+    assert low < ratio < 20, (k, kind, stiffness_sweep)
 
 
 @pytest.mark.parametrize("kind", ["s", "v", "a", "f"])

@@ -71,9 +71,9 @@ void fmi2FreeInstance(fmi2Component c) {
 
 fmi2Status fmi2SetupExperiment(fmi2Component c, fmi2Boolean toleranceDefined, fmi2Real tolerance,
                                fmi2Real startTime, fmi2Boolean stopTimeDefined, fmi2Real stopTime) {
-    (void)toleranceDefined; (void)tolerance; (void)stopTimeDefined; (void)stopTime;
+    (void)toleranceDefined; (void)tolerance;
     CHECK(c);
-    return st(rpr_setup(CORE(c), startTime));
+    return st(rpr_setup(CORE(c), startTime, stopTimeDefined != fmi2False, stopTime));
 }
 
 fmi2Status fmi2EnterInitializationMode(fmi2Component c) {
@@ -95,6 +95,12 @@ fmi2Status fmi2Reset(fmi2Component c) {
 
 fmi2Status fmi2GetReal(fmi2Component c, const fmi2ValueReference vr[], size_t nvr, fmi2Real value[]) {
     CHECK(c);
+    /* FMI 2.0 (Table 4.2 / the state machine): no getters before initialization mode */
+    if (rpr_mode(CORE(c)) == RPR_MODE_INSTANTIATED) {
+        rpr_log(CORE(c), RPR_ERROR, RPR_LOG_ERROR,
+                "fmi2GetReal is not allowed in instantiated (call fmi2EnterInitializationMode first)");
+        return fmi2Error;
+    }
     return st(rpr_get_real(CORE(c), vr, nvr, value));
 }
 fmi2Status fmi2SetReal(fmi2Component c, const fmi2ValueReference vr[], size_t nvr, const fmi2Real value[]) {

@@ -100,9 +100,9 @@ void fmi3FreeInstance(fmi3Instance c) {
 
 fmi3Status fmi3EnterInitializationMode(fmi3Instance c, fmi3Boolean toleranceDefined, fmi3Float64 tolerance,
                                        fmi3Float64 startTime, fmi3Boolean stopTimeDefined, fmi3Float64 stopTime) {
-    (void)toleranceDefined; (void)tolerance; (void)stopTimeDefined; (void)stopTime;
+    (void)toleranceDefined; (void)tolerance;
     CHECK(c);
-    if (rpr_setup(CORE(c), startTime) != RPR_OK) return fmi3Error;
+    if (rpr_setup(CORE(c), startTime, stopTimeDefined != fmi3False, stopTime) != RPR_OK) return fmi3Error;
     return st(rpr_enter_init(CORE(c)));
 }
 fmi3Status fmi3ExitInitializationMode(fmi3Instance c) {

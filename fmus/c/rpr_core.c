@@ -31,6 +31,7 @@
 #define RPR_INTEGRATOR_RK4 1
 #define RPR_INTEGRATOR_RADAU 2
 #define RPR_INTEGRATOR_DISCRETE 3
+#define RPR_INTEGRATOR_EXACT 4
 
 typedef long long rpr_int; /* casadi_int of the generated code */
 typedef int (*rpr_casadi_fn)(const double **arg, double **res, rpr_int *iw, double *w, int mem);
@@ -70,6 +71,7 @@ struct RprInstance {
     int mode;
     int y_valid;
     int discarded;
+    double stop_time; /* +INFINITY unless the importer defined one */
     double v[RPR_NV];
     /* input slopes [unit/s] for the next doStep: u(t + tau) = u + du tau (0: held) */
     double du[RPR_MAX1(RPR_NU)];
@@ -152,6 +154,7 @@ static void set_defaults(RprInstance *c) {
     memset(c->x_set, 0, sizeof c->x_set);
     c->y_valid = 0;
     c->discarded = 0;
+    c->stop_time = INFINITY;
 }
 
 /* Before the end of initialisation, states not set by the user follow start(p). */
@@ -258,11 +261,20 @@ static int require_mode(RprInstance *c, const char *fn, int ok_mask) {
 #define M_TERM (1 << RPR_MODE_TERMINATED)
 #define M_ERR (1 << RPR_MODE_ERROR)
 
-int rpr_setup(RprInstance *c, double start_time) {
+int rpr_setup(RprInstance *c, double start_time, int stop_defined, double stop_time) {
     if (require_mode(c, "setup", M_INST)) return RPR_ERROR;
     if (!isfinite(start_time)) return fail(c, "the start time %g is not finite", start_time);
+    if (stop_defined && !(stop_time >= start_time))
+        return fail(c, "the stop time %.17g is before the start time %.17g", stop_time, start_time);
     c->v[0] = start_time;
+    c->stop_time = stop_defined ? stop_time : INFINITY;
     return RPR_OK;
+}
+
+/* a and b are the same instant (RPR_TIME_TOL absolute, or relative for large times) */
+static int same_time(double a, double b) {
+    double m = fabs(a) > fabs(b) ? fabs(a) : fabs(b);
+    return fabs(a - b) <= RPR_TIME_TOL * (m > 1.0 ? m : 1.0);
 }
 
 int rpr_enter_init(RprInstance *c) {
@@ -383,6 +395,18 @@ int rpr_do_step(RprInstance *c, double t, double h) {
     if (require_mode(c, "doStep", M_STEP)) return RPR_ERROR;
     if (!(h > 0) || !isfinite(h)) return fail(c, "doStep: communication step size %g must be positive and finite", h);
     if (!isfinite(t)) return fail(c, "doStep: communication point %g is not finite", t);
+    if (!same_time(t, c->v[0])) {
+        rpr_log(c, RPR_ERROR, RPR_LOG_ERROR,
+                "%s: doStep: the communication point %.17g s does not follow the previous one: "
+                "expected %.17g s (the end of the last step, or the start time)", RPR_BLOCK_NAME, t, c->v[0]);
+        return RPR_ERROR;
+    }
+    if (t + h > c->stop_time && !same_time(t + h, c->stop_time)) {
+        rpr_log(c, RPR_ERROR, RPR_LOG_ERROR,
+                "%s: doStep(t=%.17g, h=%.17g) would end at %.17g s, past the stop time %.17g s "
+                "given at initialization", RPR_BLOCK_NAME, t, h, t + h, c->stop_time);
+        return RPR_ERROR;
+    }
 #if RPR_INTEGRATOR == RPR_INTEGRATOR_DISCRETE
     {
         double ts = RPR_SAMPLE_PERIOD;

@@ -42,7 +42,10 @@ void rpr_log(RprInstance *c, int status, int category, const char *fmt, ...);
 int rpr_mode(const RprInstance *c);
 const char *rpr_name(const RprInstance *c);
 
-int rpr_setup(RprInstance *c, double start_time);
+/* start time, and the stop time when defined (a doStep that would end past it is an error) */
+int rpr_setup(RprInstance *c, double start_time, int stop_defined, double stop_time);
+/* tolerance [s] of "this communication point is the previous one's end" and of the stop time */
+#define RPR_TIME_TOL 1e-9
 int rpr_enter_init(RprInstance *c);
 int rpr_exit_init(RprInstance *c);
 int rpr_terminate(RprInstance *c);

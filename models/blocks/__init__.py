@@ -25,6 +25,9 @@ from ..block import Block, BlockError
 from . import actuator, mechanism, motor, oscillator, pid, setpoint
 from ._common import CONFIG, SUBSTEPS, Option, integrator_option, positive_float, suggest, unit_text
 
+#: Integrators of blocks whose equations are linear: ``exact`` (the default) and the two general ones.
+LINEAR_INTEGRATORS = ("exact", "radau", "rk4")
+
 
 @dataclass(frozen=True)
 class _Entry:
@@ -52,12 +55,14 @@ def _entries() -> dict[str, dict[str, _Entry]]:
             "kinematic": _Entry(mechanism.kinematic, (CONFIG,)),
         },
         "dc_motor": {
-            "full": _Entry(motor.full, (rotor, integrator_option("radau"), SUBSTEPS)),
-            "quasistatic": _Entry(motor.quasistatic, (rotor, integrator_option("radau"), SUBSTEPS)),
+            "full": _Entry(motor.full, (rotor, integrator_option("exact", LINEAR_INTEGRATORS), SUBSTEPS)),
+            "quasistatic": _Entry(motor.quasistatic, (rotor, integrator_option("exact", LINEAR_INTEGRATORS),
+                                                      SUBSTEPS)),
             "ideal": _Entry(motor.ideal, ()),
         },
         "pid": {
-            "continuous": _Entry(pid.continuous, pid_opts + (integrator_option("rk4"), SUBSTEPS)),
+            "continuous": _Entry(pid.continuous, pid_opts + (integrator_option("auto", ("auto",) + LINEAR_INTEGRATORS),
+                                                             SUBSTEPS)),
             "discrete": _Entry(pid.discrete, pid_opts + (sample,)),
         },
         "pose_setpoint": {

@@ -142,5 +142,16 @@ CONFIG = Option("config", "cross_leg", "geometry preset giving the parameter def
 SUBSTEPS = Option("substeps", 1, "integrator substeps per communication step", check=positive_int)
 
 
-def integrator_option(default: str) -> Option:
-    return Option("integrator", default, "embedded integrator of the continuous states", choices=("rk4", "radau"))
+def solver_params(ps: ParamSet, integrator: str) -> None:
+    """Declare the implicit solver's tolerances as tunable parameters ``solver.rtol`` and
+    ``solver.atol`` when ``integrator`` is ``radau`` (its Newton acceptance test,
+    :func:`models.integrators.radau_accepts`); other integrators have none."""
+    from ..integrators import RADAU_ATOL, RADAU_RTOL, SOLVER_ATOL, SOLVER_RTOL
+    if integrator == "radau":
+        ps.add(SOLVER_RTOL, RADAU_RTOL, "1", "relative tolerance of the Radau Newton iteration", lower=1e-15, upper=1e-2)
+        ps.add(SOLVER_ATOL, RADAU_ATOL, "1", "absolute tolerance of the Radau Newton iteration (applied to "
+               "each state in its own unit)", lower=1e-20, upper=1.0)
+
+
+def integrator_option(default: str, choices: tuple[str, ...] = ("rk4", "radau")) -> Option:
+    return Option("integrator", default, "embedded integrator of the continuous states", choices=choices)

@@ -10,7 +10,8 @@ Shared interface of the dynamic fidelities (``rigid``, ``multibody``):
   the actuator puts into the mechanism;
 - parameters: the geometry (``A1x .. A3y``, ``Lmp``, ``a1 .. a3``) and mass properties
   (``e1, e2, m_cyl, I_cyl, m_rod, I_rod, m_p, I_p``) with defaults from the ``config`` preset,
-  the start pose ``x0, y0, phi0``, and per leg a lumped actuator mass ``leg[i].m_act`` [kg] and
+  the start pose ``x0, y0, phi0`` and start rates ``vx0, vy0, omega0`` (global frame; the
+  multibody fidelity derives its bodies' velocities from them), and per leg a lumped actuator mass ``leg[i].m_act`` [kg] and
   viscous damping ``leg[i].b_act`` [N s/m] acting on the leg's extension (DESIGN option (b):
   a rotor of inertia ``J`` behind a rack of ratio ``r`` adds ``J / r**2``; see
   :mod:`models.blocks.motor`).  With both at 0 the mechanism is the thesis's.
@@ -26,7 +27,7 @@ import casadi as ca
 from ..block import Block, Flange, Var
 from ..kinematics import inverse_jacobian, inverse_kinematics, joint_offsets, leg_motion
 from ..virtual_work import actuator_forces, mass_matrix_and_bias
-from ._common import ParamSet, geometry_params, inertia_params
+from ._common import ParamSet, geometry_params, inertia_params, solver_params
 
 LEGS = (1, 2, 3)
 POSE_OUTPUTS = [
@@ -51,10 +52,16 @@ def _actuator_params(ps: ParamSet) -> tuple[ca.SX, ca.SX]:
     return m_act, b_act
 
 
-def _start_pose(ps: ParamSet) -> ca.SX:
-    return ca.vertcat(ps.add("x0", -0.15, "m", "start pose: x of C (Table 6.8)"),
-                      ps.add("y0", -0.15, "m", "start pose: y of C (Table 6.8)"),
-                      ps.add("phi0", 0.0, "rad", "start pose: orientation (Table 6.8)"))
+def _start_pose(ps: ParamSet) -> tuple[ca.SX, ca.SX]:
+    """Start pose ``q0 = (x0, y0, phi0)`` and start rates ``qd0 = (vx0, vy0, omega0)`` (global
+    frame) as parameters."""
+    q0 = ca.vertcat(ps.add("x0", -0.15, "m", "start pose: x of C (Table 6.8)"),
+                    ps.add("y0", -0.15, "m", "start pose: y of C (Table 6.8)"),
+                    ps.add("phi0", 0.0, "rad", "start pose: orientation (Table 6.8)"))
+    qd0 = ca.vertcat(ps.add("vx0", 0.0, "m/s", "start rate: velocity of C, x (global frame)"),
+                     ps.add("vy0", 0.0, "m/s", "start rate: velocity of C, y (global frame)"),
+                     ps.add("omega0", 0.0, "rad/s", "start rate: platform angular rate"))
+    return q0, qd0
 
 
 def rigid_dynamics(q, qd, f, g, m, m_act, b_act) -> ca.SX:
@@ -78,7 +85,7 @@ def rigid(config: str, integrator: str = "rk4", substeps: int = 1) -> Block:
     g = geometry_params(ps, config)
     m = inertia_params(ps, config)
     m_act, b_act = _actuator_params(ps)
-    q0 = _start_pose(ps)
+    q0, qd0 = _start_pose(ps)
     xs = ca.SX.sym("xs", 6)
     f = ca.SX.sym("f", 3)
     q, qd = xs[0:3], xs[3:6]
@@ -88,11 +95,12 @@ def rigid(config: str, integrator: str = "rk4", substeps: int = 1) -> Block:
     states = [Var(n, u, d) for n, u, d in (
         ("q.x", "m", "x of C"), ("q.y", "m", "y of C"), ("q.phi", "rad", "orientation"),
         ("q.vx", "m/s", "velocity of C, x"), ("q.vy", "m/s", "velocity of C, y"), ("q.omega", "rad/s", "angular rate"))]
+    solver_params(ps, integrator)
     return Block.build(
         "mechanism", description="3-RPR mechanism, rigid 3-DOF dynamics by virtual work (SPEC §4)",
         params=ps.params, inputs=FORCE_INPUTS, outputs=POSE_OUTPUTS + LEG_OUTPUTS, states=states,
         p=ps.vector(), u=f, x=xs, ode=ca.vertcat(qd, qdd), out=ca.vertcat(q, qd, L, Ld),
-        start=ca.vertcat(q0, ca.DM.zeros(3)), integrator=integrator, substeps=substeps,
+        start=ca.vertcat(q0, qd0), integrator=integrator, substeps=substeps,
         flanges=list(FLANGES), fidelity="rigid")
 
 
@@ -152,14 +160,15 @@ def multibody(config: str, integrator: str = "radau", substeps: int = 1) -> Bloc
     ``m_act/2 * (ds/dt)**2`` of kinetic energy (a rank-one term of the mass matrix per leg,
     inverted by Sherman–Morrison since legs share no body) and ``b_act`` a damper on ``s``.
 
-    Start: every body placed by inverse kinematics at the start pose, all velocities zero, so
-    every joint starts relaxed.
+    Start: every body placed by the leg kinematics (:func:`models.kinematics.leg_motion`) at the
+    start pose ``(x0, y0, phi0)`` with the velocities that the platform's start rates
+    ``(vx0, vy0, omega0)`` impose on it (body frame), so every joint starts relaxed and unstretched.
     """
     ps = ParamSet()
     g = geometry_params(ps, config)
     m = inertia_params(ps, config)
     m_act, b_act = _actuator_params(ps)
-    q0 = _start_pose(ps)
+    q0, qd0 = _start_pose(ps)
     k = ps.add("k_joint", 1e8, "N/m", "parasitic joint stiffness (revolute joints, prismatic transverse)", lower=0.0)
     c = ps.add("c_joint", 2000.0, "N.s/m", "parasitic joint damping (revolute joints, prismatic transverse)",
                lower=0.0)
@@ -232,18 +241,17 @@ def multibody(config: str, integrator: str = "radau", substeps: int = 1) -> Bloc
         aj = acc[3 * j:3 * j + 3]
         dvb = R[j].T @ aj[0:2] + om[j] * ca.vertcat(vb[j][1], -vb[j][0])
         ode += [R[j] @ vb[j], om[j], dvb, aj[2]]
-    # start: bodies placed by inverse kinematics at the start pose
-    L0, th0 = inverse_kinematics(q0, g)
+    # start: bodies placed, and given the velocities of, the rigid mechanism's motion at the start
+    # pose and rates (the leg kinematics of models.kinematics), so every joint starts relaxed
+    mot = leg_motion(q0, qd0, ca.DM.zeros(3), g, e1, e2)
     start = []
     for body in range(nb):
         if body < 6:
             i = body % 3
-            s = ca.vertcat(ca.cos(th0[i]), ca.sin(th0[i]))
-            p_c = A[i] - e1 * s if body < 3 else A[i] + (L0[i] - e2) * s
-            start += [p_c, th0[i]]
+            pc, vc = (mot.p_cyl, mot.v_cyl) if body < 3 else (mot.p_rod, mot.v_rod)
+            start += [pc[:, i], mot.theta[i], _rot(mot.theta[i]).T @ vc[:, i], mot.w[i]]
         else:
-            start += [q0]
-        start += [ca.DM.zeros(3)]
+            start += [q0, _rot(q0[2]).T @ qd0[0:2], qd0[2]]
     states = []
     for name, _, _ in bodies:
         states += [Var(f"body.{name}.x", "m", "mass centre x"), Var(f"body.{name}.y", "m", "mass centre y"),
@@ -252,6 +260,7 @@ def multibody(config: str, integrator: str = "radau", substeps: int = 1) -> Bloc
                    Var(f"body.{name}.vy_b", "m/s", "mass-centre velocity along the body's y axis"),
                    Var(f"body.{name}.omega", "rad/s", "angular rate")]
     out = ca.vertcat(pos[plat], th[plat], R[plat] @ vb[plat], om[plat], *lengths, *rates)
+    solver_params(ps, integrator)
     return Block.build(
         "mechanism", description="3-RPR mechanism, seven bodies with parasitic spring-damper joints "
                                  "(thesis bond graph, Section 6.3)",

@@ -40,7 +40,7 @@ from __future__ import annotations
 import casadi as ca
 
 from ..block import Block, Var
-from ._common import ParamSet
+from ._common import ParamSet, solver_params
 
 FORMS = ("parallel", "standard")
 DERIVATIVE = ("error", "measurement")
@@ -99,10 +99,16 @@ def _variables(unit_in: str, unit_out: str) -> tuple[list[Var], list[Var], list[
 
 
 def continuous(form: str = "parallel", derivative: str = "error", anti_windup: str = "none",
-               integrator: str = "rk4", substeps: int = 1, unit_in: str = "m", unit_out: str = "V") -> Block:
-    """Continuous PID (RK4 by default; the filter pole is ``-1/Tf``)."""
+               integrator: str = "auto", substeps: int = 1, unit_in: str = "m", unit_out: str = "V") -> Block:
+    """Continuous PID.  ``integrator="auto"``: ``exact`` (the step's exact solution,
+    :func:`models.integrators.exact_kernel`) when the law is linear (no anti-windup: the
+    limiter acts on the output only), else ``radau``; both are stable at any step, whereas RK4
+    diverges once the step exceeds 2.8 ``Tf`` (the filter pole ``-1/Tf``)."""
     ps, u, xs, (dI, dw, _, _), out, start = _law(form, derivative, anti_windup, unit_in, unit_out)
     inputs, outputs, states = _variables(unit_in, unit_out)
+    if integrator == "auto":
+        integrator = "exact" if anti_windup == "none" else "radau"
+    solver_params(ps, integrator)
     return Block.build(
         "pid", description=f"PID controller, {form} form, derivative on {derivative}, anti-windup {anti_windup}",
         params=ps.params, inputs=inputs, outputs=outputs, states=states, p=ps.vector(),

@@ -1,0 +1,81 @@
+"""Start-up cost of the CLI: ``rpr-cosim --help`` and a one-step ``rpr-cosim run`` of a scene whose
+FMUs are cached, against the targets of issue 8 (0.3 s and 0.5 s).
+
+Each figure is the median wall time of fresh Python processes (``python -m cosim ...``), after
+one warm-up run that fills the FMU cache; the script also prints which heavy modules (CasADi,
+matplotlib, scipy, FMPy) each command imported, from ``python -X importtime`` of the same
+command, and the interpreter's own start-up (``python -c pass``) as the floor.
+
+Usage: ``python benchmarks/bench_startup.py [--scene scenarios/pid_step.yaml] [--repeat 5]``
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import re
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+HEAVY = ("casadi", "matplotlib", "scipy", "fmpy", "numpy", "yaml")
+
+
+def _env() -> dict[str, str]:
+    env = dict(os.environ)
+    env["PYTHONPATH"] = str(ROOT) + os.pathsep + env.get("PYTHONPATH", "")
+    return env
+
+
+def wall(make_cmd, repeat: int) -> float:
+    """Median wall time [s] of ``make_cmd(i)`` over ``repeat`` fresh processes (each must succeed)."""
+    times = []
+    for i in range(repeat):
+        cmd = make_cmd(i)
+        t0 = time.perf_counter()
+        subprocess.run(cmd, check=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=_env())
+        times.append(time.perf_counter() - t0)
+    return statistics.median(times)
+
+
+def heavy_imports(cmd: list[str]) -> dict[str, float]:
+    """Top-level heavy packages ``cmd`` imported and their cumulative import time [s]."""
+    res = subprocess.run([cmd[0], "-X", "importtime", *cmd[1:]], capture_output=True, text=True, env=_env())
+    out = {}
+    for line in res.stderr.splitlines():
+        m = re.match(r"import time:\s+\d+ \|\s+(\d+) \| (\s*)(\S+)$", line)
+        if m and m.group(3) in HEAVY:
+            out[m.group(3)] = max(out.get(m.group(3), 0.0), int(m.group(1)) / 1e6)
+    return out
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--scene", default=str(ROOT / "scenarios" / "pid_step.yaml"))
+    ap.add_argument("--repeat", type=int, default=5)
+    args = ap.parse_args(argv)
+    py = sys.executable
+    with tempfile.TemporaryDirectory() as tmp:
+        def run(i):  # a fresh output directory per run (a run never overwrites)
+            return [py, "-m", "cosim", "run", args.scene, "--set", "stop_time=1e-3", "--out", str(Path(tmp) / f"out{i}")]
+
+        subprocess.run(run("warm"), check=True, stdout=subprocess.DEVNULL, env=_env())  # fills the FMU cache
+        cases = [("python -c pass (floor)", lambda i: [py, "-c", "pass"], None),
+                 ("rpr-cosim --help", lambda i: [py, "-m", "cosim", "--help"], 0.3),
+                 (f"rpr-cosim run {Path(args.scene).name}, one step, cached FMUs", run, 0.5)]
+        print(f"{'command':58s} {'median s':>9s} {'target':>7s}  heavy imports (cumulative s)")
+        for label, make_cmd, target in cases:
+            t = wall(make_cmd, args.repeat)
+            imp = heavy_imports(make_cmd("imports"))
+            verdict = "" if target is None else (f"{target:5.1f} {'ok' if t < target else 'OVER'}")
+            print(f"{label:58s} {t:9.3f} {verdict:>7s}  "
+                  + (", ".join(f"{k} {v:.2f}" for k, v in sorted(imp.items(), key=lambda kv: -kv[1])) or "none"))
+    print(f"({args.repeat} runs each; a one-step run includes the run itself, so it bounds the time to the first step)")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
