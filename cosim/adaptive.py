@@ -61,7 +61,7 @@ class AlgorithmOption:
 
 
 OPTIONS = (
-    AlgorithmOption("rtol", 2e-5, 1e-12, 1.0, "1", "coupling error per step, relative to the range the signal has "
+    AlgorithmOption("rtol", 1e-5, 1e-12, 1.0, "1", "coupling error per step, relative to the range the signal has "
                                                "covered so far"),
     AlgorithmOption("atol", 1e-6, 0.0, math.inf, "signal unit", "absolute tolerance of the coupling error per step"),
     AlgorithmOption("h_init", 1e-7, 1e-9, 1.0, "s", "first macro step (taken without an error estimate: no input "

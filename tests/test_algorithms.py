@@ -181,7 +181,7 @@ def _window(tr: Trace, a: float, b: float) -> Trace:
 def test_adaptive_pid_step_within_a_thousandth_of_range_everywhere(pid_step_adaptive):
     """Issue 10's acceptance: at the default tolerance every recorded variable stays within 1e-3
     of its range of the monolithic CVODES solution over the whole run, start transient included
-    (measured: worst 9e-4 on platform.y, whose range is only ~0.7 mm)."""
+    (measured: worst 6.0e-4 on platform.y, whose range is only ~0.7 mm)."""
     from cosim.compare import compare
 
     res, fine, coarse = pid_step_adaptive
@@ -200,10 +200,11 @@ def test_adaptive_pid_step_within_a_thousandth_of_range_everywhere(pid_step_adap
 
 def test_adaptive_pid_step_resolves_the_start_and_grows_later(pid_step_adaptive):
     """Steps of microseconds through the first millisecond (the motors' electrical transient),
-    milliseconds once the platform moves slowly."""
+    at least 5 ms once the platform moves slowly (issue 10; measured: up to 10 ms; the PIDs' and
+    motors' exact kernels are stable at any step)."""
     res = pid_step_adaptive[0]
     h = np.diff(res.trace.time)
     t = res.trace.time[1:]
     assert h[t <= 1e-3].max() < 5e-5
-    assert h[t >= 3.0].max() >= 2e-3
+    assert h[t >= 3.0].max() >= 5e-3
     assert res.stats["rollbacks"] == res.stats["rejected_steps"]
