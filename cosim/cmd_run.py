@@ -110,6 +110,10 @@ def _describe(scene) -> None:
     for c in scene.connections:
         print(f"  {c}" + (f"   [bond {c.bond}]" if c.bond else ""))
     print(f"  outputs: {len(scene.outputs)} ({', '.join(scene.outputs[:6])}{', ...' if len(scene.outputs) > 6 else ''})")
+    if scene.guards is not None:
+        g = scene.guards
+        print(f"  guards: stroke {g.stroke}, rated {g.rated}, singularity {g.singularity} (|det J| < {g.min_det:g} m), "
+              f"unstable {g.unstable} (|value| > {g.max_abs:g})")
 
 
 def _summary(res) -> None:
@@ -128,6 +132,8 @@ def _summary(res) -> None:
               f"{1e6 * s['wall_s'] / n:>8.2f} {100 * s['wall_s'] / total:>5.1f}%")
     print(f"  {'master':<12} {'':<28} {'':>8} {1e3 * st['master_s']:>9.2f} {1e6 * st['master_s'] / n:>8.2f} "
           f"{100 * st['master_s'] / total:>5.1f}%")
+    for w in st.get("guards", {}).get("warnings", []):
+        print(f"  guard warning: {w}")
     final = res.trace.final()
     if final:
         t_end = res.trace.time[-1]

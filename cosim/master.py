@@ -203,7 +203,10 @@ class CoupledSystem:
     gather indices are computed once here, so a step allocates nothing.
     """
 
-    def __init__(self, slaves: Sequence[Slave], links: Sequence[Link], record: Sequence[tuple[int, str]] = ()):
+    def __init__(self, slaves: Sequence[Slave], links: Sequence[Link], record: Sequence[tuple[int, str]] = (),
+                 watch: Sequence[tuple[int, str]] = ()):
+        """``record``: the traced variables; ``watch``: more variables sampled with them at every
+        recorded row but not traced (for guards: :attr:`watch_names`, after the recorded columns)."""
         self.slaves = list(slaves)
         self.links = list(links)
         n = len(self.slaves)
@@ -221,7 +224,8 @@ class CoupledSystem:
                 reads[ln.src].append(ln.src_var)
             ins[ln.dst].append((ln.dst_var, ln.src, ln.src_var))
         source = {(ln.dst, ln.dst_var): (ln.src, ln.src_var) for ln in self.links}
-        for i, var in record:
+        watch = [w for w in dict.fromkeys(watch) if w not in set(record)]
+        for i, var in list(record) + watch:
             if (i, var) in source:
                 continue  # recorded as the value of its source output
             if var not in reads[i]:
@@ -247,7 +251,9 @@ class CoupledSystem:
         self.out_buf = [self.v[o:o + len(r)] for o, r in zip(out_off, reads)]
         self.in_buf = [self.v[o:o + len(r)] for o, r in zip(in_off, ins)]
         self.record_names = [f"{names[i]}.{var}" for i, var in record]
-        self.record_idx = np.array([self.index[source.get((i, var), (i, var))] for i, var in record], dtype=np.int64)
+        self.watch_names = [f"{names[i]}.{var}" for i, var in watch]
+        self.record_idx = np.array([self.index[source.get((i, var), (i, var))] for i, var in list(record) + watch],
+                                   dtype=np.int64)  # the watched variables last, beyond record_names
 
     @property
     def names(self) -> list[str]:
@@ -622,6 +628,7 @@ class RunStats:
     wall_s: float = 0.0
     master_s: float = 0.0
     slaves: dict[str, dict[str, float]] = field(default_factory=dict)
+    guards: dict = field(default_factory=dict)
 
     @property
     def simulated_s(self) -> float:
@@ -636,7 +643,8 @@ class RunStats:
         return {"algorithm": self.algorithm, "engine": self.engine, "step": self.step,
                 "steps_planned": self.steps_planned, "steps_done": self.steps_done, "status": self.status,
                 "reason": self.reason, "init_s": self.init_s, "wall_s": self.wall_s, "master_s": self.master_s,
-                "simulated_s": self.simulated_s, "real_time_factor": self.real_time_factor, "slaves": self.slaves}
+                "simulated_s": self.simulated_s, "real_time_factor": self.real_time_factor, "slaves": self.slaves,
+                **({"guards": self.guards} if self.guards else {})}
 
 
 def initialize(system: CoupledSystem, start_values: Sequence[dict[str, float]], *, start_time: float = 0.0,
@@ -687,17 +695,35 @@ def choose_engine(system: CoupledSystem, alg_cls: type[Algorithm], engine: str) 
     return "compiled" if native and fastloop.available() else "python"
 
 
+def _guarded(guard, alg: Algorithm, rows: np.ndarray, step_ns: int) -> np.ndarray:
+    """``rows`` up to the first one ``guard`` trips on (all when it does not trip); a trip ends
+    the run with the guard's status and reason at that row's time."""
+    if guard is None or guard.tripped:
+        return rows
+    keep = guard.check(rows)
+    if keep is None:
+        return rows
+    later = f" (afterwards: {alg.message})" if alg.status != "running" and alg.message else ""
+    alg.status, alg.message = guard.status, guard.reason + later
+    alg.k = round(rows[keep - 1, 0] * 1e9 / step_ns)
+    return rows[:keep]
+
+
 def simulate(system: CoupledSystem, algorithm_name: str, *, step_ns: int, n_steps: int, record_every: int = 1,
              observers: Sequence = (), start_values: Sequence[dict[str, float]] | None = None,
              engine: str = "auto", order: Sequence[int] | None = None, timing: bool = True,
              progress: Callable[[int, int], None] | None = None, meta: dict | None = None,
-             inputs: str = "hold") -> RunStats:
+             inputs: str = "hold", guard=None) -> RunStats:
     """Initialise ``system`` and run ``n_steps`` macro steps of ``step_ns`` nanoseconds, inputs
     held or linear over each step (``inputs``, see the module docstring).
 
     Observers receive ``start(columns, meta)``, ``record(rows)`` (rows of time and the recorded
     values, at ``t_0`` and every ``record_every`` steps) and ``finish(status, reason, stats)``,
     also when the run fails or is interrupted (then the exception propagates after ``finish``).
+
+    ``guard`` (:class:`cosim.guards.Guard`) sees every row first, with the system's watched
+    variables after the recorded ones; when it trips, the rows after the offending one are
+    dropped and the run ends with the guard's status and reason.
     """
     cls = algorithm(algorithm_name)
     if record_every < 1:
@@ -716,20 +742,23 @@ def simulate(system: CoupledSystem, algorithm_name: str, *, step_ns: int, n_step
         runner = _Compiled(alg).run if stats.engine == "compiled" else (lambda n, e, r: _python_run(alg, n, e, r))
         stats.init_s = time.perf_counter() - t0
         row0 = np.concatenate([[0.0], system.v[system.record_idx]])[None, :]
+        row0 = _guarded(guard, alg, row0, step_ns)
         for obs in observers:
-            obs.record(row0)
+            obs.record(row0[:, :len(columns)])
         chunk, t_loop, stepping = min(64, n_steps) or 1, time.perf_counter(), 0.0
-        rec = np.empty((max(1, chunk // record_every + 1), len(columns)))
+        width = 1 + len(system.record_idx)
+        rec = np.empty((max(1, chunk // record_every + 1), width))
         while alg.k < n_steps and alg.status == "running":
             n = min(chunk, n_steps - alg.k)
             if rec.shape[0] < n // record_every + 1:
-                rec = np.empty((n // record_every + 1, len(columns)))
+                rec = np.empty((n // record_every + 1, width))
             tc = time.perf_counter()
             rows = runner(n, record_every, rec)
             dt = time.perf_counter() - tc
             stepping += dt
+            block = _guarded(guard, alg, rec[:rows], step_ns)
             for obs in observers:
-                obs.record(rec[:rows])
+                obs.record(block[:, :len(columns)])
             if progress:
                 progress(alg.k, n_steps)
             if dt < 0.05 and chunk < 1 << 20:  # aim at ~0.1 s per chunk: responsive to Ctrl-C
@@ -747,6 +776,8 @@ def simulate(system: CoupledSystem, algorithm_name: str, *, step_ns: int, n_step
         raise
     finally:
         stats.status, stats.reason = status, reason
+        if guard is not None:
+            stats.guards = guard.summary()
         if alg is not None:
             stats.steps_done = alg.k
             stats.master_s = alg.master_ns / 1e9

@@ -61,7 +61,8 @@ from .slaves import SlaveDescription, describe_block, describe_fmu
 
 Loc = tuple[str, int]  # (file, line); line 0 = no line (a --set override)
 
-TOP_KEYS = ("name", "description", "include", "stop_time", "components", "connections", "master", "outputs")
+TOP_KEYS = ("name", "description", "include", "stop_time", "components", "connections", "master", "outputs",
+            "guards")
 COMPONENT_KEYS = ("model", "fidelity", "options", "params", "start", "fmu", "fmi", "description")
 MASTER_KEYS = ("algorithm", "step", "order", "engine", "output_interval", "inputs")
 #: How a slave's inputs vary over a communication step (see :mod:`cosim.master`).
@@ -454,6 +455,7 @@ class Scene:
     data: dict  # the merged tree as plain data
     hash: str
     warnings: list[Problem] = field(default_factory=list)
+    guards: Any = None  # cosim.guards.GuardSettings (physical guards of a run)
 
 
 # --- catalog access ---------------------------------------------------------------------------
@@ -996,13 +998,18 @@ def validate(tree: YMap, path: Path | None = None, *, catalog=None, problems: li
         ck.unconnected(comps, conns)
     if conns:
         ck.algebraic_loops(comps, conns)
+    from .guards import check_scene, parse_settings
+
+    guards = parse_settings(tree.get("guards"), lambda _key: tree.loc("guards"), ck.err)
+    if comps and not broken:
+        check_scene(guards, comps, stop, ck.err, ck.warn)
     errors = [p for p in ck.problems if p.severity == "error"]
     if errors:
         raise SceneError(ck.problems)
     data = plain(tree)
     name = tree.get("name") or (path.stem if path else "scene")
     return Scene(str(name), path, str(tree.get("description", "")), stop, n_steps, comps, conns, bonds, master,
-                 outputs, data, _hash(data, comps), [p for p in ck.problems if p.severity == "warning"])
+                 outputs, data, _hash(data, comps), [p for p in ck.problems if p.severity == "warning"], guards)
 
 
 def load(path: Path | str, overrides: Mapping[str, Any] | Sequence[str] | None = None, *, catalog=None) -> Scene:
