@@ -1,11 +1,17 @@
 """``rpr-cosim compare``: the differences between two traces.
 
     rpr-cosim compare TEST.csv REFERENCE.csv [--only PATTERN ...] [--plot FILE] [--tol REL]
+                      [--allow-failed] [--allow-partial]
 
 Prints, for every variable both traces recorded, the largest absolute difference, when it
 occurs, the RMS and the error relative to the reference's range (REFERENCE is interpolated onto
 TEST's instants).  With ``--tol`` the exit code is 1 when any relative error exceeds it, so the
 command can gate a script.
+
+A comparison is refused (exit 2; under ``--tol`` it fails with exit 1) when either run did not
+end "ok" (its CSV status or JSON sidecar: failed, stopped, unstable, interrupted, unfinished) unless
+``--allow-failed``, and when the traces overlap over less than the reference's time span unless
+``--allow-partial``.  Variables found in only one trace are listed as not compared.
 """
 from __future__ import annotations
 
@@ -25,27 +31,42 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--tol", type=float, metavar="REL",
                    help="exit with code 1 when a relative error (max |diff| / range) exceeds REL")
     p.add_argument("--most", type=int, default=None, metavar="N", help="show the N worst variables only")
+    p.add_argument("--allow-failed", action="store_true",
+                   help="compare even when a trace's run did not end 'ok' (failed, stopped by a guard, unstable, "
+                        "interrupted, unfinished)")
+    p.add_argument("--allow-partial", action="store_true",
+                   help="compare even when the traces overlap over less than the reference's time span")
     p.set_defaults(handler=_compare)
 
 
 def _compare(args: argparse.Namespace) -> int:
-    from .compare import compare, format_table, plot_comparison
+    from .compare import comparability, compare, format_table, plot_comparison
     from .errors import UserError
     from .trace import read_trace
 
     if args.tol is not None and not args.tol > 0:
         raise UserError(f"--tol {args.tol}: expected a positive relative tolerance, e.g. 1e-3")
     test, ref = read_trace(args.test), read_trace(args.reference)
+    checks = comparability(test, ref, test_path=args.test, ref_path=args.reference, patterns=args.only)
+    problems = checks.problems(allow_failed=args.allow_failed, allow_partial=args.allow_partial)
+    if problems and args.tol is None:
+        raise UserError("refused: " + "; ".join(problems))
     diffs = compare(test, ref, args.only)
     print(f"{args.test} against {args.reference}: {len(diffs)} variables")
     print(format_table(diffs, most=args.most))
+    for note in checks.notes():
+        print(f"note: {note}")
     if args.plot:
         path = plot_comparison(test, ref, diffs, args.plot, labels=(args.test.stem, args.reference.stem))
         print(f"plot: {path}", file=sys.stderr)
     if args.tol is not None:
+        for problem in problems:
+            print(f"rpr-cosim compare: fails: {problem}", file=sys.stderr)
         bad = [d for d in diffs if not d.relative <= args.tol]
         if bad:
             print(f"rpr-cosim compare: {len(bad)} variable{'s' if len(bad) != 1 else ''} beyond the relative "
                   f"tolerance {args.tol:g} (worst: {max(bad, key=lambda d: d.relative).name})", file=sys.stderr)
+            return 1
+        if problems:
             return 1
     return 0
