@@ -94,6 +94,10 @@ def _reference(scene, res, out: Path, plot: bool) -> None:
           f"{ref.status}{' (' + ref.reason + ')' if ref.reason else ''}, {st['wall_s']:.2f} s; trace: {ref.trace_path}")
     if len(ref.trace.data) and len(res.trace.data):
         diffs = compare(res.trace, ref.trace)
+        for label, r in (("co-simulation", res), ("reference", ref)):
+            if r.status != "ok":
+                print(f"note: the {label} ended {r.status!r} at t = {r.trace.time[-1]:g} s ({r.reason}); the errors "
+                      f"below cover the common span only")
         print("co-simulation against the reference:")
         print(format_table(diffs, most=12))
         if plot:

@@ -118,6 +118,8 @@ def check_scene(settings: GuardSettings, comps: Mapping[str, Any], stop_time: fl
 def setpoint_problems(comp, stop_time: float, settings: GuardSettings) -> list[tuple[str, str]]:
     """(action, message) for every leg of a pose setpoint that leaves its stroke over
     ``[0, stop_time]``, and for a singular pose on its path."""
+    if settings.stroke == "off" and settings.singularity == "off":
+        return []
     blk = comp.block
     p = blk.param_vector(**comp.params)
     t = np.linspace(0.0, stop_time, _SAMPLES)
