@@ -164,15 +164,20 @@ def _outside(v: np.ndarray, low: float, high: float) -> np.ndarray:
     return (v < low - tol) | (v > high + tol)
 
 
-def det_j(comp, pose: np.ndarray) -> np.ndarray:
-    """det J [m] (eq. 4.14, SI units) of ``comp``'s geometry (its config option and geometry
-    parameters) at poses ``pose`` of shape (3, N)."""
-    from models import kinematics
-
+def geometry(comp) -> np.ndarray:
+    """The geometry vector (:data:`models.geometry.GEOMETRY_FIELDS`) of a mechanism or setpoint
+    component: its ``config`` option and geometry parameters, shape (10, 1)."""
     from .animate import manipulator_for
 
-    g = manipulator_for(comp.options, comp.params).geometry_vector().reshape(-1, 1)
-    det, _, _ = kinematics.numpy_map("dexterity")(np.asarray(pose, float), g)
+    return manipulator_for(comp.options, comp.params).geometry_vector().reshape(-1, 1)
+
+
+def det_j(comp, pose: np.ndarray, g: np.ndarray | None = None) -> np.ndarray:
+    """det J [m] (eq. 4.14, SI units; :func:`models.kinematics.dexterity`) of ``comp``'s
+    geometry ``g`` (default :func:`geometry`) at poses ``pose`` of shape (3, N)."""
+    from models import kinematics
+
+    det = kinematics.numpy_map("det")(np.asarray(pose, float), geometry(comp) if g is None else g)
     return np.asarray(det, float).reshape(-1)
 
 
@@ -209,6 +214,7 @@ class _Mechanism:
     comp: Any
     names: tuple[str, str, str]  # the pose columns
     sign0: float | None = None
+    g: np.ndarray | None = None  # geometry vector (10, 1)
 
 
 @dataclass
@@ -229,6 +235,8 @@ class Guard:
     warnings: list[str] = field(default_factory=list)
     _col: dict[str, int] = field(default_factory=dict)
     _warned: set = field(default_factory=set)
+    _bound: list = field(default_factory=list)
+    _lim: tuple = (np.zeros(0, dtype=np.int64), np.zeros(0), np.zeros(0))
 
     @property
     def tripped(self) -> bool:
@@ -237,6 +245,13 @@ class Guard:
     def bind(self, names: list[str]) -> None:
         """``names``: the sampled variables in row order after the time column."""
         self._col = {n: j + 1 for j, n in enumerate(names)}
+        self._bound = [lim for lim in self.limits
+                       if lim.name in self._col and getattr(self.settings, lim.kind) != "off"]
+        idx = np.array([self._col[lim.name] for lim in self._bound], dtype=np.int64)
+        tol = np.array([_REL_TOL * max(abs(lim.low), abs(lim.high), 1.0) for lim in self._bound])
+        low = np.array([lim.low for lim in self._bound]) - tol
+        high = np.array([lim.high for lim in self._bound]) + tol
+        self._lim = (idx, low, high)
 
     def check(self, rows: np.ndarray) -> int | None:
         if not len(rows) or self.tripped:
@@ -262,8 +277,7 @@ class Guard:
         if action == "off" or rows.shape[1] < 2:
             return []
         vals = rows[:, 1:]
-        with np.errstate(invalid="ignore"):
-            bad = ~np.isfinite(vals) | (np.abs(vals) > self.settings.max_abs)
+        bad = ~np.isfinite(vals) | (np.abs(vals) > self.settings.max_abs)  # NaN compares False: no warning
         if not bad.any():
             return []
         k = int(np.argmax(bad.any(axis=1)))
@@ -274,16 +288,18 @@ class Guard:
         return [(k, action, "unstable", f"unstable: {name} = {v:.6g} at t = {rows[k, 0]:.6g} s ({why})", name)]
 
     def _limits(self, rows: np.ndarray) -> list:
+        idx, low, high = self._lim
+        if not len(idx):
+            return []
+        vals = rows[:, idx]
+        bad = (vals < low) | (vals > high)
+        if not bad.any():
+            return []
         out = []
-        for lim in self.limits:
+        for m in np.flatnonzero(bad.any(axis=0)):
+            lim, j = self._bound[m], int(idx[m])
             action = getattr(self.settings, lim.kind)
-            j = self._col.get(lim.name)
-            if action == "off" or j is None:
-                continue
-            bad = _outside(rows[:, j], lim.low, lim.high)
-            if not bad.any():
-                continue
-            k = int(np.argmax(bad))
+            k = int(np.argmax(bad[:, m]))
             v, t = rows[k, j], rows[k, 0]
             if lim.kind == "stroke":
                 text = (f"out of stroke: {lim.name} = {v:.4g} m at t = {t:.6g} s, outside the stroke "
@@ -303,7 +319,9 @@ class Guard:
             cols = [self._col.get(n) for n in mech.names]
             if None in cols:
                 continue
-            det = det_j(mech.comp, rows[:, cols].T)
+            if mech.g is None:
+                mech.g = geometry(mech.comp)
+            det = det_j(mech.comp, rows[:, cols].T, mech.g)
             if mech.sign0 is None and len(det) and np.isfinite(det[0]) and det[0] != 0:
                 mech.sign0 = float(np.sign(det[0]))
             k = _singular(det, self.settings.min_det, mech.sign0)
