@@ -81,26 +81,41 @@ def parse_settings(node: Any, loc, err) -> GuardSettings:
     if node is False or node == "off":
         return GuardSettings(**{g: "off" for g in GUARDS})
     if not isinstance(node, Mapping):
-        err(loc(None), f"guards must be a mapping (e.g. {{stroke: stop, singularity: warn}}) or off, got {node!r}")
+        err(loc(None), f"guards must be a mapping (e.g. {{stroke: stop, singularity: warn}}) or off, got {_show(node)}")
         return GuardSettings()
     values: dict[str, Any] = {}
     where = node.loc if isinstance(node, YMap) else loc
     for key, val in node.items():
-        if key not in DEFAULTS:
+        if not isinstance(key, str) or key not in DEFAULTS:
             err(where(key), f"unknown key {key!r} in guards{suggest(str(key), DEFAULTS)} "
                             f"(expected: {', '.join(DEFAULTS)})")
         elif key in GUARDS:
             action = {False: "off", True: "stop"}.get(val, val) if isinstance(val, bool) else val
             if action not in ACTIONS:
-                err(where(key), f"guards.{key} = {val!r}{suggest(str(val), ACTIONS)}; expected stop, warn or off")
+                err(where(key), f"guards.{key} = {_show(val)}{suggest(str(val), ACTIONS)}; expected stop, warn or off")
             else:
                 values[key] = action
-        elif isinstance(val, bool) or not isinstance(val, (int, float)) or not (math.isfinite(val) and val > 0):
-            err(where(key), f"guards.{key} = {val!r} must be a positive number "
+        elif not _positive(val):
+            err(where(key), f"guards.{key} = {_show(val)} must be a positive number "
                             f"({'[m], |det J| threshold' if key == 'min_det' else 'bound on |value|'})")
         else:
             values[key] = float(val)
     return GuardSettings(**values)
+
+
+def _show(val: Any, width: int = 60) -> str:
+    text = repr(val)
+    return text if len(text) <= width else text[:width - 3] + "..."
+
+
+def _positive(val: Any) -> bool:
+    """A finite positive number (a bool is not; an integer too large for a float is not)."""
+    if isinstance(val, bool) or not isinstance(val, (int, float)):
+        return False
+    try:
+        return math.isfinite(float(val)) and val > 0
+    except OverflowError:
+        return False
 
 
 def check_scene(settings: GuardSettings, comps: Mapping[str, Any], stop_time: float | None, err, warn) -> None:

@@ -166,6 +166,7 @@ def scene_with_guards(tmp_path: Path, guards: str) -> Path:
     ("guards:\n  stroke: stop\n  rated: stopp\n", 5, "guards.rated = 'stopp'; did you mean 'stop'?; expected stop, warn or off"),
     ("guards:\n  min_det: -1\n", 4, "guards.min_det = -1 must be a positive number"),
     ("guards: [stroke]\n", 3, "guards must be a mapping"),
+    ("guards:\n  max_abs: .nan\n", 4, "guards.max_abs = nan must be a positive number"),
 ])
 def test_guard_settings_mistakes_name_file_and_line(tmp_path, guards, line, message):
     path = scene_with_guards(tmp_path, guards)
@@ -183,6 +184,13 @@ def test_guard_settings_mistakes_name_file_and_line(tmp_path, guards, line, mess
 ])
 def test_guard_settings_are_read_from_the_scene(tmp_path, guards, expected):
     assert load(scene_with_guards(tmp_path, guards)).guards == expected
+
+
+def test_run_check_shows_the_guards(tmp_path, capsys):
+    path = scene_with_guards(tmp_path, "guards: {singularity: warn, min_det: 0.05}\n")
+    assert cli.main(["run", str(path), "--check"]) == 0
+    assert "  guards: stroke stop, rated stop, singularity warn (|det J| < 0.05 m), unstable stop (|value| > 1e+06)" \
+        in capsys.readouterr().out
 
 
 # --- the guard on synthetic rows ------------------------------------------------------------------
