@@ -63,7 +63,7 @@ from .slaves import SlaveDescription, describe_block, describe_fmu
 Loc = tuple[str, int]  # (file, line); line 0 = no line (a --set override)
 
 TOP_KEYS = ("name", "description", "include", "stop_time", "components", "connections", "master", "outputs",
-            "guards")
+            "fidelity_tolerance", "fidelity_signals", "guards")
 COMPONENT_KEYS = ("model", "fidelity", "options", "params", "start", "fmu", "fmi", "description")
 MASTER_KEYS = ("algorithm", "step", "order", "engine", "output_interval", "inputs")
 #: How a slave's inputs vary over a communication step (see :mod:`cosim.master`).
@@ -1010,7 +1010,7 @@ def validate(tree: YMap, path: Path | None = None, *, catalog=None, problems: li
     data = plain(tree)
     name = tree.get("name") or (path.stem if path else "scene")
     return Scene(str(name), path, str(tree.get("description", "")), stop, n_steps, comps, conns, bonds, master,
-                 outputs, data, _hash(data, comps), [p for p in ck.problems if p.severity == "warning"], guards)
+                 outputs, data, _hash(data, comps), [p for p in ck.problems if p.severity != "error"], guards)
 
 
 def load(path: Path | str, overrides: Mapping[str, Any] | Sequence[str] | None = None, *, catalog=None) -> Scene:
@@ -1023,7 +1023,23 @@ def load(path: Path | str, overrides: Mapping[str, Any] | Sequence[str] | None =
     if tree is None:
         raise SceneError(problems)
     tree = apply_overrides(tree, overrides)
+    auto = _auto_fidelity_loc(tree)
+    if auto is not None:  # 'fidelity: auto': the cheapest levels within fidelity_tolerance (cosim.study.fidelity)
+        from .study.fidelity import resolve_auto
+
+        tree, note = resolve_auto(tree, path)
+        problems.append(Problem(auto[0], auto[1], note, "note"))
     return validate(tree, path, catalog=catalog, problems=problems)
+
+
+def _auto_fidelity_loc(tree: YMap) -> Loc | None:
+    """Where the first ``fidelity: auto`` of a catalog component is, or None."""
+    comps = tree.get("components")
+    if isinstance(comps, YMap):
+        for spec in comps.values():
+            if isinstance(spec, YMap) and spec.get("fidelity") == "auto" and "model" in spec:
+                return spec.loc("fidelity")
+    return None
 
 
 def from_dict(data: Mapping[str, Any], *, base_dir: Path | None = None, catalog=None) -> Scene:

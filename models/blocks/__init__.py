@@ -11,6 +11,7 @@ the bad name, with the closest valid name as a suggestion.
 | ``dc_motor`` | ``full``, ``quasistatic``, ``ideal`` | :mod:`.motor` |
 | ``pid`` | ``continuous``, ``discrete`` | :mod:`.pid` |
 | ``pose_setpoint`` | ``default`` | :mod:`.setpoint` |
+| ``oscillator`` | ``linear`` | :mod:`.oscillator` (master-algorithm test scenes) |
 """
 from __future__ import annotations
 
@@ -20,7 +21,7 @@ from dataclasses import dataclass
 from typing import Any, Callable
 
 from ..block import Block, BlockError
-from . import mechanism, motor, pid, setpoint
+from . import mechanism, motor, oscillator, pid, setpoint
 from ._common import CONFIG, SUBSTEPS, Option, integrator_option, positive_float, suggest
 
 
@@ -58,6 +59,13 @@ def _entries() -> dict[str, dict[str, _Entry]]:
             "default": _Entry(setpoint.pose_setpoint, (CONFIG, Option("profile", "step", "trajectory profile",
                                                                       choices=setpoint.PROFILES))),
         },
+        "oscillator": {
+            "linear": _Entry(oscillator.oscillator, (
+                Option("coupling", "none", "interface: 'none' (force in) or 'spring' (velocity in, coupling spring "
+                                           "force out)", choices=oscillator.COUPLING),
+                integrator_option("rk4"), Option("substeps", 40, "integrator substeps per communication step",
+                                                 check=SUBSTEPS.check))),
+        },
     }
 
 
@@ -67,6 +75,19 @@ _CATALOG = _entries()
 def catalog() -> dict[str, list[str]]:
     """Model name -> its fidelities (the first is the default)."""
     return {model: list(fids) for model, fids in _CATALOG.items()}
+
+
+#: Fidelity levels from the most to the least detailed, where that differs from the catalog's order
+#: (whose first level is the default).
+_DETAIL = {"mechanism": ("multibody", "rigid", "kinematic"), "dc_motor": ("full", "quasistatic", "ideal"),
+           "pid": ("continuous", "discrete")}
+
+
+def detail_order(model: str) -> list[str]:
+    """The fidelity levels of ``model``, most detailed first."""
+    levels = list(_CATALOG[model]) if model in _CATALOG else []
+    ranked = [f for f in _DETAIL.get(model, ()) if f in levels]
+    return ranked + [f for f in levels if f not in ranked]
 
 
 def _entry(model: str, fidelity: str | None) -> tuple[str, _Entry]:
@@ -126,4 +147,4 @@ def make(model: str, fidelity: str | None = None, **opts: Any) -> Block:
     return blk
 
 
-__all__ = ["make", "catalog", "options", "Option"]
+__all__ = ["make", "catalog", "options", "detail_order", "Option"]

@@ -1,0 +1,189 @@
+"""``rpr-cosim study``: measured studies of master algorithms on a scene.
+
+    rpr-cosim study stability SCENE.yaml --vary PATH=LO:HI [--steps LO:HI] [--n N]
+                                        [--variant ALG/INPUTS ...] [--out DIR]
+    rpr-cosim study precision SCENE.yaml [--steps H,H,...] [--variant ALG/INPUTS ...] [--stop T]
+                                        [--only GLOB ...] [--tol REL] [--out DIR]
+    rpr-cosim study fidelity SCENE.yaml [--tol REL] [--only GLOB ...] [--set PATH=VALUE ...]
+
+``stability`` maps where each master algorithm variant stays stable over the communication step
+and one scene parameter (both on log axes), writes ``<scene>_stability.csv`` (one row per cell,
+with the reason of every unstable or failed run) and ``<scene>_stability.png`` (cells coloured
+stable / unstable / failed, with the analytic boundary for linear scenes), and prints how the
+measured map agrees with the analytic one.
+
+``precision`` measures every variant and step against the scene's monolithic reference and writes
+``<scene>_precision.csv`` (per run and per signal) and ``<scene>_precision.png`` (worst relative
+error against wall time, one curve per variant), and prints the observed orders and the cheapest
+run within ``--tol``.
+
+``fidelity`` runs every combination of the scene's fidelity levels (components of one model share a
+level) against the most detailed one and prints error and cost per combination and the cheapest
+within ``--tol``; ``fidelity: auto`` in a scene uses the same study (see
+:mod:`cosim.study.fidelity`).
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("study", help="measured studies of master algorithms (stability maps)",
+                       description="Studies that run a scene many times and chart the outcome.")
+    studies = p.add_subparsers(dest="study", metavar="STUDY")
+    studies.required = True
+    s = studies.add_parser("stability", help="stable/unstable map over communication step x one scene parameter",
+                           description="Run the scene over a log grid of communication steps and values of one "
+                                       "parameter, for each master algorithm variant, and chart where it is stable.")
+    s.add_argument("scene", type=Path, help="scene file, e.g. scenarios/two_mass.yaml")
+    s.add_argument("--vary", required=True, metavar="PATH=LO:HI",
+                   help="scene parameter and its range (log axis), e.g. components.mass2.params.kc=1:1e4")
+    s.add_argument("--steps", default="1e-3:0.5", metavar="LO:HI", help="communication steps [s] (log axis; "
+                                                                         "default 1e-3:0.5)")
+    s.add_argument("--n", type=int, default=12, metavar="N", help="grid points per axis (default 12)")
+    s.add_argument("--variant", action="append", default=[], metavar="ALG/INPUTS",
+                   help="algorithm variant, e.g. jacobi/hold or gauss_seidel/linear; repeatable "
+                        "(default: jacobi and gauss_seidel, hold and linear)")
+    s.add_argument("--out", type=Path, help="output directory (default runs/<scene>_stability)")
+    s.add_argument("--cache", type=Path, help="FMU cache directory")
+    s.set_defaults(handler=_stability)
+    q = studies.add_parser("precision", help="error against cost (work-precision) of master algorithm variants",
+                           description="Run the scene for every algorithm variant and communication step, measure "
+                                       "each run against the scene's monolithic reference (max error relative to "
+                                       "each signal's range) and its cost, print the table and draw the "
+                                       "work-precision chart.")
+    q.add_argument("scene", type=Path, help="scene file of catalog components, e.g. scenarios/pid_step.yaml")
+    q.add_argument("--steps", metavar="H,H,...", help="communication steps [s], each halving the previous "
+                                                      "(default: 4x the scene's step down to 1/8 of it)")
+    q.add_argument("--variant", action="append", default=[], metavar="ALG/INPUTS",
+                   help="algorithm variant, e.g. gauss_seidel/linear; repeatable (default: every algorithm, hold and "
+                        "linear)")
+    q.add_argument("--stop", type=float, metavar="T", help="simulated time per run [s] (default: the scene's)")
+    q.add_argument("--only", action="append", default=[], metavar="GLOB", help="compare only these signals")
+    q.add_argument("--tol", type=float, default=1e-3, metavar="REL",
+                   help="report the cheapest run whose worst relative error is within REL (default 1e-3)")
+    q.add_argument("--out", type=Path, help="output directory (default runs/<scene>_precision)")
+    q.add_argument("--cache", type=Path, help="FMU cache directory")
+    q.set_defaults(handler=_precision)
+    f = studies.add_parser("fidelity", help="error and cost of every fidelity combination; the cheapest within --tol",
+                           description="Run the scene with every combination of its models' fidelity levels, "
+                                       "measure each against the most detailed combination and its cost, and name the "
+                                       "cheapest combination within the tolerance.")
+    f.add_argument("scene", type=Path, help="scene file of catalog components, e.g. scenarios/pid_step.yaml")
+    f.add_argument("--tol", type=float, default=1e-3, metavar="REL",
+                   help="largest error relative to each signal's range (default 1e-3)")
+    f.add_argument("--only", action="append", default=[], metavar="GLOB", help="compare only these signals")
+    f.add_argument("--set", dest="sets", action="append", default=[], metavar="PATH=VALUE",
+                   help="override a scene value first, e.g. stop_time=1")
+    f.add_argument("--cache", type=Path, help="FMU cache directory")
+    f.set_defaults(handler=_fidelity)
+
+
+def _variants(texts: list[str]) -> list[tuple[str, str]]:
+    from .errors import UserError
+    from .master import ALGORITHMS
+
+    if not texts:
+        return [(alg, inputs) for alg in ALGORITHMS for inputs in ("hold", "linear")]
+    out = []
+    for t in texts:
+        alg, _, inputs = t.partition("/")
+        inputs = inputs or "hold"
+        if alg not in ALGORITHMS or inputs not in ("hold", "linear"):
+            raise UserError(f"--variant {t}: expected ALG/INPUTS with ALG one of {', '.join(sorted(ALGORITHMS))} "
+                            f"and INPUTS hold or linear")
+        out.append((alg, inputs))
+    return out
+
+
+def _stability(args: argparse.Namespace) -> int:
+    from .errors import UserError
+    from .run import progress_bar
+    from .study.stability import parse_range, plot_map, stability_map
+
+    path, sep, rng = args.vary.partition("=")
+    if not sep:
+        raise UserError(f"--vary {args.vary}: expected PATH=LO:HI, e.g. components.mass2.params.kc=1:1e4")
+    if not 2 <= args.n <= 200:
+        raise UserError(f"--n {args.n}: expected 2 to 200 grid points per axis")
+    values, steps = parse_range(rng, "--vary"), parse_range(args.steps, "--steps")
+    variants = _variants(args.variant)
+    smap = stability_map(args.scene, path, values, steps, n_values=args.n, n_steps=args.n, variants=variants,
+                         cache_dir=args.cache, progress=progress_bar())
+    out = args.out or Path("runs") / f"{smap.scene}_stability"
+    out.mkdir(parents=True, exist_ok=True)
+    csv_path, png_path = out / f"{smap.scene}_stability.csv", out / f"{smap.scene}_stability.png"
+    smap.write_csv(csv_path)
+    plot_map(smap, png_path, args.scene)
+    print(f"{smap.scene}: {len(smap.cells)} runs over step x {path}")
+    print(f"{'variant':<24} {'stable':>7} {'unstable':>9} {'failed':>7}  {'agree with analytic':>20}")
+    for v in smap.variants:
+        cells = [c for c in smap.cells if (c.algorithm, c.inputs) == v]
+        count = {k: sum(c.outcome == k for c in cells) for k in ("stable", "unstable", "failed")}
+        agree = (f"{sum((c.outcome == 'stable') == (c.rho <= 1) for c in cells)}/{len(cells)}"
+                 if smap.analytic else "-")
+        print(f"{v[0] + '/' + v[1]:<24} {count['stable']:>7} {count['unstable']:>9} {count['failed']:>7}  {agree:>20}")
+    if not smap.analytic:
+        print(f"no analytic boundary: {smap.analytic_note}")
+    print(f"table: {csv_path}\nchart: {png_path}", file=sys.stderr)
+    return 0
+
+
+def _precision(args: argparse.Namespace) -> int:
+    from .errors import UserError
+    from .study.precision import plot_study, precision_study
+
+    steps = None
+    if args.steps:
+        try:
+            steps = [float(x) for x in args.steps.split(",")]
+        except ValueError:
+            raise UserError(f"--steps {args.steps}: expected comma-separated steps in seconds, e.g. 4e-3,2e-3,1e-3") \
+                from None
+    if args.stop is not None and not args.stop > 0:
+        raise UserError(f"--stop {args.stop}: expected a positive simulated time [s]")
+    if not args.tol > 0:
+        raise UserError(f"--tol {args.tol}: expected a positive relative tolerance")
+    study = precision_study(args.scene, _variants(args.variant), steps, stop_time=args.stop, only=args.only or None,
+                            cache_dir=args.cache, progress=lambda m: print(f"  {m}", file=sys.stderr, flush=True))
+    out = args.out or Path("runs") / f"{study.scene}_precision"
+    out.mkdir(parents=True, exist_ok=True)
+    csv_path, png_path = out / f"{study.scene}_precision.csv", out / f"{study.scene}_precision.png"
+    study.write_csv(csv_path)
+    plot_study(study, png_path)
+    print(f"{study.scene}: {len(study.rows)} runs over {study.stop_time:g} s against the monolithic reference "
+          f"({study.reference_wall_s:.3f} s)")
+    print(f"{'variant':<22} {'step s':>9} {'status':>8} {'worst rel':>10} {'signal':<22} {'wall s':>8} {'doSteps':>8}")
+    for r in study.rows:
+        print(f"{r.algorithm + '/' + r.inputs:<22} {r.step:>9.4g} {r.status:>8} {r.worst:>10.3e} {r.worst_signal:<22} "
+              f"{r.wall_s:>8.3f} {r.do_steps:>8}")
+    for v in study.variants():
+        print(f"observed order {v[0]}/{v[1]}: {study.order(v):.2f}")
+    best = study.cheapest_within(args.tol)
+    print(f"cheapest within {args.tol:g}: " + (f"{best.algorithm}/{best.inputs} at {best.step:g} s "
+                                               f"({best.worst:.2e}, {best.wall_s:.3f} s)" if best else "none"))
+    print(f"table: {csv_path}\nchart: {png_path}", file=sys.stderr)
+    return 0
+
+
+def _fidelity(args: argparse.Namespace) -> int:
+    from .errors import UserError
+    from .study.fidelity import fidelity_study
+
+    if not args.tol > 0:
+        raise UserError(f"--tol {args.tol}: expected a positive relative tolerance")
+    study = fidelity_study(args.scene, args.sets, only=args.only or None, cache_dir=args.cache,
+                           progress=lambda m: print(f"  {m}", file=sys.stderr, flush=True))
+    top = study.rows[0]
+    print(f"{study.scene}: {len(study.rows)} fidelity combinations against the most detailed ({top.label})")
+    print(f"{'combination':<62} {'status':>8} {'worst rel':>10} {'signal':<22} {'wall s':>8} {'speed-up':>8}")
+    for r in study.rows:
+        speed = top.wall_s / r.wall_s if r.status == "ok" and r.wall_s > 0 else float("nan")
+        print(f"{r.label:<62} {r.status:>8} {r.worst:>10.3e} {r.worst_signal:<22} {r.wall_s:>8.3f} {speed:>8.1f}"
+              + (f"  ({r.reason})" if r.status != "ok" and r.reason else ""))
+    best = study.cheapest_within(args.tol)
+    print(f"cheapest within {args.tol:g}: {best.label} ({best.worst:.2e}, {top.wall_s / best.wall_s:.1f}x faster "
+          f"than the most detailed)" if best else f"cheapest within {args.tol:g}: none")
+    return 0
