@@ -9,7 +9,8 @@ TEST's instants).  With ``--tol`` the exit code is 1 when any relative error exc
 command can gate a script.
 
 A comparison is refused (exit 2; under ``--tol`` it fails with exit 1) when either run did not
-end "ok" (its CSV status or JSON sidecar: failed, stopped, unstable, interrupted, unfinished) unless
+end "ok" (its CSV status or JSON sidecar: failed, out_of_limits, unstable, interrupted, unfinished;
+"stopped" at a component's own request counts as an end) unless
 ``--allow-failed``, and when the traces overlap over less than the reference's time span unless
 ``--allow-partial``.  Variables found in only one trace are listed as not compared.
 """
@@ -32,8 +33,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="exit with code 1 when a relative error (max |diff| / range) exceeds REL")
     p.add_argument("--most", type=int, default=None, metavar="N", help="show the N worst variables only")
     p.add_argument("--allow-failed", action="store_true",
-                   help="compare even when a trace's run did not end 'ok' (failed, stopped by a guard, unstable, "
-                        "interrupted, unfinished)")
+                   help="compare even when a trace's run did not end 'ok' (failed, out_of_limits or unstable by a "
+                        "guard, interrupted, unfinished)")
     p.add_argument("--allow-partial", action="store_true",
                    help="compare even when the traces overlap over less than the reference's time span")
     p.set_defaults(handler=_compare)

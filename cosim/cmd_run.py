@@ -6,7 +6,8 @@ The trace streams to ``DIR/<scene>.csv`` (default ``DIR`` = ``runs/<scene>``) wi
 ``<scene>.json``; a progress bar goes to stderr for long runs and a summary table (per-slave
 steps and time, real-time factor, final values) to stdout.  A scene with problems prints one
 line per problem (``file:line: error: ...``) and exits with code 2; a run that fails or is
-stopped keeps its partial trace and exits with code 1.
+interrupted keeps its partial trace and exits with code 1; a run that a component asked to stop
+(FMI terminate request) ends with its last point recorded, "stopped by C at t", and code 0.
 """
 from __future__ import annotations
 
@@ -76,6 +77,9 @@ def _run(args: argparse.Namespace) -> int:
         _say(f"animation: {animate(res.trace, out / f'{scene.name}.gif', manipulator=m, component=comp, title=scene.name)}")
     if args.reference:
         _reference(scene, res, out, args.plot)
+    if res.status == "stopped":  # a component asked to end the simulation: a normal end (FMI)
+        _say(f"rpr-cosim run: {res.reason}")
+        return 0
     if not res.ok:
         _say(f"rpr-cosim run: {res.status}: {res.reason}")
         return 1
@@ -109,7 +113,7 @@ def _describe(scene) -> None:
           f"({len(scene.bonds)} bonds), {scene.master.algorithm} at {scene.master.step:g} s, "
           f"stop {scene.stop_time:g} s ({scene.n_steps} steps)")
     for name, c in scene.components.items():
-        extra = ", ".join(f"{k}={v:g}" for k, v in c.start_values().items())
+        extra = ", ".join(f"{k}={v:g}" if isinstance(v, float) else f"{k}={v}" for k, v in c.start_values().items())
         print(f"  {name:<12} {c.label:<28} {extra}")
     for c in scene.connections:
         print(f"  {c}" + (f"   [bond {c.bond}]" if c.bond else ""))

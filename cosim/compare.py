@@ -6,7 +6,8 @@ the time span both cover; a variable's error is reported absolute and relative t
 reference's range over that span (max - min, or max |value| for a constant signal).
 
 :func:`comparability` says whether such numbers can be trusted: both runs must have ended "ok"
-(the CSV's final status and its JSON sidecar), the overlap must cover the reference's span, and
+(the CSV's final status and its JSON sidecar; "stopped" at a component's own request counts),
+the overlap must cover the reference's span, and
 the variables only one trace has are listed.
 """
 from __future__ import annotations
@@ -110,6 +111,11 @@ def run_status(trace: Trace, path: Path | None = None) -> tuple[str, str]:
     return ("unfinished", "the trace has no final status (the run did not end)") if written_by_us else ("unknown", "")
 
 
+#: Run statuses whose trace is a result: a normal end, a component's own request to stop (FMI
+#: terminateSimulation; the overlap rule still applies), or a trace from another tool.
+VALID = ("ok", "stopped", "unknown")
+
+
 @dataclass
 class Comparability:
     """What stands between two traces and an honest comparison: the runs' statuses, the time
@@ -138,7 +144,7 @@ class Comparability:
         out = []
         if not allow_failed:
             for label, (status, reason) in zip(self.labels, (self.test_status, self.ref_status)):
-                if status not in ("ok", "unknown"):
+                if status not in VALID:
                     out.append(f"{label}: the run's status is {status!r}, not 'ok'" + (f" ({reason})" if reason else "")
                                + "; use --allow-failed to compare it anyway")
         if not allow_partial and self.partial:
@@ -156,9 +162,11 @@ class Comparability:
             if names:
                 shown = ", ".join(names[:8]) + (f", ... ({len(names)} in all)" if len(names) > 8 else "")
                 out.append(f"not compared (only in {label}): {shown}")
-        for label, (status, _) in zip(self.labels, (self.test_status, self.ref_status)):
+        for label, (status, reason) in zip(self.labels, (self.test_status, self.ref_status)):
             if status == "unknown":
                 out.append(f"{label}: no run status recorded (not an rpr-cosim trace?); its validity is not checked")
+            elif status == "stopped":
+                out.append(f"{label}: the run ended at a component's request ({reason})")
         return out
 
 

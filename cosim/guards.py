@@ -18,7 +18,8 @@ Four guards watch every recorded row of a run (at ``master.output_interval``), o
     a non-finite value, or ``|value| > max_abs``, in any recorded or connected variable of any
     slave (external FMUs included): status "unstable".
 
-Each guard's action is ``stop`` (default: the run ends with status "stopped" or "unstable", the
+Each guard's action is ``stop`` (default: the run ends with status "out_of_limits" (stroke,
+rated, singularity) or "unstable"; not "stopped", which is a component's own request to end, the
 rows after the offending one dropped, the reason in the sidecar), ``warn`` (the run goes on; the
 first crossing is kept in the statistics' ``guards.warnings``) or ``off``.  A scene sets them under
 ``guards:`` (``guards: off`` turns all off)::
@@ -49,6 +50,8 @@ GUARDS = ("stroke", "rated", "singularity", "unstable")
 DEFAULTS: dict[str, Any] = {"stroke": "stop", "rated": "stop", "singularity": "stop", "unstable": "stop",
                             "min_det": 0.01, "max_abs": 1e6}
 POSE = ("platform.x", "platform.y", "platform.phi")
+#: Run statuses of a tripped guard (a run that ends with either is not "ok": exit code 1).
+OUT_OF_LIMITS, UNSTABLE = "out_of_limits", "unstable"
 _SAMPLES = 2001  # points of a setpoint's path checked at scene time
 _REL_TOL = 1e-9  # a value exactly at its rating (a PID limited to 12 V) is inside it
 
@@ -118,29 +121,32 @@ def _positive(val: Any) -> bool:
         return False
 
 
-def check_scene(settings: GuardSettings, comps: Mapping[str, Any], stop_time: float | None, err, warn) -> None:
+def check_scene(settings: GuardSettings, comps: Mapping[str, Any], duration: float | None, err, warn) -> None:
     """Refuse (``err``) or flag (``warn``) setpoints that command poses outside the workspace or
-    through a singular pose, per ``settings``; ``err``/``warn`` take (where, message)."""
-    if stop_time is None:
+    through a singular pose over the run's ``duration`` [s], per ``settings``; ``err``/``warn``
+    take (where, message)."""
+    if duration is None:
         return
     for comp in comps.values():
         if comp.kind != "model" or comp.model != "pose_setpoint" or comp.block is None:
             continue
-        for action, message in setpoint_problems(comp, stop_time, settings):
+        for action, message in setpoint_problems(comp, duration, settings):
             (err if action == "stop" else warn)(comp.where, message)
 
 
-def setpoint_problems(comp, stop_time: float, settings: GuardSettings) -> list[tuple[str, str]]:
-    """(action, message) for every leg of a pose setpoint that leaves its stroke over
-    ``[0, stop_time]``, and for a singular pose on its path."""
+def setpoint_problems(comp, duration: float, settings: GuardSettings) -> list[tuple[str, str]]:
+    """(action, message) for every leg of a pose setpoint that leaves its stroke over the
+    ``duration`` [s] of a run (its clock from its parameter ``t0`` on), and for a singular pose
+    on its path; times in the messages are clock times."""
     if settings.stroke == "off" and settings.singularity == "off":
         return []
     blk = comp.block
     p = blk.param_vector(**comp.params)
-    t = np.linspace(0.0, stop_time, _SAMPLES)
+    t = np.linspace(0.0, duration, _SAMPLES)
     t0 = p[blk.index("params", "t0")] if any(q.name == "t0" for q in blk.params) else 0.0
     out = blk.functions()["out"].map(len(t))
-    y = np.array(out(np.atleast_2d(t + t0), np.zeros((0, len(t))), np.tile(p[:, None], (1, len(t)))))
+    t = t + t0  # the block's clock
+    y = np.array(out(np.atleast_2d(t), np.zeros((0, len(t))), np.tile(p[:, None], (1, len(t)))))
     col = {v.name: y[i] for i, v in enumerate(blk.outputs)}
     pose = np.vstack([col[n] for n in POSE]) if all(n in col for n in POSE) else None
     found: list[tuple[str, str]] = []
@@ -300,7 +306,7 @@ class Guard:
         name = next((n for n, c in self._col.items() if c == j + 1), f"column {j + 1}")
         v = vals[k, j]
         why = "not finite" if not np.isfinite(v) else f"|value| beyond guards.max_abs = {self.settings.max_abs:g}"
-        return [(k, action, "unstable", f"unstable: {name} = {v:.6g} at t = {rows[k, 0]:.6g} s ({why})", name)]
+        return [(k, action, UNSTABLE, f"unstable: {name} = {v:.6g} at t = {rows[k, 0]:.6g} s ({why})", name)]
 
     def _limits(self, rows: np.ndarray) -> list:
         idx, low, high = self._lim
@@ -322,7 +328,7 @@ class Guard:
             else:
                 text = (f"beyond rating: {lim.name} = {v:.4g} {lim.unit} at t = {t:.6g} s, outside the rated "
                         f"[{lim.low:g}, {lim.high:g}] {lim.unit} ({lim.source}; guards.rated)")
-            out.append((k, action, "stopped", text, lim.name))
+            out.append((k, action, OUT_OF_LIMITS, text, lim.name))
         return out
 
     def _singular(self, rows: np.ndarray) -> list:
@@ -343,7 +349,7 @@ class Guard:
             if k is not None:
                 text = (f"singularity: {mech.comp.name}{_singular_text(det, k, rows[:, 0], self.settings.min_det)} "
                         f"(guards.singularity)")
-                out.append((k, action, "stopped", text, mech.comp.name))
+                out.append((k, action, OUT_OF_LIMITS, text, mech.comp.name))
         return out
 
 

@@ -40,8 +40,13 @@ Initialisation
     cycle in that graph is an algebraic loop and is refused (:func:`find_algebraic_loop`).
 
 Failure: a Discard, Error or Fatal status from any call stops the run (a fixed-step master
-cannot retry); the status and the slave's last log message become the run's reason.  An FMI 3.0
-``terminateSimulation`` stops it too, as status "stopped".
+cannot retry); the status and the slave's last log message become the run's reason.
+Stop requests (FMI 3.0 ``terminateSimulation``, FMI 2.0 Discard with ``fmi2Terminated``): the
+other slaves complete the step from ``t_k``, the outputs are read, the point ``t_k+1`` is recorded
+(on the output grid or not) and the run ends with status "stopped", reason "stopped by C at t".
+
+Types: the value vector carries scalar Float64 variables; other FMI types and arrays go through
+:class:`cosim.typedio.TypedPorts` inside each slave's push/pull (same conventions, Python loop).
 """
 from __future__ import annotations
 
@@ -56,7 +61,10 @@ from typing import ClassVar
 import numpy as np
 
 from .errors import UserError
+from .fmitypes import TYPES
 from .slaves import FAILING, Slave, Status
+from .typedio import TypedPorts, element_names, is_fast
+from .typedio import variable as typed_variable
 
 _ns = time.perf_counter_ns
 
@@ -205,8 +213,9 @@ class CoupledSystem:
 
     def __init__(self, slaves: Sequence[Slave], links: Sequence[Link], record: Sequence[tuple[int, str]] = (),
                  watch: Sequence[tuple[int, str]] = ()):
-        """``record``: the traced variables; ``watch``: more variables sampled with them at every
-        recorded row but not traced (for guards: :attr:`watch_names`, after the recorded columns)."""
+        """``record``: the traced variables; ``watch``: more scalar Float64 variables sampled with
+        them at every recorded row but not traced (for guards: :attr:`watch_names`, after the
+        recorded columns)."""
         self.slaves = list(slaves)
         self.links = list(links)
         n = len(self.slaves)
@@ -216,18 +225,25 @@ class CoupledSystem:
         reads: list[list[str]] = [[] for _ in range(n)]
         ins: list[list[tuple[str, int, str]]] = [[] for _ in range(n)]
         seen_in: set[tuple[int, str]] = set()
+        self.typed = TypedPorts(self.slaves)
+        typed_in: list[Link] = []
         for ln in self.links:
             if (ln.dst, ln.dst_var) in seen_in:
                 raise UserError(f"input {names[ln.dst]}.{ln.dst_var} is connected twice")
             seen_in.add((ln.dst, ln.dst_var))
-            if ln.src_var not in reads[ln.src]:
+            if not is_fast(self.slaves[ln.dst], ln.dst_var):
+                typed_in.append(ln)  # a typed input: fed by the typed ports
+                if is_fast(self.slaves[ln.src], ln.src_var) and ln.src_var not in reads[ln.src]:
+                    reads[ln.src].append(ln.src_var)
+                continue
+            if is_fast(self.slaves[ln.src], ln.src_var) and ln.src_var not in reads[ln.src]:
                 reads[ln.src].append(ln.src_var)
             ins[ln.dst].append((ln.dst_var, ln.src, ln.src_var))
-        source = {(ln.dst, ln.dst_var): (ln.src, ln.src_var) for ln in self.links}
-        watch = [w for w in dict.fromkeys(watch) if w not in set(record)]
+        source = {(ln.dst, ln.dst_var): (ln.src, ln.src_var) for ln in self.links if ln not in typed_in}
+        watch = [w for w in dict.fromkeys(watch) if w not in set(record) and is_fast(self.slaves[w[0]], w[1])]
         for i, var in list(record) + watch:
-            if (i, var) in source:
-                continue  # recorded as the value of its source output
+            if (i, var) in source or not is_fast(self.slaves[i], var):
+                continue  # recorded as the value of its source output, or a typed variable
             if var not in reads[i]:
                 reads[i].append(var)
         out_off, off = [], 0
@@ -238,11 +254,27 @@ class CoupledSystem:
         for r in ins:
             in_off.append(off)
             off += len(r)
-        self.v = np.zeros(off)
         self.index: dict[tuple[int, str], int] = {}
         for i, r in enumerate(reads):
             for j, var in enumerate(r):
                 self.index[(i, var)] = out_off[i] + j
+        # typed numbers that feed a Float64 input (a conversion) or are recorded: mirrored into v
+        columns: list[tuple[str, int | None]] = []  # (column name, index in v; None for text)
+        mirrored = [(ln.src, ln.src_var) for ln in self.links if ln not in typed_in
+                    and not is_fast(self.slaves[ln.src], ln.src_var)]
+        for i, var in record:
+            if (i, var) not in source and not is_fast(self.slaves[i], var):
+                mirrored.append((i, var))
+        for i, var in dict.fromkeys(mirrored):
+            desc = typed_variable(self.slaves[i], var)
+            if not TYPES[desc.type].numeric:
+                continue
+            self.typed.mirror(i, var, off)
+            for k, el in enumerate(element_names(var, desc.shape)):
+                self.index[(i, el)] = off + k
+            self.index[(i, var)] = off
+            off += desc.size
+        self.v = np.zeros(off)
         self.out_vrs = [np.array([s.vr(var) for var in r], dtype=np.uint32) for s, r in zip(self.slaves, reads)]
         self.in_vrs = [np.array([s.vr(var) for var, _, _ in r], dtype=np.uint32) for s, r in zip(self.slaves, ins)]
         self.in_src = [np.array([self.index[(si, sv)] for _, si, sv in r], dtype=np.int64) for r in ins]
@@ -250,10 +282,25 @@ class CoupledSystem:
         self.reads, self.inputs = reads, [[var for var, _, _ in r] for r in ins]
         self.out_buf = [self.v[o:o + len(r)] for o, r in zip(out_off, reads)]
         self.in_buf = [self.v[o:o + len(r)] for o, r in zip(in_off, ins)]
-        self.record_names = [f"{names[i]}.{var}" for i, var in record]
-        self.watch_names = [f"{names[i]}.{var}" for i, var in watch]
-        self.record_idx = np.array([self.index[source.get((i, var), (i, var))] for i, var in list(record) + watch],
-                                   dtype=np.int64)  # the watched variables last, beyond record_names
+        for ln in typed_in:
+            if is_fast(self.slaves[ln.src], ln.src_var):
+                k, v = self.index[(ln.src, ln.src_var)], self.v
+                self.typed.add_input(ln.dst, ln.dst_var, lambda k=k, v=v: v[k:k + 1])
+            else:
+                self.typed.add_input(ln.dst, ln.dst_var, self.typed.source_of(ln.src, ln.src_var))
+        for i, var in record:
+            key = source.get((i, var), (i, var))
+            desc = typed_variable(self.slaves[key[0]], key[1])
+            if desc is not None and not TYPES[desc.type].numeric:
+                self.typed.record_text(f"{names[i]}.{var}", *key)
+                continue
+            els = element_names(var, desc.shape) if desc is not None else [var]
+            src_els = element_names(key[1], desc.shape) if desc is not None else [key[1]]
+            columns += [(f"{names[i]}.{e}", self.index[(key[0], se)]) for e, se in zip(els, src_els)]
+        watched = [(f"{names[i]}.{var}", self.index[source.get((i, var), (i, var))]) for i, var in watch]
+        self.record_names = [c for c, _ in columns]
+        self.watch_names = [c for c, _ in watched]
+        self.record_idx = np.array([k for _, k in columns + watched], dtype=np.int64)  # watched ones last
 
     @property
     def names(self) -> list[str]:
@@ -266,7 +313,7 @@ class CoupledSystem:
         """Edges of the port graph: connections, plus feedthrough inside each slave."""
         edges = [((ln.src, ln.src_var), (ln.dst, ln.dst_var)) for ln in self.links]
         for i, s in enumerate(self.slaves):
-            for y in self.reads[i]:
+            for y in self.reads[i] + list(self.typed.reads[i]):
                 for u in s.description.feedthrough.get(y, []):
                     edges.append(((i, u), (i, y)))
         return edges
@@ -284,8 +331,9 @@ class CoupledSystem:
             raise UserError(f"algebraic loop: {text}") from None
         seq: list[int] = []
         for i, var in order:
-            fed = set(self.slaves[i].description.feedthrough.get(var, [])) & set(self.inputs[i])
-            if var in self.reads[i] and fed and (not seq or seq[-1] != i):
+            fed = set(self.slaves[i].description.feedthrough.get(var, [])) & set(
+                self.inputs[i] + [u for u, _ in self.typed.inputs[i]])
+            if (var in self.reads[i] or var in self.typed.reads[i]) and fed and (not seq or seq[-1] != i):
                 seq.append(i)
         return seq
 
@@ -293,6 +341,7 @@ class CoupledSystem:
     def bind(self) -> None:
         for i, s in enumerate(self.slaves):
             s.bind(self.in_vrs[i], self.in_buf[i], self.out_vrs[i], self.out_buf[i])
+        self.typed.wrap(self.v)
 
     def gather(self, i: int) -> None:
         np.take(self.v, self.in_src[i], out=self.in_buf[i])
@@ -337,12 +386,14 @@ class Algorithm(ABC):
     sequential: ClassVar[bool] = False
 
     def __init__(self, system: CoupledSystem, step_ns: int, *, order: Sequence[int] | None = None,
-                 timing: bool = True, inputs: str = "hold"):
+                 timing: bool = True, inputs: str = "hold", start_ns: int = 0):
         if not (isinstance(step_ns, (int, np.integer)) and step_ns > 0):
             raise UserError(f"the communication step must be a positive whole number of nanoseconds, got {step_ns!r}")
         self.system = system
         self.step_ns = int(step_ns)
         self.h = self.step_ns / 1e9
+        self.start_ns = int(start_ns)  # the start time [ns]; the compiled loop runs only from 0
+        self.text_events: list[tuple[float, str, str]] = []  # (t, column, value) of recorded String/Binary
         self.k = 0
         self.status = "running"
         self.message = ""
@@ -404,20 +455,56 @@ class Algorithm(ABC):
 
     @property
     def t(self) -> float:
-        """Current communication point [s] (``k * step_ns / 1e9``)."""
-        return self.k * self.step_ns / 1e9
+        """Current communication point [s] (``(start_ns + k * step_ns) / 1e9``)."""
+        return self.time_at(self.k)
+
+    def time_at(self, k: int) -> float:
+        """Communication point ``k`` [s]."""
+        return (self.start_ns + k * self.step_ns) / 1e9
 
     def step(self) -> bool:
-        """One macro step ``t_k -> t_k+1``; False (with :attr:`status`, :attr:`message`) on failure."""
+        """One macro step ``t_k -> t_k+1``; False (with :attr:`status`, :attr:`message`) when the
+        run ends: a failure, or a stop request (then the step is completed first, see
+        :meth:`complete_after_stop`)."""
         if self.status != "running":
             raise RuntimeError(f"{self.name}: cannot step a run that is {self.status}")
-        t = self.k * self.step_ns / 1e9
+        t = self.time_at(self.k)
         bad = self._step_impl(t, self.h)
         if bad is None:
             self.k += 1
             return True
+        if self.stop_requested(*bad):
+            self.complete_after_stop(bad[0], t)
+            return False
         self._fail(bad[0], bad[1], t)
         return False
+
+    def stop_requested(self, i: int, status: int) -> bool:
+        """Is ``status`` from slave ``i`` a request to end the simulation (FMI 3.0
+        terminateSimulation, FMI 2.0 Discard with fmi2Terminated)?"""
+        return status == Status.STOP_REQUESTED or (
+            status == Status.DISCARD and self.system.slaves[i].asked_to_stop())
+
+    def complete_after_stop(self, i: int, t: float) -> None:
+        """Slave ``i`` asked to stop in the step from ``t``: the other slaves complete that step
+        (so every output belongs to ``t_k+1``), then the run ends as ``stopped`` at ``t_k+1``, a point
+        the run loop records."""
+        bad = self._finish_step(i, t, self.h)
+        if bad is not None and not self.stop_requested(*bad):
+            self._fail(bad[0], bad[1], t)
+            return
+        self.k += 1
+        sl = self.system.slaves[i]
+        detail = sl.stop_detail() if hasattr(sl, "stop_detail") else ""
+        self.status, self.failed_slave = "stopped", i
+        self.message = (f"stopped by {sl.name} at t = {self.t:.9g} s: it asked to terminate the simulation in the "
+                        f"step from t = {t:.9g} s" + (f" ({detail})" if detail else "")
+                        + (f"; its last message: {sl.last_message}" if sl.last_message else ""))
+
+    def _finish_step(self, i: int, t: float, h: float) -> tuple[int, int] | None:
+        """Complete the step from ``t`` after slave ``i`` stepped and asked to stop; returns
+        ``(slave, status)`` of a failing call, or None."""
+        raise NotImplementedError(f"{self.name} cannot complete a step after a stop request")
 
     @abstractmethod
     def _step_impl(self, t: float, h: float) -> tuple[int, int] | None:
@@ -508,6 +595,17 @@ class Jacobi(Algorithm):
                 return i, st
         return None
 
+    def _finish_step(self, i, t, h):
+        for j in range(i + 1, len(self._do)):
+            st = self._advance(j, t, h)
+            if st in FAILING:
+                return j, st
+        for j in range(len(self._pull)):
+            st = self._io(j, self._pull[j])
+            if st in FAILING:
+                return j, st
+        return None
+
 
 @register
 class GaussSeidel(Algorithm):
@@ -534,6 +632,21 @@ class GaussSeidel(Algorithm):
             tp = tn
             if st in FAILING or st == Status.STOP_REQUESTED:
                 return i, st
+        return None
+
+    def _finish_step(self, i, t, h):
+        st = self._io(i, self._pull[i])
+        if st in FAILING:
+            return i, st
+        for j in self.order[self.order.index(i) + 1:]:
+            self._gather[j]()
+            st = self._io(j, self._push[j])
+            if st not in FAILING:
+                st = self._advance(j, t, h)
+                if st not in FAILING:
+                    st = self._io(j, self._pull[j])
+            if st in FAILING:
+                return j, st
         return None
 
 
@@ -591,23 +704,34 @@ class _Compiled:
         for i, c in enumerate(self.arr):
             alg.calls[i], alg.slave_ns[i] = c.calls, c.ns
         alg.master_ns += self.master_ns.value
-        t_fail = (alg.k + done) * alg.step_ns / 1e9
         alg.k += int(done)
-        if self.fail_slave.value >= 0:
-            alg._fail(self.fail_slave.value, self.fail_status.value, t_fail)
-        return int(self.n_rows.value)
+        t_fail = alg.t
+        rows = int(self.n_rows.value)
+        i, st = self.fail_slave.value, self.fail_status.value
+        if i >= 0 and alg.stop_requested(i, st):
+            alg.complete_after_stop(i, t_fail)
+            if alg.status == "stopped":  # the last point, on the output grid or not
+                rec[rows, 0] = alg.t
+                np.take(sysm.v, sysm.record_idx, out=rec[rows, 1:])
+                rows += 1
+        elif i >= 0:
+            alg._fail(i, st, t_fail)
+        return rows
 
 
 def _python_run(alg: Algorithm, nsteps: int, rec_every: int, rec: np.ndarray) -> int:
     v, idx = alg.system.v, alg.system.record_idx
-    rows = 0
+    rows, typed = 0, alg.system.typed
     for _ in range(nsteps):
-        if not alg.step():
-            break
-        if alg.k % rec_every == 0:
-            rec[rows, 0] = alg.k * alg.step_ns / 1e9
+        ok = alg.step()
+        if (ok and alg.k % rec_every == 0) or alg.status == "stopped":
+            rec[rows, 0] = alg.t
             np.take(v, idx, out=rec[rows, 1:])
             rows += 1
+            if typed.texts:
+                alg.text_events += [(alg.t, c, x) for c, x in typed.text_changes()]
+        if not ok:
+            break
     return rows
 
 
@@ -648,7 +772,7 @@ class RunStats:
 
 
 def initialize(system: CoupledSystem, start_values: Sequence[dict[str, float]], *, start_time: float = 0.0,
-               stop_time: float) -> None:
+               stop_time: float, tolerances: Sequence[float | None] | None = None) -> None:
     """Instantiate, set start values, run the initial exchange (feedthrough order) and leave
     initialisation mode; afterwards ``system.v`` holds every bound variable at ``t_0``."""
     seq = system.init_sequence()
@@ -656,8 +780,12 @@ def initialize(system: CoupledSystem, start_values: Sequence[dict[str, float]], 
         s.instantiate()
         s.set_start(start)
     system.bind()
-    for s in system.slaves:
-        s.enter_initialization(start_time, stop_time)
+    for i, s in enumerate(system.slaves):
+        tol = tolerances[i] if tolerances else None
+        if tol is None:
+            s.enter_initialization(start_time, stop_time)
+        else:
+            s.enter_initialization(start_time, stop_time, tol)
     for i, s in enumerate(system.slaves):
         _check(s, s.pull(), "reading outputs in initialisation mode")
     for i in seq:
@@ -678,13 +806,19 @@ def _check(slave: Slave, status: int, what: str) -> None:
                         + (f": {slave.last_message}" if slave.last_message else ""))
 
 
-def choose_engine(system: CoupledSystem, alg_cls: type[Algorithm], engine: str) -> str:
+def choose_engine(system: CoupledSystem, alg_cls: type[Algorithm], engine: str, start_ns: int = 0) -> str:
     """``"compiled"`` or ``"python"`` for ``engine`` in auto | compiled | python."""
     if engine not in ("auto", "compiled", "python"):
         raise UserError(f"master.engine must be auto, compiled or python, got {engine!r}")
     if engine == "python":
         return "python"
     native = alg_cls.native_code is not None and all(s.native() is not None for s in system.slaves)
+    if engine == "compiled" and system.typed.active:
+        raise UserError("master.engine: compiled carries scalar Float64 variables only; this scene connects or "
+                        "records other types or arrays: use engine auto or python")
+    if engine == "compiled" and start_ns:
+        raise UserError("master.engine: compiled runs from start_time 0; use engine auto or python")
+    native = native and not system.typed.active and not start_ns
     if engine == "compiled":
         if not native:
             raise UserError(f"master.engine: compiled needs FMU slaves and an algorithm with a compiled loop "
@@ -705,7 +839,7 @@ def _guarded(guard, alg: Algorithm, rows: np.ndarray, step_ns: int) -> np.ndarra
         return rows
     later = f" (afterwards: {alg.message})" if alg.status != "running" and alg.message else ""
     alg.status, alg.message = guard.status, guard.reason + later
-    alg.k = round(rows[keep - 1, 0] * 1e9 / step_ns)
+    alg.k = round((rows[keep - 1, 0] * 1e9 - alg.start_ns) / step_ns)
     return rows[:keep]
 
 
@@ -713,7 +847,8 @@ def simulate(system: CoupledSystem, algorithm_name: str, *, step_ns: int, n_step
              observers: Sequence = (), start_values: Sequence[dict[str, float]] | None = None,
              engine: str = "auto", order: Sequence[int] | None = None, timing: bool = True,
              progress: Callable[[int, int], None] | None = None, meta: dict | None = None,
-             inputs: str = "hold", guard=None) -> RunStats:
+             inputs: str = "hold", start_ns: int = 0, tolerances: Sequence[float | None] | None = None,
+             guard=None) -> RunStats:
     """Initialise ``system`` and run ``n_steps`` macro steps of ``step_ns`` nanoseconds, inputs
     held or linear over each step (``inputs``, see the module docstring).
 
@@ -736,15 +871,20 @@ def simulate(system: CoupledSystem, algorithm_name: str, *, step_ns: int, n_step
     alg, t_loop = None, None
     try:
         t0 = time.perf_counter()
-        initialize(system, start_values or [{} for _ in system.slaves], stop_time=n_steps * step_ns / 1e9)
-        alg = cls(system, step_ns, order=order, timing=timing, inputs=inputs)
-        stats.engine = choose_engine(system, cls, engine)
+        initialize(system, start_values or [{} for _ in system.slaves], start_time=start_ns / 1e9,
+                   stop_time=(start_ns + n_steps * step_ns) / 1e9, tolerances=tolerances)
+        alg = cls(system, step_ns, order=order, timing=timing, inputs=inputs, start_ns=start_ns)
+        stats.engine = choose_engine(system, cls, engine, start_ns)
         runner = _Compiled(alg).run if stats.engine == "compiled" else (lambda n, e, r: _python_run(alg, n, e, r))
         stats.init_s = time.perf_counter() - t0
-        row0 = np.concatenate([[0.0], system.v[system.record_idx]])[None, :]
+        row0 = np.concatenate([[alg.t], system.v[system.record_idx]])[None, :]
         row0 = _guarded(guard, alg, row0, step_ns)
         for obs in observers:
             obs.record(row0[:, :len(columns)])
+        for c, x in system.typed.text_changes() if system.typed.texts else ():
+            for obs in observers:
+                if hasattr(obs, "record_text"):
+                    obs.record_text(alg.t, c, x)
         chunk, t_loop, stepping = min(64, n_steps) or 1, time.perf_counter(), 0.0
         width = 1 + len(system.record_idx)
         rec = np.empty((max(1, chunk // record_every + 1), width))
@@ -757,8 +897,13 @@ def simulate(system: CoupledSystem, algorithm_name: str, *, step_ns: int, n_step
             dt = time.perf_counter() - tc
             stepping += dt
             block = _guarded(guard, alg, rec[:rows], step_ns)
+            if len(block) < rows:  # a guard cut the block: no text after its last row
+                alg.text_events[:] = [ev for ev in alg.text_events if ev[0] <= block[-1, 0]]
             for obs in observers:
                 obs.record(block[:, :len(columns)])
+                for ev in alg.text_events if hasattr(obs, "record_text") else ():
+                    obs.record_text(*ev)
+            alg.text_events.clear()
             if progress:
                 progress(alg.k, n_steps)
             if dt < 0.05 and chunk < 1 << 20:  # aim at ~0.1 s per chunk: responsive to Ctrl-C

@@ -21,8 +21,9 @@ from .trace import CsvTrace, MemoryTrace, Trace
 
 @dataclass
 class RunResult:
-    """Outcome of :func:`run`: ``status`` is ``"ok"``, ``"failed"``, ``"stopped"`` (by the slave or
-    a guard, :mod:`cosim.guards`), ``"unstable"`` or ``"interrupted"``; ``reason`` says why a run
+    """Outcome of :func:`run`: ``status`` is ``"ok"``, ``"failed"``, ``"stopped"`` (a component
+    asked to end), ``"out_of_limits"`` or ``"unstable"`` (a guard, :mod:`cosim.guards`) or
+    ``"interrupted"``; ``reason`` says why a run
     ended early; ``trace`` holds what was recorded
     (also the partial trace of a failed run); ``stats`` the run statistics
     (:class:`cosim.master.RunStats` as a dict)."""
@@ -82,7 +83,7 @@ def scene_observers(scene: Scene, out_dir: Path | None, suffix: str = "") -> tup
 def scene_meta(scene: Scene) -> dict:
     """Trace metadata identifying the scene a run comes from."""
     return {"scene": scene.name, "scene_file": str(scene.path) if scene.path else None, "scene_hash": scene.hash,
-            "stop_time": scene.stop_time, "output_interval": scene.master.record_every * scene.master.step}
+            "start_time": scene.start_time, "stop_time": scene.stop_time, "output_interval": scene.master.record_every * scene.master.step}
 
 
 def run(scene: Scene | str | Path, overrides: Mapping[str, Any] | Sequence[str] | None = None, *,
@@ -116,7 +117,8 @@ def run(scene: Scene | str | Path, overrides: Mapping[str, Any] | Sequence[str] 
     t0 = time.perf_counter()
     if slaves is None:
         paths = build_components(scene, cache_dir=cache_dir, progress=log)
-        slaves = [FmuSlave(name, paths[name]) for name in scene.components]
+        slaves = [FmuSlave(name, paths[name], c.description if c.kind == "fmu" else None)
+                  for name, c in scene.components.items()]
     else:
         paths = {}
         if [s.name for s in slaves] != list(scene.components):
@@ -137,7 +139,9 @@ def run(scene: Scene | str | Path, overrides: Mapping[str, Any] | Sequence[str] 
                      record_every=scene.master.record_every, observers=observers,
                      start_values=[c.start_values() for c in scene.components.values()],
                      engine=engine or scene.master.engine, order=order, progress=progress, meta=meta,
-                     inputs=scene.master.inputs, guard=guard)
+                     inputs=scene.master.inputs, start_ns=scene.start_ns,
+                     tolerances=[c.description.default_experiment.get("tolerance")
+                                 for c in scene.components.values()], guard=guard)
     return RunResult(scene, stats.status, stats.reason, memory.trace, stats.as_dict(), paths, trace_path, build_s)
 
 

@@ -5,13 +5,15 @@ Format (every key but ``components`` and ``connections`` optional; lines startin
     name: pid_step
     description: free text
     include: base.yaml          # another scene, merged under this one (paths relative to this file)
-    stop_time: 5.0              # [s]
+    start_time: 0.0             # [s] (default: the FMUs' DefaultExperiment, else 0)
+    stop_time: 5.0              # [s] (default: the FMUs' DefaultExperiment)
     components:                 # a mapping name -> spec (or a list of specs with a 'name:' key)
       mech:   {model: mechanism, fidelity: rigid, options: {config: cross_leg}, params: {leg[1].m_act: 0.058}}
       pid1:   {model: pid, params: {Kp: 30, Ki: 80, Kd: 20, u_max: 12}}
       plant:  {fmu: plant.fmu, params: {k: 1e4}, start: {x: 0.1}}    # any external FMU
     connections:
       - target.leg[1].s -> pid1.setpoint        # signal: output -> input
+      - stair.counter -> plant.u as Float64     # an explicit type conversion (cosim.fmitypes)
       - motor1.flange <-> mech.leg[1]           # power bond between two flanges
     master: {algorithm: gauss_seidel, step: 1e-3, order: [target, pid1, motor1, mech],
              engine: auto, output_interval: 1e-3}
@@ -22,7 +24,8 @@ Component spec: ``model`` (a name of :func:`models.blocks.catalog`) with optiona
 and ``options`` (construction options of :func:`models.blocks.make`), or ``fmu`` (a path);
 ``params`` sets parameters by name (structural ones go to ``make``, the others are set on the
 instance at start-up, so one compiled FMU serves every value); ``start`` sets start values of
-inputs and states; ``fmi`` picks the FMI version of a built FMU ("2.0" default, or "3.0").
+inputs and states (for an FMU: inputs and variables with initial = exact or approx; parameters
+and FMI 3.0 structural parameters go under ``params``, any FMI type, arrays as lists); ``fmi`` picks the FMI version of a built FMU ("2.0" default, or "3.0").
 
 A bond ``a.p <-> b.q`` joins two flanges: the side whose flange computes the effort
 (``effort_out``) feeds its effort output to the other side's effort input, and the other side
@@ -58,12 +61,13 @@ import yaml
 
 from .errors import UserError
 from .master import ALGORITHMS, find_algebraic_loop
-from .slaves import SlaveDescription, describe_block, describe_fmu
+from .fmitypes import TYPES, canonical, conversion, display, parse_start
+from .slaves import SlaveDescription, Variable, describe_block, describe_fmu, resolve_shapes
 
 Loc = tuple[str, int]  # (file, line); line 0 = no line (a --set override)
 
-TOP_KEYS = ("name", "description", "include", "stop_time", "components", "connections", "master", "outputs",
-            "fidelity_tolerance", "fidelity_signals", "guards")
+TOP_KEYS = ("name", "description", "include", "start_time", "stop_time", "components", "connections", "master",
+            "outputs", "fidelity_tolerance", "fidelity_signals", "guards")
 COMPONENT_KEYS = ("model", "fidelity", "options", "params", "start", "fmu", "fmi", "description")
 MASTER_KEYS = ("algorithm", "step", "order", "engine", "output_interval", "inputs")
 #: How a slave's inputs vary over a communication step (see :mod:`cosim.master`).
@@ -255,11 +259,14 @@ def merge(base: Any, over: Any, *, path: str = "") -> Any:
 
 
 _ARROW = re.compile(r"^\s*(\S+)\s*(<->|->)\s*(\S+)\s*$")
+#: an explicit type conversion on a signal: ``a.y -> b.u as Float64`` (see :mod:`cosim.fmitypes`)
+_AS = re.compile(r"^(.*\S)\s+as\s+([A-Za-z][A-Za-z0-9]*)\s*$")
 
 
 def _conn_keys(text: Any) -> set[str]:
     """What a connection occupies: the input it feeds, or both flanges of a bond."""
-    m = _ARROW.match(str(text))
+    conv = _AS.match(str(text))
+    m = _ARROW.match(conv.group(1) if conv else str(text))
     if not m:
         return set()
     a, arrow, b = m.groups()
@@ -423,9 +430,10 @@ class Connection:
     dst_var: str
     bond: str | None = None
     where: Loc = ("", 0)
+    as_type: str | None = None  # an explicit conversion to the destination's type
 
     def __str__(self) -> str:
-        return f"{self.src}.{self.src_var} -> {self.dst}.{self.dst_var}"
+        return f"{self.src}.{self.src_var} -> {self.dst}.{self.dst_var}" + (f" as {self.as_type}" if self.as_type else "")
 
 
 @dataclass
@@ -456,6 +464,8 @@ class Scene:
     data: dict  # the merged tree as plain data
     hash: str
     warnings: list[Problem] = field(default_factory=list)
+    start_time: float = 0.0  # [s] the scene's start_time, else the FMUs' default experiment, else 0
+    start_ns: int = 0
     guards: Any = None  # cosim.guards.GuardSettings (physical guards of a run)
 
 
@@ -624,6 +634,9 @@ class _Checker:
 
     def _values(self, comp: Component, spec: YMap, skip: set[str] = frozenset()) -> None:
         """Check ``params`` and ``start`` against the component's variables."""
+        if comp.kind == "fmu":
+            self._fmu_values(comp, spec)
+            return
         vs = comp.description.variables
         params = spec.get("params", YMap())
         pnames = [v.name for v in vs.values() if v.causality == "parameter"]
@@ -685,6 +698,90 @@ class _Checker:
                 continue
             comp.start[k] = float(val)
 
+    def _fmu_values(self, comp: Component, spec: YMap) -> None:
+        """``params`` and ``start`` of an FMU component, any FMI type (see :mod:`cosim.fmitypes`):
+        parameters (and FMI 3.0 structural parameters, which size the arrays) under ``params``;
+        inputs and variables with initial = exact or approx under ``start``."""
+        params, start = spec.get("params", YMap()), spec.get("start", YMap())
+        vs = comp.description.variables
+        pkinds = ("parameter", "structuralParameter")
+        pnames = [v.name for v in vs.values() if v.causality in pkinds and v.variability != "constant"]
+        snames = [v.name for v in vs.values() if _start_settable(v)]
+        structural: dict[str, int] = {}
+        for pass_ in ("structural", "other"):
+            for k, val in params.items():
+                var = vs.get(k)
+                if (var is not None and var.causality == "structuralParameter") != (pass_ == "structural"):
+                    continue
+                where = params.loc(k)
+                if var is None or var.causality not in pkinds:
+                    if var is None:
+                        self.err(where, f"component {comp.name!r} ({comp.label}) has no parameter {k!r}"
+                                        f"{suggest(str(k), pnames)}")
+                    elif _start_settable(var):
+                        self.err(where, f"component {comp.name!r}: {k!r} is a{'n' if var.causality[0] in 'aeiou' else ''} "
+                                        f"{var.causality} (initial = {var.initial}), not a parameter; set its start value "
+                                        f"under 'start:'")
+                    else:
+                        self.err(where, f"component {comp.name!r}: {k!r} is a{'n' if var.causality[0] in 'aeiou' else ''} "
+                                        f"{var.causality} computed by the FMU; it cannot be set")
+                    continue
+                if var.variability == "constant":
+                    self.err(where, f"component {comp.name!r}: parameter {k!r} is a constant and cannot be set")
+                    continue
+                value = self._typed_value(comp, var, val, where, "parameter")
+                if value is None:
+                    continue
+                if pass_ == "structural":
+                    structural[k] = int(value[0])
+                comp.params[k] = value
+            if pass_ == "structural" and structural:
+                comp.description = resolve_shapes(comp.description, structural)
+                vs = comp.description.variables
+        for k, val in start.items():
+            where = start.loc(k)
+            var = vs.get(k)
+            if var is None:
+                self.err(where, f"component {comp.name!r} ({comp.label}) has no variable {k!r}{suggest(str(k), snames)}")
+                continue
+            if var.causality == "structuralParameter":
+                self.err(where, f"component {comp.name!r}: {k!r} is a structural parameter (it sizes arrays and is set "
+                                f"in configuration mode); set it under 'params:'")
+                continue
+            if var.causality == "parameter":
+                self.err(where, f"component {comp.name!r}: {k!r} is a parameter; set it under 'params:'")
+                continue
+            if not _start_settable(var):
+                what = {"output": "an output", "local": "a local variable", "independent": "the independent variable",
+                        "calculatedParameter": "a calculated parameter"}.get(var.causality, var.causality)
+                self.err(where, f"component {comp.name!r}: {k!r} is {what} computed by the FMU (initial = "
+                                f"{var.initial or 'calculated'}); FMI allows start values only for inputs and "
+                                f"variables with initial = exact or approx (here: {', '.join(snames) or 'none'})")
+                continue
+            value = self._typed_value(comp, var, val, where, "start value")
+            if value is not None:
+                comp.start[k] = value
+
+    def _typed_value(self, comp: Component, var: Variable, val: Any, where: Loc, what: str):
+        """``val`` as the values of ``var`` (a float for a scalar Float64, else a list), or None
+        after reporting why it does not fit."""
+        ft = TYPES.get(var.type)
+        tname = display(var.type, comp.description.fmi_version)
+        if ft is None:
+            self.err(where, f"component {comp.name!r}: {var.name!r} is a {var.fmi_type} variable; rpr-cosim sets "
+                            f"and connects {', '.join(sorted({display(t, comp.description.fmi_version) for t in TYPES}))}")
+            return None
+        flat = _flatten(val)
+        try:
+            vals = parse_start(flat, ft, var.size, f"{what} {var.name} ({tname}"
+                                                   f"{', shape ' + 'x'.join(map(str, var.shape)) if var.shape else ''})", tname)
+        except ValueError as exc:
+            self.err(where, f"component {comp.name!r}: {exc}")
+            return None
+        if var.fast:
+            return float(vals[0])
+        return [x.item() if hasattr(x, "item") else x for x in vals]
+
     # connections ----------------------------------------------------------------------------------
     def endpoint(self, text: str, comps: dict[str, Component], where: Loc, side: str) -> tuple[str, str] | None:
         name, dot, var = text.partition(".")
@@ -697,7 +794,7 @@ class _Checker:
         return name, var
 
     def signal(self, src: str, sv: str, dst: str, dv: str, comps: dict[str, Component], where: Loc,
-               bond: str | None = None) -> Connection | None:
+               bond: str | None = None, as_type: str | None = None) -> Connection | None:
         a, b = comps[src].description.variables, comps[dst].description.variables
         ok = True
         for comp, var, vs in ((src, sv, a), (dst, dv, b)):
@@ -731,14 +828,39 @@ class _Checker:
             hint = f"; set it under components.{dst}.params" if cb == "parameter" else ""
             self.err(where, f"{rhs} is a{'n' if cb[0] in 'aeiou' else ''} {cb}, not an input{hint}")
             return None
-        ta, tb = a[sv].type, b[dv].type
-        if ta != tb:
-            self.err(where, f"type mismatch: {lhs} is {ta} but {rhs} is {tb}")
+        if not self.types_agree(comps[src], a[sv], comps[dst], b[dv], where, as_type):
             return None
-        if ta != "Real":
-            self.err(where, f"{lhs} -> {rhs}: only Real (Float64) signals can be connected so far, not {ta}")
-            return None
-        return Connection(src, sv, dst, dv, bond, where)
+        return Connection(src, sv, dst, dv, bond, where, as_type)
+
+    def types_agree(self, ca: Component, va: Variable, cb: Component, vb: Variable, where: Loc,
+                    as_type: str | None) -> bool:
+        """Equal types and sizes, or an allowed conversion asked for with ``as TYPE`` (see
+        :mod:`cosim.fmitypes`); otherwise report the types and the remedy."""
+        lhs, rhs = f"{ca.name}.{va.name}", f"{cb.name}.{vb.name}"
+        ta, tb = display(va.type, ca.description.fmi_version), display(vb.type, cb.description.fmi_version)
+        for comp, var, t in ((ca, va, ta), (cb, vb, tb)):
+            if var.type not in TYPES:
+                self.err(where, f"{comp.name}.{var.name} is a {t} variable; {t} variables cannot be connected")
+                return False
+        if va.shape != vb.shape:
+            shape = lambda v: "a scalar" if not v.shape else "an array of shape " + "x".join(map(str, v.shape))
+            self.err(where, f"size mismatch: {lhs} is {shape(va)} ({ta}) but {rhs} is {shape(vb)} ({tb})")
+            return False
+        if as_type is not None and canonical(as_type) != vb.type:
+            self.err(where, f"'as {as_type}' must name the type of {rhs}, which is {tb}")
+            return False
+        if va.type == vb.type:
+            return True
+        why = conversion(va.type, vb.type)
+        if why is not None:
+            self.err(where, f"type mismatch: {lhs} is {ta} but {rhs} is {tb}, and {ta} -> {tb} is no allowed "
+                            f"conversion: {why}")
+            return False
+        if as_type is None:
+            self.err(where, f"type mismatch: {lhs} is {ta} but {rhs} is {tb}; to convert, write "
+                            f"'{lhs} -> {rhs} as {tb}'")
+            return False
+        return True
 
     def connections(self, comps: dict[str, Component]) -> tuple[list[Connection], list[tuple]]:
         node = self.tree.get("connections", YList())
@@ -752,7 +874,13 @@ class _Checker:
         bonded: dict[tuple[str, str], Loc] = {}
         for i, item in enumerate(node):
             where = node.loc(i) if isinstance(node, YList) else self.tree.loc("connections")
+            as_type = None
+            if isinstance(item, str) and (conv := _AS.match(item)):
+                item, as_type = conv.group(1), conv.group(2)
             m = _ARROW.match(item) if isinstance(item, str) else None
+            if m and as_type is not None and m.group(2) != "->":
+                self.err(where, f"'as {as_type}' converts a signal ('a.out -> b.in as TYPE'), not a bond")
+                continue
             if not m:
                 self.err(where, f"connection {item!r} must read 'a.out -> b.in' (a signal) or "
                                 f"'a.flange <-> b.flange' (a power bond)")
@@ -764,7 +892,7 @@ class _Checker:
                 continue
             new: list[Connection] = []
             if arrow == "->":
-                c = self.signal(*a, *b, comps, where)
+                c = self.signal(*a, *b, comps, where, as_type=as_type)
                 if c is not None:
                     new.append(c)
             else:
@@ -813,7 +941,8 @@ class _Checker:
         for comp in comps.values():
             for u in comp.description.of("input"):
                 if (comp.name, u) not in fed and u not in comp.start:
-                    start = comp.description.variables[u].start
+                    var = comp.description.variables[u]
+                    start = var.start if var.start is not None else var.raw_start
                     self.warn(comp.where, f"input {comp.name}.{u} is not connected and has no start value in the "
                                           f"scene; it keeps its default start value {start if start is not None else 0.0}")
 
@@ -843,7 +972,10 @@ class _Checker:
             self.err(node.loc("algorithm"), f"unknown master algorithm {alg!r}{suggest(str(alg), ALGORITHMS)} "
                                             f"(known: {', '.join(sorted(ALGORITHMS))})")
             ok = False
-        step = self.number(node, "step", "master.step", required=True)
+        if not node.where[0]:
+            node.where = self.tree.where
+        default_step = self.fmu_default(comps, "step", "master.step") if "step" not in node else None
+        step = default_step or self.number(node, "step", "master.step", required=True)
         step_ns = None
         if step is not None:
             if step <= 0:
@@ -912,35 +1044,73 @@ class _Checker:
         return MasterSettings(alg, step_ns / 1e9, step_ns, list(order) if order else None, engine, record_every,
                               inputs)
 
-    def stop(self, master: MasterSettings | None) -> tuple[float | None, int | None]:
-        stop = self.number(self.tree, "stop_time", "stop_time", required=True)
+    def fmu_default(self, comps: dict[str, Component], key: str, what: str) -> float | None:
+        """The FMUs' DefaultExperiment value ``key`` (start, stop, step) when they agree; an error
+        naming them when they differ; None when none gives one."""
+        given = {c.name: c.description.default_experiment[key] for c in comps.values()
+                 if key in c.description.default_experiment}
+        if len(set(given.values())) > 1:
+            text = ", ".join(f"{n}: {v:g} s" for n, v in given.items())
+            self.err(self.tree.where, f"the FMUs' default experiments disagree on the {what} ({text}); set {what} "
+                                      f"in the scene")
+            return None
+        return next(iter(given.values()), None)
+
+    def times(self, master: MasterSettings | None, comps: dict[str, Component]
+              ) -> tuple[float | None, int | None, float, int]:
+        """(stop_time, n_steps, start_time, start_ns): the scene's values, else the FMUs' default
+        experiment; the run goes from start_time to stop_time in whole steps."""
+        start, start_ns = 0.0, 0
+        if "start_time" in self.tree:
+            start = self.number(self.tree, "start_time", "start_time")
+        else:
+            start = self.fmu_default(comps, "start", "start_time") or 0.0
+        if start is not None:
+            start_ns = round(start * 1e9)
+            if abs(start_ns - start * 1e9) > 1e-6 * max(1.0, abs(start) * 1e9):
+                self.err(self.tree.loc("start_time"), f"start_time = {start} s is not a whole number of nanoseconds")
+                start = None
+        if start is None:
+            return None, None, 0.0, 0
+        if "stop_time" in self.tree:
+            stop = self.number(self.tree, "stop_time", "stop_time")
+        else:
+            stop = self.fmu_default(comps, "stop", "stop_time")
+            if stop is None and not any(p.severity == "error" and "stop_time" in p.message for p in self.problems):
+                self.err(self.tree.where, "stop_time is missing; expected a number in seconds (no FMU of the scene "
+                                          "gives one in its default experiment)")
         if stop is None:
-            return None, None
-        if stop <= 0:
-            self.err(self.tree.loc("stop_time"), f"stop_time = {stop} must be positive (seconds from the start)")
-            return None, None
+            return None, None, start, start_ns
+        if stop <= start:
+            self.err(self.tree.loc("stop_time"), f"stop_time = {stop} must be positive (seconds from the start)"
+                     if start == 0 else f"stop_time = {stop} must be after the start time {start} s")
+            return None, None, start, start_ns
         if master is None:
-            return stop, None
-        n = round(stop * 1e9 / master.step_ns)
-        if abs(n * master.step_ns - stop * 1e9) > 1e-6 * stop * 1e9:
-            lo, hi = math.floor(stop * 1e9 / master.step_ns), math.ceil(stop * 1e9 / master.step_ns)
+            return stop, None, start, start_ns
+        span = stop * 1e9 - start_ns
+        n = round(span / master.step_ns)
+        if abs(n * master.step_ns - span) > 1e-6 * span:
+            lo, hi = math.floor(span / master.step_ns), math.ceil(span / master.step_ns)
             self.err(self.tree.loc("stop_time"), f"stop_time = {stop} s is not a whole number of steps of "
-                                                 f"{master.step} s; use {lo * master.step:g} or {hi * master.step:g}")
-            return None, None
-        return stop, n
+                                                 f"{master.step} s{f' from the start {start:g} s' if start else ''}; use "
+                                                 f"{start + lo * master.step:g} or {start + hi * master.step:g}")
+            return None, None, start, start_ns
+        return stop, n, start, start_ns
 
     def outputs(self, comps: dict[str, Component]) -> list[str]:
         node = self.tree.get("outputs")
-        signals = [f"{c.name}.{v}" for c in comps.values() for v in c.description.of("output", "input")]
+        signals = [f"{c.name}.{v}" for c in comps.values() for v in c.description.of("output", "input")
+                   if c.description.variables[v].type in TYPES]
         if node is None:
-            return [f"{c.name}.{v}" for c in comps.values() for v in c.description.of("output")]
+            return [f"{c.name}.{v}" for c in comps.values() for v in c.description.of("output")
+                    if c.description.variables[v].type in TYPES]
         if isinstance(node, str):
             node = [node]
         if not isinstance(node, list):
             self.err(self.tree.loc("outputs"), "outputs must be a list of 'component.variable' patterns")
             return []
         every = {f"{c.name}.{v}": var for c in comps.values() for v, var in c.description.variables.items()
-                 if var.type == "Real" and var.causality != "independent"}
+                 if var.type in TYPES and var.causality != "independent"}
         out: list[str] = []
         for i, pat in enumerate(node):
             where = node.loc(i) if isinstance(node, YList) else self.tree.loc("outputs")
@@ -957,6 +1127,25 @@ class _Checker:
                 self.err(where, f"output pattern {pat!r} matches no input or output{suggest(pat, signals)}")
             out.extend(h for h in hits if h not in out)
         return out
+
+
+def _start_settable(var: Variable) -> bool:
+    """FMI allows a start value before initialisation: inputs, and non-parameter variables with
+    initial = exact or approx."""
+    if var.variability == "constant" or var.causality in ("independent", "parameter", "structuralParameter",
+                                                          "calculatedParameter"):
+        return False
+    return var.causality == "input" or var.initial in ("exact", "approx")
+
+
+def _flatten(val: Any) -> Any:
+    """Nested YAML lists (a matrix) as one row-major list; anything else unchanged."""
+    if isinstance(val, (list, tuple)):
+        out: list = []
+        for x in val:
+            out.extend(_flatten(x) if isinstance(x, (list, tuple)) else [x])
+        return out
+    return val
 
 
 def _exact_start(block, state: str) -> bool:
@@ -993,7 +1182,7 @@ def validate(tree: YMap, path: Path | None = None, *, catalog=None, problems: li
     broken = isinstance(node, YMap) and len(comps) != len(node)
     conns, bonds = ck.connections(comps) if comps else ([], [])
     master = ck.master(comps)
-    stop, n_steps = ck.stop(master)
+    stop, n_steps, start, start_ns = ck.times(master, comps)
     outputs = ck.outputs(comps) if comps else []
     if comps and not broken:
         ck.unconnected(comps, conns)
@@ -1003,14 +1192,15 @@ def validate(tree: YMap, path: Path | None = None, *, catalog=None, problems: li
 
     guards = parse_settings(tree.get("guards"), lambda _key: tree.loc("guards"), ck.err)
     if comps and not broken:
-        check_scene(guards, comps, stop, ck.err, ck.warn)
+        check_scene(guards, comps, stop - start if stop is not None else None, ck.err, ck.warn)
     errors = [p for p in ck.problems if p.severity == "error"]
     if errors:
         raise SceneError(ck.problems)
     data = plain(tree)
     name = tree.get("name") or (path.stem if path else "scene")
     return Scene(str(name), path, str(tree.get("description", "")), stop, n_steps, comps, conns, bonds, master,
-                 outputs, data, _hash(data, comps), [p for p in ck.problems if p.severity != "error"], guards)
+                 outputs, data, _hash(data, comps), [p for p in ck.problems if p.severity != "error"], start, start_ns,
+                 guards)
 
 
 def load(path: Path | str, overrides: Mapping[str, Any] | Sequence[str] | None = None, *, catalog=None) -> Scene:

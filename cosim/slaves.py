@@ -20,17 +20,22 @@ master's inner loop allocates nothing.  A slave that can expose C entry points
 (:meth:`Slave.native`) can also be stepped by the compiled loop of :mod:`cosim.fastloop`.
 
 Status codes follow FMI (:class:`Status`); ``do_step`` returns one of them, and
-:attr:`Status.STOP_REQUESTED` when an FMI 3.0 slave sets ``terminateSimulation``.
+:attr:`Status.STOP_REQUESTED` when an FMI 3.0 slave sets ``terminateSimulation`` or an FMI 2.0
+slave returns Discard with ``fmi2Terminated`` true.  Variables of other types than scalar Float64
+(and FMI 3.0 arrays) are set and read by name through ``set_values``/``get_values``
+(see :mod:`cosim.typedio`); FMI 3.0 structural parameters are set in configuration mode.
 """
 from __future__ import annotations
 
 import atexit
 import ctypes
+import dataclasses
 import enum
 import shutil
 import tempfile
 from abc import ABC, abstractmethod
 from collections import deque
+from collections.abc import Callable
 from ctypes import POINTER, c_bool, c_double, c_int, c_size_t, c_uint32, c_void_p
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -61,9 +66,12 @@ FAILING = frozenset({Status.DISCARD, Status.ERROR, Status.FATAL, Status.PENDING}
 
 @dataclass(frozen=True)
 class Variable:
-    """One scalar variable: FMI ``causality`` (parameter, calculatedParameter, input, output,
-    local, independent), ``variability``, ``type`` (``Real`` for FMI 2 Real and FMI 3 Float64/32),
-    ``start`` (None when it has none), unit and value reference (None until an FMU exists)."""
+    """One variable (a scalar, or an FMI 3.0 array of ``shape``): FMI ``causality`` (parameter,
+    structuralParameter, calculatedParameter, input, output, local, independent),
+    ``variability``, canonical ``type`` (:mod:`cosim.fmitypes`: ``Real`` for FMI 2.0 Real and FMI 3.0
+    Float64, ``Integer`` for Integer/Int32, else the FMI 3.0 name), ``start`` (a float for numeric
+    scalars, None when it has none or is not a number; ``raw_start`` as written), unit and value
+    reference (None until an FMU exists)."""
 
     name: str
     causality: str
@@ -73,6 +81,24 @@ class Variable:
     unit: str = ""
     description: str = ""
     vr: int | None = None
+    fmi_type: str = ""  # the type as the modelDescription writes it (Float64, Int32, Integer, ...)
+    shape: tuple[int, ...] = ()  # array dimensions (FMI 3.0); () for a scalar
+    initial: str | None = None  # exact, approx or calculated (FMI), None when not given
+    dims: tuple = ()  # per dimension: a fixed size (int) or the name of the structural parameter
+    raw_start: object = None  # the start value as written (text, or a list for an array)
+
+    @property
+    def size(self) -> int:
+        """Number of values (1 for a scalar)."""
+        n = 1
+        for d in self.shape:
+            n *= d
+        return n
+
+    @property
+    def fast(self) -> bool:
+        """A scalar Float64: carried by the master's value vector and the compiled loop."""
+        return self.type == "Real" and not self.shape
 
 
 @dataclass
@@ -93,6 +119,8 @@ class SlaveDescription:
     fmi_version: str | None = None
     can_get_set_state: bool = False
     can_interpolate_inputs: bool = False  # follows first-order input slopes (FMI 2.0 canInterpolateInputs)
+    default_experiment: dict = field(default_factory=dict)  # start, stop, tolerance, step [s] as the FMU gives them
+    interfaces: tuple[str, ...] = ()  # FMI interface kinds the FMU has (co-simulation, model exchange, ...)
 
     def of(self, *causalities: str) -> list[str]:
         """Names of the variables with one of the given causalities, in declaration order."""
@@ -124,8 +152,43 @@ def describe_block(block: Block, source: str = "") -> SlaveDescription:
                             period, None, True)
 
 
-_FMI_TYPES = {"Real": "Real", "Float64": "Real", "Float32": "Real32", "Integer": "Integer", "Int32": "Integer",
-              "Boolean": "Boolean", "String": "String", "Enumeration": "Enumeration"}
+def _interfaces(md) -> tuple[str, ...]:
+    kinds = [("co-simulation", md.coSimulation), ("model exchange", md.modelExchange),
+             ("scheduled execution", getattr(md, "scheduledExecution", None))]
+    return tuple(k for k, present in kinds if present is not None)
+
+
+def _fmu_variable(v, fmi_version: str) -> Variable:
+    from .fmitypes import canonical
+
+    start = None
+    if v.start is not None and not v.dimensions:
+        try:
+            start = float(v.start)
+        except (TypeError, ValueError):
+            start = None
+    dims = tuple(d.variable.name if d.variable is not None else int(d.start) for d in v.dimensions)
+    causality = v.causality or "local"
+    return Variable(v.name, causality, v.variability or "continuous", canonical(v.type), start, v.unit or "",
+                    v.description or "", v.valueReference, v.type, tuple(int(n) for n in (v.shape or ())),
+                    getattr(v, "initial", None), dims, v.start)
+
+
+def resolve_shapes(desc: SlaveDescription, structural: dict[str, int]) -> SlaveDescription:
+    """``desc`` with array shapes recomputed for the structural parameter values ``structural``
+    (the others keep their start values)."""
+    if not any(v.dims for v in desc.variables.values()):
+        return desc
+    size = {n: int(v.raw_start) for n, v in desc.variables.items() if v.causality == "structuralParameter"
+            and v.raw_start is not None}
+    size.update({k: int(x) for k, x in structural.items()})
+    vs = {}
+    for n, v in desc.variables.items():
+        if v.dims:
+            shape = tuple(d if isinstance(d, int) else size.get(d, 0) for d in v.dims)
+            v = dataclasses.replace(v, shape=shape)
+        vs[n] = v
+    return dataclasses.replace(desc, variables=vs)
 
 
 def describe_fmu(path: Path) -> SlaveDescription:
@@ -140,19 +203,15 @@ def describe_fmu(path: Path) -> SlaveDescription:
         md = fmpy.read_model_description(str(path), validate=False)
     except Exception as exc:  # fmpy raises bare Exceptions for any malformed archive or XML
         raise UserError(f"{path}: not a readable FMU ({exc})") from None
+    kinds = _interfaces(md)
     if md.coSimulation is None:
-        raise UserError(f"{path}: the FMU has no co-simulation interface (model exchange only)")
-    vs: dict[str, Variable] = {}
-    for v in md.modelVariables:
-        start = None
-        if v.start is not None:
-            try:
-                start = float(v.start)
-            except (TypeError, ValueError):
-                start = None
-        vs[v.name] = Variable(v.name, v.causality or "local", v.variability or "continuous",
-                              _FMI_TYPES.get(v.type, v.type), start, v.unit or "", v.description or "",
-                              v.valueReference)
+        raise UserError(f"{path}: the FMU has no co-simulation interface (it has "
+                        f"{' and '.join(kinds) or 'no interface'} only); rpr-cosim steps co-simulation FMUs")
+    vs: dict[str, Variable] = {v.name: _fmu_variable(v, md.fmiVersion) for v in md.modelVariables}
+    de = md.defaultExperiment
+    default = {} if de is None else {k: float(x) for k, x in (("start", de.startTime), ("stop", de.stopTime),
+                                                               ("tolerance", de.tolerance), ("step", de.stepSize))
+                                     if x is not None}
     inputs = [v.name for v in md.modelVariables if v.causality == "input"]
     ft: dict[str, list[str]] = {}
     listed = {u.variable.name: u for u in md.outputs}
@@ -168,7 +227,7 @@ def describe_fmu(path: Path) -> SlaveDescription:
     cs = md.coSimulation
     can_state = bool(getattr(cs, "canGetAndSetFMUstate", False) or getattr(cs, "canGetAndSetFMUState", False))
     interp = md.fmiVersion.startswith("2") and bool(getattr(cs, "canInterpolateInputs", False))
-    return SlaveDescription("fmu", str(path), vs, ft, [], period, md.fmiVersion, can_state, interp)
+    return SlaveDescription("fmu", str(path), vs, ft, [], period, md.fmiVersion, can_state, interp, default, kinds)
 
 
 # --- the interface ----------------------------------------------------------------------------
@@ -248,6 +307,11 @@ class Slave(ABC):
     def do_step(self, t: float, h: float) -> int:
         """Advance from communication point ``t`` [s] by ``h`` [s]; returns a :class:`Status`."""
 
+    def asked_to_stop(self) -> bool:
+        """After a Discard from :meth:`do_step`: was it a request to end the simulation (FMI 2.0
+        fmi2Terminated)?  False by default."""
+        return False
+
     def terminate(self) -> None:
         """End the simulation (the instance may still be read)."""
 
@@ -285,6 +349,8 @@ _IO2 = ctypes.CFUNCTYPE(c_int, c_void_p, POINTER(c_uint32), c_size_t, POINTER(c_
 _DoStep3 = ctypes.CFUNCTYPE(c_int, c_void_p, c_double, c_double, c_bool, POINTER(c_bool), POINTER(c_bool),
                             POINTER(c_bool), POINTER(c_double))
 _IO3 = ctypes.CFUNCTYPE(c_int, c_void_p, POINTER(c_uint32), c_size_t, POINTER(c_double), c_size_t)
+_RAW2 = ctypes.CFUNCTYPE(c_int, c_void_p, c_void_p, c_size_t, c_void_p)
+_RAW3 = ctypes.CFUNCTYPE(c_int, c_void_p, c_void_p, c_size_t, c_void_p, c_size_t)
 _SetDer2 = ctypes.CFUNCTYPE(c_int, c_void_p, POINTER(c_uint32), c_size_t, POINTER(c_int), POINTER(c_double))
 
 
@@ -363,20 +429,75 @@ class FmuSlave(Slave):
             detail = f": {self.last_message}" if self.last_message else ""
             raise UserError(f"{self.name}: {what} failed ({exc}){detail}") from None
 
-    def set_start(self, values: dict[str, float]) -> None:
+    def set_start(self, values: dict[str, object]) -> None:
+        """Parameters and start values of any FMI type by name (arrays as lists); FMI 3.0
+        structural parameters are set first, in configuration mode."""
         if not values:
             return
-        vrs = [self.vr(n) for n in values]
-        vals = [float(v) for v in values.values()]
-        self._call(f"setting start values {', '.join(values)}",
-                   self.fmu.setFloat64 if self.fmi3 else self.fmu.setReal, vrs, vals)
+        vs = self.description.variables
+        structural = [k for k in values if vs[k].causality == "structuralParameter"]
+        if structural and self.fmi3:
+            self._call("fmi3EnterConfigurationMode", self.fmu.enterConfigurationMode)
+            for k in structural:
+                self._call(f"setting structural parameter {k}", self.set_values, k, values[k])
+            self._call("fmi3ExitConfigurationMode", self.fmu.exitConfigurationMode)
+        for k, val in values.items():
+            if k not in structural:
+                self._call(f"setting start value {k}", self.set_values, k, val)
 
-    def enter_initialization(self, start_time: float, stop_time: float) -> None:
+    def _accessor(self, verb: str, type_name: str):
+        from .fmitypes import TYPES
+
+        ft = TYPES[type_name]
+        return getattr(self.fmu, verb + (ft.fmi3 if self.fmi3 else ft.fmi2))
+
+    def set_values(self, name: str, value) -> None:
+        """Set variable ``name`` (any type; an array as its values in row-major order); raises
+        fmpy's exception on a failing status."""
+        from .fmitypes import TYPES, parse_start
+
+        var = self.description.variables[name]
+        ft = TYPES[var.type]
+        vals = parse_start(value, ft, var.size, name)
+        self._accessor("set", var.type)([var.vr], [v.item() if hasattr(v, "item") else v for v in vals])
+
+    def raw_io(self, verb: str, type_name: str, vrs: list[int], n_values: int) -> tuple[Callable[[], int], np.ndarray]:
+        """A no-argument call of fmi2/3 ``Get``/``Set`` (``verb``) of numeric type ``type_name`` on
+        ``vrs`` (``n_values`` values in all) and the numpy buffer it reads into or writes from (the
+        FMI storage type: FMI 2.0 Boolean and Enumeration are int32); returns the FMI status."""
+        from .fmitypes import TYPES
+
+        ft = TYPES[type_name]
+        if self.fmi3:
+            dtype = np.bool_ if type_name == "Boolean" else ft.dtype
+            proto = _RAW3
+        else:
+            dtype = np.float64 if type_name == "Real" else np.int32
+            proto = _RAW2
+        fname = f"fmi{'3' if self.fmi3 else '2'}{verb.capitalize()}{ft.fmi3 if self.fmi3 else ft.fmi2}"
+        fn = proto(_addr(getattr(self.fmu.dll, fname)))
+        vr = np.ascontiguousarray(vrs, dtype=np.uint32)
+        buf = np.zeros(n_values, dtype=dtype)
+        inst, p_vr, n_vr, p_buf = self._inst, vr.ctypes.data, len(vr), buf.ctypes.data
+        keep = (vr, buf)
+        if self.fmi3:
+            return (lambda: fn(inst, p_vr, n_vr, p_buf, n_values) if keep else 0), buf
+        return (lambda: fn(inst, p_vr, n_vr, p_buf) if keep else 0), buf
+
+    def get_values(self, type_name: str, vrs: list[int], n_values: int) -> list:
+        """Values of the variables ``vrs`` of one type (``n_values`` in all, arrays flattened)."""
+        get = self._accessor("get", type_name)
+        vals = get(vrs, n_values) if self.fmi3 else get(vrs)
+        if type_name == "String":
+            vals = [v.decode("utf-8", errors="replace") if isinstance(v, bytes) else v for v in vals]
+        return vals
+
+    def enter_initialization(self, start_time: float, stop_time: float, tolerance: float | None = None) -> None:
         if self.fmi3:
             self._call("fmi3EnterInitializationMode", self.fmu.enterInitializationMode,
-                       None, start_time, stop_time)
+                       tolerance, start_time, stop_time)
         else:
-            self._call("fmi2SetupExperiment", self.fmu.setupExperiment, None, start_time, stop_time)
+            self._call("fmi2SetupExperiment", self.fmu.setupExperiment, tolerance, start_time, stop_time)
             self._call("fmi2EnterInitializationMode", self.fmu.enterInitializationMode)
 
     def exit_initialization(self) -> None:
@@ -431,7 +552,33 @@ class FmuSlave(Slave):
             if st < 2 and self._flags[1].value:
                 return Status.STOP_REQUESTED
             return st
-        return self._step2(self._inst, t, h, 0)
+        st = self._step2(self._inst, t, h, 0)
+        if st == Status.DISCARD and self.asked_to_stop():
+            return Status.STOP_REQUESTED
+        return st
+
+    def asked_to_stop(self) -> bool:
+        """After an FMI 2.0 Discard: did the FMU ask to end the simulation (fmi2Terminated)?"""
+        if self.fmi3 or self.fmu is None:
+            return False
+        from fmpy.fmi2 import fmi2Terminated
+
+        try:
+            return bool(self.fmu.getBooleanStatus(fmi2Terminated))
+        except Exception:  # an FMU that does not implement the status inquiry: a plain Discard
+            return False
+
+    def stop_detail(self) -> str:
+        """Why and when the FMU asked to stop: its last successful time [s] (FMI 2.0 status, FMI 3.0
+        doStep output), '' when unknown."""
+        try:
+            if self.fmi3:
+                return f"its last successful time {self._last_t.value:.9g} s"
+            from fmpy.fmi2 import fmi2LastSuccessfulTime
+
+            return f"its last successful time {self.fmu.getRealStatus(fmi2LastSuccessfulTime):.9g} s"
+        except Exception:  # optional inquiry
+            return ""
 
     def terminate(self) -> None:
         if self.fmu is not None and not self._terminated:

@@ -6,7 +6,8 @@ column 0 is time [s], the others the recorded variables named ``component.variab
 
 :class:`CsvTrace` streams rows to a CSV file as the run goes: comment lines ``# key: <JSON>``
 carry the metadata (scene hash, algorithm, step, package versions) before the data and the
-outcome (status, reason, statistics) after it, and a sidecar ``<name>.json`` holds the same
+outcome (status, reason, statistics) after it, String and Binary values are comment lines
+``# text: [t, "component.variable", "value"]`` among the rows (written when the value changes), and a sidecar ``<name>.json`` holds the same
 metadata and is rewritten at the end, so an interrupted or failed run leaves its partial trace
 and the reason on disk.  :func:`read_trace` reads such a file back.
 """
@@ -56,6 +57,10 @@ class Observer(ABC):
     @abstractmethod
     def finish(self, status: str, reason: str, stats: dict) -> None: ...
 
+    def record_text(self, t: float, column: str, value: str) -> None:
+        """A String or Binary variable (``column``) took ``value`` (Binary as hexadecimal) at ``t``
+        [s]; called when it changes, between ``record`` calls.  Ignored by default."""
+
 
 @dataclass
 class Trace:
@@ -67,6 +72,7 @@ class Trace:
     status: str = ""
     reason: str = ""
     stats: dict = field(default_factory=dict)
+    text: dict[str, list[tuple[float, str]]] = field(default_factory=dict)  # String/Binary: (t, value) changes
 
     @property
     def time(self) -> np.ndarray:
@@ -119,6 +125,9 @@ class MemoryTrace(Observer):
     def record(self, rows) -> None:
         if len(rows):
             self._chunks.append(np.array(rows, dtype=float, copy=True))
+
+    def record_text(self, t, column, value) -> None:
+        self.trace.text.setdefault(column, []).append((float(t), str(value)))
 
     def _collect(self) -> None:
         if self._chunks:
@@ -188,6 +197,9 @@ class CsvTrace(Observer):
             if rows is None:
                 return
             try:
+                if isinstance(rows, str):  # a text event, in order with the rows
+                    self._fh.write(rows)
+                    continue
                 self._fh.write("\n".join(",".join(map(repr, r)) for r in rows.tolist()))
                 self._fh.write("\n")
                 now = time.monotonic()
@@ -202,6 +214,10 @@ class CsvTrace(Observer):
             return
         self._queue.put(np.array(rows, dtype=float, copy=True))
         self.rows += len(rows)
+
+    def record_text(self, t, column, value) -> None:
+        if self._queue is not None:
+            self._queue.put(_comment("text", [float(t), column, str(value)]))
 
     def finish(self, status, reason, stats) -> None:
         if self._fh is None:
@@ -234,6 +250,7 @@ def read_trace(path: Path) -> Trace:
     if not path.is_file():
         raise UserError(f"{path}: no such trace file")
     meta: dict = {}
+    text: dict[str, list[tuple[float, str]]] = {}
     columns: list[str] | None = None
     rows: list[list[float]] = []
     with open(path, newline="") as fh:
@@ -244,9 +261,13 @@ def read_trace(path: Path) -> Trace:
             key, sep, value = line[1:].strip().partition(": ")
             if sep:
                 try:
-                    meta[key] = json.loads(value)
+                    parsed = json.loads(value)
                 except ValueError:
-                    meta[key] = value
+                    parsed = value
+                if key == "text" and isinstance(parsed, list) and len(parsed) == 3:
+                    text.setdefault(parsed[1], []).append((float(parsed[0]), str(parsed[2])))
+                else:
+                    meta[key] = parsed
             continue
         if columns is None:
             columns = next(csv.reader([line]))
@@ -264,4 +285,4 @@ def read_trace(path: Path) -> Trace:
     if columns is None:
         raise UserError(f"{path}: no column header; is this an rpr-cosim trace?")
     data = np.array(rows, dtype=float).reshape(-1, len(columns))
-    return Trace(columns, data, meta, meta.pop("status", ""), meta.pop("reason", ""), meta.pop("statistics", {}))
+    return Trace(columns, data, meta, meta.pop("status", ""), meta.pop("reason", ""), meta.pop("statistics", {}), text)

@@ -47,12 +47,21 @@ def test_a_one_row_failed_trace_fails_the_tolerance_gate(tmp_path, good, capsys)
     assert cli.main(["compare", str(bad), str(good), "--tol", "1e-3", "--allow-failed", "--allow-partial"]) == 0
 
 
-@pytest.mark.parametrize("status", ["stopped", "unstable", "interrupted", "running"])
+@pytest.mark.parametrize("status", ["out_of_limits", "unstable", "interrupted", "running", "failed"])
 def test_a_reference_that_did_not_end_ok_is_refused_too(tmp_path, good, status, capsys):
     ref = write(tmp_path / "ref.csv", read_trace(good), status, "because")
     assert cli.main(["compare", str(good), str(ref)]) == 2
     assert f"{ref}: the run's status is {status!r}, not 'ok' (because); use --allow-failed" in capsys.readouterr().err
     assert cli.main(["compare", str(good), str(ref), "--allow-failed", "--tol", "1e-9"]) == 0
+
+
+def test_a_run_a_component_stopped_is_a_result_when_it_covers_the_span(tmp_path, good, capsys):
+    """FMI terminateSimulation ends a run "stopped" at the component's request: a normal end."""
+    ended = write(tmp_path / "ended.csv", read_trace(good), "stopped", "stopped by ball at t = 2 s")
+    assert cli.main(["compare", str(ended), str(good), "--tol", "1e-9"]) == 0
+    assert f"note: {ended}: the run ended at a component's request (stopped by ball at t = 2 s)" in capsys.readouterr().out
+    early = write(tmp_path / "early.csv", Trace(read_trace(good).columns, read_trace(good).data[:101]), "stopped", "x")
+    assert cli.main(["compare", str(early), str(good), "--tol", "1e-9"]) == 1
 
 
 def test_the_sidecar_of_a_killed_run_is_read(tmp_path, good, capsys):
@@ -110,10 +119,11 @@ def test_columns_that_could_not_be_matched_are_reported(tmp_path, good, capsys):
 def test_comparability_is_a_function_other_verbs_can_call(good):
     """The checks live in cosim.compare, not in the CLI handler (a many-against-one compare calls them)."""
     ok = read_trace(good)
-    short = Trace(ok.columns, ok.data[:50], status="stopped", reason="guard")
+    short = Trace(ok.columns, ok.data[:50], status="out_of_limits", reason="guard")
     c = comparability(short, ok, labels=("short", "ref"))
     assert c.partial and c.only_test == [] and c.only_ref == []
     first, second = c.problems()
-    assert first == "short: the run's status is 'stopped', not 'ok' (guard); use --allow-failed to compare it anyway"
+    assert first == ("short: the run's status is 'out_of_limits', not 'ok' (guard); use --allow-failed to compare "
+                     "it anyway")
     assert second.startswith("the traces overlap over 0..0.49 s, 24.5 % of the reference's span 0..2 s")
     assert c.problems(allow_failed=True, allow_partial=True) == []

@@ -66,13 +66,13 @@ def test_pid_step_is_ok_under_the_default_guards_and_within_the_ratings(pid_step
 # --- the findings, reproduced ---------------------------------------------------------------------
 @pytest.mark.parametrize("sets, status, reason", [
     # R = 0: the current runs away at once (legs 14 km without guards)
-    (["components.motor1.params.R=0"], "stopped",
+    (["components.motor1.params.R=0"], "out_of_limits",
      r"^beyond rating: motor1\.i = 47\.8\d A at t = 0\.001 s, outside the rated \[-30, 30\] A"),
-    (["components.motor1.params.R=0", "guards.rated=off"], "stopped",
+    (["components.motor1.params.R=0", "guards.rated=off"], "out_of_limits",
      r"^out of stroke: mech\.leg\[3\]\.s = 0\.09\d+ m at t = 0\.6\d+ s, outside the stroke \[0\.1, 0\.6\] m"),
     # PID gains 1e6 with a 1e9 output limit: the first voltage is thousands of volts
-    (PID_1E6, "stopped", r"^beyond rating: motor1\.u = 3\.129e\+04 V at t = 0 s, outside the rated \[-12, 12\] V"),
-    (PID_1E6 + ["guards.rated=off"], "stopped", r"^out of stroke: mech\.leg\[3\]\.s = 0\.08\d+ m at t = 0\.01 s"),
+    (PID_1E6, "out_of_limits", r"^beyond rating: motor1\.u = 3\.129e\+04 V at t = 0 s, outside the rated \[-12, 12\] V"),
+    (PID_1E6 + ["guards.rated=off"], "out_of_limits", r"^out of stroke: mech\.leg\[3\]\.s = 0\.08\d+ m at t = 0\.01 s"),
     (PID_1E6 + ["guards.rated=off", "guards.stroke=off", "guards.singularity=off"], "unstable",
      r"^unstable: mech\.leg\[1\]\.f = -3\.2\d+e\+07 at t = 0\.013 s \(\|value\| beyond guards\.max_abs = 1e\+06\)"),
 ], ids=["R0", "R0-stroke", "pid1e6", "pid1e6-stroke", "pid1e6-unstable"])
@@ -96,9 +96,9 @@ def test_without_guards_the_pid_finding_still_reports_ok():
 def test_a_stopped_run_keeps_its_partial_trace_reason_and_exit_code(tmp_path, capsys):
     rc = cli.main(["run", str(PID_STEP), "--out", str(tmp_path)] + [a for s in PID_1E6 for a in ("--set", s)])
     assert rc == 1
-    assert "rpr-cosim run: stopped: beyond rating: motor1.u" in capsys.readouterr().err
+    assert "rpr-cosim run: out_of_limits: beyond rating: motor1.u" in capsys.readouterr().err
     side = json.loads((tmp_path / "pid_step.json").read_text())
-    assert side["status"] == "stopped" and side["reason"].startswith("beyond rating: motor1.u = 3.129e+04 V")
+    assert side["status"] == "out_of_limits" and side["reason"].startswith("beyond rating: motor1.u = 3.129e+04 V")
     rows = [ln for ln in (tmp_path / "pid_step.csv").read_text().splitlines() if ln and not ln.startswith("#")]
     assert len(rows) == 2  # header and the row at t = 0
 
@@ -143,7 +143,7 @@ def test_a_target_through_singular_poses_is_refused_and_stopped_at_run_time():
     assert len(scene.warnings) == 2
     forced = dataclasses.replace(scene, guards=dataclasses.replace(scene.guards, stroke="off", singularity="stop"))
     res = run(forced)
-    assert res.status == "stopped"
+    assert res.status == "out_of_limits"
     assert res.reason.startswith("singularity: mech: det J changes sign between t = ")
 
 
@@ -207,8 +207,8 @@ def rows(n: int = 10) -> np.ndarray:
 
 
 @pytest.mark.parametrize("row, col, value, status, start", [
-    (3, 1, 12.5, "stopped", "beyond rating: m.u = 12.5 V at t = 0.3 s"),
-    (5, 2, 0.05, "stopped", "out of stroke: m.s = 0.05 m at t = 0.5 s"),
+    (3, 1, 12.5, "out_of_limits", "beyond rating: m.u = 12.5 V at t = 0.3 s"),
+    (5, 2, 0.05, "out_of_limits", "out of stroke: m.s = 0.05 m at t = 0.5 s"),
     (2, 3, np.nan, "unstable", "unstable: m.other = nan at t = 0.2 s (not finite)"),
     (7, 3, -2e6, "unstable", "unstable: m.other = -2e+06 at t = 0.7 s (|value| beyond guards.max_abs = 1e+06)"),
 ])

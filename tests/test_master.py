@@ -134,8 +134,7 @@ class Failing(LinearSlave):
         return super().do_step(t, h)
 
 
-@pytest.mark.parametrize("status,expect", [(Status.DISCARD, "failed"), (Status.ERROR, "failed"),
-                                           (Status.STOP_REQUESTED, "stopped")])
+@pytest.mark.parametrize("status,expect", [(Status.DISCARD, "failed"), (Status.ERROR, "failed")])
 def test_a_failing_slave_stops_the_run_and_keeps_the_partial_trace(tmp_path, status, expect):
     bad = Failing("bad", [[-1.0]], [[1.0]], [[1.0]], fail_at=7, status=status)
     ok = LinearSlave("ok", [[-2.0]], [[1.0]], [[1.0]], x0=[1.0])
@@ -153,6 +152,28 @@ def test_a_failing_slave_stops_the_run_and_keeps_the_partial_trace(tmp_path, sta
     np.testing.assert_array_equal(back.data, mem.trace.data)
     side = json.loads((tmp_path / "t.json").read_text())
     assert side["status"] == expect and side["reason"] == stats.reason and side["rows"] == 7
+
+
+@pytest.mark.parametrize("algorithm", ["jacobi", "gauss_seidel"])
+def test_a_stop_request_completes_the_step_and_records_its_end(tmp_path, algorithm):
+    """A slave asking to stop in the step from t = 0.06 s: the others complete that step, the point
+    t = 0.07 s is recorded (off the output grid too) and the run ends "stopped by bad at 0.07 s"."""
+    bad = Failing("bad", [[-1.0]], [[1.0]], [[1.0]], fail_at=7, status=Status.STOP_REQUESTED)
+    ok = LinearSlave("ok", [[-2.0]], [[1.0]], [[1.0]], x0=[1.0])
+    ref = LinearSlave("ok", [[-2.0]], [[1.0]], [[1.0]], x0=[1.0])
+    system = CoupledSystem([bad, ok], [Link(1, "y[1]", 0, "u[1]")], [(1, "y[1]"), (0, "y[1]")])
+    csv = CsvTrace(tmp_path / "t.csv")
+    stats = simulate(system, algorithm, step_ns=10_000_000, n_steps=100, record_every=5, observers=[csv],
+                     order=[1, 0])
+    assert stats.status == "stopped" and stats.steps_done == 7
+    assert stats.reason.startswith("stopped by bad at t = 0.07 s: it asked to terminate the simulation in the "
+                                   "step from t = 0.06 s")
+    back = read_trace(tmp_path / "t.csv")
+    assert back.status == "stopped" and list(back.time) == pytest.approx([0.0, 0.05, 0.07])
+    for _ in range(7):  # 'ok' completed its seventh step: its exact solution at 0.07 s
+        ref.do_step(0.0, 0.01)
+    assert back["ok.y[1]"][-1] == pytest.approx(ref.x[0], abs=1e-15)
+    assert json.loads((tmp_path / "t.json").read_text())["reason"] == stats.reason
 
 
 def test_an_interrupt_leaves_the_partial_trace_and_the_reason(tmp_path):

@@ -1,0 +1,85 @@
+"""Shared session fixtures.
+
+``reference_fmus``: the Modelica Reference FMUs (FMI 2.0 and 3.0 co-simulation), built once from
+their source with CMake and gcc into a cache directory keyed by a hash of that source (the
+source tree is only read).  A failing build fails the tests that need it; a missing source tree
+skips them, except under CI (``CI`` set), where it fails too.
+"""
+from __future__ import annotations
+
+import hashlib
+import os
+import platform
+import shutil
+import subprocess
+import tempfile
+from pathlib import Path
+
+import pytest
+
+#: where the Reference FMUs' source lives (override with $RPR_REFERENCE_FMUS_SRC)
+REFERENCE_FMUS_SRC = Path(os.environ.get("RPR_REFERENCE_FMUS_SRC", Path(__file__).resolve().parents[1].parent
+                                         / "shared" / "third_party" / "Reference-FMUs"))
+
+
+def _source_key(src: Path) -> str:
+    h = hashlib.sha256()
+    for p in sorted(src.rglob("*")):
+        if p.is_file() and ".git" not in p.parts:
+            h.update(str(p.relative_to(src)).encode() + b"\0" + p.read_bytes())
+    for tool in ("cmake", os.environ.get("CC", "gcc")):
+        try:
+            h.update(subprocess.run([tool, "--version"], capture_output=True, text=True).stdout.encode())
+        except OSError:
+            pass
+    return h.hexdigest()[:16]
+
+
+def build_reference_fmus(src: Path, dest: Path) -> dict[str, Path]:
+    """Build the Reference FMUs of ``src`` for FMI 2.0 and 3.0 into ``dest`` (unless already
+    there); returns ``{"2.0/Name": path, "3.0/Name": path}``.  Raises RuntimeError with the build
+    log's tail when CMake or the compiler fails."""
+    if not dest.is_dir():
+        dest.parent.mkdir(parents=True, exist_ok=True)
+        arch = {"amd64": "x86_64", "arm64": "aarch64"}.get(platform.machine().lower(), platform.machine())
+        with tempfile.TemporaryDirectory(dir=dest.parent, prefix=".build-") as tmp:
+            out = Path(tmp) / "fmus"
+            for v in (2, 3):
+                build = Path(tmp) / f"fmi{v}"
+                steps = [["cmake", "-S", str(src), "-B", str(build), f"-DFMI_VERSION={v}",
+                          f"-DFMI_ARCHITECTURE={arch}", f"-DCMAKE_INSTALL_PREFIX={build / 'install'}"],
+                         ["cmake", "--build", str(build), "--target", "install", "-j2"]]
+                for cmd in steps:
+                    try:
+                        res = subprocess.run(cmd, capture_output=True, text=True)
+                    except OSError as exc:
+                        raise RuntimeError(f"building the Reference FMUs: {cmd[0]}: {exc}") from None
+                    if res.returncode != 0:
+                        raise RuntimeError(f"building the Reference FMUs (FMI {v}) failed: {' '.join(cmd)}\n"
+                                           f"{(res.stdout + res.stderr)[-3000:]}")
+                (out / f"{v}.0").mkdir(parents=True)
+                for fmu in (build / "install").glob("*.fmu"):
+                    shutil.copy2(fmu, out / f"{v}.0" / fmu.name)
+            try:
+                os.replace(out, dest)
+            except OSError:  # another session finished first: use its build
+                if not dest.is_dir():
+                    raise
+    return {f"{d.name}/{f.stem}": f for d in dest.iterdir() for f in d.glob("*.fmu")}
+
+
+@pytest.fixture(scope="session")
+def reference_fmus() -> dict[str, Path]:
+    """``{"2.0/BouncingBall": path, "3.0/StateSpace": path, ...}``, built once per source."""
+    if not (REFERENCE_FMUS_SRC / "CMakeLists.txt").is_file():
+        msg = f"the Reference FMUs' source is not at {REFERENCE_FMUS_SRC} (set RPR_REFERENCE_FMUS_SRC)"
+        if os.environ.get("CI"):
+            pytest.fail(msg)
+        pytest.skip(msg)
+    from fmus.cache import cache_root
+
+    dest = cache_root().parent / "reference-fmus" / _source_key(REFERENCE_FMUS_SRC)
+    try:
+        return build_reference_fmus(REFERENCE_FMUS_SRC, dest)
+    except RuntimeError as exc:
+        pytest.fail(str(exc))
