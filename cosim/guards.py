@@ -15,8 +15,9 @@ Four guards watch every recorded row of a run (at ``master.output_interval``), o
     :func:`models.kinematics.dexterity`), or det J changing sign (the pose passed a singular
     configuration between two rows).
 ``unstable``
-    a non-finite value, or ``|value| > max_abs``, in any recorded or connected variable of any
-    slave (external FMUs included): status "unstable".
+    a non-finite value, or a value that grew beyond ``max(max_abs, 1000 |start value|)``, in any
+    recorded or connected variable of any slave (external FMUs included; a large constant such
+    as an Int64 input of 2**40 is its own scale): status "unstable".
 
 Each guard's action is ``stop`` (default: the run ends with status "out_of_limits" (stroke,
 rated, singularity) or "unstable"; not "stopped", which is a component's own request to end, the
@@ -54,6 +55,7 @@ POSE = ("platform.x", "platform.y", "platform.phi")
 OUT_OF_LIMITS, UNSTABLE = "out_of_limits", "unstable"
 _SAMPLES = 2001  # points of a setpoint's path checked at scene time
 _REL_TOL = 1e-9  # a value exactly at its rating (a PID limited to 12 V) is inside it
+GROWTH = 1e3  # a variable is unstable beyond max(max_abs, GROWTH |its start value|)
 
 
 @dataclass(frozen=True)
@@ -258,6 +260,7 @@ class Guard:
     _warned: set = field(default_factory=set)
     _bound: list = field(default_factory=list)
     _lim: tuple = (np.zeros(0, dtype=np.int64), np.zeros(0), np.zeros(0))
+    _bound_abs: np.ndarray | None = None  # per column: max(max_abs, GROWTH |start value|)
 
     @property
     def tripped(self) -> bool:
@@ -298,14 +301,19 @@ class Guard:
         if action == "off" or rows.shape[1] < 2:
             return []
         vals = rows[:, 1:]
-        bad = ~np.isfinite(vals) | (np.abs(vals) > self.settings.max_abs)  # NaN compares False: no warning
+        if self._bound_abs is None:  # the first row seen is the start
+            start = np.abs(vals[0])
+            self._bound_abs = np.maximum(self.settings.max_abs, GROWTH * np.where(np.isfinite(start), start, 0.0))
+        bad = ~np.isfinite(vals) | (np.abs(vals) > self._bound_abs)  # NaN compares False: no warning
         if not bad.any():
             return []
         k = int(np.argmax(bad.any(axis=1)))
         j = int(np.argmax(bad[k]))
         name = next((n for n, c in self._col.items() if c == j + 1), f"column {j + 1}")
         v = vals[k, j]
-        why = "not finite" if not np.isfinite(v) else f"|value| beyond guards.max_abs = {self.settings.max_abs:g}"
+        bound = self._bound_abs[j]
+        why = ("not finite" if not np.isfinite(v) else f"|value| beyond guards.max_abs = {bound:g}"
+               if bound == self.settings.max_abs else f"|value| beyond {bound:g}, {GROWTH:g} times its start value")
         return [(k, action, UNSTABLE, f"unstable: {name} = {v:.6g} at t = {rows[k, 0]:.6g} s ({why})", name)]
 
     def _limits(self, rows: np.ndarray) -> list:

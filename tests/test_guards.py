@@ -227,3 +227,20 @@ def test_a_value_exactly_at_its_rating_is_inside_and_off_ignores():
     data = rows()
     data[4, 1] = 13.0
     assert make_guard(rated="off").check(data) is None
+
+
+@pytest.mark.parametrize("start, later, trips", [
+    (2.0 ** 40, 2.0 ** 40, False),          # a large constant (an Int64 input of another tool) is its own scale
+    (2.0 ** 40, 2.0 ** 40 * 999, False),
+    (2.0 ** 40, 2.0 ** 40 * 1001, True),    # grown a thousandfold
+    (0.0, 9.9e5, False),
+    (0.0, 1.1e6, True),                     # beyond max_abs from a small start
+])
+def test_unstable_means_growth_beyond_max_abs_or_a_thousand_times_the_start(start, later, trips):
+    data = rows()
+    data[:, 3] = start
+    data[6, 3] = later
+    g = make_guard()
+    assert (g.check(data) == 7) is trips
+    if trips:
+        assert g.reason.startswith(f"unstable: m.other = {later:.6g} at t = 0.6 s (|value| beyond ")
