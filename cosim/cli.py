@@ -14,7 +14,8 @@ from collections.abc import Sequence
 from .errors import user_error_types
 
 #: Modules that contribute verbs, in the order they appear in ``--help``.
-VERB_MODULES = ("cosim.cmd_analyze", "cosim.cmd_fmu", "cosim.cmd_run", "cosim.cmd_compare", "cosim.cmd_study")
+VERB_MODULES = ("cosim.cmd_analyze", "cosim.cmd_fmu", "cosim.cmd_run", "cosim.cmd_compare", "cosim.cmd_study",
+                "cosim.cmd_ssp")
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -58,7 +58,8 @@ def _compare(args: argparse.Namespace) -> int:
     for note in checks.notes():
         print(f"note: {note}")
     if args.plot:
-        path = plot_comparison(test, ref, diffs, args.plot, labels=(args.test.stem, args.reference.stem))
+        units = {**ref.meta.get("units", {}), **test.meta.get("units", {})}  # recorded by rpr-cosim runs
+        path = plot_comparison(test, ref, diffs, args.plot, labels=(args.test.stem, args.reference.stem), units=units)
         print(f"plot: {path}", file=sys.stderr)
     if args.tol is not None:
         for problem in problems:

@@ -3,6 +3,8 @@
     rpr-cosim fmu build MODEL [--fidelity F] [--set name=value ...] [--fmi 2|3] [--out DIR] [--cache DIR]
     rpr-cosim fmu list [--cache DIR]
     rpr-cosim fmu check FMU
+    rpr-cosim fmu show MODEL[/FIDELITY] | FILE.fmu [--markdown [FILE]]
+    rpr-cosim fmu show --readme [README.md]
 
 ``build`` prints the FMU's path on stdout (progress goes to stderr).  ``--set`` values that are
 numbers and name a parameter of the block override its default (the FMU's start value); any
@@ -38,6 +40,14 @@ def register(sub: argparse._SubParsersAction) -> None:
     ck = verbs.add_parser("check", help="validate an FMU's modelDescription.xml (FMPy's checks)")
     ck.add_argument("fmu", type=Path)
     ck.set_defaults(handler=_check)
+    sh = verbs.add_parser("show", help="interface, parameters (units, defaults, bounds), states and integrator "
+                                       "of a catalog model or an FMU file")
+    sh.add_argument("what", nargs="?", help="MODEL[/FIDELITY] (e.g. pid/continuous) or FILE.fmu")
+    sh.add_argument("--markdown", nargs="?", const="-", metavar="FILE",
+                    help="write the same as a Markdown page (to FILE, default stdout)")
+    sh.add_argument("--readme", nargs="?", const="README.md", type=Path, metavar="README",
+                    help="rewrite the README's generated model section from the catalog")
+    sh.set_defaults(handler=_show)
 
 
 def _blocks():
@@ -130,3 +140,27 @@ def _check(args: argparse.Namespace) -> int:
         print(p)
     print(f"{args.fmu}: {len(problems)} problem(s)", file=sys.stderr)
     return min(len(problems), 100)
+
+
+def _show(args: argparse.Namespace) -> int:
+    from . import model_doc
+
+    if args.readme is not None:
+        changed = model_doc.update_readme(args.readme)
+        print(f"{args.readme}: model section {'rewritten' if changed else 'already up to date'}")
+        return 0
+    if not args.what:
+        raise UserError("fmu show: name a model (e.g. pid/continuous) or an FMU file, or pass --readme")
+    if args.what.endswith(".fmu") or Path(args.what).is_file():
+        info = model_doc.fmu_info(Path(args.what))
+    else:
+        model, _, fidelity = args.what.partition("/")
+        info = model_doc.model_info(model, fidelity or None)
+    if args.markdown is None:
+        sys.stdout.write(model_doc.text(info))
+    elif args.markdown == "-":
+        sys.stdout.write(model_doc.markdown(info, level=1))
+    else:
+        Path(args.markdown).write_text(model_doc.markdown(info, level=1))
+        print(args.markdown)
+    return 0

@@ -12,7 +12,6 @@ interrupted keeps its partial trace and exits with code 1; a run that a componen
 from __future__ import annotations
 
 import argparse
-import re
 import sys
 from pathlib import Path
 
@@ -67,7 +66,9 @@ def _run(args: argparse.Namespace) -> int:
         raise
     _summary(res)
     if args.plot and len(res.trace.data):
-        _say(f"plot: {_plot(res.trace, out / f'{scene.name}.png', scene.name)}")
+        from .charts import plot_run, setpoint_pairs, units_of
+
+        _say(f"plot: {plot_run(res.trace, out / f'{scene.name}.png', scene.name, units=units_of(scene, res.fmus), pairs=setpoint_pairs(scene))}")
     if args.animate and len(res.trace.data):
         from .animate import animate, manipulator_for, pose_component
 
@@ -105,7 +106,9 @@ def _reference(scene, res, out: Path, plot: bool) -> None:
         print("co-simulation against the reference:")
         print(format_table(diffs, most=12))
         if plot:
-            _say(f"plot: {plot_comparison(res.trace, ref.trace, diffs, out / f'{scene.name}_vs_reference.png', labels=(scene.master.algorithm, 'reference'))}")
+            from .charts import units_of
+
+            _say(f"plot: {plot_comparison(res.trace, ref.trace, diffs, out / f'{scene.name}_vs_reference.png', labels=(scene.master.algorithm, 'reference'), units=units_of(scene, res.fmus))}")
 
 
 def _describe(scene) -> None:
@@ -151,38 +154,3 @@ def _summary(res) -> None:
             print(f"    {k:<{width}} {v: .6g}")
     if res.trace_path:
         print(f"  trace: {res.trace_path}")
-
-
-def _plot(trace, path: Path, title: str) -> Path:
-    """One subplot per group of like variables (``pid1.y``, ``pid2.y`` together; ``leg[1..3].s`` together)."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    groups: dict[str, list[str]] = {}
-    for name in trace.names:
-        key = re.sub(r"\[\d+\]", "[*]", re.sub(r"^([A-Za-z_]+?)\d+\.", r"\1*.", name))
-        groups.setdefault(key, []).append(name)
-    keys = list(groups)[:24]
-    ncol = 2 if len(keys) > 1 else 1
-    nrow = -(-len(keys) // ncol)
-    fig, axes = plt.subplots(nrow, ncol, figsize=(6 * ncol, 2.2 * nrow), sharex=True, squeeze=False)
-    for ax, key in zip(axes.flat, keys):
-        for name in groups[key]:
-            ax.plot(trace.time, trace[name], lw=1, label=name)
-        ax.set_title(key, fontsize=9)
-        ax.grid(alpha=0.3)
-        if len(groups[key]) > 1:
-            ax.legend(fontsize=7, loc="best")
-    for ax in list(axes.flat)[len(keys):]:
-        ax.set_visible(False)
-    for ax in axes[-1]:
-        ax.set_xlabel("time [s]")
-    fig.suptitle(title)
-    fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=90)
-    plt.close(fig)
-    return path
-

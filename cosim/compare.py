@@ -207,36 +207,13 @@ def format_table(diffs: Sequence[Difference], *, most: int | None = None) -> str
 
 
 def plot_comparison(test: Trace, ref: Trace, diffs: Sequence[Difference], path: Path, *,
-                    labels: tuple[str, str] = ("test", "reference"), most: int = 8) -> Path:
+                    labels: tuple[str, str] = ("test", "reference"), most: int = 8,
+                    units: dict[str, str] | None = None) -> Path:
     """PNG with, for the ``most`` variables of largest relative error, both traces (left) and
-    their difference (right)."""
-    import matplotlib
+    their difference (right), in the variables' ``units`` (see :mod:`cosim.charts`)."""
+    from .charts import plot_comparison as plot
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    worst = sorted(diffs, key=lambda d: -d.relative)[:most]
-    names = [d.name for d in worst]
-    t, a, b = aligned(test, ref, names)
-    fig, axes = plt.subplots(len(names), 2, figsize=(11, 1.9 * len(names) + 0.8), sharex=True, squeeze=False,
-                             layout="constrained")
-    for j, (n, d) in enumerate(zip(names, worst)):
-        ax, ad = axes[j]
-        ax.plot(ref.time, ref[n], color="0.6", lw=2.5, label=labels[1])
-        ax.plot(t, a[:, j], color="C0", lw=1.0, label=labels[0])
-        ax.set_title(n, fontsize=9)
-        ad.plot(t, a[:, j] - b[:, j], color="C3", lw=1.0)
-        ad.set_title(f"{labels[0]} - {labels[1]}: max {d.max_abs:.2e} ({d.relative:.1e} of range)", fontsize=9)
-        for x in (ax, ad):
-            x.grid(alpha=0.3)
-    axes[0, 0].legend(fontsize=8)
-    for x in axes[-1]:
-        x.set_xlabel("time [s]")
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=90)
-    plt.close(fig)
-    return path
+    return plot(test, ref, diffs, path, labels=labels, most=most, units=units)
 
 
 __all__ = ["Comparability", "Difference", "aligned", "common_names", "comparability", "compare", "format_table",

@@ -195,12 +195,20 @@ def gauss_seidel_order(n: int, edges: Iterable[tuple[int, int]]) -> list[int]:
 # --- the coupled system -----------------------------------------------------------------------
 @dataclass(frozen=True)
 class Link:
-    """A signal connection between slaves by index: ``slaves[src].src_var -> slaves[dst].dst_var``."""
+    """A signal connection between slaves by index: ``slaves[src].src_var -> slaves[dst].dst_var``,
+    optionally through a linear transformation ``dst = factor * src + offset`` (SSP's
+    LinearTransformation and unit conversions; the Python loop applies it in the gather)."""
 
     src: int
     src_var: str
     dst: int
     dst_var: str
+    factor: float = 1.0
+    offset: float = 0.0
+
+    @property
+    def transformed(self) -> bool:
+        return self.factor != 1.0 or self.offset != 0.0
 
 
 class CoupledSystem:
@@ -232,6 +240,9 @@ class CoupledSystem:
                 raise UserError(f"input {names[ln.dst]}.{ln.dst_var} is connected twice")
             seen_in.add((ln.dst, ln.dst_var))
             if not is_fast(self.slaves[ln.dst], ln.dst_var):
+                if ln.transformed:
+                    raise UserError(f"input {names[ln.dst]}.{ln.dst_var}: a linear transformation applies to "
+                                    f"scalar Float64 (Real) signals only")
                 typed_in.append(ln)  # a typed input: fed by the typed ports
                 if is_fast(self.slaves[ln.src], ln.src_var) and ln.src_var not in reads[ln.src]:
                     reads[ln.src].append(ln.src_var)
@@ -239,7 +250,8 @@ class CoupledSystem:
             if is_fast(self.slaves[ln.src], ln.src_var) and ln.src_var not in reads[ln.src]:
                 reads[ln.src].append(ln.src_var)
             ins[ln.dst].append((ln.dst_var, ln.src, ln.src_var))
-        source = {(ln.dst, ln.dst_var): (ln.src, ln.src_var) for ln in self.links if ln not in typed_in}
+        source = {(ln.dst, ln.dst_var): (ln.src, ln.src_var) for ln in self.links
+                  if ln not in typed_in and not ln.transformed}  # a transformed input is read from its slave
         watch = [w for w in dict.fromkeys(watch) if w not in set(record) and is_fast(self.slaves[w[0]], w[1])]
         for i, var in list(record) + watch:
             if (i, var) in source or not is_fast(self.slaves[i], var):
@@ -301,6 +313,13 @@ class CoupledSystem:
         self.record_names = [c for c, _ in columns]
         self.watch_names = [c for c, _ in watched]
         self.record_idx = np.array([k for _, k in columns + watched], dtype=np.int64)  # watched ones last
+        #: per slave, (factor, offset) arrays of its inputs when any of its links is transformed
+        self.in_affine: list[tuple[np.ndarray, np.ndarray] | None] = [None] * n
+        for i, r in enumerate(ins):
+            lns = [next(ln for ln in self.links if ln.dst == i and ln.dst_var == var) for var, _, _ in r]
+            if any(ln.transformed for ln in lns):
+                self.in_affine[i] = (np.array([ln.factor for ln in lns]), np.array([ln.offset for ln in lns]))
+        self.transformed = any(a is not None for a in self.in_affine)
 
     @property
     def names(self) -> list[str]:
@@ -345,6 +364,16 @@ class CoupledSystem:
 
     def gather(self, i: int) -> None:
         np.take(self.v, self.in_src[i], out=self.in_buf[i])
+        if self.in_affine[i] is not None:
+            self.in_buf[i] *= self.in_affine[i][0]
+            self.in_buf[i] += self.in_affine[i][1]
+
+    def source_values(self, i: int) -> np.ndarray:
+        """Slave i's inputs as its sources give them now (transformations applied), a new array."""
+        vals = self.v[self.in_src[i]]
+        if self.in_affine[i] is not None:
+            vals = vals * self.in_affine[i][0] + self.in_affine[i][1]
+        return vals
 
 
 # --- algorithms -------------------------------------------------------------------------------
@@ -354,6 +383,8 @@ def _gatherer(system: CoupledSystem, i: int) -> Callable[[], None]:
     src = [int(x) for x in system.in_src[i]]
     if not src:
         return lambda: None
+    if system.in_affine[i] is not None:
+        return lambda: system.gather(i)
     if len(src) > 8:
         v, idx, buf = system.v, system.in_src[i], system.in_buf[i]
         return lambda: np.take(v, idx, out=buf)
@@ -422,7 +453,7 @@ class Algorithm(ABC):
         sysm, n = self.system, len(self.system.slaves)
         self.inputs = inputs
         self.slopes = [np.zeros(len(b)) for b in sysm.in_buf]
-        self.hist = [sysm.v[src].copy() for src in sysm.in_src]
+        self.hist = [sysm.source_values(i) for i in range(len(sysm.in_src))]
         self.fresh = [np.zeros(len(b), dtype=bool) for b in sysm.in_buf]
         self.interpolating = [False] * n
         if inputs == "hold":
@@ -813,12 +844,15 @@ def choose_engine(system: CoupledSystem, alg_cls: type[Algorithm], engine: str, 
     if engine == "python":
         return "python"
     native = alg_cls.native_code is not None and all(s.native() is not None for s in system.slaves)
+    if engine == "compiled" and system.transformed:
+        raise UserError("master.engine: compiled copies connections as they are; connections with a linear "
+                        "transformation (factor, offset) run in the Python loop: use master.engine: python or auto")
     if engine == "compiled" and system.typed.active:
         raise UserError("master.engine: compiled carries scalar Float64 variables only; this scene connects or "
                         "records other types or arrays: use engine auto or python")
     if engine == "compiled" and start_ns:
         raise UserError("master.engine: compiled runs from start_time 0; use engine auto or python")
-    native = native and not system.typed.active and not start_ns
+    native = native and not system.typed.active and not start_ns and not system.transformed
     if engine == "compiled":
         if not native:
             raise UserError(f"master.engine: compiled needs FMU slaves and an algorithm with a compiled loop "

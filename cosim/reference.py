@@ -44,6 +44,10 @@ def composite(scene: Scene) -> Composite:
     input_names = {n: {v.name for v in c.block.inputs} for n, c in scene.components.items()}
     starts = {n: {k: v for k, v in c.start.items() if k in state_names[n]} for n, c in scene.components.items()}
     inputs = {n: {k: v for k, v in c.start.items() if k in input_names[n]} for n, c in scene.components.items()}
+    for c in scene.connections:
+        if c.factor != 1.0 or c.offset != 0.0:
+            raise UserError(f"connection {c}: the monolithic reference joins signals as they are; a linear "
+                            f"transformation is not supported there")
     wires = [(c.src, c.src_var, c.dst, c.dst_var) for c in scene.connections]
     try:
         return compose(blocks, params, wires, starts=starts, inputs=inputs)

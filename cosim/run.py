@@ -62,7 +62,7 @@ def couple(scene: Scene, slaves: Sequence[Slave], watch: Sequence[tuple[str, str
     """The coupled system of ``scene`` over ``slaves`` (one per component, in scene order);
     ``watch``: (component, variable) pairs sampled with the recorded ones but not traced."""
     index = {s.name: i for i, s in enumerate(slaves)}
-    links = [Link(index[c.src], c.src_var, index[c.dst], c.dst_var) for c in scene.connections]
+    links = [Link(index[c.src], c.src_var, index[c.dst], c.dst_var, c.factor, c.offset) for c in scene.connections]
     record = []
     for name in scene.outputs:
         comp, _, var = name.partition(".")
@@ -82,8 +82,13 @@ def scene_observers(scene: Scene, out_dir: Path | None, suffix: str = "") -> tup
 
 def scene_meta(scene: Scene) -> dict:
     """Trace metadata identifying the scene a run comes from."""
+    from .charts import units_of
+
+    units = units_of(scene)
     return {"scene": scene.name, "scene_file": str(scene.path) if scene.path else None, "scene_hash": scene.hash,
-            "start_time": scene.start_time, "stop_time": scene.stop_time, "output_interval": scene.master.record_every * scene.master.step}
+            "start_time": scene.start_time, "stop_time": scene.stop_time,
+            "output_interval": scene.master.record_every * scene.master.step,
+            "units": {name: units.get(name, "") for name in scene.outputs}}
 
 
 def run(scene: Scene | str | Path, overrides: Mapping[str, Any] | Sequence[str] | None = None, *,

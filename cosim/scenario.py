@@ -15,6 +15,7 @@ Format (every key but ``components`` and ``connections`` optional; lines startin
       - target.leg[1].s -> pid1.setpoint        # signal: output -> input
       - stair.counter -> plant.u as Float64     # an explicit type conversion (cosim.fmitypes)
       - motor1.flange <-> mech.leg[1]           # power bond between two flanges
+      - mech.leg[1].s -> pid1.measurement * 1000 + 0.5   # signal through a linear transformation
     master: {algorithm: gauss_seidel, step: 1e-3, order: [target, pid1, motor1, mech],
              engine: auto, output_interval: 1e-3}
     outputs: ["mech.platform.*", "mech.leg[*].f"]   # fnmatch over "component.variable"
@@ -45,6 +46,7 @@ are kept on :attr:`Scene.warnings`.
 from __future__ import annotations
 
 import copy
+import dataclasses
 import difflib
 import fnmatch
 import hashlib
@@ -259,6 +261,24 @@ def merge(base: Any, over: Any, *, path: str = "") -> Any:
 
 
 _ARROW = re.compile(r"^\s*(\S+)\s*(<->|->)\s*(\S+)\s*$")
+#: An optional linear transformation after a signal connection: ``a.y -> b.u * 0.001 + 0.5``.
+_TRANSFORM = re.compile(r"^(\s*\S+\s*->\s*\S+)(?:\s+\*\s*(\S+))?(?:\s+([-+])\s*(\S+))?\s*$")
+
+
+def split_transform(text: str) -> tuple[str, float, float] | None:
+    """``"a.y -> b.u * k + c"`` -> ``("a.y -> b.u", k, c)``; the text itself with (1, 0) when it
+    has no transformation; None when the transformation is not two finite numbers."""
+    m = _TRANSFORM.match(text)
+    if not m or (m.group(2) is None and m.group(4) is None):
+        return text, 1.0, 0.0
+    try:
+        factor = float(m.group(2)) if m.group(2) is not None else 1.0
+        offset = float(m.group(4)) * (-1.0 if m.group(3) == "-" else 1.0) if m.group(4) is not None else 0.0
+    except ValueError:
+        return None
+    if not (math.isfinite(factor) and math.isfinite(offset)):
+        return None
+    return m.group(1), factor, offset
 #: an explicit type conversion on a signal: ``a.y -> b.u as Float64`` (see :mod:`cosim.fmitypes`)
 _AS = re.compile(r"^(.*\S)\s+as\s+([A-Za-z][A-Za-z0-9]*)\s*$")
 
@@ -266,7 +286,8 @@ _AS = re.compile(r"^(.*\S)\s+as\s+([A-Za-z][A-Za-z0-9]*)\s*$")
 def _conn_keys(text: Any) -> set[str]:
     """What a connection occupies: the input it feeds, or both flanges of a bond."""
     conv = _AS.match(str(text))
-    m = _ARROW.match(conv.group(1) if conv else str(text))
+    base = conv.group(1) if conv else str(text)
+    m = _ARROW.match((split_transform(base) or (base,))[0])
     if not m:
         return set()
     a, arrow, b = m.groups()
@@ -295,6 +316,10 @@ def load_raw(path: Path, problems: list[Problem], _chain: tuple[Path, ...] = ())
         cycle = " -> ".join(_display(p) for p in _chain + (rp,))
         problems.append(Problem(_display(path), 0, f"include cycle: {cycle}"))
         return None
+    if path.suffix.lower() == ".ssp":  # an SSP archive read as a scene tree (cosim.ssp)
+        from .ssp import scene_tree
+
+        return scene_tree(path, problems)
     data, found = read_yaml(path)
     problems.extend(found)
     if data is None:
@@ -321,7 +346,7 @@ def load_raw(path: Path, problems: list[Problem], _chain: tuple[Path, ...] = ())
             continue
         target = (path.parent / item)
         if not target.is_file():
-            near = suggest(item, [p.name for p in path.parent.glob("*.yaml")])
+            near = suggest(item, [p.name for p in path.parent.glob("*.yaml")] + [p.name for p in path.parent.glob("*.ssp")])
             problems.append(Problem(*loc, f"included scene {item!r} not found next to {path.name}{near}"))
             continue
         sub = load_raw(target, problems, _chain + (rp,))
@@ -431,9 +456,16 @@ class Connection:
     bond: str | None = None
     where: Loc = ("", 0)
     as_type: str | None = None  # an explicit conversion to the destination's type
+    factor: float = 1.0  # dst = factor * src + offset (a linear transformation, e.g. from an SSP)
+    offset: float = 0.0
 
     def __str__(self) -> str:
-        return f"{self.src}.{self.src_var} -> {self.dst}.{self.dst_var}" + (f" as {self.as_type}" if self.as_type else "")
+        text = f"{self.src}.{self.src_var} -> {self.dst}.{self.dst_var}"
+        if self.factor != 1.0:
+            text += f" * {self.factor!r}"
+        if self.offset != 0.0:
+            text += f" {'-' if self.offset < 0 else '+'} {abs(self.offset)!r}"
+        return text + (f" as {self.as_type}" if self.as_type else "")
 
 
 @dataclass
@@ -877,6 +909,12 @@ class _Checker:
             as_type = None
             if isinstance(item, str) and (conv := _AS.match(item)):
                 item, as_type = conv.group(1), conv.group(2)
+            affine = split_transform(item) if isinstance(item, str) else (item, 1.0, 0.0)
+            if affine is None:
+                self.err(where, f"connection {item!r}: a transformation reads '* FACTOR + OFFSET' with numbers, "
+                                f"e.g. 'a.y -> b.u * 0.001 + 0.5'")
+                continue
+            item, factor, offset = affine
             m = _ARROW.match(item) if isinstance(item, str) else None
             if m and as_type is not None and m.group(2) != "->":
                 self.err(where, f"'as {as_type}' converts a signal ('a.out -> b.in as TYPE'), not a bond")
@@ -894,7 +932,10 @@ class _Checker:
             if arrow == "->":
                 c = self.signal(*a, *b, comps, where, as_type=as_type)
                 if c is not None:
-                    new.append(c)
+                    new.append(dataclasses.replace(c, factor=factor, offset=offset))
+            elif factor != 1.0 or offset != 0.0:
+                self.err(where, f"bond {lhs} <-> {rhs}: a power bond takes no transformation")
+                continue
             else:
                 fa, fb = comps[a[0]].description.flange(a[1]), comps[b[0]].description.flange(b[1])
                 bad = False

@@ -22,7 +22,7 @@ from typing import Any, Callable
 
 from ..block import Block, BlockError
 from . import mechanism, motor, oscillator, pid, setpoint
-from ._common import CONFIG, SUBSTEPS, Option, integrator_option, positive_float, suggest
+from ._common import CONFIG, SUBSTEPS, Option, integrator_option, positive_float, suggest, unit_text
 
 
 @dataclass(frozen=True)
@@ -36,7 +36,9 @@ def _entries() -> dict[str, dict[str, _Entry]]:
     pid_opts = (Option("form", "parallel", "PID form: parallel gains (Kp, Ki, Kd, Tf) or the 20-sim standard "
                                            "form (Kp, Ti, Td, beta)", choices=pid.FORMS),
                 Option("derivative", "error", "signal the derivative acts on", choices=pid.DERIVATIVE),
-                Option("anti_windup", "none", "integrator anti-windup at the output limit", choices=pid.ANTI_WINDUP))
+                Option("anti_windup", "none", "integrator anti-windup at the output limit", choices=pid.ANTI_WINDUP),
+                Option("unit_in", "m", "unit of setpoint and measurement (leg lengths in the thesis)", check=unit_text),
+                Option("unit_out", "V", "unit of the output (motor voltage in the thesis)", check=unit_text))
     rotor = Option("rotor", "lumped", "rotor inertia: 'lumped' (DESIGN option (b), inertia-free motor; lump "
                                       "m_reflected into the mechanism's leg[i].m_act) or 'state' (option (a): rotor "
                                       "state and a stiff spring-damper bond)", choices=motor.ROTOR)

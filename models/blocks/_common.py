@@ -124,6 +124,15 @@ def positive_int(v: Any) -> str | None:
     return None
 
 
+def unit_text(v: Any) -> str | None:
+    """A unit as written in FMI: symbols, exponents, '.', '/' and parentheses (e.g. ``N.m/rad``)."""
+    import re
+
+    if not isinstance(v, str) or not re.fullmatch(r"[A-Za-z0-9.*/()\-]+", v):
+        return "must be a unit such as m, V, rad or N.m/rad"
+    return None
+
+
 def positive_float(v: Any) -> str | None:
     if isinstance(v, bool):
         return "must be a positive number"

@@ -1,7 +1,9 @@
 """PID controller with a filtered derivative, an output limiter and optional anti-windup.
 
-Inputs ``setpoint`` and ``measurement`` (any unit; leg lengths [m] in the thesis's scene);
-outputs ``y`` (the limited control, [V] for a motor) and ``e = setpoint - measurement``.
+Inputs ``setpoint`` and ``measurement`` (unit option ``unit_in``, default ``m``: leg lengths in
+the thesis's scene); outputs ``y`` (the limited control, unit option ``unit_out``, default ``V``:
+the motor voltage) and ``e = setpoint - measurement``.  The gains' units follow (``Kp`` in
+``unit_out/unit_in``).
 
 Forms (construction option ``form``):
 
@@ -45,27 +47,30 @@ DERIVATIVE = ("error", "measurement")
 ANTI_WINDUP = ("none", "clamp", "backcalc")
 
 
-def _law(form: str, derivative: str, anti_windup: str):
-    """Parameters, symbols and the continuous right-hand side ``(dI/dt, dw/dt, Tf)`` plus outputs."""
+def _law(form: str, derivative: str, anti_windup: str, unit_in: str = "m", unit_out: str = "V"):
+    """Parameters, symbols and the continuous right-hand side ``(dI/dt, dw/dt, Tf)`` plus outputs.
+    ``unit_in`` is the unit of setpoint and measurement, ``unit_out`` that of the output (the
+    gains' units follow from them)."""
     ps = ParamSet()
+    per = f"{unit_out}/{unit_in}"
     if form == "parallel":
-        Kp = ps.add("Kp", 30.0, "1", "proportional gain (output unit per input unit; Table 6.7)")
-        Ki = ps.add("Ki", 80.0, "1/s", "integral gain (Table 6.7 read as parallel gains)")
-        Kd = ps.add("Kd", 20.0, "s", "derivative gain (Table 6.7 read as parallel gains)")
+        Kp = ps.add("Kp", 30.0, per, "proportional gain (Table 6.7)")
+        Ki = ps.add("Ki", 80.0, f"{unit_out}/({unit_in}.s)", "integral gain (Table 6.7 read as parallel gains)")
+        Kd = ps.add("Kd", 20.0, f"{unit_out}.s/{unit_in}", "derivative gain (Table 6.7 read as parallel gains)")
         Tf = ps.add("Tf", 1e-3, "s", "derivative filter time constant", lower=1e-9)
         ki, kd = Ki, Kd
     else:
-        Kp = ps.add("Kp", 30.0, "1", "proportional gain (Table 6.7)")
+        Kp = ps.add("Kp", 30.0, per, "proportional gain (Table 6.7)")
         Ti = ps.add("Ti", 80.0, "s", "integral time (Table 6.7)", lower=1e-12)
         Td = ps.add("Td", 20.0, "s", "derivative time (Table 6.7)", lower=1e-12)
         beta = ps.add("beta", 0.1, "1", "derivative filter: time constant beta Td (20-sim)", lower=1e-9)
         ki, kd, Tf = Kp / Ti, Kp * Td, beta * Td
-    u_max = ps.add("u_max", 12.0, "", "output limit: y in [-u_max, u_max] (Table 6.7: 12 V)", lower=0.0)
+    u_max = ps.add("u_max", 12.0, unit_out, "output limit: y in [-u_max, u_max] (Table 6.7: 12 V)", lower=0.0)
     Tt = ps.add("Tt", 0.5, "s", "anti-windup tracking time constant (backcalc only)", lower=1e-9) \
         if anti_windup == "backcalc" else None
-    I0 = ps.add("I0", 0.0, "", "start value of the integral part")
-    w0 = ps.add("w0", 0.0, "", "start value of the derivative filter state (the initial derivative "
-                                        "signal avoids a start kick)")
+    I0 = ps.add("I0", 0.0, unit_out, "start value of the integral part")
+    w0 = ps.add("w0", 0.0, unit_in, "start value of the derivative filter state (the initial derivative "
+                                    "signal avoids a start kick)")
     u = ca.SX.sym("uin", 2)
     sp, meas = u[0], u[1]
     xs = ca.SX.sym("xs", 2)
@@ -85,31 +90,36 @@ def _law(form: str, derivative: str, anti_windup: str):
     return ps, u, xs, (dI, dw, Tf, s), ca.vertcat(y, e), ca.vertcat(I0, w0)
 
 
-_INPUTS = [Var("setpoint", "", "reference value"), Var("measurement", "", "measured value")]
-_OUTPUTS = [Var("y", "", "limited control output"), Var("e", "", "error setpoint - measurement")]
-_STATES = [Var("state.I", "", "integral part of the output"), Var("state.w", "", "derivative filter state")]
+def _variables(unit_in: str, unit_out: str) -> tuple[list[Var], list[Var], list[Var]]:
+    """Inputs, outputs and states with their units."""
+    return ([Var("setpoint", unit_in, "reference value"), Var("measurement", unit_in, "measured value")],
+            [Var("y", unit_out, "limited control output"), Var("e", unit_in, "error setpoint - measurement")],
+            [Var("state.I", unit_out, "integral part of the output"),
+             Var("state.w", unit_in, "derivative filter state")])
 
 
 def continuous(form: str = "parallel", derivative: str = "error", anti_windup: str = "none",
-               integrator: str = "rk4", substeps: int = 1) -> Block:
+               integrator: str = "rk4", substeps: int = 1, unit_in: str = "m", unit_out: str = "V") -> Block:
     """Continuous PID (RK4 by default; the filter pole is ``-1/Tf``)."""
-    ps, u, xs, (dI, dw, _, _), out, start = _law(form, derivative, anti_windup)
+    ps, u, xs, (dI, dw, _, _), out, start = _law(form, derivative, anti_windup, unit_in, unit_out)
+    inputs, outputs, states = _variables(unit_in, unit_out)
     return Block.build(
         "pid", description=f"PID controller, {form} form, derivative on {derivative}, anti-windup {anti_windup}",
-        params=ps.params, inputs=list(_INPUTS), outputs=list(_OUTPUTS), states=list(_STATES), p=ps.vector(),
+        params=ps.params, inputs=inputs, outputs=outputs, states=states, p=ps.vector(),
         u=u, x=xs, ode=ca.vertcat(dI, dw), out=out, start=start, integrator=integrator, substeps=substeps,
         fidelity="continuous")
 
 
 def discrete(form: str = "parallel", derivative: str = "error", anti_windup: str = "none",
-             sample_period: float = 1e-3) -> Block:
+             sample_period: float = 1e-3, unit_in: str = "m", unit_out: str = "V") -> Block:
     """Sampled PID: forward-Euler integral, exact zero-order-hold update of the derivative filter."""
     T = float(sample_period)
-    ps, u, xs, (dI, dw, Tf, s), out, start = _law(form, derivative, anti_windup)
+    ps, u, xs, (dI, dw, Tf, s), out, start = _law(form, derivative, anti_windup, unit_in, unit_out)
+    inputs, outputs, states = _variables(unit_in, unit_out)
     I, w = xs[0], xs[1]
     update = ca.vertcat(I + T * dI, w + (1 - ca.exp(-T / Tf)) * (s - w))
     return Block.build(
         "pid", description=f"discrete PID (T = {T:g} s), {form} form, derivative on {derivative}, "
                            f"anti-windup {anti_windup}",
-        params=ps.params, inputs=list(_INPUTS), outputs=list(_OUTPUTS), states=list(_STATES), p=ps.vector(),
+        params=ps.params, inputs=inputs, outputs=outputs, states=states, p=ps.vector(),
         u=u, x=xs, ode=update, out=out, start=start, integrator="discrete", sample_period=T, fidelity="discrete")

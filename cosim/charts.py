@@ -1,0 +1,158 @@
+"""Charts of runs: units on every axis (from the FMUs' unit declarations), each setpoint on the
+axes of the signal it commands, a co-simulation overlaid on its reference with the error axis in
+the variable's unit.  matplotlib is imported inside the plotting functions only."""
+from __future__ import annotations
+
+import re
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from .trace import Trace
+
+
+def units_of(scene, fmus: Mapping[str, Path] | None = None) -> dict[str, str]:
+    """``component.variable`` -> unit, from each component's FMU (``fmus``: component -> FMU path,
+    e.g. :attr:`RunResult.fmus`) or, without one, from the description the scene validated."""
+    from .slaves import describe_fmu
+
+    out: dict[str, str] = {}
+    for name, comp in scene.components.items():
+        path = (fmus or {}).get(name)
+        desc = describe_fmu(path) if path is not None else comp.description
+        for var in desc.variables.values():
+            out[f"{name}.{var.name}"] = var.unit
+    return out
+
+
+def setpoint_pairs(scene) -> dict[str, str]:
+    """Setpoint signal -> the signal it commands: for every component with inputs ``setpoint``
+    and ``measurement`` (a controller), the sources feeding them."""
+    src = {(c.dst, c.dst_var): f"{c.src}.{c.src_var}" for c in scene.connections}
+    pairs = {}
+    for name in scene.components:
+        sp, meas = src.get((name, "setpoint")), src.get((name, "measurement"))
+        if sp and meas:
+            pairs[sp] = meas
+    return pairs
+
+
+@dataclass
+class Panel:
+    """One axes: a title, the y label (with unit) and the lines (name, dashed?)."""
+
+    title: str
+    ylabel: str
+    lines: list[tuple[str, bool]] = field(default_factory=list)
+
+
+def _group_key(name: str) -> str:
+    return re.sub(r"\[\d+\]", "[*]", re.sub(r"^([A-Za-z_]+?)\d+\.", r"\1*.", name))
+
+
+def _ylabel(names: Sequence[str], units: Mapping[str, str]) -> str:
+    found = sorted({units.get(n, "") for n in names})
+    if len(found) == 1:
+        return f"[{found[0] or '1'}]"
+    return "[" + ", ".join(u or "1" for u in found) + "]"
+
+
+def run_panels(names: Sequence[str], units: Mapping[str, str], pairs: Mapping[str, str] | None = None,
+               most: int = 24) -> list[Panel]:
+    """Axes of a run chart: like variables together (``pid1.y``, ``pid2.y``; ``leg[1..3].s``), a
+    setpoint dashed on the axes of the signal it commands (``pairs``), the unit on each y axis."""
+    pairs = {s: m for s, m in (pairs or {}).items() if s in names and m in names}
+    groups: dict[str, list[str]] = {}
+    for name in names:
+        if name not in pairs:
+            groups.setdefault(_group_key(name), []).append(name)
+    panels = []
+    for key, members in list(groups.items())[:most]:
+        lines = [(n, False) for n in members]
+        lines += [(s, True) for s, m in pairs.items() if m in members]
+        panels.append(Panel(key, _ylabel([n for n, _ in lines], units), lines))
+    return panels
+
+
+def plot_run(trace: Trace, path: Path, title: str, *, units: Mapping[str, str] | None = None,
+             pairs: Mapping[str, str] | None = None) -> Path:
+    """PNG of a run: one axes per :class:`Panel` of :func:`run_panels`."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    panels = run_panels(trace.names, units or {}, pairs)
+    ncol = 2 if len(panels) > 1 else 1
+    nrow = -(-len(panels) // ncol)
+    fig, axes = plt.subplots(nrow, ncol, figsize=(6 * ncol, 2.2 * nrow), sharex=True, squeeze=False)
+    for ax, panel in zip(axes.flat, panels):
+        colour: dict[str, str] = {}
+        for i, (name, dashed) in enumerate(panel.lines):
+            c = colour.get((pairs or {}).get(name, ""), f"C{i}") if dashed else f"C{i}"
+            colour[name] = c  # a setpoint takes the colour of the signal it commands
+            ax.plot(trace.time, trace[name], lw=1, ls="--" if dashed else "-", color=c,
+                    label=f"{name} (setpoint)" if dashed else name)
+        ax.set_title(panel.title, fontsize=9)
+        ax.set_ylabel(panel.ylabel, fontsize=8)
+        ax.grid(alpha=0.3)
+        if len(panel.lines) > 1:
+            ax.legend(fontsize=7, loc="best")
+    for ax in list(axes.flat)[len(panels):]:
+        ax.set_visible(False)
+    for ax in axes[-1]:
+        ax.set_xlabel("time [s]")
+    fig.suptitle(title)
+    fig.tight_layout()
+    return _save(fig, path)
+
+
+def comparison_figure(test: Trace, ref: Trace, diffs, *, labels: tuple[str, str] = ("test", "reference"),
+                      most: int = 8, units: Mapping[str, str] | None = None):
+    """The figure of :func:`plot_comparison` (for the ``most`` worst variables: both traces
+    overlaid on the left, their difference on the right, each y axis in the variable's unit)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from .compare import aligned
+
+    units = units or {}
+    worst = sorted(diffs, key=lambda d: -d.relative)[:most]
+    names = [d.name for d in worst]
+    t, a, b = aligned(test, ref, names)
+    fig, axes = plt.subplots(len(names), 2, figsize=(11, 1.9 * len(names) + 0.8), sharex=True, squeeze=False,
+                             layout="constrained")
+    for j, (n, d) in enumerate(zip(names, worst)):
+        ax, ad = axes[j]
+        unit = units.get(n, "") or "1"
+        ax.plot(ref.time, ref[n], color="0.6", lw=2.5, label=labels[1])
+        ax.plot(t, a[:, j], color="C0", lw=1.0, label=labels[0])
+        ax.set_title(n, fontsize=9)
+        ax.set_ylabel(f"[{unit}]", fontsize=8)
+        ad.plot(t, a[:, j] - b[:, j], color="C3", lw=1.0)
+        ad.set_title(f"{labels[0]} - {labels[1]}: max {d.max_abs:.2e} {unit} ({d.relative:.1e} of range)", fontsize=9)
+        ad.set_ylabel(f"error [{unit}]", fontsize=8)
+        for x in (ax, ad):
+            x.grid(alpha=0.3)
+    axes[0, 0].legend(fontsize=8)
+    for x in axes[-1]:
+        x.set_xlabel("time [s]")
+    return fig
+
+
+def plot_comparison(test: Trace, ref: Trace, diffs, path: Path, *, labels: tuple[str, str] = ("test", "reference"),
+                    most: int = 8, units: Mapping[str, str] | None = None) -> Path:
+    """PNG of :func:`comparison_figure`."""
+    return _save(comparison_figure(test, ref, diffs, labels=labels, most=most, units=units), path)
+
+
+def _save(fig, path: Path) -> Path:
+    import matplotlib.pyplot as plt
+
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+    return path
