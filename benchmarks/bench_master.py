@@ -1,11 +1,14 @@
-"""Master overhead per macro step per FMU, side by side in one run, and the real-time factor of
-the thesis's scenes.
+"""Per-FMU step cost of the masters, side by side in one run, the master's own share of it, and
+the real-time factor of the thesis's scenes.
 
 The FMUs: a ring of N first-order lags ``x' = (u - x) / T`` (RK4, one state, output ``y = x``:
-no feedthrough, so the ring has no algebraic loop), built once by :func:`fmus.build_fmu`.  Their
-own work is tens of nanoseconds per step, so the time per macro step per FMU is essentially the
-master's overhead plus the FMI call cost.  Every master runs the same FMUs, the same
-connections and the same number of steps (fixed-step Jacobi exchange semantics):
+no feedthrough, so the ring has no algebraic loop), built once by :func:`fmus.build_fmu`.  The
+*per-FMU step cost* is the wall time of the stepping loop per macro step per FMU: the FMU's own
+``fmi2SetReal`` + ``fmi2DoStep`` (its RK4 step) plus what the master adds (reading the output,
+moving values, bookkeeping).  The FMU's own part is measured alone, by a C driver that dlopens
+the same library and loops set + doStep (``benchmarks/bench_fmu.py``); the difference is printed
+as the master's own share.  Every master runs the same FMUs, the same connections and the same
+number of steps (fixed-step Jacobi exchange semantics):
 
 - rpr-cosim, compiled loop (Jacobi and Gauss-Seidel; with and without per-slave timing)
 - rpr-cosim, Python reference loop
@@ -118,6 +121,23 @@ def bench_ecospy(path: Path, n: int, steps: int) -> float | None:
     return wall
 
 
+def fmu_alone(path: Path, steps: int, repeat: int) -> float:
+    """us per (fmi2SetReal, fmi2DoStep) of one lag FMU driven by a C loop, no master: the FMU's
+    own step cost (best of ``repeat``)."""
+    import tempfile
+
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    import subprocess
+
+    from bench_fmu import DRIVER, _input, time_c
+
+    work = Path(tempfile.mkdtemp(prefix="bench-master-"))
+    (work / "driver.c").write_text(DRIVER)
+    subprocess.run(["gcc", "-O2", str(work / "driver.c"), "-o", str(work / "driver"), "-ldl", "-lm"], check=True)
+    vr_u, amp = _input(lag_block())
+    return min(time_c(path, work / "driver", 1e-3, steps, vr_u, amp) for _ in range(repeat))
+
+
 def scenes() -> None:
     from cosim.run import run
 
@@ -155,8 +175,9 @@ def main() -> None:
         "ecospy": lambda: bench_ecospy(path, n, steps),
     }
     per = {}
-    print(f"ring of {n} RK4 lag FMUs (FMI 2.0), 1 ms step; best of {args.repeat}; "
-          f"time per macro step per FMU [us]:")
+    own = fmu_alone(path, steps, args.repeat)
+    print(f"ring of {n} RK4 lag FMUs (FMI 2.0), 1 ms step; best of {args.repeat}; per-FMU step cost "
+          f"[us per macro step per FMU], and minus the FMU's own set + doStep alone ({own:.3f} us, C driver):")
     for name, fn in runs.items():
         n_steps = max(1000, steps // 10) if ("Python" in name or "fmpy" in name) else steps
         best = None
@@ -168,7 +189,7 @@ def main() -> None:
         if best is None:
             continue
         per[name] = 1e6 * best / n_steps / n
-        print(f"  {name:<40} {per[name]:8.3f}")
+        print(f"  {name:<40} {per[name]:8.3f}   master's own share {per[name] - own:8.3f}")
     ours = per["rpr-cosim compiled, Jacobi"]
     print("\nratios (same FMUs, same run):")
     if "ecospy" in per:

@@ -15,7 +15,7 @@ from .errors import user_error_types
 
 #: Modules that contribute verbs, in the order they appear in ``--help``.
 VERB_MODULES = ("cosim.cmd_analyze", "cosim.cmd_fmu", "cosim.cmd_run", "cosim.cmd_compare", "cosim.cmd_study",
-                "cosim.cmd_ssp")
+                "cosim.cmd_ssp", "cosim.cmd_board", "cosim.cmd_batch")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -36,14 +36,21 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
+    from .interrupts import exit_code, signals_as_interrupts
+
     try:
-        return int(args.handler(args) or 0)
-    except KeyboardInterrupt:
-        print("rpr-cosim: interrupted", file=sys.stderr)
-        return 130
+        with signals_as_interrupts():
+            return int(args.handler(args) or 0)
+    except KeyboardInterrupt as exc:
+        print(f"rpr-cosim: interrupted{' by ' + str(exc) if str(exc) else ''}", file=sys.stderr)
+        return exit_code(exc)
     except user_error_types() as exc:
         print(f"rpr-cosim {args.verb}: error: {exc}", file=sys.stderr)
         return 2
+    except OSError as exc:  # the machine's trouble, not a bug: a full disk, a read-only directory
+        where = f"{exc.filename}: " if getattr(exc, "filename", None) else ""
+        print(f"rpr-cosim {args.verb}: error: {where}{exc.strerror or exc}", file=sys.stderr)
+        return 1
 
 
 if __name__ == "__main__":  # pragma: no cover

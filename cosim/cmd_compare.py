@@ -24,7 +24,8 @@ from pathlib import Path
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("compare", help="differences between two traces (e.g. co-simulation vs reference or rig)",
                        description="Compare two rpr-cosim traces variable by variable.")
-    p.add_argument("test", type=Path, help="trace under test (CSV written by rpr-cosim)")
+    p.add_argument("test", type=Path, help="trace under test (CSV written by rpr-cosim), or the output directory "
+                                           "of a batch: then every run of it is compared with REFERENCE")
     p.add_argument("reference", type=Path, help="reference trace, interpolated onto the first one's instants")
     p.add_argument("--only", action="append", default=[], metavar="PATTERN",
                    help="compare only variables matching this glob, e.g. 'mech.platform.*'; repeatable")
@@ -47,6 +48,8 @@ def _compare(args: argparse.Namespace) -> int:
 
     if args.tol is not None and not args.tol > 0:
         raise UserError(f"--tol {args.tol}: expected a positive relative tolerance, e.g. 1e-3")
+    if args.test.is_dir():
+        return _compare_batch(args)
     test, ref = read_trace(args.test), read_trace(args.reference)
     checks = comparability(test, ref, test_path=args.test, ref_path=args.reference, patterns=args.only)
     problems = checks.problems(allow_failed=args.allow_failed, allow_partial=args.allow_partial)
@@ -70,5 +73,33 @@ def _compare(args: argparse.Namespace) -> int:
                   f"tolerance {args.tol:g} (worst: {max(bad, key=lambda d: d.relative).name})", file=sys.stderr)
             return 1
         if problems:
+            return 1
+    return 0
+
+
+def _compare_batch(args: argparse.Namespace) -> int:
+    """Many against one: every finished run of a batch against one reference trace."""
+    from .batch.report import compare_batch, format_batch_comparison
+    from .compare import VALID, run_status
+    from .errors import UserError
+    from .trace import read_trace
+
+    ref = read_trace(args.reference)
+    status, reason = run_status(ref, args.reference)
+    problem = (f"{args.reference}: the run's status is {status!r}, not 'ok'" + (f" ({reason})" if reason else "")
+               + "; use --allow-failed to compare against it anyway") if status not in VALID and not args.allow_failed else ""
+    if problem and args.tol is None:
+        raise UserError(f"refused: {problem}")
+    axes, found = compare_batch(args.test, ref, args.only)
+    print(f"{len(found)} runs of {args.test} against {args.reference} (worst variable of each, worst run first):")
+    print(format_batch_comparison(axes, found, most=args.most))
+    if args.tol is not None:
+        bad = [r for r, diffs in found if not max(d.relative for d in diffs) <= args.tol]
+        if bad:
+            print(f"rpr-cosim compare: {len(bad)} run{'s' if len(bad) != 1 else ''} beyond the relative tolerance "
+                  f"{args.tol:g}", file=sys.stderr)
+            return 1
+        if problem:
+            print(f"rpr-cosim compare: fails: {problem}", file=sys.stderr)
             return 1
     return 0

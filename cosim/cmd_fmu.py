@@ -22,10 +22,15 @@ from .errors import UserError
 
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("fmu", help="build co-simulation FMUs and list the FMU cache",
-                       description="Build FMI 2.0/3.0 co-simulation FMUs from the model catalog.")
+                       description="Build FMI 2.0/3.0 co-simulation FMUs from the model catalog, list the "
+                                   "catalog and the cache, and validate any FMU.")
     verbs = p.add_subparsers(dest="fmu_verb", metavar="ACTION")
     verbs.required = True
-    b = verbs.add_parser("build", help="build (or fetch from the cache) one FMU")
+    b = verbs.add_parser("build", help="build (or fetch from the cache) one FMU",
+                         description="Build one catalog model as a co-simulation FMU: CasADi generates its C, gcc "
+                                     "compiles it, and the result is cached by content (a second build of the same "
+                                     "block compiles nothing; a damaged cache entry is rebuilt).  Prints the FMU's "
+                                     "path on stdout.")
     b.add_argument("model", help="catalog model, e.g. mechanism, dc_motor, pid, pose_setpoint")
     b.add_argument("--fidelity", help="fidelity level (default: the model's first)")
     b.add_argument("--set", dest="sets", action="append", default=[], metavar="NAME=VALUE",
@@ -34,11 +39,16 @@ def register(sub: argparse._SubParsersAction) -> None:
     b.add_argument("--out", type=Path, help="also copy the FMU into this directory")
     b.add_argument("--cache", type=Path, help="cache directory (default $RPR_COSIM_CACHE or ~/.cache/rpr-cosim/fmus)")
     b.set_defaults(handler=_build)
-    ls = verbs.add_parser("list", help="show the model catalog and the cached FMUs")
+    ls = verbs.add_parser("list", help="show the model catalog and the cached FMUs",
+                          description="List the catalog's models with their fidelities, and every FMU in the cache "
+                                      "with its FMI version, integrator, states and build time.")
     ls.add_argument("--cache", type=Path, help="cache directory")
     ls.set_defaults(handler=_list)
-    ck = verbs.add_parser("check", help="validate an FMU's modelDescription.xml (FMPy's checks)")
-    ck.add_argument("fmu", type=Path)
+    ck = verbs.add_parser("check", help="validate an FMU's modelDescription.xml (FMPy's checks)",
+                          description="Validate any FMU: the archive (a zip whose members stay inside it) and its "
+                                      "modelDescription.xml against the FMI schema and FMPy's rules.  Prints one "
+                                      "line per problem; the exit code is their number (at most 100).")
+    ck.add_argument("fmu", type=Path, help="the .fmu file")
     ck.set_defaults(handler=_check)
     sh = verbs.add_parser("show", help="interface, parameters (units, defaults, bounds), states and integrator "
                                        "of a catalog model or an FMU file")
@@ -130,12 +140,37 @@ def _list(args: argparse.Namespace) -> int:
     return 0
 
 
+def archive_problem(path: Path) -> str | None:
+    """Why ``path`` is not an FMU archive one may open (not a zip, or a member whose name is
+    absolute or climbs out with ``..``), or None."""
+    import zipfile
+
+    try:
+        with zipfile.ZipFile(path) as z:
+            names = z.namelist()
+    except (zipfile.BadZipFile, OSError, ValueError) as exc:
+        return f"not an FMU: not a zip archive ({exc})"
+    for n in names:
+        parts = n.replace("\\", "/").split("/")
+        if n.startswith(("/", "\\")) or (len(n) > 1 and n[1] == ":") or ".." in parts:
+            return f"unsafe FMU: member {n!r} has an absolute path or '..'; an FMU's files are relative to its root"
+    if "modelDescription.xml" not in names:
+        return "not an FMU: no modelDescription.xml at the archive's root"
+    return None
+
+
 def _check(args: argparse.Namespace) -> int:
     from fmpy.validation import validate_fmu
 
     if not args.fmu.is_file():
         raise UserError(f"{args.fmu}: no such FMU file")
-    problems = validate_fmu(str(args.fmu))
+    problem = archive_problem(args.fmu)
+    if problem:
+        raise UserError(f"{args.fmu}: {problem}")
+    try:
+        problems = validate_fmu(str(args.fmu))
+    except Exception as exc:  # fmpy raises bare Exceptions for malformed XML
+        raise UserError(f"{args.fmu}: cannot read the model description ({str(exc).splitlines()[0] if str(exc) else type(exc).__name__})") from None
     for p in problems:
         print(p)
     print(f"{args.fmu}: {len(problems)} problem(s)", file=sys.stderr)

@@ -15,6 +15,8 @@ import argparse
 import sys
 from pathlib import Path
 
+from .outputs import confined
+
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -33,6 +35,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--check", action="store_true", help="only validate the scene and print what it contains")
     p.add_argument("--engine", choices=["auto", "compiled", "python"], help="override master.engine")
     p.add_argument("--cache", type=Path, help="FMU cache directory (default $RPR_COSIM_CACHE or ~/.cache/rpr-cosim/fmus)")
+    p.add_argument("--max-trace", metavar="SIZE", default=None,
+                   help="refuse a run whose trace would be larger, e.g. 20GB (default $RPR_COSIM_MAX_TRACE or 4GB)")
     p.set_defaults(handler=_run)
 
 
@@ -54,28 +58,51 @@ def _run(args: argparse.Namespace) -> int:
         return 2
     for w in scene.warnings:
         _say(str(w))
+    from .outputs import OutputLock, check_out_dir, safe_name
+    from .run import check_trace_size
+
+    from .errors import UserError
+    from .run import estimate
+
     if args.check:
         _describe(scene)
+        print(f"  expected: {estimate(scene)}")
+        try:
+            check_trace_size(scene, args.max_trace)
+        except UserError as exc:
+            _say(f"rpr-cosim run: {exc}")
+            return 2
         return 0
-    out = args.out or Path("runs") / scene.name
+    check_trace_size(scene, args.max_trace)
+    out = args.out or Path("runs") / safe_name(scene.name)
+    check_out_dir(out)
+    with OutputLock(out, log=lambda m: _say(f"[run] {m}")):
+        return _run_locked(args, scene, out)
+
+
+def _run_locked(args: argparse.Namespace, scene, out: Path) -> int:
+    from .run import progress_bar, run
+
     try:
         res = run(scene, out_dir=out, cache_dir=args.cache, engine=args.engine, progress=progress_bar(),
-                  log=lambda m: _say(f"[fmu] {m}"))
-    except KeyboardInterrupt:
-        _say(f"rpr-cosim run: interrupted; the partial trace and the reason are in {out / (scene.name + '.csv')}")
+                  log=lambda m: _say(f"[run] {m}" if m.startswith(scene.name + ":") or "trace" in m else f"[fmu] {m}"),
+                  max_trace_bytes=args.max_trace)
+    except KeyboardInterrupt as exc:
+        _say(f"rpr-cosim run: interrupted{' by ' + str(exc) if str(exc) else ''}; the partial trace and the reason "
+             f"are in {out / (scene.name + '.csv')}")
         raise
     _summary(res)
     if args.plot and len(res.trace.data):
         from .charts import plot_run, setpoint_pairs, units_of
 
-        _say(f"plot: {plot_run(res.trace, out / f'{scene.name}.png', scene.name, units=units_of(scene, res.fmus), pairs=setpoint_pairs(scene))}")
+        _say(f"plot: {plot_run(res.trace, confined(out, f'{scene.name}.png'), scene.name, units=units_of(scene, res.fmus), pairs=setpoint_pairs(scene))}")
     if args.animate and len(res.trace.data):
         from .animate import animate, manipulator_for, pose_component
 
         comp = pose_component(res.trace)
         c = scene.components.get(comp)
         m = manipulator_for(c.options, c.params) if c is not None else None
-        _say(f"animation: {animate(res.trace, out / f'{scene.name}.gif', manipulator=m, component=comp, title=scene.name)}")
+        _say(f"animation: {animate(res.trace, confined(out, f'{scene.name}.gif'), manipulator=m, component=comp, title=scene.name)}")
     if args.reference:
         _reference(scene, res, out, args.plot)
     if res.status == "stopped":  # a component asked to end the simulation: a normal end (FMI)
@@ -93,7 +120,7 @@ def _reference(scene, res, out: Path, plot: bool) -> None:
     from .reference import reference
     from .run import progress_bar
 
-    ref = reference(scene, out_dir=out, progress=progress_bar())
+    ref = reference(scene, out_dir=out, progress=progress_bar(), log=lambda m: _say(f"[reference] {m}"))
     st = ref.stats
     print(f"monolithic reference ({ref.trace.meta.get('method', 'CVODES')}, {ref.trace.meta.get('states')} states): "
           f"{ref.status}{' (' + ref.reason + ')' if ref.reason else ''}, {st['wall_s']:.2f} s; trace: {ref.trace_path}")
@@ -108,7 +135,7 @@ def _reference(scene, res, out: Path, plot: bool) -> None:
         if plot:
             from .charts import units_of
 
-            _say(f"plot: {plot_comparison(res.trace, ref.trace, diffs, out / f'{scene.name}_vs_reference.png', labels=(scene.master.algorithm, 'reference'), units=units_of(scene, res.fmus))}")
+            _say(f"plot: {plot_comparison(res.trace, ref.trace, diffs, confined(out, f'{scene.name}_vs_reference.png'), labels=(scene.master.algorithm, 'reference'), units=units_of(scene, res.fmus))}")
 
 
 def _describe(scene) -> None:

@@ -112,9 +112,11 @@ def _stability(args: argparse.Namespace) -> int:
     variants = _variants(args.variant)
     smap = stability_map(args.scene, path, values, steps, n_values=args.n, n_steps=args.n, variants=variants,
                          cache_dir=args.cache, progress=progress_bar())
+    from .outputs import check_out_dir, confined
+
     out = args.out or Path("runs") / f"{smap.scene}_stability"
-    out.mkdir(parents=True, exist_ok=True)
-    csv_path, png_path = out / f"{smap.scene}_stability.csv", out / f"{smap.scene}_stability.png"
+    check_out_dir(out)  # files stay under --out (cosim.outputs)
+    csv_path, png_path = confined(out, f"{smap.scene}_stability.csv"), confined(out, f"{smap.scene}_stability.png")
     smap.write_csv(csv_path)
     plot_map(smap, png_path, args.scene)
     print(f"{smap.scene}: {len(smap.cells)} runs over step x {path}")
@@ -148,9 +150,11 @@ def _precision(args: argparse.Namespace) -> int:
         raise UserError(f"--tol {args.tol}: expected a positive relative tolerance")
     study = precision_study(args.scene, _variants(args.variant), steps, stop_time=args.stop, only=args.only or None,
                             cache_dir=args.cache, progress=lambda m: print(f"  {m}", file=sys.stderr, flush=True))
+    from .outputs import check_out_dir, confined
+
     out = args.out or Path("runs") / f"{study.scene}_precision"
-    out.mkdir(parents=True, exist_ok=True)
-    csv_path, png_path = out / f"{study.scene}_precision.csv", out / f"{study.scene}_precision.png"
+    check_out_dir(out)  # files stay under --out (cosim.outputs)
+    csv_path, png_path = confined(out, f"{study.scene}_precision.csv"), confined(out, f"{study.scene}_precision.png")
     study.write_csv(csv_path)
     plot_study(study, png_path)
     print(f"{study.scene}: {len(study.rows)} runs over {study.stop_time:g} s against the monolithic reference "

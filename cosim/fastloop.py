@@ -24,6 +24,10 @@ from pathlib import Path
 
 from .errors import UserError
 
+#: Longest wall time of one call of the compiled loop [ns]; it returns to Python (where signals
+#: are handled) at least this often.
+CALL_BUDGET_NS = 250_000_000
+
 SOURCE = r"""
 #include <stdint.h>
 #include <stddef.h>
@@ -102,12 +106,14 @@ static inline int step(rpr_slave *s, double t, double h) {
 
 /* Run up to nsteps macro steps from step index k0.  algorithm 0 = Jacobi, 1 = Gauss-Seidel
    (slaves in `order`).  After every `rec_every`-th step a row (t, v[rec_idx]...) is appended to
-   rec.  Returns the number of steps completed; on a failure *fail_slave >= 0. */
+   rec.  Returns the number of steps completed; on a failure *fail_slave >= 0.  With
+   budget_ns > 0 it also returns (early, no failure) once that much wall time has passed, so
+   that Python can handle signals between calls. */
 int64_t rpr_run(rpr_slave *S, int32_t n, const int32_t *order, int32_t algorithm, double *v,
                 int64_t k0, int64_t nsteps, int64_t step_ns, int32_t timing,
                 const int64_t *rec_idx, int32_t n_rec, int64_t rec_every, double *rec, int64_t *n_rows,
-                int32_t *fail_slave, int32_t *fail_status, int64_t *master_ns) {
-    int64_t k, done = 0, rows = 0, t_start = timing ? now_ns() : 0, tprev = t_start;
+                int32_t *fail_slave, int32_t *fail_status, int64_t *master_ns, int64_t budget_ns) {
+    int64_t k, done = 0, rows = 0, t_start = (timing || budget_ns > 0) ? now_ns() : 0, tprev = t_start;
     int64_t slave_ns0 = 0, slave_ns1 = 0;
     int32_t i, c;
     double h = (double)step_ns / 1e9, inv_h = 1.0 / h;
@@ -137,6 +143,7 @@ int64_t rpr_run(rpr_slave *S, int32_t n, const int32_t *order, int32_t algorithm
             for (c = 0; c < n_rec; ++c) row[c + 1] = v[rec_idx[c]];
             ++rows;
         }
+        if (budget_ns > 0 && (done & 15) == 0 && now_ns() - t_start > budget_ns) break;
     }
 out:
     *n_rows = rows;
@@ -176,8 +183,13 @@ def library() -> ctypes.CDLL:
         raise UserError(f"the compiled master loop needs a C compiler ({cc}: {exc}); "
                         f"set master.engine: python to use the Python loop") from None
     key = hashlib.sha256((SOURCE + version + sys.platform).encode()).hexdigest()[:20]
+    from fmus.cache import writable_root
+
     root = _cache_dir()
-    root.mkdir(parents=True, exist_ok=True)
+    if not (root / f"rpr_loop_{key}.so").exists():
+        fallback = writable_root(root)
+        root = fallback if fallback == root else fallback / "master"
+        root.mkdir(parents=True, exist_ok=True)
     lib = root / f"rpr_loop_{key}.so"
     if not lib.exists():
         with tempfile.TemporaryDirectory(dir=root) as tmp:
@@ -194,7 +206,7 @@ def library() -> ctypes.CDLL:
     fn.restype = c_int64
     fn.argtypes = [POINTER(CSlave), c_int32, c_void_p, c_int32, c_void_p, c_int64, c_int64, c_int64, c_int32,
                    c_void_p, c_int32, c_int64, c_void_p, POINTER(c_int64), POINTER(c_int32), POINTER(c_int32),
-                   POINTER(c_int64)]
+                   POINTER(c_int64), c_int64]
     return dll
 
 

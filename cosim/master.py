@@ -56,6 +56,7 @@ import time
 from abc import ABC, abstractmethod
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
+from functools import lru_cache
 from typing import ClassVar
 
 import numpy as np
@@ -166,7 +167,13 @@ def gauss_seidel_order(n: int, edges: Iterable[tuple[int, int]]) -> list[int]:
     backwards, whose destination sees the source's output from the previous point) -- found by
     exhaustive search up to seven slaves, greedily (by out-degree minus in-degree) beyond;
     ties go to the declaration order."""
-    e = {(a, b) for a, b in edges if a != b}
+    return list(_gauss_seidel_order(n, frozenset((a, b) for a, b in edges if a != b)))
+
+
+@lru_cache(maxsize=128)
+def _gauss_seidel_order(n: int, e: frozenset[tuple[int, int]]) -> tuple[int, ...]:
+    """:func:`gauss_seidel_order`, cached: the exhaustive search costs ~0.2 s for eight slaves,
+    and a batch asks it again for every run of the same scene."""
     succ = [set() for _ in range(n)]
     for a, b in e:
         succ[a].add(b)
@@ -189,7 +196,7 @@ def gauss_seidel_order(n: int, edges: Iterable[tuple[int, int]]) -> list[int]:
                 seq.append(v)
                 rest.discard(v)
             order.extend(seq)
-    return order
+    return tuple(order)
 
 
 # --- the coupled system -----------------------------------------------------------------------
@@ -722,6 +729,8 @@ class _Compiled:
         self.fail_slave = ctypes.c_int32()
         self.fail_status = ctypes.c_int32()
         self.master_ns = ctypes.c_int64()
+        #: wall time after which one call returns early [ns]: signals are handled between calls
+        self.budget_ns = fastloop.CALL_BUDGET_NS
 
     def run(self, nsteps: int, rec_every: int, rec: np.ndarray) -> int:
         alg, sysm = self.alg, self.alg.system
@@ -731,7 +740,7 @@ class _Compiled:
                                 self.rec_idx.ctypes.data if self.rec_idx.size else None, len(self.rec_idx),
                                 rec_every, rec.ctypes.data, self.c.byref(self.n_rows),
                                 self.c.byref(self.fail_slave), self.c.byref(self.fail_status),
-                                self.c.byref(self.master_ns))
+                                self.c.byref(self.master_ns), self.budget_ns)
         for i, c in enumerate(self.arr):
             alg.calls[i], alg.slave_ns[i] = c.calls, c.ns
         alg.master_ns += self.master_ns.value
@@ -784,6 +793,7 @@ class RunStats:
     master_s: float = 0.0
     slaves: dict[str, dict[str, float]] = field(default_factory=dict)
     guards: dict = field(default_factory=dict)
+    realtime: dict | None = None  # lateness statistics of a paced run (cosim.realtime)
 
     @property
     def simulated_s(self) -> float:
@@ -799,7 +809,8 @@ class RunStats:
                 "steps_planned": self.steps_planned, "steps_done": self.steps_done, "status": self.status,
                 "reason": self.reason, "init_s": self.init_s, "wall_s": self.wall_s, "master_s": self.master_s,
                 "simulated_s": self.simulated_s, "real_time_factor": self.real_time_factor, "slaves": self.slaves,
-                **({"guards": self.guards} if self.guards else {})}
+                **({"guards": self.guards} if self.guards else {}),
+                **({"realtime": self.realtime} if self.realtime is not None else {})}
 
 
 def initialize(system: CoupledSystem, start_values: Sequence[dict[str, float]], *, start_time: float = 0.0,
@@ -882,19 +893,26 @@ def simulate(system: CoupledSystem, algorithm_name: str, *, step_ns: int, n_step
              engine: str = "auto", order: Sequence[int] | None = None, timing: bool = True,
              progress: Callable[[int, int], None] | None = None, meta: dict | None = None,
              inputs: str = "hold", start_ns: int = 0, tolerances: Sequence[float | None] | None = None,
-             guard=None) -> RunStats:
+             realtime=None, guard=None) -> RunStats:
     """Initialise ``system`` and run ``n_steps`` macro steps of ``step_ns`` nanoseconds, inputs
     held or linear over each step (``inputs``, see the module docstring).
 
     Observers receive ``start(columns, meta)``, ``record(rows)`` (rows of time and the recorded
     values, at ``t_0`` and every ``record_every`` steps) and ``finish(status, reason, stats)``,
     also when the run fails or is interrupted (then the exception propagates after ``finish``).
+    ``realtime`` (a :class:`cosim.realtime.RealtimeSettings`) paces every step on the wall clock.
 
     ``guard`` (:class:`cosim.guards.Guard`) sees every row first, with the system's watched
     variables after the recorded ones; when it trips, the rows after the offending one are
     dropped and the run ends with the guard's status and reason.
     """
     cls = algorithm(algorithm_name)
+    if getattr(cls, "needs_rollback", False):
+        fixed = [s.name for s in system.slaves if not s.description.can_get_set_state]
+        if fixed:
+            raise UserError(f"master algorithm {cls.name} needs rollback (get/set state) but {', '.join(fixed)} "
+                            f"cannot roll back (canGetAndSetFMUstate=false, e.g. hardware); use a fixed-step "
+                            f"algorithm such as gauss_seidel or jacobi")
     if record_every < 1:
         raise UserError(f"record_every must be >= 1, got {record_every}")
     stats = RunStats(cls.name, "", step_ns / 1e9, n_steps)
@@ -902,7 +920,7 @@ def simulate(system: CoupledSystem, algorithm_name: str, *, step_ns: int, n_step
     status, reason = "failed", ""
     for obs in observers:
         obs.start(columns, dict(meta or {}, algorithm=cls.name, step=step_ns / 1e9))
-    alg, t_loop = None, None
+    alg, t_loop, pacer = None, None, None
     try:
         t0 = time.perf_counter()
         initialize(system, start_values or [{} for _ in system.slaves], start_time=start_ns / 1e9,
@@ -920,9 +938,16 @@ def simulate(system: CoupledSystem, algorithm_name: str, *, step_ns: int, n_step
                 if hasattr(obs, "record_text"):
                     obs.record_text(alg.t, c, x)
         chunk, t_loop, stepping = min(64, n_steps) or 1, time.perf_counter(), 0.0
+        if realtime is not None:
+            from .realtime import Pacer
+
+            pacer, chunk = Pacer(step_ns, n_steps, realtime), 1
         width = 1 + len(system.record_idx)
         rec = np.empty((max(1, chunk // record_every + 1), width))
         while alg.k < n_steps and alg.status == "running":
+            if pacer is not None and not pacer.wait(alg.k):
+                alg.status, alg.message = "failed", pacer.reason
+                break
             n = min(chunk, n_steps - alg.k)
             if rec.shape[0] < n // record_every + 1:
                 rec = np.empty((n // record_every + 1, width))
@@ -940,15 +965,16 @@ def simulate(system: CoupledSystem, algorithm_name: str, *, step_ns: int, n_step
             alg.text_events.clear()
             if progress:
                 progress(alg.k, n_steps)
-            if dt < 0.05 and chunk < 1 << 20:  # aim at ~0.1 s per chunk: responsive to Ctrl-C
+            if dt < 0.05 and chunk < 1 << 20 and pacer is None:  # aim at ~0.1 s per chunk: responsive to Ctrl-C
                 chunk *= 2
         stats.wall_s = time.perf_counter() - t_loop
         if stats.engine == "python":  # the compiled loop measures its own share itself
             alg.master_ns = max(0, int(stepping * 1e9) - sum(alg.slave_ns))
         status, reason = ("ok", "") if alg.status == "running" else (alg.status, alg.message)
-    except KeyboardInterrupt:
+    except KeyboardInterrupt as exc:
         status = "interrupted"
-        reason = "interrupted by the user (KeyboardInterrupt)" + (f" at t = {alg.t:.9g} s" if alg else "")
+        reason = (f"interrupted by {str(exc) or 'the user (KeyboardInterrupt)'}"
+                  + (f" at t = {alg.t:.9g} s" if alg else ""))
         raise
     except BaseException as exc:
         status, reason = "failed", f"{type(exc).__name__}: {exc}"
@@ -964,6 +990,8 @@ def simulate(system: CoupledSystem, algorithm_name: str, *, step_ns: int, n_step
                             for i, s in enumerate(system.slaves)}
         if stats.wall_s == 0.0 and t_loop is not None:
             stats.wall_s = time.perf_counter() - t_loop
+        if pacer is not None:
+            stats.realtime = pacer.finish()
         for obs in observers:
             obs.finish(status, reason, stats.as_dict())
         for s in system.slaves:

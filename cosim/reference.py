@@ -11,6 +11,11 @@ sampled (discrete) block has no ODE; both are refused with the component's name.
 """
 from __future__ import annotations
 
+import contextlib
+import os
+import signal
+import sys
+import threading
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -23,12 +28,74 @@ from models.compose import Composite, compose
 
 from .errors import UserError
 from .run import RunResult, scene_meta, scene_observers
+from .trace import TraceWriteError
 from .scenario import Scene, load
 
 #: CVODES tolerances of the reference (relative, absolute).
 RTOL, ATOL = 1e-10, 1e-12
-#: Output instants per CVODES call (progress is reported between calls).
+#: Output instants per CVODES call (progress is reported between calls); fewer when calls are slow.
 CHUNK = 100
+#: Default caps of one reference: wall time [s] and CVODES internal steps (in total; also at most
+#: :data:`MAX_STEPS_PER_INTERVAL` between two output instants).
+MAX_WALL_S = 300.0
+MAX_STEPS = 5_000_000
+MAX_STEPS_PER_INTERVAL = 100_000
+
+
+class _WallCap(Exception):
+    """Raised by the SIGALRM handler when the reference's wall-time cap is reached."""
+
+
+class _Collapsed:
+    """Counts what the solver prints (Python and C level, stdout and stderr) instead of letting
+    it through: :attr:`lines` and the :attr:`first` line."""
+
+    def __init__(self) -> None:
+        self.lines, self.first = 0, ""
+        self._lock = threading.Lock()
+
+    def feed(self, text: str) -> None:
+        with self._lock:
+            if not self.first and text.strip():
+                self.first = text.strip().splitlines()[0][:200]
+            self.lines += text.count("\n")
+
+    def write(self, text: str) -> int:  # file-like for sys.stdout / sys.stderr
+        self.feed(text)
+        return len(text)
+
+    def flush(self) -> None:
+        pass
+
+    @contextlib.contextmanager
+    def capture(self):
+        """File descriptors 1 and 2 and ``sys.stdout``/``sys.stderr`` go to this counter."""
+        for stream in (sys.stdout, sys.stderr):
+            try:
+                stream.flush()
+            except (OSError, ValueError):
+                pass
+        r, w = os.pipe()
+        saved = [os.dup(1), os.dup(2)]
+        reader = threading.Thread(target=self._drain, args=(r,), daemon=True)
+        reader.start()
+        os.dup2(w, 1)
+        os.dup2(w, 2)
+        os.close(w)
+        try:
+            with contextlib.redirect_stdout(self), contextlib.redirect_stderr(self):
+                yield self
+        finally:
+            os.dup2(saved[0], 1)
+            os.dup2(saved[1], 2)
+            for fd in saved:
+                os.close(fd)
+            reader.join(2.0)
+
+    def _drain(self, fd: int) -> None:
+        with os.fdopen(fd, "rb") as fh:
+            for block in iter(lambda: fh.read(1 << 16), b""):
+                self.feed(block.decode(errors="replace"))
 
 
 def composite(scene: Scene) -> Composite:
@@ -57,12 +124,28 @@ def composite(scene: Scene) -> Composite:
 
 def reference(scene: Scene | str | Path, overrides=None, *, out_dir: Path | None = None,
               rtol: float = RTOL, atol: float = ATOL,
-              progress: Callable[[int, int], None] | None = None) -> RunResult:
+              progress: Callable[[int, int], None] | None = None, max_wall_s: float = MAX_WALL_S,
+              max_steps: int = MAX_STEPS, log: Callable[[str], None] | None = None) -> RunResult:
     """Integrate the scene's monolithic ODE over ``[0, stop_time]`` and record the scene's outputs
     at its output instants; the trace goes to ``out_dir/<name>_reference.csv`` when ``out_dir`` is
-    given.  A solver failure is a status (``failed``) with the partial trace kept."""
+    given.  A solver failure is a status (``failed``) with the partial trace kept; so is reaching
+    ``max_wall_s`` seconds of wall time or ``max_steps`` CVODES steps.  What the solver prints is
+    counted, not shown: ``log`` gets one line with the count and the first line, and the
+    statistics keep the count (``solver_messages``)."""
+    from .interrupts import signals_as_interrupts
+    from .outputs import OutputLock, check_out_dir
+
     if not isinstance(scene, Scene):
         scene = load(scene, overrides)
+    if out_dir is None:
+        with signals_as_interrupts():
+            return _reference(scene, None, rtol, atol, progress, max_wall_s, max_steps, log)
+    check_out_dir(out_dir)
+    with signals_as_interrupts(), OutputLock(out_dir, log=log):
+        return _reference(scene, out_dir, rtol, atol, progress, max_wall_s, max_steps, log)
+
+
+def _reference(scene, out_dir, rtol, atol, progress, max_wall_s, max_steps, log) -> RunResult:
     comp = composite(scene)
     dt = scene.master.record_every * scene.master.step
     n_out = scene.n_steps // scene.master.record_every
@@ -85,33 +168,85 @@ def reference(scene: Scene | str | Path, overrides=None, *, out_dir: Path | None
 
     record(np.zeros(1), x.reshape(-1, 1))
     integrators: dict[int, ca.Function] = {}
+    chunk, solver_steps, printed = CHUNK, 0, _Collapsed()
+    per_interval = max(1, min(MAX_STEPS_PER_INTERVAL, int(max_steps)))
+    alarm = threading.current_thread() is threading.main_thread() and max_wall_s > 0
+    interrupt, fired = None, []
+
+    def on_alarm(signum, frame):
+        fired.append(signum)
+        raise _WallCap()
+
+    previous = signal.signal(signal.SIGALRM, on_alarm) if alarm else None
     try:
+        if alarm:
+            signal.setitimer(signal.ITIMER_REAL, max_wall_s)
         while done < n_out:
-            m = min(CHUNK, n_out - done)
+            if time.perf_counter() - t0 > max_wall_s:
+                raise _WallCap()
+            if solver_steps >= max_steps:
+                status, reason = "failed", (f"the reference reached its cap of {max_steps:,} CVODES steps at "
+                                            f"t = {done * dt:g} s (a diverging or very stiff scene?)")
+                break
+            m = min(chunk, n_out - done)
             if m not in integrators:
                 integrators[m] = ca.integrator("reference", "cvodes", {"x": comp.x, "ode": comp.ode}, 0.0,
                                                dt * np.arange(1, m + 1),
-                                               {"reltol": rtol, "abstol": atol, "max_num_steps": 10 ** 7})
-            xs = np.array(integrators[m](x0=x)["xf"])
+                                               {"reltol": rtol, "abstol": atol, "max_num_steps": per_interval})
+            tc = time.perf_counter()
+            try:
+                with printed.capture():
+                    xs = np.array(integrators[m](x0=x)["xf"])
+            finally:
+                solver_steps += int(integrators[m].stats().get("nsteps", 0) or 0)
             record(dt * np.arange(done + 1, done + m + 1), xs)
             x = xs[:, -1]
             done += m
             if progress:
                 progress(done, n_out)
+            if time.perf_counter() - tc > 0.25 and chunk > 1:
+                chunk = max(1, chunk // 4)  # slow calls: return to Python (signals, caps) more often
+    except _WallCap:
+        status, reason = "failed", (f"the reference reached its wall-time cap of {max_wall_s:g} s at "
+                                    f"t = {done * dt:g} s (a diverging or very stiff scene?)")
+    except TraceWriteError as exc:
+        status, reason = "failed", f"TraceWriteError: {exc}"
     except RuntimeError as exc:
-        status, reason = "failed", f"CVODES failed after t = {done * dt:g} s: {str(exc).splitlines()[-1]}"
-    except KeyboardInterrupt:
-        status, reason = "interrupted", f"interrupted at t = {done * dt:g} s"
-        for ob in observers:
-            ob.finish(status, reason, {})
-        raise
+        from .interrupts import last_signal
+
+        text = str(exc).splitlines()[-1] if str(exc) else type(exc).__name__
+        if fired:
+            status, reason = "failed", (f"the reference reached its wall-time cap of {max_wall_s:g} s at "
+                                        f"t = {done * dt:g} s (a diverging or very stiff scene?)")
+        elif last_signal() or "KeyboardInterrupt" in printed.first or "KeyboardInterrupt" in str(exc):
+            interrupt = last_signal()
+            status, reason = "interrupted", f"interrupted by {interrupt or 'the user (KeyboardInterrupt)'} at t = {done * dt:g} s"
+        elif "TOO_MUCH_WORK" in text:
+            status, reason = "failed", (f"the reference reached its cap of {per_interval:,} CVODES steps between two "
+                                        f"output instants after t = {done * dt:g} s (a diverging or very stiff scene?)")
+        else:
+            status, reason = "failed", f"CVODES failed after t = {done * dt:g} s: {text}"
+    except KeyboardInterrupt as exc:
+        status, reason = "interrupted", f"interrupted by {str(exc) or 'the user (KeyboardInterrupt)'} at t = {done * dt:g} s"
+        interrupt = exc
+    finally:
+        if alarm:
+            signal.setitimer(signal.ITIMER_REAL, 0)
+            signal.signal(signal.SIGALRM, previous)
     wall = time.perf_counter() - t0
+    if printed.lines and log:
+        log(f"the solver printed {printed.lines:,} lines, not shown (first: {printed.first})")
     stats = {"algorithm": "monolithic", "engine": "cvodes", "step": dt, "steps_planned": n_out,
              "steps_done": done, "status": status, "reason": reason, "wall_s": wall,
              "simulated_s": done * dt, "real_time_factor": done * dt / wall if wall > 0 else float("inf"),
-             "slaves": {}}
+             "solver_steps": solver_steps, "solver_messages": printed.lines, "slaves": {}}
     for ob in observers:
         ob.finish(status, reason, stats)
+    for ob in observers:
+        if getattr(ob, "note", "") and log:
+            log(ob.note)
+    if interrupt is not None:
+        raise interrupt if isinstance(interrupt, BaseException) else KeyboardInterrupt(str(interrupt))
     return RunResult(scene, status, reason, memory.trace, stats, {}, trace_path, 0.0)
 
 

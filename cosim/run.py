@@ -73,10 +73,12 @@ def couple(scene: Scene, slaves: Sequence[Slave], watch: Sequence[tuple[str, str
 def scene_observers(scene: Scene, out_dir: Path | None, suffix: str = "") -> tuple[MemoryTrace, list, Path | None]:
     """The observers of a run of ``scene``: a :class:`MemoryTrace` and, with ``out_dir``, a
     :class:`CsvTrace` streaming to ``out_dir/<name><suffix>.csv`` (returned as the trace path)."""
+    from .outputs import confined, safe_name
+
     memory = MemoryTrace()
     if out_dir is None:
         return memory, [memory], None
-    path = Path(out_dir) / f"{scene.name}{suffix}.csv"
+    path = confined(out_dir, f"{safe_name(scene.name)}{suffix}.csv")
     return memory, [memory, CsvTrace(path, extra={"scene_data": scene.data})], path
 
 
@@ -91,10 +93,80 @@ def scene_meta(scene: Scene) -> dict:
             "units": {name: units.get(name, "") for name in scene.outputs}}
 
 
+@dataclass(frozen=True)
+class TraceEstimate:
+    """Expected size of a run's trace: macro ``steps``, ``rows`` (incl. t = 0), ``columns``
+    (incl. time) and ``bytes`` of CSV text (:data:`BYTES_PER_VALUE` per value)."""
+
+    steps: int
+    rows: int
+    columns: int
+    bytes: int
+
+    def __str__(self) -> str:
+        return (f"{self.steps:,} steps, {self.rows:,} rows x {self.columns} columns, "
+                f"trace about {human_bytes(self.bytes)}")
+
+
+#: Average CSV bytes per recorded value (shortest round-trip decimal and a comma; measured
+#: 19-21 on the shipped scenes).
+BYTES_PER_VALUE = 21
+#: Default largest trace a run may write [bytes]; ``$RPR_COSIM_MAX_TRACE`` or ``max_trace_bytes``.
+MAX_TRACE_BYTES = 4 * 10 ** 9
+MAX_TRACE_ENV = "RPR_COSIM_MAX_TRACE"
+
+
+def human_bytes(n: float) -> str:
+    """``n`` bytes as ``"3.4 MB"`` (powers of 1000)."""
+    for unit in ("B", "kB", "MB", "GB", "TB", "PB"):
+        if abs(n) < 1000 or unit == "PB":
+            return f"{n:.0f} {unit}" if unit == "B" else f"{n:.1f} {unit}"
+        n /= 1000
+    return f"{n} B"  # pragma: no cover
+
+
+def parse_bytes(text: str | int | float) -> int:
+    """``"20GB"``, ``"500 MB"``, ``"1e9"`` -> bytes; :class:`UserError` otherwise."""
+    import re
+
+    m = re.fullmatch(r"\s*([0-9.eE+]+)\s*([kKMGTP]?)B?\s*", str(text))
+    try:
+        value = float(m.group(1)) if m else float("nan")
+    except ValueError:
+        value = float("nan")
+    if not m or not value >= 0:
+        raise UserError(f"trace size limit {text!r}: expected a size such as 20GB, 500MB or 1e9")
+    return int(value * 1000 ** " kMGTP".index(m.group(2).upper() or " "))
+
+
+def estimate(scene: Scene) -> TraceEstimate:
+    """The trace a run of ``scene`` would write (before anything is built)."""
+    rows = scene.n_steps // scene.master.record_every + 1
+    cols = len(scene.outputs) + 1
+    return TraceEstimate(scene.n_steps, rows, cols, rows * cols * BYTES_PER_VALUE)
+
+
+def check_trace_size(scene: Scene, max_trace_bytes: int | str | None = None) -> TraceEstimate:
+    """The estimate of :func:`estimate`; :class:`UserError` with the numbers and the ways out
+    when it exceeds ``max_trace_bytes`` (default ``$RPR_COSIM_MAX_TRACE`` or 4 GB)."""
+    import os
+
+    est = estimate(scene)
+    limit = max_trace_bytes if max_trace_bytes is not None else os.environ.get(MAX_TRACE_ENV) or MAX_TRACE_BYTES
+    limit = parse_bytes(limit)
+    if est.bytes > limit:
+        raise UserError(f"scene {scene.name}: the trace would be about {human_bytes(est.bytes)} ({est.rows:,} rows x "
+                        f"{est.columns} columns), beyond the limit of {human_bytes(limit)}; raise the limit with "
+                        f"--max-trace {human_bytes(est.bytes * 1.1).replace(' ', '')} (or ${MAX_TRACE_ENV}), or record "
+                        f"less (master.output_interval, outputs) or a shorter stop_time")
+    return est
+
+
 def run(scene: Scene | str | Path, overrides: Mapping[str, Any] | Sequence[str] | None = None, *,
         out_dir: Path | None = None, catalog=None, cache_dir: Path | None = None,
         progress: Callable[[int, int], None] | None = None, log: Callable[[str], None] | None = None,
-        engine: str | None = None, slaves: Sequence[Slave] | None = None) -> RunResult:
+        engine: str | None = None, slaves: Sequence[Slave] | None = None,
+        max_trace_bytes: int | str | None = None) -> RunResult:
     """Run a scene.
 
     Parameters
@@ -109,16 +181,37 @@ def run(scene: Scene | str | Path, overrides: Mapping[str, Any] | Sequence[str] 
     log : one-line messages about building FMUs.
     engine : overrides ``master.engine`` (auto | compiled | python).
     slaves : ready slaves in scene order instead of FMUs built from the scene (non-FMU slaves).
+    max_trace_bytes : refuse a run whose trace would be larger (default ``$RPR_COSIM_MAX_TRACE``
+        or 4 GB; a number of bytes or a text such as ``"20GB"``).
 
-    Returns a :class:`RunResult`; a numerical failure is a status, not an exception.  A
-    KeyboardInterrupt propagates after the trace files were finalised with the reason.
+    Returns a :class:`RunResult`; a numerical failure or a failed trace write (disk full) is a
+    status, not an exception.  A KeyboardInterrupt (also SIGTERM and SIGHUP, see
+    :mod:`cosim.interrupts`) propagates after the trace files were finalised with the reason.
+    Files go only under ``out_dir`` (:mod:`cosim.outputs`): one run per directory at a time,
+    the trace written under a temporary name and moved into place at the end.
     """
+    from .interrupts import signals_as_interrupts
+    from .outputs import OutputLock, check_out_dir
+
+    say = log or (lambda m: None)
+    if out_dir is None:
+        with signals_as_interrupts():
+            return _run(scene, overrides, None, catalog, cache_dir, progress, say, engine, slaves, max_trace_bytes)
+    check_out_dir(out_dir)
+    with signals_as_interrupts(), OutputLock(out_dir, log=say):
+        return _run(scene, overrides, out_dir, catalog, cache_dir, progress, say, engine, slaves, max_trace_bytes)
+
+
+def _run(scene, overrides, out_dir, catalog, cache_dir, progress, log, engine, slaves, max_trace_bytes) -> RunResult:
+    from .trace import TraceWriteError
+
     if not isinstance(scene, Scene):
         scene = load(scene, overrides, catalog=catalog)
     elif overrides:
         if scene.path is None or not Path(scene.path).is_file():
             raise UserError("overrides need the scene's file; pass the path instead of a Scene")
         scene = load(scene.path, overrides, catalog=catalog)
+    log(f"{scene.name}: {check_trace_size(scene, max_trace_bytes)}")
     t0 = time.perf_counter()
     if slaves is None:
         paths = build_components(scene, cache_dir=cache_dir, progress=log)
@@ -140,14 +233,29 @@ def run(scene: Scene | str | Path, overrides: Mapping[str, Any] | Sequence[str] 
             "overrides": list(overrides.items()) if isinstance(overrides, Mapping) else list(overrides or [])}
     index = {n: i for i, n in enumerate(scene.components)}
     order = [index[n] for n in scene.master.order] if scene.master.order else None
-    stats = simulate(system, scene.master.algorithm, step_ns=scene.master.step_ns, n_steps=scene.n_steps,
-                     record_every=scene.master.record_every, observers=observers,
-                     start_values=[c.start_values() for c in scene.components.values()],
-                     engine=engine or scene.master.engine, order=order, progress=progress, meta=meta,
-                     inputs=scene.master.inputs, start_ns=scene.start_ns,
-                     tolerances=[c.description.default_experiment.get("tolerance")
-                                 for c in scene.components.values()], guard=guard)
-    return RunResult(scene, stats.status, stats.reason, memory.trace, stats.as_dict(), paths, trace_path, build_s)
+    try:
+        stats = simulate(system, scene.master.algorithm, step_ns=scene.master.step_ns, n_steps=scene.n_steps,
+                         record_every=scene.master.record_every, observers=observers,
+                         start_values=[c.start_values() for c in scene.components.values()],
+                         engine=engine or scene.master.engine, order=order, progress=progress, meta=meta,
+                         inputs=scene.master.inputs, start_ns=scene.start_ns,
+                         tolerances=[c.description.default_experiment.get("tolerance")
+                                     for c in scene.components.values()],
+                         realtime=scene.master.realtime, guard=guard).as_dict()
+    except TraceWriteError:  # disk full: the observers finished with the reason; report it as a status
+        if memory.trace is None or not memory.trace.stats:
+            raise
+        stats = memory.trace.stats
+    finally:
+        for ob in observers:
+            if getattr(ob, "note", ""):
+                log(ob.note)
+    t = memory.trace
+    for ob in observers:  # a trace writer that failed at the end turns "ok" into "failed"
+        if getattr(ob, "status", stats["status"]) != stats["status"]:
+            stats = dict(stats, status=ob.status, reason=ob.reason)
+            t.status, t.reason = ob.status, ob.reason
+    return RunResult(scene, stats["status"], stats["reason"], t, stats, paths, trace_path, build_s)
 
 
 def progress_bar(stream=sys.stderr, *, min_s: float = 0.5) -> Callable[[int, int], None]:

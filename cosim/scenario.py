@@ -70,8 +70,8 @@ Loc = tuple[str, int]  # (file, line); line 0 = no line (a --set override)
 
 TOP_KEYS = ("name", "description", "include", "start_time", "stop_time", "components", "connections", "master",
             "outputs", "fidelity_tolerance", "fidelity_signals", "guards")
-COMPONENT_KEYS = ("model", "fidelity", "options", "params", "start", "fmu", "fmi", "description")
-MASTER_KEYS = ("algorithm", "step", "order", "engine", "output_interval", "inputs")
+COMPONENT_KEYS = ("model", "fidelity", "options", "params", "start", "fmu", "fmi", "description", "hardware")
+MASTER_KEYS = ("algorithm", "step", "order", "engine", "output_interval", "inputs", "realtime")
 #: How a slave's inputs vary over a communication step (see :mod:`cosim.master`).
 INPUT_MODES = ("hold", "linear")
 ENGINES = ("auto", "compiled", "python")
@@ -184,16 +184,66 @@ def _display(path: Path) -> str:
         return str(path)
 
 
+#: Largest number of YAML values a scene may expand to (aliases count at every use).
+MAX_YAML_NODES = 200_000
+
+
+def _expanded_size(root: Any) -> int:
+    """Number of values the YAML node graph ``root`` stands for with every alias expanded,
+    counted without expanding (memoised on the shared nodes; a recursive alias or anything past
+    :data:`MAX_YAML_NODES` counts as too many)."""
+    too_many = MAX_YAML_NODES + 1
+    memo: dict[int, int] = {}
+    open_: set[int] = set()
+    stack = [(root, False)] if root is not None else []
+    while stack:
+        node, done = stack.pop()
+        kids = ([k for pair in node.value for k in pair] if isinstance(node, yaml.MappingNode)
+                else node.value if isinstance(node, yaml.SequenceNode) else [])
+        if done:
+            open_.discard(id(node))
+            memo[id(node)] = min(1 + sum(memo.get(id(k), too_many) for k in kids), too_many)
+            continue
+        if id(node) in memo:
+            continue
+        if id(node) in open_:
+            return too_many  # an alias inside its own anchor
+        open_.add(id(node))
+        stack.append((node, True))
+        for k in kids:
+            if id(k) in open_:
+                return too_many
+            if id(k) not in memo:
+                stack.append((k, False))
+    return memo.get(id(root), 0)
+
+
 def read_yaml(path: Path) -> tuple[Any, list[Problem]]:
     """Parse one YAML file into YMap/YList; syntax errors and duplicate keys become problems."""
     name = _display(path)
     try:
-        text = Path(path).read_text()
+        raw = Path(path).read_bytes()
     except OSError as exc:
         return None, [Problem(name, 0, f"cannot read the scene: {exc.strerror or exc}")]
-    loader = _Loader(text, name)
     try:
-        data = loader.get_single_data()
+        text = raw.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        line = raw[:exc.start].count(b"\n") + 1
+        col = exc.start - raw.rfind(b"\n", 0, exc.start)
+        return None, [Problem(name, line, f"the scene is not UTF-8 text (byte 0x{raw[exc.start]:02x} at column "
+                                          f"{col}); save it as UTF-8")]
+    try:
+        loader = _Loader(text, name)
+    except yaml.YAMLError as exc:  # the reader refuses control characters (NUL, ...) up front
+        line = text[:getattr(exc, "position", 0) or 0].count("\n") + 1
+        return None, [Problem(name, line, f"YAML: {str(exc).splitlines()[0]}")]
+    try:
+        node = loader.get_single_node()
+        size = _expanded_size(node)
+        if size > MAX_YAML_NODES:
+            return None, [Problem(name, 1, f"the scene expands to more than {MAX_YAML_NODES:,} YAML values "
+                                           f"(anchors and aliases repeat content); write it out plainly")]
+        data = loader.construct_document(node) if node is not None else None
     except yaml.MarkedYAMLError as exc:
         mark = exc.problem_mark or exc.context_mark
         line = mark.line + 1 if mark else 0
@@ -204,6 +254,9 @@ def read_yaml(path: Path) -> tuple[Any, list[Problem]]:
         elif "'['" in str(exc) or "flow" in str(exc):
             hint = " (quote names with brackets inside [ ] lists, e.g. [\"mech.leg[*].f\"])"
         return None, [Problem(name, line, f"YAML syntax: {what}{hint}")]
+    except yaml.YAMLError as exc:  # e.g. a NUL or other control character
+        line = text[:getattr(exc, "position", 0) or 0].count("\n") + 1
+        return None, [Problem(name, line, f"YAML: {str(exc).splitlines()[0]}")]
     finally:
         loader.dispose()
     return data, loader.duplicates
@@ -233,6 +286,8 @@ def _kind(spec: Any) -> tuple[str, Any]:
             return "fmu", spec.get("fmu")
         if "model" in spec:
             return "model", spec.get("model")
+        if "hardware" in spec:
+            return "hardware", "board"
     return "", None
 
 
@@ -477,6 +532,7 @@ class MasterSettings:
     engine: str
     record_every: int  # output interval in steps
     inputs: str = "hold"  # "hold" or "linear" (first-order hold, FMUs that can interpolate inputs)
+    realtime: Any = None  # cosim.realtime.RealtimeSettings when the run is paced on the wall clock
 
 
 @dataclass
@@ -583,6 +639,8 @@ class _Checker:
         if "model" in spec and "fmu" in spec:
             self.err(spec.where, f"component {name!r} has both 'model:' and 'fmu:'; keep one")
             return None
+        if "hardware" in spec:
+            return self._hardware_component(name, spec)
         if "fmu" in spec:
             return self._fmu_component(name, spec, fmi)
         if "model" in spec:
@@ -614,6 +672,43 @@ class _Checker:
         self._values(comp, spec)
         return comp
 
+    def _hardware_component(self, name: str, spec: YMap) -> Component | None:
+        """``{hardware: {address: HOST:PORT, key: FILE}}``: the hardware FMU (:mod:`hardware.fmu`),
+        built and cached with these start values; then an FMU component like any other."""
+        node, where = spec["hardware"], spec.loc("hardware")
+        if not isinstance(node, Mapping) or any(k not in ("address", "key") for k in node):
+            self.err(where, f"component {name!r}: hardware must be a mapping {{address: HOST:PORT, key: FILE}}, "
+                            f"got {node!r}")
+            return None
+        from hardware.fmu import build_hil_fmu
+        from hardware.protocol import parse_address
+
+        address, key = str(node.get("address", "127.0.0.1:5005")), str(node.get("key", "board.key"))
+        try:
+            parse_address(address)
+        except ValueError as exc:
+            self.err(where, f"component {name!r}: {exc}")
+            return None
+        base = Path(where[0]).parent if where[1] else (self.path.parent if self.path else Path.cwd())
+        keyfile = base / Path(key).expanduser()
+        if not keyfile.is_file():
+            self.err(where, f"component {name!r}: key file {_display(keyfile)} not found; make one with "
+                            f"'rpr-cosim board keygen {key}' and copy it to the board")
+            return None
+        for k in ("model", "fidelity", "options", "fmu"):
+            if k in spec:
+                self.err(spec.loc(k), f"component {name!r}: '{k}' does not apply to a hardware component")
+                return None
+        try:
+            fpath = build_hil_fmu()  # one build; address and key are string start values
+        except (ValueError, OSError) as exc:
+            self.err(where, f"component {name!r}: {exc}")
+            return None
+        comp = Component(name, "fmu", describe_fmu(fpath), fmu=fpath, where=spec.where)
+        self._values(comp, spec)
+        comp.params.update(address=address, key_file=str(keyfile.resolve()))
+        return comp
+
     def _model_component(self, name: str, spec: YMap, fmi: str) -> Component | None:
         try:
             catalog = self.catalog if self.catalog is not None else default_catalog()
@@ -622,12 +717,12 @@ class _Checker:
             return None
         cat = catalog.catalog()
         model = spec["model"]
-        if model not in cat:
+        if not isinstance(model, str) or model not in cat:
             self.err(spec.loc("model"), f"component {name!r}: unknown model {model!r}{suggest(str(model), cat)} "
                                         f"(catalog: {', '.join(sorted(cat))})")
             return None
         fidelity = spec.get("fidelity", cat[model][0])
-        if fidelity not in cat[model]:
+        if not isinstance(fidelity, str) or fidelity not in cat[model]:
             self.err(spec.loc("fidelity"), f"component {name!r}: model {model} has no fidelity {fidelity!r}"
                                            f"{suggest(str(fidelity), cat[model])} (expected one of "
                                            f"{', '.join(cat[model])})")
@@ -1009,7 +1104,7 @@ class _Checker:
         self.unknown_keys(node, MASTER_KEYS, "master")
         alg = node.get("algorithm", "gauss_seidel")
         ok = True
-        if alg not in ALGORITHMS:
+        if not isinstance(alg, str) or alg not in ALGORITHMS:
             self.err(node.loc("algorithm"), f"unknown master algorithm {alg!r}{suggest(str(alg), ALGORITHMS)} "
                                             f"(known: {', '.join(sorted(ALGORITHMS))})")
             ok = False
@@ -1019,8 +1114,8 @@ class _Checker:
         step = default_step or self.number(node, "step", "master.step", required=True)
         step_ns = None
         if step is not None:
-            if step <= 0:
-                self.err(node.loc("step"), f"master.step = {step} must be positive (seconds)")
+            if not 0 < step <= 1e6:
+                self.err(node.loc("step"), f"master.step = {step} must be positive and at most 1e6 (seconds)")
                 ok = False
             else:
                 step_ns = round(step * 1e9)
@@ -1062,7 +1157,7 @@ class _Checker:
         if "output_interval" in node and step_ns:
             oi = self.number(node, "output_interval", "master.output_interval")
             if oi is not None:
-                k = round(oi * 1e9 / step_ns)
+                k = round(oi * 1e9 / step_ns) if 0 < oi <= 1e9 else 0
                 if oi <= 0 or k < 1 or abs(k * step_ns - oi * 1e9) > 1e-6 * oi * 1e9:
                     self.err(node.loc("output_interval"), f"master.output_interval = {oi} s must be a positive "
                                                           f"whole multiple of master.step = {step} s")
@@ -1080,10 +1175,34 @@ class _Checker:
                                                    f"period {ts} s of {comp.name} ({comp.label}); a sampled block "
                                                    f"advances whole samples: use e.g. step: {good:g}")
                         ok = False
-        if not ok or step_ns is None:
+        realtime = self.realtime(node)
+        if not ok or step_ns is None or realtime is False:
             return None
         return MasterSettings(alg, step_ns / 1e9, step_ns, list(order) if order else None, engine, record_every,
-                              inputs)
+                              inputs, realtime)
+
+    def realtime(self, node: YMap):
+        """``master.realtime``: true/false or {max_misses: N, spin: S, priority: P}; the settings,
+        None (not paced) or False (invalid, reported)."""
+        from .realtime import RealtimeSettings
+
+        rt = node.get("realtime", False)
+        if rt is False or rt is None:
+            return None
+        if rt is True:
+            return RealtimeSettings()
+        if not isinstance(rt, Mapping):
+            self.err(node.loc("realtime"), f"master.realtime = {rt!r}; expected true, false or "
+                                           f"{{max_misses: N, spin: seconds, priority: P}}")
+            return False
+        bad = [k for k in rt if k not in ("max_misses", "spin", "priority")]
+        mm, spin, prio = rt.get("max_misses", 50), rt.get("spin", 300e-6), rt.get("priority", 0)
+        whole = [isinstance(v, int) and not isinstance(v, bool) for v in (mm, prio)]
+        if bad or not all(whole) or mm < 1 or not 0 <= prio <= 99 or not _is_number(spin) or not 0 <= spin < 0.1:
+            self.err(node.loc("realtime"), f"master.realtime = {dict(rt)!r}; expected max_misses: a whole number "
+                                           f">= 1, spin: seconds in [0, 0.1), priority: 0 (normal) .. 99 (SCHED_FIFO)")
+            return False
+        return RealtimeSettings(int(mm), float(spin), int(prio))
 
     def fmu_default(self, comps: dict[str, Component], key: str, what: str) -> float | None:
         """The FMUs' DefaultExperiment value ``key`` (start, stop, step) when they agree; an error
@@ -1106,6 +1225,9 @@ class _Checker:
             start = self.number(self.tree, "start_time", "start_time")
         else:
             start = self.fmu_default(comps, "start", "start_time") or 0.0
+        if start is not None and not abs(start) < 1e12:
+            self.err(self.tree.loc("start_time"), f"start_time = {start} must be a finite number of seconds below 1e12")
+            start = None
         if start is not None:
             start_ns = round(start * 1e9)
             if abs(start_ns - start * 1e9) > 1e-6 * max(1.0, abs(start) * 1e9):
@@ -1121,6 +1243,9 @@ class _Checker:
                 self.err(self.tree.where, "stop_time is missing; expected a number in seconds (no FMU of the scene "
                                           "gives one in its default experiment)")
         if stop is None:
+            return None, None, start, start_ns
+        if not stop < 1e12:
+            self.err(self.tree.loc("stop_time"), f"stop_time = {stop} must be a finite number of seconds below 1e12")
             return None, None, start, start_ns
         if stop <= start:
             self.err(self.tree.loc("stop_time"), f"stop_time = {stop} must be positive (seconds from the start)"
@@ -1237,8 +1362,13 @@ def validate(tree: YMap, path: Path | None = None, *, catalog=None, problems: li
     errors = [p for p in ck.problems if p.severity == "error"]
     if errors:
         raise SceneError(ck.problems)
+    from .outputs import name_problem, stem_name
+
+    name = tree.get("name") or stem_name(path.stem if path else "scene")
+    if name_problem(name):
+        ck.err(tree.loc("name"), name_problem(name))
+        raise SceneError(ck.problems)
     data = plain(tree)
-    name = tree.get("name") or (path.stem if path else "scene")
     return Scene(str(name), path, str(tree.get("description", "")), stop, n_steps, comps, conns, bonds, master,
                  outputs, data, _hash(data, comps), [p for p in ck.problems if p.severity != "error"], start, start_ns,
                  guards)

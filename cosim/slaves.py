@@ -31,6 +31,7 @@ import atexit
 import ctypes
 import dataclasses
 import enum
+import os
 import shutil
 import tempfile
 from abc import ABC, abstractmethod
@@ -203,6 +204,9 @@ def describe_fmu(path: Path) -> SlaveDescription:
         md = fmpy.read_model_description(str(path), validate=False)
     except Exception as exc:  # fmpy raises bare Exceptions for any malformed archive or XML
         raise UserError(f"{path}: not a readable FMU ({exc})") from None
+    if not str(md.fmiVersion or "").startswith(("2", "3")):
+        raise UserError(f"{path}: FMI {md.fmiVersion} FMUs are not supported; export it as FMI 2.0 or 3.0 "
+                        f"co-simulation")
     kinds = _interfaces(md)
     if md.coSimulation is None:
         raise UserError(f"{path}: the FMU has no co-simulation interface (it has "
@@ -335,12 +339,23 @@ def _cleanup() -> None:
 atexit.register(_cleanup)
 
 
+def _sweep_dead_unzips() -> None:
+    """Remove the FMU folders of processes that died without their atexit (SIGKILL)."""
+    from .outputs import pid_alive
+
+    for d in Path(tempfile.gettempdir()).glob("rpr-fmu-*-*"):
+        pid = d.name.split("-")[2]
+        if pid.isdigit() and int(pid) != os.getpid() and not pid_alive(int(pid)):
+            shutil.rmtree(d, ignore_errors=True)
+
+
 def _unzip(path: Path) -> str:
     import fmpy
 
     key = (str(path.resolve()), path.stat().st_mtime)
     if key not in _UNZIPPED:
-        _UNZIPPED[key] = fmpy.extract(str(path), unzipdir=tempfile.mkdtemp(prefix="rpr-fmu-"))
+        _sweep_dead_unzips()
+        _UNZIPPED[key] = fmpy.extract(str(path), unzipdir=tempfile.mkdtemp(prefix=f"rpr-fmu-{os.getpid()}-"))
     return _UNZIPPED[key]
 
 
@@ -372,8 +387,16 @@ class FmuSlave(Slave):
         self._empty_vr = (c_uint32 * 1)()
         self._empty_val = (c_double * 1)()
 
+    #: Keep the instance when a run ends (:meth:`free` leaves it alive) so that the next run's
+    #: :meth:`instantiate` resets it (fmi2Reset / fmi3Reset) instead of loading the FMU again;
+    #: :meth:`release` frees it for good.  Used by batches (:mod:`cosim.batch`).
+    reuse: bool = False
+
     # lifecycle ---------------------------------------------------------------------------------
     def instantiate(self) -> None:
+        if self.fmu is not None:  # kept from a previous run (reuse): back to the instantiated state
+            self.reset()
+            return
         import fmpy
         from fmpy.fmi2 import FMU2Slave, defaultCallbacks, fmi2CallbackFunctions, fmi2CallbackLoggerTYPE
         from fmpy.fmi3 import FMU3Slave, fmi3LogMessageCallback
@@ -588,7 +611,19 @@ class FmuSlave(Slave):
             except Exception:  # terminating after an Error/Fatal status may itself fail
                 pass
 
+    def reset(self) -> None:
+        """Return the instance to its state right after instantiation (FMI reset): every
+        variable back to its default, ready for :meth:`set_start` and another run."""
+        self.messages.clear()
+        self._call("reset", self.fmu.reset)
+        self._terminated = False
+
     def free(self) -> None:
+        if not self.reuse:
+            self.release()
+
+    def release(self) -> None:
+        """Free the instance and its resources (also one kept for reuse)."""
         if self.fmu is not None:
             try:
                 self.fmu.freeInstance()

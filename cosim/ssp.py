@@ -367,7 +367,9 @@ class _Reader:
 
         if not hasattr(self, "digest"):
             self.digest = hashlib.sha256(self.path.read_bytes()).hexdigest()[:16]
-        dest = cache_root(self.cache_dir) / "ssp" / self.digest / member
+        from .outputs import confined
+
+        dest = confined(cache_root(self.cache_dir) / "ssp" / self.digest, member)
         if not dest.is_file():
             dest.parent.mkdir(parents=True, exist_ok=True)
             fd, tmp = tempfile.mkstemp(dir=dest.parent)
@@ -456,6 +458,11 @@ class _Reader:
                 continue
             src = el.get("source")
             member = src[2:] if src.startswith("./") else src
+            parts = member.replace("\\", "/").split("/")
+            if member.startswith(("/", "\\")) or ".." in parts or ":" in parts[0]:
+                self.err(el.sourceline, f"component {name!r}: source {src!r} points outside the archive (an absolute "
+                                        f"path or '..'); sources are relative to the archive's root")
+                continue
             if member not in self.names:
                 near = [n for n in self.names if n.endswith(".fmu")]
                 self.err(el.sourceline, f"component {name!r}: source {src!r} is not in the archive "

@@ -23,6 +23,7 @@ import threading
 import time
 from abc import ABC, abstractmethod
 from dataclasses import dataclass, field
+from functools import lru_cache
 from pathlib import Path
 
 import numpy as np
@@ -34,6 +35,12 @@ FORMAT = "rpr-cosim trace 1"
 
 def package_versions() -> dict[str, str]:
     """Versions of Python and the packages a run depends on."""
+    return dict(_package_versions())
+
+
+@lru_cache(maxsize=1)
+def _package_versions() -> dict[str, str]:
+    """:func:`package_versions`, read once per process (importlib.metadata takes ~50 ms)."""
     from importlib import metadata
 
     out = {"python": platform.python_version()}
@@ -153,23 +160,50 @@ def _json_default(o):
     raise TypeError(f"not JSON serialisable: {type(o).__name__}")
 
 
+class TraceWriteError(UserError):
+    """Writing a trace failed (disk full, file too large, I/O error); the run stops with this
+    reason and the rows written so far are kept whole."""
+
+
 class CsvTrace(Observer):
     """Streams the rows to ``path`` (CSV, shortest round-trip decimal text) with the metadata
     in comment lines and a sidecar ``path.with_suffix('.json')``.
 
     Formatting floats as text costs about 1 µs per value in Python, more than a compiled macro
     step; so rows are formatted and written by a background thread, which runs while the
-    compiled loop (which releases the GIL) steps the next chunk.  :meth:`finish` drains it."""
+    compiled loop (which releases the GIL) steps the next chunk.  :meth:`finish` drains it.
 
-    def __init__(self, path: Path, *, flush_every_s: float = 0.5, extra: dict | None = None) -> None:
+    Safety (:mod:`cosim.outputs`): while the run goes, the trace and its sidecar are written
+    under temporary names (``.<name>.csv.part``, ``.<name>.json.part``, the sidecar saying
+    "running" with the writer's pid) and moved into place by :meth:`finish`, whatever the
+    status; a good earlier trace of the same name is kept as ``<name>.prev.csv`` (:attr:`note`
+    says so).  Rows go out in whole lines: a failed write (disk full) is cut back to the last
+    whole row, and :meth:`record` then raises :class:`TraceWriteError`, which stops the run.
+    The writer holds at most ``max_queued_bytes`` of rows not yet written; :meth:`record` waits
+    (back-pressure) rather than buffering without bound."""
+
+    #: bytes reserved in the running sidecar so that the final status fits on a full disk
+    SIDECAR_RESERVE = 64 * 1024
+
+    def __init__(self, path: Path, *, flush_every_s: float = 0.5, extra: dict | None = None,
+                 max_queued_bytes: int = 1 << 20) -> None:
         """``extra``: data for the sidecar only (e.g. the whole scene), kept out of the CSV header."""
+        from .outputs import part_path
+
         self.path = Path(path)
         self.extra = dict(extra or {})
         self.sidecar = self.path.with_suffix(".json")
+        self.part = part_path(self.path)
+        self.sidecar_part = part_path(self.sidecar)
         self.flush_every_s = flush_every_s
-        self._fh: io.TextIOBase | None = None
+        self.max_queued_bytes = int(max_queued_bytes)
+        self.note = ""
+        self._fd: int | None = None
+        self._end = 0  # bytes of whole lines written
         self.rows = 0
         self._queue: queue.Queue | None = None
+        self._queued = 0
+        self._cond = threading.Condition()
         self._thread: threading.Thread | None = None
         self._error: BaseException | None = None
 
@@ -177,84 +211,179 @@ class CsvTrace(Observer):
         self.path.parent.mkdir(parents=True, exist_ok=True)
         self.meta = dict(meta, format=FORMAT, versions=package_versions(),
                          started=time.strftime("%Y-%m-%dT%H:%M:%S%z"), trace=self.path.name)
-        self._fh = open(self.path, "w", newline="")
-        self._fh.write(f"# {FORMAT}\n")
+        self._fd = os.open(self.part, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644)
+        buf = io.StringIO()
+        buf.write(f"# {FORMAT}\n")
         for k, v in self.meta.items():
             if k != "format":
-                self._fh.write(_comment(k, v))
-        w = csv.writer(self._fh, lineterminator="\n")
-        w.writerow(columns)
-        self._fh.flush()
-        self._write_sidecar({"status": "running", "reason": "", "columns": list(columns)})
+                buf.write(_comment(k, v))
+        csv.writer(buf, lineterminator="\n").writerow(columns)
+        try:
+            self._write(buf.getvalue().encode())
+            self._write_sidecar({"status": "running", "reason": "", "pid": os.getpid(), "columns": list(columns)},
+                                reserve=True)
+        except OSError as exc:
+            os.close(self._fd)
+            self._fd = None
+            raise TraceWriteError(f"cannot write the trace {self.part}: {exc.strerror or exc}") from None
         self._queue = queue.Queue()
         self._thread = threading.Thread(target=self._writer, name=f"trace-writer {self.path.name}", daemon=True)
         self._thread.start()
 
+    def _write(self, data: bytes) -> None:
+        """Append ``data`` (whole lines) at the end; on failure cut back to the last whole line."""
+        view, done = memoryview(data), 0
+        try:
+            while done < len(data):
+                done += os.write(self._fd, view[done:])
+        except BaseException:
+            os.ftruncate(self._fd, self._end)
+            os.lseek(self._fd, self._end, os.SEEK_SET)
+            raise
+        self._end += len(data)
+
     def _writer(self) -> None:
-        last_flush = time.monotonic()
         while True:
             rows = self._queue.get()
             if rows is None:
                 return
             try:
-                if isinstance(rows, str):  # a text event, in order with the rows
-                    self._fh.write(rows)
-                    continue
-                self._fh.write("\n".join(",".join(map(repr, r)) for r in rows.tolist()))
-                self._fh.write("\n")
-                now = time.monotonic()
-                if now - last_flush > self.flush_every_s:
-                    self._fh.flush()
-                    last_flush = now
-            except BaseException as exc:  # reported by finish(); the run itself goes on
+                if self._error is None:
+                    if isinstance(rows, str):  # a text event, in order with the rows
+                        self._write(rows.encode())
+                        continue
+                    text = "\n".join(",".join(map(repr, r)) for r in rows.tolist()) + "\n"
+                    self._write(text.encode())
+            except BaseException as exc:  # reported by record() and finish(); stops the run
                 self._error = exc
+            finally:
+                with self._cond:
+                    self._queued -= getattr(rows, "nbytes", 0)
+                    self._cond.notify_all()
+
+    def _raise_if_failed(self) -> None:
+        if self._error is not None:
+            exc = self._error
+            raise TraceWriteError(f"writing the trace {self.path} failed: "
+                                  f"{getattr(exc, 'strerror', None) or exc} ({self._count_rows()} whole rows kept)")
 
     def record(self, rows) -> None:
+        from .interrupts import deferred, pending
+
+        self._raise_if_failed()
         if not len(rows):
             return
-        self._queue.put(np.array(rows, dtype=float, copy=True))
-        self.rows += len(rows)
+        arr = np.array(rows, dtype=float, copy=True)
+        step = max(1, (self.max_queued_bytes // 4) // max(1, arr.itemsize * arr.shape[1]))
+        for piece in (arr[i:i + step] for i in range(0, len(arr), step)):
+            with deferred():  # a signal must not cut the queue's or the counter's locks
+                with self._cond:  # back-pressure: wait while the writer is far behind
+                    while (self._queued > 0 and self._queued + piece.nbytes > self.max_queued_bytes
+                           and self._error is None and not pending()):
+                        self._cond.wait(0.05)
+                    self._queued += piece.nbytes
+                self._queue.put(piece)
+                self.rows += len(piece)
+        self._raise_if_failed()
 
     def record_text(self, t, column, value) -> None:
+        from .interrupts import deferred
+
         if self._queue is not None:
-            self._queue.put(_comment("text", [float(t), column, str(value)]))
+            with deferred():
+                self._queue.put(_comment("text", [float(t), column, str(value)]))
 
     def finish(self, status, reason, stats) -> None:
-        if self._fh is None:
+        from .interrupts import deferred
+
+        with deferred():  # a signal now waits until the status is written and the files are in place
+            self._finish(status, reason, stats)
+
+    def _finish(self, status, reason, stats) -> None:
+        if self._fd is None:
             return
         if self._thread is not None:
             self._queue.put(None)
-            self._thread.join()
+            while self._thread.is_alive():
+                self._thread.join(0.2)
             self._thread = None
+        rows = self.rows
         if self._error is not None:
-            reason = (reason + "; " if reason else "") + f"trace writer failed: {self._error}"
-        self._fh.write(_comment("status", status))
-        self._fh.write(_comment("reason", reason))
-        self._fh.write(_comment("rows", self.rows))
-        self._fh.write(_comment("statistics", stats))
-        self._fh.close()
-        self._fh = None
-        self._write_sidecar({"status": status, "reason": reason, "rows": self.rows, "statistics": stats})
+            exc = self._error
+            rows = self._count_rows()
+            text = f"writing the trace failed: {getattr(exc, 'strerror', None) or exc} ({rows} whole rows kept)"
+            if "TraceWriteError" not in reason:
+                reason = (reason + "; " if reason else "") + text
+            if status == "ok":
+                status = "failed"
+            stats = dict(stats or {}, status=status, reason=reason)
+        self.status, self.reason = status, reason
+        trailer = (_comment("status", status) + _comment("reason", reason) + _comment("rows", rows)
+                   + _comment("statistics", stats))
+        try:
+            self._write(trailer.encode())
+        except OSError:
+            try:  # the statistics are in the sidecar; the status line is what matters
+                self._write((_comment("status", status) + _comment("reason", reason)).encode())
+            except OSError:
+                pass
+        os.close(self._fd)
+        self._fd = None
+        self._write_sidecar({"status": status, "reason": reason, "rows": rows, "statistics": stats})
+        from .outputs import place
 
-    def _write_sidecar(self, extra: dict) -> None:
-        data = dict(self.meta, **self.extra, **extra)
-        tmp = self.sidecar.with_name(f".{self.sidecar.name}.tmp")
-        tmp.write_text(json.dumps(data, indent=2, default=_json_default))
-        os.replace(tmp, self.sidecar)
+        self.note = place(self.part, self.path, status, part_sidecar=self.sidecar_part, sidecar=self.sidecar)
+
+    def _count_rows(self) -> int:
+        """Data rows in the part file (after a write failure, the bytes say what is there)."""
+        with open(self.part, "rb") as fh:
+            lines = [ln for ln in fh if ln.strip() and not ln.startswith(b"#")]
+        return max(0, len(lines) - 1)
+
+    def _write_sidecar(self, extra: dict, *, reserve: bool = False) -> None:
+        """Write the (temporary) sidecar through a temporary file and a rename; with ``reserve``
+        pad it with blanks, so that on a full disk the final status can overwrite it in place."""
+        data = json.dumps(dict(self.meta, **self.extra, **extra), indent=2, default=_json_default)
+        if reserve:
+            data += " " * self.SIDECAR_RESERVE + "\n"
+        tmp = self.sidecar_part.with_name(f"{self.sidecar_part.name}.tmp")
+        try:
+            tmp.write_text(data)
+            os.replace(tmp, self.sidecar_part)
+        except OSError:
+            tmp.unlink(missing_ok=True)
+            if reserve or not self.sidecar_part.exists():
+                raise
+            raw = data.encode()
+            with open(self.sidecar_part, "r+b") as fh:  # in place, inside the reserved blocks
+                old = fh.seek(0, os.SEEK_END)
+                fh.seek(0)
+                fh.write(raw + b" " * max(0, old - len(raw)))
+                fh.truncate(max(old, len(raw)))
 
 
 def read_trace(path: Path) -> Trace:
     """Read a CSV trace written by :class:`CsvTrace` (partial or complete; a last row cut short by
     a crash is dropped)."""
+    from .outputs import settle_if_stale
+
     path = Path(path)
+    settle_if_stale(path.parent)  # a run killed in that directory: mark it and put its trace in place
     if not path.is_file():
         raise UserError(f"{path}: no such trace file")
     meta: dict = {}
     text: dict[str, list[tuple[float, str]]] = {}
     columns: list[str] | None = None
     rows: list[list[float]] = []
-    with open(path, newline="") as fh:
-        lines = fh.readlines()
+    try:
+        content = path.read_bytes().decode("utf-8")
+    except UnicodeDecodeError as exc:
+        raise UserError(f"{path}: not an rpr-cosim trace (binary or not UTF-8 text at byte {exc.start})") from None
+    except OSError as exc:
+        raise UserError(f"{path}: cannot read the trace ({exc.strerror or exc})") from None
+    if "\0" in content:
+        raise UserError(f"{path}: not an rpr-cosim trace (binary data)")
+    lines = io.StringIO(content, newline="").readlines()
     last_data = max((i for i, ln in enumerate(lines) if ln.strip() and not ln.startswith("#")), default=-1)
     for lineno, line in enumerate(lines, 1):
         if line.startswith("#"):
@@ -285,4 +414,19 @@ def read_trace(path: Path) -> Trace:
     if columns is None:
         raise UserError(f"{path}: no column header; is this an rpr-cosim trace?")
     data = np.array(rows, dtype=float).reshape(-1, len(columns))
+    if "status" not in meta:  # no status line: the run died; its sidecar may say why
+        meta.update(_sidecar_outcome(path))
     return Trace(columns, data, meta, meta.pop("status", ""), meta.pop("reason", ""), meta.pop("statistics", {}), text)
+
+
+def _sidecar_outcome(path: Path) -> dict:
+    """Status and reason of a trace without a status line, from its sidecar when that says the run
+    did not end ok."""
+    side = path.with_suffix(".json")
+    try:
+        data = json.loads(side.read_text())
+    except (OSError, ValueError):
+        return {}
+    if not isinstance(data, dict) or data.get("status") in (None, "ok"):
+        return {}
+    return {"status": str(data["status"]), "reason": str(data.get("reason", ""))}

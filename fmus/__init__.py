@@ -8,8 +8,8 @@ is cached by content (:mod:`fmus.cache`).
 """
 from __future__ import annotations
 
-from .build import build_fmu
+from .build import build_fmu, build_from_sources
 from .cache import build_record, cache_root, cached_fmus
 from .errors import BuildError
 
-__all__ = ["build_fmu", "BuildError", "build_record", "cache_root", "cached_fmus"]
+__all__ = ["build_fmu", "build_from_sources", "BuildError", "build_record", "cache_root", "cached_fmus"]

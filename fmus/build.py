@@ -13,7 +13,8 @@ from pathlib import Path
 from models.block import Block
 
 from . import codegen
-from .cache import EXPORTER_VERSION, KEY_LENGTH, atomic_write, cache_root, content_key
+from .cache import (EXPORTER_VERSION, KEY_LENGTH, atomic_write, cache_root, content_key, file_digest, verify,
+                    writable_root)
 from .compile import (CFLAGS, LDFLAGS, compile_library, compiler, compiler_version, exported_symbols,
                       library_suffix, optimisation, pack, platform_dirs)
 from .errors import BuildError
@@ -58,23 +59,57 @@ def build_fmu(block: Block, *, fmi_version: str = "2.0", cache_dir: Path | None 
     static = codegen.static_sources(version)
     files = {**gen.files, **static}
     c_sources = ["rpr_casadi.c", "rpr_core.c", codegen.WRAPPERS[version]]
-    source_names = sorted(files)
     xml = model_description(gen.iface, fmi_version=version, guid=_PLACEHOLDER, model_identifier=ident,
                             sources=c_sources)
-    cc = compiler()
     opt = optimisation(len(files["rpr_casadi.c"]))
+    t_gen = time.perf_counter() - t0
+    c_bytes = len(files["rpr_casadi.c"])
+    record = {"block": blk.name, "fidelity": blk.fidelity, "integrator": blk.integrator, "substeps": blk.substeps,
+              "states": len(blk.states), "inputs": len(blk.inputs), "outputs": len(blk.outputs),
+              "parameters": {p.name: p.default for p in blk.params}, "codegen_s": round(t_gen, 4),
+              "c_bytes": c_bytes}
+    return build_from_sources(ident, files, c_sources, xml, fmi_version=version, cache_dir=cache_dir, opt=opt,
+                              record=record, progress=say, label=blk.name,
+                              announce=f"generated {c_bytes / 1024:.0f} kB of C in {t_gen:.2f} s; compiling",
+                              t_start=t0)
+
+
+def build_from_sources(ident: str, files: Mapping[str, str], c_sources: list[str], xml: str, *,
+                       fmi_version: str = "2.0", cache_dir: Path | None = None, opt: str = "-O2",
+                       record: Mapping | None = None, progress: Callable[[str], None] | None = None,
+                       label: str | None = None, announce: str = "compiling", t_start: float | None = None) -> Path:
+    """Compile hand-written or generated C ``files`` (name -> text; ``c_sources`` are compiled,
+    the rest are headers) with ``xml`` as ``modelDescription.xml`` into a cached FMU.
+
+    The GUID placeholder ``{00000000-0000-0000-0000-000000000000}`` in the files and the XML is
+    replaced by a GUID derived from the content key, so the same sources give the same FMU path
+    and any change a new one.  ``record`` is added to ``build.json``.  Raises :class:`BuildError`."""
+    say = progress or log.info
+    t0 = time.perf_counter() if t_start is None else t_start
+    version = _normalise_version(fmi_version)
+    label = label or ident
+    cc = compiler()
     key = content_key([("exporter", EXPORTER_VERSION), ("fmi", version), ("cflags", " ".join((opt, *CFLAGS))),
                        ("ldflags", " ".join(LDFLAGS)), ("cc", compiler_version(cc)), ("xml", xml),
                        *((f"src/{n}", t) for n, t in files.items())])
     guid = "{" + str(uuid.UUID(key[:32])) + "}"
     t_gen = time.perf_counter() - t0
+    source_names = sorted(files)
     root = cache_root(cache_dir)
     target = root / key[:KEY_LENGTH] / f"{ident}.fmu"
+    if not target.exists():
+        fallback = writable_root(root, say)
+        if fallback != root:
+            root, target = fallback, fallback / key[:KEY_LENGTH] / f"{ident}.fmu"
     if target.exists():
-        say(f"{ident}: FMI {version} FMU up to date ({target}), checked in {t_gen:.2f} s")
-        return target
-    c_bytes = len(files["rpr_casadi.c"])
-    say(f"{ident}: generated {c_bytes / 1024:.0f} kB of C in {t_gen:.2f} s; compiling (FMI {version})")
+        damage = verify(target)
+        if not damage:
+            say(f"{ident}: FMI {version} FMU up to date ({target}), checked in {time.perf_counter() - t0:.2f} s")
+            return target
+        say(f"{ident}: the cached FMU {target} is damaged ({damage}); rebuilding it")
+        root = writable_root(root, say)
+        target = root / key[:KEY_LENGTH] / f"{ident}.fmu"
+    say(f"{ident}: {announce} (FMI {version})")
     files = {n: t.replace(_PLACEHOLDER, guid) for n, t in files.items()}
     xml = xml.replace(_PLACEHOLDER, guid)
     tmp = Path(tempfile.mkdtemp(dir=root, prefix=".build-"))
@@ -83,12 +118,12 @@ def build_fmu(block: Block, *, fmi_version: str = "2.0", cache_dir: Path | None 
             (tmp / name).write_text(text)
         lib = tmp / f"{ident}{library_suffix()}"
         t1 = time.perf_counter()
-        compile_library(tmp, c_sources, lib, block_name=blk.name, opt=opt)
+        compile_library(tmp, c_sources, lib, block_name=label, opt=opt)
         t_cc = time.perf_counter() - t1
         prefix = "fmi2" if version == "2.0" else "fmi3"
         leaked = [s for s in exported_symbols(lib) if not s.startswith(prefix) and not s.startswith("_")]
         if leaked:
-            raise BuildError(f"block {blk.name}: the library exports non-FMI symbols ({', '.join(leaked[:5])})")
+            raise BuildError(f"block {label}: the library exports non-FMI symbols ({', '.join(leaked[:5])})")
         plat2, plat3 = platform_dirs()
         plat = plat2 if version == "2.0" else plat3
         members: dict[str, bytes] = {"modelDescription.xml": xml.encode(),
@@ -101,15 +136,11 @@ def build_fmu(block: Block, *, fmi_version: str = "2.0", cache_dir: Path | None 
         pack(out, members)
         target.parent.mkdir(parents=True, exist_ok=True)
         total = time.perf_counter() - t0
-        record = {"block": blk.name, "fidelity": blk.fidelity, "model_identifier": ident,
-                  "fmi_version": version, "guid": guid, "key": key, "exporter_version": EXPORTER_VERSION,
-                  "integrator": blk.integrator, "substeps": blk.substeps,
-                  "states": len(blk.states), "inputs": len(blk.inputs), "outputs": len(blk.outputs),
-                  "parameters": {p.name: p.default for p in blk.params},
-                  "codegen_s": round(t_gen, 4), "compile_s": round(t_cc, 4), "total_s": round(total, 4),
-                  "c_bytes": c_bytes, "optimisation": opt, "fmu_bytes": out.stat().st_size,
-                  "created": time.strftime("%Y-%m-%dT%H:%M:%S%z")}
-        atomic_write(target.with_name("build.json"), json.dumps(record, indent=2).encode())
+        rec = {"block": label, **dict(record or {}), "model_identifier": ident, "fmi_version": version, "guid": guid,
+               "key": key, "exporter_version": EXPORTER_VERSION, "compile_s": round(t_cc, 4),
+               "total_s": round(total, 4), "optimisation": opt, "fmu_bytes": out.stat().st_size,
+               "fmu_sha256": file_digest(out), "created": time.strftime("%Y-%m-%dT%H:%M:%S%z")}
+        atomic_write(target.with_name("build.json"), json.dumps(rec, indent=2).encode())
         out.replace(target)  # atomic: a concurrent build of the same key writes the same bytes
     finally:
         shutil.rmtree(tmp, ignore_errors=True)

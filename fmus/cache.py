@@ -23,15 +23,87 @@ KEY_LENGTH = 24
 
 
 def cache_root(cache_dir: Path | str | None = None) -> Path:
-    """``cache_dir``, else ``$RPR_COSIM_CACHE``, else ``~/.cache/rpr-cosim/fmus`` (created)."""
+    """``cache_dir``, else ``$RPR_COSIM_CACHE``, else ``~/.cache/rpr-cosim/fmus`` (created when
+    possible; a root that cannot be created is returned as is: reading it finds nothing)."""
     if cache_dir is not None:
         root = Path(cache_dir)
     elif os.environ.get(ENV_VAR):
         root = Path(os.environ[ENV_VAR])
     else:
         root = Path.home() / ".cache" / "rpr-cosim" / "fmus"
+    try:
+        root.mkdir(parents=True, exist_ok=True)
+    except OSError:
+        pass
+    return root
+
+
+def temporary_root() -> Path:
+    """The fallback cache when the configured one cannot be written: one per user, in the
+    system's temporary directory."""
+    root = Path(tempfile.gettempdir()) / f"rpr-cosim-fmus-{os.getuid() if hasattr(os, 'getuid') else 'user'}"
     root.mkdir(parents=True, exist_ok=True)
     return root
+
+
+_WARNED: set[str] = set()
+
+
+def writable_root(root: Path, warn=None) -> Path:
+    """``root`` when new entries can be written there, else :func:`temporary_root` (with a
+    one-line warning through ``warn``)."""
+    try:
+        root.mkdir(parents=True, exist_ok=True)
+        tempfile.TemporaryFile(dir=root, prefix=".probe-").close()
+        return root
+    except OSError as exc:
+        tmp = temporary_root()
+        if warn and str(root) not in _WARNED:
+            _WARNED.add(str(root))
+            warn(f"warning: the FMU cache {root} is not writable ({exc.strerror or exc}); "
+                 f"building into the temporary cache {tmp} instead")
+        return tmp
+
+
+def file_digest(path: Path) -> str:
+    """SHA-256 (hex) of a file's bytes."""
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for block in iter(lambda: fh.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def verify(fmu: Path) -> str:
+    """Why the cached ``fmu`` cannot be served ("" when it is intact): its size and SHA-256 must
+    match those recorded in ``build.json`` at build time.  An entry from before hashes were
+    recorded is checked as a zip (every member's CRC) and, when intact, given its hash."""
+    import zipfile
+
+    fmu = Path(fmu)
+    rec = build_record(fmu)
+    try:
+        size = fmu.stat().st_size
+    except OSError as exc:
+        return f"cannot read it ({exc.strerror or exc})"
+    if not rec:
+        return "its build record (build.json) is missing or unreadable"
+    if rec.get("fmu_bytes") is not None and rec["fmu_bytes"] != size:
+        return f"it is {size} bytes, the build recorded {rec['fmu_bytes']}"
+    if rec.get("fmu_sha256"):
+        return "" if file_digest(fmu) == rec["fmu_sha256"] else "its SHA-256 differs from the one recorded at build"
+    try:
+        with zipfile.ZipFile(fmu) as z:
+            bad = z.testzip()
+    except (OSError, zipfile.BadZipFile) as exc:
+        return f"it is not a readable zip ({exc})"
+    if bad is not None:
+        return f"its member {bad} is corrupt"
+    try:  # an entry from an older build: record its hash now
+        atomic_write(fmu.with_name("build.json"), json.dumps(dict(rec, fmu_sha256=file_digest(fmu)), indent=2).encode())
+    except OSError:
+        pass
+    return ""
 
 
 def content_key(parts: Iterable[tuple[str, str | bytes]]) -> str:

@@ -127,3 +127,11 @@ def test_comparability_is_a_function_other_verbs_can_call(good):
                      "it anyway")
     assert second.startswith("the traces overlap over 0..0.49 s, 24.5 % of the reference's span 0..2 s")
     assert c.problems(allow_failed=True, allow_partial=True) == []
+
+
+def test_a_batch_is_not_compared_against_a_failed_reference(tmp_path, good, capsys):
+    ref = write(tmp_path / "ref.csv", read_trace(good), "unstable", "unstable: m.x = nan at t = 1 s")
+    batch = tmp_path / "batch"
+    batch.mkdir()
+    assert cli.main(["compare", str(batch), str(ref)]) == 2
+    assert f"refused: {ref}: the run's status is 'unstable', not 'ok'" in capsys.readouterr().err

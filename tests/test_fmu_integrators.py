@@ -94,6 +94,31 @@ def test_observed_order_matches_the_method(integrator, order):
     assert abs(observed - order) < 0.35, (errs, observed)
 
 
+def msd_ramp_exact(t: float, f0: float, df: float, *, m=1.0, k=100.0, c=2.0, s0=0.01) -> np.ndarray:
+    """(s, v) at time t under the force ``f0 + df t``: matrix exponential of (s, v, f, df/dt)."""
+    A = np.zeros((4, 4))
+    A[0, 1], A[1, 0], A[1, 1], A[1, 2], A[2, 3] = 1.0, -k / m, -c / m, 1 / m, 1.0
+    return (scipy.linalg.expm(A * t) @ np.array([s0, 0.0, f0, df]))[:2]
+
+
+@pytest.mark.parametrize("integrator,order", [("rk4", 4), ("radau", 5)])
+def test_a_ramp_input_is_followed_to_the_method_order(integrator, order):
+    """Inputs ``u + du tau`` inside the step (the linear-input convention): each stage must see
+    the input at its own time (RK4 at 0, h/2, h; Radau at c_i h), or the error falls only like
+    h or h^2.  Global error at t = 1 s against the exact solution under the ramp."""
+    f0, df = 3.0, 40.0
+    errs = []
+    for h in (0.05, 0.025):
+        st, blk = I.Stepper(msd_block(integrator=integrator)), msd_block(integrator=integrator)
+        x = np.array([0.01, 0.0])
+        for k in range(round(1.0 / h)):
+            x, ok = st.step(x, [f0 + df * k * h], blk.param_defaults, h, du=[df])
+            assert ok
+        errs.append(np.linalg.norm(x - msd_ramp_exact(1.0, f0, df)))
+    observed = math.log2(errs[0] / errs[1])
+    assert abs(observed - order) < 0.35, (errs, observed)
+
+
 @pytest.mark.parametrize("substeps", [1, 4])
 def test_radau_accuracy_against_the_analytic_solution(substeps):
     h = 0.01
@@ -187,6 +212,46 @@ def test_radau_reports_non_convergence_instead_of_a_wrong_state(substeps):
     assert float(ok) == 1.0 and float(err) <= 1.0
     exact = 1 / math.sqrt(1 + 2 * 10.0 * 0.1)
     assert abs(float(xn) - exact) < (3e-4 if substeps == 1 else 1e-8)
+
+
+def cubic_block(k: float = 10.0) -> Block:
+    """``z' = -k z^3`` from ``z = 1`` (exact ``1/sqrt(1 + 2 k t)``)."""
+    p, x = ca.SX.sym("p", 1), ca.SX.sym("x", 1)
+    return Block.build("cubic", params=[Param("k", k)], inputs=[], outputs=[Var("y")], states=[Var("z")],
+                       p=p, u=ca.SX.sym("u", 0), x=x, ode=-p[0] * x ** 3, out=x, start=ca.DM([1.0]),
+                       integrator="radau")
+
+
+@pytest.mark.parametrize("ratio", [0.98, 1.02])
+@pytest.mark.parametrize("kind", ["atol", "rtol"])
+def test_radau_accepts_a_step_exactly_up_to_its_tolerance(kind, ratio):
+    """The acceptance threshold itself: ``ok`` iff the error estimate ``err`` is at most 1.
+
+    One simplified-Newton iteration (``max_iter=1``) leaves a stage error that does not depend on
+    the tolerance (the iteration is affine invariant), while ``err`` is that error over
+    ``atol`` (``rtol = 0``): so ``atol`` places ``err`` just below or just above 1.  Independently
+    of the kernel's own estimate, the step's true error -- its distance from the converged Radau
+    step -- is then about ``ratio * atol``: a step is accepted exactly when it is within its
+    tolerance.  (Relies on ``radau_kernel(block, rtol=, atol=, max_iter=)`` returning
+    ``(x_next, ok, err)``.)  The same with a relative tolerance alone (``atol = 0``): then the
+    scale is ``rtol (|x| + |Z|)`` per component."""
+    blk, x0, args = cubic_block(), 1.0, ([1.0], [], [10.0], 0.1, [])
+
+    def kernel(tol: float):
+        tols = {"atol": tol, "rtol": 0.0} if kind == "atol" else {"atol": 0.0, "rtol": tol}
+        return I.radau_kernel(blk, max_iter=1, **tols)
+
+    _, _, err_ref = kernel(1e-10)(*args)
+    tol = 1e-10 * float(err_ref) / ratio
+    xn, ok, err = kernel(tol)(*args)
+    assert float(err) == pytest.approx(ratio, rel=1e-6)
+    assert float(ok) == (1.0 if ratio < 1 else 0.0)
+    converged, ok_c, _ = I.radau_kernel(blk)(*args)
+    assert float(ok_c) == 1.0
+    xn, converged = float(xn), float(converged)
+    scale = tol if kind == "atol" else tol * (abs(x0) + abs(xn - x0))
+    true_ratio = abs(xn - converged) / scale
+    assert 0.5 * ratio < true_ratio < 2.0 * ratio, true_ratio
 
 
 def test_radau_discards_a_step_too_large_for_simplified_newton():

@@ -345,6 +345,25 @@ def test_state_from_another_fmu_is_refused(cache):
     b.free()
 
 
+@pytest.mark.parametrize("version", VERSIONS)
+@pytest.mark.parametrize("how", ["set", "deserialize"])
+def test_state_from_another_fmu_of_the_same_size_is_refused(cache, version, how):
+    """The same mass-spring-damper built with RK4 and with Radau: same variables, same state
+    size, different GUID.  Only the GUID can tell their states apart, and it must."""
+    a = Slave(fmus.build_fmu(msd_block(integrator="rk4"), fmi_version=version, cache_dir=cache), "a")
+    logs: list = []
+    b = Slave(fmus.build_fmu(msd_block(integrator="radau"), fmi_version=version, cache_dir=cache), "b", logs=logs)
+    assert a.md.guid != b.md.guid
+    state = a.get_state()
+    blob = a.serialize(state)
+    assert len(blob) == len(b.serialize(b.get_state()))  # the same size: no other check can refuse it
+    with pytest.raises(FMICallException):
+        b.set_state(state) if how == "set" else b.deserialize(blob)
+    assert any("the FMU state was not made by this FMU" in m for _, m in logs), logs
+    a.free()
+    b.free()
+
+
 # --- directional derivatives --------------------------------------------------------------------
 @pytest.mark.parametrize("version", VERSIONS)
 def test_directional_derivatives_are_the_analytic_partials(version, cache):

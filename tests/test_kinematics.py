@@ -39,10 +39,13 @@ def test_table_6_12_leg_lengths(pose, legs):
 # --- Chapter 7 path, matched instants (SPEC §5) ------------------------------------------------
 @pytest.mark.parametrize("quantity, t, expected, rel", [
     ("L", 0.2335, [0.309994594, 0.372398991, 0.276864985], [2e-3, 2e-3, 2e-3]),
-    # SPEC quotes "0.8 %" for legs 1-2 (0.80-0.81 % here), so the bound is 1 %.
+    # rates: SPEC §5 gives the thesis's own agreement as 0.8 % for legs 1-2 (measured 0.81 % and
+    # 0.80 %: bound 1 %) and 5 % for leg 3 (measured 4.78 %: bound the thesis's 5 %)
     ("Ld", 0.234, [-0.162204534, -0.163456366, -0.017791517], [1e-2, 1e-2, 5e-2]),
-    # leg 3 acceleration: SPEC quotes "2 %"; the exact instant gives 2.2 %, so the bound is 2.5 %.
-    ("Ldd", 0.5, [0.678478249, 0.696504281, 0.019889875], [2e-3, 2e-3, 2.5e-2]),
+    # accelerations: SPEC §5 says 0.2 % (measured 0.04 %, 0.19 %) and for leg 3 "2 %": measured
+    # 2.19 % at t = 0.5 s, the path's acceleration peak (every other instant is further off), so
+    # the bound is 2.2 %, the thesis's one-digit "2 %" to its next digit
+    ("Ldd", 0.5, [0.678478249, 0.696504281, 0.019889875], [2e-3, 2e-3, 2.2e-2]),
 ])
 def test_chapter7_leg_kinematics(quantity, t, expected, rel):
     got = leg_motion(*sine_path(t))[quantity].ravel()
@@ -157,6 +160,24 @@ def test_forward_kinematics_finds_every_assembly_mode(config, pose, legs, modes)
 
 def test_forward_kinematics_outside_stroke_is_empty():
     assert K.forward_kinematics(CROSS, [0.05, 0.3, 0.3]).shape == (0, 3)
+
+
+@pytest.mark.parametrize("limit", ["Lmin", "Lmax"])
+def test_a_leg_exactly_at_its_stroke_limit_is_inside_the_stroke(limit):
+    """SPEC §1: the stroke is the closed interval [0.10, 0.60] m.  A pose whose leg 1 is at the
+    limit to 1e-9 m (found by bisection along x) keeps its assembly modes with L1 set exactly to
+    the limit; a micrometre beyond, none."""
+    from scipy.optimize import brentq
+
+    bound = getattr(CROSS, limit)
+    y, lo, hi = (-0.15, 0.45, 0.5) if limit == "Lmax" else (0.05, -0.1, -0.05)  # the other legs well inside
+    x = brentq(lambda x: K.ik(CROSS, (x, y, 0.0))[0][0] - bound, lo, hi, xtol=1e-14)
+    L = np.array(K.ik(CROSS, (x, y, 0.0))[0], dtype=float)
+    assert abs(L[0] - bound) < 1e-9 and np.all((L[1:] > CROSS.Lmin) & (L[1:] < CROSS.Lmax))
+    L[0] = bound
+    assert len(K.forward_kinematics(CROSS, L)) >= 1
+    L[0] = bound + (1e-6 if limit == "Lmax" else -1e-6)
+    assert K.forward_kinematics(CROSS, L).shape == (0, 3)
 
 
 # --- numpy replay equals CasADi -------------------------------------------------------------------

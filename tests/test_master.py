@@ -15,6 +15,7 @@ Gauss-Seidel: A first, then B with A's fresh output).
 """
 from __future__ import annotations
 
+import itertools
 import json
 import math
 import sys
@@ -77,6 +78,7 @@ def test_exact_discrete_solution_of_the_coupled_pair(alg, d):
     tr, stats = run(pair(d), alg, 50_000_000, 40)  # h = 0.05 s
     np.testing.assert_allclose(tr.data[:, 1:], expected(alg, 0.05, 40, d), rtol=0, atol=1e-14)
     assert stats.status == "ok" and stats.steps_done == 40
+    assert tr.meta["step"] == stats.step == 0.05 and tr.meta["algorithm"] == alg
     assert stats.slaves["a"]["do_step_calls"] == stats.slaves["b"]["do_step_calls"] == 40
 
 
@@ -134,14 +136,15 @@ class Failing(LinearSlave):
         return super().do_step(t, h)
 
 
+@pytest.mark.parametrize("alg", ["jacobi", "gauss_seidel"])
 @pytest.mark.parametrize("status,expect", [(Status.DISCARD, "failed"), (Status.ERROR, "failed")])
-def test_a_failing_slave_stops_the_run_and_keeps_the_partial_trace(tmp_path, status, expect):
+def test_a_failing_slave_stops_the_run_and_keeps_the_partial_trace(tmp_path, status, expect, alg):
     bad = Failing("bad", [[-1.0]], [[1.0]], [[1.0]], fail_at=7, status=status)
     ok = LinearSlave("ok", [[-2.0]], [[1.0]], [[1.0]], x0=[1.0])
     system = CoupledSystem([ok, bad], [Link(0, "y[1]", 1, "u[1]")], [(0, "y[1]"), (1, "y[1]")])
     csv = CsvTrace(tmp_path / "t.csv")
     mem = MemoryTrace()
-    stats = simulate(system, "gauss_seidel", step_ns=10_000_000, n_steps=100, observers=[mem, csv])
+    stats = simulate(system, alg, step_ns=10_000_000, n_steps=100, observers=[mem, csv])
     assert stats.status == expect and stats.steps_done == 6
     assert "bad" in stats.reason and "t = 0.06 s" in stats.reason
     if expect == "failed":
@@ -223,6 +226,20 @@ def test_compiled_loop_equals_the_python_loop_bit_for_bit(fmu_paths, alg, versio
     assert s2.slaves["m"]["do_step_calls"] == 500 and s2.slaves["m"]["wall_s"] > 0
 
 
+@pytest.mark.parametrize("every", [3, 7])
+def test_compiled_loop_records_every_nth_point_like_the_python_loop(fmu_paths, every):
+    """Recording every n-th communication point: the same rows (t = 0, n h, 2 n h, ...) in both
+    engines, and the same values as the every-point trace at those instants."""
+    py, _ = run(fmu_system(fmu_paths, "2.0", "2.0"), "gauss_seidel", 1_000_000, 100, engine="python",
+                record_every=every)
+    cc, _ = run(fmu_system(fmu_paths, "2.0", "2.0"), "gauss_seidel", 1_000_000, 100, engine="compiled",
+                record_every=every)
+    full, _ = run(fmu_system(fmu_paths, "2.0", "2.0"), "gauss_seidel", 1_000_000, 100, engine="compiled")
+    np.testing.assert_allclose(cc.time, np.arange(0, 101, every) * 1e-3, rtol=0, atol=1e-15)
+    assert np.array_equal(py.data, cc.data)
+    assert np.array_equal(cc.data, full.data[::every])
+
+
 @pytest.mark.parametrize("alg", ["jacobi", "gauss_seidel"])
 def test_fmu_pair_follows_the_conventions_on_a_linear_problem(fmu_paths, alg):
     """msd (Radau IIA, order 5: exact to ~1e-12 here) under f = -40 s from a gain FMU.  Gauss-Seidel
@@ -286,6 +303,25 @@ def test_fmu_pair_with_linear_inputs_follows_the_conventions(fmu_paths, alg):
     assert np.abs(tr["m.body.s"] - exact).max() < np.abs(held["m.body.s"] - exact).max() / 20
 
 
+@pytest.mark.parametrize("engine", ["python", "compiled"])
+def test_a_slave_feeding_itself_extrapolates_its_own_output(fmu_paths, engine):
+    """Gauss-Seidel, linear inputs, the msd's position wired to its own force (a spring of
+    -1 N/m): the source has not stepped when the slave takes its input, so the input is
+    extrapolated -- ``s_k`` with slope ``(s_k - s_k-1) / h`` -- never interpolated."""
+    m = FmuSlave("m", fmu_paths[("msd", "2.0")])
+    system = CoupledSystem([m], [Link(0, "body.s", 0, "f")], [(0, "body.s")])
+    tr, st = run(system, "gauss_seidel", 1_000_000, 200, inputs="linear", engine=engine)
+    assert st.engine == engine
+    M = np.zeros((4, 4))
+    M[0, 1], M[1, 0], M[1, 1], M[1, 2], M[2, 3] = 1.0, -100.0, -2.0, 1.0, 1.0
+    E = scipy.linalg.expm(M * 1e-3)[:2]
+    x, s = np.array([0.01, 0.0]), [0.01]
+    for j in range(200):
+        x = E @ np.array([x[0], x[1], s[j], (s[j] - s[max(j - 1, 0)]) / 1e-3])
+        s.append(x[0])
+    np.testing.assert_allclose(tr["m.body.s"], s, rtol=0, atol=1e-12)
+
+
 @pytest.mark.parametrize("alg", ["jacobi", "gauss_seidel"])
 def test_linear_inputs_leave_fmi3_slaves_holding(fmu_paths, alg):
     """FMI 3.0 has no input derivatives: such slaves keep holding, bit for bit."""
@@ -304,6 +340,98 @@ def test_a_diverging_fmu_discards_and_the_run_reports_it(tmp_path):
     assert st.status == "failed" and st.engine == "compiled"
     assert "stiff returned DISCARD" in st.reason and "non-finite" in st.reason
     assert 1 < st.steps_done < 1000 and len(tr.data) == st.steps_done + 1
+    # the failing step is the one after the last completed: from t = steps_done * h
+    assert f"in the step from t = {st.steps_done * 1e-3:.9g} s (step {st.steps_done})" in st.reason
+
+
+# --- Gauss-Seidel order on more than two slaves, both engines -------------------------------------
+def affine_block():
+    """Sampled affine map ``x+ = a x + b u`` every 10 ms, output ``y = x`` (no feedthrough), start
+    ``x0``; ``a``, ``b``, ``x0`` are tunable, so one FMU serves every slave of the ring."""
+    import casadi as ca
+
+    from models.block import Block, Param, Var
+
+    p, x, u = ca.SX.sym("p", 3), ca.SX.sym("x", 1), ca.SX.sym("u", 1)
+    return Block.build("affine", description="sampled affine map (master tests)",
+                       params=[Param("a", 0.9, "1"), Param("b", 0.5, "1"), Param("x0", 0.0, "1")],
+                       inputs=[Var("u", "1")], outputs=[Var("y", "1")], states=[Var("x", "1")],
+                       p=p, u=u, x=x, ode=p[0] * x + p[1] * u, out=x, start=p[2],
+                       integrator="discrete", sample_period=0.01)
+
+
+# a ring of four slaves declared 0..3 but wired 3 -> 1 -> 2 -> 0 -> 3, each with its own a, b, x0
+RING = [(3, 1), (1, 2), (2, 0), (0, 3)]
+RING_PARAMS = [(0.9, 0.5, 1.0), (0.7, -0.8, -0.5), (0.95, 0.3, 0.25), (0.6, 1.1, 2.0)]
+
+
+@pytest.fixture(scope="module")
+def affine_fmu(tmp_path_factory):
+    import fmus
+
+    return fmus.build_fmu(affine_block(), cache_dir=tmp_path_factory.getbasetemp() / "fmu-cache")
+
+
+def ring_system(path) -> CoupledSystem:
+    slaves = [FmuSlave(f"s{i}", path) for i in range(4)]
+    return CoupledSystem(slaves, [Link(a, "y", b, "u") for a, b in RING], [(i, "y") for i in range(4)])
+
+
+def ring_exact(order, n: int) -> np.ndarray:
+    """Outputs at t_0..t_n of the ring under Gauss-Seidel in ``order``, from the convention alone:
+    each slave, in turn, takes its source's *current* output (already stepped this macro step or
+    not) and applies its own affine map."""
+    src = {b: a for a, b in RING}
+    y = np.array([x0 for _, _, x0 in RING_PARAMS])
+    rows = [y.copy()]
+    for _ in range(n):
+        for i in order:
+            a, b, _ = RING_PARAMS[i]
+            y[i] = a * y[i] + b * y[src[i]]
+        rows.append(y.copy())
+    return np.array(rows)
+
+
+@pytest.mark.parametrize("engine", ["python", "compiled"])
+@pytest.mark.parametrize("order", [None, (3, 2, 1, 0), (2, 0, 3, 1)], ids=["default", "reversed", "shuffled"])
+def test_gauss_seidel_steps_slaves_in_its_order_not_the_declaration_order(affine_fmu, engine, order):
+    """Four FMUs in a ring: every stepping order gives a different exact map.  The default order
+    cuts one connection of the ring (0, 3, 1, 2: the declaration order would cut two); an
+    explicit order is followed as given, by the compiled loop as by the Python loop."""
+    want = [0, 3, 1, 2] if order is None else list(order)
+    start = [{"a": a, "b": b, "x0": x0} for a, b, x0 in RING_PARAMS]
+    tr, st = run(ring_system(affine_fmu), "gauss_seidel", 10_000_000, 30, engine=engine, order=order,
+                 start_values=start)
+    assert st.engine == engine and st.status == "ok"
+    assert gauss_seidel_order(4, RING) == [0, 3, 1, 2]
+    np.testing.assert_allclose(tr.data[:, 1:], ring_exact(want, 30), rtol=1e-13, atol=1e-13)
+    # the declaration order is a different map: this test could tell them apart
+    assert np.abs(ring_exact(want, 30) - ring_exact(range(4), 30)).max() > 0.1
+
+
+# --- the compiled loop's own build -----------------------------------------------------------------
+@pytest.fixture
+def fresh_loop_library(tmp_path, monkeypatch):
+    """The loop library forgotten, with an empty cache under ``tmp_path``; forgotten again after."""
+    from cosim import fastloop
+
+    monkeypatch.setenv("RPR_COSIM_CACHE", str(tmp_path / "fmus"))
+    fastloop.library.cache_clear()
+    yield fastloop
+    fastloop.library.cache_clear()
+
+
+def test_the_compiled_loop_builds_into_an_empty_cache(fresh_loop_library, tmp_path):
+    dll = fresh_loop_library.library()
+    assert dll.rpr_run is not None
+    assert len(list((tmp_path / "master").glob("rpr_loop_*.so"))) == 1
+
+
+def test_without_a_c_compiler_the_compiled_loop_says_so(fresh_loop_library, monkeypatch):
+    monkeypatch.setenv("CC", "/nonexistent/cc")
+    with pytest.raises(UserError, match="needs a C compiler .*master.engine: python"):
+        fresh_loop_library.library()
+    assert not fresh_loop_library.available()
 
 
 # --- structure ---------------------------------------------------------------------------------
@@ -317,6 +445,33 @@ def test_a_diverging_fmu_discards_and_the_run_reports_it(tmp_path):
 ])
 def test_gauss_seidel_order_cuts_the_fewest_connections(n, edges, order):
     assert gauss_seidel_order(n, edges) == order
+
+
+def test_gauss_seidel_order_of_a_large_group_follows_the_greedy_rule():
+    """Beyond seven slaves the order is greedy, by out-degree minus in-degree among the slaves
+    not yet placed: on a chain of nine closed by one connection back (at least one cut) that
+    rule finds the single cut."""
+    edges = [(k, k + 1) for k in range(8)] + [(8, 0)]
+    order = gauss_seidel_order(9, edges)
+    pos = {v: k for k, v in enumerate(order)}
+    assert sorted(order) == list(range(9))
+    assert sum(pos[a] > pos[b] for a, b in edges) == 1
+
+
+def test_gauss_seidel_order_cuts_the_fewest_connections_in_a_group_of_seven():
+    """Seven slaves in one strongly connected group: the order is searched exhaustively (the
+    greedy rule used beyond seven cuts five connections here); the fewest cuts, by brute force
+    over all 5040 orders, is four."""
+    edges = [(0, 2), (0, 3), (0, 6), (1, 0), (1, 3), (1, 4), (2, 3), (2, 6), (3, 0), (3, 4), (4, 0), (4, 1),
+             (4, 2), (4, 5), (5, 2), (6, 0)]
+
+    def cuts(order):
+        pos = {v: k for k, v in enumerate(order)}
+        return sum(pos[a] > pos[b] for a, b in edges)
+
+    fewest = min(cuts(p) for p in itertools.permutations(range(7)))
+    assert fewest == 4
+    assert cuts(gauss_seidel_order(7, edges)) == fewest
 
 
 @pytest.mark.parametrize("edges,has_loop", [
@@ -334,8 +489,12 @@ def test_the_master_refuses_an_algebraic_loop_of_feedthrough_slaves():
     a = LinearSlave("a", [[-1.0]], [[1.0]], [[1.0]], [[1.0]])
     b = LinearSlave("b", [[-1.0]], [[1.0]], [[1.0]], [[1.0]])
     system = CoupledSystem([a, b], [Link(0, "y[1]", 1, "u[1]"), Link(1, "y[1]", 0, "u[1]")], [(0, "y[1]")])
+    mem = MemoryTrace()
     with pytest.raises(UserError, match=r"algebraic loop: .*a\.y\[1\] -> b\.u\[1\]"):
-        simulate(system, "jacobi", step_ns=1_000_000, n_steps=3)
+        simulate(system, "jacobi", step_ns=1_000_000, n_steps=3, observers=[mem])
+    # refused before any step: the observers hear so, with no step counted
+    assert mem.trace.status == "failed" and "algebraic loop" in mem.trace.reason
+    assert mem.trace.stats["steps_done"] == 0 and mem.trace.stats["steps_planned"] == 3
 
 
 def test_registry_suggests_the_closest_algorithm():

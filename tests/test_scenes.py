@@ -66,18 +66,25 @@ def test_pid_step_reproduces_the_shape_of_table_6_10(pid_rigid):
 
 
 def test_pid_step_settles_on_the_target_within_the_thesis_band(pid_rigid):
+    """The band is the thesis's (its bond graph's end state agrees with the target to 0.5 mm and
+    0.003 rad).  The thesis's plant is inside it at 5 s; this rigid plant with the parallel gains
+    is not (SPEC §6: 2-3 mm / 0.01 rad off at 5 s) and enters it later: measured 8.05 s.
+    Bounds below are the measured values with their margin stated, not the thesis's band."""
     tr = pid_rigid.trace
     t = tr.time
     out = (leg_error(tr) > BAND_LEG) | (np.abs(tr["mech.platform.phi"] - TARGET_POSE[2]) > BAND_PHI)
     settle = t[np.nonzero(out)[0][-1] + 1]
-    assert 3.0 < settle < 12.0, settle
-    # after settling the error keeps shrinking (integral action): at 15 s well inside the band
-    assert leg_error(tr)[-1] < BAND_LEG / 2
-    assert abs(tr["mech.platform.phi"][-1] - TARGET_POSE[2]) < BAND_PHI
-    # at 5 s (the thesis's horizon): the end state beside Table 6.12's, within a few millimetres
+    assert 7.5 < settle < 8.6, settle  # measured 8.053 s
+    # after settling the error keeps shrinking (integral action): at 15 s measured 9.2e-6 m and
+    # 7.1e-5 rad, 50 times inside the band
+    assert leg_error(tr)[-1] < 3e-5
+    assert abs(tr["mech.platform.phi"][-1] - TARGET_POSE[2]) < 2e-4
+    # at 5 s (the thesis's horizon), beside Table 6.12's end state: legs 1.15 / 0.49 / 2.63 mm and
+    # phi 0.0048 rad away (SPEC §6: the rigid plant ends 2-3 mm / 0.01 rad off at 5 s); bounds
+    # 1.3x measured, and phi at SPEC's 0.01 rad
     at5 = {n: tr.at(n, 5.0) for n in tr.names}
-    for i in LEGS:
-        assert abs(at5[f"mech.leg[{i}].s"] - THESIS_END_LEGS[i - 1]) < 3e-3
+    for i, measured in zip(LEGS, (1.15e-3, 0.49e-3, 2.63e-3)):
+        assert abs(at5[f"mech.leg[{i}].s"] - THESIS_END_LEGS[i - 1]) < 1.3 * measured, i
     assert abs(at5["mech.platform.phi"] - THESIS_END_POSE[2]) < 0.01
 
 
@@ -85,7 +92,7 @@ def test_pid_step_multibody_agrees_with_rigid(cache):
     """Stiff parasitic joints (1e8 N/m) deflect by f/k ~ 1e-7 m: the closed loop must not notice.
     Both fidelities run with the scene's coupling (Gauss-Seidel at 1 ms, linear inputs).  Stated
     tolerance: 5e-6 m on the leg lengths and platform position, 2e-5 rad on phi, over the whole
-    5 s (measured 1.0e-6 m and 7.1e-6 rad)."""
+    5 s (measured: legs 2.5e-6 / 1.2e-6 / 1.7e-6 m, x 1.0e-6 m, y 0.8e-6 m, phi 7.1e-6 rad)."""
     a = run(SCENES / "pid_step.yaml", [], cache_dir=cache).trace
     mb = run(SCENES / "pid_step_multibody.yaml", [], cache_dir=cache)
     b = mb.trace
@@ -152,19 +159,25 @@ TABLE_7_9 = (2.610272368, 1.440588406, 0.693698204)
 
 
 def test_vw_reference_reproduces_tables_7_7_and_7_9(vw):
+    """The thesis's own agreement bands (SPEC §5): accelerations 0.2 % (legs 1-2; measured 0.04 %
+    and 0.19 %), leg 3 "2 %" (measured 2.19 % at this instant, the path's acceleration peak, so
+    no nearby instant does better: the bound is 2.2 %, SPEC's one-digit "2 %" to its next
+    digit); forces 1 % (measured 0.11 / 0.48 / 0.75 %)."""
     tr = vw.trace
     assert vw.ok, vw.reason
     for i, (a, f) in enumerate(zip(TABLE_7_7, TABLE_7_9), start=1):
-        assert tr.at(f"ref.leg[{i}].a", 1.0) == pytest.approx(a, rel=0.025 if i == 3 else 0.003)
+        assert tr.at(f"ref.leg[{i}].a", 1.0) == pytest.approx(a, rel=0.022 if i == 3 else 0.002)
         assert tr.at(f"ref.leg[{i}].f", 1.0) == pytest.approx(f, rel=0.01)
 
 
 @pytest.mark.parametrize("mech", ["rigid", "multibody"])
 def test_vw_compare_dynamic_mechanisms_follow_the_virtual_work_reference(vw, mech):
-    """Better than 1e-3 relative (the target) -- in fact better than 1e-4 -- for lengths, rates,
-    accelerations and forces over the whole 5 s, at the multibody default stiffness."""
+    """Lengths, rates, accelerations and forces over the whole 5 s, at the multibody default
+    stiffness, relative to the reference's range (the thesis's bond graph: 0.01-2.85 %).
+    Measured: rigid 1.2e-5 (rates; lengths 5.0e-6, forces 1.3e-6), multibody 7.4e-6 (rates;
+    forces 1.4e-6); bound 3e-5, 2.5x the worst."""
     errs = vw_errors(vw.trace, mech)
-    assert max(errs.values()) < 1e-4, errs
+    assert max(errs.values()) < 3e-5, errs
 
 
 @pytest.fixture(scope="module")
@@ -191,7 +204,9 @@ def test_vw_error_falls_like_the_joint_compliance(stiffness_sweep, kind, k):
 
 @pytest.mark.parametrize("kind", ["s", "v", "a", "f"])
 def test_vw_error_at_default_and_stiffer_joints(stiffness_sweep, kind):
-    assert stiffness_sweep[1e8][kind] < 1e-3
+    """At the thesis's 1e8 N/m (measured over 1 s: s 2.9e-7, v 1.3e-6, a 3.9e-6, f 1.4e-6):
+    bound 1e-5, 2.5x the worst; stiffer joints are no worse; softer (1e5) far worse."""
+    assert stiffness_sweep[1e8][kind] < 1e-5
     assert stiffness_sweep[1e9][kind] <= stiffness_sweep[1e8][kind] * 1.05
     assert stiffness_sweep[1e8][kind] < stiffness_sweep[1e5][kind] / 50
 

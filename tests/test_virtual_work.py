@@ -23,6 +23,7 @@ def lagrange_forces() -> ca.Function:
     Bodies: platform at C (angle phi); per leg a cylinder at ``A - e1 d/|d|`` and a rod at
     ``A + (|d| - e2) d/|d|``, both turned by ``atan2(d)``, with ``d = B - A`` and
     ``B = C - r (cos(phi + a), sin(phi + a))``.  ``J^T tau = d/dt dT/dqd - dT/dq`` with ``J = dL/dq``.
+    Outputs ``(tau, T, L)``: forces, kinetic energy and the leg lengths ``|B - A|``.
     """
     q, qd, qdd = ca.SX.sym("q", 3), ca.SX.sym("qd", 3), ca.SX.sym("qdd", 3)
     g, m = ca.SX.sym("g", 10), ca.SX.sym("m", 8)
@@ -42,7 +43,7 @@ def lagrange_forces() -> ca.Function:
     dT_dqd = ca.gradient(T, qd)
     Q = ca.jtimes(dT_dqd, q, qd) + ca.jtimes(dT_dqd, qd, qdd) - ca.gradient(T, q)
     J = ca.jacobian(ca.vertcat(*lengths), q)
-    return ca.Function("lagrange", [q, qd, qdd, g, m], [ca.solve(J.T, Q), T])
+    return ca.Function("lagrange", [q, qd, qdd, g, m], [ca.solve(J.T, Q), T, ca.vertcat(*lengths)])
 
 
 def random_state():
@@ -60,7 +61,7 @@ STATES = [random_state() for _ in range(8)]
 def test_virtual_work_equals_lagrange(k):
     q, qd, qdd = STATES[k]
     tau = V.inverse_dynamics(CROSS, q, qd, qdd)
-    ref, _ = lagrange_forces()(q, qd, qdd, CROSS.geometry_vector(), CROSS.inertia.vector())
+    ref = lagrange_forces()(q, qd, qdd, CROSS.geometry_vector(), CROSS.inertia.vector())[0]
     ref = np.array(ref).ravel()
     assert np.max(np.abs(tau - ref)) <= 1e-10 * np.max(np.abs(ref))
 

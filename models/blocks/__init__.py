@@ -12,6 +12,7 @@ the bad name, with the closest valid name as a suggestion.
 | ``pid`` | ``continuous``, ``discrete`` | :mod:`.pid` |
 | ``pose_setpoint`` | ``default`` | :mod:`.setpoint` |
 | ``oscillator`` | ``linear`` | :mod:`.oscillator` (master-algorithm test scenes) |
+| ``linear_actuator`` | ``rig``, ``single`` | :mod:`.actuator` |
 """
 from __future__ import annotations
 
@@ -21,7 +22,7 @@ from dataclasses import dataclass
 from typing import Any, Callable
 
 from ..block import Block, BlockError
-from . import mechanism, motor, oscillator, pid, setpoint
+from . import actuator, mechanism, motor, oscillator, pid, setpoint
 from ._common import CONFIG, SUBSTEPS, Option, integrator_option, positive_float, suggest, unit_text
 
 
@@ -42,6 +43,8 @@ def _entries() -> dict[str, dict[str, _Entry]]:
     rotor = Option("rotor", "lumped", "rotor inertia: 'lumped' (DESIGN option (b), inertia-free motor; lump "
                                       "m_reflected into the mechanism's leg[i].m_act) or 'state' (option (a): rotor "
                                       "state and a stiff spring-damper bond)", choices=motor.ROTOR)
+    act = Option("actuator", "fa200", "actuator preset giving the parameter defaults: Firgelli FA-200-L-12 or "
+                                      "the thesis's 'X' actuator", choices=tuple(actuator.ACTUATORS))
     return {
         "mechanism": {
             "rigid": _Entry(mechanism.rigid, (CONFIG, integrator_option("rk4"), SUBSTEPS)),
@@ -67,6 +70,10 @@ def _entries() -> dict[str, dict[str, _Entry]]:
                                            "force out)", choices=oscillator.COUPLING),
                 integrator_option("rk4"), Option("substeps", 40, "integrator substeps per communication step",
                                                  check=SUBSTEPS.check))),
+        },
+        "linear_actuator": {
+            "rig": _Entry(actuator.rig, (act, integrator_option("rk4"), SUBSTEPS)),
+            "single": _Entry(actuator.single, (act, integrator_option("rk4"), SUBSTEPS)),
         },
     }
 

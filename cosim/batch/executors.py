@@ -1,0 +1,262 @@
+"""Where a batch's runs execute: local worker processes (the default, no set-up) or a Dask
+distributed cluster.  Both take the same :class:`~cosim.batch.worker.Task` list and
+:class:`~cosim.batch.worker.Shared` payload and report each run through ``on_done(task,
+outcome)`` as it finishes, in completion order.
+
+Local (:class:`LocalExecutor`)
+    ``N`` processes forked from a server process that has already imported the run machinery
+    (``forkserver`` with preloading), each fed one task at a time over a pipe, so the parent
+    always knows which run is where.  The FMUs' bytes go to each process once, when it starts.
+    A process that dies (killed, crashed in an FMU) is replaced and its run is given to a worker
+    once more; a run that kills its worker twice is a failed row.  Workers ignore Ctrl-C (the
+    parent stops them) and die with the parent (``PR_SET_PDEATHSIG`` and a watchdog), so an
+    interrupted batch leaves no run behind writing into its directory.
+Dask (:class:`DaskExecutor`)
+    On an existing scheduler (``--scheduler tcp://host:8786``; workers started with ``dask worker
+    ADDRESS --nthreads 1``) or on a ``LocalCluster`` it starts (``--dask``).  The shared payload
+    is scattered once to every worker (``broadcast=True``); each run writes into a temporary
+    directory on its worker and sends its files back, so workers need no shared filesystem.  A
+    worker that dies is restarted by its nanny and the scheduler reschedules its run; the
+    ``LocalCluster`` allows one retry (``distributed.scheduler.allowed-failures = 1``), an
+    external scheduler follows its own setting (default 3); after that the run is a failed row.
+"""
+from __future__ import annotations
+
+import ctypes
+import multiprocessing as mp
+import os
+import signal
+import threading
+import time
+import uuid
+from collections import deque
+from collections.abc import Callable, Sequence
+from multiprocessing.connection import wait
+
+from ..errors import UserError
+from .worker import Outcome, Shared, Task, execute, worker_id
+
+OnStart = Callable[[Task, int], None]
+OnDone = Callable[[Task, Outcome], None]
+
+
+# --- local processes -----------------------------------------------------------------------------
+def _die_with(parent_pid: int) -> None:
+    """Make this process end when ``parent_pid`` (the batch) ends."""
+    try:
+        ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
+    except (OSError, AttributeError):
+        pass
+
+    def watch() -> None:
+        while True:
+            try:
+                os.kill(parent_pid, 0)
+            except ProcessLookupError:
+                os._exit(1)
+            except PermissionError:
+                pass
+            try:
+                with open(f"/proc/{parent_pid}/stat") as fh:
+                    if fh.read().rsplit(")", 1)[1].split()[0] == "Z":  # a zombie: the batch is gone
+                        os._exit(1)
+            except OSError:
+                pass
+            time.sleep(0.2)
+
+    threading.Thread(target=watch, name="batch-watchdog", daemon=True).start()
+
+
+def _worker_main(conn, shared: Shared, parent_pid: int) -> None:
+    """A local worker: runs tasks from ``conn`` until it receives None or the pipe closes."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    _die_with(parent_pid)
+    while True:
+        try:
+            task = conn.recv()
+        except (EOFError, OSError):
+            return
+        if task is None:
+            return
+        conn.send(("started", os.getpid()))
+        conn.send(("done", execute(task, shared)))
+
+
+class _Slot:
+    def __init__(self, proc, conn):
+        self.proc, self.conn = proc, conn
+        self.task: Task | None = None
+
+
+def _context():
+    ctx = mp.get_context("forkserver")
+    ctx.set_forkserver_preload(["cosim.batch.worker", "cosim.run", "cosim.batch.executors"])
+    return ctx
+
+
+class LocalExecutor:
+    """``workers`` local processes (see the module docstring)."""
+
+    def __init__(self, workers: int | None = None):
+        self.workers = max(1, workers or os.cpu_count() or 1)
+        self.capacity = self.workers
+        self.replaced = 0  # workers that died and were replaced
+
+    def _spawn(self, ctx, shared: Shared) -> _Slot:
+        ours, theirs = ctx.Pipe()
+        proc = ctx.Process(target=_worker_main, args=(theirs, shared, os.getpid()), daemon=True,
+                           name="rpr-batch-worker")
+        proc.start()
+        theirs.close()
+        return _Slot(proc, ours)
+
+    def run(self, tasks: Sequence[Task], shared: Shared, on_done: OnDone, on_start: OnStart | None = None) -> None:
+        """Run every task; returns when all are done (or raises KeyboardInterrupt after stopping
+        the workers)."""
+        pending = deque(tasks)
+        if not pending:
+            return
+        ctx = _context()
+        slots = [self._spawn(ctx, shared) for _ in range(min(self.workers, len(pending)))]
+        try:
+            while pending or any(s.task for s in slots):
+                for i, s in enumerate(slots):
+                    if s.task is None and pending:
+                        s.task = pending.popleft()
+                        try:
+                            s.conn.send(s.task)
+                        except (BrokenPipeError, OSError):  # died while idle: replace it, send again
+                            slots[i] = self._replace(ctx, shared, s)
+                            slots[i].task = s.task
+                            slots[i].conn.send(s.task)
+                busy = [s for s in slots if s.task is not None]
+                ready = set(wait([s.conn for s in busy] + [s.proc.sentinel for s in busy]))
+                for i, s in enumerate(slots):
+                    if s.task is None or not ({s.conn, s.proc.sentinel} & ready):
+                        continue
+                    alive = self._drain(s, on_start, on_done)
+                    if alive and s.proc.sentinel not in ready:
+                        continue
+                    if s.task is not None:  # the worker died with this run: once more, on a new worker
+                        task, code, s.task = s.task, s.proc.exitcode, None
+                        if task.attempt < 2:
+                            task.attempt += 1
+                            pending.appendleft(task)
+                        else:
+                            sig = f", {signal.Signals(-code).name}" if code and code < 0 else ""
+                            on_done(task, Outcome(task.run_id, "failed", f"the worker process died twice while "
+                                                  f"running it (exit code {code}{sig})", worker=str(s.proc.pid)))
+                    if pending:
+                        slots[i] = self._replace(ctx, shared, s)
+        finally:
+            self._stop(slots)
+
+    def _drain(self, s: _Slot, on_start: OnStart | None, on_done: OnDone) -> bool:
+        """Read every message of ``s``; False when its pipe is closed."""
+        try:
+            while s.conn.poll():
+                kind, payload = s.conn.recv()
+                if kind == "started":
+                    if on_start:
+                        on_start(s.task, payload)
+                else:
+                    task, s.task = s.task, None
+                    on_done(task, payload)
+        except (EOFError, OSError):
+            return False
+        return True
+
+    def _replace(self, ctx, shared: Shared, s: _Slot) -> _Slot:
+        self.replaced += 1
+        s.proc.join(timeout=1)
+        s.conn.close()
+        return self._spawn(ctx, shared)
+
+    @staticmethod
+    def _stop(slots: list[_Slot]) -> None:
+        for s in slots:
+            try:
+                s.conn.send(None)
+            except (BrokenPipeError, OSError):
+                pass
+        deadline = time.monotonic() + 2.0
+        for s in slots:
+            if s.task is not None:  # interrupted while running: do not wait for it
+                s.proc.kill()
+            s.proc.join(timeout=max(0.0, deadline - time.monotonic()))
+            if s.proc.is_alive():
+                s.proc.kill()
+                s.proc.join(timeout=1)
+            s.conn.close()
+
+
+# --- Dask ----------------------------------------------------------------------------------------
+class DaskExecutor:
+    """Runs on a Dask distributed cluster: an existing one at ``scheduler``, or a ``LocalCluster``
+    of ``workers`` single-threaded processes (see the module docstring)."""
+
+    def __init__(self, scheduler: str | None = None, workers: int | None = None):
+        try:
+            import distributed  # noqa: F401
+        except ModuleNotFoundError:
+            raise UserError("Dask execution needs the 'distributed' package: pip install 'dask[distributed]'") from None
+        self.scheduler, self.workers = scheduler, workers
+        self.capacity = workers or 1
+
+    def _client(self):
+        import dask
+        from distributed import Client, LocalCluster
+
+        if self.scheduler:
+            try:
+                client = Client(self.scheduler, timeout=10)
+            except OSError as exc:
+                raise UserError(f"--scheduler {self.scheduler}: cannot reach the Dask scheduler ({exc})") from None
+            return client, None
+        with dask.config.set({"distributed.scheduler.allowed-failures": 1}):
+            cluster = LocalCluster(n_workers=self.workers or os.cpu_count() or 1, threads_per_worker=1,
+                                   processes=True, dashboard_address=None)
+        return Client(cluster), cluster
+
+    def run(self, tasks: Sequence[Task], shared: Shared, on_done: OnDone, on_start: OnStart | None = None) -> None:
+        from distributed import as_completed
+        from distributed.scheduler import KilledWorker
+
+        from .worker import run_remote
+
+        if not tasks:
+            return
+        client, cluster = self._client()
+        futures = {}
+        try:
+            self.capacity = max(1, sum(client.nthreads().values()))
+            [shared_f] = client.scatter([shared], broadcast=True)
+            tag = uuid.uuid4().hex[:8]
+            for t in tasks:
+                t.out_dir = None
+                futures[client.submit(run_remote, t, shared_f, key=f"rpr-run-{t.run_id}-{tag}", pure=False)] = t
+            for fut in as_completed(list(futures)):
+                t = futures[fut]
+                try:
+                    out = fut.result()
+                except KilledWorker as exc:
+                    out = Outcome(t.run_id, "failed", f"the Dask workers running it died ({exc})", worker="dask")
+                except Exception as exc:  # an error raised on the worker outside the run itself
+                    out = Outcome(t.run_id, "failed", f"{type(exc).__name__}: {exc}", worker="dask")
+                on_done(t, out)
+        finally:
+            if futures:
+                client.cancel(list(futures))
+            client.close()
+            if cluster is not None:
+                cluster.close()
+
+
+def executor(workers: int | None = None, *, scheduler: str | None = None, dask: bool = False):
+    """The executor for the CLI options: Dask with ``scheduler`` or ``dask``, else local."""
+    if scheduler or dask:
+        return DaskExecutor(scheduler, workers)
+    return LocalExecutor(workers)
+
+
+__all__ = ["DaskExecutor", "LocalExecutor", "executor", "worker_id"]

@@ -1,0 +1,143 @@
+"""The results table of a batch: ``<out>/results.csv``, one row per finished run, that pandas
+(``pandas.read_csv``) and a spreadsheet open.
+
+Columns: ``run_id`` (the first 16 hex digits of the resolved scene's hash; the run's files are in
+``runs/<run_id>/``), ``index`` (position in the batch), one column per axis (its value),
+``outcome`` (ok, failed, stopped) and ``reason``, one column per metric, then the statistics
+``steps`` (macro steps done), ``simulated_s``, ``init_s`` (instantiation and initialisation),
+``loop_s`` (the stepping loop), ``real_time_factor``, ``run_s`` (all of :func:`cosim.run.run`:
+initialisation, loop, trace files), ``wall_s`` (the whole run on its worker: instances, run,
+reference, metrics), ``attempts`` (2 when a worker died and the run was retried) and
+``worker`` (host:pid).
+
+Rows are appended as runs finish, each with one ``write`` and an ``fsync``, so an interrupted
+batch (Ctrl-C, kill -9, power loss) keeps every finished run; a row cut short by a crash is
+dropped when the table is opened again, and its run is redone.
+"""
+from __future__ import annotations
+
+import csv
+import io
+import math
+import os
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+from ..errors import UserError
+
+STAT_COLUMNS = ("steps", "simulated_s", "init_s", "loop_s", "real_time_factor", "run_s", "wall_s", "attempts",
+                "worker")
+TEXT_COLUMNS = frozenset({"run_id", "outcome", "reason", "worker"})
+INT_COLUMNS = frozenset({"index", "steps", "attempts"})
+
+
+def base_columns(axes: Sequence[str], metrics: Sequence[str]) -> list[str]:
+    """The table's header for a batch with these axis and metric columns."""
+    return ["run_id", "index", *axes, "outcome", "reason", *metrics, *STAT_COLUMNS]
+
+
+def _text(v: Any) -> str:
+    if v is None:
+        return ""
+    if isinstance(v, float):
+        return repr(v) if math.isfinite(v) else ("nan" if math.isnan(v) else ("inf" if v > 0 else "-inf"))
+    return str(v)
+
+
+def _value(col: str, text: str) -> Any:
+    if col in TEXT_COLUMNS:
+        return text
+    if text == "":
+        return None
+    try:
+        return int(text) if col in INT_COLUMNS else float(text)
+    except ValueError:
+        return text
+
+
+class ResultsTable:
+    """``results.csv`` opened for appending (see the module docstring)."""
+
+    def __init__(self, path: Path, columns: Sequence[str]):
+        self.path = Path(path)
+        self.columns = list(columns)
+        self.rows: list[dict[str, Any]] = []
+        self._fd: int | None = None
+
+    def open(self) -> ResultsTable:
+        """Create the table with its header, or read the rows already in it (checking the header
+        and dropping a last row cut short)."""
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        if self.path.is_file() and self.path.stat().st_size:
+            self._repair()
+            header, self.rows = read_rows(self.path)
+            if header != self.columns:
+                raise UserError(f"{self.path} was written by a batch with other columns (its axes or metrics "
+                                f"changed: {', '.join(sorted(set(header) ^ set(self.columns))) or 'order'}); "
+                                f"choose another --out")
+            self._fd = os.open(self.path, os.O_WRONLY | os.O_APPEND)
+        else:
+            self._fd = os.open(self.path, os.O_WRONLY | os.O_CREAT | os.O_APPEND, 0o644)
+            self._write(self.columns)
+        return self
+
+    def _repair(self) -> None:
+        with open(self.path, "rb+") as fh:
+            data = fh.read()
+            if data and not data.endswith(b"\n"):
+                fh.truncate(data.rfind(b"\n") + 1)
+
+    def _write(self, values: Sequence[Any]) -> None:
+        buf = io.StringIO()
+        csv.writer(buf, lineterminator="\n").writerow([_text(v) for v in values])
+        os.write(self._fd, buf.getvalue().encode())
+        os.fsync(self._fd)
+
+    @property
+    def done(self) -> set[str]:
+        """Run ids with a row."""
+        return {r["run_id"] for r in self.rows}
+
+    def append(self, row: dict[str, Any]) -> None:
+        """Write one run's row (missing columns empty) and make it durable."""
+        unknown = set(row) - set(self.columns)
+        if unknown:
+            raise ValueError(f"not columns of the table: {sorted(unknown)}")
+        self._write([row.get(c) for c in self.columns])
+        self.rows.append({c: _value(c, _text(row.get(c))) for c in self.columns})
+
+    def close(self) -> None:
+        if self._fd is not None:
+            os.close(self._fd)
+            self._fd = None
+
+    def __enter__(self) -> ResultsTable:
+        return self.open()
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+def read_rows(path: Path) -> tuple[list[str], list[dict[str, Any]]]:
+    """Header and rows of a results table (numbers as numbers; a row cut short is dropped)."""
+    path = Path(path)
+    if not path.is_file():
+        raise UserError(f"{path}: no results table (run the batch first)")
+    with open(path, newline="") as fh:
+        text = fh.read()
+    if text and not text.endswith("\n"):
+        text = text[:text.rfind("\n") + 1]
+    lines = list(csv.reader(io.StringIO(text)))
+    if not lines:
+        raise UserError(f"{path}: empty results table")
+    header = lines[0]
+    rows = []
+    for n, cells in enumerate(lines[1:], 2):
+        if len(cells) != len(header):
+            raise UserError(f"{path}:{n}: expected {len(header)} cells, found {len(cells)}")
+        rows.append({c: _value(c, v) for c, v in zip(header, cells)})
+    return header, rows
+
+
+__all__ = ["ResultsTable", "STAT_COLUMNS", "base_columns", "read_rows"]

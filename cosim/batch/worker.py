@@ -1,0 +1,191 @@
+"""What a worker process does for one run: make the FMUs it was sent available (once per
+process, by content hash), take instances from its pool (reset, not reloaded, when a previous
+run left them), call :func:`cosim.run.run` into the run's own directory, and measure the trace.
+
+Everything a run needs travels as plain data: a :class:`Task` per run (the validated scene with
+its CasADi blocks stripped, the content hash of each component's FMU, the metrics) and one
+:class:`Shared` per worker (the FMUs' bytes by hash, the reference trace).  A worker needs no
+shared filesystem: with ``Task.out_dir = None`` the run writes into a temporary directory and
+its files come back in :attr:`Outcome.files`.
+"""
+from __future__ import annotations
+
+import atexit
+import dataclasses
+import os
+import shutil
+import socket
+import tempfile
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from ..errors import UserError
+from ..scenario import Scene
+from ..slaves import FmuSlave
+from ..trace import Trace
+from .metrics import MetricSpec, compute
+
+
+@dataclass
+class Task:
+    """One run for a worker."""
+
+    run_id: str
+    index: int
+    scene: Scene  # validated, blocks stripped (see :func:`transportable`)
+    fmus: dict[str, str]  # component -> content hash of its FMU
+    out_dir: str | None  # the run's directory, or None: a temporary one, files returned
+    metrics: list[MetricSpec]
+    reference: str | None = None  # None, "monolithic" or "trace" (Shared.reference)
+    attempt: int = 1
+
+
+@dataclass
+class Shared:
+    """What every run of a batch shares, sent once per worker."""
+
+    blobs: dict[str, bytes]  # content hash -> FMU file bytes
+    reference: Trace | None = None
+    reuse: bool = True  # keep instances between runs (FMI reset) instead of loading them again
+
+
+@dataclass
+class Outcome:
+    """What a run sends back: the row's cells but the axes, and the files when asked."""
+
+    run_id: str
+    status: str
+    reason: str
+    metrics: dict[str, float] = field(default_factory=dict)
+    stats: dict[str, Any] = field(default_factory=dict)
+    wall_s: float = 0.0
+    worker: str = ""
+    files: dict[str, bytes] | None = None
+
+
+def transportable(scene: Scene) -> Scene:
+    """``scene`` without its CasADi blocks (a worker runs FMUs, not blocks), small to send."""
+    comps = {n: dataclasses.replace(c, block=None) for n, c in scene.components.items()}
+    return dataclasses.replace(scene, components=comps)
+
+
+class _State:
+    """Per-process: where the FMUs were written, and the pool of kept instances."""
+
+    def __init__(self) -> None:
+        self.dir: Path | None = None
+        self.paths: dict[str, Path] = {}
+        self.pool: dict[tuple[str, str], list[FmuSlave]] = {}
+        self.lock = threading.Lock()
+        self.loads = 0  # instances created (not reused) in this process
+
+    def fmu_path(self, digest: str, blobs: dict[str, bytes]) -> Path:
+        with self.lock:
+            if digest not in self.paths:
+                if self.dir is None:
+                    self.dir = Path(tempfile.mkdtemp(prefix=f"rpr-batch-{os.getpid()}-"))
+                    atexit.register(shutil.rmtree, self.dir, True)
+                if digest not in blobs:
+                    raise UserError(f"FMU {digest[:12]} was not sent to this worker")
+                path = self.dir / f"{digest}.fmu"
+                path.write_bytes(blobs[digest])
+                self.paths[digest] = path
+            return self.paths[digest]
+
+    def take(self, name: str, digest: str, path: Path, reuse: bool) -> FmuSlave:
+        if reuse:
+            with self.lock:
+                kept = self.pool.get((name, digest))
+                if kept:
+                    return kept.pop()
+        self.loads += 1
+        slave = FmuSlave(name, path)
+        slave.reuse = reuse
+        return slave
+
+    def give(self, slave: FmuSlave, digest: str, healthy: bool) -> None:
+        if slave.reuse and healthy and slave.fmu is not None:
+            with self.lock:
+                self.pool.setdefault((slave.name, digest), []).append(slave)
+        else:
+            slave.release()
+
+
+STATE = _State()
+
+
+def worker_id() -> str:
+    return f"{socket.gethostname()}:{os.getpid()}"
+
+
+def _stats(stats: dict) -> dict[str, Any]:
+    return {"steps": stats.get("steps_done", 0), "simulated_s": stats.get("simulated_s", 0.0),
+            "init_s": stats.get("init_s"), "loop_s": stats.get("wall_s"),
+            "real_time_factor": stats.get("real_time_factor"), "run_s": stats.get("run_s")}
+
+
+def _monolithic(scene: Scene, out_dir: Path) -> tuple[Trace | None, str]:
+    from ..reference import reference
+    from ..scenario import from_dict
+
+    full = from_dict({**scene.data, "name": scene.name},
+                     base_dir=scene.path.parent if scene.path else None)
+    ref = reference(full, out_dir=out_dir)
+    return ref.trace, ("" if ref.ok else f"monolithic reference {ref.status}: {ref.reason}")
+
+
+def execute(task: Task, shared: Shared) -> Outcome:
+    """Run one task (see the module docstring); a failure is an outcome, never an exception."""
+    from ..run import run
+
+    t0 = time.perf_counter()
+    tmp = None
+    out_dir = Path(task.out_dir) if task.out_dir else Path(tmp := tempfile.mkdtemp(prefix="rpr-run-"))
+    slaves: list[FmuSlave] = []
+    status, reason, stats, trace = "failed", "", {}, None
+    try:
+        for name in task.scene.components:
+            digest = task.fmus[name]
+            slaves.append(STATE.take(name, digest, STATE.fmu_path(digest, shared.blobs), shared.reuse))
+        t_run = time.perf_counter()
+        res = run(task.scene, out_dir=out_dir, slaves=slaves)
+        status, reason, stats, trace = res.status, res.reason, dict(res.stats), res.trace
+        stats["run_s"] = time.perf_counter() - t_run
+    except UserError as exc:
+        reason = str(exc)
+    except Exception as exc:  # a run never takes the batch down: its failure is its row
+        reason = f"{type(exc).__name__}: {exc}"
+    finally:
+        for s in slaves:
+            STATE.give(s, task.fmus[s.name], status == "ok")
+    metrics: dict[str, float] = {}
+    if status == "ok" and task.metrics:
+        ref, note = shared.reference, ""
+        if task.reference == "monolithic":
+            try:
+                ref, note = _monolithic(task.scene, out_dir)
+            except UserError as exc:
+                ref, note = None, f"no monolithic reference: {exc}"
+        uses_ref = any(m.target == "reference" for m in task.metrics)
+        if uses_ref and (ref is None or not len(ref.data)):
+            plain = [m for m in task.metrics if m.target != "reference"]
+            metrics = {**{m.column: float("nan") for m in task.metrics}, **compute(plain, trace)}
+        else:
+            metrics = compute(task.metrics, trace, ref)
+        reason = note or reason
+    files = None
+    if tmp is not None:
+        files = {p.name: p.read_bytes() for p in sorted(out_dir.iterdir()) if p.is_file()}
+        shutil.rmtree(tmp, ignore_errors=True)
+    return Outcome(task.run_id, status, reason, metrics, _stats(stats), time.perf_counter() - t0, worker_id(), files)
+
+
+def run_remote(task: Task, shared: Shared) -> Outcome:
+    """The function a Dask worker calls (importable by name on the workers)."""
+    return execute(task, shared)
+
+
+__all__ = ["Outcome", "Shared", "STATE", "Task", "execute", "run_remote", "transportable"]

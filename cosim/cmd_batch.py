@@ -1,0 +1,124 @@
+"""``rpr-cosim batch``: many runs of a scene (sweeps, Monte Carlo), resumable.
+
+    rpr-cosim batch BATCH.yaml [--workers N] [--scheduler ADDRESS | --dask] [--out DIR]
+                               [--sort COLUMN] [--descending] [--no-plots] [--check]
+
+Runs go to local worker processes (one per core by default), to a Dask cluster at ADDRESS, or to
+a Dask LocalCluster of N workers (``--dask``).  Results: ``DIR/results.csv`` (one row per run),
+``DIR/runs/<run id>/`` (each run's trace), ``DIR/plots/`` (default ``DIR`` = ``runs/<batch>``).
+Running the same command again skips the runs already in the table, so an interrupted batch
+resumes where it stopped.  A batch file with problems prints one line per problem and exits
+with code 2 before any run; runs that fail are rows with their reason (exit code 0).
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("batch", help="run a sweep or Monte Carlo batch of a scene (local processes or Dask)",
+                       description="Run every variant of a scene that a batch file describes, in parallel, "
+                                   "into one results table; rerunning resumes.")
+    p.add_argument("batch", type=Path, help="batch file, e.g. scenarios/batch_pid_gains.yaml")
+    p.add_argument("--workers", type=int, metavar="N", help="worker processes (default: one per core)")
+    p.add_argument("--scheduler", metavar="ADDRESS", help="run on the Dask cluster of this scheduler, "
+                                                           "e.g. tcp://10.0.0.5:8786")
+    p.add_argument("--dask", action="store_true", help="start a Dask LocalCluster of --workers processes")
+    p.add_argument("--out", type=Path, help="output directory (default runs/<batch name>)")
+    p.add_argument("--sort", metavar="COLUMN", help="sort the printed table by this column (default: "
+                                                    "report.sort, or the first metric)")
+    p.add_argument("--descending", action="store_true", help="largest first")
+    p.add_argument("--most", type=int, default=20, metavar="N", help="print N rows at most (default 20)")
+    p.add_argument("--no-plots", action="store_true", help="do not write the charts")
+    p.add_argument("--no-reuse", action="store_true", help="load every FMU again for each run instead of "
+                                                           "resetting the instances a worker keeps")
+    p.add_argument("--check", action="store_true", help="only validate the batch and list its runs")
+    p.add_argument("--cache", type=Path, help="FMU cache directory (default $RPR_COSIM_CACHE or ~/.cache/rpr-cosim/fmus)")
+    p.set_defaults(handler=_batch)
+
+
+def _say(msg: str) -> None:
+    print(msg, file=sys.stderr)
+
+
+def _batch(args: argparse.Namespace) -> int:
+    from .batch import BatchError, load_batch, plan, run_batch
+    from .batch.executors import executor
+    from .batch.report import Progress
+    from .errors import UserError
+
+    if args.workers is not None and args.workers < 1:
+        raise UserError(f"--workers {args.workers}: expected 1 or more")
+    if args.scheduler and args.dask:
+        raise UserError("--scheduler and --dask exclude each other: --dask starts a local cluster")
+    try:
+        batch = load_batch(args.batch)
+        for note in batch.notes:
+            _say(str(note))
+        if args.sort is not None:
+            from .batch.results import base_columns
+
+            cols = base_columns([a.name for a in batch.axes], batch.metric_columns)
+            if args.sort not in cols:
+                from .scenario import suggest
+
+                raise UserError(f"--sort {args.sort!r} is not a column{suggest(args.sort, cols)} "
+                                f"(metrics: {', '.join(batch.metric_columns) or 'none'})")
+        if args.check:
+            return _check(batch, plan)
+        ex = executor(args.workers, scheduler=args.scheduler, dask=args.dask)
+        out = args.out or Path("runs") / batch.name
+        try:
+            res = run_batch(batch, out=out, executor=ex, cache_dir=args.cache, reuse=not args.no_reuse,
+                            progress=Progress(), log=lambda m: _say(f"[fmu] {m}"))
+        except KeyboardInterrupt:
+            _say(f"rpr-cosim batch: interrupted; the finished runs are in {out / 'results.csv'}; run the same "
+                 f"command again to do the others")
+            raise
+    except BatchError as exc:
+        for p in exc.problems:
+            _say(str(p))
+        n = sum(p.severity == "error" for p in exc.problems)
+        _say(f"rpr-cosim batch: {args.batch}: {n} problem{'s' if n != 1 else ''}; nothing was run")
+        return 2
+    _summary(batch, res, args)
+    return 0
+
+
+def _check(batch, plan) -> int:
+    runs, dups = plan(batch)
+    axes = [a.name for a in batch.axes]
+    print(f"batch {batch.name}: {len(runs)} runs of {batch.scene_path} ({', '.join(axes)}); "
+          f"metrics: {', '.join(batch.metric_columns) or 'none'}")
+    for r in runs[:10]:
+        print(f"  {r.run_id}  " + ", ".join(f"{k}={v!r}" for k, v in r.point.values.items()))
+    if len(runs) > 10:
+        print(f"  ... {len(runs) - 10} more")
+    for a, b in dups:
+        print(f"  run {b} resolves to the same scene as run {a}; it runs once")
+    return 0
+
+
+def _summary(batch, res, args) -> None:
+    from .batch.report import format_results, format_spread, make_plots
+
+    axes = [a.name for a in batch.axes]
+    sort = args.sort or batch.sort or (batch.metric_columns[0] if batch.metric_columns else None)
+    n_ok = sum(r["outcome"] == "ok" for r in res.rows)
+    print(f"batch {batch.name}: {len(res.rows)} runs ({n_ok} ok, {len(res.rows) - n_ok} not ok); this time "
+          f"{res.ran} ran, {res.skipped} were in the table already; {res.wall_s:.1f} s")
+    for a, b in res.duplicates:
+        print(f"  run {b} resolves to the same scene as run {a}; it ran once")
+    if sort:
+        print(f"sorted by {sort}{' (largest first)' if args.descending else ''}:")
+    print(format_results(res.rows, axes, batch.metric_columns, sort, most=args.most, descending=args.descending))
+    if batch.random and batch.metric_columns:
+        print(f"spread over the {batch.samples} samples per point:" if (batch.grid or batch.zip)
+              else f"spread over {n_ok} ok runs:")
+        print(format_spread(res.rows, batch.metric_columns))
+    print(f"results: {res.out / 'results.csv'}")
+    if not args.no_plots and res.rows:
+        for p in make_plots(batch, res.out, res.rows, sort):
+            _say(f"plot: {p}")

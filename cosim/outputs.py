@@ -1,0 +1,346 @@
+"""Where a run may write, and how: confinement, one writer per directory, atomic placement.
+
+* :func:`safe_name` is the only way a scene's ``name`` becomes a file name: a plain name of
+  letters, digits, ``_``, ``-`` and ``.`` (no path separator, no ``..``, not hidden, at most
+  :data:`MAX_NAME` characters); anything else is a :class:`UserError`.
+* :func:`confined` resolves a file name under an output directory and refuses a path that leaves
+  it (symbolic links included).
+* :func:`check_out_dir` refuses, in one line and before anything is built, an ``--out`` that is a
+  file or cannot be written.
+* :class:`OutputLock` (``<out>/.rpr-cosim.lock``, ``flock`` plus the holder's pid) lets one run
+  write into a directory at a time; a lock left by a dead process is stale: its sidecars that
+  still say "running" are marked "killed" (:func:`settle_stale`).
+* :func:`place` moves a finished trace (written under a temporary name) into place; a good
+  earlier trace of the same name is kept as ``<name>.prev.csv`` instead of being replaced by a
+  run that is not ok.
+"""
+from __future__ import annotations
+
+import errno
+import fcntl
+import json
+import os
+import re
+import socket
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+from .errors import UserError
+
+#: Longest scene name accepted as a file name stem [characters].
+MAX_NAME = 100
+LOCK_NAME = ".rpr-cosim.lock"
+_SAFE = re.compile(r"^[A-Za-z0-9_][A-Za-z0-9_.\-]*$")
+
+
+# --- names and paths ----------------------------------------------------------------------------
+def name_problem(name: object) -> str | None:
+    """Why ``name`` cannot be a file name stem, or None when it can."""
+    if not isinstance(name, str) or not name:
+        return f"name must be a non-empty text, got {name!r}"
+    shown = name if len(name) <= 40 else name[:37] + "..."
+    if len(name) > MAX_NAME:
+        return f"name {shown!r} is {len(name)} characters long; at most {MAX_NAME} are allowed"
+    if "/" in name or "\\" in name or ".." in name or not _SAFE.match(name):
+        return (f"name {shown!r} must be a plain file name: letters, digits, '_', '-' and '.', not starting "
+                f"with '.' or '-', no '/' and no '..' (it names the trace files under --out)")
+    return None
+
+
+def safe_name(name: object) -> str:
+    """``name`` if it is a plain file name stem (see :func:`name_problem`), else :class:`UserError`."""
+    problem = name_problem(name)
+    if problem:
+        raise UserError(problem)
+    return str(name)
+
+
+def stem_name(stem: str) -> str:
+    """A file stem turned into a safe scene name (unsafe characters become ``_``)."""
+    s = re.sub(r"[^A-Za-z0-9_.\-]", "_", stem).replace("..", "_").lstrip(".-")[:MAX_NAME]
+    return s or "scene"
+
+
+def confined(out_dir: Path, filename: str) -> Path:
+    """``out_dir / filename`` after checking that it resolves inside ``out_dir``."""
+    root = Path(out_dir).resolve()
+    path = (root / filename).resolve()
+    if path.parent != root and root not in path.parents:
+        raise UserError(f"refusing to write {filename!r}: it resolves to {path}, outside the output directory {root}")
+    return path
+
+
+def check_out_dir(out_dir: Path) -> Path:
+    """Create ``out_dir`` (and parents) and check it can be written; one-line :class:`UserError`
+    for a path that is a file, a directory that cannot be written or created."""
+    out = Path(out_dir)
+    for p in [out, *out.parents]:
+        if p.exists() and not p.is_dir():
+            raise UserError(f"--out {out}: {p} is a file, not a directory; choose another output directory")
+        if p.exists():
+            break
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise UserError(f"--out {out}: cannot create the output directory ({exc.strerror or exc})") from None
+    try:  # a real write: permissions, read-only file systems and ACLs all answer here
+        with tempfile.TemporaryFile(dir=out, prefix=".rpr-cosim-probe-"):
+            pass
+    except OSError as exc:
+        raise UserError(f"--out {out}: the output directory is not writable ({exc.strerror or exc}); "
+                        f"choose another one or fix its permissions") from None
+    return out
+
+
+# --- one writer per directory -------------------------------------------------------------------
+def pid_alive(pid: int) -> bool:
+    """True when a process ``pid`` exists on this machine."""
+    if pid <= 0:
+        return False
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+def _read_lock(path: Path) -> dict:
+    try:
+        return json.loads(path.read_text() or "{}")
+    except (OSError, ValueError):
+        return {}
+
+
+_HELD: dict[Path, list] = {}  # this process's locks: resolved dir -> [fd, depth]
+
+
+class OutputLock:
+    """Exclusive use of an output directory by this process (re-entrant within it).
+
+    ``with OutputLock(out):`` takes ``<out>/.rpr-cosim.lock`` (``flock``; the kernel drops it when
+    the process dies), writes this process's pid into it and, when the previous holder died
+    without releasing it, settles that run's files first (:func:`settle_stale`).  Another live
+    run holding it is a :class:`UserError` naming its pid."""
+
+    def __init__(self, out_dir: Path, *, log=None):
+        self.dir = Path(out_dir)
+        self.log = log
+        self.notes: list[str] = []
+
+    def __enter__(self) -> OutputLock:
+        key = self.dir.resolve()
+        if key in _HELD:
+            _HELD[key][1] += 1
+            return self
+        path = key / LOCK_NAME
+        for attempt in range(20):
+            fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except OSError as exc:
+                os.close(fd)
+                if exc.errno not in (errno.EWOULDBLOCK, errno.EAGAIN, errno.EACCES):
+                    raise
+                if attempt < 3:  # a reader's brief shared lock (:func:`holder`) is not a run
+                    time.sleep(0.05)
+                    continue
+                held = _read_lock(path)
+                raise UserError(f"output directory {self.dir} is in use by another run (pid {held.get('pid', '?')}"
+                                f"{', ' + held['command'] if held.get('command') else ''}, started "
+                                f"{held.get('started', '?')}); wait for it to end or choose another --out") from None
+            try:
+                same = os.fstat(fd).st_ino == os.stat(path).st_ino
+            except FileNotFoundError:
+                same = False
+            if same:
+                break
+            os.close(fd)  # the file was replaced while we waited: take the new one
+        else:  # pragma: no cover - would need 20 replacements in a row
+            raise UserError(f"output directory {self.dir}: could not take {LOCK_NAME}")
+        previous = _read_lock(path)
+        if previous.get("pid") and previous.get("pid") != os.getpid():
+            self.notes += settle_stale(key, previous)
+        os.ftruncate(fd, 0)
+        os.pwrite(fd, json.dumps({"pid": os.getpid(), "host": socket.gethostname(),
+                                  "started": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
+                                  "command": " ".join(sys.argv[:3])}).encode(), 0)
+        _HELD[key] = [fd, 1]
+        for n in self.notes:
+            if self.log:
+                self.log(n)
+        return self
+
+    def __exit__(self, *exc) -> None:
+        key = self.dir.resolve()
+        entry = _HELD.get(key)
+        if entry is None:
+            return
+        entry[1] -= 1
+        if entry[1] > 0:
+            return
+        del _HELD[key]
+        fd = entry[0]
+        try:
+            os.ftruncate(fd, 0)
+            os.unlink(key / LOCK_NAME)
+        except OSError:
+            pass
+        finally:
+            fcntl.flock(fd, fcntl.LOCK_UN)
+            os.close(fd)
+
+
+def holder(out_dir: Path) -> int | None:
+    """The pid of the live process holding ``out_dir``'s lock, or None."""
+    path = Path(out_dir) / LOCK_NAME
+    if not path.exists():
+        return None
+    try:
+        fd = os.open(path, os.O_RDONLY)
+    except OSError:
+        return None
+    try:
+        fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
+    except OSError:
+        return _read_lock(path).get("pid") or -1
+    else:
+        fcntl.flock(fd, fcntl.LOCK_UN)
+        return None
+    finally:
+        os.close(fd)
+
+
+def _warn(message: str) -> None:
+    import logging
+
+    logging.getLogger("cosim.outputs").warning(message)
+
+
+def settle_if_stale(out_dir: Path, log=None) -> list[str]:
+    """When ``out_dir`` has a lock left by a dead run, settle that run (:func:`settle_stale`) and
+    remove the lock; returns the notes (nothing happens in a directory one cannot write)."""
+    path = Path(out_dir) / LOCK_NAME
+    try:
+        if not path.is_file() or not _read_lock(path).get("pid") or holder(out_dir) is not None:
+            return []
+        with OutputLock(out_dir, log=log or _warn) as lock:
+            return lock.notes
+    except (OSError, UserError):
+        return []
+
+
+# --- temporary names and placement --------------------------------------------------------------
+def part_path(path: Path) -> Path:
+    """The temporary name a file is written under until its run ends: ``.<name>.part``."""
+    path = Path(path)
+    return path.with_name(f".{path.name}.part")
+
+
+def final_path(part: Path) -> Path:
+    """Inverse of :func:`part_path`."""
+    name = part.name
+    return part.with_name(name[1:-len(".part")])
+
+
+def prev_path(path: Path) -> Path:
+    """Where a good earlier file of the same name is kept: ``<stem>.prev<suffix>``."""
+    path = Path(path)
+    return path.with_name(f"{path.stem}.prev{path.suffix}")
+
+
+def _status_of(sidecar: Path) -> str:
+    try:
+        return str(json.loads(sidecar.read_text()).get("status", ""))
+    except (OSError, ValueError, AttributeError):
+        return ""
+
+
+def place(part: Path, final: Path, status: str, *, part_sidecar: Path | None = None,
+          sidecar: Path | None = None) -> str:
+    """Move a finished trace ``part`` (and its sidecar) to ``final``; returns a note saying what
+    happened to an earlier trace of that name ("" when there was none).
+
+    Policy: the name always holds the latest run.  An earlier trace whose sidecar says "ok"
+    moves to ``<stem>.prev.csv`` (with its sidecar, replacing an older ``.prev``); an earlier
+    trace that was not ok is replaced, so a good ``.prev`` from before it stays.  A failing
+    rerun therefore never destroys the last good trace, and the note says where it is."""
+    note = ""
+    final = Path(final)
+    if final.exists():
+        old_status = _status_of(sidecar) if sidecar is not None and sidecar.exists() else ""
+        if old_status == "ok":
+            os.replace(final, prev_path(final))
+            if sidecar is not None and sidecar.exists():
+                os.replace(sidecar, prev_path(sidecar))
+            note = (f"kept the earlier good trace as {prev_path(final).name}"
+                    + ("" if status == "ok" else f" (this run is {status})"))
+        else:
+            note = f"replaced the earlier trace {final.name} (its status was {old_status or 'unknown'})"
+    os.replace(part, final)
+    if part_sidecar is not None and part_sidecar.exists() and sidecar is not None:
+        os.replace(part_sidecar, sidecar)
+    return note
+
+
+def trim_to_whole_rows(path: Path) -> int:
+    """Cut a file after its last newline (a row cut by a crash goes); returns the bytes removed."""
+    size = path.stat().st_size
+    if size == 0:
+        return 0
+    with open(path, "rb+") as fh:
+        back = min(size, 1 << 16)
+        fh.seek(size - back)
+        tail = fh.read(back)
+        cut = tail.rfind(b"\n")
+        keep = size - back + cut + 1 if cut >= 0 else (0 if back == size else size)
+        if keep < size:
+            fh.truncate(keep)
+        return size - keep
+
+
+def settle_stale(out_dir: Path, previous: dict | None = None) -> list[str]:
+    """Finish the files a dead run left in ``out_dir``: every ``.<name>.json.part`` (or sidecar)
+    still saying "running" is marked "killed" with a reason, its trace is trimmed to whole rows,
+    given the status lines and moved into place (:func:`place`).  Returns one note per run."""
+    out_dir = Path(out_dir)
+    who = f"pid {previous['pid']}" if previous and previous.get("pid") else "its process"
+    notes = []
+    for side in sorted(out_dir.glob(".*.json.part")) + sorted(out_dir.glob("*.json")):
+        try:
+            data = json.loads(side.read_text())
+        except (OSError, ValueError):
+            continue
+        if not isinstance(data, dict) or data.get("status") != "running":
+            continue
+        pid = data.get("pid")
+        if pid and pid != os.getpid() and pid_alive(pid) and holder(out_dir) == pid:
+            continue
+        reason = (f"killed: the run ({who}) ended without finishing (SIGKILL, power loss or crash); "
+                  f"found by pid {os.getpid()} at {time.strftime('%Y-%m-%dT%H:%M:%S%z')}")
+        trace_name = data.get("trace") or ""
+        final_side = final_path(side) if side.name.endswith(".part") else side
+        csv_final = out_dir / trace_name if trace_name else final_side.with_suffix(".csv")
+        csv_part = part_path(csv_final)
+        csv_now = csv_part if csv_part.exists() else csv_final
+        rows = 0
+        if csv_now.exists():
+            trim_to_whole_rows(csv_now)
+            with open(csv_now, "a") as fh:
+                fh.write(f"# status: {json.dumps('killed')}\n# reason: {json.dumps(reason)}\n")
+            with open(csv_now) as fh:
+                rows = max(0, sum(1 for ln in fh if ln.strip() and not ln.startswith("#")) - 1)
+        data.update(status="killed", reason=reason, rows=rows)
+        tmp = side.with_name(side.name + ".tmp")
+        tmp.write_text(json.dumps(data, indent=2))
+        os.replace(tmp, side)
+        note = f"{out_dir / final_side.name}: an earlier run was killed; marked \"killed\" ({rows} whole rows kept)"
+        if csv_now == csv_part:
+            moved = place(csv_part, csv_final, "killed", part_sidecar=side, sidecar=final_side)
+            if moved:
+                note += f"; {moved}"
+        notes.append(note)
+    return notes

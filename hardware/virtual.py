@@ -1,0 +1,171 @@
+"""The virtual board: the I/O daemon, unchanged, on a fake sysfs tree, and a plant process that
+plays the rig behind the tree in real time.
+
+The plant reads each leg's ``duty_cycle`` and DIR ``value`` files, turns them into the driver's
+mean voltage (:func:`hardware.convert.drive_to_volts`), advances the catalog's actuator block
+(``linear_actuator``/``rig``: the very FMU that ``rig_step`` co-simulates, built and cached by
+:mod:`fmus`, stepped through FMPy) over the wall-clock time that passed, and writes the
+potentiometer's ADC counts (:class:`hardware.convert.Calibration`, 12-bit quantisation) into the
+tree, as fixed-width text in one write (a reader never sees a torn or empty value).
+
+Options reproduce what goes wrong on a rig: ADC noise (counts, standard deviation), sensor
+latency, a stuck sensor (the counts freeze), an unplugged sensor (the ADC reads 4095) and a
+driver fault (the motor gets no voltage), each per leg.
+"""
+from __future__ import annotations
+
+import collections
+import os
+import random
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from .convert import ADC_MAX, PERIOD_NS, Calibration, drive_to_volts, quantise
+from .pins import RIG_PINS, LegFiles, resolve
+
+#: The rig's sensor calibration as the virtual pots produce it (ideal 10 kOhm pot, 25 inches,
+#: leg length 0.1 m at zero stroke): the hardware FMU's default calibration.
+RIG_CALIBRATION = Calibration(s_offset=0.1)
+
+
+@dataclass
+class PlantOptions:
+    actuator: str = "fa200"
+    start: tuple[float, float, float] = (0.31086, 0.35586, 0.20428)  # leg lengths [m] (Table 6.12 start)
+    noise: float = 0.0          # ADC noise, standard deviation [counts]
+    latency: float = 0.0        # sensor latency [s]
+    stuck: tuple[int, ...] = ()     # legs (1..3) whose reading freezes
+    unplugged: tuple[int, ...] = ()  # legs whose pot is unplugged (reads 4095)
+    driver_fault: tuple[int, ...] = ()  # legs whose driver gives no voltage
+    rate: float = 1000.0        # plant updates per second
+    seed: int = 0
+    calibration: Calibration = field(default_factory=lambda: RIG_CALIBRATION)
+
+
+class Plant:
+    """Three actuators behind the fake tree at ``root`` (see the module docstring)."""
+
+    def __init__(self, root: Path | str, options: PlantOptions | None = None):
+        from fmpy import read_model_description
+        from fmpy.fmi2 import FMU2Slave
+
+        import fmus
+        from models.blocks import make
+
+        self.opt = options or PlantOptions()
+        self.legs: list[LegFiles] = resolve(Path(root), RIG_PINS, export=False)
+        self.block = make("linear_actuator", "rig", actuator=self.opt.actuator)
+        path = fmus.build_fmu(self.block)
+        md = read_model_description(str(path))
+        vr = {v.name: v.valueReference for v in md.modelVariables}
+        self.fmu = FMU2Slave(guid=md.guid, unzipDirectory=_unzip(path), modelIdentifier=md.coSimulation.modelIdentifier,
+                             instanceName="virtual_rig")
+        self.fmu.instantiate()
+        self.fmu.setReal([vr[f"leg[{i}].s0"] for i in (1, 2, 3)], list(self.opt.start))
+        self.fmu.setupExperiment(startTime=0.0)
+        self.fmu.enterInitializationMode()
+        self.fmu.exitInitializationMode()
+        self.vr_u = [vr[f"leg[{i}].u"] for i in (1, 2, 3)]
+        self.vr_stroke = [vr[f"leg[{i}].stroke"] for i in (1, 2, 3)]
+        self.t = 0.0
+        self.strokes = self.fmu.getReal(self.vr_stroke)
+        self.rng = random.Random(self.opt.seed)
+        self.volts = [0.0, 0.0, 0.0]
+        self.history: collections.deque = collections.deque()
+        self.frozen: dict[int, int] = {}
+        self.steps = 0
+        self._fd_duty = [os.open(leg.duty, os.O_RDONLY) for leg in self.legs]
+        self._fd_dir = [os.open(leg.dir_value, os.O_RDONLY) for leg in self.legs]
+        self._fd_adc = [os.open(leg.adc, os.O_WRONLY) for leg in self.legs]
+        self._period = [PERIOD_NS] * 3
+        self._enabled = [False] * 3
+        self._write_counts(self._levels(), time.monotonic())
+
+    def close(self) -> None:
+        for fd in self._fd_duty + self._fd_dir + self._fd_adc:
+            os.close(fd)
+        self.fmu.terminate()
+        self.fmu.freeInstance()
+
+    def stroke(self, i: int) -> float:
+        return float(self.strokes[i])
+
+    def _slow_reads(self) -> None:
+        """``enable`` and ``period`` change rarely: read every so often."""
+        for i, leg in enumerate(self.legs):
+            try:
+                self._enabled[i] = leg.enable.read_text().strip() == "1"
+                self._period[i] = int(leg.period.read_text().strip())
+            except (OSError, ValueError):
+                pass
+
+    def _read_drive(self, i: int) -> float:
+        try:
+            duty = int(os.pread(self._fd_duty[i], 32, 0).strip())
+            dir_high = os.pread(self._fd_dir[i], 8, 0).strip() == b"1"
+        except (OSError, ValueError):
+            return self.volts[i]  # mid-write: keep the last reading, as the hardware would
+        if not self._enabled[i] or (i + 1) in self.opt.driver_fault:
+            return 0.0
+        return drive_to_volts(duty, dir_high, period_ns=self._period[i])
+
+    def _levels(self) -> list[float]:
+        cal = self.opt.calibration
+        return [cal.counts(self.stroke(i)) for i in range(3)]
+
+    def _write_counts(self, levels: list[float], now: float) -> None:
+        self.history.append((now, levels))
+        while len(self.history) > 1 and self.history[1][0] <= now - self.opt.latency:
+            self.history.popleft()
+        seen = self.history[0][1]
+        for i in range(3):
+            if (i + 1) in self.opt.unplugged:
+                raw = ADC_MAX
+            elif (i + 1) in self.opt.stuck:
+                raw = self.frozen.setdefault(i, quantise(seen[i]))
+            else:
+                raw = quantise(seen[i] + (self.rng.gauss(0.0, self.opt.noise) if self.opt.noise else 0.0))
+            os.pwrite(self._fd_adc[i], b"%04d\n" % raw, 0)
+
+    def advance(self, dt: float, now: float) -> None:
+        """Read the drives, integrate ``dt`` seconds, write the counts."""
+        if self.steps % 100 == 0:
+            self._slow_reads()
+        if dt > 0:
+            self.volts = [self._read_drive(i) for i in range(3)]
+            self.fmu.setReal(self.vr_u, self.volts)
+            self.fmu.doStep(self.t, dt)
+            self.t += dt
+            self.strokes = self.fmu.getReal(self.vr_stroke)
+        self.steps += 1
+        self._write_counts(self._levels(), now)
+
+    def run(self, duration: float | None = None, stop=lambda: False) -> None:
+        """Advance in real time at ``options.rate`` until ``duration`` or ``stop()``."""
+        period = 1.0 / self.opt.rate
+        t0 = last = time.monotonic()
+        nxt = t0 + period
+        while not stop() and (duration is None or last - t0 < duration):
+            now = time.monotonic()
+            if now < nxt:
+                time.sleep(nxt - now)
+                now = time.monotonic()
+            self.advance(now - last, now)
+            last = now
+            nxt += period
+            if nxt < now:
+                nxt = now + period
+
+
+def _unzip(path: Path) -> str:
+    import atexit
+    import shutil
+    import tempfile
+    import zipfile
+
+    d = tempfile.mkdtemp(prefix="rpr-plant-")
+    atexit.register(shutil.rmtree, d, True)
+    with zipfile.ZipFile(path) as z:
+        z.extractall(d)
+    return d

@@ -1,0 +1,108 @@
+"""Electric linear actuator with a lead screw, voltage in (the rig of thesis Chapter 8, SPEC §7).
+
+Per leg: the driver applies ``u`` [V], clamped to the rated ``+-v_rated``.  The screw is not
+back-drivable and the motor's force-speed line is straight: the speed the motor settles at is
+
+    v_free = v_nl (u / v_rated) - v_nl f_load / f_stall
+
+(``v_nl`` the no-load speed at ``v_rated``, ``f_stall`` the force that stops it, ``f_load`` the
+force opposing extension), reached with a first-order lag ``tau dv/dt = v_free - v`` (motor and
+gear inertia).  The stroke ``x`` integrates ``v`` and stays within ``0 .. stroke_max`` (end stops);
+the leg length is ``s = s_offset + x``.
+
+Actuator presets (construction option ``actuator``):
+
+- ``"fa200"``: Firgelli FA-200-L-12 (SPEC §7): 12 V, 0.8 in/s = 20.32 mm/s top speed, 200 lbf =
+  890 N dynamic force (used as the stall force of the line: the datasheet gives no other); the
+  time constant is not published: ``tau`` = 20 ms is an assumption (a geared DC motor), set it from
+  a step response of the rig.
+- ``"x"``: the thesis's high-performance "X" actuator (Section 8.1.7).  Only its 15 g
+  (147 m/s2) peak acceleration is published; the defaults ``v_nl`` = 0.5 m/s and
+  ``tau = v_nl / 147 m/s2`` = 3.4 ms reproduce that acceleration from rest at the rated voltage,
+  ``f_stall`` = 100 N is an assumption.  Set the parameters once the actuator is measured.
+
+Stroke: legs of 0.1 .. 0.6 m (SPEC §1): ``s_offset`` = 0.1 m, ``stroke_max`` = 0.5 m.
+
+Fidelities: ``"rig"``, the three legs of the rig in one block (inputs ``leg[i].u``, outputs
+``leg[i].s``, ``leg[i].stroke``, ``leg[i].v``: the interface of the hardware FMU, so a scene swaps
+one for the other); ``"single"``, one actuator with a load-force input ``f_load``.  The
+virtual board's plant integrates the ``"single"`` block (:mod:`hardware.virtual`).
+"""
+from __future__ import annotations
+
+import casadi as ca
+
+from ..block import Block, Var
+from ._common import INF, ParamSet
+
+ACTUATORS = {
+    "fa200": {"v_rated": 12.0, "v_nl": 0.02032, "f_stall": 890.0, "tau": 0.02},
+    "x": {"v_rated": 12.0, "v_nl": 0.5, "f_stall": 100.0, "tau": 0.5 / 147.15},
+}
+STROKE = 0.5
+S_OFFSET = 0.1
+
+
+def _common(ps: ParamSet, actuator: str) -> dict[str, ca.SX]:
+    d = ACTUATORS[actuator]
+    return {
+        "v_rated": ps.add("v_rated", d["v_rated"], "V", "rated (driver supply) voltage: commands are clamped to +-v_rated",
+                          lower=1e-6),
+        "v_nl": ps.add("v_nl", d["v_nl"], "m/s", "no-load speed at the rated voltage", lower=0.0),
+        "f_stall": ps.add("f_stall", d["f_stall"], "N", "force that stalls the actuator at the rated voltage",
+                          lower=1e-6),
+        "tau": ps.add("tau", d["tau"], "s", "time constant of the speed (motor and gear inertia)", lower=1e-6),
+        "stroke_max": ps.add("stroke_max", STROKE, "m", "usable stroke (end stops at 0 and stroke_max)", lower=1e-6),
+        "s_offset": ps.add("s_offset", S_OFFSET, "m", "leg length at zero stroke", lower=0.0),
+    }
+
+
+def _leg(p: dict, u, f_load, x, v):
+    """(dx/dt, dv/dt, v at the rod) of one actuator."""
+    u_sat = ca.fmin(p["v_rated"], ca.fmax(-p["v_rated"], u))
+    v_free = p["v_nl"] * u_sat / p["v_rated"] - p["v_nl"] * f_load / p["f_stall"]
+    at_end = ca.logic_or(ca.logic_and(x >= p["stroke_max"], v > 0), ca.logic_and(x <= 0, v < 0))
+    v_rod = ca.if_else(at_end, 0, v)
+    return v_rod, (v_free - v) / p["tau"], v_rod
+
+
+def rig(actuator: str = "fa200", integrator: str = "rk4", substeps: int = 1) -> Block:
+    """Three actuators, one per leg (module docstring)."""
+    ps = ParamSet()
+    p = _common(ps, actuator)
+    s0 = [ps.add(f"leg[{i}].s0", S_OFFSET + STROKE / 2, "m", f"leg {i} length at the start", lower=0.0) for i in (1, 2, 3)]
+    u = ca.SX.sym("u", 3)
+    xs = ca.SX.sym("x", 6)  # stroke, speed per leg
+    ode, out, states, inputs, outputs, start = [], [], [], [], [], []
+    for k, i in enumerate((1, 2, 3)):
+        x, v = xs[2 * k], xs[2 * k + 1]
+        dx, dv, v_rod = _leg(p, u[k], 0.0, x, v)
+        ode += [dx, dv]
+        out += [p["s_offset"] + x, x, v_rod]
+        inputs.append(Var(f"leg[{i}].u", "V", f"leg {i} driver voltage"))
+        states += [Var(f"state.leg[{i}].stroke", "m", f"leg {i} stroke"), Var(f"state.leg[{i}].v", "m/s", f"leg {i} speed")]
+        outputs += [Var(f"leg[{i}].s", "m", f"leg {i} length"), Var(f"leg[{i}].stroke", "m", f"leg {i} stroke"),
+                    Var(f"leg[{i}].v", "m/s", f"leg {i} extension rate")]
+        start += [ca.fmin(p["stroke_max"], ca.fmax(0, s0[k] - p["s_offset"])), ca.SX(0)]
+    return Block.build("linear_actuator", description=f"three {actuator} linear actuators (the rig, SPEC §7)",
+                       params=ps.params, inputs=inputs, outputs=outputs, states=states, p=ps.vector(), u=u, x=xs,
+                       ode=ca.vertcat(*ode), out=ca.vertcat(*out), start=ca.vertcat(*start), integrator=integrator,
+                       substeps=substeps, fidelity="rig")
+
+
+def single(actuator: str = "fa200", integrator: str = "rk4", substeps: int = 1) -> Block:
+    """One actuator with a load force input (module docstring)."""
+    ps = ParamSet()
+    p = _common(ps, actuator)
+    s0 = ps.add("s0", S_OFFSET + STROKE / 2, "m", "leg length at the start", lower=0.0)
+    u = ca.SX.sym("u", 2)
+    xs = ca.SX.sym("x", 2)
+    dx, dv, v_rod = _leg(p, u[0], u[1], xs[0], xs[1])
+    return Block.build(
+        "linear_actuator", description=f"{actuator} linear actuator (SPEC §7)", params=ps.params,
+        inputs=[Var("u", "V", "driver voltage"), Var("f_load", "N", "load force opposing extension")],
+        outputs=[Var("s", "m", "leg length"), Var("stroke", "m", "stroke"), Var("v", "m/s", "extension rate")],
+        states=[Var("state.stroke", "m", "stroke"), Var("state.v", "m/s", "speed")], p=ps.vector(), u=u, x=xs,
+        ode=ca.vertcat(dx, dv), out=ca.vertcat(p["s_offset"] + xs[0], xs[0], v_rod),
+        start=ca.vertcat(ca.fmin(p["stroke_max"], ca.fmax(0, s0 - p["s_offset"])), 0), integrator=integrator,
+        substeps=substeps, fidelity="single")
