@@ -893,7 +893,7 @@ def simulate(system: CoupledSystem, algorithm_name: str, *, step_ns: int, n_step
              engine: str = "auto", order: Sequence[int] | None = None, timing: bool = True,
              progress: Callable[[int, int], None] | None = None, meta: dict | None = None,
              inputs: str = "hold", start_ns: int = 0, tolerances: Sequence[float | None] | None = None,
-             realtime=None, guard=None) -> RunStats:
+             realtime=None, options: dict | None = None, guard=None) -> RunStats:
     """Initialise ``system`` and run ``n_steps`` macro steps of ``step_ns`` nanoseconds, inputs
     held or linear over each step (``inputs``, see the module docstring).
 
@@ -908,11 +908,17 @@ def simulate(system: CoupledSystem, algorithm_name: str, *, step_ns: int, n_step
     """
     cls = algorithm(algorithm_name)
     if getattr(cls, "needs_rollback", False):
-        fixed = [s.name for s in system.slaves if not s.description.can_get_set_state]
+        fixed = [s.name for s in system.slaves if not s.can_rollback]
         if fixed:
             raise UserError(f"master algorithm {cls.name} needs rollback (get/set state) but {', '.join(fixed)} "
                             f"cannot roll back (canGetAndSetFMUstate=false, e.g. hardware); use a fixed-step "
                             f"algorithm such as gauss_seidel or jacobi")
+    if getattr(cls, "variable_step", False):
+        from .adaptive import simulate_variable
+
+        return simulate_variable(system, cls, step_ns=step_ns, n_steps=n_steps, observers=observers,
+                                 start_values=start_values, order=order, progress=progress, meta=meta,
+                                 options=options, start_ns=start_ns, tolerances=tolerances)
     if record_every < 1:
         raise UserError(f"record_every must be >= 1, got {record_every}")
     stats = RunStats(cls.name, "", step_ns / 1e9, n_steps)
@@ -998,3 +1004,6 @@ def simulate(system: CoupledSystem, algorithm_name: str, *, step_ns: int, n_step
             s.terminate()
             s.free()
     return stats
+
+
+from . import adaptive as _adaptive  # noqa: E402,F401  (registers the variable-step algorithm "adaptive")

@@ -241,7 +241,8 @@ def _run(scene, overrides, out_dir, catalog, cache_dir, progress, log, engine, s
                          inputs=scene.master.inputs, start_ns=scene.start_ns,
                          tolerances=[c.description.default_experiment.get("tolerance")
                                      for c in scene.components.values()],
-                         realtime=scene.master.realtime, guard=guard).as_dict()
+                         realtime=scene.master.realtime, options=scene.master.options or None,
+                         guard=guard).as_dict()
     except TraceWriteError:  # disk full: the observers finished with the reason; report it as a status
         if memory.trace is None or not memory.trace.stats:
             raise

@@ -71,7 +71,7 @@ Loc = tuple[str, int]  # (file, line); line 0 = no line (a --set override)
 TOP_KEYS = ("name", "description", "include", "start_time", "stop_time", "components", "connections", "master",
             "outputs", "fidelity_tolerance", "fidelity_signals", "guards")
 COMPONENT_KEYS = ("model", "fidelity", "options", "params", "start", "fmu", "fmi", "description", "hardware")
-MASTER_KEYS = ("algorithm", "step", "order", "engine", "output_interval", "inputs", "realtime")
+MASTER_KEYS = ("algorithm", "step", "order", "engine", "output_interval", "inputs", "realtime", "options")
 #: How a slave's inputs vary over a communication step (see :mod:`cosim.master`).
 INPUT_MODES = ("hold", "linear")
 ENGINES = ("auto", "compiled", "python")
@@ -533,6 +533,7 @@ class MasterSettings:
     record_every: int  # output interval in steps
     inputs: str = "hold"  # "hold" or "linear" (first-order hold, FMUs that can interpolate inputs)
     realtime: Any = None  # cosim.realtime.RealtimeSettings when the run is paced on the wall clock
+    options: dict[str, float] = field(default_factory=dict)  # the algorithm's own options (its declaration)
 
 
 @dataclass
@@ -1176,10 +1177,13 @@ class _Checker:
                                                    f"advances whole samples: use e.g. step: {good:g}")
                         ok = False
         realtime = self.realtime(node)
+        options = self._algorithm_options(node, alg) if alg in ALGORITHMS else {}
+        if options is None:
+            ok = False
         if not ok or step_ns is None or realtime is False:
             return None
         return MasterSettings(alg, step_ns / 1e9, step_ns, list(order) if order else None, engine, record_every,
-                              inputs, realtime)
+                              inputs, realtime, options)
 
     def realtime(self, node: YMap):
         """``master.realtime``: true/false or {max_misses: N, spin: S, priority: P}; the settings,
@@ -1203,6 +1207,25 @@ class _Checker:
                                            f">= 1, spin: seconds in [0, 0.1), priority: 0 (normal) .. 99 (SCHED_FIFO)")
             return False
         return RealtimeSettings(int(mm), float(spin), int(prio))
+
+    def _algorithm_options(self, node: YMap, alg: str) -> dict[str, float] | None:
+        """``master.options`` checked against the options the algorithm declares (None on error)."""
+        declared = getattr(ALGORITHMS[alg], "options", ())
+        given = node.get("options", YMap())
+        if not isinstance(given, YMap):
+            self.err(node.loc("options"), f"master.options must be a mapping of option -> value, got {given!r}")
+            return None
+        if given and not declared:
+            self.err(node.loc("options"), f"master algorithm {alg} has no options")
+            return None
+        from .adaptive import option_values
+
+        try:
+            return option_values(dict(given), declared)
+        except ValueError as exc:
+            bad = next((k for k in given if str(k) in str(exc)), None)
+            self.err(given.loc(bad) if bad is not None else node.loc("options"), f"master.options: {exc}")
+            return None
 
     def fmu_default(self, comps: dict[str, Component], key: str, what: str) -> float | None:
         """The FMUs' DefaultExperiment value ``key`` (start, stop, step) when they agree; an error

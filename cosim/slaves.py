@@ -326,6 +326,21 @@ class Slave(ABC):
         """C entry points for the compiled loop, or None (the Python loop is used)."""
         return None
 
+    # rollback (variable-step and iterative algorithms) --------------------------------------------
+    @property
+    def can_rollback(self) -> bool:
+        """Whether :meth:`save_state` and :meth:`restore_state` work (FMI get/set FMU state)."""
+        return False
+
+    def save_state(self) -> None:
+        """Remember the complete state, inputs and input slopes included (one slot: the next save
+        overwrites it).  Only for slaves that :attr:`can_rollback`."""
+        raise RuntimeError(f"{self.name}: this slave cannot save its state (no rollback)")
+
+    def restore_state(self) -> None:
+        """Return to the state of the last :meth:`save_state`."""
+        raise RuntimeError(f"{self.name}: this slave cannot restore a state (no rollback)")
+
 
 # --- FMUs -------------------------------------------------------------------------------------
 _UNZIPPED: dict[tuple[str, float], str] = {}
@@ -360,6 +375,8 @@ def _unzip(path: Path) -> str:
 
 
 _DoStep2 = ctypes.CFUNCTYPE(c_int, c_void_p, c_double, c_double, c_int)
+_GetState = ctypes.CFUNCTYPE(c_int, c_void_p, POINTER(c_void_p))  # also the free function's signature
+_SetState = ctypes.CFUNCTYPE(c_int, c_void_p, c_void_p)
 _IO2 = ctypes.CFUNCTYPE(c_int, c_void_p, POINTER(c_uint32), c_size_t, POINTER(c_double))
 _DoStep3 = ctypes.CFUNCTYPE(c_int, c_void_p, c_double, c_double, c_bool, POINTER(c_bool), POINTER(c_bool),
                             POINTER(c_bool), POINTER(c_double))
@@ -626,6 +643,10 @@ class FmuSlave(Slave):
         """Free the instance and its resources (also one kept for reuse)."""
         if self.fmu is not None:
             try:
+                self._free_state()
+            except Exception:  # a state of a failed instance: nothing more to do
+                pass
+            try:
                 self.fmu.freeInstance()
             except Exception:  # after Fatal, freeInstance is undefined: nothing more to do
                 pass
@@ -641,6 +662,40 @@ class FmuSlave(Slave):
         return NativeEntry(False, self.fmu.component, _addr(dll.fmi2DoStep), _addr(dll.fmi2GetReal),
                            _addr(dll.fmi2SetReal),
                            _addr(dll.fmi2SetRealInputDerivatives) if self.description.can_interpolate_inputs else 0)
+
+
+    @property
+    def can_rollback(self) -> bool:
+        return bool(self.description.can_get_set_state)
+
+    def save_state(self) -> None:
+        if not self.can_rollback:
+            return Slave.save_state(self)
+        dll, state = self.fmu.dll, getattr(self, "_state", None)
+        if state is None:
+            state = self._state = c_void_p()
+        fn = _GetState(_addr(dll.fmi3GetFMUState if self.fmi3 else dll.fmi2GetFMUstate))
+        st = fn(self._inst, ctypes.byref(state))
+        if st in FAILING:
+            raise UserError(f"{self.name}: getting the FMU state failed ({Status(st).name})"
+                            + (f": {self.last_message}" if self.last_message else ""))
+
+    def restore_state(self) -> None:
+        state = getattr(self, "_state", None)
+        if state is None:
+            raise RuntimeError(f"{self.name}: restore_state() before save_state()")
+        fn = _SetState(_addr(self.fmu.dll.fmi3SetFMUState if self.fmi3 else self.fmu.dll.fmi2SetFMUstate))
+        st = fn(self._inst, state)
+        if st in FAILING:
+            raise UserError(f"{self.name}: setting the FMU state failed ({Status(st).name})"
+                            + (f": {self.last_message}" if self.last_message else ""))
+
+    def _free_state(self) -> None:
+        state = getattr(self, "_state", None)
+        if state is not None and state.value and self.fmu is not None:
+            fn = _GetState(_addr(self.fmu.dll.fmi3FreeFMUState if self.fmi3 else self.fmu.dll.fmi2FreeFMUstate))
+            fn(self._inst, ctypes.byref(state))
+        self._state = None
 
 
 # --- analytic slaves --------------------------------------------------------------------------
@@ -732,4 +787,14 @@ class LinearSlave(Slave):
 
     def set_state(self, state: tuple[np.ndarray, np.ndarray]) -> None:
         self.x, self.u = state[0].copy(), state[1].copy()
+
+    @property
+    def can_rollback(self) -> bool:
+        return True
+
+    def save_state(self) -> None:
+        self._saved = self.get_state()
+
+    def restore_state(self) -> None:
+        self.set_state(self._saved)
 

@@ -1,0 +1,369 @@
+"""Error-controlled macro steps with rollback: ``master.algorithm: adaptive``.
+
+Each macro step ``t -> t + h`` is a Gauss-Seidel step with linear inputs (interpolated from
+sources that already stepped, extrapolated from the others; inputs of slaves that cannot
+interpolate are held).  Before it, every slave's state is saved (FMI ``get FMU state``).
+
+Error estimate (from the coupling itself, no extra steps): an extrapolated input was a guess of
+its source's output at ``t + h``; once the source has stepped, the guess is compared with the
+value it actually produced.  The scaled error of the step is
+``err = max_c |y_c(t+h) - guess_c| / (atol + rtol * range_c)`` over the extrapolated connections
+``c``, where ``range_c`` is the range (max - min) the signal has covered so far: the tolerance is
+relative to how much a signal moves, the measure users compare traces by (``rpr-cosim compare``).  The guess of a
+linear extrapolation is off by ``O(h^2)``, of a held input by ``O(h)``: that is the order ``p``
+used by the step controller.
+
+A step with ``err <= 1`` is accepted; otherwise, or when a slave returns Discard (e.g. its own
+integrator diverged), every slave is restored and the step retried smaller.  The next step follows
+a PI controller (Gustafsson): ``h_new = h * clip(safety * err^(-kI/p) * err_prev^(kP/p), fac_min,
+fac_max)``, within ``[h_min, h_max]``, landing exactly on the stop time.  Time is counted in whole
+nanoseconds.  A step below ``h_min`` that still fails ends the run as "unstable" with the reason.
+
+The first step (``h_init``, default 0.1 us) has no error estimate: there is no input history to
+extrapolate from yet; the controller then grows the step by at most ``fac_max`` per step.
+
+Every accepted step is recorded (the trace's time column is irregular: each row is the instant its
+values belong to).  Statistics: accepted and rejected steps, rollbacks, smallest and largest step.
+"""
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .errors import UserError
+from .master import Algorithm, RunStats, gauss_seidel_order, initialize, register
+from .slaves import FAILING, Status
+
+
+@dataclass(frozen=True)
+class AlgorithmOption:
+    """An option an algorithm declares: scene validation, ``--set``, help and metadata use it."""
+
+    name: str
+    default: float
+    lower: float
+    upper: float
+    unit: str
+    description: str
+
+    def check(self, value) -> float:
+        """The value as a float; ValueError with the bounds when it is not acceptable."""
+        if isinstance(value, bool):
+            raise ValueError(f"{self.name} must be a number [{self.unit or '1'}]")
+        v = float(value)
+        if not (math.isfinite(v) and self.lower <= v <= self.upper):
+            raise ValueError(f"{self.name} = {value!r} is outside [{self.lower:g}, {self.upper:g}] [{self.unit or '1'}]")
+        return v
+
+
+OPTIONS = (
+    AlgorithmOption("rtol", 2e-5, 1e-12, 1.0, "1", "coupling error per step, relative to the range the signal has "
+                                               "covered so far"),
+    AlgorithmOption("atol", 1e-6, 0.0, math.inf, "signal unit", "absolute tolerance of the coupling error per step"),
+    AlgorithmOption("h_init", 1e-7, 1e-9, 1.0, "s", "first macro step (taken without an error estimate: no input "
+                                                     "history yet to extrapolate from)"),
+    AlgorithmOption("h_min", 1e-9, 1e-9, 1.0, "s", "smallest macro step; below it the run ends as unstable"),
+    AlgorithmOption("h_max", 0.05, 1e-9, math.inf, "s", "largest macro step"),
+    AlgorithmOption("safety", 0.8, 0.1, 1.0, "1", "safety factor of the step controller"),
+    AlgorithmOption("fac_min", 0.2, 0.01, 1.0, "1", "smallest step ratio from one step to the next"),
+    AlgorithmOption("fac_max", 4.0, 1.0, 100.0, "1", "largest step ratio from one step to the next"),
+)
+
+
+def option_values(given: dict | None, declared: Sequence[AlgorithmOption] = OPTIONS) -> dict[str, float]:
+    """Defaults overridden by ``given`` (unknown names and bad values raise ValueError)."""
+    known = {o.name: o for o in declared}
+    out = {o.name: o.default for o in declared}
+    for k, v in (given or {}).items():
+        if k not in known:
+            import difflib
+
+            close = difflib.get_close_matches(str(k), known, n=1)
+            raise ValueError(f"unknown option {k!r}" + (f"; did you mean {close[0]!r}?" if close else "")
+                             + f" (options: {', '.join(known)})")
+        out[k] = known[k].check(v)
+    if "h_min" in out and "h_max" in out and out["h_min"] > out["h_max"]:
+        raise ValueError(f"h_min = {out['h_min']:g} s is larger than h_max = {out['h_max']:g} s")
+    return out
+
+
+@dataclass
+class AdaptiveStats:
+    accepted: int = 0
+    rejected: int = 0
+    rollbacks: int = 0
+    h_min_taken: float = math.inf
+    h_max_taken: float = 0.0
+    discards: int = 0
+    steps: list[float] = field(default_factory=list)  # accepted step sizes [s], in order
+
+    def as_dict(self) -> dict:
+        return {"accepted_steps": self.accepted, "rejected_steps": self.rejected, "rollbacks": self.rollbacks,
+                "smallest_step": self.h_min_taken if self.accepted else None,
+                "largest_step": self.h_max_taken if self.accepted else None, "discards": self.discards}
+
+
+class AdaptiveStepper:
+    """The stepping of :mod:`cosim.adaptive` over an initialised, bound ``system``."""
+
+    order_p_linear, order_p_hold = 2.0, 1.0
+    k_i, k_p = 0.7, 0.4
+
+    def __init__(self, system, order: Sequence[int], options: dict[str, float], start_ns: int, stop_ns: int):
+        self.system = system
+        self.order = list(order)
+        self.opt = options
+        self.stop_ns = stop_ns
+        self.t_ns = start_ns
+        sysm, n = system, len(system.slaves)
+        for s in sysm.slaves:
+            if not s.can_rollback:
+                raise UserError(f"master algorithm adaptive needs rollback (get/set state), but {s.name} cannot roll "
+                                f"back; use gauss_seidel or jacobi with a fixed step")
+        pos = {s: k for k, s in enumerate(self.order)}
+        self.fresh = [np.array([pos[ln.src] < pos[i] for ln in sysm.links if ln.dst == i], dtype=bool)
+                      for i in range(n)]
+        self.slopes = [np.zeros(len(b)) for b in sysm.in_buf]
+        self.interp = [s.bind_slopes(self.slopes[i]) for i, s in enumerate(sysm.slaves)]
+        self.prev_src = [sysm.v[src].copy() for src in sysm.in_src]  # source values at the previous point
+        self.h_prev = 0.0
+        self.lo, self.hi = sysm.v.copy(), sysm.v.copy()  # running range of every value
+        self.h = min(max(options["h_init"], options["h_min"]), options["h_max"])
+        self.err_prev = 1.0
+        self.stats = AdaptiveStats()
+        self.calls = [0] * n
+        self.slave_ns = [0] * n
+        self.status, self.message = "running", ""
+
+    @property
+    def t(self) -> float:
+        return self.t_ns / 1e9
+
+    def _attempt(self, h: float) -> tuple[float, int | None, int]:
+        """One Gauss-Seidel step of ``h``; returns (scaled error, failing slave or None, status)."""
+        sysm, opt = self.system, self.opt
+        t = self.t
+        err = 0.0
+        guesses: list[tuple[int, np.ndarray, np.ndarray]] = []  # (slave, source indices, guessed values)
+        for i in self.order:
+            s = sysm.slaves[i]
+            buf, src = sysm.in_buf[i], sysm.in_src[i]
+            if len(src):
+                now = sysm.v[src]
+                fresh = self.fresh[i]
+                if self.interp[i]:
+                    slope = self.slopes[i]
+                    # extrapolated: slope from the previous point; interpolated: towards the new value
+                    with np.errstate(invalid="ignore", divide="ignore"):
+                        ext = (self.cur_src[i] - self.prev_src[i]) / self.h_prev if self.h_prev > 0 else \
+                            np.zeros_like(now)
+                    slope[:] = np.where(fresh, (now - self.cur_src[i]) / h, ext)
+                    buf[:] = np.where(fresh, self.cur_src[i], now)
+                    guess = now + ext * h
+                else:
+                    buf[:] = now
+                    guess = now.copy()
+                if (~fresh).any():
+                    guesses.append((i, src[~fresh], guess[~fresh]))
+            t0 = time.perf_counter_ns()
+            st = s.push()
+            if st not in FAILING and self.interp[i] and len(src):
+                st = s.push_slopes()
+            if st not in FAILING:
+                st = s.do_step(t, h)
+                self.calls[i] += 1
+                if st not in FAILING and st != Status.STOP_REQUESTED:
+                    st = s.pull()
+            self.slave_ns[i] += time.perf_counter_ns() - t0
+            if st in FAILING or st == Status.STOP_REQUESTED:
+                return math.inf, i, st
+        for i, src, guess in guesses:
+            actual = sysm.v[src]
+            span = np.maximum(self.hi[src], actual) - np.minimum(self.lo[src], actual)
+            tol = opt["atol"] + opt["rtol"] * span
+            with np.errstate(invalid="ignore", divide="ignore"):
+                e = np.abs(actual - guess) / tol
+            if e.size:
+                m = float(np.max(e))
+                err = max(err, m if math.isfinite(m) else math.inf)
+        return err, None, Status.OK
+
+    def step(self) -> bool:
+        """Advance by one accepted step (retrying smaller after rejections); False when the run
+        ends early (:attr:`status`, :attr:`message`)."""
+        sysm, opt = self.system, self.opt
+        if not hasattr(self, "cur_src"):
+            self.cur_src = [sysm.v[src].copy() for src in sysm.in_src]
+        v_saved = sysm.v.copy()
+        for s in sysm.slaves:
+            s.save_state()
+        while True:
+            h_ns = max(1, min(round(self.h * 1e9), self.stop_ns - self.t_ns))
+            h = h_ns / 1e9
+            err, bad, st = self._attempt(h)
+            p = self.order_p_linear if any(self.interp) and self.h_prev > 0 else self.order_p_hold
+            if bad is not None and st == Status.STOP_REQUESTED:
+                self.status = "stopped"
+                self.message = f"{sysm.slaves[bad].name} asked to terminate the simulation at t = {self.t:.9g} s"
+                return False
+            if bad is None and (err <= 1.0 or self.h_prev == 0):  # the first step has no estimate
+                break
+            self.stats.rejected += 1
+            if bad is not None:
+                self.stats.discards += 1
+            for s in sysm.slaves:
+                s.restore_state()
+            self.stats.rollbacks += 1
+            np.copyto(sysm.v, v_saved)
+            shrink = opt["fac_min"] if not math.isfinite(err) else max(opt["fac_min"], opt["safety"] * err ** (-1 / p))
+            if h <= opt["h_min"] * (1 + 1e-12):
+                who = sysm.slaves[bad].name if bad is not None else "the coupling error"
+                detail = (f"{sysm.slaves[bad].name} returned {Status(st).name}"
+                          + (f": {sysm.slaves[bad].last_message}" if sysm.slaves[bad].last_message else "")
+                          if bad is not None else f"scaled coupling error {err:.3g} > 1")
+                self.status = "unstable"
+                self.message = (f"the step floor h_min = {opt['h_min']:g} s was reached at t = {self.t:.9g} s "
+                                f"({detail}; limited by {who})")
+                return False
+            self.h = max(opt["h_min"], h * min(shrink, 0.9))
+        # accepted
+        self.stats.accepted += 1
+        self.stats.h_min_taken = min(self.stats.h_min_taken, h)
+        self.stats.h_max_taken = max(self.stats.h_max_taken, h)
+        self.stats.steps.append(h)
+        for i, src in enumerate(sysm.in_src):
+            if len(src):
+                self.prev_src[i][:] = self.cur_src[i]
+                self.cur_src[i][:] = sysm.v[src]
+        np.maximum(self.hi, sysm.v, out=self.hi)
+        np.minimum(self.lo, sysm.v, out=self.lo)
+        self.t_ns += h_ns
+        self.h_prev = h
+        e = max(err, 1e-10)
+        fac = opt["safety"] * e ** (-self.k_i / p) * self.err_prev ** (self.k_p / p)
+        self.err_prev = e
+        fac = min(opt["fac_max"], max(opt["fac_min"], fac))
+        if h_ns < round(self.h * 1e9):  # clipped to land on the stop time: keep the proposal
+            fac = max(fac, 1.0)
+        self.h = min(opt["h_max"], max(opt["h_min"], h * fac))
+        return True
+
+
+def run_adaptive(system, *, start_ns: int = 0, stop_ns: int, options: dict | None, order: Sequence[int],
+                 observers: Sequence = (), progress: Callable[[int, int], None] | None = None,
+                 stats=None) -> AdaptiveStepper:
+    """Step an initialised ``system`` to ``stop_ns`` (see the module docstring), recording every
+    accepted step to ``observers``; ``stats`` (a :class:`cosim.master.RunStats`) is filled in."""
+    opts = option_values(options)
+    stepper = AdaptiveStepper(system, order, opts, start_ns, stop_ns)
+    v, idx = system.v, system.record_idx
+    rows = np.empty((256, 1 + len(idx)))
+    n = 0
+    last_progress = 0.0
+    t_loop = time.perf_counter()
+    while stepper.t_ns < stop_ns:
+        if not stepper.step():
+            break
+        rows[n, 0] = stepper.t
+        np.take(v, idx, out=rows[n, 1:])
+        n += 1
+        if n == len(rows):
+            for obs in observers:
+                obs.record(rows[:n])
+            n = 0
+        now = time.perf_counter()
+        if progress and now - last_progress > 0.1:
+            progress(stepper.t_ns - start_ns, stop_ns - start_ns)
+            last_progress = now
+    if n:
+        for obs in observers:
+            obs.record(rows[:n])
+    if progress:
+        progress(stepper.t_ns - start_ns, stop_ns - start_ns)
+    if stats is not None:
+        stats.wall_s = time.perf_counter() - t_loop
+    return stepper
+
+
+@dataclass
+class VariableStats(RunStats):
+    """Run statistics of a variable-step run: the simulated time is where the last accepted step
+    ended; ``adaptive`` holds accepted/rejected steps, rollbacks and the smallest/largest step."""
+
+    t_end: float = 0.0
+    adaptive: dict = field(default_factory=dict)
+
+    @property
+    def simulated_s(self) -> float:
+        return self.t_end
+
+    def as_dict(self) -> dict:
+        return {**super().as_dict(), **self.adaptive}
+
+
+@register
+class Adaptive(Algorithm):
+    """Registry entry of the error-controlled master (module docstring); it runs through
+    :func:`simulate_variable`, not the fixed-step loop."""
+
+    name = "adaptive"
+    variable_step = True
+    needs_rollback = True
+    options = OPTIONS
+
+    def _step_impl(self, t, h):  # pragma: no cover - variable-step runs never use the fixed-step loop
+        raise RuntimeError("adaptive runs through cosim.adaptive.simulate_variable")
+
+
+def simulate_variable(system, cls, *, step_ns: int, n_steps: int, observers: Sequence = (),
+                      start_values: Sequence[dict[str, float]] | None = None, order: Sequence[int] | None = None,
+                      progress: Callable[[int, int], None] | None = None, meta: dict | None = None,
+                      options: dict | None = None, start_ns: int = 0,
+                      tolerances: Sequence[float | None] | None = None, **_ignored):
+    """:func:`cosim.master.simulate` for a variable-step algorithm: initialise, run
+    :func:`run_adaptive` to ``n_steps * step_ns`` (the scene's stop time; ``step_ns`` is the first
+    step tried) and report to the observers as the fixed-step loop does."""
+    stop_ns = start_ns + n_steps * step_ns
+    stats = VariableStats(cls.name, "python", step_ns / 1e9, n_steps)
+    columns = ["time"] + system.record_names
+    opts = option_values(options)
+    for obs in observers:
+        obs.start(columns, dict(meta or {}, algorithm=cls.name, step=step_ns / 1e9, options=opts))
+    status, reason, stepper = "failed", "", None
+    try:
+        t0 = time.perf_counter()
+        initialize(system, start_values or [{} for _ in system.slaves], start_time=start_ns / 1e9,
+                   stop_time=stop_ns / 1e9, tolerances=tolerances)
+        seq = list(order) if order is not None else gauss_seidel_order(len(system.slaves), system.slave_edges())
+        stats.init_s = time.perf_counter() - t0
+        row0 = np.concatenate([[start_ns / 1e9], system.v[system.record_idx]])[None, :]
+        for obs in observers:
+            obs.record(row0)
+        stepper = run_adaptive(system, start_ns=start_ns, stop_ns=stop_ns, options=opts, order=seq,
+                               observers=observers, progress=progress, stats=stats)
+        status, reason = ("ok", "") if stepper.status == "running" else (stepper.status, stepper.message)
+    except KeyboardInterrupt:
+        status = "interrupted"
+        reason = "interrupted by the user (KeyboardInterrupt)" + (f" at t = {stepper.t:.9g} s" if stepper else "")
+        raise
+    except BaseException as exc:
+        status, reason = "failed", f"{type(exc).__name__}: {exc}"
+        raise
+    finally:
+        stats.status, stats.reason = status, reason
+        if stepper is not None:
+            stats.steps_done, stats.t_end, stats.adaptive = stepper.stats.accepted, stepper.t, stepper.stats.as_dict()
+            stats.steps_planned = stats.steps_done  # no plan: the controller chose every step
+            stats.slaves = {s.name: {"do_step_calls": int(stepper.calls[i]), "wall_s": stepper.slave_ns[i] / 1e9}
+                            for i, s in enumerate(system.slaves)}
+            stats.master_s = max(0.0, stats.wall_s - sum(stepper.slave_ns) / 1e9)
+        for obs in observers:
+            obs.finish(status, reason, stats.as_dict())
+        for s in system.slaves:
+            s.terminate()
+            s.free()
+    return stats
