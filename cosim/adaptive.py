@@ -260,7 +260,7 @@ def run_adaptive(system, *, start_ns: int = 0, stop_ns: int, options: dict | Non
     accepted step to ``observers``; ``stats`` (a :class:`cosim.master.RunStats`) is filled in."""
     opts = option_values(options)
     stepper = AdaptiveStepper(system, order, opts, start_ns, stop_ns)
-    v, idx = system.v, system.record_idx
+    v, idx = system.v, system.record_idx[:len(system.record_names)]  # without the guards' watched columns
     rows = np.empty((256, 1 + len(idx)))
     n = 0
     last_progress = 0.0
@@ -340,7 +340,7 @@ def simulate_variable(system, cls, *, step_ns: int, n_steps: int, observers: Seq
                    stop_time=stop_ns / 1e9, tolerances=tolerances)
         seq = list(order) if order is not None else gauss_seidel_order(len(system.slaves), system.slave_edges())
         stats.init_s = time.perf_counter() - t0
-        row0 = np.concatenate([[start_ns / 1e9], system.v[system.record_idx]])[None, :]
+        row0 = np.concatenate([[start_ns / 1e9], system.v[system.record_idx[:len(system.record_names)]]])[None, :]
         for obs in observers:
             obs.record(row0)
         stepper = run_adaptive(system, start_ns=start_ns, stop_ns=stop_ns, options=opts, order=seq,

@@ -1,11 +1,18 @@
 """``rpr-cosim compare``: the differences between two traces.
 
     rpr-cosim compare TEST.csv REFERENCE.csv [--only PATTERN ...] [--plot FILE] [--tol REL]
+                      [--allow-failed] [--allow-partial]
 
 Prints, for every variable both traces recorded, the largest absolute difference, when it
 occurs, the RMS and the error relative to the reference's range (REFERENCE is interpolated onto
 TEST's instants).  With ``--tol`` the exit code is 1 when any relative error exceeds it, so the
 command can gate a script.
+
+A comparison is refused (exit 2; under ``--tol`` it fails with exit 1) when either run did not
+end "ok" (its CSV status or JSON sidecar: failed, out_of_limits, unstable, interrupted, unfinished;
+"stopped" at a component's own request counts as an end) unless
+``--allow-failed``, and when the traces overlap over less than the reference's time span unless
+``--allow-partial``.  Variables found in only one trace are listed as not compared.
 """
 from __future__ import annotations
 
@@ -26,11 +33,16 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--tol", type=float, metavar="REL",
                    help="exit with code 1 when a relative error (max |diff| / range) exceeds REL")
     p.add_argument("--most", type=int, default=None, metavar="N", help="show the N worst variables only")
+    p.add_argument("--allow-failed", action="store_true",
+                   help="compare even when a trace's run did not end 'ok' (failed, out_of_limits or unstable by a "
+                        "guard, interrupted, unfinished)")
+    p.add_argument("--allow-partial", action="store_true",
+                   help="compare even when the traces overlap over less than the reference's time span")
     p.set_defaults(handler=_compare)
 
 
 def _compare(args: argparse.Namespace) -> int:
-    from .compare import compare, format_table, plot_comparison
+    from .compare import comparability, compare, format_table, plot_comparison
     from .errors import UserError
     from .trace import read_trace
 
@@ -39,18 +51,28 @@ def _compare(args: argparse.Namespace) -> int:
     if args.test.is_dir():
         return _compare_batch(args)
     test, ref = read_trace(args.test), read_trace(args.reference)
+    checks = comparability(test, ref, test_path=args.test, ref_path=args.reference, patterns=args.only)
+    problems = checks.problems(allow_failed=args.allow_failed, allow_partial=args.allow_partial)
+    if problems and args.tol is None:
+        raise UserError("refused: " + "; ".join(problems))
     diffs = compare(test, ref, args.only)
     print(f"{args.test} against {args.reference}: {len(diffs)} variables")
     print(format_table(diffs, most=args.most))
+    for note in checks.notes():
+        print(f"note: {note}")
     if args.plot:
         units = {**ref.meta.get("units", {}), **test.meta.get("units", {})}  # recorded by rpr-cosim runs
         path = plot_comparison(test, ref, diffs, args.plot, labels=(args.test.stem, args.reference.stem), units=units)
         print(f"plot: {path}", file=sys.stderr)
     if args.tol is not None:
+        for problem in problems:
+            print(f"rpr-cosim compare: fails: {problem}", file=sys.stderr)
         bad = [d for d in diffs if not d.relative <= args.tol]
         if bad:
             print(f"rpr-cosim compare: {len(bad)} variable{'s' if len(bad) != 1 else ''} beyond the relative "
                   f"tolerance {args.tol:g} (worst: {max(bad, key=lambda d: d.relative).name})", file=sys.stderr)
+            return 1
+        if problems:
             return 1
     return 0
 
@@ -58,9 +80,17 @@ def _compare(args: argparse.Namespace) -> int:
 def _compare_batch(args: argparse.Namespace) -> int:
     """Many against one: every finished run of a batch against one reference trace."""
     from .batch.report import compare_batch, format_batch_comparison
+    from .compare import VALID, run_status
+    from .errors import UserError
     from .trace import read_trace
 
-    axes, found = compare_batch(args.test, read_trace(args.reference), args.only)
+    ref = read_trace(args.reference)
+    status, reason = run_status(ref, args.reference)
+    problem = (f"{args.reference}: the run's status is {status!r}, not 'ok'" + (f" ({reason})" if reason else "")
+               + "; use --allow-failed to compare against it anyway") if status not in VALID and not args.allow_failed else ""
+    if problem and args.tol is None:
+        raise UserError(f"refused: {problem}")
+    axes, found = compare_batch(args.test, ref, args.only)
     print(f"{len(found)} runs of {args.test} against {args.reference} (worst variable of each, worst run first):")
     print(format_batch_comparison(axes, found, most=args.most))
     if args.tol is not None:
@@ -68,5 +98,8 @@ def _compare_batch(args: argparse.Namespace) -> int:
         if bad:
             print(f"rpr-cosim compare: {len(bad)} run{'s' if len(bad) != 1 else ''} beyond the relative tolerance "
                   f"{args.tol:g}", file=sys.stderr)
+            return 1
+        if problem:
+            print(f"rpr-cosim compare: fails: {problem}", file=sys.stderr)
             return 1
     return 0

@@ -126,6 +126,10 @@ def _reference(scene, res, out: Path, plot: bool) -> None:
           f"{ref.status}{' (' + ref.reason + ')' if ref.reason else ''}, {st['wall_s']:.2f} s; trace: {ref.trace_path}")
     if len(ref.trace.data) and len(res.trace.data):
         diffs = compare(res.trace, ref.trace)
+        for label, r in (("co-simulation", res), ("reference", ref)):
+            if r.status != "ok":
+                print(f"note: the {label} ended {r.status!r} at t = {r.trace.time[-1]:g} s ({r.reason}); the errors "
+                      f"below cover the common span only")
         print("co-simulation against the reference:")
         print(format_table(diffs, most=12))
         if plot:
@@ -144,6 +148,10 @@ def _describe(scene) -> None:
     for c in scene.connections:
         print(f"  {c}" + (f"   [bond {c.bond}]" if c.bond else ""))
     print(f"  outputs: {len(scene.outputs)} ({', '.join(scene.outputs[:6])}{', ...' if len(scene.outputs) > 6 else ''})")
+    if scene.guards is not None:
+        g = scene.guards
+        print(f"  guards: stroke {g.stroke}, rated {g.rated}, singularity {g.singularity} (|det J| < {g.min_det:g} m), "
+              f"unstable {g.unstable} (|value| > {g.max_abs:g})")
 
 
 def _summary(res) -> None:
@@ -162,6 +170,8 @@ def _summary(res) -> None:
               f"{1e6 * s['wall_s'] / n:>8.2f} {100 * s['wall_s'] / total:>5.1f}%")
     print(f"  {'master':<12} {'':<28} {'':>8} {1e3 * st['master_s']:>9.2f} {1e6 * st['master_s'] / n:>8.2f} "
           f"{100 * st['master_s'] / total:>5.1f}%")
+    for w in st.get("guards", {}).get("warnings", []):
+        print(f"  guard warning: {w}")
     final = res.trace.final()
     if final:
         t_end = res.trace.time[-1]

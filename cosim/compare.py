@@ -4,12 +4,18 @@ reference, one master algorithm or step against another, or a simulation against
 The second trace (the reference) is interpolated linearly onto the first one's instants inside
 the time span both cover; a variable's error is reported absolute and relative to the
 reference's range over that span (max - min, or max |value| for a constant signal).
+
+:func:`comparability` says whether such numbers can be trusted: both runs must have ended "ok"
+(the CSV's final status and its JSON sidecar; "stopped" at a component's own request counts),
+the overlap must cover the reference's span, and
+the variables only one trace has are listed.
 """
 from __future__ import annotations
 
 import fnmatch
+import json
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -79,6 +85,115 @@ def compare(test: Trace, ref: Trace, patterns: Sequence[str] | None = None) -> l
             for j, n in enumerate(names)]
 
 
+# --- is the comparison honest? ---------------------------------------------------------------------
+def run_status(trace: Trace, path: Path | None = None) -> tuple[str, str]:
+    """``(status, reason)`` of the run that wrote ``trace``: the status line at the end of an
+    rpr-cosim CSV and the sidecar ``<path>.json``; a trace with rpr-cosim metadata but no final
+    status (a run killed while writing) is ``"unfinished"``, a trace from another tool
+    ``"unknown"``.  Two sources that disagree give the one that is not ``"ok"``."""
+    found: list[tuple[str, str]] = []
+    if trace.status:
+        found.append((trace.status, trace.reason))
+    if path is not None:
+        sidecar = Path(path).with_suffix(".json")
+        try:
+            data = json.loads(sidecar.read_text()) if sidecar.is_file() else None
+        except (OSError, ValueError):
+            data = None
+        if isinstance(data, dict) and isinstance(data.get("status"), str):
+            found.append((data["status"], str(data.get("reason", ""))))
+    bad = [f for f in found if f[0] != "ok"]
+    if bad:
+        return bad[0]
+    if found:
+        return found[0]
+    written_by_us = any(k in trace.meta for k in ("versions", "started", "scene_hash"))
+    return ("unfinished", "the trace has no final status (the run did not end)") if written_by_us else ("unknown", "")
+
+
+#: Run statuses whose trace is a result: a normal end, a component's own request to stop (FMI
+#: terminateSimulation; the overlap rule still applies), or a trace from another tool.
+VALID = ("ok", "stopped", "unknown")
+
+
+@dataclass
+class Comparability:
+    """What stands between two traces and an honest comparison: the runs' statuses, the time
+    ``overlap`` [s] against the reference's ``span`` [s], and the variables only one of them has
+    (``only_test``, ``only_ref``).  :meth:`problems` lists what makes the numbers untrustworthy."""
+
+    test_status: tuple[str, str]
+    ref_status: tuple[str, str]
+    overlap: tuple[float, float] | None
+    span: tuple[float, float]
+    only_test: list[str] = field(default_factory=list)
+    only_ref: list[str] = field(default_factory=list)
+    labels: tuple[str, str] = ("test", "reference")
+    tolerance: float = 0.0  # [s] slack on the span's ends (half the coarser sampling interval)
+
+    @property
+    def partial(self) -> bool:
+        """The overlap misses part of the reference's span (by more than half a sample)."""
+        if self.overlap is None:
+            return True
+        tol = self.tolerance
+        return self.overlap[0] > self.span[0] + tol or self.overlap[1] < self.span[1] - tol
+
+    def problems(self, *, allow_failed: bool = False, allow_partial: bool = False) -> list[str]:
+        """One line per reason not to trust the comparison (each says how to override it)."""
+        out = []
+        if not allow_failed:
+            for label, (status, reason) in zip(self.labels, (self.test_status, self.ref_status)):
+                if status not in VALID:
+                    out.append(f"{label}: the run's status is {status!r}, not 'ok'" + (f" ({reason})" if reason else "")
+                               + "; use --allow-failed to compare it anyway")
+        if not allow_partial and self.partial:
+            a, b = self.overlap or (float("nan"), float("nan"))
+            r0, r1 = self.span
+            frac = max(0.0, b - a) / (r1 - r0) if r1 > r0 and self.overlap else 0.0
+            out.append(f"the traces overlap over {a:g}..{b:g} s, {100 * frac:.3g} % of the reference's span "
+                       f"{r0:g}..{r1:g} s; use --allow-partial to compare the overlap only")
+        return out
+
+    def notes(self) -> list[str]:
+        """Informative lines: unmatched variables, an unknown status."""
+        out = []
+        for label, names in ((self.labels[0], self.only_test), (self.labels[1], self.only_ref)):
+            if names:
+                shown = ", ".join(names[:8]) + (f", ... ({len(names)} in all)" if len(names) > 8 else "")
+                out.append(f"not compared (only in {label}): {shown}")
+        for label, (status, reason) in zip(self.labels, (self.test_status, self.ref_status)):
+            if status == "unknown":
+                out.append(f"{label}: no run status recorded (not an rpr-cosim trace?); its validity is not checked")
+            elif status == "stopped":
+                out.append(f"{label}: the run ended at a component's request ({reason})")
+        return out
+
+
+def comparability(test: Trace, ref: Trace, *, test_path: Path | None = None, ref_path: Path | None = None,
+                  patterns: Sequence[str] | None = None, labels: tuple[str, str] | None = None) -> Comparability:
+    """The :class:`Comparability` of ``test`` against ``ref`` (paths find the sidecars; ``patterns``
+    restrict the unmatched-variable report like ``--only``)."""
+
+    def wanted(n: str) -> bool:
+        return not patterns or any(fnmatch.fnmatchcase(n, p.replace("[", "[[]")) for p in patterns)
+
+    only_test = [n for n in test.names if n not in ref.columns and wanted(n)]
+    only_ref = [n for n in ref.names if n not in test.columns and wanted(n)]
+    if len(ref.data):
+        span = (float(ref.time[0]), float(ref.time[-1]))
+    else:
+        span = (float("nan"), float("nan"))
+    overlap = None
+    if len(test.data) and len(ref.data):
+        a, b = max(test.time[0], ref.time[0]), min(test.time[-1], ref.time[-1])
+        overlap = (float(a), float(b)) if b >= a else None
+    dts = [float(np.median(np.diff(tr.time))) for tr in (test, ref) if len(tr.data) > 1]
+    tol = 0.5 * max(dts, default=0.0) + 1e-9 * max(1.0, abs(span[1]) if np.isfinite(span[1]) else 1.0)
+    return Comparability(run_status(test, test_path), run_status(ref, ref_path), overlap, span, only_test, only_ref,
+                         labels or (str(test_path or "test"), str(ref_path or "reference")), tol)
+
+
 def format_table(diffs: Sequence[Difference], *, most: int | None = None) -> str:
     """A text table, largest relative error first (``most`` rows at most)."""
     rows = sorted(diffs, key=lambda d: -d.relative)[:most]
@@ -101,4 +216,5 @@ def plot_comparison(test: Trace, ref: Trace, diffs: Sequence[Difference], path: 
     return plot(test, ref, diffs, path, labels=labels, most=most, units=units)
 
 
-__all__ = ["Difference", "aligned", "common_names", "compare", "format_table", "plot_comparison"]
+__all__ = ["Comparability", "Difference", "aligned", "common_names", "comparability", "compare", "format_table",
+           "plot_comparison", "run_status"]

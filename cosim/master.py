@@ -226,7 +226,11 @@ class CoupledSystem:
     gather indices are computed once here, so a step allocates nothing.
     """
 
-    def __init__(self, slaves: Sequence[Slave], links: Sequence[Link], record: Sequence[tuple[int, str]] = ()):
+    def __init__(self, slaves: Sequence[Slave], links: Sequence[Link], record: Sequence[tuple[int, str]] = (),
+                 watch: Sequence[tuple[int, str]] = ()):
+        """``record``: the traced variables; ``watch``: more scalar Float64 variables sampled with
+        them at every recorded row but not traced (for guards: :attr:`watch_names`, after the
+        recorded columns)."""
         self.slaves = list(slaves)
         self.links = list(links)
         n = len(self.slaves)
@@ -255,7 +259,8 @@ class CoupledSystem:
             ins[ln.dst].append((ln.dst_var, ln.src, ln.src_var))
         source = {(ln.dst, ln.dst_var): (ln.src, ln.src_var) for ln in self.links
                   if ln not in typed_in and not ln.transformed}  # a transformed input is read from its slave
-        for i, var in record:
+        watch = [w for w in dict.fromkeys(watch) if w not in set(record) and is_fast(self.slaves[w[0]], w[1])]
+        for i, var in list(record) + watch:
             if (i, var) in source or not is_fast(self.slaves[i], var):
                 continue  # recorded as the value of its source output, or a typed variable
             if var not in reads[i]:
@@ -311,8 +316,10 @@ class CoupledSystem:
             els = element_names(var, desc.shape) if desc is not None else [var]
             src_els = element_names(key[1], desc.shape) if desc is not None else [key[1]]
             columns += [(f"{names[i]}.{e}", self.index[(key[0], se)]) for e, se in zip(els, src_els)]
+        watched = [(f"{names[i]}.{var}", self.index[source.get((i, var), (i, var))]) for i, var in watch]
         self.record_names = [c for c, _ in columns]
-        self.record_idx = np.array([k for _, k in columns], dtype=np.int64)
+        self.watch_names = [c for c, _ in watched]
+        self.record_idx = np.array([k for _, k in columns + watched], dtype=np.int64)  # watched ones last
         #: per slave, (factor, offset) arrays of its inputs when any of its links is transformed
         self.in_affine: list[tuple[np.ndarray, np.ndarray] | None] = [None] * n
         for i, r in enumerate(ins):
@@ -785,6 +792,7 @@ class RunStats:
     wall_s: float = 0.0
     master_s: float = 0.0
     slaves: dict[str, dict[str, float]] = field(default_factory=dict)
+    guards: dict = field(default_factory=dict)
     realtime: dict | None = None  # lateness statistics of a paced run (cosim.realtime)
 
     @property
@@ -801,6 +809,7 @@ class RunStats:
                 "steps_planned": self.steps_planned, "steps_done": self.steps_done, "status": self.status,
                 "reason": self.reason, "init_s": self.init_s, "wall_s": self.wall_s, "master_s": self.master_s,
                 "simulated_s": self.simulated_s, "real_time_factor": self.real_time_factor, "slaves": self.slaves,
+                **({"guards": self.guards} if self.guards else {}),
                 **({"realtime": self.realtime} if self.realtime is not None else {})}
 
 
@@ -865,12 +874,26 @@ def choose_engine(system: CoupledSystem, alg_cls: type[Algorithm], engine: str, 
     return "compiled" if native and fastloop.available() else "python"
 
 
+def _guarded(guard, alg: Algorithm, rows: np.ndarray, step_ns: int) -> np.ndarray:
+    """``rows`` up to the first one ``guard`` trips on (all when it does not trip); a trip ends
+    the run with the guard's status and reason at that row's time."""
+    if guard is None or guard.tripped:
+        return rows
+    keep = guard.check(rows)
+    if keep is None:
+        return rows
+    later = f" (afterwards: {alg.message})" if alg.status != "running" and alg.message else ""
+    alg.status, alg.message = guard.status, guard.reason + later
+    alg.k = round((rows[keep - 1, 0] * 1e9 - alg.start_ns) / step_ns)
+    return rows[:keep]
+
+
 def simulate(system: CoupledSystem, algorithm_name: str, *, step_ns: int, n_steps: int, record_every: int = 1,
              observers: Sequence = (), start_values: Sequence[dict[str, float]] | None = None,
              engine: str = "auto", order: Sequence[int] | None = None, timing: bool = True,
              progress: Callable[[int, int], None] | None = None, meta: dict | None = None,
              inputs: str = "hold", start_ns: int = 0, tolerances: Sequence[float | None] | None = None,
-             realtime=None, options: dict | None = None) -> RunStats:
+             realtime=None, options: dict | None = None, guard=None) -> RunStats:
     """Initialise ``system`` and run ``n_steps`` macro steps of ``step_ns`` nanoseconds, inputs
     held or linear over each step (``inputs``, see the module docstring).
 
@@ -878,6 +901,10 @@ def simulate(system: CoupledSystem, algorithm_name: str, *, step_ns: int, n_step
     values, at ``t_0`` and every ``record_every`` steps) and ``finish(status, reason, stats)``,
     also when the run fails or is interrupted (then the exception propagates after ``finish``).
     ``realtime`` (a :class:`cosim.realtime.RealtimeSettings`) paces every step on the wall clock.
+
+    ``guard`` (:class:`cosim.guards.Guard`) sees every row first, with the system's watched
+    variables after the recorded ones; when it trips, the rows after the offending one are
+    dropped and the run ends with the guard's status and reason.
     """
     cls = algorithm(algorithm_name)
     if getattr(cls, "needs_rollback", False):
@@ -909,8 +936,9 @@ def simulate(system: CoupledSystem, algorithm_name: str, *, step_ns: int, n_step
         runner = _Compiled(alg).run if stats.engine == "compiled" else (lambda n, e, r: _python_run(alg, n, e, r))
         stats.init_s = time.perf_counter() - t0
         row0 = np.concatenate([[alg.t], system.v[system.record_idx]])[None, :]
+        row0 = _guarded(guard, alg, row0, step_ns)
         for obs in observers:
-            obs.record(row0)
+            obs.record(row0[:, :len(columns)])
         for c, x in system.typed.text_changes() if system.typed.texts else ():
             for obs in observers:
                 if hasattr(obs, "record_text"):
@@ -920,20 +948,24 @@ def simulate(system: CoupledSystem, algorithm_name: str, *, step_ns: int, n_step
             from .realtime import Pacer
 
             pacer, chunk = Pacer(step_ns, n_steps, realtime), 1
-        rec = np.empty((max(1, chunk // record_every + 1), len(columns)))
+        width = 1 + len(system.record_idx)
+        rec = np.empty((max(1, chunk // record_every + 1), width))
         while alg.k < n_steps and alg.status == "running":
             if pacer is not None and not pacer.wait(alg.k):
                 alg.status, alg.message = "failed", pacer.reason
                 break
             n = min(chunk, n_steps - alg.k)
             if rec.shape[0] < n // record_every + 1:
-                rec = np.empty((n // record_every + 1, len(columns)))
+                rec = np.empty((n // record_every + 1, width))
             tc = time.perf_counter()
             rows = runner(n, record_every, rec)
             dt = time.perf_counter() - tc
             stepping += dt
+            block = _guarded(guard, alg, rec[:rows], step_ns)
+            if len(block) < rows:  # a guard cut the block: no text after its last row
+                alg.text_events[:] = [ev for ev in alg.text_events if ev[0] <= block[-1, 0]]
             for obs in observers:
-                obs.record(rec[:rows])
+                obs.record(block[:, :len(columns)])
                 for ev in alg.text_events if hasattr(obs, "record_text") else ():
                     obs.record_text(*ev)
             alg.text_events.clear()
@@ -955,6 +987,8 @@ def simulate(system: CoupledSystem, algorithm_name: str, *, step_ns: int, n_step
         raise
     finally:
         stats.status, stats.reason = status, reason
+        if guard is not None:
+            stats.guards = guard.summary()
         if alg is not None:
             stats.steps_done = alg.k
             stats.master_s = alg.master_ns / 1e9

@@ -12,6 +12,7 @@ from pathlib import Path
 from typing import Any
 
 from .errors import UserError
+from .guards import scene_guard
 from .master import CoupledSystem, Link, simulate
 from .scenario import Scene, load
 from .slaves import FmuSlave, Slave
@@ -20,8 +21,10 @@ from .trace import CsvTrace, MemoryTrace, Trace
 
 @dataclass
 class RunResult:
-    """Outcome of :func:`run`: ``status`` is ``"ok"``, ``"failed"``, ``"stopped"`` or
-    ``"interrupted"``; ``reason`` says why a run ended early; ``trace`` holds what was recorded
+    """Outcome of :func:`run`: ``status`` is ``"ok"``, ``"failed"``, ``"stopped"`` (a component
+    asked to end), ``"out_of_limits"`` or ``"unstable"`` (a guard, :mod:`cosim.guards`) or
+    ``"interrupted"``; ``reason`` says why a run
+    ended early; ``trace`` holds what was recorded
     (also the partial trace of a failed run); ``stats`` the run statistics
     (:class:`cosim.master.RunStats` as a dict)."""
 
@@ -55,15 +58,16 @@ def build_components(scene: Scene, *, cache_dir: Path | None = None,
     return paths
 
 
-def couple(scene: Scene, slaves: Sequence[Slave]) -> CoupledSystem:
-    """The coupled system of ``scene`` over ``slaves`` (one per component, in scene order)."""
+def couple(scene: Scene, slaves: Sequence[Slave], watch: Sequence[tuple[str, str]] = ()) -> CoupledSystem:
+    """The coupled system of ``scene`` over ``slaves`` (one per component, in scene order);
+    ``watch``: (component, variable) pairs sampled with the recorded ones but not traced."""
     index = {s.name: i for i, s in enumerate(slaves)}
     links = [Link(index[c.src], c.src_var, index[c.dst], c.dst_var, c.factor, c.offset) for c in scene.connections]
     record = []
     for name in scene.outputs:
         comp, _, var = name.partition(".")
         record.append((index[comp], var))
-    return CoupledSystem(slaves, links, record)
+    return CoupledSystem(slaves, links, record, [(index[c], v) for c, v in watch])
 
 
 def scene_observers(scene: Scene, out_dir: Path | None, suffix: str = "") -> tuple[MemoryTrace, list, Path | None]:
@@ -218,7 +222,10 @@ def _run(scene, overrides, out_dir, catalog, cache_dir, progress, log, engine, s
         if [s.name for s in slaves] != list(scene.components):
             raise UserError(f"slaves must match the scene's components in order: {list(scene.components)}")
     build_s = time.perf_counter() - t0
-    system = couple(scene, slaves)
+    guard = scene_guard(scene)
+    system = couple(scene, slaves, guard.watch if guard else ())
+    if guard:
+        guard.bind(system.record_names + system.watch_names)
     memory, observers, trace_path = scene_observers(scene, out_dir)
     meta = {**scene_meta(scene), "inputs": scene.master.inputs,
             "components": {n: c.label for n, c in scene.components.items()},
@@ -234,7 +241,8 @@ def _run(scene, overrides, out_dir, catalog, cache_dir, progress, log, engine, s
                          inputs=scene.master.inputs, start_ns=scene.start_ns,
                          tolerances=[c.description.default_experiment.get("tolerance")
                                      for c in scene.components.values()],
-                         realtime=scene.master.realtime, options=scene.master.options or None).as_dict()
+                         realtime=scene.master.realtime, options=scene.master.options or None,
+                         guard=guard).as_dict()
     except TraceWriteError:  # disk full: the observers finished with the reason; report it as a status
         if memory.trace is None or not memory.trace.stats:
             raise

@@ -19,6 +19,7 @@ Format (every key but ``components`` and ``connections`` optional; lines startin
     master: {algorithm: gauss_seidel, step: 1e-3, order: [target, pid1, motor1, mech],
              engine: auto, output_interval: 1e-3}
     outputs: ["mech.platform.*", "mech.leg[*].f"]   # fnmatch over "component.variable"
+    guards: {stroke: stop, singularity: warn}       # physical guards (cosim.guards); all "stop" by default
 
 Component spec: ``model`` (a name of :func:`models.blocks.catalog`) with optional ``fidelity``
 and ``options`` (construction options of :func:`models.blocks.make`), or ``fmu`` (a path);
@@ -68,7 +69,7 @@ from .slaves import SlaveDescription, Variable, describe_block, describe_fmu, re
 Loc = tuple[str, int]  # (file, line); line 0 = no line (a --set override)
 
 TOP_KEYS = ("name", "description", "include", "start_time", "stop_time", "components", "connections", "master",
-            "outputs", "fidelity_tolerance", "fidelity_signals")
+            "outputs", "fidelity_tolerance", "fidelity_signals", "guards")
 COMPONENT_KEYS = ("model", "fidelity", "options", "params", "start", "fmu", "fmi", "description", "hardware")
 MASTER_KEYS = ("algorithm", "step", "order", "engine", "output_interval", "inputs", "realtime", "options")
 #: How a slave's inputs vary over a communication step (see :mod:`cosim.master`).
@@ -554,6 +555,7 @@ class Scene:
     warnings: list[Problem] = field(default_factory=list)
     start_time: float = 0.0  # [s] the scene's start_time, else the FMUs' default experiment, else 0
     start_ns: int = 0
+    guards: Any = None  # cosim.guards.GuardSettings (physical guards of a run)
 
 
 # --- catalog access ---------------------------------------------------------------------------
@@ -1379,6 +1381,11 @@ def validate(tree: YMap, path: Path | None = None, *, catalog=None, problems: li
         ck.unconnected(comps, conns)
     if conns:
         ck.algebraic_loops(comps, conns)
+    from .guards import check_scene, parse_settings
+
+    guards = parse_settings(tree.get("guards"), lambda _key: tree.loc("guards"), ck.err)
+    if comps and not broken:
+        check_scene(guards, comps, stop - start if stop is not None else None, ck.err, ck.warn)
     errors = [p for p in ck.problems if p.severity == "error"]
     if errors:
         raise SceneError(ck.problems)
@@ -1390,7 +1397,8 @@ def validate(tree: YMap, path: Path | None = None, *, catalog=None, problems: li
         raise SceneError(ck.problems)
     data = plain(tree)
     return Scene(str(name), path, str(tree.get("description", "")), stop, n_steps, comps, conns, bonds, master,
-                 outputs, data, _hash(data, comps), [p for p in ck.problems if p.severity != "error"], start, start_ns)
+                 outputs, data, _hash(data, comps), [p for p in ck.problems if p.severity != "error"], start, start_ns,
+                 guards)
 
 
 def load(path: Path | str, overrides: Mapping[str, Any] | Sequence[str] | None = None, *, catalog=None) -> Scene:

@@ -69,6 +69,20 @@ class Flange:
     causality: Literal["flow_out", "effort_out"] = "flow_out"
 
 
+@dataclass(frozen=True)
+class Rating:
+    """Operating limits of one input or output of a block: its value must stay in
+    ``[low, high]`` (the variable's SI unit).  ``kind`` says what leaving them means:
+    ``"stroke"`` (an actuator beyond its end of travel) or ``"rated"`` (a component beyond its
+    rated values); ``source`` cites where the numbers come from.  Metadata only: the equations do
+    not use it; run-time guards (:mod:`cosim.guards`) do."""
+
+    low: float
+    high: float
+    kind: Literal["stroke", "rated"] = "rated"
+    source: str = ""
+
+
 @dataclass
 class Block:
     """A component: symbols, equations and metadata.  Build with :meth:`Block.build`."""
@@ -90,6 +104,7 @@ class Block:
     sample_period: float | None = None
     flanges: list[Flange] = field(default_factory=list)
     fidelity: str = ""
+    ratings: dict[str, Rating] = field(default_factory=dict)
 
     # -- construction -------------------------------------------------------------------------
     @classmethod
@@ -146,6 +161,11 @@ class Block:
         if self.substeps < 1:
             raise BlockError(f"block {n}: substeps must be >= 1, got {self.substeps}")
         vars_ = {v.name for v in self.inputs + self.outputs}
+        for var, r in self.ratings.items():
+            if var not in vars_:
+                raise BlockError(f"block {n}: rating for {var!r}, which is not an input or output")
+            if not (r.low < r.high):
+                raise BlockError(f"block {n}: rating of {var!r} needs low < high, got [{r.low}, {r.high}]")
         for fl in self.flanges:
             for v in (fl.effort, fl.flow):
                 if v not in vars_:

@@ -188,6 +188,14 @@ def dexterity_fn(length_scale: float = 1.0) -> ca.Function:
 
 
 @lru_cache(maxsize=None)
+def det_fn() -> ca.Function:
+    """``(q, g) -> detJ`` [m]: the determinant of :func:`dexterity` alone (SI units), cheaper to
+    evaluate along a trajectory than the whole DSI."""
+    q, g = _sym("q", 3), _sym("g", NG)
+    return ca.Function("det_j", [q, g], [dexterity(q, g)[0]], ["q", "g"], ["detJ"])
+
+
+@lru_cache(maxsize=None)
 def leg_motion_fn() -> ca.Function:
     """``(q, qd, qdd, g, e) -> Chapter 5 quantities`` with ``e = (e1, e2)``; names as in :class:`LegMotion`."""
     q, qd, qdd, g, e = _sym("q", 3), _sym("qd", 3), _sym("qdd", 3), _sym("g", NG), _sym("e", 2)
@@ -208,8 +216,8 @@ def fk_polynomial_fn() -> ca.Function:
 @lru_cache(maxsize=None)
 def numpy_map(name: str, length_scale: float = 1.0) -> NumpyFunction:
     """Numpy replay of one of the functions above: ``"ik"``, ``"jacobian"``, ``"dexterity"``,
-    ``"leg_motion"``, ``"fk_polynomial"``."""
-    builders = {"ik": ik_fn, "jacobian": jacobian_fn, "leg_motion": leg_motion_fn,
+    ``"det"``, ``"leg_motion"``, ``"fk_polynomial"``."""
+    builders = {"ik": ik_fn, "jacobian": jacobian_fn, "leg_motion": leg_motion_fn, "det": det_fn,
                 "fk_polynomial": fk_polynomial_fn, "dexterity": lambda: dexterity_fn(length_scale)}
     if name not in builders:
         raise KeyError(f"unknown kinematic map {name!r}; expected one of {', '.join(builders)}")

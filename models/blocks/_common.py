@@ -9,7 +9,7 @@ from typing import Any, Callable, Sequence
 
 import casadi as ca
 
-from ..block import BlockError, Param
+from ..block import BlockError, Param, Rating
 from ..geometry import GEOMETRY_FIELDS, INERTIA_FIELDS, PRESETS, preset
 
 INF = math.inf
@@ -84,6 +84,14 @@ def inertia_params(ps: ParamSet, config: str) -> ca.SX:
         unit, text = _INERTIA_TEXT[f]
         syms.append(ps.add(f, getattr(inertia, f), unit, text, lower=-INF if f in ("e1", "e2") else 0.0))
     return ca.vertcat(*syms)
+
+
+def stroke_ratings(config: str, legs: Sequence[int] = (1, 2, 3)) -> dict[str, Rating]:
+    """``leg[i].s`` must stay inside the stroke ``[Lmin, Lmax]`` of the preset ``config``
+    (SPEC §1: 0.10-0.60 m)."""
+    m = preset(config)
+    return {f"leg[{i}].s": Rating(m.Lmin, m.Lmax, "stroke", f"actuator stroke of the {config} preset (SPEC §1)")
+            for i in legs}
 
 
 @dataclass(frozen=True)

@@ -27,7 +27,7 @@ import casadi as ca
 from ..block import Block, Flange, Var
 from ..kinematics import inverse_jacobian, inverse_kinematics, joint_offsets, leg_motion
 from ..virtual_work import actuator_forces, mass_matrix_and_bias
-from ._common import ParamSet, geometry_params, inertia_params, solver_params
+from ._common import ParamSet, geometry_params, inertia_params, solver_params, stroke_ratings
 
 LEGS = (1, 2, 3)
 POSE_OUTPUTS = [
@@ -101,7 +101,7 @@ def rigid(config: str, integrator: str = "rk4", substeps: int = 1) -> Block:
         params=ps.params, inputs=FORCE_INPUTS, outputs=POSE_OUTPUTS + LEG_OUTPUTS, states=states,
         p=ps.vector(), u=f, x=xs, ode=ca.vertcat(qd, qdd), out=ca.vertcat(q, qd, L, Ld),
         start=ca.vertcat(q0, qd0), integrator=integrator, substeps=substeps,
-        flanges=list(FLANGES), fidelity="rigid")
+        flanges=list(FLANGES), fidelity="rigid", ratings=stroke_ratings(config))
 
 
 def kinematic(config: str) -> Block:
@@ -126,7 +126,7 @@ def kinematic(config: str) -> Block:
         "mechanism", description="3-RPR mechanism, prescribed motion: leg kinematics and virtual-work forces",
         params=ps.params, inputs=inputs, outputs=outputs, states=[], p=ps.vector(), u=u, x=ca.SX(0, 1),
         ode=ca.SX(0, 1), out=ca.vertcat(mot.L, mot.Ld, mot.Ldd, tau), start=ca.SX(0, 1), integrator="none",
-        fidelity="kinematic")
+        fidelity="kinematic", ratings=stroke_ratings(config))
 
 
 def _rot(th) -> ca.SX:
@@ -266,4 +266,5 @@ def multibody(config: str, integrator: str = "radau", substeps: int = 1) -> Bloc
                                  "(thesis bond graph, Section 6.3)",
         params=ps.params, inputs=FORCE_INPUTS, outputs=POSE_OUTPUTS + LEG_OUTPUTS, states=states,
         p=ps.vector(), u=f, x=xs, ode=ca.vertcat(*ode), out=out, start=ca.vertcat(*start),
-        integrator=integrator, substeps=substeps, flanges=list(FLANGES), fidelity="multibody")
+        integrator=integrator, substeps=substeps, flanges=list(FLANGES), fidelity="multibody",
+        ratings=stroke_ratings(config))

@@ -48,7 +48,7 @@ import math
 
 import casadi as ca
 
-from ..block import Block, Flange, Var
+from ..block import Block, Flange, Rating, Var
 from ._common import INF, ParamSet, solver_params
 
 ROTOR = ("lumped", "state")
@@ -56,6 +56,18 @@ KT_RPM_PER_V = 60.0 / (2 * math.pi * 145.0)  # 145 rpm/V as N m/A (= V s/rad)
 
 #: Default torque constant [N m/A]: 145 rpm/V (module docstring: the closed-loop study).
 KT_DEFAULT = KT_RPM_PER_V
+
+#: Rated armature voltage [V]: the FA-200-L-12 is a 12 V actuator and Table 6.7 limits the PID
+#: output to +-12 V (SPEC §6-7).
+U_RATED = 12.0
+#: Peak current [A] of the motor driver: the thesis's Cytron "13 A" driver (SPEC §7) carries
+#: 13 A continuously and 30 A at peak (its datasheet).  The Table 6.7 motor stalls at
+#: 12 V / 0.574 Ohm = 20.9 A, which the setpoint kick of pid_step reaches for a few milliseconds.
+I_PEAK = 30.0
+RATINGS = {
+    "u": Rating(-U_RATED, U_RATED, "rated", "12 V actuator, Table 6.7 output limit (SPEC §6-7)"),
+    "i": Rating(-I_PEAK, I_PEAK, "rated", "peak current of the 13 A motor driver (SPEC §7; 30 A peak)"),
+}
 
 FLANGE = Flange("flange", effort="flange.f", flow="flange.v", causality="effort_out")
 INPUTS = [Var("u", "V", "armature voltage"), Var("flange.v", "m/s", "leg extension rate (rack speed)")]
@@ -128,7 +140,8 @@ def _build(fidelity: str, rotor: str, integrator: str, substeps: int) -> Block:
         params=ps.params, inputs=list(INPUTS), outputs=outputs, states=states, p=ps.vector(), u=u, x=xs,
         ode=ca.vertcat(*ode) if ode else ca.SX(0, 1), out=ca.vertcat(*out),
         start=ca.vertcat(*[ca.SX(s) for s in start]) if start else ca.SX(0, 1),
-        integrator=integrator if xs_list else "none", substeps=substeps, flanges=[FLANGE], fidelity=fidelity)
+        integrator=integrator if xs_list else "none", substeps=substeps, flanges=[FLANGE], fidelity=fidelity,
+        ratings=dict(RATINGS))
 
 
 def full(rotor: str = "lumped", integrator: str = "exact", substeps: int = 1) -> Block:
@@ -155,4 +168,5 @@ def ideal() -> Block:
         "dc_motor", description="ideal force source f = gain u", params=ps.params, inputs=list(INPUTS),
         outputs=[Var("flange.f", "N", "force on the leg, positive extending"), Var("w", "rad/s", "shaft speed")],
         states=[], p=ps.vector(), u=u, x=ca.SX(0, 1), ode=ca.SX(0, 1), out=ca.vertcat(gain * u[0], u[1] / rack),
-        start=ca.SX(0, 1), integrator="none", flanges=[FLANGE], fidelity="ideal")
+        start=ca.SX(0, 1), integrator="none", flanges=[FLANGE], fidelity="ideal",
+        ratings={"u": RATINGS["u"]})

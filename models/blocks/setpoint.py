@@ -29,7 +29,7 @@ import casadi as ca
 
 from ..block import Block, Var
 from ..kinematics import leg_motion
-from ._common import ParamSet, geometry_params
+from ._common import ParamSet, geometry_params, stroke_ratings
 
 PROFILES = ("step", "ramp", "sine")
 LEGS = (1, 2, 3)
@@ -90,4 +90,4 @@ def pose_setpoint(config: str = "cross_leg", profile: str = "step") -> Block:
         "pose_setpoint", description=f"platform trajectory ({profile}) with inverse kinematics",
         params=ps.params, inputs=[], outputs=outputs, states=[Var("clock.t", "s", "the block's clock")],
         p=ps.vector(), u=ca.SX(0, 1), x=clock, ode=ca.SX(1), out=ca.vertcat(q, qd, qdd, mot.L, mot.Ld, mot.Ldd),
-        start=t0, integrator="rk4", fidelity="default")
+        start=t0, integrator="rk4", fidelity="default", ratings=stroke_ratings(config))

@@ -1,0 +1,387 @@
+"""Physical guards: a run of the robot's scenes is "ok" only if it stayed physical and within limits.
+
+Four guards watch every recorded row of a run (at ``master.output_interval``), on by default:
+
+``stroke``
+    a leg length ``leg[i].s`` of a mechanism (or of a setpoint) outside its actuator's stroke
+    ``[Lmin, Lmax]`` (SPEC §1: 0.10-0.60 m; the block's :class:`~models.block.Rating` of kind
+    ``"stroke"``).  There are no modelled end stops: the run is stopped "out of stroke" with the
+    leg, the time and the value.
+``rated``
+    a variable beyond its component's rated values (the block's ratings of kind ``"rated"``: the
+    DC motor's voltage ``u`` +-12 V and current ``i`` +-30 A, :mod:`models.blocks.motor`).
+``singularity``
+    ``|det J|`` of a mechanism's platform pose below ``min_det`` [m] (J of eq. 4.14 in SI units,
+    :func:`models.kinematics.dexterity`), or det J changing sign (the pose passed a singular
+    configuration between two rows).
+``unstable``
+    a non-finite value, or a value that grew beyond ``max(max_abs, 1000 |start value|)``, in any
+    recorded or connected variable of any slave (external FMUs included; a large constant such
+    as an Int64 input of 2**40 is its own scale): status "unstable".
+
+Each guard's action is ``stop`` (default: the run ends with status "out_of_limits" (stroke,
+rated, singularity) or "unstable"; not "stopped", which is a component's own request to end, the
+rows after the offending one dropped, the reason in the sidecar), ``warn`` (the run goes on; the
+first crossing is kept in the statistics' ``guards.warnings``) or ``off``.  A scene sets them under
+``guards:`` (``guards: off`` turns all off)::
+
+    guards: {stroke: stop, rated: stop, singularity: stop, unstable: stop, min_det: 0.01, max_abs: 1e6}
+
+At scene check time (:func:`check_scene`), every ``pose_setpoint`` component's commanded path is
+sampled over the run (the block's own output function, i.e. inverse kinematics of
+:mod:`models.kinematics`): a leg outside its stroke, or a singular pose on the path, is a scene
+error (a warning with ``warn``), naming the leg, the time and the stroke.
+
+Which component is the mechanism, where its legs and pose are, and what the ratings are all come
+from the catalog blocks of the scene (their model and :attr:`~models.block.Block.ratings`), not
+from component names.
+"""
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from dataclasses import asdict, dataclass, field
+from typing import Any
+
+import numpy as np
+
+ACTIONS = ("stop", "warn", "off")
+GUARDS = ("stroke", "rated", "singularity", "unstable")
+#: Settings and their defaults (actions, then thresholds).
+DEFAULTS: dict[str, Any] = {"stroke": "stop", "rated": "stop", "singularity": "stop", "unstable": "stop",
+                            "min_det": 0.01, "max_abs": 1e6}
+POSE = ("platform.x", "platform.y", "platform.phi")
+#: Run statuses of a tripped guard (a run that ends with either is not "ok": exit code 1).
+OUT_OF_LIMITS, UNSTABLE = "out_of_limits", "unstable"
+_SAMPLES = 2001  # points of a setpoint's path checked at scene time
+_REL_TOL = 1e-9  # a value exactly at its rating (a PID limited to 12 V) is inside it
+GROWTH = 1e3  # a variable is unstable beyond max(max_abs, GROWTH |its start value|)
+
+
+@dataclass(frozen=True)
+class GuardSettings:
+    """The ``guards:`` section of a scene: an action per guard (stop | warn | off), the
+    singularity threshold ``min_det`` on |det J| [m] and the instability bound ``max_abs``."""
+
+    stroke: str = DEFAULTS["stroke"]
+    rated: str = DEFAULTS["rated"]
+    singularity: str = DEFAULTS["singularity"]
+    unstable: str = DEFAULTS["unstable"]
+    min_det: float = DEFAULTS["min_det"]
+    max_abs: float = DEFAULTS["max_abs"]
+
+    @property
+    def active(self) -> bool:
+        return any(getattr(self, g) != "off" for g in GUARDS)
+
+
+# --- scene time ----------------------------------------------------------------------------------
+def parse_settings(node: Any, loc, err) -> GuardSettings:
+    """Settings from a scene's ``guards:`` node (None: defaults; ``off``/``false``: all off);
+    problems go to ``err(where, message)`` with ``loc(key)`` giving the line of a key."""
+    from .scenario import YMap, suggest
+
+    if node is None or node is True:
+        return GuardSettings()
+    if node is False or node == "off":
+        return GuardSettings(**{g: "off" for g in GUARDS})
+    if not isinstance(node, Mapping):
+        err(loc(None), f"guards must be a mapping (e.g. {{stroke: stop, singularity: warn}}) or off, got {_show(node)}")
+        return GuardSettings()
+    values: dict[str, Any] = {}
+    where = node.loc if isinstance(node, YMap) else loc
+    for key, val in node.items():
+        if not isinstance(key, str) or key not in DEFAULTS:
+            err(where(key), f"unknown key {key!r} in guards{suggest(str(key), DEFAULTS)} "
+                            f"(expected: {', '.join(DEFAULTS)})")
+        elif key in GUARDS:
+            action = {False: "off", True: "stop"}.get(val, val) if isinstance(val, bool) else val
+            if action not in ACTIONS:
+                err(where(key), f"guards.{key} = {_show(val)}{suggest(str(val), ACTIONS)}; expected stop, warn or off")
+            else:
+                values[key] = action
+        elif not _positive(val):
+            err(where(key), f"guards.{key} = {_show(val)} must be a positive number "
+                            f"({'[m], |det J| threshold' if key == 'min_det' else 'bound on |value|'})")
+        else:
+            values[key] = float(val)
+    return GuardSettings(**values)
+
+
+def _show(val: Any, width: int = 60) -> str:
+    text = repr(val)
+    return text if len(text) <= width else text[:width - 3] + "..."
+
+
+def _positive(val: Any) -> bool:
+    """A finite positive number (a bool is not; an integer too large for a float is not)."""
+    if isinstance(val, bool) or not isinstance(val, (int, float)):
+        return False
+    try:
+        return math.isfinite(float(val)) and val > 0
+    except OverflowError:
+        return False
+
+
+def check_scene(settings: GuardSettings, comps: Mapping[str, Any], duration: float | None, err, warn) -> None:
+    """Refuse (``err``) or flag (``warn``) setpoints that command poses outside the workspace or
+    through a singular pose over the run's ``duration`` [s], per ``settings``; ``err``/``warn``
+    take (where, message)."""
+    if duration is None:
+        return
+    for comp in comps.values():
+        if comp.kind != "model" or comp.model != "pose_setpoint" or comp.block is None:
+            continue
+        for action, message in setpoint_problems(comp, duration, settings):
+            (err if action == "stop" else warn)(comp.where, message)
+
+
+def setpoint_problems(comp, duration: float, settings: GuardSettings) -> list[tuple[str, str]]:
+    """(action, message) for every leg of a pose setpoint that leaves its stroke over the
+    ``duration`` [s] of a run (its clock from its parameter ``t0`` on), and for a singular pose
+    on its path; times in the messages are clock times."""
+    if settings.stroke == "off" and settings.singularity == "off":
+        return []
+    blk = comp.block
+    p = blk.param_vector(**comp.params)
+    t = np.linspace(0.0, duration, _SAMPLES)
+    t0 = p[blk.index("params", "t0")] if any(q.name == "t0" for q in blk.params) else 0.0
+    out = blk.functions()["out"].map(len(t))
+    t = t + t0  # the block's clock
+    y = np.array(out(np.atleast_2d(t), np.zeros((0, len(t))), np.tile(p[:, None], (1, len(t)))))
+    col = {v.name: y[i] for i, v in enumerate(blk.outputs)}
+    pose = np.vstack([col[n] for n in POSE]) if all(n in col for n in POSE) else None
+    found: list[tuple[str, str]] = []
+    if settings.stroke != "off":
+        for var, r in blk.ratings.items():
+            if r.kind != "stroke" or var not in col:
+                continue
+            bad = _outside(col[var], r.low, r.high)
+            if bad.any():
+                k = int(np.argmax(bad))
+                at = f" at t = {t[k]:.6g} s" + (f" (pose x = {pose[0, k]:.4g} m, y = {pose[1, k]:.4g} m, "
+                                               f"phi = {pose[2, k]:.4g} rad)" if pose is not None else "")
+                found.append((settings.stroke, f"component {comp.name!r} ({comp.label}) commands {_leg(var)} to "
+                                               f"{col[var][k]:.4g} m{at}, outside the stroke [{r.low:g}, {r.high:g}] m "
+                                               f"of the workspace" + _hint(settings.stroke, "stroke", "a pose inside it")))
+    if settings.singularity != "off" and pose is not None:
+        det = det_j(comp, pose)
+        k = _singular(det, settings.min_det)
+        if k is not None:
+            found.append((settings.singularity, f"component {comp.name!r} ({comp.label}) commands a singular pose"
+                                                f"{_singular_text(det, k, t, settings.min_det)}"
+                                                + _hint(settings.singularity, "singularity", "a path away from it")))
+    return found
+
+
+def _hint(action: str, guard: str, what: str) -> str:
+    return f"; choose {what} (or set guards.{guard}: warn)" if action == "stop" else ""
+
+
+def _leg(var: str) -> str:
+    return f"leg {var[4:-3]}" if var.startswith("leg[") and var.endswith("].s") else var
+
+
+def _outside(v: np.ndarray, low: float, high: float) -> np.ndarray:
+    tol = _REL_TOL * max(abs(low), abs(high), 1.0)
+    return (v < low - tol) | (v > high + tol)
+
+
+def geometry(comp) -> np.ndarray:
+    """The geometry vector (:data:`models.geometry.GEOMETRY_FIELDS`) of a mechanism or setpoint
+    component: its ``config`` option and geometry parameters, shape (10, 1)."""
+    from .animate import manipulator_for
+
+    return manipulator_for(comp.options, comp.params).geometry_vector().reshape(-1, 1)
+
+
+def det_j(comp, pose: np.ndarray, g: np.ndarray | None = None) -> np.ndarray:
+    """det J [m] (eq. 4.14, SI units; :func:`models.kinematics.dexterity`) of ``comp``'s
+    geometry ``g`` (default :func:`geometry`) at poses ``pose`` of shape (3, N)."""
+    from models import kinematics
+
+    det = kinematics.numpy_map("det")(np.asarray(pose, float), geometry(comp) if g is None else g)
+    return np.asarray(det, float).reshape(-1)
+
+
+def _singular(det: np.ndarray, min_det: float, sign0: float | None = None) -> int | None:
+    """First index where |det| < min_det or det's sign differs from ``sign0`` (default: det[0]'s)."""
+    if not len(det):
+        return None
+    s0 = np.sign(det[0]) if sign0 is None else sign0
+    bad = (np.abs(det) < min_det) | (np.sign(det) != s0)
+    bad &= np.isfinite(det)
+    return int(np.argmax(bad)) if bad.any() else None
+
+
+def _singular_text(det: np.ndarray, k: int, t: np.ndarray, min_det: float) -> str:
+    if abs(det[k]) < min_det:
+        return f": |det J| = {abs(det[k]):.3g} m at t = {t[k]:.6g} s, below guards.min_det = {min_det:g} m"
+    before = f"t = {t[k - 1]:.6g} and " if k > 0 else "before "
+    return f": det J changes sign between {before}t = {t[k]:.6g} s (now {det[k]:.3g} m)"
+
+
+# --- run time ------------------------------------------------------------------------------------
+@dataclass
+class _Limit:
+    name: str  # component.variable
+    low: float
+    high: float
+    kind: str  # "stroke" or "rated"
+    unit: str
+    source: str
+
+
+@dataclass
+class _Mechanism:
+    comp: Any
+    names: tuple[str, str, str]  # the pose columns
+    sign0: float | None = None
+    g: np.ndarray | None = None  # geometry vector (10, 1)
+
+
+@dataclass
+class Guard:
+    """The run-time guards of one scene (build with :func:`scene_guard`).
+
+    :attr:`watch` lists the (component, variable) pairs to sample with the recorded ones;
+    :meth:`bind` takes the sampled column names (recorded, then watched), :meth:`check` a block of
+    rows (time first) and returns the number of rows to keep when a ``stop`` guard trips (None
+    otherwise); then :attr:`status` and :attr:`reason` say why."""
+
+    settings: GuardSettings
+    limits: list[_Limit]
+    mechanisms: list[_Mechanism]
+    watch: list[tuple[str, str]]
+    status: str = ""
+    reason: str = ""
+    warnings: list[str] = field(default_factory=list)
+    _col: dict[str, int] = field(default_factory=dict)
+    _warned: set = field(default_factory=set)
+    _bound: list = field(default_factory=list)
+    _lim: tuple = (np.zeros(0, dtype=np.int64), np.zeros(0), np.zeros(0))
+    _bound_abs: np.ndarray | None = None  # per column: max(max_abs, GROWTH |start value|)
+
+    @property
+    def tripped(self) -> bool:
+        return bool(self.status)
+
+    def bind(self, names: list[str]) -> None:
+        """``names``: the sampled variables in row order after the time column."""
+        self._col = {n: j + 1 for j, n in enumerate(names)}
+        self._bound = [lim for lim in self.limits
+                       if lim.name in self._col and getattr(self.settings, lim.kind) != "off"]
+        idx = np.array([self._col[lim.name] for lim in self._bound], dtype=np.int64)
+        tol = np.array([_REL_TOL * max(abs(lim.low), abs(lim.high), 1.0) for lim in self._bound])
+        low = np.array([lim.low for lim in self._bound]) - tol
+        high = np.array([lim.high for lim in self._bound]) + tol
+        self._lim = (idx, low, high)
+
+    def check(self, rows: np.ndarray) -> int | None:
+        if not len(rows) or self.tripped:
+            return None
+        found = self._unstable(rows) + self._limits(rows) + self._singular(rows)
+        stops = [(k, i) for i, (k, action, _, _, _) in enumerate(found) if action == "stop"]
+        cut = min(stops)[0] if stops else None
+        for k, action, _, text, key in found:
+            if action == "warn" and (cut is None or k <= cut) and key not in self._warned:
+                self._warned.add(key)
+                self.warnings.append(text)
+        if cut is None:
+            return None
+        _, _, self.status, self.reason, _ = found[min(stops)[1]]
+        return cut + 1
+
+    def summary(self) -> dict:
+        return {"settings": asdict(self.settings), "warnings": list(self.warnings), "tripped": self.reason}
+
+    # the checks: each returns [(first bad row, action, status, message, key)] ---------------------
+    def _unstable(self, rows: np.ndarray) -> list:
+        action = self.settings.unstable
+        if action == "off" or rows.shape[1] < 2:
+            return []
+        vals = rows[:, 1:]
+        if self._bound_abs is None:  # the first row seen is the start
+            start = np.abs(vals[0])
+            self._bound_abs = np.maximum(self.settings.max_abs, GROWTH * np.where(np.isfinite(start), start, 0.0))
+        bad = ~np.isfinite(vals) | (np.abs(vals) > self._bound_abs)  # NaN compares False: no warning
+        if not bad.any():
+            return []
+        k = int(np.argmax(bad.any(axis=1)))
+        j = int(np.argmax(bad[k]))
+        name = next((n for n, c in self._col.items() if c == j + 1), f"column {j + 1}")
+        v = vals[k, j]
+        bound = self._bound_abs[j]
+        why = ("not finite" if not np.isfinite(v) else f"|value| beyond guards.max_abs = {bound:g}"
+               if bound == self.settings.max_abs else f"|value| beyond {bound:g}, {GROWTH:g} times its start value")
+        return [(k, action, UNSTABLE, f"unstable: {name} = {v:.6g} at t = {rows[k, 0]:.6g} s ({why})", name)]
+
+    def _limits(self, rows: np.ndarray) -> list:
+        idx, low, high = self._lim
+        if not len(idx):
+            return []
+        vals = rows[:, idx]
+        bad = (vals < low) | (vals > high)
+        if not bad.any():
+            return []
+        out = []
+        for m in np.flatnonzero(bad.any(axis=0)):
+            lim, j = self._bound[m], int(idx[m])
+            action = getattr(self.settings, lim.kind)
+            k = int(np.argmax(bad[:, m]))
+            v, t = rows[k, j], rows[k, 0]
+            if lim.kind == "stroke":
+                text = (f"out of stroke: {lim.name} = {v:.4g} m at t = {t:.6g} s, outside the stroke "
+                        f"[{lim.low:g}, {lim.high:g}] m (guards.stroke)")
+            else:
+                text = (f"beyond rating: {lim.name} = {v:.4g} {lim.unit} at t = {t:.6g} s, outside the rated "
+                        f"[{lim.low:g}, {lim.high:g}] {lim.unit} ({lim.source}; guards.rated)")
+            out.append((k, action, OUT_OF_LIMITS, text, lim.name))
+        return out
+
+    def _singular(self, rows: np.ndarray) -> list:
+        action = self.settings.singularity
+        if action == "off":
+            return []
+        out = []
+        for mech in self.mechanisms:
+            cols = [self._col.get(n) for n in mech.names]
+            if None in cols:
+                continue
+            if mech.g is None:
+                mech.g = geometry(mech.comp)
+            det = det_j(mech.comp, rows[:, cols].T, mech.g)
+            if mech.sign0 is None and len(det) and np.isfinite(det[0]) and det[0] != 0:
+                mech.sign0 = float(np.sign(det[0]))
+            k = _singular(det, self.settings.min_det, mech.sign0)
+            if k is not None:
+                text = (f"singularity: {mech.comp.name}{_singular_text(det, k, rows[:, 0], self.settings.min_det)} "
+                        f"(guards.singularity)")
+                out.append((k, action, OUT_OF_LIMITS, text, mech.comp.name))
+        return out
+
+
+def scene_guard(scene) -> Guard | None:
+    """The guards of ``scene`` (None when all are off): the rated and stroke variables of its
+    catalog components, the pose of each mechanism, and every connected output."""
+    settings: GuardSettings = getattr(scene, "guards", None) or GuardSettings()
+    if not settings.active:
+        return None
+    limits, mechanisms, watch = [], [], []
+    for name, comp in scene.components.items():
+        blk = comp.block if comp.kind == "model" else None
+        if blk is None:
+            continue
+        for var, r in blk.ratings.items():
+            unit = comp.description.variables[var].unit if var in comp.description.variables else ""
+            limits.append(_Limit(f"{name}.{var}", r.low, r.high, r.kind, unit, r.source))
+            watch.append((name, var))
+        if comp.model == "mechanism" and all(v in comp.description.variables for v in POSE):
+            mechanisms.append(_Mechanism(comp, tuple(f"{name}.{v}" for v in POSE)))
+            watch += [(name, v) for v in POSE]
+    watch += [(c.src, c.src_var) for c in scene.connections]
+    return Guard(settings, limits, mechanisms, list(dict.fromkeys(watch)))
+
+
+__all__ = ["ACTIONS", "DEFAULTS", "Guard", "GuardSettings", "check_scene", "det_j", "parse_settings",
+           "scene_guard", "setpoint_problems"]
