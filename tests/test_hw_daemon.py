@@ -295,9 +295,10 @@ def test_sigkill_of_the_master_stops_the_motors_within_the_watchdog(tmp_path):
         took = (max(p.stat().st_mtime_ns for p in duty + dirs) - t_stop) / 1e9
         print(f"outputs safe {took * 1e3:.1f} ms after the master's last command "
               f"({(t_kill - t_stop) / 1e6:.1f} ms before the SIGKILL)")
-        # end to end: 100 ms + two ticks, + 5 ms for the last datagram's way from the master's send
-        # to the daemon's read on a loaded shared machine (0.5-2 ms here; more without SCHED_FIFO)
-        assert took <= 0.100 + 2 / rate + (0.005 if fifo else 0.015)
+        # end to end: 100 ms + two ticks, + 10 ms for the last datagram's way from the master's send
+        # to the daemon's read and the file times' granularity on a shared machine (0.5-7 ms seen
+        # here; more without SCHED_FIFO)
+        assert took <= 0.100 + 2 / rate + (0.010 if fifo else 0.020)
         from hardware import client
         c = client.BoardClient(("127.0.0.1", port), P.read_key(keyfile), timeout=1.0)
         c.hello()  # a new master may connect, but the fault stays latched ...

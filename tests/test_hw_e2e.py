@@ -85,14 +85,18 @@ def test_hil_scene_runs_in_real_time(runs):
 
 @pytest.mark.parametrize("leg", [1, 2, 3])
 def test_hil_trace_agrees_with_pure_cosimulation(runs, leg):
+    """Within TOL_M plus what this run's own pacing lateness explains: a step that starts late by
+    L lets the real plant run on at up to its top speed (20.32 mm/s) for L."""
     pure, hil, _ = runs
     name = f"rig.leg[{leg}].s"
     t, a, b = aligned(hil.trace, pure.trace, [name])
     diff = np.abs(a - b).max()
     moved = np.ptp(b)
-    print(f"{name}: max |hil - pure| = {diff * 1e3:.3f} mm over a {moved * 1e3:.1f} mm move")
+    late = hil.stats["realtime"]["lateness_max_s"]
+    print(f"{name}: max |hil - pure| = {diff * 1e3:.3f} mm over a {moved * 1e3:.1f} mm move (lateness max "
+          f"{late * 1e3:.1f} ms)")
     assert moved > 5e-3  # the legs really moved
-    assert diff <= TOL_M
+    assert diff <= TOL_M + 20.32e-3 * late
 
 
 def test_compare_verb_shows_the_agreement(runs, capsys):
