@@ -35,7 +35,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .errors import UserError
-from .master import Algorithm, RunStats, gauss_seidel_order, initialize, register
+from .master import (Algorithm, RunStats, gauss_seidel_order, initialize, interruption_reason, register,
+                     slave_table)
 from .slaves import FAILING, Status
 
 
@@ -346,9 +347,8 @@ def simulate_variable(system, cls, *, step_ns: int, n_steps: int, observers: Seq
         stepper = run_adaptive(system, start_ns=start_ns, stop_ns=stop_ns, options=opts, order=seq,
                                observers=observers, progress=progress, stats=stats)
         status, reason = ("ok", "") if stepper.status == "running" else (stepper.status, stepper.message)
-    except KeyboardInterrupt:
-        status = "interrupted"
-        reason = "interrupted by the user (KeyboardInterrupt)" + (f" at t = {stepper.t:.9g} s" if stepper else "")
+    except KeyboardInterrupt as exc:
+        status, reason = "interrupted", interruption_reason(exc, stepper.t if stepper else None)
         raise
     except BaseException as exc:
         status, reason = "failed", f"{type(exc).__name__}: {exc}"
@@ -358,8 +358,7 @@ def simulate_variable(system, cls, *, step_ns: int, n_steps: int, observers: Seq
         if stepper is not None:
             stats.steps_done, stats.t_end, stats.adaptive = stepper.stats.accepted, stepper.t, stepper.stats.as_dict()
             stats.steps_planned = stats.steps_done  # no plan: the controller chose every step
-            stats.slaves = {s.name: {"do_step_calls": int(stepper.calls[i]), "wall_s": stepper.slave_ns[i] / 1e9}
-                            for i, s in enumerate(system.slaves)}
+            stats.slaves = slave_table(system, stepper.calls, stepper.slave_ns)
             stats.master_s = max(0.0, stats.wall_s - sum(stepper.slave_ns) / 1e9)
         for obs in observers:
             obs.finish(status, reason, stats.as_dict())

@@ -813,6 +813,17 @@ class RunStats:
                 **({"realtime": self.realtime} if self.realtime is not None else {})}
 
 
+def interruption_reason(exc: KeyboardInterrupt, t: float | None) -> str:
+    """The reason of a run ended by Ctrl-C or a signal (``exc`` names the signal, see
+    :mod:`cosim.interrupts`), at simulated time ``t`` when known."""
+    return f"interrupted by {str(exc) or 'the user (KeyboardInterrupt)'}" + (f" at t = {t:.9g} s" if t is not None else "")
+
+
+def slave_table(system: CoupledSystem, calls: Sequence[int], slave_ns: Sequence[int]) -> dict[str, dict[str, float]]:
+    """Per-slave run statistics: doStep calls and wall time [s] inside the slave's calls."""
+    return {s.name: {"do_step_calls": int(calls[i]), "wall_s": slave_ns[i] / 1e9} for i, s in enumerate(system.slaves)}
+
+
 def initialize(system: CoupledSystem, start_values: Sequence[dict[str, float]], *, start_time: float = 0.0,
                stop_time: float, tolerances: Sequence[float | None] | None = None) -> None:
     """Instantiate, set start values, run the initial exchange (feedthrough order) and leave
@@ -978,9 +989,7 @@ def simulate(system: CoupledSystem, algorithm_name: str, *, step_ns: int, n_step
             alg.master_ns = max(0, int(stepping * 1e9) - sum(alg.slave_ns))
         status, reason = ("ok", "") if alg.status == "running" else (alg.status, alg.message)
     except KeyboardInterrupt as exc:
-        status = "interrupted"
-        reason = (f"interrupted by {str(exc) or 'the user (KeyboardInterrupt)'}"
-                  + (f" at t = {alg.t:.9g} s" if alg else ""))
+        status, reason = "interrupted", interruption_reason(exc, alg.t if alg else None)
         raise
     except BaseException as exc:
         status, reason = "failed", f"{type(exc).__name__}: {exc}"
@@ -992,8 +1001,7 @@ def simulate(system: CoupledSystem, algorithm_name: str, *, step_ns: int, n_step
         if alg is not None:
             stats.steps_done = alg.k
             stats.master_s = alg.master_ns / 1e9
-            stats.slaves = {s.name: {"do_step_calls": int(alg.calls[i]), "wall_s": alg.slave_ns[i] / 1e9}
-                            for i, s in enumerate(system.slaves)}
+            stats.slaves = slave_table(system, alg.calls, alg.slave_ns)
         if stats.wall_s == 0.0 and t_loop is not None:
             stats.wall_s = time.perf_counter() - t_loop
         if pacer is not None:
