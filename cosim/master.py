@@ -344,17 +344,20 @@ class CoupledSystem:
                     edges.append(((i, u), (i, y)))
         return edges
 
-    def init_sequence(self) -> list[int]:
+    def init_sequence(self, allow_loops: bool = False) -> list[int]:
         """Slaves to update (push inputs, pull outputs), in order, so that every feedthrough
-        output at ``t_0`` sees inputs that are already consistent."""
+        output at ``t_0`` sees inputs that are already consistent.  An algebraic loop is refused
+        unless ``allow_loops`` (the algorithm solves it itself: every slave once, in order)."""
         edges = self.port_edges()
         nodes = list(dict.fromkeys([a for a, _ in edges] + [b for _, b in edges]))
         try:
             order = topological_order(nodes, edges)
         except ValueError:
+            if allow_loops:
+                return list(range(len(self.slaves)))
             loop = find_algebraic_loop(edges)
             text = " -> ".join(f"{self.slaves[i].name}.{v}" for i, v in loop)
-            raise UserError(f"algebraic loop: {text}") from None
+            raise UserError(f"algebraic loop: {text}; master.algorithm: iterative solves it within each step") from None
         seq: list[int] = []
         for i, var in order:
             fed = set(self.slaves[i].description.feedthrough.get(var, [])) & set(
@@ -794,6 +797,7 @@ class RunStats:
     slaves: dict[str, dict[str, float]] = field(default_factory=dict)
     guards: dict = field(default_factory=dict)
     realtime: dict | None = None  # lateness statistics of a paced run (cosim.realtime)
+    extra: dict = field(default_factory=dict)  # the algorithm's own statistics (Algorithm.statistics)
 
     @property
     def simulated_s(self) -> float:
@@ -809,7 +813,7 @@ class RunStats:
                 "steps_planned": self.steps_planned, "steps_done": self.steps_done, "status": self.status,
                 "reason": self.reason, "init_s": self.init_s, "wall_s": self.wall_s, "master_s": self.master_s,
                 "simulated_s": self.simulated_s, "real_time_factor": self.real_time_factor, "slaves": self.slaves,
-                **({"guards": self.guards} if self.guards else {}),
+                **({"guards": self.guards} if self.guards else {}), **self.extra,
                 **({"realtime": self.realtime} if self.realtime is not None else {})}
 
 
@@ -825,10 +829,11 @@ def slave_table(system: CoupledSystem, calls: Sequence[int], slave_ns: Sequence[
 
 
 def initialize(system: CoupledSystem, start_values: Sequence[dict[str, float]], *, start_time: float = 0.0,
-               stop_time: float, tolerances: Sequence[float | None] | None = None) -> None:
+               stop_time: float, tolerances: Sequence[float | None] | None = None, allow_loops: bool = False) -> None:
     """Instantiate, set start values, run the initial exchange (feedthrough order) and leave
-    initialisation mode; afterwards ``system.v`` holds every bound variable at ``t_0``."""
-    seq = system.init_sequence()
+    initialisation mode; afterwards ``system.v`` holds every bound variable at ``t_0`` (with
+    ``allow_loops``, values on an algebraic loop are not consistent yet: the algorithm solves it)."""
+    seq = system.init_sequence(allow_loops)
     for s, start in zip(system.slaves, start_values):
         s.instantiate()
         s.set_start(start)
@@ -941,8 +946,10 @@ def simulate(system: CoupledSystem, algorithm_name: str, *, step_ns: int, n_step
     try:
         t0 = time.perf_counter()
         initialize(system, start_values or [{} for _ in system.slaves], start_time=start_ns / 1e9,
-                   stop_time=(start_ns + n_steps * step_ns) / 1e9, tolerances=tolerances)
-        alg = cls(system, step_ns, order=order, timing=timing, inputs=inputs, start_ns=start_ns)
+                   stop_time=(start_ns + n_steps * step_ns) / 1e9, tolerances=tolerances,
+                   allow_loops=getattr(cls, "solves_algebraic_loops", False))
+        alg = cls(system, step_ns, order=order, timing=timing, inputs=inputs, start_ns=start_ns,
+                  **({"options": options} if getattr(cls, "options", ()) else {}))
         stats.engine = choose_engine(system, cls, engine, start_ns)
         runner = _Compiled(alg).run if stats.engine == "compiled" else (lambda n, e, r: _python_run(alg, n, e, r))
         stats.init_s = time.perf_counter() - t0
@@ -1002,6 +1009,7 @@ def simulate(system: CoupledSystem, algorithm_name: str, *, step_ns: int, n_step
             stats.steps_done = alg.k
             stats.master_s = alg.master_ns / 1e9
             stats.slaves = slave_table(system, alg.calls, alg.slave_ns)
+            stats.extra = alg.statistics() if hasattr(alg, "statistics") else {}
         if stats.wall_s == 0.0 and t_loop is not None:
             stats.wall_s = time.perf_counter() - t_loop
         if pacer is not None:
@@ -1015,3 +1023,4 @@ def simulate(system: CoupledSystem, algorithm_name: str, *, step_ns: int, n_step
 
 
 from . import adaptive as _adaptive  # noqa: E402,F401  (registers the variable-step algorithm "adaptive")
+from . import iterative as _iterative  # noqa: E402,F401  (registers "iterative": strong coupling, algebraic loops)

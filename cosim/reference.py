@@ -117,7 +117,7 @@ def composite(scene: Scene) -> Composite:
                             f"transformation is not supported there")
     wires = [(c.src, c.src_var, c.dst, c.dst_var) for c in scene.connections]
     try:
-        return compose(blocks, params, wires, starts=starts, inputs=inputs)
+        return compose(blocks, params, wires, starts=starts, inputs=inputs, loops=True)
     except BlockError as exc:
         raise UserError(f"scene {scene.name}: no monolithic reference: {exc}") from None
 
@@ -153,20 +153,25 @@ def _reference(scene, out_dir, rtol, atol, progress, max_wall_s, max_steps, log)
     signals = comp.signal_function(names)
     columns = ["time", *scene.outputs]
     memory, observers, trace_path = scene_observers(scene, out_dir, "_reference")
-    meta = {**scene_meta(scene), "method": "monolithic ODE, CVODES (BDF)", "rtol": rtol, "atol": atol,
-            "states": int(comp.x.numel())}
+    dae = comp.z.numel() > 0  # an algebraic loop: the loop's cut inputs are algebraic variables (IDAS)
+    meta = {**scene_meta(scene), "method": "monolithic DAE, IDAS (BDF)" if dae else "monolithic ODE, CVODES (BDF)",
+            "rtol": rtol, "atol": atol, "states": int(comp.x.numel()),
+            **({"algebraic": [f"{b}.{i}" for b, i in comp.cuts]} if dae else {})}
     for ob in observers:
         ob.start(columns, meta)
     t0 = time.perf_counter()
     status, reason, done = "ok", "", 0
-    x = comp.x0.copy()
+    x, z = comp.x0.copy(), comp.z0.copy()
+    if dae:  # a consistent start: the loop solved at the start state (IDAS would do it too)
+        z = np.array(ca.rootfinder("start", "newton", ca.Function("g", [comp.z, comp.x], [comp.alg]))(z, x)).ravel()
 
-    def record(ts: np.ndarray, xs: np.ndarray) -> None:
-        rows = np.column_stack([ts, np.array(signals.map(len(ts))(xs)).T])
+    def record(ts: np.ndarray, xs: np.ndarray, zs: np.ndarray | None = None) -> None:
+        vals = signals.map(len(ts))(xs, zs) if dae else signals.map(len(ts))(xs)
+        rows = np.column_stack([ts, np.array(vals).T])
         for ob in observers:
             ob.record(rows)
 
-    record(np.zeros(1), x.reshape(-1, 1))
+    record(np.zeros(1), x.reshape(-1, 1), z.reshape(-1, 1))
     integrators: dict[int, ca.Function] = {}
     chunk, solver_steps, printed = CHUNK, 0, _Collapsed()
     per_interval = max(1, min(MAX_STEPS_PER_INTERVAL, int(max_steps)))
@@ -190,17 +195,22 @@ def _reference(scene, out_dir, rtol, atol, progress, max_wall_s, max_steps, log)
                 break
             m = min(chunk, n_out - done)
             if m not in integrators:
-                integrators[m] = ca.integrator("reference", "cvodes", {"x": comp.x, "ode": comp.ode}, 0.0,
+                problem = {"x": comp.x, "ode": comp.ode, **({"z": comp.z, "alg": comp.alg} if dae else {})}
+                integrators[m] = ca.integrator("reference", "idas" if dae else "cvodes", problem, 0.0,
                                                dt * np.arange(1, m + 1),
                                                {"reltol": rtol, "abstol": atol, "max_num_steps": per_interval})
             tc = time.perf_counter()
             try:
                 with printed.capture():
-                    xs = np.array(integrators[m](x0=x)["xf"])
+                    sol = integrators[m](x0=x, z0=z) if dae else integrators[m](x0=x)
+                    xs = np.array(sol["xf"])
+                    zs = np.array(sol["zf"]) if dae else None
             finally:
                 solver_steps += int(integrators[m].stats().get("nsteps", 0) or 0)
-            record(dt * np.arange(done + 1, done + m + 1), xs)
+            record(dt * np.arange(done + 1, done + m + 1), xs, zs)
             x = xs[:, -1]
+            if dae:
+                z = zs[:, -1]
             done += m
             if progress:
                 progress(done, n_out)

@@ -1087,7 +1087,9 @@ class _Checker:
                     self.warn(comp.where, f"input {comp.name}.{u} is not connected and has no start value in the "
                                           f"scene; it keeps its default start value {start if start is not None else 0.0}")
 
-    def algebraic_loops(self, comps: dict[str, Component], conns: list[Connection]) -> None:
+    def algebraic_loops(self, comps: dict[str, Component], conns: list[Connection], algorithm: str | None = None) -> None:
+        if getattr(ALGORITHMS.get(algorithm), "solves_algebraic_loops", False):
+            return  # the algorithm iterates each step to a consistent solution of the loop
         edges = [((c.src, c.src_var), (c.dst, c.dst_var)) for c in conns]
         for comp in comps.values():
             for y, us in comp.description.feedthrough.items():
@@ -1098,7 +1100,8 @@ class _Checker:
             first = next((c for c in conns if (c.src, c.src_var) in cyc and (c.dst, c.dst_var) in cyc), conns[0])
             self.err(first.where, f"algebraic loop (a cycle of direct feedthrough): {text}; break it with a "
                                   f"component that has a state on the path (e.g. a motor with inductance, "
-                                  f"fidelity full, or a continuous PID)")
+                                  f"fidelity full, or a continuous PID), or use master.algorithm: iterative, "
+                                  f"which solves the loop within each step")
 
     # master, time, outputs ------------------------------------------------------------------------------
     def master(self, comps: dict[str, Component]) -> MasterSettings | None:
@@ -1380,7 +1383,7 @@ def validate(tree: YMap, path: Path | None = None, *, catalog=None, problems: li
     if comps and not broken:
         ck.unconnected(comps, conns)
     if conns:
-        ck.algebraic_loops(comps, conns)
+        ck.algebraic_loops(comps, conns, master.algorithm if master is not None else None)
     from .guards import check_scene, parse_settings
 
     guards = parse_settings(tree.get("guards"), lambda _key: tree.loc("guards"), ck.err)

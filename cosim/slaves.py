@@ -36,7 +36,7 @@ import shutil
 import tempfile
 from abc import ABC, abstractmethod
 from collections import deque
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from ctypes import POINTER, c_bool, c_double, c_int, c_size_t, c_uint32, c_void_p
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -121,6 +121,7 @@ class SlaveDescription:
     can_interpolate_inputs: bool = False  # follows first-order input slopes (FMI 2.0 canInterpolateInputs)
     default_experiment: dict = field(default_factory=dict)  # start, stop, tolerance, step [s] as the FMU gives them
     interfaces: tuple[str, ...] = ()  # FMI interface kinds the FMU has (co-simulation, model exchange, ...)
+    provides_directional_derivative: bool = False  # FMI get directional derivative (partials at the current instant)
 
     def of(self, *causalities: str) -> list[str]:
         """Names of the variables with one of the given causalities, in declaration order."""
@@ -230,7 +231,9 @@ def describe_fmu(path: Path) -> SlaveDescription:
     cs = md.coSimulation
     can_state = bool(getattr(cs, "canGetAndSetFMUstate", False) or getattr(cs, "canGetAndSetFMUState", False))
     interp = md.fmiVersion.startswith("2") and bool(getattr(cs, "canInterpolateInputs", False))
-    return SlaveDescription("fmu", str(path), vs, ft, [], period, md.fmiVersion, can_state, interp, default, kinds)
+    ddx = bool(getattr(cs, "providesDirectionalDerivative", False) or getattr(cs, "providesDirectionalDerivatives", False))
+    return SlaveDescription("fmu", str(path), vs, ft, [], period, md.fmiVersion, can_state, interp, default, kinds,
+                            ddx)
 
 
 # --- the interface ----------------------------------------------------------------------------
@@ -339,6 +342,12 @@ class Slave(ABC):
     def restore_state(self) -> None:
         """Return to the state of the last :meth:`save_state`."""
         raise RuntimeError(f"{self.name}: this slave cannot restore a state (no rollback)")
+
+    def output_jacobian(self, outputs: Sequence[str], inputs: Sequence[str]) -> np.ndarray | None:
+        """Partial derivatives ``d outputs / d inputs`` at the current instant (FMI get directional
+        derivative: the direct feedthrough, not the sensitivity of a step), shape
+        ``(len(outputs), len(inputs))``; None when the slave does not provide them."""
+        return None
 
 
 # --- FMUs -------------------------------------------------------------------------------------
@@ -696,6 +705,20 @@ class FmuSlave(Slave):
             fn(self._inst, ctypes.byref(state))
         self._state = None
 
+    def output_jacobian(self, outputs: Sequence[str], inputs: Sequence[str]) -> np.ndarray | None:
+        if not self.description.provides_directional_derivative or self.fmu is None:
+            return None
+        unknown, known = [self.vr(y) for y in outputs], [self.vr(u) for u in inputs]
+        jac = np.zeros((len(unknown), len(known)))
+        try:
+            for j in range(len(known)):
+                seed = [1.0 if k == j else 0.0 for k in range(len(known))]
+                jac[:, j] = self.fmu.getDirectionalDerivative(unknown, known, seed)
+        except Exception as exc:  # fmpy raises its FMICallException on a failing status
+            raise UserError(f"{self.name}: get directional derivative failed ({exc})"
+                            + (f": {self.last_message}" if self.last_message else "")) from None
+        return jac
+
 
 # --- analytic slaves --------------------------------------------------------------------------
 class LinearSlave(Slave):
@@ -795,6 +818,12 @@ class LinearSlave(Slave):
 
     def save_state(self) -> None:
         self._saved = self.get_state()
+
+    def output_jacobian(self, outputs: Sequence[str], inputs: Sequence[str]) -> np.ndarray | None:
+        rows, cols = [self.vr(y) - self._n - self._m for y in outputs], [self.vr(u) - self._n for u in inputs]
+        if min(rows, default=0) < 0:
+            raise UserError(f"{self.name}: output_jacobian takes outputs only, got {list(outputs)}")
+        return self.D[np.ix_(rows, cols)].copy()
 
     def restore_state(self) -> None:
         self.set_state(self._saved)
