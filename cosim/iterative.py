@@ -88,7 +88,7 @@ OPTIONS = (
                  "'finite_difference'", choices=JACOBIANS),
 )
 
-#: A residual this many times the first one of a step is divergence: the run ends at once.
+#: A residual (largest |G(z) - z|) this many times the first one of a step is divergence: the run ends at once.
 GROWTH_LIMIT = 1e8
 #: Relative finite-difference perturbation of an input (about the square root of the float64 epsilon).
 FD_REL = 1.5e-8
@@ -307,7 +307,7 @@ class Iterative(Algorithm):
         self._z_now = z
         newton = opt["method"] == "newton"
         r_old = z_old = None
-        err_first = err_old = None
+        r_first = err_old = None
         fresh_j = False
         max_iter = int(opt["max_iter"])
         try:
@@ -320,7 +320,8 @@ class Iterative(Algorithm):
                 r = g - z
                 e = self._scaled(r, z, g)
                 err = float(np.max(e)) if m else 0.0
-                if not math.isfinite(err) or (err_first is not None and err > GROWTH_LIMIT * max(err_first, 1.0)):
+                size = float(np.max(np.abs(r))) if m else 0.0
+                if not math.isfinite(err) or (r_first is not None and size > GROWTH_LIMIT * r_first):
                     return self._unstable(it, step, t, e, "the coupling iteration diverged", err)
                 if err <= 1.0:
                     self._record_passes(it, step)
@@ -331,7 +332,7 @@ class Iterative(Algorithm):
                 if it == max_iter:
                     return self._unstable(it, step, t, e, f"the coupling iteration did not converge within "
                                                           f"max_iter = {max_iter} passes", err)
-                err_first = err if err_first is None else err_first
+                r_first = size if r_first is None else r_first
                 if newton:
                     if self.J is None or (err_old is not None and err > 0.5 * err_old and not fresh_j):
                         self.J, fresh_j = self._jacobian(t, h, step), True
