@@ -109,7 +109,7 @@ class Algorithm(ABC):
             self._push[i] = self._linear_push(i)
 
     def _linear_push(self, i: int) -> Callable[[], int]:
-        """Slave i's push with slopes (after its gather; see the module docstring)."""
+        """Slave i's push with slopes (after its gather; see :mod:`cosim.master`)."""
         buf, hist, slope, fresh = self.system.in_buf[i], self.hist[i], self.slopes[i], self.fresh[i]
         tmp, inv_h = np.empty_like(buf), 1.0 / self.h
         slave = self.system.slaves[i]

@@ -119,7 +119,7 @@ def simulate(system: CoupledSystem, algorithm_name: str, *, step_ns: int, n_step
              inputs: str = "hold", start_ns: int = 0, tolerances: Sequence[float | None] | None = None,
              realtime=None, options: dict | None = None, guard=None) -> RunStats:
     """Initialise ``system`` and run ``n_steps`` macro steps of ``step_ns`` nanoseconds, inputs
-    held or linear over each step (``inputs``, see the module docstring).
+    held or linear over each step (``inputs``, see :mod:`cosim.master`).
 
     Observers receive ``start(columns, meta)``, ``record(rows)`` (rows of time and the recorded
     values, at ``t_0`` and every ``record_every`` steps) and ``finish(status, reason, stats)``,

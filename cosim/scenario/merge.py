@@ -41,7 +41,7 @@ def _kind(spec: Any) -> tuple[str, Any]:
 
 
 def merge(base: Any, over: Any, *, path: str = "") -> Any:
-    """Deep merge of ``over`` onto ``base`` (see the module docstring); returns a new tree."""
+    """Deep merge of ``over`` onto ``base`` (see :mod:`cosim.scenario`); returns a new tree."""
     if isinstance(base, YMap) and isinstance(over, YMap):
         out = YMap(base)
         out.where, out.locs = base.where, dict(base.locs)

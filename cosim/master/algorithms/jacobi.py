@@ -9,7 +9,7 @@ from ..algorithm import Algorithm, _ns, register
 @register
 class Jacobi(Algorithm):
     """All slaves take inputs from outputs read at ``t_k``, then all step in parallel (in
-    principle), then all outputs are read (see the module docstring for the delay convention)."""
+    principle), then all outputs are read (see :mod:`cosim.master` for the delay convention)."""
 
     name = "jacobi"
     native_code = 0
