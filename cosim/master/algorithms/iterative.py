@@ -53,10 +53,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ...errors import UserError
+from ...slaves import FAILING, Status
+from ..algorithm import Algorithm, register
+from ..system import CoupledSystem
 from .adaptive import AlgorithmOption, option_values
-from .errors import UserError
-from .master import Algorithm, CoupledSystem, register
-from .slaves import FAILING, Status
 
 _ns = time.perf_counter_ns
 
