@@ -1,5 +1,7 @@
 """The monolithic reference of a scene: its catalog blocks wired into one ODE
-(:func:`models.compose.compose`) and integrated by CVODES at tight tolerances.
+(:func:`models.compose.compose`) and integrated by CVODES at tight tolerances; a scene with an
+algebraic loop becomes a semi-explicit DAE (the loop's cut inputs as algebraic variables),
+integrated by IDAS, its start made consistent by a Newton solve.
 
 Where the co-simulation holds each input over a communication step, the reference feeds every
 input continuously, so the difference between the two traces is the error of the master

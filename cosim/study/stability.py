@@ -205,7 +205,10 @@ def stability_map(scene_path: Path | str, vary: str, value_range: tuple[float, f
 
                         order = gauss_seidel_order(len(index), [(index[c.src], index[c.dst])
                                                                 for c in scene.connections])
-                    smap.cells[-1].rho = rho_fn(float(value), float(h), alg, inputs, order)
+                    try:
+                        smap.cells[-1].rho = rho_fn(float(value), float(h), alg, inputs, order)
+                    except ValueError:  # no analytic map for this algorithm (e.g. iterative): rho stays nan
+                        pass
                 done += 1
                 if progress:
                     progress(done, total)
