@@ -212,6 +212,7 @@ class Link:
     dst_var: str
     factor: float = 1.0
     offset: float = 0.0
+    bond: str | None = None  # the power bond ``a.p <-> b.q`` this link is one half of, if any
 
     @property
     def transformed(self) -> bool:
@@ -1015,3 +1016,4 @@ def simulate(system: CoupledSystem, algorithm_name: str, *, step_ns: int, n_step
 
 
 from . import adaptive as _adaptive  # noqa: E402,F401  (registers the variable-step algorithm "adaptive")
+from . import ecco as _ecco  # noqa: E402,F401  (registers the power-bond algorithm "ecco")

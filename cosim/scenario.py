@@ -70,7 +70,8 @@ Loc = tuple[str, int]  # (file, line); line 0 = no line (a --set override)
 
 TOP_KEYS = ("name", "description", "include", "start_time", "stop_time", "components", "connections", "master",
             "outputs", "fidelity_tolerance", "fidelity_signals", "guards")
-COMPONENT_KEYS = ("model", "fidelity", "options", "params", "start", "fmu", "fmi", "description", "hardware")
+COMPONENT_KEYS = ("model", "fidelity", "options", "params", "start", "fmu", "fmi", "description", "hardware",
+                  "rollback")
 MASTER_KEYS = ("algorithm", "step", "order", "engine", "output_interval", "inputs", "realtime", "options")
 #: How a slave's inputs vary over a communication step (see :mod:`cosim.master`).
 INPUT_MODES = ("hold", "linear")
@@ -490,6 +491,7 @@ class Component:
     fmi: str = "2.0"
     block: Any = None  # the models.block.Block of a model component
     where: Loc = ("", 0)
+    rollback: bool = True  # false: stepped as a slave that cannot save/restore its state (``rollback: false``)
 
     @property
     def label(self) -> str:
@@ -640,14 +642,23 @@ class _Checker:
         if "model" in spec and "fmu" in spec:
             self.err(spec.where, f"component {name!r} has both 'model:' and 'fmu:'; keep one")
             return None
+        rollback = spec.get("rollback", True)
+        if not isinstance(rollback, bool):
+            self.err(spec.loc("rollback"), f"component {name!r}: rollback = {rollback!r}; expected true or false "
+                                           f"(false: the master may not save and restore its state, as for hardware)")
+            return None
         if "hardware" in spec:
-            return self._hardware_component(name, spec)
-        if "fmu" in spec:
-            return self._fmu_component(name, spec, fmi)
-        if "model" in spec:
-            return self._model_component(name, spec, fmi)
-        self.err(spec.where, f"component {name!r} needs 'model:' (a catalog model) or 'fmu:' (a file)")
-        return None
+            comp = self._hardware_component(name, spec)
+        elif "fmu" in spec:
+            comp = self._fmu_component(name, spec, fmi)
+        elif "model" in spec:
+            comp = self._model_component(name, spec, fmi)
+        else:
+            self.err(spec.where, f"component {name!r} needs 'model:' (a catalog model) or 'fmu:' (a file)")
+            return None
+        if comp is not None:
+            comp.rollback = rollback
+        return comp
 
     def _fmu_component(self, name: str, spec: YMap, fmi: str) -> Component | None:
         where = spec.loc("fmu")
