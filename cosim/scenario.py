@@ -648,7 +648,7 @@ class _Checker:
         if not isinstance(rollback, bool):
             self.err(spec.loc("rollback"), f"component {name!r}: rollback = {rollback!r}; expected true or false "
                                            f"(false: the master may not save and restore its state, as for hardware)")
-            return None
+            rollback = True  # reported; check the rest of the component as usual
         if "hardware" in spec:
             comp = self._hardware_component(name, spec)
         elif "fmu" in spec:
