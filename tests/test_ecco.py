@@ -80,7 +80,7 @@ def test_ecco_energy_residual_agrees_with_one_computed_from_the_trace(pid_step_e
     motor saw the leg's velocity interpolated, exact at both ends of the step.  Then per step
     dE = h/2 * v(t+h) * (f(t+h) - f_extrapolated(t+h)) and E = h/2 * max(|f v|(t) + |f v|(t+h),
     |f v|(t) + |v(t+h) f_extrapolated(t+h)|)."""
-    from cosim.ecco import OPTIONS
+    from cosim.master.algorithms.ecco import OPTIONS
 
     res = pid_step_ecco[0]
     order = res.stats["stepping_order"]

@@ -11,8 +11,8 @@ step, and the step size it asks for applies to the next step.  This is the algor
 that cannot save and restore their state (the hardware plant, or a component declared
 ``rollback: false`` in its scene).
 
-Per bond and step ``t -> t + h`` (a Gauss-Seidel step with linear inputs, as :mod:`cosim.adaptive`
-takes them, from :class:`cosim.adaptive.AdaptiveStepper`), with the outputs ``y(t)``, ``y(t+h)``
+Per bond and step ``t -> t + h`` (a Gauss-Seidel step with linear inputs, as :mod:`cosim.master.algorithms.adaptive`
+takes them, from its :class:`AdaptiveStepper`), with the outputs ``y(t)``, ``y(t+h)``
 and the input each side actually saw, ``u(t)`` and ``u(t) + slope * h`` at the step's end (a held
 input has slope 0):
 
@@ -42,10 +42,10 @@ from typing import Sequence
 
 import numpy as np
 
+from ...errors import UserError
+from ...slaves import Status
+from ..algorithm import Algorithm, register
 from .adaptive import AdaptiveStats, AdaptiveStepper, AlgorithmOption
-from .errors import UserError
-from .master import Algorithm, register
-from .slaves import FAILING, Status
 
 OPTIONS = (
     AlgorithmOption("rtol", 1e-3, 1e-12, 1.0, "1", "energy residual of a bond per step, relative to the energy "
@@ -223,7 +223,7 @@ class EccoStepper(AdaptiveStepper):
 @register
 class Ecco(Algorithm):
     """Registry entry of the power-bond master (module docstring); it runs through
-    :func:`cosim.adaptive.simulate_variable` with :class:`EccoStepper`."""
+    :func:`cosim.master.algorithms.adaptive.simulate_variable` with :class:`EccoStepper`."""
 
     name = "ecco"
     variable_step = True
@@ -232,4 +232,4 @@ class Ecco(Algorithm):
     stepper = EccoStepper
 
     def _step_impl(self, t, h):  # pragma: no cover - variable-step runs never use the fixed-step loop
-        raise RuntimeError("ecco runs through cosim.adaptive.simulate_variable")
+        raise RuntimeError("ecco runs through cosim.master.algorithms.adaptive.simulate_variable")
