@@ -168,3 +168,16 @@ def test_ecco_options_are_checked_against_its_declaration(tmp_path, options, mes
     with pytest.raises(SceneError) as exc:
         load(scene)
     assert message in str(exc.value) and "opts.yaml:4" in str(exc.value)
+
+
+@pytest.mark.parametrize("alg", ["ecco", "adaptive"])
+def test_a_variable_step_run_is_refused_in_real_time_rather_than_run_unpaced(alg):
+    from cosim.realtime import RealtimeSettings
+
+    a = LinearSlave("a", [[-1.0]], [[1.0]], [[1.0]], x0=[1.0])
+    b = LinearSlave("b", [[-3.0]], [[1.0]], [[0.8]], x0=[-0.4])
+    bond = "a <-> b"
+    system = CoupledSystem([a, b], [Link(0, "y[1]", 1, "u[1]", bond=bond), Link(1, "y[1]", 0, "u[1]", bond=bond)],
+                           [(0, "y[1]")])
+    with pytest.raises(UserError, match=f"{alg} chooses its own steps and cannot be paced in real time"):
+        simulate(system, alg, step_ns=10_000_000, n_steps=10, realtime=RealtimeSettings())
