@@ -1,38 +1,43 @@
 """Step-size control from the energy residual of power bonds: ``master.algorithm: ecco``.
 
-The idea of ECCO (Sadjina et al., "Energy-conservation-based co-simulation of ...", 2017; the
-``ecco_algorithm`` of libcosim): across a power bond ``a.p <-> b.q`` each side computes the power
-it exchanges from its own output and the input it was given, ``P_a = y_a * u_a`` (e.g. the motor's
-force times the velocity it saw) and ``P_b = y_b * u_b`` (the leg's velocity times the force it
-saw).  With perfect coupling both are the same power at every instant; a co-simulation hands
-each side held, extrapolated or interpolated inputs, so energy is created or lost at the bond.
-That energy residual is the error estimate, and it needs no rollback: it is measured after the
-step, and the step size it asks for applies to the next step.  This is the algorithm for slaves
-that cannot save and restore their state (the hardware plant, or a component declared
-``rollback: false`` in its scene).
+The idea of ECCO (Sadjina, Kyllingstad, Skjong and Pedersen, "Energy conservation and power
+bonds in co-simulations: non-iterative adaptive step size control and error estimation",
+Engineering with Computers, 2017; the ``ecco_algorithm`` of libcosim): across a power bond
+``a.p <-> b.q`` each side computes the power it exchanges from its own output and the input it was
+given, ``P_a = y_a * u_a`` (e.g. the motor's force times the velocity it saw) and
+``P_b = y_b * u_b`` (the leg's velocity times the force it saw).  With perfect coupling both are
+the same power at every instant; a co-simulation hands each side held, extrapolated or
+interpolated inputs, so energy is created or lost at the bond.  That energy residual is the error
+estimate, and it needs no rollback: it is measured after the step, and the step size it asks for
+applies to the next step.  This is the algorithm for slaves that cannot save and restore their
+state (the hardware plant, or a component declared ``rollback: false`` in its scene).
 
-Per bond and step ``t -> t + h`` (a Gauss-Seidel step with linear inputs, as :mod:`cosim.master.algorithms.adaptive`
-takes them, from its :class:`AdaptiveStepper`), with the outputs ``y(t)``, ``y(t+h)``
+Per bond and step ``t -> t + h`` (a Gauss-Seidel step with linear inputs, taken by
+:class:`cosim.master.algorithms.adaptive.AdaptiveStepper`), with the outputs ``y(t)``, ``y(t+h)``
 and the input each side actually saw, ``u(t)`` and ``u(t) + slope * h`` at the step's end (a held
 input has slope 0):
 
 * energy residual (trapezoidal rule over the step) [J]:
   ``dE = h/2 * [(P_a - P_b)(t) + (P_a - P_b)(t+h)]``;
-* energy the bond carried over the step [J]: ``E = h/2 * max(|P_a(t)| + |P_a(t+h)|, |P_b(t)| + |P_b(t+h)|)``;
+* energy the bond carried over the step [J]:
+  ``E = h/2 * max(|P_a(t)| + |P_a(t+h)|, |P_b(t)| + |P_b(t+h)|)``;
 * scaled residual (the ECCO paper's relative error): ``eps = |dE| / (atol + rtol * E)``.
 
 The step's error is the largest ``eps`` over the bonds (every bond within its tolerance, where
 libcosim takes a root mean square).  The next step follows a PI controller on it,
-``h_new = h * clip((safety / eps)^k_i * (eps_prev / eps)^k_p, fac_min, fac_max)`` (Soederlind's PI
+``h_new = h * clip((safety / eps)^k_i * (eps_prev / eps)^k_p, fac_min, fac_max)`` (Soederlind's
 form: a steady error settles at ``safety``, a growing one cuts the step at once) within
-``[h_min, h_max]``, landing exactly on the stop time; time is counted in whole nanoseconds.  A
-step is never retried: a step with ``eps > 1`` is kept (counted as over tolerance) and the next one
-is smaller.  A Discard or error from any slave ends the run as "failed" with the slave's reason, a
-residual that is not finite as "unstable".
+``[h_min, h_max]``, landing exactly on the stop time; time is counted in whole nanoseconds.  A step
+is never retried, so the defaults aim low (``safety`` 0.1) and change the step smoothly (small
+gains, ``fac_max`` 1.2): a step with ``eps > 1`` is kept, counted as over tolerance, and the next
+one is smaller.  A Discard or error from any slave ends the run as "failed" with the slave's
+reason, a residual that is not finite as "unstable".
 
-Statistics (the run's sidecar, ``statistics``): accepted steps, smallest and largest step, and per
-bond the largest scaled residual, the largest residual [J], the residual summed over the run
-(signed) [J], the energy carried [J] and the steps over tolerance.
+Statistics (the run's sidecar, ``statistics``): accepted steps, smallest and largest step, the
+stepping order, and per bond the largest scaled residual of a step, the largest residual [J], the
+residual summed over the run (signed: the energy the coupling created) and its absolute sum [J],
+the energy carried [J], the net residual scaled like a step's (``|sum dE| / (atol + rtol * sum
+E)``) and the steps over tolerance.
 """
 from __future__ import annotations
 
