@@ -181,3 +181,19 @@ def test_a_variable_step_run_is_refused_in_real_time_rather_than_run_unpaced(alg
                            [(0, "y[1]")])
     with pytest.raises(UserError, match=f"{alg} chooses its own steps and cannot be paced in real time"):
         simulate(system, alg, step_ns=10_000_000, n_steps=10, realtime=RealtimeSettings())
+
+
+def test_ecco_ends_as_unstable_when_the_residual_stays_over_tolerance_at_the_step_floor():
+    """A tolerance no step can meet (atol 0, rtol 1e-12): the run stops at the floor with the bond's
+    name instead of crawling on at h_min."""
+    a = LinearSlave("a", [[-1.0]], [[1.0]], [[1.0]], x0=[1.0])
+    b = LinearSlave("b", [[-3.0]], [[1.0]], [[0.8]], x0=[-0.4])
+    bond = "a <-> b"
+    system = CoupledSystem([a, b], [Link(0, "y[1]", 1, "u[1]", bond=bond), Link(1, "y[1]", 0, "u[1]", bond=bond)],
+                           [(0, "y[1]")])
+    mem = MemoryTrace()
+    stats = simulate(system, "ecco", step_ns=10_000_000, n_steps=10, observers=[mem],
+                     options={"atol": 0.0, "rtol": 1e-12, "h_min": 1e-6, "h_init": 1e-6})
+    assert stats.status == "unstable"
+    assert "a <-> b" in stats.reason and "stayed over its tolerance for 100 steps" in stats.reason
+    assert len(mem.trace.time) == 1 + 100 and mem.trace.time[-1] == pytest.approx(100e-6)

@@ -31,7 +31,8 @@ form: a steady error settles at ``safety``, a growing one cuts the step at once)
 is never retried, so the defaults aim low (``safety`` 0.1) and change the step smoothly (small
 gains, ``fac_max`` 1.2): a step with ``eps > 1`` is kept, counted as over tolerance, and the next
 one is smaller.  A Discard or error from any slave ends the run as "failed" with the slave's
-reason, a residual that is not finite as "unstable".
+reason; a residual that is not finite, or one over tolerance for 100 steps in a row at ``h_min``,
+as "unstable".
 
 Statistics (the run's sidecar, ``statistics``): accepted steps, smallest and largest step, the
 stepping order, and per bond the largest scaled residual of a step, the largest residual [J], the
@@ -43,13 +44,14 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import Sequence
+from collections.abc import Sequence
 
 import numpy as np
 
 from ...errors import UserError
 from ...slaves import Status
 from ..algorithm import Algorithm, register
+from ..system import CoupledSystem
 from .adaptive import AdaptiveStats, AdaptiveStepper, AlgorithmOption
 
 OPTIONS = (
@@ -81,7 +83,7 @@ class Bond:
     slot: tuple[int, int]  # positions of u_a, u_b in their slaves' inputs (slope buffers)
 
 
-def find_bonds(system) -> list[Bond]:
+def find_bonds(system: CoupledSystem) -> list[Bond]:
     """The power bonds of ``system``: pairs of links carrying the same ``bond`` label, one each
     way between two slaves.  A bond whose halves are transformed or missing is a UserError."""
     halves: dict[str, list] = {}
@@ -164,6 +166,8 @@ class EccoStepper(AdaptiveStepper):
     rolled back, its size chosen from the bonds' energy residual."""
 
     needs_rollback = False
+    #: steps in a row over tolerance at the step floor ``h_min`` after which the run ends as unstable
+    floor_patience = 100
 
     def __init__(self, system, order: Sequence[int], options: dict[str, float], start_ns: int, stop_ns: int):
         super().__init__(system, order, options, start_ns, stop_ns)
@@ -177,6 +181,8 @@ class EccoStepper(AdaptiveStepper):
         self._out_idx = np.array([b.out_idx for b in self.bonds])  # (bonds, 2)
         self._in_idx = np.array([b.in_idx for b in self.bonds])
         self.err_prev = options["safety"]
+        self._at_floor = 0  # steps in a row at h_min over tolerance
+        self._ending = ""  # why the run ends before the next step
 
     def _seen_slopes(self) -> np.ndarray:
         """Slopes [unit/s] of the bonds' inputs over the step just taken (0 where held)."""
@@ -186,6 +192,9 @@ class EccoStepper(AdaptiveStepper):
     def step(self) -> bool:
         """Advance by one step (never retried); False when the run ends early."""
         sysm, opt = self.system, self.opt
+        if self._ending:
+            self.status, self.message = "unstable", self._ending
+            return False
         if not hasattr(self, "cur_src"):
             self.cur_src = [sysm.v[src].copy() for src in sysm.in_src]
         h_ns = max(1, min(round(self.h * 1e9), self.stop_ns - self.t_ns))
@@ -216,6 +225,12 @@ class EccoStepper(AdaptiveStepper):
             self.stats.bonds[b.name].add(float(r), float(e), float(x))
         self._commit(h, h_ns)
         err = max(float(np.max(scaled)), 1e-10)
+        self._at_floor = self._at_floor + 1 if err > 1.0 and h <= opt["h_min"] * (1 + 1e-12) else 0
+        if self._at_floor >= self.floor_patience:  # this step is taken and recorded; the run ends before the next
+            k = int(np.argmax(scaled))
+            self._ending = (f"the energy residual of bond {self.bonds[k].name} stayed over its tolerance for "
+                            f"{self._at_floor} steps at the step floor h_min = {opt['h_min']:g} s (scaled "
+                            f"{scaled[k]:.3g} at t = {self.t:.9g} s)")
         fac = (opt["safety"] / err) ** opt["k_i"] * (self.err_prev / err) ** opt["k_p"]
         self.err_prev = err
         fac = min(opt["fac_max"], max(opt["fac_min"], fac))
