@@ -488,8 +488,9 @@ class Component:
     start: dict[str, float] = field(default_factory=dict)
     fmu: Path | None = None
     fmi: str = "2.0"
-    block: Any = None  # the models.block.Block of a model component
+    block: Any = None  # the models.block.Block of a model component (or its fmus.index.IndexedBlock)
     where: Loc = ("", 0)
+    recipe: Any = None  # fmus.index.Recipe of a component of the default catalog (its FMU's index key)
 
     @property
     def label(self) -> str:
@@ -715,6 +716,13 @@ class _Checker:
         return comp
 
     def _model_component(self, name: str, spec: YMap, fmi: str) -> Component | None:
+        if self.catalog is None:  # built before: from the FMU cache's recipe index, no block built
+            from .recipes import indexed_component
+
+            comp = indexed_component(name, spec, fmi, Component)
+            if comp is not None:
+                self._values(comp, spec, skip=set(comp.recipe.fixed))
+                return comp
         try:
             catalog = self.catalog if self.catalog is not None else default_catalog()
         except UserError as exc:
@@ -761,6 +769,10 @@ class _Checker:
         desc = describe_block(block, f"{model}/{fidelity}")
         comp = Component(name, "model", desc, model=model, fidelity=fidelity, options=options, fmi=fmi,
                          block=block, where=spec.where)
+        if self.catalog is None:
+            from .recipes import recipe_of
+
+            comp.recipe = recipe_of(spec, options, fixed, fmi)
         self._values(comp, spec, skip=set(fixed))
         return comp
 
@@ -1342,6 +1354,8 @@ def _flatten(val: Any) -> Any:
 
 
 def _exact_start(block, state: str) -> bool:
+    if getattr(block, "exact_start", None) is not None:  # an indexed block (fmus.index) recorded it
+        return state in block.exact_start
     import casadi as ca
 
     i = block.index("states", state)

@@ -40,12 +40,16 @@ from collections.abc import Callable
 from ctypes import POINTER, c_bool, c_double, c_int, c_size_t, c_uint32, c_void_p
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
-from models.block import Block, Flange
+from models.interface import Flange
 
 from .errors import UserError
+
+if TYPE_CHECKING:
+    from models.block import Block
 
 
 class Status(enum.IntEnum):
@@ -121,6 +125,8 @@ class SlaveDescription:
     can_interpolate_inputs: bool = False  # follows first-order input slopes (FMI 2.0 canInterpolateInputs)
     default_experiment: dict = field(default_factory=dict)  # start, stop, tolerance, step [s] as the FMU gives them
     interfaces: tuple[str, ...] = ()  # FMI interface kinds the FMU has (co-simulation, model exchange, ...)
+    guid: str = ""  # the FMU's GUID / instantiation token and model identifier ("" until read from an FMU)
+    model_identifier: str = ""
 
     def of(self, *causalities: str) -> list[str]:
         """Names of the variables with one of the given causalities, in declaration order."""
@@ -230,7 +236,8 @@ def describe_fmu(path: Path) -> SlaveDescription:
     cs = md.coSimulation
     can_state = bool(getattr(cs, "canGetAndSetFMUstate", False) or getattr(cs, "canGetAndSetFMUState", False))
     interp = md.fmiVersion.startswith("2") and bool(getattr(cs, "canInterpolateInputs", False))
-    return SlaveDescription("fmu", str(path), vs, ft, [], period, md.fmiVersion, can_state, interp, default, kinds)
+    return SlaveDescription("fmu", str(path), vs, ft, [], period, md.fmiVersion, can_state, interp, default, kinds,
+                            md.guid or "", cs.modelIdentifier or "")
 
 
 # --- the interface ----------------------------------------------------------------------------
@@ -368,8 +375,11 @@ def _unzip(path: Path) -> str:
 
     key = (str(path.resolve()), path.stat().st_mtime)
     if key not in _UNZIPPED:
-        _sweep_dead_unzips()
-        _UNZIPPED[key] = fmpy.extract(str(path), unzipdir=tempfile.mkdtemp(prefix=f"rpr-fmu-{os.getpid()}-"))
+        if not _UNZIPPED:  # once per process
+            _sweep_dead_unzips()
+        # sources/ is not needed to load the binary (and is most of a generated FMU's bytes)
+        _UNZIPPED[key] = fmpy.extract(str(path), unzipdir=tempfile.mkdtemp(prefix=f"rpr-fmu-{os.getpid()}-"),
+                                      include=lambda name: not name.startswith("sources/"))
     return _UNZIPPED[key]
 
 
@@ -417,13 +427,15 @@ class FmuSlave(Slave):
         from fmpy.fmi2 import FMU2Slave, defaultCallbacks, fmi2CallbackFunctions, fmi2CallbackLoggerTYPE
         from fmpy.fmi3 import FMU3Slave, fmi3LogMessageCallback
 
-        md = fmpy.read_model_description(str(self.path), validate=False)
-        ident = md.coSimulation.modelIdentifier
+        guid, ident = self.description.guid, self.description.model_identifier
+        if not (guid and ident):
+            md = fmpy.read_model_description(str(self.path), validate=False)
+            guid, ident = md.guid, md.coSimulation.modelIdentifier
         unzip = _unzip(self.path)
         try:
             if self.fmi3:
                 self._log = fmi3LogMessageCallback(self._on_log3)
-                self.fmu = FMU3Slave(guid=md.guid, unzipDirectory=unzip, modelIdentifier=ident,
+                self.fmu = FMU3Slave(guid=guid, unzipDirectory=unzip, modelIdentifier=ident,
                                      instanceName=self.name)
                 self.fmu.instantiate(logMessage=self._log)
             else:
@@ -432,7 +444,7 @@ class FmuSlave(Slave):
                 cb.allocateMemory = defaultCallbacks.allocateMemory
                 cb.freeMemory = defaultCallbacks.freeMemory
                 self._callbacks = cb
-                self.fmu = FMU2Slave(guid=md.guid, unzipDirectory=unzip, modelIdentifier=ident,
+                self.fmu = FMU2Slave(guid=guid, unzipDirectory=unzip, modelIdentifier=ident,
                                      instanceName=self.name)
                 self.fmu.instantiate(callbacks=cb)
         except Exception as exc:  # fmpy raises bare Exceptions for a missing binary or failed call

@@ -101,7 +101,9 @@ def build_fmus(runs: Sequence[Planned], *, cache_dir: Path | None = None,
                log: Callable[[str], None] | None = None) -> tuple[dict[str, dict[str, str]], dict[str, bytes]]:
     """Build (or fetch from the cache) each distinct FMU of ``runs`` once; returns each run's
     ``component -> content hash`` and the FMUs' bytes by hash."""
-    import fmus
+    from fmus.index import IndexedBlock
+
+    from ..recipes import component_fmu
 
     by_key: dict[tuple, str] = {}
     blobs: dict[str, bytes] = {}
@@ -109,13 +111,15 @@ def build_fmus(runs: Sequence[Planned], *, cache_dir: Path | None = None,
     for r in runs:
         m: dict[str, str] = {}
         for name, comp in r.scene.components.items():
-            key = ("fmu", str(comp.fmu)) if comp.kind == "fmu" else ("block", id(comp.block), comp.fmi)
+            key = (("fmu", str(comp.fmu)) if comp.kind == "fmu" else
+                   ("indexed", str(comp.block.fmu), comp.fmi) if isinstance(comp.block, IndexedBlock) else
+                   ("block", id(comp.block), comp.fmi))
             if key not in by_key:
                 if comp.kind == "fmu":
                     path = comp.fmu
-                else:
-                    path = fmus.build_fmu(comp.block, fmi_version=comp.fmi, cache_dir=cache_dir,
-                                          progress=(lambda msg, n=name: log(f"{n}: {msg}")) if log else None)
+                else:  # from the recipe index when it has the FMU, else built (and indexed)
+                    path = component_fmu(comp, cache_dir=cache_dir,
+                                         progress=(lambda msg, n=name: log(f"{n}: {msg}")) if log else None)
                 digest, data = _sha(path)
                 blobs[digest] = data
                 by_key[key] = digest
