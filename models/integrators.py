@@ -23,7 +23,9 @@ Conventions
       Newton correction ``dZ`` at the returned point and accepts only if every component
       satisfies ``|dZ_j| <= atol + rtol (|x_j| + |Z_j|)`` (``err`` is the largest such ratio,
       ``ok`` = :func:`radau_accepts` (err) and finite).  ``rtol``/``atol`` are the block's
-      parameters ``solver.rtol``/``solver.atol`` when it declares them.
+      parameters ``solver.rtol``/``solver.atol`` when it declares them.  The FMU runs
+      :func:`radau_memory_kernel`, which keeps the factors and the last stages from one call to
+      the next (Python callers of :attr:`Stepper.kernel` get the memoryless kernel).
   ``exact``
       for a block whose ``ode`` is affine in ``x`` and ``u`` (``dx/dt = A x + B u + c`` with
       ``A, B, c`` functions of the parameters only): the exact solution over the step for inputs
