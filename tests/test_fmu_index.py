@@ -77,7 +77,9 @@ def test_scene_from_the_index_equals_the_full_validation(indexed, name):
                  "substeps", "sample_period"):
         assert getattr(fast.block, attr) == getattr(full.block, attr), attr
     assert fast.block.feedthrough() == full.block.feedthrough()
-    exact = {s.name for s in full.block.states if scenario._exact_start(full.block, s.name)}
+    from cosim.scenario.check_components import _exact_start
+
+    exact = {s.name for s in full.block.states if _exact_start(full.block, s.name)}
     assert set(fast.block.exact_start) == exact
     assert list(fast.block.param_vector(**fast.params)) == list(full.block.param_vector(**full.params))
 
