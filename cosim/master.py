@@ -422,9 +422,12 @@ class Algorithm(ABC):
     native_code: ClassVar[int | None] = None
     #: slaves step one after another in :attr:`order` (later ones see earlier ones' new outputs)
     sequential: ClassVar[bool] = False
+    #: a slave may take several doSteps per macro step (:mod:`cosim.multirate`)
+    multirate: ClassVar[bool] = False
 
     def __init__(self, system: CoupledSystem, step_ns: int, *, order: Sequence[int] | None = None,
-                 timing: bool = True, inputs: str = "hold", start_ns: int = 0):
+                 timing: bool = True, inputs: str = "hold", start_ns: int = 0,
+                 rates: Sequence[int] | None = None):
         if not (isinstance(step_ns, (int, np.integer)) and step_ns > 0):
             raise UserError(f"the communication step must be a positive whole number of nanoseconds, got {step_ns!r}")
         self.system = system
@@ -450,6 +453,19 @@ class Algorithm(ABC):
         self._do = [x.do_step for x in s]
         self._gather = [_gatherer(system, i) for i in range(n)]
         self._setup_inputs(inputs)
+        self._setup_rates(rates)
+
+    def _setup_rates(self, rates: Sequence[int] | None) -> None:
+        """:attr:`rates`: doSteps per macro step of each slave (:mod:`cosim.multirate`)."""
+        from .multirate import check_rates, substepper
+
+        self.rates = check_rates(rates, self.step_ns, self.system.names)
+        if any(r > 1 for r in self.rates) and not self.multirate:
+            raise UserError(f"master algorithm {self.name} does not step slaves at several rates; "
+                            f"use jacobi or gauss_seidel, or remove the components' rate")
+        for i, r in enumerate(self.rates):
+            if r > 1:
+                self._do[i] = substepper(self, i)
 
     def _setup_inputs(self, inputs: str) -> None:
         """Per slave: whether it gets input slopes (:attr:`interpolating`), the slope buffer, the
@@ -602,6 +618,7 @@ class Jacobi(Algorithm):
 
     name = "jacobi"
     native_code = 0
+    multirate = True
 
     def _step_impl(self, t, h):
         gather, push, do, pull, acc, calls = (self._gather, self._push, self._do, self._pull, self.slave_ns,
@@ -652,6 +669,7 @@ class GaussSeidel(Algorithm):
     name = "gauss_seidel"
     native_code = 1
     sequential = True
+    multirate = True
 
     def _step_impl(self, t, h):
         gather, push, do, pull, acc, calls = (self._gather, self._push, self._do, self._pull, self.slave_ns,
@@ -714,6 +732,11 @@ class _Compiled:
                 c.interp, c.set_der = 1, ne.set_input_derivatives
                 c.orders, c.fresh = orders.ctypes.data, fresh.ctypes.data
                 c.hist, c.slope = alg.hist[i].ctypes.data, alg.slopes[i].ctypes.data
+            c.rate, c.sub_ns = alg.rates[i], alg.step_ns // alg.rates[i]
+            if alg.rates[i] > 1 and alg.interpolating[i]:
+                base = np.empty(c.n_in)
+                self.keep.append(base)
+                c.base = base.ctypes.data
             c.in_off, c.out_off = sysm.in_off[i], sysm.out_off[i]
             c.inst, c.do_step, c.get, c.set = ne.instance, ne.do_step, ne.get_real, ne.set_real
             for arr in (sysm.in_vrs[i], sysm.in_src[i], sysm.out_vrs[i]):
@@ -819,9 +842,13 @@ def interruption_reason(exc: KeyboardInterrupt, t: float | None) -> str:
     return f"interrupted by {str(exc) or 'the user (KeyboardInterrupt)'}" + (f" at t = {t:.9g} s" if t is not None else "")
 
 
-def slave_table(system: CoupledSystem, calls: Sequence[int], slave_ns: Sequence[int]) -> dict[str, dict[str, float]]:
-    """Per-slave run statistics: doStep calls and wall time [s] inside the slave's calls."""
-    return {s.name: {"do_step_calls": int(calls[i]), "wall_s": slave_ns[i] / 1e9} for i, s in enumerate(system.slaves)}
+def slave_table(system: CoupledSystem, calls: Sequence[int], slave_ns: Sequence[int],
+                rates: Sequence[int] | None = None) -> dict[str, dict[str, float]]:
+    """Per-slave run statistics: doStep calls and wall time [s] inside the slave's calls (and the
+    slave's ``rate``, doSteps per macro step, when it is not 1)."""
+    return {s.name: {"do_step_calls": int(calls[i]), "wall_s": slave_ns[i] / 1e9,
+                     **({"rate": int(rates[i])} if rates and rates[i] != 1 else {})}
+            for i, s in enumerate(system.slaves)}
 
 
 def initialize(system: CoupledSystem, start_values: Sequence[dict[str, float]], *, start_time: float = 0.0,
@@ -904,7 +931,8 @@ def simulate(system: CoupledSystem, algorithm_name: str, *, step_ns: int, n_step
              engine: str = "auto", order: Sequence[int] | None = None, timing: bool = True,
              progress: Callable[[int, int], None] | None = None, meta: dict | None = None,
              inputs: str = "hold", start_ns: int = 0, tolerances: Sequence[float | None] | None = None,
-             realtime=None, options: dict | None = None, guard=None) -> RunStats:
+             realtime=None, options: dict | None = None, guard=None,
+             rates: Sequence[int] | None = None) -> RunStats:
     """Initialise ``system`` and run ``n_steps`` macro steps of ``step_ns`` nanoseconds, inputs
     held or linear over each step (``inputs``, see the module docstring).
 
@@ -916,8 +944,14 @@ def simulate(system: CoupledSystem, algorithm_name: str, *, step_ns: int, n_step
     ``guard`` (:class:`cosim.guards.Guard`) sees every row first, with the system's watched
     variables after the recorded ones; when it trips, the rows after the offending one are
     dropped and the run ends with the guard's status and reason.
+
+    ``rates``: doSteps per macro step of each slave (None: one each; :mod:`cosim.multirate`).
     """
     cls = algorithm(algorithm_name)
+    multirate = {s.name: int(r) for s, r in zip(system.slaves, rates or ()) if r != 1}
+    if multirate and not getattr(cls, "multirate", False):
+        raise UserError(f"master algorithm {cls.name} does not step slaves at several rates "
+                        f"({', '.join(f'{n}.rate = {r}' for n, r in multirate.items())}); use jacobi or gauss_seidel")
     if getattr(cls, "needs_rollback", False):
         fixed = [s.name for s in system.slaves if not s.can_rollback]
         if fixed:
@@ -936,13 +970,14 @@ def simulate(system: CoupledSystem, algorithm_name: str, *, step_ns: int, n_step
     columns = ["time"] + system.record_names
     status, reason = "failed", ""
     for obs in observers:
-        obs.start(columns, dict(meta or {}, algorithm=cls.name, step=step_ns / 1e9))
+        obs.start(columns, dict(meta or {}, algorithm=cls.name, step=step_ns / 1e9,
+                                **({"rates": multirate} if multirate else {})))
     alg, t_loop, pacer = None, None, None
     try:
         t0 = time.perf_counter()
         initialize(system, start_values or [{} for _ in system.slaves], start_time=start_ns / 1e9,
                    stop_time=(start_ns + n_steps * step_ns) / 1e9, tolerances=tolerances)
-        alg = cls(system, step_ns, order=order, timing=timing, inputs=inputs, start_ns=start_ns)
+        alg = cls(system, step_ns, order=order, timing=timing, inputs=inputs, start_ns=start_ns, rates=rates)
         stats.engine = choose_engine(system, cls, engine, start_ns)
         runner = _Compiled(alg).run if stats.engine == "compiled" else (lambda n, e, r: _python_run(alg, n, e, r))
         stats.init_s = time.perf_counter() - t0
@@ -1001,7 +1036,7 @@ def simulate(system: CoupledSystem, algorithm_name: str, *, step_ns: int, n_step
         if alg is not None:
             stats.steps_done = alg.k
             stats.master_s = alg.master_ns / 1e9
-            stats.slaves = slave_table(system, alg.calls, alg.slave_ns)
+            stats.slaves = slave_table(system, alg.calls, alg.slave_ns, alg.rates)
         if stats.wall_s == 0.0 and t_loop is not None:
             stats.wall_s = time.perf_counter() - t_loop
         if pacer is not None:

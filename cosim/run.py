@@ -242,7 +242,7 @@ def _run(scene, overrides, out_dir, catalog, cache_dir, progress, log, engine, s
                          tolerances=[c.description.default_experiment.get("tolerance")
                                      for c in scene.components.values()],
                          realtime=scene.master.realtime, options=scene.master.options or None,
-                         guard=guard).as_dict()
+                         guard=guard, rates=[c.rate for c in scene.components.values()]).as_dict()
     except TraceWriteError:  # disk full: the observers finished with the reason; report it as a status
         if memory.trace is None or not memory.trace.stats:
             raise
