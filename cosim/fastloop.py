@@ -54,7 +54,7 @@ typedef struct {
     const int32_t *orders;
     const int8_t *fresh;
     double *hist, *slope;
-    /* multirate (cosim.multirate): rate doSteps of sub_ns per macro step; base holds the input
+    /* multirate (cosim.master.multirate): rate doSteps of sub_ns per macro step; base holds the input
        values pushed for the first sub-step (linear inputs) */
     int32_t rate;
     int64_t sub_ns;
@@ -106,7 +106,7 @@ static inline int step(rpr_slave *s, double t, double h) {
 }
 
 /* one macro step from t_ns of a slave at rate > 1: sub-steps at the exact sub-instants, its
-   inputs held or set on the macro step's line before every later sub-step (cosim.multirate) */
+   inputs held or set on the macro step's line before every later sub-step (cosim.master.multirate) */
 static inline int advance(rpr_slave *s, double *v, int64_t t_ns, double t, double h) {
     int32_t j, m;
     int st;

@@ -231,7 +231,7 @@ def test_compiled_loop_equals_the_python_loop_bit_for_bit(fmu_paths, alg, versio
 @pytest.mark.parametrize("rates, versions", [((4, 1), ("2.0", "2.0")), ((2, 5), ("2.0", "2.0")),
                                              ((4, 2), ("3.0", "2.0"))], ids=["msd4", "msd2-gain5", "msd4-fmi3"])
 def test_compiled_multirate_equals_the_python_loop_bit_for_bit(fmu_paths, alg, inputs, rates, versions):
-    """Slaves at several doSteps per macro step (cosim.multirate), inputs held or ramped at the
+    """Slaves at several doSteps per macro step (cosim.master.multirate), inputs held or ramped at the
     sub-instants: the same trace in both engines, and each slave's doSteps counted."""
     py, s1 = run(fmu_system(fmu_paths, *versions), alg, 1_000_000, 300, engine="python", inputs=inputs, rates=rates)
     cc, s2 = run(fmu_system(fmu_paths, *versions), alg, 1_000_000, 300, engine="compiled", inputs=inputs, rates=rates)
@@ -518,6 +518,20 @@ def test_registry_suggests_the_closest_algorithm():
     with pytest.raises(UserError, match="did you mean 'gauss_seidel'"):
         algorithm("gauss_siedel")
     assert set(ALGORITHMS) >= {"jacobi", "gauss_seidel"}
+
+
+def test_every_algorithm_module_is_listed_and_registers_its_class():
+    """cosim.master.algorithms imports the modules in MODULES: a module added to the package but
+    not to the list would never register, so the list must name every module found on disk, and
+    each module must contribute an Algorithm subclass to the registry under its name."""
+    import pkgutil
+
+    from cosim.master import algorithms
+
+    on_disk = {m.name for m in pkgutil.iter_modules(algorithms.__path__)}
+    assert set(algorithms.MODULES) == on_disk
+    owners = {cls.__module__.rsplit(".", 1)[-1] for cls in ALGORITHMS.values()}
+    assert on_disk <= owners
 
 
 def test_a_registered_algorithm_runs_through_the_same_loop():

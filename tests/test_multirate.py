@@ -4,7 +4,7 @@ The scene is ``scenarios/two_mass.yaml`` (two linear oscillators cut at a spring
 embedded RK4 at one substep per doStep, so that a slave's sub-steps change its result.  The
 independent account is :func:`models.coupling.macro_map` with the RK4 map of each slave under its
 held or ramped input (:func:`models.coupling.rk4_ramp_discretization`), written from the
-conventions of :mod:`cosim.multirate` and sharing no code with the master: the trajectory of
+conventions of :mod:`cosim.master.multirate` and sharing no code with the master: the trajectory of
 ``Z_k+1 = M Z_k`` must equal the co-simulation's trace to rounding, in both engines, bit for bit
 between them.
 """

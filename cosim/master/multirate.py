@@ -25,8 +25,8 @@ from collections.abc import Callable, Sequence
 
 import numpy as np
 
-from .errors import UserError
-from .slaves import FAILING, Status
+from ..errors import UserError
+from ..slaves import FAILING, Status
 
 
 def check_rates(rates: Sequence[int] | None, step_ns: int, names: Sequence[str]) -> list[int]:
