@@ -271,11 +271,12 @@ def run_adaptive(system, *, start_ns: int = 0, stop_ns: int, options: dict | Non
     opts = option_values(options)
     stepper = AdaptiveStepper(system, order, opts, start_ns, stop_ns)
     v, idx = system.v, system.record_idx[:len(system.record_names)]  # without the guards' watched columns
-    t_loop = time.perf_counter()
     if engine == "compiled":
         from .fastadapt import CompiledAdaptive
 
-        stepper = CompiledAdaptive(stepper)
+        stepper = CompiledAdaptive(stepper)  # set-up, like the fixed-step loop's: not in the loop's wall time
+    t_loop = time.perf_counter()
+    if engine == "compiled":
         try:
             _run_compiled(stepper, start_ns, stop_ns, len(idx), observers, progress)
         finally:
