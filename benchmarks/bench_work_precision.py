@@ -108,9 +108,13 @@ def main() -> None:
     fine, coarse = references(args.stop)
     print(f"reference: {time.perf_counter() - t0:.1f} s")
 
+    tried: dict[float, float] = {}  # fixed step -> worst error
+
     def check(label: str, res) -> tuple[bool, dict]:
         err, name = worst_error(res.trace, fine, coarse) if res.ok else (math.inf, res.reason)
         st = res.stats
+        if res.stats["algorithm"] == "gauss_seidel":
+            tried[res.stats["step"]] = err
         print(f"  {label:<34} {res.status:>8} wall {st['wall_s']:8.3f} s  worst {err:9.3e} ({name})", flush=True)
         return err <= args.tol, {"err": err, "name": name}
 
@@ -147,8 +151,15 @@ def main() -> None:
           f"rejected steps, {stats['adaptive']['smallest_step']:.3g} s to {stats['adaptive']['largest_step']:.3g} s)")
     ratio = fa / ad
     print(f"fixed-step / adaptive wall time at equal error: {ratio:.1f}x "
-          f"(target >= 10x: {'met' if ratio >= 10 else 'NOT met'}); all runs: fixed {walls['fixed']}, "
-          f"adaptive {walls['adaptive']}")
+          f"(target >= 10x: {'met' if ratio >= 10 else 'NOT met'}); all runs: fixed "
+          f"{', '.join(f'{w:.3f}' for w in walls['fixed'])}, adaptive {', '.join(f'{w:.3f}' for w in walls['adaptive'])}")
+    above = [x for x in tried if x > h and math.isfinite(tried[x])]
+    if above:  # a step between the dividing ones: the error's power law through the bracketing runs
+        h2 = min(above)
+        q = math.log(tried[h2] / tried[h]) / math.log(h2 / h)
+        h_eq = h * (args.tol / tried[h]) ** (1 / q)
+        print(f"  the step reaching exactly {args.tol:g} (error ~ h^{q:.2f} between {h * 1e6:g} and {h2 * 1e6:g} us) "
+              f"would be {h_eq * 1e6:.1f} us: {fa * h / h_eq:.4f} s, {ratio * h / h_eq:.1f}x")
 
 
 if __name__ == "__main__":
