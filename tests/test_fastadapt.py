@@ -83,3 +83,18 @@ def _scene_text_run(text: str, sc):
         p = Path(tmp) / "s.yaml"
         p.write_text(text)
         return run(p, {"master.algorithm": "adaptive", "stop_time": 0.01}, engine="compiled")
+
+
+@pytest.mark.parametrize("fmi", ["2.0", "3.0"])
+def test_a_stop_request_ends_both_engines_alike(reference_fmus, fmi):
+    """The Modelica Reference FMU Stair asks to stop at t = 9 s (FMI 3.0 terminateSimulation, FMI 2.0
+    Discard + fmi2Terminated): both loops end "stopped" with the same reason, at the same instants."""
+    from cosim.scenario import from_dict
+
+    scene = {"name": "stair", "outputs": [], "components": {"s": {"fmu": str(reference_fmus[f"{fmi}/Stair"])}},
+             "master": {"algorithm": "adaptive"}}
+    py = run(from_dict(scene), engine="python")
+    c = run(from_dict(scene), engine="compiled")
+    assert (py.stats["engine"], c.stats["engine"]) == ("python", "compiled")
+    assert c.status == py.status == "stopped" and c.reason == py.reason and "asked to terminate" in c.reason
+    assert np.array_equal(py.trace.data, c.trace.data) and c.trace.time[-1] < 9.0 + 1e-9
