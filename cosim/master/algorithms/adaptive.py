@@ -39,10 +39,11 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .errors import UserError
-from .master import (Algorithm, RunStats, gauss_seidel_order, initialize, interruption_reason, register,
-                     slave_table)
-from .slaves import FAILING, Status
+from ...errors import UserError
+from ...slaves import FAILING, Status
+from ..algorithm import Algorithm, register
+from ..graph import gauss_seidel_order
+from ..run import RunStats, initialize, interruption_reason, slave_table
 
 
 @dataclass(frozen=True)
@@ -116,7 +117,7 @@ class AdaptiveStats:
 
 
 class AdaptiveStepper:
-    """The stepping of :mod:`cosim.adaptive` over an initialised, bound ``system``."""
+    """The stepping of :mod:`cosim.master.algorithms.adaptive` over an initialised, bound ``system``."""
 
     order_p_linear, order_p_hold = 3.0, 2.0  # mismatch O(h^2) / O(h), weighted by h
     k_i, k_p = 0.7, 0.4
@@ -266,13 +267,13 @@ def run_adaptive(system, *, start_ns: int = 0, stop_ns: int, options: dict | Non
                  stats=None, engine: str = "python"):
     """Step an initialised ``system`` to ``stop_ns`` (see the module docstring), recording every
     accepted step to ``observers``; ``stats`` (a :class:`cosim.master.RunStats`) is filled in.
-    ``engine`` ``"compiled"`` runs the accepted-step loop in C (:mod:`cosim.fastadapt`, the same
+    ``engine`` ``"compiled"`` runs the accepted-step loop in C (:mod:`cosim.master.adaptive_engine`, the same
     steps and values), ``"python"`` here.  Returns the stepper (``t_ns``, ``stats``, ``status``...)."""
     opts = option_values(options)
     stepper = AdaptiveStepper(system, order, opts, start_ns, stop_ns)
     v, idx = system.v, system.record_idx[:len(system.record_names)]  # without the guards' watched columns
     if engine == "compiled":
-        from .fastadapt import CompiledAdaptive
+        from ..adaptive_engine import CompiledAdaptive
 
         stepper = CompiledAdaptive(stepper)  # set-up, like the fixed-step loop's: not in the loop's wall time
     t_loop = time.perf_counter()
@@ -313,7 +314,7 @@ def run_adaptive(system, *, start_ns: int = 0, stop_ns: int, options: dict | Non
 
 def _run_compiled(stepper, start_ns: int, stop_ns: int, n_rec: int, observers: Sequence,
                   progress: Callable[[int, int], None] | None) -> None:
-    """The loop of :func:`run_adaptive` over :class:`cosim.fastadapt.CompiledAdaptive` chunks."""
+    """The loop of :func:`run_adaptive` over :class:`cosim.master.adaptive_engine.CompiledAdaptive` chunks."""
     rows = np.empty((4096, 1 + n_rec))
     while stepper.t_ns < stop_ns and stepper.status == "running":
         n = stepper.run(rows)
@@ -342,7 +343,7 @@ class VariableStats(RunStats):
 
 def _engine(system, engine: str) -> str:
     """``"compiled"`` or ``"python"`` for ``engine`` in auto | compiled | python."""
-    from .fastadapt import usable
+    from ..adaptive_engine import usable
 
     if engine not in ("auto", "compiled", "python"):
         raise UserError(f"master.engine must be auto, compiled or python, got {engine!r}")
@@ -367,7 +368,7 @@ class Adaptive(Algorithm):
     options = OPTIONS
 
     def _step_impl(self, t, h):  # pragma: no cover - variable-step runs never use the fixed-step loop
-        raise RuntimeError("adaptive runs through cosim.adaptive.simulate_variable")
+        raise RuntimeError("adaptive runs through cosim.master.algorithms.adaptive.simulate_variable")
 
 
 def simulate_variable(system, cls, *, step_ns: int, n_steps: int, observers: Sequence = (),
@@ -378,7 +379,7 @@ def simulate_variable(system, cls, *, step_ns: int, n_steps: int, observers: Seq
     """:func:`cosim.master.simulate` for a variable-step algorithm: initialise, run
     :func:`run_adaptive` to ``n_steps * step_ns`` (the scene's stop time; ``step_ns`` is the first
     step tried) and report to the observers as the fixed-step loop does.  ``engine``: auto (the
-    compiled loop where :func:`cosim.fastadapt.usable`), compiled or python."""
+    compiled loop where :func:`cosim.master.adaptive_engine.usable`), compiled or python."""
     stop_ns = start_ns + n_steps * step_ns
     stats = VariableStats(cls.name, "python", step_ns / 1e9, n_steps)
     columns = ["time"] + system.record_names

@@ -1,7 +1,7 @@
 """The compiled engine of ``master.algorithm: adaptive``: the accepted-step loop in C.
 
-The same steps as :class:`cosim.adaptive.AdaptiveStepper` (the Python loop stays the reference
-implementation; ``tests/test_fastadapt.py`` checks that both take the same steps and produce the
+The same steps as :class:`cosim.master.algorithms.adaptive.AdaptiveStepper` (the Python loop stays the reference
+implementation; ``tests/test_adaptive_engine.py`` checks that both take the same steps and produce the
 same values, bit for bit): save every slave's FMU state (``fmi2GetFMUstate`` into one state per
 slave, allocated by the first call and reused), a Gauss-Seidel step with linear inputs, the
 coupling error estimate, the PI controller, and on a rejected step ``fmi2SetFMUstate`` and a retry.
@@ -26,7 +26,7 @@ from functools import lru_cache
 
 import numpy as np
 
-from .errors import UserError
+from ..errors import UserError
 
 SOURCE = r"""
 #include <stdint.h>
@@ -307,7 +307,7 @@ CALL_BUDGET_NS = 100_000_000
 @lru_cache(maxsize=1)
 def library() -> ctypes.CDLL:
     """Compile (cached on disk, see :func:`cosim.fastloop.compile_library`) and load the engine."""
-    from .fastloop import compile_library
+    from ..fastloop import compile_library
 
     dll = compile_library(SOURCE, "rpr_adapt")
     fn = dll.rpr_adapt_run
@@ -334,10 +334,10 @@ def usable(system) -> bool:
 
 
 class CompiledAdaptive:
-    """Drop-in for :class:`cosim.adaptive.AdaptiveStepper` whose accepted-step loop runs in C.
+    """Drop-in for :class:`cosim.master.algorithms.adaptive.AdaptiveStepper` whose accepted-step loop runs in C.
     It shares the stepper's setup (order, fresh inputs, options) and exposes the same ``t_ns``,
     ``stats``, ``calls``, ``slave_ns``, ``status`` and ``message``; :meth:`run` replaces the
-    Python loop of :func:`cosim.adaptive.run_adaptive` one chunk at a time."""
+    Python loop of :func:`cosim.master.algorithms.adaptive.run_adaptive` one chunk at a time."""
 
     def __init__(self, stepper, timing: bool = True):
         self.py = stepper  # the Python stepper: its setup, statistics and messages
@@ -433,7 +433,7 @@ class CompiledAdaptive:
         return rows
 
     def _ended(self, code: int, bad: int, st: int, err: float) -> None:
-        from .slaves import Status
+        from ..slaves import Status
 
         sysm, opt, t = self.py.system, self.py.opt, self.t
         if code == 1:

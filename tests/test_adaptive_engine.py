@@ -1,7 +1,7 @@
-"""The compiled adaptive engine (cosim/fastadapt.py) against its reference implementation, the
-Python loop of cosim/adaptive.py: the same accepted and rejected steps, the same values bit for
-bit, the same statistics and the same ending, on scenes that exercise rollbacks, Discards from a
-slave's own integrator, and the step floor."""
+"""The compiled adaptive engine (cosim/master/adaptive_engine.py) against its reference
+implementation, the Python loop of cosim/master/algorithms/adaptive.py: the same accepted and
+rejected steps, the same values bit for bit, the same statistics and the same ending, on scenes
+that exercise rollbacks, Discards from a slave's own integrator, the step floor and a stop request."""
 from __future__ import annotations
 
 from pathlib import Path
