@@ -29,6 +29,11 @@ extrapolate from yet; the controller then grows the step by at most ``fac_max`` 
 
 Every accepted step is recorded (the trace's time column is irregular: each row is the instant its
 values belong to).  Statistics: accepted and rejected steps, rollbacks, smallest and largest step.
+
+Engines: :class:`AdaptiveStepper` here is the reference implementation (Python loop); where every
+slave is an FMU with C entry points and state get/set (``master.engine`` auto or compiled),
+:mod:`cosim.master.adaptive_engine` runs the same accepted-step loop in C, step for step and bit
+for bit the same (``tests/test_adaptive_engine.py``).
 """
 from __future__ import annotations
 
