@@ -672,9 +672,12 @@ class FmuSlave(Slave):
         st = (0, 0, 0)
         if self.can_rollback:
             v = "3" if self.fmi3 else "2"
-            st = tuple(_addr(getattr(dll, f"fmi{v}{x}")) for x in
-                       (("GetFMUState", "SetFMUState", "FreeFMUState") if self.fmi3 else
-                        ("GetFMUstate", "SetFMUstate", "FreeFMUstate")))
+            try:
+                st = tuple(_addr(getattr(dll, f"fmi{v}{x}")) for x in
+                           (("GetFMUState", "SetFMUState", "FreeFMUState") if self.fmi3 else
+                            ("GetFMUstate", "SetFMUstate", "FreeFMUstate")))
+            except AttributeError:  # declared but not exported: no compiled rollback
+                st = (0, 0, 0)
         if self.fmi3:
             return NativeEntry(True, self.fmu.component, _addr(dll.fmi3DoStep), _addr(dll.fmi3GetFloat64),
                                _addr(dll.fmi3SetFloat64), 0, *st)
