@@ -126,6 +126,8 @@ class AdaptiveStepper:
 
     order_p_linear, order_p_hold = 3.0, 2.0  # mismatch O(h^2) / O(h), weighted by h
     k_i, k_p = 0.7, 0.4
+    #: every slave must save/restore its state (a rejected step is rolled back)
+    needs_rollback = True
 
     def __init__(self, system, order: Sequence[int], options: dict[str, float], start_ns: int, stop_ns: int):
         self.system = system
@@ -134,7 +136,7 @@ class AdaptiveStepper:
         self.stop_ns = stop_ns
         self.t_ns = start_ns
         sysm, n = system, len(system.slaves)
-        for s in sysm.slaves:
+        for s in sysm.slaves if self.needs_rollback else ():
             if not s.can_rollback:
                 raise UserError(f"master algorithm adaptive needs rollback (get/set state), but {s.name} cannot roll "
                                 f"back; use gauss_seidel or jacobi with a fixed step")
@@ -161,7 +163,7 @@ class AdaptiveStepper:
         """One Gauss-Seidel step of ``h``; returns (scaled error, failing slave or None, status)."""
         sysm, opt = self.system, self.opt
         t = self.t
-        err, weight = 0.0, h / opt["h_ref"]
+        err, weight = 0.0, h / opt["h_ref"] if "h_ref" in opt else 1.0  # (steppers without the weight: 1)
         guesses: list[tuple[int, np.ndarray, np.ndarray]] = []  # (slave, source indices, guessed values)
         for i in self.order:
             s = sysm.slaves[i]
@@ -206,6 +208,22 @@ class AdaptiveStepper:
                 err = max(err, m if math.isfinite(m) else math.inf)
         return err, None, Status.OK
 
+    def _commit(self, h: float, h_ns: int) -> None:
+        """Book an accepted step of ``h`` (``h_ns``): statistics, input history, ranges, time."""
+        sysm = self.system
+        self.stats.accepted += 1
+        self.stats.h_min_taken = min(self.stats.h_min_taken, h)
+        self.stats.h_max_taken = max(self.stats.h_max_taken, h)
+        self.stats.steps.append(h)
+        for i, src in enumerate(sysm.in_src):
+            if len(src):
+                self.prev_src[i][:] = self.cur_src[i]
+                self.cur_src[i][:] = sysm.v[src]
+        np.maximum(self.hi, sysm.v, out=self.hi)
+        np.minimum(self.lo, sysm.v, out=self.lo)
+        self.t_ns += h_ns
+        self.h_prev = h
+
     def step(self) -> bool:
         """Advance by one accepted step (retrying smaller after rejections); False when the run
         ends early (:attr:`status`, :attr:`message`)."""
@@ -244,19 +262,7 @@ class AdaptiveStepper:
                                 f"({detail}; limited by {who})")
                 return False
             self.h = max(opt["h_min"], h * min(shrink, 0.9))
-        # accepted
-        self.stats.accepted += 1
-        self.stats.h_min_taken = min(self.stats.h_min_taken, h)
-        self.stats.h_max_taken = max(self.stats.h_max_taken, h)
-        self.stats.steps.append(h)
-        for i, src in enumerate(sysm.in_src):
-            if len(src):
-                self.prev_src[i][:] = self.cur_src[i]
-                self.cur_src[i][:] = sysm.v[src]
-        np.maximum(self.hi, sysm.v, out=self.hi)
-        np.minimum(self.lo, sysm.v, out=self.lo)
-        self.t_ns += h_ns
-        self.h_prev = h
+        self._commit(h, h_ns)
         e = max(err, 1e-10)
         fac = opt["safety"] * e ** (-self.k_i / p) * self.err_prev ** (self.k_p / p)
         self.err_prev = e
@@ -269,13 +275,19 @@ class AdaptiveStepper:
 
 def run_adaptive(system, *, start_ns: int = 0, stop_ns: int, options: dict | None, order: Sequence[int],
                  observers: Sequence = (), progress: Callable[[int, int], None] | None = None,
-                 stats=None, engine: str = "python"):
+                 stats=None, stepper_cls: type[AdaptiveStepper] | None = None,
+                 declared: Sequence[AlgorithmOption] = OPTIONS, engine: str = "python"):
     """Step an initialised ``system`` to ``stop_ns`` (see the module docstring), recording every
     accepted step to ``observers``; ``stats`` (a :class:`cosim.master.RunStats`) is filled in.
-    ``engine`` ``"compiled"`` runs the accepted-step loop in C (:mod:`cosim.master.adaptive_engine`, the same
-    steps and values), ``"python"`` here.  Returns the stepper (``t_ns``, ``stats``, ``status``...)."""
-    opts = option_values(options)
-    stepper = AdaptiveStepper(system, order, opts, start_ns, stop_ns)
+    ``stepper_cls`` (default :class:`AdaptiveStepper`) takes the steps, with ``options`` checked
+    against its algorithm's ``declared`` options.  ``engine`` ``"compiled"`` runs
+    :class:`AdaptiveStepper`'s accepted-step loop in C (:mod:`cosim.master.adaptive_engine`, the
+    same steps and values; not for other stepper classes), ``"python"`` here.  Returns the stepper
+    (``t_ns``, ``stats``, ``status``...)."""
+    opts = option_values(options, declared)
+    stepper = (stepper_cls or AdaptiveStepper)(system, order, opts, start_ns, stop_ns)
+    if engine == "compiled" and type(stepper) is not AdaptiveStepper:
+        raise ValueError(f"the compiled adaptive engine runs AdaptiveStepper only, not {type(stepper).__name__}")
     v, idx = system.v, system.record_idx[:len(system.record_names)]  # without the guards' watched columns
     if engine == "compiled":
         from ..adaptive_engine import CompiledAdaptive
@@ -346,13 +358,16 @@ class VariableStats(RunStats):
         return {**super().as_dict(), **self.adaptive}
 
 
-def _engine(system, engine: str) -> str:
-    """``"compiled"`` or ``"python"`` for ``engine`` in auto | compiled | python."""
+def _engine(system, engine: str, compiled_exists: bool = True, name: str = "adaptive") -> str:
+    """``"compiled"`` or ``"python"`` for ``engine`` in auto | compiled | python; only
+    :class:`AdaptiveStepper` has a compiled loop (``compiled_exists``)."""
     from ..adaptive_engine import usable
 
     if engine not in ("auto", "compiled", "python"):
         raise UserError(f"master.engine must be auto, compiled or python, got {engine!r}")
-    if engine == "python":
+    if engine == "compiled" and not compiled_exists:
+        raise UserError(f"master algorithm {name} has no compiled loop; use master.engine auto or python")
+    if engine == "python" or not compiled_exists:
         return "python"
     ok = usable(system)
     if engine == "compiled" and not ok:
@@ -388,7 +403,8 @@ def simulate_variable(system, cls, *, step_ns: int, n_steps: int, observers: Seq
     stop_ns = start_ns + n_steps * step_ns
     stats = VariableStats(cls.name, "python", step_ns / 1e9, n_steps)
     columns = ["time"] + system.record_names
-    opts = option_values(options)
+    declared = getattr(cls, "options", OPTIONS)
+    opts = option_values(options, declared)
     for obs in observers:
         obs.start(columns, dict(meta or {}, algorithm=cls.name, step=step_ns / 1e9, options=opts))
     status, reason, stepper = "failed", "", None
@@ -397,13 +413,14 @@ def simulate_variable(system, cls, *, step_ns: int, n_steps: int, observers: Seq
         initialize(system, start_values or [{} for _ in system.slaves], start_time=start_ns / 1e9,
                    stop_time=stop_ns / 1e9, tolerances=tolerances)
         seq = list(order) if order is not None else gauss_seidel_order(len(system.slaves), system.slave_edges())
-        stats.engine = _engine(system, engine)
+        stats.engine = _engine(system, engine, getattr(cls, "stepper", None) in (None, AdaptiveStepper), cls.name)
         stats.init_s = time.perf_counter() - t0
         row0 = np.concatenate([[start_ns / 1e9], system.v[system.record_idx[:len(system.record_names)]]])[None, :]
         for obs in observers:
             obs.record(row0)
         stepper = run_adaptive(system, start_ns=start_ns, stop_ns=stop_ns, options=opts, order=seq,
-                               observers=observers, progress=progress, stats=stats, engine=stats.engine)
+                               observers=observers, progress=progress, stats=stats,
+                               stepper_cls=getattr(cls, "stepper", None), declared=declared, engine=stats.engine)
         status, reason = ("ok", "") if stepper.status == "running" else (stepper.status, stepper.message)
     except KeyboardInterrupt as exc:
         status, reason = "interrupted", interruption_reason(exc, stepper.t if stepper else None)
