@@ -1,0 +1,49 @@
+"""CSV text of trace rows: every value as Python's ``repr`` writes it (the shortest decimal that
+reads back to the same float64), produced for a whole block at once.
+
+Formatting floats one by one in Python costs about 0.7 µs per value, as much as stepping a
+short scene; :func:`rows_text` has orjson format the block (a compiled shortest round-trip
+formatter, ~0.06 µs per value) and rewrites the only notation it writes differently from
+``repr`` -- magnitudes below 1e-4: ``0.00006`` and ``1e-7`` become ``6e-05`` and ``1e-07`` --
+so the bytes are exactly those of ``",".join(map(repr, row))``.  Blocks with NaN or infinity
+(orjson writes ``null``) and installations without orjson take the ``repr`` path.
+"""
+from __future__ import annotations
+
+import re
+
+import numpy as np
+
+try:
+    import orjson
+except ModuleNotFoundError:  # pragma: no cover - orjson is a dependency; the repr path is exact too
+    orjson = None
+
+_ONE_DIGIT_EXPONENT = re.compile(rb"e-([1-9])(?![0-9])")  # 1e-7 -> 1e-07
+_FIXED_E5_DIGITS = re.compile(rb"(?<![0-9.])0\.0000([1-9])([0-9]+)")  # 0.000061 -> 6.1e-05
+_FIXED_E5_DIGIT = re.compile(rb"(?<![0-9.])0\.0000([1-9])(?![0-9])")  # 0.00006 -> 6e-05
+
+
+def repr_text(rows: np.ndarray) -> bytes:
+    """The reference formatting: ``repr`` of each value, commas, one line per row."""
+    return "".join(",".join(map(repr, r)) + "\n" for r in np.asarray(rows, dtype=float).tolist()).encode()
+
+
+def rows_text(rows: np.ndarray) -> bytes:
+    """``rows`` (2-D, float64) as CSV lines, byte for byte what :func:`repr_text` gives."""
+    a = np.ascontiguousarray(rows, dtype=np.float64)
+    if a.ndim != 2:
+        raise ValueError(f"rows must be a 2-D array, got shape {a.shape}")
+    if not a.size:
+        return b"\n" * a.shape[0]
+    if orjson is None or not np.isfinite(a).all():
+        return repr_text(a)
+    text = orjson.dumps(a, option=orjson.OPT_SERIALIZE_NUMPY)[2:-2].replace(b"],[", b"\n") + b"\n"
+    if b"e-" in text:
+        text = _ONE_DIGIT_EXPONENT.sub(rb"e-0\1", text)
+    if b"0.0000" in text:
+        text = _FIXED_E5_DIGIT.sub(rb"\1e-05", _FIXED_E5_DIGITS.sub(rb"\1.\2e-05", text))
+    return text
+
+
+__all__ = ["repr_text", "rows_text"]

@@ -1,0 +1,66 @@
+"""The block CSV formatter of traces writes exactly what Python's ``repr`` writes for every
+float64 (the peer: ``",".join(map(repr, row))``), and every value reads back bit for bit."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from cosim import csvtext
+
+
+def _peer(a: np.ndarray) -> bytes:
+    return "".join(",".join(repr(float(x)) for x in row) + "\n" for row in a).encode()
+
+
+def _block(decade: int, seed: int) -> np.ndarray:
+    """400 values near 10**decade: 1 to 17 significant digits, both signs."""
+    rng = np.random.default_rng(seed)
+    m = rng.uniform(1.0, 10.0, 400)
+    digits = rng.integers(1, 18, 400)
+    m = np.array([round(x, int(d) - 1) for x, d in zip(m, digits)])
+    with np.errstate(over="ignore", under="ignore"):
+        x = m * 10.0 ** decade if decade > -300 else m * 1e-300 * 10.0 ** (decade + 300)
+    x[::2] *= -1
+    x = x[np.isfinite(x) & (x != 0)]  # the ends of the range overflow or underflow
+    return x[:len(x) // 4 * 4].reshape(-1, 4)
+
+
+@pytest.mark.parametrize("decade", list(range(-324, 309, 7)) + list(range(-12, 20)))
+def test_block_text_is_repr(decade):
+    a = _block(decade, seed=decade + 1000)
+    text = csvtext.rows_text(a)
+    assert text == _peer(a)
+    back = np.array([[float(v) for v in ln.split(",")] for ln in text.decode().splitlines()])
+    assert back.tobytes() == a.tobytes()
+
+
+SPECIAL = [0.0, -0.0, 1e-4, 9.999999999999999e-05, 1e-05, 0.00001234, 1.5e-06, 1e-10, 5e-324, -2.2250738585072014e-308,
+           1e15, 1e16, 123456789012345678.0, 1.7976931348623157e308, 0.1, 0.30000000000000004, 100.0, 2.0 ** 60,
+           1e22, -1e-100, 6.000000000000001e-05]
+
+
+@pytest.mark.parametrize("value", SPECIAL)
+def test_special_values(value):
+    a = np.array([[value, -value, 1.0]])
+    assert csvtext.rows_text(a) == _peer(a)
+
+
+@pytest.mark.parametrize("bad", [math.nan, math.inf, -math.inf])
+def test_non_finite_blocks_are_repr(bad):
+    a = np.array([[0.0, 1e-5], [bad, 2.5]])
+    assert csvtext.rows_text(a) == _peer(a)
+
+
+@pytest.mark.parametrize("shape", [(0, 3), (1, 1), (3, 1), (2, 7)])
+def test_shapes(shape):
+    a = np.arange(np.prod(shape), dtype=float).reshape(shape) * 1e-5
+    assert csvtext.rows_text(a) == _peer(a)
+
+
+def test_without_orjson_same_bytes(monkeypatch):
+    a = _block(-6, seed=3)
+    fast = csvtext.rows_text(a)
+    monkeypatch.setattr(csvtext, "orjson", None)
+    assert csvtext.rows_text(a) == fast == _peer(a)
