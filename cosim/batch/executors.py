@@ -4,8 +4,9 @@ distributed cluster.  Both take the same :class:`~cosim.batch.worker.Task` list 
 outcome)`` as it finishes, in completion order.
 
 Local (:class:`LocalExecutor`)
-    ``N`` processes forked from a server process that has already imported the run machinery
-    (``forkserver`` with preloading), each fed one task at a time over a pipe, so the parent
+    ``N`` processes forked from the batch process once it has warmed up (imports, the compiled
+    loop, the stepping orders: :mod:`cosim.batch.preload`), or from a ``forkserver`` with the
+    same warm-up preloaded when the batch process runs other threads; each fed one task at a time over a pipe, so the parent
     always knows which run is where.  The FMUs' bytes go to each process once, when it starts.
     A process that dies (killed, crashed in an FMU) is replaced and its run is given to a worker
     once more; a run that kills its worker twice is a failed row.  Workers ignore Ctrl-C (the
@@ -34,7 +35,7 @@ from collections.abc import Callable, Sequence
 from multiprocessing.connection import wait
 
 from ..errors import UserError
-from .worker import Outcome, Shared, Task, execute, worker_id
+from .worker import STATE, Outcome, Shared, Task, execute, worker_id
 
 OnStart = Callable[[Task, int], None]
 OnDone = Callable[[Task, Outcome], None]
@@ -71,15 +72,19 @@ def _worker_main(conn, shared: Shared, parent_pid: int) -> None:
     """A local worker: runs tasks from ``conn`` until it receives None or the pipe closes."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     _die_with(parent_pid)
-    while True:
-        try:
-            task = conn.recv()
-        except (EOFError, OSError):
-            return
-        if task is None:
-            return
-        conn.send(("started", os.getpid()))
-        conn.send(("done", execute(task, shared)))
+    STATE.detach()
+    try:
+        while True:
+            try:
+                task = conn.recv()
+            except (EOFError, OSError):
+                return
+            if task is None:
+                return
+            conn.send(("started", os.getpid()))
+            conn.send(("done", execute(task, shared)))
+    finally:
+        STATE.remove_files()  # a worker process ends with os._exit: its atexit hooks do not run
 
 
 class _Slot:
@@ -88,9 +93,18 @@ class _Slot:
         self.task: Task | None = None
 
 
-def _context():
+def _context(scenes: Sequence = ()):
+    """How workers start: forked from this process when it runs a single thread (after
+    :func:`~cosim.batch.preload.warm`, so each worker inherits the imports, the compiled loop and
+    the stepping orders), else from a ``forkserver`` that imported the warm-up (forking a
+    process with other threads may copy a lock one of them holds)."""
+    from . import preload
+
+    if "fork" in mp.get_all_start_methods() and threading.active_count() == 1:
+        preload.warm(scenes)
+        return mp.get_context("fork")
     ctx = mp.get_context("forkserver")
-    ctx.set_forkserver_preload(["cosim.batch.worker", "cosim.run", "cosim.batch.executors"])
+    ctx.set_forkserver_preload(["cosim.batch.preload", "cosim.batch.worker", "cosim.run", "cosim.batch.executors"])
     return ctx
 
 
@@ -116,7 +130,7 @@ class LocalExecutor:
         pending = deque(tasks)
         if not pending:
             return
-        ctx = _context()
+        ctx = _context([t.scene for t in tasks])
         slots = [self._spawn(ctx, shared) for _ in range(min(self.workers, len(pending)))]
         try:
             while pending or any(s.task for s in slots):

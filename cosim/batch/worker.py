@@ -95,6 +95,22 @@ class _State:
                 self.paths[digest] = path
             return self.paths[digest]
 
+    def detach(self) -> None:
+        """Forget what a parent process had (in a forked worker: its files and instances are
+        the parent's)."""
+        self.__init__()
+
+    def remove_files(self) -> None:
+        """Remove the FMU files this process wrote and unpacked (when a worker process ends)."""
+        from .. import slaves
+
+        if self.dir is not None:
+            shutil.rmtree(self.dir, ignore_errors=True)
+        mine = f"rpr-fmu-{os.getpid()}-"
+        for d in slaves._UNZIPPED.values():
+            if Path(d).name.startswith(mine):
+                shutil.rmtree(d, ignore_errors=True)
+
     def take(self, name: str, digest: str, path: Path, reuse: bool) -> FmuSlave:
         if reuse:
             with self.lock:
