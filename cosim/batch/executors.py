@@ -93,15 +93,17 @@ class _Slot:
         self.task: Task | None = None
 
 
-def _context(scenes: Sequence = ()):
+def _context(scenes: Sequence = (), shared: Shared | None = None):
     """How workers start: forked from this process when it runs a single thread (after
-    :func:`~cosim.batch.preload.warm`, so each worker inherits the imports, the compiled loop and
-    the stepping orders), else from a ``forkserver`` that imported the warm-up (forking a
-    process with other threads may copy a lock one of them holds)."""
+    :func:`~cosim.batch.preload.warm`, so each worker inherits the imports, the compiled loop,
+    the stepping orders and the unpacked FMUs), else from a ``forkserver`` that imported the
+    warm-up (forking a process with other threads may copy a lock one of them holds)."""
     from . import preload
 
     if "fork" in mp.get_all_start_methods() and threading.active_count() == 1:
         preload.warm(scenes)
+        if shared is not None:
+            STATE.prepare(shared.blobs)
         return mp.get_context("fork")
     ctx = mp.get_context("forkserver")
     ctx.set_forkserver_preload(["cosim.batch.preload", "cosim.batch.worker", "cosim.run", "cosim.batch.executors"])
@@ -130,9 +132,10 @@ class LocalExecutor:
         pending = deque(tasks)
         if not pending:
             return
-        ctx = _context([t.scene for t in tasks])
-        slots = [self._spawn(ctx, shared) for _ in range(min(self.workers, len(pending)))]
+        slots: list[_Slot] = []
         try:
+            ctx = _context([t.scene for t in tasks], shared)
+            slots = [self._spawn(ctx, shared) for _ in range(min(self.workers, len(pending)))]
             while pending or any(s.task for s in slots):
                 for i, s in enumerate(slots):
                     if s.task is None and pending:
@@ -164,6 +167,7 @@ class LocalExecutor:
                         slots[i] = self._replace(ctx, shared, s)
         finally:
             self._stop(slots)
+            STATE.remove_files()  # what this process prepared for its forked workers
 
     def _drain(self, s: _Slot, on_start: OnStart | None, on_done: OnDone) -> bool:
         """Read every message of ``s``; False when its pipe is closed."""
