@@ -137,21 +137,14 @@ class LocalExecutor:
             ctx = _context([t.scene for t in tasks], shared)
             slots = [self._spawn(ctx, shared) for _ in range(min(self.workers, len(pending)))]
             while pending or any(s.task for s in slots):
-                for i, s in enumerate(slots):
-                    if s.task is None and pending:
-                        s.task = pending.popleft()
-                        try:
-                            s.conn.send(s.task)
-                        except (BrokenPipeError, OSError):  # died while idle: replace it, send again
-                            slots[i] = self._replace(ctx, shared, s)
-                            slots[i].task = s.task
-                            slots[i].conn.send(s.task)
+                self._dispatch(ctx, shared, slots, pending)
                 busy = [s for s in slots if s.task is not None]
-                ready = set(wait([s.conn for s in busy] + [s.proc.sentinel for s in busy]))
+                ready = set(wait([s.conn for s in busy] + [s.proc.sentinel for s in busy]))  # idle until then
+                finished: list[tuple[Task, Outcome]] = []
                 for i, s in enumerate(slots):
                     if s.task is None or not ({s.conn, s.proc.sentinel} & ready):
                         continue
-                    alive = self._drain(s, on_start, on_done)
+                    alive = self._drain(s, on_start, finished)
                     if alive and s.proc.sentinel not in ready:
                         continue
                     if s.task is not None:  # the worker died with this run: once more, on a new worker
@@ -161,16 +154,35 @@ class LocalExecutor:
                             pending.appendleft(task)
                         else:
                             sig = f", {signal.Signals(-code).name}" if code and code < 0 else ""
-                            on_done(task, Outcome(task.run_id, "failed", f"the worker process died twice while "
-                                                  f"running it (exit code {code}{sig})", worker=str(s.proc.pid)))
+                            finished.append((task, Outcome(task.run_id, "failed", f"the worker process died twice "
+                                                           f"while running it (exit code {code}{sig})",
+                                                           worker=str(s.proc.pid))))
                     if pending:
                         slots[i] = self._replace(ctx, shared, s)
+                try:
+                    self._dispatch(ctx, shared, slots, pending)  # the next runs go out before the rows are written
+                finally:
+                    for task, outcome in finished:
+                        on_done(task, outcome)
         finally:
             self._stop(slots)
             STATE.remove_files()  # what this process prepared for its forked workers
 
-    def _drain(self, s: _Slot, on_start: OnStart | None, on_done: OnDone) -> bool:
-        """Read every message of ``s``; False when its pipe is closed."""
+    def _dispatch(self, ctx, shared: Shared, slots: list[_Slot], pending: deque) -> None:
+        """Give a pending task to every idle worker."""
+        for i, s in enumerate(slots):
+            if s.task is None and pending:
+                s.task = pending.popleft()
+                try:
+                    s.conn.send(s.task)
+                except (BrokenPipeError, OSError):  # died while idle: replace it, send again
+                    slots[i] = self._replace(ctx, shared, s)
+                    slots[i].task = s.task
+                    slots[i].conn.send(s.task)
+
+    def _drain(self, s: _Slot, on_start: OnStart | None, finished: list) -> bool:
+        """Read every message of ``s`` (finished runs go to ``finished``); False when its pipe is
+        closed."""
         try:
             while s.conn.poll():
                 kind, payload = s.conn.recv()
@@ -179,7 +191,7 @@ class LocalExecutor:
                         on_start(s.task, payload)
                 else:
                     task, s.task = s.task, None
-                    on_done(task, payload)
+                    finished.append((task, payload))
         except (EOFError, OSError):
             return False
         return True
