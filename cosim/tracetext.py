@@ -1,4 +1,7 @@
-"""CSV text of trace rows: every value as Python's ``repr`` writes it (the shortest decimal that
+"""The text of trace files, fast: CSV rows (:func:`rows_text`) and the sidecar's JSON
+(:func:`json_text`).
+
+CSV rows: every value as Python's ``repr`` writes it (the shortest decimal that
 reads back to the same float64), produced for a whole block at once.
 
 Formatting floats one by one in Python costs about 0.7 µs per value, as much as stepping a
@@ -10,6 +13,7 @@ so the bytes are exactly those of ``",".join(map(repr, row))``.  Blocks with NaN
 """
 from __future__ import annotations
 
+import json
 import re
 
 import numpy as np
@@ -50,4 +54,19 @@ def rows_text(rows: np.ndarray) -> bytes:
     return text
 
 
-__all__ = ["repr_text", "rows_text"]
+def json_text(obj, default=None) -> str:
+    """``json.dumps(obj, indent=2, default=default)`` up to notation: the same layout and values
+    (orjson writes non-ASCII characters as they are and 1e-05 as 0.00001), ~20x faster.  Objects
+    with NaN or infinities (JSON has no such numbers; Python's json writes NaN, Infinity) and
+    anything orjson refuses go through :mod:`json`."""
+    if orjson is not None:
+        try:
+            json.dumps(obj, allow_nan=False, default=default)  # C encoder (no indent): a quick check
+            return orjson.dumps(obj, default=default, option=orjson.OPT_INDENT_2 | orjson.OPT_NON_STR_KEYS
+                                | orjson.OPT_SERIALIZE_NUMPY).decode()
+        except (ValueError, TypeError):  # NaN or infinity; types or keys either does not take
+            pass
+    return json.dumps(obj, indent=2, default=default)
+
+
+__all__ = ["json_text", "repr_text", "rows_text"]

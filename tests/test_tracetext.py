@@ -1,13 +1,14 @@
-"""The block CSV formatter of traces writes exactly what Python's ``repr`` writes for every
+"""The trace text: the block CSV formatter writes exactly what Python's ``repr`` writes for every
 float64 (the peer: ``",".join(map(repr, row))``), and every value reads back bit for bit."""
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
 
-from cosim import csvtext
+from cosim import tracetext
 
 
 def _peer(a: np.ndarray) -> bytes:
@@ -30,7 +31,7 @@ def _block(decade: int, seed: int) -> np.ndarray:
 @pytest.mark.parametrize("decade", list(range(-324, 309, 7)) + list(range(-12, 20)))
 def test_block_text_is_repr(decade):
     a = _block(decade, seed=decade + 1000)
-    text = csvtext.rows_text(a)
+    text = tracetext.rows_text(a)
     assert text == _peer(a)
     back = np.array([[float(v) for v in ln.split(",")] for ln in text.decode().splitlines()])
     assert back.tobytes() == a.tobytes()
@@ -44,23 +45,61 @@ SPECIAL = [0.0, -0.0, 1e-4, 9.999999999999999e-05, 1e-05, 0.00001234, 1.5e-06, 1
 @pytest.mark.parametrize("value", SPECIAL)
 def test_special_values(value):
     a = np.array([[value, -value, 1.0]])
-    assert csvtext.rows_text(a) == _peer(a)
+    assert tracetext.rows_text(a) == _peer(a)
 
 
 @pytest.mark.parametrize("bad", [math.nan, math.inf, -math.inf])
 def test_non_finite_blocks_are_repr(bad):
     a = np.array([[0.0, 1e-5], [bad, 2.5]])
-    assert csvtext.rows_text(a) == _peer(a)
+    assert tracetext.rows_text(a) == _peer(a)
 
 
 @pytest.mark.parametrize("shape", [(0, 3), (1, 1), (3, 1), (2, 7)])
 def test_shapes(shape):
     a = np.arange(np.prod(shape), dtype=float).reshape(shape) * 1e-5
-    assert csvtext.rows_text(a) == _peer(a)
+    assert tracetext.rows_text(a) == _peer(a)
 
 
 def test_without_orjson_same_bytes(monkeypatch):
     a = _block(-6, seed=3)
-    fast = csvtext.rows_text(a)
-    monkeypatch.setattr(csvtext, "orjson", None)
-    assert csvtext.rows_text(a) == fast == _peer(a)
+    fast = tracetext.rows_text(a)
+    monkeypatch.setattr(tracetext, "orjson", None)
+    assert tracetext.rows_text(a) == fast == _peer(a)
+
+
+def _default(o):
+    if isinstance(o, Path):
+        return str(o)
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    if isinstance(o, np.generic):
+        return o.item()
+    raise TypeError(type(o).__name__)
+
+
+JSON_CASES = [
+    {"scene": "pid_step", "stats": {"steps": 5000, "wall_s": 0.0821, "slaves": [{"name": "mech", "calls": 5000}]},
+     "columns": ["time", "mech.platform.x"], "empty": {}, "none": None, "flag": True, "nested": [[1, 2], []]},
+    {"path": Path("/tmp/x.csv"), "tuple": (1.5, 2.5), "small": 1e-05, "tiny": 1.234e-07, "big": 1e300},
+    {"text": "é, ü and ∞", "int_keys": {1: "a", 2: "b"}},
+    {"numpy": np.float64(0.1), "int": np.int64(3), "array": np.array([1.0, 2.5])},
+    {"nan": math.nan, "inf": [math.inf, -math.inf], "ok": 1.0},
+]
+
+
+@pytest.mark.parametrize("obj", JSON_CASES, ids=["plain", "path_small", "unicode_keys", "numpy", "non_finite"])
+def test_json_text_reads_back_like_json(obj):
+    """The peer: Python's json module (values, and the layout of indent=2)."""
+    import json
+
+    fast = tracetext.json_text(obj, default=_default)
+    ref = json.dumps(obj, indent=2, default=_default)
+    assert json.dumps(json.loads(fast), sort_keys=True) == json.dumps(json.loads(ref), sort_keys=True)
+    assert len(fast.splitlines()) == len(ref.splitlines())
+
+
+def test_json_text_non_finite_is_json_module_text():
+    import json
+
+    obj = JSON_CASES[-1]
+    assert tracetext.json_text(obj) == json.dumps(obj, indent=2)
