@@ -17,7 +17,8 @@ turns, so that a change of the machine's load hits them alike.
 - overhead per run: (whole batch on 1 worker - plain) / 16, also as % of the plain runs
   (targets: under 5 %, under 50 ms per run for short scenes; also at stop_time 0.5 s); the
   part after resolving the scenes is shown apart, and the worker's own share (instance
-  hand-out, metrics: its wall time per run beyond ``cosim.run.run``).
+  hand-out, metrics: its wall time per run beyond ``cosim.run.run``); and the same in CPU time
+  (this process and its workers), which the machine's load disturbs less than wall time.
 - reuse: initialisation time per run (``init_s``: instantiate or reset, start values,
   initialisation) with instances kept and reset against loading the FMUs for every run.
 
@@ -58,13 +59,21 @@ def batch_file(tmp: Path, stop: float) -> Path:
 
 def one(batch, tmp: Path, workers: int, reuse: bool = True) -> dict:
     out = Path(tempfile.mkdtemp(dir=tmp))
+    c0 = cpu()
     res = run_batch(batch, out=out, executor=LocalExecutor(workers), reuse=reuse)
+    c1 = cpu()
     assert res.ran == len(res.rows) and res.failed == 0, res.rows
     rows = res.rows
     run_s = sum(r["run_s"] for r in rows)
     return {"wall": res.wall_s, "execution": res.wall_s - res.prepare_s, "prepare": res.prepare_s,
             "worker": sum(r["wall_s"] for r in rows) - run_s, "run": run_s,
-            "init": sum(r["init_s"] for r in rows) / len(rows), "n": len(rows)}
+            "init": sum(r["init_s"] for r in rows) / len(rows), "n": len(rows), "cpu": c1 - c0}
+
+
+def cpu() -> float:
+    """CPU time [s] of this process and its finished children (the workers, once joined)."""
+    t = os.times()
+    return t.user + t.system + t.children_user + t.children_system
 
 
 class Plain:
@@ -84,7 +93,7 @@ class Plain:
         from cosim.run import run
 
         out = Path(tempfile.mkdtemp(dir=tmp))
-        t0 = time.perf_counter()
+        c0, t0 = cpu(), time.perf_counter()
         loop = trace = 0.0
         for i, scene in enumerate(self.scenes):
             t1 = time.perf_counter()
@@ -93,7 +102,7 @@ class Plain:
             loop += res.stats["wall_s"]
             trace += time.perf_counter() - t1 - res.stats["wall_s"] - res.stats["init_s"]
         n = len(self.scenes)
-        return {"wall": time.perf_counter() - t0, "n": n, "loop": loop, "trace": trace}
+        return {"wall": time.perf_counter() - t0, "n": n, "loop": loop, "trace": trace, "cpu": cpu() - c0}
 
 
 def best(fns: dict, repeat: int) -> dict:
@@ -116,7 +125,9 @@ def overhead(b1: dict, plain: dict) -> str:
             f"{1e3 * plain['trace'] / n:.1f} ms); of which resolving and checking the scenes, FMU look-up "
             f"{1e3 * b1['prepare'] / n:.1f} ms, execution {1e3 * exec_per:.1f} ms "
             f"({100 * exec_per * n / plain['wall']:.1f} %; the worker's own share {1e3 * b1['worker'] / n:.1f} ms: "
-            f"instances, metrics)")
+            f"instances, metrics); CPU time per run {1e3 * b1['cpu'] / n:.1f} ms against "
+            f"{1e3 * plain['cpu'] / n:.1f} ms (+{100 * (b1['cpu'] / plain['cpu'] - 1):.1f} %; less sensitive to the "
+            f"machine's load than wall time)")
 
 
 def main() -> None:
@@ -138,6 +149,8 @@ def main() -> None:
         m = best({"1": lambda: one(batch, tmp, 1), "2": lambda: one(batch, tmp, 2),
                   "plain": lambda: plain(tmp)}, args.repeat)
         m1, m2, p = m["1"], m["2"], m["plain"]
+        print(f"CPU time of the whole batch (this process and the workers): 1 worker {m1['cpu']:.2f} s, 2 workers "
+              f"{m2['cpu']:.2f} s; the runs one after another {p['cpu']:.2f} s")
         print(f"16 runs of pid_step ({args.stop:g} s each): whole batch 1 worker {m1['wall']:.2f} s, 2 workers "
               f"{m2['wall']:.2f} s: speed-up {m1['wall'] / m2['wall']:.2f}x (target 1.8x); execution alone "
               f"{m1['execution']:.2f} s vs {m2['execution']:.2f} s: {m1['execution'] / m2['execution']:.2f}x; "
