@@ -353,31 +353,6 @@ def _cleanup() -> None:
 atexit.register(_cleanup)
 
 
-def _sweep_dead_unzips() -> None:
-    """Remove the FMU folders of processes that died without their atexit (SIGKILL)."""
-    from .outputs import pid_alive
-
-    for d in Path(tempfile.gettempdir()).glob("rpr-fmu-*-*"):
-        pid = d.name.split("-")[2]
-        if pid.isdigit() and int(pid) != os.getpid() and not pid_alive(int(pid)):
-            shutil.rmtree(d, ignore_errors=True)
-
-
-_SWEPT: list[int] = []  # the pids that swept already (a forked child inherits its parent's)
-
-
-def _unzip(path: Path) -> str:
-    import fmpy
-
-    key = (str(path.resolve()), path.stat().st_mtime)
-    if key not in _UNZIPPED:
-        if os.getpid() not in _SWEPT:  # once per process: globbing /tmp costs ~15 ms
-            _SWEPT.append(os.getpid())
-            _sweep_dead_unzips()
-        _UNZIPPED[key] = fmpy.extract(str(path), unzipdir=tempfile.mkdtemp(prefix=f"rpr-fmu-{os.getpid()}-"))
-    return _UNZIPPED[key]
-
-
 def unpack_fmu(path: Path) -> str:
     """The folder ``path`` is unpacked into (once per process and file; removed at exit)."""
     return _unzip(Path(path))
@@ -388,6 +363,26 @@ def forget_unpacked(path: Path) -> None:
     name = str(Path(path).resolve())
     for key in [k for k in _UNZIPPED if k[0] == name]:
         shutil.rmtree(_UNZIPPED.pop(key), ignore_errors=True)
+
+
+def _sweep_dead_unzips() -> None:
+    """Remove the FMU folders of processes that died without their atexit (SIGKILL)."""
+    from .outputs import pid_alive
+
+    for d in Path(tempfile.gettempdir()).glob("rpr-fmu-*-*"):
+        pid = d.name.split("-")[2]
+        if pid.isdigit() and int(pid) != os.getpid() and not pid_alive(int(pid)):
+            shutil.rmtree(d, ignore_errors=True)
+
+
+def _unzip(path: Path) -> str:
+    import fmpy
+
+    key = (str(path.resolve()), path.stat().st_mtime)
+    if key not in _UNZIPPED:
+        _sweep_dead_unzips()
+        _UNZIPPED[key] = fmpy.extract(str(path), unzipdir=tempfile.mkdtemp(prefix=f"rpr-fmu-{os.getpid()}-"))
+    return _UNZIPPED[key]
 
 
 _DoStep2 = ctypes.CFUNCTYPE(c_int, c_void_p, c_double, c_double, c_int)
