@@ -93,7 +93,7 @@ class Plain:
         from cosim.run import run
 
         out = Path(tempfile.mkdtemp(dir=tmp))
-        c0, t0 = cpu(), time.perf_counter()
+        c0, t0, m0 = cpu(), time.perf_counter(), time.thread_time()
         loop = trace = 0.0
         for i, scene in enumerate(self.scenes):
             t1 = time.perf_counter()
@@ -102,7 +102,8 @@ class Plain:
             loop += res.stats["wall_s"]
             trace += time.perf_counter() - t1 - res.stats["wall_s"] - res.stats["init_s"]
         n = len(self.scenes)
-        return {"wall": time.perf_counter() - t0, "n": n, "loop": loop, "trace": trace, "cpu": cpu() - c0}
+        return {"wall": time.perf_counter() - t0, "n": n, "loop": loop, "trace": trace, "cpu": cpu() - c0,
+                "main_cpu": time.thread_time() - m0}
 
 
 def best(fns: dict, repeat: int) -> dict:
@@ -155,6 +156,11 @@ def main() -> None:
               f"{m2['wall']:.2f} s: speed-up {m1['wall'] / m2['wall']:.2f}x (target 1.8x); execution alone "
               f"{m1['execution']:.2f} s vs {m2['execution']:.2f} s: {m1['execution'] / m2['execution']:.2f}x; "
               f"the runs one after another in one process {p['wall']:.2f} s")
+        main_ms, other_ms = 1e3 * p["main_cpu"] / p["n"], 1e3 * (p["cpu"] - p["main_cpu"]) / p["n"]
+        print(f"a run's CPU time: {main_ms:.1f} ms in its main thread (stepping), {other_ms:.1f} ms in its "
+              f"trace-writer thread, which overlap: a worker whose runs last as long as their main thread keeps "
+              f"{(main_ms + other_ms) / main_ms:.2f} cores busy, and 2 such workers on 2 cores can be at most "
+              f"{2 * main_ms / (main_ms + other_ms):.2f}x faster than one")
         print(f"overhead, 1 worker, {args.stop:g} s runs: {overhead(m1, p)} (targets 5 %, 50 ms)")
         ms = best({"1": lambda: one(short, tmp, 1), "plain": lambda: plain_short(tmp)}, args.repeat)
         print(f"overhead, 1 worker, 0.5 s runs: {overhead(ms['1'], ms['plain'])} (target 50 ms)")
