@@ -37,6 +37,17 @@ def test_block_text_is_repr(decade):
     assert back.tobytes() == a.tobytes()
 
 
+@pytest.mark.parametrize("seed", [1, 2, 3])
+def test_mixed_block_is_repr(seed):
+    """A trace-like block: most rows plain, a few with magnitudes below 1e-4 here and there."""
+    rng = np.random.default_rng(seed)
+    a = rng.standard_normal((2000, 9))
+    rows, cols = rng.integers(0, 2000, 60), rng.integers(0, 9, 60)
+    a[rows, cols] *= 10.0 ** rng.integers(-12, -3, 60)
+    a[:, 0] = np.arange(2000) * 1e-3
+    assert tracetext.rows_text(a) == _peer(a)
+
+
 SPECIAL = [0.0, -0.0, 1e-4, 9.999999999999999e-05, 1e-05, 0.00001234, 1.5e-06, 1e-10, 5e-324, -2.2250738585072014e-308,
            1e15, 1e16, 123456789012345678.0, 1.7976931348623157e308, 0.1, 0.30000000000000004, 100.0, 2.0 ** 60,
            1e22, -1e-100, 6.000000000000001e-05]
