@@ -83,3 +83,9 @@ def reference_fmus() -> dict[str, Path]:
         return build_reference_fmus(REFERENCE_FMUS_SRC, dest)
     except RuntimeError as exc:
         pytest.fail(str(exc))
+
+
+@pytest.fixture(scope="session")
+def cache(tmp_path_factory) -> Path:
+    """One FMU cache directory for the whole session (each FMU is built once and shared)."""
+    return tmp_path_factory.getbasetemp() / "fmu-cache"

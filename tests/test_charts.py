@@ -20,11 +20,6 @@ SCENES = ROOT / "scenarios"
 
 
 @pytest.fixture(scope="module")
-def cache(tmp_path_factory):
-    return tmp_path_factory.getbasetemp() / "fmu-cache"
-
-
-@pytest.fixture(scope="module")
 def pid_scene():
     return load(SCENES / "pid_step.yaml")
 

@@ -16,11 +16,6 @@ CATALOG = [(m, f) for m, fs in sorted(blocks.catalog().items()) for f in fs]
 IDS = [f"{m}-{f}" for m, f in CATALOG]
 
 
-@pytest.fixture(scope="session")
-def cache(tmp_path_factory):
-    return tmp_path_factory.getbasetemp() / "fmu-cache"
-
-
 def _step(blk) -> float:
     return float(blk.sample_period) if blk.integrator == "discrete" else 1e-3
 

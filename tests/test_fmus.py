@@ -36,11 +36,6 @@ from test_fmu_integrators import gain_block, lag_block, msd_block, msd_exact, rk
 VERSIONS = ["2.0", "3.0"]
 
 
-@pytest.fixture(scope="session")
-def cache(tmp_path_factory) -> Path:
-    return tmp_path_factory.getbasetemp() / "fmu-cache"
-
-
 _UNZIPPED: dict[Path, str] = {}
 
 

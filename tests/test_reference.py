@@ -24,11 +24,6 @@ ROOT = Path(__file__).resolve().parents[1]
 SCENES = ROOT / "scenarios"
 
 
-@pytest.fixture(scope="module")
-def cache(tmp_path_factory):
-    return tmp_path_factory.getbasetemp() / "fmu-cache"
-
-
 def sine_scene(**master):
     """The Chapter 7 path (SPEC §5) into the kinematic mechanism."""
     sig = ["x", "y", "phi", "vx", "vy", "omega", "ax", "ay", "alpha"]

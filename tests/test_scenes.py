@@ -30,11 +30,6 @@ BAND_LEG, BAND_PHI = 0.5e-3, 0.003  # the thesis's end-state agreement, used as 
 
 
 @pytest.fixture(scope="module")
-def cache(tmp_path_factory):
-    return tmp_path_factory.getbasetemp() / "fmu-cache"
-
-
-@pytest.fixture(scope="module")
 def pid_rigid(cache):
     """pid_step (Gauss-Seidel at 1 ms, linear inputs), run on to 15 s to see it settle."""
     return run(SCENES / "pid_step.yaml", ["stop_time=15"], cache_dir=cache)

@@ -22,11 +22,6 @@ SCENES = ROOT / "scenarios"
 
 
 @pytest.fixture(scope="module")
-def cache(tmp_path_factory):
-    return tmp_path_factory.getbasetemp() / "fmu-cache"
-
-
-@pytest.fixture(scope="module")
 def pid_ssp(cache, tmp_path_factory):
     return export(load(SCENES / "pid_step.yaml"), tmp_path_factory.mktemp("ssp") / "pid_step.ssp", cache_dir=cache)
 
