@@ -52,7 +52,13 @@ TARGETS: dict[str, list[str]] = {
                                "and not multibody"],
     "models/kinematics.py": ["tests/test_kinematics.py", "tests/test_virtual_work.py"],
     "models/integrators.py": ["tests/test_fmu_integrators.py"],
-    "cosim/master.py": ["tests/test_master.py"],
+    "cosim/master/graph.py": ["tests/test_master.py"],
+    "cosim/master/system.py": ["tests/test_master.py"],
+    "cosim/master/algorithm.py": ["tests/test_master.py"],
+    "cosim/master/algorithms/jacobi.py": ["tests/test_master.py"],
+    "cosim/master/algorithms/gauss_seidel.py": ["tests/test_master.py"],
+    "cosim/master/engine.py": ["tests/test_master.py"],
+    "cosim/master/run.py": ["tests/test_master.py"],
     "cosim/fastloop.py": ["tests/test_master.py"],
 }
 

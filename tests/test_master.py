@@ -503,6 +503,20 @@ def test_registry_suggests_the_closest_algorithm():
     assert set(ALGORITHMS) >= {"jacobi", "gauss_seidel"}
 
 
+def test_every_algorithm_module_is_listed_and_registers_its_class():
+    """cosim.master.algorithms imports the modules in MODULES: a module added to the package but
+    not to the list would never register, so the list must name every module found on disk, and
+    each module must contribute an Algorithm subclass to the registry under its name."""
+    import pkgutil
+
+    from cosim.master import algorithms
+
+    on_disk = {m.name for m in pkgutil.iter_modules(algorithms.__path__)}
+    assert set(algorithms.MODULES) == on_disk
+    owners = {cls.__module__.rsplit(".", 1)[-1] for cls in ALGORITHMS.values()}
+    assert on_disk <= owners
+
+
 def test_a_registered_algorithm_runs_through_the_same_loop():
     """The extension point: a subclass implementing only _step_impl (here Gauss-Seidel in the
     reverse order) is found by name and produces the map its convention implies."""

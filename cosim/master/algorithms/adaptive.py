@@ -34,10 +34,11 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .errors import UserError
-from .master import (Algorithm, RunStats, gauss_seidel_order, initialize, interruption_reason, register,
-                     slave_table)
-from .slaves import FAILING, Status
+from ...errors import UserError
+from ...slaves import FAILING, Status
+from ..algorithm import Algorithm, register
+from ..graph import gauss_seidel_order
+from ..run import RunStats, initialize, interruption_reason, slave_table
 
 
 @dataclass(frozen=True)
@@ -109,7 +110,7 @@ class AdaptiveStats:
 
 
 class AdaptiveStepper:
-    """The stepping of :mod:`cosim.adaptive` over an initialised, bound ``system``."""
+    """The stepping of :mod:`cosim.master.algorithms.adaptive` over an initialised, bound ``system``."""
 
     order_p_linear, order_p_hold = 2.0, 1.0
     k_i, k_p = 0.7, 0.4
@@ -317,7 +318,7 @@ class Adaptive(Algorithm):
     options = OPTIONS
 
     def _step_impl(self, t, h):  # pragma: no cover - variable-step runs never use the fixed-step loop
-        raise RuntimeError("adaptive runs through cosim.adaptive.simulate_variable")
+        raise RuntimeError("adaptive runs through cosim.master.algorithms.adaptive.simulate_variable")
 
 
 def simulate_variable(system, cls, *, step_ns: int, n_steps: int, observers: Sequence = (),

@@ -1,0 +1,77 @@
+"""Master algorithms: fixed-step Jacobi and Gauss-Seidel and error-controlled ``adaptive`` behind
+one base class and a registry.
+
+Package map (the public names are re-exported here: ``from cosim.master import X``):
+
+``graph``       algebraic loops, topological order, the default Gauss-Seidel order
+``system``      :class:`CoupledSystem` (the value vector, value references, indices) and :class:`Link`
+``algorithm``   the :class:`Algorithm` base class, :data:`ALGORITHMS`, :func:`register`, :func:`algorithm`
+``algorithms/`` one module per algorithm (``jacobi``, ``gauss_seidel``, ``adaptive``), listed in
+                :data:`cosim.master.algorithms.MODULES`
+``engine``      who runs the steps: the compiled loop (:mod:`cosim.fastloop`) or the Python loop;
+                :func:`choose_engine`
+``run``         the run loop :func:`simulate`, :func:`initialize`, :class:`RunStats`
+
+Structure (after libcosim and scipy.integrate): a :class:`CoupledSystem` lays the slaves'
+connected and recorded variables out in one float64 vector and precomputes every value
+reference and index; an :class:`Algorithm` owns the public :meth:`Algorithm.step` and its
+status, subclasses implement only :meth:`Algorithm._step_impl`; algorithms are found by name in
+:data:`ALGORITHMS`; :func:`simulate` is the run loop (algorithm, then observers).
+Recording is the observers' business (:mod:`cosim.trace`), never the algorithm's.
+
+Time is counted in whole steps of an integer number of nanoseconds: ``t_k = k * step_ns / 1e9``
+exactly (no accumulated drift).  Communication step ``h = step_ns / 1e9``.
+
+Conventions at communication point ``t_k`` (with ``inputs="hold"``, the default, inputs are held
+constant over a step):
+
+Jacobi
+    1. every connected input takes the value its source output had when last read, i.e. the
+       output at ``t_k`` read after the *previous* exchange;  2. every slave steps ``t_k -> t_k+1``;
+    3. every slave's outputs are read.  So a slave's input over ``[t_k, t_k+1]`` is its source's
+    output at ``t_k`` -- and for an output with direct feedthrough, that output was evaluated at
+    ``t_k`` with its own inputs from ``t_k-1``: each feedthrough hop adds one step of delay
+    (the "one-step delay" convention).
+Gauss-Seidel
+    slaves step one after another in a fixed order; each takes its inputs just before its own
+    step, so an input whose source has already stepped sees the source's output at ``t_k+1``,
+    the others see it at ``t_k``.  The default order is a topological order of the slave graph
+    after cutting the fewest connections that close cycles (an exact search for cycles of up to
+    seven slaves, a greedy one beyond); ``master.order`` in a scene overrides it.
+Linear inputs (``inputs="linear"``)
+    a slave that can follow input slopes (FMI 2.0 ``canInterpolateInputs``) also gets, per
+    input, a slope for the coming step: an input whose source has already stepped (Gauss-Seidel)
+    is *interpolated*, set to the source's value at ``t_k`` with slope ``(y_k+1 - y_k) / h``; the
+    others are *extrapolated*, set to ``y_k`` with slope ``(y_k - y_k-1) / h`` (zero in the first
+    step).  Holding makes the coupling first order in ``h``; this makes it second order.  Slaves
+    that cannot interpolate keep holding.
+Initialisation
+    in initialisation mode every slave's outputs are read, then feedthrough outputs are
+    propagated in a topological order of the port graph (output -> input connections plus
+    input -> output feedthrough inside slaves), so the values at ``t_0`` are consistent.  A
+    cycle in that graph is an algebraic loop and is refused (:func:`find_algebraic_loop`).
+
+Failure: a Discard, Error or Fatal status from any call stops the run (a fixed-step master
+cannot retry); the status and the slave's last log message become the run's reason.
+Stop requests (FMI 3.0 ``terminateSimulation``, FMI 2.0 Discard with ``fmi2Terminated``): the
+other slaves complete the step from ``t_k``, the outputs are read, the point ``t_k+1`` is recorded
+(on the output grid or not) and the run ends with status "stopped", reason "stopped by C at t".
+
+Types: the value vector carries scalar Float64 variables; other FMI types and arrays go through
+:class:`cosim.typedio.TypedPorts` inside each slave's push/pull (same conventions, Python loop).
+"""
+from __future__ import annotations
+
+from . import algorithms  # registers every algorithm module (algorithms.MODULES)
+from .algorithm import ALGORITHMS, Algorithm, algorithm, register
+from .algorithms.adaptive import Adaptive
+from .algorithms.gauss_seidel import GaussSeidel
+from .algorithms.jacobi import Jacobi
+from .engine import _Compiled, choose_engine
+from .graph import find_algebraic_loop, gauss_seidel_order, topological_order
+from .run import RunStats, initialize, interruption_reason, simulate, slave_table
+from .system import CoupledSystem, Link
+
+__all__ = ["ALGORITHMS", "Adaptive", "Algorithm", "CoupledSystem", "GaussSeidel", "Jacobi", "Link", "RunStats",
+           "_Compiled", "algorithm", "algorithms", "choose_engine", "find_algebraic_loop", "gauss_seidel_order",
+           "initialize", "interruption_reason", "register", "simulate", "slave_table", "topological_order"]

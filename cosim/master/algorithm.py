@@ -1,0 +1,229 @@
+"""The :class:`Algorithm` base class of master algorithms and their registry: an algorithm is a
+module under :mod:`cosim.master.algorithms` with a class decorated by :func:`register`."""
+from __future__ import annotations
+
+import difflib
+import time
+from abc import ABC, abstractmethod
+from collections.abc import Callable, Sequence
+from typing import ClassVar
+
+import numpy as np
+
+from ..errors import UserError
+from ..slaves import FAILING, Status
+from .graph import gauss_seidel_order
+from .system import CoupledSystem
+
+_ns = time.perf_counter_ns
+
+
+def _gatherer(system: CoupledSystem, i: int) -> Callable[[], None]:
+    """A function copying slave i's connected inputs from their sources into its input buffer
+    (plain memoryview copies: a numpy call costs about a microsecond, more than a few items)."""
+    src = [int(x) for x in system.in_src[i]]
+    if not src:
+        return lambda: None
+    if system.in_affine[i] is not None:
+        return lambda: system.gather(i)
+    if len(src) > 8:
+        v, idx, buf = system.v, system.in_src[i], system.in_buf[i]
+        return lambda: np.take(v, idx, out=buf)
+    mv, mb = memoryview(system.v), memoryview(system.in_buf[i])
+    pairs = list(enumerate(src))
+    if len(src) == 1:
+        s0 = src[0]
+
+        def one() -> None:
+            mb[0] = mv[s0]
+        return one
+
+    def copy() -> None:
+        for j, s in pairs:
+            mb[j] = mv[s]
+    return copy
+
+
+class Algorithm(ABC):
+    """Base class of master algorithms.  The public :meth:`step` advances one macro step and
+    keeps :attr:`status` (``"running"``, ``"failed"``, ``"stopped"``); a subclass implements
+    :meth:`_step_impl` and may name a compiled variant (:attr:`native_code`, see
+    :mod:`cosim.fastloop`).  Numerical failure comes back as a status and :attr:`message`, never
+    as an exception; bad arguments raise at once."""
+
+    name: ClassVar[str]
+    #: algorithm code of the compiled loop implementing the same steps, or None
+    native_code: ClassVar[int | None] = None
+    #: slaves step one after another in :attr:`order` (later ones see earlier ones' new outputs)
+    sequential: ClassVar[bool] = False
+
+    def __init__(self, system: CoupledSystem, step_ns: int, *, order: Sequence[int] | None = None,
+                 timing: bool = True, inputs: str = "hold", start_ns: int = 0):
+        if not (isinstance(step_ns, (int, np.integer)) and step_ns > 0):
+            raise UserError(f"the communication step must be a positive whole number of nanoseconds, got {step_ns!r}")
+        self.system = system
+        self.step_ns = int(step_ns)
+        self.h = self.step_ns / 1e9
+        self.start_ns = int(start_ns)  # the start time [ns]; the compiled loop runs only from 0
+        self.text_events: list[tuple[float, str, str]] = []  # (t, column, value) of recorded String/Binary
+        self.k = 0
+        self.status = "running"
+        self.message = ""
+        self.failed_slave: int | None = None
+        n = len(system.slaves)
+        self.order = list(order) if order is not None else gauss_seidel_order(n, system.slave_edges())
+        if sorted(self.order) != list(range(n)):
+            raise UserError(f"master order must list every slave once, got {self.order}")
+        self.calls = [0] * n  # doStep calls per slave
+        self.slave_ns = [0] * n  # wall time [ns] inside each slave's calls
+        self.master_ns = 0  # the master's own time [ns] in the stepping loop
+        self.timing = timing
+        s = system.slaves
+        self._push = [x.push for x in s]
+        self._pull = [x.pull for x in s]
+        self._do = [x.do_step for x in s]
+        self._gather = [_gatherer(system, i) for i in range(n)]
+        self._setup_inputs(inputs)
+
+    def _setup_inputs(self, inputs: str) -> None:
+        """Per slave: whether it gets input slopes (:attr:`interpolating`), the slope buffer, the
+        inputs' previous source values (:attr:`hist`, from ``system.v`` at the current point) and
+        which inputs are interpolated rather than extrapolated (:attr:`fresh`)."""
+        if inputs not in ("hold", "linear"):
+            raise UserError(f"inputs must be 'hold' or 'linear', got {inputs!r}")
+        sysm, n = self.system, len(self.system.slaves)
+        self.inputs = inputs
+        self.slopes = [np.zeros(len(b)) for b in sysm.in_buf]
+        self.hist = [sysm.source_values(i) for i in range(len(sysm.in_src))]
+        self.fresh = [np.zeros(len(b), dtype=bool) for b in sysm.in_buf]
+        self.interpolating = [False] * n
+        if inputs == "hold":
+            return
+        pos = {s: k for k, s in enumerate(self.order)}
+        for i, slave in enumerate(sysm.slaves):
+            if not slave.bind_slopes(self.slopes[i]):
+                continue
+            self.interpolating[i] = True
+            if self.sequential:
+                self.fresh[i][:] = [pos[ln.src] < pos[i] for ln in sysm.links if ln.dst == i]
+            self._push[i] = self._linear_push(i)
+
+    def _linear_push(self, i: int) -> Callable[[], int]:
+        """Slave i's push with slopes (after its gather; see :mod:`cosim.master`)."""
+        buf, hist, slope, fresh = self.system.in_buf[i], self.hist[i], self.slopes[i], self.fresh[i]
+        tmp, inv_h = np.empty_like(buf), 1.0 / self.h
+        slave = self.system.slaves[i]
+        push, push_slopes = slave.push, slave.push_slopes
+
+        def push_linear() -> int:
+            np.subtract(buf, hist, out=slope)
+            np.multiply(slope, inv_h, out=slope)
+            np.copyto(tmp, buf)
+            np.copyto(buf, hist, where=fresh)
+            np.copyto(hist, tmp)
+            st = push()
+            return st if st in FAILING else push_slopes()
+        return push_linear
+
+    @property
+    def t(self) -> float:
+        """Current communication point [s] (``(start_ns + k * step_ns) / 1e9``)."""
+        return self.time_at(self.k)
+
+    def time_at(self, k: int) -> float:
+        """Communication point ``k`` [s]."""
+        return (self.start_ns + k * self.step_ns) / 1e9
+
+    def step(self) -> bool:
+        """One macro step ``t_k -> t_k+1``; False (with :attr:`status`, :attr:`message`) when the
+        run ends: a failure, or a stop request (then the step is completed first, see
+        :meth:`complete_after_stop`)."""
+        if self.status != "running":
+            raise RuntimeError(f"{self.name}: cannot step a run that is {self.status}")
+        t = self.time_at(self.k)
+        bad = self._step_impl(t, self.h)
+        if bad is None:
+            self.k += 1
+            return True
+        if self.stop_requested(*bad):
+            self.complete_after_stop(bad[0], t)
+            return False
+        self._fail(bad[0], bad[1], t)
+        return False
+
+    def stop_requested(self, i: int, status: int) -> bool:
+        """Is ``status`` from slave ``i`` a request to end the simulation (FMI 3.0
+        terminateSimulation, FMI 2.0 Discard with fmi2Terminated)?"""
+        return status == Status.STOP_REQUESTED or (
+            status == Status.DISCARD and self.system.slaves[i].asked_to_stop())
+
+    def complete_after_stop(self, i: int, t: float) -> None:
+        """Slave ``i`` asked to stop in the step from ``t``: the other slaves complete that step
+        (so every output belongs to ``t_k+1``), then the run ends as ``stopped`` at ``t_k+1``, a point
+        the run loop records."""
+        bad = self._finish_step(i, t, self.h)
+        if bad is not None and not self.stop_requested(*bad):
+            self._fail(bad[0], bad[1], t)
+            return
+        self.k += 1
+        sl = self.system.slaves[i]
+        detail = sl.stop_detail() if hasattr(sl, "stop_detail") else ""
+        self.status, self.failed_slave = "stopped", i
+        self.message = (f"stopped by {sl.name} at t = {self.t:.9g} s: it asked to terminate the simulation in the "
+                        f"step from t = {t:.9g} s" + (f" ({detail})" if detail else "")
+                        + (f"; its last message: {sl.last_message}" if sl.last_message else ""))
+
+    def _finish_step(self, i: int, t: float, h: float) -> tuple[int, int] | None:
+        """Complete the step from ``t`` after slave ``i`` stepped and asked to stop; returns
+        ``(slave, status)`` of a failing call, or None."""
+        raise NotImplementedError(f"{self.name} cannot complete a step after a stop request")
+
+    @abstractmethod
+    def _step_impl(self, t: float, h: float) -> tuple[int, int] | None:
+        """Advance every slave from ``t`` by ``h``; return ``(slave index, status)`` of the first
+        failing call, or None."""
+
+    def _fail(self, i: int, status: int, t: float) -> None:
+        sl = self.system.slaves[i]
+        self.failed_slave = i
+        if status == Status.STOP_REQUESTED:
+            self.status = "stopped"
+            self.message = f"{sl.name} asked to terminate the simulation at t = {t:.9g} s (step {self.k})"
+        else:
+            self.status = "failed"
+            name = Status(status).name if status in Status._value2member_map_ else str(status)
+            self.message = (f"{sl.name} returned {name} in the step from t = {t:.9g} s (step {self.k})"
+                            + (f": {sl.last_message}" if sl.last_message else ""))
+
+    # helpers for subclasses: one slave's part of a step, timed ----------------------------------------
+    def _io(self, i: int, fn: Callable[[], int]) -> int:
+        t0 = _ns()
+        st = fn()
+        self.slave_ns[i] += _ns() - t0
+        return st
+
+    def _advance(self, i: int, t: float, h: float) -> int:
+        t0 = _ns()
+        st = self._do[i](t, h)
+        self.slave_ns[i] += _ns() - t0
+        self.calls[i] += 1
+        return st
+
+
+ALGORITHMS: dict[str, type[Algorithm]] = {}
+
+
+def register(cls: type[Algorithm]) -> type[Algorithm]:
+    """Class decorator: make an algorithm available by its ``name``."""
+    ALGORITHMS[cls.name] = cls
+    return cls
+
+
+def algorithm(name: str) -> type[Algorithm]:
+    """The algorithm class called ``name``; :class:`UserError` with the closest names otherwise."""
+    try:
+        return ALGORITHMS[name]
+    except KeyError:
+        close = difflib.get_close_matches(str(name), ALGORITHMS, n=1)
+        hint = f"; did you mean {close[0]!r}?" if close else ""
+        raise UserError(f"unknown master algorithm {name!r}{hint} (known: {', '.join(sorted(ALGORITHMS))})") from None

@@ -1,0 +1,15 @@
+"""The master algorithms, one module each.  Importing this package imports every module listed in
+:data:`MODULES`, whose ``@register`` classes thereby enter :data:`cosim.master.ALGORITHMS`.
+
+A new algorithm is a module here holding an :class:`cosim.master.Algorithm` subclass decorated
+with :func:`cosim.master.register`, plus its name in :data:`MODULES` (a test checks that every
+module of this package is listed)."""
+from __future__ import annotations
+
+import importlib
+
+#: the algorithm modules, in registry order (the order of defaults such as the study's algorithms)
+MODULES = ("jacobi", "gauss_seidel", "adaptive")
+
+for _name in MODULES:
+    importlib.import_module(f"{__name__}.{_name}")

@@ -1,0 +1,49 @@
+"""Fixed-step Gauss-Seidel: slaves step one after another in a fixed order, each reading the
+freshest outputs (conventions in :mod:`cosim.master`; compiled variant code 1 in :mod:`cosim.fastloop`)."""
+from __future__ import annotations
+
+from ...slaves import FAILING, Status
+from ..algorithm import Algorithm, _ns, register
+
+
+@register
+class GaussSeidel(Algorithm):
+    """Slaves step one after another in :attr:`order`; each reads the freshest outputs."""
+
+    name = "gauss_seidel"
+    native_code = 1
+    sequential = True
+
+    def _step_impl(self, t, h):
+        gather, push, do, pull, acc, calls = (self._gather, self._push, self._do, self._pull, self.slave_ns,
+                                               self.calls)
+        tp = _ns()
+        for i in self.order:
+            gather[i]()
+            st = push[i]()
+            if st not in FAILING:
+                st = do[i](t, h)
+                calls[i] += 1
+                if st not in FAILING and st != Status.STOP_REQUESTED:
+                    st = pull[i]()
+            tn = _ns()
+            acc[i] += tn - tp
+            tp = tn
+            if st in FAILING or st == Status.STOP_REQUESTED:
+                return i, st
+        return None
+
+    def _finish_step(self, i, t, h):
+        st = self._io(i, self._pull[i])
+        if st in FAILING:
+            return i, st
+        for j in self.order[self.order.index(i) + 1:]:
+            self._gather[j]()
+            st = self._io(j, self._push[j])
+            if st not in FAILING:
+                st = self._advance(j, t, h)
+                if st not in FAILING:
+                    st = self._io(j, self._pull[j])
+            if st in FAILING:
+                return j, st
+        return None

@@ -1,0 +1,56 @@
+"""Fixed-step Jacobi: every slave takes its inputs from outputs read at ``t_k``, then all step
+(conventions in :mod:`cosim.master`; compiled variant code 0 in :mod:`cosim.fastloop`)."""
+from __future__ import annotations
+
+from ...slaves import FAILING, Status
+from ..algorithm import Algorithm, _ns, register
+
+
+@register
+class Jacobi(Algorithm):
+    """All slaves take inputs from outputs read at ``t_k``, then all step in parallel (in
+    principle), then all outputs are read (see :mod:`cosim.master` for the delay convention)."""
+
+    name = "jacobi"
+    native_code = 0
+
+    def _step_impl(self, t, h):
+        gather, push, do, pull, acc, calls = (self._gather, self._push, self._do, self._pull, self.slave_ns,
+                                               self.calls)
+        n = len(do)
+        tp = _ns()
+        for i in range(n):
+            gather[i]()
+            st = push[i]()
+            tn = _ns()
+            acc[i] += tn - tp
+            tp = tn
+            if st in FAILING:
+                return i, st
+        for i in range(n):
+            st = do[i](t, h)
+            calls[i] += 1
+            tn = _ns()
+            acc[i] += tn - tp
+            tp = tn
+            if st in FAILING or st == Status.STOP_REQUESTED:
+                return i, st
+        for i in range(n):
+            st = pull[i]()
+            tn = _ns()
+            acc[i] += tn - tp
+            tp = tn
+            if st in FAILING:
+                return i, st
+        return None
+
+    def _finish_step(self, i, t, h):
+        for j in range(i + 1, len(self._do)):
+            st = self._advance(j, t, h)
+            if st in FAILING:
+                return j, st
+        for j in range(len(self._pull)):
+            st = self._io(j, self._pull[j])
+            if st in FAILING:
+                return j, st
+        return None

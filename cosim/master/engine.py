@@ -1,0 +1,122 @@
+"""Engines, who runs an algorithm's steps: the compiled loop (:mod:`cosim.fastloop`, for FMU
+slaves and algorithms with a ``native_code``) or the Python loop, its bit-identical reference."""
+from __future__ import annotations
+
+import numpy as np
+
+from ..errors import UserError
+from .algorithm import Algorithm
+from .system import CoupledSystem
+
+
+class _Compiled:
+    """Runs an algorithm's steps in the compiled loop (:mod:`cosim.fastloop`)."""
+
+    def __init__(self, alg: Algorithm):
+        import ctypes
+
+        from .. import fastloop
+
+        self.lib = fastloop.library()
+        sysm = alg.system
+        n = len(sysm.slaves)
+        self.arr = (fastloop.CSlave * n)()
+        self.keep = []
+        for i, s in enumerate(sysm.slaves):
+            ne = s.native()
+            if ne is None:
+                raise UserError(f"{s.name} has no C entry points; use master.engine: python")
+            c = self.arr[i]
+            c.fmi3, c.n_in, c.n_out = int(ne.fmi3), len(sysm.in_vrs[i]), len(sysm.out_vrs[i])
+            if alg.interpolating[i]:
+                orders, fresh = np.ones(c.n_in, dtype=np.int32), alg.fresh[i].astype(np.int8)
+                self.keep += [orders, fresh]
+                c.interp, c.set_der = 1, ne.set_input_derivatives
+                c.orders, c.fresh = orders.ctypes.data, fresh.ctypes.data
+                c.hist, c.slope = alg.hist[i].ctypes.data, alg.slopes[i].ctypes.data
+            c.in_off, c.out_off = sysm.in_off[i], sysm.out_off[i]
+            c.inst, c.do_step, c.get, c.set = ne.instance, ne.do_step, ne.get_real, ne.set_real
+            for arr in (sysm.in_vrs[i], sysm.in_src[i], sysm.out_vrs[i]):
+                self.keep.append(arr)
+            c.in_vr = sysm.in_vrs[i].ctypes.data if c.n_in else None
+            c.in_src = sysm.in_src[i].ctypes.data if c.n_in else None
+            c.out_vr = sysm.out_vrs[i].ctypes.data if c.n_out else None
+        self.order = np.array(alg.order, dtype=np.int32)
+        self.rec_idx = sysm.record_idx
+        self.alg = alg
+        self.c = ctypes
+        self.n_rows = ctypes.c_int64()
+        self.fail_slave = ctypes.c_int32()
+        self.fail_status = ctypes.c_int32()
+        self.master_ns = ctypes.c_int64()
+        #: wall time after which one call returns early [ns]: signals are handled between calls
+        self.budget_ns = fastloop.CALL_BUDGET_NS
+
+    def run(self, nsteps: int, rec_every: int, rec: np.ndarray) -> int:
+        alg, sysm = self.alg, self.alg.system
+        self.master_ns.value = 0
+        done = self.lib.rpr_run(self.arr, len(self.arr), self.order.ctypes.data, alg.native_code,
+                                sysm.v.ctypes.data, alg.k, nsteps, alg.step_ns, int(alg.timing),
+                                self.rec_idx.ctypes.data if self.rec_idx.size else None, len(self.rec_idx),
+                                rec_every, rec.ctypes.data, self.c.byref(self.n_rows),
+                                self.c.byref(self.fail_slave), self.c.byref(self.fail_status),
+                                self.c.byref(self.master_ns), self.budget_ns)
+        for i, c in enumerate(self.arr):
+            alg.calls[i], alg.slave_ns[i] = c.calls, c.ns
+        alg.master_ns += self.master_ns.value
+        alg.k += int(done)
+        t_fail = alg.t
+        rows = int(self.n_rows.value)
+        i, st = self.fail_slave.value, self.fail_status.value
+        if i >= 0 and alg.stop_requested(i, st):
+            alg.complete_after_stop(i, t_fail)
+            if alg.status == "stopped":  # the last point, on the output grid or not
+                rec[rows, 0] = alg.t
+                np.take(sysm.v, sysm.record_idx, out=rec[rows, 1:])
+                rows += 1
+        elif i >= 0:
+            alg._fail(i, st, t_fail)
+        return rows
+
+
+def _python_run(alg: Algorithm, nsteps: int, rec_every: int, rec: np.ndarray) -> int:
+    v, idx = alg.system.v, alg.system.record_idx
+    rows, typed = 0, alg.system.typed
+    for _ in range(nsteps):
+        ok = alg.step()
+        if (ok and alg.k % rec_every == 0) or alg.status == "stopped":
+            rec[rows, 0] = alg.t
+            np.take(v, idx, out=rec[rows, 1:])
+            rows += 1
+            if typed.texts:
+                alg.text_events += [(alg.t, c, x) for c, x in typed.text_changes()]
+        if not ok:
+            break
+    return rows
+
+
+
+def choose_engine(system: CoupledSystem, alg_cls: type[Algorithm], engine: str, start_ns: int = 0) -> str:
+    """``"compiled"`` or ``"python"`` for ``engine`` in auto | compiled | python."""
+    if engine not in ("auto", "compiled", "python"):
+        raise UserError(f"master.engine must be auto, compiled or python, got {engine!r}")
+    if engine == "python":
+        return "python"
+    native = alg_cls.native_code is not None and all(s.native() is not None for s in system.slaves)
+    if engine == "compiled" and system.transformed:
+        raise UserError("master.engine: compiled copies connections as they are; connections with a linear "
+                        "transformation (factor, offset) run in the Python loop: use master.engine: python or auto")
+    if engine == "compiled" and system.typed.active:
+        raise UserError("master.engine: compiled carries scalar Float64 variables only; this scene connects or "
+                        "records other types or arrays: use engine auto or python")
+    if engine == "compiled" and start_ns:
+        raise UserError("master.engine: compiled runs from start_time 0; use engine auto or python")
+    native = native and not system.typed.active and not start_ns and not system.transformed
+    if engine == "compiled":
+        if not native:
+            raise UserError(f"master.engine: compiled needs FMU slaves and an algorithm with a compiled loop "
+                            f"({alg_cls.name} / {', '.join(s.name for s in system.slaves if s.native() is None) or 'all FMUs'})")
+        return "compiled"
+    from .. import fastloop
+
+    return "compiled" if native and fastloop.available() else "python"

@@ -1,0 +1,343 @@
+"""Validation of components: catalog models, external FMUs, hardware, their params and start values."""
+from __future__ import annotations
+
+import math
+import re
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+from ..errors import UserError
+from ..fmitypes import TYPES, display, parse_start
+from ..slaves import Variable, describe_block, describe_fmu, resolve_shapes
+from .catalog import default_catalog, make_block
+from .checker import Checker, _is_number
+from .keys import COMPONENT_KEYS, FMI_VERSIONS
+from .model import Component
+from .problems import Loc, suggest
+from .yamlfile import YMap, _display
+
+
+class ComponentChecks(Checker):
+    """Checks of the ``components:`` section."""
+
+    def component(self, name: str, spec: Any, where: Loc) -> Component | None:
+        if not re.match(r"^[A-Za-z_][A-Za-z0-9_]*$", str(name)):
+            self.err(where, f"component name {name!r} must be an identifier (letters, digits, '_'; no dots)")
+            return None
+        if not isinstance(spec, YMap):
+            self.err(where, f"component {name!r}: expected a mapping with 'model:' or 'fmu:', got {spec!r}")
+            return None
+        self.unknown_keys(spec, COMPONENT_KEYS, f"component {name!r}")
+        for key in ("options", "params", "start"):
+            if key in spec and not isinstance(spec[key], YMap):
+                self.err(spec.loc(key), f"component {name!r}: {key} must be a mapping name: value, got {spec[key]!r}")
+                return None
+        fmi = spec.get("fmi", "2.0")
+        fmi = {2: "2.0", 3: "3.0", 2.0: "2.0", 3.0: "3.0"}.get(fmi, str(fmi)) if not isinstance(fmi, bool) else str(fmi)
+        if fmi not in FMI_VERSIONS:
+            self.err(spec.loc("fmi"), f"component {name!r}: fmi = {spec.get('fmi')!r}; expected \"2.0\" or \"3.0\"")
+            return None
+        if "model" in spec and "fmu" in spec:
+            self.err(spec.where, f"component {name!r} has both 'model:' and 'fmu:'; keep one")
+            return None
+        if "hardware" in spec:
+            return self._hardware_component(name, spec)
+        if "fmu" in spec:
+            return self._fmu_component(name, spec, fmi)
+        if "model" in spec:
+            return self._model_component(name, spec, fmi)
+        self.err(spec.where, f"component {name!r} needs 'model:' (a catalog model) or 'fmu:' (a file)")
+        return None
+
+    def _fmu_component(self, name: str, spec: YMap, fmi: str) -> Component | None:
+        where = spec.loc("fmu")
+        rel = spec["fmu"]
+        if not isinstance(rel, str):
+            self.err(where, f"component {name!r}: fmu must be a file path, got {rel!r}")
+            return None
+        base = Path(where[0]).parent if where[1] else (self.path.parent if self.path else Path.cwd())
+        fpath = (base / rel) if not Path(rel).is_absolute() else Path(rel)
+        if not fpath.is_file():
+            near = suggest(Path(rel).name, [p.name for p in fpath.parent.glob("*.fmu")]) if fpath.parent.is_dir() else ""
+            self.err(where, f"component {name!r}: FMU file {rel!r} not found (looked in {_display(fpath.parent)}){near}")
+            return None
+        for key in ("fidelity", "options"):
+            if key in spec:
+                self.err(spec.loc(key), f"component {name!r}: '{key}' applies to catalog models, not to an FMU")
+        try:
+            desc = describe_fmu(fpath)
+        except UserError as exc:
+            self.err(where, f"component {name!r}: {exc}")
+            return None
+        comp = Component(name, "fmu", desc, fmu=fpath.resolve(), fmi=desc.fmi_version or fmi, where=spec.where)
+        self._values(comp, spec)
+        return comp
+
+    def _hardware_component(self, name: str, spec: YMap) -> Component | None:
+        """``{hardware: {address: HOST:PORT, key: FILE}}``: the hardware FMU (:mod:`hardware.fmu`),
+        built and cached with these start values; then an FMU component like any other."""
+        node, where = spec["hardware"], spec.loc("hardware")
+        if not isinstance(node, Mapping) or any(k not in ("address", "key") for k in node):
+            self.err(where, f"component {name!r}: hardware must be a mapping {{address: HOST:PORT, key: FILE}}, "
+                            f"got {node!r}")
+            return None
+        from hardware.fmu import build_hil_fmu
+        from hardware.protocol import parse_address
+
+        address, key = str(node.get("address", "127.0.0.1:5005")), str(node.get("key", "board.key"))
+        try:
+            parse_address(address)
+        except ValueError as exc:
+            self.err(where, f"component {name!r}: {exc}")
+            return None
+        base = Path(where[0]).parent if where[1] else (self.path.parent if self.path else Path.cwd())
+        try:
+            keyfile = base / Path(key).expanduser()
+        except RuntimeError as exc:  # '~user' that does not exist, or no home directory
+            self.err(where, f"component {name!r}: key file {key!r}: {exc}")
+            return None
+        if not keyfile.is_file():
+            self.err(where, f"component {name!r}: key file {_display(keyfile)} not found; make one with "
+                            f"'rpr-cosim board keygen {key}' and copy it to the board")
+            return None
+        for k in ("model", "fidelity", "options", "fmu"):
+            if k in spec:
+                self.err(spec.loc(k), f"component {name!r}: '{k}' does not apply to a hardware component")
+                return None
+        try:
+            fpath = build_hil_fmu()  # one build; address and key are string start values
+        except (ValueError, OSError) as exc:
+            self.err(where, f"component {name!r}: {exc}")
+            return None
+        comp = Component(name, "fmu", describe_fmu(fpath), fmu=fpath, where=spec.where)
+        self._values(comp, spec)
+        comp.params.update(address=address, key_file=str(keyfile.resolve()))
+        return comp
+
+    def _model_component(self, name: str, spec: YMap, fmi: str) -> Component | None:
+        try:
+            catalog = self.catalog if self.catalog is not None else default_catalog()
+        except UserError as exc:
+            self.err(spec.loc("model"), f"component {name!r}: {exc}")
+            return None
+        cat = catalog.catalog()
+        model = spec["model"]
+        if not isinstance(model, str) or model not in cat:
+            self.err(spec.loc("model"), f"component {name!r}: unknown model {model!r}{suggest(str(model), cat)} "
+                                        f"(catalog: {', '.join(sorted(cat))})")
+            return None
+        fidelity = spec.get("fidelity", cat[model][0])
+        if not isinstance(fidelity, str) or fidelity not in cat[model]:
+            self.err(spec.loc("fidelity"), f"component {name!r}: model {model} has no fidelity {fidelity!r}"
+                                           f"{suggest(str(fidelity), cat[model])} (expected one of "
+                                           f"{', '.join(cat[model])})")
+            return None
+        options = dict(spec.get("options", {}))
+        known_opts = getattr(catalog, "options", None)
+        if known_opts is not None:
+            allowed = list(known_opts(model, fidelity))
+            bad = [k for k in options if k not in allowed]
+            for k in bad:
+                self.err(spec["options"].loc(k), f"component {name!r}: {model}/{fidelity} has no option {k!r}"
+                                                 f"{suggest(str(k), allowed)} (options: {', '.join(allowed) or 'none'})")
+            if bad:
+                return None
+        from models.block import BlockError
+
+        try:
+            block = make_block(catalog, model, fidelity, options)
+        except (BlockError, ValueError, TypeError) as exc:
+            self.err(spec.loc("options") if "options" in spec else spec.loc("model"), f"component {name!r}: {exc}")
+            return None
+        params = spec.get("params", YMap())
+        structural = {p.name for p in block.params if p.structural}
+        fixed = {k: params[k] for k in params if k in structural}
+        if fixed:
+            try:
+                block = make_block(catalog, model, fidelity, {**options, **fixed})
+            except (BlockError, ValueError, TypeError) as exc:
+                self.err(params.loc(next(iter(fixed))), f"component {name!r}: {exc}")
+                return None
+        desc = describe_block(block, f"{model}/{fidelity}")
+        comp = Component(name, "model", desc, model=model, fidelity=fidelity, options=options, fmi=fmi,
+                         block=block, where=spec.where)
+        self._values(comp, spec, skip=set(fixed))
+        return comp
+
+    def _values(self, comp: Component, spec: YMap, skip: set[str] = frozenset()) -> None:
+        """Check ``params`` and ``start`` against the component's variables."""
+        if comp.kind == "fmu":
+            self._fmu_values(comp, spec)
+            return
+        vs = comp.description.variables
+        params = spec.get("params", YMap())
+        pnames = [v.name for v in vs.values() if v.causality == "parameter"]
+        bounds = {p.name: (p.lower, p.upper, p.unit) for p in comp.block.params} if comp.block is not None else {}
+        for k, val in params.items():
+            where = params.loc(k)
+            if k in skip:
+                continue
+            if k not in vs or vs[k].causality != "parameter":
+                if comp.kind == "model" and k in ("config", "form", "integrator", "substeps", "rotor", "profile",
+                                                  "derivative", "anti_windup", "sample_period"):
+                    self.err(where, f"component {comp.name!r}: {k!r} is a construction option, not a parameter; "
+                                    f"put it under 'options:'")
+                elif k in vs:
+                    self.err(where, f"component {comp.name!r}: {k!r} is a{'n' if vs[k].causality[0] in 'aeiou' else ''} "
+                                    f"{vs[k].causality}, not a parameter; use 'start:' for start values")
+                else:
+                    self.err(where, f"component {comp.name!r} ({comp.label}) has no parameter {k!r}"
+                                    f"{suggest(str(k), pnames)}")
+                continue
+            if vs[k].type != "Real":
+                self.err(where, f"component {comp.name!r}: parameter {k!r} is {vs[k].type}; only Real parameters "
+                                f"can be set from a scene")
+                continue
+            if not _is_number(val) or not math.isfinite(val):
+                self.err(where, f"component {comp.name!r}: parameter {k} = {val!r} is not a finite number")
+                continue
+            if k in bounds:
+                lo, hi, unit = bounds[k]
+                if not (lo <= val <= hi):
+                    self.err(where, f"component {comp.name!r}: parameter {k} = {val} is outside [{lo}, {hi}]"
+                                    f"{' ' + unit if unit else ''}")
+                    continue
+            if vs[k].variability in ("constant",):
+                self.err(where, f"component {comp.name!r}: parameter {k!r} is a constant and cannot be set")
+                continue
+            comp.params[k] = float(val)
+        start = spec.get("start", YMap())
+        settable = [v.name for v in vs.values() if v.causality in ("input", "local", "output")]
+        for k, val in start.items():
+            where = start.loc(k)
+            if k not in vs:
+                self.err(where, f"component {comp.name!r} ({comp.label}) has no variable {k!r}{suggest(str(k), settable)}")
+                continue
+            var = vs[k]
+            if var.causality == "parameter":
+                self.err(where, f"component {comp.name!r}: {k!r} is a parameter; set it under 'params:'")
+                continue
+            if var.causality == "output":
+                self.err(where, f"component {comp.name!r}: {k!r} is an output; outputs are computed and have no "
+                                f"start value to set")
+                continue
+            if not _is_number(val) or not math.isfinite(val):
+                self.err(where, f"component {comp.name!r}: start value {k} = {val!r} is not a finite number")
+                continue
+            if var.causality == "local" and comp.block is not None and not _exact_start(comp.block, k):
+                self.err(where, f"component {comp.name!r}: state {k!r} starts from the parameters (its start is "
+                                f"calculated); set those parameters instead")
+                continue
+            comp.start[k] = float(val)
+
+    def _fmu_values(self, comp: Component, spec: YMap) -> None:
+        """``params`` and ``start`` of an FMU component, any FMI type (see :mod:`cosim.fmitypes`):
+        parameters (and FMI 3.0 structural parameters, which size the arrays) under ``params``;
+        inputs and variables with initial = exact or approx under ``start``."""
+        params, start = spec.get("params", YMap()), spec.get("start", YMap())
+        vs = comp.description.variables
+        pkinds = ("parameter", "structuralParameter")
+        pnames = [v.name for v in vs.values() if v.causality in pkinds and v.variability != "constant"]
+        snames = [v.name for v in vs.values() if _start_settable(v)]
+        structural: dict[str, int] = {}
+        for pass_ in ("structural", "other"):
+            for k, val in params.items():
+                var = vs.get(k)
+                if (var is not None and var.causality == "structuralParameter") != (pass_ == "structural"):
+                    continue
+                where = params.loc(k)
+                if var is None or var.causality not in pkinds:
+                    if var is None:
+                        self.err(where, f"component {comp.name!r} ({comp.label}) has no parameter {k!r}"
+                                        f"{suggest(str(k), pnames)}")
+                    elif _start_settable(var):
+                        self.err(where, f"component {comp.name!r}: {k!r} is a{'n' if var.causality[0] in 'aeiou' else ''} "
+                                        f"{var.causality} (initial = {var.initial}), not a parameter; set its start value "
+                                        f"under 'start:'")
+                    else:
+                        self.err(where, f"component {comp.name!r}: {k!r} is a{'n' if var.causality[0] in 'aeiou' else ''} "
+                                        f"{var.causality} computed by the FMU; it cannot be set")
+                    continue
+                if var.variability == "constant":
+                    self.err(where, f"component {comp.name!r}: parameter {k!r} is a constant and cannot be set")
+                    continue
+                value = self._typed_value(comp, var, val, where, "parameter")
+                if value is None:
+                    continue
+                if pass_ == "structural":
+                    structural[k] = int(value[0])
+                comp.params[k] = value
+            if pass_ == "structural" and structural:
+                comp.description = resolve_shapes(comp.description, structural)
+                vs = comp.description.variables
+        for k, val in start.items():
+            where = start.loc(k)
+            var = vs.get(k)
+            if var is None:
+                self.err(where, f"component {comp.name!r} ({comp.label}) has no variable {k!r}{suggest(str(k), snames)}")
+                continue
+            if var.causality == "structuralParameter":
+                self.err(where, f"component {comp.name!r}: {k!r} is a structural parameter (it sizes arrays and is set "
+                                f"in configuration mode); set it under 'params:'")
+                continue
+            if var.causality == "parameter":
+                self.err(where, f"component {comp.name!r}: {k!r} is a parameter; set it under 'params:'")
+                continue
+            if not _start_settable(var):
+                what = {"output": "an output", "local": "a local variable", "independent": "the independent variable",
+                        "calculatedParameter": "a calculated parameter"}.get(var.causality, var.causality)
+                self.err(where, f"component {comp.name!r}: {k!r} is {what} computed by the FMU (initial = "
+                                f"{var.initial or 'calculated'}); FMI allows start values only for inputs and "
+                                f"variables with initial = exact or approx (here: {', '.join(snames) or 'none'})")
+                continue
+            value = self._typed_value(comp, var, val, where, "start value")
+            if value is not None:
+                comp.start[k] = value
+
+    def _typed_value(self, comp: Component, var: Variable, val: Any, where: Loc, what: str):
+        """``val`` as the values of ``var`` (a float for a scalar Float64, else a list), or None
+        after reporting why it does not fit."""
+        ft = TYPES.get(var.type)
+        tname = display(var.type, comp.description.fmi_version)
+        if ft is None:
+            self.err(where, f"component {comp.name!r}: {var.name!r} is a {var.fmi_type} variable; rpr-cosim sets "
+                            f"and connects {', '.join(sorted({display(t, comp.description.fmi_version) for t in TYPES}))}")
+            return None
+        flat = _flatten(val)
+        try:
+            vals = parse_start(flat, ft, var.size, f"{what} {var.name} ({tname}"
+                                                   f"{', shape ' + 'x'.join(map(str, var.shape)) if var.shape else ''})", tname)
+        except ValueError as exc:
+            self.err(where, f"component {comp.name!r}: {exc}")
+            return None
+        if var.fast:
+            return float(vals[0])
+        return [x.item() if hasattr(x, "item") else x for x in vals]
+
+    # connections ----------------------------------------------------------------------------------
+
+def _start_settable(var: Variable) -> bool:
+    """FMI allows a start value before initialisation: inputs, and non-parameter variables with
+    initial = exact or approx."""
+    if var.variability == "constant" or var.causality in ("independent", "parameter", "structuralParameter",
+                                                          "calculatedParameter"):
+        return False
+    return var.causality == "input" or var.initial in ("exact", "approx")
+
+
+def _flatten(val: Any) -> Any:
+    """Nested YAML lists (a matrix) as one row-major list; anything else unchanged."""
+    if isinstance(val, (list, tuple)):
+        out: list = []
+        for x in val:
+            out.extend(_flatten(x) if isinstance(x, (list, tuple)) else [x])
+        return out
+    return val
+
+
+def _exact_start(block, state: str) -> bool:
+    import casadi as ca
+
+    i = block.index("states", state)
+    return not (block.p.numel() and ca.depends_on(block.start[i], block.p))

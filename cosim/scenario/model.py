@@ -1,0 +1,93 @@
+"""The validated scene: :class:`Scene`, its components, connections and master settings."""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from ..slaves import SlaveDescription
+from .problems import Loc, Problem
+
+
+@dataclass
+class Component:
+    """A validated component: how to build it and what it looks like."""
+
+    name: str
+    kind: str  # "model" or "fmu"
+    description: SlaveDescription
+    model: str | None = None
+    fidelity: str | None = None
+    options: dict[str, Any] = field(default_factory=dict)
+    params: dict[str, float] = field(default_factory=dict)  # set on the instance at start-up
+    start: dict[str, float] = field(default_factory=dict)
+    fmu: Path | None = None
+    fmi: str = "2.0"
+    block: Any = None  # the models.block.Block of a model component
+    where: Loc = ("", 0)
+
+    @property
+    def label(self) -> str:
+        return f"{self.model}/{self.fidelity}" if self.kind == "model" else (self.fmu.name if self.fmu else "?")
+
+    def start_values(self) -> dict[str, float]:
+        """Everything to set before initialisation: parameters, then start values."""
+        return {**self.params, **self.start}
+
+
+@dataclass(frozen=True)
+class Connection:
+    """A signal ``src.src_var -> dst.dst_var``; ``bond`` names the bond it comes from, if any."""
+
+    src: str
+    src_var: str
+    dst: str
+    dst_var: str
+    bond: str | None = None
+    where: Loc = ("", 0)
+    as_type: str | None = None  # an explicit conversion to the destination's type
+    factor: float = 1.0  # dst = factor * src + offset (a linear transformation, e.g. from an SSP)
+    offset: float = 0.0
+
+    def __str__(self) -> str:
+        text = f"{self.src}.{self.src_var} -> {self.dst}.{self.dst_var}"
+        if self.factor != 1.0:
+            text += f" * {self.factor!r}"
+        if self.offset != 0.0:
+            text += f" {'-' if self.offset < 0 else '+'} {abs(self.offset)!r}"
+        return text + (f" as {self.as_type}" if self.as_type else "")
+
+
+@dataclass
+class MasterSettings:
+    algorithm: str
+    step: float  # [s]
+    step_ns: int
+    order: list[str] | None
+    engine: str
+    record_every: int  # output interval in steps
+    inputs: str = "hold"  # "hold" or "linear" (first-order hold, FMUs that can interpolate inputs)
+    realtime: Any = None  # cosim.realtime.RealtimeSettings when the run is paced on the wall clock
+    options: dict[str, float] = field(default_factory=dict)  # the algorithm's own options (its declaration)
+
+
+@dataclass
+class Scene:
+    """A validated scene, ready to run (see :func:`load`)."""
+
+    name: str
+    path: Path | None
+    description: str
+    stop_time: float
+    n_steps: int
+    components: dict[str, Component]
+    connections: list[Connection]
+    bonds: list[tuple[str, str, str, str]]  # (comp, flange, comp, flange)
+    master: MasterSettings
+    outputs: list[str]
+    data: dict  # the merged tree as plain data
+    hash: str
+    warnings: list[Problem] = field(default_factory=list)
+    start_time: float = 0.0  # [s] the scene's start_time, else the FMUs' default experiment, else 0
+    start_ns: int = 0
+    guards: Any = None  # cosim.guards.GuardSettings (physical guards of a run)
