@@ -22,10 +22,14 @@ XA0, XB0 = 1.0, -0.4
 
 
 def pair(cls=LinearSlave) -> CoupledSystem:
-    """x_a' = -a x_a + c x_b, x_b' = -b x_b + x_a, cut into two exact linear slaves."""
+    """x_a' = -a x_a + c x_b, x_b' = -b x_b + x_a, cut into two exact linear slaves.  The two links
+    are declared one power bond (effort x_a, flow c x_b: the power each side computes, output times
+    input, is x_a c x_b on both), which the power-bond algorithm (ecco) needs and the others ignore."""
     a = cls("a", [[-A_]], [[1.0]], [[1.0]], x0=[XA0])
     b = cls("b", [[-B_]], [[1.0]], [[C_]], x0=[XB0])
-    return CoupledSystem([a, b], [Link(0, "y[1]", 1, "u[1]"), Link(1, "y[1]", 0, "u[1]")], [(0, "y[1]"), (1, "x[1]")])
+    bond = "a.y[1] <-> b.y[1]"
+    return CoupledSystem([a, b], [Link(0, "y[1]", 1, "u[1]", bond=bond), Link(1, "y[1]", 0, "u[1]", bond=bond)],
+                         [(0, "y[1]"), (1, "x[1]")])
 
 
 def exact(t: float) -> np.ndarray:

@@ -1,12 +1,12 @@
-"""Master algorithms: fixed-step Jacobi and Gauss-Seidel and error-controlled ``adaptive`` behind
-one base class and a registry.
+"""Master algorithms: fixed-step Jacobi and Gauss-Seidel, error-controlled ``adaptive`` and the
+power-bond ``ecco`` behind one base class and a registry.
 
 Package map (the public names are re-exported here: ``from cosim.master import X``):
 
 ``graph``       algebraic loops, topological order, the default Gauss-Seidel order
 ``system``      :class:`CoupledSystem` (the value vector, value references, indices) and :class:`Link`
 ``algorithm``   the :class:`Algorithm` base class, :data:`ALGORITHMS`, :func:`register`, :func:`algorithm`
-``algorithms/`` one module per algorithm (``jacobi``, ``gauss_seidel``, ``adaptive``), listed in
+``algorithms/`` one module per algorithm (``jacobi``, ``gauss_seidel``, ``adaptive``, ``ecco``), listed in
                 :data:`cosim.master.algorithms.MODULES`
 ``engine``      who runs the steps: the compiled loop (:mod:`cosim.fastloop`) or the Python loop;
                 :func:`choose_engine`

@@ -135,9 +135,13 @@ def simulate(system: CoupledSystem, algorithm_name: str, *, step_ns: int, n_step
         fixed = [s.name for s in system.slaves if not s.can_rollback]
         if fixed:
             raise UserError(f"master algorithm {cls.name} needs rollback (get/set state) but {', '.join(fixed)} "
-                            f"cannot roll back (canGetAndSetFMUstate=false, e.g. hardware); use a fixed-step "
-                            f"algorithm such as gauss_seidel or jacobi")
+                            f"cannot roll back (canGetAndSetFMUstate=false, e.g. hardware); use ecco (step "
+                            f"control from power bonds, no rollback) or a fixed-step algorithm such as gauss_seidel "
+                            f"or jacobi")
     if getattr(cls, "variable_step", False):
+        if realtime is not None:  # the pacer works on a fixed step grid: refuse rather than run unpaced
+            raise UserError(f"master algorithm {cls.name} chooses its own steps and cannot be paced in real time "
+                            f"yet; drop master.realtime or use gauss_seidel or jacobi")
         from .algorithms.adaptive import simulate_variable
 
         return simulate_variable(system, cls, step_ns=step_ns, n_steps=n_steps, observers=observers,

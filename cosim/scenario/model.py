@@ -25,6 +25,7 @@ class Component:
     fmi: str = "2.0"
     block: Any = None  # the models.block.Block of a model component
     where: Loc = ("", 0)
+    rollback: bool = True  # false: stepped as a slave that cannot save/restore its state (``rollback: false``)
 
     @property
     def label(self) -> str:

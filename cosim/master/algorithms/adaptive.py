@@ -114,6 +114,8 @@ class AdaptiveStepper:
 
     order_p_linear, order_p_hold = 2.0, 1.0
     k_i, k_p = 0.7, 0.4
+    #: every slave must save/restore its state (a rejected step is rolled back)
+    needs_rollback = True
 
     def __init__(self, system, order: Sequence[int], options: dict[str, float], start_ns: int, stop_ns: int):
         self.system = system
@@ -122,7 +124,7 @@ class AdaptiveStepper:
         self.stop_ns = stop_ns
         self.t_ns = start_ns
         sysm, n = system, len(system.slaves)
-        for s in sysm.slaves:
+        for s in sysm.slaves if self.needs_rollback else ():
             if not s.can_rollback:
                 raise UserError(f"master algorithm adaptive needs rollback (get/set state), but {s.name} cannot roll "
                                 f"back; use gauss_seidel or jacobi with a fixed step")
@@ -194,6 +196,22 @@ class AdaptiveStepper:
                 err = max(err, m if math.isfinite(m) else math.inf)
         return err, None, Status.OK
 
+    def _commit(self, h: float, h_ns: int) -> None:
+        """Book an accepted step of ``h`` (``h_ns``): statistics, input history, ranges, time."""
+        sysm = self.system
+        self.stats.accepted += 1
+        self.stats.h_min_taken = min(self.stats.h_min_taken, h)
+        self.stats.h_max_taken = max(self.stats.h_max_taken, h)
+        self.stats.steps.append(h)
+        for i, src in enumerate(sysm.in_src):
+            if len(src):
+                self.prev_src[i][:] = self.cur_src[i]
+                self.cur_src[i][:] = sysm.v[src]
+        np.maximum(self.hi, sysm.v, out=self.hi)
+        np.minimum(self.lo, sysm.v, out=self.lo)
+        self.t_ns += h_ns
+        self.h_prev = h
+
     def step(self) -> bool:
         """Advance by one accepted step (retrying smaller after rejections); False when the run
         ends early (:attr:`status`, :attr:`message`)."""
@@ -232,19 +250,7 @@ class AdaptiveStepper:
                                 f"({detail}; limited by {who})")
                 return False
             self.h = max(opt["h_min"], h * min(shrink, 0.9))
-        # accepted
-        self.stats.accepted += 1
-        self.stats.h_min_taken = min(self.stats.h_min_taken, h)
-        self.stats.h_max_taken = max(self.stats.h_max_taken, h)
-        self.stats.steps.append(h)
-        for i, src in enumerate(sysm.in_src):
-            if len(src):
-                self.prev_src[i][:] = self.cur_src[i]
-                self.cur_src[i][:] = sysm.v[src]
-        np.maximum(self.hi, sysm.v, out=self.hi)
-        np.minimum(self.lo, sysm.v, out=self.lo)
-        self.t_ns += h_ns
-        self.h_prev = h
+        self._commit(h, h_ns)
         e = max(err, 1e-10)
         fac = opt["safety"] * e ** (-self.k_i / p) * self.err_prev ** (self.k_p / p)
         self.err_prev = e
@@ -257,11 +263,14 @@ class AdaptiveStepper:
 
 def run_adaptive(system, *, start_ns: int = 0, stop_ns: int, options: dict | None, order: Sequence[int],
                  observers: Sequence = (), progress: Callable[[int, int], None] | None = None,
-                 stats=None) -> AdaptiveStepper:
+                 stats=None, stepper_cls: type[AdaptiveStepper] | None = None,
+                 declared: Sequence[AlgorithmOption] = OPTIONS) -> AdaptiveStepper:
     """Step an initialised ``system`` to ``stop_ns`` (see the module docstring), recording every
-    accepted step to ``observers``; ``stats`` (a :class:`cosim.master.RunStats`) is filled in."""
-    opts = option_values(options)
-    stepper = AdaptiveStepper(system, order, opts, start_ns, stop_ns)
+    accepted step to ``observers``; ``stats`` (a :class:`cosim.master.RunStats`) is filled in.
+    ``stepper_cls`` (default :class:`AdaptiveStepper`) takes the steps, with ``options`` checked
+    against its algorithm's ``declared`` options."""
+    opts = option_values(options, declared)
+    stepper = (stepper_cls or AdaptiveStepper)(system, order, opts, start_ns, stop_ns)
     v, idx = system.v, system.record_idx[:len(system.record_names)]  # without the guards' watched columns
     rows = np.empty((256, 1 + len(idx)))
     n = 0
@@ -332,7 +341,8 @@ def simulate_variable(system, cls, *, step_ns: int, n_steps: int, observers: Seq
     stop_ns = start_ns + n_steps * step_ns
     stats = VariableStats(cls.name, "python", step_ns / 1e9, n_steps)
     columns = ["time"] + system.record_names
-    opts = option_values(options)
+    declared = getattr(cls, "options", OPTIONS)
+    opts = option_values(options, declared)
     for obs in observers:
         obs.start(columns, dict(meta or {}, algorithm=cls.name, step=step_ns / 1e9, options=opts))
     status, reason, stepper = "failed", "", None
@@ -346,7 +356,8 @@ def simulate_variable(system, cls, *, step_ns: int, n_steps: int, observers: Seq
         for obs in observers:
             obs.record(row0)
         stepper = run_adaptive(system, start_ns=start_ns, stop_ns=stop_ns, options=opts, order=seq,
-                               observers=observers, progress=progress, stats=stats)
+                               observers=observers, progress=progress, stats=stats,
+                               stepper_cls=getattr(cls, "stepper", None), declared=declared)
         status, reason = ("ok", "") if stepper.status == "running" else (stepper.status, stepper.message)
     except KeyboardInterrupt as exc:
         status, reason = "interrupted", interruption_reason(exc, stepper.t if stepper else None)
