@@ -367,6 +367,18 @@ def _cleanup() -> None:
 atexit.register(_cleanup)
 
 
+def unpack_fmu(path: Path) -> str:
+    """The folder ``path`` is unpacked into (once per process and file; removed at exit)."""
+    return _unzip(Path(path))
+
+
+def forget_unpacked(path: Path) -> None:
+    """Remove the folder(s) :func:`unpack_fmu` unpacked ``path`` into, and forget them."""
+    name = str(Path(path).resolve())
+    for key in [k for k in _UNZIPPED if k[0] == name]:
+        shutil.rmtree(_UNZIPPED.pop(key), ignore_errors=True)
+
+
 def _sweep_dead_unzips() -> None:
     """Remove the FMU folders of processes that died without their atexit (SIGKILL)."""
     from .outputs import pid_alive
