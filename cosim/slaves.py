@@ -613,7 +613,8 @@ class FmuSlave(Slave):
 
     def do_step(self, t: float, h: float) -> int:
         if self.fmi3:
-            st = self._step3(self._inst, t, h, True, *self._p_flags, self._p_last)
+            # noSetFMUStatePriorToCurrentPoint: only promised when this slave cannot be rolled back
+            st = self._step3(self._inst, t, h, not self.can_rollback, *self._p_flags, self._p_last)
             if st < 2 and self._flags[1].value:
                 return Status.STOP_REQUESTED
             return st

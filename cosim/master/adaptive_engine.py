@@ -110,7 +110,7 @@ static int slave_step(ad_slave *s, double *v, double t, double h) {
     if (s->fmi3) {
         bool ev = 0, term = 0, early = 0;
         double last = t;
-        st = ((step3_t)s->do_step)(s->inst, t, h, 1, &ev, &term, &early, &last);
+        st = ((step3_t)s->do_step)(s->inst, t, h, 0 /* may roll back */, &ev, &term, &early, &last);
         if (st < 2 && term) return ST_STOP;
     } else {
         st = ((step2_t)s->do_step)(s->inst, t, h, 0);
