@@ -204,36 +204,42 @@ def _cache_dir() -> Path:
     return cache_root().parent / "master"
 
 
-@lru_cache(maxsize=1)
-def library() -> ctypes.CDLL:
-    """Compile (once per source and compiler, cached on disk) and load the loop library.
-    Raises :class:`UserError` when no C compiler works."""
+def compile_library(source: str, stem: str) -> ctypes.CDLL:
+    """Compile ``source`` (once per source and compiler, cached on disk as ``<stem>_<hash>.so``)
+    and load it.  Raises :class:`UserError` when no C compiler works."""
     cc = os.environ.get("CC", "gcc")
     try:
         version = subprocess.run([cc, "--version"], capture_output=True, text=True, check=True).stdout
     except (OSError, subprocess.CalledProcessError) as exc:
         raise UserError(f"the compiled master loop needs a C compiler ({cc}: {exc}); "
                         f"set master.engine: python to use the Python loop") from None
-    key = hashlib.sha256((SOURCE + version + sys.platform).encode()).hexdigest()[:20]
+    key = hashlib.sha256((source + version + sys.platform).encode()).hexdigest()[:20]
     from fmus.cache import writable_root
 
     root = _cache_dir()
-    if not (root / f"rpr_loop_{key}.so").exists():
+    if not (root / f"{stem}_{key}.so").exists():
         fallback = writable_root(root)
         root = fallback if fallback == root else fallback / "master"
         root.mkdir(parents=True, exist_ok=True)
-    lib = root / f"rpr_loop_{key}.so"
+    lib = root / f"{stem}_{key}.so"
     if not lib.exists():
         with tempfile.TemporaryDirectory(dir=root) as tmp:
             src = Path(tmp) / "loop.c"
-            src.write_text(SOURCE)
+            src.write_text(source)
             out = Path(tmp) / lib.name
             res = subprocess.run([cc, "-O2", "-shared", "-fPIC", "-std=c99", "-D_POSIX_C_SOURCE=199309L",
-                                  "-o", str(out), str(src)], capture_output=True, text=True)
+                                  "-o", str(out), str(src), "-lm"], capture_output=True, text=True)
             if res.returncode != 0:
                 raise UserError(f"compiling the master loop failed: {res.stderr.strip()[:500]}")
             os.replace(out, lib)
-    dll = ctypes.CDLL(str(lib))
+    return ctypes.CDLL(str(lib))
+
+
+@lru_cache(maxsize=1)
+def library() -> ctypes.CDLL:
+    """Compile (once per source and compiler, cached on disk) and load the loop library.
+    Raises :class:`UserError` when no C compiler works."""
+    dll = compile_library(SOURCE, "rpr_loop")
     fn = dll.rpr_run
     fn.restype = c_int64
     fn.argtypes = [POINTER(CSlave), c_int32, c_void_p, c_int32, c_void_p, c_int64, c_int64, c_int64, c_int32,

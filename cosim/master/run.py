@@ -155,7 +155,7 @@ def simulate(system: CoupledSystem, algorithm_name: str, *, step_ns: int, n_step
 
         return simulate_variable(system, cls, step_ns=step_ns, n_steps=n_steps, observers=observers,
                                  start_values=start_values, order=order, progress=progress, meta=meta,
-                                 options=options, start_ns=start_ns, tolerances=tolerances)
+                                 options=options, start_ns=start_ns, tolerances=tolerances, engine=engine)
     if record_every < 1:
         raise UserError(f"record_every must be >= 1, got {record_every}")
     stats = RunStats(cls.name, "", step_ns / 1e9, n_steps)
