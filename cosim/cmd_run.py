@@ -176,6 +176,13 @@ def _summary(res) -> None:
               f"{1e6 * s['wall_s'] / n:>8.2f} {100 * s['wall_s'] / total:>5.1f}%")
     print(f"  {'master':<12} {'':<28} {'':>8} {1e3 * st['master_s']:>9.2f} {1e6 * st['master_s'] / n:>8.2f} "
           f"{100 * st['master_s'] / total:>5.1f}%")
+    if st.get("smallest_step") is not None:
+        print(f"  variable step: {st['smallest_step']:.3g} .. {st['largest_step']:.3g} s, "
+              f"{st.get('rejected_steps', 0)} rejected")
+    for name, b in st.get("bonds", {}).items():  # ecco
+        print(f"  bond {name}: largest scaled energy residual {b['max_scaled_residual']:.3g}, "
+              f"{b['steps_over_tolerance']} steps over tolerance, net {b['energy_residual_sum_J']:+.3g} J "
+              f"of {b['energy_J']:.3g} J carried")
     for w in st.get("guards", {}).get("warnings", []):
         print(f"  guard warning: {w}")
     final = res.trace.final()

@@ -137,12 +137,29 @@ def check_scene(settings: GuardSettings, comps: Mapping[str, Any], duration: flo
             (err if action == "stop" else warn)(comp.where, message)
 
 
+#: :func:`setpoint_problems` by component and duration: a batch validates many scenes whose
+#: setpoints are the same (evaluating a setpoint path costs ~25 ms)
+_SETPOINT_MEMO: dict[tuple, list[tuple[str, str]]] = {}
+
+
 def setpoint_problems(comp, duration: float, settings: GuardSettings) -> list[tuple[str, str]]:
     """(action, message) for every leg of a pose setpoint that leaves its stroke over the
     ``duration`` [s] of a run (its clock from its parameter ``t0`` on), and for a singular pose
     on its path; times in the messages are clock times."""
     if settings.stroke == "off" and settings.singularity == "off":
         return []
+    import json
+
+    key = (comp.name, comp.label, json.dumps([comp.options, comp.params], sort_keys=True, default=repr),
+           float(duration), settings)
+    if key not in _SETPOINT_MEMO:
+        if len(_SETPOINT_MEMO) >= 256:
+            _SETPOINT_MEMO.clear()
+        _SETPOINT_MEMO[key] = _setpoint_problems(comp, duration, settings)
+    return list(_SETPOINT_MEMO[key])
+
+
+def _setpoint_problems(comp, duration: float, settings: GuardSettings) -> list[tuple[str, str]]:
     blk = comp.block
     p = blk.param_vector(**comp.params)
     t = np.linspace(0.0, duration, _SAMPLES)

@@ -7,7 +7,7 @@ from __future__ import annotations
 import sys
 import time
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -62,7 +62,8 @@ def couple(scene: Scene, slaves: Sequence[Slave], watch: Sequence[tuple[str, str
     """The coupled system of ``scene`` over ``slaves`` (one per component, in scene order);
     ``watch``: (component, variable) pairs sampled with the recorded ones but not traced."""
     index = {s.name: i for i, s in enumerate(slaves)}
-    links = [Link(index[c.src], c.src_var, index[c.dst], c.dst_var, c.factor, c.offset) for c in scene.connections]
+    links = [Link(index[c.src], c.src_var, index[c.dst], c.dst_var, c.factor, c.offset, c.bond)
+             for c in scene.connections]
     record = []
     for name in scene.outputs:
         comp, _, var = name.partition(".")
@@ -223,6 +224,9 @@ def _run(scene, overrides, out_dir, catalog, cache_dir, progress, log, engine, s
         paths = {}
         if [s.name for s in slaves] != list(scene.components):
             raise UserError(f"slaves must match the scene's components in order: {list(scene.components)}")
+    for s, c in zip(slaves, scene.components.values()):
+        if not c.rollback and s.description.can_get_set_state:  # the scene forbids rollback of this component
+            s.description = replace(s.description, can_get_set_state=False)
     build_s = time.perf_counter() - t0
     guard = scene_guard(scene)
     system = couple(scene, slaves, guard.watch if guard else ())
@@ -244,7 +248,7 @@ def _run(scene, overrides, out_dir, catalog, cache_dir, progress, log, engine, s
                          tolerances=[c.description.default_experiment.get("tolerance")
                                      for c in scene.components.values()],
                          realtime=scene.master.realtime, options=scene.master.options or None,
-                         guard=guard).as_dict()
+                         guard=guard, rates=[c.rate for c in scene.components.values()]).as_dict()
     except TraceWriteError:  # disk full: the observers finished with the reason; report it as a status
         if memory.trace is None or not memory.trace.stats:
             raise

@@ -240,12 +240,22 @@ def describe_fmu(path: Path) -> SlaveDescription:
                             md.guid or "", cs.modelIdentifier or "")
 
 
+def _boolean_status(dll) -> int:
+    """Address of the FMU's fmi2GetBooleanStatus, 0 when it does not export one."""
+    try:
+        return _addr(dll.fmi2GetBooleanStatus)
+    except AttributeError:
+        return 0
+
+
 # --- the interface ----------------------------------------------------------------------------
 @dataclass(frozen=True)
 class NativeEntry:
     """C entry points of a slave for the compiled loop: the instance pointer and the addresses of
     its doStep, GetReal/GetFloat64 and SetReal/SetFloat64 functions, and of
-    fmi2SetRealInputDerivatives (0 when the slave does not interpolate inputs)."""
+    fmi2SetRealInputDerivatives (0 when the slave does not interpolate inputs); for the compiled
+    adaptive engine also get/set/free FMU state (0 when it cannot roll back) and
+    fmi2GetBooleanStatus (0 for FMI 3.0)."""
 
     fmi3: bool
     instance: int
@@ -253,6 +263,10 @@ class NativeEntry:
     get_real: int
     set_real: int
     set_input_derivatives: int = 0
+    get_state: int = 0
+    set_state: int = 0
+    free_state: int = 0
+    get_boolean_status: int = 0
 
 
 class Slave(ABC):
@@ -358,6 +372,18 @@ def _cleanup() -> None:
 
 
 atexit.register(_cleanup)
+
+
+def unpack_fmu(path: Path) -> str:
+    """The folder ``path`` is unpacked into (once per process and file; removed at exit)."""
+    return _unzip(Path(path))
+
+
+def forget_unpacked(path: Path) -> None:
+    """Remove the folder(s) :func:`unpack_fmu` unpacked ``path`` into, and forget them."""
+    name = str(Path(path).resolve())
+    for key in [k for k in _UNZIPPED if k[0] == name]:
+        shutil.rmtree(_UNZIPPED.pop(key), ignore_errors=True)
 
 
 def _sweep_dead_unzips() -> None:
@@ -599,7 +625,8 @@ class FmuSlave(Slave):
 
     def do_step(self, t: float, h: float) -> int:
         if self.fmi3:
-            st = self._step3(self._inst, t, h, True, *self._p_flags, self._p_last)
+            # noSetFMUStatePriorToCurrentPoint: only promised when this slave cannot be rolled back
+            st = self._step3(self._inst, t, h, not self.can_rollback, *self._p_flags, self._p_last)
             if st < 2 and self._flags[1].value:
                 return Status.STOP_REQUESTED
             return st
@@ -667,13 +694,22 @@ class FmuSlave(Slave):
         if self.fmu is None:
             return None
         dll = self.fmu.dll
+        st = (0, 0, 0)
+        if self.can_rollback:
+            v = "3" if self.fmi3 else "2"
+            try:
+                st = tuple(_addr(getattr(dll, f"fmi{v}{x}")) for x in
+                           (("GetFMUState", "SetFMUState", "FreeFMUState") if self.fmi3 else
+                            ("GetFMUstate", "SetFMUstate", "FreeFMUstate")))
+            except AttributeError:  # declared but not exported: no compiled rollback
+                st = (0, 0, 0)
         if self.fmi3:
             return NativeEntry(True, self.fmu.component, _addr(dll.fmi3DoStep), _addr(dll.fmi3GetFloat64),
-                               _addr(dll.fmi3SetFloat64))
+                               _addr(dll.fmi3SetFloat64), 0, *st)
         return NativeEntry(False, self.fmu.component, _addr(dll.fmi2DoStep), _addr(dll.fmi2GetReal),
                            _addr(dll.fmi2SetReal),
-                           _addr(dll.fmi2SetRealInputDerivatives) if self.description.can_interpolate_inputs else 0)
-
+                           _addr(dll.fmi2SetRealInputDerivatives) if self.description.can_interpolate_inputs else 0,
+                           *st, _boolean_status(dll))
 
     @property
     def can_rollback(self) -> bool:

@@ -136,7 +136,15 @@ class Block:
         return vec
 
     def feedthrough(self) -> dict[str, list[str]]:
-        """For each output, the inputs it depends on directly (from the Jacobian sparsity)."""
+        """For each output, the inputs it depends on directly (from the Jacobian sparsity;
+        remembered while ``out`` and ``u`` are the same expressions: a batch asks once per scene)."""
+        memo = self.__dict__.get("_feedthrough")
+        if memo is None or memo[0] is not self.out or memo[1] is not self.u:
+            memo = (self.out, self.u, self._feedthrough())
+            self.__dict__["_feedthrough"] = memo
+        return {y: list(u) for y, u in memo[2].items()}
+
+    def _feedthrough(self) -> dict[str, list[str]]:
         if self.u.numel() == 0:
             return {y.name: [] for y in self.outputs}
         sp = ca.jacobian_sparsity(self.out, self.u) if self.out.numel() else None

@@ -17,6 +17,10 @@ from pathlib import Path
 
 import pytest
 
+# One BLAS thread: the suite's matrices are tiny, and OpenBLAS's thread pool on a loaded two-core
+# machine made scipy.linalg.expm of a 2x2 matrix take ~20 ms instead of ~0.1 ms (measured).
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
 #: where the Reference FMUs' source lives (override with $RPR_REFERENCE_FMUS_SRC)
 REFERENCE_FMUS_SRC = Path(os.environ.get("RPR_REFERENCE_FMUS_SRC", Path(__file__).resolve().parents[1].parent
                                          / "shared" / "third_party" / "Reference-FMUs"))

@@ -28,6 +28,7 @@ from pathlib import Path
 from typing import Any
 
 from ..errors import UserError
+from ..outputs import pid_alive
 from ..scenario import Problem, Scene, SceneError, apply_overrides, validate
 from .axes import Point, expand
 from .results import ResultsTable, base_columns
@@ -129,7 +130,11 @@ def build_fmus(runs: Sequence[Planned], *, cache_dir: Path | None = None,
 
 
 class _Lock:
-    """An exclusive lock on ``<out>/.lock`` (one batch per output directory)."""
+    """An exclusive lock on ``<out>/.lock`` (one batch per output directory).  Forked workers
+    share it; when the batch that wrote its pid there is gone, its workers (which end within
+    ~0.2 s of it) are waited for up to :attr:`GRACE_S`."""
+
+    GRACE_S = 3.0
 
     def __init__(self, out: Path):
         self.path = out / ".lock"
@@ -137,11 +142,18 @@ class _Lock:
     def __enter__(self):
         self.path.parent.mkdir(parents=True, exist_ok=True)
         self.fh = open(self.path, "a+")
-        try:
-            fcntl.flock(self.fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except BlockingIOError:
-            self.fh.seek(0)
-            who = self.fh.read().strip()
+        deadline = time.monotonic() + self.GRACE_S
+        while True:
+            try:
+                fcntl.flock(self.fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                break
+            except BlockingIOError:
+                self.fh.seek(0)
+                who = self.fh.read().strip()
+                pid = who.split()[-1] if who else ""
+                if pid.isdigit() and not pid_alive(int(pid)) and time.monotonic() < deadline:
+                    time.sleep(0.05)  # a killed batch's workers still hold it until they notice
+                    continue
             self.fh.close()
             raise UserError(f"{self.path.parent}: another batch is running there ({who or 'pid unknown'}); wait for "
                             f"it or choose another --out") from None

@@ -27,6 +27,7 @@ class Link:
     dst_var: str
     factor: float = 1.0
     offset: float = 0.0
+    bond: str | None = None  # the power bond ``a.p <-> b.q`` this link is one half of, if any
 
     @property
     def transformed(self) -> bool:

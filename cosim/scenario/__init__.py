@@ -27,6 +27,8 @@ and ``options`` (construction options of :func:`models.blocks.make`), or ``fmu``
 instance at start-up, so one compiled FMU serves every value); ``start`` sets start values of
 inputs and states (for an FMU: inputs and variables with initial = exact or approx; parameters
 and FMI 3.0 structural parameters go under ``params``, any FMI type, arrays as lists); ``fmi`` picks the FMI version of a built FMU ("2.0" default, or "3.0").
+``rollback: false`` makes the master treat the component as one that cannot save and restore its
+state (as hardware): ``adaptive`` refuses it, ``ecco`` and the fixed-step algorithms run it.
 
 A bond ``a.p <-> b.q`` joins two flanges: the side whose flange computes the effort
 (``effort_out``) feeds its effort output to the other side's effort input, and the other side

@@ -41,14 +41,23 @@ class ComponentChecks(Checker):
         if "model" in spec and "fmu" in spec:
             self.err(spec.where, f"component {name!r} has both 'model:' and 'fmu:'; keep one")
             return None
+        rollback = spec.get("rollback", True)
+        if not isinstance(rollback, bool):
+            self.err(spec.loc("rollback"), f"component {name!r}: rollback = {rollback!r}; expected true or false "
+                                           f"(false: the master may not save and restore its state, as for hardware)")
+            rollback = True  # reported; check the rest of the component as usual
         if "hardware" in spec:
-            return self._hardware_component(name, spec)
-        if "fmu" in spec:
-            return self._fmu_component(name, spec, fmi)
-        if "model" in spec:
-            return self._model_component(name, spec, fmi)
-        self.err(spec.where, f"component {name!r} needs 'model:' (a catalog model) or 'fmu:' (a file)")
-        return None
+            comp = self._hardware_component(name, spec)
+        elif "fmu" in spec:
+            comp = self._fmu_component(name, spec, fmi)
+        elif "model" in spec:
+            comp = self._model_component(name, spec, fmi)
+        else:
+            self.err(spec.where, f"component {name!r} needs 'model:' (a catalog model) or 'fmu:' (a file)")
+            return None
+        if comp is not None:
+            comp.rollback = rollback
+        return comp
 
     def _fmu_component(self, name: str, spec: YMap, fmi: str) -> Component | None:
         where = spec.loc("fmu")

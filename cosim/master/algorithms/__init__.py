@@ -9,7 +9,7 @@ from __future__ import annotations
 import importlib
 
 #: the algorithm modules, in registry order (the order of defaults such as the study's algorithms)
-MODULES = ("jacobi", "gauss_seidel", "adaptive")
+MODULES = ("jacobi", "gauss_seidel", "adaptive", "ecco")
 
 for _name in MODULES:
     importlib.import_module(f"{__name__}.{_name}")

@@ -1,0 +1,255 @@
+"""Step-size control from the energy residual of power bonds: ``master.algorithm: ecco``.
+
+The idea of ECCO (Sadjina, Kyllingstad, Skjong and Pedersen, "Energy conservation and power
+bonds in co-simulations: non-iterative adaptive step size control and error estimation",
+Engineering with Computers, 2017; the ``ecco_algorithm`` of libcosim): across a power bond
+``a.p <-> b.q`` each side computes the power it exchanges from its own output and the input it was
+given, ``P_a = y_a * u_a`` (e.g. the motor's force times the velocity it saw) and
+``P_b = y_b * u_b`` (the leg's velocity times the force it saw).  With perfect coupling both are
+the same power at every instant; a co-simulation hands each side held, extrapolated or
+interpolated inputs, so energy is created or lost at the bond.  That energy residual is the error
+estimate, and it needs no rollback: it is measured after the step, and the step size it asks for
+applies to the next step.  This is the algorithm for slaves that cannot save and restore their
+state (the hardware plant, or a component declared ``rollback: false`` in its scene).
+
+Per bond and step ``t -> t + h`` (a Gauss-Seidel step with linear inputs, taken by
+:class:`cosim.master.algorithms.adaptive.AdaptiveStepper`), with the outputs ``y(t)``, ``y(t+h)``
+and the input each side actually saw, ``u(t)`` and ``u(t) + slope * h`` at the step's end (a held
+input has slope 0):
+
+* energy residual (trapezoidal rule over the step) [J]:
+  ``dE = h/2 * [(P_a - P_b)(t) + (P_a - P_b)(t+h)]``;
+* energy the bond carried over the step [J]:
+  ``E = h/2 * max(|P_a(t)| + |P_a(t+h)|, |P_b(t)| + |P_b(t+h)|)``;
+* scaled residual (the ECCO paper's relative error): ``eps = |dE| / (atol + rtol * E)``.
+
+The step's error is the largest ``eps`` over the bonds (every bond within its tolerance, where
+libcosim takes a root mean square).  The next step follows a PI controller on it,
+``h_new = h * clip((safety / eps)^k_i * (eps_prev / eps)^k_p, fac_min, fac_max)`` (Soederlind's
+form: a steady error settles at ``safety``, a growing one cuts the step at once) within
+``[h_min, h_max]``, landing exactly on the stop time; time is counted in whole nanoseconds.  A step
+is never retried, so the defaults aim low (``safety`` 0.1) and change the step smoothly (small
+gains, ``fac_max`` 1.2): a step with ``eps > 1`` is kept, counted as over tolerance, and the next
+one is smaller.  A Discard or error from any slave ends the run as "failed" with the slave's
+reason; a residual that is not finite, or one over tolerance for 100 steps in a row at ``h_min``,
+as "unstable".
+
+Statistics (the run's sidecar, ``statistics``): accepted steps, smallest and largest step, the
+stepping order, and per bond the largest scaled residual of a step, the largest residual [J], the
+residual summed over the run (signed: the energy the coupling created) and its absolute sum [J],
+the energy carried [J], the net residual scaled like a step's (``|sum dE| / (atol + rtol * sum
+E)``) and the steps over tolerance.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from collections.abc import Sequence
+
+import numpy as np
+
+from ...errors import UserError
+from ...slaves import Status
+from ..algorithm import Algorithm, register
+from ..system import CoupledSystem
+from .adaptive import AdaptiveStats, AdaptiveStepper, AlgorithmOption
+
+OPTIONS = (
+    AlgorithmOption("rtol", 1e-3, 1e-12, 1.0, "1", "energy residual of a bond per step, relative to the energy "
+                                               "the bond carried over the step"),
+    AlgorithmOption("atol", 1e-7, 0.0, math.inf, "J", "absolute tolerance of the energy residual of a bond per step"),
+    AlgorithmOption("h_init", 1e-6, 1e-9, 1.0, "s", "first macro step (no input history yet to extrapolate from)"),
+    AlgorithmOption("h_min", 1e-7, 1e-9, 1.0, "s", "smallest macro step"),
+    AlgorithmOption("h_max", 0.01, 1e-9, math.inf, "s", "largest macro step"),
+    AlgorithmOption("safety", 0.1, 0.01, 1.0, "1", "the scaled residual the step controller aims at (a step "
+                                                  "cannot be retried: the margin absorbs what it did not foresee)"),
+    AlgorithmOption("fac_min", 0.2, 0.01, 1.0, "1", "smallest step ratio from one step to the next"),
+    AlgorithmOption("fac_max", 1.2, 1.0, 100.0, "1", "largest step ratio from one step to the next"),
+    AlgorithmOption("k_i", 0.1, 0.0, 2.0, "1", "integral gain of the PI step controller (exponent of the residual)"),
+    AlgorithmOption("k_p", 0.2, 0.0, 2.0, "1", "proportional gain of the PI step controller (exponent of the "
+                                               "residual's change)"),
+)
+
+
+@dataclass
+class Bond:
+    """One power bond by indices into the system's value vector: each side's output and the
+    input buffer it steps with (``slot``: position among that slave's inputs)."""
+
+    name: str
+    side: tuple[int, int]  # the two slaves
+    out_idx: np.ndarray  # v indices of y_a, y_b
+    in_idx: np.ndarray  # v indices of u_a, u_b (the input buffers)
+    slot: tuple[int, int]  # positions of u_a, u_b in their slaves' inputs (slope buffers)
+
+
+def find_bonds(system: CoupledSystem) -> list[Bond]:
+    """The power bonds of ``system``: pairs of links carrying the same ``bond`` label, one each
+    way between two slaves.  A bond whose halves are transformed or missing is a UserError."""
+    halves: dict[str, list] = {}
+    for ln in system.links:
+        if ln.bond:
+            halves.setdefault(ln.bond, []).append(ln)
+    bonds = []
+    for name, lns in halves.items():
+        if len(lns) != 2 or lns[0].src != lns[1].dst or lns[0].dst != lns[1].src:
+            raise UserError(f"power bond {name}: expected one link each way between two slaves, got "
+                            f"{', '.join(f'{ln.src}.{ln.src_var} -> {ln.dst}.{ln.dst_var}' for ln in lns)}")
+        if any(ln.transformed for ln in lns):
+            raise UserError(f"power bond {name}: a bond carries effort and flow unchanged (no factor or offset)")
+        to_b, to_a = lns
+        a, b = to_b.src, to_a.src
+        slot_a = system.inputs[a].index(to_a.dst_var)
+        slot_b = system.inputs[b].index(to_b.dst_var)
+        bonds.append(Bond(name, (a, b),
+                          np.array([system.index[(a, to_b.src_var)], system.index[(b, to_a.src_var)]]),
+                          np.array([system.in_off[a] + slot_a, system.in_off[b] + slot_b]), (slot_a, slot_b)))
+    return bonds
+
+
+@dataclass
+class BondRecord:
+    """Per-bond statistics of a run (``rtol``, ``atol``: the run's tolerances)."""
+
+    rtol: float
+    atol: float
+    max_scaled: float = 0.0  # largest eps of a step
+    max_residual: float = 0.0  # [J] largest |dE| of a step
+    residual_sum: float = 0.0  # [J] sum of dE (signed): the energy the coupling created at the bond
+    abs_residual_sum: float = 0.0  # [J] sum of |dE|
+    energy: float = 0.0  # [J] sum of E: the energy the bond carried
+    over: int = 0  # steps with eps > 1
+
+    def add(self, residual: float, carried: float, scaled: float) -> None:
+        self.max_scaled = max(self.max_scaled, scaled)
+        self.max_residual = max(self.max_residual, abs(residual))
+        self.residual_sum += residual
+        self.abs_residual_sum += abs(residual)
+        self.energy += carried
+        self.over += scaled > 1.0
+
+    @property
+    def run_scaled(self) -> float:
+        """The run's net residual against the same tolerance: ``|sum dE| / (atol + rtol * sum E)``."""
+        return abs(self.residual_sum) / (self.atol + self.rtol * self.energy)
+
+    def as_dict(self) -> dict:
+        return {"max_scaled_residual": self.max_scaled, "max_energy_residual_J": self.max_residual,
+                "energy_residual_sum_J": self.residual_sum, "abs_energy_residual_sum_J": self.abs_residual_sum,
+                "energy_J": self.energy, "run_scaled_residual": self.run_scaled,
+                "steps_over_tolerance": self.over}
+
+
+@dataclass
+class EccoStats(AdaptiveStats):
+    bonds: dict[str, BondRecord] = field(default_factory=dict)
+    order: list[str] = field(default_factory=list)
+
+    def as_dict(self) -> dict:
+        return {**super().as_dict(), "stepping_order": self.order,
+                "bonds": {n: b.as_dict() for n, b in self.bonds.items()}}
+
+
+def bond_energy(h: float, y0: np.ndarray, y1: np.ndarray, u0: np.ndarray, u1: np.ndarray
+                ) -> tuple[np.ndarray, np.ndarray]:
+    """Energy residual and energy carried [J] of bonds over a step of ``h`` [s]: ``y0``, ``y1``
+    (rows: bonds, columns: sides a, b) the outputs at the step's start and end, ``u0``, ``u1`` the
+    inputs each side saw there (see the module docstring)."""
+    p0, p1 = y0 * u0, y1 * u1
+    residual = 0.5 * h * ((p0[:, 0] - p0[:, 1]) + (p1[:, 0] - p1[:, 1]))
+    carried = 0.5 * h * np.maximum(np.abs(p0[:, 0]) + np.abs(p1[:, 0]), np.abs(p0[:, 1]) + np.abs(p1[:, 1]))
+    return residual, carried
+
+
+class EccoStepper(AdaptiveStepper):
+    """The stepping of :mod:`cosim.ecco`: adaptive's Gauss-Seidel step with linear inputs, never
+    rolled back, its size chosen from the bonds' energy residual."""
+
+    needs_rollback = False
+    #: steps in a row over tolerance at the step floor ``h_min`` after which the run ends as unstable
+    floor_patience = 100
+
+    def __init__(self, system, order: Sequence[int], options: dict[str, float], start_ns: int, stop_ns: int):
+        super().__init__(system, order, options, start_ns, stop_ns)
+        self.bonds = find_bonds(system)
+        if not self.bonds:
+            raise UserError("master algorithm ecco controls its step from the energy residual of power bonds "
+                            "('a.flange <-> b.flange'), and this scene has none; use adaptive, or gauss_seidel "
+                            "with a fixed step")
+        self.stats = EccoStats(order=[system.slaves[i].name for i in self.order],
+                               bonds={b.name: BondRecord(options["rtol"], options["atol"]) for b in self.bonds})
+        self._out_idx = np.array([b.out_idx for b in self.bonds])  # (bonds, 2)
+        self._in_idx = np.array([b.in_idx for b in self.bonds])
+        self.err_prev = options["safety"]
+        self._at_floor = 0  # steps in a row at h_min over tolerance
+        self._ending = ""  # why the run ends before the next step
+
+    def _seen_slopes(self) -> np.ndarray:
+        """Slopes [unit/s] of the bonds' inputs over the step just taken (0 where held)."""
+        return np.array([[self.slopes[s][k] if self.interp[s] else 0.0 for s, k in zip(b.side, b.slot)]
+                         for b in self.bonds])
+
+    def step(self) -> bool:
+        """Advance by one step (never retried); False when the run ends early."""
+        sysm, opt = self.system, self.opt
+        if self._ending:
+            self.status, self.message = "unstable", self._ending
+            return False
+        if not hasattr(self, "cur_src"):
+            self.cur_src = [sysm.v[src].copy() for src in sysm.in_src]
+        h_ns = max(1, min(round(self.h * 1e9), self.stop_ns - self.t_ns))
+        h = h_ns / 1e9
+        y0 = sysm.v[self._out_idx]
+        _, bad, st = self._attempt(h)
+        if bad is not None:
+            sl = sysm.slaves[bad]
+            if st == Status.STOP_REQUESTED or (st == Status.DISCARD and sl.asked_to_stop()):
+                self.status = "stopped"
+                self.message = f"{sl.name} asked to terminate the simulation at t = {self.t:.9g} s"
+            else:
+                self.status = "failed"
+                name = Status(st).name if st in Status._value2member_map_ else str(st)
+                self.message = (f"{sl.name} returned {name} in the step from t = {self.t:.9g} s (ecco does not "
+                                f"roll back)" + (f": {sl.last_message}" if sl.last_message else ""))
+            return False
+        u0 = sysm.v[self._in_idx]
+        residual, carried = bond_energy(h, y0, sysm.v[self._out_idx], u0, u0 + self._seen_slopes() * h)
+        scaled = np.abs(residual) / (opt["atol"] + opt["rtol"] * carried)
+        if not np.all(np.isfinite(scaled)):
+            k = int(np.argmin(np.isfinite(scaled)))
+            self.status = "unstable"
+            self.message = (f"the energy residual of bond {self.bonds[k].name} is not finite in the step from "
+                            f"t = {self.t:.9g} s (y = {sysm.v[self._out_idx[k]]}, u = {u0[k]})")
+            return False
+        for b, r, e, x in zip(self.bonds, residual, carried, scaled):
+            self.stats.bonds[b.name].add(float(r), float(e), float(x))
+        self._commit(h, h_ns)
+        err = max(float(np.max(scaled)), 1e-10)
+        self._at_floor = self._at_floor + 1 if err > 1.0 and h <= opt["h_min"] * (1 + 1e-12) else 0
+        if self._at_floor >= self.floor_patience:  # this step is taken and recorded; the run ends before the next
+            k = int(np.argmax(scaled))
+            self._ending = (f"the energy residual of bond {self.bonds[k].name} stayed over its tolerance for "
+                            f"{self._at_floor} steps at the step floor h_min = {opt['h_min']:g} s (scaled "
+                            f"{scaled[k]:.3g} at t = {self.t:.9g} s)")
+        fac = (opt["safety"] / err) ** opt["k_i"] * (self.err_prev / err) ** opt["k_p"]
+        self.err_prev = err
+        fac = min(opt["fac_max"], max(opt["fac_min"], fac))
+        if h_ns < round(self.h * 1e9):  # clipped to land on the stop time: keep the proposal
+            fac = max(fac, 1.0)
+        self.h = min(opt["h_max"], max(opt["h_min"], h * fac))
+        return True
+
+
+@register
+class Ecco(Algorithm):
+    """Registry entry of the power-bond master (module docstring); it runs through
+    :func:`cosim.master.algorithms.adaptive.simulate_variable` with :class:`EccoStepper`."""
+
+    name = "ecco"
+    variable_step = True
+    needs_rollback = False
+    options = OPTIONS
+    stepper = EccoStepper
+
+    def _step_impl(self, t, h):  # pragma: no cover - variable-step runs never use the fixed-step loop
+        raise RuntimeError("ecco runs through cosim.master.algorithms.adaptive.simulate_variable")
