@@ -3,16 +3,22 @@ against the runs themselves, and FMU instance reuse (FMI reset) against loading 
 
 The batch: ``pid_step`` (eight FMUs, 1 ms Gauss-Seidel with linear inputs) over a 4 x 4 grid of
 the three PIDs' Kp and Kd, 16 runs, on local worker processes, each run writing its trace and
-sidecar.  Each figure is the best of ``--repeat`` batches into fresh directories, after one
-warm-up batch (so the FMUs are built and the worker server process is up in every case).
+sidecar.  Each figure is the best of ``--repeat`` measurements into fresh directories, after one
+warm-up batch (the FMUs are in the cache); the 1- and 2-worker batches and the plain loop take
+turns, so that a change of the machine's load hits them alike.
 
-- speed-up: wall time of the execution (everything after the scenes are resolved and the FMUs
-  built: starting workers, runs, rows) on 1 worker over 2 workers (target >= 1.8x on 2 cores).
-- overhead per run (1 worker): execution wall time minus the runs themselves (each run's
-  :func:`cosim.run.run`: initialisation, stepping, streaming its trace files; ``run_s`` in the
-  table), divided by the runs; split into the worker's share (instance hand-out, metrics) and
-  the parent's (process start, sending tasks, writing rows with fsync).  Targets: under 5 % of the runs, under 50 ms
-  per run for short scenes (also measured at stop_time 0.5 s).
+- the runs' own work ("plain"): the same 16 scenes run one after another in this process by the
+  code a plain ``rpr-cosim run`` uses (:func:`cosim.run.run`: initialisation, stepping, streaming
+  the trace and sidecar), with the FMUs loaded once and reset between runs as a batch does.
+- speed-up: wall time of the whole batch (:func:`cosim.batch.run_batch`: resolving and checking
+  the 16 scenes, looking up the FMUs, starting the workers, the runs, metrics and rows) on 1
+  worker over 2 workers (target >= 1.8x on 2 cores); also of the execution alone (after the
+  scenes are resolved and the FMUs looked up).
+- overhead per run: (whole batch on 1 worker - plain) / 16, also as % of the plain runs
+  (targets: under 5 %, under 50 ms per run for short scenes; also at stop_time 0.5 s); the
+  part after resolving the scenes is shown apart, and the worker's own share (instance
+  hand-out, metrics: its wall time per run beyond ``cosim.run.run``); and the same in CPU time
+  (this process and its workers), which the machine's load disturbs less than wall time.
 - reuse: initialisation time per run (``init_s``: instantiate or reset, start values,
   initialisation) with instances kept and reset against loading the FMUs for every run.
 
@@ -30,7 +36,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from cosim.batch import load_batch, run_batch  # noqa: E402
+from cosim.batch import load_batch, plan, run_batch  # noqa: E402
 from cosim.batch.executors import LocalExecutor  # noqa: E402
 
 BATCH = """\
@@ -53,29 +59,76 @@ def batch_file(tmp: Path, stop: float) -> Path:
 
 def one(batch, tmp: Path, workers: int, reuse: bool = True) -> dict:
     out = Path(tempfile.mkdtemp(dir=tmp))
+    c0 = cpu()
     res = run_batch(batch, out=out, executor=LocalExecutor(workers), reuse=reuse)
+    c1 = cpu()
     assert res.ran == len(res.rows) and res.failed == 0, res.rows
     rows = res.rows
-    execution = res.wall_s - res.prepare_s
-    sim = sum(r["run_s"] for r in rows)
-    return {"execution": execution, "sim": sim, "worker": sum(r["wall_s"] for r in rows) - sim,
-            "loop": sum(r["loop_s"] for r in rows), "trace": sum(r["run_s"] - r["init_s"] - r["loop_s"] for r in rows),
-            "init": sum(r["init_s"] for r in rows) / len(rows), "n": len(rows), "wall": res.wall_s,
-            "prepare": res.prepare_s}
+    run_s = sum(r["run_s"] for r in rows)
+    return {"wall": res.wall_s, "execution": res.wall_s - res.prepare_s, "prepare": res.prepare_s,
+            "worker": sum(r["wall_s"] for r in rows) - run_s, "run": run_s,
+            "init": sum(r["init_s"] for r in rows) / len(rows), "n": len(rows), "cpu": c1 - c0}
 
 
-def best(batch, tmp: Path, workers: int, repeat: int, reuse: bool = True) -> dict:
-    return min((one(batch, tmp, workers, reuse) for _ in range(repeat)), key=lambda m: m["execution"])
+def cpu() -> float:
+    """CPU time [s] of this process and its finished children (the workers, once joined)."""
+    t = os.times()
+    return t.user + t.system + t.children_user + t.children_system
 
 
-def overhead(m: dict) -> str:
-    per = (m["execution"] - m["sim"]) / m["n"]
-    worker = m["worker"] / m["n"]
-    n = m["n"]
-    return (f"{1e3 * per:.1f} ms per run = {100 * per * n / m['sim']:.1f} % of the runs' own "
-            f"{1e3 * m['sim'] / n:.1f} ms (of which stepping {1e3 * m['loop'] / n:.1f} ms, trace files "
-            f"{1e3 * m['trace'] / n:.1f} ms); worker side {1e3 * worker:.1f} ms (instances, metrics), "
-            f"parent side {1e3 * (per - worker):.1f} ms (processes, tasks, rows)")
+class Plain:
+    """The batch's scenes run one after another here by :func:`cosim.run.run` (instances kept)."""
+
+    def __init__(self, batch):
+        from cosim.run import build_components
+        from cosim.slaves import FmuSlave
+
+        self.scenes = [p.scene for p in plan(batch)[0]]
+        paths = build_components(self.scenes[0])
+        self.slaves = [FmuSlave(name, paths[name]) for name in self.scenes[0].components]
+        for s in self.slaves:
+            s.reuse = True
+
+    def __call__(self, tmp: Path) -> dict:
+        from cosim.run import run
+
+        out = Path(tempfile.mkdtemp(dir=tmp))
+        c0, t0, m0 = cpu(), time.perf_counter(), time.thread_time()
+        loop = trace = 0.0
+        for i, scene in enumerate(self.scenes):
+            t1 = time.perf_counter()
+            res = run(scene, out_dir=out / str(i), slaves=self.slaves)
+            assert res.ok, res.reason
+            loop += res.stats["wall_s"]
+            trace += time.perf_counter() - t1 - res.stats["wall_s"] - res.stats["init_s"]
+        n = len(self.scenes)
+        return {"wall": time.perf_counter() - t0, "n": n, "loop": loop, "trace": trace, "cpu": cpu() - c0,
+                "main_cpu": time.thread_time() - m0}
+
+
+def best(fns: dict, repeat: int) -> dict:
+    """The best (least wall) of ``repeat`` results of each function, the functions taking turns."""
+    out: dict = {}
+    for _ in range(repeat):
+        for name, fn in fns.items():
+            m = fn()
+            if name not in out or m["wall"] < out[name]["wall"]:
+                out[name] = m
+    return out
+
+
+def overhead(b1: dict, plain: dict) -> str:
+    n = plain["n"]
+    per = (b1["wall"] - plain["wall"]) / n
+    exec_per = (b1["execution"] - plain["wall"]) / n
+    return (f"{1e3 * per:.1f} ms per run = {100 * per * n / plain['wall']:.1f} % of the runs' own "
+            f"{1e3 * plain['wall'] / n:.1f} ms (stepping {1e3 * plain['loop'] / n:.1f} ms, trace files "
+            f"{1e3 * plain['trace'] / n:.1f} ms); of which resolving and checking the scenes, FMU look-up "
+            f"{1e3 * b1['prepare'] / n:.1f} ms, execution {1e3 * exec_per:.1f} ms "
+            f"({100 * exec_per * n / plain['wall']:.1f} %; the worker's own share {1e3 * b1['worker'] / n:.1f} ms: "
+            f"instances, metrics); CPU time per run {1e3 * b1['cpu'] / n:.1f} ms against "
+            f"{1e3 * plain['cpu'] / n:.1f} ms (+{100 * (b1['cpu'] / plain['cpu'] - 1):.1f} %; less sensitive to the "
+            f"machine's load than wall time)")
 
 
 def main() -> None:
@@ -83,27 +136,40 @@ def main() -> None:
     ap.add_argument("--repeat", type=int, default=3)
     ap.add_argument("--stop", type=float, default=5.0, help="stop_time of the runs [s]")
     args = ap.parse_args()
+    print("overhead per run = (wall time of the whole batch on 1 worker - the same runs one after another "
+          "by cosim.run.run in one process, instances kept) / runs")
     print(f"load average before: {os.getloadavg()[0]:.2f} on {os.cpu_count()} cores")
     with tempfile.TemporaryDirectory() as td:
         tmp = Path(td)
         batch = load_batch(batch_file(tmp, args.stop))
         short = load_batch(batch_file(tmp, 0.5))
         t0 = time.perf_counter()
-        one(batch, tmp, 2)  # warm-up: FMUs, worker server
+        one(batch, tmp, 2)  # warm-up: FMUs
         print(f"warm-up batch: {time.perf_counter() - t0:.2f} s")
-        m1 = best(batch, tmp, 1, args.repeat)
-        m2 = best(batch, tmp, 2, args.repeat)
-        print(f"16 runs of pid_step ({args.stop:g} s each), execution: 1 worker {m1['execution']:.2f} s, "
-              f"2 workers {m2['execution']:.2f} s: speed-up {m1['execution'] / m2['execution']:.2f}x "
-              f"(whole batch incl. resolving scenes and FMU checks {m1['prepare']:.2f} s: "
-              f"{m1['wall']:.2f} s vs {m2['wall']:.2f} s)")
-        print(f"overhead, 1 worker, {args.stop:g} s runs: {overhead(m1)}")
-        ms = best(short, tmp, 1, args.repeat)
-        print(f"overhead, 1 worker, 0.5 s runs: {overhead(ms)}")
-        mr = best(batch, tmp, 1, args.repeat, reuse=False)
-        print(f"initialisation per run: instances kept and reset {1e3 * m1['init']:.1f} ms, FMUs loaded for every "
-              f"run {1e3 * mr['init']:.1f} ms ({mr['init'] / m1['init']:.0f}x); execution of the 16 runs "
-              f"{m1['execution']:.2f} s vs {mr['execution']:.2f} s ({mr['execution'] / m1['execution']:.2f}x)")
+        plain, plain_short = Plain(batch), Plain(short)
+        m = best({"1": lambda: one(batch, tmp, 1), "2": lambda: one(batch, tmp, 2),
+                  "plain": lambda: plain(tmp)}, args.repeat)
+        m1, m2, p = m["1"], m["2"], m["plain"]
+        print(f"CPU time of the whole batch (this process and the workers): 1 worker {m1['cpu']:.2f} s, 2 workers "
+              f"{m2['cpu']:.2f} s; the runs one after another {p['cpu']:.2f} s")
+        print(f"16 runs of pid_step ({args.stop:g} s each): whole batch 1 worker {m1['wall']:.2f} s, 2 workers "
+              f"{m2['wall']:.2f} s: speed-up {m1['wall'] / m2['wall']:.2f}x (target 1.8x); execution alone "
+              f"{m1['execution']:.2f} s vs {m2['execution']:.2f} s: {m1['execution'] / m2['execution']:.2f}x; "
+              f"the runs one after another in one process {p['wall']:.2f} s")
+        main_ms, other_ms = 1e3 * p["main_cpu"] / p["n"], 1e3 * (p["cpu"] - p["main_cpu"]) / p["n"]
+        print(f"a run's CPU time: {main_ms:.1f} ms in its main thread (stepping), {other_ms:.1f} ms in its "
+              f"trace-writer thread, which overlap: a worker whose runs last as long as their main thread keeps "
+              f"{(main_ms + other_ms) / main_ms:.2f} cores busy, and 2 such workers on 2 cores can be at most "
+              f"{2 * main_ms / (main_ms + other_ms):.2f}x faster than one")
+        print(f"overhead, 1 worker, {args.stop:g} s runs: {overhead(m1, p)} (targets 5 %, 50 ms)")
+        ms = best({"1": lambda: one(short, tmp, 1), "plain": lambda: plain_short(tmp)}, args.repeat)
+        print(f"overhead, 1 worker, 0.5 s runs: {overhead(ms['1'], ms['plain'])} (target 50 ms)")
+        mr = best({"reuse": lambda: one(batch, tmp, 1), "reload": lambda: one(batch, tmp, 1, reuse=False)},
+                  args.repeat)
+        a, b = mr["reuse"], mr["reload"]
+        print(f"initialisation per run: instances kept and reset {1e3 * a['init']:.1f} ms, FMUs loaded for every "
+              f"run {1e3 * b['init']:.1f} ms ({b['init'] / a['init']:.0f}x); the 16 runs' batch "
+              f"{a['wall']:.2f} s vs {b['wall']:.2f} s ({b['wall'] / a['wall']:.2f}x)")
     print(f"load average after: {os.getloadavg()[0]:.2f}")
 
 

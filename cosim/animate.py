@@ -12,7 +12,6 @@ from pathlib import Path
 
 import numpy as np
 
-from models import kinematics
 from models.geometry import GEOMETRY_FIELDS, Manipulator, preset
 
 from .errors import UserError
@@ -48,6 +47,8 @@ def manipulator_for(options: dict | None = None, params: dict | None = None) -> 
 def joints(m: Manipulator, q: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """For poses ``q`` of shape (3, N): fixed joints A (3, 2), platform joints B (N, 3, 2) and
     leg lengths L (N, 3)."""
+    from models import kinematics
+
     L, th = kinematics.ik(m, q)
     A = np.asarray(m.base, dtype=float)
     B = A[None, :, :] + (L.T[:, :, None] * np.stack([np.cos(th.T), np.sin(th.T)], axis=-1))

@@ -12,7 +12,6 @@ loopback unless told otherwise.  The work is in :mod:`hardware`; this module is 
 from __future__ import annotations
 
 import argparse
-import logging
 import os
 import re
 import shutil
@@ -85,6 +84,8 @@ def _common(args):
         raise UserError(str(exc)) from None
     if not (args.rate > 0) or args.rate > 20000:
         raise UserError(f"--rate {args.rate}: expected 1..20000 Hz")
+    import logging
+
     logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING,
                         format="[board] %(levelname)s %(message)s", stream=sys.stderr)
     if args.rt_priority:

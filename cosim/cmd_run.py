@@ -48,6 +48,12 @@ def _run(args: argparse.Namespace) -> int:
     from .run import progress_bar, run
     from .scenario import SceneError, load
 
+    if args.cache:  # the scene's catalog components are looked up in this cache's recipe index too
+        import os
+
+        from fmus.cache import ENV_VAR
+
+        os.environ[ENV_VAR] = str(args.cache)
     try:
         scene = load(args.scene, args.sets)
     except SceneError as exc:

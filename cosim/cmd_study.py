@@ -62,6 +62,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "linear)")
     q.add_argument("--stop", type=float, metavar="T", help="simulated time per run [s] (default: the scene's)")
     q.add_argument("--only", action="append", default=[], metavar="GLOB", help="compare only these signals")
+    q.add_argument("--set", dest="sets", action="append", default=[], metavar="PATH=VALUE",
+                   help="override a scene value in every run, e.g. components.mech.rate=4 (multirate)")
     q.add_argument("--tol", type=float, default=1e-3, metavar="REL",
                    help="report the cheapest run whose worst relative error is within REL (default 1e-3)")
     q.add_argument("--out", type=Path, help="output directory (default runs/<scene>_precision)")
@@ -152,7 +154,7 @@ def _precision(args: argparse.Namespace) -> int:
     if not args.tol > 0:
         raise UserError(f"--tol {args.tol}: expected a positive relative tolerance")
     study = precision_study(args.scene, _variants(args.variant), steps, stop_time=args.stop, only=args.only or None,
-                            cache_dir=args.cache, progress=lambda m: print(f"  {m}", file=sys.stderr, flush=True))
+                            cache_dir=args.cache, overrides=args.sets, progress=lambda m: print(f"  {m}", file=sys.stderr, flush=True))
     from .outputs import check_out_dir, confined
 
     out = args.out or Path("runs") / f"{study.scene}_precision"

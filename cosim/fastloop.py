@@ -54,6 +54,11 @@ typedef struct {
     const int32_t *orders;
     const int8_t *fresh;
     double *hist, *slope;
+    /* multirate (cosim.master.multirate): rate doSteps of sub_ns per macro step; base holds the input
+       values pushed for the first sub-step (linear inputs) */
+    int32_t rate;
+    int64_t sub_ns;
+    double *base;
 } rpr_slave;
 
 enum { ST_OK = 0, ST_WARNING = 1, ST_STOP = 100 };
@@ -100,6 +105,32 @@ static inline int step(rpr_slave *s, double t, double h) {
     return ((step2_t)s->do_step)(s->inst, t, h, 0);
 }
 
+/* one macro step from t_ns of a slave at rate > 1: sub-steps at the exact sub-instants, its
+   inputs held or set on the macro step's line before every later sub-step (cosim.master.multirate) */
+static inline int advance(rpr_slave *s, double *v, int64_t t_ns, double t, double h) {
+    int32_t j, m;
+    int st;
+    double hs, *in;
+    if (s->rate <= 1) return step(s, t, h);
+    hs = (double)s->sub_ns / 1e9;
+    in = v + s->in_off;
+    if (s->interp) for (m = 0; m < s->n_in; ++m) s->base[m] = in[m];
+    st = step(s, (double)t_ns / 1e9, hs);
+    for (j = 1; j < s->rate; ++j) {
+        if (st > ST_WARNING) return st;
+        if (s->interp) {
+            double tau = (double)(j * s->sub_ns) / 1e9;
+            for (m = 0; m < s->n_in; ++m) in[m] = s->slope[m] * tau + s->base[m];
+            st = ((io2_t)s->set)(s->inst, s->in_vr, (size_t)s->n_in, in);
+            if (st > ST_WARNING) return st;
+            st = ((der2_t)s->set_der)(s->inst, s->in_vr, (size_t)s->n_in, s->orders, s->slope);
+            if (st > ST_WARNING) return st;
+        }
+        st = step(s, (double)(t_ns + j * s->sub_ns) / 1e9, hs);
+    }
+    return st;
+}
+
 #define CHECK(expr, who) do { int st_ = (expr); if (st_ > ST_WARNING) { *fail_slave = (who); \
     *fail_status = st_; goto out; } } while (0)
 #define TICK(i) do { if (timing) { int64_t t_ = now_ns(); S[i].ns += t_ - tprev; tprev = t_; } } while (0)
@@ -125,13 +156,13 @@ int64_t rpr_run(rpr_slave *S, int32_t n, const int32_t *order, int32_t algorithm
         if (timing) tprev = now_ns();  /* time since the last slave call is the master's own */
         if (algorithm == 0) {
             for (i = 0; i < n; ++i) { CHECK(push(&S[i], v, inv_h), i); TICK(i); }
-            for (i = 0; i < n; ++i) { CHECK(step(&S[i], t, h), i); TICK(i); }
+            for (i = 0; i < n; ++i) { CHECK(advance(&S[i], v, k * step_ns, t, h), i); TICK(i); }
             for (i = 0; i < n; ++i) { CHECK(pull(&S[i], v), i); TICK(i); }
         } else {
             for (c = 0; c < n; ++c) {
                 i = order[c];
                 CHECK(push(&S[i], v, inv_h), i);
-                CHECK(step(&S[i], t, h), i);
+                CHECK(advance(&S[i], v, k * step_ns, t, h), i);
                 CHECK(pull(&S[i], v), i);
                 TICK(i);
             }
@@ -163,7 +194,8 @@ class CSlave(ctypes.Structure):
                 ("out_off", c_int32), ("interp", c_int32), ("inst", c_void_p), ("do_step", c_void_p),
                 ("get", c_void_p), ("set", c_void_p), ("in_vr", c_void_p), ("in_src", c_void_p),
                 ("out_vr", c_void_p), ("calls", c_int64), ("ns", c_int64), ("set_der", c_void_p),
-                ("orders", c_void_p), ("fresh", c_void_p), ("hist", c_void_p), ("slope", c_void_p)]
+                ("orders", c_void_p), ("fresh", c_void_p), ("hist", c_void_p), ("slope", c_void_p),
+                ("rate", c_int32), ("sub_ns", c_int64), ("base", c_void_p)]
 
 
 def _cache_dir() -> Path:
@@ -172,36 +204,42 @@ def _cache_dir() -> Path:
     return cache_root().parent / "master"
 
 
-@lru_cache(maxsize=1)
-def library() -> ctypes.CDLL:
-    """Compile (once per source and compiler, cached on disk) and load the loop library.
-    Raises :class:`UserError` when no C compiler works."""
+def compile_library(source: str, stem: str) -> ctypes.CDLL:
+    """Compile ``source`` (once per source and compiler, cached on disk as ``<stem>_<hash>.so``)
+    and load it.  Raises :class:`UserError` when no C compiler works."""
     cc = os.environ.get("CC", "gcc")
     try:
         version = subprocess.run([cc, "--version"], capture_output=True, text=True, check=True).stdout
     except (OSError, subprocess.CalledProcessError) as exc:
         raise UserError(f"the compiled master loop needs a C compiler ({cc}: {exc}); "
                         f"set master.engine: python to use the Python loop") from None
-    key = hashlib.sha256((SOURCE + version + sys.platform).encode()).hexdigest()[:20]
+    key = hashlib.sha256((source + version + sys.platform).encode()).hexdigest()[:20]
     from fmus.cache import writable_root
 
     root = _cache_dir()
-    if not (root / f"rpr_loop_{key}.so").exists():
+    if not (root / f"{stem}_{key}.so").exists():
         fallback = writable_root(root)
         root = fallback if fallback == root else fallback / "master"
         root.mkdir(parents=True, exist_ok=True)
-    lib = root / f"rpr_loop_{key}.so"
+    lib = root / f"{stem}_{key}.so"
     if not lib.exists():
         with tempfile.TemporaryDirectory(dir=root) as tmp:
             src = Path(tmp) / "loop.c"
-            src.write_text(SOURCE)
+            src.write_text(source)
             out = Path(tmp) / lib.name
             res = subprocess.run([cc, "-O2", "-shared", "-fPIC", "-std=c99", "-D_POSIX_C_SOURCE=199309L",
-                                  "-o", str(out), str(src)], capture_output=True, text=True)
+                                  "-o", str(out), str(src), "-lm"], capture_output=True, text=True)
             if res.returncode != 0:
                 raise UserError(f"compiling the master loop failed: {res.stderr.strip()[:500]}")
             os.replace(out, lib)
-    dll = ctypes.CDLL(str(lib))
+    return ctypes.CDLL(str(lib))
+
+
+@lru_cache(maxsize=1)
+def library() -> ctypes.CDLL:
+    """Compile (once per source and compiler, cached on disk) and load the loop library.
+    Raises :class:`UserError` when no C compiler works."""
+    dll = compile_library(SOURCE, "rpr_loop")
     fn = dll.rpr_run
     fn.restype = c_int64
     fn.argtypes = [POINTER(CSlave), c_int32, c_void_p, c_int32, c_void_p, c_int64, c_int64, c_int64, c_int32,

@@ -41,6 +41,7 @@ from __future__ import annotations
 import math
 from collections.abc import Mapping
 from dataclasses import asdict, dataclass, field
+from functools import lru_cache
 from typing import Any
 
 import numpy as np
@@ -136,19 +137,35 @@ def check_scene(settings: GuardSettings, comps: Mapping[str, Any], duration: flo
             (err if action == "stop" else warn)(comp.where, message)
 
 
+#: :func:`setpoint_problems` by component and duration: a batch validates many scenes whose
+#: setpoints are the same (evaluating a setpoint path costs ~25 ms)
+_SETPOINT_MEMO: dict[tuple, list[tuple[str, str]]] = {}
+
+
 def setpoint_problems(comp, duration: float, settings: GuardSettings) -> list[tuple[str, str]]:
     """(action, message) for every leg of a pose setpoint that leaves its stroke over the
     ``duration`` [s] of a run (its clock from its parameter ``t0`` on), and for a singular pose
     on its path; times in the messages are clock times."""
     if settings.stroke == "off" and settings.singularity == "off":
         return []
+    import json
+
+    key = (comp.name, comp.label, json.dumps([comp.options, comp.params], sort_keys=True, default=repr),
+           float(duration), settings)
+    if key not in _SETPOINT_MEMO:
+        if len(_SETPOINT_MEMO) >= 256:
+            _SETPOINT_MEMO.clear()
+        _SETPOINT_MEMO[key] = _setpoint_problems(comp, duration, settings)
+    return list(_SETPOINT_MEMO[key])
+
+
+def _setpoint_problems(comp, duration: float, settings: GuardSettings) -> list[tuple[str, str]]:
     blk = comp.block
     p = blk.param_vector(**comp.params)
     t = np.linspace(0.0, duration, _SAMPLES)
     t0 = p[blk.index("params", "t0")] if any(q.name == "t0" for q in blk.params) else 0.0
-    out = blk.functions()["out"].map(len(t))
     t = t + t0  # the block's clock
-    y = np.array(out(np.atleast_2d(t), np.zeros((0, len(t))), np.tile(p[:, None], (1, len(t)))))
+    y = _outputs_over_time(blk, t, p)
     col = {v.name: y[i] for i, v in enumerate(blk.outputs)}
     pose = np.vstack([col[n] for n in POSE]) if all(n in col for n in POSE) else None
     found: list[tuple[str, str]] = []
@@ -172,6 +189,19 @@ def setpoint_problems(comp, duration: float, settings: GuardSettings) -> list[tu
                                                 f"{_singular_text(det, k, t, settings.min_det)}"
                                                 + _hint(settings.singularity, "singularity", "a path away from it")))
     return found
+
+
+def _outputs_over_time(blk, t: np.ndarray, p: np.ndarray) -> np.ndarray:
+    """The outputs (rows) of a source block whose one state is its clock, at clock times ``t``,
+    by the numpy replay of its output function (:mod:`models.numeric`; an indexed block keeps it
+    in the FMU cache, so no CasADi is needed)."""
+    if hasattr(blk, "replay"):
+        fn = blk.replay("out")
+    else:
+        from models.numeric import vectorize
+
+        fn = vectorize(blk.functions()["out"])
+    return np.asarray(fn([t], [], list(p))[0], float).reshape(len(blk.outputs), len(t))
 
 
 def _hint(action: str, guard: str, what: str) -> str:
@@ -198,10 +228,22 @@ def geometry(comp) -> np.ndarray:
 def det_j(comp, pose: np.ndarray, g: np.ndarray | None = None) -> np.ndarray:
     """det J [m] (eq. 4.14, SI units; :func:`models.kinematics.dexterity`) of ``comp``'s
     geometry ``g`` (default :func:`geometry`) at poses ``pose`` of shape (3, N)."""
-    from models import kinematics
-
-    det = kinematics.numpy_map("det")(np.asarray(pose, float), geometry(comp) if g is None else g)
+    det = _det_map()(np.asarray(pose, float), geometry(comp) if g is None else g)
     return np.asarray(det, float).reshape(-1)
+
+
+@lru_cache(maxsize=1)
+def _det_map():
+    """The numpy replay of det J (:func:`models.kinematics.numpy_map`), kept in the FMU cache's
+    index (:func:`fmus.index.replay`) so that a run needs no CasADi for it."""
+    from fmus.index import replay
+
+    def build():
+        from models import kinematics
+
+        return kinematics.numpy_map("det")
+
+    return replay("kinematics.det", build)
 
 
 def _singular(det: np.ndarray, min_det: float, sign0: float | None = None) -> int | None:

@@ -107,7 +107,9 @@ def composite(scene: Scene) -> Composite:
         if comp.kind != "model":
             raise UserError(f"component {name!r} is an external FMU ({comp.label}); a monolithic reference "
                             f"needs the equations of every component (catalog models only)")
-    blocks = {n: c.block for n, c in scene.components.items()}
+    from fmus.index import real_block  # the equations of a component indexed by recipe
+
+    blocks = {n: real_block(c.block) for n, c in scene.components.items()}
     params = {n: c.block.param_vector(**c.params) for n, c in scene.components.items()}
     state_names = {n: {v.name for v in c.block.states} for n, c in scene.components.items()}
     input_names = {n: {v.name for v in c.block.inputs} for n, c in scene.components.items()}

@@ -51,10 +51,10 @@ def build_components(scene: Scene, *, cache_dir: Path | None = None,
         if comp.kind == "fmu":
             paths[name] = comp.fmu
             continue
-        import fmus
+        from .recipes import component_fmu
 
-        paths[name] = fmus.build_fmu(comp.block, fmi_version=comp.fmi, cache_dir=cache_dir,
-                                     progress=(lambda msg, n=name: progress(f"{n}: {msg}")) if progress else None)
+        paths[name] = component_fmu(comp, cache_dir=cache_dir,
+                                    progress=(lambda msg, n=name: progress(f"{n}: {msg}")) if progress else None)
     return paths
 
 
@@ -216,7 +216,9 @@ def _run(scene, overrides, out_dir, catalog, cache_dir, progress, log, engine, s
     t0 = time.perf_counter()
     if slaves is None:
         paths = build_components(scene, cache_dir=cache_dir, progress=log)
-        slaves = [FmuSlave(name, paths[name], c.description if c.kind == "fmu" else None)
+        from .recipes import slave_description
+
+        slaves = [FmuSlave(name, paths[name], c.description if c.kind == "fmu" else slave_description(c, paths[name]))
                   for name, c in scene.components.items()]
     else:
         paths = {}
@@ -246,7 +248,7 @@ def _run(scene, overrides, out_dir, catalog, cache_dir, progress, log, engine, s
                          tolerances=[c.description.default_experiment.get("tolerance")
                                      for c in scene.components.values()],
                          realtime=scene.master.realtime, options=scene.master.options or None,
-                         guard=guard).as_dict()
+                         guard=guard, rates=[c.rate for c in scene.components.values()]).as_dict()
     except TraceWriteError:  # disk full: the observers finished with the reason; report it as a status
         if memory.trace is None or not memory.trace.stats:
             raise

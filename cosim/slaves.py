@@ -40,12 +40,16 @@ from collections.abc import Callable, Sequence
 from ctypes import POINTER, c_bool, c_double, c_int, c_size_t, c_uint32, c_void_p
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
-from models.block import Block, Flange
+from models.interface import Flange
 
 from .errors import UserError
+
+if TYPE_CHECKING:
+    from models.block import Block
 
 
 class Status(enum.IntEnum):
@@ -121,6 +125,8 @@ class SlaveDescription:
     can_interpolate_inputs: bool = False  # follows first-order input slopes (FMI 2.0 canInterpolateInputs)
     default_experiment: dict = field(default_factory=dict)  # start, stop, tolerance, step [s] as the FMU gives them
     interfaces: tuple[str, ...] = ()  # FMI interface kinds the FMU has (co-simulation, model exchange, ...)
+    guid: str = ""  # the FMU's GUID / instantiation token and model identifier ("" until read from an FMU)
+    model_identifier: str = ""
     provides_directional_derivative: bool = False  # FMI get directional derivative (partials at the current instant)
 
     def of(self, *causalities: str) -> list[str]:
@@ -233,7 +239,15 @@ def describe_fmu(path: Path) -> SlaveDescription:
     interp = md.fmiVersion.startswith("2") and bool(getattr(cs, "canInterpolateInputs", False))
     ddx = bool(getattr(cs, "providesDirectionalDerivative", False) or getattr(cs, "providesDirectionalDerivatives", False))
     return SlaveDescription("fmu", str(path), vs, ft, [], period, md.fmiVersion, can_state, interp, default, kinds,
-                            ddx)
+                            md.guid or "", cs.modelIdentifier or "", ddx)
+
+
+def _boolean_status(dll) -> int:
+    """Address of the FMU's fmi2GetBooleanStatus, 0 when it does not export one."""
+    try:
+        return _addr(dll.fmi2GetBooleanStatus)
+    except AttributeError:
+        return 0
 
 
 # --- the interface ----------------------------------------------------------------------------
@@ -241,7 +255,9 @@ def describe_fmu(path: Path) -> SlaveDescription:
 class NativeEntry:
     """C entry points of a slave for the compiled loop: the instance pointer and the addresses of
     its doStep, GetReal/GetFloat64 and SetReal/SetFloat64 functions, and of
-    fmi2SetRealInputDerivatives (0 when the slave does not interpolate inputs)."""
+    fmi2SetRealInputDerivatives (0 when the slave does not interpolate inputs); for the compiled
+    adaptive engine also get/set/free FMU state (0 when it cannot roll back) and
+    fmi2GetBooleanStatus (0 for FMI 3.0)."""
 
     fmi3: bool
     instance: int
@@ -249,6 +265,10 @@ class NativeEntry:
     get_real: int
     set_real: int
     set_input_derivatives: int = 0
+    get_state: int = 0
+    set_state: int = 0
+    free_state: int = 0
+    get_boolean_status: int = 0
 
 
 class Slave(ABC):
@@ -362,6 +382,18 @@ def _cleanup() -> None:
 atexit.register(_cleanup)
 
 
+def unpack_fmu(path: Path) -> str:
+    """The folder ``path`` is unpacked into (once per process and file; removed at exit)."""
+    return _unzip(Path(path))
+
+
+def forget_unpacked(path: Path) -> None:
+    """Remove the folder(s) :func:`unpack_fmu` unpacked ``path`` into, and forget them."""
+    name = str(Path(path).resolve())
+    for key in [k for k in _UNZIPPED if k[0] == name]:
+        shutil.rmtree(_UNZIPPED.pop(key), ignore_errors=True)
+
+
 def _sweep_dead_unzips() -> None:
     """Remove the FMU folders of processes that died without their atexit (SIGKILL)."""
     from .outputs import pid_alive
@@ -377,8 +409,11 @@ def _unzip(path: Path) -> str:
 
     key = (str(path.resolve()), path.stat().st_mtime)
     if key not in _UNZIPPED:
-        _sweep_dead_unzips()
-        _UNZIPPED[key] = fmpy.extract(str(path), unzipdir=tempfile.mkdtemp(prefix=f"rpr-fmu-{os.getpid()}-"))
+        if not _UNZIPPED:  # once per process
+            _sweep_dead_unzips()
+        # sources/ is not needed to load the binary (and is most of a generated FMU's bytes)
+        _UNZIPPED[key] = fmpy.extract(str(path), unzipdir=tempfile.mkdtemp(prefix=f"rpr-fmu-{os.getpid()}-"),
+                                      include=lambda name: not name.startswith("sources/"))
     return _UNZIPPED[key]
 
 
@@ -426,13 +461,15 @@ class FmuSlave(Slave):
         from fmpy.fmi2 import FMU2Slave, defaultCallbacks, fmi2CallbackFunctions, fmi2CallbackLoggerTYPE
         from fmpy.fmi3 import FMU3Slave, fmi3LogMessageCallback
 
-        md = fmpy.read_model_description(str(self.path), validate=False)
-        ident = md.coSimulation.modelIdentifier
+        guid, ident = self.description.guid, self.description.model_identifier
+        if not (guid and ident):
+            md = fmpy.read_model_description(str(self.path), validate=False)
+            guid, ident = md.guid, md.coSimulation.modelIdentifier
         unzip = _unzip(self.path)
         try:
             if self.fmi3:
                 self._log = fmi3LogMessageCallback(self._on_log3)
-                self.fmu = FMU3Slave(guid=md.guid, unzipDirectory=unzip, modelIdentifier=ident,
+                self.fmu = FMU3Slave(guid=guid, unzipDirectory=unzip, modelIdentifier=ident,
                                      instanceName=self.name)
                 self.fmu.instantiate(logMessage=self._log)
             else:
@@ -441,7 +478,7 @@ class FmuSlave(Slave):
                 cb.allocateMemory = defaultCallbacks.allocateMemory
                 cb.freeMemory = defaultCallbacks.freeMemory
                 self._callbacks = cb
-                self.fmu = FMU2Slave(guid=md.guid, unzipDirectory=unzip, modelIdentifier=ident,
+                self.fmu = FMU2Slave(guid=guid, unzipDirectory=unzip, modelIdentifier=ident,
                                      instanceName=self.name)
                 self.fmu.instantiate(callbacks=cb)
         except Exception as exc:  # fmpy raises bare Exceptions for a missing binary or failed call
@@ -596,7 +633,8 @@ class FmuSlave(Slave):
 
     def do_step(self, t: float, h: float) -> int:
         if self.fmi3:
-            st = self._step3(self._inst, t, h, True, *self._p_flags, self._p_last)
+            # noSetFMUStatePriorToCurrentPoint: only promised when this slave cannot be rolled back
+            st = self._step3(self._inst, t, h, not self.can_rollback, *self._p_flags, self._p_last)
             if st < 2 and self._flags[1].value:
                 return Status.STOP_REQUESTED
             return st
@@ -664,13 +702,22 @@ class FmuSlave(Slave):
         if self.fmu is None:
             return None
         dll = self.fmu.dll
+        st = (0, 0, 0)
+        if self.can_rollback:
+            v = "3" if self.fmi3 else "2"
+            try:
+                st = tuple(_addr(getattr(dll, f"fmi{v}{x}")) for x in
+                           (("GetFMUState", "SetFMUState", "FreeFMUState") if self.fmi3 else
+                            ("GetFMUstate", "SetFMUstate", "FreeFMUstate")))
+            except AttributeError:  # declared but not exported: no compiled rollback
+                st = (0, 0, 0)
         if self.fmi3:
             return NativeEntry(True, self.fmu.component, _addr(dll.fmi3DoStep), _addr(dll.fmi3GetFloat64),
-                               _addr(dll.fmi3SetFloat64))
+                               _addr(dll.fmi3SetFloat64), 0, *st)
         return NativeEntry(False, self.fmu.component, _addr(dll.fmi2DoStep), _addr(dll.fmi2GetReal),
                            _addr(dll.fmi2SetReal),
-                           _addr(dll.fmi2SetRealInputDerivatives) if self.description.can_interpolate_inputs else 0)
-
+                           _addr(dll.fmi2SetRealInputDerivatives) if self.description.can_interpolate_inputs else 0,
+                           *st, _boolean_status(dll))
 
     @property
     def can_rollback(self) -> bool:

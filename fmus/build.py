@@ -16,7 +16,7 @@ from . import codegen
 from .cache import (EXPORTER_VERSION, KEY_LENGTH, atomic_write, cache_root, content_key, file_digest, verify,
                     writable_root)
 from .compile import (CFLAGS, LDFLAGS, compile_library, compiler, compiler_version, exported_symbols,
-                      library_suffix, optimisation, pack, platform_dirs)
+                      large_functions_at_o1, library_suffix, optimisation, pack, platform_dirs)
 from .errors import BuildError
 from .model_description import build_description, model_description
 
@@ -61,12 +61,15 @@ def build_fmu(block: Block, *, fmi_version: str = "2.0", cache_dir: Path | None 
     c_sources = ["rpr_casadi.c", "rpr_core.c", codegen.WRAPPERS[version]]
     xml = model_description(gen.iface, fmi_version=version, guid=_PLACEHOLDER, model_identifier=ident,
                             sources=c_sources)
-    opt = optimisation(len(files["rpr_casadi.c"]))
+    code, at_o1 = large_functions_at_o1(files["rpr_casadi.c"])  # a huge function at -O1, the rest at -O2
+    files["rpr_casadi.c"] = code
+    opt = "-O2" if at_o1 else optimisation(len(code))
     t_gen = time.perf_counter() - t0
     c_bytes = len(files["rpr_casadi.c"])
     record = {"block": blk.name, "fidelity": blk.fidelity, "integrator": blk.integrator, "substeps": blk.substeps,
               "states": len(blk.states), "inputs": len(blk.inputs), "outputs": len(blk.outputs),
               "parameters": {p.name: p.default for p in blk.params}, "codegen_s": round(t_gen, 4),
+              "functions_at_o1": at_o1,
               "c_bytes": c_bytes}
     return build_from_sources(ident, files, c_sources, xml, fmi_version=version, cache_dir=cache_dir, opt=opt,
                               record=record, progress=say, label=blk.name,

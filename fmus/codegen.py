@@ -126,7 +126,9 @@ def _c_string(s: str) -> str:
 
 def generate(block: Block, stepper: Stepper, *, guid: str, ident: str) -> Generated:
     """C sources for ``block``: ``rpr_casadi.c`` (the CasADi functions) and ``rpr_model.h``."""
-    fns = {"step": stepper.kernel, "out": stepper.out, "start": stepper.start, "jac": stepper.out_jacobian}
+    memory = stepper.memory_kernel  # a kernel that keeps state between steps (Radau's factors)
+    fns = {"step": memory if memory is not None else stepper.kernel, "out": stepper.out, "start": stepper.start,
+           "jac": stepper.out_jacobian}
     cg = ca.CodeGenerator("rpr_casadi.c", {"with_header": False, "with_export": False, "casadi_int": "long long int"})
     for f in fns.values():
         cg.add(f)
@@ -154,6 +156,8 @@ def generate(block: Block, stepper: Stepper, *, guid: str, ident: str) -> Genera
         f"#define RPR_SAMPLE_PERIOD {_c_double(float(block.sample_period or 0.0))}\n",
         f"#define RPR_SAMPLE_TOL {_c_double(SAMPLE_TOL)}\n",
         f"#define RPR_CAN_INTERPOLATE {int(can_interpolate_inputs(block))}\n",
+        f"#define RPR_STEP_MEMORY {int(memory is not None)}\n",
+        f"#define RPR_NF {memory.size1_in(5) if memory is not None else 0}\n",
         f"#define RPR_F_STEP {names['step']}\n#define RPR_F_OUT {names['out']}\n",
         f"#define RPR_F_START {names['start']}\n#define RPR_F_JAC {names['jac']}\n",
         _c_array("double", "rpr_p_default", [_c_double(v.start) for v in pv]),

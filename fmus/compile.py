@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import os
 import platform
+import re
 import shutil
 import subprocess
 import zipfile
@@ -22,11 +23,36 @@ CFLAGS = ("-std=c99", "-fPIC", "-fvisibility=hidden", "-Wall", "-Wno-unused-vari
 LDFLAGS = ("-shared", "-Wl,-z,defs", "-lm")
 #: Generated C larger than this is compiled at -O1 (half the compile time, ~1.5x slower steps).
 LARGE_SOURCE_BYTES = 400_000
+#: A generated function larger than this is compiled at -O1 inside a file compiled at -O2
+#: (:func:`large_functions_at_o1`): the unrolled factorisation of a big Radau block, called once
+#: in many steps, while the functions every step runs get -O2.
+LARGE_FUNCTION_BYTES = 400_000
+_FUNCTION_START = re.compile(r"^static int casadi_f\d+\(.*\) \{$", re.M)
 
 
 def optimisation(source_bytes: int) -> str:
     """``-O2``, or ``-O1`` for very large generated files (keeps big blocks' builds short)."""
     return "-O1" if source_bytes > LARGE_SOURCE_BYTES else "-O2"
+
+
+def large_functions_at_o1(code: str) -> tuple[str, int]:
+    """CasADi-generated ``code`` with every function larger than :data:`LARGE_FUNCTION_BYTES`
+    wrapped in ``#pragma GCC optimize ("O1")`` (GCC and Clang accept it per function), and the
+    number wrapped; the rest of the file then compiles at -O2 in reasonable time."""
+    out, pos, wrapped = [], 0, 0
+    for m in _FUNCTION_START.finditer(code):
+        if m.start() < pos:
+            continue
+        end = code.find("\n}\n", m.end())
+        if end < 0:
+            break
+        end += 3
+        if end - m.start() > LARGE_FUNCTION_BYTES:
+            out += [code[pos:m.start()], '#pragma GCC push_options\n#pragma GCC optimize ("O1")\n',
+                    code[m.start():end], "#pragma GCC pop_options\n"]
+            pos, wrapped = end, wrapped + 1
+    out.append(code[pos:])
+    return "".join(out), wrapped
 
 
 def compiler() -> str:

@@ -23,64 +23,9 @@ from typing import Literal
 import casadi as ca
 import numpy as np
 
+from .interface import BlockError, Flange, Param, Rating, Var  # noqa: F401  (re-exported: the contract's parts)
+
 Integrator = Literal["rk4", "radau", "exact", "discrete", "none"]
-
-
-class BlockError(ValueError):
-    """A malformed block: the message names the block and the variable."""
-
-
-@dataclass(frozen=True)
-class Param:
-    """A real parameter: ``name``, SI ``unit``, ``default``, closed bounds, description.
-
-    ``structural`` parameters change the equations: they are baked into the generated code, are
-    part of the build-cache key and are exported as ``fixed`` (visible, not settable); the others
-    are ``tunable``, settable after instantiation.
-    """
-
-    name: str
-    default: float
-    unit: str = ""
-    lower: float = -math.inf
-    upper: float = math.inf
-    description: str = ""
-    structural: bool = False
-
-
-@dataclass(frozen=True)
-class Var:
-    """An input, output or state variable: structured ``name`` (e.g. ``leg[1].s``), unit, text."""
-
-    name: str
-    unit: str = ""
-    description: str = ""
-
-
-@dataclass(frozen=True)
-class Flange:
-    """A power port: ``effort`` and ``flow`` name variables of the block (force [N] and
-    velocity [m/s], or torque and angular velocity).  ``causality`` says which of the pair the
-    block computes: ``"flow_out"`` (effort in, flow out) or ``"effort_out"``."""
-
-    name: str
-    effort: str
-    flow: str
-    causality: Literal["flow_out", "effort_out"] = "flow_out"
-
-
-@dataclass(frozen=True)
-class Rating:
-    """Operating limits of one input or output of a block: its value must stay in
-    ``[low, high]`` (the variable's SI unit).  ``kind`` says what leaving them means:
-    ``"stroke"`` (an actuator beyond its end of travel) or ``"rated"`` (a component beyond its
-    rated values); ``source`` cites where the numbers come from.  Metadata only: the equations do
-    not use it; run-time guards (:mod:`cosim.guards`) do."""
-
-    low: float
-    high: float
-    kind: Literal["stroke", "rated"] = "rated"
-    source: str = ""
 
 
 @dataclass
@@ -191,7 +136,15 @@ class Block:
         return vec
 
     def feedthrough(self) -> dict[str, list[str]]:
-        """For each output, the inputs it depends on directly (from the Jacobian sparsity)."""
+        """For each output, the inputs it depends on directly (from the Jacobian sparsity;
+        remembered while ``out`` and ``u`` are the same expressions: a batch asks once per scene)."""
+        memo = self.__dict__.get("_feedthrough")
+        if memo is None or memo[0] is not self.out or memo[1] is not self.u:
+            memo = (self.out, self.u, self._feedthrough())
+            self.__dict__["_feedthrough"] = memo
+        return {y: list(u) for y, u in memo[2].items()}
+
+    def _feedthrough(self) -> dict[str, list[str]]:
         if self.u.numel() == 0:
             return {y.name: [] for y in self.outputs}
         sp = ca.jacobian_sparsity(self.out, self.u) if self.out.numel() else None

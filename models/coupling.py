@@ -16,6 +16,10 @@ Conventions (as documented in :mod:`cosim.master`):
 - ``inputs="hold"``: inputs constant over the step.  ``inputs="linear"``: an input from a source that
   already stepped is interpolated between ``y_k`` and ``y_k+1``; the others are extrapolated from
   ``y_k-1`` and ``y_k``; the slave integrates the ramp exactly.
+- multirate (``rates``): slave ``i`` crosses the macro step in ``rates[i]`` exact sub-steps of
+  ``h / rates[i]``, its input on sub-step ``j`` being the macro step's held value or its line
+  restarted at the sub-instant (``u0 + u1 (j h / r + s)``); its outputs are exchanged at the macro
+  instants only.
 
 ``Z = [x_1, ..., x_n, y_k-1 of every connection]`` (the history part only matters for ``linear``).
 """
@@ -96,10 +100,41 @@ def ramp_discretization(A: np.ndarray, B: np.ndarray, h: float) -> tuple[np.ndar
     return E[:n, :n], E[:n, n:n + m], E[:n, n + m:]
 
 
+def rk4_ramp_discretization(A: np.ndarray, B: np.ndarray, h: float, substeps: int = 1
+                            ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(Phi, G0, G1)`` as :func:`ramp_discretization`, for ``substeps`` classic RK4 steps of
+    ``h / substeps`` instead of the exact solution (stages at ``0, h/2, h/2, h`` of each substep,
+    the input ramp evaluated at the stages' times): the map of a slave whose embedded integrator
+    is RK4, so that a master's sub-steps change the result and can be checked."""
+    n, m = B.shape
+    hs = h / substeps
+    I = np.eye(n)
+
+    def one(x, u0, u1):  # one RK4 substep on columns: x (n, k), input u0 + u1 tau
+        k1 = A @ x + B @ u0
+        k2 = A @ (x + hs / 2 * k1) + B @ (u0 + hs / 2 * u1)
+        k3 = A @ (x + hs / 2 * k2) + B @ (u0 + hs / 2 * u1)
+        k4 = A @ (x + hs * k3) + B @ (u0 + hs * u1)
+        return x + hs / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
+
+    # linear in (x, u0, u1): push the identity through each part
+    cols = [(I, np.zeros((m, n)), np.zeros((m, n))), (np.zeros((n, m)), np.eye(m), np.zeros((m, m))),
+            (np.zeros((n, m)), np.zeros((m, m)), np.eye(m))]
+    out = []
+    for x, u0, u1 in cols:
+        for j in range(substeps):
+            x = one(x, u0 + u1 * (j * hs), u1)
+        out.append(x)
+    return out[0], out[1], out[2]
+
+
 def macro_map(slaves: Sequence[LinearSlave], links: Sequence[Link], h: float, algorithm: str = "jacobi",
-              inputs: str = "hold", order: Sequence[int] | None = None) -> np.ndarray:
+              inputs: str = "hold", order: Sequence[int] | None = None,
+              rates: Sequence[int] | None = None, discretization=ramp_discretization) -> np.ndarray:
     """The matrix ``M`` of one macro step (module docstring).  Unconnected inputs are held at
-    zero (they only add a constant term, which does not change stability)."""
+    zero (they only add a constant term, which does not change stability).  ``rates``: sub-steps
+    per macro step of each slave (default one each); ``discretization(A, B, h) -> (Phi, G0, G1)``
+    steps a slave under a ramp input (default exact, :func:`ramp_discretization`)."""
     if algorithm not in ("jacobi", "gauss_seidel"):
         raise ValueError(f"no analytic macro-step map for algorithm {algorithm!r}")
     if inputs not in ("hold", "linear"):
@@ -126,7 +161,7 @@ def macro_map(slaves: Sequence[LinearSlave], links: Sequence[Link], h: float, al
     new = [None] * n
     for i in seq:
         sl = slaves[i]
-        Phi, G0, G1 = ramp_discretization(sl.A, sl.B, h)
+        Phi, G0, G1 = discretization(sl.A, sl.B, h)
         U0 = np.zeros((sl.B.shape[1], nz))
         U1 = np.zeros((sl.B.shape[1], nz))
         for c, ln in enumerate(links):
@@ -145,7 +180,15 @@ def macro_map(slaves: Sequence[LinearSlave], links: Sequence[Link], h: float, al
                     prev = np.zeros(nz)
                     prev[hist0 + c] = 1.0
                     U1[ln.inp] = (yk - prev) / h
-        new[i] = Phi @ now[i] + G0 @ U0 + G1 @ U1
+        r = int(rates[i]) if rates is not None else 1
+        if r == 1:
+            new[i] = Phi @ now[i] + G0 @ U0 + G1 @ U1
+        else:  # r exact sub-steps along the same input line u(tau) = U0 + U1 tau
+            Phi, G0, G1 = discretization(sl.A, sl.B, h / r)
+            x = now[i]
+            for j in range(r):
+                x = Phi @ x + G0 @ (U0 + U1 * (j * h / r)) + G1 @ U1
+            new[i] = x
         if sequential:
             cur[i], stepped[i] = new[i], True
     M = np.zeros((nz, nz))

@@ -23,7 +23,9 @@ Conventions
       Newton correction ``dZ`` at the returned point and accepts only if every component
       satisfies ``|dZ_j| <= atol + rtol (|x_j| + |Z_j|)`` (``err`` is the largest such ratio,
       ``ok`` = :func:`radau_accepts` (err) and finite).  ``rtol``/``atol`` are the block's
-      parameters ``solver.rtol``/``solver.atol`` when it declares them.
+      parameters ``solver.rtol``/``solver.atol`` when it declares them.  The FMU runs
+      :func:`radau_memory_kernel`, which keeps the factors and the last stages from one call to
+      the next (Python callers of :attr:`Stepper.kernel` get the memoryless kernel).
   ``exact``
       for a block whose ``ode`` is affine in ``x`` and ``u`` (``dx/dt = A x + B u + c`` with
       ``A, B, c`` functions of the parameters only): the exact solution over the step for inputs
@@ -257,9 +259,22 @@ def radau_stages(block: Block, *, rtol=None, atol=None, max_iter: int = RADAU_MA
     ``rtol``/``atol`` (numbers) override the tolerances; by default they are the block's
     parameters ``solver.rtol``/``solver.atol`` when declared (:func:`tolerances`), else
     ``RADAU_RTOL``/``RADAU_ATOL``."""
+    fx, factor, solve = _newton_factors(block)
+    given = _stages_given_factors(block, solve, factor.size1_out(0), rtol=rtol, atol=atol, max_iter=max_iter)
+    x, u, p, h, du = _syms(block)
+    Z, ok, err, _ = given(x, u, p, h, du, factor(fx(x, u, p), h), ca.MX.zeros(3 * block.x.numel()))
+    return ca.Function(f"{block.name}_radau_stages", [x, u, p, h, du], [Z, ok, err],
+                       ["x", "u", "p", "h", "du"], ["Z", "ok", "err"])
+
+
+def _stages_given_factors(block: Block, solve: ca.Function, n_factors: int, *, rtol=None, atol=None,
+                          max_iter: int = RADAU_MAX_ITER, tag: str = "") -> ca.Function:
+    """``(x, u, p, h, du, F, Z0) -> (Z, ok, err, iterations)``: the simplified-Newton solve of
+    :func:`radau_stages` from the stage increments ``Z0`` (0, or a prediction) with the factors
+    ``F`` of the iteration matrix given (made by ``_newton_factors``' ``factor`` at this step or
+    an earlier one)."""
     n, nu, npar = block.x.numel(), block.u.numel(), block.p.numel()
     f = block.functions()["ode"]
-    fx, factor, solve = _newton_factors(block)
     Tk, Tik, Lk = (ca.sparsify(ca.DM(np.kron(m, np.eye(n)))) for m in (RADAU_T, np.linalg.inv(RADAU_T), RADAU_L))
 
     def residual(W, xs, us, ps, hs, dus):
@@ -268,34 +283,40 @@ def radau_stages(block: Block, *, rtol=None, atol=None, max_iter: int = RADAU_MA
         F = ca.vertcat(*[f(xs + Z[i * n:(i + 1) * n], us + float(RADAU_C[i]) * hs * dus, ps) for i in range(3)])
         return ca.mtimes(Lk, W) - hs * ca.mtimes(Tik, F), Z
 
+    # the residual as straight-line code (the products with the constant T, T^-1, L unrolled)
+    Wx, xx, ux, px, hx, dux = (ca.SX.sym(nm, s) for nm, s in (("W", 3 * n), ("x", n), ("u", nu), ("p", npar),
+                                                               ("h", 1), ("du", nu)))
+    res_fn = ca.Function(f"{block.name}_radau_res{tag}", [Wx, xx, ux, px, hx, dux],
+                         list(residual(Wx, xx, ux, px, hx, dux)))
     # one conditional simplified-Newton iteration: (W, x, u, p, h, du, F, sc) -> (dW, going)
     W, xs, us, ps, hs, dus = (ca.MX.sym(nm, s) for nm, s in (("W", 3 * n), ("x", n), ("u", nu), ("p", npar),
                                                                ("h", 1), ("du", nu)))
-    Fs, scs = ca.MX.sym("F", factor.size1_out(0)), ca.MX.sym("sc", 3 * n)
-    G, _ = residual(W, xs, us, ps, hs, dus)
+    Fs, scs = ca.MX.sym("F", n_factors), ca.MX.sym("sc", 3 * n)
+    G, _ = res_fn(W, xs, us, ps, hs, dus)
     dW = -solve(Fs, G)
     going = ca.mmax(ca.fabs(dW) / scs) > NEWTON_STEP
-    body = ca.Function(f"{block.name}_radau_iter", [W, xs, us, ps, hs, dus, Fs, scs], [dW, going])
-    iterate = ca.Function.conditional(f"{block.name}_radau_iter_if", body)
+    body = ca.Function(f"{block.name}_radau_iter{tag}", [W, xs, us, ps, hs, dus, Fs, scs], [dW, going])
+    iterate = ca.Function.conditional(f"{block.name}_radau_iter{tag}_if", body)
 
     x, u, p, h, du = _syms(block)
+    fac, Z0 = ca.MX.sym("F", n_factors), ca.MX.sym("Z0", 3 * n)
     tol_r, tol_a = tolerances(block, p)
     tol_r = tol_r if rtol is None else rtol
     tol_a = tol_a if atol is None else atol
     scale = ca.repmat(tol_a + tol_r * ca.fabs(x), 3, 1)
-    fac = factor(fx(x, u, p), h)
-    Wk, going = ca.MX.zeros(3 * n), ca.MX(1)
+    Wk, going, iterations = ca.mtimes(Tik, Z0), ca.MX(1), ca.MX(0)
     for _ in range(int(max_iter)):
+        iterations = iterations + going
         dWk, going = iterate(going, Wk, x, u, p, h, du, fac, scale)
         Wk = Wk + dWk
     # one more correction with the same factors: the error left in Z
-    Gk, Zsol = residual(Wk, x, u, p, h, du)
+    Gk, Zsol = res_fn(Wk, x, u, p, h, du)
     dZ = ca.mtimes(Tk, solve(fac, Gk))
     r = ca.fabs(dZ) / (scale + tol_r * ca.fabs(Zsol))
     err = ca.mmax(r)
     ok = ca.logic_and(ca.logic_and(radau_accepts(err), _all_finite(r)), _all_finite(Zsol))
-    return ca.Function(f"{block.name}_radau_stages", [x, u, p, h, du], [Zsol, ok, err],
-                       ["x", "u", "p", "h", "du"], ["Z", "ok", "err"])
+    return ca.Function(f"{block.name}_radau_stages_given{tag}", [x, u, p, h, du, fac, Z0],
+                       [Zsol, ok, err, iterations], ["x", "u", "p", "h", "du", "F", "Z0"], ["Z", "ok", "err", "iterations"])
 
 
 def radau_substep(block: Block, **newton) -> ca.Function:
@@ -325,6 +346,105 @@ PADE_DEGREE, PADE_THETA = 7, 0.9504178996162932
 #: ~8e18 into the Pade range; a larger one (or a non-finite one) makes the step fail (``ok`` = 0).
 SQUARING_BITS = 6
 EXPM_MAX_SQUARINGS = 2 ** SQUARING_BITS - 1
+
+
+#: Simplified-Newton iterations a step tries with the factors of an earlier step
+#: (:func:`radau_memory_kernel`) before it factorises afresh and starts again.
+RADAU_REUSE_MAX_ITER = 8
+#: A step that needed more iterations than this with reused factors gets fresh ones next step.
+RADAU_REUSE_SLOW = 4
+
+
+def _extrapolation() -> np.ndarray:
+    """``E`` (3 x 3) with ``Z_next = (E (x) I) Z``: the stage increments of the next step
+    predicted from this step's by its collocation polynomial ``q`` (degree 3, ``q(0) = 0``,
+    ``q(c_i) = Z_i``): ``Z_next,i = q(1 + c_i) - q(1)`` (time in units of the step)."""
+    nodes = np.concatenate([[0.0], RADAU_C])
+    E = np.zeros((3, 3))
+    for i in range(3):
+        tau = 1.0 + RADAU_C[i]
+        for j in range(3):
+            others = [nodes[k] for k in range(4) if k != j + 1]
+            E[i, j] = np.prod([(tau - o) / (nodes[j + 1] - o) for o in others])
+    E[:, 2] -= 1.0
+    return E
+
+
+RADAU_E = _extrapolation()
+
+
+def radau_memory_size(block: Block) -> int:
+    """Length of the factor memory ``F`` of :func:`radau_memory_kernel` for ``block``."""
+    return _newton_factors(block)[1].size1_out(0)
+
+
+def radau_memory_kernel(block: Block, **newton) -> ca.Function:
+    """``(x, u, p, h, du, F, hF, Zp, hZ) -> (x_next, ok, err, F_new, Z, info)``: :func:`radau_kernel`
+    with memory from one call to the next (what the FMU runs): the factorised iteration matrix
+    ``F``, valid for the substep ``hF``, and the last substep's stage increments ``Zp``, taken
+    with the substep ``hZ`` (0: none).
+
+    A substep first tries (at most ``RADAU_REUSE_MAX_ITER`` simplified-Newton iterations) from the
+    stages predicted by the last substep's collocation polynomial (:data:`RADAU_E`) with the
+    kept factors: the Jacobian of an earlier point slows the convergence, not the solution it
+    converges to, and the acceptance test is the same.  When there are no valid factors or that
+    attempt is not accepted, it does exactly what :func:`radau_kernel` does: Jacobian at its
+    start, factorisation (``F_new``), iteration from zero.  ``info = (refreshed, hF_next,
+    factorisations, iterations)``: ``refreshed`` is 1 when ``F_new`` holds new factors (the
+    caller keeps them as the next ``F``); ``hF_next`` is the substep the kept factors are valid
+    for, 0 after an attempt that needed more than ``RADAU_REUSE_SLOW`` iterations (fresh ones
+    next time); ``factorisations`` and ``iterations`` count this call's work.  ``Z`` is the
+    last substep's stages (the next ``Zp``, with ``hZ`` = the substep).
+
+    As in Hairer & Wanner's RADAU5, which keeps the Jacobian and its LU factors while the
+    iteration converges fast and starts it from the extrapolated collocation polynomial: the
+    multibody mechanism's iteration matrix changes little over a step, and factorising it was
+    most of a step's cost."""
+    n = block.x.numel()
+    fx, factor, solve = _newton_factors(block)
+    nF = factor.size1_out(0)
+    reuse = _stages_given_factors(block, solve, nF, max_iter=RADAU_REUSE_MAX_ITER, tag="_reuse",
+                                  **{k: v for k, v in newton.items() if k != "max_iter"})
+    fresh = _stages_given_factors(block, solve, nF, tag="_fresh", **newton)
+    attempt = ca.Function.conditional(f"{block.name}_radau_reuse_if", reuse)
+    redo = ca.Function.conditional(f"{block.name}_radau_fresh_if", fresh)
+    xs, us, ps, hs = (ca.MX.sym(nm, s) for nm, s in (("x", n), ("u", block.u.numel()), ("p", block.p.numel()),
+                                                      ("h", 1)))
+    refactor = ca.Function.conditional(f"{block.name}_radau_refactor_if", ca.Function(
+        f"{block.name}_radau_refactor", [xs, us, ps, hs], [factor(fx(xs, us, ps), hs)]))
+    Ek = ca.sparsify(ca.DM(np.kron(RADAU_E, np.eye(n))))
+
+    x, u, p, h, du = _syms(block)
+    F, hF, Zp, hZ = ca.MX.sym("F", nF), ca.MX.sym("hF"), ca.MX.sym("Zp", 3 * n), ca.MX.sym("hZ")
+    valid = ca.logic_and(hF == h, h > 0)
+    guess = ca.if_else(hZ == h, ca.mtimes(Ek, Zp), ca.MX.zeros(3 * n))
+    ZA, okA, errA, itA = attempt(valid, x, u, p, h, du, F, guess)
+    need = ca.logic_not(ca.logic_and(valid, okA == 1))
+    F_new = refactor(need, x, u, p, h)
+    ZB, okB, errB, itB = redo(need, x, u, p, h, du, F_new, ca.MX.zeros(3 * n))
+    Z, ok, err = (ca.if_else(need, b, a) for a, b in ((ZA, ZB), (okA, okB), (errA, errB)))
+    slow = ca.logic_and(ca.logic_not(need), itA > RADAU_REUSE_SLOW)
+    info = ca.vertcat(need, ca.if_else(slow, 0.0, h), need, itA + itB)
+    names_in, names_out = ["x", "u", "p", "h", "du", "F", "hF", "Zp", "hZ"], ["x_next", "ok", "err", "F_new", "Z", "info"]
+    sub = ca.Function(f"{block.name}_radau_memory_sub", [x, u, p, h, du, F, hF, Zp, hZ],
+                      [x + Z[2 * n:3 * n], ok, err, F_new, Z, info], names_in, names_out)
+    if block.substeps == 1:
+        return ca.Function(f"{block.name}_step", [x, u, p, h, du, F, hF, Zp, hZ], sub(x, u, p, h, du, F, hF, Zp, hZ),
+                           names_in, names_out)
+    m = block.substeps
+    hk = h / m
+    xk, okk, errk, Fk, hFk, Zk, hZk = x, ca.MX(1), ca.MX(0), F, hF / m, Zp, hZ / m  # memory in substeps
+    kept_new, refreshed, count, iters = ca.MX.zeros(nF), ca.MX(0), ca.MX(0), ca.MX(0)
+    for j in range(m):
+        xk, okj, errj, Fj, Zk, infoj = sub(xk, u + du * (j * hk), p, hk, du, Fk, hFk, Zk, hZk)
+        okk, errk = ca.fmin(okk, okj), ca.fmax(errk, errj)
+        Fk = ca.if_else(infoj[0], Fj, Fk)
+        kept_new = ca.if_else(infoj[0], Fj, kept_new)
+        refreshed, hFk, hZk = ca.fmax(refreshed, infoj[0]), infoj[1], hk
+        count, iters = count + infoj[2], iters + infoj[3]
+    return ca.Function(f"{block.name}_step", [x, u, p, h, du, F, hF, Zp, hZ],
+                       [xk, okk, errk, kept_new, Zk, ca.vertcat(refreshed, hFk * m, count, iters)], names_in, names_out)
+    # (hF and hZ are kept in units of the communication step h: a call with another h starts afresh)
 
 
 def affine_parts(block: Block) -> tuple[ca.SX, ca.SX, ca.SX] | None:
@@ -470,6 +590,12 @@ class Stepper:
         kind = self.block.integrator
         return {"rk4": rk4_kernel, "radau": radau_kernel, "discrete": discrete_kernel,
                 "exact": exact_kernel, "none": none_kernel}[kind](self.block)
+
+    @cached_property
+    def memory_kernel(self) -> ca.Function | None:
+        """The kernel the FMU runs when it keeps memory between steps (Radau's factors,
+        :func:`radau_memory_kernel`), else None (the FMU runs :attr:`kernel`)."""
+        return radau_memory_kernel(self.block) if self.block.integrator == "radau" else None
 
     @cached_property
     def out(self) -> ca.Function:

@@ -24,3 +24,36 @@ def test_cli_start_up_imports_no_heavy_package(code):
     res = subprocess.run([sys.executable, "-c", PROBE.format(code=code)], capture_output=True, text=True,
                          env=env, check=True)
     assert res.stdout.split() == [], f"{code!r} imported {res.stdout.strip()}"
+
+
+RUN_PROBE = """
+import sys
+from cosim.cli import main
+code = main({argv!r})
+heavy = ("casadi", "matplotlib", "scipy", "models.block", "models.blocks", "fmus.build", "fmus.codegen", "lxml")
+print("EXIT", code)
+print("HEAVY", " ".join(m for m in heavy if m in sys.modules))
+"""
+
+
+def _cli_in_probe(argv: list[str], cache: Path) -> tuple[int, list[str]]:
+    env = dict(os.environ, PYTHONPATH=str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""),
+               RPR_COSIM_CACHE=str(cache))
+    res = subprocess.run([sys.executable, "-c", RUN_PROBE.format(argv=argv)], capture_output=True, text=True,
+                         env=env, cwd=ROOT, check=True)
+    lines = res.stdout.splitlines()
+    code = int(next(x for x in lines if x.startswith("EXIT ")).split()[1])
+    heavy = next(x for x in lines if x.startswith("HEAVY")).split()[1:]
+    return code, heavy
+
+
+def test_a_run_with_cached_fmus_imports_no_symbolic_or_plotting_package(cache, tmp_path):
+    """The second run of pid_step finds every FMU through the recipe index (fmus.index): no block
+    is built, no C generated, the setpoint's workspace check and the singularity guard replay
+    stored numpy programs; CasADi, scipy, matplotlib, the exporter and lxml stay unimported."""
+    argv = ["run", str(ROOT / "scenarios" / "pid_step.yaml"), "--set", "stop_time=0.01"]
+    first, _ = _cli_in_probe(argv + ["--out", str(tmp_path / "first")], cache)  # builds or finds, and indexes
+    assert first == 0
+    second, heavy = _cli_in_probe(argv + ["--out", str(tmp_path / "second")], cache)
+    assert second == 0
+    assert heavy == [], f"a cached run imported {heavy}"

@@ -4,8 +4,9 @@ distributed cluster.  Both take the same :class:`~cosim.batch.worker.Task` list 
 outcome)`` as it finishes, in completion order.
 
 Local (:class:`LocalExecutor`)
-    ``N`` processes forked from a server process that has already imported the run machinery
-    (``forkserver`` with preloading), each fed one task at a time over a pipe, so the parent
+    ``N`` processes forked from the batch process once it has warmed up (imports, the compiled
+    loop, the stepping orders: :mod:`cosim.batch.preload`), or from a ``forkserver`` with the
+    same warm-up preloaded when the batch process runs other threads; each fed one task at a time over a pipe, so the parent
     always knows which run is where.  The FMUs' bytes go to each process once, when it starts.
     A process that dies (killed, crashed in an FMU) is replaced and its run is given to a worker
     once more; a run that kills its worker twice is a failed row.  Workers ignore Ctrl-C (the
@@ -34,7 +35,7 @@ from collections.abc import Callable, Sequence
 from multiprocessing.connection import wait
 
 from ..errors import UserError
-from .worker import Outcome, Shared, Task, execute, worker_id
+from .worker import STATE, Outcome, Shared, Task, execute, worker_id
 
 OnStart = Callable[[Task, int], None]
 OnDone = Callable[[Task, Outcome], None]
@@ -71,15 +72,19 @@ def _worker_main(conn, shared: Shared, parent_pid: int) -> None:
     """A local worker: runs tasks from ``conn`` until it receives None or the pipe closes."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     _die_with(parent_pid)
-    while True:
-        try:
-            task = conn.recv()
-        except (EOFError, OSError):
-            return
-        if task is None:
-            return
-        conn.send(("started", os.getpid()))
-        conn.send(("done", execute(task, shared)))
+    STATE.detach()
+    try:
+        while True:
+            try:
+                task = conn.recv()
+            except (EOFError, OSError):
+                return
+            if task is None:
+                return
+            conn.send(("started", os.getpid()))
+            conn.send(("done", execute(task, shared)))
+    finally:
+        STATE.remove_files()  # a worker process ends with os._exit: its atexit hooks do not run
 
 
 class _Slot:
@@ -88,9 +93,20 @@ class _Slot:
         self.task: Task | None = None
 
 
-def _context():
+def _context(scenes: Sequence = (), shared: Shared | None = None):
+    """How workers start: forked from this process when it runs a single thread (after
+    :func:`~cosim.batch.preload.warm`, so each worker inherits the imports, the compiled loop,
+    the stepping orders and the unpacked FMUs), else from a ``forkserver`` that imported the
+    warm-up (forking a process with other threads may copy a lock one of them holds)."""
+    from . import preload
+
+    if "fork" in mp.get_all_start_methods() and threading.active_count() == 1:
+        preload.warm(scenes)
+        if shared is not None:
+            STATE.prepare(shared.blobs)
+        return mp.get_context("fork")
     ctx = mp.get_context("forkserver")
-    ctx.set_forkserver_preload(["cosim.batch.worker", "cosim.run", "cosim.batch.executors"])
+    ctx.set_forkserver_preload(["cosim.batch.preload", "cosim.batch.worker", "cosim.run", "cosim.batch.executors"])
     return ctx
 
 
@@ -116,25 +132,19 @@ class LocalExecutor:
         pending = deque(tasks)
         if not pending:
             return
-        ctx = _context()
-        slots = [self._spawn(ctx, shared) for _ in range(min(self.workers, len(pending)))]
+        slots: list[_Slot] = []
         try:
+            ctx = _context([t.scene for t in tasks], shared)
+            slots = [self._spawn(ctx, shared) for _ in range(min(self.workers, len(pending)))]
             while pending or any(s.task for s in slots):
-                for i, s in enumerate(slots):
-                    if s.task is None and pending:
-                        s.task = pending.popleft()
-                        try:
-                            s.conn.send(s.task)
-                        except (BrokenPipeError, OSError):  # died while idle: replace it, send again
-                            slots[i] = self._replace(ctx, shared, s)
-                            slots[i].task = s.task
-                            slots[i].conn.send(s.task)
+                self._dispatch(ctx, shared, slots, pending)
                 busy = [s for s in slots if s.task is not None]
-                ready = set(wait([s.conn for s in busy] + [s.proc.sentinel for s in busy]))
+                ready = set(wait([s.conn for s in busy] + [s.proc.sentinel for s in busy]))  # idle until then
+                finished: list[tuple[Task, Outcome]] = []
                 for i, s in enumerate(slots):
                     if s.task is None or not ({s.conn, s.proc.sentinel} & ready):
                         continue
-                    alive = self._drain(s, on_start, on_done)
+                    alive = self._drain(s, on_start, finished)
                     if alive and s.proc.sentinel not in ready:
                         continue
                     if s.task is not None:  # the worker died with this run: once more, on a new worker
@@ -144,15 +154,35 @@ class LocalExecutor:
                             pending.appendleft(task)
                         else:
                             sig = f", {signal.Signals(-code).name}" if code and code < 0 else ""
-                            on_done(task, Outcome(task.run_id, "failed", f"the worker process died twice while "
-                                                  f"running it (exit code {code}{sig})", worker=str(s.proc.pid)))
+                            finished.append((task, Outcome(task.run_id, "failed", f"the worker process died twice "
+                                                           f"while running it (exit code {code}{sig})",
+                                                           worker=str(s.proc.pid))))
                     if pending:
                         slots[i] = self._replace(ctx, shared, s)
+                try:
+                    self._dispatch(ctx, shared, slots, pending)  # the next runs go out before the rows are written
+                finally:
+                    for task, outcome in finished:
+                        on_done(task, outcome)
         finally:
             self._stop(slots)
+            STATE.remove_files()  # what this process prepared for its forked workers
 
-    def _drain(self, s: _Slot, on_start: OnStart | None, on_done: OnDone) -> bool:
-        """Read every message of ``s``; False when its pipe is closed."""
+    def _dispatch(self, ctx, shared: Shared, slots: list[_Slot], pending: deque) -> None:
+        """Give a pending task to every idle worker."""
+        for i, s in enumerate(slots):
+            if s.task is None and pending:
+                s.task = pending.popleft()
+                try:
+                    s.conn.send(s.task)
+                except (BrokenPipeError, OSError):  # died while idle: replace it, send again
+                    slots[i] = self._replace(ctx, shared, s)
+                    slots[i].task = s.task
+                    slots[i].conn.send(s.task)
+
+    def _drain(self, s: _Slot, on_start: OnStart | None, finished: list) -> bool:
+        """Read every message of ``s`` (finished runs go to ``finished``); False when its pipe is
+        closed."""
         try:
             while s.conn.poll():
                 kind, payload = s.conn.recv()
@@ -161,7 +191,7 @@ class LocalExecutor:
                         on_start(s.task, payload)
                 else:
                     task, s.task = s.task, None
-                    on_done(task, payload)
+                    finished.append((task, payload))
         except (EOFError, OSError):
             return False
         return True

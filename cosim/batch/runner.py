@@ -28,6 +28,7 @@ from pathlib import Path
 from typing import Any
 
 from ..errors import UserError
+from ..outputs import pid_alive
 from ..scenario import Problem, Scene, SceneError, apply_overrides, validate
 from .axes import Point, expand
 from .results import ResultsTable, base_columns
@@ -101,7 +102,9 @@ def build_fmus(runs: Sequence[Planned], *, cache_dir: Path | None = None,
                log: Callable[[str], None] | None = None) -> tuple[dict[str, dict[str, str]], dict[str, bytes]]:
     """Build (or fetch from the cache) each distinct FMU of ``runs`` once; returns each run's
     ``component -> content hash`` and the FMUs' bytes by hash."""
-    import fmus
+    from fmus.index import IndexedBlock
+
+    from ..recipes import component_fmu
 
     by_key: dict[tuple, str] = {}
     blobs: dict[str, bytes] = {}
@@ -109,13 +112,15 @@ def build_fmus(runs: Sequence[Planned], *, cache_dir: Path | None = None,
     for r in runs:
         m: dict[str, str] = {}
         for name, comp in r.scene.components.items():
-            key = ("fmu", str(comp.fmu)) if comp.kind == "fmu" else ("block", id(comp.block), comp.fmi)
+            key = (("fmu", str(comp.fmu)) if comp.kind == "fmu" else
+                   ("indexed", str(comp.block.fmu), comp.fmi) if isinstance(comp.block, IndexedBlock) else
+                   ("block", id(comp.block), comp.fmi))
             if key not in by_key:
                 if comp.kind == "fmu":
                     path = comp.fmu
-                else:
-                    path = fmus.build_fmu(comp.block, fmi_version=comp.fmi, cache_dir=cache_dir,
-                                          progress=(lambda msg, n=name: log(f"{n}: {msg}")) if log else None)
+                else:  # from the recipe index when it has the FMU, else built (and indexed)
+                    path = component_fmu(comp, cache_dir=cache_dir,
+                                         progress=(lambda msg, n=name: log(f"{n}: {msg}")) if log else None)
                 digest, data = _sha(path)
                 blobs[digest] = data
                 by_key[key] = digest
@@ -125,7 +130,11 @@ def build_fmus(runs: Sequence[Planned], *, cache_dir: Path | None = None,
 
 
 class _Lock:
-    """An exclusive lock on ``<out>/.lock`` (one batch per output directory)."""
+    """An exclusive lock on ``<out>/.lock`` (one batch per output directory).  Forked workers
+    share it; when the batch that wrote its pid there is gone, its workers (which end within
+    ~0.2 s of it) are waited for up to :attr:`GRACE_S`."""
+
+    GRACE_S = 3.0
 
     def __init__(self, out: Path):
         self.path = out / ".lock"
@@ -133,11 +142,18 @@ class _Lock:
     def __enter__(self):
         self.path.parent.mkdir(parents=True, exist_ok=True)
         self.fh = open(self.path, "a+")
-        try:
-            fcntl.flock(self.fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except BlockingIOError:
-            self.fh.seek(0)
-            who = self.fh.read().strip()
+        deadline = time.monotonic() + self.GRACE_S
+        while True:
+            try:
+                fcntl.flock(self.fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                break
+            except BlockingIOError:
+                self.fh.seek(0)
+                who = self.fh.read().strip()
+                pid = who.split()[-1] if who else ""
+                if pid.isdigit() and not pid_alive(int(pid)) and time.monotonic() < deadline:
+                    time.sleep(0.05)  # a killed batch's workers still hold it until they notice
+                    continue
             self.fh.close()
             raise UserError(f"{self.path.parent}: another batch is running there ({who or 'pid unknown'}); wait for "
                             f"it or choose another --out") from None

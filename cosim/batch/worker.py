@@ -72,12 +72,23 @@ def transportable(scene: Scene) -> Scene:
     return dataclasses.replace(scene, components=comps)
 
 
+def _sweep_dead_workers() -> None:
+    """Remove the FMU folders of worker processes that were killed before they could."""
+    from ..outputs import pid_alive
+
+    for d in Path(tempfile.gettempdir()).glob("rpr-batch-*-*"):
+        pid = d.name.split("-")[2]
+        if pid.isdigit() and int(pid) != os.getpid() and not pid_alive(int(pid)):
+            shutil.rmtree(d, ignore_errors=True)
+
+
 class _State:
     """Per-process: where the FMUs were written, and the pool of kept instances."""
 
     def __init__(self) -> None:
         self.dir: Path | None = None
         self.paths: dict[str, Path] = {}
+        self.descriptions: dict[str, Any] = {}  # content hash -> SlaveDescription (prepared)
         self.pool: dict[tuple[str, str], list[FmuSlave]] = {}
         self.lock = threading.Lock()
         self.loads = 0  # instances created (not reused) in this process
@@ -86,6 +97,7 @@ class _State:
         with self.lock:
             if digest not in self.paths:
                 if self.dir is None:
+                    _sweep_dead_workers()
                     self.dir = Path(tempfile.mkdtemp(prefix=f"rpr-batch-{os.getpid()}-"))
                     atexit.register(shutil.rmtree, self.dir, True)
                 if digest not in blobs:
@@ -95,6 +107,38 @@ class _State:
                 self.paths[digest] = path
             return self.paths[digest]
 
+    def prepare(self, blobs: dict[str, bytes]) -> None:
+        """In the batch process before it forks its workers: write, unpack and describe every
+        FMU once, for the workers to inherit (:meth:`remove_files` when the batch ends)."""
+        from ..slaves import describe_fmu, unpack_fmu
+
+        for digest in blobs:
+            path = self.fmu_path(digest, blobs)
+            if digest not in self.descriptions:
+                self.descriptions[digest] = describe_fmu(path)
+            unpack_fmu(path)
+
+    def detach(self) -> None:
+        """In a forked worker: keep the parent's prepared FMU files (read only), drop its
+        instances, and write any other FMU into a folder of this process."""
+        self.pool, self.dir, self.loads = {}, None, 0
+        self.lock = threading.Lock()
+
+    def remove_files(self) -> None:
+        """Remove the FMU files this process wrote and unpacked (at the end of a worker process,
+        or of a batch that prepared them)."""
+        from ..slaves import forget_unpacked
+
+        if self.dir is None:
+            return
+        for digest, path in list(self.paths.items()):
+            if path.parent == self.dir:
+                forget_unpacked(path)
+                del self.paths[digest]
+                self.descriptions.pop(digest, None)
+        shutil.rmtree(self.dir, ignore_errors=True)
+        self.dir = None
+
     def take(self, name: str, digest: str, path: Path, reuse: bool) -> FmuSlave:
         if reuse:
             with self.lock:
@@ -102,7 +146,7 @@ class _State:
                 if kept:
                     return kept.pop()
         self.loads += 1
-        slave = FmuSlave(name, path)
+        slave = FmuSlave(name, path, self.descriptions.get(digest))
         slave.reuse = reuse
         return slave
 

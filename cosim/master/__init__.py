@@ -11,6 +11,7 @@ Package map (the public names are re-exported here: ``from cosim.master import X
 ``engine``      who runs the steps: the compiled loop (:mod:`cosim.fastloop`) or the Python loop;
                 :func:`choose_engine`
 ``run``         the run loop :func:`simulate`, :func:`initialize`, :class:`RunStats`
+``multirate``   a slave at ``rate`` doSteps per macro step (Jacobi, Gauss-Seidel; both engines)
 
 Structure (after libcosim and scipy.integrate): a :class:`CoupledSystem` lays the slaves'
 connected and recorded variables out in one float64 vector and precomputes every value
@@ -45,6 +46,10 @@ Linear inputs (``inputs="linear"``)
     others are *extrapolated*, set to ``y_k`` with slope ``(y_k - y_k-1) / h`` (zero in the first
     step).  Holding makes the coupling first order in ``h``; this makes it second order.  Slaves
     that cannot interpolate keep holding.
+Multirate (``rates``, a scene's ``components.X.rate``)
+    slave ``i`` crosses each macro step in ``rates[i]`` doSteps at the exact sub-instants, its
+    inputs held or set on the macro step's line at each sub-instant, its outputs read after the
+    last one (:mod:`cosim.master.multirate`).
 Initialisation
     in initialisation mode every slave's outputs are read, then feedthrough outputs are
     propagated in a topological order of the port graph (output -> input connections plus

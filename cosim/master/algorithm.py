@@ -56,9 +56,12 @@ class Algorithm(ABC):
     native_code: ClassVar[int | None] = None
     #: slaves step one after another in :attr:`order` (later ones see earlier ones' new outputs)
     sequential: ClassVar[bool] = False
+    #: a slave may take several doSteps per macro step (:mod:`cosim.master.multirate`)
+    multirate: ClassVar[bool] = False
 
     def __init__(self, system: CoupledSystem, step_ns: int, *, order: Sequence[int] | None = None,
-                 timing: bool = True, inputs: str = "hold", start_ns: int = 0):
+                 timing: bool = True, inputs: str = "hold", start_ns: int = 0,
+                 rates: Sequence[int] | None = None):
         if not (isinstance(step_ns, (int, np.integer)) and step_ns > 0):
             raise UserError(f"the communication step must be a positive whole number of nanoseconds, got {step_ns!r}")
         self.system = system
@@ -84,6 +87,19 @@ class Algorithm(ABC):
         self._do = [x.do_step for x in s]
         self._gather = [_gatherer(system, i) for i in range(n)]
         self._setup_inputs(inputs)
+        self._setup_rates(rates)
+
+    def _setup_rates(self, rates: Sequence[int] | None) -> None:
+        """:attr:`rates`: doSteps per macro step of each slave (:mod:`cosim.master.multirate`)."""
+        from .multirate import check_rates, substepper
+
+        self.rates = check_rates(rates, self.step_ns, self.system.names)
+        if any(r > 1 for r in self.rates) and not self.multirate:
+            raise UserError(f"master algorithm {self.name} does not step slaves at several rates; "
+                            f"use jacobi or gauss_seidel, or remove the components' rate")
+        for i, r in enumerate(self.rates):
+            if r > 1:
+                self._do[i] = substepper(self, i)
 
     def _setup_inputs(self, inputs: str) -> None:
         """Per slave: whether it gets input slopes (:attr:`interpolating`), the slope buffer, the

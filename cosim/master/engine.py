@@ -34,6 +34,11 @@ class _Compiled:
                 c.interp, c.set_der = 1, ne.set_input_derivatives
                 c.orders, c.fresh = orders.ctypes.data, fresh.ctypes.data
                 c.hist, c.slope = alg.hist[i].ctypes.data, alg.slopes[i].ctypes.data
+            c.rate, c.sub_ns = alg.rates[i], alg.step_ns // alg.rates[i]
+            if alg.rates[i] > 1 and alg.interpolating[i]:
+                base = np.empty(c.n_in)
+                self.keep.append(base)
+                c.base = base.ctypes.data
             c.in_off, c.out_off = sysm.in_off[i], sysm.out_off[i]
             c.inst, c.do_step, c.get, c.set = ne.instance, ne.do_step, ne.get_real, ne.set_real
             for arr in (sysm.in_vrs[i], sysm.in_src[i], sysm.out_vrs[i]):

@@ -2,9 +2,10 @@
 Gauss-Seidel order (fewest connections cut to break cycles)."""
 from __future__ import annotations
 
-import itertools
 from collections.abc import Iterable, Sequence
 from functools import lru_cache
+
+from ..feedback_order import fewest_cut_order
 
 
 def find_algebraic_loop(edges: Iterable[tuple[object, object]]) -> list | None:
@@ -108,8 +109,9 @@ def gauss_seidel_order(n: int, edges: Iterable[tuple[int, int]]) -> list[int]:
 
 @lru_cache(maxsize=128)
 def _gauss_seidel_order(n: int, e: frozenset[tuple[int, int]]) -> tuple[int, ...]:
-    """:func:`gauss_seidel_order`, cached: the exhaustive search costs ~0.2 s for eight slaves,
-    and a batch asks it again for every run of the same scene."""
+    """:func:`gauss_seidel_order`, cached: a batch asks it again for every run of the same scene
+    (the fewest-cut order of a group of up to seven slaves, :func:`cosim.feedback_order.fewest_cut_order`,
+    takes under a millisecond; the exhaustive search it replaces took ~0.04-0.2 s)."""
     succ = [set() for _ in range(n)]
     for a, b in e:
         succ[a].add(b)
@@ -122,9 +124,7 @@ def _gauss_seidel_order(n: int, e: frozenset[tuple[int, int]]) -> tuple[int, ...
         comp = comps[ci]
         inner = [(a, b) for a, b in e if a in comp and b in comp]
         if len(comp) <= 7:
-            best = min(itertools.permutations(comp),
-                       key=lambda p: (sum(p.index(a) > p.index(b) for a, b in inner), p))
-            order.extend(best)
+            order.extend(fewest_cut_order(comp, inner))  # = the exhaustive search, by dynamic programming
         else:
             rest, seq = set(comp), []
             while rest:

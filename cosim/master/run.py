@@ -59,9 +59,13 @@ def interruption_reason(exc: KeyboardInterrupt, t: float | None) -> str:
     return f"interrupted by {str(exc) or 'the user (KeyboardInterrupt)'}" + (f" at t = {t:.9g} s" if t is not None else "")
 
 
-def slave_table(system: CoupledSystem, calls: Sequence[int], slave_ns: Sequence[int]) -> dict[str, dict[str, float]]:
-    """Per-slave run statistics: doStep calls and wall time [s] inside the slave's calls."""
-    return {s.name: {"do_step_calls": int(calls[i]), "wall_s": slave_ns[i] / 1e9} for i, s in enumerate(system.slaves)}
+def slave_table(system: CoupledSystem, calls: Sequence[int], slave_ns: Sequence[int],
+                rates: Sequence[int] | None = None) -> dict[str, dict[str, float]]:
+    """Per-slave run statistics: doStep calls and wall time [s] inside the slave's calls (and the
+    slave's ``rate``, doSteps per macro step, when it is not 1)."""
+    return {s.name: {"do_step_calls": int(calls[i]), "wall_s": slave_ns[i] / 1e9,
+                     **({"rate": int(rates[i])} if rates and rates[i] != 1 else {})}
+            for i, s in enumerate(system.slaves)}
 
 
 def initialize(system: CoupledSystem, start_values: Sequence[dict[str, float]], *, start_time: float = 0.0,
@@ -119,7 +123,8 @@ def simulate(system: CoupledSystem, algorithm_name: str, *, step_ns: int, n_step
              engine: str = "auto", order: Sequence[int] | None = None, timing: bool = True,
              progress: Callable[[int, int], None] | None = None, meta: dict | None = None,
              inputs: str = "hold", start_ns: int = 0, tolerances: Sequence[float | None] | None = None,
-             realtime=None, options: dict | None = None, guard=None) -> RunStats:
+             realtime=None, options: dict | None = None, guard=None,
+             rates: Sequence[int] | None = None) -> RunStats:
     """Initialise ``system`` and run ``n_steps`` macro steps of ``step_ns`` nanoseconds, inputs
     held or linear over each step (``inputs``, see :mod:`cosim.master`).
 
@@ -133,6 +138,10 @@ def simulate(system: CoupledSystem, algorithm_name: str, *, step_ns: int, n_step
     dropped and the run ends with the guard's status and reason.
     """
     cls = algorithm(algorithm_name)
+    multirate = {s.name: int(r) for s, r in zip(system.slaves, rates or ()) if r != 1}
+    if multirate and not getattr(cls, "multirate", False):
+        raise UserError(f"master algorithm {cls.name} does not step slaves at several rates "
+                        f"({', '.join(f'{n}.rate = {r}' for n, r in multirate.items())}); use jacobi or gauss_seidel")
     if getattr(cls, "needs_rollback", False):
         fixed = [s.name for s in system.slaves if not s.can_rollback]
         if fixed:
@@ -148,21 +157,22 @@ def simulate(system: CoupledSystem, algorithm_name: str, *, step_ns: int, n_step
 
         return simulate_variable(system, cls, step_ns=step_ns, n_steps=n_steps, observers=observers,
                                  start_values=start_values, order=order, progress=progress, meta=meta,
-                                 options=options, start_ns=start_ns, tolerances=tolerances)
+                                 options=options, start_ns=start_ns, tolerances=tolerances, engine=engine)
     if record_every < 1:
         raise UserError(f"record_every must be >= 1, got {record_every}")
     stats = RunStats(cls.name, "", step_ns / 1e9, n_steps)
     columns = ["time"] + system.record_names
     status, reason = "failed", ""
     for obs in observers:
-        obs.start(columns, dict(meta or {}, algorithm=cls.name, step=step_ns / 1e9))
+        obs.start(columns, dict(meta or {}, algorithm=cls.name, step=step_ns / 1e9,
+                                **({"rates": multirate} if multirate else {})))
     alg, t_loop, pacer = None, None, None
     try:
         t0 = time.perf_counter()
         initialize(system, start_values or [{} for _ in system.slaves], start_time=start_ns / 1e9,
                    stop_time=(start_ns + n_steps * step_ns) / 1e9, tolerances=tolerances,
                    allow_loops=getattr(cls, "solves_algebraic_loops", False))
-        alg = cls(system, step_ns, order=order, timing=timing, inputs=inputs, start_ns=start_ns,
+        alg = cls(system, step_ns, order=order, timing=timing, inputs=inputs, start_ns=start_ns, rates=rates,
                   **({"options": options} if getattr(cls, "options", ()) else {}))
         stats.engine = choose_engine(system, cls, engine, start_ns)
         runner = _Compiled(alg).run if stats.engine == "compiled" else (lambda n, e, r: _python_run(alg, n, e, r))
@@ -222,7 +232,7 @@ def simulate(system: CoupledSystem, algorithm_name: str, *, step_ns: int, n_step
         if alg is not None:
             stats.steps_done = alg.k
             stats.master_s = alg.master_ns / 1e9
-            stats.slaves = slave_table(system, alg.calls, alg.slave_ns)
+            stats.slaves = slave_table(system, alg.calls, alg.slave_ns, alg.rates)
             stats.extra = alg.statistics() if hasattr(alg, "statistics") else {}
         if stats.wall_s == 0.0 and t_loop is not None:
             stats.wall_s = time.perf_counter() - t_loop

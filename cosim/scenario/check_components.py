@@ -125,6 +125,13 @@ class ComponentChecks(Checker):
         return comp
 
     def _model_component(self, name: str, spec: YMap, fmi: str) -> Component | None:
+        if self.catalog is None:  # built before: from the FMU cache's recipe index, no block built
+            from ..recipes import indexed_component
+
+            comp = indexed_component(name, spec, fmi, Component)
+            if comp is not None:
+                self._values(comp, spec, skip=set(comp.recipe.fixed))
+                return comp
         try:
             catalog = self.catalog if self.catalog is not None else default_catalog()
         except UserError as exc:
@@ -171,6 +178,10 @@ class ComponentChecks(Checker):
         desc = describe_block(block, f"{model}/{fidelity}")
         comp = Component(name, "model", desc, model=model, fidelity=fidelity, options=options, fmi=fmi,
                          block=block, where=spec.where)
+        if self.catalog is None:
+            from ..recipes import recipe_of
+
+            comp.recipe = recipe_of(spec, options, fixed, fmi)
         self._values(comp, spec, skip=set(fixed))
         return comp
 
@@ -346,6 +357,8 @@ def _flatten(val: Any) -> Any:
 
 
 def _exact_start(block, state: str) -> bool:
+    if getattr(block, "exact_start", None) is not None:  # an indexed block (fmus.index) recorded it
+        return state in block.exact_start
     import casadi as ca
 
     i = block.index("states", state)

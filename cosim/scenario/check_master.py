@@ -87,14 +87,17 @@ class MasterChecks(Checker):
                     ok = False
                 else:
                     record_every = k
+        if step_ns and not self.rates(comps, step_ns, alg):
+            ok = False
         if step_ns:
             for comp in comps.values():
-                ts = comp.description.sample_period
+                ts, sub = comp.description.sample_period, step / comp.rate
                 if ts:
-                    n = round(step / ts)
-                    if n < 1 or abs(n * ts - step) > 1e-9 * max(ts, step):
-                        good = ts * max(1, n)
-                        self.err(node.loc("step"), f"master.step = {step} s is not a whole multiple of the sample "
+                    n = round(sub / ts)
+                    if n < 1 or abs(n * ts - sub) > 1e-9 * max(ts, sub):
+                        good = ts * max(1, n) * comp.rate
+                        at = f" / rate {comp.rate}" if comp.rate > 1 else ""
+                        self.err(node.loc("step"), f"master.step{at} = {sub} s is not a whole multiple of the sample "
                                                    f"period {ts} s of {comp.name} ({comp.label}); a sampled block "
                                                    f"advances whole samples: use e.g. step: {good:g}")
                         ok = False
@@ -106,6 +109,31 @@ class MasterChecks(Checker):
             return None
         return MasterSettings(alg, step_ns / 1e9, step_ns, list(order) if order else None, engine, record_every,
                               inputs, realtime, options)
+
+    def rates(self, comps: dict[str, Component], step_ns: int, alg: object) -> bool:
+        """``components.X.rate`` (doSteps per macro step, :mod:`cosim.master.multirate`): a whole
+        number >= 1 dividing ``master.step`` into whole nanoseconds, for an algorithm that steps
+        slaves at several rates.  Sets each component's ``rate``; False when one is wrong (reported)."""
+        from ..master.multirate import rate_problem
+
+        node, good = self.tree.get("components"), True
+        for name, comp in comps.items():
+            spec = node.get(name) if isinstance(node, YMap) else None
+            if not isinstance(spec, YMap) or "rate" not in spec:
+                continue
+            problem = rate_problem(spec["rate"], step_ns)
+            if problem:
+                self.err(spec.loc("rate"), f"component {name!r}: {problem}")
+                good = False
+                continue
+            comp.rate = int(spec["rate"])
+            cls = ALGORITHMS.get(alg) if isinstance(alg, str) else None
+            if comp.rate > 1 and cls is not None and not getattr(cls, "multirate", False):
+                multi = sorted(n for n, c in ALGORITHMS.items() if getattr(c, "multirate", False))
+                self.err(spec.loc("rate"), f"component {name!r}: rate = {comp.rate}, but master algorithm {alg} "
+                                           f"steps every slave once per step; multirate needs {' or '.join(multi)}")
+                good = False
+        return good
 
     def realtime(self, node: YMap):
         """``master.realtime``: true/false or {max_misses: N, spin: S, priority: P}; the settings,

@@ -23,9 +23,11 @@ class Component:
     start: dict[str, float] = field(default_factory=dict)
     fmu: Path | None = None
     fmi: str = "2.0"
-    block: Any = None  # the models.block.Block of a model component
+    block: Any = None  # the models.block.Block of a model component (or its fmus.index.IndexedBlock)
     where: Loc = ("", 0)
+    recipe: Any = None  # fmus.index.Recipe of a component of the default catalog (its FMU's index key)
     rollback: bool = True  # false: stepped as a slave that cannot save/restore its state (``rollback: false``)
+    rate: int = 1  # doSteps per macro step (cosim.master.multirate)
 
     @property
     def label(self) -> str:

@@ -96,14 +96,17 @@ def _record_interval(steps: Sequence[float], scene_interval: float) -> float:
 
 def precision_study(scene_path: Path | str, variants: Sequence[tuple[str, str]], steps: Sequence[float] | None = None,
                     *, stop_time: float | None = None, only: Sequence[str] | None = None,
-                    cache_dir: Path | None = None,
-                    progress: Callable[[str], None] | None = None) -> PrecisionStudy:
+                    cache_dir: Path | None = None, progress: Callable[[str], None] | None = None,
+                    overrides: Sequence[str] | None = None) -> PrecisionStudy:
     """Run the study (module docstring).  ``steps`` default to :func:`default_steps` of the
     scene's step; ``stop_time`` overrides the scene's (rounded to a whole number of recording
-    intervals); ``only`` restricts the signals compared (globs)."""
+    intervals); ``only`` restricts the signals compared (globs); ``overrides`` (``--set`` items)
+    apply to every run and to the reference (e.g. ``components.mech.rate=4``)."""
     from ..reference import reference
+    from ..scenario import parse_set
 
-    base = load(scene_path)
+    sets = dict(parse_set(s) for s in overrides or ())
+    base = load(scene_path, sets)
     steps = sorted({round(float(h) * 1e9) / 1e9 for h in (steps or default_steps(base.master.step))}, reverse=True)
     if any(h <= 0 for h in steps):
         raise UserError(f"steps must be positive, got {steps}")
@@ -114,7 +117,7 @@ def precision_study(scene_path: Path | str, variants: Sequence[tuple[str, str]],
     record = _record_interval(steps, base.master.record_every * base.master.step)
     stop = stop_time if stop_time is not None else base.stop_time
     stop = max(1, round(stop / record)) * record
-    common = {"stop_time": stop}
+    common = {**sets, "stop_time": stop}
     ref = reference(scene_path, {**common, "master.step": record, "master.output_interval": record})
     if not ref.ok:
         raise UserError(f"{base.name}: the monolithic reference failed ({ref.reason}); no study without it")

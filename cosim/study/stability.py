@@ -119,6 +119,7 @@ def parse_range(text: str, what: str) -> tuple[float, float]:
 
 def _analytic(scene: Scene, vary: str):
     """A function ``(value, step, algorithm, inputs, order) -> rho`` for a linear scene, or a note why not."""
+    from fmus.index import real_block
     from models.coupling import Link, linearize, macro_map, spectral_radius
 
     names = list(scene.components)
@@ -142,7 +143,7 @@ def _analytic(scene: Scene, vary: str):
             params = {k: v for k, v in comp.params.items() if k in {p.name for p in comp.block.params}}
             if target and target[0] == cname:
                 params[target[1]] = value
-            slaves.append(linearize(comp.block, params))
+            slaves.append(linearize(real_block(comp.block), params))
         return spectral_radius(macro_map(slaves, links, h, algorithm, inputs, order))
 
     try:

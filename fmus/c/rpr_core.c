@@ -3,6 +3,8 @@
  * The generated "rpr_model.h" supplies the sizes, defaults, bounds, names and the CasADi
  * functions (generated C, see fmus/codegen.py):
  *   RPR_F_STEP  (x, u, p, h, du) -> (x_next, ok, err)   one kernel call (models/integrators.py)
+ *               or, with RPR_STEP_MEMORY (Radau keeping its factors, radau_memory_kernel):
+ *               (x, u, p, h, du, F, hF, Zp, hZ) -> (x_next, ok, err, F_new, Z, info)
  *   RPR_F_OUT   (x, u, p) -> y
  *   RPR_F_START (p) -> x0
  *   RPR_F_JAC   (x, u, p) -> dense [dy/dx dy/du dy/dp]   (ny x (nx + nu + np), column-major)
@@ -33,6 +35,19 @@
 #define RPR_INTEGRATOR_DISCRETE 3
 #define RPR_INTEGRATOR_EXACT 4
 
+#ifndef RPR_STEP_MEMORY
+#define RPR_STEP_MEMORY 0
+#define RPR_NF 0
+#endif
+
+/* What a step kernel with memory keeps between calls: the factorised Newton matrix F (valid for
+   the step hF; 0: none) and the last step's stage increments Z (taken with the step hZ). */
+typedef struct {
+    double hF, hZ;
+    double F[RPR_MAX1(RPR_NF)];
+    double Z[RPR_MAX1(RPR_STEP_MEMORY ? 3 * RPR_NX : 0)];
+} RprMemory;
+
 typedef long long rpr_int; /* casadi_int of the generated code */
 typedef int (*rpr_casadi_fn)(const double **arg, double **res, rpr_int *iw, double *w, int mem);
 typedef int (*rpr_casadi_work)(rpr_int *sz_arg, rpr_int *sz_res, rpr_int *sz_iw, rpr_int *sz_w);
@@ -60,6 +75,7 @@ typedef struct {
     double v[RPR_NV];
     double du[RPR_MAX1(RPR_NU)];
     unsigned char x_set[RPR_MAX1(RPR_NX)];
+    RprMemory memory;
 } RprSnapshot;
 
 struct RprInstance {
@@ -78,6 +94,9 @@ struct RprInstance {
     unsigned char x_set[RPR_MAX1(RPR_NX)];
     double xa[RPR_MAX1(RPR_NX)], xb[RPR_MAX1(RPR_NX)], x0[RPR_MAX1(RPR_NX)];
     double jac[RPR_MAX1(RPR_NJAC)];
+    RprMemory memory;
+    double F_new[RPR_MAX1(RPR_NF)], Z_new[RPR_MAX1(RPR_STEP_MEMORY ? 3 * RPR_NX : 0)], info[4];
+    unsigned long long factorisations, iterations; /* Radau with memory: totals since instantiation */
     const double **arg;
     double **res;
     rpr_int *iw;
@@ -140,6 +159,30 @@ static int call(RprInstance *c, rpr_casadi_fn f, const double *a0, const double 
     return f(c->arg, c->res, c->iw, c->w, 0);
 }
 
+#if RPR_STEP_MEMORY
+/* One call of the kernel with memory from xa into xb; keeps what it returns for the next call. */
+static int call_step_memory(RprInstance *c, const double *xa, double h, double *xb, double *ok, double *err) {
+    int status;
+    RprMemory *m = &c->memory;
+    c->arg[0] = xa; c->arg[1] = c->v + RPR_U0; c->arg[2] = c->v + RPR_P0; c->arg[3] = &h;
+    c->arg[4] = c->du; c->arg[5] = m->F; c->arg[6] = &m->hF; c->arg[7] = m->Z; c->arg[8] = &m->hZ;
+    c->res[0] = xb; c->res[1] = ok; c->res[2] = err; c->res[3] = c->F_new; c->res[4] = c->Z_new; c->res[5] = c->info;
+    status = ((rpr_casadi_fn)RPR_F_STEP)(c->arg, c->res, c->iw, c->w, 0);
+    if (status) return status;
+    if (c->info[0] == 1.0) memcpy(m->F, c->F_new, sizeof m->F);
+    m->hF = c->info[1];
+    c->factorisations += (unsigned long long)c->info[2];
+    c->iterations += (unsigned long long)c->info[3];
+    if (*ok == 1.0) {
+        memcpy(m->Z, c->Z_new, sizeof m->Z);
+        m->hZ = h;
+    } else {
+        m->hZ = 0.0; /* no prediction from a discarded step */
+    }
+    return 0;
+}
+#endif
+
 #define P_(c) ((c)->v + RPR_P0)
 #define X_(c) ((c)->v + RPR_X0)
 #define U_(c) ((c)->v + RPR_U0)
@@ -155,6 +198,7 @@ static void set_defaults(RprInstance *c) {
     c->y_valid = 0;
     c->discarded = 0;
     c->stop_time = INFINITY;
+    memset(&c->memory, 0, sizeof c->memory);
 }
 
 /* Before the end of initialisation, states not set by the user follow start(p). */
@@ -423,7 +467,11 @@ int rpr_do_step(RprInstance *c, double t, double h) {
 #if RPR_NX > 0
     memcpy(xa, X_(c), sizeof(double) * RPR_NX);
     for (k = 0; k < n; ++k) {
+#if RPR_STEP_MEMORY
+        if (call_step_memory(c, xa, h, xb, &ok, &err) || !(ok == 1.0)) {
+#else
         if (call(c, (rpr_casadi_fn)RPR_F_STEP, xa, U_(c), P_(c), &h, xb, &ok, &err) || !(ok == 1.0)) {
+#endif
             c->discarded = 1;
 #if RPR_INTEGRATOR == RPR_INTEGRATOR_RADAU
             if (!(err <= 1.0))
@@ -449,8 +497,15 @@ int rpr_do_step(RprInstance *c, double t, double h) {
        consumed (a master that interpolates sets them again before the next step) */
     for (k = 0; k < RPR_NU; ++k) { U_(c)[k] += c->du[k] * h; c->du[k] = 0.0; }
 #if RPR_INTEGRATOR == RPR_INTEGRATOR_RADAU
+#if RPR_STEP_MEMORY
+    rpr_log(c, RPR_OK, RPR_LOG_NONLINEAR, "doStep(t=%.17g, h=%.17g): Radau IIA residual/tolerance %.3g, "
+            "%g Newton iterations, %s; %llu factorisations in %llu iterations so far", t, h, err, c->info[3],
+            c->info[2] > 0 ? "iteration matrix factorised" : "factors of an earlier step reused",
+            c->factorisations, c->iterations);
+#else
     rpr_log(c, RPR_OK, RPR_LOG_NONLINEAR, "doStep(t=%.17g, h=%.17g): Radau IIA residual/tolerance %.3g",
             t, h, err);
+#endif
 #endif
     c->v[0] = t + h;
     c->y_valid = 0;
@@ -468,6 +523,7 @@ static void snapshot(const RprInstance *c, RprSnapshot *s) {
     memcpy(s->v, c->v, sizeof c->v);
     memcpy(s->du, c->du, sizeof c->du);
     memcpy(s->x_set, c->x_set, sizeof c->x_set);
+    memcpy(&s->memory, &c->memory, sizeof c->memory);
 }
 
 static int check_snapshot(RprInstance *c, const RprSnapshot *s) {
@@ -499,6 +555,7 @@ int rpr_set_state(RprInstance *c, const void *state) {
     memcpy(c->v, s->v, sizeof c->v);
     memcpy(c->du, s->du, sizeof c->du);
     memcpy(c->x_set, s->x_set, sizeof c->x_set);
+    memcpy(&c->memory, &s->memory, sizeof c->memory);
     c->discarded = 0;
     return RPR_OK;
 }

@@ -73,7 +73,7 @@ def _entries() -> dict[str, dict[str, _Entry]]:
             "linear": _Entry(oscillator.oscillator, (
                 Option("coupling", "none", "interface: 'none' (force in) or 'spring' (velocity in, coupling spring "
                                            "force out)", choices=oscillator.COUPLING),
-                integrator_option("rk4"), Option("substeps", 40, "integrator substeps per communication step",
+                integrator_option("rk4", LINEAR_INTEGRATORS), Option("substeps", 40, "integrator substeps per communication step",
                                                  check=SUBSTEPS.check))),
         },
         "linear_actuator": {

@@ -7,11 +7,16 @@ interpolate are held).  Before it, every slave's state is saved (FMI ``get FMU s
 Error estimate (from the coupling itself, no extra steps): an extrapolated input was a guess of
 its source's output at ``t + h``; once the source has stepped, the guess is compared with the
 value it actually produced.  The scaled error of the step is
-``err = max_c |y_c(t+h) - guess_c| / (atol + rtol * range_c)`` over the extrapolated connections
-``c``, where ``range_c`` is the range (max - min) the signal has covered so far: the tolerance is
-relative to how much a signal moves, the measure users compare traces by (``rpr-cosim compare``).  The guess of a
-linear extrapolation is off by ``O(h^2)``, of a held input by ``O(h)``: that is the order ``p``
-used by the step controller.
+``err = max_c |y_c(t+h) - guess_c| * (h / h_ref) / (atol + rtol * range_c)`` over the extrapolated
+connections ``c``, where ``range_c`` is the range (max - min) the signal has covered so far: the
+tolerance is relative to how much a signal moves, the measure users compare traces by
+(``rpr-cosim compare``).  The factor ``h / h_ref`` weighs the mismatch by the step it acts over:
+what a receiving slave integrates is the impulse ``|y - guess| * h``, so a mismatch over a step of
+``h_ref`` counts in full and one over a microsecond step a thousandth as much.  Without it the first
+milliseconds, where the motors' currents move on a 0.44 ms time constant and the range covered so
+far is still small, took half of all steps at microsecond size without making the run more
+accurate.  The guess of a linear extrapolation is off by ``O(h^2)``, of a held input by ``O(h)``;
+with the weight the controller's order ``p`` is 3 and 2.
 
 A step with ``err <= 1`` is accepted; otherwise, or when a slave returns Discard (e.g. its own
 integrator diverged), every slave is restored and the step retried smaller.  The next step follows
@@ -24,6 +29,11 @@ extrapolate from yet; the controller then grows the step by at most ``fac_max`` 
 
 Every accepted step is recorded (the trace's time column is irregular: each row is the instant its
 values belong to).  Statistics: accepted and rejected steps, rollbacks, smallest and largest step.
+
+Engines: :class:`AdaptiveStepper` here is the reference implementation (Python loop); where every
+slave is an FMU with C entry points and state get/set (``master.engine`` auto or compiled),
+:mod:`cosim.master.adaptive_engine` runs the same accepted-step loop in C, step for step and bit
+for bit the same (``tests/test_adaptive_engine.py``).
 """
 from __future__ import annotations
 
@@ -63,9 +73,11 @@ class AlgorithmOption:
 
 
 OPTIONS = (
-    AlgorithmOption("rtol", 1e-5, 1e-12, 1.0, "1", "coupling error per step, relative to the range the signal has "
+    AlgorithmOption("rtol", 3e-5, 1e-12, 1.0, "1", "coupling error per step, relative to the range the signal has "
                                                "covered so far"),
     AlgorithmOption("atol", 1e-6, 0.0, math.inf, "signal unit", "absolute tolerance of the coupling error per step"),
+    AlgorithmOption("h_ref", 1e-3, 1e-9, math.inf, "s", "step over which a coupling mismatch counts in full; over a "
+                                                          "step h it counts h / h_ref (its impulse)"),
     AlgorithmOption("h_init", 1e-7, 1e-9, 1.0, "s", "first macro step (taken without an error estimate: no input "
                                                      "history yet to extrapolate from)"),
     AlgorithmOption("h_min", 1e-9, 1e-9, 1.0, "s", "smallest macro step; below it the run ends as unstable"),
@@ -112,7 +124,7 @@ class AdaptiveStats:
 class AdaptiveStepper:
     """The stepping of :mod:`cosim.master.algorithms.adaptive` over an initialised, bound ``system``."""
 
-    order_p_linear, order_p_hold = 2.0, 1.0
+    order_p_linear, order_p_hold = 3.0, 2.0  # mismatch O(h^2) / O(h), weighted by h
     k_i, k_p = 0.7, 0.4
     #: every slave must save/restore its state (a rejected step is rolled back)
     needs_rollback = True
@@ -151,7 +163,7 @@ class AdaptiveStepper:
         """One Gauss-Seidel step of ``h``; returns (scaled error, failing slave or None, status)."""
         sysm, opt = self.system, self.opt
         t = self.t
-        err = 0.0
+        err, weight = 0.0, h / opt["h_ref"] if "h_ref" in opt else 1.0  # (steppers without the weight: 1)
         guesses: list[tuple[int, np.ndarray, np.ndarray]] = []  # (slave, source indices, guessed values)
         for i in self.order:
             s = sysm.slaves[i]
@@ -190,7 +202,7 @@ class AdaptiveStepper:
             span = np.maximum(self.hi[src], actual) - np.minimum(self.lo[src], actual)
             tol = opt["atol"] + opt["rtol"] * span
             with np.errstate(invalid="ignore", divide="ignore"):
-                e = np.abs(actual - guess) / tol
+                e = np.abs(actual - guess) * weight / tol
             if e.size:
                 m = float(np.max(e))
                 err = max(err, m if math.isfinite(m) else math.inf)
@@ -264,18 +276,35 @@ class AdaptiveStepper:
 def run_adaptive(system, *, start_ns: int = 0, stop_ns: int, options: dict | None, order: Sequence[int],
                  observers: Sequence = (), progress: Callable[[int, int], None] | None = None,
                  stats=None, stepper_cls: type[AdaptiveStepper] | None = None,
-                 declared: Sequence[AlgorithmOption] = OPTIONS) -> AdaptiveStepper:
+                 declared: Sequence[AlgorithmOption] = OPTIONS, engine: str = "python"):
     """Step an initialised ``system`` to ``stop_ns`` (see the module docstring), recording every
     accepted step to ``observers``; ``stats`` (a :class:`cosim.master.RunStats`) is filled in.
     ``stepper_cls`` (default :class:`AdaptiveStepper`) takes the steps, with ``options`` checked
-    against its algorithm's ``declared`` options."""
+    against its algorithm's ``declared`` options.  ``engine`` ``"compiled"`` runs
+    :class:`AdaptiveStepper`'s accepted-step loop in C (:mod:`cosim.master.adaptive_engine`, the
+    same steps and values; not for other stepper classes), ``"python"`` here.  Returns the stepper
+    (``t_ns``, ``stats``, ``status``...)."""
     opts = option_values(options, declared)
     stepper = (stepper_cls or AdaptiveStepper)(system, order, opts, start_ns, stop_ns)
+    if engine == "compiled" and type(stepper) is not AdaptiveStepper:
+        raise ValueError(f"the compiled adaptive engine runs AdaptiveStepper only, not {type(stepper).__name__}")
     v, idx = system.v, system.record_idx[:len(system.record_names)]  # without the guards' watched columns
+    if engine == "compiled":
+        from ..adaptive_engine import CompiledAdaptive
+
+        stepper = CompiledAdaptive(stepper)  # set-up, like the fixed-step loop's: not in the loop's wall time
+    t_loop = time.perf_counter()
+    if engine == "compiled":
+        try:
+            _run_compiled(stepper, start_ns, stop_ns, len(idx), observers, progress)
+        finally:
+            stepper.close()
+        if stats is not None:
+            stats.wall_s = time.perf_counter() - t_loop
+        return stepper
     rows = np.empty((256, 1 + len(idx)))
     n = 0
     last_progress = 0.0
-    t_loop = time.perf_counter()
     while stepper.t_ns < stop_ns:
         if not stepper.step():
             break
@@ -300,6 +329,19 @@ def run_adaptive(system, *, start_ns: int = 0, stop_ns: int, options: dict | Non
     return stepper
 
 
+def _run_compiled(stepper, start_ns: int, stop_ns: int, n_rec: int, observers: Sequence,
+                  progress: Callable[[int, int], None] | None) -> None:
+    """The loop of :func:`run_adaptive` over :class:`cosim.master.adaptive_engine.CompiledAdaptive` chunks."""
+    rows = np.empty((4096, 1 + n_rec))
+    while stepper.t_ns < stop_ns and stepper.status == "running":
+        n = stepper.run(rows)
+        if n:
+            for obs in observers:
+                obs.record(rows[:n])
+        if progress:
+            progress(stepper.t_ns - start_ns, stop_ns - start_ns)
+
+
 @dataclass
 class VariableStats(RunStats):
     """Run statistics of a variable-step run: the simulated time is where the last accepted step
@@ -314,6 +356,25 @@ class VariableStats(RunStats):
 
     def as_dict(self) -> dict:
         return {**super().as_dict(), **self.adaptive}
+
+
+def _engine(system, engine: str, compiled_exists: bool = True, name: str = "adaptive") -> str:
+    """``"compiled"`` or ``"python"`` for ``engine`` in auto | compiled | python; only
+    :class:`AdaptiveStepper` has a compiled loop (``compiled_exists``)."""
+    from ..adaptive_engine import usable
+
+    if engine not in ("auto", "compiled", "python"):
+        raise UserError(f"master.engine must be auto, compiled or python, got {engine!r}")
+    if engine == "compiled" and not compiled_exists:
+        raise UserError(f"master algorithm {name} has no compiled loop; use master.engine auto or python")
+    if engine == "python" or not compiled_exists:
+        return "python"
+    ok = usable(system)
+    if engine == "compiled" and not ok:
+        raise UserError("master.engine: compiled for adaptive needs FMU slaves with C entry points and FMU state "
+                        "get/set, scalar Float64 connections without transformation, and a C compiler; use engine "
+                        "auto or python")
+    return "compiled" if ok else "python"
 
 
 @register
@@ -334,10 +395,11 @@ def simulate_variable(system, cls, *, step_ns: int, n_steps: int, observers: Seq
                       start_values: Sequence[dict[str, float]] | None = None, order: Sequence[int] | None = None,
                       progress: Callable[[int, int], None] | None = None, meta: dict | None = None,
                       options: dict | None = None, start_ns: int = 0,
-                      tolerances: Sequence[float | None] | None = None, **_ignored):
+                      tolerances: Sequence[float | None] | None = None, engine: str = "auto", **_ignored):
     """:func:`cosim.master.simulate` for a variable-step algorithm: initialise, run
     :func:`run_adaptive` to ``n_steps * step_ns`` (the scene's stop time; ``step_ns`` is the first
-    step tried) and report to the observers as the fixed-step loop does."""
+    step tried) and report to the observers as the fixed-step loop does.  ``engine``: auto (the
+    compiled loop where :func:`cosim.master.adaptive_engine.usable`), compiled or python."""
     stop_ns = start_ns + n_steps * step_ns
     stats = VariableStats(cls.name, "python", step_ns / 1e9, n_steps)
     columns = ["time"] + system.record_names
@@ -351,13 +413,14 @@ def simulate_variable(system, cls, *, step_ns: int, n_steps: int, observers: Seq
         initialize(system, start_values or [{} for _ in system.slaves], start_time=start_ns / 1e9,
                    stop_time=stop_ns / 1e9, tolerances=tolerances)
         seq = list(order) if order is not None else gauss_seidel_order(len(system.slaves), system.slave_edges())
+        stats.engine = _engine(system, engine, getattr(cls, "stepper", None) in (None, AdaptiveStepper), cls.name)
         stats.init_s = time.perf_counter() - t0
         row0 = np.concatenate([[start_ns / 1e9], system.v[system.record_idx[:len(system.record_names)]]])[None, :]
         for obs in observers:
             obs.record(row0)
         stepper = run_adaptive(system, start_ns=start_ns, stop_ns=stop_ns, options=opts, order=seq,
                                observers=observers, progress=progress, stats=stats,
-                               stepper_cls=getattr(cls, "stepper", None), declared=declared)
+                               stepper_cls=getattr(cls, "stepper", None), declared=declared, engine=stats.engine)
         status, reason = ("ok", "") if stepper.status == "running" else (stepper.status, stepper.message)
     except KeyboardInterrupt as exc:
         status, reason = "interrupted", interruption_reason(exc, stepper.t if stepper else None)
@@ -371,7 +434,8 @@ def simulate_variable(system, cls, *, step_ns: int, n_steps: int, observers: Seq
             stats.steps_done, stats.t_end, stats.adaptive = stepper.stats.accepted, stepper.t, stepper.stats.as_dict()
             stats.steps_planned = stats.steps_done  # no plan: the controller chose every step
             stats.slaves = slave_table(system, stepper.calls, stepper.slave_ns)
-            stats.master_s = max(0.0, stats.wall_s - sum(stepper.slave_ns) / 1e9)
+            own = getattr(stepper, "master_ns", None)  # the compiled loop measures its own share itself
+            stats.master_s = own / 1e9 if own is not None else max(0.0, stats.wall_s - sum(stepper.slave_ns) / 1e9)
         for obs in observers:
             obs.finish(status, reason, stats.as_dict())
         for s in system.slaves:

@@ -13,6 +13,7 @@ class GaussSeidel(Algorithm):
     name = "gauss_seidel"
     native_code = 1
     sequential = True
+    multirate = True
 
     def _step_impl(self, t, h):
         gather, push, do, pull, acc, calls = (self._gather, self._push, self._do, self._pull, self.slave_ns,

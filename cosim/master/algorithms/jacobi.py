@@ -13,6 +13,7 @@ class Jacobi(Algorithm):
 
     name = "jacobi"
     native_code = 0
+    multirate = True
 
     def _step_impl(self, t, h):
         gather, push, do, pull, acc, calls = (self._gather, self._push, self._do, self._pull, self.slave_ns,

@@ -1,0 +1,50 @@
+"""Warm-up of local batch workers: what every worker would otherwise do before its first run.
+
+A worker's first run used to cost ~0.6 s more than the next ones: importing FMPy and the run
+machinery, reading the package versions written into every trace (``importlib.metadata``),
+loading the compiled master loop (``gcc --version``, ``dlopen``) and searching the Gauss-Seidel
+stepping order (exhaustive over orders, ~85 ms for ``pid_step``).  :func:`warm` does all of it
+once in the process the workers are forked from -- the batch process itself when it forks them,
+else the ``forkserver`` (importing this module runs :func:`warm_imports`) -- so that each worker
+inherits the result instead of paying it again.
+"""
+from __future__ import annotations
+
+from collections.abc import Iterable
+
+
+def warm_imports() -> None:
+    """Import what a run imports lazily, and read the package versions (cached per process)."""
+    import fmpy.fmi2  # noqa: F401
+    import fmpy.fmi3  # noqa: F401
+
+    from .. import charts, interrupts, outputs, run  # noqa: F401
+    from ..trace import package_versions
+
+    package_versions()
+
+
+def warm(scenes: Iterable = ()) -> None:
+    """:func:`warm_imports`, the compiled master loop, and the stepping order of each scene's
+    coupling (cached per process by :func:`cosim.master.gauss_seidel_order`)."""
+    from .. import fastloop
+    from ..errors import UserError
+    from ..master import gauss_seidel_order
+
+    warm_imports()
+    try:
+        fastloop.library()
+    except UserError:  # no C compiler: the runs say so (or use the Python loop)
+        pass
+    seen = set()
+    for scene in scenes:
+        if scene.master.order:
+            continue
+        index = {name: i for i, name in enumerate(scene.components)}
+        edges = tuple((index[c.src], index[c.dst]) for c in scene.connections)
+        if (len(index), edges) not in seen:
+            seen.add((len(index), edges))
+            gauss_seidel_order(len(index), edges)
+
+
+warm_imports()

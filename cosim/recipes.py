@@ -1,0 +1,95 @@
+"""Catalog components through the FMU cache's recipe index (:mod:`fmus.index`): a scene whose
+components were built before is validated and run from the index, without building any block
+(no CasADi, no code generation); everything else takes the full path and fills the index."""
+from __future__ import annotations
+
+from collections.abc import Callable, Mapping
+from pathlib import Path
+from typing import Any
+
+
+def indexed_component(name: str, spec: Mapping, fmi: str, make_component: Callable[..., Any]) -> Any | None:
+    """The component of ``spec`` (a catalog ``model:`` spec) from the index, made by
+    ``make_component(name, kind, description, **fields)``; None on a miss or on anything the full
+    validation has to report (a malformed spec)."""
+    from fmus.index import lookup
+
+    from .slaves import describe_block
+
+    model, fidelity = spec.get("model"), spec.get("fidelity")
+    options, params = spec.get("options", {}), spec.get("params", {})
+    if not isinstance(model, str) or not (fidelity is None or isinstance(fidelity, str)):
+        return None
+    if not isinstance(options, Mapping) or not isinstance(params, Mapping):
+        return None
+    hit = lookup(model, fidelity, dict(options), dict(params), fmi)
+    if hit is None:
+        return None
+    block, recipe = hit
+    fid = block.catalog_fidelity
+    return make_component(name, "model", describe_block(block, f"{model}/{fid}"), model=model, fidelity=fid,
+                          options=dict(options), fmi=fmi, block=block, where=spec.where, recipe=recipe)
+
+
+def recipe_of(spec: Mapping, options: dict, fixed: dict, fmi: str):
+    """The :class:`fmus.index.Recipe` of a catalog component validated the full way."""
+    from fmus.index import Recipe
+
+    return Recipe(spec["model"], spec.get("fidelity"), dict(options), dict(fixed), fmi)
+
+
+def component_fmu(comp, *, cache_dir: Path | None = None, progress: Callable[[str], None] | None = None) -> Path:
+    """The FMU of catalog component ``comp``: the indexed one when it is intact, else built (or
+    found by content) through :func:`fmus.build_fmu`, which says why it rebuilds a damaged FMU;
+    a component of the default catalog is then (re)indexed."""
+    from fmus.index import IndexedBlock, cached_fmu, real_block, record
+
+    say = progress or (lambda m: None)
+    if isinstance(comp.block, IndexedBlock):
+        path, why = cached_fmu(comp.block, cache_dir)
+        if path is not None:
+            say(f"{path.stem}: FMI {comp.fmi} FMU up to date ({path}), from the recipe index")
+            return path
+    import fmus
+
+    block = real_block(comp.block)
+    path = fmus.build_fmu(block, fmi_version=comp.fmi, cache_dir=cache_dir, progress=progress)
+    if getattr(comp, "recipe", None) is not None:
+        from .slaves import describe_fmu
+
+        record(comp.recipe, comp.fidelity, block, path, cache_dir, description=description_data(describe_fmu(path)))
+    return path
+
+
+def slave_description(comp, fmu: Path):
+    """The description of ``comp``'s FMU ``fmu`` without reading its modelDescription.xml: the
+    indexed one when ``fmu`` is the FMU of the index entry (verified before), else None."""
+    from fmus.index import IndexedBlock
+
+    if isinstance(comp.block, IndexedBlock) and Path(fmu) == comp.block.fmu and comp.block.fmu_description:
+        return description_from_data(comp.block.fmu_description)
+    return None
+
+
+def description_data(desc) -> dict:
+    """A :class:`cosim.slaves.SlaveDescription` as plain data (see :func:`description_from_data`)."""
+    import dataclasses
+
+    plain = {f.name: getattr(desc, f.name) for f in dataclasses.fields(desc) if f.name not in ("variables", "flanges")}
+    return {**plain, "variables": [dataclasses.asdict(v) for v in desc.variables.values()],
+            "flanges": [dataclasses.asdict(f) for f in desc.flanges]}
+
+
+def description_from_data(data: dict):
+    """The :class:`cosim.slaves.SlaveDescription` written by :func:`description_data`."""
+    from models.interface import Flange
+
+    from .slaves import SlaveDescription, Variable
+
+    vs = {}
+    for v in data["variables"]:
+        v = dict(v, shape=tuple(v.get("shape") or ()), dims=tuple(v.get("dims") or ()))
+        vs[v["name"]] = Variable(**v)
+    rest = {k: v for k, v in data.items() if k not in ("variables", "flanges")}
+    rest["interfaces"] = tuple(rest.get("interfaces") or ())
+    return SlaveDescription(variables=vs, flanges=[Flange(**f) for f in data["flanges"]], **rest)

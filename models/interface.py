@@ -1,0 +1,66 @@
+"""The declarative parts of a block's interface: parameters, variables, flanges, ratings and the
+block error, without CasADi (so that code which only describes a block, such as a run whose FMUs
+are cached, never loads the symbolic layer).  :mod:`models.block` re-exports them.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Literal
+
+
+class BlockError(ValueError):
+    """A malformed block: the message names the block and the variable."""
+
+
+@dataclass(frozen=True)
+class Param:
+    """A real parameter: ``name``, SI ``unit``, ``default``, closed bounds, description.
+
+    ``structural`` parameters change the equations: they are baked into the generated code, are
+    part of the build-cache key and are exported as ``fixed`` (visible, not settable); the others
+    are ``tunable``, settable after instantiation.
+    """
+
+    name: str
+    default: float
+    unit: str = ""
+    lower: float = -math.inf
+    upper: float = math.inf
+    description: str = ""
+    structural: bool = False
+
+
+@dataclass(frozen=True)
+class Var:
+    """An input, output or state variable: structured ``name`` (e.g. ``leg[1].s``), unit, text."""
+
+    name: str
+    unit: str = ""
+    description: str = ""
+
+
+@dataclass(frozen=True)
+class Flange:
+    """A power port: ``effort`` and ``flow`` name variables of the block (force [N] and
+    velocity [m/s], or torque and angular velocity).  ``causality`` says which of the pair the
+    block computes: ``"flow_out"`` (effort in, flow out) or ``"effort_out"``."""
+
+    name: str
+    effort: str
+    flow: str
+    causality: Literal["flow_out", "effort_out"] = "flow_out"
+
+
+@dataclass(frozen=True)
+class Rating:
+    """Operating limits of one input or output of a block: its value must stay in
+    ``[low, high]`` (the variable's SI unit).  ``kind`` says what leaving them means:
+    ``"stroke"`` (an actuator beyond its end of travel) or ``"rated"`` (a component beyond its
+    rated values); ``source`` cites where the numbers come from.  Metadata only: the equations do
+    not use it; run-time guards (:mod:`cosim.guards`) do."""
+
+    low: float
+    high: float
+    kind: Literal["stroke", "rated"] = "rated"
+    source: str = ""
