@@ -723,14 +723,23 @@ class FmuSlave(Slave):
     def can_rollback(self) -> bool:
         return bool(self.description.can_get_set_state)
 
+    def _state_calls(self) -> tuple:
+        """(get, set) FMU-state functions of the loaded library, made once per loaded FMU."""
+        calls = getattr(self, "_state_fns", None)
+        if calls is None or calls[0] is not self.fmu:
+            dll = self.fmu.dll
+            calls = self._state_fns = (
+                self.fmu, _GetState(_addr(dll.fmi3GetFMUState if self.fmi3 else dll.fmi2GetFMUstate)),
+                _SetState(_addr(dll.fmi3SetFMUState if self.fmi3 else dll.fmi2SetFMUstate)))
+        return calls[1:]
+
     def save_state(self) -> None:
         if not self.can_rollback:
             return Slave.save_state(self)
         dll, state = self.fmu.dll, getattr(self, "_state", None)
         if state is None:
             state = self._state = c_void_p()
-        fn = _GetState(_addr(dll.fmi3GetFMUState if self.fmi3 else dll.fmi2GetFMUstate))
-        st = fn(self._inst, ctypes.byref(state))
+        st = self._state_calls()[0](self._inst, ctypes.byref(state))
         if st in FAILING:
             raise UserError(f"{self.name}: getting the FMU state failed ({Status(st).name})"
                             + (f": {self.last_message}" if self.last_message else ""))
@@ -739,8 +748,7 @@ class FmuSlave(Slave):
         state = getattr(self, "_state", None)
         if state is None:
             raise RuntimeError(f"{self.name}: restore_state() before save_state()")
-        fn = _SetState(_addr(self.fmu.dll.fmi3SetFMUState if self.fmi3 else self.fmu.dll.fmi2SetFMUstate))
-        st = fn(self._inst, state)
+        st = self._state_calls()[1](self._inst, state)
         if st in FAILING:
             raise UserError(f"{self.name}: setting the FMU state failed ({Status(st).name})"
                             + (f": {self.last_message}" if self.last_message else ""))

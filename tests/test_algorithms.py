@@ -145,6 +145,8 @@ def test_fmu_state_rollback_is_bit_exact(two_mass_fmu_slaves):
     ({"rtl": 1e-3}, "unknown option 'rtl'; did you mean 'rtol'?"),
     ({"rtol": 2.0}, "rtol = 2.0 is outside"),
     ({"h_min": 0.1, "h_max": 0.01}, "h_min = 0.1 s is larger than h_max"),
+    ({"rtol": "[1, 2]"}, "rtol = [1, 2] must be a number"),
+    ({"rtol": "{a: 1}"}, "rtol = {'a': 1} must be a number"),
 ])
 def test_master_options_are_checked_against_the_algorithm_declaration(tmp_path, options, message):
     scene = tmp_path / "opts.yaml"

@@ -66,7 +66,10 @@ class AlgorithmOption:
         """The value as a float; ValueError with the bounds when it is not acceptable."""
         if isinstance(value, bool):
             raise ValueError(f"{self.name} must be a number [{self.unit or '1'}]")
-        v = float(value)
+        try:
+            v = float(value)
+        except (TypeError, ValueError):  # a list, a mapping, a word
+            raise ValueError(f"{self.name} = {value!r} must be a number [{self.unit or '1'}]") from None
         if not (math.isfinite(v) and self.lower <= v <= self.upper):
             raise ValueError(f"{self.name} = {value!r} is outside [{self.lower:g}, {self.upper:g}] [{self.unit or '1'}]")
         return v
