@@ -45,15 +45,25 @@ def _say(msg: str) -> None:
 
 
 def _run(args: argparse.Namespace) -> int:
-    from .run import progress_bar, run
+    import os
+
+    from fmus.cache import ENV_VAR
+
+    before = os.environ.get(ENV_VAR)
+    if args.cache:  # the scene's catalog components are looked up in this cache's recipe index too
+        os.environ[ENV_VAR] = str(args.cache)
+    try:
+        return _load_and_run(args)
+    finally:  # in-process callers (tests, scripts) keep their environment
+        if before is None:
+            os.environ.pop(ENV_VAR, None)
+        else:
+            os.environ[ENV_VAR] = before
+
+
+def _load_and_run(args: argparse.Namespace) -> int:
     from .scenario import SceneError, load
 
-    if args.cache:  # the scene's catalog components are looked up in this cache's recipe index too
-        import os
-
-        from fmus.cache import ENV_VAR
-
-        os.environ[ENV_VAR] = str(args.cache)
     try:
         scene = load(args.scene, args.sets)
     except SceneError as exc:

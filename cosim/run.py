@@ -55,6 +55,9 @@ def build_components(scene: Scene, *, cache_dir: Path | None = None,
 
         paths[name] = component_fmu(comp, cache_dir=cache_dir,
                                     progress=(lambda msg, n=name: progress(f"{n}: {msg}")) if progress else None)
+    from fmus.index import store_pending_replays
+
+    store_pending_replays()  # what the scene check computed, for the next process
     return paths
 
 

@@ -22,15 +22,18 @@ ENV_VAR = "RPR_COSIM_CACHE"
 KEY_LENGTH = 24
 
 
-def cache_root(cache_dir: Path | str | None = None) -> Path:
+def cache_root(cache_dir: Path | str | None = None, *, create: bool = True) -> Path:
     """``cache_dir``, else ``$RPR_COSIM_CACHE``, else ``~/.cache/rpr-cosim/fmus`` (created when
-    possible; a root that cannot be created is returned as is: reading it finds nothing)."""
+    possible and ``create``; a root that cannot be created is returned as is: reading it finds
+    nothing)."""
     if cache_dir is not None:
         root = Path(cache_dir)
     elif os.environ.get(ENV_VAR):
         root = Path(os.environ[ENV_VAR])
     else:
         root = Path.home() / ".cache" / "rpr-cosim" / "fmus"
+    if not create:
+        return root
     try:
         root.mkdir(parents=True, exist_ok=True)
     except OSError:

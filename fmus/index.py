@@ -154,7 +154,7 @@ def lookup(model: str, fidelity: str | None, options: dict, params: dict, fmi: s
            cache_dir: Path | None = None) -> tuple[IndexedBlock, Recipe] | None:
     """The indexed block of a recipe (None on a miss).  ``params`` are the scene's parameter
     values: those the entry lists as structural select the entry of that variant."""
-    root = cache_root(cache_dir)
+    root = cache_root(cache_dir, create=False)  # a lookup leaves the disk as it was
     base = Recipe(model, fidelity, dict(options), {}, fmi)
     try:
         entry = _read(index_dir(root) / f"{base.key()}.json")
@@ -200,6 +200,7 @@ def record(recipe: Recipe, fidelity: str, block, fmu: Path, cache_dir: Path | No
                        "ratings": {k: asdict(r) for k, r in block.ratings.items()},
                        "feedthrough": block.feedthrough(), "exact_start": exact},
              "fmu_description": description}
+    store_pending_replays()
     try:
         folder = index_dir(root)
         folder.mkdir(parents=True, exist_ok=True)
@@ -346,17 +347,30 @@ def replay(name: str, build) -> Any:
     under ``name`` and the fingerprint so that later processes need no CasADi."""
     from models.numeric import NumpyFunction
 
-    path = index_dir(cache_root()) / f"fn-{fingerprint()[:24]}-{name}.json"
+    path = index_dir(cache_root(create=False)) / f"fn-{fingerprint()[:24]}-{name}.json"
+    if path in _PENDING_REPLAYS:
+        return _PENDING_REPLAYS[path]
     data = _read_plain(path)
     if data is not None:
         return NumpyFunction.from_data(data)
-    fn = build()
-    try:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        atomic_write(path, json.dumps(fn.to_data(), default=_json_default).encode())
-    except OSError:
-        pass
+    fn = _PENDING_REPLAYS[path] = build()  # stored with the next index entry: a scene check writes nothing
     return fn
+
+
+#: replays computed in this process and not yet stored (path -> function); :func:`record` stores them
+_PENDING_REPLAYS: dict[Path, Any] = {}
+
+
+def store_pending_replays() -> None:
+    """Store the replays :func:`replay` computed in this process (called once a run builds or
+    starts, never by a scene check, which must leave the cache as it was)."""
+    while _PENDING_REPLAYS:
+        path, fn = _PENDING_REPLAYS.popitem()
+        try:
+            path.parent.mkdir(parents=True, exist_ok=True)
+            atomic_write(path, json.dumps(fn.to_data(), default=_json_default).encode())
+        except OSError:
+            pass
 
 
 def cached_fmu(block: IndexedBlock, cache_dir: Path | None = None) -> tuple[Path | None, str]:

@@ -32,6 +32,27 @@ def test_catalog_block_exports_validates_and_runs(model, fidelity, cache):
         assert np.all(np.isfinite(res[v.name])), v.name
 
 
+class _MemoryStep:
+    """The step map the FMU runs when its kernel keeps memory between steps (Radau's factors and
+    last stages, :func:`models.integrators.radau_memory_kernel`), carried here as ``rpr_core.c``
+    carries it: new factors kept when refreshed, the stages kept after an accepted step."""
+
+    def __init__(self, st: I.Stepper):
+        self.kernel, nx = st.memory_kernel, st.block.x.numel()
+        self.F, self.hF = np.zeros(I.radau_memory_size(st.block)), 0.0
+        self.Z, self.hZ = np.zeros(3 * nx), 0.0
+
+    def __call__(self, x, u, p, h):
+        xn, ok, _err, F_new, Z, info = self.kernel(x, u, p, h, np.zeros(len(u)), self.F, self.hF, self.Z, self.hZ)
+        info = np.asarray(info, dtype=float).ravel()
+        if info[0] == 1.0:
+            self.F = np.asarray(F_new, dtype=float).ravel()
+        self.hF = float(info[1])
+        ok = float(ok) == 1.0
+        self.Z, self.hZ = (np.asarray(Z, dtype=float).ravel(), h) if ok else (self.Z, 0.0)
+        return np.asarray(xn, dtype=float).ravel(), ok
+
+
 @pytest.mark.parametrize("model,fidelity", CATALOG, ids=IDS)
 def test_catalog_fmu_equals_its_casadi_step_map_and_rolls_back(model, fidelity, cache):
     blk = blocks.make(model, fidelity)
@@ -40,6 +61,7 @@ def test_catalog_fmu_equals_its_casadi_step_map_and_rolls_back(model, fidelity, 
     p = blk.param_defaults
     x = np.asarray(st.start(p), dtype=float).ravel()
     h = _step(blk)
+    memory = _MemoryStep(st) if st.memory_kernel is not None else None
     names = [v.name for v in blk.outputs]
     rng = np.random.default_rng(11)
     saved = None
@@ -53,7 +75,7 @@ def test_catalog_fmu_equals_its_casadi_step_map_and_rolls_back(model, fidelity, 
             saved, t_saved = sl.get_state(), sl.t
             first = []
         sl.step(h)
-        x, ok = st.step(x, u, p, h)
+        x, ok = memory(x, u, p, h) if memory else st.step(x, u, p, h)
         assert ok
         if saved is not None:
             first.append(sl.get(*names))
