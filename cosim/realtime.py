@@ -16,6 +16,7 @@ why).  On a shared or loaded machine this is what keeps a 1 kHz loop on time.
 """
 from __future__ import annotations
 
+import gc
 import os
 import time
 from dataclasses import dataclass
@@ -65,6 +66,9 @@ class Pacer:
 
     def finish(self) -> dict:
         """Restore the scheduling policy; the statistics (:meth:`stats`)."""
+        if getattr(self, "_frozen", False):
+            gc.unfreeze()
+            self._frozen = False
         if self._old_policy is not None:
             try:
                 os.sched_setscheduler(0, self._old_policy[0], self._old_policy[1])
@@ -79,6 +83,12 @@ class Pacer:
         now = _now()
         if self.t0 is None:
             self._raise_priority()
+            # a full collection of a large heap stalls for 0.1-1 s: collect now, before the clock
+            # starts, and keep what exists out of later collections (only the run's own young
+            # objects are scanned while paced; :meth:`finish` undoes it)
+            gc.collect()
+            gc.freeze()
+            self._frozen = True
             now = _now()
             self.t0 = now
         deadline = self.t0 + k * self.step_ns
