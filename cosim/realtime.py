@@ -52,6 +52,13 @@ class Pacer:
         self.reason = ""
         self.priority_note = "not requested"
         self._old_policy = None
+        # a full collection of a large heap stalls for 0.1-1 s: collect now, before the slaves
+        # are initialised (a hardware slave's watchdog starts there) and the clock starts, and
+        # keep what exists out of later collections (only the run's own young objects are
+        # scanned while paced; :meth:`finish` undoes it)
+        gc.collect()
+        gc.freeze()
+        self._frozen = True
 
     def _raise_priority(self) -> None:
         prio = self.settings.priority
@@ -83,12 +90,6 @@ class Pacer:
         now = _now()
         if self.t0 is None:
             self._raise_priority()
-            # a full collection of a large heap stalls for 0.1-1 s: collect now, before the clock
-            # starts, and keep what exists out of later collections (only the run's own young
-            # objects are scanned while paced; :meth:`finish` undoes it)
-            gc.collect()
-            gc.freeze()
-            self._frozen = True
             now = _now()
             self.t0 = now
         deadline = self.t0 + k * self.step_ns

@@ -1,6 +1,8 @@
 """Real-time pacing of the run loop (cosim.realtime) and its place in scenes and runs."""
 from __future__ import annotations
 
+import gc
+
 import json
 from pathlib import Path
 
@@ -30,6 +32,20 @@ class FakeClock:
 
     def sleep(self, s: float) -> None:
         self.t += int(s * 1e9) + self.oversleep
+
+
+@pytest.fixture(autouse=True)
+def _thawed_heap():
+    yield
+    gc.unfreeze()  # a Pacer not finished by its test freezes the heap
+
+
+def test_the_pacer_quiets_the_heap_before_the_run_and_gives_it_back():
+    gc.unfreeze()
+    p = realtime.Pacer(H, 10)
+    assert gc.get_freeze_count() > 0  # what existed is kept out of collections while paced
+    p.finish()
+    assert gc.get_freeze_count() == 0
 
 
 @pytest.fixture

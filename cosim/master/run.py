@@ -168,6 +168,10 @@ def simulate(system: CoupledSystem, algorithm_name: str, *, step_ns: int, n_step
                                 **({"rates": multirate} if multirate else {})))
     alg, t_loop, pacer = None, None, None
     try:
+        if realtime is not None:  # before initialisation: the pacer quiets the heap first
+            from ..realtime import Pacer
+
+            pacer = Pacer(step_ns, n_steps, realtime)
         t0 = time.perf_counter()
         initialize(system, start_values or [{} for _ in system.slaves], start_time=start_ns / 1e9,
                    stop_time=(start_ns + n_steps * step_ns) / 1e9, tolerances=tolerances,
@@ -186,10 +190,8 @@ def simulate(system: CoupledSystem, algorithm_name: str, *, step_ns: int, n_step
                 if hasattr(obs, "record_text"):
                     obs.record_text(alg.t, c, x)
         chunk, t_loop, stepping = min(64, n_steps) or 1, time.perf_counter(), 0.0
-        if realtime is not None:
-            from ..realtime import Pacer
-
-            pacer, chunk = Pacer(step_ns, n_steps, realtime), 1
+        if pacer is not None:
+            chunk = 1
         width = 1 + len(system.record_idx)
         rec = np.empty((max(1, chunk // record_every + 1), width))
         while alg.k < n_steps and alg.status == "running":
