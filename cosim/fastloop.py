@@ -28,7 +28,9 @@ from .errors import UserError
 #: are handled) at least this often.
 CALL_BUDGET_NS = 250_000_000
 
-SOURCE = r"""
+#: The FMI entry points the compiled loops call (C function-pointer types), shared with
+#: :mod:`cosim.master.adaptive_engine`.
+FMI_CALL_TYPES = r"""
 #include <stdint.h>
 #include <stddef.h>
 #include <stdbool.h>
@@ -39,6 +41,9 @@ typedef int (*io2_t)(void *, const uint32_t *, size_t, double *);
 typedef int (*step3_t)(void *, double, double, bool, bool *, bool *, bool *, double *);
 typedef int (*io3_t)(void *, const uint32_t *, size_t, double *, size_t);
 typedef int (*der2_t)(void *, const uint32_t *, size_t, const int32_t *, const double *);
+"""
+
+SOURCE = FMI_CALL_TYPES + r"""
 
 typedef struct {
     int32_t fmi3, n_in, n_out, in_off, out_off, interp;

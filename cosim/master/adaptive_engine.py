@@ -27,20 +27,12 @@ from functools import lru_cache
 import numpy as np
 
 from ..errors import UserError
+from ..fastloop import FMI_CALL_TYPES
 
-SOURCE = r"""
-#include <stdint.h>
-#include <stddef.h>
-#include <stdbool.h>
+SOURCE = FMI_CALL_TYPES + r"""
 #include <string.h>
 #include <math.h>
-#include <time.h>
 
-typedef int (*step2_t)(void *, double, double, int);
-typedef int (*io2_t)(void *, const uint32_t *, size_t, double *);
-typedef int (*step3_t)(void *, double, double, bool, bool *, bool *, bool *, double *);
-typedef int (*io3_t)(void *, const uint32_t *, size_t, double *, size_t);
-typedef int (*der2_t)(void *, const uint32_t *, size_t, const int32_t *, const double *);
 typedef int (*state_get_t)(void *, void **);
 typedef int (*state_set_t)(void *, void *);
 typedef int (*bstatus_t)(void *, int, int *);
