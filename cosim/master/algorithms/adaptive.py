@@ -186,6 +186,12 @@ class AdaptiveStepper:
                 else:
                     buf[:] = now
                     guess = now.copy()
+                aff = sysm.in_affine[i]
+                if aff is not None:  # the connections' dst = factor * src + offset
+                    buf *= aff[0]
+                    buf += aff[1]
+                    if self.interp[i]:
+                        self.slopes[i] *= aff[0]
                 if (~fresh).any():
                     guesses.append((i, src[~fresh], guess[~fresh]))
             t0 = time.perf_counter_ns()
