@@ -152,12 +152,15 @@ class Algorithm(ABC):
 
     def step(self) -> bool:
         """One macro step ``t_k -> t_k+1``; False (with :attr:`status`, :attr:`message`) when the
-        run ends: a failure, or a stop request (then the step is completed first, see
-        :meth:`complete_after_stop`)."""
+        run ends: a failure, a stop request (then the step is completed first, see
+        :meth:`complete_after_stop`), or a status the step itself set (e.g. ``"unstable"``: an
+        iteration that did not converge)."""
         if self.status != "running":
             raise RuntimeError(f"{self.name}: cannot step a run that is {self.status}")
         t = self.time_at(self.k)
         bad = self._step_impl(t, self.h)
+        if self.status != "running":
+            return False
         if bad is None:
             self.k += 1
             return True

@@ -379,24 +379,6 @@ class Iterative(Algorithm):
             self._accept()
         return bad
 
-    def step(self) -> bool:
-        """One macro step iterated to convergence; False when the run ends (failure, stop request,
-        or ``"unstable"``: no convergence)."""
-        if self.status != "running":
-            raise RuntimeError(f"{self.name}: cannot step a run that is {self.status}")
-        t = self.time_at(self.k)
-        bad = self._step_impl(t, self.h)
-        if self.status != "running":
-            return False
-        if bad is None:
-            self.k += 1
-            return True
-        if self.stop_requested(*bad):
-            self.complete_after_stop(bad[0], t)
-            return False
-        self._fail(bad[0], bad[1], t)
-        return False
-
     def _finish_step(self, i: int, t: float, h: float) -> tuple[int, int] | None:
         """A slave asked to stop during a pass: the rest of that pass completes the step."""
         st = self._io(i, self.system.slaves[i].pull)
