@@ -9,7 +9,9 @@ Local (:class:`LocalExecutor`)
     same warm-up preloaded when the batch process runs other threads; each fed one task at a time over a pipe, so the parent
     always knows which run is where.  The FMUs' bytes go to each process once, when it starts.
     A process that dies (killed, crashed in an FMU) is replaced and its run is given to a worker
-    once more; a run that kills its worker twice is a failed row.  Workers ignore Ctrl-C (the
+    once more; a run that kills its worker twice is a failed row.  With as many workers as cores,
+    a worker writes each run's trace in its stepping thread (no writer thread: the cores are
+    busy).  Workers ignore Ctrl-C (the
     parent stops them) and die with the parent (``PR_SET_PDEATHSIG`` and a watchdog), so an
     interrupted batch leaves no run behind writing into its directory.
 Dask (:class:`DaskExecutor`)
@@ -68,8 +70,12 @@ def _die_with(parent_pid: int) -> None:
     threading.Thread(target=watch, name="batch-watchdog", daemon=True).start()
 
 
-def _worker_main(conn, shared: Shared, parent_pid: int) -> None:
-    """A local worker: runs tasks from ``conn`` until it receives None or the pipe closes."""
+def _worker_main(conn, shared: Shared, parent_pid: int, writer_thread: bool = True) -> None:
+    """A local worker: runs tasks from ``conn`` until it receives None or the pipe closes;
+    ``writer_thread`` False: each run writes its trace in its stepping thread."""
+    from .. import trace
+
+    trace.WRITER_THREAD = writer_thread
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     _die_with(parent_pid)
     STATE.detach()
@@ -135,11 +141,13 @@ class LocalExecutor:
     def __init__(self, workers: int | None = None):
         self.workers = max(1, workers or os.cpu_count() or 1)
         self.capacity = self.workers
+        # a trace-writer thread per run only while there are cores to spare (cosim.trace.WRITER_THREAD)
+        self.writer_thread = self.workers < (os.cpu_count() or 1)
         self.replaced = 0  # workers that died and were replaced
 
     def _spawn(self, ctx, shared: Shared) -> _Slot:
         ours, theirs = ctx.Pipe()
-        proc = ctx.Process(target=_worker_main, args=(theirs, shared, os.getpid()), daemon=True,
+        proc = ctx.Process(target=_worker_main, args=(theirs, shared, os.getpid(), self.writer_thread), daemon=True,
                            name="rpr-batch-worker")
         proc.start()
         theirs.close()
