@@ -136,3 +136,12 @@ def test_cli_bad_precision_arguments_are_one_line(argv, message, capsys, tmp_pat
     rc = main(["study", "precision", str(TWO_MASS), "--out", str(tmp_path), *argv])
     err = capsys.readouterr().err
     assert rc == 2 and message in err and len(err.strip().splitlines()) == 1, err
+
+
+def test_two_workers_measure_the_same_errors(two_mass_study, tmp_path, cache):
+    """The runs on two local worker processes give the same errors as on one (each run is
+    deterministic; only the wall times depend on the machine)."""
+    st = precision_study(TWO_MASS, [("gauss_seidel", "linear"), ("adaptive", "linear")], [4e-3, 2e-3],
+                         rtols=RTOLS, stop_time=STOP, out=tmp_path, cache_dir=cache, workers=2)
+    one = [(r.algorithm, r.label, r.errors) for r in two_mass_study.rows if r.algorithm != "ecco"]
+    assert [(r.algorithm, r.label, r.errors) for r in st.rows] == one

@@ -455,7 +455,7 @@ def plot_study(study: PrecisionStudy, path: Path) -> Path:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, ax = plt.subplots(figsize=(8, 5.5), layout="constrained")
+    fig, ax = plt.subplots(figsize=(10.5, 5.5), layout="constrained")
     for variant in study.variants():
         pts = [r for r in study.rows if (r.algorithm, r.inputs) == variant and r.status == "ok" and r.worst > 0]
         if not pts:
@@ -480,7 +480,7 @@ def plot_study(study: PrecisionStudy, path: Path) -> Path:
     ax.set_ylabel("worst error relative to the signal's range [1]")
     ax.set_title(f"{study.scene}: work-precision over {study.stop_time:g} s")
     ax.grid(alpha=0.3, which="both")
-    ax.legend(fontsize=7)
+    ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0))
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return Path(path)
