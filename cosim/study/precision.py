@@ -353,7 +353,11 @@ def _measure(row: PrecisionRow, result: dict | None, out: Path, name: str, scene
     _costs(row, stats)
     if row.status != "ok":
         return
-    trace = read_trace(path)
+    try:
+        trace = read_trace(path)
+    except UserError as exc:  # a resumed study whose run directory was removed
+        row.status, row.reason = "failed", f"{exc} (remove its row from {out / 'results.csv'} to run it again)"
+        return
     against = ref
     if row.variable:  # irregular instants: the reference integrated to exactly those
         at = reference(scene_path, over, times=trace.time)
