@@ -209,15 +209,21 @@ def _cache_dir() -> Path:
     return cache_root().parent / "master"
 
 
+@lru_cache(maxsize=4)
+def _compiler_version(cc: str) -> str:
+    """``cc --version`` (asked once per process and compiler)."""
+    try:
+        return subprocess.run([cc, "--version"], capture_output=True, text=True, check=True).stdout
+    except (OSError, subprocess.CalledProcessError) as exc:
+        raise UserError(f"the compiled master loop needs a C compiler ({cc}: {exc}); "
+                        f"set master.engine: python to use the Python loop") from None
+
+
 def compile_library(source: str, stem: str) -> ctypes.CDLL:
     """Compile ``source`` (once per source and compiler, cached on disk as ``<stem>_<hash>.so``)
     and load it.  Raises :class:`UserError` when no C compiler works."""
     cc = os.environ.get("CC", "gcc")
-    try:
-        version = subprocess.run([cc, "--version"], capture_output=True, text=True, check=True).stdout
-    except (OSError, subprocess.CalledProcessError) as exc:
-        raise UserError(f"the compiled master loop needs a C compiler ({cc}: {exc}); "
-                        f"set master.engine: python to use the Python loop") from None
+    version = _compiler_version(cc)
     key = hashlib.sha256((source + version + sys.platform).encode()).hexdigest()[:20]
     from fmus.cache import writable_root
 

@@ -14,8 +14,6 @@ def indexed_component(name: str, spec: Mapping, fmi: str, make_component: Callab
     validation has to report (a malformed spec)."""
     from fmus.index import lookup
 
-    from .slaves import describe_block
-
     model, fidelity = spec.get("model"), spec.get("fidelity")
     options, params = spec.get("options", {}), spec.get("params", {})
     if not isinstance(model, str) or not (fidelity is None or isinstance(fidelity, str)):
@@ -27,8 +25,19 @@ def indexed_component(name: str, spec: Mapping, fmi: str, make_component: Callab
         return None
     block, recipe = hit
     fid = block.catalog_fidelity
-    return make_component(name, "model", describe_block(block, f"{model}/{fid}"), model=model, fidelity=fid,
+    return make_component(name, "model", _description(block, f"{model}/{fid}"), model=model, fidelity=fid,
                           options=dict(options), fmi=fmi, block=block, where=spec.where, recipe=recipe)
+
+
+def _description(block, source: str):
+    """:func:`cosim.slaves.describe_block` of an indexed block, made once per block and source
+    (the index hands out one block per entry; descriptions are not modified after they are made)."""
+    from .slaves import describe_block
+
+    memo = block.__dict__.setdefault("_descriptions", {})
+    if source not in memo:
+        memo[source] = describe_block(block, source)
+    return memo[source]
 
 
 def recipe_of(spec: Mapping, options: dict, fixed: dict, fmi: str):

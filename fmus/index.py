@@ -142,12 +142,37 @@ def index_dir(root: Path) -> Path:
     return Path(root) / INDEX_DIR
 
 
+_PATHS: dict[tuple, Path] = {}  # (root, repr of the recipe) -> its entry's file
+
+
+def _entry_path(root: Path, recipe: Recipe) -> Path:
+    """The index file of ``recipe`` under ``root`` (its key hashed once per process)."""
+    memo = (str(root), repr(recipe), fingerprint())
+    path = _PATHS.get(memo)
+    if path is None:
+        path = _PATHS[memo] = index_dir(root) / f"{recipe.key()}.json"
+    return path
+
+
+_READ: dict[Path, tuple[tuple[int, int, int], dict | None]] = {}  # entry file -> ((mtime_ns, size, inode), entry)
+
+
 def _read(path: Path) -> dict | None:
+    """The entry in ``path`` (None when missing or not an entry), decoded once per process while
+    the file is unchanged (a batch looks up the same few entries for every run); callers do not
+    mutate it."""
     try:
+        st = path.stat()
+        stamp = (st.st_mtime_ns, st.st_size, st.st_ino)
+        hit = _READ.get(path)
+        if hit is not None and hit[0] == stamp:
+            return hit[1]
         data = json.loads(path.read_text())
     except (OSError, ValueError):
         return None
-    return data if isinstance(data, dict) and data.get("format") == FORMAT else None
+    entry = data if isinstance(data, dict) and data.get("format") == FORMAT else None
+    _READ[path] = (stamp, entry)
+    return entry
 
 
 def lookup(model: str, fidelity: str | None, options: dict, params: dict, fmi: str,
@@ -157,18 +182,30 @@ def lookup(model: str, fidelity: str | None, options: dict, params: dict, fmi: s
     root = cache_root(cache_dir, create=False)  # a lookup leaves the disk as it was
     base = Recipe(model, fidelity, dict(options), {}, fmi)
     try:
-        entry = _read(index_dir(root) / f"{base.key()}.json")
+        entry = _read(_entry_path(root, base))
         if entry is None:
             return None
         fixed = {k: params[k] for k in entry.get("structural", []) if k in params}
         recipe = dataclasses.replace(base, fixed=fixed)
         if fixed:
-            entry = _read(index_dir(root) / f"{recipe.key()}.json")
+            entry = _read(_entry_path(root, recipe))
     except (TypeError, ValueError):  # options that do not serialise: no index for this recipe
         return None
     if entry is None or not entry.get("fmu"):
         return None
-    return IndexedBlock(entry, root), recipe
+    return _indexed_block(entry, root), recipe
+
+
+_BLOCKS: dict[tuple[int, Path], tuple[dict, "IndexedBlock"]] = {}
+
+
+def _indexed_block(entry: dict, root: Path) -> "IndexedBlock":
+    """One :class:`IndexedBlock` per decoded entry (so its real block, when needed, is built once)."""
+    key = (id(entry), Path(root))
+    hit = _BLOCKS.get(key)
+    if hit is None or hit[0] is not entry:
+        hit = _BLOCKS[key] = (entry, IndexedBlock(entry, root))
+    return hit[1]
 
 
 def record(recipe: Recipe, fidelity: str, block, fmu: Path, cache_dir: Path | None = None, *,

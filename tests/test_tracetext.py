@@ -11,6 +11,16 @@ import pytest
 from cosim import tracetext
 
 
+@pytest.fixture(autouse=True, params=["c", "python"])
+def rewrite(request, monkeypatch):
+    """Every test runs with the compiled rewrite of orjson's text and with the Python one."""
+    if request.param == "python":
+        monkeypatch.setattr(tracetext, "_c_rows", lambda: None)
+    elif tracetext._c_rows() is None:
+        pytest.fail("no compiled rewrite although the project's set-up provides gcc")
+    return request.param
+
+
 def _peer(a: np.ndarray) -> bytes:
     return "".join(",".join(repr(float(x)) for x in row) + "\n" for row in a).encode()
 

@@ -27,7 +27,7 @@ def warm_imports() -> None:
 def warm(scenes: Iterable = ()) -> None:
     """:func:`warm_imports`, the compiled master loop, and the stepping order of each scene's
     coupling (cached per process by :func:`cosim.master.gauss_seidel_order`)."""
-    from .. import fastloop
+    from .. import fastloop, tracetext
     from ..errors import UserError
     from ..master import gauss_seidel_order
 
@@ -36,6 +36,7 @@ def warm(scenes: Iterable = ()) -> None:
         fastloop.library()
     except UserError:  # no C compiler: the runs say so (or use the Python loop)
         pass
+    tracetext._c_rows()  # the compiled trace-text rewrite (None without a compiler)
     seen = set()
     for scene in scenes:
         if scene.master.order:

@@ -6,6 +6,7 @@ import fnmatch
 import math
 import re
 from collections.abc import Mapping
+from functools import lru_cache
 
 from ..fmitypes import TYPES
 from ..master import ALGORITHMS
@@ -14,6 +15,13 @@ from .keys import ENGINES, INPUT_MODES, MASTER_KEYS
 from .model import Component, MasterSettings
 from .problems import suggest
 from .yamlfile import YList, YMap
+
+
+@lru_cache(maxsize=256)
+def _output_pattern(pat: str) -> re.Pattern:
+    """The regular expression of an ``outputs:`` glob; ``[`` and ``]`` are literal (``leg[*].s``)."""
+    return re.compile(fnmatch.translate(pat.replace("[", "\0").replace("]", "\1"))
+                      .replace("\0", r"\[").replace("\1", r"\]"))
 
 
 class MasterChecks(Checker):
@@ -259,8 +267,7 @@ class MasterChecks(Checker):
             if pat in every:
                 hits = [pat]
             else:
-                rx = re.compile(fnmatch.translate(pat.replace("[", "\0").replace("]", "\1"))
-                                .replace("\0", r"\[").replace("\1", r"\]"))
+                rx = _output_pattern(pat)
                 hits = [s for s in signals if rx.match(s)]
             if not hits:
                 self.err(where, f"output pattern {pat!r} matches no input or output{suggest(pat, signals)}")
