@@ -290,9 +290,9 @@ def precision_study(scene_path: Path | str, variants: Sequence[tuple[str, str]],
     todo = [p for i, p in enumerate(points) if not refused[i]]
     with tempfile.TemporaryDirectory(prefix="rpr-precision-") as tmp:
         where = Path(out) if out is not None else Path(tmp)
-        outcome = _run_points(scene_path, todo, common, where, study.scene, cache_dir, workers, executor,
-                              batch_progress, log)
-        rows_by_values = {_key(r): r for r in outcome.rows}
+        done = _run_points(scene_path, todo, common, where, study.scene, cache_dir, workers, executor,
+                           batch_progress, log).rows if todo else []
+        rows_by_values = {_key(r): r for r in done}
         for i, (values, over) in enumerate(points):
             row = PrecisionRow(values["algorithm"], values["inputs"], values["step"], "failed", refused[i],
                                tolerance=math.nan if values["tolerance"] is None else values["tolerance"])
