@@ -19,6 +19,11 @@ turns, so that a change of the machine's load hits them alike.
   part after resolving the scenes is shown apart, and the worker's own share (instance
   hand-out, metrics: its wall time per run beyond ``cosim.run.run``); and the same in CPU time
   (this process and its workers), which the machine's load disturbs less than wall time.
+- marginal overhead per run and fixed cost per batch: the same with 16 and with 64 runs (the
+  grid with 4 x 4 more Kd values); what one more run costs beyond its own work is
+  ((batch 64 - batch 16) - (plain 64 - plain 16)) / 48, and what is left of the 16-run
+  overhead is the batch's fixed cost (checking the batch file and the first scene, FMU
+  look-up, starting the workers, the last row).
 - reuse: initialisation time per run (``init_s``: instantiate or reset, start values,
   initialisation) with instances kept and reset against loading the FMUs for every run.
 
@@ -51,9 +56,14 @@ metrics:
 """
 
 
-def batch_file(tmp: Path, stop: float) -> Path:
-    p = tmp / f"bench_{stop:g}.yaml"
-    p.write_text(BATCH.format(scene=ROOT / "scenarios" / "pid_step.yaml", stop=stop))
+def batch_file(tmp: Path, stop: float, kd_values: int = 4) -> Path:
+    """The benchmark batch: 4 Kp x ``kd_values`` Kd (4 or 16) runs of ``stop`` seconds."""
+    p = tmp / f"bench_{stop:g}_{kd_values}.yaml"
+    text = BATCH.format(scene=ROOT / "scenarios" / "pid_step.yaml", stop=stop)
+    if kd_values != 4:
+        kd = ", ".join(f"{v:g}" for v in [10 + 20 * i / (kd_values - 1) for i in range(kd_values)])
+        text = text.replace("values: [10, 15, 20, 30]", f"values: [{kd}]")
+    p.write_text(text)
     return p
 
 
@@ -106,6 +116,37 @@ class Plain:
                 "main_cpu": time.thread_time() - m0}
 
 
+def independent(plain: Plain, tmp: Path, procs: int) -> dict:
+    """The peer of the speed-up: the plain runs split over ``procs`` independent processes forked
+    from this one (no batch machinery, nothing shared), started together; their wall time.  Two
+    such processes against one is what this machine and these runs allow 2 workers to gain."""
+    import multiprocessing as mp
+
+    ctx = mp.get_context("fork")
+    go, done = ctx.Barrier(procs + 1), ctx.Queue()
+
+    def child(k: int) -> None:
+        from cosim.run import run
+
+        out = Path(tempfile.mkdtemp(dir=tmp))
+        go.wait()
+        for i, scene in enumerate(plain.scenes[k::procs]):
+            assert run(scene, out_dir=out / str(i), slaves=plain.slaves).ok
+        done.put(k)
+
+    kids = [ctx.Process(target=child, args=(k,)) for k in range(procs)]
+    for p in kids:
+        p.start()
+    go.wait()
+    t0 = time.perf_counter()
+    for _ in kids:
+        done.get()
+    wall = time.perf_counter() - t0
+    for p in kids:
+        p.join()
+    return {"wall": wall}
+
+
 def best(fns: dict, repeat: int) -> dict:
     """The best (least wall) of ``repeat`` results of each function, the functions taking turns."""
     out: dict = {}
@@ -150,18 +191,36 @@ def main() -> None:
         m = best({"1": lambda: one(batch, tmp, 1), "2": lambda: one(batch, tmp, 2),
                   "plain": lambda: plain(tmp)}, args.repeat)
         m1, m2, p = m["1"], m["2"], m["plain"]
+        peer = best({"1": lambda: independent(plain, tmp, 1), "2": lambda: independent(plain, tmp, 2)}, args.repeat)
+        ceiling = peer["1"]["wall"] / peer["2"]["wall"]
         print(f"CPU time of the whole batch (this process and the workers): 1 worker {m1['cpu']:.2f} s, 2 workers "
               f"{m2['cpu']:.2f} s; the runs one after another {p['cpu']:.2f} s")
         print(f"16 runs of pid_step ({args.stop:g} s each): whole batch 1 worker {m1['wall']:.2f} s, 2 workers "
               f"{m2['wall']:.2f} s: speed-up {m1['wall'] / m2['wall']:.2f}x (target 1.8x); execution alone "
               f"{m1['execution']:.2f} s vs {m2['execution']:.2f} s: {m1['execution'] / m2['execution']:.2f}x; "
               f"the runs one after another in one process {p['wall']:.2f} s")
+        print(f"peer: the same runs in 1 vs 2 independent processes (no batch machinery): {peer['1']['wall']:.2f} s vs "
+              f"{peer['2']['wall']:.2f} s = {ceiling:.2f}x, what this machine allows 2 workers; the batch reaches "
+              f"{100 * (m1['wall'] / m2['wall']) / ceiling:.0f} % of it")
         main_ms, other_ms = 1e3 * p["main_cpu"] / p["n"], 1e3 * (p["cpu"] - p["main_cpu"]) / p["n"]
         print(f"a run's CPU time: {main_ms:.1f} ms in its main thread (stepping), {other_ms:.1f} ms in its "
               f"trace-writer thread, which overlap: a worker whose runs last as long as their main thread keeps "
               f"{(main_ms + other_ms) / main_ms:.2f} cores busy, and 2 such workers on 2 cores can be at most "
               f"{2 * main_ms / (main_ms + other_ms):.2f}x faster than one")
         print(f"overhead, 1 worker, {args.stop:g} s runs: {overhead(m1, p)} (targets 5 %, 50 ms)")
+        big = load_batch(batch_file(tmp, args.stop, 16))
+        plain_big = Plain(big)
+        mb = best({"16": lambda: one(batch, tmp, 1), "64": lambda: one(big, tmp, 1), "p16": lambda: plain(tmp),
+                   "p64": lambda: plain_big(tmp)}, args.repeat)
+        n16, n64 = mb["16"]["n"], mb["64"]["n"]
+        marginal = ((mb["64"]["wall"] - mb["16"]["wall"]) - (mb["p64"]["wall"] - mb["p16"]["wall"])) / (n64 - n16)
+        own = (mb["p64"]["wall"] - mb["p16"]["wall"]) / (n64 - n16)
+        fixed = (mb["16"]["wall"] - mb["p16"]["wall"]) - n16 * marginal
+        cpu_marginal = ((mb["64"]["cpu"] - mb["16"]["cpu"]) - (mb["p64"]["cpu"] - mb["p16"]["cpu"])) / (n64 - n16)
+        print(f"marginal overhead per run, 1 worker, {args.stop:g} s runs ({n16} and {n64} runs): "
+              f"{1e3 * marginal:.1f} ms = {100 * marginal / own:.1f} % of a run's own {1e3 * own:.1f} ms "
+              f"(target 5 %); CPU {1e3 * cpu_marginal:.1f} ms per run; fixed cost per batch "
+              f"{1e3 * fixed:.0f} ms (batch file, first scene, FMU look-up, workers' start, last row)")
         ms = best({"1": lambda: one(short, tmp, 1), "plain": lambda: plain_short(tmp)}, args.repeat)
         print(f"overhead, 1 worker, 0.5 s runs: {overhead(ms['1'], ms['plain'])} (target 50 ms)")
         mr = best({"reuse": lambda: one(batch, tmp, 1), "reload": lambda: one(batch, tmp, 1, reuse=False)},

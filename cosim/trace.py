@@ -165,6 +165,13 @@ class TraceWriteError(UserError):
     reason and the rows written so far are kept whole."""
 
 
+#: Whether trace rows are formatted and written by a thread of their own (the default: on a
+#: machine with a core to spare, a run then lasts as long as its stepping).  A batch with as many
+#: workers as cores turns it off in its workers (:mod:`cosim.batch.executors`): the cores are
+#: busy already, and a second thread per worker only adds switching.
+WRITER_THREAD = True
+
+
 class CsvTrace(Observer):
     """Streams the rows to ``path`` (CSV, shortest round-trip decimal text) with the metadata
     in comment lines and a sidecar ``path.with_suffix('.json')``.
@@ -206,6 +213,7 @@ class CsvTrace(Observer):
         self._cond = threading.Condition()
         self._thread: threading.Thread | None = None
         self._error: BaseException | None = None
+        self._inline = False
 
     def start(self, columns, meta) -> None:
         self.path.parent.mkdir(parents=True, exist_ok=True)
@@ -226,9 +234,11 @@ class CsvTrace(Observer):
             os.close(self._fd)
             self._fd = None
             raise TraceWriteError(f"cannot write the trace {self.part}: {exc.strerror or exc}") from None
-        self._queue = queue.Queue()
-        self._thread = threading.Thread(target=self._writer, name=f"trace-writer {self.path.name}", daemon=True)
-        self._thread.start()
+        self._inline = not WRITER_THREAD
+        if not self._inline:
+            self._queue = queue.Queue()
+            self._thread = threading.Thread(target=self._writer, name=f"trace-writer {self.path.name}", daemon=True)
+            self._thread.start()
 
     def _write(self, data: bytes) -> None:
         """Append ``data`` (whole lines) at the end; on failure cut back to the last whole line."""
@@ -272,6 +282,9 @@ class CsvTrace(Observer):
         self._raise_if_failed()
         if not len(rows):
             return
+        if self._inline:
+            self._write_inline(np.asarray(rows, dtype=float))
+            return
         arr = np.array(rows, dtype=float, copy=True)
         step = max(1, (self.max_queued_bytes // 4) // max(1, arr.itemsize * arr.shape[1]))
         for piece in (arr[i:i + step] for i in range(0, len(arr), step)):
@@ -285,10 +298,25 @@ class CsvTrace(Observer):
                 self.rows += len(piece)
         self._raise_if_failed()
 
+    def _write_inline(self, rows) -> None:
+        """Format and write ``rows`` now, in the caller's thread (see :data:`WRITER_THREAD`)."""
+        from .interrupts import deferred
+
+        try:
+            with deferred():  # whole lines, or cut back to the last one
+                self._write(rows if isinstance(rows, bytes) else rows_text(rows))
+            if not isinstance(rows, bytes):
+                self.rows += len(rows)
+        except BaseException as exc:
+            self._error = exc
+        self._raise_if_failed()
+
     def record_text(self, t, column, value) -> None:
         from .interrupts import deferred
 
-        if self._queue is not None:
+        if self._inline and self._fd is not None:
+            self._write_inline(_comment("text", [float(t), column, str(value)]).encode())
+        elif self._queue is not None:
             with deferred():
                 self._queue.put(_comment("text", [float(t), column, str(value)]))
 

@@ -153,6 +153,84 @@ metrics:
         assert by_step[step]["outcome"] == "ok" and by_step[step]["steps"] == round(1.5 / step)
 
 
+def _tf_samples(first_bad: bool) -> tuple[str, list[float]]:
+    """A batch of 4 random derivative-filter constants Tf ~ N(1 ms, 2 ms) (a third fall below the
+    parameter's lower bound 1e-9 s) whose seed makes sample 0 invalid or valid, as asked, and at
+    least one other sample valid and one invalid; its text and the samples."""
+    from cosim.batch.axes import draw
+
+    for seed in range(1, 200):
+        text = f"""\
+scene: {SCENE}
+set: {{stop_time: 0.05}}
+random:
+  seed: {seed}
+  samples: 4
+  axes:
+    Tf: {{path: components.pid1.params.Tf, dist: normal, mean: 1.0e-3, std: 2.0e-3}}
+"""
+        ax = load_batch_text(text).random[0]
+        tf = [draw(ax, seed, j) for j in range(4)]
+        bad = [t < 1e-9 for t in tf]
+        if bad[0] == first_bad and any(bad[1:]) and not all(bad[1:]):
+            return text, tf
+    raise AssertionError("no seed gives the wanted samples")
+
+
+def load_batch_text(text: str):
+    import tempfile
+
+    with tempfile.TemporaryDirectory() as d:
+        return load_batch(write(Path(d), text))
+
+
+def test_a_run_whose_scene_is_invalid_is_a_failed_row_and_the_others_run(tmp_path):
+    """Runs are checked as they are handed out: a random sample outside a parameter's bounds is
+    a failed row naming the bound; the batch goes on, and a rerun skips it like any finished row."""
+    text, tf = _tf_samples(first_bad=False)
+    path = write(tmp_path, text)
+    res = run_batch(load_batch(path), out=tmp_path / "out", executor=LocalExecutor(1))
+    assert res.ran == 4 and len(res.rows) == 4 and res.failed == sum(t < 1e-9 for t in tf)
+    for row in res.rows:
+        if row["Tf"] < 1e-9:
+            assert row["outcome"] == "failed" and row["reason"].startswith(f"invalid scene: run {row['index']} (Tf=")
+            assert "parameter Tf" in row["reason"] and "outside [1e-09, inf]" in row["reason"]
+            assert not (tmp_path / "out" / "runs" / row["run_id"]).exists()
+        else:
+            assert row["outcome"] == "ok", row["reason"]
+    again = run_batch(load_batch(path), out=tmp_path / "out", executor=LocalExecutor(1))
+    assert (again.ran, again.skipped, len(again.rows)) == (0, 4, 4)
+
+
+def test_an_invalid_first_run_stops_the_batch_before_anything_is_written(tmp_path, capsys):
+    text, _ = _tf_samples(first_bad=True)
+    out = tmp_path / "out"
+    assert main(["batch", str(write(tmp_path, text)), "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert "b.yaml:1: error: run 0 (Tf=" in err[0] and "outside [1e-09, inf]" in err[0]
+    assert "nothing was run" in err[-1] and not out.exists()
+
+
+def test_a_run_needing_another_fmu_gets_it_with_its_task(tmp_path):
+    """The second run's PID is built with RK4 instead of the exact kernel: a different FMU, first
+    needed after the workers started, sent with that run; its trace equals a plain run's."""
+    from cosim.run import run
+
+    text = f"""\
+scene: {SCENE}
+set: {{stop_time: 0.05}}
+grid:
+  kernel: {{path: components.pid1.options.integrator, values: [exact, rk4]}}
+"""
+    res = run_batch(load_batch(write(tmp_path, text)), out=tmp_path / "out", executor=LocalExecutor(1))
+    assert res.ran == 2 and res.failed == 0
+    by_kernel = {r["kernel"]: r for r in res.rows}
+    plain = run(SCENE, ["stop_time=0.05", "components.pid1.options.integrator=rk4"], out_dir=tmp_path / "plain")
+    rk4 = data_lines(run_trace_path(tmp_path / "out", by_kernel["rk4"]["run_id"]))
+    exact = data_lines(run_trace_path(tmp_path / "out", by_kernel["exact"]["run_id"]))
+    assert rk4 == data_lines(plain.trace_path) and rk4 != exact
+
+
 def test_a_worker_killed_mid_run_is_replaced_and_the_run_completes(tmp_path):
     text = f"""\
 scene: {SCENE}

@@ -15,6 +15,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from cosim import trace as trace_module
+
 from cosim import cli, outputs
 from cosim.errors import UserError
 from cosim.reference import reference
@@ -161,7 +163,9 @@ def test_a_failing_rerun_keeps_the_good_trace_as_prev_and_says_so(tmp_path, cach
 
 
 # --- finding 3: a full disk --------------------------------------------------------------------
-def test_a_full_disk_ends_the_run_with_its_reason_and_whole_rows(tmp_path, cache, monkeypatch):
+@pytest.mark.parametrize("writer_thread", [True, False], ids=["writer-thread", "inline"])
+def test_a_full_disk_ends_the_run_with_its_reason_and_whole_rows(tmp_path, cache, monkeypatch, writer_thread):
+    monkeypatch.setattr(trace_module, "WRITER_THREAD", writer_thread)
     budget = {"left": 40_000}
     real_write = os.write
 
@@ -269,6 +273,19 @@ def test_a_run_whose_trace_is_too_large_is_refused_with_the_numbers_and_the_way_
     assert check_trace_size(scene, "1TB").rows == 1_000_000_001  # a raised limit lets it through
     rc = cli.main(["run", str(PID), "--check"])
     assert rc == 0 and "expected: 5,000 steps, 5,001 rows x 25 columns, trace about" in capsys.readouterr().out
+
+
+def test_a_trace_written_in_the_stepping_thread_equals_the_writer_threads(tmp_path, cache, monkeypatch):
+    """As batch workers write it when every core has a worker: the same file but its dates."""
+    threaded = run(PID, ["stop_time=0.5"], out_dir=tmp_path / "a", cache_dir=cache)
+    monkeypatch.setattr(trace_module, "WRITER_THREAD", False)
+    inline = run(PID, ["stop_time=0.5"], out_dir=tmp_path / "b", cache_dir=cache)
+    assert threaded.ok and inline.ok
+
+    def lines(path):
+        return [ln for ln in path.read_text().splitlines() if not ln.startswith(("# started", "# statistics"))]
+
+    assert lines(threaded.trace_path) == lines(inline.trace_path) and len(lines(inline.trace_path)) > 500
 
 
 def test_the_trace_writer_applies_back_pressure(tmp_path, monkeypatch):

@@ -9,7 +9,9 @@ Local (:class:`LocalExecutor`)
     same warm-up preloaded when the batch process runs other threads; each fed one task at a time over a pipe, so the parent
     always knows which run is where.  The FMUs' bytes go to each process once, when it starts.
     A process that dies (killed, crashed in an FMU) is replaced and its run is given to a worker
-    once more; a run that kills its worker twice is a failed row.  Workers ignore Ctrl-C (the
+    once more; a run that kills its worker twice is a failed row.  With as many workers as cores,
+    a worker writes each run's trace in its stepping thread (no writer thread: the cores are
+    busy).  Workers ignore Ctrl-C (the
     parent stops them) and die with the parent (``PR_SET_PDEATHSIG`` and a watchdog), so an
     interrupted batch leaves no run behind writing into its directory.
 Dask (:class:`DaskExecutor`)
@@ -31,7 +33,7 @@ import threading
 import time
 import uuid
 from collections import deque
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from multiprocessing.connection import wait
 
 from ..errors import UserError
@@ -68,8 +70,12 @@ def _die_with(parent_pid: int) -> None:
     threading.Thread(target=watch, name="batch-watchdog", daemon=True).start()
 
 
-def _worker_main(conn, shared: Shared, parent_pid: int) -> None:
-    """A local worker: runs tasks from ``conn`` until it receives None or the pipe closes."""
+def _worker_main(conn, shared: Shared, parent_pid: int, writer_thread: bool = True) -> None:
+    """A local worker: runs tasks from ``conn`` until it receives None or the pipe closes;
+    ``writer_thread`` False: each run writes its trace in its stepping thread."""
+    from .. import trace
+
+    trace.WRITER_THREAD = writer_thread
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     _die_with(parent_pid)
     STATE.detach()
@@ -110,34 +116,57 @@ def _context(scenes: Sequence = (), shared: Shared | None = None):
     return ctx
 
 
+class _Source:
+    """Tasks read lazily from an iterable, with those handed back (a retry) first."""
+
+    def __init__(self, tasks: Iterable[Task]):
+        self.it: Iterator[Task] | None = iter(tasks)
+        self.pending: deque[Task] = deque()
+
+    def pull(self) -> bool:
+        """Read one more task into :attr:`pending`; False when there are none left."""
+        if self.it is None:
+            return False
+        t = next(self.it, None)
+        if t is None:
+            self.it = None
+            return False
+        self.pending.append(t)
+        return True
+
+
 class LocalExecutor:
     """``workers`` local processes (see the module docstring)."""
 
     def __init__(self, workers: int | None = None):
         self.workers = max(1, workers or os.cpu_count() or 1)
         self.capacity = self.workers
+        # a trace-writer thread per run only while there are cores to spare (cosim.trace.WRITER_THREAD)
+        self.writer_thread = self.workers < (os.cpu_count() or 1)
         self.replaced = 0  # workers that died and were replaced
 
     def _spawn(self, ctx, shared: Shared) -> _Slot:
         ours, theirs = ctx.Pipe()
-        proc = ctx.Process(target=_worker_main, args=(theirs, shared, os.getpid()), daemon=True,
+        proc = ctx.Process(target=_worker_main, args=(theirs, shared, os.getpid(), self.writer_thread), daemon=True,
                            name="rpr-batch-worker")
         proc.start()
         theirs.close()
         return _Slot(proc, ours)
 
-    def run(self, tasks: Sequence[Task], shared: Shared, on_done: OnDone, on_start: OnStart | None = None) -> None:
+    def run(self, tasks: Iterable[Task], shared: Shared, on_done: OnDone, on_start: OnStart | None = None) -> None:
         """Run every task; returns when all are done (or raises KeyboardInterrupt after stopping
-        the workers)."""
-        pending = deque(tasks)
-        if not pending:
+        the workers).  ``tasks`` is read lazily: one task ahead of the workers, so that making
+        the next task (resolving its scene) overlaps the runs."""
+        source = _Source(tasks)
+        if not source.pull():
             return
         slots: list[_Slot] = []
         try:
-            ctx = _context([t.scene for t in tasks], shared)
-            slots = [self._spawn(ctx, shared) for _ in range(min(self.workers, len(pending)))]
-            while pending or any(s.task for s in slots):
-                self._dispatch(ctx, shared, slots, pending)
+            ctx = _context([source.pending[0].scene], shared)
+            while source.pending or any(s.task for s in slots):
+                self._dispatch(ctx, shared, slots, source)
+                if not source.pending:
+                    source.pull()  # the next run, resolved while the workers run
                 busy = [s for s in slots if s.task is not None]
                 ready = set(wait([s.conn for s in busy] + [s.proc.sentinel for s in busy]))  # idle until then
                 finished: list[tuple[Task, Outcome]] = []
@@ -151,16 +180,16 @@ class LocalExecutor:
                         task, code, s.task = s.task, s.proc.exitcode, None
                         if task.attempt < 2:
                             task.attempt += 1
-                            pending.appendleft(task)
+                            source.pending.appendleft(task)
                         else:
                             sig = f", {signal.Signals(-code).name}" if code and code < 0 else ""
                             finished.append((task, Outcome(task.run_id, "failed", f"the worker process died twice "
                                                            f"while running it (exit code {code}{sig})",
                                                            worker=str(s.proc.pid))))
-                    if pending:
+                    if source.pending or source.it is not None:
                         slots[i] = self._replace(ctx, shared, s)
                 try:
-                    self._dispatch(ctx, shared, slots, pending)  # the next runs go out before the rows are written
+                    self._dispatch(ctx, shared, slots, source)  # the next runs go out before the rows are written
                 finally:
                     for task, outcome in finished:
                         on_done(task, outcome)
@@ -168,17 +197,25 @@ class LocalExecutor:
             self._stop(slots)
             STATE.remove_files()  # what this process prepared for its forked workers
 
-    def _dispatch(self, ctx, shared: Shared, slots: list[_Slot], pending: deque) -> None:
-        """Give a pending task to every idle worker."""
-        for i, s in enumerate(slots):
-            if s.task is None and pending:
-                s.task = pending.popleft()
-                try:
-                    s.conn.send(s.task)
-                except (BrokenPipeError, OSError):  # died while idle: replace it, send again
-                    slots[i] = self._replace(ctx, shared, s)
-                    slots[i].task = s.task
-                    slots[i].conn.send(s.task)
+    def _dispatch(self, ctx, shared: Shared, slots: list[_Slot], source: _Source) -> None:
+        """Give a task to every idle worker, starting workers (up to :attr:`workers`) while there
+        are more tasks than idle ones."""
+        idle = [i for i, s in enumerate(slots) if s.task is None]
+        while source.pending or source.pull():
+            if not idle:
+                if len(slots) >= self.workers:
+                    return
+                slots.append(self._spawn(ctx, shared))
+                idle.append(len(slots) - 1)
+            i = idle.pop(0)
+            s = slots[i]
+            s.task = source.pending.popleft()
+            try:
+                s.conn.send(s.task)
+            except (BrokenPipeError, OSError):  # died while idle: replace it, send again
+                slots[i] = self._replace(ctx, shared, s)
+                slots[i].task = s.task
+                slots[i].conn.send(s.task)
 
     def _drain(self, s: _Slot, on_start: OnStart | None, finished: list) -> bool:
         """Read every message of ``s`` (finished runs go to ``finished``); False when its pipe is
@@ -248,12 +285,13 @@ class DaskExecutor:
                                    processes=True, dashboard_address=None)
         return Client(cluster), cluster
 
-    def run(self, tasks: Sequence[Task], shared: Shared, on_done: OnDone, on_start: OnStart | None = None) -> None:
+    def run(self, tasks: Iterable[Task], shared: Shared, on_done: OnDone, on_start: OnStart | None = None) -> None:
         from distributed import as_completed
         from distributed.scheduler import KilledWorker
 
         from .worker import run_remote
 
+        tasks = list(tasks)
         if not tasks:
             return
         client, cluster = self._client()

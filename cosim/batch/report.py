@@ -43,12 +43,26 @@ class Progress:
     def begin(self, total: int, done: int, failed: int) -> None:
         self.total, self.done, self.failed, self.skipped = total, done, failed, done
         self.t0 = time.perf_counter()
-        if done:
-            self.stream.write(f"[batch] {done} of {total} runs already in the table; running the other "
-                              f"{total - done}\n")
+        self.told = 0
+        self._tell_skipped()
+
+    def _tell_skipped(self) -> None:
+        if self.skipped > self.told:
+            self.stream.write(f"[batch] {self.skipped} of {self.total} runs already in the table\n")
+            self.told = self.skipped
+
+    def skipped_run(self, ok: bool, duplicate: bool = False) -> None:
+        """A run found in the table (done already), or a point that duplicates another (not a run)."""
+        if duplicate:
+            self.total -= 1
+            return
+        self.done += 1
+        self.skipped += 1
+        self.failed += not ok
 
     def show(self) -> None:
         """Print the line now (e.g. when the runs are handed out)."""
+        self._tell_skipped()
         self._show(force=True)
 
     def started(self, run_id: str) -> None:

@@ -17,19 +17,20 @@ from __future__ import annotations
 
 import fcntl
 import hashlib
+import itertools
 import json
 import os
 import shutil
 import sys
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 from ..errors import UserError
 from ..outputs import pid_alive
-from ..scenario import Problem, Scene, SceneError, apply_overrides, validate
+from ..scenario import Problem, Scene, SceneError, apply_overrides, plain, validate
 from .axes import Point, expand
 from .results import ResultsTable, base_columns
 from .spec import Batch, BatchError
@@ -41,7 +42,7 @@ class Planned:
     """A run of the batch with its resolved scene and id."""
 
     point: Point
-    scene: Scene
+    scene: Scene | None  # None: the point's scene does not validate (a failed row)
     run_id: str
 
 
@@ -62,35 +63,99 @@ class BatchOutcome:
     duplicates: list[tuple[int, int]] = field(default_factory=list)
 
 
+def resolve(batch: Batch, point: Point, *, catalog=None) -> Planned | Problem:
+    """``point``'s validated scene and run id (the first 16 hex digits of the scene's hash), or
+    the one-line problem (at the batch file's ``scene:`` line) that stops it from running."""
+    tree = apply_overrides(batch.base_tree, point.overrides)
+    try:
+        scene = validate(tree, batch.scene_path, catalog=catalog)
+    except SceneError as exc:
+        err = next((q for q in exc.problems if q.severity == "error"), None)
+        values = ", ".join(f"{k}={v!r}" for k, v in point.values.items())
+        where = batch.where.get("scene", (str(batch.path), 0))
+        return Problem(where[0], where[1], f"run {point.index} ({values}): {err.message if err else exc}")
+    return Planned(point, scene, scene.hash[:16])
+
+
+def invalid_id(batch: Batch, point: Point) -> str:
+    """The id of a point whose scene does not validate (from its scene tree; no scene hash)."""
+    tree = plain(apply_overrides(batch.base_tree, point.overrides))
+    return "x" + hashlib.sha256(json.dumps(tree, sort_keys=True, default=str).encode()).hexdigest()[:15]
+
+
 def plan(batch: Batch, *, catalog=None) -> tuple[list[Planned], list[tuple[int, int]]]:
-    """Every run's validated scene and id (the first 16 hex digits of the scene's hash).  A run
-    whose scene does not validate is reported before anything runs (:class:`BatchError`); runs
-    that resolve to the same scene run once (their index pairs are returned)."""
+    """Every run's validated scene and id, all at once (``batch --check``): a run whose scene does
+    not validate is a :class:`BatchError` (the first five are listed); runs that resolve to the
+    same scene run once (their index pairs are returned)."""
     planned: list[Planned] = []
     problems: list[Problem] = []
     seen: dict[str, int] = {}
     dups: list[tuple[int, int]] = []
-    where = batch.where.get("scene", (str(batch.path), 0))
     for p in expand(batch):
-        try:
-            scene = validate(apply_overrides(batch.base_tree, p.overrides), batch.scene_path, catalog=catalog)
-        except SceneError as exc:
-            err = next((q for q in exc.problems if q.severity == "error"), None)
-            values = ", ".join(f"{k}={v!r}" for k, v in p.values.items())
-            problems.append(Problem(where[0], where[1], f"run {p.index} ({values}): "
-                                                        f"{err.message if err else exc}"))
+        r = resolve(batch, p, catalog=catalog)
+        if isinstance(r, Problem):
+            problems.append(r)
             if len(problems) >= 5:
                 break
             continue
-        rid = scene.hash[:16]
-        if rid in seen:
-            dups.append((seen[rid], p.index))
+        if r.run_id in seen:
+            dups.append((seen[r.run_id], p.index))
             continue
-        seen[rid] = p.index
-        planned.append(Planned(p, scene, rid))
+        seen[r.run_id] = p.index
+        planned.append(r)
     if problems:
         raise BatchError(problems)
     return planned, dups
+
+
+class _Planner:
+    """The runs still to do, resolved one at a time as the executor asks for them, so that
+    checking run k+1's scene overlaps run k instead of delaying the first run.  The first point
+    is resolved at once: when its scene does not validate, the batch stops before any run
+    (:class:`BatchError`; the others most likely share its problem).  A later point whose scene
+    does not validate becomes a failed row with the reason (``on_invalid``); points whose rows
+    exist are skipped and those resolving to an earlier point's scene run once."""
+
+    def __init__(self, batch: Batch, done: set[str], *, catalog=None):
+        self.batch, self.done, self.catalog = batch, done, catalog
+        self.points = expand(batch)
+        self.skipped = 0
+        self.duplicates: list[tuple[int, int]] = []
+        self.seen: dict[str, int] = {}  # run id -> first point resolving to it
+        self.ids: set[str] = set()  # every run id met (valid scenes and invalid points)
+        self.head: Planned | None = None
+        if self.points:
+            first = resolve(batch, self.points[0], catalog=catalog)
+            if isinstance(first, Problem):
+                raise BatchError([first])
+            self.head = first
+
+    def runs(self, on_invalid: Callable[[Planned, str], None],
+             on_skip: Callable[[str], None] = lambda run_id: None) -> Iterator[Planned]:
+        """The runs to do, in the batch's order (see the class docstring); ``on_skip(run_id)`` for
+        a run whose row exists, and for a point that duplicates an earlier one (``run_id`` "")."""
+        for i, p in enumerate(self.points):
+            r = self.head if i == 0 else resolve(self.batch, p, catalog=self.catalog)
+            if isinstance(r, Problem):
+                rid = invalid_id(self.batch, p)
+                self.ids.add(rid)
+                if rid in self.done:
+                    self.skipped += 1
+                    on_skip(rid)
+                else:
+                    on_invalid(Planned(p, None, rid), r.message)
+                continue
+            if r.run_id in self.seen:
+                self.duplicates.append((self.seen[r.run_id], p.index))
+                on_skip("")
+                continue
+            self.seen[r.run_id] = p.index
+            self.ids.add(r.run_id)
+            if r.run_id in self.done:
+                self.skipped += 1
+                on_skip(r.run_id)
+                continue
+            yield r
 
 
 def _sha(path: Path) -> tuple[str, bytes]:
@@ -98,35 +163,46 @@ def _sha(path: Path) -> tuple[str, bytes]:
     return hashlib.sha256(data).hexdigest(), data
 
 
+class FmuShelf:
+    """Each distinct FMU of a batch's runs, built (or fetched from the cache) once, by content
+    hash: :meth:`add` gives a run's ``component -> content hash``; :attr:`blobs` holds the bytes."""
+
+    def __init__(self, *, cache_dir: Path | None = None, log: Callable[[str], None] | None = None):
+        self.cache_dir, self.log = cache_dir, log
+        self.by_key: dict[tuple, str] = {}
+        self.blobs: dict[str, bytes] = {}
+
+    def add(self, run: Planned) -> dict[str, str]:
+        from fmus.index import IndexedBlock
+
+        from ..recipes import component_fmu
+
+        m: dict[str, str] = {}
+        for name, comp in run.scene.components.items():
+            key = (("fmu", str(comp.fmu)) if comp.kind == "fmu" else
+                   ("indexed", str(comp.block.fmu), comp.fmi) if isinstance(comp.block, IndexedBlock) else
+                   ("block", id(comp.block), comp.fmi))
+            if key not in self.by_key:
+                if comp.kind == "fmu":
+                    path = comp.fmu
+                else:  # from the recipe index when it has the FMU, else built (and indexed)
+                    log = self.log
+                    path = component_fmu(comp, cache_dir=self.cache_dir,
+                                         progress=(lambda msg, n=name: log(f"{n}: {msg}")) if log else None)
+                digest, data = _sha(path)
+                self.blobs[digest] = data
+                self.by_key[key] = digest
+            m[name] = self.by_key[key]
+        return m
+
+
 def build_fmus(runs: Sequence[Planned], *, cache_dir: Path | None = None,
                log: Callable[[str], None] | None = None) -> tuple[dict[str, dict[str, str]], dict[str, bytes]]:
     """Build (or fetch from the cache) each distinct FMU of ``runs`` once; returns each run's
     ``component -> content hash`` and the FMUs' bytes by hash."""
-    from fmus.index import IndexedBlock
-
-    from ..recipes import component_fmu
-
-    by_key: dict[tuple, str] = {}
-    blobs: dict[str, bytes] = {}
-    maps: dict[str, dict[str, str]] = {}
-    for r in runs:
-        m: dict[str, str] = {}
-        for name, comp in r.scene.components.items():
-            key = (("fmu", str(comp.fmu)) if comp.kind == "fmu" else
-                   ("indexed", str(comp.block.fmu), comp.fmi) if isinstance(comp.block, IndexedBlock) else
-                   ("block", id(comp.block), comp.fmi))
-            if key not in by_key:
-                if comp.kind == "fmu":
-                    path = comp.fmu
-                else:  # from the recipe index when it has the FMU, else built (and indexed)
-                    path = component_fmu(comp, cache_dir=cache_dir,
-                                         progress=(lambda msg, n=name: log(f"{n}: {msg}")) if log else None)
-                digest, data = _sha(path)
-                blobs[digest] = data
-                by_key[key] = digest
-            m[name] = by_key[key]
-        maps[r.run_id] = m
-    return maps, blobs
+    shelf = FmuShelf(cache_dir=cache_dir, log=log)
+    maps = {r.run_id: shelf.add(r) for r in runs}
+    return maps, shelf.blobs
 
 
 class _Lock:
@@ -224,17 +300,19 @@ def run_batch(batch: Batch, *, out: Path | None = None, executor=None, cache_dir
     """Run ``batch`` into ``out`` (default ``runs/<batch name>``) on ``executor`` (default: local
     processes, one per core), resuming: runs whose rows exist are skipped.
 
-    ``progress`` is a :class:`cosim.batch.report.Progress` (or None); ``log`` gets one-line notes
-    (FMU builds); ``on_start(task, pid)`` is called when a local worker starts a run.  A
-    KeyboardInterrupt stops the workers and propagates; every finished run is in the table.
+    Runs are resolved as they are handed out (:class:`_Planner`): the first before anything runs,
+    each next one while the workers run the previous ones.  ``progress`` is a
+    :class:`cosim.batch.report.Progress` (or None); ``log`` gets one-line notes (FMU builds);
+    ``on_start(task, pid)`` is called when a local worker starts a run.  A KeyboardInterrupt
+    stops the workers and propagates; every finished run is in the table.
     """
     from .executors import LocalExecutor
 
     t0 = time.perf_counter()
     out = Path(out or Path("runs") / batch.name)
     ref = _check_reference(batch)
-    planned, dups = plan(batch, catalog=catalog)
     columns = base_columns([a.name for a in batch.axes], batch.metric_columns)
+    planner = _Planner(batch, set(), catalog=catalog)  # the first run's scene checked before anything is written
     with _Lock(out):
         meta_path = out / "batch.json"
         key = _metrics_key(batch)
@@ -244,52 +322,70 @@ def run_batch(batch: Batch, *, out: Path | None = None, executor=None, cache_dir
                 raise UserError(f"{out} holds results of a batch with other metrics or reference; choose another "
                                 f"--out (or remove {out / 'results.csv'})")
         with ResultsTable(out / "results.csv", columns) as table:
+            planner.done = table.done
             meta_path.write_text(json.dumps({**_describe(batch, columns), "metrics_key": key}, indent=2,
                                             default=str))
-            done = table.done
-            todo = [r for r in planned if r.run_id not in done]
-            res = BatchOutcome(out, columns, table.rows, skipped=len(planned) - len(todo), duplicates=dups)
+            res = BatchOutcome(out, columns, table.rows)
+            outcome_of = {r["run_id"]: r["outcome"] for r in table.rows}
             if progress is not None:
-                progress.begin(len(planned), res.skipped, sum(r["outcome"] != "ok" for r in table.rows
-                                                                if r["run_id"] in {p.run_id for p in planned}))
-            if todo:
-                maps, blobs = build_fmus(todo, cache_dir=cache_dir, log=log)
-                for r in todo:  # an unfinished attempt of an interrupted batch
-                    shutil.rmtree(out / "runs" / r.run_id, ignore_errors=True)
-                tasks = [Task(r.run_id, r.point.index, transportable(r.scene), maps[r.run_id],
-                              str((out / "runs" / r.run_id).resolve()), batch.metrics,
-                              "monolithic" if batch.reference == "monolithic" else ("trace" if ref else None))
-                         for r in todo]
-                by_id = {r.run_id: r for r in todo}
-                shared = Shared(blobs, ref, reuse)
-                ex = executor or LocalExecutor()
-                res.prepare_s = time.perf_counter() - t0
+                progress.begin(len(planner.points), 0, 0)
 
-                def started(task: Task, pid: int) -> None:
-                    if progress is not None:
-                        progress.started(task.run_id)
-                    if on_start is not None:
-                        on_start(task, pid)
+            def skipped(run_id: str) -> None:
+                if progress is not None:
+                    progress.skipped_run(outcome_of.get(run_id, "ok") == "ok", duplicate=not run_id)
+            shelf = FmuShelf(cache_dir=cache_dir, log=log)
+            by_id: dict[str, Planned] = {}
+            ex = executor or LocalExecutor()
 
-                def finished(task: Task, outcome: Outcome) -> None:
-                    if outcome.files is not None:
-                        _write_files(out / "runs" / task.run_id, outcome.files)
-                    table.append(row_of(by_id[task.run_id], outcome, task.attempt))
-                    res.ran += 1
-                    res.failed += outcome.status != "ok"
-                    res.run_wall_s += outcome.wall_s
-                    if progress is not None:
-                        progress.finished(task.run_id, outcome.status == "ok", getattr(ex, "capacity", 1))
+            def record(run: Planned, outcome: Outcome, attempts: int) -> None:
+                table.append(row_of(run, outcome, attempts))
+                res.ran += 1
+                res.failed += outcome.status != "ok"
+                res.run_wall_s += outcome.wall_s
+                if progress is not None:
+                    progress.finished(run.run_id, outcome.status == "ok", getattr(ex, "capacity", 1))
 
+            def invalid(run: Planned, reason: str) -> None:
+                record(run, Outcome(run.run_id, "failed", f"invalid scene: {reason}"), 0)
+
+            def tasks() -> Iterator[Task]:
+                shipped = set(shelf.blobs)  # what every worker has from the start
+                for r in planner.runs(invalid, skipped):
+                    by_id[r.run_id] = r
+                    fmus = shelf.add(r)
+                    shutil.rmtree(out / "runs" / r.run_id, ignore_errors=True)  # an unfinished attempt
+                    extra = {d: shelf.blobs[d] for d in fmus.values() if d not in shipped}
+                    yield Task(r.run_id, r.point.index, transportable(r.scene), fmus,
+                               str((out / "runs" / r.run_id).resolve()), batch.metrics,
+                               "monolithic" if batch.reference == "monolithic" else ("trace" if ref else None),
+                               blobs=extra or None)
+
+            todo = tasks()
+            first = next(todo, None)  # resolves the first run and builds its FMUs: the workers' start
+            res.prepare_s = time.perf_counter() - t0
+
+            def started(task: Task, pid: int) -> None:
+                if progress is not None:
+                    progress.started(task.run_id)
+                if on_start is not None:
+                    on_start(task, pid)
+
+            def finished(task: Task, outcome: Outcome) -> None:
+                if outcome.files is not None:
+                    _write_files(out / "runs" / task.run_id, outcome.files)
+                record(by_id[task.run_id], outcome, task.attempt)
+
+            if first is not None:
                 if progress is not None:
                     progress.capacity = getattr(ex, "capacity", 1)
                     progress.show()
                 try:
-                    ex.run(tasks, shared, finished, started)
+                    ex.run(itertools.chain([first], todo), Shared(dict(shelf.blobs), ref, reuse), finished, started)
                 finally:
                     if progress is not None:
                         progress.end()
-            res.rows = [r for r in table.rows if r["run_id"] in {p.run_id for p in planned}]
+            res.skipped, res.duplicates = planner.skipped, planner.duplicates
+            res.rows = [r for r in table.rows if r["run_id"] in planner.ids]
     res.wall_s = time.perf_counter() - t0
     return res
 
@@ -298,4 +394,4 @@ def default_log(msg: str) -> None:
     print(msg, file=sys.stderr)
 
 
-__all__ = ["BatchOutcome", "Planned", "build_fmus", "plan", "row_of", "run_batch"]
+__all__ = ["BatchOutcome", "FmuShelf", "Planned", "build_fmus", "invalid_id", "plan", "resolve", "row_of", "run_batch"]

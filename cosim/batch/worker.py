@@ -41,6 +41,7 @@ class Task:
     metrics: list[MetricSpec]
     reference: str | None = None  # None, "monolithic" or "trace" (Shared.reference)
     attempt: int = 1
+    blobs: dict[str, bytes] | None = None  # FMUs first needed by this run (not in Shared.blobs)
 
 
 @dataclass
@@ -190,10 +191,11 @@ def execute(task: Task, shared: Shared) -> Outcome:
     out_dir = Path(task.out_dir) if task.out_dir else Path(tmp := tempfile.mkdtemp(prefix="rpr-run-"))
     slaves: list[FmuSlave] = []
     status, reason, stats, trace = "failed", "", {}, None
+    blobs = {**shared.blobs, **task.blobs} if task.blobs else shared.blobs
     try:
         for name in task.scene.components:
             digest = task.fmus[name]
-            slaves.append(STATE.take(name, digest, STATE.fmu_path(digest, shared.blobs), shared.reuse))
+            slaves.append(STATE.take(name, digest, STATE.fmu_path(digest, blobs), shared.reuse))
         t_run = time.perf_counter()
         res = run(task.scene, out_dir=out_dir, slaves=slaves)
         status, reason, stats, trace = res.status, res.reason, dict(res.stats), res.trace
