@@ -2,8 +2,9 @@
 
     rpr-cosim study stability SCENE.yaml --vary PATH=LO:HI [--steps LO:HI] [--n N]
                                         [--variant ALG/INPUTS ...] [--out DIR]
-    rpr-cosim study precision SCENE.yaml [--steps H,H,...] [--variant ALG/INPUTS ...] [--stop T]
-                                        [--only GLOB ...] [--tol REL] [--out DIR]
+    rpr-cosim study precision SCENE.yaml [--steps H,H,...] [--rtols R,R,...] [--variant ALG/INPUTS ...]
+                                        [--stop T] [--only GLOB ...] [--tol REL] [--workers N]
+                                        [--no-peer] [--out DIR]
     rpr-cosim study fidelity SCENE.yaml [--tol REL] [--only GLOB ...] [--set PATH=VALUE ...]
 
 ``stability`` maps where each master algorithm variant stays stable over the communication step
@@ -12,10 +13,13 @@ with the reason of every unstable or failed run) and ``<scene>_stability.png`` (
 stable / unstable / failed, with the analytic boundary for linear scenes), and prints how the
 measured map agrees with the analytic one.
 
-``precision`` measures every variant and step against the scene's monolithic reference and writes
+``precision`` measures every variant against the scene's monolithic reference, fixed-step
+algorithms over the communication step and variable-step ones (adaptive, ecco) over their
+tolerance ``rtol``, plus the peer master ecospy where it is installed, through the batch runner
+(``--workers``, each run's trace under ``<out>/runs/``, resumable); it writes
 ``<scene>_precision.csv`` (per run and per signal) and ``<scene>_precision.png`` (worst relative
-error against wall time, one curve per variant), and prints the observed orders and the cheapest
-run within ``--tol``.
+error against wall time, one curve per variant), and prints the table, the observed orders and the
+cheapest run within ``--tol`` (:mod:`cosim.study.precision`).
 
 ``fidelity`` runs every combination of the scene's fidelity levels (components of one model share a
 level) against the most detailed one and prints error and cost per combination and the cheapest
@@ -25,6 +29,7 @@ within ``--tol``; ``fidelity: auto`` in a scene uses the same study (see
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 from pathlib import Path
 
@@ -50,23 +55,34 @@ def register(sub: argparse._SubParsersAction) -> None:
     s.add_argument("--cache", type=Path, help="FMU cache directory")
     s.set_defaults(handler=_stability)
     q = studies.add_parser("precision", help="error against cost (work-precision) of master algorithm variants",
-                           description="Run the scene for every algorithm variant and communication step, measure "
-                                       "each run against the scene's monolithic reference (max error relative to "
-                                       "each signal's range) and its cost, print the table and draw the "
-                                       "work-precision chart.")
+                           description="Run the scene for every algorithm variant, fixed-step ones over the "
+                                       "communication step and variable-step ones (adaptive, ecco) over their "
+                                       "tolerance, measure each run against the scene's monolithic reference (max "
+                                       "error relative to each signal's range) and its cost (wall time of the "
+                                       "stepping loop, doSteps, rejected steps, rollbacks), print the table and draw "
+                                       "the work-precision chart; the peer master ecospy is a point where it is "
+                                       "installed.  Runs go through the batch runner: resumable in --out.")
     q.add_argument("scene", type=Path, help="scene file of catalog components, e.g. scenarios/pid_step.yaml")
     q.add_argument("--steps", metavar="H,H,...", help="communication steps [s], each halving the previous "
                                                       "(default: 4x the scene's step down to 1/8 of it)")
+    q.add_argument("--rtols", metavar="R,R,...", help="tolerances (option rtol) of the variable-step algorithms "
+                                                      "(default: 1e-2,1e-3,1e-4,1e-5)")
     q.add_argument("--variant", action="append", default=[], metavar="ALG/INPUTS",
-                   help="algorithm variant, e.g. gauss_seidel/linear; repeatable (default: every algorithm, hold and "
-                        "linear)")
+                   help="algorithm variant, e.g. gauss_seidel/linear or adaptive; repeatable (default: every "
+                        "fixed-step algorithm with hold and linear, every variable-step one with its own linear "
+                        "inputs; a variant the scene refuses is a row with the reason)")
     q.add_argument("--stop", type=float, metavar="T", help="simulated time per run [s] (default: the scene's)")
     q.add_argument("--only", action="append", default=[], metavar="GLOB", help="compare only these signals")
     q.add_argument("--set", dest="sets", action="append", default=[], metavar="PATH=VALUE",
                    help="override a scene value in every run, e.g. components.mech.rate=4 (multirate)")
     q.add_argument("--tol", type=float, default=1e-3, metavar="REL",
                    help="report the cheapest run whose worst relative error is within REL (default 1e-3)")
-    q.add_argument("--out", type=Path, help="output directory (default runs/<scene>_precision)")
+    q.add_argument("--workers", type=int, default=1, metavar="N",
+                   help="runs at once on local processes (default 1: the wall times are the cost measured, and "
+                        "runs sharing cores slow each other)")
+    q.add_argument("--no-peer", dest="peer", action="store_false", help="no ecospy point")
+    q.add_argument("--out", type=Path, help="output directory, runs kept in runs/ and reused when the study is "
+                                            "repeated (default runs/<scene>_precision)")
     q.add_argument("--cache", type=Path, help="FMU cache directory")
     q.set_defaults(handler=_precision)
     f = studies.add_parser("fidelity", help="error and cost of every fidelity combination; the cheapest within --tol",
@@ -101,6 +117,39 @@ def _variants(texts: list[str]) -> list[tuple[str, str]]:
                             f"({', '.join(sorted(fixed))}) and INPUTS hold or linear")
         out.append((alg, inputs))
     return out
+
+
+def _precision_variants(texts: list[str]) -> list[tuple[str, str]]:
+    """Variants of the precision study: every registered algorithm; a variable-step one takes its
+    own inputs (linear: it interpolates and extrapolates them itself), so only ``ALG`` or
+    ``ALG/linear`` names it."""
+    from .errors import UserError
+    from .master import ALGORITHMS
+
+    variable = [n for n, cls in ALGORITHMS.items() if getattr(cls, "variable_step", False)]
+    if not texts:
+        return [(alg, inputs) for alg in ALGORITHMS for inputs in (("linear",) if alg in variable else
+                                                                   ("hold", "linear"))]
+    out = []
+    for t in texts:
+        alg, _, inputs = t.partition("/")
+        inputs = inputs or ("linear" if alg in variable else "hold")
+        if alg not in ALGORITHMS or inputs not in ("hold", "linear") or (alg in variable and inputs != "linear"):
+            raise UserError(f"--variant {t}: expected ALG/INPUTS with ALG one of {', '.join(ALGORITHMS)} and INPUTS "
+                            f"hold or linear ({', '.join(variable)} choose their own: ALG or ALG/linear)")
+        out.append((alg, inputs))
+    return list(dict.fromkeys(out))
+
+
+def _numbers(text: str, option: str, example: str) -> list[float]:
+    """Comma-separated numbers of ``option``; a one-line UserError otherwise."""
+    from .errors import UserError
+
+    try:
+        values = [float(x) for x in text.split(",")]
+    except ValueError:
+        raise UserError(f"{option} {text}: expected comma-separated numbers, e.g. {example}") from None
+    return values
 
 
 def _stability(args: argparse.Namespace) -> int:
@@ -139,41 +188,56 @@ def _stability(args: argparse.Namespace) -> int:
 
 
 def _precision(args: argparse.Namespace) -> int:
+    from .batch.report import Progress
     from .errors import UserError
     from .study.precision import plot_study, precision_study
 
-    steps = None
-    if args.steps:
-        try:
-            steps = [float(x) for x in args.steps.split(",")]
-        except ValueError:
-            raise UserError(f"--steps {args.steps}: expected comma-separated steps in seconds, e.g. 4e-3,2e-3,1e-3") \
-                from None
+    steps = _numbers(args.steps, "--steps", "4e-3,2e-3,1e-3 (comma-separated steps in seconds)") \
+        if args.steps else None
+    rtols = _numbers(args.rtols, "--rtols", "1e-2,1e-3,1e-4") if args.rtols else None
+    if rtols is not None and not all(r > 0 for r in rtols):
+        raise UserError(f"--rtols {args.rtols}: expected positive relative tolerances, e.g. 1e-2,1e-3,1e-4")
     if args.stop is not None and not args.stop > 0:
         raise UserError(f"--stop {args.stop}: expected a positive simulated time [s]")
     if not args.tol > 0:
         raise UserError(f"--tol {args.tol}: expected a positive relative tolerance")
-    study = precision_study(args.scene, _variants(args.variant), steps, stop_time=args.stop, only=args.only or None,
-                            cache_dir=args.cache, overrides=args.sets, progress=lambda m: print(f"  {m}", file=sys.stderr, flush=True))
+    if not args.workers >= 1:
+        raise UserError(f"--workers {args.workers}: expected at least 1 process")
     from .outputs import check_out_dir, confined
+    from .scenario import load
 
-    out = args.out or Path("runs") / f"{study.scene}_precision"
+    name = load(args.scene, args.sets).name  # the output directory is named after the scene
+    out = args.out or Path("runs") / f"{name}_precision"
     check_out_dir(out)  # files stay under --out (cosim.outputs)
+
+    def say(msg: str) -> None:
+        print(msg, file=sys.stderr, flush=True)
+
+    study = precision_study(args.scene, _precision_variants(args.variant), steps, rtols=rtols, stop_time=args.stop,
+                            only=args.only or None, cache_dir=args.cache, overrides=args.sets, out=out,
+                            workers=args.workers, batch_progress=Progress(), peer=args.peer, log=say,
+                            progress=lambda m: say(f"  {m}"))
     csv_path, png_path = confined(out, f"{study.scene}_precision.csv"), confined(out, f"{study.scene}_precision.png")
     study.write_csv(csv_path)
     plot_study(study, png_path)
     print(f"{study.scene}: {len(study.rows)} runs over {study.stop_time:g} s against the monolithic reference "
           f"({study.reference_wall_s:.3f} s)")
-    print(f"{'variant':<22} {'step s':>9} {'status':>8} {'worst rel':>10} {'signal':<22} {'wall s':>8} {'doSteps':>8}")
+    print(f"{'variant':<22} {'step/tol':>11} {'status':>8} {'worst rel':>10} {'RMS rel':>10} {'signal':<22} "
+          f"{'wall s':>8} {'doSteps':>8} {'rejected':>8} {'rollbacks':>9}")
     for r in study.rows:
-        print(f"{r.algorithm + '/' + r.inputs:<22} {r.step:>9.4g} {r.status:>8} {r.worst:>10.3e} {r.worst_signal:<22} "
-              f"{r.wall_s:>8.3f} {r.do_steps:>8}")
+        print(f"{r.algorithm + '/' + r.inputs:<22} {r.label:>11} {r.status:>8} {r.worst:>10.3e} {r.rms:>10.3e} "
+              f"{r.worst_signal:<22} {r.wall_s:>8.3f} {r.do_steps:>8} {r.rejected:>8} {r.rollbacks:>9}"
+              + (f"  ({r.reason})" if r.status != "ok" and r.reason else ""))
     for v in study.variants():
-        print(f"observed order {v[0]}/{v[1]}: {study.order(v):.2f}")
+        p = study.order(v)
+        if math.isfinite(p):
+            what = "slope of error over rtol" if any(r.variable for r in study.rows if (r.algorithm, r.inputs) == v) \
+                else "observed order"
+            print(f"{what} {v[0]}/{v[1]}: {p:.2f}")
     best = study.cheapest_within(args.tol)
-    print(f"cheapest within {args.tol:g}: " + (f"{best.algorithm}/{best.inputs} at {best.step:g} s "
+    print(f"cheapest within {args.tol:g}: " + (f"{best.algorithm}/{best.inputs} at {best.label} "
                                                f"({best.worst:.2e}, {best.wall_s:.3f} s)" if best else "none"))
-    print(f"table: {csv_path}\nchart: {png_path}", file=sys.stderr)
+    print(f"table: {csv_path}\nchart: {png_path}\nruns: {out / 'runs'}", file=sys.stderr)
     return 0
 
 

@@ -19,7 +19,7 @@ import signal
 import sys
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
 
 import casadi as ca
@@ -129,9 +129,11 @@ def composite(scene: Scene) -> Composite:
 def reference(scene: Scene | str | Path, overrides=None, *, out_dir: Path | None = None,
               rtol: float = RTOL, atol: float = ATOL,
               progress: Callable[[int, int], None] | None = None, max_wall_s: float = MAX_WALL_S,
-              max_steps: int = MAX_STEPS, log: Callable[[str], None] | None = None) -> RunResult:
+              max_steps: int = MAX_STEPS, log: Callable[[str], None] | None = None,
+              times: Sequence[float] | None = None) -> RunResult:
     """Integrate the scene's monolithic ODE over ``[0, stop_time]`` and record the scene's outputs
-    at its output instants; the trace goes to ``out_dir/<name>_reference.csv`` when ``out_dir`` is
+    at its output instants, or at ``times`` [s] when given (increasing, from 0: e.g. the irregular
+    instants of a variable-step run, so that comparing with it needs no interpolation); the trace goes to ``out_dir/<name>_reference.csv`` when ``out_dir`` is
     given.  A solver failure is a status (``failed``) with the partial trace kept; so is reaching
     ``max_wall_s`` seconds of wall time or ``max_steps`` CVODES steps.  What the solver prints is
     counted, not shown: ``log`` gets one line with the count and the first line, and the
@@ -143,16 +145,28 @@ def reference(scene: Scene | str | Path, overrides=None, *, out_dir: Path | None
         scene = load(scene, overrides)
     if out_dir is None:
         with signals_as_interrupts():
-            return _reference(scene, None, rtol, atol, progress, max_wall_s, max_steps, log)
+            return _reference(scene, None, rtol, atol, progress, max_wall_s, max_steps, log, times)
     check_out_dir(out_dir)
     with signals_as_interrupts(), OutputLock(out_dir, log=log):
-        return _reference(scene, out_dir, rtol, atol, progress, max_wall_s, max_steps, log)
+        return _reference(scene, out_dir, rtol, atol, progress, max_wall_s, max_steps, log, times)
 
 
-def _reference(scene, out_dir, rtol, atol, progress, max_wall_s, max_steps, log) -> RunResult:
+def _output_instants(scene: Scene, times: Sequence[float] | None) -> tuple[np.ndarray, bool]:
+    """The reference's output instants [s] (from 0) and whether they are the scene's regular grid."""
+    if times is None:
+        dt = scene.master.record_every * scene.master.step
+        return dt * np.arange(scene.n_steps // scene.master.record_every + 1), True
+    grid = np.asarray(times, dtype=float)
+    if grid.ndim != 1 or not len(grid) or grid[0] != 0.0 or np.any(np.diff(grid) <= 0) or not np.isfinite(grid).all():
+        raise UserError("reference output instants must increase strictly from 0 s")
+    return grid, False
+
+
+def _reference(scene, out_dir, rtol, atol, progress, max_wall_s, max_steps, log, times=None) -> RunResult:
     comp = composite(scene)
     dt = scene.master.record_every * scene.master.step
-    n_out = scene.n_steps // scene.master.record_every
+    grid, regular = _output_instants(scene, times)
+    n_out = len(grid) - 1
     names = [tuple(o.split(".", 1)) for o in scene.outputs]
     signals = comp.signal_function(names)
     columns = ["time", *scene.outputs]
@@ -195,13 +209,14 @@ def _reference(scene, out_dir, rtol, atol, progress, max_wall_s, max_steps, log)
                 raise _WallCap()
             if solver_steps >= max_steps:
                 status, reason = "failed", (f"the reference reached its cap of {max_steps:,} CVODES steps at "
-                                            f"t = {done * dt:g} s (a diverging or very stiff scene?)")
+                                            f"t = {grid[done]:g} s (a diverging or very stiff scene?)")
                 break
             m = min(chunk, n_out - done)
-            if m not in integrators:
+            if m not in integrators or not regular:  # the ODE is autonomous: each chunk starts at 0
                 problem = {"x": comp.x, "ode": comp.ode, **({"z": comp.z, "alg": comp.alg} if dae else {})}
                 integrators[m] = ca.integrator("reference", "idas" if dae else "cvodes", problem, 0.0,
-                                               dt * np.arange(1, m + 1),
+                                               dt * np.arange(1, m + 1) if regular else
+                                               grid[done + 1:done + m + 1] - grid[done],
                                                {"reltol": rtol, "abstol": atol, "max_num_steps": per_interval})
             tc = time.perf_counter()
             try:
@@ -211,7 +226,7 @@ def _reference(scene, out_dir, rtol, atol, progress, max_wall_s, max_steps, log)
                     zs = np.array(sol["zf"]) if dae else None
             finally:
                 solver_steps += int(integrators[m].stats().get("nsteps", 0) or 0)
-            record(dt * np.arange(done + 1, done + m + 1), xs, zs)
+            record(grid[done + 1:done + m + 1], xs, zs)
             x = xs[:, -1]
             if dae:
                 z = zs[:, -1]
@@ -222,7 +237,7 @@ def _reference(scene, out_dir, rtol, atol, progress, max_wall_s, max_steps, log)
                 chunk = max(1, chunk // 4)  # slow calls: return to Python (signals, caps) more often
     except _WallCap:
         status, reason = "failed", (f"the reference reached its wall-time cap of {max_wall_s:g} s at "
-                                    f"t = {done * dt:g} s (a diverging or very stiff scene?)")
+                                    f"t = {grid[done]:g} s (a diverging or very stiff scene?)")
     except TraceWriteError as exc:
         status, reason = "failed", f"TraceWriteError: {exc}"
     except RuntimeError as exc:
@@ -231,17 +246,17 @@ def _reference(scene, out_dir, rtol, atol, progress, max_wall_s, max_steps, log)
         text = str(exc).splitlines()[-1] if str(exc) else type(exc).__name__
         if fired:
             status, reason = "failed", (f"the reference reached its wall-time cap of {max_wall_s:g} s at "
-                                        f"t = {done * dt:g} s (a diverging or very stiff scene?)")
+                                        f"t = {grid[done]:g} s (a diverging or very stiff scene?)")
         elif last_signal() or "KeyboardInterrupt" in printed.first or "KeyboardInterrupt" in str(exc):
             interrupt = last_signal()
-            status, reason = "interrupted", f"interrupted by {interrupt or 'the user (KeyboardInterrupt)'} at t = {done * dt:g} s"
+            status, reason = "interrupted", f"interrupted by {interrupt or 'the user (KeyboardInterrupt)'} at t = {grid[done]:g} s"
         elif "TOO_MUCH_WORK" in text:
             status, reason = "failed", (f"the reference reached its cap of {per_interval:,} CVODES steps between two "
-                                        f"output instants after t = {done * dt:g} s (a diverging or very stiff scene?)")
+                                        f"output instants after t = {grid[done]:g} s (a diverging or very stiff scene?)")
         else:
-            status, reason = "failed", f"CVODES failed after t = {done * dt:g} s: {text}"
+            status, reason = "failed", f"CVODES failed after t = {grid[done]:g} s: {text}"
     except KeyboardInterrupt as exc:
-        status, reason = "interrupted", f"interrupted by {str(exc) or 'the user (KeyboardInterrupt)'} at t = {done * dt:g} s"
+        status, reason = "interrupted", f"interrupted by {str(exc) or 'the user (KeyboardInterrupt)'} at t = {grid[done]:g} s"
         interrupt = exc
     finally:
         if alarm:
@@ -252,7 +267,7 @@ def _reference(scene, out_dir, rtol, atol, progress, max_wall_s, max_steps, log)
         log(f"the solver printed {printed.lines:,} lines, not shown (first: {printed.first})")
     stats = {"algorithm": "monolithic", "engine": "cvodes", "step": dt, "steps_planned": n_out,
              "steps_done": done, "status": status, "reason": reason, "wall_s": wall,
-             "simulated_s": done * dt, "real_time_factor": done * dt / wall if wall > 0 else float("inf"),
+             "simulated_s": float(grid[done]), "real_time_factor": float(grid[done]) / wall if wall > 0 else float("inf"),
              "solver_steps": solver_steps, "solver_messages": printed.lines, "slaves": {}}
     for ob in observers:
         ob.finish(status, reason, stats)

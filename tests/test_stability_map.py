@@ -186,7 +186,7 @@ def test_precision_study_cheapest_within_tolerance(two_mass_precision):
 
 def test_cli_precision_writes_table_and_chart(tmp_path, capsys):
     rc = main(["study", "precision", str(SCENE), "--steps", "4e-3,2e-3", "--variant", "gauss_seidel/linear",
-               "--stop", "1", "--out", str(tmp_path)])
+               "--stop", "1", "--no-peer", "--out", str(tmp_path)])
     assert rc == 0
     out = capsys.readouterr().out
     assert "observed order gauss_seidel/linear" in out and "cheapest within 0.001" in out

@@ -10,7 +10,8 @@ worker (:mod:`cosim.batch.worker`, :mod:`cosim.batch.executors`), which computes
 """
 from __future__ import annotations
 
+from .points import PointsBatch, points_batch
 from .runner import BatchOutcome, plan, run_batch
 from .spec import Batch, BatchError, load_batch
 
-__all__ = ["Batch", "BatchError", "BatchOutcome", "load_batch", "plan", "run_batch"]
+__all__ = ["Batch", "BatchError", "BatchOutcome", "PointsBatch", "load_batch", "plan", "points_batch", "run_batch"]

@@ -50,7 +50,11 @@ def _blocks(batch: Batch) -> Iterator[dict[str, Any]]:
 
 
 def expand(batch: Batch) -> list[Point]:
-    """Every run of ``batch`` in order (grid outermost, then zip, then samples)."""
+    """Every run of ``batch`` in order (grid outermost, then zip, then samples); a batch listing
+    its runs (:class:`cosim.batch.points.PointsBatch`) gives them as listed."""
+    listed = getattr(batch, "points", None)
+    if listed is not None:
+        return [Point(i, dict(values), {**batch.fixed, **over}) for i, (values, over) in enumerate(listed)]
     paths = {ax.name: ax.paths for ax in batch.axes}
     out = []
     for i, values in enumerate(_blocks(batch)):
