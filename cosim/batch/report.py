@@ -95,6 +95,7 @@ class Progress:
         self.stream.flush()
 
     def end(self) -> None:
+        self._tell_skipped()
         if self.done < self.total or self.tty:
             self._show(force=True)
         if self.tty:

@@ -375,7 +375,10 @@ def run_batch(batch: Batch, *, out: Path | None = None, executor=None, cache_dir
                     _write_files(out / "runs" / task.run_id, outcome.files)
                 record(by_id[task.run_id], outcome, task.attempt)
 
-            if first is not None:
+            if first is None:
+                if progress is not None:
+                    progress.end()
+            else:
                 if progress is not None:
                     progress.capacity = getattr(ex, "capacity", 1)
                     progress.show()
