@@ -9,16 +9,19 @@ turns, so that a change of the machine's load hits them alike.
 
 - the runs' own work ("plain"): the same 16 scenes run one after another in this process by the
   code a plain ``rpr-cosim run`` uses (:func:`cosim.run.run`: initialisation, stepping, streaming
-  the trace and sidecar), with the FMUs loaded once and reset between runs as a batch does.
-- speed-up: wall time of the whole batch (:func:`cosim.batch.run_batch`: resolving and checking
-  the 16 scenes, looking up the FMUs, starting the workers, the runs, metrics and rows) on 1
-  worker over 2 workers (target >= 1.8x on 2 cores); also of the execution alone (after the
-  scenes are resolved and the FMUs looked up).
-- overhead per run: (whole batch on 1 worker - plain) / 16, also as % of the plain runs
-  (targets: under 5 %, under 50 ms per run for short scenes; also at stop_time 0.5 s); the
-  part after resolving the scenes is shown apart, and the worker's own share (instance
-  hand-out, metrics: its wall time per run beyond ``cosim.run.run``); and the same in CPU time
-  (this process and its workers), which the machine's load disturbs less than wall time.
+  the trace and sidecar), with the FMUs loaded once and reset between runs as a batch does;
+  once as a batch worker runs them (the trace formatted in the stepping thread: one core) and
+  once as ``rpr-cosim run`` does (formatted on a second thread: 1.3 cores).
+- speed-up: wall time of the whole batch (:func:`cosim.batch.run_batch`: checking the batch
+  file and the scenes, looking up the FMUs, starting the workers, the runs, metrics and rows) on
+  1 worker over 2 workers (target >= 1.8x on 2 cores; a worker is one core); the peer: the same
+  runs in 1 and 2 independent processes forked from this one, no batch machinery; and 2
+  workers against the fastest one-run-at-a-time execution (the plain loop with its writer
+  thread, which already uses part of the second core).
+- overhead per run: (whole batch on 1 worker - plain one-core runs) / 16, also as % of the
+  plain runs (targets: under 5 %, under 50 ms per run for short scenes; also at stop_time 0.5
+  s), and the same in CPU time (this process and its workers), which the machine's load
+  disturbs less than wall time.
 - marginal overhead per run and fixed cost per batch: the same with 16 and with 64 runs (the
   grid with 4 x 4 more Kd values); what one more run costs beyond its own work is
   ((batch 64 - batch 16) - (plain 64 - plain 16)) / 48, and what is left of the 16-run
@@ -68,16 +71,23 @@ def batch_file(tmp: Path, stop: float, kd_values: int = 4) -> Path:
 
 
 def one(batch, tmp: Path, workers: int, reuse: bool = True) -> dict:
+    """A batch on ``workers`` local processes; with 1 worker also the time its worker spends
+    between runs (``gaps``: from one run's start to the next's, minus the first run's own
+    ``execute`` time, by the worker's clock)."""
     out = Path(tempfile.mkdtemp(dir=tmp))
+    starts: list[tuple[float, str]] = []
     c0 = cpu()
-    res = run_batch(batch, out=out, executor=LocalExecutor(workers), reuse=reuse)
+    res = run_batch(batch, out=out, executor=LocalExecutor(workers), reuse=reuse,
+                    on_start=lambda task, pid: starts.append((task.started_at, task.run_id)))
     c1 = cpu()
     assert res.ran == len(res.rows) and res.failed == 0, res.rows
     rows = res.rows
+    wall_of = {r["run_id"]: r["wall_s"] for r in rows}
+    gaps = [t1 - t0 - wall_of[rid] for (t0, rid), (t1, _) in zip(starts, starts[1:])] if workers == 1 else []
     run_s = sum(r["run_s"] for r in rows)
     return {"wall": res.wall_s, "execution": res.wall_s - res.prepare_s, "prepare": res.prepare_s,
             "worker": sum(r["wall_s"] for r in rows) - run_s, "run": run_s,
-            "init": sum(r["init_s"] for r in rows) / len(rows), "n": len(rows), "cpu": c1 - c0}
+            "init": sum(r["init_s"] for r in rows) / len(rows), "n": len(rows), "cpu": c1 - c0, "gaps": gaps}
 
 
 def cpu() -> float:
@@ -99,7 +109,16 @@ class Plain:
         for s in self.slaves:
             s.reuse = True
 
-    def __call__(self, tmp: Path) -> dict:
+    def __call__(self, tmp: Path, writer_thread: bool = False) -> dict:
+        from cosim import trace
+
+        trace.WRITER_THREAD = writer_thread
+        try:
+            return self._loop(tmp)
+        finally:
+            trace.WRITER_THREAD = True
+
+    def _loop(self, tmp: Path) -> dict:
         from cosim.run import run
 
         out = Path(tempfile.mkdtemp(dir=tmp))
@@ -126,8 +145,10 @@ def independent(plain: Plain, tmp: Path, procs: int) -> dict:
     go, done = ctx.Barrier(procs + 1), ctx.Queue()
 
     def child(k: int) -> None:
+        from cosim import trace
         from cosim.run import run
 
+        trace.WRITER_THREAD = False  # one core each, as a batch worker
         out = Path(tempfile.mkdtemp(dir=tmp))
         go.wait()
         for i, scene in enumerate(plain.scenes[k::procs]):
@@ -172,6 +193,20 @@ def overhead(b1: dict, plain: dict) -> str:
             f"machine's load than wall time)")
 
 
+def within(b: dict) -> str:
+    """The machinery's time per run measured inside one batch (immune to load changes between
+    batches): the worker's time between runs (median gap) plus its own share of each run
+    (instances, metrics, sending the row: ``wall_s - run_s``), against the run itself."""
+    import statistics
+
+    gap = statistics.median(b["gaps"])
+    share = b["worker"] / b["n"]
+    run = b["run"] / b["n"]
+    return (f"{1e3 * (gap + share):.2f} ms = {100 * (gap + share) / run:.1f} % of a run's {1e3 * run:.1f} ms "
+            f"(between runs {1e3 * gap:.2f} ms, the worker's share {1e3 * share:.2f} ms); the rest of the batch's "
+            f"overhead is its fixed cost")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--repeat", type=int, default=3)
@@ -189,25 +224,27 @@ def main() -> None:
         print(f"warm-up batch: {time.perf_counter() - t0:.2f} s")
         plain, plain_short = Plain(batch), Plain(short)
         m = best({"1": lambda: one(batch, tmp, 1), "2": lambda: one(batch, tmp, 2),
-                  "plain": lambda: plain(tmp)}, args.repeat)
-        m1, m2, p = m["1"], m["2"], m["plain"]
-        peer = best({"1": lambda: independent(plain, tmp, 1), "2": lambda: independent(plain, tmp, 2)}, args.repeat)
-        ceiling = peer["1"]["wall"] / peer["2"]["wall"]
+                  "plain": lambda: plain(tmp), "threaded": lambda: plain(tmp, writer_thread=True),
+                  "peer1": lambda: independent(plain, tmp, 1), "peer2": lambda: independent(plain, tmp, 2)},
+                 args.repeat)
+        m1, m2, p, pt = m["1"], m["2"], m["plain"], m["threaded"]
+        ceiling = m["peer1"]["wall"] / m["peer2"]["wall"]
         print(f"CPU time of the whole batch (this process and the workers): 1 worker {m1['cpu']:.2f} s, 2 workers "
-              f"{m2['cpu']:.2f} s; the runs one after another {p['cpu']:.2f} s")
+              f"{m2['cpu']:.2f} s; the runs one after another {p['cpu']:.2f} s (one core), {pt['cpu']:.2f} s "
+              f"(trace on a second thread)")
         print(f"16 runs of pid_step ({args.stop:g} s each): whole batch 1 worker {m1['wall']:.2f} s, 2 workers "
               f"{m2['wall']:.2f} s: speed-up {m1['wall'] / m2['wall']:.2f}x (target 1.8x); execution alone "
-              f"{m1['execution']:.2f} s vs {m2['execution']:.2f} s: {m1['execution'] / m2['execution']:.2f}x; "
-              f"the runs one after another in one process {p['wall']:.2f} s")
-        print(f"peer: the same runs in 1 vs 2 independent processes (no batch machinery): {peer['1']['wall']:.2f} s vs "
-              f"{peer['2']['wall']:.2f} s = {ceiling:.2f}x, what this machine allows 2 workers; the batch reaches "
-              f"{100 * (m1['wall'] / m2['wall']) / ceiling:.0f} % of it")
-        main_ms, other_ms = 1e3 * p["main_cpu"] / p["n"], 1e3 * (p["cpu"] - p["main_cpu"]) / p["n"]
-        print(f"a run's CPU time: {main_ms:.1f} ms in its main thread (stepping), {other_ms:.1f} ms in its "
-              f"trace-writer thread, which overlap: a worker whose runs last as long as their main thread keeps "
-              f"{(main_ms + other_ms) / main_ms:.2f} cores busy, and 2 such workers on 2 cores can be at most "
-              f"{2 * main_ms / (main_ms + other_ms):.2f}x faster than one")
+              f"{m1['execution']:.2f} s vs {m2['execution']:.2f} s: {m1['execution'] / m2['execution']:.2f}x")
+        print(f"peer: the same runs in 1 vs 2 independent one-core processes (no batch machinery): "
+              f"{m['peer1']['wall']:.2f} s vs {m['peer2']['wall']:.2f} s = {ceiling:.2f}x, what this machine "
+              f"allows; the batch reaches {100 * (m1['wall'] / m2['wall']) / ceiling:.0f} % of it")
+        main_ms, other_ms = 1e3 * pt["main_cpu"] / pt["n"], 1e3 * (pt["cpu"] - pt["main_cpu"]) / pt["n"]
+        print(f"against the fastest one-at-a-time execution (rpr-cosim run's loop, the trace formatted on a second "
+              f"thread: {main_ms:.1f} ms stepping + {other_ms:.1f} ms formatting per run, {pt['wall']:.2f} s): 2 "
+              f"workers {pt['wall'] / m2['wall']:.2f}x; such a loop keeps {(main_ms + other_ms) / main_ms:.2f} "
+              f"cores busy, so 2 cores can make it at most {2 * main_ms / (main_ms + other_ms):.2f}x faster")
         print(f"overhead, 1 worker, {args.stop:g} s runs: {overhead(m1, p)} (targets 5 %, 50 ms)")
+        print(f"per-run machinery inside one batch, 1 worker, {args.stop:g} s runs: {within(m1)} (target 5 %)")
         big = load_batch(batch_file(tmp, args.stop, 16))
         plain_big = Plain(big)
         mb = best({"16": lambda: one(batch, tmp, 1), "64": lambda: one(big, tmp, 1), "p16": lambda: plain(tmp),
@@ -223,6 +260,7 @@ def main() -> None:
               f"{1e3 * fixed:.0f} ms (batch file, first scene, FMU look-up, workers' start, last row)")
         ms = best({"1": lambda: one(short, tmp, 1), "plain": lambda: plain_short(tmp)}, args.repeat)
         print(f"overhead, 1 worker, 0.5 s runs: {overhead(ms['1'], ms['plain'])} (target 50 ms)")
+        print(f"per-run machinery inside one batch, 1 worker, 0.5 s runs: {within(ms['1'])}")
         mr = best({"reuse": lambda: one(batch, tmp, 1), "reload": lambda: one(batch, tmp, 1, reuse=False)},
                   args.repeat)
         a, b = mr["reuse"], mr["reload"]

@@ -166,9 +166,8 @@ class TraceWriteError(UserError):
 
 
 #: Whether trace rows are formatted and written by a thread of their own (the default: on a
-#: machine with a core to spare, a run then lasts as long as its stepping).  A batch with as many
-#: workers as cores turns it off in its workers (:mod:`cosim.batch.executors`): the cores are
-#: busy already, and a second thread per worker only adds switching.
+#: machine with a core to spare, a run then lasts as long as its stepping).  Local batch workers
+#: turn it off (:mod:`cosim.batch.executors`): a worker is one core.
 WRITER_THREAD = True
 
 

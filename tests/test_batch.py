@@ -222,8 +222,11 @@ set: {{stop_time: 0.05}}
 grid:
   kernel: {{path: components.pid1.options.integrator, values: [exact, rk4]}}
 """
-    res = run_batch(load_batch(write(tmp_path, text)), out=tmp_path / "out", executor=LocalExecutor(1))
+    sent = {}
+    res = run_batch(load_batch(write(tmp_path, text)), out=tmp_path / "out", executor=LocalExecutor(1),
+                    on_start=lambda task, pid: sent.update({task.index: task.blobs}))
     assert res.ran == 2 and res.failed == 0
+    assert sent[0] is None and len(sent[1]) == 1  # the workers start with run 0's FMUs; run 1 brings its PID
     by_kernel = {r["kernel"]: r for r in res.rows}
     plain = run(SCENE, ["stop_time=0.05", "components.pid1.options.integrator=rk4"], out_dir=tmp_path / "plain")
     rk4 = data_lines(run_trace_path(tmp_path / "out", by_kernel["rk4"]["run_id"]))

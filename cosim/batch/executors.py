@@ -9,9 +9,9 @@ Local (:class:`LocalExecutor`)
     same warm-up preloaded when the batch process runs other threads; each fed one task at a time over a pipe, so the parent
     always knows which run is where.  The FMUs' bytes go to each process once, when it starts.
     A process that dies (killed, crashed in an FMU) is replaced and its run is given to a worker
-    once more; a run that kills its worker twice is a failed row.  With as many workers as cores,
-    a worker writes each run's trace in its stepping thread (no writer thread: the cores are
-    busy).  Workers ignore Ctrl-C (the
+    once more; a run that kills its worker twice is a failed row.  A worker is one core: it
+    writes each run's trace in its stepping thread (``rpr-cosim run`` formats on a second
+    thread, which would make each worker 1.3 cores).  Workers ignore Ctrl-C (the
     parent stops them) and die with the parent (``PR_SET_PDEATHSIG`` and a watchdog), so an
     interrupted batch leaves no run behind writing into its directory.
 Dask (:class:`DaskExecutor`)
@@ -26,6 +26,7 @@ Dask (:class:`DaskExecutor`)
 from __future__ import annotations
 
 import ctypes
+import gc
 import multiprocessing as mp
 import os
 import signal
@@ -35,6 +36,7 @@ import uuid
 from collections import deque
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from multiprocessing.connection import wait
+from multiprocessing.reduction import ForkingPickler
 
 from ..errors import UserError
 from .worker import STATE, Outcome, Shared, Task, execute, worker_id
@@ -79,6 +81,10 @@ def _worker_main(conn, shared: Shared, parent_pid: int, writer_thread: bool = Tr
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     _die_with(parent_pid)
     STATE.detach()
+    # what the worker inherited (the imports, the warm-up) stays out of its collections: a full
+    # collection would scan it after every few runs and, by touching every object, copy the
+    # pages it shares with the batch process
+    gc.freeze()
     try:
         while True:
             try:
@@ -87,16 +93,28 @@ def _worker_main(conn, shared: Shared, parent_pid: int, writer_thread: bool = Tr
                 return
             if task is None:
                 return
-            conn.send(("started", os.getpid()))
+            conn.send(("started", (os.getpid(), time.perf_counter())))
             conn.send(("done", execute(task, shared)))
     finally:
         STATE.remove_files()  # a worker process ends with os._exit: its atexit hooks do not run
 
 
 class _Slot:
+    """A worker process and the tasks sent to it, in order: the first is running (or about to),
+    the next one waits in its pipe so that it starts as soon as the first ends."""
+
     def __init__(self, proc, conn):
         self.proc, self.conn = proc, conn
-        self.task: Task | None = None
+        self.tasks: deque[Task] = deque()
+
+    @property
+    def task(self) -> Task | None:
+        return self.tasks[0] if self.tasks else None
+
+    def send(self, task: Task, data: bytes | None = None) -> None:
+        """Send ``task`` (``data``: its pickle, when made already)."""
+        self.conn.send_bytes(data if data is not None else ForkingPickler.dumps(task))
+        self.tasks.append(task)
 
 
 def _context(scenes: Sequence = (), shared: Shared | None = None):
@@ -138,11 +156,12 @@ class _Source:
 class LocalExecutor:
     """``workers`` local processes (see the module docstring)."""
 
-    def __init__(self, workers: int | None = None):
+    def __init__(self, workers: int | None = None, *, writer_thread: bool = False):
         self.workers = max(1, workers or os.cpu_count() or 1)
         self.capacity = self.workers
-        # a trace-writer thread per run only while there are cores to spare (cosim.trace.WRITER_THREAD)
-        self.writer_thread = self.workers < (os.cpu_count() or 1)
+        # a worker is one core: it writes each run's trace in its stepping thread unless asked
+        # otherwise (cosim.trace.WRITER_THREAD)
+        self.writer_thread = writer_thread
         self.replaced = 0  # workers that died and were replaced
 
     def _spawn(self, ctx, shared: Shared) -> _Slot:
@@ -163,21 +182,23 @@ class LocalExecutor:
         slots: list[_Slot] = []
         try:
             ctx = _context([source.pending[0].scene], shared)
-            while source.pending or any(s.task for s in slots):
+            while source.pending or any(s.tasks for s in slots):
                 self._dispatch(ctx, shared, slots, source)
                 if not source.pending:
                     source.pull()  # the next run, resolved while the workers run
-                busy = [s for s in slots if s.task is not None]
+                busy = [s for s in slots if s.tasks]
                 ready = set(wait([s.conn for s in busy] + [s.proc.sentinel for s in busy]))  # idle until then
                 finished: list[tuple[Task, Outcome]] = []
                 for i, s in enumerate(slots):
-                    if s.task is None or not ({s.conn, s.proc.sentinel} & ready):
+                    if not s.tasks or not ({s.conn, s.proc.sentinel} & ready):
                         continue
                     alive = self._drain(s, on_start, finished)
                     if alive and s.proc.sentinel not in ready:
                         continue
-                    if s.task is not None:  # the worker died with this run: once more, on a new worker
-                        task, code, s.task = s.task, s.proc.exitcode, None
+                    if s.tasks:  # the worker died with this run: once more, on a new worker
+                        task, code = s.tasks.popleft(), s.proc.exitcode
+                        source.pending.extendleft(reversed(s.tasks))  # sent, not started: as they were
+                        s.tasks.clear()
                         if task.attempt < 2:
                             task.attempt += 1
                             source.pending.appendleft(task)
@@ -199,23 +220,37 @@ class LocalExecutor:
 
     def _dispatch(self, ctx, shared: Shared, slots: list[_Slot], source: _Source) -> None:
         """Give a task to every idle worker, starting workers (up to :attr:`workers`) while there
-        are more tasks than idle ones."""
-        idle = [i for i, s in enumerate(slots) if s.task is None]
+        are more tasks than idle ones; then queue a second task behind each busy worker's run
+        while tasks remain for the others too (at the end of the batch a queued task could wait
+        behind a long run while another worker is idle)."""
+        idle = [i for i, s in enumerate(slots) if not s.tasks]
         while source.pending or source.pull():
             if not idle:
                 if len(slots) >= self.workers:
-                    return
+                    break
                 slots.append(self._spawn(ctx, shared))
                 idle.append(len(slots) - 1)
-            i = idle.pop(0)
-            s = slots[i]
-            s.task = source.pending.popleft()
-            try:
-                s.conn.send(s.task)
-            except (BrokenPipeError, OSError):  # died while idle: replace it, send again
-                slots[i] = self._replace(ctx, shared, s)
-                slots[i].task = s.task
-                slots[i].conn.send(s.task)
+            self._send(ctx, shared, slots, idle.pop(0), source.pending.popleft())
+        for i, s in enumerate(slots):
+            if len(s.tasks) == 1 and (source.pending or source.pull()) and (
+                    self.workers == 1 or len(source.pending) > 1 or source.it is not None):
+                data = ForkingPickler.dumps(source.pending[0])
+                if len(data) > self.QUEUED_BYTES:  # it would not fit the pipe: sending would wait for the run
+                    continue
+                self._send(ctx, shared, slots, i, source.pending.popleft(), bytes(data))
+
+    #: the largest task queued behind a running one (a pipe holds 64 kB; a larger one, e.g. with
+    #: FMUs attached, waits in the batch process until its worker is free)
+    QUEUED_BYTES = 48 * 1024
+
+    def _send(self, ctx, shared: Shared, slots: list[_Slot], i: int, task: Task, data: bytes | None = None) -> None:
+        try:
+            slots[i].send(task, data)
+        except (BrokenPipeError, OSError):  # died while idle: replace it, send its tasks again
+            old = slots[i]
+            slots[i] = self._replace(ctx, shared, old)
+            for t in [*old.tasks, task]:
+                slots[i].send(t)
 
     def _drain(self, s: _Slot, on_start: OnStart | None, finished: list) -> bool:
         """Read every message of ``s`` (finished runs go to ``finished``); False when its pipe is
@@ -224,11 +259,11 @@ class LocalExecutor:
             while s.conn.poll():
                 kind, payload = s.conn.recv()
                 if kind == "started":
+                    pid, s.task.started_at = payload
                     if on_start:
-                        on_start(s.task, payload)
+                        on_start(s.task, pid)
                 else:
-                    task, s.task = s.task, None
-                    finished.append((task, payload))
+                    finished.append((s.tasks.popleft(), payload))
         except (EOFError, OSError):
             return False
         return True
@@ -248,7 +283,7 @@ class LocalExecutor:
                 pass
         deadline = time.monotonic() + 2.0
         for s in slots:
-            if s.task is not None:  # interrupted while running: do not wait for it
+            if s.tasks:  # interrupted while running: do not wait for it
                 s.proc.kill()
             s.proc.join(timeout=max(0.0, deadline - time.monotonic()))
             if s.proc.is_alive():

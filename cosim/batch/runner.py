@@ -349,12 +349,14 @@ def run_batch(batch: Batch, *, out: Path | None = None, executor=None, cache_dir
                 record(run, Outcome(run.run_id, "failed", f"invalid scene: {reason}"), 0)
 
             def tasks() -> Iterator[Task]:
-                shipped = set(shelf.blobs)  # what every worker has from the start
+                shipped: set[str] | None = None  # what every worker has from the start: the first run's FMUs
                 for r in planner.runs(invalid, skipped):
                     by_id[r.run_id] = r
                     fmus = shelf.add(r)
                     shutil.rmtree(out / "runs" / r.run_id, ignore_errors=True)  # an unfinished attempt
-                    extra = {d: shelf.blobs[d] for d in fmus.values() if d not in shipped}
+                    if shipped is None:
+                        shipped = set(shelf.blobs)
+                    extra = {d: shelf.blobs[d] for d in set(fmus.values()) - shipped}
                     yield Task(r.run_id, r.point.index, transportable(r.scene), fmus,
                                str((out / "runs" / r.run_id).resolve()), batch.metrics,
                                "monolithic" if batch.reference == "monolithic" else ("trace" if ref else None),

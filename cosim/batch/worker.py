@@ -42,6 +42,7 @@ class Task:
     reference: str | None = None  # None, "monolithic" or "trace" (Shared.reference)
     attempt: int = 1
     blobs: dict[str, bytes] | None = None  # FMUs first needed by this run (not in Shared.blobs)
+    started_at: float | None = None  # time.perf_counter() on its local worker when it started
 
 
 @dataclass
