@@ -6,8 +6,10 @@ outcome)`` as it finishes, in completion order.
 Local (:class:`LocalExecutor`)
     ``N`` processes forked from the batch process once it has warmed up (imports, the compiled
     loop, the stepping orders: :mod:`cosim.batch.preload`), or from a ``forkserver`` with the
-    same warm-up preloaded when the batch process runs other threads; each fed one task at a time over a pipe, so the parent
-    always knows which run is where.  The FMUs' bytes go to each process once, when it starts.
+    same warm-up preloaded when the batch process runs other threads; each fed over a pipe with
+    its run and, while more remain for the others, the next one queued behind it (so it starts
+    the moment the first ends); the parent knows which runs are where.  The FMUs' bytes go to
+    each process once, when it starts (one first needed later travels with its run).
     A process that dies (killed, crashed in an FMU) is replaced and its run is given to a worker
     once more; a run that kills its worker twice is a failed row.  A worker is one core: it
     writes each run's trace in its stepping thread (``rpr-cosim run`` formats on a second
@@ -174,8 +176,8 @@ class LocalExecutor:
 
     def run(self, tasks: Iterable[Task], shared: Shared, on_done: OnDone, on_start: OnStart | None = None) -> None:
         """Run every task; returns when all are done (or raises KeyboardInterrupt after stopping
-        the workers).  ``tasks`` is read lazily: one task ahead of the workers, so that making
-        the next task (resolving its scene) overlaps the runs."""
+        the workers).  ``tasks`` is read lazily, a task or two ahead of the workers, so that
+        making the next task (resolving its scene) overlaps the runs."""
         source = _Source(tasks)
         if not source.pull():
             return
