@@ -168,15 +168,27 @@ def independent(plain: Plain, tmp: Path, procs: int) -> dict:
     return {"wall": wall}
 
 
-def best(fns: dict, repeat: int) -> dict:
-    """The best (least wall) of ``repeat`` results of each function, the functions taking turns."""
+def best(fns: dict, repeat: int, rounds: list | None = None) -> dict:
+    """The best (least wall) of ``repeat`` results of each function, the functions taking turns;
+    each round's results are appended to ``rounds`` (for ratios within a round)."""
     out: dict = {}
     for _ in range(repeat):
+        this = {}
         for name, fn in fns.items():
-            m = fn()
+            m = this[name] = fn()
             if name not in out or m["wall"] < out[name]["wall"]:
                 out[name] = m
+        if rounds is not None:
+            rounds.append(this)
     return out
+
+
+def median_ratio(rounds: list, a: str, b: str) -> float:
+    """The median over rounds of wall(a) / wall(b) measured back to back (a slow spell of the
+    machine hits both sides of one ratio)."""
+    import statistics
+
+    return statistics.median(r[a]["wall"] / r[b]["wall"] for r in rounds)
 
 
 def overhead(b1: dict, plain: dict) -> str:
@@ -226,7 +238,7 @@ def main() -> None:
         m = best({"1": lambda: one(batch, tmp, 1), "2": lambda: one(batch, tmp, 2),
                   "plain": lambda: plain(tmp), "threaded": lambda: plain(tmp, writer_thread=True),
                   "peer1": lambda: independent(plain, tmp, 1), "peer2": lambda: independent(plain, tmp, 2)},
-                 args.repeat)
+                 args.repeat, rounds := [])
         m1, m2, p, pt = m["1"], m["2"], m["plain"], m["threaded"]
         ceiling = m["peer1"]["wall"] / m["peer2"]["wall"]
         print(f"CPU time of the whole batch (this process and the workers): 1 worker {m1['cpu']:.2f} s, 2 workers "
@@ -235,6 +247,10 @@ def main() -> None:
         print(f"16 runs of pid_step ({args.stop:g} s each): whole batch 1 worker {m1['wall']:.2f} s, 2 workers "
               f"{m2['wall']:.2f} s: speed-up {m1['wall'] / m2['wall']:.2f}x (target 1.8x); execution alone "
               f"{m1['execution']:.2f} s vs {m2['execution']:.2f} s: {m1['execution'] / m2['execution']:.2f}x")
+        print(f"median over the {len(rounds)} rounds of the ratio measured back to back: batch 1 worker / 2 workers "
+              f"{median_ratio(rounds, '1', '2'):.2f}x (target 1.8x), peer 1 / 2 processes "
+              f"{median_ratio(rounds, 'peer1', 'peer2'):.2f}x, batch 1 worker / plain one-core loop "
+              f"{median_ratio(rounds, '1', 'plain'):.3f}")
         print(f"peer: the same runs in 1 vs 2 independent one-core processes (no batch machinery): "
               f"{m['peer1']['wall']:.2f} s vs {m['peer2']['wall']:.2f} s = {ceiling:.2f}x, what this machine "
               f"allows; the batch reaches {100 * (m1['wall'] / m2['wall']) / ceiling:.0f} % of it")
