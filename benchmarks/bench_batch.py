@@ -22,11 +22,10 @@ turns, so that a change of the machine's load hits them alike.
   plain runs (targets: under 5 %, under 50 ms per run for short scenes; also at stop_time 0.5
   s), and the same in CPU time (this process and its workers), which the machine's load
   disturbs less than wall time.
-- marginal overhead per run and fixed cost per batch: the same with 16 and with 64 runs (the
-  grid with 4 x 4 more Kd values); what one more run costs beyond its own work is
-  ((batch 64 - batch 16) - (plain 64 - plain 16)) / 48, and what is left of the 16-run
-  overhead is the batch's fixed cost (checking the batch file and the first scene, FMU
-  look-up, starting the workers, the last row).
+- per-run machinery measured inside one batch (immune to the load changing between batches):
+  the worker's time between runs plus its own share of each run, against the run; what is left
+  of the whole batch's overhead is its fixed cost (checking the first scene, FMU look-up,
+  starting the worker and loading its FMUs, the last row).
 - reuse: initialisation time per run (``init_s``: instantiate or reset, start values,
   initialisation) with instances kept and reset against loading the FMUs for every run.
 
@@ -59,14 +58,9 @@ metrics:
 """
 
 
-def batch_file(tmp: Path, stop: float, kd_values: int = 4) -> Path:
-    """The benchmark batch: 4 Kp x ``kd_values`` Kd (4 or 16) runs of ``stop`` seconds."""
-    p = tmp / f"bench_{stop:g}_{kd_values}.yaml"
-    text = BATCH.format(scene=ROOT / "scenarios" / "pid_step.yaml", stop=stop)
-    if kd_values != 4:
-        kd = ", ".join(f"{v:g}" for v in [10 + 20 * i / (kd_values - 1) for i in range(kd_values)])
-        text = text.replace("values: [10, 15, 20, 30]", f"values: [{kd}]")
-    p.write_text(text)
+def batch_file(tmp: Path, stop: float) -> Path:
+    p = tmp / f"bench_{stop:g}.yaml"
+    p.write_text(BATCH.format(scene=ROOT / "scenarios" / "pid_step.yaml", stop=stop))
     return p
 
 
@@ -219,6 +213,13 @@ def within(b: dict) -> str:
             f"overhead is its fixed cost")
 
 
+def fixed_cost(b: dict, plain: dict) -> float:
+    """The whole batch's overhead over the plain loop less its per-run machinery (:func:`within`)."""
+    import statistics
+
+    return (b["wall"] - plain["wall"]) - b["n"] * (statistics.median(b["gaps"]) + b["worker"] / b["n"])
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--repeat", type=int, default=3)
@@ -260,20 +261,8 @@ def main() -> None:
               f"workers {pt['wall'] / m2['wall']:.2f}x; such a loop keeps {(main_ms + other_ms) / main_ms:.2f} "
               f"cores busy, so 2 cores can make it at most {2 * main_ms / (main_ms + other_ms):.2f}x faster")
         print(f"overhead, 1 worker, {args.stop:g} s runs: {overhead(m1, p)} (targets 5 %, 50 ms)")
-        print(f"per-run machinery inside one batch, 1 worker, {args.stop:g} s runs: {within(m1)} (target 5 %)")
-        big = load_batch(batch_file(tmp, args.stop, 16))
-        plain_big = Plain(big)
-        mb = best({"16": lambda: one(batch, tmp, 1), "64": lambda: one(big, tmp, 1), "p16": lambda: plain(tmp),
-                   "p64": lambda: plain_big(tmp)}, args.repeat)
-        n16, n64 = mb["16"]["n"], mb["64"]["n"]
-        marginal = ((mb["64"]["wall"] - mb["16"]["wall"]) - (mb["p64"]["wall"] - mb["p16"]["wall"])) / (n64 - n16)
-        own = (mb["p64"]["wall"] - mb["p16"]["wall"]) / (n64 - n16)
-        fixed = (mb["16"]["wall"] - mb["p16"]["wall"]) - n16 * marginal
-        cpu_marginal = ((mb["64"]["cpu"] - mb["16"]["cpu"]) - (mb["p64"]["cpu"] - mb["p16"]["cpu"])) / (n64 - n16)
-        print(f"marginal overhead per run, 1 worker, {args.stop:g} s runs ({n16} and {n64} runs): "
-              f"{1e3 * marginal:.1f} ms = {100 * marginal / own:.1f} % of a run's own {1e3 * own:.1f} ms "
-              f"(target 5 %); CPU {1e3 * cpu_marginal:.1f} ms per run; fixed cost per batch "
-              f"{1e3 * fixed:.0f} ms (batch file, first scene, FMU look-up, workers' start, last row)")
+        print(f"per-run machinery inside one batch, 1 worker, {args.stop:g} s runs: {within(m1)} (target 5 %); "
+              f"fixed cost of the batch {1e3 * fixed_cost(m1, p):.0f} ms")
         ms = best({"1": lambda: one(short, tmp, 1), "plain": lambda: plain_short(tmp)}, args.repeat)
         print(f"overhead, 1 worker, 0.5 s runs: {overhead(ms['1'], ms['plain'])} (target 50 ms)")
         print(f"per-run machinery inside one batch, 1 worker, 0.5 s runs: {within(ms['1'])}")

@@ -78,8 +78,10 @@ def _sweep_dead_workers() -> None:
     """Remove the FMU folders of worker processes that were killed before they could."""
     from ..outputs import pid_alive
 
-    for d in Path(tempfile.gettempdir()).glob("rpr-batch-*-*"):
-        pid = d.name.split("-")[2]
+    with os.scandir(tempfile.gettempdir()) as entries:  # a busy /tmp: scandir, not glob's fnmatch per entry
+        found = [e.path for e in entries if e.name.startswith("rpr-batch-")]
+    for d in found:
+        pid = Path(d).name.split("-")[2] if Path(d).name.count("-") >= 3 else ""
         if pid.isdigit() and int(pid) != os.getpid() and not pid_alive(int(pid)):
             shutil.rmtree(d, ignore_errors=True)
 
