@@ -9,7 +9,8 @@ turns, so that a change of the machine's load hits them alike.
 
 - the runs' own work ("plain"): the same 16 scenes run one after another in this process by the
   code a plain ``rpr-cosim run`` uses (:func:`cosim.run.run`: initialisation, stepping, streaming
-  the trace and sidecar), with the FMUs loaded once and reset between runs as a batch does;
+  the trace and sidecar), with the FMUs loaded once (timed) and reset between runs as a batch
+  worker does;
   once as a batch worker runs them (the trace formatted in the stepping thread: one core) and
   once as ``rpr-cosim run`` does (formatted on a second thread: 1.3 cores).
 - speed-up: wall time of the whole batch (:func:`cosim.batch.run_batch`: checking the batch
@@ -91,17 +92,22 @@ def cpu() -> float:
 
 
 class Plain:
-    """The batch's scenes run one after another here by :func:`cosim.run.run` (instances kept)."""
+    """The batch's scenes run one after another here by :func:`cosim.run.run`: the FMUs loaded
+    once per call (as a worker loads them once per batch) and their instances kept and reset."""
 
     def __init__(self, batch):
         from cosim.run import build_components
-        from cosim.slaves import FmuSlave
 
         self.scenes = [p.scene for p in plan(batch)[0]]
-        paths = build_components(self.scenes[0])
-        self.slaves = [FmuSlave(name, paths[name]) for name in self.scenes[0].components]
-        for s in self.slaves:
+        self.paths = build_components(self.scenes[0])
+
+    def slaves(self) -> list:
+        from cosim.slaves import FmuSlave
+
+        out = [FmuSlave(name, self.paths[name]) for name in self.scenes[0].components]
+        for s in out:
             s.reuse = True
+        return out
 
     def __call__(self, tmp: Path, writer_thread: bool = False) -> dict:
         from cosim import trace
@@ -118,9 +124,10 @@ class Plain:
         out = Path(tempfile.mkdtemp(dir=tmp))
         c0, t0, m0 = cpu(), time.perf_counter(), time.thread_time()
         loop = trace = 0.0
+        slaves = self.slaves()
         for i, scene in enumerate(self.scenes):
             t1 = time.perf_counter()
-            res = run(scene, out_dir=out / str(i), slaves=self.slaves)
+            res = run(scene, out_dir=out / str(i), slaves=slaves)
             assert res.ok, res.reason
             loop += res.stats["wall_s"]
             trace += time.perf_counter() - t1 - res.stats["wall_s"] - res.stats["init_s"]
@@ -145,8 +152,9 @@ def independent(plain: Plain, tmp: Path, procs: int) -> dict:
         trace.WRITER_THREAD = False  # one core each, as a batch worker
         out = Path(tempfile.mkdtemp(dir=tmp))
         go.wait()
+        slaves = plain.slaves()
         for i, scene in enumerate(plain.scenes[k::procs]):
-            assert run(scene, out_dir=out / str(i), slaves=plain.slaves).ok
+            assert run(scene, out_dir=out / str(i), slaves=slaves).ok
         done.put(k)
 
     kids = [ctx.Process(target=child, args=(k,)) for k in range(procs)]
