@@ -3,7 +3,8 @@ observers, and return the run's statistics (:class:`RunStats`)."""
 from __future__ import annotations
 
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -57,6 +58,43 @@ def interruption_reason(exc: KeyboardInterrupt, t: float | None) -> str:
     """The reason of a run ended by Ctrl-C or a signal (``exc`` names the signal, see
     :mod:`cosim.interrupts`), at simulated time ``t`` when known."""
     return f"interrupted by {str(exc) or 'the user (KeyboardInterrupt)'}" + (f" at t = {t:.9g} s" if t is not None else "")
+
+
+class Ending:
+    """How a run ended: ``status`` and ``reason`` (set by the run's block when it completes)."""
+
+    def __init__(self) -> None:
+        self.status, self.reason = "failed", ""
+
+    def from_loop(self, loop) -> None:
+        """ok, or the status and message the loop (an algorithm or stepper) stopped with."""
+        self.status, self.reason = ("ok", "") if loop.status == "running" else (loop.status, loop.message)
+
+
+@contextmanager
+def settled(stats: RunStats, system: CoupledSystem, observers: Sequence, now: Callable[[], float | None],
+            fill: Callable[[], None]) -> Iterator[Ending]:
+    """The block that runs a scene: however it ends, ``stats`` gets its status and reason (an
+    exception is a failure, Ctrl-C or a signal an interruption at simulated time ``now()``), then
+    ``fill()`` completes the statistics, the observers finish and the slaves are terminated and
+    freed; an exception propagates after that."""
+    end = Ending()
+    try:
+        yield end
+    except KeyboardInterrupt as exc:
+        end.status, end.reason = "interrupted", interruption_reason(exc, now())
+        raise
+    except BaseException as exc:
+        end.status, end.reason = "failed", f"{type(exc).__name__}: {exc}"
+        raise
+    finally:
+        stats.status, stats.reason = end.status, end.reason
+        fill()
+        for obs in observers:
+            obs.finish(end.status, end.reason, stats.as_dict())
+        for s in system.slaves:
+            s.terminate()
+            s.free()
 
 
 def slave_table(system: CoupledSystem, calls: Sequence[int], slave_ns: Sequence[int],
@@ -162,12 +200,25 @@ def simulate(system: CoupledSystem, algorithm_name: str, *, step_ns: int, n_step
         raise UserError(f"record_every must be >= 1, got {record_every}")
     stats = RunStats(cls.name, "", step_ns / 1e9, n_steps)
     columns = ["time"] + system.record_names
-    status, reason = "failed", ""
     for obs in observers:
         obs.start(columns, dict(meta or {}, algorithm=cls.name, step=step_ns / 1e9,
                                 **({"rates": multirate} if multirate else {})))
     alg, t_loop, pacer = None, None, None
-    try:
+
+    def fill() -> None:
+        if guard is not None:
+            stats.guards = guard.summary()
+        if alg is not None:
+            stats.steps_done = alg.k
+            stats.master_s = alg.master_ns / 1e9
+            stats.slaves = slave_table(system, alg.calls, alg.slave_ns, alg.rates)
+            stats.extra = alg.statistics() if hasattr(alg, "statistics") else {}
+        if stats.wall_s == 0.0 and t_loop is not None:
+            stats.wall_s = time.perf_counter() - t_loop
+        if pacer is not None:
+            stats.realtime = pacer.finish()
+
+    with settled(stats, system, observers, lambda: alg.t if alg else None, fill) as end:
         if realtime is not None:  # before initialisation: the pacer quiets the heap first
             from ..realtime import Pacer
 
@@ -220,29 +271,5 @@ def simulate(system: CoupledSystem, algorithm_name: str, *, step_ns: int, n_step
         stats.wall_s = time.perf_counter() - t_loop
         if stats.engine == "python":  # the compiled loop measures its own share itself
             alg.master_ns = max(0, int(stepping * 1e9) - sum(alg.slave_ns))
-        status, reason = ("ok", "") if alg.status == "running" else (alg.status, alg.message)
-    except KeyboardInterrupt as exc:
-        status, reason = "interrupted", interruption_reason(exc, alg.t if alg else None)
-        raise
-    except BaseException as exc:
-        status, reason = "failed", f"{type(exc).__name__}: {exc}"
-        raise
-    finally:
-        stats.status, stats.reason = status, reason
-        if guard is not None:
-            stats.guards = guard.summary()
-        if alg is not None:
-            stats.steps_done = alg.k
-            stats.master_s = alg.master_ns / 1e9
-            stats.slaves = slave_table(system, alg.calls, alg.slave_ns, alg.rates)
-            stats.extra = alg.statistics() if hasattr(alg, "statistics") else {}
-        if stats.wall_s == 0.0 and t_loop is not None:
-            stats.wall_s = time.perf_counter() - t_loop
-        if pacer is not None:
-            stats.realtime = pacer.finish()
-        for obs in observers:
-            obs.finish(status, reason, stats.as_dict())
-        for s in system.slaves:
-            s.terminate()
-            s.free()
+        end.from_loop(alg)
     return stats

@@ -48,7 +48,7 @@ from ...errors import UserError
 from ...slaves import FAILING, Status
 from ..algorithm import Algorithm, register
 from ..graph import gauss_seidel_order
-from ..run import RunStats, initialize, interruption_reason, slave_table
+from ..run import RunStats, initialize, settled, slave_table
 
 
 @dataclass(frozen=True)
@@ -416,8 +416,17 @@ def simulate_variable(system, cls, *, step_ns: int, n_steps: int, observers: Seq
     opts = option_values(options, declared)
     for obs in observers:
         obs.start(columns, dict(meta or {}, algorithm=cls.name, step=step_ns / 1e9, options=opts))
-    status, reason, stepper = "failed", "", None
-    try:
+    stepper = None
+
+    def fill() -> None:
+        if stepper is not None:
+            stats.steps_done, stats.t_end, stats.adaptive = stepper.stats.accepted, stepper.t, stepper.stats.as_dict()
+            stats.steps_planned = stats.steps_done  # no plan: the controller chose every step
+            stats.slaves = slave_table(system, stepper.calls, stepper.slave_ns)
+            own = getattr(stepper, "master_ns", None)  # the compiled loop measures its own share itself
+            stats.master_s = own / 1e9 if own is not None else max(0.0, stats.wall_s - sum(stepper.slave_ns) / 1e9)
+
+    with settled(stats, system, observers, lambda: stepper.t if stepper else None, fill) as end:
         t0 = time.perf_counter()
         initialize(system, start_values or [{} for _ in system.slaves], start_time=start_ns / 1e9,
                    stop_time=stop_ns / 1e9, tolerances=tolerances)
@@ -430,24 +439,5 @@ def simulate_variable(system, cls, *, step_ns: int, n_steps: int, observers: Seq
         stepper = run_adaptive(system, start_ns=start_ns, stop_ns=stop_ns, options=opts, order=seq,
                                observers=observers, progress=progress, stats=stats,
                                stepper_cls=getattr(cls, "stepper", None), declared=declared, engine=stats.engine)
-        status, reason = ("ok", "") if stepper.status == "running" else (stepper.status, stepper.message)
-    except KeyboardInterrupt as exc:
-        status, reason = "interrupted", interruption_reason(exc, stepper.t if stepper else None)
-        raise
-    except BaseException as exc:
-        status, reason = "failed", f"{type(exc).__name__}: {exc}"
-        raise
-    finally:
-        stats.status, stats.reason = status, reason
-        if stepper is not None:
-            stats.steps_done, stats.t_end, stats.adaptive = stepper.stats.accepted, stepper.t, stepper.stats.as_dict()
-            stats.steps_planned = stats.steps_done  # no plan: the controller chose every step
-            stats.slaves = slave_table(system, stepper.calls, stepper.slave_ns)
-            own = getattr(stepper, "master_ns", None)  # the compiled loop measures its own share itself
-            stats.master_s = own / 1e9 if own is not None else max(0.0, stats.wall_s - sum(stepper.slave_ns) / 1e9)
-        for obs in observers:
-            obs.finish(status, reason, stats.as_dict())
-        for s in system.slaves:
-            s.terminate()
-            s.free()
+        end.from_loop(stepper)
     return stats
