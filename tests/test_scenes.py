@@ -230,29 +230,20 @@ def test_pid_step_fmus_in_ecospy_give_our_jacobi_trajectory_bit_for_bit(cache):
     trajectory equals ours exactly.  (It reads outputs after setting the next inputs, so only
     outputs without feedthrough are compared.)"""
     try:
-        import ecospy
+        import ecospy  # noqa: F401  (whether it loads; ecospy_trace drives it)
     except (ImportError, OSError) as exc:  # OSError: its C++ library cannot load (Debian libtbb12 missing)
         pytest.skip(f"ecospy (PyPI, with Debian libtbb12) is needed for this peer check: {exc}")
+    from cosim.study.precision import ecospy_trace
+
     sc = load(SCENES / "pid_step.yaml", ["master.algorithm=jacobi", "master.inputs=hold", "master.step=1e-4",
                                          "stop_time=1.0", "master.output_interval=1e-4"])
     paths = build_components(sc, cache_dir=cache)
-    ss = ecospy.EcosSimulationStructure()
-    for n, p in paths.items():
-        ss.add_model(n, str(p))
-    for c in sc.connections:
-        ss.make_real_connection(f"{c.src}::{c.src_var}", f"{c.dst}::{c.dst_var}")
-    ss.add_parameter_set("scene", {f"{n}::{k}": float(v) for n, c in sc.components.items()
-                                   for k, v in c.start_values().items()})
-    sim = ecospy.EcosSimulation(structure=ss, step_size=sc.master.step)
-    sim.init(parameter_set="scene")
     names = ["mech.platform.x", "mech.platform.phi", "mech.leg[3].s", "motor1.i"]
-    rows = [[sim.get_real(n.replace(".", "::", 1)) for n in names]]
-    for _ in range(sc.n_steps):
-        sim.step(1)
-        rows.append([sim.get_real(n.replace(".", "::", 1)) for n in names])
-    sim.terminate()
+    peer, _, _ = ecospy_trace(sc, paths, sc.master.step, names)  # the FMUs wired into ecospy, read every step
+    rows = np.vstack([peer[n] for n in names]).T
     ours = run(sc, cache_dir=cache).trace
-    np.testing.assert_array_equal(np.array(rows), np.vstack([ours[n] for n in names]).T)
+    assert len(rows) == sc.n_steps + 1
+    np.testing.assert_array_equal(rows, np.vstack([ours[n] for n in names]).T)
 
 
 def test_a_one_component_scene_equals_fmpy_simulate_fmu(cache, tmp_path):

@@ -275,11 +275,18 @@ class AdaptiveStepper:
         e = max(err, 1e-10)
         fac = opt["safety"] * e ** (-self.k_i / p) * self.err_prev ** (self.k_p / p)
         self.err_prev = e
+        self._propose(h, h_ns, fac)
+        return True
+
+    def _propose(self, h: float, h_ns: int, fac: float) -> None:
+        """The next step after an accepted step ``h`` (``h_ns``): ``h`` times the controller's
+        factor ``fac``, bounded by ``fac_min``/``fac_max`` and ``h_min``/``h_max``; a step cut
+        short to land on the stop time does not shrink the proposal."""
+        opt = self.opt
         fac = min(opt["fac_max"], max(opt["fac_min"], fac))
         if h_ns < round(self.h * 1e9):  # clipped to land on the stop time: keep the proposal
             fac = max(fac, 1.0)
         self.h = min(opt["h_max"], max(opt["h_min"], h * fac))
-        return True
 
 
 def run_adaptive(system, *, start_ns: int = 0, stop_ns: int, options: dict | None, order: Sequence[int],

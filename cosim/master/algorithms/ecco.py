@@ -233,10 +233,7 @@ class EccoStepper(AdaptiveStepper):
                             f"{scaled[k]:.3g} at t = {self.t:.9g} s)")
         fac = (opt["safety"] / err) ** opt["k_i"] * (self.err_prev / err) ** opt["k_p"]
         self.err_prev = err
-        fac = min(opt["fac_max"], max(opt["fac_min"], fac))
-        if h_ns < round(self.h * 1e9):  # clipped to land on the stop time: keep the proposal
-            fac = max(fac, 1.0)
-        self.h = min(opt["h_max"], max(opt["h_min"], h * fac))
+        self._propose(h, h_ns, fac)
         return True
 
 
