@@ -316,8 +316,8 @@ def usable(system) -> bool:
         return False
     for s in system.slaves:
         ne = s.native()
-        if ne is None or not (ne.get_state and ne.set_state):
-            return False
+        if ne is None or not (ne.get_state and ne.set_state) or getattr(s, "always_no_prior", False):
+            return False  # (an FMU that needs noSetFMUStatePriorToCurrentPoint true: the Python loop passes it)
     try:
         library()
     except UserError:

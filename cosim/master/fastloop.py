@@ -107,7 +107,7 @@ static inline int step(rpr_slave *s, double t, double h) {
         if (st <= ST_WARNING && term) return ST_STOP;
         return st;
     }
-    return ((step2_t)s->do_step)(s->inst, t, h, 0);
+    return ((step2_t)s->do_step)(s->inst, t, h, 1); /* a fixed-step loop never restores a state */
 }
 
 /* one macro step from t_ns of a slave at rate > 1: sub-steps at the exact sub-instants, its

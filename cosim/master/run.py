@@ -45,6 +45,9 @@ def simulate(system: CoupledSystem, algorithm_name: str, *, step_ns: int, n_step
                             f"cannot roll back (canGetAndSetFMUstate=false, e.g. hardware); use ecco (step "
                             f"control from power bonds, no rollback) or a fixed-step algorithm such as gauss_seidel "
                             f"or jacobi")
+    for s in system.slaves:  # FMI noSetFMUStatePriorToCurrentPoint: true unless the algorithm may restore states
+        if hasattr(s, "forward_only"):
+            s.forward_only = not getattr(cls, "needs_rollback", False)
     if getattr(cls, "variable_step", False):
         if realtime is not None:  # the pacer works on a fixed step grid: refuse rather than run unpaced
             raise UserError(f"master algorithm {cls.name} chooses its own steps and cannot be paced in real time "
@@ -84,7 +87,8 @@ def simulate(system: CoupledSystem, algorithm_name: str, *, step_ns: int, n_step
         t0 = time.perf_counter()
         initialize(system, start_values or [{} for _ in system.slaves], start_time=start_ns / 1e9,
                    stop_time=(start_ns + n_steps * step_ns) / 1e9, tolerances=tolerances,
-                   allow_loops=getattr(cls, "solves_algebraic_loops", False))
+                   allow_loops=getattr(cls, "solves_algebraic_loops", False)
+                   or getattr(cls, "delays_algebraic_loops", False))
         alg = cls(system, step_ns, order=order, timing=timing, inputs=inputs, start_ns=start_ns, rates=rates,
                   **({"options": options} if getattr(cls, "options", ()) else {}))
         stats.engine = choose_engine(system, cls, engine, start_ns)

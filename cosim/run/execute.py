@@ -95,7 +95,8 @@ def scene_meta(scene: Scene) -> dict:
     return {"scene": scene.name, "scene_file": str(scene.path) if scene.path else None, "scene_hash": scene.hash,
             "start_time": scene.start_time, "stop_time": scene.stop_time,
             "output_interval": scene.master.record_every * scene.master.step,
-            "units": {name: units.get(name, "") for name in scene.outputs}}
+            "units": {name: units.get(name, "") for name in scene.outputs},
+            **({"notes": [f"{p.severity}: {p.message}" for p in scene.warnings]} if scene.warnings else {})}
 
 
 @dataclass(frozen=True)

@@ -1,6 +1,7 @@
 """Validation of components: catalog models, external FMUs, hardware, their params and start values."""
 from __future__ import annotations
 
+import dataclasses
 import math
 import re
 from collections.abc import Mapping
@@ -81,7 +82,63 @@ class ComponentChecks(Checker):
             return None
         comp = Component(name, "fmu", desc, fmu=fpath.resolve(), fmi=desc.fmi_version or fmi, where=spec.where)
         self._values(comp, spec)
+        self._feedthrough(comp, spec)
         return comp
+
+    def _feedthrough(self, comp: Component, spec: YMap) -> None:
+        """The component's direct feedthrough: the scene's ``feedthrough:`` (``none``, ``all`` or a
+        mapping output -> inputs; unlisted outputs have none) wins; else the FMU's declared
+        dependencies; else, for an FMU that declares none, the feedthrough measured on a scratch
+        instance (:func:`cosim.slaves.probe.feedthrough`, cached by the FMU's hash), with a note."""
+        from ..slaves import probe
+
+        desc = comp.description
+        if "feedthrough" in spec:
+            ft = self._declared_feedthrough(comp, spec["feedthrough"], spec.loc("feedthrough"))
+            if ft is not None:
+                comp.description = dataclasses.replace(desc, feedthrough=ft, feedthrough_source="scene")
+            return
+        if not probe.undeclared_dependencies(desc):
+            return
+        try:
+            ft, _ = probe.feedthrough(comp.fmu, desc)
+        except UserError as exc:
+            self.warn(spec.loc("fmu"), f"component {comp.name!r}: its FMU declares no output dependencies and "
+                                       f"measuring them failed ({exc}); every output is taken to depend on every "
+                                       f"input (declare 'feedthrough:' in the scene)")
+            return
+        text = "; ".join(f"{y} <- {', '.join(us)}" for y, us in ft.items() if us) or "none"
+        self.note(spec.loc("fmu"), f"component {comp.name!r} ({comp.label}) declares no output dependencies; "
+                                   f"measured direct feedthrough: {text} (set 'feedthrough:' to override)")
+        comp.description = dataclasses.replace(desc, feedthrough=ft, feedthrough_source="measured")
+
+    def _declared_feedthrough(self, comp: Component, node: Any, where: Loc) -> dict[str, list[str]] | None:
+        desc = comp.description
+        ins, outs = desc.of("input"), desc.of("output")
+        if node in ("none", "all"):
+            return {y: (list(ins) if node == "all" else []) for y in outs}
+        if not isinstance(node, Mapping):
+            self.err(where, f"component {comp.name!r}: feedthrough = {node!r}; expected none, all, or a mapping "
+                            f"output: [inputs] of the outputs with direct feedthrough")
+            return None
+        ft: dict[str, list[str]] = {y: [] for y in outs}
+        ok = True
+        for y, us in node.items():
+            loc = node.loc(y) if hasattr(node, "loc") else where
+            if y not in outs:
+                self.err(loc, f"component {comp.name!r}: feedthrough names {y!r}, which is not an output"
+                              f"{suggest(str(y), outs)}")
+                ok = False
+                continue
+            us = [] if us in ("none", None) else list(ins) if us == "all" else [us] if isinstance(us, str) else us
+            if not isinstance(us, list) or any(u not in ins for u in us):
+                bad = us if not isinstance(us, list) else next(u for u in us if u not in ins)
+                self.err(loc, f"component {comp.name!r}: feedthrough {y}: {bad!r} is not an input"
+                              f"{suggest(str(bad), ins)} (expected a list of inputs, none or all)")
+                ok = False
+                continue
+            ft[y] = [str(u) for u in us]
+        return ft if ok else None
 
     def _hardware_component(self, name: str, spec: YMap) -> Component | None:
         """``{hardware: {address: HOST:PORT, key: FILE}}``: the hardware FMU (:mod:`hardware.fmu`),

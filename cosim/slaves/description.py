@@ -75,6 +75,8 @@ class SlaveDescription:
     guid: str = ""  # the FMU's GUID / instantiation token and model identifier ("" until read from an FMU)
     model_identifier: str = ""
     provides_directional_derivative: bool = False  # FMI get directional derivative (partials at the current instant)
+    dependencies_declared: bool = True  # False: no output lists its dependencies (FMI: each depends on every input)
+    feedthrough_source: str = "declared"  # declared, measured (cosim.slaves.probe) or scene (the scene's feedthrough:)
 
     def of(self, *causalities: str) -> list[str]:
         """Names of the variables with one of the given causalities, in declaration order."""
@@ -172,6 +174,7 @@ def describe_fmu(path: Path) -> SlaveDescription:
     inputs = [v.name for v in md.modelVariables if v.causality == "input"]
     ft: dict[str, list[str]] = {}
     listed = {u.variable.name: u for u in md.outputs}
+    declared = any(u.dependencies is not None for u in md.outputs)
     for v in md.modelVariables:
         if v.causality != "output":
             continue
@@ -186,7 +189,7 @@ def describe_fmu(path: Path) -> SlaveDescription:
     interp = md.fmiVersion.startswith("2") and bool(getattr(cs, "canInterpolateInputs", False))
     ddx = bool(getattr(cs, "providesDirectionalDerivative", False) or getattr(cs, "providesDirectionalDerivatives", False))
     return SlaveDescription("fmu", str(path), vs, ft, [], period, md.fmiVersion, can_state, interp, default, kinds,
-                            md.guid or "", cs.modelIdentifier or "", ddx)
+                            md.guid or "", cs.modelIdentifier or "", ddx, declared)
 
 
 

@@ -112,6 +112,18 @@ class FmuSlave(Slave):
     #: :meth:`release` frees it for good.  Used by batches (:mod:`cosim.batch`).
     reuse: bool = False
 
+    #: Set by the run for an algorithm that never restores a state (fixed-step, ecco): every
+    #: doStep then promises ``noSetFMUStatePriorToCurrentPoint = true``.
+    forward_only: bool = False
+    #: Workaround from the behavioural check (:mod:`cosim.slaves.behaviour`) for an FMU that does
+    #: not advance when that flag is false: pass true always, rollbacks included.
+    always_no_prior: bool = False
+
+    @property
+    def no_prior(self) -> bool:
+        """The ``noSetFMUStatePriorToCurrentPoint`` this slave's doSteps pass."""
+        return self.forward_only or self.always_no_prior or not self.can_rollback
+
     # lifecycle ---------------------------------------------------------------------------------
     def instantiate(self) -> None:
         if self.fmu is not None:  # kept from a previous run (reuse): back to the instantiated state
@@ -294,11 +306,11 @@ class FmuSlave(Slave):
     def do_step(self, t: float, h: float) -> int:
         if self.fmi3:
             # noSetFMUStatePriorToCurrentPoint: only promised when this slave cannot be rolled back
-            st = self._step3(self._inst, t, h, not self.can_rollback, *self._p_flags, self._p_last)
+            st = self._step3(self._inst, t, h, self.no_prior, *self._p_flags, self._p_last)
             if st < 2 and self._flags[1].value:
                 return Status.STOP_REQUESTED
             return st
-        st = self._step2(self._inst, t, h, 0)
+        st = self._step2(self._inst, t, h, 1 if self.no_prior else 0)
         if st == Status.DISCARD and self.asked_to_stop():
             return Status.STOP_REQUESTED
         return st
