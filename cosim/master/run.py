@@ -41,8 +41,10 @@ def simulate(system: CoupledSystem, algorithm_name: str, *, step_ns: int, n_step
     if getattr(cls, "needs_rollback", False):
         fixed = [s.name for s in system.slaves if not s.can_rollback]
         if fixed:
+            why = "; ".join(f"{s.name}: {s.description.rollback_reason}" for s in system.slaves
+                            if s.name in fixed and s.description.rollback_reason)
             raise UserError(f"master algorithm {cls.name} needs rollback (get/set state) but {', '.join(fixed)} "
-                            f"cannot roll back (canGetAndSetFMUstate=false, e.g. hardware); use ecco (step "
+                            f"cannot roll back ({why or 'canGetAndSetFMUstate=false, e.g. hardware'}); use ecco (step "
                             f"control from power bonds, no rollback) or a fixed-step algorithm such as gauss_seidel "
                             f"or jacobi")
     for s in system.slaves:  # FMI noSetFMUStatePriorToCurrentPoint: true unless the algorithm may restore states

@@ -83,7 +83,34 @@ class ComponentChecks(Checker):
         comp = Component(name, "fmu", desc, fmu=fpath.resolve(), fmi=desc.fmi_version or fmi, where=spec.where)
         self._values(comp, spec)
         self._feedthrough(comp, spec)
+        self._behaviour(comp, spec)
         return comp
+
+    def _behaviour(self, comp: Component, spec: YMap) -> None:
+        """The behavioural check of an external FMU (:mod:`cosim.slaves.behaviour`, once per FMU hash):
+        each departure a warning, each workaround applied to the component and noted."""
+        from ..slaves import probe
+        from ..slaves.behaviour import check_in_subprocess
+
+        where = spec.loc("fmu")
+        try:
+            found, _ = probe.cached(comp.fmu, "behaviour", lambda: check_in_subprocess(comp.fmu))
+        except UserError as exc:
+            self.warn(where, f"component {comp.name!r}: {exc}")
+            return
+        for line in found["departures"]:
+            self.warn(where, f"component {comp.name!r} ({comp.label}): {line}")
+        desc, fixes = comp.description, found["workarounds"]
+        if fixes.get("always_no_prior"):
+            desc = dataclasses.replace(desc, workarounds=desc.workarounds + ("always_no_prior",))
+            self.note(where, f"component {comp.name!r}: workaround: every doStep passes "
+                             f"noSetFMUStatePriorToCurrentPoint = true (the FMU does not step right with false)")
+        if fixes.get("no_rollback") and desc.can_get_set_state:
+            desc = dataclasses.replace(desc, can_get_set_state=False,
+                                       rollback_reason="its FMU state restore does not restore (behavioural check)")
+            self.note(where, f"component {comp.name!r}: workaround: run without rollback (restoring its FMU state "
+                             f"does not restore it); adaptive and iterative refuse it")
+        comp.description = desc
 
     def _feedthrough(self, comp: Component, spec: YMap) -> None:
         """The component's direct feedthrough: the scene's ``feedthrough:`` (``none``, ``all`` or a

@@ -77,6 +77,8 @@ class SlaveDescription:
     provides_directional_derivative: bool = False  # FMI get directional derivative (partials at the current instant)
     dependencies_declared: bool = True  # False: no output lists its dependencies (FMI: each depends on every input)
     feedthrough_source: str = "declared"  # declared, measured (cosim.slaves.probe) or scene (the scene's feedthrough:)
+    workarounds: tuple[str, ...] = ()  # from the behavioural check (cosim.slaves.behaviour): always_no_prior
+    rollback_reason: str = ""  # why rollback was taken away although the FMU declares it (behavioural check)
 
     def of(self, *causalities: str) -> list[str]:
         """Names of the variables with one of the given causalities, in declaration order."""

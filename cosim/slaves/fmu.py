@@ -103,6 +103,7 @@ class FmuSlave(Slave):
         super().__init__(name, description or describe_fmu(self.path))
         self.fmi3 = str(self.description.fmi_version).startswith("3")
         self.fmu = None
+        self.always_no_prior = "always_no_prior" in self.description.workarounds
         self._terminated = False
         self._empty_vr = (c_uint32 * 1)()
         self._empty_val = (c_double * 1)()
