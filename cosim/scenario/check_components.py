@@ -83,8 +83,52 @@ class ComponentChecks(Checker):
         comp = Component(name, "fmu", desc, fmu=fpath.resolve(), fmi=desc.fmi_version or fmi, where=spec.where)
         self._values(comp, spec)
         self._feedthrough(comp, spec)
+        self._flanges(comp, spec)
         self._behaviour(comp, spec)
         return comp
+
+    def _flanges(self, comp: Component, spec: YMap) -> None:
+        """``flanges: {NAME: {effort: VAR, flow: VAR}}``: power ports of an external FMU, each a pair
+        of an effort (force, torque) and a flow (velocity) variable, one an input and the other an
+        output (which one the FMU computes gives the flange's causality); bonded with
+        ``'a.NAME <-> b.NAME'`` like a catalog model's flanges (ecco's energy residual uses them)."""
+        from models.interface import Flange
+
+        node = spec.get("flanges")
+        if node is None:
+            return
+        if not isinstance(node, YMap):
+            self.err(spec.loc("flanges"), f"component {comp.name!r}: flanges must be a mapping NAME: {{effort: VAR, "
+                                          f"flow: VAR}}, got {node!r}")
+            return
+        vs, found = comp.description.variables, []
+        for fname, fl in node.items():
+            where = node.loc(fname)
+            if not isinstance(fl, Mapping) or set(fl) != {"effort", "flow"}:
+                self.err(where, f"component {comp.name!r}: flange {fname!r} must be {{effort: VAR, flow: VAR}}, "
+                                f"got {fl!r}")
+                continue
+            kinds = []
+            for role in ("effort", "flow"):
+                var = vs.get(str(fl[role]))
+                if var is None or var.causality not in ("input", "output") or not var.fast:
+                    what = "does not exist" if var is None else f"is {var.causality} {var.type}"
+                    self.err(where, f"component {comp.name!r}: flange {fname!r}: {role} {fl[role]!r} {what}; it must "
+                                    f"be a Real input or output{suggest(str(fl[role]), vs) if var is None else ''}")
+                    break
+                kinds.append(var.causality)
+            else:
+                if kinds[0] == kinds[1]:
+                    self.err(where, f"component {comp.name!r}: flange {fname!r}: effort and flow are both "
+                                    f"{kinds[0]}s; one must be the input, the other the output")
+                    continue
+                if fname in vs:
+                    self.err(where, f"component {comp.name!r}: flange {fname!r} has the name of a variable; "
+                                    f"name it otherwise")
+                    continue
+                found.append(Flange(str(fname), str(fl["effort"]), str(fl["flow"]),
+                                    "effort_out" if kinds[0] == "output" else "flow_out"))
+        comp.description = dataclasses.replace(comp.description, flanges=list(comp.description.flanges) + found)
 
     def _behaviour(self, comp: Component, spec: YMap) -> None:
         """The behavioural check of an external FMU (:mod:`cosim.slaves.behaviour`, once per FMU hash):
