@@ -49,6 +49,10 @@ def register(sub: argparse._SubParsersAction) -> None:
                                       "modelDescription.xml against the FMI schema and FMPy's rules.  Prints one "
                                       "line per problem; the exit code is their number (at most 100).")
     ck.add_argument("fmu", type=Path, help="the .fmu file")
+    ck.add_argument("--behaviour", action="store_true",
+                    help="also run the FMU (two instances, state get/set/free, the noSetFMUStatePriorToCurrentPoint "
+                         "flag, reset, determinism, directional derivatives, setters, stop time) and print each "
+                         "departure from the FMI standard, and the workarounds a run applies")
     ck.set_defaults(handler=_check)
     sh = verbs.add_parser("show", help="interface, parameters (units, defaults, bounds), states and integrator "
                                        "of a catalog model or an FMU file")
@@ -173,8 +177,21 @@ def _check(args: argparse.Namespace) -> int:
         raise UserError(f"{args.fmu}: cannot read the model description ({str(exc).splitlines()[0] if str(exc) else type(exc).__name__})") from None
     for p in problems:
         print(p)
-    print(f"{args.fmu}: {len(problems)} problem(s)", file=sys.stderr)
-    return min(len(problems), 100)
+    n = len(problems)
+    if args.behaviour:
+        from ..slaves.behaviour import check_in_subprocess
+
+        found = check_in_subprocess(args.fmu)
+        for line in found["departures"]:
+            print(line)
+        fixes = [k for k, v in found["workarounds"].items() if v]
+        print(f"{args.fmu}: behaviour: {len(found['departures'])} departure(s) in {len(found['checks'])} checks "
+              f"({', '.join(found['checks'])}); skipped: "
+              f"{'; '.join(f'{k} ({v})' for k, v in found['skipped'].items()) or 'none'}; "
+              f"workarounds a run applies: {', '.join(fixes) or 'none'}", file=sys.stderr)
+        n += len(found["departures"])
+    print(f"{args.fmu}: {n} problem(s)", file=sys.stderr)
+    return min(n, 100)
 
 
 def _show(args: argparse.Namespace) -> int:

@@ -235,6 +235,13 @@ def _run(scene, overrides, out_dir, catalog, cache_dir, progress, log, engine, s
         if [s.name for s in slaves] != list(scene.components):
             raise UserError(f"slaves must match the scene's components in order: {list(scene.components)}")
     for s, c in zip(slaves, scene.components.values()):
+        if c.kind == "fmu" and s.description is not c.description and isinstance(s, FmuSlave):
+            # what the scene check found (feedthrough, behavioural workarounds) also for slaves made elsewhere (batches)
+            d = c.description
+            s.description = replace(s.description, feedthrough=d.feedthrough, workarounds=d.workarounds,
+                                    rollback_reason=d.rollback_reason,
+                                    can_get_set_state=s.description.can_get_set_state and d.can_get_set_state)
+            s.always_no_prior = "always_no_prior" in d.workarounds
         if not c.rollback and s.description.can_get_set_state:  # the scene forbids rollback of this component
             s.description = replace(s.description, can_get_set_state=False)
     build_s = time.perf_counter() - t0

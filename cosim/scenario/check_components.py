@@ -75,6 +75,8 @@ class ComponentChecks(Checker):
         for key in ("fidelity", "options"):
             if key in spec:
                 self.err(spec.loc(key), f"component {name!r}: '{key}' applies to catalog models, not to an FMU")
+        if not self._xml(name, fpath, where):
+            return None
         try:
             desc = describe_fmu(fpath)
         except UserError as exc:
@@ -154,7 +156,23 @@ class ComponentChecks(Checker):
                                        rollback_reason="its FMU state restore does not restore (behavioural check)")
             self.note(where, f"component {comp.name!r}: workaround: run without rollback (restoring its FMU state "
                              f"does not restore it); adaptive and iterative refuse it")
+        if fixes.get("no_reset"):
+            desc = dataclasses.replace(desc, workarounds=desc.workarounds + ("no_reset",))
+            self.note(where, f"component {comp.name!r}: workaround: loaded anew for every run of a batch (its reset "
+                             f"does not reset it)")
         comp.description = desc
+
+    def _xml(self, name: str, fpath: Path, where: Loc) -> bool:
+        """The FMU's modelDescription.xml checked (:mod:`cosim.slaves.xmlcheck`, once per FMU hash):
+        errors refuse the component, recommendations are warnings.  False on an error."""
+        from ..slaves import probe
+        from ..slaves.xmlcheck import check_xml
+
+        found, _ = probe.cached(fpath, "xml", lambda: [list(p) for p in check_xml(fpath)])
+        for severity, line, msg in found:
+            at = f"modelDescription.xml{f' line {line}' if line else ''}"
+            (self.err if severity == "error" else self.warn)(where, f"component {name!r}: {fpath.name}: {at}: {msg}")
+        return not any(p[0] == "error" for p in found)
 
     def _feedthrough(self, comp: Component, spec: YMap) -> None:
         """The component's direct feedthrough: the scene's ``feedthrough:`` (``none``, ``all`` or a

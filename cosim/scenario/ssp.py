@@ -49,7 +49,10 @@ NS = {
     "ssm": "http://ssp-standard.org/SSP1/SystemStructureParameterMapping",
     "ssb": "http://ssp-standard.org/SSP1/SystemStructureSignalDictionary",
     "rpr": "https://github.com/rpr-cosim/ssp/1.0",
+    "osp": "http://opensimulationplatform.com/SSP/OSPAnnotations",
 }
+#: libcosim's annotation of the default experiment (its algorithm and base step)
+OSP_ANNOTATION = "com.opensimulationplatform"
 MASTER_ANNOTATION = "org.rpr-cosim.master"
 COMPONENT_ANNOTATION = "org.rpr-cosim.component"
 BOND_ANNOTATION = "org.rpr-cosim.bond"
@@ -517,6 +520,10 @@ class _Reader:
         ann = root.find(f"ssd:DefaultExperiment/ssd:Annotations/ssc:Annotation[@type='{MASTER_ANNOTATION}']/rpr:Master",
                         NS)
         node = YMap()
+        osp = root.find(f"ssd:DefaultExperiment/ssd:Annotations/ssc:Annotation[@type='{OSP_ANNOTATION}']/osp:Algorithm",
+                        NS)
+        if ann is None and osp is not None:
+            return self.osp_master(osp), None, None
         if ann is None:
             step = self.foreign_step(comps)
             node.update({**FOREIGN_MASTER, "step": step})
@@ -542,6 +549,30 @@ class _Reader:
             outputs.where = self.loc(ann)
             outputs.locs = [self.loc(o) for o in outs]
         return node, outputs, ann.get("scene")
+
+    def osp_master(self, el):
+        """libcosim's annotation: ``FixedStepAlgorithm baseStepSize`` -> jacobi at that step (libcosim's
+        fixed step exchanges at t_k, then steps every slave); ``EccoAlgorithm`` -> ecco."""
+        from .yamlfile import YMap
+
+        node = YMap()
+        node.where = self.loc(el)
+        fixed, ecco = el.find("osp:FixedStepAlgorithm", NS), el.find("osp:EccoAlgorithm", NS)
+        alg = fixed if fixed is not None else ecco
+        if alg is None:
+            kids = [c.tag.split("}")[-1] for c in el if isinstance(c.tag, str)]
+            self.err(el.sourceline, f"{OSP_ANNOTATION} Algorithm: {', '.join(kids) or 'nothing'}; expected "
+                                    f"FixedStepAlgorithm or EccoAlgorithm")
+            return node
+        try:
+            step = float(alg.get("baseStepSize"))
+        except (TypeError, ValueError):
+            self.err(alg.sourceline, f"{alg.tag.split('}')[-1]}: baseStepSize = {alg.get('baseStepSize')!r}; expected "
+                                     f"a step in seconds")
+            return node
+        node.update({"algorithm": "jacobi" if alg is fixed else "ecco", "step": step})
+        node.locs = {k: self.loc(alg) for k in node}
+        return node
 
     def foreign_step(self, comps) -> float:
         import fmpy

@@ -23,7 +23,8 @@ Each departure is one line: the function, what the standard says, what the FMU d
 workaround exists it is returned: ``always_no_prior`` (pass ``noSetFMUStatePriorToCurrentPoint =
 true`` always: for an FMU whose steps with false differ from those with true) and ``no_rollback``
 (an FMU whose restore does not restore is run as one that cannot roll back, so ``adaptive`` and
-``iterative`` refuse it with the reason).
+``iterative`` refuse it with the reason) and ``no_reset`` (an FMU whose reset does not reset is loaded
+anew for every run of a batch instead of being reset).
 
 :func:`check_in_subprocess` runs the check in a child process (an FMU that crashes cannot take the
 run down with it); ``python -m cosim.slaves.behaviour FILE.fmu`` prints the result as JSON.
@@ -136,7 +137,7 @@ def check(path: Path) -> dict:
     """Run every check on the FMU ``path``: ``{"departures": [...], "workarounds": {...},
     "checks": [...], "skipped": {check: why}}``."""
     f = _Fmu(path)
-    out: dict = {"departures": [], "workarounds": {"always_no_prior": False, "no_rollback": False},
+    out: dict = {"departures": [], "workarounds": {"always_no_prior": False, "no_rollback": False, "no_reset": False},
                  "checks": [], "skipped": {}}
     if f.cs is None:
         out["skipped"]["all"] = "no co-simulation interface"
@@ -240,8 +241,10 @@ def check(path: Path) -> dict:
         if not _same(yr, y_true):
             dep.append(f"{fn}Reset: the standard says reset returns the instance to its state after instantiation; the "
                        f"same steps then gave {_show(yr, f.outs)} instead of {_show(y_true, f.outs)}")
+            out["workarounds"]["no_reset"] = True
     except Exception as exc:
         dep.append(f"{fn}Reset: the standard says reset is allowed after steps; the FMU failed ({_failed(exc)})")
+        out["workarounds"]["no_reset"] = True
     f.free(r)
     # directional derivatives at a communication point
     if f.flag("providesDirectionalDerivative") or f.flag("providesDirectionalDerivatives"):
@@ -350,7 +353,7 @@ def main(argv: list[str]) -> int:
         result = check(Path(argv[0]))
     except Exception as exc:  # an FMU that fails before any check could run
         result = {"departures": [f"the FMU could not be instantiated and initialised ({_failed(exc)})"],
-                  "workarounds": {"always_no_prior": False, "no_rollback": False}, "checks": [], "skipped": {}}
+                  "workarounds": {"always_no_prior": False, "no_rollback": False, "no_reset": False}, "checks": [], "skipped": {}}
     sys.stdout.flush()
     print("@@behaviour@@" + json.dumps(result))
     return 0

@@ -170,9 +170,15 @@ def describe_fmu(path: Path) -> SlaveDescription:
                         f"{' and '.join(kinds) or 'no interface'} only); rpr-cosim steps co-simulation FMUs")
     vs: dict[str, Variable] = {v.name: _fmu_variable(v, md.fmiVersion) for v in md.modelVariables}
     de = md.defaultExperiment
-    default = {} if de is None else {k: float(x) for k, x in (("start", de.startTime), ("stop", de.stopTime),
-                                                               ("tolerance", de.tolerance), ("step", de.stepSize))
-                                     if x is not None}
+    default = {}
+    for k, x in (() if de is None else (("start", de.startTime), ("stop", de.stopTime), ("tolerance", de.tolerance),
+                                        ("step", de.stepSize))):
+        if x is not None:
+            try:
+                default[k] = float(x)
+            except (TypeError, ValueError):
+                attr = {"start": "startTime", "stop": "stopTime", "tolerance": "tolerance", "step": "stepSize"}[k]
+                raise UserError(f"{path}: <DefaultExperiment>: {attr}={x!r} is not a number") from None
     inputs = [v.name for v in md.modelVariables if v.causality == "input"]
     ft: dict[str, list[str]] = {}
     listed = {u.variable.name: u for u in md.outputs}

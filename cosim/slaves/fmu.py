@@ -355,7 +355,7 @@ class FmuSlave(Slave):
         self._terminated = False
 
     def free(self) -> None:
-        if not self.reuse:
+        if not self.reuse or "no_reset" in self.description.workarounds:  # a reset that does not reset: load anew
             self.release()
 
     def release(self) -> None:
