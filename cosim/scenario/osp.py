@@ -26,7 +26,7 @@ What becomes what:
     first and largest step, change rates, PI gains; not the tolerances, which libcosim puts on the power
     residual and we on the energy residual of a step, nor the smallest step, at which libcosim goes on
     over tolerance and we end the run as unstable).
-``StartTime``, ``StopTime``, ``BaseStepSize``  the scene's start time, stop time and step.
+``StartTime``, ``EndTime``, ``BaseStepSize``  the scene's start time, stop time and step.
 
 Bad input gets one line naming the file, the line and what is expected.
 """
@@ -127,14 +127,14 @@ class _Reader:
     def tree(self, root):
         from .yamlfile import YList, YMap
 
-        known = {"StartTime", "StopTime", "BaseStepSize", "Algorithm", "Simulators", "Functions", "Connections",
+        known = {"StartTime", "EndTime", "BaseStepSize", "Algorithm", "Simulators", "Functions", "Connections",
                  "EccoConfiguration"}
         for el in _kids(root):
             if _local(el) not in known:
                 self.err(el, f"element <{_local(el)}> is not part of OspSystemStructure (expected "
                              f"{', '.join(sorted(known))})")
         base = self.time(root, "BaseStepSize")
-        start, stop = self.time(root, "StartTime"), self.time(root, "StopTime")
+        start, stop = self.time(root, "StartTime"), self.time(root, "EndTime")
         alg_el = _kid(root, "Algorithm")
         alg = (alg_el.text or "").strip() if alg_el is not None else "fixedStep"
         if alg not in ALGORITHMS:
@@ -186,7 +186,7 @@ class _Reader:
         tree.locs["name"] = self.loc(root)
         if stop is not None:
             tree["stop_time"] = stop
-            tree.locs["stop_time"] = self.loc(_kid(root, "StopTime"))
+            tree.locs["stop_time"] = self.loc(_kid(root, "EndTime"))
         if start:
             tree["start_time"] = start
             tree.locs["start_time"] = self.loc(_kid(root, "StartTime"))
