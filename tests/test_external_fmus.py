@@ -413,7 +413,7 @@ def test_bad_osp_input_is_one_line_with_file_and_line(data, change, message):
 @needs_data
 def test_an_osp_file_can_be_included_in_a_yaml_scene(data):
     scene = data / "fmi2" / "quarter_truck" / "mine.yaml"
-    scene.write_text("include: OspSystemStructure.xml\nstop_time: 0.01\nmaster: {algorithm: jacobi}\n")
+    scene.write_text("include: OspSystemStructure.xml\nstop_time: 0.01\nmaster: {algorithm: jacobi, options: null}\n")
     sc = load(scene)
     assert sc.master.algorithm == "jacobi" and sc.master.step == 1e-4 and set(sc.components) == {"chassis", "wheel"}
     assert sc.components["chassis"].params["mass"] == 400 and sc.components["wheel"].params["solverType"] == "Euler"
