@@ -10,7 +10,7 @@ import zipfile
 from pathlib import Path
 
 DEFECTS = ("none", "no_advance_false", "bad_restore", "reused_pointer", "shared_instances", "nondeterministic",
-           "bad_reset", "bad_derivative", "setter_fails", "strict_stop")
+           "bad_reset", "bad_derivative", "setter_fails", "strict_stop", "forgets_parameters")
 
 SOURCE = r"""
 #include <stdlib.h>
@@ -41,7 +41,11 @@ void fmi2FreeInstance(fmi2Component c) {
 #endif
 }
 fmi2Status fmi2SetupExperiment(fmi2Component c, fmi2Boolean td, fmi2Real tol, fmi2Real t0, fmi2Boolean sd, fmi2Real stop) {
-    S *s = c; s->t = t0; s->has_stop = sd; s->stop = stop; return fmi2OK; }
+    S *s = c; s->t = t0; s->has_stop = sd; s->stop = stop;
+#ifdef FORGETS_PARAMETERS
+    s->k = 1.0;
+#endif
+    return fmi2OK; }
 fmi2Status fmi2EnterInitializationMode(fmi2Component c) { return fmi2OK; }
 fmi2Status fmi2ExitInitializationMode(fmi2Component c) { return fmi2OK; }
 fmi2Status fmi2Terminate(fmi2Component c) { return fmi2OK; }

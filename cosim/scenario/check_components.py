@@ -156,6 +156,10 @@ class ComponentChecks(Checker):
                                        rollback_reason="its FMU state restore does not restore (behavioural check)")
             self.note(where, f"component {comp.name!r}: workaround: run without rollback (restoring its FMU state "
                              f"does not restore it); adaptive and iterative refuse it")
+        if fixes.get("set_in_init"):
+            desc = dataclasses.replace(desc, workarounds=desc.workarounds + ("set_in_init",))
+            self.note(where, f"component {comp.name!r}: workaround: its parameters and start values are set again in "
+                             f"initialisation mode (it forgets values set before)")
         if fixes.get("no_reset"):
             desc = dataclasses.replace(desc, workarounds=desc.workarounds + ("no_reset",))
             self.note(where, f"component {comp.name!r}: workaround: loaded anew for every run of a batch (its reset "

@@ -15,7 +15,7 @@ Checks (each one a short run on fresh instances, inputs and parameters at their 
                    (inputs a little off their start values) agree with central finite differences
                    (where the FMU provides them; no verdict where two difference steps disagree)
 ``setters``        every type's setter accepts a parameter's or input's own start value before
-                   initialisation
+                   initialisation, and a parameter set before initialisation keeps that value
 ``stop_time``      steps at communication points t0 + k h (and half steps where the step size may
                    vary) up to the declared stop time (the last one ending on it exactly) are accepted
 
@@ -23,8 +23,9 @@ Each departure is one line: the function, what the standard says, what the FMU d
 workaround exists it is returned: ``always_no_prior`` (pass ``noSetFMUStatePriorToCurrentPoint =
 true`` always: for an FMU whose steps with false differ from those with true) and ``no_rollback``
 (an FMU whose restore does not restore is run as one that cannot roll back, so ``adaptive`` and
-``iterative`` refuse it with the reason) and ``no_reset`` (an FMU whose reset does not reset is loaded
-anew for every run of a batch instead of being reset).
+``iterative`` refuse it with the reason) ``no_reset`` (an FMU whose reset does not reset is loaded
+anew for every run of a batch instead of being reset) and ``set_in_init`` (an FMU that forgets
+values set before initialisation gets them again in initialisation mode).
 
 :func:`check_in_subprocess` runs the check in a child process (an FMU that crashes cannot take the
 run down with it); ``python -m cosim.slaves.behaviour FILE.fmu`` prints the result as JSON.
@@ -121,6 +122,13 @@ class _Fmu:
             pass
 
 
+def _float_start(v) -> float | None:
+    try:
+        return float(v.start)
+    except (TypeError, ValueError):
+        return None
+
+
 def _same(a: list[float], b: list[float]) -> bool:
     return len(a) == len(b) and all(x == y or (math.isnan(x) and math.isnan(y)) for x, y in zip(a, b))
 
@@ -137,7 +145,7 @@ def check(path: Path) -> dict:
     """Run every check on the FMU ``path``: ``{"departures": [...], "workarounds": {...},
     "checks": [...], "skipped": {check: why}}``."""
     f = _Fmu(path)
-    out: dict = {"departures": [], "workarounds": {"always_no_prior": False, "no_rollback": False, "no_reset": False},
+    out: dict = {"departures": [], "workarounds": {"always_no_prior": False, "no_rollback": False, "no_reset": False, "set_in_init": False},
                  "checks": [], "skipped": {}}
     if f.cs is None:
         out["skipped"]["all"] = "no co-simulation interface"
@@ -308,6 +316,27 @@ def check(path: Path) -> dict:
             dep.append(f"{fn}Set{setter[3:]}: the standard says a {v.causality} may be set to its start value before initialisation; "
                          f"{v.name} = {raw!r} failed ({_failed(exc)})")
     f.free(w)
+    # a value set before initialisation must still be there after it
+    reals = [v for v in f.vars if v.causality == "parameter" and v.type in REAL and v.variability in
+             ("fixed", "tunable") and _float_start(v) is not None and not getattr(v, "dimensions", None)]
+    if reals:
+        v = reals[0]
+        w = f.new()
+        value = _float_start(v) + 1.0 + abs(_float_start(v))
+        setr, getr = (w.setFloat64, w.getFloat64) if f.fmi3 else (w.setReal, w.getReal)
+        try:
+            setr([v.valueReference], [value])
+            f.init(w)
+            back = getr([v.valueReference])[0]
+            if back != value:
+                dep.append(f"{fn}Set{'Float64' if f.fmi3 else 'Real'}: the standard says a parameter set after "
+                           f"instantiation keeps its value through initialisation; {v.name} set to {value:g} before "
+                           f"initialisation read {back:g} after it")
+                out["workarounds"]["set_in_init"] = True
+        except Exception as exc:
+            dep.append(f"{fn}Set{'Float64' if f.fmi3 else 'Real'}: the standard says a parameter may be set after "
+                       f"instantiation; {v.name} = {value:g} failed ({_failed(exc)})")
+        f.free(w)
     # communication points up to exactly the stop time
     ran("stop_time")
     z = f.new()
@@ -353,7 +382,7 @@ def main(argv: list[str]) -> int:
         result = check(Path(argv[0]))
     except Exception as exc:  # an FMU that fails before any check could run
         result = {"departures": [f"the FMU could not be instantiated and initialised ({_failed(exc)})"],
-                  "workarounds": {"always_no_prior": False, "no_rollback": False, "no_reset": False}, "checks": [], "skipped": {}}
+                  "workarounds": {"always_no_prior": False, "no_rollback": False, "no_reset": False, "set_in_init": False}, "checks": [], "skipped": {}}
     sys.stdout.flush()
     print("@@behaviour@@" + json.dumps(result))
     return 0
