@@ -30,10 +30,19 @@ if not DATA.is_dir():
 needs_data = pytest.mark.skipif(not DATA.is_dir(), reason="libcosim's test data is not here")
 
 
-@pytest.fixture(autouse=True)
-def _own_check_cache(tmp_path, monkeypatch):
-    """Each test measures afresh: the check cache (by FMU hash) lives in its temporary directory."""
-    monkeypatch.setenv("RPR_COSIM_CACHE", str(tmp_path / "cache"))
+@pytest.fixture(autouse=True, scope="module")
+def _own_check_cache(tmp_path_factory):
+    """The checks' cache (by FMU hash) of this module lives in a temporary directory: each FMU is
+    measured once here, never taken from a user's cache."""
+    import os
+
+    old = os.environ.get("RPR_COSIM_CACHE")
+    os.environ["RPR_COSIM_CACHE"] = str(tmp_path_factory.mktemp("check-cache"))
+    yield
+    if old is None:
+        os.environ.pop("RPR_COSIM_CACHE", None)
+    else:
+        os.environ["RPR_COSIM_CACHE"] = old
 
 
 @pytest.fixture(scope="module")
@@ -431,3 +440,33 @@ def test_libcosims_demo_ssp_runs_at_its_annotation_step_and_stop_time(data):
     res = run(sc)
     assert res.ok, res.reason
     np.testing.assert_allclose(res.trace.time, [0.0, 1e-4, 2e-4])
+
+
+@needs_data
+def test_an_ssp_with_the_osp_ecco_annotation_loads_as_ecco_with_its_options(data, tmp_path):
+    src = data / "ssp" / "demo" / "demo.ssp"
+    out = tmp_path / "ecco.ssp"
+    with zipfile.ZipFile(src) as zin, zipfile.ZipFile(out, "w") as zout:
+        for n in zin.namelist():
+            b = zin.read(n)
+            if n == "SystemStructure.ssd":
+                b = b.replace(b'<osp:FixedStepAlgorithm baseStepSize="1e-4"/>',
+                              b'<osp:EccoAlgorithm stepSize="1e-4" safetyFactor="0.9" maximumStepSize="0.01"/>')
+            zout.writestr(n, b)
+    sc = load(out)
+    assert sc.master.algorithm == "ecco" and sc.master.step == 1e-4
+    assert sc.master.options["safety"] == 0.9 and sc.master.options["h_max"] == 0.01
+
+
+@needs_data
+def test_workarounds_are_stated_in_the_run_output_and_sidecar(data, tmp_path):
+    import json
+
+    scene = _truck(data.parent, stop=0.01)
+    res = subprocess.run([sys.executable, "-m", "cosim", "run", str(scene), "--out", str(tmp_path / "out")],
+                         cwd=ROOT, capture_output=True, text=True, timeout=300)
+    assert res.returncode == 0, res.stderr[-2000:]
+    said = "component 'wheel': workaround: every doStep passes noSetFMUStatePriorToCurrentPoint = true"
+    assert said in res.stdout + res.stderr
+    side = json.loads((tmp_path / "out" / "quarter_truck.json").read_text())
+    assert any(said in n for n in side["notes"])

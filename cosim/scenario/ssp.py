@@ -556,13 +556,29 @@ class _Reader:
             self.err(el.sourceline, f"{OSP_ANNOTATION} Algorithm: {', '.join(kids) or 'nothing'}; expected "
                                     f"FixedStepAlgorithm or EccoAlgorithm")
             return node
+        attr = "baseStepSize" if alg is fixed or alg.get("baseStepSize") is not None else "stepSize"
         try:
-            step = float(alg.get("baseStepSize"))
+            step = float(alg.get(attr))
         except (TypeError, ValueError):
-            self.err(alg.sourceline, f"{alg.tag.split('}')[-1]}: baseStepSize = {alg.get('baseStepSize')!r}; expected "
-                                     f"a step in seconds")
+            self.err(alg.sourceline, f"{alg.tag.split('}')[-1]}: {attr} = {alg.get(attr)!r}; expected a step in seconds")
             return node
         node.update({"algorithm": "jacobi" if alg is fixed else "ecco", "step": step})
+        if alg is ecco:  # the EccoConfiguration of OspSystemStructure.xml as attributes (cosim.scenario.osp)
+            from .osp import ECCO_OPTIONS
+
+            opts = YMap()
+            opts.where = self.loc(alg)
+            for key, name in ECCO_OPTIONS.items():
+                raw = alg.get(key[0].lower() + key[1:])
+                if raw is not None:
+                    try:
+                        opts[name] = float(raw)
+                    except ValueError:
+                        self.err(alg.sourceline, f"EccoAlgorithm: {key[0].lower() + key[1:]} = {raw!r}; expected a number")
+                        continue
+                    opts.locs[name] = self.loc(alg)
+            if opts:
+                node["options"] = opts
         node.locs = {k: self.loc(alg) for k in node}
         return node
 
