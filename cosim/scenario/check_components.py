@@ -172,7 +172,10 @@ class ComponentChecks(Checker):
         from ..slaves import probe
         from ..slaves.xmlcheck import check_xml
 
-        found, _ = probe.cached(fpath, "xml", lambda: [list(p) for p in check_xml(fpath)])
+        try:
+            found, _ = probe.cached(fpath, "xml", lambda: [list(p) for p in check_xml(fpath)])
+        except Exception as exc:  # an archive so broken that the checker itself fails: one line, no traceback
+            found = [["error", 0, f"cannot be checked ({type(exc).__name__}: {exc})"]]
         for severity, line, msg in found:
             at = f"modelDescription.xml{f' line {line}' if line else ''}"
             (self.err if severity == "error" else self.warn)(where, f"component {name!r}: {fpath.name}: {at}: {msg}")
