@@ -25,12 +25,14 @@ catalog's blocks meet it too (``tests/test_user_blocks.py`` checks that).
 """
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Mapping
 
 import casadi as ca
 
 from .block import Block, BlockError, Flange, Param, Rating, Var
+from .interface import suggest
 
 
 def require_documented(block: Block, where: str = "") -> None:
@@ -139,6 +141,31 @@ class BlockBuilder:
         return blk
 
 
+def with_defaults(blk: Block, where: str, overrides: Mapping[str, object], options: list[str]) -> Block:
+    """``blk`` with parameter defaults (the FMU's start values) replaced by ``overrides``
+    (names checked against the parameters, values against the bounds); ``options`` are the
+    construction options' names, for the message about an unknown name."""
+    index = {p.name: i for i, p in enumerate(blk.params)}
+    params = list(blk.params)
+    for name, value in overrides.items():
+        if name not in index:
+            valid = list(options) + list(index)
+            raise BlockError(f"{where}: unknown option or parameter {name!r}{suggest(name, valid)} "
+                             f"(options: {', '.join(options) or 'none'}; parameters: {', '.join(index)})")
+        prm = params[index[name]]
+        try:
+            v = float(value)  # type: ignore[arg-type]
+        except (TypeError, ValueError):
+            raise BlockError(f"{where}: parameter {name}={value!r} must be a number [{prm.unit or '1'}]") from None
+        if isinstance(value, bool) or not math.isfinite(v) or not (prm.lower <= v <= prm.upper):
+            raise BlockError(f"{where}: parameter {name}={value!r} is outside [{prm.lower}, {prm.upper}] "
+                             f"[{prm.unit or '1'}]")
+        params[index[name]] = dataclasses.replace(prm, default=v)
+    blk = dataclasses.replace(blk, params=params)
+    blk.check()
+    return blk
+
+
 def _column(items: list) -> ca.SX:
     return ca.vertcat(*items) if items else ca.SX(0, 1)
 
@@ -172,4 +199,4 @@ def blocks_of(module_blocks: Mapping, where: str) -> dict[str, dict[str, object]
     return out
 
 
-__all__ = ["BlockBuilder", "require_documented", "check_factory_result", "blocks_of"]
+__all__ = ["BlockBuilder", "require_documented", "check_factory_result", "blocks_of", "with_defaults"]

@@ -15,6 +15,8 @@ from .checker import Checker, _is_number
 from .keys import COMPONENT_KEYS, FMI_VERSIONS
 from .model import Component
 from .problems import Loc, suggest
+from .user_blocks import (ENTRY_POINT_GROUP, UserBlockError, UserCatalog, entry_point_catalog, load_module_file,
+                          module_table, read_modelica)
 from .yamlfile import YMap, _display
 
 
@@ -50,6 +52,8 @@ class ComponentChecks(Checker):
             comp = self._hardware_component(name, spec)
         elif "fmu" in spec:
             comp = self._fmu_component(name, spec, fmi)
+        elif "modelica" in spec:
+            comp = self._modelica_component(name, spec, fmi)
         elif "model" in spec:
             comp = self._model_component(name, spec, fmi)
         else:
@@ -139,9 +143,19 @@ class ComponentChecks(Checker):
             return None
         cat = catalog.catalog()
         model = spec["model"]
+        user = None
+        if isinstance(model, str) and model not in cat and self.catalog is None:
+            user = self.user_models(cat)
+            if user is False:
+                return None
+            if model in user:
+                catalog, cat = user, user.catalog()
+            else:
+                cat = {**cat, **user.catalog()}
         if not isinstance(model, str) or model not in cat:
             self.err(spec.loc("model"), f"component {name!r}: unknown model {model!r}{suggest(str(model), cat)} "
-                                        f"(catalog: {', '.join(sorted(cat))})")
+                                        f"(catalog: {', '.join(sorted(cat))}; your own: a 'blocks:' file of the scene, "
+                                        f"an '{ENTRY_POINT_GROUP}' entry point or 'modelica:')")
             return None
         fidelity = spec.get("fidelity", cat[model][0])
         if not isinstance(fidelity, str) or fidelity not in cat[model]:
@@ -162,7 +176,8 @@ class ComponentChecks(Checker):
         from models.block import BlockError
 
         try:
-            block = make_block(catalog, model, fidelity, options)
+            block = make_block(catalog, model, fidelity, options) if user is None else catalog.make(model, fidelity,
+                                                                                                      **options)
         except (BlockError, ValueError, TypeError) as exc:
             self.err(spec.loc("options") if "options" in spec else spec.loc("model"), f"component {name!r}: {exc}")
             return None
@@ -171,18 +186,101 @@ class ComponentChecks(Checker):
         fixed = {k: params[k] for k in params if k in structural}
         if fixed:
             try:
-                block = make_block(catalog, model, fidelity, {**options, **fixed})
+                block = catalog.make(model, fidelity, **options, **fixed) if user is not None else \
+                    make_block(catalog, model, fidelity, {**options, **fixed})
             except (BlockError, ValueError, TypeError) as exc:
                 self.err(params.loc(next(iter(fixed))), f"component {name!r}: {exc}")
                 return None
         desc = describe_block(block, f"{model}/{fidelity}")
         comp = Component(name, "model", desc, model=model, fidelity=fidelity, options=options, fmi=fmi,
                          block=block, where=spec.where)
-        if self.catalog is None:
+        if self.catalog is None and user is None:  # a user block is found by content, not through the index
             from ..recipes import recipe_of
 
             comp.recipe = recipe_of(spec, options, fixed, fmi)
         self._values(comp, spec, skip=set(fixed))
+        return comp
+
+    def _base(self, where: Loc) -> Path:
+        return Path(where[0]).parent if where[1] else (self.path.parent if self.path else Path.cwd())
+
+    def user_models(self, reserved) -> UserCatalog | bool:
+        """The users' Python models: the scene's ``blocks:`` files and the ``rpr_cosim.blocks``
+        entry points (loaded once per scene); False after reporting why they cannot be loaded."""
+        if getattr(self, "_user", None) is not None:
+            return self._user
+        node, cat = self.tree.get("blocks", []), None
+        files = [node] if isinstance(node, str) else node
+        where = self.tree.loc("blocks") if "blocks" in self.tree else self.tree.where
+        if not isinstance(files, list) or not all(isinstance(f, str) for f in files):
+            self.err(where, f"blocks must be a Python file or a list of them, got {node!r}")
+            self._user = False
+            return False
+        try:
+            cat = entry_point_catalog(set(reserved))
+            for rel in files:
+                path = self._base(where) / rel
+                if not path.is_file():
+                    raise UserBlockError(f"blocks file {rel!r} not found (looked in {_display(path.parent)})")
+                module, digest = load_module_file(path)
+                cat.add(module_table(module, path.name), path.name, digest, set(reserved))
+        except UserBlockError as exc:
+            self.err(where, str(exc))
+            self._user = False
+            return False
+        self._user = cat
+        return cat
+
+    def _modelica_component(self, name: str, spec: YMap, fmi: str) -> Component | None:
+        """``{modelica: FILE.mo, model: CLASS, options: {integrator, substeps}}``: the Modelica
+        class translated into a block (:func:`models.modelica.translate`)."""
+        from models.block import BlockError
+        from models.modelica import INTEGRATORS, translate
+
+        where, rel, cls = spec.loc("modelica"), spec["modelica"], spec.get("model")
+        if not isinstance(rel, str):
+            self.err(where, f"component {name!r}: modelica must be a .mo file path, got {rel!r}")
+            return None
+        if not isinstance(cls, str) or not cls:
+            self.err(spec.loc("model") if "model" in spec else where,
+                     f"component {name!r}: name the Modelica class to use with 'model:' (e.g. model: Gear)")
+            return None
+        if "fidelity" in spec:
+            self.err(spec.loc("fidelity"), f"component {name!r}: 'fidelity' applies to catalog models, not to a "
+                                           f"Modelica class")
+            return None
+        path = self._base(where) / rel
+        if not path.is_file():
+            near = suggest(Path(rel).name, [p.name for p in path.parent.glob("*.mo")]) if path.parent.is_dir() else ""
+            self.err(where, f"component {name!r}: Modelica file {rel!r} not found (looked in "
+                            f"{_display(path.parent)}){near}")
+            return None
+        options = dict(spec.get("options", {}))
+        bad = [k for k in options if k not in ("integrator", "substeps")]
+        for k in bad:
+            self.err(spec["options"].loc(k), f"component {name!r}: a Modelica component has no option {k!r}"
+                                             f"{suggest(str(k), ['integrator', 'substeps'])} (options: integrator, "
+                                             f"substeps)")
+        integrator, substeps = options.get("integrator", "auto"), options.get("substeps", 1)
+        if integrator not in INTEGRATORS:
+            self.err(spec["options"].loc("integrator"), f"component {name!r}: integrator {integrator!r}; expected "
+                                                        f"one of {', '.join(INTEGRATORS)}")
+            return None
+        if isinstance(substeps, bool) or not isinstance(substeps, int) or substeps < 1:
+            self.err(spec["options"].loc("substeps"), f"component {name!r}: substeps {substeps!r}; expected a whole "
+                                                      f"number >= 1")
+            return None
+        if bad:
+            return None
+        try:
+            block = translate(read_modelica(path), cls, path.name, name=cls.split(".")[-1].lower(),
+                              integrator=integrator, substeps=substeps)
+        except (BlockError, UserBlockError) as exc:
+            self.err(where, f"component {name!r}: {exc}")
+            return None
+        comp = Component(name, "model", describe_block(block, f"{cls}/modelica"), model=cls, fidelity="modelica",
+                         options=options, fmi=fmi, block=block, where=spec.where)
+        self._values(comp, spec)
         return comp
 
     def _values(self, comp: Component, spec: YMap, skip: set[str] = frozenset()) -> None:
