@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 from cosim.errors import UserError
-from cosim.run import run
+from cosim.run.execute import run
 from cosim.scenario import SceneError, load
 from models.coupling import Link, linearize, macro_map, rk4_ramp_discretization
 
@@ -95,7 +95,7 @@ def test_multirate_trace_is_the_substepped_macro_map(variant, rates):
 
 def test_sub_steps_are_taken_at_exact_nanosecond_instants(monkeypatch):
     """The fast slave steps at t_k + j h/r computed from integer nanoseconds, with h/r each."""
-    from cosim import slaves as slaves_mod
+    from cosim import cosim as slaves_mod
 
     seen: list[tuple[str, float, float]] = []
     orig = slaves_mod.FmuSlave.do_step
@@ -135,7 +135,7 @@ def test_a_variable_step_algorithm_refuses_a_rate():
 
 def test_the_master_refuses_rates_an_algorithm_cannot_take():
     from cosim.master import CoupledSystem, simulate
-    from cosim.slaves import LinearSlave
+    from cosim.slaves.linear import LinearSlave
 
     sl = LinearSlave("a", [[-1.0]], [[1.0]], [[1.0]])
     with pytest.raises(UserError, match="does not divide master.step"):
