@@ -140,6 +140,12 @@ def _compile(text: str, model: str, filename: str):
         first = re.sub(r"^\S+ could not be compiled: ", "", first)
         loc = _LOCATION.search(msg)
         line = int(loc.group(2)) if loc else None
+        if line is None:  # the compiler's summary has no location: its diagnostics do
+            for d in rumoca.validate_source(text, model=model, filename=filename):
+                where = _LOCATION.search(d.message or "")
+                if d.level == "error" and where:
+                    line = int(where.group(2))
+                    break
         for d in getattr(exc, "diagnostics", []) or []:
             if line is None and d.line and d.line > 1:
                 line = d.line

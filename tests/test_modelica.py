@@ -1,0 +1,193 @@
+"""Modelica components (models.modelica through rumoca): the SPEC §6 DC motor written in Modelica
+against the hand-written catalog motor (a second formulation), in a scene and in its monolithic
+reference; algebraic loops against closed-form solutions; position flanges; and every malformed
+file refused with one line naming the file and the line."""
+from __future__ import annotations
+
+import textwrap
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+pytest.importorskip("rumoca")
+
+import models.blocks as catalog  # noqa: E402
+from cosim.run.execute import run  # noqa: E402
+from cosim.run.reference import reference  # noqa: E402
+from cosim.scenario import SceneError, from_dict, load  # noqa: E402
+from models.modelica import ModelicaError, translate  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[1]
+SCENES = ROOT / "scenarios"
+MOTOR = (SCENES / "user" / "DCMotor.mo").read_text()
+
+
+def motor():
+    return translate(MOTOR, "Motors.DCMotor", "DCMotor.mo", name="dc_motor")
+
+
+def test_modelica_motor_has_the_interface_and_equations_of_the_catalog_motor():
+    mo, ours = motor(), catalog.make("dc_motor", "full")
+    for kind in ("params", "inputs", "outputs", "states"):
+        assert [(v.name, v.unit) for v in getattr(mo, kind)] == [(v.name, v.unit) for v in getattr(ours, kind)], kind
+    assert [p.default for p in mo.params] == pytest.approx([p.default for p in ours.params], rel=1e-15)
+    assert mo.integrator == ours.integrator == "exact"
+    assert mo.flanges == ours.flanges and mo.feedthrough() == ours.feedthrough()
+    fm, fo = mo.functions(), ours.functions()
+    rng = np.random.default_rng(7)
+    for _ in range(20):
+        x, u, p = rng.normal(size=1) * 20, rng.normal(size=2) * [12, 0.5], ours.param_defaults * rng.uniform(0.5, 2, 6)
+        for f in ("ode", "out"):
+            a, b = np.array(fm[f](x, u, p)).ravel(), np.array(fo[f](x, u, p)).ravel()
+            assert np.allclose(a, b, rtol=1e-12, atol=0), f
+
+
+@pytest.fixture(scope="module")
+def pid_runs(tmp_path_factory):
+    """pid_step with the catalog motors and with the Modelica ones: co-simulation and reference."""
+    out = {}
+    for scene in ("pid_step", "pid_step_modelica"):
+        path = SCENES / f"{scene}.yaml"
+        res = run(path, ["stop_time=0.5"], out_dir=tmp_path_factory.mktemp(scene))
+        ref = reference(path, ["stop_time=0.5"])
+        assert res.ok and ref.ok, (res.reason, ref.reason)
+        out[scene] = (res.trace, ref.trace)
+    return out
+
+
+@pytest.mark.parametrize("which", [0, 1], ids=["cosimulation", "monolithic reference"])
+def test_pid_step_with_the_modelica_motors_equals_pid_step(pid_runs, which):
+    ours, mo = pid_runs["pid_step"][which], pid_runs["pid_step_modelica"][which]
+    assert ours.columns == mo.columns and ours.data.shape == mo.data.shape
+    scale = np.abs(ours.data).max(axis=0)
+    assert np.all(np.abs(mo.data - ours.data) <= 1e-12 * np.maximum(scale, 1.0))
+    assert np.ptp(mo["motor1.i"]) > 1.0  # the motors did work
+
+
+LOOP = """
+model Loop "two resistors in parallel fed through a third: a linear algebraic loop, and a cubic one"
+  parameter Real R1(unit = "Ohm") = 2 "first";
+  parameter Real R2(unit = "Ohm") = 3 "second";
+  parameter Real R3(unit = "Ohm") = 5 "series";
+  input Real u(unit = "V") "source voltage";
+  output Real i(unit = "A") "source current";
+  output Real z(unit = "1") "root of z^3 + z = u/(1 V)";
+  Real v(unit = "V") "node voltage";
+  Real i1(unit = "A") "current through R1";
+  Real i2(unit = "A") "current through R2";
+equation
+  u = R3 * i + v;
+  v = R1 * i1;
+  v = R2 * i2;
+  i = i1 + i2;
+  z ^ 3 + z = u;
+end Loop;
+"""
+
+
+def test_algebraic_loops_are_solved_inside_the_block():
+    b = translate(LOOP, "Loop", "Loop.mo")
+    out = b.functions()["out"]
+    for u in (-7.0, 0.3, 10.0):
+        i, z = np.array(out([], [u], b.param_defaults)).ravel()
+        assert i == pytest.approx(u / (5 + 2 * 3 / 5), rel=1e-14)  # R3 + R1 || R2
+        real = [r.real for r in np.roots([1, 0, 1, -u]) if abs(r.imag) < 1e-12]
+        assert z == pytest.approx(real[0], rel=1e-12)
+
+
+SPRING = """
+connector Flange "translational flange"
+  Real s(unit = "m") "position";
+  flow Real f(unit = "N") "cut force";
+end Flange;
+model Mass "a mass on a spring, its flange a position"
+  parameter Real m(unit = "kg") = 2 "mass";
+  parameter Real k(unit = "N/m") = 50 "spring to ground";
+  Flange flange "where the load pushes";
+  Real x(unit = "m", start = 0.1) "position";
+  Real v(unit = "m/s", start = 0) "velocity";
+equation
+  der(x) = v;
+  m * der(v) = -k * x + flange.f;
+  flange.s = x;
+end Mass;
+"""
+
+
+def test_a_position_connector_becomes_a_flow_out_flange_carrying_the_rate():
+    b = translate(SPRING, "Mass", "Mass.mo")
+    assert [(f.effort, f.flow, f.causality) for f in b.flanges] == [("flange.f", "flange.v", "flow_out")]
+    fn = b.functions()
+    x, f = np.array([0.03, -0.4]), 1.5
+    y = dict(zip([v.name for v in b.outputs], np.array(fn["out"](x, [f], b.param_defaults)).ravel()))
+    assert y == {"flange.v": pytest.approx(-0.4), "flange.s": pytest.approx(0.03)}
+    assert np.array(fn["ode"](x, [f], b.param_defaults)).ravel() == pytest.approx([-0.4, (-50 * 0.03 + 1.5) / 2])
+
+
+BASE = '''model M "m"
+  parameter Real k(unit = "1") = 2 "gain";
+  input Real u(unit = "V") "in";
+  output Real y(unit = "V") "out";
+  Real x(unit = "V", start = 0) "state";{decl}
+equation
+  der(x) = -x + u;
+  y = k * x{term};{eqs}
+end M;
+'''
+
+
+@pytest.mark.parametrize("decl, term, eqs, line, what", [
+    ("", " +", "", 8, "unexpected"),
+    ("", " + zz", "", 8, "zz"),
+    ("\n  discrete Real d(start = 0) \"d\";", "", "\n  when x > 1 then d = 1; end when;", 6, "discrete"),
+    ("", "", "\n  when x > 1 then reinit(x, 0); end when;", 9, "when"),
+    ("\n  Real q(unit = \"V\") \"q\";", "", "\nalgorithm\n  q := x;", 10, "algorithm"),
+    ("", " + time", "", 8, "time"),
+    ("\n  input Real w \"no unit\";", "", "", 6, "input 'w' has no unit"),
+    ("\n  parameter Real c(unit = \"1\") = 1;", "", "", 6, "has no description"),
+    ("", "", "\n  y = 2 * x;", None, "unbalanced model: 3 equations, 2 unknowns"),
+])
+def test_a_malformed_model_is_refused_with_file_and_line(decl, term, eqs, line, what):
+    with pytest.raises(ModelicaError) as err:
+        translate(BASE.format(decl=decl, term=term, eqs=eqs), "M", "M.mo")
+    msg = str(err.value)
+    assert "\n" not in msg and what in msg, msg
+    assert msg.startswith(f"M.mo:{line}: " if line else "M.mo: "), msg
+
+
+def test_external_functions_and_arrays_of_connectors_are_refused():
+    ext = 'function f "e"\n  input Real a; output Real b;\nexternal "C" b = g(a);\nend f;\n' + BASE.format(
+        decl="", term=" + f(x)", eqs="")
+    with pytest.raises(ModelicaError, match=r"^E\.mo:1: function"):
+        translate(ext, "M", "E.mo")
+    arr = 'connector C "c"\n  Real v(unit = "m/s") "v"; flow Real f(unit = "N") "f";\nend C;\n' + BASE.format(
+        decl='\n  C c[2] "two";', term="", eqs="\n  c[1].v = x; c[2].v = x;")
+    with pytest.raises(ModelicaError, match=r"^A\.mo:\d+: c: arrays of connectors"):
+        translate(arr, "M", "A.mo")
+
+
+def test_a_scene_with_a_broken_modelica_file_gets_one_line_naming_scene_file_and_mo_line(tmp_path):
+    (tmp_path / "Bad.mo").write_text(BASE.format(decl="", term="", eqs="\n  when x > 1 then reinit(x, 0); end when;"))
+    (tmp_path / "scene.yaml").write_text(textwrap.dedent("""\
+        stop_time: 0.1
+        components:
+          m: {modelica: Bad.mo, model: M}
+        master: {algorithm: jacobi, step: 1e-3}
+        """))
+    with pytest.raises(SceneError) as err:
+        load(tmp_path / "scene.yaml")
+    (msg,) = str(err.value).splitlines()
+    assert "scene.yaml:3" in msg and "Bad.mo:9: when" in msg, msg
+
+
+def test_a_missing_modelica_file_or_class_is_one_line(tmp_path):
+    data = {"stop_time": 0.1, "components": {"m": {"modelica": "Nope.mo", "model": "M"}},
+            "master": {"algorithm": "jacobi", "step": 1e-3}}
+    with pytest.raises(SceneError, match="Modelica file 'Nope.mo' not found"):
+        from_dict(data, base_dir=tmp_path)
+    (tmp_path / "Nope.mo").write_text(BASE.format(decl="", term="", eqs=""))
+    data["components"]["m"]["model"] = "Other"
+    with pytest.raises(SceneError) as err:
+        from_dict(data, base_dir=tmp_path)
+    assert len(str(err.value).splitlines()) == 1 and "Nope.mo" in str(err.value)
