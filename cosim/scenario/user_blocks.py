@@ -96,8 +96,8 @@ class UserCatalog:
         overrides = {k: v for k, v in opts.items() if k not in known}
         try:
             blk = factory(**construction)
-        except ValueError:
-            raise
+        except ValueError as exc:  # a BlockError of the user's declarations
+            raise UserBlockError(f"{where}: {exc}") from None
         except Exception as exc:  # the user's code failed: one line, with its own file and line
             raise UserBlockError(f"{where}: the factory raised {_one_line(exc)}") from None
         blk = check_factory_result(blk, where)
