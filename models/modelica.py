@@ -153,7 +153,7 @@ def _compile(text: str, model: str, filename: str):
             unresolved = _UNRESOLVED.search(msg)
             if unresolved:
                 line = _first_line(text, unresolved.group(1))
-        if line is None and "not found" in msg and model:
+        if line is None and model and model not in _classes(text) and model.split(".")[-1] not in _classes(text):
             first = f"{first} (the file defines {', '.join(_classes(text)) or 'no class'})"
         raise ModelicaError(filename, line, first.strip().rstrip(":")) from None
 
@@ -560,7 +560,8 @@ class _Translation:
         name = fl["name"]
         if causality == "effort_out":  # potential in, effort (force on the partner = -f) out
             unit, text = self._doc(fv, "connector variable")
-            b.output(fv["name"], -value[fl["flow"]], unit, f"{text} (on the partner: -{fv['name']} of the model)")
+            b.output(fv["name"], -value[fl["flow"]], unit, f"on the partner: -{fv['name']} of the model, whose flow "
+                                                           f"variable is the {text}")
             flow = f"{name}.v" if fl["position"] else pv["name"]
             b.flange(name, fv["name"], flow, "effort_out")
         else:  # effort in, potential (or its rate) out

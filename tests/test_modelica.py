@@ -191,3 +191,15 @@ def test_a_missing_modelica_file_or_class_is_one_line(tmp_path):
     with pytest.raises(SceneError) as err:
         from_dict(data, base_dir=tmp_path)
     assert len(str(err.value).splitlines()) == 1 and "Nope.mo" in str(err.value)
+
+
+def test_fmu_show_describes_a_modelica_class(capsys):
+    from cosim import cli
+
+    assert cli.main(["fmu", "show", str(SCENES / "user" / "RackPinion.mo") + ":Drive.RackPinion"]) == 0
+    out = capsys.readouterr().out
+    assert "Tc                0.002 [N.m]  Coulomb friction torque" in out
+    assert "flange: effort flange.f, flow flange.v; computes the effort (effort_out)" in out
+    assert cli.main(["fmu", "show", str(SCENES / "user" / "RackPinion.mo") + ":Nope"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "RackPinion.mo" in err and "Drive" in err, err

@@ -79,12 +79,50 @@ def model_info(model: str, fidelity: str | None = None) -> Info:
     if fidelity not in cat[model]:
         raise UserError(f"model {model!r} has no fidelity {fidelity!r}{suggest(fidelity, cat[model])} "
                         f"(expected one of {', '.join(cat[model])})")
-    blk = blocks.make(model, fidelity)
-    params = [ParamInfo(p.name, p.unit, p.default, p.lower, p.upper, p.description,
-                        "fixed" if p.structural else "tunable") for p in blk.params]
     opts = [(o.name, str(o.default), o.description + (f" ({', '.join(o.choices)})" if o.choices else ""))
             for o in blocks.options(model, fidelity).values()]
-    return Info(f"{model}/{fidelity}", blk.description,
+    return block_info(blocks.make(model, fidelity), f"{model}/{fidelity}", opts)
+
+
+def user_block_info(what: str) -> Info:
+    """A user's block: ``FILE.mo:CLASS`` (a Modelica class, :mod:`models.modelica`) or
+    ``FILE.py:MODEL[/FIDELITY]`` (a Python block module, :mod:`cosim.scenario.user_blocks`)."""
+    from models.block import BlockError
+
+    from ..scenario.user_blocks import UserBlockError, UserCatalog, load_module_file, module_table, read_modelica
+
+    file, _, name = what.rpartition(":")
+    path = Path(file)
+    if not path.is_file():
+        raise UserError(f"{file}: no such file")
+    try:
+        if path.suffix == ".mo":
+            from models.modelica import translate
+
+            if not name:
+                raise UserError(f"{what}: name the Modelica class, e.g. {file}:Gear")
+            blk = translate(read_modelica(path), name, path.name, name=name.split(".")[-1].lower())
+            return block_info(blk, f"{name}/modelica ({path.name})", [
+                ("integrator", "auto", "exact when the equations are linear, else radau (auto, exact, rk4, radau)"),
+                ("substeps", "1", "integrator substeps per communication step")])
+        model, _, fidelity = name.partition("/")
+        cat = UserCatalog()
+        module, digest = load_module_file(path)
+        cat.add(module_table(module, path.name), path.name, digest, set())
+        if model not in cat:
+            raise UserError(f"{path.name} has no model {model!r} (BLOCKS: {', '.join(cat.models) or 'none'})")
+        opts = [(o.name, str(o.default), o.description) for o in cat.options(model, fidelity or None).values()]
+        return block_info(cat.make(model, fidelity or None), f"{model}/{fidelity or next(iter(cat.models[model].fidelities))} "
+                                                              f"({path.name})", opts)
+    except (BlockError, UserBlockError) as exc:
+        raise UserError(str(exc)) from None
+
+
+def block_info(blk, title: str, opts: list[tuple[str, str, str]]) -> Info:
+    """The outside view of a :class:`models.block.Block`."""
+    params = [ParamInfo(p.name, p.unit, p.default, p.lower, p.upper, p.description,
+                        "fixed" if p.structural else "tunable") for p in blk.params]
+    return Info(title, blk.description,
                 [VarInfo(v.name, v.unit, v.description) for v in blk.inputs],
                 [VarInfo(v.name, v.unit, v.description) for v in blk.outputs],
                 [VarInfo(v.name, v.unit, v.description) for v in blk.states], params,

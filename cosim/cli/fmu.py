@@ -3,7 +3,7 @@
     rpr-cosim fmu build MODEL [--fidelity F] [--set name=value ...] [--fmi 2|3] [--out DIR] [--cache DIR]
     rpr-cosim fmu list [--cache DIR]
     rpr-cosim fmu check FMU
-    rpr-cosim fmu show MODEL[/FIDELITY] | FILE.fmu [--markdown [FILE]]
+    rpr-cosim fmu show MODEL[/FIDELITY] | FILE.fmu | FILE.mo:CLASS | FILE.py:MODEL [--markdown [FILE]]
     rpr-cosim fmu show --readme [README.md]
 
 ``build`` prints the FMU's path on stdout (progress goes to stderr).  ``--set`` values that are
@@ -52,7 +52,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     ck.set_defaults(handler=_check)
     sh = verbs.add_parser("show", help="interface, parameters (units, defaults, bounds), states and integrator "
                                        "of a catalog model or an FMU file")
-    sh.add_argument("what", nargs="?", help="MODEL[/FIDELITY] (e.g. pid/continuous) or FILE.fmu")
+    sh.add_argument("what", nargs="?", help="MODEL[/FIDELITY] (e.g. pid/continuous), FILE.fmu, or a user's block: "
+                                            "FILE.mo:CLASS or FILE.py:MODEL[/FIDELITY]")
     sh.add_argument("--markdown", nargs="?", const="-", metavar="FILE",
                     help="write the same as a Markdown page (to FILE, default stdout)")
     sh.add_argument("--readme", nargs="?", const="README.md", type=Path, metavar="README",
@@ -186,7 +187,9 @@ def _show(args: argparse.Namespace) -> int:
         return 0
     if not args.what:
         raise UserError("fmu show: name a model (e.g. pid/continuous) or an FMU file, or pass --readme")
-    if args.what.endswith(".fmu") or Path(args.what).is_file():
+    if ":" in args.what and Path(args.what.rpartition(":")[0]).suffix in (".mo", ".py"):
+        info = model_doc.user_block_info(args.what)
+    elif args.what.endswith(".fmu") or Path(args.what).is_file():
         info = model_doc.fmu_info(Path(args.what))
     else:
         model, _, fidelity = args.what.partition("/")
