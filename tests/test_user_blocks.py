@@ -196,3 +196,57 @@ def test_the_builder_refuses_a_state_without_a_derivative():
     b.state("s", 0.0, "m", "position")
     with pytest.raises(BlockError, match="state 's' has no derivative"):
         b.build()
+
+
+HELPED = GOOD.replace("from models.user import BlockBuilder", "from models.user import BlockBuilder\nimport helper") \
+    .replace("(f - c * v) / m", "(f - helper.GAIN * c * v) / m")
+
+
+def test_the_recipe_index_serves_an_unchanged_user_block_and_misses_an_edited_one(tmp_path, monkeypatch):
+    """Indexed under the digests of the scene's blocks files, with the files their import loaded
+    (here a helper module beside them) checked at every hit."""
+    from fmus.index import IndexedBlock
+
+    monkeypatch.setenv("RPR_COSIM_CACHE", str(tmp_path / "cache"))
+    (tmp_path / "helper.py").write_text("GAIN = 1.0\n")
+    scene = _scene(tmp_path, HELPED)
+
+    def component():
+        s = load(scene)
+        return s.components["d"], build_components(s)["d"]
+
+    first, fmu = component()
+    assert not isinstance(first.block, IndexedBlock) and str(tmp_path / "helper.py") in first.depends
+    again, fmu_again = component()
+    assert isinstance(again.block, IndexedBlock) and fmu_again == fmu  # no module imported, no block built
+    (tmp_path / "helper.py").write_text("GAIN = 2.0\n")
+    edited, fmu_edited = component()
+    assert not isinstance(edited.block, IndexedBlock) and fmu_edited != fmu
+    (tmp_path / "my_blocks.py").write_text(HELPED + "# a comment\n")
+    commented, fmu_commented = component()
+    assert not isinstance(commented.block, IndexedBlock) and fmu_commented == fmu_edited  # same C: same FMU
+    assert isinstance(component()[0].block, IndexedBlock)
+
+
+def test_the_recipe_index_serves_a_modelica_block_until_its_text_changes(tmp_path, monkeypatch):
+    pytest.importorskip("rumoca")
+    from fmus.index import IndexedBlock
+
+    monkeypatch.setenv("RPR_COSIM_CACHE", str(tmp_path / "cache"))
+    text = (SCENES / "user" / "RackPinion.mo").read_text()
+    (tmp_path / "Gear.mo").write_text(text)
+    data = {"stop_time": 0.01, "components": {"g": {"modelica": "Gear.mo", "model": "Drive.RackPinion"}},
+            "master": {"algorithm": "jacobi", "step": 1e-3}}
+
+    def component():
+        s = from_dict(data, base_dir=tmp_path)
+        return s.components["g"], build_components(s)["g"]
+
+    first, fmu = component()
+    hit, fmu_hit = component()
+    assert not isinstance(first.block, IndexedBlock) and isinstance(hit.block, IndexedBlock) and fmu_hit == fmu
+    assert hit.block.real().params[2].name == "Tc"  # the equations when a run needs them: translated again
+    (tmp_path / "Gear.mo").write_text(text.replace("= 2e-3", "= 3e-3"))
+    edited, fmu_edited = component()
+    assert not isinstance(edited.block, IndexedBlock) and fmu_edited != fmu
+    assert edited.block.params[2].default == 3e-3

@@ -1,6 +1,7 @@
 """Validation of components: catalog models, external FMUs, hardware, their params and start values."""
 from __future__ import annotations
 
+import hashlib
 import math
 import re
 from collections.abc import Mapping
@@ -10,13 +11,15 @@ from typing import Any
 from ..errors import UserError
 from ..slaves.types import TYPES, display, parse_start
 from ..slaves.description import Variable, describe_block, describe_fmu, resolve_shapes
+from fmus.index import source_digest
+
 from .catalog import default_catalog, make_block
 from .checker import Checker, _is_number
 from .keys import COMPONENT_KEYS, FMI_VERSIONS
 from .model import Component
 from .problems import Loc, suggest
 from .user_blocks import (ENTRY_POINT_GROUP, UserBlockError, UserCatalog, entry_point_catalog, load_module_file,
-                          module_table, read_modelica)
+                          module_depends, module_table, read_modelica)
 from .yamlfile import YMap, _display
 
 
@@ -130,9 +133,16 @@ class ComponentChecks(Checker):
 
     def _model_component(self, name: str, spec: YMap, fmi: str) -> Component | None:
         if self.catalog is None:  # built before: from the FMU cache's recipe index, no block built
-            from .recipes import indexed_component
+            from .recipes import indexed_component, indexed_user_component
 
             comp = indexed_component(name, spec, fmi, Component)
+            sources = self._blocks_sources() if comp is None and isinstance(spec.get("model"), str) else None
+            if sources:  # a user's block of the scene's 'blocks:' files, unchanged since it was indexed
+                model = spec["model"]
+                comp = indexed_user_component(
+                    name, spec, fmi, Component, key=model, model=model, fidelity=spec.get("fidelity"),
+                    options=dict(spec.get("options", {})), sources=sources, origin=", ".join(sources),
+                    rebuild=lambda: self._user_block(model, spec))
             if comp is not None:
                 self._values(comp, spec, skip=set(comp.recipe.fixed))
                 return comp
@@ -194,10 +204,17 @@ class ComponentChecks(Checker):
         desc = describe_block(block, f"{model}/{fidelity}")
         comp = Component(name, "model", desc, model=model, fidelity=fidelity, options=options, fmi=fmi,
                          block=block, where=spec.where)
-        if self.catalog is None and user is None:  # a user block is found by content, not through the index
+        if self.catalog is None:
             from .recipes import recipe_of
 
-            comp.recipe = recipe_of(spec, options, fixed, fmi)
+            if user is None:
+                comp.recipe = recipe_of(spec, options, fixed, fmi)
+            else:
+                comp.origin, comp.depends = user.models[model].origin, user.depends(model)
+                sources = self._blocks_sources() if not comp.origin.startswith("entry point") else None
+                if sources:  # indexed with its sources; an entry point's block is found by content only
+                    comp.recipe = recipe_of(spec, options, fixed, fmi, key=model, fidelity=spec.get("fidelity"),
+                                            sources=sources)
         self._values(comp, spec, skip=set(fixed))
         return comp
 
@@ -223,13 +240,36 @@ class ComponentChecks(Checker):
                 if not path.is_file():
                     raise UserBlockError(f"blocks file {rel!r} not found (looked in {_display(path.parent)})")
                 module, digest = load_module_file(path)
-                cat.add(module_table(module, path.name), path.name, digest, set(reserved))
+                cat.add(module_table(module, path.name), path.name, digest, set(reserved), module_depends(module))
         except UserBlockError as exc:
             self.err(where, str(exc))
             self._user = False
             return False
         self._user = cat
         return cat
+
+    def _blocks_sources(self) -> dict[str, str] | None:
+        """``{"blocks:<file>": SHA-256}`` of the scene's ``blocks:`` files (None without any, or
+        when one cannot be read: then the full path reports it)."""
+        node = self.tree.get("blocks")
+        files = [node] if isinstance(node, str) else node
+        if not files or not isinstance(files, list):
+            return None
+        where = self.tree.loc("blocks")
+        out = {}
+        for rel in files:
+            digest = source_digest(self._base(where) / rel) if isinstance(rel, str) else "missing"
+            if digest == "missing":
+                return None
+            out[f"blocks:{rel}"] = digest
+        return out
+
+    def _user_block(self, model: str, spec: YMap):
+        """The real block of a user's model (when an indexed component needs its equations)."""
+        user = self.user_models(default_catalog().catalog())
+        if user is False:
+            raise UserError("; ".join(p.message for p in self.problems if p.severity == "error"))
+        return user.make(model, spec.get("fidelity"), **dict(spec.get("options", {})))
 
     def _modelica_component(self, name: str, spec: YMap, fmi: str) -> Component | None:
         """``{modelica: FILE.mo, model: CLASS, options: {integrator, substeps}}``: the Modelica
@@ -273,13 +313,39 @@ class ComponentChecks(Checker):
         if bad:
             return None
         try:
-            block = translate(read_modelica(path), cls, path.name, name=cls.split(".")[-1].lower(),
-                              integrator=integrator, substeps=substeps)
-        except (BlockError, UserBlockError) as exc:
+            text = read_modelica(path)
+        except UserBlockError as exc:
+            self.err(where, f"component {name!r}: {exc}")
+            return None
+
+        def block_of_text():
+            return translate(text, cls, path.name, name=cls.split(".")[-1].lower(), integrator=integrator,
+                             substeps=substeps)
+
+        from fmus.index import installed_version
+
+        key = f"modelica:{cls}"  # indexed with the text and the front end's version
+        sources = {"modelica": hashlib.sha256(text.encode()).hexdigest(),
+                   "rumoca": str(installed_version("rumoca", "rumoca"))}
+        if self.catalog is None:
+            from .recipes import indexed_user_component
+
+            comp = indexed_user_component(name, spec, fmi, Component, key=key, model=cls, fidelity="modelica",
+                                          options=options, sources=sources, origin=path.name, rebuild=block_of_text)
+            if comp is not None:
+                self._values(comp, spec)
+                return comp
+        try:
+            block = block_of_text()
+        except BlockError as exc:
             self.err(where, f"component {name!r}: {exc}")
             return None
         comp = Component(name, "model", describe_block(block, f"{cls}/modelica"), model=cls, fidelity="modelica",
-                         options=options, fmi=fmi, block=block, where=spec.where)
+                         options=options, fmi=fmi, block=block, where=spec.where, origin=path.name)
+        if self.catalog is None:
+            from .recipes import recipe_of
+
+            comp.recipe = recipe_of(spec, options, {}, fmi, key=key, fidelity="modelica", sources=sources)
         self._values(comp, spec)
         return comp
 

@@ -22,6 +22,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from fmus.index import SOURCE_ROOT, source_digest
+
 ENTRY_POINT_GROUP = "rpr_cosim.blocks"
 
 
@@ -46,6 +48,7 @@ class _Model:
     fidelities: dict[str, Any]  # fidelity -> factory
     origin: str  # where it was defined (file or entry point), for messages
     source: str  # SHA-256 of the defining module's source ("" when unknown)
+    depends: dict[str, str]  # the files its module imported (itself included) -> SHA-256
 
 
 class UserCatalog:
@@ -55,7 +58,8 @@ class UserCatalog:
     def __init__(self) -> None:
         self.models: dict[str, _Model] = {}
 
-    def add(self, table: Mapping, origin: str, source: str, reserved: set[str]) -> None:
+    def add(self, table: Mapping, origin: str, source: str, reserved: set[str],
+            depends: Mapping[str, str] | None = None) -> None:
         from models.user import blocks_of
 
         try:
@@ -67,7 +71,7 @@ class UserCatalog:
                 raise UserBlockError(f"{origin}: model {model!r} is a catalog model; give the user block another name")
             if model in self.models and self.models[model].origin != origin:
                 raise UserBlockError(f"{origin}: model {model!r} is also defined by {self.models[model].origin}")
-            self.models[model] = _Model(fids, origin, source)
+            self.models[model] = _Model(fids, origin, source, dict(depends or {}))
 
     def __contains__(self, model: object) -> bool:
         return model in self.models
@@ -106,6 +110,9 @@ class UserCatalog:
     def source(self, model: str) -> str:
         return self.models[model].source
 
+    def depends(self, model: str) -> dict[str, str]:
+        return dict(self.models[model].depends)
+
     def _factory(self, model: str, fidelity: str | None):
         fids = self.models[model].fidelities
         return fids[fidelity or next(iter(fids))]
@@ -119,17 +126,24 @@ def _one_line(exc: BaseException) -> str:
     return f"{type(exc).__name__}{': ' + text if text else ''}{where}"
 
 
+_DEPENDS: dict[str, dict[str, str]] = {}  # module name -> the files its import loaded
+
+
 def load_module_file(path: Path):
-    """Import the Python file ``path`` as a module (a fresh one for every content)."""
+    """Import the Python file ``path`` as a module (a fresh one for every content); returns the
+    module and the SHA-256 of its source.  :func:`module_depends` then lists the files it imported."""
     data = path.read_bytes()
     name = f"rpr_user_blocks_{hashlib.sha256(str(path.resolve()).encode() + data).hexdigest()[:16]}"
-    if name in sys.modules:
-        return sys.modules[name], hashlib.sha256(data).hexdigest()
+    if name in sys.modules and all(source_digest(Path(f)) == d for f, d in _DEPENDS.get(name, {}).items()):
+        return sys.modules[name], hashlib.sha256(data).hexdigest()  # imported before, nothing it loaded changed
+    before = set(sys.modules) - {name}
     spec = importlib.util.spec_from_file_location(name, path)
     if spec is None or spec.loader is None:
         raise UserBlockError(f"{path}: not a Python module")
     module = importlib.util.module_from_spec(spec)
     sys.modules[name] = module
+    folder = str(path.resolve().parent)
+    sys.path.insert(0, folder)  # a blocks file may import the modules beside it
     try:
         spec.loader.exec_module(module)
     except SyntaxError as exc:
@@ -138,7 +152,32 @@ def load_module_file(path: Path):
     except Exception as exc:  # the user's module failed at import
         del sys.modules[name]
         raise UserBlockError(f"{path.name}: importing it raised {_one_line(exc)}") from None
+    finally:
+        sys.path.remove(folder)
+    files = {str(path.resolve()): hashlib.sha256(data).hexdigest()}
+    for mod in set(sys.modules) - before:
+        f = getattr(sys.modules.get(mod), "__file__", None)
+        if f and _users_file(Path(f)):
+            files[str(Path(f).resolve())] = source_digest(Path(f))
+            if Path(f).resolve().parent == Path(folder) and mod != name:
+                del sys.modules[mod]  # the next scene's file of that name is imported afresh
+    _DEPENDS[name] = files
     return module, hashlib.sha256(data).hexdigest()
+
+
+def module_depends(module) -> dict[str, str]:
+    """The files the import of a module of :func:`load_module_file` loaded (itself included),
+    outside the Python installation and this project's packages (which the FMU cache's
+    fingerprint covers): what a user's block depends on."""
+    return dict(_DEPENDS.get(module.__name__, {}))
+
+
+def _users_file(path: Path) -> bool:
+    p = path.resolve()
+    roots = {Path(sys.prefix).resolve(), Path(sys.base_prefix).resolve()}
+    roots |= {(SOURCE_ROOT / pkg).resolve() for pkg in ("models", "fmus", "cosim", "hardware")}
+    return p.suffix == ".py" and not any(r == p or r in p.parents for r in roots) and "site-packages" not in p.parts
+
 
 
 def module_table(module, origin: str) -> Mapping:
@@ -169,10 +208,7 @@ def entry_point_catalog(reserved: set[str]) -> UserCatalog:
 
 def _module_digest(module) -> str:
     path = getattr(module, "__file__", None)
-    try:
-        return hashlib.sha256(Path(path).read_bytes()).hexdigest() if path else ""
-    except OSError:
-        return ""
+    return source_digest(Path(path)) if path else ""
 
 
 def read_modelica(path: Path) -> str:
