@@ -29,6 +29,11 @@ What a model may contain (anything else is refused with ``file:line: construct``
   its partner, so an ``effort_out`` flange exports ``-f`` (the same number Modelica's
   ``connect`` would hand to the partner) and a ``flow_out`` flange takes ``f`` as is.
 
+Units: rumoca 0.10 does not check them, so the translation does (:class:`_Units`, with
+:mod:`models.units`): the terms of a sum and the two sides of an equation must have the same SI
+dimension, and the arguments of sin, exp, tanh... be dimensionless; a variable without a unit is
+a wildcard, a number is a wildcard in a sum and a dimensionless factor in a product.
+
 Refused: when-equations, algorithm sections and functions (their bodies are algorithms),
 external functions, initial equations and algorithms, assert/terminate/reinit, event operators
 (pre, edge, change, sample, delay), ``time`` (blocks are autonomous), discrete, Integer, Boolean
@@ -46,6 +51,7 @@ from itertools import product
 
 import casadi as ca
 
+from . import units
 from .block import Block, BlockError
 from .user import BlockBuilder
 
@@ -193,6 +199,7 @@ class _Graph:
     env: dict
     line_of: object  # node index -> source line
     filename: str
+    names: dict  # variable index -> name (for messages)
 
     def __post_init__(self):
         self.memo: dict[int, ca.SX] = {}
@@ -240,6 +247,111 @@ class _Graph:
 
     def _refuse(self, i: int, what: str):
         raise ModelicaError(self.filename, self.line_of(i), what)
+
+
+_SAME = ("add", "subtract", "greater", "less", "greater_equal", "less_equal", "greater_or_equal",
+         "less_or_equal", "equal", "not_equal")
+_DIMENSIONLESS_ARG = ("sin", "cos", "tan", "asin", "acos", "atan", "sinh", "cosh", "tanh", "exp", "log", "log10")
+
+
+class _Units:
+    """The unit check of the DAE's expressions: every sum, comparison, min/max and branch of an
+    if-expression must add like units, and the built-in functions' arguments be dimensionless.
+    A variable without a unit (or with a symbol :mod:`models.units` does not know) and a number
+    in a sum are wildcards; a number in a product is a dimensionless factor."""
+
+    def __init__(self, graph: _Graph, var_units: dict[int, str]):
+        self.g = graph
+        self.units = {k: units.parse(u) for k, u in var_units.items()}
+        self.declared = var_units
+        self.memo: dict[int, tuple] = {}
+
+    def __call__(self, i: int):
+        """``(dims or None, is_number, label)`` of node ``i``."""
+        hit = self.memo.get(i)
+        if hit is None:
+            hit = self.memo[i] = self._eval(i)
+        return hit
+
+    def _eval(self, i: int):
+        (kind, body), = self.g.nodes[i].items()
+        if kind == "literal":
+            return None, True, "a number"
+        if kind == "coordinate":
+            (what, k), = body.items()
+            d = self.units.get(k)
+            label = f"{self.g.names.get(k, '?')} [{self.declared.get(k) or 'no unit'}]"
+            if what == "derivative" and d is not None:
+                return units.times(d, units.parse("s"), -1), False, f"der({self.g.names.get(k, '?')}) " \
+                                                                     f"[{self.declared.get(k)}/s]"
+            return d, False, label
+        if kind == "binary":
+            op = body["operator"]
+            a, b = self(body["lhs"]), self(body["rhs"])
+            if op in _SAME:
+                d = self._same(i, op, a, b)
+                return (d if op in ("add", "subtract") else None), a[1] and b[1], self._label(d)
+            if op in ("multiply", "divide"):
+                da = units.ONE if a[1] else a[0]
+                db = units.ONE if b[1] else b[0]
+                if da is None or db is None:
+                    return None, a[1] and b[1], "?"
+                d = units.times(da, db, 1 if op == "multiply" else -1)
+                return d, a[1] and b[1], self._label(d)
+            if op == "power":
+                e = self.g(body["rhs"])
+                if a[0] is None or not e.is_constant():
+                    return None, a[1], "?"
+                from fractions import Fraction
+
+                d = units.power(a[0], Fraction(float(ca.evalf(e))).limit_denominator(64))
+                return d, a[1], self._label(d)
+            return None, False, "?"
+        if kind == "unary":
+            a = self(body["operand"])
+            return (a if body["operator"] in ("negate", "plus") else (None, False, "?"))
+        args = [self(self.g.operands[self.g.starts[i] + k]) for k in range(body.get("operand_count", 0))]
+        if kind == "conditional":
+            d = None
+            for v in args[1::2] + [args[-1]]:
+                d = self._same(i, "if-expression", (d, d is None, self._label(d)), v) if d is not None else v[0]
+            return d, False, self._label(d)
+        if kind == "builtin":
+            name = body["builtin"]
+            if name in _DIMENSIONLESS_ARG:
+                a = args[0]
+                if a[0] is not None and a[0] != units.ONE:
+                    self._fail(i, f"the argument of {name}() is {a[2]}; expected a dimensionless value")
+                return units.ONE, False, "1"
+            if name in ("min", "max", "atan2", "homotopy"):
+                d = self._same(i, f"{name}()", args[0], args[1])
+                return (units.ONE if name == "atan2" else d), False, self._label(d)
+            if name == "sqrt" and args[0][0] is not None:
+                from fractions import Fraction
+
+                d = units.power(args[0][0], Fraction(1, 2))
+                return d, False, self._label(d)
+            if name in ("abs", "floor", "ceil", "no_event"):
+                return args[0]
+            if name == "smooth":
+                return args[1]
+            if name == "sign":
+                return units.ONE, False, "1"
+        return None, False, "?"
+
+    @staticmethod
+    def _label(d) -> str:
+        return "?" if d is None else f"[{units.text(d)}]"
+
+    def _same(self, i: int, op: str, a, b):
+        if a[0] is not None and b[0] is not None and a[0] != b[0] and not (a[1] or b[1]):
+            what = {"add": "'+'", "subtract": "an equation or '-'"}.get(op, op)
+            self._fail(i, f"unit mismatch in {what}: {a[2]} against {b[2]} (in SI base units {units.text(a[0])} "
+                          f"against {units.text(b[0])})")
+        return a[0] if a[0] is not None and not a[1] else b[0]
+
+    def _fail(self, i: int, what: str):
+        raise ModelicaError(self.g.filename, self.g.line_of(i), what)
 
 
 def _operand_starts(nodes: list) -> list[int]:
@@ -295,7 +407,8 @@ class _Translation:
         self.nodes, self.prov = ex["nodes"], ex["provenance"]
         self.env: dict = {}
         self.graph = _Graph(self.nodes, ex["operands"], _operand_starts(self.nodes), self.env, self._node_line,
-                            filename)
+                            filename, {k: v["name"] for k, v in enumerate(self.vars)})
+        self.units = _Units(self.graph, {k: (v["attributes"].get("unit") or "") for k, v in enumerate(self.vars)})
 
     # source lines
     def _offset_line(self, offset: int | None) -> int | None:
@@ -351,8 +464,8 @@ class _Translation:
         for k in roles.get("output", []) + roles.get("algebraic", []):
             unknown[("algebraic", k)] = ca.SX.sym(self.vars[k]["name"])  # outputs are algebraic coordinates too
         self.env.update(unknown)
-        residuals = self._residuals()
         flanges = self._connectors()
+        residuals = self._residuals()
         solved, chosen = self._solve(b, residuals, unknown, flanges)
         for k in states:
             b.der(self.env[("state", k)], solved[("derivative", k)])
@@ -427,6 +540,7 @@ class _Translation:
             line = self._offset_line(span.get("start"))
             if kind != "residual":
                 raise ModelicaError(self.filename, line, f"an equation of kind {kind!r} is not supported")
+            self.units(body["residual"])  # raises at a unit mismatch
             e = self.graph(body["residual"])
             if e.numel() != 1:
                 raise ModelicaError(self.filename, line, "array equations are not supported (write scalars)")

@@ -72,7 +72,8 @@ model Loop "two resistors in parallel fed through a third: a linear algebraic lo
   parameter Real R3(unit = "Ohm") = 5 "series";
   input Real u(unit = "V") "source voltage";
   output Real i(unit = "A") "source current";
-  output Real z(unit = "1") "root of z^3 + z = u/(1 V)";
+  parameter Real u0(unit = "V") = 1 "voltage scale";
+  output Real z(unit = "1") "root of z^3 + z = u/u0";
   Real v(unit = "V") "node voltage";
   Real i1(unit = "A") "current through R1";
   Real i2(unit = "A") "current through R2";
@@ -81,7 +82,7 @@ equation
   v = R1 * i1;
   v = R2 * i2;
   i = i1 + i2;
-  z ^ 3 + z = u;
+  z ^ 3 + z = u / u0;
 end Loop;
 """
 
@@ -90,7 +91,7 @@ def test_algebraic_loops_are_solved_inside_the_block():
     b = translate(LOOP, "Loop", "Loop.mo")
     out = b.functions()["out"]
     for u in (-7.0, 0.3, 10.0):
-        i, z = np.array(out([], [u], b.param_defaults)).ravel()
+        i, z = np.array(out([], [u], b.param_defaults)).ravel()  # u0 = 1 V
         assert i == pytest.approx(u / (5 + 2 * 3 / 5), rel=1e-14)  # R3 + R1 || R2
         real = [r.real for r in np.roots([1, 0, 1, -u]) if abs(r.imag) < 1e-12]
         assert z == pytest.approx(real[0], rel=1e-12)
@@ -126,12 +127,12 @@ def test_a_position_connector_becomes_a_flow_out_flange_carrying_the_rate():
 
 
 BASE = '''model M "m"
-  parameter Real k(unit = "1") = 2 "gain";
+  parameter Real k(unit = "1") = 2 "gain"; parameter Real T(unit = "s") = 1 "time constant";
   input Real u(unit = "V") "in";
   output Real y(unit = "V") "out";
   Real x(unit = "V", start = 0) "state";{decl}
 equation
-  der(x) = -x + u;
+  der(x) = (-x + u) / T;
   y = k * x{term};{eqs}
 end M;
 '''
@@ -147,6 +148,11 @@ end M;
     ("\n  input Real w \"no unit\";", "", "", 6, "input 'w' has no unit"),
     ("\n  parameter Real c(unit = \"1\") = 1;", "", "", 6, "has no description"),
     ("", "", "\n  y = 2 * x;", None, "unbalanced model: 3 equations, 2 unknowns"),
+    ("", " + T", "", 8, "unit mismatch in '+': [kg.m2.s-3.A-1] against T [s]"),
+    ("", "", "\n  der(x) = u;", None, "unbalanced"),
+    ("\n  Real w(unit = \"m/s\") \"w\";", "", "\n  w = der(x);", 10, "unit mismatch in an equation or '-': w [m/s] "
+                                                                    "against der(x) [V/s]"),
+    ("\n  Real w(unit = \"1\") \"w\";", "", "\n  w = exp(x);", 10, "the argument of exp() is x [V]"),
 ])
 def test_a_malformed_model_is_refused_with_file_and_line(decl, term, eqs, line, what):
     with pytest.raises(ModelicaError) as err:
