@@ -14,6 +14,11 @@ own description (value references, GUID, model identifier).  A run whose compone
 the index therefore imports neither CasADi nor the exporter; anything else about a block (its
 equations, for the monolithic reference or a study) builds the real block on first use.
 
+A user's block (a scene's Python ``blocks:`` file or a Modelica file, :mod:`cosim.scenario.user_blocks`)
+is indexed too: its recipe's ``sources`` hold the digests of what defines it (those files, the
+front end's version) and enter the key, and its entry's ``depends`` lists every file its module
+imported with its digest, checked at each hit, so an edit anywhere in them is a miss.
+
 An entry is written after a build (:func:`record`) and never trusted beyond its fingerprint: any
 change to a fingerprinted input gives another key (a miss: the block is built and its FMU found
 by content, or compiled, as without the index).  The FMU behind a hit is verified (size, SHA-256)

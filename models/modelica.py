@@ -59,6 +59,8 @@ from .user import BlockBuilder
 DAE_SCHEMA = 43
 #: Newton iterations unrolled into the code for a nonlinear algebraic loop.
 NEWTON_ITERATIONS = 12
+#: A nonlinear loop is closed when its residual is below this, relative to ``1 + |z|``.
+NEWTON_TOL = 1e-10
 INTEGRATORS = ("auto", "exact", "rk4", "radau")
 
 
@@ -660,10 +662,13 @@ class _Translation:
             J = ca.jacobian(R, Z)
             if not ca.depends_on(J, Z):
                 sol = ca.solve(J, -ca.substitute(R, Z, ca.SX.zeros(Z.shape)))
-            else:
+            else:  # Newton from 0; a loop it does not close gives NaN, which stops the run (not a wrong value)
                 sol = ca.SX.zeros(Z.shape)
                 for _ in range(NEWTON_ITERATIONS):
                     sol = sol - ca.solve(ca.substitute(J, Z, sol), ca.substitute(R, Z, sol))
+                size = ca.norm_inf(sol)
+                closed = ca.logic_and(size < ca.inf, ca.norm_inf(ca.substitute(R, Z, sol)) <= NEWTON_TOL * (1 + size))
+                sol = ca.if_else(closed, sol, ca.SX.nan(Z.shape))
             for j, k in enumerate(pending):
                 solved[k] = sol[j]
             solved = {k: ca.substitute(v, Z, sol) for k, v in solved.items()}

@@ -97,6 +97,18 @@ def test_algebraic_loops_are_solved_inside_the_block():
         assert z == pytest.approx(real[0], rel=1e-12)
 
 
+def test_a_nonlinear_loop_newton_cannot_close_gives_nan_not_a_wrong_value():
+    text = """model E "exp(z) = u"
+  input Real u(unit = "1") "value";
+  output Real z(unit = "1") "its logarithm";
+equation
+  exp(z) = u;
+end E;"""
+    out = translate(text, "E", "E.mo").functions()["out"]
+    assert float(out([], [2.0], [])) == pytest.approx(np.log(2.0), rel=1e-14)
+    assert np.isnan(float(out([], [-1.0], [])))  # no real root
+
+
 SPRING = """
 connector Flange "translational flange"
   Real s(unit = "m") "position";
