@@ -250,3 +250,23 @@ def test_the_recipe_index_serves_a_modelica_block_until_its_text_changes(tmp_pat
     edited, fmu_edited = component()
     assert not isinstance(edited.block, IndexedBlock) and fmu_edited != fmu
     assert edited.block.params[2].default == 3e-3
+
+
+def test_fmu_build_and_show_take_a_users_python_block(tmp_path, capsys):
+    from fmpy import read_model_description
+
+    from cosim import cli
+
+    (tmp_path / "my_blocks.py").write_text(GOOD)
+    what = f"{tmp_path / 'my_blocks.py'}:damper"
+    assert cli.main(["fmu", "build", what, "--set", "c=3", "--set", "integrator=radau",
+                     "--cache", str(tmp_path / "cache")]) == 0
+    fmu = Path(capsys.readouterr().out.strip())
+    md = read_model_description(str(fmu))
+    starts = {v.name: v.start for v in md.modelVariables}
+    assert float(starts["c"]) == 3.0 and "solver.rtol" in starts  # the override and Radau's tolerances
+    assert cli.main(["fmu", "show", what]) == 0
+    out = capsys.readouterr().out
+    assert "damper/default (my_blocks.py)" in out and "c         0.5 [N.s/m]  viscous friction coefficient" in out
+    assert cli.main(["fmu", "build", what.replace("damper", "dumper")]) == 2
+    assert "has no model 'dumper' (BLOCKS: damper)" in capsys.readouterr().err

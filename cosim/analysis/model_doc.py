@@ -87,34 +87,11 @@ def model_info(model: str, fidelity: str | None = None) -> Info:
 def user_block_info(what: str) -> Info:
     """A user's block: ``FILE.mo:CLASS`` (a Modelica class, :mod:`models.modelica`) or
     ``FILE.py:MODEL[/FIDELITY]`` (a Python block module, :mod:`cosim.scenario.user_blocks`)."""
-    from models.block import BlockError
+    from ..scenario.user_blocks import UserBlockError, user_block
 
-    from ..scenario.user_blocks import UserBlockError, UserCatalog, load_module_file, module_table, read_modelica
-
-    file, _, name = what.rpartition(":")
-    path = Path(file)
-    if not path.is_file():
-        raise UserError(f"{file}: no such file")
     try:
-        if path.suffix == ".mo":
-            from models.modelica import translate
-
-            if not name:
-                raise UserError(f"{what}: name the Modelica class, e.g. {file}:Gear")
-            blk = translate(read_modelica(path), name, path.name, name=name.split(".")[-1].lower())
-            return block_info(blk, f"{name}/modelica ({path.name})", [
-                ("integrator", "auto", "exact when the equations are linear, else radau (auto, exact, rk4, radau)"),
-                ("substeps", "1", "integrator substeps per communication step")])
-        model, _, fidelity = name.partition("/")
-        cat = UserCatalog()
-        module, digest = load_module_file(path)
-        cat.add(module_table(module, path.name), path.name, digest, set())
-        if model not in cat:
-            raise UserError(f"{path.name} has no model {model!r} (BLOCKS: {', '.join(cat.models) or 'none'})")
-        opts = [(o.name, str(o.default), o.description) for o in cat.options(model, fidelity or None).values()]
-        return block_info(cat.make(model, fidelity or None), f"{model}/{fidelity or next(iter(cat.models[model].fidelities))} "
-                                                              f"({path.name})", opts)
-    except (BlockError, UserBlockError) as exc:
+        return block_info(*user_block(what))
+    except UserBlockError as exc:
         raise UserError(str(exc)) from None
 
 

@@ -217,3 +217,43 @@ def read_modelica(path: Path) -> str:
         return path.read_text(encoding="utf-8")
     except (OSError, UnicodeDecodeError) as exc:
         raise UserBlockError(f"{path.name}: cannot read it ({getattr(exc, 'strerror', None) or exc})") from None
+
+
+def user_block(what: str, **options: Any):
+    """A user's block named on the command line: ``FILE.mo:CLASS`` (a Modelica class; options
+    ``integrator``, ``substeps``) or ``FILE.py:MODEL[/FIDELITY]`` (a Python block module; the
+    factory's options and parameter overrides).  Returns ``(block, title, options)`` with the
+    options as ``(name, default, description)``; :class:`UserBlockError` when it cannot be made."""
+    from models.block import BlockError
+
+    file, _, name = what.rpartition(":")
+    path = Path(file)
+    if not path.is_file():
+        raise UserBlockError(f"{file}: no such file")
+    try:
+        if path.suffix == ".mo":
+            from models.modelica import translate
+
+            if not name:
+                raise UserBlockError(f"{what}: name the Modelica class, e.g. {file}:Gear")
+            blk = translate(read_modelica(path), name, path.name, name=name.split(".")[-1].lower(),
+                            **{k: options[k] for k in ("integrator", "substeps") if k in options})
+            return blk, f"{name}/modelica ({path.name})", [
+                ("integrator", "auto", "exact when the equations are linear, else radau (auto, exact, rk4, radau)"),
+                ("substeps", "1", "integrator substeps per communication step")]
+        model, _, fidelity = name.partition("/")
+        import models.blocks as catalog
+
+        cat = UserCatalog()
+        module, digest = load_module_file(path)
+        cat.add(module_table(module, path.name), path.name, digest, set(catalog.catalog()), module_depends(module))
+        if model not in cat:
+            raise UserBlockError(f"{path.name} has no model {model!r} (BLOCKS: {', '.join(cat.models) or 'none'})")
+        fid = fidelity or next(iter(cat.models[model].fidelities))
+        if fid not in cat.models[model].fidelities:
+            raise UserBlockError(f"{model} has no fidelity {fid!r} (expected one of "
+                                 f"{', '.join(cat.models[model].fidelities)})")
+        opts = [(o.name, str(o.default), o.description) for o in cat.options(model, fid).values()]
+        return cat.make(model, fid, **options), f"{model}/{fid} ({path.name})", opts
+    except BlockError as exc:
+        raise UserBlockError(str(exc)) from None
