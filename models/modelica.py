@@ -44,9 +44,11 @@ caller's (:mod:`cosim.scenario`).
 """
 from __future__ import annotations
 
+import dataclasses
 import math
 import re
 from dataclasses import dataclass
+from fractions import Fraction
 from itertools import product
 
 import casadi as ca
@@ -304,8 +306,6 @@ class _Units:
                 e = self.g(body["rhs"])
                 if a[0] is None or not e.is_constant():
                     return None, a[1], "?"
-                from fractions import Fraction
-
                 d = units.power(a[0], Fraction(float(ca.evalf(e))).limit_denominator(64))
                 return d, a[1], self._label(d)
             return None, False, "?"
@@ -329,8 +329,6 @@ class _Units:
                 d = self._same(i, f"{name}()", args[0], args[1])
                 return (units.ONE if name == "atan2" else d), False, self._label(d)
             if name == "sqrt" and args[0][0] is not None:
-                from fractions import Fraction
-
                 d = units.power(args[0][0], Fraction(1, 2))
                 return d, False, self._label(d)
             if name in ("abs", "floor", "ceil", "no_event"):
@@ -362,8 +360,7 @@ def _operand_starts(nodes: list) -> list[int]:
     for n in nodes:
         starts.append(k)
         (_, body), = n.items()
-        if isinstance(body, dict) and "operand_count" in body and ("builtin" in n or "conditional" in n
-                                                                  or "array" in n or "call" in n):
+        if isinstance(body, dict) and "operand_count" in body:
             k += body["operand_count"]
     return starts
 
@@ -487,9 +484,12 @@ class _Translation:
             return b.build(integrator=integrator, substeps=substeps)
         from .integrators import affine_parts
 
-        probe = _copy(b).build(integrator="rk4", substeps=substeps)
-        linear = not probe.states or affine_parts(probe) is not None
-        return b.build(integrator="exact" if linear else "radau", substeps=substeps)
+        probe = b.build(integrator="rk4", substeps=substeps)  # (building does not change the builder)
+        if not probe.states or affine_parts(probe) is not None:
+            exact = dataclasses.replace(probe, integrator="exact" if probe.states else "none")
+            exact.check()
+            return exact
+        return b.build(integrator="radau", substeps=substeps)
 
     @staticmethod
     def _is_output(v: dict) -> bool:
@@ -699,13 +699,6 @@ class _Translation:
             else:
                 b.output(pv["name"], value[fl["potential"]], unit, text)
                 b.flange(name, fv["name"], pv["name"], "flow_out")
-
-
-def _copy(b: BlockBuilder) -> BlockBuilder:
-    c = BlockBuilder(b.name, b.description, fidelity=b.fidelity)
-    c.__dict__.update({k: (list(v) if isinstance(v, list) else dict(v) if isinstance(v, dict) else v)
-                       for k, v in b.__dict__.items()})
-    return c
 
 
 __all__ = ["translate", "unsupported", "ModelicaError", "DAE_SCHEMA", "INTEGRATORS"]
