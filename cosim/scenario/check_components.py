@@ -43,6 +43,10 @@ class ComponentChecks(Checker):
         if fmi not in FMI_VERSIONS:
             self.err(spec.loc("fmi"), f"component {name!r}: fmi = {spec.get('fmi')!r}; expected \"2.0\" or \"3.0\"")
             return None
+        if "modelica" in spec and ("fmu" in spec or "hardware" in spec):
+            self.err(spec.where, f"component {name!r} has both 'modelica:' and "
+                                 f"'{'fmu' if 'fmu' in spec else 'hardware'}:'; keep one")
+            return None
         if "model" in spec and "fmu" in spec:
             self.err(spec.where, f"component {name!r} has both 'model:' and 'fmu:'; keep one")
             return None
@@ -60,7 +64,8 @@ class ComponentChecks(Checker):
         elif "model" in spec:
             comp = self._model_component(name, spec, fmi)
         else:
-            self.err(spec.where, f"component {name!r} needs 'model:' (a catalog model) or 'fmu:' (a file)")
+            self.err(spec.where, f"component {name!r} needs 'model:' (a catalog model), 'fmu:' (a file) or "
+                                 f"'modelica:' (a .mo file)")
             return None
         if comp is not None:
             comp.rollback = rollback
