@@ -270,3 +270,14 @@ def test_fmu_build_and_show_take_a_users_python_block(tmp_path, capsys):
     assert "damper/default (my_blocks.py)" in out and "c         0.5 [N.s/m]  viscous friction coefficient" in out
     assert cli.main(["fmu", "build", what.replace("damper", "dumper")]) == 2
     assert "has no model 'dumper' (BLOCKS: damper)" in capsys.readouterr().err
+
+
+def test_a_scene_with_a_user_block_travels_as_ssp_and_runs_the_same(tmp_path, ctc_runs):
+    from cosim.run.ssp_export import export
+
+    ssp = tmp_path / "ctc.ssp"
+    export(load(SCENES / "computed_torque.yaml"), ssp)
+    res = run(ssp, out_dir=tmp_path / "out")
+    assert res.ok, res.reason
+    ours = ctc_runs[0]
+    assert np.abs(res.trace["mech.platform.x"] - ours["mech.platform.x"]).max() == 0.0
