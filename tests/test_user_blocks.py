@@ -281,3 +281,13 @@ def test_a_scene_with_a_user_block_travels_as_ssp_and_runs_the_same(tmp_path, ct
     assert res.ok, res.reason
     ours = ctc_runs[0]
     assert np.abs(res.trace["mech.platform.x"] - ours["mech.platform.x"]).max() == 0.0
+
+
+def test_a_user_blocks_rating_is_guarded_like_ours(tmp_path):
+    """v = f/c (1 - exp(-c t / m)) = 2 (1 - exp(-t)) passes 1 m/s at t = ln 2: the rated guard
+    stops the run there, with the partial trace and the reason."""
+    rated = GOOD.replace('    return b.build(integrator=integrator)',
+                         '    b.rating("v_out", -1.0, 1.0, "rated", "test limit")\n    return b.build(integrator=integrator)')
+    res = run(_scene(tmp_path, rated, "{c: 2.0}"), ["components.d.start.f=4.0"], out_dir=tmp_path / "out")
+    assert not res.ok and "d.v_out" in res.reason and "rated" in res.reason, res.reason
+    assert res.trace.time[-1] == pytest.approx(math.log(2.0), abs=2e-3)
