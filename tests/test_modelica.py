@@ -138,6 +138,21 @@ def test_a_position_connector_becomes_a_flow_out_flange_carrying_the_rate():
     assert np.array(fn["ode"](x, [f], b.param_defaults)).ravel() == pytest.approx([-0.4, (-50 * 0.03 + 1.5) / 2])
 
 
+def test_a_position_connector_whose_position_is_given_integrates_the_partners_rate():
+    text = SPRING.split("model Mass")[0] + """model Spring "a spring to ground"
+  parameter Real k(unit = "N/m") = 50 "stiffness";
+  Flange flange "the free end";
+equation
+  flange.f = k * flange.s;
+end Spring;"""
+    b = translate(text, "Spring", "Spring.mo")
+    assert [(f.effort, f.flow, f.causality) for f in b.flanges] == [("flange.f", "flange.v", "effort_out")]
+    assert [v.name for v in b.inputs] == ["flange.v"] and [v.name for v in b.states] == ["state.flange.s"]
+    fn = b.functions()
+    assert float(fn["ode"]([0.02], [0.3], b.param_defaults)) == pytest.approx(0.3)  # ds/dt = v
+    assert float(fn["out"]([0.02], [0.3], b.param_defaults)) == pytest.approx(-50 * 0.02)  # pulls the partner back
+
+
 BASE = '''model M "m"
   parameter Real k(unit = "1") = 2 "gain"; parameter Real T(unit = "s") = 1 "time constant";
   input Real u(unit = "V") "in";
