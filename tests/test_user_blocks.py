@@ -121,7 +121,7 @@ def _scene(tmp_path: Path, module_text: str, params: str = "{}") -> Path:
         blocks: my_blocks.py
         stop_time: 1.0
         components:
-          d: {{model: damper, params: {params}, options: {{integrator: radau}}}}
+          d: {{model: damper, params: {params}, options: {{integrator: rk4}}}}
         master: {{algorithm: jacobi, step: 1e-3}}
         outputs: [d.v_out]
         """))
@@ -228,14 +228,24 @@ def test_the_recipe_index_serves_an_unchanged_user_block_and_misses_an_edited_on
     assert isinstance(component()[0].block, IndexedBlock)
 
 
+LAG = """model Lag "first-order lag"
+  parameter Real T(unit = "s", min = 1e-6) = 0.2 "time constant";
+  input Real u(unit = "V") "input";
+  output Real y(unit = "V", start = 0, fixed = true) "output";
+equation
+  T * der(y) = u - y;
+end Lag;
+"""
+
+
 def test_the_recipe_index_serves_a_modelica_block_until_its_text_changes(tmp_path, monkeypatch):
     pytest.importorskip("rumoca")
     from fmus.index import IndexedBlock
 
     monkeypatch.setenv("RPR_COSIM_CACHE", str(tmp_path / "cache"))
-    text = (SCENES / "user" / "RackPinion.mo").read_text()
-    (tmp_path / "Gear.mo").write_text(text)
-    data = {"stop_time": 0.01, "components": {"g": {"modelica": "Gear.mo", "model": "Drive.RackPinion"}},
+    (tmp_path / "Lag.mo").write_text(LAG)
+    data = {"stop_time": 0.01, "components": {"g": {"modelica": "Lag.mo", "model": "Lag",
+                                                   "options": {"integrator": "rk4"}}},
             "master": {"algorithm": "jacobi", "step": 1e-3}}
 
     def component():
@@ -245,11 +255,11 @@ def test_the_recipe_index_serves_a_modelica_block_until_its_text_changes(tmp_pat
     first, fmu = component()
     hit, fmu_hit = component()
     assert not isinstance(first.block, IndexedBlock) and isinstance(hit.block, IndexedBlock) and fmu_hit == fmu
-    assert hit.block.real().params[2].name == "Tc"  # the equations when a run needs them: translated again
-    (tmp_path / "Gear.mo").write_text(text.replace("= 2e-3", "= 3e-3"))
+    assert hit.block.real().integrator == "rk4"  # the equations when a run needs them: translated again
+    (tmp_path / "Lag.mo").write_text(LAG.replace("= 0.2", "= 0.3"))
     edited, fmu_edited = component()
     assert not isinstance(edited.block, IndexedBlock) and fmu_edited != fmu
-    assert edited.block.params[2].default == 3e-3
+    assert edited.block.params[0].default == 0.3
 
 
 def test_fmu_build_and_show_take_a_users_python_block(tmp_path, capsys):
