@@ -102,7 +102,7 @@ def command(target: str = "host", *, static: bool | None = None, preload: Path |
 
 
 def parse_status(text: str) -> dict:
-    """The daemon's status line (``state=.. faults=.. received=.. ...``) as a dict."""
+    """The daemon's status line (``state=.. fault_bits=.. received=.. ...``) as a dict."""
     out: dict = {}
     for k, v in re.findall(r"(\w+)=(\S+)", text):
         out[k] = int(v) if re.fullmatch(r"-?\d+", v) else v
@@ -167,7 +167,7 @@ class Stepped:
 
     @property
     def faults(self) -> int:
-        return self.status()["faults"] if self.final is None else self.final["faults"]
+        return self.status()["fault_bits"] if self.final is None else self.final["fault_bits"]
 
     @property
     def counters(self) -> dict[str, int]:
@@ -256,3 +256,17 @@ class Served:
     def wait_exit(self, timeout: float = 10.0) -> int:
         return self.proc.wait(timeout=timeout)
 
+
+
+def unavailable(target: str) -> str:
+    """Why the daemon cannot be built and run for ``target`` on this machine ("" when it can):
+    tests skip that leg with this reason."""
+    from fmus import BuildError
+    from fmus.compile import compiler, runner
+
+    try:
+        compiler(target)
+        runner(target)
+    except BuildError as exc:
+        return str(exc)
+    return ""

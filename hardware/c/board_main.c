@@ -163,7 +163,7 @@ static int read_key(const char *path, uint8_t key[32]) {
 /* --- status -------------------------------------------------------------------------------- */
 static void status_line(FILE *f, const Board *b) {
     int i;
-    fprintf(f, "state=%d faults=%d", b->state, b->faults);
+    fprintf(f, "state=%d fault_bits=%d", b->state, b->faults);
     for (i = 0; i < C_COUNT; i++) fprintf(f, " %s=%llu", COUNTER_NAMES[i], (unsigned long long)b->counters[i]);
     fprintf(f, " tick_p50_us=%u tick_p99_us=%u tick_max_us=%lld cpu_per_tick_ns=%u gpio=%s\n", b->p50_us, b->p99_us,
             (long long)(b->late_max_ns / 1000), b->cpu_per_tick_ns, b->gpio_chardev ? "chardev" : "sysfs");

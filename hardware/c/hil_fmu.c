@@ -1,18 +1,22 @@
-/* The hardware FMU: FMI 2.0 co-simulation over the rig's I/O daemon (hardware/daemon.py).
+/* The hardware FMU: FMI 2.0 co-simulation over the rig's I/O daemon (hardware/c/board_*.c).
  *
  * Each doStep sends one authenticated COMMAND (the three leg voltages) to the board and waits,
  * up to `timeout` seconds, for its SAMPLE (three raw ADC counts, state, faults); the outputs are
- * that sample, converted by the two-point calibration of each leg.  A silent board (timeout,
+ * that sample, converted by the two-point calibration of each leg, and the board's own real-time
+ * figures of the session (tick lateness, CPU per tick, datagrams dropped and throttled).  A silent board (timeout,
  * refused connection) or a board in fault makes doStep return fmi2Error with the reason logged.
  * The rig cannot go back in time: canGetAndSetFMUstate is false and the state functions fail.
  *
  * Protocol (little-endian, see hardware/protocol.py): header "RP", version, type, session (u32),
  * sequence (u32), time (u64 ns); body; HMAC-SHA256 over header and body.  The session key is
- * HMAC(key, "rpr-session" | client nonce | server nonce).
+ * HMAC(key, "rpr-session" | client nonce | the board's challenge); the session opens with the
+ * first command under it.
  *
- * Life cycle: fmi2EnterInitializationMode connects (HELLO/WELCOME) and reads a first sample, so
- * the outputs are the rig's at t0; fmi2ExitInitializationMode arms the board (its 100 ms
- * watchdog starts); fmi2Terminate and fmi2FreeInstance stop it (outputs zero, no fault).
+ * Life cycle: fmi2EnterInitializationMode connects (HELLO/WELCOME) and reads a first sample
+ * (QUERY), so the outputs are the rig's at t0; the board stays idle (no watchdog) until the first
+ * doStep, whose command arms and runs it at once: whatever the master compiles or loads between
+ * initialisation and its first step cannot trip the 100 ms watchdog.  fmi2Terminate and
+ * fmi2FreeInstance stop it (outputs zero, no fault).
  */
 #define _POSIX_C_SOURCE 200112L
 #include <errno.h>
@@ -50,7 +54,14 @@ enum {
     VR_RAW_FULL = 20,    /* 20..22 leg[i].raw_full parameter */
     VR_STROKE_FULL = 23, /* 23..25 leg[i].stroke_full parameter [m] */
     VR_S_OFFSET = 26,    /* 26..28 leg[i].s_offset parameter [m] */
-    NR = 29
+    VR_TICK_LATE = 29,   /* board_tick_late output [s]: largest tick lateness since the last step */
+    VR_TICK_P50 = 30,    /* board_tick_p50 output [s] (session) */
+    VR_TICK_P99 = 31,    /* board_tick_p99 output [s] (session) */
+    VR_TICK_MAX = 32,    /* board_tick_max output [s] (session) */
+    VR_CPU_TICK = 33,    /* board_cpu_per_tick output [s] (session mean) */
+    VR_DROPPED = 34,     /* board_dropped output: datagrams the board dropped */
+    VR_THROTTLED = 35,   /* board_throttled output: of those, unauthenticated beyond its budget */
+    NR = 36
 };
 enum { VB_RESET = 0, NB = 1 };
 enum { VS_ADDRESS = 0, VS_KEYFILE = 1, NS = 2 };
@@ -77,7 +88,7 @@ typedef struct {
     int sock;
     uint8_t key[32], skey[32];
     uint32_t session, seq;
-    int connected;
+    int connected, armed;
     double time;
 } Hil;
 
@@ -111,7 +122,7 @@ static uint16_t get16(const uint8_t *p) { return (uint16_t)(p[0] | p[1] << 8); }
 static uint32_t get32(const uint8_t *p) { return (uint32_t)get16(p) | (uint32_t)get16(p + 2) << 16; }
 
 static size_t header(uint8_t *p, int type, uint32_t session, uint32_t seq) {
-    p[0] = 'R'; p[1] = 'P'; p[2] = 1; p[3] = (uint8_t)type;
+    p[0] = 'R'; p[1] = 'P'; p[2] = 2; p[3] = (uint8_t)type;
     put32(p + 4, session);
     put32(p + 8, seq);
     put64(p + 12, now_ns());
@@ -239,7 +250,7 @@ static int await(Hil *h, int type, uint32_t seq, const uint8_t *key, uint8_t *bu
             if (errno == EINTR || errno == EAGAIN) continue;
             return -2;
         }
-        if ((size_t)n != want || buf[0] != 'R' || buf[1] != 'P' || buf[2] != 1 || buf[3] != type) continue;
+        if ((size_t)n != want || buf[0] != 'R' || buf[1] != 'P' || buf[2] != 2 || buf[3] != type) continue;
         if (seq && get32(buf + 8) != seq) continue; /* an answer to an older command */
         if (!check_mac(key, buf, (size_t)n)) continue;
         return 0;
@@ -289,6 +300,7 @@ static int hello(Hil *h) {
 /* One command/sample exchange; updates the outputs.  0 ok, -1 failed (logged). */
 static int exchange(Hil *h, int flags, const double *volts) {
     uint8_t d[HDR + 16 + MAC], r[256];
+    static const int fig[] = {VR_TICK_LATE, VR_TICK_P50, VR_TICK_P99, VR_TICK_MAX};
     uint64_t t0;
     int i, rc, state, faults;
     double rtt;
@@ -307,7 +319,7 @@ static int exchange(Hil *h, int flags, const double *volts) {
         silent(h, -2, "SAMPLE");
         return -1;
     }
-    rc = await(h, T_SAMPLE, h->seq, h->skey, r, HDR + 20 + MAC, h->r[VR_TIMEOUT]);
+    rc = await(h, T_SAMPLE, h->seq, h->skey, r, HDR + 44 + MAC, h->r[VR_TIMEOUT]);
     if (rc != 0) {
         silent(h, rc, "SAMPLE");
         return -1;
@@ -327,6 +339,10 @@ static int exchange(Hil *h, int flags, const double *volts) {
     h->r[VR_FAULT] = faults;
     h->r[VR_STATE] = state;
     h->r[VR_RTT] = rtt;
+    h->r[VR_DROPPED] = get32(r + HDR + 16);
+    for (i = 0; i < 4; i++) h->r[fig[i]] = get32(r + HDR + 20 + 4 * i) / 1e6;
+    h->r[VR_CPU_TICK] = get32(r + HDR + 36) / 1e9;
+    h->r[VR_THROTTLED] = get32(r + HDR + 40);
     if (state == S_FAULT) {
         char text[256] = "";
         for (i = 0; i < 7; i++)
@@ -442,14 +458,10 @@ fmi2Status fmi2EnterInitializationMode(fmi2Component c) {
 }
 
 fmi2Status fmi2ExitInitializationMode(fmi2Component c) {
-    static const double zero[3] = {0, 0, 0};
     NEED(c);
     if (H->phase != ST_INIT || !H->connected) return fmi2Error;
-    if (exchange(H, F_ARM, zero) != 0) {
-        H->phase = ST_ERROR;
-        return fmi2Error;
-    }
-    H->phase = ST_STEP;
+    H->phase = ST_STEP; /* the board stays idle: the first doStep arms it */
+    H->armed = 0;
     return fmi2OK;
 }
 
@@ -483,7 +495,7 @@ fmi2Status fmi2SetReal(fmi2Component c, const fmi2ValueReference vr[], size_t n,
     NEED(c);
     for (i = 0; i < n; i++) {
         fmi2ValueReference r = vr[i];
-        int input = r < VR_S, param = r >= VR_TIMEOUT && r < NR;
+        int input = r < VR_S, param = r >= VR_TIMEOUT && r < VR_TICK_LATE;
         if (!input && !param) {
             say(H, fmi2Error, "logStatusError", "value reference %u is an output and cannot be set", (unsigned)r);
             return fmi2Error;
@@ -564,10 +576,11 @@ fmi2Status fmi2DoStep(fmi2Component c, fmi2Real t, fmi2Real h, fmi2Boolean noSet
         return fmi2Error;
     }
     for (i = 0; i < 3; i++) u[i] = H->r[VR_U + i];
-    if (exchange(H, F_RUN, u) != 0) {
+    if (exchange(H, F_RUN | (H->armed ? 0 : F_ARM), u) != 0) {
         H->phase = ST_ERROR;
         return fmi2Error;
     }
+    H->armed = 1;
     H->time = t + h;
     return fmi2OK;
 }
