@@ -3,7 +3,7 @@
 Each co-simulation (Jacobi and Gauss-Seidel, inputs held or linear over a step, communication
 steps from 4 ms down) is compared with
 the scene's monolithic reference (the same catalog blocks as one ODE under CVODES at rtol 1e-10,
-:mod:`cosim.reference`); the error is the largest deviation of the platform position [m] over
+:mod:`cosim.run.reference`); the error is the largest deviation of the platform position [m] over
 the run, the cost the wall time of the stepping loop.  Printed as a table and drawn as an
 error-against-time chart (log-log), with the monolithic solve's own wall time for scale.
 
@@ -23,9 +23,9 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from cosim.compare import compare  # noqa: E402
-from cosim.reference import reference  # noqa: E402
-from cosim.run import run  # noqa: E402
+from cosim.analysis.compare import compare  # noqa: E402
+from cosim.run.reference import reference  # noqa: E402
+from cosim.run.execute import run  # noqa: E402
 
 STEPS = (4e-3, 2e-3, 1e-3, 5e-4, 2.5e-4, 1.25e-4, 6.25e-5)
 ALGORITHMS = ("jacobi", "gauss_seidel")
@@ -67,7 +67,7 @@ def monolithic_cost(scene: str, sets: list[str], repeat: int = 3) -> tuple[float
     import casadi as ca
     import numpy as np
 
-    from cosim.reference import ATOL, RTOL, composite
+    from cosim.run.reference import ATOL, RTOL, composite
     from cosim.scenario import load
 
     sc = load(ROOT / "scenarios" / f"{scene}.yaml", sets)

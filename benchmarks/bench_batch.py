@@ -96,13 +96,13 @@ class Plain:
     once per call (as a worker loads them once per batch) and their instances kept and reset."""
 
     def __init__(self, batch):
-        from cosim.run import build_components
+        from cosim.run.execute import build_components
 
         self.scenes = [p.scene for p in plan(batch)[0]]
         self.paths = build_components(self.scenes[0])
 
     def slaves(self) -> list:
-        from cosim.slaves import FmuSlave
+        from cosim.slaves.fmu import FmuSlave
 
         out = [FmuSlave(name, self.paths[name]) for name in self.scenes[0].components]
         for s in out:
@@ -110,7 +110,7 @@ class Plain:
         return out
 
     def __call__(self, tmp: Path, writer_thread: bool = False) -> dict:
-        from cosim import trace
+        from cosim.trace import traces as trace
 
         trace.WRITER_THREAD = writer_thread
         try:
@@ -119,7 +119,7 @@ class Plain:
             trace.WRITER_THREAD = True
 
     def _loop(self, tmp: Path) -> dict:
-        from cosim.run import run
+        from cosim.run.execute import run
 
         out = Path(tempfile.mkdtemp(dir=tmp))
         c0, t0, m0 = cpu(), time.perf_counter(), time.thread_time()
@@ -146,8 +146,8 @@ def independent(plain: Plain, tmp: Path, procs: int) -> dict:
     go, done = ctx.Barrier(procs + 1), ctx.Queue()
 
     def child(k: int) -> None:
-        from cosim import trace
-        from cosim.run import run
+        from cosim.trace import traces as trace
+        from cosim.run.execute import run
 
         trace.WRITER_THREAD = False  # one core each, as a batch worker
         out = Path(tempfile.mkdtemp(dir=tmp))

@@ -19,9 +19,9 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from cosim.compare import compare  # noqa: E402
-from cosim.reference import reference  # noqa: E402
-from cosim.run import run  # noqa: E402
+from cosim.analysis.compare import compare  # noqa: E402
+from cosim.run.reference import reference  # noqa: E402
+from cosim.run.execute import run  # noqa: E402
 
 SCENE = ROOT / "scenarios" / "pid_step.yaml"
 POSE = ["mech.platform.x", "mech.platform.y", "mech.platform.phi"]

@@ -30,7 +30,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from cosim.run import run  # noqa: E402
+from cosim.run.execute import run  # noqa: E402
 from hardware import client, protocol as P  # noqa: E402
 
 

@@ -2,7 +2,7 @@
 
 1. ``scenarios/force_loop.yaml`` (an algebraic loop: quasistatic motors under PI force control
    driving the kinematic mechanism) with each iteration variant, against the scene's monolithic
-   DAE reference (IDAS at rtol 1e-10, :mod:`cosim.reference`).
+   DAE reference (IDAS at rtol 1e-10, :mod:`cosim.run.reference`).
 2. ``scenarios/two_mass.yaml`` at kc = 1000 N/m and a 5 ms step, where fixed-step Jacobi is
    unstable (analytic spectral radius 1.0121 per step, :mod:`models.coupling`), against the exact
    solution of the coupled linear blocks; every algorithm at that step.
@@ -24,9 +24,9 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "tests"))
 
-from cosim.compare import compare  # noqa: E402
-from cosim.reference import reference  # noqa: E402
-from cosim.run import run  # noqa: E402
+from cosim.analysis.compare import compare  # noqa: E402
+from cosim.run.reference import reference  # noqa: E402
+from cosim.run.execute import run  # noqa: E402
 from cosim.study.stability import growth_per_step  # noqa: E402
 
 LOOP_VARIANTS = (("newton (directional derivatives + Broyden)", "{}"),

@@ -36,7 +36,7 @@ sys.path.insert(0, str(ROOT))
 
 import fmus  # noqa: E402
 from cosim.master import CoupledSystem, Link, simulate  # noqa: E402
-from cosim.slaves import FmuSlave  # noqa: E402
+from cosim.slaves.fmu import FmuSlave  # noqa: E402
 from models.block import Block, Param, Var  # noqa: E402
 
 
@@ -139,7 +139,7 @@ def fmu_alone(path: Path, steps: int, repeat: int) -> float:
 
 
 def scenes() -> None:
-    from cosim.run import run
+    from cosim.run.execute import run
 
     print("\nreal-time factor of the thesis's scenes (compiled loop; stepping loop only, FMUs prebuilt):")
     print(f"  {'scene':<22} {'algorithm':<13} {'inputs':<7} {'step s':>7} {'steps':>6} {'wall s':>8} {'RTF':>8} "

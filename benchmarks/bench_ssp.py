@@ -2,7 +2,7 @@
 
 For ``scenarios/pid_step.yaml`` (FMUs already cached) this prints
 
-1. export: wall time of ``cosim.ssp.export`` and the archive's size;
+1. export: wall time of ``cosim.scenario.ssp.export`` and the archive's size;
 2. load: validating the scene from its YAML and from the archive (schema check, extraction into
    the FMU cache on the first load, description of each FMU);
 3. run: the whole scene (5 s, Jacobi, held inputs, 1 ms) from YAML and from the archive with our
@@ -26,9 +26,9 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from cosim.run import run  # noqa: E402
+from cosim.run.execute import run  # noqa: E402
 from cosim.scenario import load  # noqa: E402
-from cosim.ssp import export  # noqa: E402
+from cosim.run.ssp_export import export  # noqa: E402
 
 SCENE = ROOT / "scenarios" / "pid_step.yaml"
 

@@ -21,7 +21,7 @@ sys.path.insert(0, str(ROOT / "tests"))
 
 from conftest import REFERENCE_FMUS_SRC, _source_key, build_reference_fmus  # noqa: E402
 
-from cosim.run import run  # noqa: E402
+from cosim.run.execute import run  # noqa: E402
 from cosim.scenario import from_dict  # noqa: E402
 from fmus.cache import cache_root  # noqa: E402
 

@@ -5,7 +5,7 @@ variable within ``--tol`` = 1e-3 of its range over the whole run, start transien
 wall time of the best algorithm against fixed-step Gauss-Seidel (linear inputs, compiled loop) at
 the step that reaches the same error; target at least 10x less.
 
-1. The reference is the scene's monolithic CVODES solution (:mod:`cosim.reference`), every
+1. The reference is the scene's monolithic CVODES solution (:mod:`cosim.run.reference`), every
    microsecond through the first 20 ms (the motors' 0.44 ms electrical transient) and every
    0.1 ms after, as in ``tests/test_algorithms.py``; the error of a run is its worst variable's
    largest deviation over its own recorded instants, relative to that variable's range.
@@ -32,10 +32,10 @@ sys.path.insert(0, str(ROOT))
 
 import numpy as np  # noqa: E402
 
-from cosim.compare import compare  # noqa: E402
-from cosim.reference import reference  # noqa: E402
-from cosim.run import run  # noqa: E402
-from cosim.trace import Trace  # noqa: E402
+from cosim.analysis.compare import compare  # noqa: E402
+from cosim.run.reference import reference  # noqa: E402
+from cosim.run.execute import run  # noqa: E402
+from cosim.trace.traces import Trace  # noqa: E402
 
 SCENE = ROOT / "scenarios" / "pid_step.yaml"
 FINE_UNTIL = 0.02  # [s] the reference every microsecond up to here

@@ -97,7 +97,7 @@ def stiffness_series() -> None:
 
 
 def scene_figures(cache: Path) -> None:
-    from cosim.run import run
+    from cosim.run.execute import run
     from test_scenes import (BAND_LEG, BAND_PHI, LEGS, SCENES, TARGET_POSE, THESIS_END_LEGS, THESIS_END_POSE,
                              leg_error, vw_errors)
 

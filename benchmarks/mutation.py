@@ -3,7 +3,7 @@
 Each mutant changes one thing in one of the core modules -- an arithmetic operator (``+`` and
 ``-``, ``*`` and ``/``), a comparison's boundary or sense (``<`` and ``<=``, ``==`` and ``!=``), a
 number (``n -> n + 1`` for integers, ``x -> 10 x`` for floats, ``0 -> 1``), a sign, ``and``/``or``,
-a ``not``; in the compiled loop's C source (``cosim/fastloop.py``) the same operators plus the
+a ``not``; in the compiled loop's C source (``cosim/master/fastloop.py``) the same operators plus the
 Gauss-Seidel index ``order[c] -> c``.  Every mutant is written into a scratch copy of the
 repository, and the fast tests chosen for its module (:data:`TARGETS`) run against it with a
 timeout.  A mutant is *killed* when a test fails (or the run times out), *survives* otherwise.
@@ -21,7 +21,7 @@ exercises yet, which still counts as a survivor.
     nice python benchmarks/mutation.py                 # 80 mutants sampled over the core
     nice python benchmarks/mutation.py --max 0         # every mutant (hours)
     python benchmarks/mutation.py --list               # the mutants, without running them
-    python benchmarks/mutation.py --only cosim/fastloop.py --max 20 --seed 3
+    python benchmarks/mutation.py --only cosim/master/fastloop.py --max 20 --seed 3
 
 The sample is drawn with a fixed seed (``--seed``), spread over the modules in proportion to
 their mutants, so two runs of the same tree try the same mutants.
@@ -59,7 +59,7 @@ TARGETS: dict[str, list[str]] = {
     "cosim/master/algorithms/gauss_seidel.py": ["tests/test_master.py"],
     "cosim/master/engine.py": ["tests/test_master.py"],
     "cosim/master/run.py": ["tests/test_master.py"],
-    "cosim/fastloop.py": ["tests/test_master.py"],
+    "cosim/master/fastloop.py": ["tests/test_master.py"],
 }
 
 
@@ -240,7 +240,7 @@ def c_mutants(path: str) -> list[Mutant]:
 
 def mutants_of(path: str) -> list[Mutant]:
     found = python_mutants(path)
-    if path == "cosim/fastloop.py":
+    if path == "cosim/master/fastloop.py":
         found = found + c_mutants(path)
     return found
 
@@ -253,7 +253,7 @@ def mutated_text(m: Mutant) -> str:
 
 
 #: mutants always tried (the bugs issue 13 found surviving): (module, text in the line, change prefix)
-ALWAYS = [("cosim/fastloop.py", "i = order[c];", "order[c] -> c"),
+ALWAYS = [("cosim/master/fastloop.py", "i = order[c];", "order[c] -> c"),
           ("models/integrators.py", "err <= 1.0", "1.0 -> 10.0")]
 
 

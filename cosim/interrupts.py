@@ -4,7 +4,7 @@ reason, close whole rows and remove temporary FMU folders, as for Ctrl-C.
 
 The default action of SIGTERM and SIGHUP kills the process without any of that (the sidecar
 would keep saying "running").  The stepping loop returns to Python at least every 0.25 s
-(:mod:`cosim.fastloop`), so a signal takes effect within a second at any point of a run.
+(:mod:`cosim.master.fastloop`), so a signal takes effect within a second at any point of a run.
 """
 from __future__ import annotations
 

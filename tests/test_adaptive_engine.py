@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from cosim.errors import UserError
-from cosim.run import run
+from cosim.run.execute import run
 
 SCENARIOS = Path(__file__).resolve().parents[1] / "scenarios"
 RK4_MOTORS = {f"components.motor{i}.options.integrator": "rk4" for i in (1, 2, 3)}

@@ -13,8 +13,9 @@ import scipy.linalg
 from cosim.errors import UserError
 from cosim.master import ALGORITHMS, CoupledSystem, Link, simulate
 from cosim.scenario import SceneError, load
-from cosim.slaves import LinearSlave, Status
-from cosim.trace import MemoryTrace, Trace
+from cosim.slaves.linear import LinearSlave
+from cosim.slaves.slave import Status
+from cosim.trace.traces import MemoryTrace, Trace
 
 SCENARIOS = Path(__file__).resolve().parents[1] / "scenarios"
 A_, B_, C_ = 1.0, 3.0, 0.8
@@ -130,8 +131,8 @@ def test_linear_slave_restores_its_saved_state_exactly():
 
 @pytest.fixture(scope="module")
 def two_mass_fmu_slaves():
-    from cosim.run import build_components
-    from cosim.slaves import FmuSlave
+    from cosim.run.execute import build_components
+    from cosim.slaves.fmu import FmuSlave
 
     scene = load(SCENARIOS / "two_mass.yaml")
     paths = build_components(scene)
@@ -188,8 +189,8 @@ def test_fixed_step_algorithms_have_no_options():
 # --- the thesis's closed-loop scene against its monolithic reference --------------------------
 @pytest.fixture(scope="module")
 def pid_step_adaptive():
-    from cosim.reference import reference
-    from cosim.run import run
+    from cosim.run.reference import reference
+    from cosim.run.execute import run
 
     scene = SCENARIOS / "pid_step.yaml"
     res = run(scene, {"master.algorithm": "adaptive"})
@@ -210,7 +211,7 @@ def test_adaptive_pid_step_within_a_thousandth_of_range_everywhere(pid_step_adap
     """Issue 10's acceptance: at the default tolerance every recorded variable stays within 1e-3
     of its range of the monolithic CVODES solution over the whole run, start transient included
     (measured at rtol 3e-5: worst 8.4e-4 on platform.y, whose range is only ~0.7 mm)."""
-    from cosim.compare import compare
+    from cosim.analysis.compare import compare
 
     res, fine, coarse = pid_step_adaptive
     assert res.status == "ok", res.reason

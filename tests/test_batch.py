@@ -214,7 +214,7 @@ def test_an_invalid_first_run_stops_the_batch_before_anything_is_written(tmp_pat
 def test_a_run_needing_another_fmu_gets_it_with_its_task(tmp_path):
     """The second run's PID is built with RK4 instead of the exact kernel: a different FMU, first
     needed after the workers started, sent with that run; its trace equals a plain run's."""
-    from cosim.run import run
+    from cosim.run.execute import run
 
     text = f"""\
 scene: {SCENE}

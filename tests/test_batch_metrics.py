@@ -11,7 +11,7 @@ import pytest
 from scipy.optimize import brentq
 
 from cosim.batch.metrics import MetricSpec, compute, measure
-from cosim.trace import Trace
+from cosim.trace.traces import Trace
 
 Z, WN, T_END, DT = 0.3, 10.0, 3.0, 1e-4
 WD = WN * math.sqrt(1 - Z * Z)

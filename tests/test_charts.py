@@ -8,12 +8,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from cosim import charts
+from cosim.analysis import charts
 from cosim.cli import main
-from cosim.compare import compare
-from cosim.run import build_components
+from cosim.analysis.compare import compare
+from cosim.run.execute import build_components
 from cosim.scenario import load
-from cosim.trace import Trace
+from cosim.scenario.units import units_of
+from cosim.trace.traces import Trace
 
 ROOT = Path(__file__).resolve().parents[1]
 SCENES = ROOT / "scenarios"
@@ -26,7 +27,7 @@ def pid_scene():
 
 @pytest.fixture(scope="module")
 def pid_units(pid_scene, cache):
-    return charts.units_of(pid_scene, build_components(pid_scene, cache_dir=cache))
+    return units_of(pid_scene, build_components(pid_scene, cache_dir=cache))
 
 
 @pytest.mark.parametrize("name", ["mech.leg[1].s", "mech.platform.phi", "pid2.y", "motor3.i", "motor1.torque",
@@ -85,7 +86,7 @@ def test_cli_run_plot_writes_the_chart(tmp_path, cache):
 
 
 def test_traces_carry_units_for_compare(tmp_path, cache):
-    from cosim.trace import read_trace
+    from cosim.trace.traces import read_trace
 
     out = tmp_path / "run"
     assert main(["run", str(SCENES / "pid_step.yaml"), "--set", "stop_time=0.01", "--out", str(out),

@@ -12,8 +12,8 @@ import pytest
 from cosim.errors import UserError
 from cosim.master import CoupledSystem, Link, simulate
 from cosim.scenario import SceneError, load
-from cosim.slaves import LinearSlave
-from cosim.trace import MemoryTrace
+from cosim.slaves.linear import LinearSlave
+from cosim.trace.traces import MemoryTrace
 
 SCENARIOS = Path(__file__).resolve().parents[1] / "scenarios"
 NON_ROLLBACK = {"master.algorithm": "ecco", "components.mech.rollback": False}
@@ -24,8 +24,8 @@ LEGS = (1, 2, 3)
 def pid_step_ecco():
     """pid_step under ecco (default options) with the mechanism non-rollback, recording every
     bond's force and velocity too; and the monolithic reference every 0.1 ms."""
-    from cosim.reference import reference
-    from cosim.run import run
+    from cosim.run.reference import reference
+    from cosim.run.execute import run
 
     scene = SCENARIOS / "pid_step.yaml"
     outputs = load(scene).outputs
@@ -51,7 +51,7 @@ def test_ecco_pid_step_pose_within_a_tenth_of_a_millimetre(pid_step_ecco, var):
     """Issue 10's acceptance: the platform position and the leg lengths (the joints' positions)
     within 1e-4 m of the monolithic CVODES solution over the whole run (measured: 4.1e-5 m on x,
     1.3e-4 rad on phi, i.e. 1.5e-5 m at the platform's joints)."""
-    from cosim.compare import compare
+    from cosim.analysis.compare import compare
 
     res, ref = pid_step_ecco
     (d,) = compare(res.trace, ref, [f"mech.{var}"])
@@ -104,7 +104,7 @@ def test_ecco_energy_residual_agrees_with_one_computed_from_the_trace(pid_step_e
 
 
 def test_adaptive_refuses_the_scene_whose_mechanism_cannot_roll_back():
-    from cosim.run import run
+    from cosim.run.execute import run
 
     with pytest.raises(UserError, match="adaptive needs rollback.*mech cannot roll back"):
         run(SCENARIOS / "pid_step.yaml", {**NON_ROLLBACK, "master.algorithm": "adaptive", "stop_time": 0.01})
@@ -172,7 +172,7 @@ def test_ecco_options_are_checked_against_its_declaration(tmp_path, options, mes
 
 @pytest.mark.parametrize("alg", ["ecco", "adaptive"])
 def test_a_variable_step_run_is_refused_in_real_time_rather_than_run_unpaced(alg):
-    from cosim.realtime import RealtimeSettings
+    from cosim.master.realtime import RealtimeSettings
 
     a = LinearSlave("a", [[-1.0]], [[1.0]], [[1.0]], x0=[1.0])
     b = LinearSlave("b", [[-3.0]], [[1.0]], [[0.8]], x0=[-0.4])

@@ -7,7 +7,7 @@ import random
 
 import pytest
 
-from cosim.feedback_order import fewest_cut_order
+from cosim.master.feedback_order import fewest_cut_order
 
 
 def brute_force(group, edges):

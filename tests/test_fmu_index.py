@@ -17,9 +17,9 @@ import pytest
 
 import fmus.index as index
 from cosim import scenario
-from cosim.recipes import description_from_data
-from cosim.run import run
-from cosim.slaves import describe_fmu
+from cosim.scenario.recipes import description_from_data
+from cosim.run.execute import run
+from cosim.slaves.description import describe_fmu
 from fmus.cache import ENV_VAR, verify
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -8,7 +8,7 @@ from pathlib import Path
 import pytest
 
 import models.blocks as blocks
-from cosim import model_doc
+from cosim.analysis import model_doc
 from cosim.cli import main
 
 ROOT = Path(__file__).resolve().parents[1]

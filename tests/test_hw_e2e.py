@@ -27,8 +27,8 @@ import numpy as np
 import pytest
 
 from cosim import cli
-from cosim.compare import aligned
-from cosim.run import run
+from cosim.analysis.compare import aligned
+from cosim.run.execute import run
 from hardware import protocol as P
 
 ROOT = Path(__file__).resolve().parent.parent

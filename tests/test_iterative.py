@@ -11,12 +11,12 @@ import numpy as np
 import pytest
 import scipy.linalg
 
-from cosim.compare import compare
+from cosim.analysis.compare import compare
 from cosim.errors import UserError
 from cosim.master import ALGORITHMS, CoupledSystem, Link, simulate
 from cosim.scenario import SceneError, load
-from cosim.slaves import LinearSlave
-from cosim.trace import MemoryTrace, Trace
+from cosim.slaves.linear import LinearSlave
+from cosim.trace.traces import MemoryTrace, Trace
 
 SCENARIOS = Path(__file__).resolve().parents[1] / "scenarios"
 FORCE_LOOP = SCENARIOS / "force_loop.yaml"
@@ -118,8 +118,8 @@ def test_an_unknown_method_is_refused_at_its_line(tmp_path):
 
 @pytest.fixture(scope="module")
 def force_loop():
-    from cosim.reference import reference
-    from cosim.run import run
+    from cosim.run.reference import reference
+    from cosim.run.execute import run
 
     return run(FORCE_LOOP), reference(FORCE_LOOP)
 
@@ -153,7 +153,7 @@ def test_the_loop_converges_in_a_few_newton_passes(force_loop):
 def test_other_iterations_reach_the_same_solution(force_loop, options):
     """Finite-difference Newton and an under-relaxed fixed point (the loop gain is 4.6: omega must
     be below 2/5.6) agree with the reference as well over the first 0.2 s."""
-    from cosim.run import run
+    from cosim.run.execute import run
 
     res = run(FORCE_LOOP, ["stop_time=0.2", f"master.options={options}"])
     assert res.status == "ok", res.reason
@@ -167,7 +167,7 @@ def test_other_iterations_reach_the_same_solution(force_loop, options):
 def test_plain_fixed_point_diverges_on_the_force_loop(force_loop):
     """Loop gain 4.6 > 1: omega = 1 cannot converge; the run says so at the start, naming a loop
     connection, instead of hanging or running on inconsistent values."""
-    from cosim.run import run
+    from cosim.run.execute import run
 
     res = run(FORCE_LOOP, ["stop_time=0.01", "master.options={method: fixed_point}"])
     assert res.status == "unstable"
@@ -209,7 +209,7 @@ def test_jacobi_is_unstable_at_this_step_by_the_analytic_map():
 @pytest.fixture(scope="module")
 def two_mass_runs():
     """2 s (enough for Jacobi's growth to show: 400 steps) at H; iterative also at H/2."""
-    from cosim.run import run
+    from cosim.run.execute import run
 
     base = [f"components.mass2.params.kc={KC}", "stop_time=2"]
     at = [f"master.step={H}", f"master.output_interval={H}"]

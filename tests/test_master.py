@@ -28,8 +28,10 @@ import scipy.linalg
 from cosim.errors import UserError
 from cosim.master import (ALGORITHMS, Algorithm, CoupledSystem, Link, algorithm, find_algebraic_loop,
                           gauss_seidel_order, register, simulate)
-from cosim.slaves import FmuSlave, LinearSlave, Status
-from cosim.trace import CsvTrace, MemoryTrace, read_trace
+from cosim.slaves.fmu import FmuSlave
+from cosim.slaves.linear import LinearSlave
+from cosim.slaves.slave import Status
+from cosim.trace.traces import CsvTrace, MemoryTrace, read_trace
 
 sys.path.insert(0, str(Path(__file__).parent))
 
@@ -430,7 +432,7 @@ def test_gauss_seidel_steps_slaves_in_its_order_not_the_declaration_order(affine
 @pytest.fixture
 def fresh_loop_library(tmp_path, monkeypatch):
     """The loop library forgotten, with an empty cache under ``tmp_path``; forgotten again after."""
-    from cosim import fastloop
+    from cosim.master import fastloop
 
     monkeypatch.setenv("RPR_COSIM_CACHE", str(tmp_path / "fmus"))
     fastloop.library.cache_clear()

@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 from cosim.errors import UserError
-from cosim.run import run
+from cosim.run.execute import run
 from cosim.scenario import SceneError, load
 from models.coupling import Link, linearize, macro_map, rk4_ramp_discretization
 
@@ -135,7 +135,7 @@ def test_a_variable_step_algorithm_refuses_a_rate():
 
 def test_the_master_refuses_rates_an_algorithm_cannot_take():
     from cosim.master import CoupledSystem, simulate
-    from cosim.slaves import LinearSlave
+    from cosim.slaves.linear import LinearSlave
 
     sl = LinearSlave("a", [[-1.0]], [[1.0]], [[1.0]])
     with pytest.raises(UserError, match="does not divide master.step"):

@@ -1,4 +1,4 @@
-"""Real-time pacing of the run loop (cosim.realtime) and its place in scenes and runs."""
+"""Real-time pacing of the run loop (cosim.master.realtime) and its place in scenes and runs."""
 from __future__ import annotations
 
 import gc
@@ -9,11 +9,11 @@ from pathlib import Path
 import pytest
 
 from cosim import master as M
-from cosim import realtime
+from cosim.master import realtime
 from cosim.errors import UserError
-from cosim.run import run
+from cosim.run.execute import run
 from cosim.scenario import SceneError, load
-from cosim.slaves import FmuSlave
+from cosim.slaves.fmu import FmuSlave
 
 SCENES = Path(__file__).resolve().parent.parent / "scenarios"
 H = 1_000_000  # 1 ms step [ns]

@@ -1,4 +1,4 @@
-"""The monolithic reference of a scene (cosim.reference) and trace comparison (cosim.compare):
+"""The monolithic reference of a scene (cosim.run.reference) and trace comparison (cosim.analysis.compare):
 against an analytic path, against the co-simulation converging at first order as the step
 shrinks (two independent formulations: FMUs under a master vs one ODE under CVODES), and the
 CLI's errors and outputs."""
@@ -11,12 +11,12 @@ import numpy as np
 import pytest
 
 from cosim import cli
-from cosim.compare import compare, format_table
+from cosim.analysis.compare import compare, format_table
 from cosim.errors import UserError
-from cosim.reference import composite, reference
-from cosim.run import run
+from cosim.run.reference import composite, reference
+from cosim.run.execute import run
 from cosim.scenario import from_dict
-from cosim.trace import CsvTrace, Trace, read_trace
+from cosim.trace.traces import CsvTrace, Trace, read_trace
 from models.geometry import preset
 from models.kinematics import ik
 

@@ -17,10 +17,10 @@ import numpy as np
 import pytest
 
 from cosim.errors import UserError
-from cosim.run import run
+from cosim.run.execute import run
 from cosim.scenario import SceneError, from_dict
-from cosim.slaves import describe_fmu
-from cosim.typedio import element_names
+from cosim.slaves.description import describe_fmu
+from cosim.slaves.typedio import element_names
 
 fmpy = pytest.importorskip("fmpy")
 
@@ -197,7 +197,7 @@ def test_stop_request_in_the_compiled_loop(reference_fmus, fmi):
 def test_string_and_binary_are_recorded_as_text_in_the_csv(reference_fmus, tmp_path):
     """Feedthrough copies its String and Binary inputs to its outputs; the CSV keeps them as text
     events that read_trace gives back."""
-    from cosim.trace import read_trace
+    from cosim.trace.traces import read_trace
 
     res = run(from_dict({"name": "txt", "stop_time": 0.3, "master": {"step": 0.1},
                          "components": {"f": {"fmu": str(reference_fmus["3.0/Feedthrough"]),

@@ -15,14 +15,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from cosim import trace as trace_module
+from cosim.trace import traces as trace_module
 
 from cosim import cli, outputs
 from cosim.errors import UserError
-from cosim.reference import reference
-from cosim.run import check_trace_size, estimate, run
+from cosim.run.reference import reference
+from cosim.run.execute import check_trace_size, estimate, run
 from cosim.scenario import SceneError, load
-from cosim.trace import CsvTrace, read_trace
+from cosim.trace.traces import CsvTrace, read_trace
 
 ROOT = Path(__file__).resolve().parents[1]
 SCENES = ROOT / "scenarios"
@@ -307,7 +307,8 @@ def test_the_trace_writer_applies_back_pressure(tmp_path, monkeypatch):
 def test_the_compiled_loop_returns_to_python_within_its_time_budget(cache, monkeypatch):
     """With a budget of 1 ns, every call of the C loop returns after 16 steps; the trace is
     bit-identical to the one of unbounded calls."""
-    from cosim import fastloop, master
+    from cosim.master import fastloop
+    from cosim import master
 
     whole = run(PID, ["stop_time=0.5"], cache_dir=cache)
     calls = []
@@ -425,7 +426,7 @@ def test_an_ssp_whose_source_leaves_the_archive_is_refused_and_writes_nothing_ou
                                                                                      member):
     from test_ssp import FOREIGN_SSD, FOREIGN_SSV, SSD
 
-    from cosim.run import build_components
+    from cosim.run.execute import build_components
 
     member = str(tmp_path / "escaped.fmu") if member == "ABS" else member
     paths = build_components(load(PID), cache_dir=cache)

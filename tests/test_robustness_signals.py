@@ -15,8 +15,8 @@ from pathlib import Path
 
 import pytest
 
-from cosim.run import run
-from cosim.trace import read_trace
+from cosim.run.execute import run
+from cosim.trace.traces import read_trace
 from test_robustness_outputs import PID, SHORT, whole_rows
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -12,9 +12,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from cosim.run import build_components, run
+from cosim.run.execute import build_components, run
 from cosim.scenario import load
-from cosim.trace import read_trace
+from cosim.trace.traces import read_trace
 
 ROOT = Path(__file__).resolve().parents[1]
 SCENES = ROOT / "scenarios"

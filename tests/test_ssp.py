@@ -13,9 +13,10 @@ import pytest
 
 from cosim.cli import main
 from cosim.errors import UserError
-from cosim.run import build_components, run
+from cosim.run.execute import build_components, run
 from cosim.scenario import SceneError, load
-from cosim.ssp import SSD, export
+from cosim.scenario.ssp import SSD
+from cosim.run.ssp_export import export
 
 ROOT = Path(__file__).resolve().parents[1]
 SCENES = ROOT / "scenarios"

@@ -223,14 +223,15 @@ def test_fidelity_auto_picks_by_measured_difference(tmp_path, monkeypatch, tol, 
     transient of the parasitic joints): at 1e-4 the rigid mechanism is good enough and cheaper, at
     1e-6 only the multibody one is.  The choice is cached with the scene's hash."""
     from cosim.scenario import load
+    from cosim.study.fidelity import resolve_auto
 
     monkeypatch.setenv("RPR_COSIM_FIDELITY_CACHE", str(tmp_path / "fidelity"))
-    scene = load(_auto_scene(tmp_path, tol))
+    scene = load(_auto_scene(tmp_path, tol), auto_fidelity=resolve_auto)
     assert scene.components["mech"].fidelity == picked
     notes = [str(w) for w in scene.warnings if w.severity == "note"]
     assert len(notes) == 1 and f"mechanism={picked}" in notes[0] and "fidelity auto" in notes[0]
     assert list((tmp_path / "fidelity").glob("*.json"))
-    again = load(_auto_scene(tmp_path, tol))  # from the cache: no runs
+    again = load(_auto_scene(tmp_path, tol), auto_fidelity=resolve_auto)  # from the cache: no runs
     assert again.components["mech"].fidelity == picked
 
 

@@ -8,11 +8,11 @@ import numpy as np
 import pytest
 
 from cosim.cli import main
-from cosim.compare import compare
-from cosim.reference import reference
-from cosim.run import run
+from cosim.analysis.compare import compare
+from cosim.run.reference import reference
+from cosim.run.execute import run
 from cosim.study.precision import precision_study
-from cosim.trace import read_trace
+from cosim.trace.traces import read_trace
 
 SCENES = Path(__file__).resolve().parents[1] / "scenarios"
 TWO_MASS = SCENES / "two_mass.yaml"

@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from cosim import tracetext
+from cosim.trace import text as tracetext
 
 
 @pytest.fixture(autouse=True, params=["c", "python"])

@@ -77,7 +77,7 @@ def _die_with(parent_pid: int) -> None:
 def _worker_main(conn, shared: Shared, parent_pid: int, writer_thread: bool = True) -> None:
     """A local worker: runs tasks from ``conn`` until it receives None or the pipe closes;
     ``writer_thread`` False: each run writes its trace in its stepping thread."""
-    from .. import trace
+    from ..trace import traces as trace
 
     trace.WRITER_THREAD = writer_thread
     signal.signal(signal.SIGINT, signal.SIG_IGN)
@@ -132,7 +132,7 @@ def _context(scenes: Sequence = (), shared: Shared | None = None):
             STATE.prepare(shared.blobs)
         return mp.get_context("fork")
     ctx = mp.get_context("forkserver")
-    ctx.set_forkserver_preload(["cosim.batch.preload", "cosim.batch.worker", "cosim.run", "cosim.batch.executors"])
+    ctx.set_forkserver_preload(["cosim.batch.preload", "cosim.batch.worker", "cosim.run.execute", "cosim.batch.executors"])
     return ctx
 
 

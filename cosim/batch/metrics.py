@@ -32,7 +32,7 @@ from typing import Any
 
 import numpy as np
 
-from ..trace import Trace
+from ..trace.traces import Trace
 
 MEASURES = ("max", "min", "max_abs", "rms", "end_error", "max_error", "rms_error", "overshoot", "settling_time")
 #: Measures of the error against a target (a number, a signal or the reference).

@@ -27,7 +27,8 @@ class PointsBatch(Batch):
 
 
 def points_batch(scene_path: Path | str, points: Sequence[tuple[Mapping[str, Any], Mapping[str, Any]]], *,
-                 name: str, fixed: Mapping[str, Any] | None = None, description: str = "") -> PointsBatch:
+                 name: str, fixed: Mapping[str, Any] | None = None, description: str = "",
+                 auto_fidelity=None) -> PointsBatch:
     """A batch of the scene at ``scene_path`` running each of ``points`` (module docstring), with
     ``fixed`` overrides (scene path -> value) under every run.  No metrics and no reference: the
     caller measures the runs' traces.  A base scene that does not load is a :class:`BatchError`."""
@@ -38,7 +39,7 @@ def points_batch(scene_path: Path | str, points: Sequence[tuple[Mapping[str, Any
         raise BatchError(problems)
     fixed = dict(fixed or {})
     ck = _Checker(str(scene_path))
-    base = _resolve_auto(ck, base, scene_path, fixed, (str(scene_path), 0))
+    base = _resolve_auto(ck, base, scene_path, fixed, (str(scene_path), 0), auto_fidelity)
     if ck.failed:
         raise BatchError(ck.problems)
     listed = [(dict(v), dict(o)) for v, o in points]

@@ -18,8 +18,10 @@ def warm_imports() -> None:
     import fmpy.fmi2  # noqa: F401
     import fmpy.fmi3  # noqa: F401
 
-    from .. import charts, interrupts, outputs, run  # noqa: F401
-    from ..trace import package_versions
+    from .. import interrupts, outputs  # noqa: F401
+    from ..analysis import charts  # noqa: F401
+    from ..run import execute  # noqa: F401
+    from ..trace.traces import package_versions
 
     package_versions()
 
@@ -27,7 +29,8 @@ def warm_imports() -> None:
 def warm(scenes: Iterable = ()) -> None:
     """:func:`warm_imports`, the compiled master loop, and the stepping order of each scene's
     coupling (cached per process by :func:`cosim.master.gauss_seidel_order`)."""
-    from .. import fastloop, tracetext
+    from ..master import fastloop
+    from ..trace import text as tracetext
     from ..errors import UserError
     from ..master import gauss_seidel_order
 

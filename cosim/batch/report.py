@@ -297,7 +297,7 @@ def run_trace_path(out: Path, run_id: str) -> Path | None:
 
 def plot_traces(out: Path, rows, signal: str, runs: Any, sort: str | None, axes: Sequence[str], path: Path) -> Path:
     """``signal`` of the chosen runs overlaid: ``runs`` is a count (first by ``sort``), 'all' or ids."""
-    from ..trace import read_trace
+    from ..trace.traces import read_trace
 
     plt = _plt()
     ordered = [r for r in sort_rows(rows, sort) if r.get("outcome") == "ok"]
@@ -372,11 +372,11 @@ def make_plots(batch: Batch, out: Path, rows: Sequence[dict], sort: str | None) 
 # --- many against one ----------------------------------------------------------------------------
 def compare_batch(out: Path, reference, patterns: Sequence[str] | None = None) -> tuple[list[str], list[tuple[dict, list]]]:
     """Every ok run of the batch in ``out`` against one ``reference`` trace: the axes and, per
-    run, its row and its :class:`cosim.compare.Difference` list."""
+    run, its row and its :class:`cosim.analysis.compare.Difference` list."""
     import json
 
-    from ..compare import compare
-    from ..trace import read_trace
+    from ..analysis.compare import compare
+    from ..trace.traces import read_trace
     from .results import read_rows
 
     out = Path(out)

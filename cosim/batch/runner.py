@@ -175,7 +175,7 @@ class FmuShelf:
     def add(self, run: Planned) -> dict[str, str]:
         from fmus.index import IndexedBlock
 
-        from ..recipes import component_fmu
+        from ..scenario.recipes import component_fmu
 
         m: dict[str, str] = {}
         for name, comp in run.scene.components.items():
@@ -269,7 +269,7 @@ def _check_reference(batch: Batch):
     if not isinstance(batch.reference, Path):
         return None
     from ..scenario import suggest
-    from ..trace import read_trace
+    from ..trace.traces import read_trace
 
     ref = read_trace(batch.reference)
     for m in batch.metrics:

@@ -52,6 +52,7 @@ import numpy as np
 from ..errors import UserError
 from ..scenario import TOP_KEYS as SCENE_KEYS
 from ..scenario import Problem, SceneError, YList, YMap, apply_overrides, load_raw, read_yaml, suggest, validate
+from ..scenario.loading import NO_AUTO_FIDELITY
 from .metrics import MEASURES, NEEDS_TARGET, MetricSpec
 
 Loc = tuple[str, int]
@@ -526,17 +527,18 @@ def _check_paths(ck: _Checker, base: YMap, scene_path: Path, fixed: dict, grid: 
             break
 
 
-def _resolve_auto(ck: _Checker, base: YMap, scene_path: Path, fixed: dict, where: Loc) -> YMap:
+def _resolve_auto(ck: _Checker, base: YMap, scene_path: Path, fixed: dict, where: Loc, auto_fidelity) -> YMap:
     """``fidelity: auto`` in the base scene is resolved once (as :func:`cosim.scenario.load`
     does), with the batch's fixed overrides; every run then uses the levels chosen."""
     comps = base.get("components")
     if not (isinstance(comps, YMap) and any(isinstance(c, YMap) and c.get("fidelity") == "auto" and "model" in c
                                             for c in comps.values())):
         return base
-    from ..study.fidelity import resolve_auto
-
+    if auto_fidelity is None:
+        ck.err(where, NO_AUTO_FIDELITY)
+        return base
     try:
-        tree, note = resolve_auto(apply_overrides(base, fixed), scene_path)
+        tree, note = auto_fidelity(apply_overrides(base, fixed), scene_path)
     except UserError as exc:
         ck.err(where, f"fidelity: auto: {exc}")
         return base
@@ -544,9 +546,10 @@ def _resolve_auto(ck: _Checker, base: YMap, scene_path: Path, fixed: dict, where
     return tree
 
 
-def load_batch(path: Path | str, *, catalog=None) -> Batch:
+def load_batch(path: Path | str, *, catalog=None, auto_fidelity=None) -> Batch:
     """Read and check a batch file; raises :class:`BatchError` listing every problem (each one
-    line, ``file:line: error: message``)."""
+    line, ``file:line: error: message``).  ``fidelity: auto`` in its scene is resolved by
+    ``auto_fidelity`` (see :func:`cosim.scenario.load`)."""
     path = Path(path)
     data, problems = read_yaml(path)
     file = problems[0].file if problems else str(path)
@@ -588,7 +591,7 @@ def load_batch(path: Path | str, *, catalog=None) -> Batch:
             ck.err(node.loc(k), f"set: {msg}")
         for p in paths:
             fixed[p], fixed_locs[p] = v, node.loc(k)
-    base = _resolve_auto(ck, base, scene_path, fixed, data.loc("scene"))
+    base = _resolve_auto(ck, base, scene_path, fixed, data.loc("scene"), auto_fidelity)
     grid = _axes(ck, data, "grid", comps)
     zipped = _axes(ck, data, "zip", comps)
     rnd, seed, samples = _random(ck, data, comps)

@@ -24,8 +24,8 @@ from typing import Any
 
 from ..errors import UserError
 from ..scenario import Scene
-from ..slaves import FmuSlave
-from ..trace import Trace
+from ..slaves.fmu import FmuSlave
+from ..trace.traces import Trace
 from .metrics import MetricSpec, compute
 
 
@@ -114,7 +114,8 @@ class _State:
     def prepare(self, blobs: dict[str, bytes]) -> None:
         """In the batch process before it forks its workers: write, unpack and describe every
         FMU once, for the workers to inherit (:meth:`remove_files` when the batch ends)."""
-        from ..slaves import describe_fmu, unpack_fmu
+        from ..slaves.description import describe_fmu
+        from ..slaves.fmu import unpack_fmu
 
         for digest in blobs:
             path = self.fmu_path(digest, blobs)
@@ -131,7 +132,7 @@ class _State:
     def remove_files(self) -> None:
         """Remove the FMU files this process wrote and unpacked (at the end of a worker process,
         or of a batch that prepared them)."""
-        from ..slaves import forget_unpacked
+        from ..slaves.fmu import forget_unpacked
 
         if self.dir is None:
             return
@@ -176,7 +177,7 @@ def _stats(stats: dict) -> dict[str, Any]:
 
 
 def _monolithic(scene: Scene, out_dir: Path) -> tuple[Trace | None, str]:
-    from ..reference import reference
+    from ..run.reference import reference
     from ..scenario import from_dict
 
     full = from_dict({**scene.data, "name": scene.name},
@@ -187,7 +188,7 @@ def _monolithic(scene: Scene, out_dir: Path) -> tuple[Trace | None, str]:
 
 def execute(task: Task, shared: Shared) -> Outcome:
     """Run one task (see the module docstring); a failure is an outcome, never an exception."""
-    from ..run import run
+    from ..run.execute import run
 
     t0 = time.perf_counter()
     tmp = None

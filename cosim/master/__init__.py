@@ -8,7 +8,7 @@ Package map (the public names are re-exported here: ``from cosim.master import X
 ``algorithm``   the :class:`Algorithm` base class, :data:`ALGORITHMS`, :func:`register`, :func:`algorithm`
 ``algorithms/`` one module per algorithm (``jacobi``, ``gauss_seidel``, ``adaptive``, ``ecco``,
                 ``iterative``), listed in :data:`cosim.master.algorithms.MODULES`
-``engine``      who runs the steps: the compiled loop (:mod:`cosim.fastloop`) or the Python loop;
+``engine``      who runs the steps: the compiled loop (:mod:`cosim.master.fastloop`) or the Python loop;
                 :func:`choose_engine`
 ``run``         the run loop :func:`simulate`, :func:`initialize`, :class:`RunStats`
 ``multirate``   a slave at ``rate`` doSteps per macro step (Jacobi, Gauss-Seidel; both engines)
@@ -64,7 +64,7 @@ other slaves complete the step from ``t_k``, the outputs are read, the point ``t
 (on the output grid or not) and the run ends with status "stopped", reason "stopped by C at t".
 
 Types: the value vector carries scalar Float64 variables; other FMI types and arrays go through
-:class:`cosim.typedio.TypedPorts` inside each slave's push/pull (same conventions, Python loop).
+:class:`cosim.slaves.typedio.TypedPorts` inside each slave's push/pull (same conventions, Python loop).
 """
 from __future__ import annotations
 
@@ -76,7 +76,8 @@ from .algorithms.iterative import Iterative
 from .algorithms.jacobi import Jacobi
 from .engine import _Compiled, choose_engine
 from .graph import find_algebraic_loop, gauss_seidel_order, topological_order
-from .run import RunStats, initialize, interruption_reason, simulate, slave_table
+from .lifecycle import RunStats, initialize, interruption_reason, slave_table
+from .run import simulate
 from .system import CoupledSystem, Link
 
 __all__ = ["ALGORITHMS", "Adaptive", "Algorithm", "CoupledSystem", "GaussSeidel", "Iterative", "Jacobi", "Link",

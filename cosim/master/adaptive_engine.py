@@ -27,7 +27,7 @@ from functools import lru_cache
 import numpy as np
 
 from ..errors import UserError
-from ..fastloop import FMI_CALL_TYPES
+from .fastloop import FMI_CALL_TYPES
 
 SOURCE = FMI_CALL_TYPES + r"""
 #include <string.h>
@@ -298,8 +298,8 @@ CALL_BUDGET_NS = 100_000_000
 
 @lru_cache(maxsize=1)
 def library() -> ctypes.CDLL:
-    """Compile (cached on disk, see :func:`cosim.fastloop.compile_library`) and load the engine."""
-    from ..fastloop import compile_library
+    """Compile (cached on disk, see :func:`cosim.master.fastloop.compile_library`) and load the engine."""
+    from .fastloop import compile_library
 
     dll = compile_library(SOURCE, "rpr_adapt")
     fn = dll.rpr_adapt_run
@@ -425,7 +425,7 @@ class CompiledAdaptive:
         return rows
 
     def _ended(self, code: int, bad: int, st: int, err: float) -> None:
-        from ..slaves import Status
+        from ..slaves.slave import Status
 
         sysm, opt, t = self.py.system, self.py.opt, self.t
         if code == 1:

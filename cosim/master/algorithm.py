@@ -3,19 +3,60 @@ module under :mod:`cosim.master.algorithms` with a class decorated by :func:`reg
 from __future__ import annotations
 
 import difflib
+import math
 import time
 from abc import ABC, abstractmethod
 from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 from typing import ClassVar
 
 import numpy as np
 
 from ..errors import UserError
-from ..slaves import FAILING, Status
+from ..slaves.slave import FAILING, Status
 from .graph import gauss_seidel_order
 from .system import CoupledSystem
 
 _ns = time.perf_counter_ns
+
+
+@dataclass(frozen=True)
+class AlgorithmOption:
+    """An option an algorithm declares: scene validation, ``--set``, help and metadata use it."""
+
+    name: str
+    default: float
+    lower: float
+    upper: float
+    unit: str
+    description: str
+
+    def check(self, value) -> float:
+        """The value as a float; ValueError with the bounds when it is not acceptable."""
+        if isinstance(value, bool):
+            raise ValueError(f"{self.name} must be a number [{self.unit or '1'}]")
+        try:
+            v = float(value)
+        except (TypeError, ValueError):  # a list, a mapping, a word
+            raise ValueError(f"{self.name} = {value!r} must be a number [{self.unit or '1'}]") from None
+        if not (math.isfinite(v) and self.lower <= v <= self.upper):
+            raise ValueError(f"{self.name} = {value!r} is outside [{self.lower:g}, {self.upper:g}] [{self.unit or '1'}]")
+        return v
+
+
+def option_values(given: dict | None, declared: Sequence[AlgorithmOption]) -> dict[str, float]:
+    """Defaults overridden by ``given`` (unknown names and bad values raise ValueError)."""
+    known = {o.name: o for o in declared}
+    out = {o.name: o.default for o in declared}
+    for k, v in (given or {}).items():
+        if k not in known:
+            close = difflib.get_close_matches(str(k), known, n=1)
+            raise ValueError(f"unknown option {k!r}" + (f"; did you mean {close[0]!r}?" if close else "")
+                             + f" (options: {', '.join(known)})")
+        out[k] = known[k].check(v)
+    if "h_min" in out and "h_max" in out and out["h_min"] > out["h_max"]:
+        raise ValueError(f"h_min = {out['h_min']:g} s is larger than h_max = {out['h_max']:g} s")
+    return out
 
 
 def _gatherer(system: CoupledSystem, i: int) -> Callable[[], None]:
@@ -48,7 +89,7 @@ class Algorithm(ABC):
     """Base class of master algorithms.  The public :meth:`step` advances one macro step and
     keeps :attr:`status` (``"running"``, ``"failed"``, ``"stopped"``); a subclass implements
     :meth:`_step_impl` and may name a compiled variant (:attr:`native_code`, see
-    :mod:`cosim.fastloop`).  Numerical failure comes back as a status and :attr:`message`, never
+    :mod:`cosim.master.fastloop`).  Numerical failure comes back as a status and :attr:`message`, never
     as an exception; bad arguments raise at once."""
 
     name: ClassVar[str]

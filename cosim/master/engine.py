@@ -1,4 +1,4 @@
-"""Engines, who runs an algorithm's steps: the compiled loop (:mod:`cosim.fastloop`, for FMU
+"""Engines, who runs an algorithm's steps: the compiled loop (:mod:`cosim.master.fastloop`, for FMU
 slaves and algorithms with a ``native_code``) or the Python loop, its bit-identical reference."""
 from __future__ import annotations
 
@@ -10,12 +10,12 @@ from .system import CoupledSystem
 
 
 class _Compiled:
-    """Runs an algorithm's steps in the compiled loop (:mod:`cosim.fastloop`)."""
+    """Runs an algorithm's steps in the compiled loop (:mod:`cosim.master.fastloop`)."""
 
     def __init__(self, alg: Algorithm):
         import ctypes
 
-        from .. import fastloop
+        from . import fastloop
 
         self.lib = fastloop.library()
         sysm = alg.system
@@ -122,6 +122,6 @@ def choose_engine(system: CoupledSystem, alg_cls: type[Algorithm], engine: str, 
             raise UserError(f"master.engine: compiled needs FMU slaves and an algorithm with a compiled loop "
                             f"({alg_cls.name} / {', '.join(s.name for s in system.slaves if s.native() is None) or 'all FMUs'})")
         return "compiled"
-    from .. import fastloop
+    from . import fastloop
 
     return "compiled" if native and fastloop.available() else "python"

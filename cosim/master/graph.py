@@ -5,7 +5,7 @@ from __future__ import annotations
 from collections.abc import Iterable, Sequence
 from functools import lru_cache
 
-from ..feedback_order import fewest_cut_order
+from .feedback_order import fewest_cut_order
 
 
 def find_algebraic_loop(edges: Iterable[tuple[object, object]]) -> list | None:
@@ -110,7 +110,7 @@ def gauss_seidel_order(n: int, edges: Iterable[tuple[int, int]]) -> list[int]:
 @lru_cache(maxsize=128)
 def _gauss_seidel_order(n: int, e: frozenset[tuple[int, int]]) -> tuple[int, ...]:
     """:func:`gauss_seidel_order`, cached: a batch asks it again for every run of the same scene
-    (the fewest-cut order of a group of up to seven slaves, :func:`cosim.feedback_order.fewest_cut_order`,
+    (the fewest-cut order of a group of up to seven slaves, :func:`cosim.master.feedback_order.fewest_cut_order`,
     takes under a millisecond; the exhaustive search it replaces took ~0.04-0.2 s)."""
     succ = [set() for _ in range(n)]
     for a, b in e:

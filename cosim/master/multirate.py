@@ -16,7 +16,7 @@ nanoseconds).  Everything else follows the macro step's conventions (:mod:`cosim
   its outputs at the macro instants only.  Two fast slaves do not exchange values between macro
   instants.
 
-:func:`substepper` is the Python loop's version; the compiled loop (:mod:`cosim.fastloop`,
+:func:`substepper` is the Python loop's version; the compiled loop (:mod:`cosim.master.fastloop`,
 ``advance``) does the same arithmetic in the same order, so the two stay bit-identical.
 """
 from __future__ import annotations
@@ -26,7 +26,7 @@ from collections.abc import Callable, Sequence
 import numpy as np
 
 from ..errors import UserError
-from ..slaves import FAILING, Status
+from ..slaves.slave import FAILING, Status
 
 
 def check_rates(rates: Sequence[int] | None, step_ns: int, names: Sequence[str]) -> list[int]:

@@ -3,157 +3,15 @@ observers, and return the run's statistics (:class:`RunStats`)."""
 from __future__ import annotations
 
 import time
-from collections.abc import Callable, Iterator, Sequence
-from contextlib import contextmanager
-from dataclasses import dataclass, field
+from collections.abc import Callable, Sequence
 
 import numpy as np
 
 from ..errors import UserError
-from ..slaves import FAILING, Slave, Status
-from .algorithm import Algorithm, algorithm
+from .algorithm import algorithm
 from .engine import _Compiled, _python_run, choose_engine
+from .lifecycle import RunStats, _guarded, initialize, settled, slave_table
 from .system import CoupledSystem
-
-
-@dataclass
-class RunStats:
-    """Statistics of one run: per-slave doStep calls and wall time [s] (inside its FMI calls),
-    the master's own time [s] (everything else in the stepping loop), totals."""
-
-    algorithm: str
-    engine: str
-    step: float
-    steps_planned: int
-    steps_done: int = 0
-    status: str = "running"
-    reason: str = ""
-    init_s: float = 0.0
-    wall_s: float = 0.0
-    master_s: float = 0.0
-    slaves: dict[str, dict[str, float]] = field(default_factory=dict)
-    guards: dict = field(default_factory=dict)
-    realtime: dict | None = None  # lateness statistics of a paced run (cosim.realtime)
-    extra: dict = field(default_factory=dict)  # the algorithm's own statistics (its statistics())
-
-    @property
-    def simulated_s(self) -> float:
-        return self.steps_done * self.step
-
-    @property
-    def real_time_factor(self) -> float:
-        """Simulated time over wall time of the stepping loop (> 1: faster than real time)."""
-        return self.simulated_s / self.wall_s if self.wall_s > 0 else float("inf")
-
-    def as_dict(self) -> dict:
-        return {"algorithm": self.algorithm, "engine": self.engine, "step": self.step,
-                "steps_planned": self.steps_planned, "steps_done": self.steps_done, "status": self.status,
-                "reason": self.reason, "init_s": self.init_s, "wall_s": self.wall_s, "master_s": self.master_s,
-                "simulated_s": self.simulated_s, "real_time_factor": self.real_time_factor, "slaves": self.slaves,
-                **({"guards": self.guards} if self.guards else {}), **self.extra,
-                **({"realtime": self.realtime} if self.realtime is not None else {})}
-
-
-def interruption_reason(exc: KeyboardInterrupt, t: float | None) -> str:
-    """The reason of a run ended by Ctrl-C or a signal (``exc`` names the signal, see
-    :mod:`cosim.interrupts`), at simulated time ``t`` when known."""
-    return f"interrupted by {str(exc) or 'the user (KeyboardInterrupt)'}" + (f" at t = {t:.9g} s" if t is not None else "")
-
-
-class Ending:
-    """How a run ended: ``status`` and ``reason`` (set by the run's block when it completes)."""
-
-    def __init__(self) -> None:
-        self.status, self.reason = "failed", ""
-
-    def from_loop(self, loop) -> None:
-        """ok, or the status and message the loop (an algorithm or stepper) stopped with."""
-        self.status, self.reason = ("ok", "") if loop.status == "running" else (loop.status, loop.message)
-
-
-@contextmanager
-def settled(stats: RunStats, system: CoupledSystem, observers: Sequence, now: Callable[[], float | None],
-            fill: Callable[[], None]) -> Iterator[Ending]:
-    """The block that runs a scene: however it ends, ``stats`` gets its status and reason (an
-    exception is a failure, Ctrl-C or a signal an interruption at simulated time ``now()``), then
-    ``fill()`` completes the statistics, the observers finish and the slaves are terminated and
-    freed; an exception propagates after that."""
-    end = Ending()
-    try:
-        yield end
-    except KeyboardInterrupt as exc:
-        end.status, end.reason = "interrupted", interruption_reason(exc, now())
-        raise
-    except BaseException as exc:
-        end.status, end.reason = "failed", f"{type(exc).__name__}: {exc}"
-        raise
-    finally:
-        stats.status, stats.reason = end.status, end.reason
-        fill()
-        for obs in observers:
-            obs.finish(end.status, end.reason, stats.as_dict())
-        for s in system.slaves:
-            s.terminate()
-            s.free()
-
-
-def slave_table(system: CoupledSystem, calls: Sequence[int], slave_ns: Sequence[int],
-                rates: Sequence[int] | None = None) -> dict[str, dict[str, float]]:
-    """Per-slave run statistics: doStep calls and wall time [s] inside the slave's calls (and the
-    slave's ``rate``, doSteps per macro step, when it is not 1)."""
-    return {s.name: {"do_step_calls": int(calls[i]), "wall_s": slave_ns[i] / 1e9,
-                     **({"rate": int(rates[i])} if rates and rates[i] != 1 else {})}
-            for i, s in enumerate(system.slaves)}
-
-
-def initialize(system: CoupledSystem, start_values: Sequence[dict[str, float]], *, start_time: float = 0.0,
-               stop_time: float, tolerances: Sequence[float | None] | None = None, allow_loops: bool = False) -> None:
-    """Instantiate, set start values, run the initial exchange (feedthrough order) and leave
-    initialisation mode; afterwards ``system.v`` holds every bound variable at ``t_0`` (with
-    ``allow_loops``, values on an algebraic loop are not consistent yet: the algorithm solves it)."""
-    seq = system.init_sequence(allow_loops)
-    for s, start in zip(system.slaves, start_values):
-        s.instantiate()
-        s.set_start(start)
-    system.bind()
-    for i, s in enumerate(system.slaves):
-        tol = tolerances[i] if tolerances else None
-        if tol is None:
-            s.enter_initialization(start_time, stop_time)
-        else:
-            s.enter_initialization(start_time, stop_time, tol)
-    for i, s in enumerate(system.slaves):
-        _check(s, s.pull(), "reading outputs in initialisation mode")
-    for i in seq:
-        system.gather(i)
-        _check(system.slaves[i], system.slaves[i].push(), "setting inputs in initialisation mode")
-        _check(system.slaves[i], system.slaves[i].pull(), "reading outputs in initialisation mode")
-    for i, s in enumerate(system.slaves):
-        system.gather(i)
-        _check(s, s.push(), "setting inputs in initialisation mode")
-        s.exit_initialization()
-    for s in system.slaves:
-        _check(s, s.pull(), "reading outputs at the start time")
-
-
-def _check(slave: Slave, status: int, what: str) -> None:
-    if status in FAILING:
-        raise UserError(f"{slave.name}: {what} returned {Status(status).name}"
-                        + (f": {slave.last_message}" if slave.last_message else ""))
-
-
-def _guarded(guard, alg: Algorithm, rows: np.ndarray, step_ns: int) -> np.ndarray:
-    """``rows`` up to the first one ``guard`` trips on (all when it does not trip); a trip ends
-    the run with the guard's status and reason at that row's time."""
-    if guard is None or guard.tripped:
-        return rows
-    keep = guard.check(rows)
-    if keep is None:
-        return rows
-    later = f" (afterwards: {alg.message})" if alg.status != "running" and alg.message else ""
-    alg.status, alg.message = guard.status, guard.reason + later
-    alg.k = round((rows[keep - 1, 0] * 1e9 - alg.start_ns) / step_ns)
-    return rows[:keep]
 
 
 def simulate(system: CoupledSystem, algorithm_name: str, *, step_ns: int, n_steps: int, record_every: int = 1,
@@ -169,9 +27,9 @@ def simulate(system: CoupledSystem, algorithm_name: str, *, step_ns: int, n_step
     Observers receive ``start(columns, meta)``, ``record(rows)`` (rows of time and the recorded
     values, at ``t_0`` and every ``record_every`` steps) and ``finish(status, reason, stats)``,
     also when the run fails or is interrupted (then the exception propagates after ``finish``).
-    ``realtime`` (a :class:`cosim.realtime.RealtimeSettings`) paces every step on the wall clock.
+    ``realtime`` (a :class:`cosim.master.realtime.RealtimeSettings`) paces every step on the wall clock.
 
-    ``guard`` (:class:`cosim.guards.Guard`) sees every row first, with the system's watched
+    ``guard`` (:class:`cosim.run.guards.Guard`) sees every row first, with the system's watched
     variables after the recorded ones; when it trips, the rows after the offending one are
     dropped and the run ends with the guard's status and reason.
     """
@@ -220,7 +78,7 @@ def simulate(system: CoupledSystem, algorithm_name: str, *, step_ns: int, n_step
 
     with settled(stats, system, observers, lambda: alg.t if alg else None, fill) as end:
         if realtime is not None:  # before initialisation: the pacer quiets the heap first
-            from ..realtime import Pacer
+            from .realtime import Pacer
 
             pacer = Pacer(step_ns, n_steps, realtime)
         t0 = time.perf_counter()

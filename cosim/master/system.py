@@ -8,10 +8,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..errors import UserError
-from ..fmitypes import TYPES
-from ..slaves import Slave
-from ..typedio import TypedPorts, element_names, is_fast
-from ..typedio import variable as typed_variable
+from ..slaves.types import TYPES
+from ..slaves.slave import Slave
+from ..slaves.typedio import TypedPorts, element_names, is_fast
+from ..slaves.typedio import variable as typed_variable
 from .graph import find_algebraic_loop, topological_order
 
 

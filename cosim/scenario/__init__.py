@@ -13,13 +13,13 @@ Format (every key but ``components`` and ``connections`` optional; lines startin
       plant:  {fmu: plant.fmu, params: {k: 1e4}, start: {x: 0.1}}    # any external FMU
     connections:
       - target.leg[1].s -> pid1.setpoint        # signal: output -> input
-      - stair.counter -> plant.u as Float64     # an explicit type conversion (cosim.fmitypes)
+      - stair.counter -> plant.u as Float64     # an explicit type conversion (cosim.slaves.types)
       - motor1.flange <-> mech.leg[1]           # power bond between two flanges
       - mech.leg[1].s -> pid1.measurement * 1000 + 0.5   # signal through a linear transformation
     master: {algorithm: gauss_seidel, step: 1e-3, order: [target, pid1, motor1, mech],
              engine: auto, output_interval: 1e-3}
     outputs: ["mech.platform.*", "mech.leg[*].f"]   # fnmatch over "component.variable"
-    guards: {stroke: stop, singularity: warn}       # physical guards (cosim.guards); all "stop" by default
+    guards: {stroke: stop, singularity: warn}       # physical guards (cosim.run.guards); all "stop" by default
 
 Component spec: ``model`` (a name of :func:`models.blocks.catalog`) with optional ``fidelity``
 and ``options`` (construction options of :func:`models.blocks.make`), or ``fmu`` (a path);

@@ -8,8 +8,8 @@ from pathlib import Path
 from typing import Any
 
 from ..errors import UserError
-from ..fmitypes import TYPES, display, parse_start
-from ..slaves import Variable, describe_block, describe_fmu, resolve_shapes
+from ..slaves.types import TYPES, display, parse_start
+from ..slaves.description import Variable, describe_block, describe_fmu, resolve_shapes
 from .catalog import default_catalog, make_block
 from .checker import Checker, _is_number
 from .keys import COMPONENT_KEYS, FMI_VERSIONS
@@ -126,7 +126,7 @@ class ComponentChecks(Checker):
 
     def _model_component(self, name: str, spec: YMap, fmi: str) -> Component | None:
         if self.catalog is None:  # built before: from the FMU cache's recipe index, no block built
-            from ..recipes import indexed_component
+            from .recipes import indexed_component
 
             comp = indexed_component(name, spec, fmi, Component)
             if comp is not None:
@@ -179,7 +179,7 @@ class ComponentChecks(Checker):
         comp = Component(name, "model", desc, model=model, fidelity=fidelity, options=options, fmi=fmi,
                          block=block, where=spec.where)
         if self.catalog is None:
-            from ..recipes import recipe_of
+            from .recipes import recipe_of
 
             comp.recipe = recipe_of(spec, options, fixed, fmi)
         self._values(comp, spec, skip=set(fixed))
@@ -252,7 +252,7 @@ class ComponentChecks(Checker):
             comp.start[k] = float(val)
 
     def _fmu_values(self, comp: Component, spec: YMap) -> None:
-        """``params`` and ``start`` of an FMU component, any FMI type (see :mod:`cosim.fmitypes`):
+        """``params`` and ``start`` of an FMU component, any FMI type (see :mod:`cosim.slaves.types`):
         parameters (and FMI 3.0 structural parameters, which size the arrays) under ``params``;
         inputs and variables with initial = exact or approx under ``start``."""
         params, start = spec.get("params", YMap()), spec.get("start", YMap())

@@ -3,9 +3,9 @@ from __future__ import annotations
 
 import dataclasses
 
-from ..fmitypes import TYPES, canonical, conversion, display
+from ..slaves.types import TYPES, canonical, conversion, display
 from ..master import ALGORITHMS, find_algebraic_loop
-from ..slaves import Variable
+from ..slaves.description import Variable
 from .checker import Checker
 from .merge import _ARROW, _AS, split_transform
 from .model import Component, Connection
@@ -68,7 +68,7 @@ class ConnectionChecks(Checker):
     def types_agree(self, ca: Component, va: Variable, cb: Component, vb: Variable, where: Loc,
                     as_type: str | None) -> bool:
         """Equal types and sizes, or an allowed conversion asked for with ``as TYPE`` (see
-        :mod:`cosim.fmitypes`); otherwise report the types and the remedy."""
+        :mod:`cosim.slaves.types`); otherwise report the types and the remedy."""
         lhs, rhs = f"{ca.name}.{va.name}", f"{cb.name}.{vb.name}"
         ta, tb = display(va.type, ca.description.fmi_version), display(vb.type, cb.description.fmi_version)
         for comp, var, t in ((ca, va, ta), (cb, vb, tb)):

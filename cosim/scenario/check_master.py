@@ -8,7 +8,7 @@ import re
 from collections.abc import Mapping
 from functools import lru_cache
 
-from ..fmitypes import TYPES
+from ..slaves.types import TYPES
 from ..master import ALGORITHMS
 from .checker import Checker, _is_number
 from .keys import ENGINES, INPUT_MODES, MASTER_KEYS
@@ -146,7 +146,7 @@ class MasterChecks(Checker):
     def realtime(self, node: YMap):
         """``master.realtime``: true/false or {max_misses: N, spin: S, priority: P}; the settings,
         None (not paced) or False (invalid, reported)."""
-        from ..realtime import RealtimeSettings
+        from ..master.realtime import RealtimeSettings
 
         rt = node.get("realtime", False)
         if rt is False or rt is None:
@@ -176,7 +176,7 @@ class MasterChecks(Checker):
         if given and not declared:
             self.err(node.loc("options"), f"master algorithm {alg} has no options")
             return None
-        from ..master.algorithms.adaptive import option_values
+        from ..master.algorithm import option_values
 
         try:
             return option_values(dict(given), declared)

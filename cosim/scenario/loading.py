@@ -2,7 +2,7 @@
 from __future__ import annotations
 
 import copy
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -14,8 +14,16 @@ from .validate import validate
 from .yamlfile import YMap
 
 
-def load(path: Path | str, overrides: Mapping[str, Any] | Sequence[str] | None = None, *, catalog=None) -> Scene:
-    """Read, merge (includes), override and validate the scene at ``path``.
+#: How ``fidelity: auto`` becomes levels: ``(tree, scene path) -> (tree, one-line note)``; the
+#: fidelity study's :func:`cosim.study.fidelity.resolve_auto` is one, given by the caller (the
+#: loader never calls up into the studies).
+AutoFidelity = Callable[[YMap, Path], tuple[YMap, str]]
+
+
+def load(path: Path | str, overrides: Mapping[str, Any] | Sequence[str] | None = None, *, catalog=None,
+         auto_fidelity: AutoFidelity | None = None) -> Scene:
+    """Read, merge (includes), override and validate the scene at ``path``; ``fidelity: auto``
+    is resolved by ``auto_fidelity`` (without one it is a problem at its line).
 
     Raises :class:`SceneError` listing every problem, each as ``file:line: error: message``."""
     path = Path(path)
@@ -25,12 +33,16 @@ def load(path: Path | str, overrides: Mapping[str, Any] | Sequence[str] | None =
         raise SceneError(problems)
     tree = apply_overrides(tree, overrides)
     auto = _auto_fidelity_loc(tree)
-    if auto is not None:  # 'fidelity: auto': the cheapest levels within fidelity_tolerance (cosim.study.fidelity)
-        from ..study.fidelity import resolve_auto
-
-        tree, note = resolve_auto(tree, path)
+    if auto is not None:  # 'fidelity: auto': the cheapest levels within fidelity_tolerance
+        if auto_fidelity is None:
+            raise SceneError([Problem(auto[0], auto[1], NO_AUTO_FIDELITY)])
+        tree, note = auto_fidelity(tree, path)
         problems.append(Problem(auto[0], auto[1], note, "note"))
     return validate(tree, path, catalog=catalog, problems=problems)
+
+
+NO_AUTO_FIDELITY = ("fidelity: auto is chosen by the fidelity study, which this caller did not provide: run the "
+                    "scene with rpr-cosim, or pass auto_fidelity=cosim.study.fidelity.resolve_auto")
 
 
 def _auto_fidelity_loc(tree: YMap) -> Loc | None:

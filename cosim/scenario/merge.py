@@ -83,7 +83,7 @@ def split_transform(text: str) -> tuple[str, float, float] | None:
     if not (math.isfinite(factor) and math.isfinite(offset)):
         return None
     return m.group(1), factor, offset
-#: an explicit type conversion on a signal: ``a.y -> b.u as Float64`` (see :mod:`cosim.fmitypes`)
+#: an explicit type conversion on a signal: ``a.y -> b.u as Float64`` (see :mod:`cosim.slaves.types`)
 _AS = re.compile(r"^(.*\S)\s+as\s+([A-Za-z][A-Za-z0-9]*)\s*$")
 
 
@@ -120,8 +120,8 @@ def load_raw(path: Path, problems: list[Problem], _chain: tuple[Path, ...] = ())
         cycle = " -> ".join(_display(p) for p in _chain + (rp,))
         problems.append(Problem(_display(path), 0, f"include cycle: {cycle}"))
         return None
-    if path.suffix.lower() == ".ssp":  # an SSP archive read as a scene tree (cosim.ssp)
-        from ..ssp import scene_tree
+    if path.suffix.lower() == ".ssp":  # an SSP archive read as a scene tree (cosim.scenario.ssp)
+        from .ssp import scene_tree
 
         return scene_tree(path, problems)
     data, found = read_yaml(path)

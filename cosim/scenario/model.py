@@ -5,7 +5,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from ..slaves import SlaveDescription
+from ..slaves.description import SlaveDescription
 from .problems import Loc, Problem
 
 
@@ -70,7 +70,7 @@ class MasterSettings:
     engine: str
     record_every: int  # output interval in steps
     inputs: str = "hold"  # "hold" or "linear" (first-order hold, FMUs that can interpolate inputs)
-    realtime: Any = None  # cosim.realtime.RealtimeSettings when the run is paced on the wall clock
+    realtime: Any = None  # cosim.master.realtime.RealtimeSettings when the run is paced on the wall clock
     options: dict[str, float] = field(default_factory=dict)  # the algorithm's own options (its declaration)
 
 
@@ -93,4 +93,4 @@ class Scene:
     warnings: list[Problem] = field(default_factory=list)
     start_time: float = 0.0  # [s] the scene's start_time, else the FMUs' default experiment, else 0
     start_ns: int = 0
-    guards: Any = None  # cosim.guards.GuardSettings (physical guards of a run)
+    guards: Any = None  # cosim.run.guards.GuardSettings (physical guards of a run)

@@ -53,7 +53,7 @@ def validate(tree: YMap, path: Path | None = None, *, catalog=None, problems: li
         ck.unconnected(comps, conns)
     if conns:
         ck.algebraic_loops(comps, conns, master.algorithm if master is not None else None)
-    from ..guards import check_scene, parse_settings
+    from .guards import check_scene, parse_settings
 
     guards = parse_settings(tree.get("guards"), lambda _key: tree.loc("guards"), ck.err)
     if comps and not broken:

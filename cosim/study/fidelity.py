@@ -27,7 +27,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from ..compare import compare
+from ..analysis.compare import compare
 from ..errors import UserError
 
 #: Default relative tolerance of ``fidelity: auto``.
@@ -111,7 +111,7 @@ def fidelity_study(scene_path: Path | str, overrides: Mapping[str, Any] | Sequen
                    progress: Callable[[str], None] | None = None) -> FidelityStudy:
     """Run every combination (module docstring); the first row is the highest combination.
     ``only`` restricts the compared signals (globs; default every recorded signal)."""
-    from ..run import run
+    from ..run.execute import run
     from ..scenario import SceneError, apply_overrides, default_catalog, validate
 
     path = Path(scene_path)

@@ -1,6 +1,6 @@
 """Work-precision study: error against cost of master algorithm variants on one scene.
 
-``precision_study`` integrates the scene's monolithic reference once (:mod:`cosim.reference`,
+``precision_study`` integrates the scene's monolithic reference once (:mod:`cosim.run.reference`,
 CVODES at tight tolerances), then runs the co-simulation for every variant (algorithm, inputs):
 
 * a fixed-step algorithm (jacobi, gauss_seidel, iterative) at every communication step of
@@ -9,7 +9,7 @@ CVODES at tight tolerances), then runs the co-simulation for every variant (algo
 * a variable-step algorithm (adaptive, ecco) at every tolerance of ``rtols`` (its option
   ``master.options.rtol``; each class declares its bounds).  Such a run records at its own
   accepted steps, irregular instants: the reference is integrated once more with output at exactly
-  those instants (:func:`cosim.reference.reference` with ``times``), so no interpolation error
+  those instants (:func:`cosim.run.reference.reference` with ``times``), so no interpolation error
   enters there either.
 
 A run's error, per recorded signal, is its largest deviation from the reference relative to that
@@ -52,10 +52,11 @@ from pathlib import Path
 
 import numpy as np
 
-from ..compare import Difference, compare
+from ..analysis.compare import Difference, compare
 from ..errors import UserError
 from ..scenario import load
-from ..trace import Trace
+from .fidelity import resolve_auto
+from ..trace.traces import Trace
 
 ECOSPY = "ecospy"
 
@@ -208,7 +209,7 @@ def _refused(scene_path: Path | str, over: dict) -> str:
     from ..scenario import SceneError
 
     try:
-        load(scene_path, over)
+        load(scene_path, over, auto_fidelity=resolve_auto)
     except (SceneError, UserError) as exc:
         text = str(exc).strip().splitlines()
         return text[0] if text else type(exc).__name__
@@ -217,7 +218,7 @@ def _refused(scene_path: Path | str, over: dict) -> str:
 
 def reference_scale(ref: Trace, names: Sequence[str]) -> dict[str, float]:
     """Each signal's range in the reference (max - min; max |value| for a constant signal), the
-    scale relative errors are measured against (as :func:`cosim.compare.compare` does)."""
+    scale relative errors are measured against (as :func:`cosim.analysis.compare.compare` does)."""
     out = {}
     for n in names:
         v = ref[n]
@@ -266,11 +267,11 @@ def precision_study(scene_path: Path | str, variants: Sequence[tuple[str, str]],
     ``executor`` (default: ``workers`` local processes); ``batch_progress`` is a
     :class:`cosim.batch.report.Progress`.  ``peer`` adds the ecospy row (``log`` gets the line
     saying why not, when ecospy does not import)."""
-    from ..reference import reference
+    from ..run.reference import reference
     from ..scenario import parse_set
 
     sets = dict(parse_set(s) for s in overrides or ())
-    base = load(scene_path, sets)
+    base = load(scene_path, sets, auto_fidelity=resolve_auto)
     steps = _checked_steps(steps or default_steps(base.master.step))
     rtols = [float(r) for r in (DEFAULT_RTOLS if rtols is None else rtols)]
     for alg in dict.fromkeys(a for a, _ in variants):
@@ -328,7 +329,7 @@ def _run_points(scene_path, points, common, out: Path, name: str, cache_dir, wor
     from ..batch import points_batch, run_batch
     from ..batch.executors import LocalExecutor
 
-    batch = points_batch(scene_path, points, name=f"{name}_precision", fixed=common,
+    batch = points_batch(scene_path, points, name=f"{name}_precision", fixed=common, auto_fidelity=resolve_auto,
                          description="rpr-cosim study precision")
     return run_batch(batch, out=out, executor=executor or LocalExecutor(workers), cache_dir=cache_dir,
                      progress=batch_progress, log=log)
@@ -338,8 +339,8 @@ def _measure(row: PrecisionRow, result: dict | None, out: Path, name: str, scene
              scale: dict[str, float], only: Sequence[str] | None) -> None:
     """Fill ``row`` from its batch result and trace (module docstring)."""
     from ..outputs import safe_name
-    from ..reference import reference
-    from ..trace import read_trace
+    from ..run.reference import reference
+    from ..trace.traces import read_trace
 
     if result is None:
         row.reason = "the batch has no result for this run"
@@ -404,7 +405,7 @@ def ecospy_trace(scene, paths: dict[str, Path], record: float, names: Sequence[s
 def without_feedthrough(scene, paths: dict[str, Path]) -> list[str]:
     """The scene's recorded signals that are outputs of their component without direct feedthrough
     (what ecospy reproduces: see the module docstring)."""
-    from ..slaves import describe_fmu
+    from ..slaves.description import describe_fmu
 
     desc = {n: describe_fmu(p) for n, p in paths.items()}
     out = []
@@ -427,12 +428,12 @@ def ecospy_row(scene_path, common: dict, step: float, record: float, ref: Trace,
             log(f"ecospy not available ({type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''}); "
                 f"no peer point (pip install ecospy, apt install libtbb12)")
         return None
-    from ..run import build_components
+    from ..run.execute import build_components
 
     row = PrecisionRow(ECOSPY, "hold", step, "failed", "")
     try:
-        scene = load(scene_path, {**common, "master.algorithm": "jacobi", "master.inputs": "hold",
-                                  "master.step": step})
+        scene = load(scene_path, {**common, "master.algorithm": "jacobi", "master.inputs": "hold", "master.step": step},
+                     auto_fidelity=resolve_auto)
         paths = build_components(scene, cache_dir=cache_dir)
         names = without_feedthrough(scene, paths)
         if not names:

@@ -27,9 +27,10 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import UserError
-from ..run import build_components, run
+from ..run.execute import build_components, run
 from ..scenario import Scene, load
-from ..slaves import FmuSlave
+from .fidelity import resolve_auto
+from ..slaves.fmu import FmuSlave
 
 #: Default algorithm variants mapped: every fixed-step algorithm with both input treatments.
 DEFAULT_VARIANTS = (("jacobi", "hold"), ("jacobi", "linear"), ("gauss_seidel", "hold"), ("gauss_seidel", "linear"))
@@ -179,7 +180,7 @@ def stability_map(scene_path: Path | str, vary: str, value_range: tuple[float, f
                   progress: Callable[[int, int], None] | None = None) -> StabilityMap:
     """Run the map (module docstring).  ``vary`` is a ``--set`` path; ranges are (lo, hi) on log
     axes.  Each run covers the scene's ``stop_time`` of simulated time."""
-    base = load(scene_path)
+    base = load(scene_path, auto_fidelity=resolve_auto)
     scene_value(base, vary)  # a clear error before any run
     steps = np.geomspace(*step_range, n_steps)
     values = np.geomspace(*value_range, n_values)
@@ -194,7 +195,7 @@ def stability_map(scene_path: Path | str, vary: str, value_range: tuple[float, f
                 h = round(float(h) * 1e9) / 1e9  # whole nanoseconds
                 over = {vary: float(value), "master.step": h, "master.algorithm": alg, "master.inputs": inputs,
                         "master.output_interval": h, "stop_time": max(8, round(base.stop_time / h)) * h}
-                scene = load(scene_path, over)
+                scene = load(scene_path, over, auto_fidelity=resolve_auto)
                 slaves = [FmuSlave(n, paths[n]) for n in scene.components]
                 res = run(scene, slaves=slaves)
                 smap.cells.append(_classify(res, alg, inputs, float(h), float(value)))
@@ -234,7 +235,7 @@ def analytic_grid(scene_path: Path | str, vary: str, value_range: tuple[float, f
                   step_range: tuple[float, float], variant: tuple[str, str], n: int = 40) -> tuple | None:
     """``(steps, values, rho)`` of the analytic macro-step map on an ``n x n`` log grid for one
     variant, or None when the scene has no analytic map."""
-    scene = load(scene_path)
+    scene = load(scene_path, auto_fidelity=resolve_auto)
     rho_fn, _ = _analytic(scene, vary)
     if rho_fn is None:
         return None

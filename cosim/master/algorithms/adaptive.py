@@ -45,34 +45,10 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ...errors import UserError
-from ...slaves import FAILING, Status
-from ..algorithm import Algorithm, register
+from ...slaves.slave import FAILING, Status
+from ..algorithm import Algorithm, AlgorithmOption, option_values, register
 from ..graph import gauss_seidel_order
-from ..run import RunStats, initialize, settled, slave_table
-
-
-@dataclass(frozen=True)
-class AlgorithmOption:
-    """An option an algorithm declares: scene validation, ``--set``, help and metadata use it."""
-
-    name: str
-    default: float
-    lower: float
-    upper: float
-    unit: str
-    description: str
-
-    def check(self, value) -> float:
-        """The value as a float; ValueError with the bounds when it is not acceptable."""
-        if isinstance(value, bool):
-            raise ValueError(f"{self.name} must be a number [{self.unit or '1'}]")
-        try:
-            v = float(value)
-        except (TypeError, ValueError):  # a list, a mapping, a word
-            raise ValueError(f"{self.name} = {value!r} must be a number [{self.unit or '1'}]") from None
-        if not (math.isfinite(v) and self.lower <= v <= self.upper):
-            raise ValueError(f"{self.name} = {value!r} is outside [{self.lower:g}, {self.upper:g}] [{self.unit or '1'}]")
-        return v
+from ..lifecycle import RunStats, initialize, settled, slave_table
 
 
 OPTIONS = (
@@ -89,23 +65,6 @@ OPTIONS = (
     AlgorithmOption("fac_min", 0.2, 0.01, 1.0, "1", "smallest step ratio from one step to the next"),
     AlgorithmOption("fac_max", 4.0, 1.0, 100.0, "1", "largest step ratio from one step to the next"),
 )
-
-
-def option_values(given: dict | None, declared: Sequence[AlgorithmOption] = OPTIONS) -> dict[str, float]:
-    """Defaults overridden by ``given`` (unknown names and bad values raise ValueError)."""
-    known = {o.name: o for o in declared}
-    out = {o.name: o.default for o in declared}
-    for k, v in (given or {}).items():
-        if k not in known:
-            import difflib
-
-            close = difflib.get_close_matches(str(k), known, n=1)
-            raise ValueError(f"unknown option {k!r}" + (f"; did you mean {close[0]!r}?" if close else "")
-                             + f" (options: {', '.join(known)})")
-        out[k] = known[k].check(v)
-    if "h_min" in out and "h_max" in out and out["h_min"] > out["h_max"]:
-        raise ValueError(f"h_min = {out['h_min']:g} s is larger than h_max = {out['h_max']:g} s")
-    return out
 
 
 @dataclass

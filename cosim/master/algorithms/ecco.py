@@ -49,10 +49,11 @@ from collections.abc import Sequence
 import numpy as np
 
 from ...errors import UserError
-from ...slaves import Status
+from ...slaves.slave import Status
 from ..algorithm import Algorithm, register
 from ..system import CoupledSystem
-from .adaptive import AdaptiveStats, AdaptiveStepper, AlgorithmOption
+from ..algorithm import AlgorithmOption
+from .adaptive import AdaptiveStats, AdaptiveStepper
 
 OPTIONS = (
     AlgorithmOption("rtol", 1e-3, 1e-12, 1.0, "1", "energy residual of a bond per step, relative to the energy "

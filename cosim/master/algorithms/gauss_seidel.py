@@ -1,8 +1,8 @@
 """Fixed-step Gauss-Seidel: slaves step one after another in a fixed order, each reading the
-freshest outputs (conventions in :mod:`cosim.master`; compiled variant code 1 in :mod:`cosim.fastloop`)."""
+freshest outputs (conventions in :mod:`cosim.master`; compiled variant code 1 in :mod:`cosim.master.fastloop`)."""
 from __future__ import annotations
 
-from ...slaves import FAILING, Status
+from ...slaves.slave import FAILING, Status
 from ..algorithm import Algorithm, _ns, register
 
 

@@ -54,10 +54,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from ...errors import UserError
-from ...slaves import FAILING, Status
+from ...slaves.slave import FAILING, Status
 from ..algorithm import Algorithm, register
 from ..system import CoupledSystem
-from .adaptive import AlgorithmOption, option_values
+from ..algorithm import AlgorithmOption, option_values
 
 _ns = time.perf_counter_ns
 

@@ -1,8 +1,8 @@
 """Fixed-step Jacobi: every slave takes its inputs from outputs read at ``t_k``, then all step
-(conventions in :mod:`cosim.master`; compiled variant code 0 in :mod:`cosim.fastloop`)."""
+(conventions in :mod:`cosim.master`; compiled variant code 0 in :mod:`cosim.master.fastloop`)."""
 from __future__ import annotations
 
-from ...slaves import FAILING, Status
+from ...slaves.slave import FAILING, Status
 from ..algorithm import Algorithm, _ns, register
 
 

@@ -28,10 +28,10 @@ import numpy as np
 from models.block import BlockError
 from models.compose import Composite, compose
 
-from .errors import UserError
-from .run import RunResult, scene_meta, scene_observers
-from .trace import TraceWriteError
-from .scenario import Scene, load
+from ..errors import UserError
+from .execute import RunResult, scene_meta, scene_observers
+from ..trace.traces import TraceWriteError
+from ..scenario import Scene, load
 
 #: CVODES tolerances of the reference (relative, absolute).
 RTOL, ATOL = 1e-10, 1e-12
@@ -138,8 +138,8 @@ def reference(scene: Scene | str | Path, overrides=None, *, out_dir: Path | None
     ``max_wall_s`` seconds of wall time or ``max_steps`` CVODES steps.  What the solver prints is
     counted, not shown: ``log`` gets one line with the count and the first line, and the
     statistics keep the count (``solver_messages``)."""
-    from .interrupts import signals_as_interrupts
-    from .outputs import OutputLock, check_out_dir
+    from ..interrupts import signals_as_interrupts
+    from ..outputs import OutputLock, check_out_dir
 
     if not isinstance(scene, Scene):
         scene = load(scene, overrides)
@@ -241,7 +241,7 @@ def _reference(scene, out_dir, rtol, atol, progress, max_wall_s, max_steps, log,
     except TraceWriteError as exc:
         status, reason = "failed", f"TraceWriteError: {exc}"
     except RuntimeError as exc:
-        from .interrupts import last_signal
+        from ..interrupts import last_signal
 
         text = str(exc).splitlines()[-1] if str(exc) else type(exc).__name__
         if fired:

@@ -12,7 +12,7 @@ so the bytes are exactly those of ``",".join(map(repr, row))``.  Blocks with NaN
 (orjson writes ``null``) and installations without orjson take the ``repr`` path.
 
 The rewrite (rows apart, the two notations) is one pass of a few lines of C (:data:`C_SOURCE`,
-compiled once and cached like the master loop, :func:`cosim.fastloop.compile_library`): ~1 ns
+compiled once and cached like the master loop, :func:`cosim.master.fastloop.compile_library`): ~1 ns
 per byte, where doing it with Python's bytes and regular expressions cost twice orjson's own
 time.  Without a C compiler the same rewrite runs in Python.
 """
@@ -88,8 +88,8 @@ size_t rpr_csv_rows(const char *in, size_t n, char *out) {
 @lru_cache(maxsize=1)
 def _c_rows():
     """The compiled :data:`C_SOURCE` function, or None without a working C compiler."""
-    from .errors import UserError
-    from .fastloop import compile_library
+    from ..errors import UserError
+    from ..master.fastloop import compile_library
 
     try:
         fn = compile_library(C_SOURCE, "rpr_text").rpr_csv_rows

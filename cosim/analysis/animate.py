@@ -12,12 +12,11 @@ from pathlib import Path
 
 import numpy as np
 
-from models.geometry import GEOMETRY_FIELDS, Manipulator, preset
+from models.geometry import Manipulator, preset
 
-from .errors import UserError
-from .trace import Trace
+from ..errors import UserError
+from ..trace.traces import Trace
 
-_GEOMETRY_PARAMS = ("A1x", "A1y", "A2x", "A2y", "A3x", "A3y", "Lmp", "a1", "a2", "a3")
 
 
 def pose_component(trace: Trace) -> str:
@@ -29,19 +28,6 @@ def pose_component(trace: Trace) -> str:
                 return comp
     raise UserError("the trace has no platform pose (columns <component>.platform.x, .y, .phi); "
                     "add e.g. 'mech.platform.*' to the scene's outputs")
-
-
-def manipulator_for(options: dict | None = None, params: dict | None = None) -> Manipulator:
-    """The geometry of a mechanism component from its ``config`` option and geometry params."""
-    m = preset(str((options or {}).get("config", "cross_leg")))
-    params = params or {}
-    if not any(k in params for k in _GEOMETRY_PARAMS):
-        return m
-    g = dict(zip(GEOMETRY_FIELDS, m.geometry_vector()))
-    base = tuple((float(params.get(f"A{i}x", g[f"A{i}x"])), float(params.get(f"A{i}y", g[f"A{i}y"])))
-                 for i in (1, 2, 3))
-    angles = tuple(float(params.get(f"a{i}", g[f"a{i}"])) for i in (1, 2, 3))
-    return m.with_(base=base, angles=angles, Lmp=float(params.get("Lmp", m.Lmp)), name=f"{m.name}*")
 
 
 def joints(m: Manipulator, q: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

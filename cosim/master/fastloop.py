@@ -22,7 +22,7 @@ from ctypes import POINTER, c_int32, c_int64, c_void_p
 from functools import lru_cache
 from pathlib import Path
 
-from .errors import UserError
+from ..errors import UserError
 
 #: Longest wall time of one call of the compiled loop [ns]; it returns to Python (where signals
 #: are handled) at least this often.

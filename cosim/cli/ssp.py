@@ -30,11 +30,12 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def _export(args: argparse.Namespace) -> int:
-    from .scenario import SceneError, load
-    from .ssp import export
+    from ..scenario import SceneError, load
+    from ..study.fidelity import resolve_auto
+    from ..run.ssp_export import export
 
     try:
-        scene = load(args.scene, args.sets)
+        scene = load(args.scene, args.sets, auto_fidelity=resolve_auto)
     except SceneError as exc:
         for p in exc.problems:
             print(p, file=sys.stderr)

@@ -8,21 +8,7 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from .trace import Trace
-
-
-def units_of(scene, fmus: Mapping[str, Path] | None = None) -> dict[str, str]:
-    """``component.variable`` -> unit, from each component's FMU (``fmus``: component -> FMU path,
-    e.g. :attr:`RunResult.fmus`) or, without one, from the description the scene validated."""
-    from .slaves import describe_fmu
-
-    out: dict[str, str] = {}
-    for name, comp in scene.components.items():
-        path = (fmus or {}).get(name)
-        desc = describe_fmu(path) if path is not None else comp.description
-        for var in desc.variables.values():
-            out[f"{name}.{var.name}"] = var.unit
-    return out
+from ..trace.traces import Trace
 
 
 def setpoint_pairs(scene) -> dict[str, str]:

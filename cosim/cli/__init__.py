@@ -11,11 +11,11 @@ import importlib
 import sys
 from collections.abc import Sequence
 
-from .errors import user_error_types
+from ..errors import user_error_types
 
 #: Modules that contribute verbs, in the order they appear in ``--help``.
-VERB_MODULES = ("cosim.cmd_analyze", "cosim.cmd_fmu", "cosim.cmd_run", "cosim.cmd_compare", "cosim.cmd_study",
-                "cosim.cmd_ssp", "cosim.cmd_board", "cosim.cmd_batch")
+VERB_MODULES = ("cosim.cli.analyze", "cosim.cli.fmu", "cosim.cli.run", "cosim.cli.compare", "cosim.cli.study",
+                "cosim.cli.ssp", "cosim.cli.board", "cosim.cli.batch")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -36,7 +36,7 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
-    from .interrupts import exit_code, signals_as_interrupts
+    from ..interrupts import exit_code, signals_as_interrupts
 
     try:
         with signals_as_interrupts():

@@ -17,8 +17,9 @@ from collections.abc import Callable
 
 import numpy as np
 
-from .fmitypes import TYPES
-from .slaves import Slave, Status, Variable
+from .types import TYPES
+from .slave import Slave, Status
+from .description import Variable
 
 
 def variable(slave: Slave, name: str) -> Variable | None:

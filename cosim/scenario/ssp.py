@@ -31,16 +31,15 @@ mappings, non-Real parameter values, units that do not convert.
 from __future__ import annotations
 
 import hashlib
-import json
 import os
 import tempfile
 import zipfile
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from .errors import UserError
+from ..errors import UserError
 
 SSD = "SystemStructure.ssd"
 NS = {
@@ -165,154 +164,13 @@ def _compose(*maps: tuple[float, float]) -> tuple[float, float]:
     return a, b
 
 
-# --- export -----------------------------------------------------------------------------------
-def _ssv(name: str, values: Sequence[tuple[str, float, str]]):
-    """An ``ssv:ParameterSet`` element of Real values (name, value, unit)."""
-    from lxml import etree
-
-    root = etree.Element(_q("ssv", "ParameterSet"), nsmap={"ssv": NS["ssv"], "ssc": NS["ssc"]},
-                         version="1.0", name=name)
-    params = etree.SubElement(root, _q("ssv", "Parameters"))
-    for pname, value, unit in values:
-        p = etree.SubElement(params, _q("ssv", "Parameter"), name=pname)
-        attrs = {"value": _num(value)}
-        if unit:
-            attrs["unit"] = unit
-        etree.SubElement(p, _q("ssv", "Real"), attrs)
-    _units_xml(root, [u for _, _, u in values], "ssv")
-    return root
-
-
-def ssd_document(scene, fmu_sources: dict[str, str], ssv_source: str):
-    """The ``SystemStructureDescription`` element of ``scene`` (FMUs at ``fmu_sources``)."""
-    from lxml import etree
-
-    root = etree.Element(_q("ssd", "SystemStructureDescription"),
-                         nsmap={k: NS[k] for k in ("ssd", "ssc", "ssv")}, version="1.0", name=scene.name)
-    if scene.description:
-        root.set("description", scene.description)
-    root.set("generationTool", "rpr-cosim")
-    system = etree.SubElement(root, _q("ssd", "System"), name=scene.name)
-    binds = etree.SubElement(system, _q("ssd", "ParameterBindings"))
-    etree.SubElement(binds, _q("ssd", "ParameterBinding"), source=ssv_source)
-    elements = etree.SubElement(system, _q("ssd", "Elements"))
-    fed = {(c.dst, c.dst_var) for c in scene.connections}
-    units: list[str] = []
-    for name, comp in scene.components.items():
-        el = etree.SubElement(elements, _q("ssd", "Component"), name=name, type=FMU_TYPE, source=fmu_sources[name])
-        el.set("implementation", "CoSimulation")
-        desc = comp.description
-        conns = etree.SubElement(el, _q("ssd", "Connectors"))
-        for var in desc.variables.values():
-            if var.causality == "output" or (var.causality == "input" and (name, var.name) in fed):
-                c = etree.SubElement(conns, _q("ssd", "Connector"), name=var.name, kind=var.causality)
-                if var.description:
-                    c.set("description", var.description)
-                real = etree.SubElement(c, _q("ssc", "Real"))
-                if var.unit:
-                    real.set("unit", var.unit)
-                    units.append(var.unit)
-        if not len(conns):
-            el.remove(conns)
-        if comp.kind == "model":
-            anns = etree.SubElement(el, _q("ssd", "Annotations"))
-            ann = etree.SubElement(anns, _q("ssc", "Annotation"), type=COMPONENT_ANNOTATION)
-            etree.SubElement(ann, _q("rpr", "Model"), {"model": comp.model, "fidelity": comp.fidelity,
-                                                        "options": json.dumps(comp.options, sort_keys=True)},
-                             nsmap={"rpr": NS["rpr"]})
-    if scene.connections:
-        cs = etree.SubElement(system, _q("ssd", "Connections"))
-        for c in scene.connections:
-            el = etree.SubElement(cs, _q("ssd", "Connection"), startElement=c.src, startConnector=c.src_var,
-                                  endElement=c.dst, endConnector=c.dst_var)
-            if c.factor != 1.0 or c.offset != 0.0:
-                etree.SubElement(el, _q("ssc", "LinearTransformation"), factor=_num(c.factor), offset=_num(c.offset))
-            if c.bond:
-                anns = etree.SubElement(el, _q("ssd", "Annotations"))
-                ann = etree.SubElement(anns, _q("ssc", "Annotation"), type=BOND_ANNOTATION)
-                etree.SubElement(ann, _q("rpr", "Bond"), bond=c.bond, nsmap={"rpr": NS["rpr"]})
-    _units_xml(root, units, "ssd")
-    exp = etree.SubElement(root, _q("ssd", "DefaultExperiment"), startTime=_num(getattr(scene, "start_time", 0.0)),
-                           stopTime=_num(scene.stop_time))
-    m = scene.master
-    attrs = {"algorithm": m.algorithm, "step": _num(m.step), "inputs": m.inputs, "engine": m.engine,
-             "outputInterval": _num(m.record_every * m.step), "scene": scene.name}
-    if m.order:
-        attrs["order"] = " ".join(m.order)
-    anns = etree.SubElement(exp, _q("ssd", "Annotations"))
-    ann = etree.SubElement(anns, _q("ssc", "Annotation"), type=MASTER_ANNOTATION)
-    master = etree.SubElement(ann, _q("rpr", "Master"), attrs, nsmap={"rpr": NS["rpr"]})
-    for pattern in scene.outputs:
-        etree.SubElement(master, _q("rpr", "Output"), name=pattern)
-    return root
-
-
-def parameter_values(scene) -> list[tuple[str, float, str]]:
-    """The scene's parameters and start values as (``component.variable``, value, unit)."""
-    out = []
-    for name, comp in scene.components.items():
-        for var, value in comp.start_values().items():
-            out.append((f"{name}.{var}", float(value), comp.description.variables[var].unit))
-    return out
-
-
-def _xml_bytes(root) -> bytes:
-    from lxml import etree
-
-    return etree.tostring(root, xml_declaration=True, encoding="UTF-8", pretty_print=True)
-
-
-def export(scene, dest: Path | str, *, cache_dir: Path | None = None, overwrite: bool = False,
-           progress: Callable[[str], None] | None = None) -> Path:
-    """Write ``scene`` (a :class:`cosim.scenario.Scene`) as the SSP archive ``dest``.
-
-    FMUs come from the cache (built on a miss).  An existing ``dest`` is kept unless
-    ``overwrite``; the archive is written beside it and renamed, so a failure leaves nothing.
-    Raises :class:`SspError` when the result would not validate (a bug, named element and line)."""
-    from .run import build_components
-
-    dest = Path(dest)
-    if dest.exists() and not overwrite:
-        raise SspError(f"{dest} exists; choose another -o or pass --force to replace it")
-    paths = build_components(scene, cache_dir=cache_dir, progress=progress)
-    sources: dict[str, str] = {}
-    members: dict[str, Path] = {}
-    for name, path in paths.items():
-        arc = f"resources/{Path(path).name}"
-        if arc in members and Path(members[arc]).read_bytes() != Path(path).read_bytes():
-            arc = f"resources/{name}_{Path(path).name}"
-        members[arc] = Path(path)
-        sources[name] = arc
-    ssv_source = f"resources/{scene.name}.ssv"
-    ssd = ssd_document(scene, sources, ssv_source)
-    ssv = _ssv(scene.name, parameter_values(scene))
-    for root, schema, what in ((ssd, "SystemStructureDescription.xsd", SSD),
-                               (ssv, "SystemStructureParameterValues.xsd", ssv_source)):
-        errs = schema_errors(root, schema)
-        if errs:
-            raise SspError(f"{dest}: the exported {what} does not validate (line {errs[0][0]}: {errs[0][1]})")
-    dest.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{dest.name}.", dir=dest.parent)
-    os.close(fd)
-    try:
-        with zipfile.ZipFile(tmp, "w", zipfile.ZIP_DEFLATED) as zf:
-            zf.writestr(SSD, _xml_bytes(ssd))
-            zf.writestr(ssv_source, _xml_bytes(ssv))
-            for arc, path in members.items():
-                zf.write(path, arc)
-        os.replace(tmp, dest)
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-    return dest
-
 
 # --- import -----------------------------------------------------------------------------------
 class _Reader:
     """Reads one archive into a scene tree, collecting problems (file, line, message)."""
 
     def __init__(self, path: Path, problems: list, cache_dir: Path | None = None):
-        from .scenario import _display
+        from .yamlfile import _display
 
         self.path, self.problems, self.cache_dir = Path(path), problems, cache_dir
         self.label = _display(self.path)
@@ -320,12 +178,12 @@ class _Reader:
         self.units: dict[str, Unit] = {}
 
     def err(self, line: int | None, msg: str, where: str | None = None) -> None:
-        from .scenario import Problem
+        from .problems import Problem
 
         self.problems.append(Problem(where or self.where_ssd, line or 0, msg))
 
     def warn(self, line: int | None, msg: str) -> None:
-        from .scenario import Problem
+        from .problems import Problem
 
         self.problems.append(Problem(self.where_ssd, line or 0, msg, "warning"))
 
@@ -367,7 +225,7 @@ class _Reader:
 
         if not hasattr(self, "digest"):
             self.digest = hashlib.sha256(self.path.read_bytes()).hexdigest()[:16]
-        from .outputs import confined
+        from ..outputs import confined
 
         dest = confined(cache_root(self.cache_dir) / "ssp" / self.digest, member)
         if not dest.is_file():
@@ -380,7 +238,7 @@ class _Reader:
 
     # the system ------------------------------------------------------------------------------------
     def tree(self, root):
-        from .scenario import YList, YMap
+        from .yamlfile import YList, YMap
 
         system = root.find("ssd:System", NS)
         tree = YMap()
@@ -442,8 +300,8 @@ class _Reader:
         return ok
 
     def components(self, system):
-        from .scenario import YMap
-        from .slaves import describe_fmu
+        from .yamlfile import YMap
+        from ..slaves.description import describe_fmu
 
         out: dict[str, tuple[Any, Any, Any]] = {}
         for el in system.findall("ssd:Elements/ssd:Component", NS):
@@ -486,7 +344,7 @@ class _Reader:
         return out
 
     def check_connectors(self, el, name: str, desc) -> bool:
-        from .scenario import suggest
+        from .problems import suggest
 
         ok = True
         for c in el.findall("ssd:Connectors/ssd:Connector", NS):
@@ -568,7 +426,8 @@ class _Reader:
 
     def apply(self, values, comps, bind_el, owner: str | None) -> None:
         """Put each bound value into its component's ``params`` or ``start`` (by causality)."""
-        from .scenario import YMap, suggest
+        from .yamlfile import YMap
+        from .problems import suggest
 
         for name, value, unit, units, loc in values:
             if owner is None:
@@ -652,7 +511,7 @@ class _Reader:
     # master ------------------------------------------------------------------------------------------
     def master(self, root, comps):
         """(master mapping, outputs list or None, scene name or None) from our annotation or defaults."""
-        from .scenario import YList, YMap
+        from .yamlfile import YList, YMap
 
         exp = root.find("ssd:DefaultExperiment", NS)
         ann = root.find(f"ssd:DefaultExperiment/ssd:Annotations/ssc:Annotation[@type='{MASTER_ANNOTATION}']/rpr:Master",
@@ -696,7 +555,7 @@ class _Reader:
 
 
 def _problem(loc: tuple[str, int], msg: str):
-    from .scenario import Problem
+    from .problems import Problem
 
     return Problem(loc[0], loc[1], msg)
 

@@ -44,25 +44,26 @@ def _say(msg: str) -> None:
 
 
 def _batch(args: argparse.Namespace) -> int:
-    from .batch import BatchError, load_batch, plan, run_batch
-    from .batch.executors import executor
-    from .batch.report import Progress
-    from .errors import UserError
+    from ..batch import BatchError, load_batch, plan, run_batch
+    from ..study.fidelity import resolve_auto
+    from ..batch.executors import executor
+    from ..batch.report import Progress
+    from ..errors import UserError
 
     if args.workers is not None and args.workers < 1:
         raise UserError(f"--workers {args.workers}: expected 1 or more")
     if args.scheduler and args.dask:
         raise UserError("--scheduler and --dask exclude each other: --dask starts a local cluster")
     try:
-        batch = load_batch(args.batch)
+        batch = load_batch(args.batch, auto_fidelity=resolve_auto)
         for note in batch.notes:
             _say(str(note))
         if args.sort is not None:
-            from .batch.results import base_columns
+            from ..batch.results import base_columns
 
             cols = base_columns([a.name for a in batch.axes], batch.metric_columns)
             if args.sort not in cols:
-                from .scenario import suggest
+                from ..scenario import suggest
 
                 raise UserError(f"--sort {args.sort!r} is not a column{suggest(args.sort, cols)} "
                                 f"(metrics: {', '.join(batch.metric_columns) or 'none'})")
@@ -102,7 +103,7 @@ def _check(batch, plan) -> int:
 
 
 def _summary(batch, res, args) -> None:
-    from .batch.report import format_results, format_spread, make_plots
+    from ..batch.report import format_results, format_spread, make_plots
 
     axes = [a.name for a in batch.axes]
     sort = args.sort or batch.sort or (batch.metric_columns[0] if batch.metric_columns else None)

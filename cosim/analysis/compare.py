@@ -20,8 +20,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import UserError
-from .trace import Trace
+from ..errors import UserError
+from ..trace.traces import Trace
 
 
 @dataclass(frozen=True)
@@ -206,15 +206,5 @@ def format_table(diffs: Sequence[Difference], *, most: int | None = None) -> str
     return "\n".join(lines)
 
 
-def plot_comparison(test: Trace, ref: Trace, diffs: Sequence[Difference], path: Path, *,
-                    labels: tuple[str, str] = ("test", "reference"), most: int = 8,
-                    units: dict[str, str] | None = None) -> Path:
-    """PNG with, for the ``most`` variables of largest relative error, both traces (left) and
-    their difference (right), in the variables' ``units`` (see :mod:`cosim.charts`)."""
-    from .charts import plot_comparison as plot
-
-    return plot(test, ref, diffs, path, labels=labels, most=most, units=units)
-
-
 __all__ = ["Comparability", "Difference", "aligned", "common_names", "comparability", "compare", "format_table",
-           "plot_comparison", "run_status"]
+           "run_status"]

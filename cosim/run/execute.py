@@ -11,18 +11,19 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
-from .errors import UserError
+from ..errors import UserError
 from .guards import scene_guard
-from .master import CoupledSystem, Link, simulate
-from .scenario import Scene, load
-from .slaves import FmuSlave, Slave
-from .trace import CsvTrace, MemoryTrace, Trace
+from ..master import CoupledSystem, Link, simulate
+from ..scenario import Scene, load
+from ..slaves.fmu import FmuSlave
+from ..slaves.slave import Slave
+from ..trace.traces import CsvTrace, MemoryTrace, Trace
 
 
 @dataclass
 class RunResult:
     """Outcome of :func:`run`: ``status`` is ``"ok"``, ``"failed"``, ``"stopped"`` (a component
-    asked to end), ``"out_of_limits"`` or ``"unstable"`` (a guard, :mod:`cosim.guards`) or
+    asked to end), ``"out_of_limits"`` or ``"unstable"`` (a guard, :mod:`cosim.run.guards`) or
     ``"interrupted"``; ``reason`` says why a run
     ended early; ``trace`` holds what was recorded
     (also the partial trace of a failed run); ``stats`` the run statistics
@@ -51,7 +52,7 @@ def build_components(scene: Scene, *, cache_dir: Path | None = None,
         if comp.kind == "fmu":
             paths[name] = comp.fmu
             continue
-        from .recipes import component_fmu
+        from ..scenario.recipes import component_fmu
 
         paths[name] = component_fmu(comp, cache_dir=cache_dir,
                                     progress=(lambda msg, n=name: progress(f"{n}: {msg}")) if progress else None)
@@ -77,7 +78,7 @@ def couple(scene: Scene, slaves: Sequence[Slave], watch: Sequence[tuple[str, str
 def scene_observers(scene: Scene, out_dir: Path | None, suffix: str = "") -> tuple[MemoryTrace, list, Path | None]:
     """The observers of a run of ``scene``: a :class:`MemoryTrace` and, with ``out_dir``, a
     :class:`CsvTrace` streaming to ``out_dir/<name><suffix>.csv`` (returned as the trace path)."""
-    from .outputs import confined, safe_name
+    from ..outputs import confined, safe_name
 
     memory = MemoryTrace()
     if out_dir is None:
@@ -88,7 +89,7 @@ def scene_observers(scene: Scene, out_dir: Path | None, suffix: str = "") -> tup
 
 def scene_meta(scene: Scene) -> dict:
     """Trace metadata identifying the scene a run comes from."""
-    from .charts import units_of
+    from ..scenario.units import units_of
 
     units = units_of(scene)
     return {"scene": scene.name, "scene_file": str(scene.path) if scene.path else None, "scene_hash": scene.hash,
@@ -170,7 +171,7 @@ def run(scene: Scene | str | Path, overrides: Mapping[str, Any] | Sequence[str] 
         out_dir: Path | None = None, catalog=None, cache_dir: Path | None = None,
         progress: Callable[[int, int], None] | None = None, log: Callable[[str], None] | None = None,
         engine: str | None = None, slaves: Sequence[Slave] | None = None,
-        max_trace_bytes: int | str | None = None) -> RunResult:
+        max_trace_bytes: int | str | None = None, auto_fidelity=None) -> RunResult:
     """Run a scene.
 
     Parameters
@@ -187,6 +188,8 @@ def run(scene: Scene | str | Path, overrides: Mapping[str, Any] | Sequence[str] 
     slaves : ready slaves in scene order instead of FMUs built from the scene (non-FMU slaves).
     max_trace_bytes : refuse a run whose trace would be larger (default ``$RPR_COSIM_MAX_TRACE``
         or 4 GB; a number of bytes or a text such as ``"20GB"``).
+    auto_fidelity : how ``fidelity: auto`` is resolved when loading (see :func:`cosim.scenario.load`;
+        :func:`cosim.study.fidelity.resolve_auto`).
 
     Returns a :class:`RunResult`; a numerical failure or a failed trace write (disk full) is a
     status, not an exception.  A KeyboardInterrupt (also SIGTERM and SIGHUP, see
@@ -194,32 +197,35 @@ def run(scene: Scene | str | Path, overrides: Mapping[str, Any] | Sequence[str] 
     Files go only under ``out_dir`` (:mod:`cosim.outputs`): one run per directory at a time,
     the trace written under a temporary name and moved into place at the end.
     """
-    from .interrupts import signals_as_interrupts
-    from .outputs import OutputLock, check_out_dir
+    from ..interrupts import signals_as_interrupts
+    from ..outputs import OutputLock, check_out_dir
 
     say = log or (lambda m: None)
     if out_dir is None:
         with signals_as_interrupts():
-            return _run(scene, overrides, None, catalog, cache_dir, progress, say, engine, slaves, max_trace_bytes)
+            return _run(scene, overrides, None, catalog, cache_dir, progress, say, engine, slaves, max_trace_bytes,
+                        auto_fidelity)
     check_out_dir(out_dir)
     with signals_as_interrupts(), OutputLock(out_dir, log=say):
-        return _run(scene, overrides, out_dir, catalog, cache_dir, progress, say, engine, slaves, max_trace_bytes)
+        return _run(scene, overrides, out_dir, catalog, cache_dir, progress, say, engine, slaves, max_trace_bytes,
+                    auto_fidelity)
 
 
-def _run(scene, overrides, out_dir, catalog, cache_dir, progress, log, engine, slaves, max_trace_bytes) -> RunResult:
-    from .trace import TraceWriteError
+def _run(scene, overrides, out_dir, catalog, cache_dir, progress, log, engine, slaves, max_trace_bytes,
+         auto_fidelity) -> RunResult:
+    from ..trace.traces import TraceWriteError
 
     if not isinstance(scene, Scene):
-        scene = load(scene, overrides, catalog=catalog)
+        scene = load(scene, overrides, catalog=catalog, auto_fidelity=auto_fidelity)
     elif overrides:
         if scene.path is None or not Path(scene.path).is_file():
             raise UserError("overrides need the scene's file; pass the path instead of a Scene")
-        scene = load(scene.path, overrides, catalog=catalog)
+        scene = load(scene.path, overrides, catalog=catalog, auto_fidelity=auto_fidelity)
     log(f"{scene.name}: {check_trace_size(scene, max_trace_bytes)}")
     t0 = time.perf_counter()
     if slaves is None:
         paths = build_components(scene, cache_dir=cache_dir, progress=log)
-        from .recipes import slave_description
+        from ..scenario.recipes import slave_description
 
         slaves = [FmuSlave(name, paths[name], c.description if c.kind == "fmu" else slave_description(c, paths[name]))
                   for name, c in scene.components.items()]

@@ -17,7 +17,7 @@ import shutil
 import sys
 from pathlib import Path
 
-from .errors import UserError
+from ..errors import UserError
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -178,7 +178,7 @@ def _check(args: argparse.Namespace) -> int:
 
 
 def _show(args: argparse.Namespace) -> int:
-    from . import model_doc
+    from ..analysis import model_doc
 
     if args.readme is not None:
         changed = model_doc.update_readme(args.readme)

@@ -26,7 +26,7 @@ import tempfile
 import threading
 from pathlib import Path
 
-from .errors import UserError
+from ..errors import UserError
 
 
 def register(sub: argparse._SubParsersAction) -> None:

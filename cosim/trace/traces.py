@@ -28,8 +28,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .tracetext import json_text, rows_text
-from .errors import UserError
+from .text import json_text, rows_text
+from ..errors import UserError
 
 FORMAT = "rpr-cosim trace 1"
 
@@ -175,7 +175,7 @@ class CsvTrace(Observer):
     """Streams the rows to ``path`` (CSV, shortest round-trip decimal text) with the metadata
     in comment lines and a sidecar ``path.with_suffix('.json')``.
 
-    Formatting floats as text costs time (~0.06 µs per value by block, :mod:`cosim.tracetext`;
+    Formatting floats as text costs time (~0.06 µs per value by block, :mod:`cosim.trace.text`;
     1 µs one by one in Python); so rows are formatted and written by a background thread, which runs while the
     compiled loop (which releases the GIL) steps the next chunk.  :meth:`finish` drains it.
 
@@ -194,7 +194,7 @@ class CsvTrace(Observer):
     def __init__(self, path: Path, *, flush_every_s: float = 0.5, extra: dict | None = None,
                  max_queued_bytes: int = 1 << 20) -> None:
         """``extra``: data for the sidecar only (e.g. the whole scene), kept out of the CSV header."""
-        from .outputs import part_path
+        from ..outputs import part_path
 
         self.path = Path(path)
         self.extra = dict(extra or {})
@@ -276,7 +276,7 @@ class CsvTrace(Observer):
                                   f"{getattr(exc, 'strerror', None) or exc} ({self._count_rows()} whole rows kept)")
 
     def record(self, rows) -> None:
-        from .interrupts import deferred, pending
+        from ..interrupts import deferred, pending
 
         self._raise_if_failed()
         if not len(rows):
@@ -299,7 +299,7 @@ class CsvTrace(Observer):
 
     def _write_inline(self, rows) -> None:
         """Format and write ``rows`` now, in the caller's thread (see :data:`WRITER_THREAD`)."""
-        from .interrupts import deferred
+        from ..interrupts import deferred
 
         try:
             with deferred():  # whole lines, or cut back to the last one
@@ -311,7 +311,7 @@ class CsvTrace(Observer):
         self._raise_if_failed()
 
     def record_text(self, t, column, value) -> None:
-        from .interrupts import deferred
+        from ..interrupts import deferred
 
         if self._inline and self._fd is not None:
             self._write_inline(_comment("text", [float(t), column, str(value)]).encode())
@@ -320,7 +320,7 @@ class CsvTrace(Observer):
                 self._queue.put(_comment("text", [float(t), column, str(value)]))
 
     def finish(self, status, reason, stats) -> None:
-        from .interrupts import deferred
+        from ..interrupts import deferred
 
         with deferred():  # a signal now waits until the status is written and the files are in place
             self._finish(status, reason, stats)
@@ -356,7 +356,7 @@ class CsvTrace(Observer):
         os.close(self._fd)
         self._fd = None
         self._write_sidecar({"status": status, "reason": reason, "rows": rows, "statistics": stats})
-        from .outputs import place
+        from ..outputs import place
 
         self.note = place(self.part, self.path, status, part_sidecar=self.sidecar_part, sidecar=self.sidecar)
 
@@ -391,7 +391,7 @@ class CsvTrace(Observer):
 def read_trace(path: Path) -> Trace:
     """Read a CSV trace written by :class:`CsvTrace` (partial or complete; a last row cut short by
     a crash is dropped)."""
-    from .outputs import settle_if_stale
+    from ..outputs import settle_if_stale
 
     path = Path(path)
     settle_if_stale(path.parent)  # a run killed in that directory: mark it and put its trace in place

@@ -15,7 +15,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from .outputs import confined
+from ..outputs import confined
 
 
 
@@ -62,10 +62,11 @@ def _run(args: argparse.Namespace) -> int:
 
 
 def _load_and_run(args: argparse.Namespace) -> int:
-    from .scenario import SceneError, load
+    from ..scenario import SceneError, load
+    from ..study.fidelity import resolve_auto
 
     try:
-        scene = load(args.scene, args.sets)
+        scene = load(args.scene, args.sets, auto_fidelity=resolve_auto)
     except SceneError as exc:
         for p in exc.problems:
             _say(str(p))
@@ -74,11 +75,11 @@ def _load_and_run(args: argparse.Namespace) -> int:
         return 2
     for w in scene.warnings:
         _say(str(w))
-    from .outputs import OutputLock, check_out_dir, safe_name
-    from .run import check_trace_size
+    from ..outputs import OutputLock, check_out_dir, safe_name
+    from ..run.execute import check_trace_size
 
-    from .errors import UserError
-    from .run import estimate
+    from ..errors import UserError
+    from ..run.execute import estimate
 
     if args.check:
         _describe(scene)
@@ -97,7 +98,7 @@ def _load_and_run(args: argparse.Namespace) -> int:
 
 
 def _run_locked(args: argparse.Namespace, scene, out: Path) -> int:
-    from .run import progress_bar, run
+    from ..run.execute import progress_bar, run
 
     try:
         res = run(scene, out_dir=out, cache_dir=args.cache, engine=args.engine, progress=progress_bar(),
@@ -109,11 +110,13 @@ def _run_locked(args: argparse.Namespace, scene, out: Path) -> int:
         raise
     _summary(res)
     if args.plot and len(res.trace.data):
-        from .charts import plot_run, setpoint_pairs, units_of
+        from ..analysis.charts import plot_run, setpoint_pairs
+        from ..scenario.units import units_of
 
         _say(f"plot: {plot_run(res.trace, confined(out, f'{scene.name}.png'), scene.name, units=units_of(scene, res.fmus), pairs=setpoint_pairs(scene))}")
     if args.animate and len(res.trace.data):
-        from .animate import animate, manipulator_for, pose_component
+        from ..analysis.animate import animate, pose_component
+        from ..scenario.geometry import manipulator_for
 
         comp = pose_component(res.trace)
         c = scene.components.get(comp)
@@ -132,9 +135,10 @@ def _run_locked(args: argparse.Namespace, scene, out: Path) -> int:
 
 def _reference(scene, res, out: Path, plot: bool) -> None:
     """Run the monolithic reference and print (and plot) the co-simulation's error against it."""
-    from .compare import compare, format_table, plot_comparison
-    from .reference import reference
-    from .run import progress_bar
+    from ..analysis.charts import plot_comparison
+    from ..analysis.compare import compare, format_table
+    from ..run.reference import reference
+    from ..run.execute import progress_bar
 
     ref = reference(scene, out_dir=out, progress=progress_bar(), log=lambda m: _say(f"[reference] {m}"))
     st = ref.stats
@@ -149,7 +153,7 @@ def _reference(scene, res, out: Path, plot: bool) -> None:
         print("co-simulation against the reference:")
         print(format_table(diffs, most=12))
         if plot:
-            from .charts import units_of
+            from ..scenario.units import units_of
 
             _say(f"plot: {plot_comparison(res.trace, ref.trace, diffs, confined(out, f'{scene.name}_vs_reference.png'), labels=(scene.master.algorithm, 'reference'), units=units_of(scene, res.fmus))}")
 

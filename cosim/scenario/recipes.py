@@ -32,7 +32,7 @@ def indexed_component(name: str, spec: Mapping, fmi: str, make_component: Callab
 def _description(block, source: str):
     """:func:`cosim.slaves.describe_block` of an indexed block, made once per block and source
     (the index hands out one block per entry; descriptions are not modified after they are made)."""
-    from .slaves import describe_block
+    from ..slaves.description import describe_block
 
     memo = block.__dict__.setdefault("_descriptions", {})
     if source not in memo:
@@ -64,7 +64,7 @@ def component_fmu(comp, *, cache_dir: Path | None = None, progress: Callable[[st
     block = real_block(comp.block)
     path = fmus.build_fmu(block, fmi_version=comp.fmi, cache_dir=cache_dir, progress=progress)
     if getattr(comp, "recipe", None) is not None:
-        from .slaves import describe_fmu
+        from ..slaves.description import describe_fmu
 
         record(comp.recipe, comp.fidelity, block, path, cache_dir, description=description_data(describe_fmu(path)))
     return path
@@ -93,7 +93,7 @@ def description_from_data(data: dict):
     """The :class:`cosim.slaves.SlaveDescription` written by :func:`description_data`."""
     from models.interface import Flange
 
-    from .slaves import SlaveDescription, Variable
+    from ..slaves.description import SlaveDescription, Variable
 
     vs = {}
     for v in data["variables"]:

@@ -17,7 +17,7 @@ import sys
 import time
 from pathlib import Path
 
-from .errors import UserError
+from ..errors import UserError
 
 STUDIES = ("configs", "platform-size", "all", "none")
 DEFAULT_MONTE_CARLO = 100_000
@@ -69,7 +69,7 @@ def run(args: argparse.Namespace) -> int:
     from models import analysis as A
     from models.geometry import PRESETS, preset
 
-    from . import analysis_report as R
+    from ..analysis import design as R
 
     names: list[str] = []
     for name in (n.strip() for n in args.config.split(",")):

@@ -42,9 +42,10 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def _compare(args: argparse.Namespace) -> int:
-    from .compare import comparability, compare, format_table, plot_comparison
-    from .errors import UserError
-    from .trace import read_trace
+    from ..analysis.charts import plot_comparison
+    from ..analysis.compare import comparability, compare, format_table
+    from ..errors import UserError
+    from ..trace.traces import read_trace
 
     if args.tol is not None and not args.tol > 0:
         raise UserError(f"--tol {args.tol}: expected a positive relative tolerance, e.g. 1e-3")
@@ -79,10 +80,10 @@ def _compare(args: argparse.Namespace) -> int:
 
 def _compare_batch(args: argparse.Namespace) -> int:
     """Many against one: every finished run of a batch against one reference trace."""
-    from .batch.report import compare_batch, format_batch_comparison
-    from .compare import VALID, run_status
-    from .errors import UserError
-    from .trace import read_trace
+    from ..batch.report import compare_batch, format_batch_comparison
+    from ..analysis.compare import VALID, run_status
+    from ..errors import UserError
+    from ..trace.traces import read_trace
 
     ref = read_trace(args.reference)
     status, reason = run_status(ref, args.reference)

@@ -1,0 +1,439 @@
+"""FMU slaves: an FMI 2.0 or 3.0 co-simulation FMU stepped through its C entry points."""
+from __future__ import annotations
+
+import atexit
+import ctypes
+import os
+import shutil
+import tempfile
+from collections.abc import Callable, Sequence
+from ctypes import POINTER, c_bool, c_double, c_int, c_size_t, c_uint32, c_void_p
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+
+from ..errors import UserError
+from .description import SlaveDescription, describe_fmu
+from .slave import FAILING, NativeEntry, Slave, Status
+
+if TYPE_CHECKING:
+    pass
+
+
+def _boolean_status(dll) -> int:
+    """Address of the FMU's fmi2GetBooleanStatus, 0 when it does not export one."""
+    try:
+        return _addr(dll.fmi2GetBooleanStatus)
+    except AttributeError:
+        return 0
+
+
+# --- the interface ----------------------------------------------------------------------------
+_UNZIPPED: dict[tuple[str, float], str] = {}
+
+
+def _cleanup() -> None:
+    for d in _UNZIPPED.values():
+        shutil.rmtree(d, ignore_errors=True)
+
+
+atexit.register(_cleanup)
+
+
+def unpack_fmu(path: Path) -> str:
+    """The folder ``path`` is unpacked into (once per process and file; removed at exit)."""
+    return _unzip(Path(path))
+
+
+def forget_unpacked(path: Path) -> None:
+    """Remove the folder(s) :func:`unpack_fmu` unpacked ``path`` into, and forget them."""
+    name = str(Path(path).resolve())
+    for key in [k for k in _UNZIPPED if k[0] == name]:
+        shutil.rmtree(_UNZIPPED.pop(key), ignore_errors=True)
+
+
+def _sweep_dead_unzips() -> None:
+    """Remove the FMU folders of processes that died without their atexit (SIGKILL)."""
+    from ..outputs import pid_alive
+
+    for d in Path(tempfile.gettempdir()).glob("rpr-fmu-*-*"):
+        pid = d.name.split("-")[2]
+        if pid.isdigit() and int(pid) != os.getpid() and not pid_alive(int(pid)):
+            shutil.rmtree(d, ignore_errors=True)
+
+
+def _unzip(path: Path) -> str:
+    import fmpy
+
+    key = (str(path.resolve()), path.stat().st_mtime)
+    if key not in _UNZIPPED:
+        if not _UNZIPPED:  # once per process
+            _sweep_dead_unzips()
+        # sources/ is not needed to load the binary (and is most of a generated FMU's bytes)
+        _UNZIPPED[key] = fmpy.extract(str(path), unzipdir=tempfile.mkdtemp(prefix=f"rpr-fmu-{os.getpid()}-"),
+                                      include=lambda name: not name.startswith("sources/"))
+    return _UNZIPPED[key]
+
+
+_DoStep2 = ctypes.CFUNCTYPE(c_int, c_void_p, c_double, c_double, c_int)
+_GetState = ctypes.CFUNCTYPE(c_int, c_void_p, POINTER(c_void_p))  # also the free function's signature
+_SetState = ctypes.CFUNCTYPE(c_int, c_void_p, c_void_p)
+_IO2 = ctypes.CFUNCTYPE(c_int, c_void_p, POINTER(c_uint32), c_size_t, POINTER(c_double))
+_DoStep3 = ctypes.CFUNCTYPE(c_int, c_void_p, c_double, c_double, c_bool, POINTER(c_bool), POINTER(c_bool),
+                            POINTER(c_bool), POINTER(c_double))
+_IO3 = ctypes.CFUNCTYPE(c_int, c_void_p, POINTER(c_uint32), c_size_t, POINTER(c_double), c_size_t)
+_RAW2 = ctypes.CFUNCTYPE(c_int, c_void_p, c_void_p, c_size_t, c_void_p)
+_RAW3 = ctypes.CFUNCTYPE(c_int, c_void_p, c_void_p, c_size_t, c_void_p, c_size_t)
+_SetDer2 = ctypes.CFUNCTYPE(c_int, c_void_p, POINTER(c_uint32), c_size_t, POINTER(c_int), POINTER(c_double))
+
+
+def _addr(fn) -> int:
+    return ctypes.cast(fn, c_void_p).value
+
+
+class FmuSlave(Slave):
+    """A co-simulation FMU (FMI 2.0 or 3.0).  FMPy loads the library and handles instantiation,
+    initialisation and termination; the per-step calls go straight to the FMI functions through
+    ctypes with preallocated buffers (or through the compiled loop via :meth:`native`)."""
+
+    def __init__(self, name: str, path: Path, description: SlaveDescription | None = None):
+        self.path = Path(path)
+        super().__init__(name, description or describe_fmu(self.path))
+        self.fmi3 = str(self.description.fmi_version).startswith("3")
+        self.fmu = None
+        self._terminated = False
+        self._empty_vr = (c_uint32 * 1)()
+        self._empty_val = (c_double * 1)()
+
+    #: Keep the instance when a run ends (:meth:`free` leaves it alive) so that the next run's
+    #: :meth:`instantiate` resets it (fmi2Reset / fmi3Reset) instead of loading the FMU again;
+    #: :meth:`release` frees it for good.  Used by batches (:mod:`cosim.batch`).
+    reuse: bool = False
+
+    # lifecycle ---------------------------------------------------------------------------------
+    def instantiate(self) -> None:
+        if self.fmu is not None:  # kept from a previous run (reuse): back to the instantiated state
+            self.reset()
+            return
+        import fmpy
+        from fmpy.fmi2 import FMU2Slave, defaultCallbacks, fmi2CallbackFunctions, fmi2CallbackLoggerTYPE
+        from fmpy.fmi3 import FMU3Slave, fmi3LogMessageCallback
+
+        guid, ident = self.description.guid, self.description.model_identifier
+        if not (guid and ident):
+            md = fmpy.read_model_description(str(self.path), validate=False)
+            guid, ident = md.guid, md.coSimulation.modelIdentifier
+        unzip = _unzip(self.path)
+        try:
+            if self.fmi3:
+                self._log = fmi3LogMessageCallback(self._on_log3)
+                self.fmu = FMU3Slave(guid=guid, unzipDirectory=unzip, modelIdentifier=ident,
+                                     instanceName=self.name)
+                self.fmu.instantiate(logMessage=self._log)
+            else:
+                cb = fmi2CallbackFunctions()
+                cb.logger = fmi2CallbackLoggerTYPE(self._on_log2)
+                cb.allocateMemory = defaultCallbacks.allocateMemory
+                cb.freeMemory = defaultCallbacks.freeMemory
+                self._callbacks = cb
+                self.fmu = FMU2Slave(guid=guid, unzipDirectory=unzip, modelIdentifier=ident,
+                                     instanceName=self.name)
+                self.fmu.instantiate(callbacks=cb)
+        except Exception as exc:  # fmpy raises bare Exceptions for a missing binary or failed call
+            raise UserError(f"{self.name}: cannot instantiate {self.path} ({exc}"
+                            f"{'; ' + self.last_message if self.last_message else ''})") from None
+        dll = self.fmu.dll
+        if self.fmi3:
+            self._step3 = _DoStep3(_addr(dll.fmi3DoStep))
+            self._get = _IO3(_addr(dll.fmi3GetFloat64))
+            self._set = _IO3(_addr(dll.fmi3SetFloat64))
+            self._flags = [c_bool(), c_bool(), c_bool()]  # eventHandlingNeeded, terminateSimulation, earlyReturn
+            self._last_t = c_double()
+            self._p_flags = [ctypes.byref(f) for f in self._flags]
+            self._p_last = ctypes.byref(self._last_t)
+        else:
+            self._step2 = _DoStep2(_addr(dll.fmi2DoStep))
+            self._get = _IO2(_addr(dll.fmi2GetReal))
+            self._set = _IO2(_addr(dll.fmi2SetReal))
+        self._inst = c_void_p(self.fmu.component)
+
+    def _on_log2(self, env, instance, status, category, message) -> None:
+        self.messages.append(f"[{Status(status).name if status in Status._value2member_map_ else status}] "
+                             f"{(message or b'').decode(errors='replace')}")
+
+    def _on_log3(self, env, status, category, message) -> None:
+        self.messages.append(f"[{Status(status).name if status in Status._value2member_map_ else status}] "
+                             f"{(message or b'').decode(errors='replace')}")
+
+    def _call(self, what: str, fn, *args) -> None:
+        try:
+            fn(*args)
+        except Exception as exc:  # fmpy's FMICallException and friends
+            detail = f": {self.last_message}" if self.last_message else ""
+            raise UserError(f"{self.name}: {what} failed ({exc}){detail}") from None
+
+    def set_start(self, values: dict[str, object]) -> None:
+        """Parameters and start values of any FMI type by name (arrays as lists); FMI 3.0
+        structural parameters are set first, in configuration mode."""
+        if not values:
+            return
+        vs = self.description.variables
+        structural = [k for k in values if vs[k].causality == "structuralParameter"]
+        if structural and self.fmi3:
+            self._call("fmi3EnterConfigurationMode", self.fmu.enterConfigurationMode)
+            for k in structural:
+                self._call(f"setting structural parameter {k}", self.set_values, k, values[k])
+            self._call("fmi3ExitConfigurationMode", self.fmu.exitConfigurationMode)
+        for k, val in values.items():
+            if k not in structural:
+                self._call(f"setting start value {k}", self.set_values, k, val)
+
+    def _accessor(self, verb: str, type_name: str):
+        from .types import TYPES
+
+        ft = TYPES[type_name]
+        return getattr(self.fmu, verb + (ft.fmi3 if self.fmi3 else ft.fmi2))
+
+    def set_values(self, name: str, value) -> None:
+        """Set variable ``name`` (any type; an array as its values in row-major order); raises
+        fmpy's exception on a failing status."""
+        from .types import TYPES, parse_start
+
+        var = self.description.variables[name]
+        ft = TYPES[var.type]
+        vals = parse_start(value, ft, var.size, name)
+        self._accessor("set", var.type)([var.vr], [v.item() if hasattr(v, "item") else v for v in vals])
+
+    def raw_io(self, verb: str, type_name: str, vrs: list[int], n_values: int) -> tuple[Callable[[], int], np.ndarray]:
+        """A no-argument call of fmi2/3 ``Get``/``Set`` (``verb``) of numeric type ``type_name`` on
+        ``vrs`` (``n_values`` values in all) and the numpy buffer it reads into or writes from (the
+        FMI storage type: FMI 2.0 Boolean and Enumeration are int32); returns the FMI status."""
+        from .types import TYPES
+
+        ft = TYPES[type_name]
+        if self.fmi3:
+            dtype = np.bool_ if type_name == "Boolean" else ft.dtype
+            proto = _RAW3
+        else:
+            dtype = np.float64 if type_name == "Real" else np.int32
+            proto = _RAW2
+        fname = f"fmi{'3' if self.fmi3 else '2'}{verb.capitalize()}{ft.fmi3 if self.fmi3 else ft.fmi2}"
+        fn = proto(_addr(getattr(self.fmu.dll, fname)))
+        vr = np.ascontiguousarray(vrs, dtype=np.uint32)
+        buf = np.zeros(n_values, dtype=dtype)
+        inst, p_vr, n_vr, p_buf = self._inst, vr.ctypes.data, len(vr), buf.ctypes.data
+        keep = (vr, buf)
+        if self.fmi3:
+            return (lambda: fn(inst, p_vr, n_vr, p_buf, n_values) if keep else 0), buf
+        return (lambda: fn(inst, p_vr, n_vr, p_buf) if keep else 0), buf
+
+    def get_values(self, type_name: str, vrs: list[int], n_values: int) -> list:
+        """Values of the variables ``vrs`` of one type (``n_values`` in all, arrays flattened)."""
+        get = self._accessor("get", type_name)
+        vals = get(vrs, n_values) if self.fmi3 else get(vrs)
+        if type_name == "String":
+            vals = [v.decode("utf-8", errors="replace") if isinstance(v, bytes) else v for v in vals]
+        return vals
+
+    def enter_initialization(self, start_time: float, stop_time: float, tolerance: float | None = None) -> None:
+        if self.fmi3:
+            self._call("fmi3EnterInitializationMode", self.fmu.enterInitializationMode,
+                       tolerance, start_time, stop_time)
+        else:
+            self._call("fmi2SetupExperiment", self.fmu.setupExperiment, tolerance, start_time, stop_time)
+            self._call("fmi2EnterInitializationMode", self.fmu.enterInitializationMode)
+
+    def exit_initialization(self) -> None:
+        self._call("exitInitializationMode", self.fmu.exitInitializationMode)
+
+    def bind(self, in_vrs, in_buf, out_vrs, out_buf) -> None:
+        self._in_vr = np.ascontiguousarray(in_vrs, dtype=np.uint32)
+        self._out_vr = np.ascontiguousarray(out_vrs, dtype=np.uint32)
+        for buf in (in_buf, out_buf):
+            if buf.dtype != np.float64 or not buf.flags.c_contiguous:
+                raise ValueError(f"{self.name}: buffers must be contiguous float64 arrays")
+        self._in_buf, self._out_buf = in_buf, out_buf
+        self._n_in, self._n_out = len(self._in_vr), len(self._out_vr)
+        pu, pd = POINTER(c_uint32), POINTER(c_double)
+        self._p_in_vr = self._in_vr.ctypes.data_as(pu) if self._n_in else self._empty_vr
+        self._p_in = in_buf.ctypes.data_as(pd) if self._n_in else self._empty_val
+        self._p_out_vr = self._out_vr.ctypes.data_as(pu) if self._n_out else self._empty_vr
+        self._p_out = out_buf.ctypes.data_as(pd) if self._n_out else self._empty_val
+        if self.fmi3:
+            n_in, n_out, inst, setf, getf = self._n_in, self._n_out, self._inst, self._set, self._get
+            a_in, v_in, a_out, v_out = self._p_in_vr, self._p_in, self._p_out_vr, self._p_out
+            self.push = (lambda: setf(inst, a_in, n_in, v_in, n_in)) if n_in else (lambda: 0)
+            self.pull = (lambda: getf(inst, a_out, n_out, v_out, n_out)) if n_out else (lambda: 0)
+        else:
+            n_in, n_out, inst, setf, getf = self._n_in, self._n_out, self._inst, self._set, self._get
+            a_in, v_in, a_out, v_out = self._p_in_vr, self._p_in, self._p_out_vr, self._p_out
+            self.push = (lambda: setf(inst, a_in, n_in, v_in)) if n_in else (lambda: 0)
+            self.pull = (lambda: getf(inst, a_out, n_out, v_out)) if n_out else (lambda: 0)
+
+    def bind_slopes(self, slope_buf: np.ndarray) -> bool:
+        if self.fmi3 or not self.description.can_interpolate_inputs or not self._n_in:
+            return False
+        if slope_buf.dtype != np.float64 or not slope_buf.flags.c_contiguous or len(slope_buf) != self._n_in:
+            raise ValueError(f"{self.name}: the slope buffer must be {self._n_in} contiguous float64 values")
+        self._slope_buf = slope_buf
+        self._orders = np.ones(self._n_in, dtype=np.int32)
+        self._set_der = _SetDer2(_addr(self.fmu.dll.fmi2SetRealInputDerivatives))
+        setder, inst, n_in, a_in = self._set_der, self._inst, self._n_in, self._p_in_vr
+        p_ord, p_slope = self._orders.ctypes.data_as(POINTER(c_int)), slope_buf.ctypes.data_as(POINTER(c_double))
+        self.push_slopes = lambda: setder(inst, a_in, n_in, p_ord, p_slope)
+        return True
+
+    def push(self) -> int:  # replaced per instance by bind()
+        raise RuntimeError(f"{self.name}: push() before bind()")
+
+    def pull(self) -> int:  # replaced per instance by bind()
+        raise RuntimeError(f"{self.name}: pull() before bind()")
+
+    def do_step(self, t: float, h: float) -> int:
+        if self.fmi3:
+            # noSetFMUStatePriorToCurrentPoint: only promised when this slave cannot be rolled back
+            st = self._step3(self._inst, t, h, not self.can_rollback, *self._p_flags, self._p_last)
+            if st < 2 and self._flags[1].value:
+                return Status.STOP_REQUESTED
+            return st
+        st = self._step2(self._inst, t, h, 0)
+        if st == Status.DISCARD and self.asked_to_stop():
+            return Status.STOP_REQUESTED
+        return st
+
+    def asked_to_stop(self) -> bool:
+        """After an FMI 2.0 Discard: did the FMU ask to end the simulation (fmi2Terminated)?"""
+        if self.fmi3 or self.fmu is None:
+            return False
+        from fmpy.fmi2 import fmi2Terminated
+
+        try:
+            return bool(self.fmu.getBooleanStatus(fmi2Terminated))
+        except Exception:  # an FMU that does not implement the status inquiry: a plain Discard
+            return False
+
+    def stop_detail(self) -> str:
+        """Why and when the FMU asked to stop: its last successful time [s] (FMI 2.0 status, FMI 3.0
+        doStep output), '' when unknown."""
+        try:
+            if self.fmi3:
+                return f"its last successful time {self._last_t.value:.9g} s"
+            from fmpy.fmi2 import fmi2LastSuccessfulTime
+
+            return f"its last successful time {self.fmu.getRealStatus(fmi2LastSuccessfulTime):.9g} s"
+        except Exception:  # optional inquiry
+            return ""
+
+    def terminate(self) -> None:
+        if self.fmu is not None and not self._terminated:
+            self._terminated = True
+            try:
+                self.fmu.terminate()
+            except Exception:  # terminating after an Error/Fatal status may itself fail
+                pass
+
+    def reset(self) -> None:
+        """Return the instance to its state right after instantiation (FMI reset): every
+        variable back to its default, ready for :meth:`set_start` and another run."""
+        self.messages.clear()
+        self._call("reset", self.fmu.reset)
+        self._terminated = False
+
+    def free(self) -> None:
+        if not self.reuse:
+            self.release()
+
+    def release(self) -> None:
+        """Free the instance and its resources (also one kept for reuse)."""
+        if self.fmu is not None:
+            try:
+                self._free_state()
+            except Exception:  # a state of a failed instance: nothing more to do
+                pass
+            try:
+                self.fmu.freeInstance()
+            except Exception:  # after Fatal, freeInstance is undefined: nothing more to do
+                pass
+            self.fmu = None
+
+    def native(self) -> NativeEntry | None:
+        if self.fmu is None:
+            return None
+        dll = self.fmu.dll
+        st = (0, 0, 0)
+        if self.can_rollback:
+            v = "3" if self.fmi3 else "2"
+            try:
+                st = tuple(_addr(getattr(dll, f"fmi{v}{x}")) for x in
+                           (("GetFMUState", "SetFMUState", "FreeFMUState") if self.fmi3 else
+                            ("GetFMUstate", "SetFMUstate", "FreeFMUstate")))
+            except AttributeError:  # declared but not exported: no compiled rollback
+                st = (0, 0, 0)
+        if self.fmi3:
+            return NativeEntry(True, self.fmu.component, _addr(dll.fmi3DoStep), _addr(dll.fmi3GetFloat64),
+                               _addr(dll.fmi3SetFloat64), 0, *st)
+        return NativeEntry(False, self.fmu.component, _addr(dll.fmi2DoStep), _addr(dll.fmi2GetReal),
+                           _addr(dll.fmi2SetReal),
+                           _addr(dll.fmi2SetRealInputDerivatives) if self.description.can_interpolate_inputs else 0,
+                           *st, _boolean_status(dll))
+
+    @property
+    def can_rollback(self) -> bool:
+        return bool(self.description.can_get_set_state)
+
+    def _state_calls(self) -> tuple:
+        """(get, set) FMU-state functions of the loaded library, made once per loaded FMU."""
+        calls = getattr(self, "_state_fns", None)
+        if calls is None or calls[0] is not self.fmu:
+            dll = self.fmu.dll
+            calls = self._state_fns = (
+                self.fmu, _GetState(_addr(dll.fmi3GetFMUState if self.fmi3 else dll.fmi2GetFMUstate)),
+                _SetState(_addr(dll.fmi3SetFMUState if self.fmi3 else dll.fmi2SetFMUstate)))
+        return calls[1:]
+
+    def save_state(self) -> None:
+        if not self.can_rollback:
+            return Slave.save_state(self)
+        dll, state = self.fmu.dll, getattr(self, "_state", None)
+        if state is None:
+            state = self._state = c_void_p()
+        st = self._state_calls()[0](self._inst, ctypes.byref(state))
+        if st in FAILING:
+            raise UserError(f"{self.name}: getting the FMU state failed ({Status(st).name})"
+                            + (f": {self.last_message}" if self.last_message else ""))
+
+    def restore_state(self) -> None:
+        state = getattr(self, "_state", None)
+        if state is None:
+            raise RuntimeError(f"{self.name}: restore_state() before save_state()")
+        st = self._state_calls()[1](self._inst, state)
+        if st in FAILING:
+            raise UserError(f"{self.name}: setting the FMU state failed ({Status(st).name})"
+                            + (f": {self.last_message}" if self.last_message else ""))
+
+    def _free_state(self) -> None:
+        state = getattr(self, "_state", None)
+        if state is not None and state.value and self.fmu is not None:
+            fn = _GetState(_addr(self.fmu.dll.fmi3FreeFMUState if self.fmi3 else self.fmu.dll.fmi2FreeFMUstate))
+            fn(self._inst, ctypes.byref(state))
+        self._state = None
+
+    def output_jacobian(self, outputs: Sequence[str], inputs: Sequence[str]) -> np.ndarray | None:
+        if not self.description.provides_directional_derivative or self.fmu is None:
+            return None
+        unknown, known = [self.vr(y) for y in outputs], [self.vr(u) for u in inputs]
+        jac = np.zeros((len(unknown), len(known)))
+        try:
+            for j in range(len(known)):
+                seed = [1.0 if k == j else 0.0 for k in range(len(known))]
+                jac[:, j] = self.fmu.getDirectionalDerivative(unknown, known, seed)
+        except Exception as exc:  # fmpy raises its FMICallException on a failing status
+            raise UserError(f"{self.name}: get directional derivative failed ({exc})"
+                            + (f": {self.last_message}" if self.last_message else "")) from None
+        return jac
+
+
+# --- analytic slaves --------------------------------------------------------------------------
+
