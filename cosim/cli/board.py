@@ -54,6 +54,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                        help="run under SCHED_FIFO at priority P (1..99; needs root or CAP_SYS_NICE): keeps a 1 kHz "
                             "loop on time on a busy machine")
         s.add_argument("-v", "--verbose", action="store_true", help="log sessions and faults")
+        s.add_argument("--target", default="host", choices=("host", "armhf"),
+                       help="the daemon's build: host, or armhf under qemu-user (tests, benchmarks; default host)")
         if name == "serve":
             s.add_argument("--root", type=Path, default=Path("/"), help="sysfs root (default /; a fake tree in tests)")
             s.add_argument("--gpio", default="auto", choices=("auto", "sysfs", "chardev"),
@@ -164,7 +166,7 @@ def _serve(args) -> int:
     opts = _common(args) + ["--root", str(args.root), "--gpio", args.gpio]
     if args.travel:
         opts += ["--travel", args.travel]
-    child = _spawn([*_binary(), *opts])
+    child = _spawn([*_binary(args.target), *opts])
     err = _relay(child.stderr, sys.stderr)
     forward = lambda signum, frame: child.send_signal(signum)  # noqa: E731
     old = {s: signal.signal(s, forward) for s in (signal.SIGTERM, signal.SIGINT, signal.SIGHUP)}
@@ -202,7 +204,7 @@ def _virtual(args) -> int:
                                       stuck=tuple(args.stuck), unplugged=tuple(args.unplug),
                                       driver_fault=tuple(args.driver_fault))
     plant = virtual.Plant(tree, opts_plant)
-    child = _spawn([*_binary(), *opts, "--root", str(tree)], stdout=subprocess.PIPE)
+    child = _spawn([*_binary(args.target), *opts, "--root", str(tree)], stdout=subprocess.PIPE)
     err = _relay(child.stderr, sys.stderr)
     stopping = {"flag": False}
 

@@ -87,7 +87,8 @@ typedef struct {
     uint8_t seen_hello[SEEN_HELLOS][NONCE];
     int n_seen;
     uint32_t next_session;
-    int64_t last_cmd_ns, last_apply;
+    int64_t last_cmd_ns, last_apply, last_sample;
+    int64_t resample_ns; /* a command samples the ADC again unless the last sample is younger */
     uint64_t counters[C_COUNT];
     int hello_budget;
     char last_error[256];

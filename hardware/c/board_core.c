@@ -173,6 +173,7 @@ static void apply(Board *b, int64_t now) {
 static void sample(Board *b, int64_t now) {
     const Safety *s = &b->safety;
     int i;
+    b->last_sample = now;
     for (i = 0; i < LEGS; i++) {
         Leg *leg = &b->legs[i];
         char why[160];
@@ -359,7 +360,7 @@ static void command(Board *b, int flags, const float *volts, int64_t now) {
             }
         b->state = S_RUNNING;
         for (i = 0; i < LEGS; i++) b->legs[i].target = volts[i];
-        sample(b, now);
+        if (now - b->last_sample >= b->resample_ns) sample(b, now);
         if (b->state != S_FAULT) apply(b, now);
     }
 }

@@ -218,6 +218,7 @@ static int serve(Board *b, int sock, double rate, double duration) {
     struct pollfd pfd[2];
     int tfd = timerfd_create(CLOCK_MONOTONIC, TFD_CLOEXEC | TFD_NONBLOCK);
     uint8_t d[2048], reply[256];
+    b->resample_ns = tick / 2; /* a command within half a tick of the tick's sample uses it */
     if (tfd < 0) return fail(1, "timerfd_create: %s", strerror(errno));
     memset(&its, 0, sizeof its);
     its.it_value.tv_sec = (time_t)(due / 1000000000ll);
