@@ -13,7 +13,8 @@ with a flood of unauthenticated datagrams):
    its CPU per tick by the kernel's accounting over the loop;
 4. with ``--flood``: a separate process sends the issue's flood (50 000 datagrams: junk,
    commands of a wrong session, HELLOs under another key, as fast as it can) once a second
-   through the loop; the board's dropped and throttled counts.
+   from 1 s into the loop (its session is open by then) to its end; the board's dropped and
+   throttled counts.
 
 ``--load N`` runs N busy processes beside (the "loaded" machine); ``--priority P`` runs the loop
 under SCHED_FIFO P and the board at P + 10 (root).  ``--target armhf`` runs the daemon's ARM
@@ -47,7 +48,8 @@ BOARD_OUTPUTS = ["rig.leg[*].s", "target.leg[*].s", "pid*.y", "rig.round_trip", 
 FLOOD = """
 import os, socket, sys, time
 from hardware import protocol as P
-port, stop_at = int(sys.argv[1]), float(sys.argv[2])
+port, start_at, stop_at = int(sys.argv[1]), float(sys.argv[2]), float(sys.argv[3])
+time.sleep(max(0.0, start_at - time.time()))  # the loop's session is open by then
 s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
 junk = os.urandom(72)
 wrong = P.pack(os.urandom(32), P.COMMAND, 0x5A5A5A5A, 1, 0, P.RUN, 12.0, 12.0, 12.0)
@@ -122,7 +124,7 @@ def one(duration: float, priority: int, load: int, flood: bool, target: str) -> 
         out["udp_rtt_p50_us"], out["udp_rtt_p99_us"] = np.percentile(rtt, [50, 99]) * 1e6
         if flood:
             flooder = subprocess.Popen([sys.executable, "-c", FLOOD, address.rsplit(":", 1)[1],
-                                        str(time.time() + duration + 3)], stdout=subprocess.PIPE, text=True,
+                                        str(time.time() + 1.0), str(time.time() + duration + 3)], stdout=subprocess.PIPE, text=True,
                                        env=dict(os.environ, PYTHONPATH=str(ROOT)))
         c0, t0 = cpu_ns(pid), time.monotonic()
         res = run(ROOT / "scenarios/rig_step_hil.yaml",
@@ -160,7 +162,7 @@ def one(duration: float, priority: int, load: int, flood: bool, target: str) -> 
 
 
 def show(r: dict, duration: float) -> None:
-    cfg = (f"{'loaded (' + str(r['load']) + ' busy processes)' if r['load'] else 'quiet'}, "
+    cfg = (f"{'loaded (+' + str(r['load']) + ' busy processes)' if r['load'] else 'no added load'}, "
            f"{'SCHED_FIFO ' + str(r['priority']) if r['priority'] else 'normal priority'}"
            f"{', flood' if r['flood'] else ''}")
     print(f"== {cfg}: rig_step_hil {duration:g} s, status {r.get('status')}"
