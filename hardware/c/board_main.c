@@ -246,10 +246,10 @@ static int serve(Board *b, int sock, double rate, double duration) {
         if (pfd[0].revents & POLLIN) {
             uint64_t exp = 0;
             if (read(tfd, &exp, sizeof exp) == sizeof exp && exp > 0) {
-                int64_t last = due + (int64_t)(exp - 1) * tick;
+                int64_t first = due; /* the oldest expiry not served: missed ticks count as lateness */
                 now = now_ns();
-                due = last + tick;
-                board_tick(b, now, now - last);
+                due += (int64_t)exp * tick;
+                board_tick(b, now, now - first);
             }
         }
         if (!(pfd[1].revents & POLLIN)) continue;
@@ -356,6 +356,11 @@ int main(int argc, char **argv) {
         board_close_outputs(b);
         io_close(b);
         return fail(2, "cannot listen on %s: %s", listen, strerror(e));
+    }
+    {   /* room for a burst of datagrams ahead of the master's (beyond rmem_max when root) */
+        int size = 1 << 19;
+        if (setsockopt(sock, SOL_SOCKET, SO_RCVBUFFORCE, &size, sizeof size) != 0)
+            setsockopt(sock, SOL_SOCKET, SO_RCVBUF, &size, sizeof size);
     }
     getsockname(sock, (struct sockaddr *)&sa, &sl);
     prctl(PR_SET_TIMERSLACK, 1UL);

@@ -226,9 +226,10 @@ static int open_socket(Hil *h) {
     return 0;
 }
 
-/* Wait for a datagram of `type` (and `seq` unless 0) authenticated with `key`; 0 ok, -1 timeout,
- * -2 refused/socket error (reason logged by the caller from errno). */
-static int await(Hil *h, int type, uint32_t seq, const uint8_t *key, uint8_t *buf, size_t want, double timeout_s) {
+/* Wait for a datagram of `type` (and a sequence number seq..seq_hi unless seq is 0) authenticated
+ * with `key`; 0 ok, -1 timeout, -2 refused/socket error (reason logged by the caller from errno). */
+static int await_range(Hil *h, int type, uint32_t seq, uint32_t seq_hi, const uint8_t *key, uint8_t *buf, size_t want,
+                       double timeout_s) {
     uint64_t deadline = now_ns() + (uint64_t)(timeout_s * 1e9);
     for (;;) {
         uint64_t t = now_ns();
@@ -251,7 +252,7 @@ static int await(Hil *h, int type, uint32_t seq, const uint8_t *key, uint8_t *bu
             return -2;
         }
         if ((size_t)n != want || buf[0] != 'R' || buf[1] != 'P' || buf[2] != 2 || buf[3] != type) continue;
-        if (seq && get32(buf + 8) != seq) continue; /* an answer to an older command */
+        if (seq && (get32(buf + 8) < seq || get32(buf + 8) > seq_hi)) continue; /* an older command's */
         if (!check_mac(key, buf, (size_t)n)) continue;
         return 0;
     }
@@ -290,7 +291,7 @@ static int hello(Hil *h) {
                 silent(h, -2, "WELCOME");
                 return -1;
             }
-            rc = await(h, T_WELCOME, 0, h->key, r, HDR + 2 * NONCE + MAC, slice < 0.005 ? slice : 0.005);
+            rc = await_range(h, T_WELCOME, 0, 0, h->key, r, HDR + 2 * NONCE + MAC, slice < 0.005 ? slice : 0.005);
             if (rc == -2) {
                 silent(h, rc, "WELCOME to HELLO");
                 return -1;
@@ -315,25 +316,40 @@ static int exchange(Hil *h, int flags, const double *volts) {
     uint64_t t0;
     int i, rc, state, faults;
     double rtt;
-    header(d, T_COMMAND, h->session, ++h->seq);
-    memset(d + HDR, 0, 16);
-    d[HDR] = (uint8_t)flags;
-    for (i = 0; i < 3; i++) {
-        float f = (float)volts[i];
-        uint32_t u;
-        memcpy(&u, &f, 4);
-        put32(d + HDR + 4 + 4 * i, u);
-    }
-    hmac_sha256(h->skey, 32, d, HDR + 16, d + HDR + 16);
+    uint32_t first = h->seq + 1;
+    uint64_t end;
+    /* the same command under a new sequence number every 5 ms until the timeout: a datagram lost
+     * (a full socket queue under a flood, a lossy link) costs 5 ms, not the run; commands are
+     * idempotent (target voltages, ARM once idle, STOP, RESET), and a SAMPLE of any of them answers */
     t0 = now_ns();
-    if (send(h->sock, d, sizeof d, 0) < 0) {
-        silent(h, -2, "SAMPLE");
-        return -1;
-    }
-    rc = await(h, T_SAMPLE, h->seq, h->skey, r, HDR + 44 + MAC, h->r[VR_TIMEOUT]);
-    if (rc != 0) {
-        silent(h, rc, "SAMPLE");
-        return -1;
+    end = t0 + (uint64_t)(h->r[VR_TIMEOUT] * 1e9);
+    for (;;) {
+        uint64_t t = now_ns();
+        double slice = t >= end ? 0 : (double)(end - t) / 1e9;
+        if (slice <= 0) {
+            silent(h, -1, "SAMPLE");
+            return -1;
+        }
+        header(d, T_COMMAND, h->session, ++h->seq);
+        memset(d + HDR, 0, 16);
+        d[HDR] = (uint8_t)flags;
+        for (i = 0; i < 3; i++) {
+            float f = (float)volts[i];
+            uint32_t u;
+            memcpy(&u, &f, 4);
+            put32(d + HDR + 4 + 4 * i, u);
+        }
+        hmac_sha256(h->skey, 32, d, HDR + 16, d + HDR + 16);
+        if (send(h->sock, d, sizeof d, 0) < 0) {
+            silent(h, -2, "SAMPLE");
+            return -1;
+        }
+        rc = await_range(h, T_SAMPLE, first, h->seq, h->skey, r, HDR + 44 + MAC, slice < 0.005 ? slice : 0.005);
+        if (rc == 0) break;
+        if (rc == -2) {
+            silent(h, rc, "SAMPLE");
+            return -1;
+        }
     }
     rtt = (double)(now_ns() - t0) / 1e9;
     state = r[HDR];
