@@ -12,9 +12,9 @@ with a flood of unauthenticated datagrams):
    per tick as the board reported them over the protocol (the FMU's ``board_*`` outputs), and
    its CPU per tick by the kernel's accounting over the loop;
 4. with ``--flood``: a separate process sends the issue's flood (50 000 datagrams: junk,
-   commands of a wrong session, HELLOs under another key, as fast as it can) once a second
-   from 1 s into the loop (its session is open by then) to its end; the board's dropped and
-   throttled counts.
+   commands of a wrong session, HELLOs under another key, as fast as it can) 1 s into the loop
+   (its session is open by then), once or every ``--flood-every`` seconds; the board's dropped
+   and throttled counts.
 
 ``--load N`` runs N busy processes beside (the "loaded" machine); ``--priority P`` runs the loop
 under SCHED_FIFO P and the board at P + 10 (root).  ``--target armhf`` runs the daemon's ARM
@@ -48,7 +48,7 @@ BOARD_OUTPUTS = ["rig.leg[*].s", "target.leg[*].s", "pid*.y", "rig.round_trip", 
 FLOOD = """
 import os, socket, sys, time
 from hardware import protocol as P
-port, start_at, stop_at = int(sys.argv[1]), float(sys.argv[2]), float(sys.argv[3])
+port, start_at, stop_at, every = int(sys.argv[1]), float(sys.argv[2]), float(sys.argv[3]), float(sys.argv[4])
 time.sleep(max(0.0, start_at - time.time()))  # the loop's session is open by then
 s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
 junk = os.urandom(72)
@@ -65,8 +65,10 @@ while time.time() < stop_at:
             sent += 1
         except OSError:
             pass
-    time.sleep(max(0.0, 1.0 - (time.monotonic() - t0)))
-print(sent, flush=True)
+    print(f"{sent} datagrams in {time.monotonic() - t0:.3f} s", flush=True)
+    if not every:
+        break
+    time.sleep(max(0.0, every - (time.monotonic() - t0)))
 """
 
 
@@ -108,7 +110,7 @@ def round_trip(address: str, key: Path, n: int) -> np.ndarray:
     return rtt
 
 
-def one(duration: float, priority: int, load: int, flood: bool, target: str) -> dict:
+def one(duration: float, priority: int, load: int, flood: bool, target: str, flood_every: float = 0.0) -> dict:
     tmp = Path(tempfile.mkdtemp(prefix="bench-hil-"))
     key = P.write_key(tmp / "board.key")
     hogs = [subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(load)]
@@ -124,7 +126,7 @@ def one(duration: float, priority: int, load: int, flood: bool, target: str) -> 
         out["udp_rtt_p50_us"], out["udp_rtt_p99_us"] = np.percentile(rtt, [50, 99]) * 1e6
         if flood:
             flooder = subprocess.Popen([sys.executable, "-c", FLOOD, address.rsplit(":", 1)[1],
-                                        str(time.time() + 1.0), str(time.time() + duration + 3)], stdout=subprocess.PIPE, text=True,
+                                        str(time.time() + 1.0), str(time.time() + duration + 3), str(flood_every)], stdout=subprocess.PIPE, text=True,
                                        env=dict(os.environ, PYTHONPATH=str(ROOT)))
         c0, t0 = cpu_ns(pid), time.monotonic()
         res = run(ROOT / "scenarios/rig_step_hil.yaml",
@@ -152,7 +154,7 @@ def one(duration: float, priority: int, load: int, flood: bool, target: str) -> 
     finally:
         if flooder is not None:
             flooder.kill()
-            flooder.wait()
+            out["flood_sent"] = " ".join(flooder.communicate()[0].split("\n")[:1])
         proc.send_signal(signal.SIGTERM)
         proc.communicate(timeout=10)
         for h in hogs:
@@ -177,7 +179,8 @@ def show(r: dict, duration: float) -> None:
           f"{r.get('board_cpu_us', 0):.1f} us (kernel: {r['loop_cpu_per_tick_us']:.1f} us serving the loop, "
           f"{r['idle_cpu_per_tick_us']:.1f} us idle)")
     if r["flood"]:
-        print(f"  flood: board dropped {r.get('dropped', 0)} datagrams, {r.get('throttled', 0)} of them throttled")
+        print(f"  flood ({r.get('flood_sent', '')}): board dropped {r.get('dropped', 0)} datagrams, "
+              f"{r.get('throttled', 0)} of them throttled")
 
 
 def main() -> int:
@@ -187,6 +190,8 @@ def main() -> int:
     ap.add_argument("--priority", type=int, default=0, help="SCHED_FIFO priority of the loop (board +10; root)")
     ap.add_argument("--load", type=int, default=0, help="busy processes beside the loop")
     ap.add_argument("--flood", action="store_true", help="flood the board with unauthenticated datagrams")
+    ap.add_argument("--flood-every", type=float, default=0.0, metavar="S",
+                    help="repeat the flood every S seconds (default: once, 1 s into the loop, as in issue 21)")
     ap.add_argument("--matrix", action="store_true", help="quiet/loaded x normal/SCHED_FIFO 10 x flood/none")
     ap.add_argument("--target", default="host", choices=("host", "armhf"), help="daemon build (armhf: qemu-user)")
     args = ap.parse_args()
@@ -196,7 +201,7 @@ def main() -> int:
     configs = [(l, p, f) for l in (0, 2) for p in (0, 10) for f in (False, True)] if args.matrix \
         else [(args.load, args.priority, args.flood)]
     for load, prio, flood in configs:
-        show(one(duration, prio, load, flood, args.target), duration)
+        show(one(duration, prio, load, flood, args.target, args.flood_every), duration)
     return 0
 
 
