@@ -231,21 +231,28 @@ static int open_socket(Hil *h) {
 static int await_range(Hil *h, int type, uint32_t seq, uint32_t seq_hi, const uint8_t *key, uint8_t *buf, size_t want,
                        double timeout_s) {
     uint64_t deadline = now_ns() + (uint64_t)(timeout_s * 1e9);
+    int last = 0;
     for (;;) {
         uint64_t t = now_ns();
         struct pollfd pfd;
         ssize_t n;
-        int ms;
-        if (t >= deadline) return -1;
-        ms = (int)((deadline - t + 999999) / 1000000);
+        int ms, ready;
+        /* past the deadline, still read what has arrived (this process may have been descheduled
+         * while the answer came): only an empty socket then is a timeout */
+        if (t >= deadline) last = 1;
+        ms = last ? 0 : (int)((deadline - t + 999999) / 1000000);
         pfd.fd = h->sock;
         pfd.events = POLLIN;
         pfd.revents = 0;
-        if (poll(&pfd, 1, ms) < 0) {
+        ready = poll(&pfd, 1, ms);
+        if (ready < 0) {
             if (errno == EINTR) continue;
             return -2;
         }
-        if (!(pfd.revents & (POLLIN | POLLERR))) continue;
+        if (!(pfd.revents & (POLLIN | POLLERR))) {
+            if (last) return -1;
+            continue;
+        }
         n = recv(h->sock, buf, 256, 0);
         if (n < 0) {
             if (errno == EINTR || errno == EAGAIN) continue;
