@@ -29,7 +29,7 @@ import pytest
 from cosim import cli
 from cosim.analysis.compare import aligned
 from cosim.run.execute import run
-from hardware import protocol as P
+from hardware import daemon, protocol as P
 
 ROOT = Path(__file__).resolve().parent.parent
 SCENES = ROOT / "scenarios"
@@ -38,11 +38,15 @@ STOP = "stop_time=2.5"
 PRIORITY = 10 if os.geteuid() == 0 else 0
 
 
-@pytest.fixture(scope="module")
-def virtual_board(tmp_path_factory):
+@pytest.fixture(scope="module", params=[
+    pytest.param(t, id=t, marks=pytest.mark.skipif(bool(daemon.unavailable(t)), reason=daemon.unavailable(t) or "-"))
+    for t in ("host", "armhf")])
+def virtual_board(request, tmp_path_factory):
+    """The virtual board with the daemon built for this machine, or for the BeagleBone under qemu."""
     d = tmp_path_factory.mktemp("board")
     key = P.write_key(d / "board.key")
-    cmd = [sys.executable, "-m", "cosim", "board", "virtual", "--key", str(key), "--listen", "127.0.0.1:0"]
+    cmd = [sys.executable, "-m", "cosim", "board", "virtual", "--key", str(key), "--listen", "127.0.0.1:0",
+           "--target", request.param]
     if PRIORITY:
         cmd += ["--rt-priority", str(PRIORITY + 10)]  # the board (safety) above the loop
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, text=True, env=dict(os.environ, PYTHONPATH=str(ROOT)))

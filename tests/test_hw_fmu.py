@@ -23,6 +23,9 @@ from hardware.fmu import C_DIR, build_hil_fmu
 #: As on the rig, the board runs under SCHED_FIFO when it may (root): on a loaded machine a board
 #: at normal priority can be descheduled for longer than the FMU's 50 ms timeout.
 RT = 20 if os.geteuid() == 0 else 0
+TARGETS = [pytest.param(t, id=t, marks=pytest.mark.skipif(bool(daemon.unavailable(t)),
+                                                          reason=daemon.unavailable(t) or "-"))
+           for t in ("host", "armhf")]
 
 
 @pytest.fixture(scope="module")
@@ -106,11 +109,12 @@ def test_missing_board_is_an_fmi_error_not_a_hang(hil_fmu, keyfile, tmp_path, bo
     assert ("refused" in text) if board == "absent" else ("silent" in text and "50 ms" in text)
 
 
-def test_board_fault_is_an_fmi_error_with_the_reason(hil_fmu, keyfile, tmp_path):
+@pytest.mark.parametrize("target", TARGETS)
+def test_board_fault_is_an_fmi_error_with_the_reason(hil_fmu, keyfile, tmp_path, target):
     from fmpy.fmi2 import FMU2Slave, defaultCallbacks, fmi2CallbackFunctions, fmi2CallbackLoggerTYPE
 
     tree = faketree.make_fake_tree(tmp_path / "tree")  # nothing moves the ADC: driving looks stuck
-    d = daemon.Served(keyfile, tree, rt_priority=RT)
+    d = daemon.Served(keyfile, tree, target=target, rt_priority=RT)
     md = fmpy.read_model_description(hil_fmu)
     vr = {v.name: v.valueReference for v in md.modelVariables}
     messages = []
@@ -148,12 +152,13 @@ def test_board_fault_is_an_fmi_error_with_the_reason(hil_fmu, keyfile, tmp_path)
     assert [f.duty.read_text() for f in pins.resolve(tree, export=False)] == ["0", "0", "0"]
 
 
-def test_fmpy_runs_the_hardware_fmu_against_a_board_with_a_home_relative_key(hil_fmu, tmp_path, monkeypatch):
+@pytest.mark.parametrize("target", TARGETS)
+def test_fmpy_runs_the_hardware_fmu_against_a_board_with_a_home_relative_key(hil_fmu, tmp_path, monkeypatch, target):
     home = tmp_path / "home"
     key = P.write_key(home / ".config" / "rpr-cosim" / "board.key")
     monkeypatch.setenv("HOME", str(home))  # the FMU expands a leading ~/ with $HOME
     tree = faketree.make_fake_tree(tmp_path / "tree", adc_counts=(1000, 2000, 3000))
-    d = daemon.Served(key, tree, rt_priority=RT)
+    d = daemon.Served(key, tree, target=target, rt_priority=RT)
     try:
         res = fmpy.simulate_fmu(hil_fmu, stop_time=0.02, step_size=1e-3,
                                 start_values={"address": f"127.0.0.1:{d.address[1]}",
