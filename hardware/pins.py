@@ -1,6 +1,8 @@
 """The BeagleBone Black pin map of the rig (SPEC §7, thesis Table 8.2) as data, and the sysfs
 files behind it, resolved under a configurable ``root`` ("/" on the board, a temporary fake
-tree in tests).
+tree in tests).  The daemon is compiled with this map (``board_config.h``) and resolves it the
+same way in C (``hardware/c/board_io.c``); :func:`resolve` here is how the virtual board's plant
+and the tests find the files the daemon drives.
 
 - PWM: chips are found by their hardware address (``48302200`` ...), never by ``pwmchipN``,
   whose number changes between kernels: each ``<root>/sys/class/pwm/pwmchipN`` is a symlink into
@@ -205,18 +207,3 @@ def _write(path: Path, text: str) -> None:
             fh.write(text)
     except OSError as exc:
         raise PinError(f"cannot write {text!r} to {path}: {exc.strerror or exc}") from None
-
-
-def write_value(path: Path, value: int | str) -> None:
-    """Write one sysfs attribute (no newline needed; the kernel parses the number)."""
-    _write(path, str(value))
-
-
-def read_int(path: Path) -> int:
-    """Read an integer attribute; raises :class:`PinError` (unreadable) or ValueError (garbage)."""
-    try:
-        with open(path) as fh:
-            text = fh.read()
-    except OSError as exc:
-        raise PinError(f"cannot read {path}: {exc.strerror or exc}") from None
-    return int(text.strip())
