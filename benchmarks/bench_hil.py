@@ -184,7 +184,7 @@ def show(r: dict, duration: float) -> None:
           f"{r.get('board_cpu_us', 0):.1f} us (kernel: {r['loop_cpu_per_tick_us']:.1f} us serving the loop, "
           f"{r['idle_cpu_per_tick_us']:.1f} us idle)")
     if r["flood"]:
-        print(f"  flood ({r.get('flood_sent', '')}): board dropped {r.get('dropped', 0)} datagrams, "
+        print(f"  flood ({r.get('flood_sent') or 'still sending at the end'}): board dropped {r.get('dropped', 0)} datagrams, "
               f"{r.get('throttled', 0)} of them throttled")
 
 
