@@ -246,7 +246,7 @@ void board_tick(Board *b, int64_t now, int64_t late_ns) {
     sample(b, now);
     if ((b->state == S_ARMED || b->state == S_RUNNING) && now - b->last_cmd_ns > b->safety.watchdog_s * 1e9) {
         char why[96];
-        snprintf(why, sizeof why, "no valid command for %.1f ms", (double)(now - b->last_cmd_ns) / 1e6);
+        snprintf(why, sizeof why, "no valid command for %.3f ms", (double)(now - b->last_cmd_ns) / 1e6);
         board_fault(b, FB_WATCHDOG, why);
     }
     if (b->state != S_FAULT) apply(b, now);
