@@ -74,7 +74,7 @@ from .algorithms.adaptive import Adaptive
 from .algorithms.gauss_seidel import GaussSeidel
 from .algorithms.iterative import Iterative
 from .algorithms.jacobi import Jacobi
-from .engine import _Compiled, choose_engine
+from .engine import _Compiled, choose_engine, fixed_stepper
 from .graph import find_algebraic_loop, gauss_seidel_order, topological_order
 from .lifecycle import RunStats, initialize, interruption_reason, slave_table
 from .run import simulate
