@@ -187,3 +187,13 @@ def test_external_fmus_without_catalog_identity_are_watched_by_the_unstable_guar
     assert applied["unstable"] == "stop"
     for g in ("stroke", "rated", "singularity"):
         assert applied[g].startswith("not applied: ") and "no catalog identity for target, pid1" in applied[g]
+
+
+def test_rpr_cosim_run_of_the_exported_ssp_stops_with_the_guard(tmp_path, archive, capsys):
+    from cosim import cli
+
+    sets, status, pattern = VARIANTS["rated"]
+    rc = cli.main(["run", str(archive), "--out", str(tmp_path)] + [a for k, v in sets.items() for a in ("--set", f"{k}={v}")])
+    assert rc == 1
+    assert f"{status}: beyond rating: motor1.u = " in capsys.readouterr().err
+    check_sidecar(tmp_path, "rated", status, pattern)

@@ -8,7 +8,9 @@ clock to the deadline.  Lateness (start of the step minus its deadline) is recor
 p50, p99 and the maximum are in :meth:`Pacer.stats`.  Overrun policy: a step that starts more
 than one step ``h`` late is a missed deadline; the schedule is kept (the loop catches up by
 running late steps at once) and misses are counted; ``max_misses`` consecutive misses fail the
-run with the reason.
+run with the reason.  A variable-step run (``ecco``) is paced the same way, each step's start at
+its simulated time after the start (:meth:`Pacer.wait_ns`); ``h`` is then the scene's
+``master.step``.
 
 ``priority`` > 0 runs the stepping thread under SCHED_FIFO at that priority for the run (Linux;
 needs root or CAP_SYS_NICE; otherwise the run goes on at normal priority and the statistics say
