@@ -5,7 +5,8 @@ Package map (the public names are re-exported here: ``from cosim.master import X
 
 ``graph``       algebraic loops, topological order, the default Gauss-Seidel order
 ``system``      :class:`CoupledSystem` (the value vector, value references, indices) and :class:`Link`
-``algorithm``   the :class:`Algorithm` base class, :data:`ALGORITHMS`, :func:`register`, :func:`algorithm`
+``algorithm``   :class:`MasterAlgorithm` (what the registry knows of every algorithm), the fixed-step
+                :class:`Algorithm` base class, :data:`ALGORITHMS`, :func:`register`, :func:`algorithm`
 ``algorithms/`` one module per algorithm (``jacobi``, ``gauss_seidel``, ``adaptive``, ``ecco``,
                 ``iterative``), listed in :data:`cosim.master.algorithms.MODULES`
 ``engine``      who runs the steps: the compiled loop (:mod:`cosim.master.fastloop`) or the Python loop;
@@ -73,7 +74,7 @@ Types: the value vector carries scalar Float64 variables; other FMI types and ar
 from __future__ import annotations
 
 from . import algorithms  # registers every algorithm module (algorithms.MODULES)
-from .algorithm import ALGORITHMS, Algorithm, algorithm, register
+from .algorithm import ALGORITHMS, Algorithm, MasterAlgorithm, algorithm, register
 from .algorithms.adaptive import Adaptive
 from .algorithms.gauss_seidel import GaussSeidel
 from .algorithms.iterative import Iterative
@@ -85,7 +86,7 @@ from .run import simulate
 from .stepper import StepInfo, drive
 from .system import CoupledSystem, Link
 
-__all__ = ["ALGORITHMS", "Adaptive", "Algorithm", "CoupledSystem", "GaussSeidel", "Iterative", "Jacobi", "Link",
+__all__ = ["ALGORITHMS", "Adaptive", "Algorithm", "CoupledSystem", "GaussSeidel", "Iterative", "Jacobi", "Link", "MasterAlgorithm",
            "RunStats", "StepInfo", "drive", "fixed_stepper",
            "_Compiled", "algorithm", "algorithms", "choose_engine", "find_algebraic_loop", "gauss_seidel_order",
            "initialize", "interruption_reason", "register", "simulate", "slave_table", "topological_order"]

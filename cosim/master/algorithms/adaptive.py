@@ -46,7 +46,7 @@ import numpy as np
 
 from ...errors import UserError
 from ...slaves.slave import FAILING, Status
-from ..algorithm import Algorithm, AlgorithmOption, option_values, register
+from ..algorithm import AlgorithmOption, MasterAlgorithm, option_values, register
 from ..graph import gauss_seidel_order
 from ..lifecycle import slave_table
 from ..stepper import StepInfo
@@ -378,7 +378,7 @@ def _engine(system, engine: str, compiled_exists: bool = True, name: str = "adap
 
 
 @register
-class Adaptive(Algorithm):
+class Adaptive(MasterAlgorithm):
     """Registry entry of the error-controlled master (module docstring): its stepper
     (:func:`variable_stepper`) is driven by the one run loop, :func:`cosim.master.simulate`."""
 
@@ -389,6 +389,3 @@ class Adaptive(Algorithm):
     #: a rejected step is rolled back and retried: its steps cannot be paced on the wall clock
     paceable = False
     stepper_for = staticmethod(variable_stepper)
-
-    def _step_impl(self, t, h):  # pragma: no cover - variable-step runs never use the fixed-step loop
-        raise RuntimeError("adaptive steps through variable_stepper, not the fixed-step Algorithm.step")

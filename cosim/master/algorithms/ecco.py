@@ -50,7 +50,7 @@ import numpy as np
 
 from ...errors import UserError
 from ...slaves.slave import Status
-from ..algorithm import Algorithm, register
+from ..algorithm import MasterAlgorithm, register
 from ..system import CoupledSystem
 from ..algorithm import AlgorithmOption
 from .adaptive import AdaptiveStats, AdaptiveStepper, variable_stepper
@@ -239,17 +239,13 @@ class EccoStepper(AdaptiveStepper):
 
 
 @register
-class Ecco(Algorithm):
+class Ecco(MasterAlgorithm):
     """Registry entry of the power-bond master (module docstring): :class:`EccoStepper` driven by
     the one run loop (:func:`cosim.master.algorithms.adaptive.variable_stepper`); its steps are
     never retried, so a run can be paced in real time."""
 
     name = "ecco"
     variable_step = True
-    needs_rollback = False
     options = OPTIONS
     stepper = EccoStepper
     stepper_for = staticmethod(variable_stepper)
-
-    def _step_impl(self, t, h):  # pragma: no cover - variable-step runs never use the fixed-step loop
-        raise RuntimeError("ecco steps through variable_stepper, not the fixed-step Algorithm.step")
