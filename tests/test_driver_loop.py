@@ -36,6 +36,10 @@ class Steps:
     def start(self, columns, meta):
         self.columns = columns
 
+    def initial(self, info):
+        assert info.h == 0.0 and info.k == 0
+        self.v0 = info.v[info.system.record_idx[:len(self.columns) - 1]].copy()
+
     def step(self, info):
         self.seen.append((info.t, info.h, info.v[info.system.record_idx[:len(self.columns) - 1]].copy()))
         if self.stop_after is not None and len(self.seen) >= self.stop_after:
@@ -82,6 +86,7 @@ def test_a_step_observer_sees_every_step_and_changes_no_bit(algorithm, engine):
     assert math.isclose(t[-1] + h[-1], 0.05, abs_tol=1e-12)
     after = np.array([s[2] for s in obs.seen])
     assert np.array_equal(after, trace.data[1:, 1:])  # the values after each step are that step's row
+    assert np.array_equal(obs.v0, trace.data[0, 1:])  # and the initial values the first row
     if algorithm != "gauss_seidel":
         assert len(set(np.round(h, 12))) > 10  # variable steps
 

@@ -18,7 +18,8 @@ Per block of steps :func:`drive` does, once for every algorithm:
    text events (String/Binary changes), progress.
 
 Step observers: an observer with a method ``step(info)`` sees every step (blocks of one step
-then); a non-empty string it returns ends the run as "failed" with that reason.
+then); a non-empty string it returns ends the run as "failed" with that reason.  A method
+``initial(info)`` sees the values at the start time, once, after initialisation.
 """
 from __future__ import annotations
 
@@ -163,7 +164,11 @@ def guarded(guard, stepper: Stepper, rows: np.ndarray) -> np.ndarray:
 
 
 def record_start(stepper: Stepper, system: CoupledSystem, observers: Sequence, guard, n_columns: int) -> None:
-    """The row at the start time (guarded, recorded) and the text values there."""
+    """The row at the start time (guarded, recorded) and the text values there; a step observer
+    with a method ``initial(info)`` sees the initialised values (``h`` = 0, ``k`` = 0)."""
+    for obs in observers:
+        if hasattr(obs, "initial"):
+            obs.initial(stepper.step_info(stepper.t_ns))
     row0 = np.concatenate([[stepper.t_ns / 1e9], system.v[system.record_idx]])[None, :]
     row0 = guarded(guard, stepper, row0)
     for obs in observers:
