@@ -39,7 +39,7 @@ from __future__ import annotations
 
 import math
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -261,7 +261,6 @@ class VariableStepper:
         self.text_events: list[tuple[float, str, str]] = []
         self.stepping_s = 0.0
         self.dropped = 0  # accepted steps whose rows a guard dropped
-        self._h_ns = 0  # the last step [ns]
 
     @property
     def status(self) -> str:
