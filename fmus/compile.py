@@ -63,6 +63,21 @@ def compiler() -> str:
     return cc
 
 
+def compiler_identity() -> str:
+    """:func:`compiler`'s choice without running it: resolved path, size and modification time
+    ("none" without a compiler); part of the FMU cache fingerprint and the run-time libraries' key."""
+    try:
+        cc = compiler()
+    except BuildError:
+        return "none"
+    try:
+        path = os.path.realpath(shutil.which(cc) or cc)
+        st = os.stat(path)
+    except OSError as exc:
+        return f"{cc}: {exc}"
+    return f"{path}:{st.st_size}:{st.st_mtime_ns}"
+
+
 @lru_cache(maxsize=None)
 def compiler_version(cc: str) -> str:
     """First line of ``cc --version`` (part of the cache key)."""

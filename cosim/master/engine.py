@@ -16,36 +16,21 @@ class _Compiled:
         import ctypes
 
         from . import fastloop
+        from .native import SlaveArray
 
         self.lib = fastloop.library()
         sysm = alg.system
-        n = len(sysm.slaves)
-        self.arr = (fastloop.CSlave * n)()
-        self.keep = []
-        for i, s in enumerate(sysm.slaves):
-            ne = s.native()
-            if ne is None:
-                raise UserError(f"{s.name} has no C entry points; use master.engine: python")
-            c = self.arr[i]
-            c.fmi3, c.n_in, c.n_out = int(ne.fmi3), len(sysm.in_vrs[i]), len(sysm.out_vrs[i])
+        self.arr = arr = SlaveArray(sysm)
+        for i in range(len(arr)):
+            c = arr[i]
             if alg.interpolating[i]:
-                orders, fresh = np.ones(c.n_in, dtype=np.int32), alg.fresh[i].astype(np.int8)
-                self.keep += [orders, fresh]
-                c.interp, c.set_der = 1, ne.set_input_derivatives
-                c.orders, c.fresh = orders.ctypes.data, fresh.ctypes.data
-                c.hist, c.slope = alg.hist[i].ctypes.data, alg.slopes[i].ctypes.data
+                c.interp, c.set_der = 1, arr.entries[i].set_input_derivatives
+                c.orders, c.fresh = arr.buffer(np.ones(c.n_in, dtype=np.int32), np.int32), arr.buffer(
+                    alg.fresh[i].astype(np.int8), np.int8)
+                c.hist, c.slope = arr.buffer(alg.hist[i]), arr.buffer(alg.slopes[i])
             c.rate, c.sub_ns = alg.rates[i], alg.step_ns // alg.rates[i]
             if alg.rates[i] > 1 and alg.interpolating[i]:
-                base = np.empty(c.n_in)
-                self.keep.append(base)
-                c.base = base.ctypes.data
-            c.in_off, c.out_off = sysm.in_off[i], sysm.out_off[i]
-            c.inst, c.do_step, c.get, c.set = ne.instance, ne.do_step, ne.get_real, ne.set_real
-            for arr in (sysm.in_vrs[i], sysm.in_src[i], sysm.out_vrs[i]):
-                self.keep.append(arr)
-            c.in_vr = sysm.in_vrs[i].ctypes.data if c.n_in else None
-            c.in_src = sysm.in_src[i].ctypes.data if c.n_in else None
-            c.out_vr = sysm.out_vrs[i].ctypes.data if c.n_out else None
+                c.base = arr.buffer(np.empty(c.n_in))
         self.order = np.array(alg.order, dtype=np.int32)
         self.rec_idx = sysm.record_idx
         self.alg = alg
@@ -60,13 +45,13 @@ class _Compiled:
     def run(self, nsteps: int, rec_every: int, rec: np.ndarray) -> int:
         alg, sysm = self.alg, self.alg.system
         self.master_ns.value = 0
-        done = self.lib.rpr_run(self.arr, len(self.arr), self.order.ctypes.data, alg.native_code,
+        done = self.lib.rpr_run(self.arr.arr, len(self.arr), self.order.ctypes.data, alg.native_code,
                                 sysm.v.ctypes.data, alg.k, nsteps, alg.step_ns, int(alg.timing),
                                 self.rec_idx.ctypes.data if self.rec_idx.size else None, len(self.rec_idx),
                                 rec_every, rec.ctypes.data, self.c.byref(self.n_rows),
                                 self.c.byref(self.fail_slave), self.c.byref(self.fail_status),
                                 self.c.byref(self.master_ns), self.budget_ns)
-        for i, c in enumerate(self.arr):
+        for i, c in enumerate(self.arr.arr):
             alg.calls[i], alg.slave_ns[i] = c.calls, c.ns
         alg.master_ns += self.master_ns.value
         alg.k += int(done)

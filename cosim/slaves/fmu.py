@@ -7,12 +7,13 @@ import os
 import shutil
 import tempfile
 from collections.abc import Callable, Sequence
-from ctypes import POINTER, c_bool, c_double, c_int, c_size_t, c_uint32, c_void_p
+from ctypes import POINTER, c_bool, c_double, c_int, c_uint32, c_void_p
 from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
 
+from fmus.fmi_functions import prototype
 
 from ..errors import UserError
 from .description import SlaveDescription, describe_fmu
@@ -77,16 +78,13 @@ def _unzip(path: Path) -> str:
     return _UNZIPPED[key]
 
 
-_DoStep2 = ctypes.CFUNCTYPE(c_int, c_void_p, c_double, c_double, c_int)
-_GetState = ctypes.CFUNCTYPE(c_int, c_void_p, POINTER(c_void_p))  # also the free function's signature
-_SetState = ctypes.CFUNCTYPE(c_int, c_void_p, c_void_p)
-_IO2 = ctypes.CFUNCTYPE(c_int, c_void_p, POINTER(c_uint32), c_size_t, POINTER(c_double))
-_DoStep3 = ctypes.CFUNCTYPE(c_int, c_void_p, c_double, c_double, c_bool, POINTER(c_bool), POINTER(c_bool),
-                            POINTER(c_bool), POINTER(c_double))
-_IO3 = ctypes.CFUNCTYPE(c_int, c_void_p, POINTER(c_uint32), c_size_t, POINTER(c_double), c_size_t)
-_RAW2 = ctypes.CFUNCTYPE(c_int, c_void_p, c_void_p, c_size_t, c_void_p)
-_RAW3 = ctypes.CFUNCTYPE(c_int, c_void_p, c_void_p, c_size_t, c_void_p, c_size_t)
-_SetDer2 = ctypes.CFUNCTYPE(c_int, c_void_p, POINTER(c_uint32), c_size_t, POINTER(c_int), POINTER(c_double))
+_DoStep2 = prototype("fmi2DoStep")
+_GetState = prototype("fmi2GetFMUstate")  # FMI 3.0's and the free functions have the same signature
+_SetState = prototype("fmi2SetFMUstate")
+_Get2, _Set2 = prototype("fmi2GetReal"), prototype("fmi2SetReal")
+_DoStep3 = prototype("fmi3DoStep")
+_Get3, _Set3 = prototype("fmi3GetFloat64"), prototype("fmi3SetFloat64")
+_SetDer2 = prototype("fmi2SetRealInputDerivatives")
 
 
 def _addr(fn) -> int:
@@ -147,16 +145,16 @@ class FmuSlave(Slave):
         dll = self.fmu.dll
         if self.fmi3:
             self._step3 = _DoStep3(_addr(dll.fmi3DoStep))
-            self._get = _IO3(_addr(dll.fmi3GetFloat64))
-            self._set = _IO3(_addr(dll.fmi3SetFloat64))
+            self._get = _Get3(_addr(dll.fmi3GetFloat64))
+            self._set = _Set3(_addr(dll.fmi3SetFloat64))
             self._flags = [c_bool(), c_bool(), c_bool()]  # eventHandlingNeeded, terminateSimulation, earlyReturn
             self._last_t = c_double()
             self._p_flags = [ctypes.byref(f) for f in self._flags]
             self._p_last = ctypes.byref(self._last_t)
         else:
             self._step2 = _DoStep2(_addr(dll.fmi2DoStep))
-            self._get = _IO2(_addr(dll.fmi2GetReal))
-            self._set = _IO2(_addr(dll.fmi2SetReal))
+            self._get = _Get2(_addr(dll.fmi2GetReal))
+            self._set = _Set2(_addr(dll.fmi2SetReal))
         self._inst = c_void_p(self.fmu.component)
 
     def _on_log2(self, env, instance, status, category, message) -> None:
@@ -215,12 +213,10 @@ class FmuSlave(Slave):
         ft = TYPES[type_name]
         if self.fmi3:
             dtype = np.bool_ if type_name == "Boolean" else ft.dtype
-            proto = _RAW3
         else:
             dtype = np.float64 if type_name == "Real" else np.int32
-            proto = _RAW2
         fname = f"fmi{'3' if self.fmi3 else '2'}{verb.capitalize()}{ft.fmi3 if self.fmi3 else ft.fmi2}"
-        fn = proto(_addr(getattr(self.fmu.dll, fname)))
+        fn = prototype(fname, raw=True)(_addr(getattr(self.fmu.dll, fname)))
         vr = np.ascontiguousarray(vrs, dtype=np.uint32)
         buf = np.zeros(n_values, dtype=dtype)
         inst, p_vr, n_vr, p_buf = self._inst, vr.ctypes.data, len(vr), buf.ctypes.data

@@ -90,6 +90,8 @@ class AdaptiveStepper:
     k_i, k_p = 0.7, 0.4
     #: every slave must save/restore its state (a rejected step is rolled back)
     needs_rollback = True
+    #: the compiled loop of exactly this class (:mod:`cosim.master.adaptive_engine`)
+    native_loop = "adaptive"
 
     def __init__(self, system, order: Sequence[int], options: dict[str, float], start_ns: int, stop_ns: int):
         self.system = system
@@ -255,19 +257,17 @@ def run_adaptive(system, *, start_ns: int = 0, stop_ns: int, options: dict | Non
     """Step an initialised ``system`` to ``stop_ns`` (see the module docstring), recording every
     accepted step to ``observers``; ``stats`` (a :class:`cosim.master.RunStats`) is filled in.
     ``stepper_cls`` (default :class:`AdaptiveStepper`) takes the steps, with ``options`` checked
-    against its algorithm's ``declared`` options.  ``engine`` ``"compiled"`` runs
-    :class:`AdaptiveStepper`'s accepted-step loop in C (:mod:`cosim.master.adaptive_engine`, the
-    same steps and values; not for other stepper classes), ``"python"`` here.  Returns the stepper
+    against its algorithm's ``declared`` options.  ``engine`` ``"compiled"`` runs the stepper's
+    loop in C (:func:`cosim.master.adaptive_engine.compiled_stepper`: the same steps and values),
+    ``"python"`` here.  Returns the stepper
     (``t_ns``, ``stats``, ``status``...)."""
     opts = option_values(options, declared)
     stepper = (stepper_cls or AdaptiveStepper)(system, order, opts, start_ns, stop_ns)
-    if engine == "compiled" and type(stepper) is not AdaptiveStepper:
-        raise ValueError(f"the compiled adaptive engine runs AdaptiveStepper only, not {type(stepper).__name__}")
     v, idx = system.v, system.record_idx[:len(system.record_names)]  # without the guards' watched columns
     if engine == "compiled":
-        from ..adaptive_engine import CompiledAdaptive
+        from ..adaptive_engine import compiled_stepper
 
-        stepper = CompiledAdaptive(stepper)  # set-up, like the fixed-step loop's: not in the loop's wall time
+        stepper = compiled_stepper(stepper)  # set-up, like the fixed-step loop's: not in the loop's wall time
     t_loop = time.perf_counter()
     if engine == "compiled":
         try:
@@ -333,9 +333,11 @@ class VariableStats(RunStats):
         return {**super().as_dict(), **self.adaptive}
 
 
-def _engine(system, engine: str, compiled_exists: bool = True, name: str = "adaptive") -> str:
-    """``"compiled"`` or ``"python"`` for ``engine`` in auto | compiled | python; only
-    :class:`AdaptiveStepper` has a compiled loop (``compiled_exists``)."""
+def _engine(system, engine: str, compiled_exists: bool = True, name: str = "adaptive",
+            rollback: bool = True) -> str:
+    """``"compiled"`` or ``"python"`` for ``engine`` in auto | compiled | python; the steppers
+    with a compiled loop (``compiled_exists``): :class:`AdaptiveStepper` and ecco's, which does
+    not roll back (``rollback``)."""
     from ..adaptive_engine import usable
 
     if engine not in ("auto", "compiled", "python"):
@@ -344,11 +346,11 @@ def _engine(system, engine: str, compiled_exists: bool = True, name: str = "adap
         raise UserError(f"master algorithm {name} has no compiled loop; use master.engine auto or python")
     if engine == "python" or not compiled_exists:
         return "python"
-    ok = usable(system)
+    ok = usable(system, rollback)
     if engine == "compiled" and not ok:
-        raise UserError("master.engine: compiled for adaptive needs FMU slaves with C entry points and FMU state "
-                        "get/set, scalar Float64 connections without transformation, and a C compiler; use engine "
-                        "auto or python")
+        raise UserError(f"master.engine: compiled for {name} needs FMU slaves with C entry points"
+                        f"{' and FMU state get/set' if rollback else ''}, scalar Float64 connections without "
+                        f"transformation, and a C compiler; use engine auto or python")
     return "compiled" if ok else "python"
 
 
@@ -397,7 +399,10 @@ def simulate_variable(system, cls, *, step_ns: int, n_steps: int, observers: Seq
         initialize(system, start_values or [{} for _ in system.slaves], start_time=start_ns / 1e9,
                    stop_time=stop_ns / 1e9, tolerances=tolerances)
         seq = list(order) if order is not None else gauss_seidel_order(len(system.slaves), system.slave_edges())
-        stats.engine = _engine(system, engine, getattr(cls, "stepper", None) in (None, AdaptiveStepper), cls.name)
+        from ..adaptive_engine import has_compiled
+
+        stepper_cls = getattr(cls, "stepper", None) or AdaptiveStepper
+        stats.engine = _engine(system, engine, has_compiled(stepper_cls), cls.name, stepper_cls.needs_rollback)
         stats.init_s = time.perf_counter() - t0
         row0 = np.concatenate([[start_ns / 1e9], system.v[system.record_idx[:len(system.record_names)]]])[None, :]
         for obs in observers:

@@ -167,6 +167,8 @@ class EccoStepper(AdaptiveStepper):
     rolled back, its size chosen from the bonds' energy residual."""
 
     needs_rollback = False
+    #: the compiled loop of exactly this class (:class:`cosim.master.adaptive_engine.CompiledEcco`)
+    native_loop = "ecco"
     #: steps in a row over tolerance at the step floor ``h_min`` after which the run ends as unstable
     floor_patience = 100
 
