@@ -3,7 +3,8 @@
 Each entry of :data:`FUNCTIONS` is one C prototype (the return type and the parameters with the C
 types the standard's headers resolve to on our platforms: ``fmi2Component`` and ``fmi3Instance``
 are ``void *``, value references ``uint32_t``, ``fmi2Boolean`` is ``int``, ``fmi3Boolean``
-``bool``).  From it come both views the project needs:
+``bool``, an enumeration parameter ``unsigned int``: GCC's type of an enum without negative
+values; the status returned is read as ``int``).  From it come both views the project needs:
 
 * :func:`c_typedef` / :func:`c_typedefs`: a C function-pointer typedef ``<name>_t`` for the
   compiled master loops, which receive the FMU's entry points as addresses;
@@ -21,7 +22,7 @@ from functools import lru_cache
 
 #: C type (as written in :data:`FUNCTIONS`) -> ctypes type; a pointer type not listed maps to
 #: ``POINTER`` of its pointee.
-_SCALARS = {"int": ctypes.c_int, "int32_t": ctypes.c_int32, "uint32_t": ctypes.c_uint32, "size_t": ctypes.c_size_t,
+_SCALARS = {"int": ctypes.c_int, "unsigned int": ctypes.c_uint, "int32_t": ctypes.c_int32, "uint32_t": ctypes.c_uint32, "size_t": ctypes.c_size_t,
             "double": ctypes.c_double, "float": ctypes.c_float, "bool": ctypes.c_bool, "void *": ctypes.c_void_p,
             "int8_t": ctypes.c_int8, "uint8_t": ctypes.c_uint8, "int16_t": ctypes.c_int16,
             "uint16_t": ctypes.c_uint16, "int64_t": ctypes.c_int64, "uint64_t": ctypes.c_uint64}
@@ -61,7 +62,7 @@ FUNCTIONS: dict[str, tuple[str, list[Param]]] = {
     "fmi2GetFMUstate": ("int", [("void *", "c"), ("void **", "FMUstate")]),
     "fmi2SetFMUstate": ("int", [("void *", "c"), ("void *", "FMUstate")]),
     "fmi2FreeFMUstate": ("int", [("void *", "c"), ("void **", "FMUstate")]),
-    "fmi2GetBooleanStatus": ("int", [("void *", "c"), ("int", "s"), ("int *", "value")]),
+    "fmi2GetBooleanStatus": ("int", [("void *", "c"), ("unsigned int", "s"), ("int *", "value")]),
     "fmi2GetDirectionalDerivative": ("int", [("void *", "c"), (_VR, "vUnknown_ref"), ("size_t", "nUnknown"),
                                              (_VR, "vKnown_ref"), ("size_t", "nKnown"), ("const double *", "dvKnown"),
                                              ("double *", "dvUnknown")]),
