@@ -1,6 +1,6 @@
 """Compiling C at run time: a C source compiled once per source, compiler and flags, cached on
-disk beside the FMU cache (``<cache root>/../native/<stem>_<hash>.so``, never committed) and
-loaded with ctypes.
+disk beside the FMU cache (``<cache root>/../master/<stem>_<hash>.so``, where the master loop's
+library has always been kept; never committed) and loaded with ctypes.
 
 The compiled master loops (:mod:`cosim.master.fastloop`, :mod:`cosim.master.adaptive_engine`,
 :mod:`cosim.master.iterative_engine`) and the trace writer's number formatter
@@ -32,7 +32,7 @@ class NoCompiler(BuildError):
 def _cache_dir() -> Path:
     from .cache import cache_root
 
-    return cache_root().parent / "native"
+    return cache_root().parent / "master"
 
 
 def _toolchain() -> tuple[str, str]:
@@ -59,7 +59,7 @@ def library_path(source: str, stem: str, flags: tuple[str, ...] = FLAGS) -> Path
     root = _cache_dir()
     if not (root / f"{stem}_{key}.so").exists():
         fallback = writable_root(root)
-        root = fallback if fallback == root else fallback / "native"
+        root = fallback if fallback == root else fallback / "master"
         root.mkdir(parents=True, exist_ok=True)
     lib = root / f"{stem}_{key}.so"
     if not lib.exists():

@@ -120,3 +120,98 @@ def test_ecco_runs_compiled_by_default():
     res = run(SCENARIOS / "pid_step.yaml", {"master.algorithm": "ecco", "stop_time": 0.01,
                                             "components.mech.rollback": False})
     assert res.stats["engine"] == "compiled"
+
+
+KC, H = 1000.0, 0.005
+ITERATIVE_CASES = {
+    # the stiff spring where Jacobi is unstable at this step: Newton on one cut, held and linear inputs
+    "two_mass_hold": ("two_mass.yaml", {"components.mass2.params.kc": KC, "stop_time": 1.0, "master.step": H,
+                                        "master.inputs": "hold"}),
+    "two_mass_linear": ("two_mass.yaml", {"components.mass2.params.kc": KC, "stop_time": 1.0, "master.step": H,
+                                          "master.inputs": "linear"}),
+    "two_mass_fixed_point": ("two_mass.yaml", {"components.mass2.params.kc": KC, "stop_time": 1.0, "master.step": H,
+                                               "master.options": {"method": "fixed_point", "omega": 0.5}}),
+    # a stiffer spring at a longer step: the Jacobian is built in the first step (directional
+    # derivatives, or finite differences of the slave's step), then Broyden's updates
+    "two_mass_directional": ("two_mass.yaml", {"components.mass2.params.kc": 1e4, "stop_time": 1.0,
+                                               "master.step": 0.01}),
+    "two_mass_fd": ("two_mass.yaml", {"components.mass2.params.kc": 1e4, "stop_time": 1.0, "master.step": 0.01,
+                                      "master.options": {"jacobian": "finite_difference"}}),
+    # stiffer still: the coupled solution blows up and the run's guard ends it as unstable
+    "two_mass_unstable": ("two_mass.yaml", {"components.mass2.params.kc": 1e5, "stop_time": 1.0, "master.step": 0.01,
+                                            "master.options": {"jacobian": "finite_difference"}}),
+    # the algebraic loop (three cuts): Newton from directional derivatives, from finite differences,
+    # and the under-relaxed fixed point
+    "force_loop": ("force_loop.yaml", {"stop_time": 0.2}),
+    "force_loop_fd": ("force_loop.yaml", {"stop_time": 0.2, "master.options": {"jacobian": "finite_difference"}}),
+    "force_loop_fixed_point": ("force_loop.yaml", {"stop_time": 0.1,
+                                                   "master.options": {"method": "fixed_point", "omega": 0.15}}),
+    # a cap the fixed point cannot meet within a step: the run ends unstable with the step and the connection
+    "force_loop_cap": ("force_loop.yaml", {"stop_time": 0.1,
+                                           "master.options": {"method": "fixed_point", "omega": 0.15,
+                                                              "max_iter": 12}}),
+}
+
+
+@pytest.fixture(scope="module", params=sorted(ITERATIVE_CASES))
+def iterative_both(request):
+    scene, sets = ITERATIVE_CASES[request.param]
+    sets = {"master.algorithm": "iterative", **sets}
+    py = run(SCENARIOS / scene, sets, engine="python")
+    c = run(SCENARIOS / scene, sets, engine="compiled")
+    return request.param, py, c
+
+
+def test_iterative_compiled_engine_ran(iterative_both):
+    _, py, c = iterative_both
+    assert (py.stats["engine"], c.stats["engine"]) == ("python", "compiled")
+
+
+def test_iterative_same_values_bit_for_bit(iterative_both):
+    _, py, c = iterative_both
+    assert py.trace.data.shape == c.trace.data.shape
+    assert np.array_equal(py.trace.data, c.trace.data, equal_nan=True)
+
+
+def test_iterative_same_statistics_and_ending(iterative_both):
+    name, py, c = iterative_both
+    keys = ("status", "reason", "iterations_mean", "iterations_max", "iterations_total", "start_iterations",
+            "rollbacks", "jacobians", "directional_derivatives", "finite_difference_steps", "broyden_updates",
+            "cut_connections", "simulated_s")
+    assert {k: py.stats.get(k) for k in keys} == {k: c.stats.get(k) for k in keys}
+    assert ({s: d["do_step_calls"] for s, d in py.stats["slaves"].items()}
+            == {s: d["do_step_calls"] for s, d in c.stats["slaves"].items()})
+    if name == "force_loop_cap":
+        assert c.status == "unstable" and "did not converge within max_iter = 12" in c.reason
+    elif name == "two_mass_unstable":
+        assert c.status == "unstable" and "mass2.f = " in c.reason and "beyond" in c.reason
+    else:
+        assert c.status == "ok", c.reason
+        assert c.stats["rollbacks"] > 0
+    if name in ("force_loop", "two_mass_directional"):
+        assert c.stats["directional_derivatives"] > 0 and c.stats["broyden_updates"] > 0
+    if name == "two_mass_fd":
+        assert c.stats["finite_difference_steps"] > 0 and c.stats["directional_derivatives"] == 0
+
+
+def test_iterative_runs_compiled_by_default():
+    res = run(SCENARIOS / "two_mass.yaml", {"master.algorithm": "iterative", "stop_time": 0.05})
+    assert res.stats["engine"] == "compiled"
+
+
+def test_dense_helpers_agree_with_lapack_and_blas():
+    """The fixed-order linear algebra of the Newton step against numpy (BLAS/LAPACK) to round-off,
+    and a singular matrix is reported as such."""
+    from cosim.master import dense
+
+    rng = np.random.default_rng(7)
+    for m in (1, 2, 3, 5):
+        a, b = rng.normal(size=(m, m)) + 3 * np.eye(m), rng.normal(size=m)
+        np.testing.assert_allclose(dense.solve(a, b), np.linalg.solve(a, b), rtol=1e-12, atol=1e-14)
+        np.testing.assert_allclose(dense.matvec(a, b), a @ b, rtol=1e-13, atol=1e-15)
+        c = rng.normal(size=(m, 2))
+        np.testing.assert_allclose(dense.matmul(a, c), a @ c, rtol=1e-13, atol=1e-15)
+        assert dense.dot(b, b) == pytest.approx(float(b @ b), rel=1e-14)
+    assert dense.solve(np.array([[1.0, 2.0], [2.0, 4.0]]), np.array([1.0, 1.0])) is None
+    # a zero leading entry needs the row swap
+    np.testing.assert_allclose(dense.solve(np.array([[0.0, 1.0], [1.0, 0.0]]), np.array([2.0, 3.0])), [3.0, 2.0])

@@ -8,9 +8,20 @@ from ..errors import UserError
 from .algorithm import Algorithm
 from .system import CoupledSystem
 
+#: :attr:`Algorithm.native_code` of the fixed-step loop's algorithms (0 Jacobi, 1 Gauss-Seidel) and of iterative
+ITERATIVE = 2
+
 
 class _Compiled:
-    """Runs an algorithm's steps in the compiled loop (:mod:`cosim.master.fastloop`)."""
+    """Runs an algorithm's steps in the compiled loop (:mod:`cosim.master.fastloop`; for
+    ``iterative``, :class:`cosim.master.iterative_engine.CompiledIterative`, which it returns)."""
+
+    def __new__(cls, alg: Algorithm):
+        if alg.native_code == ITERATIVE:
+            from .iterative_engine import CompiledIterative
+
+            return CompiledIterative(alg)
+        return super().__new__(cls)
 
     def __init__(self, alg: Algorithm):
         import ctypes
@@ -92,7 +103,10 @@ def choose_engine(system: CoupledSystem, alg_cls: type[Algorithm], engine: str, 
         raise UserError(f"master.engine must be auto, compiled or python, got {engine!r}")
     if engine == "python":
         return "python"
-    native = alg_cls.native_code is not None and all(s.native() is not None for s in system.slaves)
+    entries = [s.native() for s in system.slaves]
+    native = alg_cls.native_code is not None and all(ne is not None for ne in entries)
+    if native and getattr(alg_cls, "needs_rollback", False):  # iterative: the loop saves and restores states
+        native = all(ne.get_state and ne.set_state for ne in entries)
     if engine == "compiled" and system.transformed:
         raise UserError("master.engine: compiled copies connections as they are; connections with a linear "
                         "transformation (factor, offset) run in the Python loop: use master.engine: python or auto")
@@ -107,6 +121,9 @@ def choose_engine(system: CoupledSystem, alg_cls: type[Algorithm], engine: str, 
             raise UserError(f"master.engine: compiled needs FMU slaves and an algorithm with a compiled loop "
                             f"({alg_cls.name} / {', '.join(s.name for s in system.slaves if s.native() is None) or 'all FMUs'})")
         return "compiled"
-    from . import fastloop
+    if alg_cls.native_code == ITERATIVE:
+        from . import iterative_engine as loop
+    else:
+        from . import fastloop as loop
 
-    return "compiled" if native and fastloop.available() else "python"
+    return "compiled" if native and loop.available() else "python"

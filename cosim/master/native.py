@@ -56,6 +56,12 @@ SLAVE_FIELDS: tuple[tuple[str, str, str], ...] = (
     ("double *", "cur", "variable step: the sources' values at the current point"),
     ("double *", "prev", "variable step: the sources' values at the previous point"),
     ("double *", "guess", "variable step: the extrapolated guess of each input's source"),
+    ("const int64_t *", "cut", "iterative: per input, its unknown in z (-1: taken from its source)"),
+    ("double *", "start_in", "iterative: the inputs at t"),
+    ("double *", "last_in", "iterative: the inputs of its last run in this step"),
+    ("int32_t", "has_last", "iterative: it ran in this step"),
+    ("int32_t", "n_feed", "iterative: its outputs that feed some input"),
+    ("const int32_t *", "feed", "iterative: their positions among its outputs"),
     ("int64_t", "calls", "doStep calls"),
     ("int64_t", "ns", "wall time in this slave's calls [ns] (with timing)"),
 )

@@ -367,13 +367,26 @@ class FmuSlave(Slave):
                             ("GetFMUstate", "SetFMUstate", "FreeFMUstate")))
             except AttributeError:  # declared but not exported: no compiled rollback
                 st = (0, 0, 0)
+        dd = 0
+        if self.description.provides_directional_derivative:
+            try:
+                dd = _addr(getattr(dll, f"fmi{'3' if self.fmi3 else '2'}GetDirectionalDerivative"))
+            except AttributeError:  # declared but not exported: finite differences
+                dd = 0
         if self.fmi3:
             return NativeEntry(True, self.fmu.component, _addr(dll.fmi3DoStep), _addr(dll.fmi3GetFloat64),
-                               _addr(dll.fmi3SetFloat64), 0, *st)
+                               _addr(dll.fmi3SetFloat64), 0, *st, directional_derivative=dd)
         return NativeEntry(False, self.fmu.component, _addr(dll.fmi2DoStep), _addr(dll.fmi2GetReal),
                            _addr(dll.fmi2SetReal),
                            _addr(dll.fmi2SetRealInputDerivatives) if self.description.can_interpolate_inputs else 0,
-                           *st, _boolean_status(dll))
+                           *st, _boolean_status(dll), dd)
+
+    def state_slot(self) -> int:
+        """The address of this slave's FMU-state pointer (the one :meth:`save_state` fills): a
+        compiled loop that saves states there leaves them to be freed with the instance."""
+        if getattr(self, "_state", None) is None:
+            self._state = c_void_p()
+        return ctypes.addressof(self._state)
 
     @property
     def can_rollback(self) -> bool:
