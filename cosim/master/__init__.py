@@ -8,8 +8,10 @@ Package map (the public names are re-exported here: ``from cosim.master import X
 ``algorithm``   the :class:`Algorithm` base class, :data:`ALGORITHMS`, :func:`register`, :func:`algorithm`
 ``algorithms/`` one module per algorithm (``jacobi``, ``gauss_seidel``, ``adaptive``, ``ecco``,
                 ``iterative``), listed in :data:`cosim.master.algorithms.MODULES`
-``engine``      who runs the steps: the compiled loop (:mod:`cosim.master.fastloop`) or the Python loop;
-                :func:`choose_engine`
+``engine``      who runs the steps: a compiled loop or the Python loop (the reference); :func:`choose_engine`
+``native``      the native engine's C prelude and its one slave struct (C text and ctypes from one
+                declaration); its loops: ``fastloop`` (Jacobi, Gauss-Seidel), ``adaptive_engine``
+                (adaptive, ecco), ``iterative_engine``; ``dense``: the Newton step's linear algebra
 ``run``         the run loop :func:`simulate`, :func:`initialize`, :class:`RunStats`
 ``multirate``   a slave at ``rate`` doSteps per macro step (Jacobi, Gauss-Seidel; both engines)
 

@@ -209,7 +209,6 @@ class SlaveArray:
             c.no_prior, c.rate, c.sub_ns = int(not s.can_rollback), 1, 0
             c.inst, c.do_step, c.get, c.set = ne.instance, ne.do_step, ne.get_real, ne.set_real
             c.bool_status = ne.get_boolean_status
-            c.dir_der = getattr(ne, "directional_derivative", 0)
             if states:
                 c.get_state, c.set_state = ne.get_state, ne.set_state
                 c.state = ctypes.addressof(self.states) + i * ctypes.sizeof(ctypes.c_void_p)

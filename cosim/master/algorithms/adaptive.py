@@ -33,7 +33,8 @@ values belong to).  Statistics: accepted and rejected steps, rollbacks, smallest
 Engines: :class:`AdaptiveStepper` here is the reference implementation (Python loop); where every
 slave is an FMU with C entry points and state get/set (``master.engine`` auto or compiled),
 :mod:`cosim.master.adaptive_engine` runs the same accepted-step loop in C, step for step and bit
-for bit the same (``tests/test_adaptive_engine.py``).
+for bit the same (``tests/test_adaptive_engine.py``); likewise for ecco's stepper
+(``tests/test_native.py``).
 """
 from __future__ import annotations
 

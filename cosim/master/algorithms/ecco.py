@@ -39,6 +39,10 @@ stepping order, and per bond the largest scaled residual of a step, the largest 
 residual summed over the run (signed: the energy the coupling created) and its absolute sum [J],
 the energy carried [J], the net residual scaled like a step's (``|sum dE| / (atol + rtol * sum
 E)``) and the steps over tolerance.
+
+Engines: :class:`EccoStepper` is the reference (Python loop); with FMU slaves that have C entry
+points, :class:`cosim.master.adaptive_engine.CompiledEcco` takes the same steps in C, bit for bit
+(``tests/test_native.py``).
 """
 from __future__ import annotations
 
