@@ -215,3 +215,20 @@ def test_dense_helpers_agree_with_lapack_and_blas():
     assert dense.solve(np.array([[1.0, 2.0], [2.0, 4.0]]), np.array([1.0, 1.0])) is None
     # a zero leading entry needs the row swap
     np.testing.assert_allclose(dense.solve(np.array([[0.0, 1.0], [1.0, 0.0]]), np.array([2.0, 3.0])), [3.0, 2.0])
+
+
+@pytest.mark.parametrize("fmi", ["2.0", "3.0"])
+def test_a_stop_request_ends_iterative_alike_in_both_engines(reference_fmus, fmi):
+    """The Modelica Reference FMU Stair asks to stop at t = 9 s (FMI 3.0 terminateSimulation, FMI
+    2.0 Discard + fmi2Terminated): the compiled iterative loop completes the step and ends
+    "stopped" with the Python loop's reason, at the same instants."""
+    from cosim.scenario import from_dict
+
+    scene = {"name": "stair", "outputs": [], "components": {"s": {"fmu": str(reference_fmus[f"{fmi}/Stair"])}},
+             "master": {"algorithm": "iterative", "step": 0.1}}
+    py = run(from_dict(scene), engine="python")
+    c = run(from_dict(scene), engine="compiled")
+    assert (py.stats["engine"], c.stats["engine"]) == ("python", "compiled")
+    assert c.status == py.status == "stopped" and c.reason == py.reason and "asked to terminate" in c.reason
+    assert np.array_equal(py.trace.data, c.trace.data) and c.trace.time[-1] == py.trace.time[-1]
+    assert c.stats["iterations_total"] == py.stats["iterations_total"]

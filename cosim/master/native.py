@@ -45,6 +45,7 @@ SLAVE_FIELDS: tuple[tuple[str, str, str], ...] = (
     ("void *", "bool_status", "fmi2GetBooleanStatus (0: none): a Discard that asks to stop"),
     ("void *", "dir_der", "fmi2GetDirectionalDerivative / fmi3GetDirectionalDerivative (0: none)"),
     ("void **", "state", "the slave's FMU state, allocated by its first get"),
+    ("double *", "last_time", "FMI 3.0: where lastSuccessfulTime of fmi3DoStep goes (the slave's own report)"),
     ("const uint32_t *", "in_vr", "value references of the inputs"),
     ("const int64_t *", "in_src", "per input, the index in v of its source"),
     ("const uint32_t *", "out_vr", "value references of the outputs"),
@@ -154,6 +155,7 @@ static inline int do_step(rpr_slave *s, double t, double h) {
         bool ev = 0, term = 0, early = 0;
         double last = t;
         st = ((fmi3DoStep_t)s->do_step)(s->inst, t, h, s->no_prior != 0, &ev, &term, &early, &last);
+        if (s->last_time) *s->last_time = last;
         if (st <= ST_WARNING && term) return ST_STOP;
         return st;
     }
@@ -208,7 +210,7 @@ class SlaveArray:
             c.in_off, c.out_off = system.in_off[i], system.out_off[i]
             c.no_prior, c.rate, c.sub_ns = int(not s.can_rollback), 1, 0
             c.inst, c.do_step, c.get, c.set = ne.instance, ne.do_step, ne.get_real, ne.set_real
-            c.bool_status = ne.get_boolean_status
+            c.bool_status, c.last_time = ne.get_boolean_status, ne.last_time
             if states:
                 c.get_state, c.set_state = ne.get_state, ne.set_state
                 c.state = ctypes.addressof(self.states) + i * ctypes.sizeof(ctypes.c_void_p)

@@ -279,7 +279,8 @@ class _Fmi3(FmiVersion):
 
     def native(self, slave, dll, state, directional):
         return NativeEntry(True, slave.fmu.component, _addr(dll.fmi3DoStep), _addr(dll.fmi3GetFloat64),
-                           _addr(dll.fmi3SetFloat64), 0, *state, directional_derivative=directional)
+                           _addr(dll.fmi3SetFloat64), 0, *state, directional_derivative=directional,
+                           last_time=ctypes.addressof(slave._last_t))
 
 
 FMI2, FMI3 = _Fmi2(), _Fmi3()

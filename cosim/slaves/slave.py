@@ -55,6 +55,8 @@ class NativeEntry:
     free_state: int = 0
     get_boolean_status: int = 0
     directional_derivative: int = 0
+    #: FMI 3.0: the address of the double the slave reports its last successful time from (0: none)
+    last_time: int = 0
 
 
 class Slave(ABC):
