@@ -140,6 +140,9 @@ ITERATIVE_CASES = {
     # stiffer still: the coupled solution blows up and the run's guard ends it as unstable
     "two_mass_unstable": ("two_mass.yaml", {"components.mass2.params.kc": 1e5, "stop_time": 1.0, "master.step": 0.01,
                                             "master.options": {"jacobian": "finite_difference"}}),
+    # an over-relaxed fixed point: the iteration diverges in the first step
+    "two_mass_diverged": ("two_mass.yaml", {"components.mass2.params.kc": 1e4, "stop_time": 0.5, "master.step": 0.01,
+                                            "master.options": {"method": "fixed_point", "omega": 2.0}}),
     # the algebraic loop (three cuts): Newton from directional derivatives, from finite differences,
     # and the under-relaxed fixed point
     "force_loop": ("force_loop.yaml", {"stop_time": 0.2}),
@@ -183,6 +186,9 @@ def test_iterative_same_statistics_and_ending(iterative_both):
             == {s: d["do_step_calls"] for s, d in c.stats["slaves"].items()})
     if name == "force_loop_cap":
         assert c.status == "unstable" and "did not converge within max_iter = 12" in c.reason
+    elif name == "two_mass_diverged":
+        assert c.status == "unstable" and "diverged in the step from t = 0 s" in c.reason
+        assert "mass2.f -> mass1.f" in c.reason
     elif name == "two_mass_unstable":
         assert c.status == "unstable" and "mass2.f = " in c.reason and "beyond" in c.reason
     else:
