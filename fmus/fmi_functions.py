@@ -22,7 +22,8 @@ from functools import lru_cache
 
 #: C type (as written in :data:`FUNCTIONS`) -> ctypes type; a pointer type not listed maps to
 #: ``POINTER`` of its pointee.
-_SCALARS = {"int": ctypes.c_int, "unsigned int": ctypes.c_uint, "int32_t": ctypes.c_int32, "uint32_t": ctypes.c_uint32, "size_t": ctypes.c_size_t,
+_SCALARS = {"int": ctypes.c_int, "unsigned int": ctypes.c_uint, "int32_t": ctypes.c_int32, "uint32_t": ctypes.c_uint32,
+            "size_t": ctypes.c_size_t,
             "double": ctypes.c_double, "float": ctypes.c_float, "bool": ctypes.c_bool, "void *": ctypes.c_void_p,
             "int8_t": ctypes.c_int8, "uint8_t": ctypes.c_uint8, "int16_t": ctypes.c_int16,
             "uint16_t": ctypes.c_uint16, "int64_t": ctypes.c_int64, "uint64_t": ctypes.c_uint64}
@@ -55,7 +56,8 @@ def _fmi3_io(t: str, c: str) -> dict[str, tuple[str, list[Param]]]:
 #: name -> (return type, parameters): the prototypes of the standard (fmi2Functions.h, fmi3Functions.h).
 FUNCTIONS: dict[str, tuple[str, list[Param]]] = {
     "fmi2DoStep": ("int", [("void *", "c"), ("double", "currentCommunicationPoint"),
-                           ("double", "communicationStepSize"), ("int", "noSetFMUStatePriorToCurrentCommunicationPoint")]),
+                           ("double", "communicationStepSize"),
+                           ("int", "noSetFMUStatePriorToCurrentCommunicationPoint")]),
     **{k: v for t, c in FMI2_NUMERIC.items() for k, v in _fmi2_io(t, c).items()},
     "fmi2SetRealInputDerivatives": ("int", [("void *", "c"), (_VR, "vr"), ("size_t", "nvr"),
                                             ("const int *", "order"), ("const double *", "value")]),
@@ -67,7 +69,8 @@ FUNCTIONS: dict[str, tuple[str, list[Param]]] = {
                                              (_VR, "vKnown_ref"), ("size_t", "nKnown"), ("const double *", "dvKnown"),
                                              ("double *", "dvUnknown")]),
     "fmi3DoStep": ("int", [("void *", "instance"), ("double", "currentCommunicationPoint"),
-                           ("double", "communicationStepSize"), ("bool", "noSetFMUStatePriorToCurrentCommunicationPoint"),
+                           ("double", "communicationStepSize"),
+                           ("bool", "noSetFMUStatePriorToCurrentCommunicationPoint"),
                            ("bool *", "eventHandlingNeeded"), ("bool *", "terminateSimulation"),
                            ("bool *", "earlyReturn"), ("double *", "lastSuccessfulTime")]),
     **{k: v for t, c in FMI3_NUMERIC.items() for k, v in _fmi3_io(t, c).items()},

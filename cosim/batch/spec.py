@@ -49,7 +49,7 @@ from typing import Any
 
 import numpy as np
 
-from ..errors import RUN_ERRORS, UserError
+from ..errors import RUN_ERRORS
 from ..scenario import TOP_KEYS as SCENE_KEYS
 from ..scenario import Problem, SceneError, YList, YMap, apply_overrides, load_raw, read_yaml, suggest, validate
 from ..scenario.loading import NO_AUTO_FIDELITY

@@ -284,7 +284,8 @@ static int64_t rpr_ecco_loop(rpr_slave *S, int32_t n, const int32_t *order, doub
         for (b = 0; b < c->n_bonds; ++b) {   /* bond_energy */
             double u0a = v[c->in_idx[2 * b]], u0b = v[c->in_idx[2 * b + 1]];
             rpr_slave *sa = &S[c->side[2 * b]], *sb = &S[c->side[2 * b + 1]];
-            double ka = sa->interp ? sa->slope[c->slot[2 * b]] : 0.0, kb = sb->interp ? sb->slope[c->slot[2 * b + 1]] : 0.0;
+            double ka = sa->interp ? sa->slope[c->slot[2 * b]] : 0.0;
+            double kb = sb->interp ? sb->slope[c->slot[2 * b + 1]] : 0.0;
             double u1a = u0a + ka * h, u1b = u0b + kb * h;
             double p0a = c->y0[2 * b] * u0a, p0b = c->y0[2 * b + 1] * u0b;
             double p1a = v[c->out_idx[2 * b]] * u1a, p1b = v[c->out_idx[2 * b + 1]] * u1b;

@@ -404,7 +404,7 @@ class CompiledIterative:
         self.lib = library()
         self.alg = alg
         sysm = alg.system
-        n, m, nv = len(sysm.slaves), len(alg.cuts), len(sysm.v)
+        m, nv = len(alg.cuts), len(sysm.v)
         self.arr = arr = SlaveArray(sysm)
         max_in = max([len(b) for b in sysm.in_buf] + [1])
         max_out = max([len(b) for b in sysm.out_buf] + [1])
@@ -433,7 +433,8 @@ class CompiledIterative:
         self.ctl = ctl = CControl()
         opt = alg.opt
         ctl.m, ctl.max_iter, ctl.newton = m, int(opt["max_iter"]), int(opt["method"] == "newton")
-        ctl.jac_auto, ctl.linear, ctl.timing = int(opt["jacobian"] == "auto"), int(alg.inputs == "linear"), int(alg.timing)
+        ctl.jac_auto, ctl.linear = int(opt["jacobian"] == "auto"), int(alg.inputs == "linear")
+        ctl.timing = int(alg.timing)
         ctl.omega, ctl.rtol, ctl.atol = opt["omega"], opt["rtol"], opt["atol"]
         from .algorithms.iterative import FD_REL, GROWTH_LIMIT
 
