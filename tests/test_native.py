@@ -238,3 +238,28 @@ def test_a_stop_request_ends_iterative_alike_in_both_engines(reference_fmus, fmi
     assert c.status == py.status == "stopped" and c.reason == py.reason and "asked to terminate" in c.reason
     assert np.array_equal(py.trace.data, c.trace.data) and c.trace.time[-1] == py.trace.time[-1]
     assert c.stats["iterations_total"] == py.stats["iterations_total"]
+
+
+def test_run_time_c_is_compiled_once_per_source_and_flags(tmp_path, monkeypatch):
+    """fmus.native: a source compiled once into the cache (a second load reuses the file), a new
+    file for other flags, the compiler's own message for a source that does not compile, and a
+    missing compiler named as such."""
+    from fmus.errors import BuildError
+    from fmus.native import FLAGS, NoCompiler, library_path, load
+
+    monkeypatch.setenv("RPR_COSIM_CACHE", str(tmp_path / "fmus"))
+    src = "double twice(double x) { return 2.0 * x; }\n"
+    lib = load(src, "t")
+    lib.twice.restype, lib.twice.argtypes = ctypes.c_double, [ctypes.c_double]
+    assert lib.twice(21.0) == 42.0
+    first = library_path(src, "t")
+    mtime = first.stat().st_mtime_ns
+    assert library_path(src, "t") == first and first.stat().st_mtime_ns == mtime
+    assert first.parent == tmp_path / "master"
+    other = library_path(src, "t", (*FLAGS, "-DVARIANT"))
+    assert other != first and other.exists()
+    with pytest.raises(BuildError, match="error"):
+        load("double broken(double x) { return x +; }\n", "t")
+    monkeypatch.setenv("CC", str(tmp_path / "no-such-cc"))
+    with pytest.raises(NoCompiler, match="no-such-cc"):
+        load(src + "/* new */\n", "t")
