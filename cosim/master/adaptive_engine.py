@@ -403,7 +403,7 @@ class _CompiledVariable:
                 c.cur, c.prev, c.guess = arr.buffer(cur), arr.buffer(cur.copy()), arr.buffer(np.zeros(n_in))
                 c.slope = arr.buffer(stepper.slopes[i])
         self.order = np.array(stepper.order, dtype=np.int32)
-        self.rec_idx = np.ascontiguousarray(sysm.record_idx[:len(sysm.record_names)], dtype=np.int64)
+        self.rec_idx = np.ascontiguousarray(sysm.record_idx, dtype=np.int64)  # recorded, then watched (guards)
         self.h_rec = np.empty(0, dtype=np.int64)
         self.status, self.message = "running", ""
 
@@ -441,7 +441,7 @@ class CompiledAdaptive(_CompiledVariable):
     """Drop-in for :class:`cosim.master.algorithms.adaptive.AdaptiveStepper` whose accepted-step loop runs in C.
     It shares the stepper's setup (order, fresh inputs, options) and exposes the same ``t_ns``,
     ``stats``, ``calls``, ``slave_ns``, ``status`` and ``message``; :meth:`run` replaces the
-    Python loop of :func:`cosim.master.algorithms.adaptive.run_adaptive` one chunk at a time."""
+    Python loop of :class:`cosim.master.algorithms.adaptive.VariableStepper` one block at a time."""
 
     def __init__(self, stepper, timing: bool = True):
         super().__init__(stepper, states=True)
