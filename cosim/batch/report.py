@@ -291,7 +291,8 @@ def plot_hist(rows, metric: str, path: Path) -> Path:
 def run_trace_path(out: Path, run_id: str) -> Path | None:
     """The co-simulation trace of a run (not its reference)."""
     d = Path(out) / "runs" / run_id
-    found = sorted(p for p in d.glob("*.csv") if not p.name.endswith("_reference.csv")) if d.is_dir() else []
+    found = sorted(p for p in (*d.glob("*.csv"), *d.glob("*.parquet"))
+                   if not p.stem.endswith("_reference") and not p.stem.endswith(".prev")) if d.is_dir() else []
     return found[0] if found else None
 
 
