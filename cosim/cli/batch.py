@@ -131,9 +131,9 @@ def _summary(batch, res, args) -> None:
     if args.trace_format == "parquet":
         print(f"results: {res.out / 'results.parquet'}")
     if args.report and res.rows:
-        from ..analysis.report import batch_report
+        from .report import write_report
 
-        _say(f"report: {batch_report(batch, res.out, res.rows, sort)}")
+        _say(f"report: {write_report(res.out)}")
     if not args.no_plots and res.rows:
         for p in make_plots(batch, res.out, res.rows, sort):
             _say(f"plot: {p}")

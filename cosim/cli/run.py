@@ -131,9 +131,7 @@ def _run_locked(args: argparse.Namespace, scene, out: Path) -> int:
         _say(f"animation: {animate(res.trace, confined(out, f'{scene.name}.gif'), manipulator=m, component=comp, title=scene.name)}")
     ref = _reference(scene, res, out, args.plot, args.trace_format) if args.reference else None
     if args.report:
-        from ..analysis.report import run_report
-
-        _say(f"report: {run_report(res, confined(out, f'{scene.name}.html'), reference=ref)}")
+        _say(f"report: {_report(scene, res, ref, out)}")
     if res.status == "stopped":  # a component asked to end the simulation: a normal end (FMI)
         _say(f"rpr-cosim run: {res.reason}")
         return 0
@@ -141,6 +139,28 @@ def _run_locked(args: argparse.Namespace, scene, out: Path) -> int:
         _say(f"rpr-cosim run: {res.status}: {res.reason}")
         return 1
     return 0
+
+
+def _report(scene, res, ref, out: Path) -> Path | str:
+    """The run's interactive HTML report (:mod:`cosim.analysis.report`), beside its trace."""
+    from ..analysis.animate import pose_component
+    from ..analysis.charts import setpoint_pairs
+    from ..analysis.report import run_report
+    from ..errors import UserError
+    from ..scenario.geometry import manipulator_for
+    from ..scenario.units import units_of
+
+    if not len(res.trace.data):
+        return "none (the run recorded no rows)"
+    m = None
+    try:
+        c = scene.components.get(pose_component(res.trace))
+        m = manipulator_for(c.options, c.params) if c is not None else None
+    except UserError:
+        pass
+    return run_report(res.trace, confined(out, f"{scene.name}.html"), title=f"run {scene.name}",
+                      units=units_of(scene, res.fmus), pairs=setpoint_pairs(scene),
+                      reference=ref.trace if ref is not None else None, manipulator=m)
 
 
 def _reference(scene, res, out: Path, plot: bool, trace_format: str = "csv"):
