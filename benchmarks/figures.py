@@ -1,4 +1,4 @@
-"""The accuracy figures of the README's Results section, measured and printed.
+"""The accuracy figures of the documentation's results pages, measured and printed.
 
 The tests assert these numbers against their independent sources (the thesis's tables as
 restated in SPEC.md, a Lagrange formulation, the virtual-work reference); this script prints
@@ -8,6 +8,14 @@ those equations a second time.
 
     python benchmarks/figures.py            # models: thesis tables (Ch. 4-7), Lagrange, stiffness series (~30 s)
     python benchmarks/figures.py --scenes   # also the scenes: pid_step, multibody, vw_compare (~2 min)
+    python benchmarks/figures.py --only kinematics   # Table 6.12, Chapter 7, virtual work vs Lagrange (~2 s)
+    python benchmarks/figures.py --check [PAGE.md ...]   # pages' quoted outputs against what the commands print
+
+``--check`` finds, in the documentation's pages (default: every ``docs/**/*.md``), each fenced
+block whose first line is ``$ python benchmarks/figures.py ARGS`` (the command's printed output
+quoted below it, with a line saying when and where it was printed just above the block), runs
+the cheap ones (:data:`CHEAP`) and reports every quoted line that the command no longer prints;
+exit code 1 when one differs.  Blocks of expensive commands are listed as not checked.
 """
 from __future__ import annotations
 
@@ -31,6 +39,13 @@ TABLE_6_12 = [((-0.15, -0.15, 0.0), (0.3109, 0.3559, 0.2043)), ((-0.2, -0.15, 0.
 
 
 def models_figures() -> None:
+    kinematics_figures()
+    chapter_4_figures()
+    stiffness_series()
+
+
+def kinematics_figures() -> None:
+    """Table 6.12's leg lengths, Chapter 7's path and forces, virtual work against Lagrange."""
     from models import geometry as G
     from models import kinematics as K
     from models import virtual_work as V
@@ -57,8 +72,6 @@ def models_figures() -> None:
         worst = max(worst, np.abs(V.inverse_dynamics(cross, q, qd, qdd) - ref).max() / np.abs(ref).max())
     print(f"virtual work against Lagrange's equations ({len(STATES)} random states): max relative "
           f"difference {worst:.1e}")
-    chapter_4_figures()
-    stiffness_series()
 
 
 def chapter_4_figures() -> None:
@@ -132,11 +145,90 @@ def scene_figures(cache: Path) -> None:
               f"rates {e['v']:.1e}, accelerations {e['a']:.1e}, forces {e['f']:.1e}")
 
 
-def main() -> None:
+#: Sections of this script by ``--only`` name.
+SECTIONS = {"kinematics": kinematics_figures, "chapter4": chapter_4_figures, "stiffness": stiffness_series}
+#: Argument lists of this script cheap enough for ``--check`` (seconds).
+CHEAP = {("--only", "kinematics")}
+COMMAND = "$ python benchmarks/figures.py"
+
+
+def quoted_blocks(page: Path) -> list[tuple[int, tuple[str, ...], list[str], bool]]:
+    """(line of the command, its arguments, the quoted output lines, whether a 'Printed on' date
+    line stands just above the block) for every quoted output of this script in ``page``."""
+    lines = page.read_text().splitlines()
+    found = []
+    for i, line in enumerate(lines):
+        if line.strip().startswith("```") and i + 1 < len(lines) and lines[i + 1].startswith(COMMAND):
+            args = tuple(lines[i + 1][len(COMMAND):].split())
+            body = []
+            for ln in lines[i + 2:]:
+                if ln.strip().startswith("```"):
+                    break
+                body.append(ln)
+            dated = any("Printed on" in ln for ln in lines[max(0, i - 3):i])
+            found.append((i + 2, args, body, dated))
+    return found
+
+
+def printed(args: tuple[str, ...]) -> list[str]:
+    """What this script prints for ``args`` (run in this process)."""
+    import contextlib
+    import io
+
+    buf = io.StringIO()
+    with contextlib.redirect_stdout(buf):
+        run(parse(list(args)))
+    return buf.getvalue().splitlines()
+
+
+def check(pages: list[Path]) -> int:
+    """Compare every quoted output of the cheap commands in ``pages`` with what they print now."""
+    bad, seen, cache = 0, 0, {}
+    for page in pages:
+        for lineno, args, body, dated in quoted_blocks(page):
+            where = f"{page}:{lineno}"
+            if not dated:
+                print(f"{where}: the quoted output of `{COMMAND[2:]} {' '.join(args)}` says not when it was printed "
+                      f"(a 'Printed on DATE on MACHINE' line just above the block)")
+                bad += 1
+            if args not in CHEAP:
+                print(f"{where}: not checked (expensive): {COMMAND[2:]} {' '.join(args)}")
+                continue
+            seen += 1
+            now = cache.setdefault(args, printed(args))
+            for k, line in enumerate(body):
+                if line.strip() and line not in now:
+                    bad += 1
+                    close = max(now, key=lambda n: sum(a == b for a, b in zip(n, line)), default="")
+                    print(f"{page}:{lineno + k}: quoted figure no longer printed by `{COMMAND[2:]} {' '.join(args)}`:\n"
+                          f"  page: {line}\n  now:  {close}")
+    print(f"figures --check: {seen} quoted outputs checked, {bad} problem{'s' if bad != 1 else ''}")
+    return 1 if bad else 0
+
+
+def parse(argv: list[str] | None = None) -> argparse.Namespace:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--scenes", action="store_true", help="also run the scenes (about two minutes)")
+    ap.add_argument("--only", choices=sorted(SECTIONS), help="print only this section of the models' figures")
+    ap.add_argument("--check", nargs="*", type=Path, metavar="PAGE",
+                    help="check the quoted outputs in these pages (default: docs/**/*.md) against what the cheap "
+                         "commands print now")
     ap.add_argument("--cache", type=Path, default=None, help="FMU cache (default: $RPR_COSIM_CACHE or a temporary one)")
-    args = ap.parse_args()
+    return ap.parse_args(argv)
+
+
+def main() -> int:
+    args = parse()
+    if args.check is not None:
+        return check(args.check or sorted((ROOT / "docs").rglob("*.md")))
+    run(args)
+    return 0
+
+
+def run(args: argparse.Namespace) -> None:
+    if args.only:
+        SECTIONS[args.only]()
+        return
     models_figures()
     if args.scenes:
         import os
@@ -147,4 +239,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main())

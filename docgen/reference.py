@@ -145,7 +145,7 @@ def batch_page() -> str:
     example = doc.split("::", 1)[1].split("\n\n", 2)[1] if "::" in doc else ""
     parts = ["# Batch format", "", GENERATED,
              "A batch file names a base scene and what to vary over it; `rpr-cosim batch FILE` runs it (see the "
-             "[tutorial](../tutorial.md#a-batch)). It is checked like a scene, before anything runs.", "",
+             "[tutorial](../tutorial.md#5-a-batch)). It is checked like a scene, before anything runs.", "",
              "## Top level", "", _keys_table(spec.TOP), "",
              "## A grid or zip axis", "",
              "`NAME: [v1, v2, ...]` (the name is then the path), or a mapping:", "", _keys_table(spec.AXIS), "",
