@@ -80,8 +80,6 @@ def test_the_batch_reference_changes_when_the_batch_checker_changes(monkeypatch)
 
 
 def test_the_algorithm_reference_follows_the_options_each_algorithm_declares(monkeypatch):
-    import math
-
     from cosim.master.algorithm import ALGORITHMS, AlgorithmOption
 
     page = reference.algorithms_page()

@@ -105,7 +105,8 @@ def _load_and_run(args: argparse.Namespace) -> int:
 
 
 def _run_locked(args: argparse.Namespace, scene, out: Path) -> int:
-    from ..run.execute import progress_bar, run
+    from ..run.execute import run
+    from ..run.progress import progress_bar
 
     try:
         res = run(scene, out_dir=out, cache_dir=args.cache, engine=args.engine, progress=progress_bar(),
@@ -168,7 +169,7 @@ def _reference(scene, res, out: Path, plot: bool, trace_format: str = "csv"):
     from ..analysis.charts import plot_comparison
     from ..analysis.compare import compare, format_table
     from ..run.reference import reference
-    from ..run.execute import progress_bar
+    from ..run.progress import progress_bar
 
     ref = reference(scene, out_dir=out, progress=progress_bar(), log=lambda m: _say(f"[reference] {m}"),
                     trace_format=trace_format)

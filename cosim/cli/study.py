@@ -158,7 +158,7 @@ def _numbers(text: str, option: str, example: str) -> list[float]:
 
 def _stability(args: argparse.Namespace) -> int:
     from ..errors import UserError
-    from ..run.execute import progress_bar
+    from ..run.progress import progress_bar
     from ..study.stability import parse_range, plot_map, stability_map
 
     path, sep, rng = args.vary.partition("=")

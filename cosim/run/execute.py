@@ -4,7 +4,6 @@ scene's master algorithm and return a :class:`RunResult`.  Everything it takes i
 (a path and a mapping), so a worker process can execute it."""
 from __future__ import annotations
 
-import sys
 import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field, replace
@@ -278,32 +277,3 @@ def _run(scene, overrides, out_dir, catalog, cache_dir, progress, log, engine, s
             stats = dict(stats, status=ob.status, reason=ob.reason)
             t.status, t.reason = ob.status, ob.reason
     return RunResult(scene, stats["status"], stats["reason"], t, stats, paths, trace_path, build_s)
-
-
-def progress_bar(stream=sys.stderr, *, min_s: float = 0.5) -> Callable[[int, int], None]:
-    """A ``progress(done, total)`` callback drawing a bar on ``stream`` for runs longer than
-    ``min_s`` seconds (short runs print nothing).  The clock starts at the first call, i.e. when
-    the stepping starts, so FMU builds before it do not distort the time left."""
-    state = {"shown": False, "last": 0.0, "t0": None}
-
-    def update(done: int, total: int) -> None:
-        now = time.perf_counter()
-        if state["t0"] is None:
-            state["t0"] = now
-        t0 = state["t0"]
-        if now - t0 < min_s and done < total:
-            return
-        if done < total and now - state["last"] < 0.1:
-            return
-        if not state["shown"] and done >= total:
-            return
-        state["shown"], state["last"] = True, now
-        frac = done / total if total else 1.0
-        bar = "#" * int(30 * frac)
-        eta = (now - t0) * (1 - frac) / frac if frac > 0 else 0.0
-        stream.write(f"\r[run] |{bar:<30}| {100 * frac:5.1f}%  {now - t0:6.1f} s  eta {eta:5.1f} s")
-        if done >= total:
-            stream.write("\n")
-        stream.flush()
-
-    return update
