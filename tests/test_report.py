@@ -130,3 +130,16 @@ def test_a_study_report_shows_the_stability_map_with_hover_values(tmp_path):
     assert 'class="main-svg"' in dom and "jacobi/hold" in dom and "rho_measured" in dom
     img = pixels(tmp_path / "study.png")
     assert near(img, (76, 175, 80)) > 3000 and near(img, (229, 57, 53)) > 3000  # stable and unstable cells
+
+
+def test_a_precision_study_report_shows_the_work_precision_chart(tmp_path):
+    out = tmp_path / "prec"
+    assert main(["study", "precision", str(ROOT / "scenarios" / "two_mass.yaml"), "--steps", "1e-2,5e-3",
+                 "--variant", "jacobi/hold", "--variant", "gauss_seidel/linear", "--no-peer", "--stop", "2",
+                 "--out", str(out), "--report"]) == 0
+    page = out / "two_mass_precision.html"
+    dom, console = browse(page, tmp_path / "precision.png")
+    assert not js_errors(console), console
+    assert "work-precision" in dom and "jacobi/hold" in dom and "gauss_seidel/linear" in dom
+    img = pixels(tmp_path / "precision.png")
+    assert near(img, (31, 119, 180)) > 200 and near(img, (255, 127, 14)) > 200  # both variants' lines drawn
