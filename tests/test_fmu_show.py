@@ -1,6 +1,6 @@
 """``rpr-cosim fmu show``: every catalog parameter has a unit and a description, the FMU file view
-agrees with FMPy's reading of the modelDescription, and the README's model section is the
-generated text (documentation cannot drift from the code)."""
+agrees with FMPy's reading of the modelDescription, and the documentation site's model catalog is
+the generated text (documentation cannot drift from the code)."""
 from __future__ import annotations
 
 from pathlib import Path

@@ -107,7 +107,11 @@ def test_a_batch_report_has_its_sortable_table_and_clickable_heat_maps(tmp_path)
     out = tmp_path / "out"
     assert main(["batch", str(batch), "--workers", "1", "--out", str(out), "--report", "--no-plots"]) == 0
     page = out / "report.html"
+    assert '"report": ""' in page.read_text()  # no run report written yet: nothing to link
+    assert main(["report", str(out), "--runs"]) == 0  # each run's own report too, linked from the batch's
     dom, console = browse(page, tmp_path / "batch.png")
+    link = re.search(r'<a href="(runs/[0-9a-f]{16}/pid_step\.html)">open the report of run', dom)
+    assert link and (out / link.group(1)).is_file()
     assert not js_errors(console), console
     assert dom.count('class="main-svg"') >= 3  # two heat maps and the chosen run's traces
     assert dom.count("<tr data-run=") == 4 and "mech.platform.phi:max" in dom

@@ -1,10 +1,11 @@
 """``rpr-cosim report``: an interactive, self-contained HTML report of a run, batch or study.
 
-    rpr-cosim report OUT [-o FILE]
+    rpr-cosim report OUT [-o FILE] [--runs]
 
 ``OUT`` is what a verb wrote: a trace file (``runs/pid_step/pid_step.csv`` or ``.parquet``) or
 a run's directory (its one trace) -> the run's report beside the trace (``<name>.html``); a batch
-directory (``results.csv`` and ``batch.json``) -> ``OUT/report.html``; a study table
+directory (``results.csv`` and ``batch.json``) -> ``OUT/report.html`` (with ``--runs`` also each run's own
+report, ``runs/<run id>/<name>.html``, linked from the batch's); a study table
 (``<scene>_precision.csv``, ``<scene>_stability.csv``) or its directory -> ``<table>.html``.
 The file opens offline (Plotly embedded, :mod:`cosim.analysis.report`).
 """
@@ -23,11 +24,13 @@ def register(sub: argparse._SubParsersAction) -> None:
                                    "for a batch the sortable table and clickable charts; for a study its chart.")
     p.add_argument("out", type=Path, help="a trace file, a run's directory, a batch's directory or a study's table")
     p.add_argument("-o", "--output", type=Path, help="the HTML file to write (default beside what it reports)")
+    p.add_argument("--runs", action="store_true", help="for a batch, also write each run's own report (about 5 MB "
+                                                        "each) and link it from the batch's")
     p.set_defaults(handler=_report)
 
 
 def _report(args: argparse.Namespace) -> int:
-    path = write_report(args.out, args.output)
+    path = write_report(args.out, args.output, runs=args.runs)
     print(f"report: {path}")
     return 0
 
@@ -46,7 +49,7 @@ def _is_trace(p: Path) -> bool:
     return isinstance(data, dict) and "scene_hash" in data
 
 
-def write_report(out: Path, output: Path | None = None) -> Path:
+def write_report(out: Path, output: Path | None = None, *, runs: bool = False) -> Path:
     """The report of ``out`` (see the module docstring); returns the file written."""
     from ..errors import UserError
     from ..outputs import confined
@@ -55,7 +58,7 @@ def write_report(out: Path, output: Path | None = None) -> Path:
     if not out.exists():
         raise UserError(f"{out}: no such file or directory")
     if out.is_dir() and (out / "results.csv").is_file() and (out / "batch.json").is_file():
-        return _batch(out, output or confined(out, "report.html"))
+        return _batch(out, output or confined(out, "report.html"), runs)
     tables = [out] if out.is_file() and re.search(r"_(precision|stability)\.csv$", out.name) else (
         sorted([*out.glob("*_precision.csv"), *out.glob("*_stability.csv")]) if out.is_dir() else [])
     if tables:
@@ -108,7 +111,7 @@ def setpoints_of(connections: list[str]) -> dict[str, str]:
             and (d, "measurement") in src}
 
 
-def _batch(out: Path, output: Path) -> Path:
+def _batch(out: Path, output: Path, runs: bool = False) -> Path:
     from ..analysis.report import batch_report
     from ..batch.report import run_trace_path
     from ..batch.results import read_rows
@@ -123,6 +126,8 @@ def _batch(out: Path, output: Path) -> Path:
         if p is not None:
             traces[r["run_id"]] = p
             html_file = p.with_suffix(".html")
+            if runs:
+                run_file_report(p, html_file)
             if html_file.is_file():
                 reports[r["run_id"]] = str(html_file.relative_to(output.parent)) if html_file.is_relative_to(
                     output.parent) else html_file.as_uri()
