@@ -12,16 +12,18 @@ those equations a second time.
     python benchmarks/figures.py --check [PAGE.md ...]   # pages' quoted outputs against what the commands print
 
 ``--check`` finds, in the documentation's pages (default: every ``docs/**/*.md``), each fenced
-block whose first line is ``$ python benchmarks/figures.py ARGS`` (the command's printed output
-quoted below it, with a line saying when and where it was printed just above the block), runs
-the cheap ones (:data:`CHEAP`) and reports every quoted line that the command no longer prints;
-exit code 1 when one differs.  Blocks of expensive commands are listed as not checked.
+block whose first line is ``$ COMMAND`` (the command's printed output quoted below it, whole or
+in part, with a line saying when and where it was printed just above the block), runs the cheap
+commands (:data:`CHEAP`: this script's kinematics section, the quick start's run against the
+monolithic reference) and reports every quoted line that the command no longer prints; exit code
+1 when one differs.  Blocks of expensive commands are listed as not checked.
 """
 from __future__ import annotations
 
 import argparse
 import sys
 import tempfile
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -147,60 +149,81 @@ def scene_figures(cache: Path) -> None:
 
 #: Sections of this script by ``--only`` name.
 SECTIONS = {"kinematics": kinematics_figures, "chapter4": chapter_4_figures, "stiffness": stiffness_series}
-#: Argument lists of this script cheap enough for ``--check`` (seconds).
-CHEAP = {("--only", "kinematics")}
-COMMAND = "$ python benchmarks/figures.py"
+def _this_script(*args: str) -> Callable[[], list[str]]:
+    def printed() -> list[str]:
+        import contextlib
+        import io
+
+        buf = io.StringIO()
+        with contextlib.redirect_stdout(buf):
+            run(parse(list(args)))
+        return buf.getvalue().splitlines()
+
+    return printed
 
 
-def quoted_blocks(page: Path) -> list[tuple[int, tuple[str, ...], list[str], bool]]:
-    """(line of the command, its arguments, the quoted output lines, whether a 'Printed on' date
-    line stands just above the block) for every quoted output of this script in ``page``."""
+def _verb(*args: str) -> Callable[[], list[str]]:
+    """``rpr-cosim ARGS`` in a subprocess, writing into a temporary ``--out``."""
+    def printed() -> list[str]:
+        import os
+        import subprocess
+
+        with tempfile.TemporaryDirectory() as out:
+            env = dict(os.environ, PYTHONPATH=str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""))
+            res = subprocess.run([sys.executable, "-m", "cosim", *args, "--out", out], cwd=ROOT, env=env,
+                                 capture_output=True, text=True, timeout=600)
+        return res.stdout.splitlines()
+
+    return printed
+
+
+#: Commands cheap enough for ``--check`` (seconds each) -> what they print.
+CHEAP: dict[str, Callable[[], list[str]]] = {
+    "python benchmarks/figures.py --only kinematics": _this_script("--only", "kinematics"),
+    "rpr-cosim run scenarios/pid_step.yaml --reference": _verb("run", "scenarios/pid_step.yaml", "--reference"),
+}
+
+
+def quoted_blocks(page: Path) -> list[tuple[int, str, list[str], bool]]:
+    """(line of the first quoted line, the command, the quoted output lines, whether a 'Printed
+    on' date line stands just above the block) for every quoted command output in ``page``."""
     lines = page.read_text().splitlines()
     found = []
     for i, line in enumerate(lines):
-        if line.strip().startswith("```") and i + 1 < len(lines) and lines[i + 1].startswith(COMMAND):
-            args = tuple(lines[i + 1][len(COMMAND):].split())
+        if line.strip() == "```text" and i + 1 < len(lines) and lines[i + 1].startswith("$ "):
+            command = " ".join(lines[i + 1][2:].split())
             body = []
             for ln in lines[i + 2:]:
                 if ln.strip().startswith("```"):
                     break
                 body.append(ln)
-            dated = any("Printed on" in ln for ln in lines[max(0, i - 3):i])
-            found.append((i + 2, args, body, dated))
+            dated = any("rinted on" in ln for ln in lines[max(0, i - 3):i])
+            found.append((i + 3, command, body, dated))
     return found
-
-
-def printed(args: tuple[str, ...]) -> list[str]:
-    """What this script prints for ``args`` (run in this process)."""
-    import contextlib
-    import io
-
-    buf = io.StringIO()
-    with contextlib.redirect_stdout(buf):
-        run(parse(list(args)))
-    return buf.getvalue().splitlines()
 
 
 def check(pages: list[Path]) -> int:
     """Compare every quoted output of the cheap commands in ``pages`` with what they print now."""
     bad, seen, cache = 0, 0, {}
     for page in pages:
-        for lineno, args, body, dated in quoted_blocks(page):
-            where = f"{page}:{lineno}"
+        for lineno, command, body, dated in quoted_blocks(page):
+            where = f"{page}:{lineno - 1}"
             if not dated:
-                print(f"{where}: the quoted output of `{COMMAND[2:]} {' '.join(args)}` says not when it was printed "
-                      f"(a 'Printed on DATE on MACHINE' line just above the block)")
+                print(f"{where}: the quoted output of `{command}` says not when it was printed "
+                      f"(a 'printed on DATE on MACHINE' line just above the block)")
                 bad += 1
-            if args not in CHEAP:
-                print(f"{where}: not checked (expensive): {COMMAND[2:]} {' '.join(args)}")
+            if command not in CHEAP:
+                print(f"{where}: not checked (expensive): {command}")
                 continue
             seen += 1
-            now = cache.setdefault(args, printed(args))
+            if command not in cache:
+                cache[command] = CHEAP[command]()
+            now = cache[command]
             for k, line in enumerate(body):
                 if line.strip() and line not in now:
                     bad += 1
                     close = max(now, key=lambda n: sum(a == b for a, b in zip(n, line)), default="")
-                    print(f"{page}:{lineno + k}: quoted figure no longer printed by `{COMMAND[2:]} {' '.join(args)}`:\n"
+                    print(f"{page}:{lineno + k}: quoted figure no longer printed by `{command}`:\n"
                           f"  page: {line}\n  now:  {close}")
     print(f"figures --check: {seen} quoted outputs checked, {bad} problem{'s' if bad != 1 else ''}")
     return 1 if bad else 0
