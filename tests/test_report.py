@@ -116,6 +116,14 @@ def test_a_batch_report_has_its_sortable_table_and_clickable_heat_maps(tmp_path)
     assert dom.count('class="main-svg"') >= 3  # two heat maps and the chosen run's traces
     assert dom.count("<tr data-run=") == 4 and "mech.platform.phi:max" in dom
     assert "Kp = 20, Kd = 10" in dom  # the first run's traces shown below the charts
+    # a click on a heat-map cell shows that cell's run below (the event Plotly emits on a click)
+    last = re.findall(r"<tr data-run=\"([0-9a-f]{16})\"", dom)[-1]
+    clicked = tmp_path / "clicked.html"
+    clicked.write_text(page.read_text().replace("</body>", "<script>document.getElementById('metric-0').emit("
+                                                 f"'plotly_click', {{points: [{{customdata: '{last}'}}]}});</script></body>"))
+    dom2, console2 = browse(clicked, tmp_path / "clicked.png")
+    assert not js_errors(console2), console2
+    assert f"run {last} (" in dom2 and f"run {last} (" not in dom
     img = pixels(tmp_path / "batch.png")
     r, g, b = img[..., 0], img[..., 1], img[..., 2]
     colourful = (np.max(img, axis=-1) - np.min(img, axis=-1)) > 80  # heat-map cells, not white or grey
