@@ -20,6 +20,8 @@ TOP = {
     "fidelity_signals": "globs of the signals `fidelity: auto` compares (default: every recorded signal)",
     "guards": "the physical guards (`stroke`, `rated`, `singularity`, `unstable`: stop | warn | off; "
               "`min_det` [m], `max_abs`), or `off`",
+    "blocks": "Python files of your own blocks (each defines `BLOCKS`), relative to the scene; their models are "
+              "then used like catalog ones",
 }
 #: Keys of one component -> what each holds.
 COMPONENT = {
@@ -36,6 +38,7 @@ COMPONENT = {
     "hardware": "the rig's I/O daemon: `{address: HOST:PORT, key: FILE}` (the hardware FMU)",
     "rollback": "`false`: treat the component as one that cannot save and restore its state",
     "rate": "doSteps per macro step (multirate, a whole number >= 1 dividing the step into whole nanoseconds)",
+    "modelica": "a Modelica file of your own (`.mo`), with `model:` naming its class (e.g. `Drive.RackPinion`)",
 }
 #: Keys of ``master:`` -> what each holds.
 MASTER = {
