@@ -39,6 +39,8 @@ COMPONENT = {
     "rollback": "`false`: treat the component as one that cannot save and restore its state",
     "rate": "doSteps per macro step (multirate, a whole number >= 1 dividing the step into whole nanoseconds)",
     "modelica": "a Modelica file of your own (`.mo`), with `model:` naming its class (e.g. `Drive.RackPinion`)",
+    "guard_data": "what the physical guards know of an external FMU (its mechanism, legs and ratings; written by "
+                  "`ssp export` into an rpr-cosim SSP's component annotation)",
 }
 #: Keys of ``master:`` -> what each holds.
 MASTER = {
