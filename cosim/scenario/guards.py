@@ -139,7 +139,7 @@ def guard_needs(comp) -> GuardNeeds | None:
                                   variables[var].unit if var in variables else "", r.source)
                     for var, r in blk.ratings.items())
     pose = geo = None
-    if comp.model == "mechanism" and all(v in variables for v in POSE):
+    if comp.model == "mechanism" and getattr(comp, "origin", None) is None and all(v in variables for v in POSE):
         pose, geo = POSE, tuple(float(x) for x in geometry(comp).reshape(-1))
     comp.guard = GuardNeeds(comp.label, ratings, pose, geo)
     return comp.guard
@@ -201,7 +201,7 @@ def check_scene(settings: GuardSettings, comps: Mapping[str, Any], duration: flo
     if duration is None:
         return
     for comp in comps.values():
-        if comp.kind != "model" or comp.model != "pose_setpoint" or comp.block is None:
+        if comp.kind != "model" or comp.model != "pose_setpoint" or comp.origin is not None or comp.block is None:
             continue
         for action, message in setpoint_problems(comp, duration, settings):
             (err if action == "stop" else warn)(comp.where, message)
