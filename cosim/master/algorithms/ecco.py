@@ -135,8 +135,12 @@ class BondRecord:
 
     @property
     def run_scaled(self) -> float:
-        """The run's net residual against the same tolerance: ``|sum dE| / (atol + rtol * sum E)``."""
-        return abs(self.residual_sum) / (self.atol + self.rtol * self.energy)
+        """The run's net residual against the same tolerance: ``|sum dE| / (atol + rtol * sum E)``
+        (0 for no residual, inf for a residual against a zero tolerance: ``atol`` 0 and no energy)."""
+        scale = self.atol + self.rtol * self.energy
+        if scale > 0:
+            return abs(self.residual_sum) / scale
+        return math.inf if self.residual_sum else 0.0
 
     def as_dict(self) -> dict:
         return {"max_scaled_residual": self.max_scaled, "max_energy_residual_J": self.max_residual,
