@@ -233,6 +233,51 @@ def settle_if_stale(out_dir: Path, log=None) -> list[str]:
         return []
 
 
+# --- files that cannot be redirected ------------------------------------------------------------
+#: Flags of every file a run creates: never through a symbolic link, never an existing file.
+NEW_FILE = os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_NOFOLLOW | getattr(os, "O_CLOEXEC", 0)
+
+
+def create_new(path: Path, mode: int = 0o644) -> int:
+    """A file descriptor of ``path`` created afresh: whatever was there under that name (an old
+    temporary file, a planted symbolic link) is unlinked first, never followed or truncated."""
+    path = Path(path)
+    try:
+        os.unlink(path)
+    except FileNotFoundError:
+        pass
+    except IsADirectoryError:
+        raise UserError(f"refusing to write {path}: a directory of that name is in the way") from None
+    except OSError as exc:
+        if exc.errno in (errno.EISDIR, errno.EPERM) and path.is_dir():
+            raise UserError(f"refusing to write {path}: a directory of that name is in the way") from None
+        raise
+    return os.open(path, NEW_FILE, mode)
+
+
+def write_bytes(path: Path, data: bytes) -> None:
+    """Write ``path`` whole or not at all: a new temporary file (:func:`create_new`) renamed over
+    it (a rename replaces a symbolic link, it never writes through it)."""
+    path = Path(path)
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    fd = create_new(tmp)
+    try:
+        view, done = memoryview(data), 0
+        while done < len(data):
+            done += os.write(fd, view[done:])
+    except BaseException:
+        os.close(fd)
+        tmp.unlink(missing_ok=True)
+        raise
+    os.close(fd)
+    os.replace(tmp, path)
+
+
+def write_text(path: Path, text: str) -> None:
+    """:func:`write_bytes` of UTF-8 ``text``."""
+    write_bytes(path, text.encode())
+
+
 # --- temporary names and placement --------------------------------------------------------------
 def part_path(path: Path) -> Path:
     """The temporary name a file is written under until its run ends: ``.<name>.part``."""
@@ -321,26 +366,49 @@ def settle_stale(out_dir: Path, previous: dict | None = None) -> list[str]:
             continue
         reason = (f"killed: the run ({who}) ended without finishing (SIGKILL, power loss or crash); "
                   f"found by pid {os.getpid()} at {time.strftime('%Y-%m-%dT%H:%M:%S%z')}")
-        trace_name = data.get("trace") or ""
+        rows, moved = _settle_side(out_dir, side, data, "killed", reason)
         final_side = final_path(side) if side.name.endswith(".part") else side
-        csv_final = out_dir / trace_name if trace_name else final_side.with_suffix(".csv")
-        csv_part = part_path(csv_final)
-        csv_now = csv_part if csv_part.exists() else csv_final
-        rows = 0
-        if csv_now.exists():
-            trim_to_whole_rows(csv_now)
-            with open(csv_now, "a") as fh:
-                fh.write(f"# status: {json.dumps('killed')}\n# reason: {json.dumps(reason)}\n")
-            with open(csv_now) as fh:
-                rows = max(0, sum(1 for ln in fh if ln.strip() and not ln.startswith("#")) - 1)
-        data.update(status="killed", reason=reason, rows=rows)
-        tmp = side.with_name(side.name + ".tmp")
-        tmp.write_text(json.dumps(data, indent=2))
-        os.replace(tmp, side)
         note = f"{out_dir / final_side.name}: an earlier run was killed; marked \"killed\" ({rows} whole rows kept)"
-        if csv_now == csv_part:
-            moved = place(csv_part, csv_final, "killed", part_sidecar=side, sidecar=final_side)
-            if moved:
-                note += f"; {moved}"
-        notes.append(note)
+        notes.append(note + (f"; {moved}" if moved else ""))
     return notes
+
+
+def _settle_side(out_dir: Path, side: Path, data: dict, status: str, reason: str) -> tuple[int, str]:
+    """Give the run of sidecar ``side`` (its JSON ``data``) its final ``status`` and ``reason``:
+    the trace cut to whole rows, the status lines appended, both moved into place.  Returns the
+    rows kept and :func:`place`'s note."""
+    trace_name = data.get("trace") or ""
+    final_side = final_path(side) if side.name.endswith(".part") else side
+    csv_final = out_dir / trace_name if trace_name else final_side.with_suffix(".csv")
+    csv_part = part_path(csv_final)
+    csv_now = csv_part if csv_part.exists() else csv_final
+    rows = 0
+    if csv_now.exists():
+        trim_to_whole_rows(csv_now)
+        fd = os.open(csv_now, os.O_WRONLY | os.O_APPEND | os.O_NOFOLLOW)
+        with os.fdopen(fd, "a") as fh:
+            fh.write(f"# status: {json.dumps(status)}\n# reason: {json.dumps(reason)}\n")
+        with open(csv_now) as fh:
+            rows = max(0, sum(1 for ln in fh if ln.strip() and not ln.startswith("#")) - 1)
+    data.update(status=status, reason=reason, rows=rows)
+    write_text(side, json.dumps(data, indent=2))
+    moved = ""
+    if csv_now == csv_part:
+        moved = place(csv_part, csv_final, status, part_sidecar=side, sidecar=final_side)
+    return rows, moved
+
+
+def settle_run(trace: Path, status: str, reason: str) -> tuple[int, str] | None:
+    """Finish the run whose trace is ``trace`` (``<out>/<name>.csv``) when its process died while
+    it was running (a supervised run, :mod:`cosim.run.supervise`): the same as
+    :func:`settle_stale` with the supervisor's ``status`` and ``reason``.  Returns (rows kept,
+    placement note), or None when that run left no sidecar saying "running"."""
+    trace = Path(trace)
+    for side in (part_path(trace.with_suffix(".json")), trace.with_suffix(".json")):
+        try:
+            data = json.loads(side.read_text())
+        except (OSError, ValueError):
+            continue
+        if isinstance(data, dict) and data.get("status") == "running":
+            return _settle_side(trace.parent, side, data, status, reason)
+    return None

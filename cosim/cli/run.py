@@ -37,6 +37,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--cache", type=Path, help="FMU cache directory (default $RPR_COSIM_CACHE or ~/.cache/rpr-cosim/fmus)")
     p.add_argument("--max-trace", metavar="SIZE", default=None,
                    help="refuse a run whose trace would be larger, e.g. 20GB (default $RPR_COSIM_MAX_TRACE or 4GB)")
+    p.add_argument("--call-timeout", metavar="SECONDS", type=float, default=None,
+                   help="end the run as 'hung' when one FMI call takes longer (default $RPR_COSIM_CALL_TIMEOUT or 60)")
     p.set_defaults(handler=_run)
 
 
@@ -103,7 +105,7 @@ def _run_locked(args: argparse.Namespace, scene, out: Path) -> int:
     try:
         res = run(scene, out_dir=out, cache_dir=args.cache, engine=args.engine, progress=progress_bar(),
                   log=lambda m: _say(f"[run] {m}" if m.startswith(scene.name + ":") or "trace" in m else f"[fmu] {m}"),
-                  max_trace_bytes=args.max_trace)
+                  max_trace_bytes=args.max_trace, call_timeout=args.call_timeout)
     except KeyboardInterrupt as exc:
         _say(f"rpr-cosim run: interrupted{' by ' + str(exc) if str(exc) else ''}; the partial trace and the reason "
              f"are in {out / (scene.name + '.csv')}")
@@ -176,6 +178,10 @@ def _describe(scene) -> None:
 
 def _summary(res) -> None:
     st = res.stats
+    if res.status in ("crashed", "hung"):  # the child process died: no statistics, the rows it wrote
+        print(f"scene {res.scene.name} [{res.scene.hash[:12]}]: {res.status} ({res.reason})")
+        print(f"  {len(res.trace.data)} whole rows kept" + (f"; trace: {res.trace_path}" if res.trace_path else ""))
+        return
     n = max(1, st["steps_done"])
     print(f"scene {res.scene.name} [{res.scene.hash[:12]}]: {res.status}"
           + (f" ({res.reason})" if res.reason else ""))

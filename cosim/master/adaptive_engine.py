@@ -28,6 +28,7 @@ import numpy as np
 
 from ..errors import UserError
 from .fastloop import FMI_CALL_TYPES
+from ..slaves import crumb
 
 SOURCE = FMI_CALL_TYPES + r"""
 #include <string.h>
@@ -92,26 +93,26 @@ static int slave_step(ad_slave *s, double *v, double t, double h) {
     int st = 0;
     double *in = v + s->in_off;
     if (s->n_in) {
-        st = s->fmi3 ? ((io3_t)s->set)(s->inst, s->in_vr, (size_t)s->n_in, in, (size_t)s->n_in)
-                     : ((io2_t)s->set)(s->inst, s->in_vr, (size_t)s->n_in, in);
+        st = FMI(s->inst, C_SET, s->fmi3 ? ((io3_t)s->set)(s->inst, s->in_vr, (size_t)s->n_in, in, (size_t)s->n_in)
+                                         : ((io2_t)s->set)(s->inst, s->in_vr, (size_t)s->n_in, in));
         if (!failing(st) && s->interp)
-            st = ((der2_t)s->set_der)(s->inst, s->in_vr, (size_t)s->n_in, s->orders, s->slope);
+            st = FMI(s->inst, C_SET_DER, ((der2_t)s->set_der)(s->inst, s->in_vr, (size_t)s->n_in, s->orders, s->slope));
     }
     if (failing(st)) return st;
     s->calls++;
     if (s->fmi3) {
         bool ev = 0, term = 0, early = 0;
         double last = t;
-        st = ((step3_t)s->do_step)(s->inst, t, h, 0 /* may roll back */, &ev, &term, &early, &last);
+        st = FMI_T(s->inst, C_DO_STEP, t, ((step3_t)s->do_step)(s->inst, t, h, 0 /* may roll back */, &ev, &term, &early, &last));
         if (st < 2 && term) return ST_STOP;
     } else {
-        st = ((step2_t)s->do_step)(s->inst, t, h, 0);
+        st = FMI_T(s->inst, C_DO_STEP, t, ((step2_t)s->do_step)(s->inst, t, h, 0));
         if (st == ST_DISCARD && stop_asked(s)) return ST_STOP;
     }
     if (failing(st) || st == ST_STOP) return st;
     if (!s->n_out) return 0;
-    return s->fmi3 ? ((io3_t)s->get)(s->inst, s->out_vr, (size_t)s->n_out, v + s->out_off, (size_t)s->n_out)
-                   : ((io2_t)s->get)(s->inst, s->out_vr, (size_t)s->n_out, v + s->out_off);
+    return FMI(s->inst, C_GET, s->fmi3 ? ((io3_t)s->get)(s->inst, s->out_vr, (size_t)s->n_out, v + s->out_off, (size_t)s->n_out)
+                                       : ((io2_t)s->get)(s->inst, s->out_vr, (size_t)s->n_out, v + s->out_off));
 }
 
 /* One Gauss-Seidel step of h from t (AdaptiveStepper._attempt); returns the scaled error, or
@@ -178,7 +179,7 @@ static int64_t rpr_adapt_loop(ad_slave *S, int32_t n, const int32_t *order, doub
         double t = (double)c->t_ns / 1e9;
         memcpy(v_saved, v, (size_t)nv * sizeof(double));
         for (i = 0; i < n; ++i) {
-            int st = ((state_get_t)S[i].get_state)(S[i].inst, S[i].state);
+            int st = FMI(S[i].inst, C_GET_STATE, ((state_get_t)S[i].get_state)(S[i].inst, S[i].state));
             if (failing(st)) { c->status = 3; c->bad_slave = i; c->bad_status = st; return rows; }
         }
         for (;;) {
@@ -197,7 +198,7 @@ static int64_t rpr_adapt_loop(ad_slave *S, int32_t n, const int32_t *order, doub
             c->rejected++;
             if (bad >= 0) c->discards++;
             for (i = 0; i < n; ++i) {
-                int st = ((state_set_t)S[i].set_state)(S[i].inst, *S[i].state);
+                int st = FMI(S[i].inst, C_SET_STATE, ((state_set_t)S[i].set_state)(S[i].inst, *S[i].state));
                 if (failing(st)) { c->status = 4; c->bad_slave = i; c->bad_status = st; return rows; }
             }
             c->rollbacks++;
@@ -302,6 +303,7 @@ def library() -> ctypes.CDLL:
     from .fastloop import compile_library
 
     dll = compile_library(SOURCE, "rpr_adapt")
+    dll.rpr_set_crumb.argtypes = [c_void_p]
     fn = dll.rpr_adapt_run
     fn.restype = c_int64
     fn.argtypes = [POINTER(CAdaptSlave), c_int32, c_void_p, c_void_p, c_int64, c_void_p, c_void_p, c_void_p,
@@ -335,6 +337,7 @@ class CompiledAdaptive:
         self.py = stepper  # the Python stepper: its setup, statistics and messages
         sysm, opt = stepper.system, stepper.opt
         self.lib = library()
+        self.lib.rpr_set_crumb(crumb.address())  # the breadcrumb of this process (cosim.slaves.crumb)
         n = len(sysm.slaves)
         self.arr = (CAdaptSlave * n)()
         self.states = (c_void_p * n)()  # the FMU states, freed by close()

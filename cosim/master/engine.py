@@ -7,6 +7,7 @@ import numpy as np
 from ..errors import UserError
 from .algorithm import Algorithm
 from .system import CoupledSystem
+from ..slaves import crumb
 
 
 class _Compiled:
@@ -18,6 +19,7 @@ class _Compiled:
         from . import fastloop
 
         self.lib = fastloop.library()
+        self.lib.rpr_set_crumb(crumb.address())  # the breadcrumb of this process (cosim.slaves.crumb)
         sysm = alg.system
         n = len(sysm.slaves)
         self.arr = (fastloop.CSlave * n)()

@@ -23,6 +23,7 @@ from functools import lru_cache
 from pathlib import Path
 
 from ..errors import UserError
+from ..slaves.crumb import C_SOURCE as CRUMB_SOURCE
 
 #: Longest wall time of one call of the compiled loop [ns]; it returns to Python (where signals
 #: are handled) at least this often.
@@ -41,7 +42,7 @@ typedef int (*io2_t)(void *, const uint32_t *, size_t, double *);
 typedef int (*step3_t)(void *, double, double, bool, bool *, bool *, bool *, double *);
 typedef int (*io3_t)(void *, const uint32_t *, size_t, double *, size_t);
 typedef int (*der2_t)(void *, const uint32_t *, size_t, const int32_t *, const double *);
-"""
+""" + CRUMB_SOURCE
 
 SOURCE = FMI_CALL_TYPES + r"""
 
@@ -79,23 +80,23 @@ static inline int push(rpr_slave *s, double *v, double inv_h) {
     double *in = v + s->in_off;
     if (!s->n_in) return 0;
     for (j = 0; j < s->n_in; ++j) in[j] = v[s->in_src[j]];
-    if (s->fmi3) return ((io3_t)s->set)(s->inst, s->in_vr, (size_t)s->n_in, in, (size_t)s->n_in);
-    if (!s->interp) return ((io2_t)s->set)(s->inst, s->in_vr, (size_t)s->n_in, in);
+    if (s->fmi3) return FMI(s->inst, C_SET, ((io3_t)s->set)(s->inst, s->in_vr, (size_t)s->n_in, in, (size_t)s->n_in));
+    if (!s->interp) return FMI(s->inst, C_SET, ((io2_t)s->set)(s->inst, s->in_vr, (size_t)s->n_in, in));
     for (j = 0; j < s->n_in; ++j) {
         double now = in[j];
         s->slope[j] = (now - s->hist[j]) * inv_h;
         if (s->fresh[j]) in[j] = s->hist[j];
         s->hist[j] = now;
     }
-    st = ((io2_t)s->set)(s->inst, s->in_vr, (size_t)s->n_in, in);
+    st = FMI(s->inst, C_SET, ((io2_t)s->set)(s->inst, s->in_vr, (size_t)s->n_in, in));
     if (st > ST_WARNING) return st;
-    return ((der2_t)s->set_der)(s->inst, s->in_vr, (size_t)s->n_in, s->orders, s->slope);
+    return FMI(s->inst, C_SET_DER, ((der2_t)s->set_der)(s->inst, s->in_vr, (size_t)s->n_in, s->orders, s->slope));
 }
 
 static inline int pull(rpr_slave *s, double *v) {
     if (!s->n_out) return 0;
-    if (s->fmi3) return ((io3_t)s->get)(s->inst, s->out_vr, (size_t)s->n_out, v + s->out_off, (size_t)s->n_out);
-    return ((io2_t)s->get)(s->inst, s->out_vr, (size_t)s->n_out, v + s->out_off);
+    if (s->fmi3) return FMI(s->inst, C_GET, ((io3_t)s->get)(s->inst, s->out_vr, (size_t)s->n_out, v + s->out_off, (size_t)s->n_out));
+    return FMI(s->inst, C_GET, ((io2_t)s->get)(s->inst, s->out_vr, (size_t)s->n_out, v + s->out_off));
 }
 
 static inline int step(rpr_slave *s, double t, double h) {
@@ -103,11 +104,11 @@ static inline int step(rpr_slave *s, double t, double h) {
     if (s->fmi3) {
         bool ev = 0, term = 0, early = 0;
         double last = t;
-        int st = ((step3_t)s->do_step)(s->inst, t, h, 1, &ev, &term, &early, &last);
+        int st = FMI_T(s->inst, C_DO_STEP, t, ((step3_t)s->do_step)(s->inst, t, h, 1, &ev, &term, &early, &last));
         if (st <= ST_WARNING && term) return ST_STOP;
         return st;
     }
-    return ((step2_t)s->do_step)(s->inst, t, h, 0);
+    return FMI_T(s->inst, C_DO_STEP, t, ((step2_t)s->do_step)(s->inst, t, h, 0));
 }
 
 /* one macro step from t_ns of a slave at rate > 1: sub-steps at the exact sub-instants, its
@@ -126,9 +127,9 @@ static inline int advance(rpr_slave *s, double *v, int64_t t_ns, double t, doubl
         if (s->interp) {
             double tau = (double)(j * s->sub_ns) / 1e9;
             for (m = 0; m < s->n_in; ++m) in[m] = s->slope[m] * tau + s->base[m];
-            st = ((io2_t)s->set)(s->inst, s->in_vr, (size_t)s->n_in, in);
+            st = FMI(s->inst, C_SET, ((io2_t)s->set)(s->inst, s->in_vr, (size_t)s->n_in, in));
             if (st > ST_WARNING) return st;
-            st = ((der2_t)s->set_der)(s->inst, s->in_vr, (size_t)s->n_in, s->orders, s->slope);
+            st = FMI(s->inst, C_SET_DER, ((der2_t)s->set_der)(s->inst, s->in_vr, (size_t)s->n_in, s->orders, s->slope));
             if (st > ST_WARNING) return st;
         }
         st = step(s, (double)(t_ns + j * s->sub_ns) / 1e9, hs);
@@ -251,6 +252,7 @@ def library() -> ctypes.CDLL:
     """Compile (once per source and compiler, cached on disk) and load the loop library.
     Raises :class:`UserError` when no C compiler works."""
     dll = compile_library(SOURCE, "rpr_loop")
+    dll.rpr_set_crumb.argtypes = [c_void_p]
     fn = dll.rpr_run
     fn.restype = c_int64
     fn.argtypes = [POINTER(CSlave), c_int32, c_void_p, c_int32, c_void_p, c_int64, c_int64, c_int64, c_int32,

@@ -15,6 +15,8 @@ import numpy as np
 
 
 from ..errors import UserError
+from . import crumb
+from .crumb import CALL, enter, leave
 from .description import SlaveDescription, describe_fmu
 from .slave import FAILING, NativeEntry, Slave, Status
 
@@ -106,6 +108,7 @@ class FmuSlave(Slave):
         self._terminated = False
         self._empty_vr = (c_uint32 * 1)()
         self._empty_val = (c_double * 1)()
+        self._ck = crumb.key(name, self.fmi3)  # this component in the breadcrumb
 
     #: Keep the instance when a run ends (:meth:`free` leaves it alive) so that the next run's
     #: :meth:`instantiate` resets it (fmi2Reset / fmi3Reset) instead of loading the FMU again;
@@ -127,23 +130,30 @@ class FmuSlave(Slave):
             guid, ident = md.guid, md.coSimulation.modelIdentifier
         unzip = _unzip(self.path)
         try:
+            enter(self._ck, CALL["loading the binary"])
             if self.fmi3:
                 self._log = fmi3LogMessageCallback(self._on_log3)
-                self.fmu = FMU3Slave(guid=guid, unzipDirectory=unzip, modelIdentifier=ident,
-                                     instanceName=self.name)
-                self.fmu.instantiate(logMessage=self._log)
+                fmu = FMU3Slave(guid=guid, unzipDirectory=unzip, modelIdentifier=ident, instanceName=self.name)
+                leave()
+                enter(self._ck, CALL["fmi2Instantiate"])
+                fmu.instantiate(logMessage=self._log)
             else:
                 cb = fmi2CallbackFunctions()
                 cb.logger = fmi2CallbackLoggerTYPE(self._on_log2)
                 cb.allocateMemory = defaultCallbacks.allocateMemory
                 cb.freeMemory = defaultCallbacks.freeMemory
                 self._callbacks = cb
-                self.fmu = FMU2Slave(guid=guid, unzipDirectory=unzip, modelIdentifier=ident,
-                                     instanceName=self.name)
-                self.fmu.instantiate(callbacks=cb)
+                fmu = FMU2Slave(guid=guid, unzipDirectory=unzip, modelIdentifier=ident, instanceName=self.name)
+                leave()
+                enter(self._ck, CALL["fmi2Instantiate"])
+                fmu.instantiate(callbacks=cb)
+            self.fmu = fmu
         except Exception as exc:  # fmpy raises bare Exceptions for a missing binary or failed call
             raise UserError(f"{self.name}: cannot instantiate {self.path} ({exc}"
                             f"{'; ' + self.last_message if self.last_message else ''})") from None
+        finally:
+            leave()
+        crumb.name_instance(self.name, self.fmi3, self.fmu.component)
         dll = self.fmu.dll
         if self.fmi3:
             self._step3 = _DoStep3(_addr(dll.fmi3DoStep))
@@ -167,12 +177,15 @@ class FmuSlave(Slave):
         self.messages.append(f"[{Status(status).name if status in Status._value2member_map_ else status}] "
                              f"{(message or b'').decode(errors='replace')}")
 
-    def _call(self, what: str, fn, *args) -> None:
+    def _call(self, what: str, fn, *args, call: int = 0) -> None:
+        enter(self._ck, call)
         try:
             fn(*args)
         except Exception as exc:  # fmpy's FMICallException and friends
             detail = f": {self.last_message}" if self.last_message else ""
             raise UserError(f"{self.name}: {what} failed ({exc}){detail}") from None
+        finally:
+            leave()
 
     def set_start(self, values: dict[str, object]) -> None:
         """Parameters and start values of any FMI type by name (arrays as lists); FMI 3.0
@@ -182,13 +195,13 @@ class FmuSlave(Slave):
         vs = self.description.variables
         structural = [k for k in values if vs[k].causality == "structuralParameter"]
         if structural and self.fmi3:
-            self._call("fmi3EnterConfigurationMode", self.fmu.enterConfigurationMode)
+            self._call("fmi3EnterConfigurationMode", self.fmu.enterConfigurationMode, call=3)
             for k in structural:
-                self._call(f"setting structural parameter {k}", self.set_values, k, values[k])
-            self._call("fmi3ExitConfigurationMode", self.fmu.exitConfigurationMode)
+                self._call(f"setting structural parameter {k}", self.set_values, k, values[k], call=3)
+            self._call("fmi3ExitConfigurationMode", self.fmu.exitConfigurationMode, call=3)
         for k, val in values.items():
             if k not in structural:
-                self._call(f"setting start value {k}", self.set_values, k, val)
+                self._call(f"setting start value {k}", self.set_values, k, val, call=3)
 
     def _accessor(self, verb: str, type_name: str):
         from .types import TYPES
@@ -240,13 +253,13 @@ class FmuSlave(Slave):
     def enter_initialization(self, start_time: float, stop_time: float, tolerance: float | None = None) -> None:
         if self.fmi3:
             self._call("fmi3EnterInitializationMode", self.fmu.enterInitializationMode,
-                       tolerance, start_time, stop_time)
+                       tolerance, start_time, stop_time, call=5)
         else:
-            self._call("fmi2SetupExperiment", self.fmu.setupExperiment, tolerance, start_time, stop_time)
-            self._call("fmi2EnterInitializationMode", self.fmu.enterInitializationMode)
+            self._call("fmi2SetupExperiment", self.fmu.setupExperiment, tolerance, start_time, stop_time, call=4)
+            self._call("fmi2EnterInitializationMode", self.fmu.enterInitializationMode, call=5)
 
     def exit_initialization(self) -> None:
-        self._call("exitInitializationMode", self.fmu.exitInitializationMode)
+        self._call("exitInitializationMode", self.fmu.exitInitializationMode, call=6)
 
     def bind(self, in_vrs, in_buf, out_vrs, out_buf) -> None:
         self._in_vr = np.ascontiguousarray(in_vrs, dtype=np.uint32)
@@ -292,13 +305,16 @@ class FmuSlave(Slave):
         raise RuntimeError(f"{self.name}: pull() before bind()")
 
     def do_step(self, t: float, h: float) -> int:
+        enter(self._ck, 7, t)
         if self.fmi3:
             # noSetFMUStatePriorToCurrentPoint: only promised when this slave cannot be rolled back
             st = self._step3(self._inst, t, h, not self.can_rollback, *self._p_flags, self._p_last)
+            leave()
             if st < 2 and self._flags[1].value:
                 return Status.STOP_REQUESTED
             return st
         st = self._step2(self._inst, t, h, 0)
+        leave()
         if st == Status.DISCARD and self.asked_to_stop():
             return Status.STOP_REQUESTED
         return st
@@ -329,16 +345,19 @@ class FmuSlave(Slave):
     def terminate(self) -> None:
         if self.fmu is not None and not self._terminated:
             self._terminated = True
+            enter(self._ck, CALL["fmi2Terminate"])
             try:
                 self.fmu.terminate()
             except Exception:  # terminating after an Error/Fatal status may itself fail
                 pass
+            finally:
+                leave()
 
     def reset(self) -> None:
         """Return the instance to its state right after instantiation (FMI reset): every
         variable back to its default, ready for :meth:`set_start` and another run."""
         self.messages.clear()
-        self._call("reset", self.fmu.reset)
+        self._call("reset", self.fmu.reset, call=CALL["fmi2Reset"])
         self._terminated = False
 
     def free(self) -> None:
@@ -352,10 +371,13 @@ class FmuSlave(Slave):
                 self._free_state()
             except Exception:  # a state of a failed instance: nothing more to do
                 pass
+            enter(self._ck, CALL["fmi2FreeInstance"])
             try:
                 self.fmu.freeInstance()
             except Exception:  # after Fatal, freeInstance is undefined: nothing more to do
                 pass
+            finally:
+                leave()
             self.fmu = None
 
     def native(self) -> NativeEntry | None:
@@ -399,7 +421,9 @@ class FmuSlave(Slave):
         dll, state = self.fmu.dll, getattr(self, "_state", None)
         if state is None:
             state = self._state = c_void_p()
+        enter(self._ck, CALL["fmi2GetFMUstate"])
         st = self._state_calls()[0](self._inst, ctypes.byref(state))
+        leave()
         if st in FAILING:
             raise UserError(f"{self.name}: getting the FMU state failed ({Status(st).name})"
                             + (f": {self.last_message}" if self.last_message else ""))
@@ -408,7 +432,9 @@ class FmuSlave(Slave):
         state = getattr(self, "_state", None)
         if state is None:
             raise RuntimeError(f"{self.name}: restore_state() before save_state()")
+        enter(self._ck, CALL["fmi2SetFMUstate"])
         st = self._state_calls()[1](self._inst, state)
+        leave()
         if st in FAILING:
             raise UserError(f"{self.name}: setting the FMU state failed ({Status(st).name})"
                             + (f": {self.last_message}" if self.last_message else ""))
