@@ -4,7 +4,9 @@ lag ``y' = (u - y) / tau`` (explicit Euler) that misbehaves in one chosen FMI ca
 ``RPR_HOSTILE=<call>:<action>`` in the environment of the process that loads it picks the
 misbehaviour: call ``instantiate``, ``doStep`` (also ``doStep@N``, the N-th doStep) or
 ``enterInit``; action ``segv`` (a NULL write), ``abort``, ``exit0`` (``exit(0)``), ``hang``
-(a busy loop), ``sleep`` (``sleep(3600)``) or ``hang_noterm`` (SIGTERM ignored, then a busy loop).
+(a busy loop), ``sleep`` (``sleep(3600)``) or ``hang_noterm`` (SIGTERM ignored, then a busy loop);
+a suffix ``/TAU`` (e.g. ``doStep@5:segv/0.2``) restricts it to the instance whose parameter
+``tau`` is TAU (one run of a batch).
 Without it the FMU behaves.
 """
 from __future__ import annotations
@@ -20,19 +22,24 @@ C_SOURCE = r"""
 #include <unistd.h>
 typedef void *fmi2Component;
 typedef struct { double u, y, tau; long steps; } inst_t;
-static void misbehave(const char *call, long n) {
+static void misbehave(const char *call, long n, double tau) {
     const char *spec = getenv("RPR_HOSTILE");
-    char want[64];
-    const char *colon, *at;
+    char want[64], act[64];
+    const char *colon, *at, *slash;
     long nth = 1;
     size_t len;
     if (!spec || !(colon = strchr(spec, ':'))) return;
+    if ((slash = strchr(colon, '/')) && (tau < 0 || atof(slash + 1) != tau)) return;
     len = (size_t)(colon - spec);
     if (len >= sizeof want) return;
     memcpy(want, spec, len); want[len] = 0;
     if ((at = strchr(want, '@'))) { nth = atol(at + 1); want[at - want] = 0; }
     if (strcmp(want, call) || n != nth) return;
     colon++;
+    len = slash ? (size_t)(slash - colon) : strlen(colon);
+    if (len >= sizeof act) return;
+    memcpy(act, colon, len); act[len] = 0;
+    colon = act;
     if (!strcmp(colon, "segv")) { volatile int *p = 0; *p = 1; }
     if (!strcmp(colon, "abort")) abort();
     if (!strcmp(colon, "exit0")) exit(0);
@@ -46,14 +53,14 @@ int fmi2SetDebugLogging(void *c, int on, size_t n, const char *cats[]) { return 
 fmi2Component fmi2Instantiate(const char *name, int type, const char *guid, const char *loc, const void *cb,
                               int vis, int log) {
     inst_t *s;
-    misbehave("instantiate", 1);
+    misbehave("instantiate", 1, -1);
     s = calloc(1, sizeof *s);
     s->tau = 0.1;
     return s;
 }
 void fmi2FreeInstance(void *c) { free(c); }
 int fmi2SetupExperiment(void *c, int tol_def, double tol, double t0, int stop_def, double t1) { return 0; }
-int fmi2EnterInitializationMode(void *c) { misbehave("enterInit", 1); return 0; }
+int fmi2EnterInitializationMode(void *c) { misbehave("enterInit", 1, ((inst_t *)c)->tau); return 0; }
 int fmi2ExitInitializationMode(void *c) { return 0; }
 int fmi2Terminate(void *c) { return 0; }
 int fmi2Reset(void *c) { inst_t *s = c; s->u = s->y = 0; s->tau = 0.1; s->steps = 0; return 0; }
@@ -75,7 +82,7 @@ int fmi2GetString(void *c, const unsigned *vr, size_t n, const char **v) { retur
 int fmi2SetString(void *c, const unsigned *vr, size_t n, const char *const *v) { return 0; }
 int fmi2DoStep(void *c, double t, double h, int no_prior) {
     inst_t *s = c;
-    misbehave("doStep", ++s->steps);
+    misbehave("doStep", ++s->steps, s->tau);
     s->y += h * (s->u - s->y) / s->tau;
     return 0;
 }

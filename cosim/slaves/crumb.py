@@ -15,6 +15,7 @@ import ctypes
 import json
 import math
 import mmap
+import os
 from ctypes import c_double, c_int64
 
 #: FMI calls by index (FMI 2.0 names; :func:`call_name` gives the FMI 3.0 one).
@@ -61,6 +62,29 @@ _S = _State()
 def shared() -> mmap.mmap:
     """A new shared record for a child to inherit (``fork``): attach it in the child."""
     return mmap.mmap(-1, SIZE)
+
+
+def new_file() -> str:
+    """A new zeroed crumb file (in ``/dev/shm`` when there is one) for a process started by other
+    means than ``fork``; both sides map it with :func:`mapped`."""
+    import tempfile
+
+    folder = "/dev/shm" if os.path.isdir("/dev/shm") and os.access("/dev/shm", os.W_OK) else None
+    fd, path = tempfile.mkstemp(prefix=f"rpr-crumb-{os.getpid()}-", dir=folder)
+    try:
+        os.ftruncate(fd, SIZE)
+    finally:
+        os.close(fd)
+    return path
+
+
+def mapped(path: str) -> mmap.mmap:
+    """The crumb file ``path`` mapped shared."""
+    fd = os.open(path, os.O_RDWR | os.O_NOFOLLOW)
+    try:
+        return mmap.mmap(fd, SIZE)
+    finally:
+        os.close(fd)
 
 
 def attach(buf: mmap.mmap | None) -> None:
