@@ -25,13 +25,19 @@ import socket
 import sys
 import tempfile
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 from .errors import UserError
 
 #: Longest scene name accepted as a file name stem [characters].
 MAX_NAME = 100
+#: The lock file of an output directory, for runs, batches and studies alike.
 LOCK_NAME = ".rpr-cosim.lock"
+#: Endings of the names rpr-cosim gives files of its own next to a scene's (``<name>.prev.csv``,
+#: ``<name>_reference.csv``, ...): a scene name ending so could collide with another's files.
+RESERVED_ENDINGS = (".prev", ".part", ".tmp", ".lock", "_reference", "_vs_reference")
 _SAFE = re.compile(r"^[A-Za-z0-9_][A-Za-z0-9_.\-]*$")
 
 
@@ -46,6 +52,10 @@ def name_problem(name: object) -> str | None:
     if "/" in name or "\\" in name or ".." in name or not _SAFE.match(name):
         return (f"name {shown!r} must be a plain file name: letters, digits, '_', '-' and '.', not starting "
                 f"with '.' or '-', no '/' and no '..' (it names the trace files under --out)")
+    ending = next((e for e in RESERVED_ENDINGS if name.lower().endswith(e)), None)
+    if ending:
+        return (f"name {shown!r} ends with {ending!r}, which rpr-cosim uses for files of its own next to a "
+                f"scene's ({name[:-len(ending)] or 'x'}{ending}.csv could be another scene's); choose another name")
     return None
 
 
@@ -64,12 +74,19 @@ def stem_name(stem: str) -> str:
 
 
 def confined(out_dir: Path, filename: str) -> Path:
-    """``out_dir / filename`` after checking that it resolves inside ``out_dir``."""
+    """``out_dir / filename`` after checking that it resolves inside ``out_dir`` (symbolic links
+    included).  The path returned is the name itself, not a link's target: every file is created
+    afresh or renamed into place (:func:`create_new`, :func:`place`), which replaces a link of
+    that name instead of writing through it."""
     root = Path(out_dir).resolve()
-    path = (root / filename).resolve()
-    if path.parent != root and root not in path.parents:
-        raise UserError(f"refusing to write {filename!r}: it resolves to {path}, outside the output directory {root}")
-    return path
+    path = root / filename
+    folder = path.parent.resolve()
+    resolved = path.resolve()
+    for p in (folder / "x", resolved):
+        if path.name in ("", ".", "..") or (p.parent != root and root not in p.parents):
+            raise UserError(f"refusing to write {filename!r}: it resolves to {resolved}, outside the output "
+                            f"directory {root}")
+    return folder / path.name
 
 
 def check_out_dir(out_dir: Path) -> Path:
@@ -126,6 +143,9 @@ class OutputLock:
     without releasing it, settles that run's files first (:func:`settle_stale`).  Another live
     run holding it is a :class:`UserError` naming its pid."""
 
+    #: How long a lock whose holder died is waited for (its forked children still hold it) [s].
+    GRACE_S = 3.0
+
     def __init__(self, out_dir: Path, *, log=None):
         self.dir = Path(out_dir)
         self.log = log
@@ -137,8 +157,9 @@ class OutputLock:
             _HELD[key][1] += 1
             return self
         path = key / LOCK_NAME
-        for attempt in range(20):
-            fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+        deadline = time.monotonic() + self.GRACE_S
+        for attempt in range(100):
+            fd = _open_lock(path)
             try:
                 fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
             except OSError as exc:
@@ -149,6 +170,10 @@ class OutputLock:
                     time.sleep(0.05)
                     continue
                 held = _read_lock(path)
+                pid = held.get("pid")
+                if isinstance(pid, int) and not pid_alive(pid) and time.monotonic() < deadline:
+                    time.sleep(0.05)  # a killed batch's workers hold it until they notice (~0.2 s)
+                    continue
                 raise UserError(f"output directory {self.dir} is in use by another run (pid {held.get('pid', '?')}"
                                 f"{', ' + held['command'] if held.get('command') else ''}, started "
                                 f"{held.get('started', '?')}); wait for it to end or choose another --out") from None
@@ -159,7 +184,7 @@ class OutputLock:
             if same:
                 break
             os.close(fd)  # the file was replaced while we waited: take the new one
-        else:  # pragma: no cover - would need 20 replacements in a row
+        else:  # pragma: no cover - would need 100 replacements in a row
             raise UserError(f"output directory {self.dir}: could not take {LOCK_NAME}")
         previous = _read_lock(path)
         if previous.get("pid") and previous.get("pid") != os.getpid():
@@ -194,13 +219,25 @@ class OutputLock:
             os.close(fd)
 
 
+def _open_lock(path: Path) -> int:
+    """The lock file opened (created if needed) without following a symbolic link; a link planted
+    under its name is removed (a lock is never a link)."""
+    try:
+        return os.open(path, os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW | getattr(os, "O_CLOEXEC", 0), 0o644)
+    except OSError as exc:
+        if exc.errno != errno.ELOOP:
+            raise
+    os.unlink(path)
+    return os.open(path, os.O_RDWR | os.O_CREAT | os.O_EXCL | os.O_NOFOLLOW | getattr(os, "O_CLOEXEC", 0), 0o644)
+
+
 def holder(out_dir: Path) -> int | None:
     """The pid of the live process holding ``out_dir``'s lock, or None."""
     path = Path(out_dir) / LOCK_NAME
     if not path.exists():
         return None
     try:
-        fd = os.open(path, os.O_RDONLY)
+        fd = os.open(path, os.O_RDONLY | os.O_NOFOLLOW)
     except OSError:
         return None
     try:
@@ -291,6 +328,60 @@ def final_path(part: Path) -> Path:
     return part.with_name(name[1:-len(".part")])
 
 
+def check_ours(trace: Path) -> None:
+    """:class:`UserError` when a run's trace ``trace`` or its sidecar would replace a file that is
+    not an rpr-cosim trace or sidecar (a batch's ``results.csv`` or ``batch.json``, a study's table,
+    anything else): a run only ever replaces its own earlier outputs."""
+    trace = Path(trace)
+    for path, mark in ((trace, b"# rpr-cosim trace"), (trace.with_suffix(".json"), b'"format": "rpr-cosim trace')):
+        try:
+            fd = os.open(path, os.O_RDONLY | os.O_NOFOLLOW)
+        except FileNotFoundError:
+            continue
+        except OSError:  # a link or something unreadable of that name: not ours either
+            head = b""
+        else:
+            with os.fdopen(fd, "rb") as fh:
+                head = fh.read(4 << 20)
+        if mark not in head:
+            raise UserError(f"refusing to replace {path}: it is not an rpr-cosim trace (another tool's file, or a "
+                            f"batch's or study's own); choose another --out or another scene name")
+
+
+@contextmanager
+def staged(final: Path) -> Iterator[Path]:
+    """A path to write ``final`` under (``.<stem>.part<suffix>``, created afresh by
+    :func:`create_new`, the suffix kept for writers that go by it) that is moved into place when
+    the block ends normally; after an exception (a signal) it is removed and an earlier
+    ``final`` stays as it was."""
+    final = Path(final)
+    part = final.with_name(f".{final.stem}.part{final.suffix}")
+    os.close(create_new(part))
+    try:
+        yield part
+    except BaseException:
+        part.unlink(missing_ok=True)
+        raise
+    os.replace(part, final)
+
+
+def amend_status(trace: Path, status: str, reason: str) -> None:
+    """Give a finished run (trace ``<out>/<name>.csv`` and its sidecar) a new final ``status`` and
+    ``reason`` (e.g. an animation interrupted after the run): status lines appended to the trace,
+    the sidecar rewritten (:func:`write_text`)."""
+    trace = Path(trace)
+    fd = os.open(trace, os.O_WRONLY | os.O_APPEND | os.O_NOFOLLOW)
+    with os.fdopen(fd, "a") as fh:
+        fh.write(f"# status: {json.dumps(status)}\n# reason: {json.dumps(reason)}\n")
+    side = trace.with_suffix(".json")
+    try:
+        data = json.loads(side.read_text())
+    except (OSError, ValueError):
+        data = {}
+    data.update(status=status, reason=reason)
+    write_text(side, json.dumps(data, indent=2))
+
+
 def prev_path(path: Path) -> Path:
     """Where a good earlier file of the same name is kept: ``<stem>.prev<suffix>``."""
     path = Path(path)
@@ -336,7 +427,7 @@ def trim_to_whole_rows(path: Path) -> int:
     size = path.stat().st_size
     if size == 0:
         return 0
-    with open(path, "rb+") as fh:
+    with os.fdopen(os.open(path, os.O_RDWR | os.O_NOFOLLOW), "rb+") as fh:
         back = min(size, 1 << 16)
         fh.seek(size - back)
         tail = fh.read(back)

@@ -92,8 +92,13 @@ def animate(trace: Trace, path: Path, *, manipulator: Manipulator | None = None,
         return [*legs, plat, centre, path_line, text]
 
     anim = FuncAnimation(fig, draw, frames=len(idx), blit=False)
+    from ..outputs import staged
+
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    anim.save(str(path), writer=PillowWriter(fps=fps))
-    plt.close(fig)
+    try:
+        with staged(path) as part:  # an interrupted animation never replaces a complete one
+            anim.save(str(part), writer=PillowWriter(fps=fps))
+    finally:
+        plt.close(fig)
     return path

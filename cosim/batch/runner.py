@@ -10,16 +10,16 @@ Output directory (default ``runs/<batch name>``)::
     plots/                the summary's charts (:mod:`cosim.batch.report`)
 
 A run directory without a row is an unfinished attempt (the batch was interrupted while it ran);
-it is cleared and the run is done again when the batch is resumed.  Two batches never write into
-one directory at the same time (a lock file).
+it is cleared and the run is done again when the batch is resumed.  Nothing else writes into the
+directory at the same time: a batch takes the lock of runs and studies (:class:`cosim.outputs.
+OutputLock`).
 """
 from __future__ import annotations
 
-import fcntl
 import hashlib
 import itertools
 import json
-import os
+
 import shutil
 import sys
 import time
@@ -29,7 +29,7 @@ from pathlib import Path
 from typing import Any
 
 from ..errors import UserError
-from ..outputs import pid_alive
+from ..outputs import OutputLock, check_out_dir, confined, write_bytes, write_text
 from ..scenario import Problem, Scene, SceneError, apply_overrides, plain, validate
 from .axes import Point, expand
 from .results import ResultsTable, base_columns
@@ -205,45 +205,6 @@ def build_fmus(runs: Sequence[Planned], *, cache_dir: Path | None = None,
     return maps, shelf.blobs
 
 
-class _Lock:
-    """An exclusive lock on ``<out>/.lock`` (one batch per output directory).  Forked workers
-    share it; when the batch that wrote its pid there is gone, its workers (which end within
-    ~0.2 s of it) are waited for up to :attr:`GRACE_S`."""
-
-    GRACE_S = 3.0
-
-    def __init__(self, out: Path):
-        self.path = out / ".lock"
-
-    def __enter__(self):
-        self.path.parent.mkdir(parents=True, exist_ok=True)
-        self.fh = open(self.path, "a+")
-        deadline = time.monotonic() + self.GRACE_S
-        while True:
-            try:
-                fcntl.flock(self.fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
-                break
-            except BlockingIOError:
-                self.fh.seek(0)
-                who = self.fh.read().strip()
-                pid = who.split()[-1] if who else ""
-                if pid.isdigit() and not pid_alive(int(pid)) and time.monotonic() < deadline:
-                    time.sleep(0.05)  # a killed batch's workers still hold it until they notice
-                    continue
-            self.fh.close()
-            raise UserError(f"{self.path.parent}: another batch is running there ({who or 'pid unknown'}); wait for "
-                            f"it or choose another --out") from None
-        self.fh.seek(0)
-        self.fh.truncate()
-        self.fh.write(f"pid {os.getpid()}\n")
-        self.fh.flush()
-        return self
-
-    def __exit__(self, *exc):
-        fcntl.flock(self.fh, fcntl.LOCK_UN)
-        self.fh.close()
-
-
 def _describe(batch: Batch, columns: list[str]) -> dict:
     return {"batch": batch.name, "file": str(batch.path), "scene": str(batch.scene_path),
             "description": batch.description, "set": batch.fixed,
@@ -289,9 +250,7 @@ def row_of(run: Planned, outcome: Outcome, attempts: int) -> dict[str, Any]:
 def _write_files(run_dir: Path, files: dict[str, bytes]) -> None:
     run_dir.mkdir(parents=True, exist_ok=True)
     for name, data in files.items():
-        tmp = run_dir / f".{name}.tmp"
-        tmp.write_bytes(data)
-        os.replace(tmp, run_dir / name)
+        write_bytes(confined(run_dir, name), data)
 
 
 def run_batch(batch: Batch, *, out: Path | None = None, executor=None, cache_dir: Path | None = None,
@@ -313,7 +272,8 @@ def run_batch(batch: Batch, *, out: Path | None = None, executor=None, cache_dir
     ref = _check_reference(batch)
     columns = base_columns([a.name for a in batch.axes], batch.metric_columns)
     planner = _Planner(batch, set(), catalog=catalog)  # the first run's scene checked before anything is written
-    with _Lock(out):
+    check_out_dir(out)
+    with OutputLock(out, log=log):  # the lock of runs and studies too: one writer per directory
         meta_path = out / "batch.json"
         key = _metrics_key(batch)
         if meta_path.is_file():
@@ -323,8 +283,8 @@ def run_batch(batch: Batch, *, out: Path | None = None, executor=None, cache_dir
                                 f"--out (or remove {out / 'results.csv'})")
         with ResultsTable(out / "results.csv", columns) as table:
             planner.done = table.done
-            meta_path.write_text(json.dumps({**_describe(batch, columns), "metrics_key": key}, indent=2,
-                                            default=str))
+            write_text(meta_path, json.dumps({**_describe(batch, columns), "metrics_key": key}, indent=2,
+                                             default=str))
             res = BatchOutcome(out, columns, table.rows)
             outcome_of = {r["run_id"]: r["outcome"] for r in table.rows}
             if progress is not None:

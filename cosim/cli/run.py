@@ -111,19 +111,7 @@ def _run_locked(args: argparse.Namespace, scene, out: Path) -> int:
              f"are in {out / (scene.name + '.csv')}")
         raise
     _summary(res)
-    if args.plot and len(res.trace.data):
-        from ..analysis.charts import plot_run, setpoint_pairs
-        from ..scenario.units import units_of
-
-        _say(f"plot: {plot_run(res.trace, confined(out, f'{scene.name}.png'), scene.name, units=units_of(scene, res.fmus), pairs=setpoint_pairs(scene))}")
-    if args.animate and len(res.trace.data):
-        from ..analysis.animate import animate, pose_component
-        from ..scenario.geometry import manipulator_for
-
-        comp = pose_component(res.trace)
-        c = scene.components.get(comp)
-        m = manipulator_for(c.options, c.params) if c is not None else None
-        _say(f"animation: {animate(res.trace, confined(out, f'{scene.name}.gif'), manipulator=m, component=comp, title=scene.name)}")
+    _products(args, scene, res, out)
     if args.reference:
         _reference(scene, res, out, args.plot)
     if res.status == "stopped":  # a component asked to end the simulation: a normal end (FMI)
@@ -133,6 +121,45 @@ def _run_locked(args: argparse.Namespace, scene, out: Path) -> int:
         _say(f"rpr-cosim run: {res.status}: {res.reason}")
         return 1
     return 0
+
+
+def _products(args: argparse.Namespace, scene, res, out: Path) -> None:
+    """The plot and the animation of a run (each written under a temporary name and moved into
+    place when complete, :func:`cosim.outputs.staged`); a signal while they are written leaves an
+    earlier complete file as it was and gives the run's sidecar the status "interrupted"."""
+    from ..interrupts import signals_as_interrupts
+    from ..outputs import amend_status
+
+    doing = ""
+    try:
+        with signals_as_interrupts():
+            if args.plot and len(res.trace.data):
+                from ..analysis.charts import plot_run, setpoint_pairs
+                from ..scenario.units import units_of
+
+                final = confined(out, f"{scene.name}.png")
+                doing = f"the plot {final.name}"
+                plot_run(res.trace, final, scene.name, units=units_of(scene, res.fmus), pairs=setpoint_pairs(scene))
+                _say(f"plot: {final}")
+            if args.animate and len(res.trace.data):
+                from ..analysis.animate import animate, pose_component
+                from ..scenario.geometry import manipulator_for
+
+                comp = pose_component(res.trace)
+                c = scene.components.get(comp)
+                m = manipulator_for(c.options, c.params) if c is not None else None
+                final = confined(out, f"{scene.name}.gif")
+                doing = f"the animation {final.name}"
+                animate(res.trace, final, manipulator=m, component=comp, title=scene.name)
+                _say(f"animation: {final}")
+    except KeyboardInterrupt as exc:
+        if res.trace_path is not None:
+            amend_status(res.trace_path, "interrupted",
+                         f"interrupted by {exc or 'the user'} while writing {doing} (the run itself ended "
+                         f"{res.status}; an earlier complete file of that name is kept)")
+        _say(f"rpr-cosim run: interrupted{' by ' + str(exc) if str(exc) else ''} while writing {doing}; "
+             f"{res.trace_path.with_suffix('.json') if res.trace_path else 'the run'} says so")
+        raise
 
 
 def _reference(scene, res, out: Path, plot: bool) -> None:
@@ -157,7 +184,10 @@ def _reference(scene, res, out: Path, plot: bool) -> None:
         if plot:
             from ..scenario.units import units_of
 
-            _say(f"plot: {plot_comparison(res.trace, ref.trace, diffs, confined(out, f'{scene.name}_vs_reference.png'), labels=(scene.master.algorithm, 'reference'), units=units_of(scene, res.fmus))}")
+            final = confined(out, f"{scene.name}_vs_reference.png")
+            plot_comparison(res.trace, ref.trace, diffs, final, labels=(scene.master.algorithm, "reference"),
+                            units=units_of(scene, res.fmus))
+            _say(f"plot: {final}")
 
 
 def _describe(scene) -> None:

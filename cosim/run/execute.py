@@ -78,12 +78,13 @@ def couple(scene: Scene, slaves: Sequence[Slave], watch: Sequence[tuple[str, str
 def scene_observers(scene: Scene, out_dir: Path | None, suffix: str = "") -> tuple[MemoryTrace, list, Path | None]:
     """The observers of a run of ``scene``: a :class:`MemoryTrace` and, with ``out_dir``, a
     :class:`CsvTrace` streaming to ``out_dir/<name><suffix>.csv`` (returned as the trace path)."""
-    from ..outputs import confined, safe_name
+    from ..outputs import check_ours, confined, safe_name
 
     memory = MemoryTrace()
     if out_dir is None:
         return memory, [memory], None
     path = confined(out_dir, f"{safe_name(scene.name)}{suffix}.csv")
+    check_ours(path)
     return memory, [memory, CsvTrace(path, extra={"scene_data": scene.data})], path
 
 
