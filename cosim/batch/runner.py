@@ -31,7 +31,7 @@ from typing import Any
 from ..errors import UserError
 from ..outputs import OutputLock, check_out_dir, confined, write_bytes, write_text
 from ..scenario import Problem, Scene, SceneError, apply_overrides, plain, validate
-from .axes import Point, expand
+from .axes import Point, count, points
 from .results import ResultsTable, base_columns
 from .spec import Batch, BatchError
 from .worker import Outcome, Shared, Task, transportable
@@ -91,7 +91,7 @@ def plan(batch: Batch, *, catalog=None) -> tuple[list[Planned], list[tuple[int, 
     problems: list[Problem] = []
     seen: dict[str, int] = {}
     dups: list[tuple[int, int]] = []
-    for p in expand(batch):
+    for p in points(batch):
         r = resolve(batch, p, catalog=catalog)
         if isinstance(r, Problem):
             problems.append(r)
@@ -118,14 +118,16 @@ class _Planner:
 
     def __init__(self, batch: Batch, done: set[str], *, catalog=None):
         self.batch, self.done, self.catalog = batch, done, catalog
-        self.points = expand(batch)
+        self.points = points(batch)  # lazily: planning memory stays bounded
+        self.n_points = count(batch)
         self.skipped = 0
         self.duplicates: list[tuple[int, int]] = []
         self.seen: dict[str, int] = {}  # run id -> first point resolving to it
         self.ids: set[str] = set()  # every run id met (valid scenes and invalid points)
         self.head: Planned | None = None
-        if self.points:
-            first = resolve(batch, self.points[0], catalog=catalog)
+        self.first = next(self.points, None)
+        if self.first is not None:
+            first = resolve(batch, self.first, catalog=catalog)
             if isinstance(first, Problem):
                 raise BatchError([first])
             self.head = first
@@ -134,7 +136,8 @@ class _Planner:
              on_skip: Callable[[str], None] = lambda run_id: None) -> Iterator[Planned]:
         """The runs to do, in the batch's order (see the class docstring); ``on_skip(run_id)`` for
         a run whose row exists, and for a point that duplicates an earlier one (``run_id`` "")."""
-        for i, p in enumerate(self.points):
+        head = [self.first] if self.first is not None else []
+        for i, p in enumerate(itertools.chain(head, self.points)):
             r = self.head if i == 0 else resolve(self.batch, p, catalog=self.catalog)
             if isinstance(r, Problem):
                 rid = invalid_id(self.batch, p)
@@ -288,7 +291,7 @@ def run_batch(batch: Batch, *, out: Path | None = None, executor=None, cache_dir
             res = BatchOutcome(out, columns, table.rows)
             outcome_of = {r["run_id"]: r["outcome"] for r in table.rows}
             if progress is not None:
-                progress.begin(len(planner.points), 0, 0)
+                progress.begin(planner.n_points, 0, 0)
 
             def skipped(run_id: str) -> None:
                 if progress is not None:
