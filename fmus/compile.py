@@ -96,25 +96,55 @@ def compile_library(src_dir: Path, sources: list[str], out: Path, *, block_name:
     cc = compiler()
     darwin = platform.system() == "Darwin"
     procs = []
-    for s in sources:
-        obj = src_dir / (Path(s).stem + ".o")
-        cmd = [cc, opt, *CFLAGS, f"-I{src_dir}", "-c", str(src_dir / s), "-o", str(obj)]
-        procs.append((obj, subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)))
     objs, errors = [], []
-    for obj, proc in procs:
-        out_text, err_text = proc.communicate()
-        if proc.returncode != 0:
-            errors.append((proc.returncode, (err_text or out_text).strip()))
-        objs.append(str(obj))
-    if not errors:
-        link = [cc, *[str(o) for o in objs], "-o", str(out), *[f for f in LDFLAGS if not (darwin and "-z" in f)]]
-        res = subprocess.run(link, capture_output=True, text=True)
-        if res.returncode != 0:
-            errors.append((res.returncode, (res.stderr or res.stdout).strip()))
+    try:
+        for s in sources:
+            obj = src_dir / (Path(s).stem + ".o")
+            cmd = [cc, opt, *CFLAGS, f"-I{src_dir}", "-c", str(src_dir / s), "-o", str(obj)]
+            procs.append((obj, _start(cmd)))
+        for obj, proc in procs:
+            out_text, err_text = proc.communicate()
+            if proc.returncode != 0:
+                errors.append((proc.returncode, (err_text or out_text).strip()))
+            objs.append(str(obj))
+        if not errors:
+            link = [cc, *[str(o) for o in objs], "-o", str(out), *[f for f in LDFLAGS if not (darwin and "-z" in f)]]
+            proc = _start(link)
+            procs.append((out, proc))
+            out_text, err_text = proc.communicate()
+            if proc.returncode != 0:
+                errors.append((proc.returncode, (err_text or out_text).strip()))
+    except BaseException:  # a signal (or any failure) ends the compilers too, not only this process
+        _stop_all([p for _, p in procs])
+        raise
     if errors:
         code, log_text = errors[0]
         head = " | ".join(log_text.splitlines()[:6])
         raise BuildError(f"block {block_name}: the C compiler failed (exit {code}): {head}")
+
+
+def _start(cmd: list[str]) -> subprocess.Popen:
+    """A compiler process in a process group of its own (the driver and its cc1/as/ld children),
+    so that :func:`_stop_all` ends all of them."""
+    return subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)
+
+
+def _stop_all(procs: list[subprocess.Popen]) -> None:
+    """Kill the process groups of ``procs`` still running and reap them."""
+    import os
+    import signal
+
+    for p in procs:
+        if p.poll() is None:
+            try:
+                os.killpg(p.pid, signal.SIGKILL)
+            except (ProcessLookupError, PermissionError):
+                pass
+    for p in procs:
+        try:
+            p.communicate(timeout=5)
+        except (subprocess.TimeoutExpired, OSError, ValueError):
+            pass
 
 
 def exported_symbols(library: Path) -> list[str]:

@@ -69,13 +69,22 @@ def _sweep_dead_unzips() -> None:
 def _unzip(path: Path) -> str:
     import fmpy
 
+    from .archive import check_archive
+
     key = (str(path.resolve()), path.stat().st_mtime)
     if key not in _UNZIPPED:
         if not _UNZIPPED:  # once per process
             _sweep_dead_unzips()
-        # sources/ is not needed to load the binary (and is most of a generated FMU's bytes)
-        _UNZIPPED[key] = fmpy.extract(str(path), unzipdir=tempfile.mkdtemp(prefix=f"rpr-fmu-{os.getpid()}-"),
-                                      include=lambda name: not name.startswith("sources/"))
+        check_archive(path)  # member names and sizes before a byte is extracted
+        folder = tempfile.mkdtemp(prefix=f"rpr-fmu-{os.getpid()}-")
+        try:  # sources/ is not needed to load the binary (and is most of a generated FMU's bytes)
+            _UNZIPPED[key] = fmpy.extract(str(path), unzipdir=folder, include=lambda name: not name.startswith("sources/"))
+        except BaseException as exc:
+            shutil.rmtree(folder, ignore_errors=True)  # a failed extraction leaves nothing behind
+            if isinstance(exc, OSError):
+                raise UserError(f"{path}: cannot unpack the FMU into {tempfile.gettempdir()} "
+                                f"({exc.strerror or exc})") from None
+            raise
     return _UNZIPPED[key]
 
 
