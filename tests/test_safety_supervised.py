@@ -124,7 +124,7 @@ def test_sigterm_ends_a_run_within_a_second_even_when_the_fmu_never_returns(tmp_
     assert proc.returncode == 128 + signal.SIGTERM, err
     # sleep() returns early on the forwarded signal, then the second copy sleeps in its doStep 100
     who = "a" if how.endswith("noterm") else "b"
-    assert_settled(out, "interrupted", f"interrupted by SIGTERM (signal 15); the run did not end within 0.6 s of the "
+    assert_settled(out, "interrupted", f"interrupted by SIGTERM (signal 15); the run did not end within 0.4 s of the "
                                        f"signal (in {who}.fmi2DoStep at t = 0.099 s) and was killed")
 
 

@@ -43,7 +43,7 @@ DEFAULT_TIMEOUT_S = 60.0
 TIMEOUT_ENV = "RPR_COSIM_CALL_TIMEOUT"
 SUPERVISE_ENV = "RPR_COSIM_SUPERVISE"
 #: How long a signalled child may take to end its run before it is killed [s].
-GRACE_S = 0.6
+GRACE_S = 0.4
 POLL_S = 0.1
 
 T = TypeVar("T")
@@ -95,8 +95,11 @@ def _die_with_parent() -> None:
 
 
 def _child(work: Callable[[Callable[[str], None]], Any], wfd: int, buf) -> None:
+    from ..slaves import fmu
+
     code = 0
     notes: list[str] = []
+    inherited = set(fmu._UNZIPPED)  # the parent's unpacked FMUs: the parent removes those
     try:
         _die_with_parent()
         crumb.attach(buf)
@@ -119,6 +122,8 @@ def _child(work: Callable[[Callable[[str], None]], Any], wfd: int, buf) -> None:
         code = 70
     finally:
         try:
+            for key in set(fmu._UNZIPPED) - inherited:  # os._exit skips the atexit hook that would
+                shutil.rmtree(fmu._UNZIPPED[key], ignore_errors=True)
             sys.stdout.flush()
             sys.stderr.flush()
         finally:
@@ -136,8 +141,11 @@ def _describe_exit(status: int, where: str) -> str:
 
 
 def _remove_leftovers(pid: int) -> None:
-    """The temporary FMU folders of a child that could not remove them."""
-    for d in Path(tempfile.gettempdir()).glob(f"rpr-fmu-{pid}-*"):
+    """The temporary FMU folders of a child that died before it could remove them."""
+    prefix = f"rpr-fmu-{pid}-"
+    with os.scandir(tempfile.gettempdir()) as entries:  # a busy /tmp: scandir, not glob's fnmatch per entry
+        found = [e.path for e in entries if e.name.startswith(prefix)]
+    for d in found:
         shutil.rmtree(d, ignore_errors=True)
 
 
@@ -160,9 +168,11 @@ def supervised(work: Callable[[Callable[[str], None]], T], *, timeout_s: float |
     os.close(wfd)
     try:
         return _watch(pid, rfd, buf, timeout, log or (lambda m: None))
+    except Failed:
+        _remove_leftovers(pid)
+        raise
     finally:
         os.close(rfd)
-        _remove_leftovers(pid)
         buf.close()
 
 
