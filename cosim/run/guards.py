@@ -165,7 +165,7 @@ def scene_guard(scene) -> Guard | None:
             unit = comp.description.variables[var].unit if var in comp.description.variables else ""
             limits.append(_Limit(f"{name}.{var}", r.low, r.high, r.kind, unit, r.source))
             watch.append((name, var))
-        if comp.model == "mechanism" and all(v in comp.description.variables for v in POSE):
+        if comp.model == "mechanism" and comp.origin is None and all(v in comp.description.variables for v in POSE):
             mechanisms.append(_Mechanism(comp, tuple(f"{name}.{v}" for v in POSE)))
             watch += [(name, v) for v in POSE]
     watch += [(c.src, c.src_var) for c in scene.connections]

@@ -70,7 +70,7 @@ def ssd_document(scene, fmu_sources: dict[str, str], ssv_source: str):
                     units.append(var.unit)
         if not len(conns):
             el.remove(conns)
-        if comp.kind == "model":
+        if comp.kind == "model" and comp.origin is None:  # a user's block travels as its FMU only
             anns = etree.SubElement(el, _q("ssd", "Annotations"))
             ann = etree.SubElement(anns, _q("ssc", "Annotation"), type=COMPONENT_ANNOTATION)
             etree.SubElement(ann, _q("rpr", "Model"), {"model": comp.model, "fidelity": comp.fidelity,

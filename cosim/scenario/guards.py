@@ -133,7 +133,7 @@ def check_scene(settings: GuardSettings, comps: Mapping[str, Any], duration: flo
     if duration is None:
         return
     for comp in comps.values():
-        if comp.kind != "model" or comp.model != "pose_setpoint" or comp.block is None:
+        if comp.kind != "model" or comp.model != "pose_setpoint" or comp.origin is not None or comp.block is None:
             continue
         for action, message in setpoint_problems(comp, duration, settings):
             (err if action == "stop" else warn)(comp.where, message)
