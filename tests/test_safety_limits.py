@@ -113,6 +113,7 @@ def small_limits(monkeypatch):
 def test_fmu_check_and_a_scene_refuse_an_unsafe_archive_the_same_way(tmp_path, capsys, small_limits, case):
     members, message = CASES[case]
     fmu = archive(tmp_path / "x.fmu", members)
+    before = set(Path(tempfile.gettempdir()).glob(f"rpr-fmu-{os.getpid()}-*"))
     rc = cli.main(["fmu", "check", str(fmu)])
     err = capsys.readouterr().err.strip()
     assert rc == 2 and f"unsafe FMU: {message}" in err and "\n" not in err
@@ -122,7 +123,7 @@ def test_fmu_check_and_a_scene_refuse_an_unsafe_archive_the_same_way(tmp_path, c
                                          + message.replace("(", r"\(").replace(")", r"\)").replace("$", r"\$")
                                          .replace(".", r"\.").replace("*", r"\*")):
         load(tmp_path / "s.yaml")
-    assert not list(Path(tempfile.gettempdir()).glob(f"rpr-fmu-{os.getpid()}-*"))  # nothing was extracted
+    assert set(Path(tempfile.gettempdir()).glob(f"rpr-fmu-{os.getpid()}-*")) == before  # nothing was extracted
 
 
 @pytest.mark.parametrize("case", ["dotdot", "duplicate", "large"])
@@ -154,11 +155,12 @@ def test_a_failed_unpack_leaves_no_temporary_folder(tmp_path, monkeypatch, cache
         raise OSError(28, "No space left on device")
 
     pid = SCENES / "pid_step.yaml"
+    before = set(Path(tempfile.gettempdir()).glob(f"rpr-fmu-{os.getpid()}-*"))
     monkeypatch.setattr(fmpy, "extract", full_disk)
     monkeypatch.setattr(fmu_module, "_UNZIPPED", {})
     with pytest.raises(UserError, match=r"cannot unpack the FMU into .*\(No space left on device\)"):
         run(pid, ["stop_time=0.01"], cache_dir=cache)
-    assert not list(Path(tempfile.gettempdir()).glob(f"rpr-fmu-{os.getpid()}-*"))
+    assert set(Path(tempfile.gettempdir()).glob(f"rpr-fmu-{os.getpid()}-*")) == before
 
 
 # --- children and leftovers ---------------------------------------------------------------------
