@@ -138,7 +138,7 @@ def _save(fig, path: Path) -> Path:
     return save_figure(fig, path, dpi=90)
 
 
-def save_figure(fig, path: Path, *, dpi: int = 90) -> Path:
+def save_figure(fig, path: Path, *, dpi: int | str = 90) -> Path:
     """Write ``fig`` to ``path`` complete or not at all (a temporary name moved into place,
     :func:`cosim.outputs.staged`, never through a link planted under that name) and close it."""
     import matplotlib.pyplot as plt
