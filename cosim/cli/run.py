@@ -235,6 +235,9 @@ def _summary(res) -> None:
               f"of {b['energy_J']:.3g} J carried")
     for w in st.get("guards", {}).get("warnings", []):
         print(f"  guard warning: {w}")
+    for g, how in st.get("guards", {}).get("applied", {}).items():
+        if "catalog identity" in how:  # external FMUs the guards know nothing of
+            print(f"  guard {g}: {how}")
     final = res.trace.final()
     if final:
         t_end = res.trace.time[-1]

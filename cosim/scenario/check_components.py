@@ -92,6 +92,19 @@ class ComponentChecks(Checker):
             self.err(where, f"component {name!r}: {exc}")
             return None
         comp = Component(name, "fmu", desc, fmu=fpath.resolve(), fmi=desc.fmi_version or fmi, where=spec.where)
+        if "guard_data" in spec:  # what the guards know of it (an rpr-cosim SSP's component annotation)
+            from .guards import GuardNeeds
+
+            try:
+                comp.guard = GuardNeeds.from_dict(spec["guard_data"])
+            except (ValueError, AttributeError) as exc:
+                self.err(spec.loc("guard_data"), f"component {name!r}: guard_data: {exc}")
+            else:
+                missing = [v for v in [r.var for r in comp.guard.ratings] + list(comp.guard.pose or ())
+                           if v not in desc.variables]
+                if missing:
+                    self.err(spec.loc("guard_data"), f"component {name!r}: guard_data names variables the FMU does "
+                                                     f"not have: {', '.join(missing)}")
         self._values(comp, spec)
         return comp
 

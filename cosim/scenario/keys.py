@@ -5,7 +5,7 @@ from __future__ import annotations
 TOP_KEYS = ("name", "description", "include", "start_time", "stop_time", "components", "connections", "master",
             "outputs", "fidelity_tolerance", "fidelity_signals", "guards", "blocks")
 COMPONENT_KEYS = ("model", "fidelity", "options", "params", "start", "fmu", "fmi", "description", "hardware",
-                  "rollback", "rate", "modelica")
+                  "rollback", "rate", "modelica", "guard_data")
 MASTER_KEYS = ("algorithm", "step", "order", "engine", "output_interval", "inputs", "realtime", "options")
 #: How a slave's inputs vary over a communication step (see :mod:`cosim.master`).
 INPUT_MODES = ("hold", "linear")
