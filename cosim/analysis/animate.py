@@ -98,7 +98,12 @@ def animate(trace: Trace, path: Path, *, manipulator: Manipulator | None = None,
     path.parent.mkdir(parents=True, exist_ok=True)
     try:
         with staged(path) as part:  # an interrupted animation never replaces a complete one
-            anim.save(str(part), writer=PillowWriter(fps=fps))
+            try:
+                anim.save(str(part), writer=PillowWriter(fps=fps))
+            except Exception as exc:  # the writer's own clean-up fails after a signal: the signal counts
+                if isinstance(exc.__context__, KeyboardInterrupt):
+                    raise exc.__context__ from None
+                raise
     finally:
         plt.close(fig)
     return path
