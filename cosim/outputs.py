@@ -328,22 +328,33 @@ def final_path(part: Path) -> Path:
     return part.with_name(name[1:-len(".part")])
 
 
+def _head(path: Path, n: int = 4 << 20) -> bytes | None:
+    """The first ``n`` bytes of ``path`` (None when absent; b"" for a link or an unreadable file)."""
+    try:
+        fd = os.open(path, os.O_RDONLY | os.O_NOFOLLOW)
+    except FileNotFoundError:
+        return None
+    except OSError:
+        return b""
+    with os.fdopen(fd, "rb") as fh:
+        return fh.read(n)
+
+
 def check_ours(trace: Path) -> None:
     """:class:`UserError` when a run's trace ``trace`` or its sidecar would replace a file that is
     not an rpr-cosim trace or sidecar (a batch's ``results.csv`` or ``batch.json``, a study's table,
-    anything else): a run only ever replaces its own earlier outputs."""
+    anything else): a run only ever replaces its own earlier outputs.  A trace is ours when it
+    says so (a commented CSV) or its sidecar does (a plain CSV, Parquet)."""
     trace = Path(trace)
-    for path, mark in ((trace, b"# rpr-cosim trace"), (trace.with_suffix(".json"), b'"format": "rpr-cosim trace')):
-        try:
-            fd = os.open(path, os.O_RDONLY | os.O_NOFOLLOW)
-        except FileNotFoundError:
+    side = trace.with_suffix(".json")
+    side_head = _head(side)
+    side_ours = side_head is not None and b'"format": "rpr-cosim trace' in side_head
+    for path, head, ours in ((trace, _head(trace, 64), None), (side, side_head, side_ours)):
+        if head is None:
             continue
-        except OSError:  # a link or something unreadable of that name: not ours either
-            head = b""
-        else:
-            with os.fdopen(fd, "rb") as fh:
-                head = fh.read(4 << 20)
-        if mark not in head:
+        if ours is None:
+            ours = head.startswith(b"# rpr-cosim trace") or (side_ours and not path.is_symlink())
+        if not ours:
             raise UserError(f"refusing to replace {path}: it is not an rpr-cosim trace (another tool's file, or a "
                             f"batch's or study's own); choose another --out or another scene name")
 
@@ -370,9 +381,10 @@ def amend_status(trace: Path, status: str, reason: str) -> None:
     ``reason`` (e.g. an animation interrupted after the run): status lines appended to the trace,
     the sidecar rewritten (:func:`write_text`)."""
     trace = Path(trace)
-    fd = os.open(trace, os.O_WRONLY | os.O_APPEND | os.O_NOFOLLOW)
-    with os.fdopen(fd, "a") as fh:
-        fh.write(f"# status: {json.dumps(status)}\n# reason: {json.dumps(reason)}\n")
+    if (_head(trace, 1) or b"") == b"#":  # a commented CSV carries its status too; other formats: the sidecar
+        fd = os.open(trace, os.O_WRONLY | os.O_APPEND | os.O_NOFOLLOW)
+        with os.fdopen(fd, "a") as fh:
+            fh.write(f"# status: {json.dumps(status)}\n# reason: {json.dumps(reason)}\n")
     side = trace.with_suffix(".json")
     try:
         data = json.loads(side.read_text())
@@ -474,11 +486,14 @@ def _settle_side(out_dir: Path, side: Path, data: dict, status: str, reason: str
     csv_part = part_path(csv_final)
     csv_now = csv_part if csv_part.exists() else csv_final
     rows = 0
-    if csv_now.exists():
+    if csv_now.exists() and csv_final.suffix == ".csv":  # a Parquet trace without its footer stays as it is
         trim_to_whole_rows(csv_now)
-        fd = os.open(csv_now, os.O_WRONLY | os.O_APPEND | os.O_NOFOLLOW)
-        with os.fdopen(fd, "a") as fh:
-            fh.write(f"# status: {json.dumps(status)}\n# reason: {json.dumps(reason)}\n")
+        with os.fdopen(os.open(csv_now, os.O_RDONLY | os.O_NOFOLLOW), "rb") as fh:
+            commented = fh.read(1) == b"#"
+        if commented:  # a plain CSV keeps one header line and rows: the status is in the sidecar
+            fd = os.open(csv_now, os.O_WRONLY | os.O_APPEND | os.O_NOFOLLOW)
+            with os.fdopen(fd, "a") as fh:
+                fh.write(f"# status: {json.dumps(status)}\n# reason: {json.dumps(reason)}\n")
         with open(csv_now) as fh:
             rows = max(0, sum(1 for ln in fh if ln.strip() and not ln.startswith("#")) - 1)
     data.update(status=status, reason=reason, rows=rows)

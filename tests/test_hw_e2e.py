@@ -91,6 +91,20 @@ def test_hil_scene_runs_in_real_time(runs):
     assert np.all(trace["rig.sample_age"] < 0.05)
 
 
+def test_paced_run_reports_the_boards_own_figures(runs):
+    """The board daemon's tick lateness and CPU per tick (measured on the board, sent back over the
+    protocol) reach the run's statistics and its sidecar beside the master's own lateness; the
+    summary prints them."""
+    import json
+
+    _, hil, out = runs
+    board = hil.stats["realtime"]["slaves"]["rig"]
+    assert 0 < board["tick_p50"] <= board["tick_p99"] <= board["tick_max"] < 1.0  # [s]
+    assert 0 < board["cpu_per_tick"] < 1e-3  # [s]: a tick's work is microseconds
+    side = json.loads((out / "rig_step_hil.json").read_text())
+    assert side["statistics"]["realtime"]["slaves"]["rig"] == pytest.approx(board)
+
+
 @pytest.mark.parametrize("leg", [1, 2, 3])
 def test_hil_trace_agrees_with_pure_cosimulation(runs, leg):
     """Within TOL_M plus what this run's own pacing lateness explains: a step that starts late by

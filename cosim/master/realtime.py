@@ -132,3 +132,27 @@ class Pacer:
                 "lateness_max_s": float(lat.max()) if lat.size else 0.0, "missed_deadlines": self.missed,
                 "longest_miss_run": self.worst_run, "max_misses": self.settings.max_misses,
                 "priority": self.priority_note}
+
+
+#: Outputs a slave names ``<prefix>*`` are its own real-time figures (the rig's hardware FMU:
+#: the board daemon's tick lateness and CPU per tick, :mod:`hardware.fmu`); a paced run reports
+#: their last values beside the master's own lateness.
+OWN_FIGURES_PREFIX = "board_"
+
+
+def slave_figures(system) -> dict[str, dict[str, float]]:
+    """component -> {figure: last value} for every slave of ``system`` (a
+    :class:`cosim.master.CoupledSystem`) with outputs named :data:`OWN_FIGURES_PREFIX` ``*``;
+    a slave that cannot be read any more (failed, freed) is left out."""
+    out: dict[str, dict[str, float]] = {}
+    for slave in system.slaves:
+        names = [n for n, v in slave.description.variables.items()
+                 if n.startswith(OWN_FIGURES_PREFIX) and v.causality == "output" and v.type == "Real"]
+        if not names:
+            continue
+        try:
+            vals = slave.get_values("Real", [slave.vr(n) for n in names], len(names))
+        except Exception:  # a slave after Error/Fatal or without an instance: nothing to report
+            continue
+        out[slave.name] = {n[len(OWN_FIGURES_PREFIX):]: float(v) for n, v in zip(names, vals)}
+    return out

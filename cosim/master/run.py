@@ -73,7 +73,11 @@ def simulate(system: CoupledSystem, algorithm_name: str, *, step_ns: int, n_step
             stepper.fill(stats)
             stepper.close()  # before the slaves are freed (a compiled stepper's FMU states)
         if pacer is not None:
+            from .realtime import slave_figures
+
             stats.realtime = pacer.finish()
+            if figures := slave_figures(system):  # e.g. the board daemon's own tick jitter and CPU
+                stats.realtime["slaves"] = figures
 
     with settled(stats, system, observers, lambda: stepper.t if stepper else None, fill) as end:
         if realtime is not None:  # before initialisation: the pacer quiets the heap first

@@ -4,7 +4,6 @@ scene's master algorithm and return a :class:`RunResult`.  Everything it takes i
 (a path and a mapping), so a worker process can execute it."""
 from __future__ import annotations
 
-import sys
 import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field, replace
@@ -17,7 +16,7 @@ from ..master import CoupledSystem, Link, simulate
 from ..scenario import Scene, load
 from ..slaves.fmu import FmuSlave
 from ..slaves.slave import Slave
-from ..trace.traces import CsvTrace, MemoryTrace, Trace
+from ..trace.traces import MemoryTrace, Trace, trace_suffix, trace_writer
 
 
 @dataclass
@@ -75,17 +74,20 @@ def couple(scene: Scene, slaves: Sequence[Slave], watch: Sequence[tuple[str, str
     return CoupledSystem(slaves, links, record, [(index[c], v) for c, v in watch])
 
 
-def scene_observers(scene: Scene, out_dir: Path | None, suffix: str = "") -> tuple[MemoryTrace, list, Path | None]:
+def scene_observers(scene: Scene, out_dir: Path | None, suffix: str = "",
+                    trace_format: str = "csv") -> tuple[MemoryTrace, list, Path | None]:
     """The observers of a run of ``scene``: a :class:`MemoryTrace` and, with ``out_dir``, a
-    :class:`CsvTrace` streaming to ``out_dir/<name><suffix>.csv`` (returned as the trace path)."""
+    trace writer streaming to ``out_dir/<name><suffix>.csv`` (``.parquet`` for
+    ``trace_format="parquet"``; see :data:`cosim.trace.traces.TRACE_FORMATS`), returned as the
+    trace path."""
     from ..outputs import check_ours, confined, safe_name
 
     memory = MemoryTrace()
     if out_dir is None:
         return memory, [memory], None
-    path = confined(out_dir, f"{safe_name(scene.name)}{suffix}.csv")
+    path = confined(out_dir, f"{safe_name(scene.name)}{suffix}{trace_suffix(trace_format)}")
     check_ours(path)
-    return memory, [memory, CsvTrace(path, extra={"scene_data": scene.data})], path
+    return memory, [memory, trace_writer(path, trace_format, extra={"scene_data": scene.data})], path
 
 
 def scene_meta(scene: Scene) -> dict:
@@ -172,7 +174,7 @@ def run(scene: Scene | str | Path, overrides: Mapping[str, Any] | Sequence[str] 
         out_dir: Path | None = None, catalog=None, cache_dir: Path | None = None,
         progress: Callable[[int, int], None] | None = None, log: Callable[[str], None] | None = None,
         engine: str | None = None, slaves: Sequence[Slave] | None = None,
-        max_trace_bytes: int | str | None = None, auto_fidelity=None,
+        max_trace_bytes: int | str | None = None, auto_fidelity=None, trace_format: str = "csv",
         call_timeout: float | None = None) -> RunResult:
     """Run a scene.
 
@@ -182,6 +184,8 @@ def run(scene: Scene | str | Path, overrides: Mapping[str, Any] | Sequence[str] 
     overrides : ``--set`` style overrides (mapping path -> value, or ``"path=value"`` strings);
         with a :class:`Scene` they are applied by reloading its file.
     out_dir : write ``<name>.csv`` (streamed) and ``<name>.json`` (sidecar) there.
+    trace_format : ``"csv"`` (plain, the default), ``"commented-csv"`` or ``"parquet"``
+        (``<name>.parquet``), see :mod:`cosim.trace.traces`.
     catalog : the model catalog (default :mod:`models.blocks`).
     cache_dir : FMU cache directory (default ``$RPR_COSIM_CACHE`` or ``~/.cache/rpr-cosim/fmus``).
     progress : called as ``progress(steps_done, steps_total)`` during the run.
@@ -210,18 +214,19 @@ def run(scene: Scene | str | Path, overrides: Mapping[str, Any] | Sequence[str] 
     from ..outputs import OutputLock, check_out_dir
 
     say = log or (lambda m: None)
+    trace_suffix(trace_format)  # an unknown format is one line before anything runs
     if out_dir is None:
         with signals_as_interrupts():
             return _run(scene, overrides, None, catalog, cache_dir, progress, say, engine, slaves, max_trace_bytes,
-                        auto_fidelity, call_timeout)
+                        auto_fidelity, call_timeout, trace_format)
     check_out_dir(out_dir)
     with signals_as_interrupts(), OutputLock(out_dir, log=say):
         return _run(scene, overrides, out_dir, catalog, cache_dir, progress, say, engine, slaves, max_trace_bytes,
-                    auto_fidelity, call_timeout)
+                    auto_fidelity, call_timeout, trace_format)
 
 
 def _run(scene, overrides, out_dir, catalog, cache_dir, progress, log, engine, slaves, max_trace_bytes,
-         auto_fidelity, call_timeout=None) -> RunResult:
+         auto_fidelity, call_timeout=None, trace_format="csv") -> RunResult:
     from . import supervise
 
     if not isinstance(scene, Scene):
@@ -240,21 +245,24 @@ def _run(scene, overrides, out_dir, catalog, cache_dir, progress, log, engine, s
 
             for p in paths.values():  # here, so that this process removes the folders at exit whatever the child does
                 unpack_fmu(p)
-            return _supervised(scene, out_dir, paths, None, progress, log, engine, overrides, call_timeout, build_s)
+            return _supervised(scene, out_dir, paths, None, progress, log, engine, overrides, call_timeout, build_s,
+                               trace_format)
         status, reason, trace, stats, trace_path, build_step = _step(scene, out_dir, paths, None, progress, log,
-                                                                     engine, overrides)
+                                                                     engine, overrides, trace_format)
         return RunResult(scene, status, reason, trace, stats, paths, trace_path, build_s + build_step)
     if [s.name for s in slaves] != list(scene.components):
         raise UserError(f"slaves must match the scene's components in order: {list(scene.components)}")
     if supervise.enabled() and all(type(s) is FmuSlave and s.fmu is None and not s.reuse for s in slaves):
         # fresh FMU slaves (a study's): supervised too, nothing of theirs is kept after the run
-        return _supervised(scene, out_dir, {}, slaves, progress, log, engine, overrides, call_timeout, 0.0)
+        return _supervised(scene, out_dir, {}, slaves, progress, log, engine, overrides, call_timeout, 0.0,
+                           trace_format)
     status, reason, trace, stats, trace_path, build_s = _step(scene, out_dir, {}, slaves, progress, log, engine,
-                                                              overrides)
+                                                              overrides, trace_format)
     return RunResult(scene, status, reason, trace, stats, {}, trace_path, build_s)
 
 
-def _supervised(scene, out_dir, paths, slaves, progress, log, engine, overrides, call_timeout, build_s) -> RunResult:
+def _supervised(scene, out_dir, paths, slaves, progress, log, engine, overrides, call_timeout, build_s,
+                trace_format="csv") -> RunResult:
     """:func:`_step` in a supervised child (:mod:`cosim.run.supervise`); a crash, a hung call or
     a child that had to be killed after a signal becomes the run's status (the signal is raised
     again once the files are settled)."""
@@ -263,17 +271,18 @@ def _supervised(scene, out_dir, paths, slaves, progress, log, engine, overrides,
     timeout = supervise.call_timeout(call_timeout)
     try:
         status, reason, trace, stats, trace_path, _ = supervise.supervised(
-            lambda say: _step(scene, out_dir, paths, slaves, progress, say, engine, overrides), timeout_s=timeout,
-            log=log)
+            lambda say: _step(scene, out_dir, paths, slaves, progress, say, engine, overrides, trace_format),
+            timeout_s=timeout, log=log)
     except supervise.Failed as failed:
-        res = _settle_failed(scene, out_dir, paths, build_s, failed)
+        res = _settle_failed(scene, out_dir, paths, build_s, failed, trace_format)
         if failed.signal_exc is not None:
             raise failed.signal_exc from None
         return res
     return RunResult(scene, status, reason, trace, stats, paths, trace_path, build_s)
 
 
-def _settle_failed(scene: Scene, out_dir: Path | None, paths: dict, build_s: float, failed) -> RunResult:
+def _settle_failed(scene: Scene, out_dir: Path | None, paths: dict, build_s: float, failed,
+                   trace_format: str = "csv") -> RunResult:
     """The result of a supervised run whose process crashed, hung or had to be killed: its files
     settled with the supervisor's status and reason (:func:`cosim.outputs.settle_run`), or written
     afresh when it had written nothing yet."""
@@ -290,9 +299,9 @@ def _settle_failed(scene: Scene, out_dir: Path | None, paths: dict, build_s: flo
         return RunResult(scene, failed.status, failed.reason,
                          Trace(columns, np.zeros((0, len(columns))), scene_meta(scene), failed.status, failed.reason,
                                stats.as_dict()), stats.as_dict(), paths, None, build_s)
-    path = confined(out_dir, f"{safe_name(scene.name)}.csv")
+    path = confined(out_dir, f"{safe_name(scene.name)}{trace_suffix(trace_format)}")
     if settle_run(path, failed.status, failed.reason) is None:  # it died before writing anything
-        ob = CsvTrace(path, extra={"scene_data": scene.data})
+        ob = trace_writer(path, trace_format, extra={"scene_data": scene.data})
         ob.start(columns, scene_meta(scene))
         ob.finish(failed.status, failed.reason, stats.as_dict())
     trace = read_trace(path)
@@ -301,7 +310,7 @@ def _settle_failed(scene: Scene, out_dir: Path | None, paths: dict, build_s: flo
     return RunResult(scene, failed.status, failed.reason, trace, stats.as_dict(), paths, path, build_s)
 
 
-def _step(scene: Scene, out_dir, paths, slaves, progress, log, engine, overrides):
+def _step(scene: Scene, out_dir, paths, slaves, progress, log, engine, overrides, trace_format="csv"):
     """Couple the slaves (FMUs from ``paths`` when ``slaves`` is None), step them and return
     (status, reason, trace, stats, trace path, seconds spent making the slaves)."""
     from ..trace.traces import TraceWriteError
@@ -320,7 +329,7 @@ def _step(scene: Scene, out_dir, paths, slaves, progress, log, engine, overrides
     system = couple(scene, slaves, guard.watch if guard else ())
     if guard:
         guard.bind(system.record_names + system.watch_names)
-    memory, observers, trace_path = scene_observers(scene, out_dir)
+    memory, observers, trace_path = scene_observers(scene, out_dir, trace_format=trace_format)
     meta = {**scene_meta(scene), "inputs": scene.master.inputs,
             "components": {n: c.label for n, c in scene.components.items()},
             "connections": [str(c) for c in scene.connections],
@@ -352,31 +361,3 @@ def _step(scene: Scene, out_dir, paths, slaves, progress, log, engine, overrides
             t.status, t.reason = ob.status, ob.reason
     return stats["status"], stats["reason"], t, stats, trace_path, build_s
 
-
-def progress_bar(stream=sys.stderr, *, min_s: float = 0.5) -> Callable[[int, int], None]:
-    """A ``progress(done, total)`` callback drawing a bar on ``stream`` for runs longer than
-    ``min_s`` seconds (short runs print nothing).  The clock starts at the first call, i.e. when
-    the stepping starts, so FMU builds before it do not distort the time left."""
-    state = {"shown": False, "last": 0.0, "t0": None}
-
-    def update(done: int, total: int) -> None:
-        now = time.perf_counter()
-        if state["t0"] is None:
-            state["t0"] = now
-        t0 = state["t0"]
-        if now - t0 < min_s and done < total:
-            return
-        if done < total and now - state["last"] < 0.1:
-            return
-        if not state["shown"] and done >= total:
-            return
-        state["shown"], state["last"] = True, now
-        frac = done / total if total else 1.0
-        bar = "#" * int(30 * frac)
-        eta = (now - t0) * (1 - frac) / frac if frac > 0 else 0.0
-        stream.write(f"\r[run] |{bar:<30}| {100 * frac:5.1f}%  {now - t0:6.1f} s  eta {eta:5.1f} s")
-        if done >= total:
-            stream.write("\n")
-        stream.flush()
-
-    return update
