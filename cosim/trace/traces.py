@@ -467,6 +467,9 @@ class ParquetTrace(CsvTrace):
         self.columns = list(columns)
         self._schema = pa.schema([pa.field(c, pa.float64()) for c in self.columns],
                                  metadata={PARQUET_META_KEY: json.dumps(self.meta, default=_json_default)})
+        from ..outputs import create_new
+
+        os.close(create_new(self.part))  # a link planted under the part's name is replaced, not followed
         try:
             self._writer = pq.ParquetWriter(str(self.part), self._schema, compression="zstd")
             self._fd = -1  # "started" for the base class
