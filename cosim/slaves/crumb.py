@@ -98,7 +98,22 @@ def attach(buf: mmap.mmap | None) -> None:
     """Write this process's crumbs into ``buf`` (from :func:`shared`), or a private record."""
     _S.bind(buf if buf is not None else bytearray(SIZE))
     _S.names = {}
+    for lib in _LIBRARIES:
+        lib.rpr_set_crumb(address())
     _write_table()
+
+
+_LIBRARIES: list = []  # compiled loops (ctypes.CDLL) whose FMI(...) macros write the crumb
+
+
+def register_library(lib) -> None:
+    """Point a compiled loop's ``rpr_set_crumb`` at the current record (now, and again at every
+    :func:`attach`: a supervised child writes into the record its parent reads)."""
+    lib.rpr_set_crumb.argtypes = [ctypes.c_void_p]
+    lib.rpr_set_crumb.restype = None
+    lib.rpr_set_crumb(address())
+    if lib not in _LIBRARIES:
+        _LIBRARIES.append(lib)
 
 
 def address() -> int:
