@@ -181,27 +181,10 @@ def _list(args: argparse.Namespace) -> int:
     return 0
 
 
-def archive_problem(path: Path) -> str | None:
-    """Why ``path`` is not an FMU archive one may open (not a zip, or a member whose name is
-    absolute or climbs out with ``..``), or None."""
-    import zipfile
-
-    try:
-        with zipfile.ZipFile(path) as z:
-            names = z.namelist()
-    except (zipfile.BadZipFile, OSError, ValueError) as exc:
-        return f"not an FMU: not a zip archive ({exc})"
-    for n in names:
-        parts = n.replace("\\", "/").split("/")
-        if n.startswith(("/", "\\")) or (len(n) > 1 and n[1] == ":") or ".." in parts:
-            return f"unsafe FMU: member {n!r} has an absolute path or '..'; an FMU's files are relative to its root"
-    if "modelDescription.xml" not in names:
-        return "not an FMU: no modelDescription.xml at the archive's root"
-    return None
-
-
 def _check(args: argparse.Namespace) -> int:
     from fmpy.validation import validate_fmu
+
+    from ..slaves.archive import archive_problem
 
     if not args.fmu.is_file():
         raise UserError(f"{args.fmu}: no such FMU file")

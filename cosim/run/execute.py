@@ -80,12 +80,13 @@ def scene_observers(scene: Scene, out_dir: Path | None, suffix: str = "",
     trace writer streaming to ``out_dir/<name><suffix>.csv`` (``.parquet`` for
     ``trace_format="parquet"``; see :data:`cosim.trace.traces.TRACE_FORMATS`), returned as the
     trace path."""
-    from ..outputs import confined, safe_name
+    from ..outputs import check_ours, confined, safe_name
 
     memory = MemoryTrace()
     if out_dir is None:
         return memory, [memory], None
     path = confined(out_dir, f"{safe_name(scene.name)}{suffix}{trace_suffix(trace_format)}")
+    check_ours(path)
     return memory, [memory, trace_writer(path, trace_format, extra={"scene_data": scene.data})], path
 
 
@@ -174,7 +175,8 @@ def run(scene: Scene | str | Path, overrides: Mapping[str, Any] | Sequence[str] 
         out_dir: Path | None = None, catalog=None, cache_dir: Path | None = None,
         progress: Callable[[int, int], None] | None = None, log: Callable[[str], None] | None = None,
         engine: str | None = None, slaves: Sequence[Slave] | None = None,
-        max_trace_bytes: int | str | None = None, auto_fidelity=None, trace_format: str = "csv") -> RunResult:
+        max_trace_bytes: int | str | None = None, auto_fidelity=None, trace_format: str = "csv",
+        call_timeout: float | None = None) -> RunResult:
     """Run a scene.
 
     Parameters
@@ -195,6 +197,13 @@ def run(scene: Scene | str | Path, overrides: Mapping[str, Any] | Sequence[str] 
         or 4 GB; a number of bytes or a text such as ``"20GB"``).
     auto_fidelity : how ``fidelity: auto`` is resolved when loading (see :func:`cosim.scenario.load`;
         :func:`cosim.study.fidelity.resolve_auto`).
+    call_timeout : the longest one FMI call may take [s] before the run ends "hung" (default
+        ``$RPR_COSIM_CALL_TIMEOUT`` or 60 s).
+
+    FMU runs (``slaves`` not given) are supervised (:mod:`cosim.run.supervise`): the stepping
+    happens in a child process, so an FMU that crashes, exits or hangs ends the run with the
+    status "crashed" or "hung" (the component and FMI call in the reason) instead of taking the
+    caller with it.
 
     Returns a :class:`RunResult`; a numerical failure or a failed trace write (disk full) is a
     status, not an exception.  A KeyboardInterrupt (also SIGTERM and SIGHUP, see
@@ -210,16 +219,16 @@ def run(scene: Scene | str | Path, overrides: Mapping[str, Any] | Sequence[str] 
     if out_dir is None:
         with signals_as_interrupts():
             return _run(scene, overrides, None, catalog, cache_dir, progress, say, engine, slaves, max_trace_bytes,
-                        auto_fidelity, trace_format)
+                        auto_fidelity, call_timeout, trace_format)
     check_out_dir(out_dir)
     with signals_as_interrupts(), OutputLock(out_dir, log=say):
         return _run(scene, overrides, out_dir, catalog, cache_dir, progress, say, engine, slaves, max_trace_bytes,
-                    auto_fidelity, trace_format)
+                    auto_fidelity, call_timeout, trace_format)
 
 
 def _run(scene, overrides, out_dir, catalog, cache_dir, progress, log, engine, slaves, max_trace_bytes,
-         auto_fidelity, trace_format="csv") -> RunResult:
-    from ..trace.traces import TraceWriteError
+         auto_fidelity, call_timeout=None, trace_format="csv") -> RunResult:
+    from . import supervise
 
     if not isinstance(scene, Scene):
         scene = load(scene, overrides, catalog=catalog, auto_fidelity=auto_fidelity)
@@ -231,14 +240,88 @@ def _run(scene, overrides, out_dir, catalog, cache_dir, progress, log, engine, s
     t0 = time.perf_counter()
     if slaves is None:
         paths = build_components(scene, cache_dir=cache_dir, progress=log)
+        build_s = time.perf_counter() - t0
+        if supervise.enabled():
+            from ..slaves.fmu import unpack_fmu
+
+            for p in paths.values():  # here, so that this process removes the folders at exit whatever the child does
+                unpack_fmu(p)
+            return _supervised(scene, out_dir, paths, None, progress, log, engine, overrides, call_timeout, build_s,
+                               trace_format)
+        status, reason, trace, stats, trace_path, build_step = _step(scene, out_dir, paths, None, progress, log,
+                                                                     engine, overrides, trace_format)
+        return RunResult(scene, status, reason, trace, stats, paths, trace_path, build_s + build_step)
+    if [s.name for s in slaves] != list(scene.components):
+        raise UserError(f"slaves must match the scene's components in order: {list(scene.components)}")
+    if supervise.enabled() and all(type(s) is FmuSlave and s.fmu is None and not s.reuse for s in slaves):
+        # fresh FMU slaves (a study's): supervised too, nothing of theirs is kept after the run
+        return _supervised(scene, out_dir, {}, slaves, progress, log, engine, overrides, call_timeout, 0.0,
+                           trace_format)
+    status, reason, trace, stats, trace_path, build_s = _step(scene, out_dir, {}, slaves, progress, log, engine,
+                                                              overrides, trace_format)
+    return RunResult(scene, status, reason, trace, stats, {}, trace_path, build_s)
+
+
+def _supervised(scene, out_dir, paths, slaves, progress, log, engine, overrides, call_timeout, build_s,
+                trace_format="csv") -> RunResult:
+    """:func:`_step` in a supervised child (:mod:`cosim.run.supervise`); a crash, a hung call or
+    a child that had to be killed after a signal becomes the run's status (the signal is raised
+    again once the files are settled)."""
+    from . import supervise
+
+    timeout = supervise.call_timeout(call_timeout)
+    try:
+        status, reason, trace, stats, trace_path, _ = supervise.supervised(
+            lambda say: _step(scene, out_dir, paths, slaves, progress, say, engine, overrides, trace_format),
+            timeout_s=timeout, log=log)
+    except supervise.Failed as failed:
+        res = _settle_failed(scene, out_dir, paths, build_s, failed, trace_format)
+        if failed.signal_exc is not None:
+            raise failed.signal_exc from None
+        return res
+    return RunResult(scene, status, reason, trace, stats, paths, trace_path, build_s)
+
+
+def _settle_failed(scene: Scene, out_dir: Path | None, paths: dict, build_s: float, failed,
+                   trace_format: str = "csv") -> RunResult:
+    """The result of a supervised run whose process crashed, hung or had to be killed: its files
+    settled with the supervisor's status and reason (:func:`cosim.outputs.settle_run`), or written
+    afresh when it had written nothing yet."""
+    import numpy as np
+
+    from ..master import RunStats
+    from ..outputs import confined, safe_name, settle_run
+    from ..trace.traces import read_trace
+
+    stats = RunStats(scene.master.algorithm, "", scene.master.step, scene.n_steps, status=failed.status,
+                     reason=failed.reason)
+    columns = ["time", *scene.outputs]
+    if out_dir is None:
+        return RunResult(scene, failed.status, failed.reason,
+                         Trace(columns, np.zeros((0, len(columns))), scene_meta(scene), failed.status, failed.reason,
+                               stats.as_dict()), stats.as_dict(), paths, None, build_s)
+    path = confined(out_dir, f"{safe_name(scene.name)}{trace_suffix(trace_format)}")
+    if settle_run(path, failed.status, failed.reason) is None:  # it died before writing anything
+        ob = trace_writer(path, trace_format, extra={"scene_data": scene.data})
+        ob.start(columns, scene_meta(scene))
+        ob.finish(failed.status, failed.reason, stats.as_dict())
+    trace = read_trace(path)
+    stats.steps_done = max(0, len(trace.data) - 1) * scene.master.record_every
+    trace.status, trace.reason, trace.stats = failed.status, failed.reason, stats.as_dict()
+    return RunResult(scene, failed.status, failed.reason, trace, stats.as_dict(), paths, path, build_s)
+
+
+def _step(scene: Scene, out_dir, paths, slaves, progress, log, engine, overrides, trace_format="csv"):
+    """Couple the slaves (FMUs from ``paths`` when ``slaves`` is None), step them and return
+    (status, reason, trace, stats, trace path, seconds spent making the slaves)."""
+    from ..trace.traces import TraceWriteError
+
+    t0 = time.perf_counter()
+    if slaves is None:
         from ..scenario.recipes import slave_description
 
         slaves = [FmuSlave(name, paths[name], c.description if c.kind == "fmu" else slave_description(c, paths[name]))
                   for name, c in scene.components.items()]
-    else:
-        paths = {}
-        if [s.name for s in slaves] != list(scene.components):
-            raise UserError(f"slaves must match the scene's components in order: {list(scene.components)}")
     for s, c in zip(slaves, scene.components.values()):
         if c.kind == "fmu" and s.description is not c.description and isinstance(s, FmuSlave):
             # what the scene check found (feedthrough, behavioural workarounds) also for slaves made elsewhere (batches)
@@ -284,4 +367,5 @@ def _run(scene, overrides, out_dir, catalog, cache_dir, progress, log, engine, s
         if getattr(ob, "status", stats["status"]) != stats["status"]:
             stats = dict(stats, status=ob.status, reason=ob.reason)
             t.status, t.reason = ob.status, ob.reason
-    return RunResult(scene, stats["status"], stats["reason"], t, stats, paths, trace_path, build_s)
+    return stats["status"], stats["reason"], t, stats, trace_path, build_s
+

@@ -190,6 +190,12 @@ class _Reader:
     def read(self):
         from lxml import etree
 
+        from ..slaves.archive import archive_problem
+
+        problem = archive_problem(self.path, "SSP", None)
+        if problem and not problem.startswith("not an SSP"):  # names and sizes before anything is read
+            self.err(0, problem, self.label)
+            return None
         try:
             zf = zipfile.ZipFile(self.path)
         except (zipfile.BadZipFile, OSError) as exc:

@@ -149,14 +149,37 @@ def resolve_shapes(desc: SlaveDescription, structural: dict[str, int]) -> SlaveD
     return dataclasses.replace(desc, variables=vs)
 
 
+def _declared_version(path: Path) -> str | None:
+    """The ``fmiVersion`` attribute of the FMU's model description (None when unreadable: the
+    full reader then says why)."""
+    import zipfile
+
+    from lxml import etree
+
+    try:
+        with zipfile.ZipFile(path) as z:
+            data = z.read("modelDescription.xml")
+        root = etree.fromstring(data, etree.XMLParser(resolve_entities=False, no_network=True, huge_tree=False))
+    except Exception:  # noqa: BLE001 - any unreadable description: fmpy's reader reports it
+        return None
+    v = root.get("fmiVersion")
+    return str(v) if v is not None else None
+
+
 def describe_fmu(path: Path) -> SlaveDescription:
     """Read an FMU's ``modelDescription.xml``.  Raises :class:`UserError` naming the file when it
     is not a readable co-simulation FMU."""
     import fmpy
 
+    from .archive import check_archive
+
     path = Path(path)
     if not path.is_file():
         raise UserError(f"{path}: no such FMU file")
+    check_archive(path)  # names, duplicates and sizes, before any reader unpacks a byte
+    version = _declared_version(path)
+    if version is not None and not version.startswith(("2", "3")):
+        raise UserError(f"{path}: FMI {version} FMUs are not supported; export it as FMI 2.0 or 3.0 co-simulation")
     try:
         md = fmpy.read_model_description(str(path), validate=False)
     except Exception as exc:  # fmpy raises bare Exceptions for any malformed archive or XML
