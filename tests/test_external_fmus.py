@@ -470,3 +470,31 @@ def test_workarounds_are_stated_in_the_run_output_and_sidecar(data, tmp_path):
     assert said in res.stdout + res.stderr
     side = json.loads((tmp_path / "out" / "quarter_truck.json").read_text())
     assert any(said in n for n in side["notes"])
+
+
+@needs_data
+def test_an_osp_run_is_guarded_by_the_unstable_guard(data, tmp_path):
+    """The OSP path of issue 18 item 2: external FMUs have no catalog identity, so the stroke, rated
+    and singularity guards say why they did not apply, and the unstable guard looks at every row
+    of every recorded and connected variable: at guards.max_abs 0.05 the wheel's spring-damper force
+    (tens of N from the first step on) ends the run "unstable" naming it; at the defaults the
+    same run is "ok" with every row checked."""
+    import json
+
+    truck = data / "fmi2" / "quarter_truck"
+    tight = truck / "tight.yaml"
+    tight.write_text("include: OspSystemStructure.xml\nstop_time: 0.05\nguards: {max_abs: 0.05}\n"
+                     "outputs: [chassis.position, wheel.position]\n")
+    res = run(tight, out_dir=tmp_path / "tight")
+    assert res.status == "unstable" and "wheel.out_spring_damper_f" in res.reason and "guards.max_abs" in res.reason
+    side = json.loads(res.trace_path.with_suffix(".json").read_text())
+    assert side["status"] == "unstable" and "wheel.out_spring_damper_f" in side["reason"]
+    plain = truck / "plain.yaml"
+    plain.write_text("include: OspSystemStructure.xml\nstop_time: 0.05\noutputs: [chassis.position, wheel.position]\n")
+    ok = run(plain, out_dir=tmp_path / "plain")
+    assert ok.status == "ok", ok.reason
+    applied = ok.stats["guards"]["applied"]
+    assert applied["unstable"] == "stop"
+    assert all("not applied" in applied[g] and "no catalog identity" in applied[g]
+               for g in ("stroke", "rated", "singularity"))
+    assert ok.stats["guards"]["rows_checked"] == len(ok.trace.time)
