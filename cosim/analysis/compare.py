@@ -196,11 +196,12 @@ def comparability(test: Trace, ref: Trace, *, test_path: Path | None = None, ref
 
 def format_table(diffs: Sequence[Difference], *, most: int | None = None) -> str:
     """A text table, largest relative error first (``most`` rows at most)."""
+    from .tables import text_table
+
     rows = sorted(diffs, key=lambda d: -d.relative)[:most]
-    w = max([len(d.name) for d in rows] + [8])
-    lines = [f"  {'variable':<{w}}  {'max |diff|':>11}  {'at t [s]':>9}  {'rms':>10}  {'range':>10}  {'max/range':>9}"]
-    lines += [f"  {d.name:<{w}}  {d.max_abs:>11.3e}  {d.at:>9.4f}  {d.rms:>10.3e}  {d.scale:>10.3e}  {d.relative:>9.2e}"
-              for d in rows]
+    lines = [text_table(["variable", "max |diff|", "at t [s]", "rms", "range", "max/range"],
+                        [[d.name, f"{d.max_abs:.3e}", f"{d.at:.4f}", f"{d.rms:.3e}", f"{d.scale:.3e}", f"{d.relative:.2e}"]
+                         for d in rows])]
     if most is not None and len(diffs) > most:
         lines.append(f"  ... {len(diffs) - most} more variables with smaller relative errors")
     return "\n".join(lines)

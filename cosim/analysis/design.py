@@ -49,16 +49,12 @@ def _fmt(value: Cell) -> str:
 
 def format_table(table: Table) -> str:
     """The table as aligned text: text columns left-aligned, numbers right-aligned."""
+    from .tables import text_table
+
     cells = [[_fmt(v) for v in row] for row in table.rows]
     numeric = [all(isinstance(row[k], (int, float)) and not isinstance(row[k], bool) for row in table.rows
                    if row[k] is not None) for k in range(len(table.columns))]
-    widths = [max([len(h)] + [len(r[k]) for r in cells]) for k, h in enumerate(table.columns)]
-
-    def line(items: Sequence[str]) -> str:
-        return "  ".join(s.rjust(w) if num else s.ljust(w) for s, w, num in zip(items, widths, numeric)).rstrip()
-
-    rule = "-" * len(line(table.columns))
-    return "\n".join([table.title, rule, line(table.columns), rule] + [line(r) for r in cells] + [rule])
+    return table.title + "\n" + text_table(table.columns, cells, right=numeric, indent=0, rules=True)
 
 
 def write_csv(table: Table, path: Path) -> Path:

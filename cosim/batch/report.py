@@ -19,6 +19,7 @@ from typing import Any
 
 import numpy as np
 
+from ..analysis.tables import text_table
 from ..errors import UserError
 from .spec import Batch, PlotSpec
 
@@ -134,9 +135,7 @@ def format_results(rows: Sequence[dict], axes: Sequence[str], metrics: Sequence[
                 else c) for c in cols}
     ok = [r for r in ordered if r.get("outcome") == "ok"][:most]
     cells = [[(_fmt(r.get(c))[:16] if c == "run_id" else _fmt(r.get(c))) for c in cols] for r in ok]
-    widths = [max([len(head[c])] + [len(row[j]) for row in cells]) for j, c in enumerate(cols)]
-    lines = ["  " + "  ".join(f"{head[c]:>{w}}" for c, w in zip(cols, widths))]
-    lines += ["  " + "  ".join(f"{v:>{w}}" for v, w in zip(row, widths)) for row in cells]
+    lines = [text_table([head[c] for c in cols], cells, right=[True] * len(cols))]
     n_ok = sum(r.get("outcome") == "ok" for r in rows)
     if n_ok > most:
         lines.append(f"  ... {n_ok - most} more ok runs in the table")
@@ -164,12 +163,11 @@ def spread(rows: Sequence[dict], metric: str) -> dict[str, float]:
 
 def format_spread(rows: Sequence[dict], metrics: Sequence[str]) -> str:
     keys = ("n", "mean", "std", "min", "p5", "p50", "p95", "max")
-    w = max([len(m) for m in metrics] + [6])
-    lines = [f"  {'metric':<{w}}  " + "  ".join(f"{k:>10}" for k in keys)]
+    cells = []
     for m in metrics:
         s = spread(rows, m)
-        lines.append(f"  {m:<{w}}  " + "  ".join(f"{s[k]:>10.4g}" if k in s else f"{'':>10}" for k in keys))
-    return "\n".join(lines)
+        cells.append([m] + [f"{s[k]:.4g}" if k in s else "" for k in keys])
+    return text_table(["metric", *keys], cells)
 
 
 # --- plots ---------------------------------------------------------------------------------------
@@ -401,13 +399,10 @@ def format_batch_comparison(axes: Sequence[str], found: Sequence[tuple[dict, lis
         items.append((worst.relative, r, worst))
     items.sort(key=lambda it: -it[0])
     items = items[:most] if most else items
-    wv = max(len(it[2].name) for it in items)
-    head = "  ".join(f"{a:>10}" for a in axes)
-    lines = [f"  {'run_id':<16}  {head}  {'worst variable':<{wv}}  {'max |diff|':>11}  {'at t [s]':>9}  {'max/range':>9}"]
-    for rel, r, w in items:
-        vals = "  ".join(f"{_fmt(r.get(a)):>10}" for a in axes)
-        lines.append(f"  {r['run_id']:<16}  {vals}  {w.name:<{wv}}  {w.max_abs:>11.3e}  {w.at:>9.4f}  {rel:>9.2e}")
-    return "\n".join(lines)
+    cells = [[r["run_id"], *[_fmt(r.get(a)) for a in axes], w.name, f"{w.max_abs:.3e}", f"{w.at:.4f}", f"{rel:.2e}"]
+             for rel, r, w in items]
+    return text_table(["run_id", *axes, "worst variable", "max |diff|", "at t [s]", "max/range"], cells,
+                      right=[False, *[True] * len(axes), False, True, True, True])
 
 
 __all__ = ["Progress", "compare_batch", "default_plots", "format_batch_comparison", "format_results",

@@ -248,14 +248,18 @@ def _summary(res) -> None:
     print(f"  {st['algorithm']} ({st['engine']} loop), step {st['step']:g} s, {st['steps_done']}/{st['steps_planned']} "
           f"steps, simulated {st['simulated_s']:.6g} s in {st['wall_s']:.3f} s "
           f"(real-time factor {st['real_time_factor']:.1f}); build {res.build_s:.2f} s, init {st['init_s']:.3f} s")
-    print(f"  {'slave':<12} {'FMU':<28} {'doStep':>8} {'time ms':>9} {'us/step':>8} {'share':>6}")
+    from ..analysis.tables import text_table
+
     total = st["wall_s"] or 1.0
+    cells = []
     for name, s in st["slaves"].items():
         comp = res.scene.components.get(name)
-        print(f"  {name:<12} {(comp.label if comp else ''):<28} {s['do_step_calls']:>8} {1e3 * s['wall_s']:>9.2f} "
-              f"{1e6 * s['wall_s'] / n:>8.2f} {100 * s['wall_s'] / total:>5.1f}%")
-    print(f"  {'master':<12} {'':<28} {'':>8} {1e3 * st['master_s']:>9.2f} {1e6 * st['master_s'] / n:>8.2f} "
-          f"{100 * st['master_s'] / total:>5.1f}%")
+        cells.append([name, comp.label if comp else "", str(s["do_step_calls"]), f"{1e3 * s['wall_s']:.2f}",
+                      f"{1e6 * s['wall_s'] / n:.2f}", f"{100 * s['wall_s'] / total:.1f}%"])
+    cells.append(["master", "", "", f"{1e3 * st['master_s']:.2f}", f"{1e6 * st['master_s'] / n:.2f}",
+                  f"{100 * st['master_s'] / total:.1f}%"])
+    print(text_table(["slave", "FMU", "doStep", "time ms", "us/step", "share"], cells,
+                     right=[False, False, True, True, True, True]))
     if st.get("smallest_step") is not None:
         print(f"  variable step: {st['smallest_step']:.3g} .. {st['largest_step']:.3g} s, "
               f"{st.get('rejected_steps', 0)} rejected")
