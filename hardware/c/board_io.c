@@ -22,6 +22,7 @@
 #include <stdlib.h>
 #include <string.h>
 #include <sys/ioctl.h>
+#include <sys/random.h>
 #include <sys/stat.h>
 #include <time.h>
 #include <unistd.h>
@@ -329,4 +330,16 @@ void io_close(Board *b) {
         if (b->legs[i].line_fd >= 0) close(b->legs[i].line_fd);
         b->legs[i].adc_fd = b->legs[i].line_fd = -1;
     }
+}
+
+/* The kernel's random bytes (a session's challenge, the first sequence number); 0 or -1. */
+int random_bytes(uint8_t *out, size_t n) {
+    size_t got = 0;
+    while (got < n) {
+        ssize_t k = getrandom(out + got, n - got, 0);
+        if (k < 0 && errno == EINTR) continue;
+        if (k <= 0) return -1;
+        got += (size_t)k;
+    }
+    return 0;
 }

@@ -31,7 +31,6 @@
 #include <sys/ioctl.h>
 #include <sys/mman.h>
 #include <sys/prctl.h>
-#include <sys/random.h>
 #include <sys/socket.h>
 #include <sys/stat.h>
 #include <sys/timerfd.h>
@@ -55,17 +54,6 @@ static int64_t cpu_ns(void) {
     struct timespec ts;
     clock_gettime(CLOCK_PROCESS_CPUTIME_ID, &ts);
     return (int64_t)ts.tv_sec * 1000000000ll + ts.tv_nsec;
-}
-
-int random_bytes(uint8_t *out, size_t n) {
-    size_t got = 0;
-    while (got < n) {
-        ssize_t k = getrandom(out + got, n - got, 0);
-        if (k < 0 && errno == EINTR) continue;
-        if (k <= 0) return -1;
-        got += (size_t)k;
-    }
-    return 0;
 }
 
 static void say(const char *fmt, ...) {
