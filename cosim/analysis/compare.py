@@ -194,12 +194,19 @@ def comparability(test: Trace, ref: Trace, *, test_path: Path | None = None, ref
                          labels or (str(test_path or "test"), str(ref_path or "reference")), tol)
 
 
-def format_table(diffs: Sequence[Difference], *, most: int | None = None) -> str:
-    """A text table, largest relative error first (``most`` rows at most)."""
+def format_table(diffs: Sequence[Difference], *, most: int | None = None,
+                 estimates: dict[str, float] | None = None) -> str:
+    """A text table, largest relative error first (``most`` rows at most); with ``estimates`` (the
+    first trace's own error estimate per signal, relative to its range, :mod:`cosim.master.estimate`)
+    a column of them beside the measured relative error."""
     rows = sorted(diffs, key=lambda d: -d.relative)[:most]
     w = max([len(d.name) for d in rows] + [8])
-    lines = [f"  {'variable':<{w}}  {'max |diff|':>11}  {'at t [s]':>9}  {'rms':>10}  {'range':>10}  {'max/range':>9}"]
+    est = estimates or {}
+    head = f"  {'estimated':>9}" if est else ""
+    lines = [f"  {'variable':<{w}}  {'max |diff|':>11}  {'at t [s]':>9}  {'rms':>10}  {'range':>10}  {'max/range':>9}"
+             + head]
     lines += [f"  {d.name:<{w}}  {d.max_abs:>11.3e}  {d.at:>9.4f}  {d.rms:>10.3e}  {d.scale:>10.3e}  {d.relative:>9.2e}"
+              + (f"  {est[d.name]:>9.2e}" if d.name in est and est[d.name] is not None else ("  " + " " * 9 if est else ""))
               for d in rows]
     if most is not None and len(diffs) > most:
         lines.append(f"  ... {len(diffs) - most} more variables with smaller relative errors")

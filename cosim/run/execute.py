@@ -12,8 +12,10 @@ from pathlib import Path
 from typing import Any
 
 from ..errors import UserError
+from .companion import companion
 from .guards import scene_guard
 from ..master import CoupledSystem, Link, simulate
+from ..master.estimate import EstimatingObserver
 from ..scenario import Scene, load
 from ..slaves.fmu import FmuSlave
 from ..slaves.slave import Slave
@@ -213,8 +215,6 @@ def run(scene: Scene | str | Path, overrides: Mapping[str, Any] | Sequence[str] 
 
 def _run(scene, overrides, out_dir, catalog, cache_dir, progress, log, engine, slaves, max_trace_bytes,
          auto_fidelity) -> RunResult:
-    from ..trace.traces import TraceWriteError
-
     if not isinstance(scene, Scene):
         scene = load(scene, overrides, catalog=catalog, auto_fidelity=auto_fidelity)
     elif overrides:
@@ -223,55 +223,142 @@ def _run(scene, overrides, out_dir, catalog, cache_dir, progress, log, engine, s
         scene = load(scene.path, overrides, catalog=catalog, auto_fidelity=auto_fidelity)
     log(f"{scene.name}: {check_trace_size(scene, max_trace_bytes)}")
     t0 = time.perf_counter()
+    from ..scenario.recipes import slave_description
+
     if slaves is None:
         paths = build_components(scene, cache_dir=cache_dir, progress=log)
-        from ..scenario.recipes import slave_description
-
-        slaves = [FmuSlave(name, paths[name], c.description if c.kind == "fmu" else slave_description(c, paths[name]))
-                  for name, c in scene.components.items()]
     else:
         paths = {}
         if [s.name for s in slaves] != list(scene.components):
             raise UserError(f"slaves must match the scene's components in order: {list(scene.components)}")
-    for s, c in zip(slaves, scene.components.values()):
-        if not c.rollback and s.description.can_get_set_state:  # the scene forbids rollback of this component
-            s.description = replace(s.description, can_get_set_state=False)
+        for s, c in zip(slaves, scene.components.values()):
+            if not c.rollback and s.description.can_get_set_state:  # the scene forbids rollback of this component
+                s.description = replace(s.description, can_get_set_state=False)
     build_s = time.perf_counter() - t0
+    given = slaves is not None
+    ready = list(slaves) if given else None
+
+    def make_slaves() -> list[Slave]:
+        """Fresh slaves of the scene's components (the ones handed over, once, when given)."""
+        nonlocal ready
+        if ready is not None:
+            out, ready = ready, None
+            return out
+        if given:
+            raise UserError("the slaves handed to run() serve one run only")
+        made = [FmuSlave(name, paths[name], c.description if c.kind == "fmu" else slave_description(c, paths[name]))
+                for name, c in scene.components.items()]
+        for s, c in zip(made, scene.components.values()):
+            if not c.rollback and s.description.can_get_set_state:  # the scene forbids rollback of this component
+                s.description = replace(s.description, can_get_set_state=False)
+        return made
+
+    repeat = None if given else repeatable(scene)
+    extra: dict = {}
+    if scene.master.auto:
+        from .choose import choose
+
+        def pilot(sc: Scene) -> RunResult:
+            return _once(sc, make_slaves, None, None, engine, repeat, {})
+
+        scene, choice = choose(scene, pilot if repeat is None else None, log, why_not=repeat)
+        extra["choice"] = choice.as_dict()
+        log(f"{scene.name}: {choice}")
+    result = _once(scene, make_slaves, out_dir, progress, engine, repeat, extra, log,
+                   list(overrides.items()) if isinstance(overrides, Mapping) else list(overrides or []))
+    result.fmus, result.build_s = paths, build_s
+    return result
+
+
+def repeatable(scene: Scene) -> str | None:
+    """None when a run of ``scene`` may be repeated without side effects (companion and pilot runs
+    of :mod:`cosim.master.estimate` and :mod:`cosim.run.choose`); otherwise why not."""
+    if scene.master.realtime is not None:
+        return "a run paced in real time is not repeated (it may drive hardware)"
+    comps = scene.data.get("components") or {}
+    hw = [n for n, spec in comps.items() if isinstance(spec, Mapping) and "hardware" in spec]
+    if hw:
+        return f"{', '.join(hw)} is hardware: a run is not repeated"
+    return None
+
+
+def _companion_trace(scene: Scene, make_slaves, engine) -> tuple[tuple | None, float, str]:
+    """Run the companion of ``scene`` (:mod:`cosim.run.companion`) into memory: ``((time, values) or
+    None, divisor, method)``."""
+    comp = companion(scene)
+    if comp.scene is None:
+        return None, 1.0, comp.method
+    cs = comp.scene
+    memory = MemoryTrace()
+    system = couple(cs, make_slaves())
+    try:
+        simulate(system, cs.master.algorithm, step_ns=cs.master.step_ns, n_steps=cs.n_steps, record_every=1,
+                 observers=[memory], start_values=[c.start_values() for c in cs.components.values()],
+                 engine=engine or cs.master.engine, order=_order(cs), inputs=cs.master.inputs, start_ns=cs.start_ns,
+                 tolerances=_tolerances(cs), options=cs.master.options or None,
+                 rates=[c.rate for c in cs.components.values()], timing=False)
+    except UserError as exc:
+        return None, 1.0, f"{comp.method} could not run: {exc}"
+    except Exception as exc:  # the companion failed: what it recorded still serves
+        if memory.trace is None or len(memory.trace.data) < 2:
+            return None, 1.0, f"{comp.method} failed: {type(exc).__name__}: {exc}"
+    tr = memory.trace
+    return (tr.time, tr.data[:, 1:]), comp.div, comp.method
+
+
+def _order(scene: Scene) -> list[int] | None:
+    index = {n: i for i, n in enumerate(scene.components)}
+    return [index[n] for n in scene.master.order] if scene.master.order else None
+
+
+def _tolerances(scene: Scene) -> list:
+    return [c.description.default_experiment.get("tolerance") for c in scene.components.values()]
+
+
+def _once(scene: Scene, make_slaves, out_dir, progress, engine, repeat: str | None, extra: dict,
+          log: Callable[[str], None] = lambda m: None, overrides: Sequence = ()) -> RunResult:
+    """One run of ``scene`` with its error estimate (a companion run first, when ``repeat`` is
+    None), judged by it (:func:`cosim.master.estimate.judge`)."""
+    from ..trace.traces import TraceWriteError
+
+    if repeat is None:
+        ctrace, div, method = _companion_trace(scene, make_slaves, engine)
+    else:
+        ctrace, div, method = None, 1.0, repeat
     guard = scene_guard(scene)
-    system = couple(scene, slaves, guard.watch if guard else ())
+    system = couple(scene, make_slaves(), guard.watch if guard else ())
     if guard:
         guard.bind(system.record_names + system.watch_names)
-    memory, observers, trace_path = scene_observers(scene, out_dir)
+    memory, inner, trace_path = scene_observers(scene, out_dir)
+    estimator = EstimatingObserver(inner, ctrace, div, method, scene.master.tolerance, extra)
+    observers = [estimator]
     meta = {**scene_meta(scene), "inputs": scene.master.inputs,
             "components": {n: c.label for n, c in scene.components.items()},
             "connections": [str(c) for c in scene.connections],
-            "overrides": list(overrides.items()) if isinstance(overrides, Mapping) else list(overrides or [])}
-    index = {n: i for i, n in enumerate(scene.components)}
-    order = [index[n] for n in scene.master.order] if scene.master.order else None
+            "overrides": list(overrides)}
     try:
         stats = simulate(system, scene.master.algorithm, step_ns=scene.master.step_ns, n_steps=scene.n_steps,
                          record_every=scene.master.record_every, observers=observers,
                          start_values=[c.start_values() for c in scene.components.values()],
-                         engine=engine or scene.master.engine, order=order, progress=progress, meta=meta,
-                         inputs=scene.master.inputs, start_ns=scene.start_ns,
-                         tolerances=[c.description.default_experiment.get("tolerance")
-                                     for c in scene.components.values()],
+                         engine=engine or scene.master.engine, order=_order(scene), progress=progress, meta=meta,
+                         inputs=scene.master.inputs, start_ns=scene.start_ns, tolerances=_tolerances(scene),
                          realtime=scene.master.realtime, options=scene.master.options or None,
                          guard=guard, rates=[c.rate for c in scene.components.values()]).as_dict()
+        stats = getattr(estimator, "stats", stats)
     except TraceWriteError:  # disk full: the observers finished with the reason; report it as a status
         if memory.trace is None or not memory.trace.stats:
             raise
         stats = memory.trace.stats
     finally:
-        for ob in observers:
+        for ob in inner:
             if getattr(ob, "note", ""):
                 log(ob.note)
     t = memory.trace
-    for ob in observers:  # a trace writer that failed at the end turns "ok" into "failed"
+    for ob in inner:  # a trace writer that failed at the end turns "ok" into "failed"
         if getattr(ob, "status", stats["status"]) != stats["status"]:
             stats = dict(stats, status=ob.status, reason=ob.reason)
             t.status, t.reason = ob.status, ob.reason
-    return RunResult(scene, stats["status"], stats["reason"], t, stats, paths, trace_path, build_s)
+    return RunResult(scene, stats["status"], stats["reason"], t, stats, {}, trace_path, 0.0)
 
 
 def progress_bar(stream=sys.stderr, *, min_s: float = 0.5) -> Callable[[int, int], None]:

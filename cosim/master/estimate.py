@@ -1,0 +1,184 @@
+"""How wrong a run is, from the run itself: the error estimate of every recorded signal and the
+verdict it gives (:func:`judge`).
+
+Method (Richardson extrapolation against a companion run): the run's error against the exact
+coupled solution is, to leading order, ``e(x) = C x^p`` in its accuracy parameter ``x`` (the
+communication step of a fixed-step algorithm, the tolerance of a variable-step one).  A companion
+run of the same scene at ``r x`` (twice the step, four times the tolerance) then differs from the
+run by ``e(r x) - e(x) = (r^p - 1) e(x)``, so ``|y_run - y_companion| / (r^p - 1)`` estimates
+the run's own error, signal by signal and instant by instant, including the start transient and
+whatever a coupling defect does downstream of where it enters (a local defect alone says nothing
+about that).  The estimate of a signal is the largest such difference over the run, relative to
+the signal's range in the run (max - min; max |value| for a constant signal), the measure
+``rpr-cosim compare`` reports against a reference.
+
+``p`` is the order the coupling has: 1 with held inputs, between 1 and 2 with linear inputs
+(2 in smooth stretches, 1 where a step is long against a time constant), about 3/4 in the tolerance
+of ``adaptive`` and ``ecco`` (``rpr-cosim study precision`` prints the observed orders); the
+divisor ``r^p - 1`` uses the middle of that range, so a run whose true order is at either end is
+estimated within a factor of 2 (docs/accuracy.md has the measured table).
+
+A coupling that has gone unstable diverges, and a companion at twice the step diverges faster:
+their difference is then of the order of the signal's range, and the run is not "ok" but
+"unstable" (:data:`UNSTABLE`).  With a tolerance, an estimate more than :data:`INACCURATE` times
+over it is "inaccurate".
+"""
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+
+#: An estimate of this fraction of a signal's range or more: the coupling has gone unstable.
+UNSTABLE = 0.5
+#: An estimate more than this many times over the tolerance: the run is "inaccurate".
+INACCURATE = 10.0
+
+
+@dataclass
+class ErrorEstimate:
+    """The estimated error of a run: per recorded signal relative to its range (``errors``), the
+    ``worst`` one on ``signal`` at time ``at`` [s]; ``method`` says how it was measured;
+    ``worst`` is None when nothing could be estimated (``method`` says why)."""
+
+    worst: float | None
+    signal: str = ""
+    at: float = math.nan
+    errors: dict[str, float] = field(default_factory=dict)
+    method: str = ""
+
+    def as_dict(self) -> dict:
+        return {"worst": self.worst, "signal": self.signal, "at": None if math.isnan(self.at) else self.at,
+                "method": self.method, "errors": self.errors}
+
+    def summary(self) -> str:
+        """``estimated worst error 6e-4 of range, mech.platform.y`` (or why there is none)."""
+        if self.worst is None:
+            return f"no error estimate ({self.method})"
+        return f"estimated worst error {self.worst:.2g} of range, {self.signal} (at t = {self.at:.6g} s)"
+
+
+def divisor(ratio: float, order: float) -> float:
+    """``ratio^order - 1``: how much larger the companion's error is than the run's, over the run's."""
+    return ratio ** order - 1.0
+
+
+def _scale(x: np.ndarray) -> float:
+    finite = x[np.isfinite(x)]
+    if not len(finite):
+        return math.inf
+    span = float(finite.max() - finite.min())
+    return span if span > 0 else float(np.abs(finite).max())
+
+
+def richardson(t: np.ndarray, x: np.ndarray, tc: np.ndarray, xc: np.ndarray, names: Sequence[str],
+               div: float, method: str) -> ErrorEstimate:
+    """The estimate from a run (instants ``t``, values ``x``, one column per name) and its companion
+    (``tc``, ``xc``): their largest difference over ``div`` per signal, relative to the run's range.
+    They are compared at the instants of the sparser one inside both spans, the denser one
+    interpolated there (monotone cubic: exact at shared instants, no overshoot at a jump)."""
+    from scipy.interpolate import PchipInterpolator
+
+    lo, hi = max(t[0], tc[0]), min(t[-1], tc[-1])
+    if len(t) < 2 or len(tc) < 2 or hi <= lo:
+        return ErrorEstimate(None, method=f"{method}: the run and its companion share no time span")
+    sparse_t, dense_t, dense_x, sparse_x, run_is_dense = (tc, t, x, xc, True) if len(tc) <= len(t) else \
+        (t, tc, xc, x, False)
+    keep = (sparse_t >= lo - 1e-12) & (sparse_t <= hi + 1e-12)
+    at = sparse_t[keep]
+    # the dense trace's instants strictly increasing (a stop request may repeat the last instant)
+    uniq = np.concatenate([[True], np.diff(dense_t) > 0])
+    with np.errstate(all="ignore"):
+        interp = PchipInterpolator(dense_t[uniq], dense_x[uniq], axis=0, extrapolate=True)(at)
+        diff = np.abs(interp - sparse_x[keep]) if run_is_dense else np.abs(sparse_x[keep] - interp)
+    errors: dict[str, float] = {}
+    worst, signal, when = -1.0, "", math.nan
+    for j, name in enumerate(names):
+        scale = _scale(x[:, j])
+        col = diff[:, j]
+        if not np.isfinite(col).all() or not math.isfinite(scale):
+            e, k = math.inf, int(np.argmax(~np.isfinite(col))) if not np.isfinite(col).all() else 0
+        else:
+            m = float(col.max()) / div
+            e = m / scale if scale > 0 else (0.0 if m == 0 else math.inf)
+            k = int(np.argmax(col))
+        errors[name] = e
+        if e > worst:
+            worst, signal, when = e, name, float(at[k]) if len(at) else math.nan
+    if worst < 0:
+        return ErrorEstimate(None, method=f"{method}: nothing recorded")
+    return ErrorEstimate(worst, signal, when, errors, method)
+
+
+def judge(status: str, reason: str, est: ErrorEstimate | None, tolerance: float | None) -> tuple[str, str]:
+    """The status and reason of a run in the light of its estimate: an "ok" (or "stopped") run
+    whose estimate reaches :data:`UNSTABLE` of a signal's range is "unstable", one more than
+    :data:`INACCURATE` times over ``tolerance`` "inaccurate"; anything else unchanged."""
+    if est is None or est.worst is None or status not in ("ok", "stopped"):
+        return status, reason
+    w = est.worst
+    later = f" ({reason})" if reason else ""
+    if not w < UNSTABLE:
+        return "unstable", (f"the estimated error of {est.signal} is {w:.3g} of its range (at t = {est.at:.6g} s): "
+                            f"the coupling has gone unstable; take a smaller step or master.tolerance{later}")
+    if tolerance is not None and w > INACCURATE * tolerance:
+        return "inaccurate", (f"the estimated error of {est.signal} is {w:.3g} of its range (at t = {est.at:.6g} s), "
+                              f"more than {INACCURATE:g}x the tolerance {tolerance:g}{later}")
+    return status, reason
+
+
+class EstimatingObserver:
+    """An observer of the run loop around the run's own observers: it forwards everything, keeps
+    the recorded rows, and when the run finishes estimates its error against ``companion``
+    (``(time, values)`` of the companion run, or None with ``why`` there is none), judges the run
+    (:func:`judge`) and finishes the inner observers with that status, the estimate in the
+    statistics (``estimate``) and ``extra`` statistics (e.g. the master's choice)."""
+
+    def __init__(self, inner: Sequence, companion: tuple[np.ndarray, np.ndarray] | None, div: float, method: str,
+                 tolerance: float | None, extra: dict | None = None):
+        self.inner, self.companion, self.div, self.method = list(inner), companion, div, method
+        self.tolerance, self.extra = tolerance, dict(extra or {})
+        self.rows: list[np.ndarray] = []
+        self.columns: list[str] = []
+        self.estimate: ErrorEstimate | None = None
+
+    def start(self, columns, meta) -> None:
+        self.columns = list(columns)
+        for ob in self.inner:
+            ob.start(columns, dict(meta, **self.extra))
+
+    def record(self, rows) -> None:
+        self.rows.append(np.array(rows, dtype=float, copy=True))
+        for ob in self.inner:
+            ob.record(rows)
+
+    def record_text(self, t, column, value) -> None:
+        for ob in self.inner:
+            if hasattr(ob, "record_text"):
+                ob.record_text(t, column, value)
+
+    def _estimate(self) -> ErrorEstimate:
+        if self.companion is None:
+            return ErrorEstimate(None, method=self.method)
+        data = np.concatenate(self.rows) if self.rows else np.empty((0, len(self.columns)))
+        if len(data) < 2:
+            return ErrorEstimate(None, method=f"{self.method}: fewer than two recorded rows")
+        tc, xc = self.companion
+        return richardson(data[:, 0], data[:, 1:], tc, xc, self.columns[1:], self.div, self.method)
+
+    def finish(self, status, reason, stats) -> None:
+        try:
+            self.estimate = self._estimate()
+        except Exception as exc:  # the estimate must never cost the run its trace
+            self.estimate = ErrorEstimate(None, method=f"{self.method}: {type(exc).__name__}: {exc}")
+        status, reason = judge(status, reason, self.estimate, self.tolerance)
+        stats = dict(stats or {}, status=status, reason=reason, estimate=self.estimate.as_dict(), **self.extra)
+        self.status, self.reason, self.stats = status, reason, stats
+        for ob in self.inner:
+            ob.finish(status, reason, stats)
+
+    @property
+    def note(self) -> str:
+        return "; ".join(n for n in (getattr(ob, "note", "") for ob in self.inner) if n)
