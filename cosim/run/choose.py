@@ -7,7 +7,7 @@
 * power bonds, and a slave that cannot roll back: ``ecco``, at an ``rtol`` that meets it;
 * otherwise (a slave that cannot roll back, no bonds): ``gauss_seidel`` at a fixed step.
 
-Inputs are linear wherever a slave can interpolate them (unless the scene sets ``master.inputs``).
+Inputs are linear (slaves that cannot interpolate hold theirs) unless the scene sets ``master.inputs``.
 The setting (step or rtol) comes from pilot runs, each with its error estimate
 (:mod:`cosim.master.estimate`): a fixed step first over the first quarter of the run, from the
 scene's step, then ``h * (tolerance / 2 / estimate)^(1/p)`` snapped to a step that divides the
@@ -31,7 +31,9 @@ from .companion import ORDER_HOLD, ORDER_LINEAR, ORDER_TOLERANCE
 #: Pilot runs at most (each with its companion).
 MAX_PILOTS = 5
 #: A setting is kept when its estimate is within the tolerance and above this fraction of it.
-LOW = 0.2
+LOW = 0.3
+#: The estimate a new setting aims at, as a fraction of the tolerance.
+TARGET = 0.6
 #: First rtol of adaptive and ecco, as a fraction of the tolerance (a start, refined by the pilots).
 FIRST_RTOL = {"adaptive": 1 / 30, "ecco": 1.0}
 
@@ -128,8 +130,7 @@ def choose(scene: Scene, pilot: Callable[[Scene], object] | None, log: Callable[
     repeated, ``why_not``)."""
     m, tol = scene.master, scene.master.tolerance
     alg, why = kind(scene)
-    interp = any(c.description.can_interpolate_inputs for c in scene.components.values())
-    inputs = m.inputs if m.inputs_given else ("linear" if interp else "hold")
+    inputs = m.inputs if m.inputs_given else "linear"  # slaves that cannot interpolate hold their inputs
     cls = ALGORITHMS[alg]
     choice = Choice(alg, {"inputs": inputs}, why, tol)
 
@@ -155,7 +156,7 @@ def choose(scene: Scene, pilot: Callable[[Scene], object] | None, log: Callable[
                 best = rtol if best is None else max(best, rtol)
                 if e >= LOW * tol:
                     break
-            fac = (0.5 * tol / e) ** (1 / ORDER_TOLERANCE) if e > 0 and math.isfinite(e) else 0.1
+            fac = (TARGET * tol / e) ** (1 / ORDER_TOLERANCE) if e > 0 and math.isfinite(e) else 0.1
             nxt = rtol * min(30.0, max(1 / 30, fac))
             if best is not None and nxt > rtol:  # looser than one that met it: only if below the last miss
                 misses = [p["rtol"] for p in choice.pilots if p["estimate"] is not None and p["estimate"] > tol]
@@ -186,7 +187,7 @@ def choose(scene: Scene, pilot: Callable[[Scene], object] | None, log: Callable[
             best = h_ns if best is None else max(best, h_ns)
             if e >= LOW * tol:
                 break
-        fac = (0.5 * tol / e) ** (1 / p) if e > 0 and math.isfinite(e) else 0.1
+        fac = (TARGET * tol / e) ** (1 / p) if e > 0 and math.isfinite(e) else 0.1
         nxt = snap(h_ns / 1e9 * min(10.0, max(0.05, fac)))
         if met and (nxt is None or nxt <= h_ns):
             break  # no longer step to try

@@ -25,14 +25,9 @@ class Companion:
     method: str = ""
 
 
-def linear_coupling(scene: Scene) -> bool:
-    """Does some slave follow input slopes in this scene (``inputs: linear`` and it can interpolate)?"""
-    return scene.master.inputs == "linear" and any(c.description.can_interpolate_inputs
-                                                   for c in scene.components.values())
-
-
-def companion(scene: Scene) -> Companion:
-    """The companion of a run of ``scene`` (module docstring)."""
+def companion(scene: Scene, interpolating: bool) -> Companion:
+    """The companion of a run of ``scene`` (module docstring); ``interpolating``: some slave of the
+    run follows input slopes (its FMU can interpolate inputs)."""
     m = scene.master
     cls = ALGORITHMS[m.algorithm]
     if getattr(cls, "variable_step", False):
@@ -51,6 +46,6 @@ def companion(scene: Scene) -> Companion:
     step_ns = 2 * m.step_ns
     master = replace(m, step=step_ns / 1e9, step_ns=step_ns, record_every=1, realtime=None)
     stop = (scene.start_ns + n * step_ns) / 1e9
-    order = ORDER_LINEAR if linear_coupling(scene) else ORDER_HOLD
+    order = ORDER_LINEAR if scene.master.inputs == "linear" and interpolating else ORDER_HOLD
     return Companion(replace(scene, master=master, n_steps=n, stop_time=stop), divisor(STEP_RATIO, order),
                      f"Richardson against a companion run at step {step_ns / 1e9:g} s ({STEP_RATIO:g}x)")

@@ -285,12 +285,13 @@ def repeatable(scene: Scene) -> str | None:
 def _companion_trace(scene: Scene, make_slaves, engine) -> tuple[tuple | None, float, str]:
     """Run the companion of ``scene`` (:mod:`cosim.run.companion`) into memory: ``((time, values) or
     None, divisor, method)``."""
-    comp = companion(scene)
+    slaves = make_slaves()
+    comp = companion(scene, any(s.description.can_interpolate_inputs for s in slaves))
     if comp.scene is None:
         return None, 1.0, comp.method
     cs = comp.scene
     memory = MemoryTrace()
-    system = couple(cs, make_slaves())
+    system = couple(cs, slaves)
     try:
         simulate(system, cs.master.algorithm, step_ns=cs.master.step_ns, n_steps=cs.n_steps, record_every=1,
                  observers=[memory], start_values=[c.start_values() for c in cs.components.values()],
