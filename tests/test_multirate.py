@@ -95,7 +95,7 @@ def test_multirate_trace_is_the_substepped_macro_map(variant, rates):
 
 def test_sub_steps_are_taken_at_exact_nanosecond_instants(monkeypatch):
     """The fast slave steps at t_k + j h/r computed from integer nanoseconds, with h/r each."""
-    from cosim import cosim as slaves_mod
+    from cosim import slaves as slaves_mod
 
     seen: list[tuple[str, float, float]] = []
     orig = slaves_mod.FmuSlave.do_step
