@@ -93,21 +93,40 @@ def test_every_slave_with_rollback_gets_adaptive_within_the_tolerance(tmp_path, 
     ("pid_step.yaml", [], "adaptive"),
     ("pid_step.yaml", ["components.mech.rollback=false"], "ecco"),  # power bonds, no rollback
     ("pid_step.yaml", ["master.realtime=true"], "gauss_seidel"),  # pacing: a fixed step
-    ("force_loop.yaml", [], "iterative"),  # an algebraic loop
+    ("force_loop.yaml", [], "iterative"),  # named by the scene (its point)
     ("two_mass.yaml", [], "jacobi"),  # named by the scene: exactly that
 ])
 def test_the_choice_per_kind_of_scene(scene, sets, algorithm):
     sc = load(SCENES / scene, sets)
+    assert sc.master.auto == (algorithm not in ("jacobi", "iterative"))
     got = kind(sc)[0] if sc.master.auto else sc.master.algorithm
     assert got == algorithm
 
 
-def test_run_check_shows_the_choice_before_anything_runs(capsys):
-    assert main(["run", str(SCENES / "force_loop.yaml"), "--check"]) == 0
+def _unnamed(tmp_path: Path, scene: str) -> Path:
+    """A copy of a shipped scene that names no master algorithm."""
+    text = (SCENES / scene).read_text().replace("algorithm: iterative, ", "").replace("algorithm: gauss_seidel, ", "")
+    path = tmp_path / scene
+    path.write_text(text)
+    return path
+
+
+def test_run_check_shows_the_choice_before_anything_runs(tmp_path, capsys):
+    assert main(["run", str(SCENES / "pid_step.yaml"), "--check"]) == 0
+    assert "master: tolerance 0.001 -> adaptive: every slave can roll back" in capsys.readouterr().out
+    assert main(["run", str(_unnamed(tmp_path, "force_loop.yaml")), "--check"]) == 0
     out = capsys.readouterr().out
-    assert "master: tolerance 0.001 -> iterative: an algebraic loop" in out
+    assert "master: tolerance 0.001 -> iterative: an algebraic loop (motor1.flange.f -> fc1.measurement" in out
     assert main(["run", str(SCENES / "two_mass.yaml"), "--check"]) == 0
     assert "master: jacobi, named by the scene" in capsys.readouterr().out
+
+
+def test_an_algebraic_loop_gets_iterative_and_meets_the_tolerance(tmp_path, cache):
+    path = _unnamed(tmp_path, "force_loop.yaml")
+    res = run(path, ["stop_time=0.3"], cache_dir=cache)
+    assert res.stats["choice"]["algorithm"] == "iterative" and "algebraic loop" in res.stats["choice"]["why"]
+    assert res.status == "ok", res.reason
+    assert _true_worst(res) <= 1e-3
 
 
 @pytest.mark.parametrize("value", ["0", "0.7", "abc"])

@@ -59,7 +59,7 @@ def virtual_board(tmp_path_factory):
 def runs(virtual_board, tmp_path_factory):
     address, key = virtual_board
     out = tmp_path_factory.mktemp("runs")
-    pure = run(SCENES / "rig_step.yaml", [STOP], out_dir=out)
+    pure = run(SCENES / "rig_step.yaml", [STOP, "master.algorithm=gauss_seidel"], out_dir=out)  # as the rig scene
     hil = run(SCENES / "rig_step_hil.yaml", [STOP, f"components.rig.hardware.address={address}",
                                              f"components.rig.hardware.key={key}",
                                              f"master.realtime.priority={PRIORITY}",

@@ -206,6 +206,9 @@ def _summary(res) -> None:
         sets = ", ".join(f"{k} {v:.3g}" if isinstance(v, float) else f"{k} {v}" for k, v in choice["settings"].items())
         print(f"  master chose {choice['algorithm']} ({sets}) for tolerance {choice['tolerance']:g}: {choice['why']}"
               + (f" [{len(choice['pilots'])} pilot runs]" if choice.get("pilots") else ""))
+    print(f"  {st['algorithm']} ({st['engine']} loop), step {st['step']:g} s, {st['steps_done']}/{st['steps_planned']} "
+          f"steps, simulated {st['simulated_s']:.6g} s in {st['wall_s']:.3f} s "
+          f"(real-time factor {st['real_time_factor']:.1f}); build {res.build_s:.2f} s, init {st['init_s']:.3f} s")
     est = st.get("estimate")
     if est:
         if est.get("worst") is None:
@@ -213,9 +216,6 @@ def _summary(res) -> None:
         else:
             print(f"  estimated worst error {est['worst']:.2g} of range, {est['signal']} (at t = {est['at']:.6g} s; "
                   f"{est['method']})")
-    print(f"  {st['algorithm']} ({st['engine']} loop), step {st['step']:g} s, {st['steps_done']}/{st['steps_planned']} "
-          f"steps, simulated {st['simulated_s']:.6g} s in {st['wall_s']:.3f} s "
-          f"(real-time factor {st['real_time_factor']:.1f}); build {res.build_s:.2f} s, init {st['init_s']:.3f} s")
     print(f"  {'slave':<12} {'FMU':<28} {'doStep':>8} {'time ms':>9} {'us/step':>8} {'share':>6}")
     total = st["wall_s"] or 1.0
     for name, s in st["slaves"].items():

@@ -235,17 +235,13 @@ def _run(scene, overrides, out_dir, catalog, cache_dir, progress, log, engine, s
             if not c.rollback and s.description.can_get_set_state:  # the scene forbids rollback of this component
                 s.description = replace(s.description, can_get_set_state=False)
     build_s = time.perf_counter() - t0
-    given = slaves is not None
-    ready = list(slaves) if given else None
+    given = list(slaves) if slaves is not None else None
 
     def make_slaves() -> list[Slave]:
-        """Fresh slaves of the scene's components (the ones handed over, once, when given)."""
-        nonlocal ready
-        if ready is not None:
-            out, ready = ready, None
-            return out
-        if given:
-            raise UserError("the slaves handed to run() serve one run only")
+        """Fresh slaves of the scene's components, for companion and pilot runs (from the FMUs
+        of the slaves handed over, when they were)."""
+        if given is not None:
+            return [FmuSlave(s.name, s.path, s.description) for s in given]
         made = [FmuSlave(name, paths[name], c.description if c.kind == "fmu" else slave_description(c, paths[name]))
                 for name, c in scene.components.items()]
         for s, c in zip(made, scene.components.values()):
@@ -253,18 +249,20 @@ def _run(scene, overrides, out_dir, catalog, cache_dir, progress, log, engine, s
                 s.description = replace(s.description, can_get_set_state=False)
         return made
 
-    repeat = None if given else repeatable(scene)
+    repeat = repeatable(scene)
+    if repeat is None and given is not None and not all(isinstance(s, FmuSlave) for s in given):
+        repeat = "the slaves were handed over ready, not as FMUs: a run is not repeated"
     extra: dict = {}
     if scene.master.auto:
         from .choose import choose
 
         def pilot(sc: Scene) -> RunResult:
-            return _once(sc, make_slaves, None, None, engine, repeat, {})
+            return _once(sc, make_slaves, None, None, None, engine, repeat, {})
 
         scene, choice = choose(scene, pilot if repeat is None else None, log, why_not=repeat)
         extra["choice"] = choice.as_dict()
         log(f"{scene.name}: {choice}")
-    result = _once(scene, make_slaves, out_dir, progress, engine, repeat, extra, log,
+    result = _once(scene, make_slaves, given, out_dir, progress, engine, repeat, extra, log,
                    list(overrides.items()) if isinstance(overrides, Mapping) else list(overrides or []))
     result.fmus, result.build_s = paths, build_s
     return result
@@ -316,10 +314,11 @@ def _tolerances(scene: Scene) -> list:
     return [c.description.default_experiment.get("tolerance") for c in scene.components.values()]
 
 
-def _once(scene: Scene, make_slaves, out_dir, progress, engine, repeat: str | None, extra: dict,
+def _once(scene: Scene, make_slaves, slaves, out_dir, progress, engine, repeat: str | None, extra: dict,
           log: Callable[[str], None] = lambda m: None, overrides: Sequence = ()) -> RunResult:
-    """One run of ``scene`` with its error estimate (a companion run first, when ``repeat`` is
-    None), judged by it (:func:`cosim.master.estimate.judge`)."""
+    """One run of ``scene`` on ``slaves`` (None: ``make_slaves()``) with its error estimate (a
+    companion run on ``make_slaves()`` first, when ``repeat`` is None), judged by it
+    (:func:`cosim.master.estimate.judge`)."""
     from ..trace.traces import TraceWriteError
 
     if repeat is None:
@@ -327,7 +326,7 @@ def _once(scene: Scene, make_slaves, out_dir, progress, engine, repeat: str | No
     else:
         ctrace, div, method = None, 1.0, repeat
     guard = scene_guard(scene)
-    system = couple(scene, make_slaves(), guard.watch if guard else ())
+    system = couple(scene, slaves if slaves is not None else make_slaves(), guard.watch if guard else ())
     if guard:
         guard.bind(system.record_names + system.watch_names)
     memory, inner, trace_path = scene_observers(scene, out_dir)
