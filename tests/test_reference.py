@@ -159,7 +159,8 @@ def test_cli_run_with_reference_reports_the_error_table(tmp_path, capsys, cache)
     assert "monolithic reference" in out and "co-simulation against the reference:" in out
     assert (tmp_path / "pid_step_reference.csv").is_file()
     table = out.split("co-simulation against the reference:")[1]
-    rows = [ln.split() for ln in table.splitlines()[2:] if len(ln.split()) == 6 and ln.split()[0].startswith(("mech", "motor", "pid", "target"))]
-    assert len(rows) == 12  # the 12 worst of 24 variables, worst first
+    rows = [ln.split() for ln in table.splitlines()[2:] if len(ln.split()) == 7 and ln.split()[0].startswith(("mech", "motor", "pid", "target"))]
+    assert len(rows) == 12  # the 12 worst of 24 variables, worst first, each with the run's own estimate beside it
     worst = float(rows[0][5])
     assert 0 < worst < 0.05 and all(float(r[5]) <= worst for r in rows)  # relative to range, linear inputs at 0.5 ms
+    assert "estimated" in table.splitlines()[1] and all(float(r[6]) > 0 for r in rows)

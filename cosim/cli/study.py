@@ -241,7 +241,7 @@ def _precision(args: argparse.Namespace) -> int:
     ch = study.choice()
     if ch is not None:
         if ch.chosen == "?":
-            print(f"tolerance default's choice: none ({ch.reason})")
+            print(f"tolerance default's choice: failed ({ch.reason})")
         else:
             ratio = f", {ch.wall_s / best.wall_s:.2f}x the cheapest's wall time" if best and ch.status == "ok" else ""
             print(f"tolerance default's choice: {ch.algorithm} ({ch.chosen}), {ch.status}, worst {ch.worst:.2e}, "

@@ -9,8 +9,8 @@ run by ``e(r x) - e(x) = (r^p - 1) e(x)``, so ``|y_run - y_companion| / (r^p - 1
 the run's own error, signal by signal and instant by instant, including the start transient and
 whatever a coupling defect does downstream of where it enters (a local defect alone says nothing
 about that).  The estimate of a signal is the largest such difference over the run, relative to
-the signal's range in the run (max - min; max |value| for a constant signal), the measure
-``rpr-cosim compare`` reports against a reference.
+the signal's range in the run (max - min, at least :data:`FLAT`), the measure ``rpr-cosim
+compare`` reports against a reference.
 
 ``p`` is the order the coupling has: 1 with held inputs, between 1 and 2 with linear inputs
 (2 in smooth stretches, 1 where a step is long against a time constant), about 3/4 in the tolerance
@@ -31,6 +31,11 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+#: The smallest range an error is measured against [the signal's SI unit]: a signal that moves
+#: less over the run (a platform angle that a path keeps at 0 but the solvers' rounding nudges
+#: by 1e-8 rad) has no range to speak of, and an error of 1e-5 rad on it is not "10^3 of its
+#: range" but 0.1 of this floor.
+FLAT = 1e-4
 #: An estimate of this fraction of a signal's range or more: the coupling has gone unstable.
 UNSTABLE = 0.5
 #: An estimate more than this many times over the tolerance: the run is "inaccurate".
@@ -65,12 +70,34 @@ def divisor(ratio: float, order: float) -> float:
     return ratio ** order - 1.0
 
 
-def _scale(x: np.ndarray) -> float:
+def scale(x: np.ndarray) -> float:
+    """What an error of the signal ``x`` is measured against: its range (max - min), at least
+    :data:`FLAT`; inf when it has no finite value."""
     finite = x[np.isfinite(x)]
     if not len(finite):
         return math.inf
-    span = float(finite.max() - finite.min())
-    return span if span > 0 else float(np.abs(finite).max())
+    return max(float(finite.max() - finite.min()), FLAT)
+
+
+def pchip(x: np.ndarray, y: np.ndarray, at: np.ndarray) -> np.ndarray:
+    """Monotone piecewise-cubic Hermite interpolation (Fritsch and Carlson) of ``y`` (one column
+    per signal) over increasing ``x`` at ``at``: exact at the nodes, no overshoot at a jump
+    (numpy only: the run path imports no scipy)."""
+    h = np.diff(x)[:, None]
+    delta = np.diff(y, axis=0) / h
+    d = np.zeros_like(y)
+    if len(x) > 2:
+        w1, w2 = 2 * h[1:] + h[:-1], h[1:] + 2 * h[:-1]
+        same = (np.sign(delta[:-1]) * np.sign(delta[1:])) > 0
+        with np.errstate(divide="ignore", invalid="ignore"):
+            harm = (w1 + w2) / (w1 / delta[:-1] + w2 / delta[1:])
+        d[1:-1] = np.where(same, harm, 0.0)
+    d[0], d[-1] = delta[0], delta[-1]
+    k = np.clip(np.searchsorted(x, at, side="right") - 1, 0, len(x) - 2)
+    hk = h[k]
+    s = ((at - x[k])[:, None]) / hk
+    h00, h10, h01, h11 = 2 * s**3 - 3 * s**2 + 1, s**3 - 2 * s**2 + s, -2 * s**3 + 3 * s**2, s**3 - s**2
+    return h00 * y[k] + h10 * hk * d[k] + h01 * y[k + 1] + h11 * hk * d[k + 1]
 
 
 def richardson(t: np.ndarray, x: np.ndarray, tc: np.ndarray, xc: np.ndarray, names: Sequence[str],
@@ -79,8 +106,6 @@ def richardson(t: np.ndarray, x: np.ndarray, tc: np.ndarray, xc: np.ndarray, nam
     (``tc``, ``xc``): their largest difference over ``div`` per signal, relative to the run's range.
     They are compared at the instants of the sparser one inside both spans, the denser one
     interpolated there (monotone cubic: exact at shared instants, no overshoot at a jump)."""
-    from scipy.interpolate import PchipInterpolator
-
     lo, hi = max(t[0], tc[0]), min(t[-1], tc[-1])
     if len(t) < 2 or len(tc) < 2 or hi <= lo:
         return ErrorEstimate(None, method=f"{method}: the run and its companion share no time span")
@@ -91,18 +116,18 @@ def richardson(t: np.ndarray, x: np.ndarray, tc: np.ndarray, xc: np.ndarray, nam
     # the dense trace's instants strictly increasing (a stop request may repeat the last instant)
     uniq = np.concatenate([[True], np.diff(dense_t) > 0])
     with np.errstate(all="ignore"):
-        interp = PchipInterpolator(dense_t[uniq], dense_x[uniq], axis=0, extrapolate=True)(at)
+        interp = pchip(dense_t[uniq], dense_x[uniq], at)
         diff = np.abs(interp - sparse_x[keep]) if run_is_dense else np.abs(sparse_x[keep] - interp)
     errors: dict[str, float] = {}
     worst, signal, when = -1.0, "", math.nan
     for j, name in enumerate(names):
-        scale = _scale(x[:, j])
+        sc = scale(x[:, j])
         col = diff[:, j]
-        if not np.isfinite(col).all() or not math.isfinite(scale):
+        if not np.isfinite(col).all() or not math.isfinite(sc):
             e, k = math.inf, int(np.argmax(~np.isfinite(col))) if not np.isfinite(col).all() else 0
         else:
             m = float(col.max()) / div
-            e = m / scale if scale > 0 else (0.0 if m == 0 else math.inf)
+            e = m / sc
             k = int(np.argmax(col))
         errors[name] = e
         if e > worst:

@@ -59,6 +59,8 @@ from .fidelity import resolve_auto
 from ..trace.traces import Trace
 
 ECOSPY = "ecospy"
+#: how the reason of a run judged by its estimate begins (cosim.master.estimate.judge)
+ESTIMATED = "the estimated error of "
 
 
 @dataclass
@@ -243,6 +245,12 @@ def relative_errors(diffs: Sequence[Difference], scale: dict[str, float]) -> dic
     return out
 
 
+def judged(reason: str) -> bool:
+    """Did the run end "unstable" or "inaccurate" by its own error estimate (having run its whole
+    span, so that its errors can be measured like an ok run's)?"""
+    return reason.startswith(ESTIMATED)
+
+
 def _fill_errors(row: PrecisionRow, errors: dict[str, float]) -> None:
     row.errors = errors
     if errors:
@@ -319,8 +327,9 @@ def precision_study(scene_path: Path | str, variants: Sequence[tuple[str, str]],
             study.rows.append(row)
             if progress:
                 progress(_line(row))
-    if tolerance is not None:
-        row = choice_row(scene_path, common, tolerance, ref.trace, scale, only, cache_dir)
+    row = choice_row(scene_path, common, tolerance, ref.trace, scale, only, cache_dir) if tolerance is not None \
+        else None
+    if row is not None:
         study.rows.append(row)
         if progress:
             progress(_line(row))
@@ -329,9 +338,9 @@ def precision_study(scene_path: Path | str, variants: Sequence[tuple[str, str]],
 
 
 def choice_row(scene_path, common: dict, tolerance: float, ref: Trace, scale: dict[str, float],
-               only: Sequence[str] | None, cache_dir) -> PrecisionRow:
-    """The row of the scene run the way its tolerance default runs it (a scene that names no
-    algorithm; otherwise a failed row saying so), ``master.tolerance`` = ``tolerance``;
+               only: Sequence[str] | None, cache_dir) -> PrecisionRow | None:
+    """The row of the scene run the way its tolerance default runs it (None when the scene names
+    its algorithm: there is no choice), ``master.tolerance`` = ``tolerance``;
     the master chooses (:mod:`cosim.run.choose`) and the run is measured like every other row
     (its wall time: the stepping loop of the final run, the pilots not counted)."""
     from ..run.execute import run
@@ -339,8 +348,7 @@ def choice_row(scene_path, common: dict, tolerance: float, ref: Trace, scale: di
     over = {**common, "master.tolerance": tolerance}
     row = PrecisionRow("choice", "", math.nan, "failed", "", chosen="?")
     if not load(scene_path, over, auto_fidelity=resolve_auto).master.auto:
-        row.reason = "the scene names its algorithm: no choice to mark"
-        return row
+        return None
     res = run(scene_path, over, cache_dir=cache_dir, auto_fidelity=resolve_auto)
     ch = res.stats.get("choice") or {}
     sets = ch.get("settings", {})
@@ -350,7 +358,7 @@ def choice_row(scene_path, common: dict, tolerance: float, ref: Trace, scale: di
     row.chosen = ", ".join(f"{k} {v:.3g}" if isinstance(v, float) else f"{k} {v}" for k, v in sets.items())
     row.status, row.reason = res.status, res.reason
     _costs(row, res.stats)
-    if res.status != "ok":
+    if res.status != "ok" and not judged(res.reason):
         return row
     against = ref
     if res.stats.get("smallest_step") is not None:
@@ -401,7 +409,7 @@ def _measure(row: PrecisionRow, result: dict | None, out: Path, name: str, scene
     if sidecar.is_file():
         stats = json.loads(sidecar.read_text()).get("statistics") or {}
     _costs(row, stats)
-    if row.status != "ok":
+    if row.status != "ok" and not judged(row.reason):
         return
     try:
         trace = read_trace(path)
