@@ -1,9 +1,8 @@
 """Warm-up of local batch workers: what every worker would otherwise do before its first run.
 
-A worker's first run used to cost ~0.6 s more than the next ones: importing FMPy and the run
-machinery, reading the package versions written into every trace (``importlib.metadata``),
-loading the compiled master loop (``gcc --version``, ``dlopen``) and searching the Gauss-Seidel
-stepping order (exhaustive over orders, ~85 ms for ``pid_step``).  :func:`warm` does all of it
+A worker's first run would otherwise import FMPy and the run machinery, read the package
+versions written into every trace (``importlib.metadata``), load the compiled master loop
+(``gcc --version``, ``dlopen``) and find the Gauss-Seidel stepping order.  :func:`warm` does all of it
 once in the process the workers are forked from -- the batch process itself when it forks them,
 else the ``forkserver`` (importing this module runs :func:`warm_imports`) -- so that each worker
 inherits the result instead of paying it again.

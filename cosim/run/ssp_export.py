@@ -1,5 +1,14 @@
-"""A scene out as an SSP 1.0 archive: its FMUs (built on a cache miss), parameter set, connections and master settings
-(the format and the reader: :mod:`cosim.scenario.ssp`)."""
+"""A scene out as an SSP 1.0 archive (the format and the reader: :mod:`cosim.scenario.ssp`).
+
+:func:`export` writes one FMU per distinct component binary under ``resources/`` (built on a cache
+miss), the scene's parameters and start values as one system-level parameter set
+``resources/<scene>.ssv`` (hierarchical names ``component.variable``), every signal connection (a
+power bond becomes its two signals, each tagged with an ``org.rpr-cosim.bond`` annotation), the
+units the connectors and parameters use with their SI base units, ``DefaultExperiment`` (the
+scene's start and stop times) and, as an ``org.rpr-cosim.master`` annotation of the default
+experiment, our master settings (algorithm, step, input mode, output interval, order, engine) and
+the recorded outputs.  Both XML files are validated against the SSP 1.0 schemas that FMPy ships
+before the archive is written."""
 from __future__ import annotations
 
 import json

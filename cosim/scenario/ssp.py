@@ -1,16 +1,8 @@
-"""SSP 1.0 (System Structure and Parameterization): scenes out as ``.ssp`` archives and back in.
+"""SSP 1.0 (System Structure and Parameterization) archives as a scene source, and the format's
+names, units and schemas that the export (:mod:`cosim.run.ssp_export`) shares.
 
 An ``.ssp`` is a zip holding ``SystemStructure.ssd`` (the system: components, their connectors,
 connections, units, the default experiment) and resources (the FMUs, ``.ssv`` parameter sets).
-
-Export (:func:`export`) writes one FMU per distinct component binary under ``resources/``, the
-scene's parameters and start values as one system-level parameter set ``resources/<scene>.ssv``
-(hierarchical names ``component.variable``), every signal connection (a power bond becomes its two
-signals, each tagged with an ``org.rpr-cosim.bond`` annotation), the units the connectors and
-parameters use with their SI base units, ``DefaultExperiment`` (the scene's start and stop times)
-and, as an ``org.rpr-cosim.master`` annotation of the default experiment, our master settings
-(algorithm, step, input mode, output interval, order, engine) and the recorded outputs.  Both XML
-files are validated against the SSP 1.0 schemas that FMPy ships before the archive is written.
 
 Import (:func:`scene_tree`) turns an archive into a scene tree (the YAML structure of
 :mod:`cosim.scenario`), so ``rpr-cosim run FILE.ssp`` and ``include: FILE.ssp`` validate and run

@@ -6,6 +6,7 @@ import ctypes
 import os
 import shutil
 import tempfile
+from abc import ABC, abstractmethod
 from collections.abc import Callable, Sequence
 from ctypes import POINTER, c_bool, c_double, c_int, c_size_t, c_uint32, c_void_p
 from pathlib import Path
@@ -93,6 +94,197 @@ def _addr(fn) -> int:
     return ctypes.cast(fn, c_void_p).value
 
 
+class FmiVersion(ABC):
+    """What differs between FMI 2.0 and 3.0 for a co-simulation slave: the C names and call shapes
+    of the per-step functions, how an instance is made and initialised, and what the FMU can say
+    about a stop.  One instance per version (:data:`FMI2`, :data:`FMI3`); an :class:`FmuSlave`
+    holds the one its FMU declares and asks it wherever the versions differ."""
+
+    major: str
+    state_names: tuple[str, str, str]  # get, set, free FMU state
+    configuration_mode = False  # structural parameters set in configuration mode
+    input_derivatives = False  # fmi2SetRealInputDerivatives (linear inputs inside the FMU)
+
+    @abstractmethod
+    def make(self, slave: "FmuSlave", guid: str, unzip: str, ident: str):
+        """The loaded and instantiated FMPy slave object."""
+        ...
+
+    @abstractmethod
+    def bind_step(self, slave: "FmuSlave", dll) -> None:
+        """``slave._step(t, h) -> status`` and ``slave._get``/``_set`` (Float64 by value reference)."""
+        ...
+
+    @abstractmethod
+    def io(self, fn, inst, p_vr, n: int, p_val) -> Callable[[], int]:
+        """A no-argument call of a Float64 getter or setter on ``n`` values."""
+        ...
+
+    @abstractmethod
+    def accessor(self, ft) -> str:
+        """The FMPy method suffix of FMI type ``ft`` (``Real``, ``Float64``, ...)."""
+        ...
+
+    @abstractmethod
+    def raw(self, type_name: str, ft) -> tuple[str, object, object]:
+        """(C type name, numpy storage type, ctypes prototype) of a typed getter or setter."""
+        ...
+
+    @abstractmethod
+    def raw_call(self, fn, inst, p_vr, n_vr: int, p_buf, n_values: int, keep) -> Callable[[], int]:
+        ...
+
+    @abstractmethod
+    def get(self, accessor, vrs: list[int], n_values: int) -> list:
+        ...
+
+    @abstractmethod
+    def enter_initialization(self, slave: "FmuSlave", start: float, stop: float, tolerance: float | None) -> None:
+        ...
+
+    def asked_to_stop(self, slave: "FmuSlave") -> bool:
+        """After a Discard: did the FMU ask to end the simulation?"""
+        return False
+
+    @abstractmethod
+    def last_time(self, slave: "FmuSlave") -> float:
+        """The FMU's last successful time [s] after it asked to stop."""
+        ...
+
+    @abstractmethod
+    def native(self, slave: "FmuSlave", dll, state: tuple[int, int, int]) -> NativeEntry:
+        ...
+
+
+class _Fmi2(FmiVersion):
+    major = "2"
+    state_names = ("fmi2GetFMUstate", "fmi2SetFMUstate", "fmi2FreeFMUstate")
+    input_derivatives = True
+
+    def make(self, slave, guid, unzip, ident):
+        from fmpy.fmi2 import FMU2Slave, defaultCallbacks, fmi2CallbackFunctions, fmi2CallbackLoggerTYPE
+
+        cb = fmi2CallbackFunctions()
+        cb.logger = fmi2CallbackLoggerTYPE(slave._on_log2)
+        cb.allocateMemory = defaultCallbacks.allocateMemory
+        cb.freeMemory = defaultCallbacks.freeMemory
+        slave._callbacks = cb
+        fmu = FMU2Slave(guid=guid, unzipDirectory=unzip, modelIdentifier=ident, instanceName=slave.name)
+        fmu.instantiate(callbacks=cb)
+        return fmu
+
+    def bind_step(self, slave, dll):
+        step = _DoStep2(_addr(dll.fmi2DoStep))
+        slave._get = _IO2(_addr(dll.fmi2GetReal))
+        slave._set = _IO2(_addr(dll.fmi2SetReal))
+        inst = slave._inst
+
+        def do_step(t: float, h: float) -> int:
+            st = step(inst, t, h, 0)
+            if st == Status.DISCARD and slave.asked_to_stop():
+                return Status.STOP_REQUESTED
+            return st
+
+        slave._step = do_step
+
+    def io(self, fn, inst, p_vr, n, p_val):
+        return (lambda: fn(inst, p_vr, n, p_val)) if n else (lambda: 0)
+
+    def accessor(self, ft):
+        return ft.fmi2
+
+    def raw(self, type_name, ft):
+        return ft.fmi2, (np.float64 if type_name == "Real" else np.int32), _RAW2
+
+    def raw_call(self, fn, inst, p_vr, n_vr, p_buf, n_values, keep):
+        return lambda: fn(inst, p_vr, n_vr, p_buf) if keep else 0
+
+    def get(self, accessor, vrs, n_values):
+        return accessor(vrs)
+
+    def enter_initialization(self, slave, start, stop, tolerance):
+        slave._call("fmi2SetupExperiment", slave.fmu.setupExperiment, tolerance, start, stop)
+        slave._call("fmi2EnterInitializationMode", slave.fmu.enterInitializationMode)
+
+    def asked_to_stop(self, slave):
+        from fmpy.fmi2 import fmi2Terminated
+
+        try:
+            return bool(slave.fmu.getBooleanStatus(fmi2Terminated))
+        except Exception:  # an FMU that does not implement the status inquiry: a plain Discard
+            return False
+
+    def last_time(self, slave):
+        from fmpy.fmi2 import fmi2LastSuccessfulTime
+
+        return slave.fmu.getRealStatus(fmi2LastSuccessfulTime)
+
+    def native(self, slave, dll, state):
+        der = _addr(dll.fmi2SetRealInputDerivatives) if slave.description.can_interpolate_inputs else 0
+        return NativeEntry(False, slave.fmu.component, _addr(dll.fmi2DoStep), _addr(dll.fmi2GetReal),
+                           _addr(dll.fmi2SetReal), der, *state, _boolean_status(dll))
+
+
+class _Fmi3(FmiVersion):
+    major = "3"
+    state_names = ("fmi3GetFMUState", "fmi3SetFMUState", "fmi3FreeFMUState")
+    configuration_mode = True
+
+    def make(self, slave, guid, unzip, ident):
+        from fmpy.fmi3 import FMU3Slave, fmi3LogMessageCallback
+
+        slave._log = fmi3LogMessageCallback(slave._on_log3)
+        fmu = FMU3Slave(guid=guid, unzipDirectory=unzip, modelIdentifier=ident, instanceName=slave.name)
+        fmu.instantiate(logMessage=slave._log)
+        return fmu
+
+    def bind_step(self, slave, dll):
+        step = _DoStep3(_addr(dll.fmi3DoStep))
+        slave._get = _IO3(_addr(dll.fmi3GetFloat64))
+        slave._set = _IO3(_addr(dll.fmi3SetFloat64))
+        flags = [c_bool(), c_bool(), c_bool()]  # eventHandlingNeeded, terminateSimulation, earlyReturn
+        slave._last_t = c_double()
+        p_flags, p_last, inst = [ctypes.byref(f) for f in flags], ctypes.byref(slave._last_t), slave._inst
+        terminate = flags[1]
+
+        def do_step(t: float, h: float) -> int:
+            # noSetFMUStatePriorToCurrentPoint: only promised when this slave cannot be rolled back
+            st = step(inst, t, h, not slave.can_rollback, *p_flags, p_last)
+            if st < 2 and terminate.value:
+                return Status.STOP_REQUESTED
+            return st
+
+        slave._step = do_step
+
+    def io(self, fn, inst, p_vr, n, p_val):
+        return (lambda: fn(inst, p_vr, n, p_val, n)) if n else (lambda: 0)
+
+    def accessor(self, ft):
+        return ft.fmi3
+
+    def raw(self, type_name, ft):
+        return ft.fmi3, (np.bool_ if type_name == "Boolean" else ft.dtype), _RAW3
+
+    def raw_call(self, fn, inst, p_vr, n_vr, p_buf, n_values, keep):
+        return lambda: fn(inst, p_vr, n_vr, p_buf, n_values) if keep else 0
+
+    def get(self, accessor, vrs, n_values):
+        return accessor(vrs, n_values)
+
+    def enter_initialization(self, slave, start, stop, tolerance):
+        slave._call("fmi3EnterInitializationMode", slave.fmu.enterInitializationMode, tolerance, start, stop)
+
+    def last_time(self, slave):
+        return slave._last_t.value
+
+    def native(self, slave, dll, state):
+        return NativeEntry(True, slave.fmu.component, _addr(dll.fmi3DoStep), _addr(dll.fmi3GetFloat64),
+                           _addr(dll.fmi3SetFloat64), 0, *state)
+
+
+FMI2, FMI3 = _Fmi2(), _Fmi3()
+
+
 class FmuSlave(Slave):
     """A co-simulation FMU (FMI 2.0 or 3.0).  FMPy loads the library and handles instantiation,
     initialisation and termination; the per-step calls go straight to the FMI functions through
@@ -101,7 +293,7 @@ class FmuSlave(Slave):
     def __init__(self, name: str, path: Path, description: SlaveDescription | None = None):
         self.path = Path(path)
         super().__init__(name, description or describe_fmu(self.path))
-        self.fmi3 = str(self.description.fmi_version).startswith("3")
+        self.fmi: FmiVersion = FMI3 if str(self.description.fmi_version).startswith("3") else FMI2
         self.fmu = None
         self._terminated = False
         self._empty_vr = (c_uint32 * 1)()
@@ -118,8 +310,6 @@ class FmuSlave(Slave):
             self.reset()
             return
         import fmpy
-        from fmpy.fmi2 import FMU2Slave, defaultCallbacks, fmi2CallbackFunctions, fmi2CallbackLoggerTYPE
-        from fmpy.fmi3 import FMU3Slave, fmi3LogMessageCallback
 
         guid, ident = self.description.guid, self.description.model_identifier
         if not (guid and ident):
@@ -127,37 +317,12 @@ class FmuSlave(Slave):
             guid, ident = md.guid, md.coSimulation.modelIdentifier
         unzip = _unzip(self.path)
         try:
-            if self.fmi3:
-                self._log = fmi3LogMessageCallback(self._on_log3)
-                self.fmu = FMU3Slave(guid=guid, unzipDirectory=unzip, modelIdentifier=ident,
-                                     instanceName=self.name)
-                self.fmu.instantiate(logMessage=self._log)
-            else:
-                cb = fmi2CallbackFunctions()
-                cb.logger = fmi2CallbackLoggerTYPE(self._on_log2)
-                cb.allocateMemory = defaultCallbacks.allocateMemory
-                cb.freeMemory = defaultCallbacks.freeMemory
-                self._callbacks = cb
-                self.fmu = FMU2Slave(guid=guid, unzipDirectory=unzip, modelIdentifier=ident,
-                                     instanceName=self.name)
-                self.fmu.instantiate(callbacks=cb)
+            self.fmu = self.fmi.make(self, guid, unzip, ident)
         except Exception as exc:  # fmpy raises bare Exceptions for a missing binary or failed call
             raise UserError(f"{self.name}: cannot instantiate {self.path} ({exc}"
                             f"{'; ' + self.last_message if self.last_message else ''})") from None
-        dll = self.fmu.dll
-        if self.fmi3:
-            self._step3 = _DoStep3(_addr(dll.fmi3DoStep))
-            self._get = _IO3(_addr(dll.fmi3GetFloat64))
-            self._set = _IO3(_addr(dll.fmi3SetFloat64))
-            self._flags = [c_bool(), c_bool(), c_bool()]  # eventHandlingNeeded, terminateSimulation, earlyReturn
-            self._last_t = c_double()
-            self._p_flags = [ctypes.byref(f) for f in self._flags]
-            self._p_last = ctypes.byref(self._last_t)
-        else:
-            self._step2 = _DoStep2(_addr(dll.fmi2DoStep))
-            self._get = _IO2(_addr(dll.fmi2GetReal))
-            self._set = _IO2(_addr(dll.fmi2SetReal))
         self._inst = c_void_p(self.fmu.component)
+        self.fmi.bind_step(self, self.fmu.dll)
 
     def _on_log2(self, env, instance, status, category, message) -> None:
         self.messages.append(f"[{Status(status).name if status in Status._value2member_map_ else status}] "
@@ -181,7 +346,7 @@ class FmuSlave(Slave):
             return
         vs = self.description.variables
         structural = [k for k in values if vs[k].causality == "structuralParameter"]
-        if structural and self.fmi3:
+        if structural and self.fmi.configuration_mode:
             self._call("fmi3EnterConfigurationMode", self.fmu.enterConfigurationMode)
             for k in structural:
                 self._call(f"setting structural parameter {k}", self.set_values, k, values[k])
@@ -194,7 +359,7 @@ class FmuSlave(Slave):
         from .types import TYPES
 
         ft = TYPES[type_name]
-        return getattr(self.fmu, verb + (ft.fmi3 if self.fmi3 else ft.fmi2))
+        return getattr(self.fmu, verb + self.fmi.accessor(ft))
 
     def set_values(self, name: str, value) -> None:
         """Set variable ``name`` (any type; an array as its values in row-major order); raises
@@ -212,38 +377,22 @@ class FmuSlave(Slave):
         FMI storage type: FMI 2.0 Boolean and Enumeration are int32); returns the FMI status."""
         from .types import TYPES
 
-        ft = TYPES[type_name]
-        if self.fmi3:
-            dtype = np.bool_ if type_name == "Boolean" else ft.dtype
-            proto = _RAW3
-        else:
-            dtype = np.float64 if type_name == "Real" else np.int32
-            proto = _RAW2
-        fname = f"fmi{'3' if self.fmi3 else '2'}{verb.capitalize()}{ft.fmi3 if self.fmi3 else ft.fmi2}"
-        fn = proto(_addr(getattr(self.fmu.dll, fname)))
+        ctype, dtype, proto = self.fmi.raw(type_name, TYPES[type_name])
+        fn = proto(_addr(getattr(self.fmu.dll, f"fmi{self.fmi.major}{verb.capitalize()}{ctype}")))
         vr = np.ascontiguousarray(vrs, dtype=np.uint32)
         buf = np.zeros(n_values, dtype=dtype)
         inst, p_vr, n_vr, p_buf = self._inst, vr.ctypes.data, len(vr), buf.ctypes.data
-        keep = (vr, buf)
-        if self.fmi3:
-            return (lambda: fn(inst, p_vr, n_vr, p_buf, n_values) if keep else 0), buf
-        return (lambda: fn(inst, p_vr, n_vr, p_buf) if keep else 0), buf
+        return self.fmi.raw_call(fn, inst, p_vr, n_vr, p_buf, n_values, (vr, buf)), buf
 
     def get_values(self, type_name: str, vrs: list[int], n_values: int) -> list:
         """Values of the variables ``vrs`` of one type (``n_values`` in all, arrays flattened)."""
-        get = self._accessor("get", type_name)
-        vals = get(vrs, n_values) if self.fmi3 else get(vrs)
+        vals = self.fmi.get(self._accessor("get", type_name), vrs, n_values)
         if type_name == "String":
             vals = [v.decode("utf-8", errors="replace") if isinstance(v, bytes) else v for v in vals]
         return vals
 
     def enter_initialization(self, start_time: float, stop_time: float, tolerance: float | None = None) -> None:
-        if self.fmi3:
-            self._call("fmi3EnterInitializationMode", self.fmu.enterInitializationMode,
-                       tolerance, start_time, stop_time)
-        else:
-            self._call("fmi2SetupExperiment", self.fmu.setupExperiment, tolerance, start_time, stop_time)
-            self._call("fmi2EnterInitializationMode", self.fmu.enterInitializationMode)
+        self.fmi.enter_initialization(self, start_time, stop_time, tolerance)
 
     def exit_initialization(self) -> None:
         self._call("exitInitializationMode", self.fmu.exitInitializationMode)
@@ -261,19 +410,11 @@ class FmuSlave(Slave):
         self._p_in = in_buf.ctypes.data_as(pd) if self._n_in else self._empty_val
         self._p_out_vr = self._out_vr.ctypes.data_as(pu) if self._n_out else self._empty_vr
         self._p_out = out_buf.ctypes.data_as(pd) if self._n_out else self._empty_val
-        if self.fmi3:
-            n_in, n_out, inst, setf, getf = self._n_in, self._n_out, self._inst, self._set, self._get
-            a_in, v_in, a_out, v_out = self._p_in_vr, self._p_in, self._p_out_vr, self._p_out
-            self.push = (lambda: setf(inst, a_in, n_in, v_in, n_in)) if n_in else (lambda: 0)
-            self.pull = (lambda: getf(inst, a_out, n_out, v_out, n_out)) if n_out else (lambda: 0)
-        else:
-            n_in, n_out, inst, setf, getf = self._n_in, self._n_out, self._inst, self._set, self._get
-            a_in, v_in, a_out, v_out = self._p_in_vr, self._p_in, self._p_out_vr, self._p_out
-            self.push = (lambda: setf(inst, a_in, n_in, v_in)) if n_in else (lambda: 0)
-            self.pull = (lambda: getf(inst, a_out, n_out, v_out)) if n_out else (lambda: 0)
+        self.push = self.fmi.io(self._set, self._inst, self._p_in_vr, self._n_in, self._p_in)
+        self.pull = self.fmi.io(self._get, self._inst, self._p_out_vr, self._n_out, self._p_out)
 
     def bind_slopes(self, slope_buf: np.ndarray) -> bool:
-        if self.fmi3 or not self.description.can_interpolate_inputs or not self._n_in:
+        if not (self.fmi.input_derivatives and self.description.can_interpolate_inputs and self._n_in):
             return False
         if slope_buf.dtype != np.float64 or not slope_buf.flags.c_contiguous or len(slope_buf) != self._n_in:
             raise ValueError(f"{self.name}: the slope buffer must be {self._n_in} contiguous float64 values")
@@ -285,6 +426,11 @@ class FmuSlave(Slave):
         self.push_slopes = lambda: setder(inst, a_in, n_in, p_ord, p_slope)
         return True
 
+    @property
+    def fmi3(self) -> bool:
+        """True for an FMI 3.0 FMU."""
+        return self.fmi is FMI3
+
     def push(self) -> int:  # replaced per instance by bind()
         raise RuntimeError(f"{self.name}: push() before bind()")
 
@@ -292,37 +438,17 @@ class FmuSlave(Slave):
         raise RuntimeError(f"{self.name}: pull() before bind()")
 
     def do_step(self, t: float, h: float) -> int:
-        if self.fmi3:
-            # noSetFMUStatePriorToCurrentPoint: only promised when this slave cannot be rolled back
-            st = self._step3(self._inst, t, h, not self.can_rollback, *self._p_flags, self._p_last)
-            if st < 2 and self._flags[1].value:
-                return Status.STOP_REQUESTED
-            return st
-        st = self._step2(self._inst, t, h, 0)
-        if st == Status.DISCARD and self.asked_to_stop():
-            return Status.STOP_REQUESTED
-        return st
+        return self._step(t, h)  # made by the FMI version at instantiation
 
     def asked_to_stop(self) -> bool:
         """After an FMI 2.0 Discard: did the FMU ask to end the simulation (fmi2Terminated)?"""
-        if self.fmi3 or self.fmu is None:
-            return False
-        from fmpy.fmi2 import fmi2Terminated
-
-        try:
-            return bool(self.fmu.getBooleanStatus(fmi2Terminated))
-        except Exception:  # an FMU that does not implement the status inquiry: a plain Discard
-            return False
+        return self.fmu is not None and self.fmi.asked_to_stop(self)
 
     def stop_detail(self) -> str:
         """Why and when the FMU asked to stop: its last successful time [s] (FMI 2.0 status, FMI 3.0
         doStep output), '' when unknown."""
         try:
-            if self.fmi3:
-                return f"its last successful time {self._last_t.value:.9g} s"
-            from fmpy.fmi2 import fmi2LastSuccessfulTime
-
-            return f"its last successful time {self.fmu.getRealStatus(fmi2LastSuccessfulTime):.9g} s"
+            return f"its last successful time {self.fmi.last_time(self):.9g} s"
         except Exception:  # optional inquiry
             return ""
 
@@ -364,20 +490,11 @@ class FmuSlave(Slave):
         dll = self.fmu.dll
         st = (0, 0, 0)
         if self.can_rollback:
-            v = "3" if self.fmi3 else "2"
             try:
-                st = tuple(_addr(getattr(dll, f"fmi{v}{x}")) for x in
-                           (("GetFMUState", "SetFMUState", "FreeFMUState") if self.fmi3 else
-                            ("GetFMUstate", "SetFMUstate", "FreeFMUstate")))
+                st = tuple(_addr(getattr(dll, x)) for x in self.fmi.state_names)
             except AttributeError:  # declared but not exported: no compiled rollback
                 st = (0, 0, 0)
-        if self.fmi3:
-            return NativeEntry(True, self.fmu.component, _addr(dll.fmi3DoStep), _addr(dll.fmi3GetFloat64),
-                               _addr(dll.fmi3SetFloat64), 0, *st)
-        return NativeEntry(False, self.fmu.component, _addr(dll.fmi2DoStep), _addr(dll.fmi2GetReal),
-                           _addr(dll.fmi2SetReal),
-                           _addr(dll.fmi2SetRealInputDerivatives) if self.description.can_interpolate_inputs else 0,
-                           *st, _boolean_status(dll))
+        return self.fmi.native(self, dll, st)
 
     @property
     def can_rollback(self) -> bool:
@@ -388,15 +505,14 @@ class FmuSlave(Slave):
         calls = getattr(self, "_state_fns", None)
         if calls is None or calls[0] is not self.fmu:
             dll = self.fmu.dll
-            calls = self._state_fns = (
-                self.fmu, _GetState(_addr(dll.fmi3GetFMUState if self.fmi3 else dll.fmi2GetFMUstate)),
-                _SetState(_addr(dll.fmi3SetFMUState if self.fmi3 else dll.fmi2SetFMUstate)))
+            get, set_, _ = self.fmi.state_names
+            calls = self._state_fns = (self.fmu, _GetState(_addr(getattr(dll, get))), _SetState(_addr(getattr(dll, set_))))
         return calls[1:]
 
     def save_state(self) -> None:
         if not self.can_rollback:
             return Slave.save_state(self)
-        dll, state = self.fmu.dll, getattr(self, "_state", None)
+        state = getattr(self, "_state", None)
         if state is None:
             state = self._state = c_void_p()
         st = self._state_calls()[0](self._inst, ctypes.byref(state))
@@ -416,7 +532,7 @@ class FmuSlave(Slave):
     def _free_state(self) -> None:
         state = getattr(self, "_state", None)
         if state is not None and state.value and self.fmu is not None:
-            fn = _GetState(_addr(self.fmu.dll.fmi3FreeFMUState if self.fmi3 else self.fmu.dll.fmi2FreeFMUstate))
+            fn = _GetState(_addr(getattr(self.fmu.dll, self.fmi.state_names[2])))
             fn(self._inst, ctypes.byref(state))
         self._state = None
 
