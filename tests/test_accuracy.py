@@ -135,3 +135,19 @@ def test_a_bad_tolerance_is_one_line_naming_the_field(tmp_path, capsys, value):
     assert main(["run", str(path), "--check"]) == 2
     err = capsys.readouterr().err
     assert "master.tolerance" in err and "expected a number in (0, 0.5)" in err
+
+
+def test_study_precision_marks_the_tolerance_defaults_choice_beside_the_cheapest(tmp_path, cache):
+    from cosim.study.precision import plot_study, precision_study
+
+    path = _scene(tmp_path, "{step: 1e-2, output_interval: 1e-2}")
+    st = precision_study(path, [("gauss_seidel", "hold")], [1e-2, 5e-3], stop_time=2.0, out=tmp_path / "study",
+                         cache_dir=cache, tolerance=1e-3)
+    choice = st.choice()
+    assert choice is not None and choice.algorithm == "adaptive" and "rtol" in choice.chosen
+    assert choice.status == "ok" and 0 < choice.worst <= 1e-3  # measured against the reference like every row
+    assert st.cheapest_within(1.0) is not choice  # the cheapest is one of the study's own runs
+    assert plot_study(st, tmp_path / "chart.png").stat().st_size > 0
+    named = precision_study(SCENES / "two_mass.yaml", [("jacobi", "hold")], [1e-2], stop_time=1.0,
+                            out=tmp_path / "named", cache_dir=cache, tolerance=1e-3)
+    assert named.choice() is None  # a scene that names its algorithm has no choice to mark
