@@ -151,3 +151,14 @@ def test_study_precision_marks_the_tolerance_defaults_choice_beside_the_cheapest
     named = precision_study(SCENES / "two_mass.yaml", [("jacobi", "hold")], [1e-2], stop_time=1.0,
                             out=tmp_path / "named", cache_dir=cache, tolerance=1e-3)
     assert named.choice() is None  # a scene that names its algorithm has no choice to mark
+
+
+def test_a_tolerance_no_fixed_step_can_meet_is_one_line_exit_2(tmp_path, cache, capsys, monkeypatch):
+    from cosim.run import choose
+
+    monkeypatch.setattr(choose, "MAX_STEPS", 1000)  # (10^7 in earnest; a small cap keeps the test short)
+    path = _scene(tmp_path, "{step: 1e-2, output_interval: 1e-2, tolerance: 1e-9}", rollback=False)
+    assert main(["run", str(path), "--out", str(tmp_path / "out"), "--cache", str(cache)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert "meeting master.tolerance 1e-09 needs a step of about" in err[-1] and "relax the tolerance" in err[-1]
+    assert not (tmp_path / "out" / "two_mass_free.csv").exists()  # nothing ran

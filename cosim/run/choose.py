@@ -28,6 +28,8 @@ from ..scenario import Scene
 from ..scenario.check_connections import algebraic_loop
 from .companion import ORDER_HOLD, ORDER_LINEAR, ORDER_TOLERANCE
 
+#: The most fixed steps a chosen step may take over the run.
+MAX_STEPS = 10 ** 7
 #: Pilot runs at most (each with its companion).
 MAX_PILOTS = 5
 #: A setting is kept when its estimate is within the tolerance and above this fraction of it.
@@ -197,6 +199,10 @@ def choose(scene: Scene, pilot: Callable[[Scene], object] | None, log: Callable[
                 raise UserError(f"scene {scene.name}: no fixed step that divides the output interval "
                                 f"{m.record_every * m.step:g} s meets master.tolerance {tol:g} (estimated {e:.3g} at "
                                 f"step {h_ns / 1e9:g} s); record more often or relax the tolerance")
+        if scene.n_steps * m.step_ns // nxt > MAX_STEPS:
+            raise UserError(f"scene {scene.name}: meeting master.tolerance {tol:g} needs a step of about "
+                            f"{nxt / 1e9:.3g} s or less (estimated {e:.3g} at step {h_ns / 1e9:g} s), more than "
+                            f"{MAX_STEPS:.0e} steps; relax the tolerance or name an algorithm")
         if best is not None and nxt >= min([q["step"] for q in choice.pilots if q["estimate"] is not None and
                                              q["estimate"] > tol and q["window_s"] >= sc.stop_time - sc.start_time]
                                             or [math.inf]) * 1e9:
