@@ -92,7 +92,7 @@ def test_impossible_runs_are_stopped_with_the_variable_time_and_value(sets, stat
 def test_without_guards_the_pid_finding_is_caught_by_the_error_estimate():
     """The finding as filed: with every guard off the run went on to legs kilometres long and said
     "ok"; the guards are for that, and without them the run's own error estimate (a companion at
-    twice the step disagrees by more than the signals' range) ends it "unstable" (issue 19)."""
+    half the step disagrees by more than the signals' range) ends it "unstable" (issue 19)."""
     res = run(PID_STEP, PID_1E6 + ["guards=off", "stop_time=0.5"])
     assert "guards" not in res.stats
     assert res.trace.final()["mech.leg[1].s"] > 100 * LMAX

@@ -324,8 +324,8 @@ def test_the_compiled_loop_returns_to_python_within_its_time_budget(cache, monke
     monkeypatch.setattr(fastloop, "CALL_BUDGET_NS", 1)
     monkeypatch.setattr(master._Compiled, "run", counted)
     chunked = run(PID, fixed, cache_dir=cache)
-    # the run's 500 steps and its error estimate's companion run's 250 (twice the step)
-    assert chunked.ok and max(calls) == 16 and sum(calls) == 500 + 250
+    # the run's 500 steps and its error estimate's companion run's 1000 (half the step)
+    assert chunked.ok and max(calls) == 16 and sum(calls) == 500 + 1000
     np.testing.assert_array_equal(chunked.trace.data, whole.trace.data)
 
 

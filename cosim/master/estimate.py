@@ -4,8 +4,9 @@ verdict it gives (:func:`judge`).
 Method (Richardson extrapolation against a companion run): the run's error against the exact
 coupled solution is, to leading order, ``e(x) = C x^p`` in its accuracy parameter ``x`` (the
 communication step of a fixed-step algorithm, the tolerance of a variable-step one).  A companion
-run of the same scene at ``r x`` (twice the step, four times the tolerance) then differs from the
-run by ``e(r x) - e(x) = (r^p - 1) e(x)``, so ``|y_run - y_companion| / (r^p - 1)`` estimates
+run of the same scene at ``r x`` (half the step, a quarter of the tolerance:
+:mod:`cosim.run.companion`) then differs from the run by ``e(x) - e(r x) = (1 - r^p) e(x)``, so
+``|y_run - y_companion| / |1 - r^p|`` estimates
 the run's own error, signal by signal and instant by instant, including the start transient and
 whatever a coupling defect does downstream of where it enters (a local defect alone says nothing
 about that).  The estimate of a signal is the largest such difference over the run, relative to
@@ -15,11 +16,11 @@ compare`` reports against a reference.
 ``p`` is the order the coupling has: 1 with held inputs, between 1 and 2 with linear inputs
 (2 in smooth stretches, 1 where a step is long against a time constant), about 3/4 in the tolerance
 of ``adaptive`` and ``ecco`` (``rpr-cosim study precision`` prints the observed orders); the
-divisor ``r^p - 1`` uses the middle of that range, so a run whose true order is at either end is
-estimated within a factor of 2 (docs/accuracy.md has the measured table).
+divisor ``|1 - r^p|`` uses the middle of that range, so a run whose true order is at either end is
+estimated within a factor of 1.3 (docs/accuracy.md has the measured table).
 
-A coupling that has gone unstable diverges, and a companion at twice the step diverges faster:
-their difference is then of the order of the signal's range, and the run is not "ok" but
+A coupling that has gone unstable diverges, and a companion at half the step diverges slower or
+not at all: their difference is then of the order of the signal's range, and the run is not "ok" but
 "unstable" (:data:`UNSTABLE`).  With a tolerance, an estimate more than :data:`INACCURATE` times
 over it is "inaccurate".
 """
@@ -66,8 +67,9 @@ class ErrorEstimate:
 
 
 def divisor(ratio: float, order: float) -> float:
-    """``ratio^order - 1``: how much larger the companion's error is than the run's, over the run's."""
-    return ratio ** order - 1.0
+    """``|ratio^order - 1|``: the difference between the run's error and its companion's (at
+    ``ratio`` times the run's step or tolerance), over the run's."""
+    return abs(ratio ** order - 1.0)
 
 
 def scale(x: np.ndarray) -> float:

@@ -298,10 +298,11 @@ def _companion_trace(scene: Scene, make_slaves, engine) -> tuple[tuple | None, f
                  rates=[c.rate for c in cs.components.values()], timing=False)
     except UserError as exc:
         return None, 1.0, f"{comp.method} could not run: {exc}"
-    except Exception as exc:  # the companion failed: what it recorded still serves
-        if memory.trace is None or len(memory.trace.data) < 2:
-            return None, 1.0, f"{comp.method} failed: {type(exc).__name__}: {exc}"
+    except Exception as exc:  # the companion failed: no estimate
+        return None, 1.0, f"{comp.method} failed: {type(exc).__name__}: {exc}"
     tr = memory.trace
+    if tr.status not in ("ok", "stopped"):  # a companion that failed says nothing of the run
+        return None, 1.0, f"{comp.method} ended {tr.status}: {tr.reason}"
     return (tr.time, tr.data[:, 1:]), comp.div, comp.method
 
 
