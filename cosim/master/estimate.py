@@ -37,6 +37,9 @@ import numpy as np
 #: by 1e-8 rad) has no range to speak of, and an error of 1e-5 rad on it is not "10^3 of its
 #: range" but 0.1 of this floor.
 FLAT = 1e-4
+#: The share of a difference between irregular traces the interpolation's doubt leaves in any case
+#: (a kink may explain most of a difference, never all of it for sure).
+DOUBT_KEEPS = 0.1
 #: An estimate of this fraction of a signal's range or more: the coupling has gone unstable.
 UNSTABLE = 0.5
 #: An estimate more than this many times over the tolerance: the run is "inaccurate".
@@ -108,7 +111,8 @@ def richardson(t: np.ndarray, x: np.ndarray, tc: np.ndarray, xc: np.ndarray, nam
     (``tc``, ``xc``): their largest difference over ``div`` per signal, relative to the run's range.
     They are compared at the instants of the sparser one inside both spans, the denser one
     interpolated there (monotone cubic: exact at shared instants, no overshoot at a jump), less
-    the interpolation's own doubt there (its distance from linear interpolation)."""
+    the interpolation's own doubt there (its distance from linear interpolation), which leaves at
+    least :data:`DOUBT_KEEPS` of the difference."""
     lo, hi = max(t[0], tc[0]), min(t[-1], tc[-1])
     if len(t) < 2 or len(tc) < 2 or hi <= lo:
         return ErrorEstimate(None, method=f"{method}: the run and its companion share no time span")
@@ -124,7 +128,7 @@ def richardson(t: np.ndarray, x: np.ndarray, tc: np.ndarray, xc: np.ndarray, nam
         # from the straight line, 0 at shared instants; taken off the difference
         doubt = np.abs(interp - np.column_stack([np.interp(at, dt, dx[:, j]) for j in range(dx.shape[1])]))
         diff = np.abs(interp - sparse_x[keep])
-        diff = np.where(np.isfinite(diff), np.maximum(diff - doubt, 0.0), diff)
+        diff = np.where(np.isfinite(diff), np.maximum(diff - doubt, DOUBT_KEEPS * diff), diff)
     errors: dict[str, float] = {}
     worst, signal, when = -1.0, "", math.nan
     for j, name in enumerate(names):
