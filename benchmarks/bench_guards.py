@@ -42,8 +42,8 @@ def margins(path: Path) -> None:
         print(f"  {lim.name:<20} {lim.kind:<7} {col.min():>9.4g} .. {col.max():<9.4g} {lim.unit:<2} limit "
               f"[{lim.low:g}, {lim.high:g}]")
     for mech in guard.mechanisms:
-        det = det_j(mech.comp, np.vstack([tr[n] for n in mech.names]))
-        print(f"  {mech.comp.name:<20} det J   {det.min():>9.4g} .. {det.max():<9.4g} m  smallest |det J| "
+        det = det_j(None, np.vstack([tr[n] for n in mech.names]), mech.g)
+        print(f"  {mech.name:<20} det J   {det.min():>9.4g} .. {det.max():<9.4g} m  smallest |det J| "
               f"{np.abs(det).min():.4g} m (limit {scene.guards.min_det:g} m)")
     print(f"  largest |value| of the {len(tr.names)} guarded variables: {np.abs(tr.data[:, 1:]).max():.4g} "
           f"(limit {scene.guards.max_abs:g})")

@@ -1,4 +1,5 @@
-"""Compile generated C into the FMU's shared library and pack the ``.fmu`` archive.
+"""Compile generated C into the FMU's shared library and pack the ``.fmu`` archive; compile
+programs (the board daemon) for this machine or a cross target (:data:`TARGETS`).
 
 The library is built with ``-fvisibility=hidden``: only the ``fmi2*``/``fmi3*`` functions, which
 the FMI headers mark visible, are exported, so many FMUs (and many instances) share one process.
@@ -55,12 +56,38 @@ def large_functions_at_o1(code: str) -> tuple[str, int]:
     return "".join(out), wrapped
 
 
-def compiler() -> str:
-    """The C compiler: ``$CC`` or ``gcc`` (``cc`` as a fallback)."""
-    cc = os.environ.get("CC") or shutil.which("gcc") or shutil.which("cc")
+#: Cross targets: name -> (compiler, Debian package, qemu-user runner, sysroot for the runner).
+TARGETS = {"armhf": ("arm-linux-gnueabihf-gcc", "gcc-arm-linux-gnueabihf", "qemu-arm", "/usr/arm-linux-gnueabihf")}
+
+
+def compiler(target: str = "host") -> str:
+    """The C compiler for ``target``: ``$CC`` or ``gcc`` (``cc`` as a fallback) for ``"host"``;
+    ``$CC_<TARGET>`` or the Debian cross compiler of :data:`TARGETS` otherwise."""
+    if target == "host":
+        cc = os.environ.get("CC") or shutil.which("gcc") or shutil.which("cc")
+        if not cc:
+            raise BuildError("no C compiler found: install gcc (Debian: apt-get install gcc) or set $CC")
+        return cc
+    if target not in TARGETS:
+        raise BuildError(f"unknown build target {target!r}: expected host or {', '.join(TARGETS)}")
+    name, package = TARGETS[target][:2]
+    cc = os.environ.get(f"CC_{target.upper()}") or shutil.which(name)
     if not cc:
-        raise BuildError("no C compiler found: install gcc (Debian: apt-get install gcc) or set $CC")
+        raise BuildError(f"no cross compiler for {target}: install {package} (Debian: apt-get install {package}) "
+                         f"or set $CC_{target.upper()}")
     return cc
+
+
+def runner(target: str = "host") -> list[str]:
+    """The command prefix that runs a program built for ``target`` here: nothing for the host,
+    qemu-user with the target's sysroot for a cross target (BuildError if qemu is missing)."""
+    if target == "host":
+        return []
+    qemu, sysroot = TARGETS[target][2], TARGETS[target][3]
+    path = shutil.which(qemu)
+    if not path:
+        raise BuildError(f"cannot run {target} programs here: install qemu-user (Debian: apt-get install qemu-user)")
+    return [path, "-L", sysroot]
 
 
 @lru_cache(maxsize=None)
@@ -90,31 +117,52 @@ def library_suffix() -> str:
     return ".dylib" if platform.system() == "Darwin" else ".so"
 
 
-def compile_library(src_dir: Path, sources: list[str], out: Path, *, block_name: str, opt: str = "-O2") -> None:
-    """Compile ``sources`` (in parallel, one process each) and link them into ``out``; a failure
-    raises :class:`BuildError` with the head of the compiler log."""
-    cc = compiler()
-    darwin = platform.system() == "Darwin"
-    procs = []
-    for s in sources:
-        obj = src_dir / (Path(s).stem + ".o")
-        cmd = [cc, opt, *CFLAGS, f"-I{src_dir}", "-c", str(src_dir / s), "-o", str(obj)]
-        procs.append((obj, subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)))
-    objs, errors = [], []
-    for obj, proc in procs:
+def _run_compiler(compile_cmds: list[tuple[str, list[str]]], link: list[str], what: str) -> None:
+    """Compile (in parallel, one process each), then link; BuildError with the log's head."""
+    procs = [(obj, subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True))
+             for obj, cmd in compile_cmds]
+    errors = []
+    for _, proc in procs:
         out_text, err_text = proc.communicate()
         if proc.returncode != 0:
             errors.append((proc.returncode, (err_text or out_text).strip()))
-        objs.append(str(obj))
     if not errors:
-        link = [cc, *[str(o) for o in objs], "-o", str(out), *[f for f in LDFLAGS if not (darwin and "-z" in f)]]
         res = subprocess.run(link, capture_output=True, text=True)
         if res.returncode != 0:
             errors.append((res.returncode, (res.stderr or res.stdout).strip()))
     if errors:
         code, log_text = errors[0]
         head = " | ".join(log_text.splitlines()[:6])
-        raise BuildError(f"block {block_name}: the C compiler failed (exit {code}): {head}")
+        raise BuildError(f"{what}: the C compiler failed (exit {code}): {head}")
+
+
+def compile_library(src_dir: Path, sources: list[str], out: Path, *, block_name: str, opt: str = "-O2",
+                    target: str = "host") -> None:
+    """Compile ``sources`` (in parallel, one process each) and link them into ``out``; a failure
+    raises :class:`BuildError` with the head of the compiler log."""
+    cc = compiler(target)
+    darwin = platform.system() == "Darwin" and target == "host"
+    cmds = [(str(src_dir / (Path(s).stem + ".o")),
+             [cc, opt, *CFLAGS, f"-I{src_dir}", "-c", str(src_dir / s), "-o", str(src_dir / (Path(s).stem + ".o"))])
+            for s in sources]
+    link = [cc, *[o for o, _ in cmds], "-o", str(out), *[f for f in LDFLAGS if not (darwin and "-z" in f)]]
+    _run_compiler(cmds, link, f"block {block_name}")
+
+
+#: Flags of programs (without the optimisation level); part of their cache key.
+PROGRAM_CFLAGS = ("-std=c99", "-Wall", "-Wextra", "-Wno-unused-parameter", "-Wno-format-truncation")
+
+
+def compile_program(src_dir: Path, sources: list[str], out: Path, *, name: str, target: str = "host",
+                    static: bool = False, opt: str = "-O2") -> None:
+    """Compile and link the program ``out`` from ``sources`` for ``target`` (``static``: no
+    shared libraries needed where it runs, e.g. a board with an older C library)."""
+    cc = compiler(target)
+    cmds = [(str(src_dir / (Path(s).stem + ".o")),
+             [cc, opt, *PROGRAM_CFLAGS, f"-I{src_dir}", "-c", str(src_dir / s), "-o", str(src_dir / (Path(s).stem + ".o"))])
+            for s in sources]
+    link = [cc, *[o for o, _ in cmds], "-o", str(out), *(["-static"] if static else []), "-lm"]
+    _run_compiler(cmds, link, name)
 
 
 def exported_symbols(library: Path) -> list[str]:

@@ -14,6 +14,11 @@ own description (value references, GUID, model identifier).  A run whose compone
 the index therefore imports neither CasADi nor the exporter; anything else about a block (its
 equations, for the monolithic reference or a study) builds the real block on first use.
 
+A user's block (a scene's Python ``blocks:`` file or a Modelica file, :mod:`cosim.scenario.user_blocks`)
+is indexed too: its recipe's ``sources`` hold the digests of what defines it (those files, the
+front end's version) and enter the key, and its entry's ``depends`` lists every file its module
+imported with its digest, checked at each hit, so an edit anywhere in them is a miss.
+
 An entry is written after a build (:func:`record`) and never trusted beyond its fingerprint: any
 change to a fingerprinted input gives another key (a miss: the block is built and its FMU found
 by content, or compiled, as without the index).  The FMU behind a hit is verified (size, SHA-256)
@@ -130,11 +135,17 @@ class Recipe:
     options: dict
     fixed: dict
     fmi: str
+    #: a user's block (:mod:`cosim.scenario.user_blocks`): the digests of what defines it (the
+    #: scene's Python block files, or the Modelica text and the front end's version); empty for
+    #: the catalog, whose sources the fingerprint covers
+    sources: dict = dataclasses.field(default_factory=dict)
 
     def key(self, fixed: dict | None = None) -> str:
         data = {"model": self.model, "fidelity": self.fidelity, "options": self.options,
                 "fixed": {k: float(v) for k, v in (self.fixed if fixed is None else fixed).items()},
                 "fmi": self.fmi, "fingerprint": fingerprint(), "format": FORMAT}
+        if self.sources:
+            data["sources"] = dict(self.sources)
         return hashlib.sha256(json.dumps(data, sort_keys=True, default=repr).encode()).hexdigest()[:32]
 
 
@@ -176,11 +187,15 @@ def _read(path: Path) -> dict | None:
 
 
 def lookup(model: str, fidelity: str | None, options: dict, params: dict, fmi: str,
-           cache_dir: Path | None = None) -> tuple[IndexedBlock, Recipe] | None:
+           cache_dir: Path | None = None, *, sources: dict | None = None,
+           rebuild=None) -> tuple[IndexedBlock, Recipe] | None:
     """The indexed block of a recipe (None on a miss).  ``params`` are the scene's parameter
-    values: those the entry lists as structural select the entry of that variant."""
+    values: those the entry lists as structural select the entry of that variant.  A user's
+    block gives its ``sources`` (:attr:`Recipe.sources`) and ``rebuild`` (a callable returning
+    the real block); its entry also lists the files its module imported (``depends``), and a
+    hit needs each of them unchanged."""
     root = cache_root(cache_dir, create=False)  # a lookup leaves the disk as it was
-    base = Recipe(model, fidelity, dict(options), {}, fmi)
+    base = Recipe(model, fidelity, dict(options), {}, fmi, dict(sources or {}))
     try:
         entry = _read(_entry_path(root, base))
         if entry is None:
@@ -191,9 +206,24 @@ def lookup(model: str, fidelity: str | None, options: dict, params: dict, fmi: s
             entry = _read(_entry_path(root, recipe))
     except (TypeError, ValueError):  # options that do not serialise: no index for this recipe
         return None
-    if entry is None or not entry.get("fmu"):
+    if entry is None or not entry.get("fmu") or not _unchanged(entry.get("depends") or {}):
         return None
-    return _indexed_block(entry, root), recipe
+    block = _indexed_block(entry, root)
+    if rebuild is not None:
+        block.rebuild = rebuild
+    return block, recipe
+
+
+def source_digest(path: Path) -> str:
+    """SHA-256 (hex) of a file's bytes ("missing" when it cannot be read)."""
+    try:
+        return hashlib.sha256(Path(path).read_bytes()).hexdigest()
+    except OSError:
+        return "missing"
+
+
+def _unchanged(depends: dict) -> bool:
+    return all(source_digest(Path(path)) == digest for path, digest in depends.items())
 
 
 _BLOCKS: dict[tuple[int, Path], tuple[dict, "IndexedBlock"]] = {}
@@ -209,7 +239,7 @@ def _indexed_block(entry: dict, root: Path) -> "IndexedBlock":
 
 
 def record(recipe: Recipe, fidelity: str, block, fmu: Path, cache_dir: Path | None = None, *,
-           description: dict | None = None) -> Path | None:
+           description: dict | None = None, depends: dict | None = None) -> Path | None:
     """Write the index entry of ``recipe`` (its catalog ``fidelity`` resolved), whose block
     ``block`` was built into ``fmu`` (in the cache ``cache_dir``), with the FMU's
     ``description`` as the caller's plain data (:attr:`IndexedBlock.fmu_description`); returns the entry's path, or None when the cache cannot be written or
@@ -236,7 +266,7 @@ def record(recipe: Recipe, fidelity: str, block, fmu: Path, cache_dir: Path | No
                        "flanges": [asdict(f) for f in block.flanges],
                        "ratings": {k: asdict(r) for k, r in block.ratings.items()},
                        "feedthrough": block.feedthrough(), "exact_start": exact},
-             "fmu_description": description}
+             "fmu_description": description, "depends": dict(depends or {})}
     store_pending_replays()
     try:
         folder = index_dir(root)
@@ -278,6 +308,7 @@ class IndexedBlock:
         self._entry, self.root = entry, Path(root)
         self.catalog_fidelity: str = entry["fidelity"]  # the catalog's name of the fidelity (resolved)
         self._real = None
+        self.rebuild = None  # a user's block: how to build the real one (set by lookup)
         self.name, self.fidelity, self.description = b["name"], b["fidelity"], b["description"]
         self.integrator, self.substeps, self.sample_period = b["integrator"], b["substeps"], b["sample_period"]
         self.params = [Param(**p) for p in b["params"]]
@@ -350,6 +381,8 @@ class IndexedBlock:
     # everything else: the real block
     def real(self):
         """The real :class:`models.block.Block` (built from the recipe once)."""
+        if self._real is None and self.rebuild is not None:
+            self._real = self.rebuild()
         if self._real is None:
             import models.blocks as catalog
 

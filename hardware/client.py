@@ -1,5 +1,6 @@
 """A Python master-side client of the board protocol (tests, benchmarks, tools).  The hardware
-FMU implements the same exchange in C (``hardware/c/hil_fmu.c``)."""
+FMU implements the same exchange in C (``hardware/c/hil_fmu.c``).  :meth:`BoardClient.hello`
+gets the board's challenge; the session opens with the first :meth:`BoardClient.command`."""
 from __future__ import annotations
 
 import socket
@@ -66,6 +67,13 @@ class BoardClient:
         """Send one command and wait for its sample: state, faults, limits, raw counts, age [s]."""
         seq = self.send_command(flags, volts)
         dg = self._recv(P.SAMPLE, self.skey, seq)
-        state, limits, faults, r1, r2, r3, _, age_us, dropped = dg.fields
-        return {"state": state, "faults": faults, "limits": limits, "raw": (r1, r2, r3), "age_s": age_us / 1e6,
-                "dropped": dropped}
+        return sample_fields(dg.fields)
+
+
+def sample_fields(fields: tuple) -> dict:
+    """A SAMPLE's body as a dict: state, faults, limits, raw counts, age [s], dropped, and the
+    board's tick lateness (since the last sample, p50, p99, max) [s], CPU per tick [s], throttled."""
+    state, limits, faults, r1, r2, r3, _, age_us, dropped, late, p50, p99, mx, cpu_ns, throttled = fields
+    return {"state": state, "faults": faults, "limits": limits, "raw": (r1, r2, r3), "age_s": age_us / 1e6,
+            "dropped": dropped, "tick_late_s": late / 1e6, "tick_p50_s": p50 / 1e6, "tick_p99_s": p99 / 1e6,
+            "tick_max_s": mx / 1e6, "cpu_per_tick_s": cpu_ns / 1e9, "throttled": throttled}

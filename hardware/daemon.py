@@ -1,50 +1,47 @@
-"""The I/O daemon: owns the rig's pins, samples the ADC, applies voltage commands and enforces
-safety on its own, whatever the master does.
+"""The I/O daemon ``rpr-board``: C (``hardware/c/board_*.c``), built for this machine or for the
+BeagleBone (``armhf``, Debian's ``gcc-arm-linux-gnueabihf``) and cached by content like the FMUs.
 
-State machine (:data:`protocol.STATE_NAMES`)::
+The daemon owns the rig's pins, samples the ADC and enforces safety on its own, whatever the
+master does (the rules are in ``board_core.c``'s header comment and the README):
 
-    idle --ARM--> armed --RUN command--> running --STOP--> idle
-      any --fault--> fault (latched: outputs zero) --RESET--> idle
+    idle --ARM--> armed --RUN--> running --STOP--> idle;  any --fault--> fault --RESET--> idle
 
-Safety, every tick and on every command:
+This module holds the data the C is built from (:class:`Safety`, the pin map of
+:mod:`hardware.pins`, the PWM period of :mod:`hardware.convert`: one source, compiled into
+``board_config.h``), builds the binary (:func:`build`), says how to run it here
+(:func:`command`: a cross build runs under qemu-user) and runs it two ways:
 
-- watchdog: armed or running without a valid command for ``watchdog_s`` (100 ms) -> fault;
-- commands clamped to ``+-v_max`` and slew-limited (``slew`` V/s); non-finite -> fault;
-- software end-of-stroke limits: within ``end_margin`` counts of an end only motion away from it
-  is applied (a limit flag, not a fault);
-- ADC: unreadable for ``stale_s`` -> fault ``ADC stale``; outside the travel by more than
-  ``range_margin`` counts (an unplugged pot reads 4095) -> ``ADC out of range``; driven at more
-  than ``stuck_duty`` for ``stuck_s`` while moving at most ``stuck_counts`` -> ``stuck``;
-- outputs zeroed (duty 0, DIR low) in idle and fault, on exit, on SIGTERM/SIGINT/SIGHUP and on
-  any exception.  (A SIGKILL of the daemon itself cannot be caught: on the rig the drivers'
-  PWM inputs need a pull-down so that a dead board stops the motors.)
-
-Datagrams that are malformed, unauthenticated, from an old session, replayed, out of sequence or
-stale change nothing and are counted in :attr:`Daemon.counters`.
+- :class:`Served`: the daemon as a process on a UDP port (what ``rpr-cosim board serve`` runs);
+- :class:`Stepped`: the daemon's ``--step`` harness, driven on synthetic monotonic times through
+  stdin, so tests check the rules without depending on the machine's load.
 """
 from __future__ import annotations
 
-import logging
-import math
 import os
-import select
+import re
 import signal
-import socket
-import time
+import subprocess
+import tempfile
+import threading
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Callable
 
-from . import protocol as P
-from .convert import PERIOD_NS, Calibration, ideal_counts, volts_to_drive
-from .pins import RIG_PINS, LegFiles, LegPins, PinError, read_int, resolve, write_value
+from .convert import PERIOD_NS, ideal_counts
+from .pins import ADC_NAME_PREFIX, GPIO_BANKS, RIG_PINS, LegFiles, LegPins, resolve
 
-log = logging.getLogger("hardware.daemon")
-_now = time.monotonic_ns
+C_DIR = Path(__file__).with_name("c")
+SOURCES = ["board_main.c", "board_core.c", "board_io.c", "hmac_sha256.c"]
+HEADERS = ["board.h", "hmac_sha256.h"]
+NAME = "rpr-board"
+#: The daemon's counters, in the order of its status line (board_core.c COUNTER_NAMES).
+COUNTERS = ("received", "commands", "malformed", "unauthenticated", "old_session", "out_of_sequence", "stale",
+            "refused", "sessions", "faults", "ticks", "writes", "throttled")
 
 
-@dataclass
+@dataclass(frozen=True)
 class Safety:
-    """Limits the daemon enforces (SI units, counts for the ADC)."""
+    """Limits the daemon enforces (SI units, counts for the ADC); compiled into the binary."""
 
     v_max: float = 12.0          # [V] command clamp (driver supply)
     slew: float = 2400.0         # [V/s] 0 -> 12 V in 5 ms
@@ -57,344 +54,219 @@ class Safety:
     stuck_duty: float = 0.25     # driven above this fraction of full duty ...
     stuck_s: float = 0.30        # [s] ... for this long ...
     stuck_counts: int = 3        # ... while moving at most this many counts -> stuck
+    hello_per_tick: int = 4      # HELLOs authenticated per tick; more are dropped (throttled)
 
 
-@dataclass
-class _Leg:
-    files: LegFiles
-    raw: int = -1
-    raw_ok_ns: int = 0
-    target: float = 0.0   # commanded voltage [V]
-    applied: float = 0.0  # after clamp, slew and limits [V]
-    duty: int = -1        # last written duty [ns] (-1: unknown, forces a write)
-    dir_high: int = -1
-    limit: int = 0        # 1 low end, 2 high end
-    drive_since: int = 0  # when the current "driven" spell started [ns]
-    drive_raw: int = -1   # position when it started
+def config_header(safety: Safety = Safety(), pins: tuple[LegPins, ...] = RIG_PINS) -> str:
+    """``board_config.h``: the pin map, the limits and the PWM period as C."""
+    s = safety
+    legs = ", ".join(f'{{"{p.pwm_chip}", {p.pwm_channel}, "{p.dir_gpio}", {p.adc_channel}}}' for p in pins)
+    banks = ", ".join(f'"{a}"' for a in GPIO_BANKS)
+    num = {"V_MAX": s.v_max, "SLEW": s.slew, "WATCHDOG_S": s.watchdog_s, "STALE_MS": s.stale_ms,
+           "ADC_STALE_S": s.adc_stale_s, "TRAVEL_LO": s.travel[0], "TRAVEL_HI": s.travel[1],
+           "END_MARGIN": s.end_margin, "RANGE_MARGIN": s.range_margin, "STUCK_DUTY": s.stuck_duty,
+           "STUCK_S": s.stuck_s}
+    lines = ["/* generated by hardware/daemon.py (Safety, hardware/pins.py, hardware/convert.py) */",
+             f"#define BOARD_PINS {{{legs}}}", f"#define BOARD_GPIO_BANKS {{{banks}}}",
+             f'#define BOARD_ADC_PREFIX "{ADC_NAME_PREFIX}"', f"#define BOARD_PERIOD_NS {int(PERIOD_NS)}",
+             f"#define BOARD_STUCK_COUNTS {int(s.stuck_counts)}", f"#define BOARD_HELLO_PER_TICK {int(s.hello_per_tick)}"]
+    lines += [f"#define BOARD_{k} {float(v)!r}" for k, v in num.items()]
+    return "\n".join(lines) + "\n"
 
 
-@dataclass
-class Session:
-    id: int
-    key: bytes
-    offset_ns: int      # daemon time - master time (minimum seen): maps master stamps to ours
-    last_seq: int = 0
+def build(target: str = "host", *, static: bool | None = None, cache_dir: Path | None = None,
+          progress: Callable[[str], None] | None = None) -> Path:
+    """The daemon binary for ``target`` (``"host"`` or ``"armhf"``), compiled on a cache miss
+    (about a second).  ``static`` (default: for cross targets) links the C library in, so the
+    binary runs on a board whatever its Debian release."""
+    from .build import build_program
+
+    static = target != "host" if static is None else static
+    files = {n: (C_DIR / n).read_text() for n in SOURCES + HEADERS}
+    files["board_config.h"] = config_header()
+    return build_program(NAME, files, SOURCES, target=target, static=static, cache_dir=cache_dir, progress=progress)
 
 
-class Daemon:
-    """The daemon over the sysfs ``root``; :meth:`serve_forever` runs it (see the module doc)."""
+def command(target: str = "host", *, static: bool | None = None, preload: Path | None = None) -> list[str]:
+    """The argv prefix that runs the daemon for ``target`` on this machine (a cross build under
+    qemu-user); ``preload`` is a library to preload (tests: the fake GPIO character device)."""
+    from fmus.compile import runner
 
-    def __init__(self, key: bytes, *, root: Path | str = "/", listen: tuple[str, int] = ("127.0.0.1", 5005),
-                 rate: float = 1000.0, pins: tuple[LegPins, ...] = RIG_PINS, safety: Safety | None = None):
-        if not (rate > 0 and math.isfinite(rate)):
-            raise ValueError(f"rate must be a positive number of Hz, got {rate}")
-        self.key = key
+    run = runner(target)
+    binary = str(build(target, static=static))
+    if preload is None:
+        return [*run, binary]
+    if run:
+        return [*run, "-E", f"LD_PRELOAD={preload}", binary]
+    return ["env", f"LD_PRELOAD={preload}", binary]
+
+
+def parse_status(text: str) -> dict:
+    """The daemon's status line (``state=.. fault_bits=.. received=.. ...``) as a dict."""
+    out: dict = {}
+    for k, v in re.findall(r"(\w+)=(\S+)", text):
+        out[k] = int(v) if re.fullmatch(r"-?\d+", v) else v
+    return out
+
+
+def _key_file(key: bytes, where: Path) -> Path:
+    path = where / "board.key"
+    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+    with os.fdopen(fd, "w") as fh:
+        fh.write(key.hex() + "\n")
+    return path
+
+
+class Stepped:
+    """The daemon on synthetic time (``--step``): :meth:`handle` a datagram at ``now`` [ns],
+    :meth:`tick` at ``now``; :attr:`state`, :attr:`faults`, :attr:`counters` read its status;
+    :attr:`files` are the legs' files (resolved as the plant does)."""
+
+    def __init__(self, key: bytes, *, root: Path | str, target: str = "host", static: bool | None = None,
+                 gpio: str = "auto", preload: Path | None = None):
         self.root = Path(root)
-        self.rate = float(rate)
-        self.tick_ns = int(round(1e9 / rate))
-        self.safety = safety or Safety()
-        self.legs = [_Leg(f) for f in resolve(self.root, pins)]
-        # the ADC channels stay open: pread at offset 0 makes sysfs convert again (no open per tick)
-        self._adc_fd = [os.open(leg.files.adc, os.O_RDONLY) for leg in self.legs]
-        self.state = P.IDLE
-        self.faults = 0
-        self.session: Session | None = None
-        self.last_cmd_ns = 0
-        self.counters = {k: 0 for k in ("received", "commands", "malformed", "unauthenticated", "old_session",
-                                         "out_of_sequence", "stale", "refused", "sessions", "faults", "ticks",
-                                         "writes")}
-        self._seen_hello: set[bytes] = set()
-        self._last_apply = 0
-        self._next_session = int.from_bytes(P.new_nonce()[:4], "little") or 1
-        self._stop = False
-        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        self.sock.bind(listen)
-        self.sock.setblocking(False)
-        self.address = self.sock.getsockname()
-        self._setup_outputs()
-
-    # --- outputs ---------------------------------------------------------------------------------
-    def _setup_outputs(self) -> None:
-        for leg in self.legs:
-            write_value(leg.files.dir_direction, "out")
-            self._write_leg(leg, 0, 0, force=True)
-            if read_int(leg.files.period) != PERIOD_NS:
-                write_value(leg.files.period, PERIOD_NS)
-            write_value(leg.files.enable, 1)
-
-    def _write_leg(self, leg: _Leg, duty: int, dir_high: int, *, force: bool = False) -> None:
-        # duty first when it drops, DIR first when it rises: never drive the old direction harder
-        if force or duty != leg.duty:
-            write_value(leg.files.duty, duty)
-            leg.duty = duty
-            self.counters["writes"] += 1
-        if force or dir_high != leg.dir_high:
-            write_value(leg.files.dir_value, dir_high)
-            leg.dir_high = dir_high
-            self.counters["writes"] += 1
-
-    def zero_outputs(self) -> None:
-        """Duty 0 and DIR low on every leg (each attempted even if one fails)."""
-        err = None
-        for leg in self.legs:
-            leg.target = leg.applied = 0.0
-            try:
-                self._write_leg(leg, 0, 0, force=True)
-            except PinError as exc:
-                err = exc
-        if err is not None:
-            raise err
-
-    def _apply(self, now: int) -> None:
-        """Move each leg's output toward its target: clamp, slew limit (over the time since the
-        last update), end limits; then write."""
-        s = self.safety
-        dt_s = (now - self._last_apply) / 1e9 if self._last_apply else 0.0
-        self._last_apply = now
-        active = self.state == P.RUNNING
-        lo, hi = s.travel
-        for leg in self.legs:
-            want = max(-s.v_max, min(s.v_max, leg.target)) if active else 0.0
-            leg.limit = 0
-            if leg.raw >= 0 and leg.raw <= lo + s.end_margin and want < 0:
-                want, leg.limit = 0.0, 1
-            elif leg.raw >= 0 and leg.raw >= hi - s.end_margin and want > 0:
-                want, leg.limit = 0.0, 2
-            if not active:
-                v = 0.0
-            else:
-                step = s.slew * dt_s
-                v = leg.applied + max(-step, min(step, want - leg.applied))
-                if want == 0.0 and abs(v) < 1e-9:
-                    v = 0.0
-                if leg.limit:  # at an end stop the motion toward it stops at once
-                    v = 0.0 if (leg.limit == 1 and v < 0) or (leg.limit == 2 and v > 0) else v
-            leg.applied = v
-            d = volts_to_drive(v, v_supply=s.v_max)
-            try:
-                self._write_leg(leg, d.duty_ns, int(d.dir_high))
-            except PinError as exc:
-                self._fault(P.F_IO, str(exc))
-                return
-
-    # --- sensing ---------------------------------------------------------------------------------
-    def _sample(self, now: int) -> None:
-        s = self.safety
-        for i, (leg, fd) in enumerate(zip(self.legs, self._adc_fd), start=1):
-            try:
-                leg.raw = int(os.pread(fd, 16, 0))
-                leg.raw_ok_ns = now
-            except (OSError, ValueError):
-                if leg.raw_ok_ns and now - leg.raw_ok_ns > s.adc_stale_s * 1e9:
-                    self._fault(P.F_ADC_STALE, f"leg {i}: ADC unreadable for {(now - leg.raw_ok_ns) / 1e6:.0f} ms")
-                continue
-            lo, hi = s.travel
-            if leg.raw < lo - s.range_margin or leg.raw > hi + s.range_margin:
-                self._fault(P.F_ADC_RANGE, f"leg {i}: {leg.raw} counts outside {lo:.0f}..{hi:.0f} "
-                                           f"(+-{s.range_margin:.0f}): sensor unplugged?")
-            driven = abs(leg.applied) >= s.stuck_duty * s.v_max
-            if not driven:
-                leg.drive_since, leg.drive_raw = 0, -1
-            elif leg.drive_since == 0:
-                leg.drive_since, leg.drive_raw = now, leg.raw
-            elif abs(leg.raw - leg.drive_raw) > s.stuck_counts:
-                leg.drive_since, leg.drive_raw = now, leg.raw
-            elif now - leg.drive_since > s.stuck_s * 1e9:
-                self._fault(P.F_ADC_STUCK, f"leg {i}: driven at {leg.applied:+.1f} V for {s.stuck_s:.2f} s but "
-                                           f"the position stayed at {leg.raw} counts")
-
-    # --- state -----------------------------------------------------------------------------------
-    def _fault(self, bit: int, why: str) -> None:
-        if self.state != P.FAULT:
-            self.counters["faults"] += 1
-            log.error("fault: %s (%s); outputs zeroed, latched until reset", P.FAULT_NAMES[bit], why)
-        self.faults |= bit
-        self.state = P.FAULT
-        for leg in self.legs:
-            leg.target = leg.applied = 0.0
-            leg.drive_since = 0
+        self.safety = Safety()
+        self._tmp = tempfile.TemporaryDirectory(prefix="rpr-board-")
+        keyfile = _key_file(key, Path(self._tmp.name))
+        cmd = [*command(target, static=static, preload=preload), "--key", str(keyfile), "--root", str(self.root),
+               "--gpio", gpio, "--step"]
+        self.proc = subprocess.Popen(cmd, stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                                     text=True, bufsize=1)
+        self.files: list[LegFiles] = []
+        self.final: dict | None = None
         try:
-            self.zero_outputs()
-        except PinError as exc:
-            self.faults |= P.F_IO
-            log.error("could not zero the outputs: %s", exc)
-
-    def tick(self, now: int | None = None) -> None:
-        """One periodic update: sample, watchdog, outputs."""
-        now = _now() if now is None else now
-        self.counters["ticks"] += 1
-        self._sample(now)
-        if self.state in (P.ARMED, P.RUNNING) and now - self.last_cmd_ns > self.safety.watchdog_s * 1e9:
-            self._fault(P.F_WATCHDOG, f"no valid command for {(now - self.last_cmd_ns) / 1e6:.1f} ms")
-        if self.state != P.FAULT:
-            self._apply(now)
-
-    # --- datagrams -------------------------------------------------------------------------------
-    def handle(self, data: bytes, addr, now: int | None = None) -> bytes | None:
-        """Act on one datagram; returns the reply (or None).  Never raises for bad input."""
-        now = _now() if now is None else now
-        c = self.counters
-        c["received"] += 1
-        try:
-            dg = P.parse(data)
-        except P.ProtocolError:
-            c["malformed"] += 1
-            return None
-        if dg.type == P.HELLO:
-            return self._hello(dg, now)
-        if dg.type != P.COMMAND:
-            c["malformed"] += 1
-            return None
-        ses = self.session
-        if ses is None or dg.session != ses.id:
-            c["old_session"] += 1
-            return None
-        if not P.authentic(ses.key, dg):
-            c["unauthenticated"] += 1
-            return None
-        if dg.seq <= ses.last_seq:
-            c["out_of_sequence"] += 1
-            return None
-        late = now - (dg.t_ns + ses.offset_ns)
-        if late > self.safety.stale_ms * 1e6:
-            c["stale"] += 1
-            ses.last_seq = dg.seq
-            return None
-        ses.offset_ns = min(ses.offset_ns, now - dg.t_ns)
-        ses.last_seq = dg.seq
-        c["commands"] += 1
-        flags, volts = dg.fields[0], dg.fields[1:]
-        self._command(flags, volts, now)
-        return self._sample_reply(dg.seq, now)
-
-    def _hello(self, dg: P.Datagram, now: int) -> bytes | None:
-        c = self.counters
-        if not P.authentic(self.key, dg):
-            c["unauthenticated"] += 1
-            return None
-        nonce = dg.fields[0]
-        if nonce in self._seen_hello:
-            c["out_of_sequence"] += 1  # a replayed HELLO
-            return None
-        if self.state in (P.ARMED, P.RUNNING):
-            c["refused"] += 1  # one master at a time; a dead one is cut off by the watchdog
-            return None
-        self._seen_hello.add(nonce)
-        server = P.new_nonce()
-        self._next_session = (self._next_session + 1) & 0xFFFFFFFF or 1
-        self.session = Session(self._next_session, P.session_key(self.key, nonce, server), now - dg.t_ns)
-        c["sessions"] += 1
-        log.info("session %08x opened", self.session.id)
-        return P.pack(self.key, P.WELCOME, self.session.id, 0, now, nonce, server)
-
-    def _command(self, flags: int, volts: tuple[float, ...], now: int) -> None:
-        if flags & P.RESET and self.state == P.FAULT:
-            log.info("fault reset (%s)", P.fault_text(self.faults))
-            self.state, self.faults = P.IDLE, 0
-        if flags & P.STOP:
-            if self.state != P.FAULT:
-                self.state = P.IDLE
-            self.zero_outputs()
-            return
-        if flags & P.QUERY:
-            return
-        if flags & P.ARM and self.state == P.IDLE:
-            self.state = P.ARMED
-            self.last_cmd_ns = now
-        if self.state == P.FAULT:
-            self.counters["refused"] += 1
-            return
-        if self.state in (P.ARMED, P.RUNNING):
-            self.last_cmd_ns = now
-        if flags & P.RUN and self.state in (P.ARMED, P.RUNNING):
-            if not all(math.isfinite(v) for v in volts):
-                self._fault(P.F_BAD_COMMAND, f"command {volts}")
-                return
-            self.state = P.RUNNING
-            for leg, v in zip(self.legs, volts):
-                leg.target = float(v)
-            self._sample(now)
-            if self.state != P.FAULT:
-                self._apply(now)
-
-    def _sample_reply(self, seq: int, now: int) -> bytes:
-        ses = self.session
-        raws = [max(0, min(65535, leg.raw)) for leg in self.legs]
-        age = max((now - leg.raw_ok_ns) // 1000 for leg in self.legs) if all(l.raw_ok_ns for l in self.legs) else 0xFFFFFFFF
-        limits = sum(leg.limit << (2 * i) for i, leg in enumerate(self.legs))
-        dropped = sum(self.counters[k] for k in ("malformed", "unauthenticated", "old_session", "out_of_sequence",
-                                                  "stale"))
-        return P.pack(ses.key, P.SAMPLE, ses.id, seq, _now(), self.state, limits, self.faults, *raws, 0,
-                      min(int(age), 0xFFFFFFFF), dropped & 0xFFFFFFFF)
-
-    # --- loop ------------------------------------------------------------------------------------
-    def stop(self) -> None:
-        self._stop = True
-
-    def serve_forever(self, duration_s: float | None = None) -> None:
-        """Run until :meth:`stop`, a signal handler, or ``duration_s``; outputs are zeroed on the
-        way out whatever happens."""
-        try:
-            self._loop(duration_s)
-        except (SystemExit, KeyboardInterrupt):
-            log.info("daemon stopping on a signal; outputs zeroed")
-            raise
-        except BaseException:
-            self.faults |= P.F_EXCEPTION
-            log.exception("daemon stopping on an exception; outputs zeroed")
-            raise
-        finally:
+            self.files = resolve(self.root, RIG_PINS, export=False)
+            self._status = self._ask("S")
+        except Exception:
+            err = self.proc.stderr.read() if self.proc.poll() is not None else ""
             self.close()
+            raise RuntimeError(f"the daemon did not start: {err.strip()}") from None
 
-    def _loop(self, duration_s: float | None) -> None:
-        start = _now()
-        end = start + int(duration_s * 1e9) if duration_s else None
-        next_tick = start
-        self.tick(start)
-        while not self._stop:
-            now = _now()
-            if end and now >= end:
-                break
-            if now >= next_tick:
-                self.tick(now)
-                next_tick += self.tick_ns
-                if next_tick < now:  # fell behind: skip the missed ticks, keep the phase
-                    next_tick += ((now - next_tick) // self.tick_ns + 1) * self.tick_ns
-                continue
-            r, _, _ = select.select([self.sock], [], [], (next_tick - now) / 1e9)
-            if r:
-                for _ in range(64):
-                    try:
-                        data, addr = self.sock.recvfrom(2048)
-                    except (BlockingIOError, InterruptedError):
-                        break
-                    reply = self.handle(data, addr)
-                    if reply is not None:
-                        try:
-                            self.sock.sendto(reply, addr)
-                        except OSError as exc:
-                            log.warning("reply to %s failed: %s", addr, exc)
+    def _ask(self, line: str) -> str:
+        self.proc.stdin.write(line + "\n")
+        self.proc.stdin.flush()
+        answer = self.proc.stdout.readline()
+        if not answer:
+            raise RuntimeError(f"the daemon exited ({self.proc.wait()}): {self.proc.stderr.read().strip()}")
+        return answer.strip()
 
-    def close(self) -> None:
+    def handle(self, data: bytes, addr=None, now: int = 0) -> bytes | None:
+        """The daemon's reply to ``data`` received at ``now`` [ns] (None: no reply)."""
+        answer = self._ask(f"D {int(now)} {data.hex()}")
+        return None if answer == "R -" else bytes.fromhex(answer[2:])
+
+    def tick(self, now: int) -> None:
+        self._ask(f"T {int(now)}")
+
+    def status(self) -> dict:
+        return parse_status(self._ask("S"))
+
+    @property
+    def state(self) -> int:
+        return self.status()["state"] if self.final is None else self.final["state"]
+
+    @property
+    def faults(self) -> int:
+        return self.status()["fault_bits"] if self.final is None else self.final["fault_bits"]
+
+    @property
+    def counters(self) -> dict[str, int]:
+        st = self.status() if self.final is None else self.final
+        return {k: st[k] for k in COUNTERS}
+
+    def log(self) -> str:
+        """What the daemon logged (stderr), after :meth:`close`."""
+        return getattr(self, "_log", "")
+
+    def close(self) -> dict | None:
+        """Zero the outputs, disable the PWM and end the process; its last status."""
+        if self.proc.poll() is None:
+            try:
+                self.proc.stdin.write("C\n")
+                self.proc.stdin.flush()
+                out, err = self.proc.communicate(timeout=10)
+                self._log = err
+                lines = [ln for ln in out.splitlines() if ln.startswith("state=")]
+                self.final = parse_status(lines[-1]) if lines else None
+            except (BrokenPipeError, subprocess.TimeoutExpired):
+                self.proc.kill()
+                self.proc.wait()
+        self._tmp.cleanup()
+        return self.final
+
+
+@dataclass
+class Served:
+    """The daemon as a process serving UDP on ``listen`` (port 0: a free one); :attr:`address`
+    once it listens; :meth:`stop` sends a signal and returns its final status."""
+
+    key_file: Path
+    root: Path
+    target: str = "host"
+    listen: str = "127.0.0.1:0"
+    rate: float = 1000.0
+    rt_priority: int = 0
+    gpio: str = "auto"
+    static: bool | None = None
+    preload: Path | None = None
+    extra: tuple[str, ...] = ()
+    address: tuple[str, int] = field(init=False)
+
+    def __post_init__(self) -> None:
+        cmd = [*command(self.target, static=self.static, preload=self.preload), "--key", str(self.key_file),
+               "--root", str(self.root), "--listen", self.listen, "--rate", f"{self.rate:g}", "--gpio", self.gpio, "-v",
+               *self.extra]
+        if self.rt_priority:
+            cmd += ["--rt-priority", str(self.rt_priority)]
+        self.proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        self._err: list[str] = []
+        self._reader = threading.Thread(target=lambda: self._err.extend(self.proc.stderr), daemon=True)
+        self._reader.start()
+        line = self.proc.stdout.readline()
+        m = re.search(r"listening on ([\d.]+):(\d+)", line)
+        if not m:
+            self.proc.wait(timeout=10)
+            self._reader.join(timeout=1)
+            raise RuntimeError(f"the daemon did not start (exit {self.proc.returncode}): {''.join(self._err).strip()}")
+        self.address = (m.group(1), int(m.group(2)))
+        self.banner = line.strip()
+        self.final: dict | None = None
+
+    @property
+    def pid(self) -> int:
+        return self.proc.pid
+
+    def log(self) -> str:
+        return "".join(self._err)
+
+    def stop(self, sig: int = signal.SIGTERM, timeout: float = 10.0) -> dict | None:
+        """Send ``sig`` and wait; the final status line (None after a SIGKILL)."""
+        if self.proc.poll() is None:
+            self.proc.send_signal(sig)
         try:
-            self.zero_outputs()
-            for leg in self.legs:
-                try:
-                    write_value(leg.files.enable, 0)
-                except PinError:
-                    pass
-        finally:
-            self.sock.close()
-            for fd in self._adc_fd:
-                os.close(fd)
-            self._adc_fd = []
-            log.info("daemon stopped; counters %s", self.counters)
+            out, _ = self.proc.communicate(timeout=timeout)
+        except subprocess.TimeoutExpired:
+            self.proc.kill()
+            out, _ = self.proc.communicate()
+        self._reader.join(timeout=2)
+        self.stopped_line = next((ln for ln in out.splitlines() if "stopped" in ln), "")
+        self.final = parse_status(self.stopped_line) if self.stopped_line else None
+        return self.final
+
+    def wait_exit(self, timeout: float = 10.0) -> int:
+        return self.proc.wait(timeout=timeout)
 
 
-def install_signal_handlers(daemon: Daemon) -> None:
-    """SIGTERM, SIGINT and SIGHUP stop the daemon (outputs zeroed by :meth:`Daemon.serve_forever`)."""
-    def handler(signum, frame):
-        daemon.stop()
-        raise SystemExit(128 + signum)
-    for sig in (signal.SIGTERM, signal.SIGINT, signal.SIGHUP):
-        signal.signal(sig, handler)
+
+def unavailable(target: str) -> str:
+    """Why the daemon cannot be built and run for ``target`` on this machine ("" when it can):
+    tests skip that leg with this reason."""
+    from fmus import BuildError
+    from fmus.compile import compiler, runner
+
+    try:
+        compiler(target)
+        runner(target)
+    except BuildError as exc:
+        return str(exc)
+    return ""

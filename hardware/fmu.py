@@ -6,7 +6,10 @@ Interface (value references as in ``hil_fmu.c``):
 - inputs ``leg[i].u`` [V];
 - outputs ``leg[i].s`` (leg length) and ``leg[i].stroke`` [m], ``leg[i].raw`` [counts],
   ``sample_age`` [s] (ADC reading to arrival here), ``round_trip`` [s], ``fault`` (bits of
-  :data:`hardware.protocol.FAULT_NAMES`), ``state`` (0 idle, 1 armed, 2 running, 3 fault);
+  :data:`hardware.protocol.FAULT_NAMES`), ``state`` (0 idle, 1 armed, 2 running, 3 fault), and
+  the board's real-time figures of the session: ``board_tick_late`` (largest tick lateness
+  since the last step), ``board_tick_p50``/``_p99``/``_max`` [s], ``board_cpu_per_tick`` [s],
+  ``board_dropped``, ``board_throttled``;
 - parameters ``address`` and ``key_file`` (strings), ``timeout`` [s], ``reset_fault`` (clears a
   latched fault when connecting) and the calibration ``leg[i].raw_zero``, ``leg[i].raw_full``,
   ``leg[i].stroke_full`` [m], ``leg[i].s_offset`` [m].
@@ -49,6 +52,13 @@ def _real_vars(cal: Calibration, timeout: float) -> list[tuple]:
           for i in LEGS]
     v += [(f"leg[{i}].s_offset", "parameter", "fixed", "m", cal.s_offset, f"leg {i}: leg length at zero stroke")
           for i in LEGS]
+    v += [("board_tick_late", "output", "discrete", "s", None, "board: largest tick lateness since the last step"),
+          ("board_tick_p50", "output", "discrete", "s", None, "board: tick lateness p50 over the session"),
+          ("board_tick_p99", "output", "discrete", "s", None, "board: tick lateness p99 over the session"),
+          ("board_tick_max", "output", "discrete", "s", None, "board: largest tick lateness of the session"),
+          ("board_cpu_per_tick", "output", "discrete", "s", None, "board: CPU time per tick (session mean)"),
+          ("board_dropped", "output", "discrete", "", None, "board: datagrams dropped (bad, stale, throttled)"),
+          ("board_throttled", "output", "discrete", "", None, "board: of those, beyond its authentication budget")]
     return v
 
 
@@ -103,7 +113,7 @@ def model_description(address: str, key_file: str, cal: Calibration, timeout: fl
     init_el = ET.SubElement(ms, "InitialUnknowns")
     for vr in outputs:
         ET.SubElement(init_el, "Unknown", index=str(vr + 1), dependencies="")
-    assert n_real == 29, "the value references must match hil_fmu.c"
+    assert n_real == 36, "the value references must match hil_fmu.c"
     ET.indent(root)
     return '<?xml version="1.0" encoding="UTF-8"?>\n' + ET.tostring(root, encoding="unicode") + "\n"
 

@@ -1,13 +1,19 @@
 """The BeagleBone Black pin map of the rig (SPEC §7, thesis Table 8.2) as data, and the sysfs
 files behind it, resolved under a configurable ``root`` ("/" on the board, a temporary fake
-tree in tests).
+tree in tests).  The daemon is compiled with this map (``board_config.h``) and resolves it the
+same way in C (``hardware/c/board_io.c``); :func:`resolve` here is how the virtual board's plant
+and the tests find the files the daemon drives.
 
 - PWM: chips are found by their hardware address (``48302200`` ...), never by ``pwmchipN``,
   whose number changes between kernels: each ``<root>/sys/class/pwm/pwmchipN`` is a symlink into
   ``.../<addr>.pwm/pwm/pwmchipN`` (or ``<addr>.ehrpwm``).  The channel directory is ``pwmM``
   (mainline) or ``pwm-N:M`` (BeagleBoard 4.14+ kernels); it is exported when absent.
-- GPIO: ``<root>/sys/class/gpio/gpioK/{direction,value}``; a line is named by its number ``30``
-  or its SoC label ``gpio0_30`` (bank * 32 + line).
+- GPIO: a line is named by its number ``30`` or its SoC label ``gpio0_30`` (bank * 32 + line).
+  The board daemon uses the GPIO character device when the board has one (``<root>/dev/gpiochipN``,
+  the chip labelled with the bank's address :data:`GPIO_BANKS` or ``gpio-<first>-<last>``), and
+  sysfs ``<root>/sys/class/gpio/gpioK/{direction,value}`` otherwise.  In a fake tree the
+  character device's line K of chip N is the directory ``dev/gpiochipN.lines/K`` (what the
+  fake kernel, ``hardware/c/fake_gpiochip.c``, writes), so this module finds DIR in both.
 - ADC: the IIO device whose ``name`` starts with ``TI-am335x-adc``, channel files
   ``in_voltage<ch>_raw``.
 """
@@ -20,6 +26,8 @@ from dataclasses import dataclass
 from pathlib import Path
 
 ADC_NAME_PREFIX = "TI-am335x-adc"
+#: AM335x GPIO banks 0..3 by their controller's address.
+GPIO_BANKS = ("44e07000", "4804c000", "481ac000", "481ae000")
 
 
 class PinError(OSError):
@@ -96,13 +104,33 @@ def pwm_channel_dir(chip: Path, channel: int, *, export: bool = True, wait_s: fl
     raise PinError(f"exporting PWM channel {channel} of {chip} made no {cands[0].name} or {cands[1].name}")
 
 
+def chardev_line_dir(root: Path, k: int) -> Path | None:
+    """A fake tree's character-device line ``k`` (``dev/gpiochipN.lines/<offset>``, the chip
+    found by its label as the daemon finds it), or None when the tree has no such chip."""
+    bank, offset = divmod(k, 32)
+    if bank >= len(GPIO_BANKS):
+        return None
+    for chip in sorted(Path(root).glob("dev/gpiochip*")):
+        if not chip.is_file():
+            continue
+        label = chip.read_text().splitlines()[0].strip() if chip.stat().st_size else ""
+        if label == f"gpio-{bank * 32}-{bank * 32 + 31}" or GPIO_BANKS[bank] in label:
+            d = chip.with_name(chip.name + ".lines") / str(offset)
+            return d if d.is_dir() else None
+    return None
+
+
 def gpio_dir(root: Path, line: str | int, *, export: bool = True, wait_s: float = 1.0) -> Path:
-    """``<root>/sys/class/gpio/gpioK``, exported through ``export`` if absent."""
+    """``<root>/sys/class/gpio/gpioK`` (exported through ``export`` if absent), or a fake tree's
+    character-device line directory when the tree has the chip and no sysfs GPIO class."""
     k = gpio_number(line)
     base = Path(root) / "sys/class/gpio"
     d = base / f"gpio{k}"
     if d.is_dir():
         return d
+    cd = chardev_line_dir(Path(root), k)
+    if cd is not None and not base.is_dir():
+        return cd
     if not export:
         raise PinError(f"GPIO {k} is not exported ({d})")
     _write(base / "export", str(k))
@@ -179,18 +207,3 @@ def _write(path: Path, text: str) -> None:
             fh.write(text)
     except OSError as exc:
         raise PinError(f"cannot write {text!r} to {path}: {exc.strerror or exc}") from None
-
-
-def write_value(path: Path, value: int | str) -> None:
-    """Write one sysfs attribute (no newline needed; the kernel parses the number)."""
-    _write(path, str(value))
-
-
-def read_int(path: Path) -> int:
-    """Read an integer attribute; raises :class:`PinError` (unreadable) or ValueError (garbage)."""
-    try:
-        with open(path) as fh:
-            text = fh.read()
-    except OSError as exc:
-        raise PinError(f"cannot read {path}: {exc.strerror or exc}") from None
-    return int(text.strip())

@@ -12,17 +12,22 @@ mac (32)     HMAC-SHA256 over header and body
 Types and bodies:
 
 - ``HELLO`` (master -> board, MAC with the shared key): client nonce (16 bytes).
-- ``WELCOME`` (board -> master, shared key): the client nonce echoed, server nonce (16 bytes);
-  the header carries the new session id.
+- ``WELCOME`` (board -> master, shared key): the client nonce echoed, the board's challenge
+  (16 fresh random bytes); the header carries the proposed session id.
 - ``COMMAND`` (master -> board, session key): flags (u8: ARM, RUN, STOP, RESET, QUERY), three
   voltages [V] (f32).
-- ``SAMPLE`` (board -> master, session key; sequence = the command's): state (u8), faults (u16),
-  limit flags (u8), three raw ADC counts (u16), age of the ADC reading [us] (u32), datagrams
-  dropped so far (u32).
+- ``SAMPLE`` (board -> master, session key; sequence = the command's): state (u8), limit flags
+  (u8), faults (u16), three raw ADC counts (u16), age of the ADC reading [us] (u32), datagrams
+  dropped so far (u32); the board's real-time figures of the session: the largest tick
+  lateness since the previous sample, tick lateness p50, p99 and max [us], CPU time per tick
+  [ns] (u32 each), and the datagrams dropped unauthenticated because of the per-tick budget
+  (throttled, u32).
 
-The session key is ``HMAC(key, "rpr-session" | client nonce | server nonce)``: a fresh server
-nonce per session makes every datagram of an earlier session fail authentication here, and
-sequence numbers must grow strictly within a session (replays and reordering are dropped).
+The session key is ``HMAC(key, "rpr-session" | client nonce | challenge)`` and the session opens
+only when the first COMMAND under it arrives: a recorded HELLO replayed later (even to a
+restarted daemon) earns a challenge it cannot answer and changes nothing; every datagram of an
+earlier session fails here; sequence numbers must grow strictly within a session (replays and
+reordering are dropped before any MAC is computed).
 """
 from __future__ import annotations
 
@@ -34,7 +39,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 MAGIC = b"RP"
-VERSION = 1
+VERSION = 2
 HEADER = struct.Struct("<2sBBIIQ")
 MAC_LEN = 32
 NONCE_LEN = 16
@@ -49,7 +54,8 @@ ARM, RUN, STOP, RESET, QUERY = 1, 2, 4, 8, 16
 _HELLO = struct.Struct(f"<{NONCE_LEN}s")
 _WELCOME = struct.Struct(f"<{NONCE_LEN}s{NONCE_LEN}s")
 _COMMAND = struct.Struct("<B3xfff")
-_SAMPLE = struct.Struct("<BBHHHHHII")  # state, limits, faults, raw x3, pad, age_us, dropped
+# state, limits, faults, raw x3, pad, age_us, dropped, late_us, p50_us, p99_us, max_us, cpu_ns, throttled
+_SAMPLE = struct.Struct("<BBHHHHHIIIIIIII")
 BODY = {HELLO: _HELLO, WELCOME: _WELCOME, COMMAND: _COMMAND, SAMPLE: _SAMPLE}
 
 # daemon states

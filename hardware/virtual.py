@@ -1,5 +1,5 @@
-"""The virtual board: the I/O daemon, unchanged, on a fake sysfs tree, and a plant process that
-plays the rig behind the tree in real time.
+"""The virtual board: the I/O daemon (the same C binary as on the board) on a fake sysfs tree,
+and a plant process that plays the rig behind the tree in real time.
 
 The plant reads each leg's ``duty_cycle`` and DIR ``value`` files, turns them into the driver's
 mean voltage (:func:`hardware.convert.drive_to_volts`), advances the catalog's actuator block

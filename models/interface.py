@@ -4,13 +4,21 @@ are cached, never loads the symbolic layer).  :mod:`models.block` re-exports the
 """
 from __future__ import annotations
 
+import difflib
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Literal
 
 
 class BlockError(ValueError):
     """A malformed block: the message names the block and the variable."""
+
+
+def suggest(name: str, choices: Sequence[str]) -> str:
+    """``"; did you mean 'x'?"`` for the closest of ``choices`` (difflib), or ``""``."""
+    close = difflib.get_close_matches(name, list(choices), n=1, cutoff=0.5)
+    return f"; did you mean {close[0]!r}?" if close else ""
 
 
 @dataclass(frozen=True)

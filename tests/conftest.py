@@ -93,3 +93,15 @@ def reference_fmus() -> dict[str, Path]:
 def cache(tmp_path_factory) -> Path:
     """One FMU cache directory for the whole session (each FMU is built once and shared)."""
     return tmp_path_factory.getbasetemp() / "fmu-cache"
+
+
+@pytest.fixture(scope="session")
+def dask_scheduler():
+    """One Dask LocalCluster for the session: two single-threaded worker processes."""
+    dask = pytest.importorskip("dask")
+    distributed = pytest.importorskip("distributed")
+    with dask.config.set({"distributed.scheduler.allowed-failures": 1}):
+        cluster = distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
+                                           dashboard_address=None)
+    yield cluster.scheduler_address
+    cluster.close()

@@ -170,17 +170,40 @@ def test_ecco_options_are_checked_against_its_declaration(tmp_path, options, mes
     assert message in str(exc.value) and "opts.yaml:4" in str(exc.value)
 
 
-@pytest.mark.parametrize("alg", ["ecco", "adaptive"])
-def test_a_variable_step_run_is_refused_in_real_time_rather_than_run_unpaced(alg):
-    from cosim.master.realtime import RealtimeSettings
-
+def _bonded_pair():
     a = LinearSlave("a", [[-1.0]], [[1.0]], [[1.0]], x0=[1.0])
     b = LinearSlave("b", [[-3.0]], [[1.0]], [[0.8]], x0=[-0.4])
     bond = "a <-> b"
-    system = CoupledSystem([a, b], [Link(0, "y[1]", 1, "u[1]", bond=bond), Link(1, "y[1]", 0, "u[1]", bond=bond)],
-                           [(0, "y[1]")])
-    with pytest.raises(UserError, match=f"{alg} chooses its own steps and cannot be paced in real time"):
-        simulate(system, alg, step_ns=10_000_000, n_steps=10, realtime=RealtimeSettings())
+    return CoupledSystem([a, b], [Link(0, "y[1]", 1, "u[1]", bond=bond), Link(1, "y[1]", 0, "u[1]", bond=bond)],
+                         [(0, "y[1]")])
+
+
+def test_adaptive_is_refused_in_real_time_rather_than_run_unpaced():
+    """adaptive retries rejected steps from a saved state: it cannot follow the wall clock."""
+    from cosim.master.realtime import RealtimeSettings
+
+    with pytest.raises(UserError, match="adaptive chooses its own steps and cannot be paced in real time"):
+        simulate(_bonded_pair(), "adaptive", step_ns=10_000_000, n_steps=10, realtime=RealtimeSettings())
+
+
+def test_ecco_is_paced_in_real_time_step_by_step():
+    """ecco never retries a step, so the one run loop paces each of its (variable) steps: every
+    accepted step waited for its start on the wall clock, and the run took at least the simulated
+    time up to its last step's start (0.1 s simulated)."""
+    import time
+
+    from cosim.master.realtime import RealtimeSettings
+
+    mem = MemoryTrace()
+    t0 = time.perf_counter()
+    stats = simulate(_bonded_pair(), "ecco", step_ns=10_000_000, n_steps=10, observers=[mem],
+                     realtime=RealtimeSettings(max_misses=10_000))
+    wall = time.perf_counter() - t0
+    assert stats.status == "ok", stats.reason
+    t = mem.trace.time
+    assert t[-1] == pytest.approx(0.1) and len(t) > 20  # variable steps, not the 10 of the hint
+    assert stats.realtime["paced_steps"] == stats.as_dict()["accepted_steps"] == len(t) - 1
+    assert wall >= t[-2] - 1e-3  # the last step started no earlier than its simulated start
 
 
 def test_ecco_ends_as_unstable_when_the_residual_stays_over_tolerance_at_the_step_floor():

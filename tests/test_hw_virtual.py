@@ -1,5 +1,5 @@
-"""The virtual board's plant and the actuator block, stepped together with the daemon on synthetic
-time (no wall clock): the plant's motion against the actuator's analytic step response, and each
+"""The virtual board's plant and the actuator block, stepped together with the C daemon on
+synthetic time (its ``--step`` harness, no wall clock): the plant's motion against the actuator's analytic step response, and each
 failure option against the daemon's documented fault."""
 from __future__ import annotations
 
@@ -57,11 +57,22 @@ def test_end_stop_holds_the_stroke():
     assert x[0] == pytest.approx(0.5, abs=V_NL * 1e-3)
 
 
+_OPEN: list = []
+
+
+@pytest.fixture(autouse=True)
+def _close_daemons():
+    yield
+    while _OPEN:
+        _OPEN.pop().close()
+
+
 def rig(tmp_path, **opts):
     tree = faketree.make_fake_tree(tmp_path / "tree")
     plant = virtual.Plant(tree, virtual.PlantOptions(**opts))
     key = os.urandom(32)
-    d = daemon.Daemon(key, root=tree, listen=("127.0.0.1", 0))
+    d = daemon.Stepped(key, root=tree)
+    _OPEN.append(d)
     nonce = P.new_nonce()
     t = 1000 * MS
     dg = P.parse(d.handle(P.pack(key, P.HELLO, 0, 0, t, nonce), None, t))
@@ -97,7 +108,7 @@ def test_plant_follows_the_daemons_outputs(tmp_path):
         late = 1e-3 + abs(u) / d.safety.slew
         lo, hi = sorted((step_response(u, 0.5 - late), step_response(u, 0.5)))
         assert lo - 1e-12 <= plant.stroke(i) - s0[i] <= hi + 1e-12
-        raw = int(d.legs[i].files.adc.read_text())
+        raw = int(d.files[i].adc.read_text())
         assert abs(cal.stroke(raw) - plant.stroke(i)) <= cal.metres_per_count / 2 + 1e-12  # 12-bit quantisation
     assert d.state == P.RUNNING and d.faults == 0
 
@@ -108,7 +119,7 @@ def test_plant_failures_give_the_documented_fault_and_safe_outputs(tmp_path, opt
     d, plant, send, t0 = rig(tmp_path, **option)
     drive(d, plant, send, t0, (12.0, 12.0, -12.0), 0.6)
     assert d.state == P.FAULT and d.faults == fault
-    assert [(leg.files.duty.read_text(), leg.files.dir_value.read_text()) for leg in d.legs] == [("0", "0")] * 3
+    assert [(f.duty.read_text(), f.dir_value.read_text()) for f in d.files] == [("0", "0")] * 3
     still = [plant.stroke(i) for i in range(3)]
     drive(d, plant, send, t0 + 600 * MS, (12.0, 12.0, -12.0), 0.2)  # latched: nothing moves any more
     assert [plant.stroke(i) for i in range(3)] == pytest.approx(still, abs=V_NL * TAU * 1.01)

@@ -79,12 +79,27 @@ def model_info(model: str, fidelity: str | None = None) -> Info:
     if fidelity not in cat[model]:
         raise UserError(f"model {model!r} has no fidelity {fidelity!r}{suggest(fidelity, cat[model])} "
                         f"(expected one of {', '.join(cat[model])})")
-    blk = blocks.make(model, fidelity)
-    params = [ParamInfo(p.name, p.unit, p.default, p.lower, p.upper, p.description,
-                        "fixed" if p.structural else "tunable") for p in blk.params]
     opts = [(o.name, str(o.default), o.description + (f" ({', '.join(o.choices)})" if o.choices else ""))
             for o in blocks.options(model, fidelity).values()]
-    return Info(f"{model}/{fidelity}", blk.description,
+    return block_info(blocks.make(model, fidelity), f"{model}/{fidelity}", opts)
+
+
+def user_block_info(what: str) -> Info:
+    """A user's block: ``FILE.mo:CLASS`` (a Modelica class, :mod:`models.modelica`) or
+    ``FILE.py:MODEL[/FIDELITY]`` (a Python block module, :mod:`cosim.scenario.user_blocks`)."""
+    from ..scenario.user_blocks import UserBlockError, user_block
+
+    try:
+        return block_info(*user_block(what))
+    except UserBlockError as exc:
+        raise UserError(str(exc)) from None
+
+
+def block_info(blk, title: str, opts: list[tuple[str, str, str]]) -> Info:
+    """The outside view of a :class:`models.block.Block`."""
+    params = [ParamInfo(p.name, p.unit, p.default, p.lower, p.upper, p.description,
+                        "fixed" if p.structural else "tunable") for p in blk.params]
+    return Info(title, blk.description,
                 [VarInfo(v.name, v.unit, v.description) for v in blk.inputs],
                 [VarInfo(v.name, v.unit, v.description) for v in blk.outputs],
                 [VarInfo(v.name, v.unit, v.description) for v in blk.states], params,

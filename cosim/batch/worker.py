@@ -24,6 +24,7 @@ from typing import Any
 
 from ..errors import UserError
 from ..scenario import Scene
+from ..scenario.guards import guard_needs
 from ..slaves.fmu import FmuSlave
 from ..trace.traces import Trace
 from .metrics import MetricSpec, compute
@@ -69,8 +70,10 @@ class Outcome:
 
 
 def transportable(scene: Scene) -> Scene:
-    """``scene`` without its CasADi blocks (a worker runs FMUs, not blocks), small to send."""
-    comps = {n: dataclasses.replace(c, block=None) for n, c in scene.components.items()}
+    """``scene`` without its CasADi blocks (a worker runs FMUs, not blocks), small to send; what
+    the run-time guards need of each block goes along as plain data (``Component.guard``,
+    :func:`cosim.scenario.guards.guard_needs`)."""
+    comps = {n: dataclasses.replace(c, block=None, guard=guard_needs(c)) for n, c in scene.components.items()}
     return dataclasses.replace(scene, components=comps)
 
 

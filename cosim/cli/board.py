@@ -1,17 +1,21 @@
-"""``rpr-cosim board``: the rig's I/O daemon, its key, and the virtual board.
+"""``rpr-cosim board``: the rig's I/O daemon, its key, its build for the board, the virtual board.
 
     rpr-cosim board keygen FILE
-    rpr-cosim board serve --key FILE [--listen ADDR:PORT] [--root DIR] [--rate HZ]
+    rpr-cosim board serve --key FILE [--listen ADDR:PORT] [--root DIR] [--rate HZ] [--gpio MODE]
+    rpr-cosim board build [--target host|armhf] [--out FILE]
     rpr-cosim board virtual --key FILE [--listen ADDR:PORT] [--noise C] [--latency S] [--stuck LEG] ...
 
-``serve`` runs on the BeagleBone (root "/"): it owns the pins of SPEC §7 and enforces the safety
-rules of :mod:`hardware.daemon`.  ``virtual`` runs the same daemon, as a child process, on a
-temporary fake sysfs tree and plays the rig behind it (:mod:`hardware.virtual`).  Both listen on
-loopback unless told otherwise.  The work is in :mod:`hardware`; this module is the command line.
+``serve`` runs the C daemon ``rpr-board`` (:mod:`hardware.daemon`; built and cached on first
+use) on the pins under ``--root`` ("/" on the board).  ``build --target armhf`` writes the
+statically linked binary that is copied to the BeagleBone (where it runs without Python).
+``virtual`` runs the same daemon on a temporary fake sysfs tree and plays the rig behind it
+(:mod:`hardware.virtual`).  Both listen on loopback unless told otherwise.  The work is in
+:mod:`hardware`; this module is the command line.
 """
 from __future__ import annotations
 
 import argparse
+import ctypes
 import os
 import re
 import shutil
@@ -19,19 +23,25 @@ import signal
 import subprocess
 import sys
 import tempfile
+import threading
 from pathlib import Path
 
 from ..errors import UserError
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("board", help="the rig's I/O daemon (BeagleBone), its key, and the virtual board",
+    p = sub.add_parser("board", help="the rig's I/O daemon (BeagleBone), its key, its build, and the virtual board",
                        description="Hardware in the loop: the BeagleBone I/O daemon and the virtual board.")
     verbs = p.add_subparsers(dest="board_verb", metavar="ACTION")
     verbs.required = True
     k = verbs.add_parser("keygen", help="make a new shared key file (owner-only permissions)")
     k.add_argument("file", type=Path)
     k.set_defaults(handler=_keygen)
+    b = verbs.add_parser("build", help="write the daemon binary for this machine or the BeagleBone (armhf)")
+    b.add_argument("--target", default="host", choices=("host", "armhf"),
+                   help="host (this machine) or armhf (BeagleBone Black, statically linked; default host)")
+    b.add_argument("--out", type=Path, default=None, help="file to write (default ./rpr-board-TARGET)")
+    b.set_defaults(handler=_build)
     for name, text in (("serve", "run the I/O daemon on the board's pins"),
                        ("virtual", "run the daemon on a fake sysfs tree with a simulated rig behind it")):
         s = verbs.add_parser(name, help=text)
@@ -44,8 +54,15 @@ def register(sub: argparse._SubParsersAction) -> None:
                        help="run under SCHED_FIFO at priority P (1..99; needs root or CAP_SYS_NICE): keeps a 1 kHz "
                             "loop on time on a busy machine")
         s.add_argument("-v", "--verbose", action="store_true", help="log sessions and faults")
+        s.add_argument("--target", default="host", choices=("host", "armhf"),
+                       help="the daemon's build: host, or armhf under qemu-user (tests, benchmarks; default host)")
         if name == "serve":
             s.add_argument("--root", type=Path, default=Path("/"), help="sysfs root (default /; a fake tree in tests)")
+            s.add_argument("--gpio", default="auto", choices=("auto", "sysfs", "chardev"),
+                           help="DIR lines through the GPIO character device or sysfs (default auto: the character "
+                                "device when the board has one)")
+            s.add_argument("--travel", default=None, metavar="LO,HI",
+                           help="calibrated ends of the stroke [ADC counts] for the end and range checks")
             s.set_defaults(handler=_serve)
         else:
             s.add_argument("--tree", type=Path, default=None, help="create the fake tree here (default: a temp dir, "
@@ -74,60 +91,101 @@ def _keygen(args) -> int:
     return 0
 
 
-def _common(args):
+def _binary(target: str = "host") -> list[str]:
+    from fmus import BuildError
+    from hardware import daemon
+
+    try:
+        return daemon.command(target)
+    except BuildError as exc:
+        raise UserError(str(exc)) from None
+
+
+def _build(args) -> int:
+    from fmus import BuildError
+    from hardware import daemon
+
+    try:
+        path = daemon.build(args.target)
+    except BuildError as exc:
+        raise UserError(str(exc)) from None
+    out = args.out or Path(f"rpr-board-{args.target}")
+    try:
+        shutil.copyfile(path, out)
+        os.chmod(out, 0o755)
+    except OSError as exc:
+        raise UserError(f"cannot write {out}: {exc.strerror or exc}") from None
+    static = " (statically linked: needs no library on the board)" if args.target != "host" else ""
+    print(f"rpr-board for {args.target} written to {out}{static}")
+    return 0
+
+
+def _common(args) -> list[str]:
+    """Check the options (one-line errors) and return the daemon's own options."""
     from hardware import protocol
 
     try:
-        key = protocol.read_key(args.key)
-        host, port = protocol.parse_address(args.listen)
+        protocol.read_key(args.key)
+        protocol.parse_address(args.listen)
     except ValueError as exc:
         raise UserError(str(exc)) from None
     if not (args.rate > 0) or args.rate > 20000:
         raise UserError(f"--rate {args.rate}: expected 1..20000 Hz")
-    import logging
+    if args.rt_priority and not 1 <= args.rt_priority <= 99:
+        raise UserError(f"--rt-priority {args.rt_priority}: expected 1..99")
+    opts = ["--key", str(args.key), "--listen", args.listen, "--rate", f"{args.rate:g}"]
+    opts += ["--duration", f"{args.duration:g}"] if args.duration else []
+    opts += ["--rt-priority", str(args.rt_priority)] if args.rt_priority else []
+    return opts + (["-v"] if args.verbose else [])
 
-    logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING,
-                        format="[board] %(levelname)s %(message)s", stream=sys.stderr)
-    if args.rt_priority:
-        if not 1 <= args.rt_priority <= 99:
-            raise UserError(f"--rt-priority {args.rt_priority}: expected 1..99")
-        try:
-            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(args.rt_priority))
-        except (AttributeError, OSError) as exc:
-            raise UserError(f"--rt-priority {args.rt_priority}: SCHED_FIFO refused "
-                            f"({getattr(exc, 'strerror', None) or exc}); run as root or drop the option") from None
-    return key, (host, port)
+
+def _die_with_parent() -> None:
+    """In the daemon's process: SIGTERM when this command dies (even by SIGKILL), so that the
+    daemon zeroes the outputs rather than drive on without its owner (Linux)."""
+    try:
+        ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
+    except (OSError, AttributeError):
+        pass
+
+
+def _spawn(cmd: list[str], **kw) -> subprocess.Popen:
+    return subprocess.Popen(cmd, stderr=subprocess.PIPE, text=True, preexec_fn=_die_with_parent, **kw)
+
+
+def _relay(stream, out) -> threading.Thread:
+    def run():
+        for line in stream:
+            out.write(line)
+            out.flush()
+    th = threading.Thread(target=run, daemon=True)
+    th.start()
+    return th
 
 
 def _serve(args) -> int:
-    from hardware import daemon
-    from hardware.pins import PinError
-
-    key, listen = _common(args)
-    if listen[0] not in ("127.0.0.1", "localhost", "::1"):
-        print(f"[board] listening on {listen[0]}: reachable from the network (authenticated, not encrypted)",
-              file=sys.stderr)
+    opts = _common(args) + ["--root", str(args.root), "--gpio", args.gpio]
+    if args.travel:
+        opts += ["--travel", args.travel]
+    child = _spawn([*_binary(args.target), *opts])
+    err = _relay(child.stderr, sys.stderr)
+    forward = lambda signum, frame: child.send_signal(signum)  # noqa: E731
+    old = {s: signal.signal(s, forward) for s in (signal.SIGTERM, signal.SIGINT, signal.SIGHUP)}
     try:
-        d = daemon.Daemon(key, root=args.root, listen=listen, rate=args.rate)
-    except PinError as exc:
-        raise UserError(f"pins under {args.root}: {exc}") from None
-    except OSError as exc:
-        raise UserError(f"cannot listen on {args.listen}: {exc.strerror or exc}") from None
-    daemon.install_signal_handlers(d)
-    print(f"rpr-cosim board: listening on {d.address[0]}:{d.address[1]} (root {args.root}, {args.rate:g} Hz)",
-          flush=True)
-    try:
-        d.serve_forever(args.duration)
-    except SystemExit:
-        pass
-    print(f"rpr-cosim board: stopped; outputs zeroed; counters {d.counters}", flush=True)
-    return 0
+        rc = child.wait()
+    finally:
+        for s, h in old.items():
+            signal.signal(s, h)
+        if child.poll() is None:
+            child.send_signal(signal.SIGTERM)
+            rc = child.wait()
+        err.join(timeout=2)
+    return rc
 
 
 def _virtual(args) -> int:
     from hardware import faketree, virtual
 
-    _common(args)
+    opts = _common(args)
     try:
         start = tuple(float(x) for x in args.start.split(","))
         assert len(start) == 3
@@ -142,16 +200,12 @@ def _virtual(args) -> int:
         if tree.exists() and any(tree.iterdir()):
             raise UserError(f"--tree {tree} exists and is not empty; give a new directory")
     faketree.make_fake_tree(tree)
-    opts = virtual.PlantOptions(actuator=args.actuator, start=start, noise=args.noise, latency=args.latency,
-                                stuck=tuple(args.stuck), unplugged=tuple(args.unplug),
-                                driver_fault=tuple(args.driver_fault))
-    plant = virtual.Plant(tree, opts)
-    cmd = [sys.executable, "-m", "cosim", "board", "serve", "--key", str(args.key), "--listen", args.listen,
-           "--root", str(tree), "--rate", str(args.rate)] + (["-v"] if args.verbose else []) \
-        + (["--rt-priority", str(args.rt_priority)] if args.rt_priority else [])
-    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(Path(__file__).resolve().parent.parent)]
-                                                       + ([os.environ["PYTHONPATH"]] if os.environ.get("PYTHONPATH") else [])))
-    child = subprocess.Popen(cmd, stdout=subprocess.PIPE, text=True, env=env)
+    opts_plant = virtual.PlantOptions(actuator=args.actuator, start=start, noise=args.noise, latency=args.latency,
+                                      stuck=tuple(args.stuck), unplugged=tuple(args.unplug),
+                                      driver_fault=tuple(args.driver_fault))
+    plant = virtual.Plant(tree, opts_plant)
+    child = _spawn([*_binary(args.target), *opts, "--root", str(tree)], stdout=subprocess.PIPE)
+    err = _relay(child.stderr, sys.stderr)
     stopping = {"flag": False}
 
     def on_signal(signum, frame):
@@ -162,6 +216,7 @@ def _virtual(args) -> int:
         m = re.search(r"listening on (\S+)", line)
         if not m:
             child.wait(timeout=10)
+            err.join(timeout=2)
             raise UserError(f"the daemon did not start (exit code {child.returncode})")
         print(f"rpr-cosim board virtual: listening on {m.group(1)} (fake tree {tree}, {args.actuator} actuators)",
               flush=True)
@@ -172,10 +227,12 @@ def _virtual(args) -> int:
         if child.poll() is None:
             child.send_signal(signal.SIGTERM)
         try:
-            out, _ = child.communicate(timeout=5)
+            child.wait(timeout=5)
         except subprocess.TimeoutExpired:
             child.kill()
-            out, _ = child.communicate()
+            child.wait()
+        out = child.stdout.read()
+        err.join(timeout=2)
         if out:
             print(out.strip(), flush=True)
         plant.close()

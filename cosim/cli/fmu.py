@@ -1,9 +1,9 @@
 """``rpr-cosim fmu``: build co-simulation FMUs from the model catalog and list the cache.
 
-    rpr-cosim fmu build MODEL [--fidelity F] [--set name=value ...] [--fmi 2|3] [--out DIR] [--cache DIR]
+    rpr-cosim fmu build MODEL | FILE.mo:CLASS | FILE.py:MODEL [--fidelity F] [--set name=value ...] [--fmi 2|3] [--out DIR] [--cache DIR]
     rpr-cosim fmu list [--cache DIR]
     rpr-cosim fmu check FMU
-    rpr-cosim fmu show MODEL[/FIDELITY] | FILE.fmu [--markdown [FILE]]
+    rpr-cosim fmu show MODEL[/FIDELITY] | FILE.fmu | FILE.mo:CLASS | FILE.py:MODEL [--markdown [FILE]]
     rpr-cosim fmu show --readme [README.md]
 
 ``build`` prints the FMU's path on stdout (progress goes to stderr).  ``--set`` values that are
@@ -31,7 +31,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                                      "compiles it, and the result is cached by content (a second build of the same "
                                      "block compiles nothing; a damaged cache entry is rebuilt).  Prints the FMU's "
                                      "path on stdout.")
-    b.add_argument("model", help="catalog model, e.g. mechanism, dc_motor, pid, pose_setpoint")
+    b.add_argument("model", help="catalog model, e.g. mechanism, dc_motor, pid, pose_setpoint; or a user's block: "
+                                 "FILE.mo:CLASS or FILE.py:MODEL[/FIDELITY]")
     b.add_argument("--fidelity", help="fidelity level (default: the model's first)")
     b.add_argument("--set", dest="sets", action="append", default=[], metavar="NAME=VALUE",
                    help="parameter override or construction option; repeatable")
@@ -52,7 +53,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     ck.set_defaults(handler=_check)
     sh = verbs.add_parser("show", help="interface, parameters (units, defaults, bounds), states and integrator "
                                        "of a catalog model or an FMU file")
-    sh.add_argument("what", nargs="?", help="MODEL[/FIDELITY] (e.g. pid/continuous) or FILE.fmu")
+    sh.add_argument("what", nargs="?", help="MODEL[/FIDELITY] (e.g. pid/continuous), FILE.fmu, or a user's block: "
+                                            "FILE.mo:CLASS or FILE.py:MODEL[/FIDELITY]")
     sh.add_argument("--markdown", nargs="?", const="-", metavar="FILE",
                     help="write the same as a Markdown page (to FILE, default stdout)")
     sh.add_argument("--readme", nargs="?", const="README.md", type=Path, metavar="README",
@@ -90,9 +92,16 @@ def _parse_sets(items: list[str]) -> tuple[dict[str, str], dict[str, int | float
     return words, numbers
 
 
+def _is_user_block(what: str) -> bool:
+    """``FILE.mo:CLASS`` or ``FILE.py:MODEL``: a user's block."""
+    return ":" in what and Path(what.rpartition(":")[0]).suffix in (".mo", ".py")
+
+
 def _build(args: argparse.Namespace) -> int:
     import fmus
 
+    if _is_user_block(args.model):
+        return _build_user(args)
     blocks = _blocks()
     catalog = blocks.catalog()
     if args.model not in catalog:
@@ -109,6 +118,11 @@ def _build(args: argparse.Namespace) -> int:
         block = blocks.make(args.model, args.fidelity, **words, **options)
     path = fmus.build_fmu(block, fmi_version=args.fmi + ".0", cache_dir=args.cache, params=overrides,
                           progress=lambda msg: print(f"[fmu] {msg}", file=sys.stderr))
+    return _deliver(path, args)
+
+
+def _deliver(path: Path, args: argparse.Namespace) -> int:
+    """Copy the FMU to ``--out`` if asked; print its path."""
     if args.out:
         args.out.mkdir(parents=True, exist_ok=True)
         dest = args.out / path.name
@@ -116,6 +130,28 @@ def _build(args: argparse.Namespace) -> int:
         path = dest
     print(path)
     return 0
+
+
+def _build_user(args: argparse.Namespace) -> int:
+    """``fmu build FILE.mo:CLASS`` / ``FILE.py:MODEL``: a user's block, built and cached like ours."""
+    import fmus
+
+    from ..scenario.user_blocks import UserBlockError, user_block
+
+    if args.fidelity is not None:
+        raise UserError("--fidelity: name a Python block's fidelity as FILE.py:MODEL/FIDELITY; a Modelica class has one")
+    words, numbers = _parse_sets(args.sets)
+    try:
+        block, _, opts = user_block(args.model, **words)
+        names = {o[0] for o in opts}
+        if any(k in names for k in numbers):  # numeric construction options (substeps...)
+            block, _, _ = user_block(args.model, **words, **{k: v for k, v in numbers.items() if k in names})
+    except UserBlockError as exc:
+        raise UserError(str(exc)) from None
+    overrides = {k: v for k, v in numbers.items() if k not in names}
+    path = fmus.build_fmu(block, fmi_version=args.fmi + ".0", cache_dir=args.cache, params=overrides,
+                          progress=lambda msg: print(f"[fmu] {msg}", file=sys.stderr))
+    return _deliver(path, args)
 
 
 def _list(args: argparse.Namespace) -> int:
@@ -186,7 +222,9 @@ def _show(args: argparse.Namespace) -> int:
         return 0
     if not args.what:
         raise UserError("fmu show: name a model (e.g. pid/continuous) or an FMU file, or pass --readme")
-    if args.what.endswith(".fmu") or Path(args.what).is_file():
+    if _is_user_block(args.what):
+        info = model_doc.user_block_info(args.what)
+    elif args.what.endswith(".fmu") or Path(args.what).is_file():
         info = model_doc.fmu_info(Path(args.what))
     else:
         model, _, fidelity = args.what.partition("/")

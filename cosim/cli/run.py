@@ -231,8 +231,20 @@ def _summary(res) -> None:
         print(f"  bond {name}: largest scaled energy residual {b['max_scaled_residual']:.3g}, "
               f"{b['steps_over_tolerance']} steps over tolerance, net {b['energy_residual_sum_J']:+.3g} J "
               f"of {b['energy_J']:.3g} J carried")
+    rt = st.get("realtime")
+    if rt:
+        print(f"  real time: lateness p50 {1e6 * rt['lateness_p50_s']:.0f} us, p99 {1e6 * rt['lateness_p99_s']:.0f} us, "
+              f"max {1e6 * rt['lateness_max_s']:.0f} us; {rt['missed_deadlines']} missed deadlines of "
+              f"{rt['paced_steps']} paced steps" + (f" ({rt['priority']})" if rt.get("priority") else ""))
+        for name, fig in rt.get("slaves", {}).items():
+            shown = ", ".join(f"{k} {1e6 * v:.0f} us" if k.startswith(("tick", "cpu")) else f"{k} {v:g}"
+                              for k, v in fig.items())
+            print(f"  real time of {name}: {shown}")
     for w in st.get("guards", {}).get("warnings", []):
         print(f"  guard warning: {w}")
+    for g, how in st.get("guards", {}).get("applied", {}).items():
+        if "catalog identity" in how:  # external FMUs the guards know nothing of
+            print(f"  guard {g}: {how}")
     final = res.trace.final()
     if final:
         t_end = res.trace.time[-1]

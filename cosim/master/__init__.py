@@ -5,19 +5,24 @@ Package map (the public names are re-exported here: ``from cosim.master import X
 
 ``graph``       algebraic loops, topological order, the default Gauss-Seidel order
 ``system``      :class:`CoupledSystem` (the value vector, value references, indices) and :class:`Link`
-``algorithm``   the :class:`Algorithm` base class, :data:`ALGORITHMS`, :func:`register`, :func:`algorithm`
+``algorithm``   :class:`MasterAlgorithm` (what the registry knows of every algorithm), the fixed-step
+                :class:`Algorithm` base class, :data:`ALGORITHMS`, :func:`register`, :func:`algorithm`
 ``algorithms/`` one module per algorithm (``jacobi``, ``gauss_seidel``, ``adaptive``, ``ecco``,
                 ``iterative``), listed in :data:`cosim.master.algorithms.MODULES`
 ``engine``      who runs the steps: the compiled loop (:mod:`cosim.master.fastloop`) or the Python loop;
-                :func:`choose_engine`
-``run``         the run loop :func:`simulate`, :func:`initialize`, :class:`RunStats`
+                :func:`choose_engine`, :func:`fixed_stepper`
+``stepper``     the one driver loop :func:`~cosim.master.stepper.drive` over the stepper protocol (pacing,
+                stop requests, guards, step observers, traces, text events, progress), :class:`StepInfo`
+``run``         :func:`simulate`: an algorithm bound to its engine as a stepper, driven by ``drive``;
+                :func:`initialize`, :class:`RunStats`
 ``multirate``   a slave at ``rate`` doSteps per macro step (Jacobi, Gauss-Seidel; both engines)
 
 Structure (after libcosim and scipy.integrate): a :class:`CoupledSystem` lays the slaves'
 connected and recorded variables out in one float64 vector and precomputes every value
 reference and index; an :class:`Algorithm` owns the public :meth:`Algorithm.step` and its
 status, subclasses implement only :meth:`Algorithm._step_impl`; algorithms are found by name in
-:data:`ALGORITHMS`; :func:`simulate` is the run loop (algorithm, then observers).
+:data:`ALGORITHMS`; every algorithm, fixed or variable step, runs as a *stepper* through the one
+driver loop (:mod:`cosim.master.stepper`: what comes before a step, the step, then the observers).
 Recording is the observers' business (:mod:`cosim.trace`), never the algorithm's.
 
 Time is counted in whole steps of an integer number of nanoseconds: ``t_k = k * step_ns / 1e9``
@@ -69,18 +74,19 @@ Types: the value vector carries scalar Float64 variables; other FMI types and ar
 from __future__ import annotations
 
 from . import algorithms  # registers every algorithm module (algorithms.MODULES)
-from .algorithm import ALGORITHMS, Algorithm, algorithm, register
+from .algorithm import ALGORITHMS, Algorithm, MasterAlgorithm, algorithm, register
 from .algorithms.adaptive import Adaptive
 from .algorithms.gauss_seidel import GaussSeidel
 from .algorithms.iterative import Iterative
 from .algorithms.jacobi import Jacobi
-from .engine import _Compiled, choose_engine
+from .engine import _Compiled, choose_engine, fixed_stepper
 from .graph import find_algebraic_loop, gauss_seidel_order, topological_order
 from .lifecycle import RunStats, initialize, interruption_reason, slave_table
 from .run import simulate
+from .stepper import StepInfo, drive
 from .system import CoupledSystem, Link
 
-__all__ = ["ALGORITHMS", "Adaptive", "Algorithm", "CoupledSystem", "GaussSeidel", "Iterative", "Jacobi", "Link",
-           "RunStats",
+__all__ = ["ALGORITHMS", "Adaptive", "Algorithm", "CoupledSystem", "GaussSeidel", "Iterative", "Jacobi", "Link", "MasterAlgorithm",
+           "RunStats", "StepInfo", "drive", "fixed_stepper",
            "_Compiled", "algorithm", "algorithms", "choose_engine", "find_algebraic_loop", "gauss_seidel_order",
            "initialize", "interruption_reason", "register", "simulate", "slave_table", "topological_order"]

@@ -329,7 +329,7 @@ class CompiledAdaptive:
     """Drop-in for :class:`cosim.master.algorithms.adaptive.AdaptiveStepper` whose accepted-step loop runs in C.
     It shares the stepper's setup (order, fresh inputs, options) and exposes the same ``t_ns``,
     ``stats``, ``calls``, ``slave_ns``, ``status`` and ``message``; :meth:`run` replaces the
-    Python loop of :func:`cosim.master.algorithms.adaptive.run_adaptive` one chunk at a time."""
+    Python loop of :class:`cosim.master.algorithms.adaptive.VariableStepper` one block at a time."""
 
     def __init__(self, stepper, timing: bool = True):
         self.py = stepper  # the Python stepper: its setup, statistics and messages
@@ -376,7 +376,7 @@ class CompiledAdaptive:
         ctl.p_lin, ctl.p_hold = stepper.order_p_linear, stepper.order_p_hold
         ctl.any_interp, ctl.timing = int(any(stepper.interp)), int(timing)
         ctl.h_min_taken, ctl.h_max_taken = math.inf, 0.0
-        self.rec_idx = np.ascontiguousarray(sysm.record_idx[:len(sysm.record_names)], dtype=np.int64)
+        self.rec_idx = np.ascontiguousarray(sysm.record_idx, dtype=np.int64)  # recorded, then watched (guards)
         self.h_rec = np.empty(0, dtype=np.int64)
         self.status, self.message = "running", ""
 

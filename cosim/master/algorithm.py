@@ -85,20 +85,40 @@ def _gatherer(system: CoupledSystem, i: int) -> Callable[[], None]:
     return copy
 
 
-class Algorithm(ABC):
-    """Base class of master algorithms.  The public :meth:`step` advances one macro step and
+class MasterAlgorithm:
+    """What the registry and the run (:func:`cosim.master.simulate`) know of every master
+    algorithm, fixed or variable step: its name, declared options and abilities.  A fixed-step
+    algorithm subclasses :class:`Algorithm` (the run binds it to its engine,
+    :func:`cosim.master.engine.fixed_stepper`); a variable-step one (``adaptive``, ``ecco``)
+    subclasses this directly and names the function that makes its stepper (``stepper_for``,
+    see :mod:`cosim.master.stepper`)."""
+
+    name: ClassVar[str]
+    #: the options it declares (:class:`AlgorithmOption`), checked at scene load and by the run
+    options: ClassVar[tuple] = ()
+    #: it chooses its own steps (every accepted step is recorded)
+    variable_step: ClassVar[bool] = False
+    #: every slave must save and restore its state (a step may be retried)
+    needs_rollback: ClassVar[bool] = False
+    #: its steps can be paced on the wall clock (``master.realtime``)
+    paceable: ClassVar[bool] = True
+    #: a slave may take several doSteps per macro step (:mod:`cosim.master.multirate`)
+    multirate: ClassVar[bool] = False
+    #: it solves algebraic loops (initialisation allows them)
+    solves_algebraic_loops: ClassVar[bool] = False
+    #: algorithm code of the compiled fixed-step loop implementing the same steps, or None
+    native_code: ClassVar[int | None] = None
+
+
+class Algorithm(MasterAlgorithm, ABC):
+    """Base class of fixed-step master algorithms.  The public :meth:`step` advances one macro step and
     keeps :attr:`status` (``"running"``, ``"failed"``, ``"stopped"``); a subclass implements
     :meth:`_step_impl` and may name a compiled variant (:attr:`native_code`, see
     :mod:`cosim.master.fastloop`).  Numerical failure comes back as a status and :attr:`message`, never
     as an exception; bad arguments raise at once."""
 
-    name: ClassVar[str]
-    #: algorithm code of the compiled loop implementing the same steps, or None
-    native_code: ClassVar[int | None] = None
     #: slaves step one after another in :attr:`order` (later ones see earlier ones' new outputs)
     sequential: ClassVar[bool] = False
-    #: a slave may take several doSteps per macro step (:mod:`cosim.master.multirate`)
-    multirate: ClassVar[bool] = False
 
     def __init__(self, system: CoupledSystem, step_ns: int, *, order: Sequence[int] | None = None,
                  timing: bool = True, inputs: str = "hold", start_ns: int = 0,
@@ -270,16 +290,16 @@ class Algorithm(ABC):
         return st
 
 
-ALGORITHMS: dict[str, type[Algorithm]] = {}
+ALGORITHMS: dict[str, type[MasterAlgorithm]] = {}
 
 
-def register(cls: type[Algorithm]) -> type[Algorithm]:
+def register(cls: type[MasterAlgorithm]) -> type[MasterAlgorithm]:
     """Class decorator: make an algorithm available by its ``name``."""
     ALGORITHMS[cls.name] = cls
     return cls
 
 
-def algorithm(name: str) -> type[Algorithm]:
+def algorithm(name: str) -> type[MasterAlgorithm]:
     """The algorithm class called ``name``; :class:`UserError` with the closest names otherwise."""
     try:
         return ALGORITHMS[name]

@@ -6,6 +6,7 @@ import numpy as np
 
 from ..errors import UserError
 from .algorithm import Algorithm
+from .stepper import FixedStepper
 from .system import CoupledSystem
 
 
@@ -99,6 +100,16 @@ def _python_run(alg: Algorithm, nsteps: int, rec_every: int, rec: np.ndarray) ->
             break
     return rows
 
+
+
+def fixed_stepper(system: CoupledSystem, *, cls: type[Algorithm], step_ns: int, n_steps: int, record_every: int,
+                  engine: str = "auto", options: dict | None = None, **kw) -> FixedStepper:
+    """A fixed-step algorithm ``cls`` over the initialised ``system`` on its engine (``engine``:
+    auto | compiled | python, see :func:`choose_engine`); ``kw`` go to the algorithm."""
+    alg = cls(system, step_ns, **kw, **({"options": options} if getattr(cls, "options", ()) else {}))
+    name = choose_engine(system, cls, engine, alg.start_ns)
+    runner = _Compiled(alg).run if name == "compiled" else (lambda n, e, r: _python_run(alg, n, e, r))
+    return FixedStepper(alg, runner, name, n_steps, record_every)
 
 
 def choose_engine(system: CoupledSystem, alg_cls: type[Algorithm], engine: str, start_ns: int = 0) -> str:

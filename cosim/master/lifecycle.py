@@ -8,11 +8,8 @@ from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 
-import numpy as np
-
 from ..errors import UserError
 from ..slaves.slave import FAILING, Slave, Status
-from .algorithm import Algorithm
 from .system import CoupledSystem
 
 
@@ -52,6 +49,22 @@ class RunStats:
                 "simulated_s": self.simulated_s, "real_time_factor": self.real_time_factor, "slaves": self.slaves,
                 **({"guards": self.guards} if self.guards else {}), **self.extra,
                 **({"realtime": self.realtime} if self.realtime is not None else {})}
+
+
+@dataclass
+class VariableStats(RunStats):
+    """Run statistics of a variable-step run: the simulated time is where the last accepted step
+    ended; ``adaptive`` holds accepted/rejected steps, rollbacks and the smallest/largest step."""
+
+    t_end: float = 0.0
+    adaptive: dict = field(default_factory=dict)
+
+    @property
+    def simulated_s(self) -> float:
+        return self.t_end
+
+    def as_dict(self) -> dict:
+        return {**super().as_dict(), **self.adaptive}
 
 
 def interruption_reason(exc: KeyboardInterrupt, t: float | None) -> str:
@@ -140,17 +153,3 @@ def _check(slave: Slave, status: int, what: str) -> None:
     if status in FAILING:
         raise UserError(f"{slave.name}: {what} returned {Status(status).name}"
                         + (f": {slave.last_message}" if slave.last_message else ""))
-
-
-def _guarded(guard, alg: Algorithm, rows: np.ndarray, step_ns: int) -> np.ndarray:
-    """``rows`` up to the first one ``guard`` trips on (all when it does not trip); a trip ends
-    the run with the guard's status and reason at that row's time."""
-    if guard is None or guard.tripped:
-        return rows
-    keep = guard.check(rows)
-    if keep is None:
-        return rows
-    later = f" (afterwards: {alg.message})" if alg.status != "running" and alg.message else ""
-    alg.status, alg.message = guard.status, guard.reason + later
-    alg.k = round((rows[keep - 1, 0] * 1e9 - alg.start_ns) / step_ns)
-    return rows[:keep]

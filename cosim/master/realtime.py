@@ -8,7 +8,9 @@ clock to the deadline.  Lateness (start of the step minus its deadline) is recor
 p50, p99 and the maximum are in :meth:`Pacer.stats`.  Overrun policy: a step that starts more
 than one step ``h`` late is a missed deadline; the schedule is kept (the loop catches up by
 running late steps at once) and misses are counted; ``max_misses`` consecutive misses fail the
-run with the reason.
+run with the reason.  A variable-step run (``ecco``) is paced the same way, each step's start at
+its simulated time after the start (:meth:`Pacer.wait_ns`); ``h`` is then the scene's
+``master.step``.
 
 ``priority`` > 0 runs the stepping thread under SCHED_FIFO at that priority for the run (Linux;
 needs root or CAP_SYS_NICE; otherwise the run goes on at normal priority and the statistics say
@@ -87,20 +89,27 @@ class Pacer:
     def wait(self, k: int) -> bool:
         """Wait for the deadline of step ``k``; False (with :attr:`reason`) when the overrun policy
         gives up."""
+        return self.wait_ns(k * self.step_ns)
+
+    def wait_ns(self, offset_ns: int) -> bool:
+        """Wait for the deadline of the step starting ``offset_ns`` [ns] of simulated time after
+        the start (a variable-step run's steps fall anywhere); False (with :attr:`reason`) when
+        the overrun policy gives up."""
         now = _now()
         if self.t0 is None:
             self._raise_priority()
             now = _now()
             self.t0 = now
-        deadline = self.t0 + k * self.step_ns
+        deadline = self.t0 + offset_ns
         if now < deadline - self.spin_ns:
             time.sleep((deadline - self.spin_ns - now) / 1e9)
             now = _now()
         while now < deadline:
             now = _now()
         late = now - deadline
-        if self.n < len(self.late):
-            self.late[self.n] = late
+        if self.n == len(self.late):  # more steps than planned (a variable-step run): grow
+            self.late = np.resize(self.late, 2 * len(self.late))
+        self.late[self.n] = late
         self.n += 1
         if late > self.step_ns:
             self.missed += 1
@@ -108,7 +117,8 @@ class Pacer:
             self.worst_run = max(self.worst_run, self.consecutive)
             if self.consecutive >= self.settings.max_misses:
                 self.reason = (f"real time lost: {self.consecutive} deadlines in a row missed by more than one step "
-                               f"({self.step_ns / 1e6:g} ms) at step {k}, {late / 1e6:.1f} ms late")
+                               f"({self.step_ns / 1e6:g} ms) at step {self.n - 1} (t = {offset_ns / 1e9:.9g} s after "
+                               f"the start), {late / 1e6:.1f} ms late")
                 return False
         else:
             self.consecutive = 0
@@ -122,3 +132,27 @@ class Pacer:
                 "lateness_max_s": float(lat.max()) if lat.size else 0.0, "missed_deadlines": self.missed,
                 "longest_miss_run": self.worst_run, "max_misses": self.settings.max_misses,
                 "priority": self.priority_note}
+
+
+#: Outputs a slave names ``<prefix>*`` are its own real-time figures (the rig's hardware FMU:
+#: the board daemon's tick lateness and CPU per tick, :mod:`hardware.fmu`); a paced run reports
+#: their last values beside the master's own lateness.
+OWN_FIGURES_PREFIX = "board_"
+
+
+def slave_figures(system) -> dict[str, dict[str, float]]:
+    """component -> {figure: last value} for every slave of ``system`` (a
+    :class:`cosim.master.CoupledSystem`) with outputs named :data:`OWN_FIGURES_PREFIX` ``*``;
+    a slave that cannot be read any more (failed, freed) is left out."""
+    out: dict[str, dict[str, float]] = {}
+    for slave in system.slaves:
+        names = [n for n, v in slave.description.variables.items()
+                 if n.startswith(OWN_FIGURES_PREFIX) and v.causality == "output" and v.type == "Real"]
+        if not names:
+            continue
+        try:
+            vals = slave.get_values("Real", [slave.vr(n) for n in names], len(names))
+        except Exception:  # a slave after Error/Fatal or without an instance: nothing to report
+            continue
+        out[slave.name] = {n[len(OWN_FIGURES_PREFIX):]: float(v) for n, v in zip(names, vals)}
+    return out

@@ -1,16 +1,16 @@
-"""The run loop: initialise the slaves, step with an algorithm through an engine, hand rows to the
-observers, and return the run's statistics (:class:`RunStats`)."""
+"""The run: initialise the slaves, bind the scene's algorithm to its engine as a stepper, drive it
+with the one loop (:func:`cosim.master.stepper.drive`: pacing, stop requests, guards, the
+observers), and return the run's statistics (:class:`RunStats`)."""
 from __future__ import annotations
 
 import time
 from collections.abc import Callable, Sequence
 
-import numpy as np
-
 from ..errors import UserError
-from .algorithm import algorithm
-from .engine import _Compiled, _python_run, choose_engine
-from .lifecycle import RunStats, _guarded, initialize, settled, slave_table
+from .algorithm import algorithm, option_values
+from .lifecycle import RunStats, VariableStats, initialize, settled
+from .engine import fixed_stepper
+from .stepper import drive, record_start
 from .system import CoupledSystem
 
 
@@ -20,20 +20,26 @@ def simulate(system: CoupledSystem, algorithm_name: str, *, step_ns: int, n_step
              progress: Callable[[int, int], None] | None = None, meta: dict | None = None,
              inputs: str = "hold", start_ns: int = 0, tolerances: Sequence[float | None] | None = None,
              realtime=None, options: dict | None = None, guard=None,
-             rates: Sequence[int] | None = None) -> RunStats:
-    """Initialise ``system`` and run ``n_steps`` macro steps of ``step_ns`` nanoseconds, inputs
-    held or linear over each step (``inputs``, see :mod:`cosim.master`).
+             rates: Sequence[int] | None = None, stop: Callable[[], str | None] | None = None) -> RunStats:
+    """Initialise ``system`` and run it from ``start_ns`` to ``start_ns + n_steps * step_ns``:
+    ``n_steps`` macro steps of ``step_ns`` nanoseconds for a fixed-step algorithm, inputs held or
+    linear over each step (``inputs``, see :mod:`cosim.master`); a variable-step algorithm
+    (adaptive, ecco) chooses its own steps, ``step_ns`` its first one's hint.
 
     Observers receive ``start(columns, meta)``, ``record(rows)`` (rows of time and the recorded
-    values, at ``t_0`` and every ``record_every`` steps) and ``finish(status, reason, stats)``,
-    also when the run fails or is interrupted (then the exception propagates after ``finish``).
+    values, at ``t_0`` and every ``record_every`` steps; every accepted step of a variable-step
+    run), optionally ``step(info)`` after every step (:class:`cosim.master.stepper.StepInfo`) and
+    ``record_text``, and ``finish(status, reason, stats)``, also when the run fails or is
+    interrupted (then the exception propagates after ``finish``).
     ``realtime`` (a :class:`cosim.master.realtime.RealtimeSettings`) paces every step on the wall clock.
+    ``stop()``, asked before every block of steps, ends the run as "stopped" when it returns a reason.
 
     ``guard`` (:class:`cosim.run.guards.Guard`) sees every row first, with the system's watched
     variables after the recorded ones; when it trips, the rows after the offending one are
     dropped and the run ends with the guard's status and reason.
     """
     cls = algorithm(algorithm_name)
+    variable = getattr(cls, "variable_step", False)
     multirate = {s.name: int(r) for s, r in zip(system.slaves, rates or ()) if r != 1}
     if multirate and not getattr(cls, "multirate", False):
         raise UserError(f"master algorithm {cls.name} does not step slaves at several rates "
@@ -45,38 +51,35 @@ def simulate(system: CoupledSystem, algorithm_name: str, *, step_ns: int, n_step
                             f"cannot roll back (canGetAndSetFMUstate=false, e.g. hardware); use ecco (step "
                             f"control from power bonds, no rollback) or a fixed-step algorithm such as gauss_seidel "
                             f"or jacobi")
-    if getattr(cls, "variable_step", False):
-        if realtime is not None:  # the pacer works on a fixed step grid: refuse rather than run unpaced
-            raise UserError(f"master algorithm {cls.name} chooses its own steps and cannot be paced in real time "
-                            f"yet; drop master.realtime or use gauss_seidel or jacobi")
-        from .algorithms.adaptive import simulate_variable
-
-        return simulate_variable(system, cls, step_ns=step_ns, n_steps=n_steps, observers=observers,
-                                 start_values=start_values, order=order, progress=progress, meta=meta,
-                                 options=options, start_ns=start_ns, tolerances=tolerances, engine=engine)
+    if realtime is not None and not getattr(cls, "paceable", True):  # refuse rather than run unpaced
+        raise UserError(f"master algorithm {cls.name} chooses its own steps and cannot be paced in real time "
+                        f"(it rolls rejected steps back); drop master.realtime or use ecco, gauss_seidel or jacobi")
     if record_every < 1:
         raise UserError(f"record_every must be >= 1, got {record_every}")
-    stats = RunStats(cls.name, "", step_ns / 1e9, n_steps)
+    stats = (VariableStats if variable else RunStats)(cls.name, "", step_ns / 1e9, n_steps)
     columns = ["time"] + system.record_names
+    extra = {"options": option_values(options, cls.options)} if variable else {}
     for obs in observers:
         obs.start(columns, dict(meta or {}, algorithm=cls.name, step=step_ns / 1e9,
-                                **({"rates": multirate} if multirate else {})))
-    alg, t_loop, pacer = None, None, None
+                                **({"rates": multirate} if multirate else {}), **extra))
+    stepper, pacer = None, None
 
     def fill() -> None:
         if guard is not None:
             stats.guards = guard.summary()
-        if alg is not None:
-            stats.steps_done = alg.k
-            stats.master_s = alg.master_ns / 1e9
-            stats.slaves = slave_table(system, alg.calls, alg.slave_ns, alg.rates)
-            stats.extra = alg.statistics() if hasattr(alg, "statistics") else {}
-        if stats.wall_s == 0.0 and t_loop is not None:
-            stats.wall_s = time.perf_counter() - t_loop
+        if stepper is not None:
+            if stats.wall_s == 0.0 and getattr(stepper, "t_loop", None) is not None:  # the loop was cut short
+                stats.wall_s = time.perf_counter() - stepper.t_loop
+            stepper.fill(stats)
+            stepper.close()  # before the slaves are freed (a compiled stepper's FMU states)
         if pacer is not None:
-            stats.realtime = pacer.finish()
+            from .realtime import slave_figures
 
-    with settled(stats, system, observers, lambda: alg.t if alg else None, fill) as end:
+            stats.realtime = pacer.finish()
+            if figures := slave_figures(system):  # e.g. the board daemon's own tick jitter and CPU
+                stats.realtime["slaves"] = figures
+
+    with settled(stats, system, observers, lambda: stepper.t if stepper else None, fill) as end:
         if realtime is not None:  # before initialisation: the pacer quiets the heap first
             from .realtime import Pacer
 
@@ -85,49 +88,13 @@ def simulate(system: CoupledSystem, algorithm_name: str, *, step_ns: int, n_step
         initialize(system, start_values or [{} for _ in system.slaves], start_time=start_ns / 1e9,
                    stop_time=(start_ns + n_steps * step_ns) / 1e9, tolerances=tolerances,
                    allow_loops=getattr(cls, "solves_algebraic_loops", False))
-        alg = cls(system, step_ns, order=order, timing=timing, inputs=inputs, start_ns=start_ns, rates=rates,
-                  **({"options": options} if getattr(cls, "options", ()) else {}))
-        stats.engine = choose_engine(system, cls, engine, start_ns)
-        runner = _Compiled(alg).run if stats.engine == "compiled" else (lambda n, e, r: _python_run(alg, n, e, r))
+        make = getattr(cls, "stepper_for", None) or fixed_stepper  # variable-step algorithms bring their own
+        stepper = make(system, step_ns=step_ns, n_steps=n_steps, record_every=record_every, order=order,
+                    cls=cls, timing=timing, inputs=inputs, start_ns=start_ns, rates=rates, options=options, engine=engine)
+        stats.engine = stepper.engine
         stats.init_s = time.perf_counter() - t0
-        row0 = np.concatenate([[alg.t], system.v[system.record_idx]])[None, :]
-        row0 = _guarded(guard, alg, row0, step_ns)
-        for obs in observers:
-            obs.record(row0[:, :len(columns)])
-        for c, x in system.typed.text_changes() if system.typed.texts else ():
-            for obs in observers:
-                if hasattr(obs, "record_text"):
-                    obs.record_text(alg.t, c, x)
-        chunk, t_loop, stepping = min(64, n_steps) or 1, time.perf_counter(), 0.0
-        if pacer is not None:
-            chunk = 1
-        width = 1 + len(system.record_idx)
-        rec = np.empty((max(1, chunk // record_every + 1), width))
-        while alg.k < n_steps and alg.status == "running":
-            if pacer is not None and not pacer.wait(alg.k):
-                alg.status, alg.message = "failed", pacer.reason
-                break
-            n = min(chunk, n_steps - alg.k)
-            if rec.shape[0] < n // record_every + 1:
-                rec = np.empty((n // record_every + 1, width))
-            tc = time.perf_counter()
-            rows = runner(n, record_every, rec)
-            dt = time.perf_counter() - tc
-            stepping += dt
-            block = _guarded(guard, alg, rec[:rows], step_ns)
-            if len(block) < rows:  # a guard cut the block: no text after its last row
-                alg.text_events[:] = [ev for ev in alg.text_events if ev[0] <= block[-1, 0]]
-            for obs in observers:
-                obs.record(block[:, :len(columns)])
-                for ev in alg.text_events if hasattr(obs, "record_text") else ():
-                    obs.record_text(*ev)
-            alg.text_events.clear()
-            if progress:
-                progress(alg.k, n_steps)
-            if dt < 0.05 and chunk < 1 << 20 and pacer is None:  # aim at ~0.1 s per chunk: responsive to Ctrl-C
-                chunk *= 2
-        stats.wall_s = time.perf_counter() - t_loop
-        if stats.engine == "python":  # the compiled loop measures its own share itself
-            alg.master_ns = max(0, int(stepping * 1e9) - sum(alg.slave_ns))
-        end.from_loop(alg)
+        record_start(stepper, system, observers, guard, len(columns))
+        stats.wall_s = drive(stepper, system, observers, n_columns=len(columns), guard=guard, pacer=pacer,
+                             progress=progress, stop=stop, start_ns=start_ns)
+        end.from_loop(stepper)
     return stats

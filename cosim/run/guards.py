@@ -3,12 +3,10 @@ catalog blocks (settings, defaults and scene-time checks: :mod:`cosim.scenario.g
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass, field
-from typing import Any
-
 import numpy as np
 
-from ..scenario.guards import (GROWTH, OUT_OF_LIMITS, POSE, UNSTABLE, _REL_TOL, GuardSettings, _singular,
-                               _singular_text, det_j, geometry)
+from ..scenario.guards import (GROWTH, GUARDS, OUT_OF_LIMITS, UNSTABLE, _REL_TOL, GuardSettings, _singular,
+                               _singular_text, det_j, guard_needs)
 
 
 @dataclass
@@ -23,10 +21,10 @@ class _Limit:
 
 @dataclass
 class _Mechanism:
-    comp: Any
+    name: str  # the component
     names: tuple[str, str, str]  # the pose columns
+    g: np.ndarray  # geometry vector (10, 1)
     sign0: float | None = None
-    g: np.ndarray | None = None  # geometry vector (10, 1)
 
 
 @dataclass
@@ -42,6 +40,8 @@ class Guard:
     limits: list[_Limit]
     mechanisms: list[_Mechanism]
     watch: list[tuple[str, str]]
+    #: components without catalog identity (external FMUs): only the unstable guard watches them
+    unknown: list[str] = field(default_factory=list)
     status: str = ""
     reason: str = ""
     warnings: list[str] = field(default_factory=list)
@@ -50,6 +50,7 @@ class Guard:
     _bound: list = field(default_factory=list)
     _lim: tuple = (np.zeros(0, dtype=np.int64), np.zeros(0), np.zeros(0))
     _bound_abs: np.ndarray | None = None  # per column: max(max_abs, GROWTH |start value|)
+    rows_checked: int = 0
 
     @property
     def tripped(self) -> bool:
@@ -69,6 +70,7 @@ class Guard:
     def check(self, rows: np.ndarray) -> int | None:
         if not len(rows) or self.tripped:
             return None
+        self.rows_checked += len(rows)
         found = self._unstable(rows) + self._limits(rows) + self._singular(rows)
         stops = [(k, i) for i, (k, action, _, _, _) in enumerate(found) if action == "stop"]
         cut = min(stops)[0] if stops else None
@@ -79,10 +81,38 @@ class Guard:
         if cut is None:
             return None
         _, _, self.status, self.reason, _ = found[min(stops)[1]]
+        self.rows_checked -= len(rows) - cut - 1  # the rows after the offending one are dropped unseen
         return cut + 1
 
+    def applied(self) -> dict[str, str]:
+        """Per guard: its action (``stop``/``warn``) where it looked at every row, ``off``, or
+        ``not applied: <why>``; a guard that could not look at some components says which (the
+        sidecar's ``guards.applied``)."""
+        unknown = ", ".join(self.unknown)
+        missing = f"no catalog identity for {unknown} (external FMUs)" if unknown else ""
+        out = {}
+        for g in GUARDS:
+            action = getattr(self.settings, g)
+            if action == "off":
+                out[g] = "off"
+                continue
+            if g == "unstable":
+                found, what = bool(self._col), "no recorded or connected variable"
+            elif g == "singularity":
+                found = any(all(n in self._col for n in m.names) for m in self.mechanisms)
+                what = "no mechanism pose among the sampled variables"
+            else:
+                found, what = any(lim.kind == g for lim in self._bound), f"no {g} variable among the sampled ones"
+            if not found:
+                out[g] = f"not applied: {what}" + (f"; {missing}" if missing and g != "unstable" else "")
+            else:
+                out[g] = action + (f" (not applied to {unknown}: no catalog identity)" if unknown and g != "unstable"
+                                   else "")
+        return out
+
     def summary(self) -> dict:
-        return {"settings": asdict(self.settings), "warnings": list(self.warnings), "tripped": self.reason}
+        return {"settings": asdict(self.settings), "applied": self.applied(), "rows_checked": self.rows_checked,
+                "warnings": list(self.warnings), "tripped": self.reason}
 
     # the checks: each returns [(first bad row, action, status, message, key)] ---------------------
     def _unstable(self, rows: np.ndarray) -> list:
@@ -137,39 +167,42 @@ class Guard:
             cols = [self._col.get(n) for n in mech.names]
             if None in cols:
                 continue
-            if mech.g is None:
-                mech.g = geometry(mech.comp)
-            det = det_j(mech.comp, rows[:, cols].T, mech.g)
+            det = det_j(None, rows[:, cols].T, mech.g)
             if mech.sign0 is None and len(det) and np.isfinite(det[0]) and det[0] != 0:
                 mech.sign0 = float(np.sign(det[0]))
             k = _singular(det, self.settings.min_det, mech.sign0)
             if k is not None:
-                text = (f"singularity: {mech.comp.name}{_singular_text(det, k, rows[:, 0], self.settings.min_det)} "
+                text = (f"singularity: {mech.name}{_singular_text(det, k, rows[:, 0], self.settings.min_det)} "
                         f"(guards.singularity)")
-                out.append((k, action, OUT_OF_LIMITS, text, mech.comp.name))
+                out.append((k, action, OUT_OF_LIMITS, text, mech.name))
         return out
 
 
 def scene_guard(scene) -> Guard | None:
     """The guards of ``scene`` (None when all are off): the rated and stroke variables of its
-    catalog components, the pose of each mechanism, and every connected output."""
+    catalog components, the pose of each mechanism, and every connected output.  What a
+    component contributes comes from its :class:`cosim.scenario.guards.GuardNeeds` (plain data,
+    made from its block, or carried to a batch worker or through an SSP archive without one);
+    components without it (external FMUs) are watched by the unstable guard only, and the guards
+    that then look at nothing say so (:meth:`Guard.applied`)."""
     settings: GuardSettings = getattr(scene, "guards", None) or GuardSettings()
     if not settings.active:
         return None
-    limits, mechanisms, watch = [], [], []
+    limits, mechanisms, watch, unknown = [], [], [], []
     for name, comp in scene.components.items():
-        blk = comp.block if comp.kind == "model" else None
-        if blk is None:
+        needs = guard_needs(comp)
+        if needs is None:
+            unknown.append(name)
             continue
-        for var, r in blk.ratings.items():
-            unit = comp.description.variables[var].unit if var in comp.description.variables else ""
-            limits.append(_Limit(f"{name}.{var}", r.low, r.high, r.kind, unit, r.source))
-            watch.append((name, var))
-        if comp.model == "mechanism" and all(v in comp.description.variables for v in POSE):
-            mechanisms.append(_Mechanism(comp, tuple(f"{name}.{v}" for v in POSE)))
-            watch += [(name, v) for v in POSE]
+        for r in needs.ratings:
+            limits.append(_Limit(f"{name}.{r.var}", r.low, r.high, r.kind, r.unit, r.source))
+            watch.append((name, r.var))
+        if needs.pose:
+            mechanisms.append(_Mechanism(name, tuple(f"{name}.{v}" for v in needs.pose),
+                                         np.asarray(needs.geometry, float).reshape(-1, 1)))
+            watch += [(name, v) for v in needs.pose]
     watch += [(c.src, c.src_var) for c in scene.connections]
-    return Guard(settings, limits, mechanisms, list(dict.fromkeys(watch)))
+    return Guard(settings, limits, mechanisms, list(dict.fromkeys(watch)), unknown)
 
 
 __all__ = ["Guard", "scene_guard"]

@@ -18,6 +18,7 @@ import zipfile
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
+from ..scenario.guards import guard_needs
 from ..scenario.ssp import (BOND_ANNOTATION, COMPONENT_ANNOTATION, FMU_TYPE, MASTER_ANNOTATION, NS, SSD, SspError,
                             _num, _q, _units_xml, schema_errors)
 
@@ -70,12 +71,14 @@ def ssd_document(scene, fmu_sources: dict[str, str], ssv_source: str):
                     units.append(var.unit)
         if not len(conns):
             el.remove(conns)
-        if comp.kind == "model":
+        if comp.kind == "model" and comp.origin is None:  # a user's block travels as its FMU only
             anns = etree.SubElement(el, _q("ssd", "Annotations"))
             ann = etree.SubElement(anns, _q("ssc", "Annotation"), type=COMPONENT_ANNOTATION)
-            etree.SubElement(ann, _q("rpr", "Model"), {"model": comp.model, "fidelity": comp.fidelity,
-                                                        "options": json.dumps(comp.options, sort_keys=True)},
-                             nsmap={"rpr": NS["rpr"]})
+            attrs = {"model": comp.model, "fidelity": comp.fidelity, "options": json.dumps(comp.options, sort_keys=True)}
+            needs = guard_needs(comp)
+            if needs is not None:  # the guards' ratings, pose and geometry: an imported FMU stays guarded
+                attrs["guards"] = json.dumps(needs.as_dict(), sort_keys=True)
+            etree.SubElement(ann, _q("rpr", "Model"), attrs, nsmap={"rpr": NS["rpr"]})
     if scene.connections:
         cs = etree.SubElement(system, _q("ssd", "Connections"))
         for c in scene.connections:

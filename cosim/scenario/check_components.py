@@ -1,6 +1,7 @@
 """Validation of components: catalog models, external FMUs, hardware, their params and start values."""
 from __future__ import annotations
 
+import hashlib
 import math
 import re
 from collections.abc import Mapping
@@ -10,11 +11,15 @@ from typing import Any
 from ..errors import UserError
 from ..slaves.types import TYPES, display, parse_start
 from ..slaves.description import Variable, describe_block, describe_fmu, resolve_shapes
+from fmus.index import source_digest
+
 from .catalog import default_catalog, make_block
 from .checker import Checker, _is_number
 from .keys import COMPONENT_KEYS, FMI_VERSIONS
 from .model import Component
 from .problems import Loc, suggest
+from .user_blocks import (ENTRY_POINT_GROUP, UserBlockError, UserCatalog, entry_point_catalog, load_module_file,
+                          module_depends, module_table, read_modelica)
 from .yamlfile import YMap, _display
 
 
@@ -38,6 +43,10 @@ class ComponentChecks(Checker):
         if fmi not in FMI_VERSIONS:
             self.err(spec.loc("fmi"), f"component {name!r}: fmi = {spec.get('fmi')!r}; expected \"2.0\" or \"3.0\"")
             return None
+        if "modelica" in spec and ("fmu" in spec or "hardware" in spec):
+            self.err(spec.where, f"component {name!r} has both 'modelica:' and "
+                                 f"'{'fmu' if 'fmu' in spec else 'hardware'}:'; keep one")
+            return None
         if "model" in spec and "fmu" in spec:
             self.err(spec.where, f"component {name!r} has both 'model:' and 'fmu:'; keep one")
             return None
@@ -50,10 +59,13 @@ class ComponentChecks(Checker):
             comp = self._hardware_component(name, spec)
         elif "fmu" in spec:
             comp = self._fmu_component(name, spec, fmi)
+        elif "modelica" in spec:
+            comp = self._modelica_component(name, spec, fmi)
         elif "model" in spec:
             comp = self._model_component(name, spec, fmi)
         else:
-            self.err(spec.where, f"component {name!r} needs 'model:' (a catalog model) or 'fmu:' (a file)")
+            self.err(spec.where, f"component {name!r} needs 'model:' (a catalog model), 'fmu:' (a file) or "
+                                 f"'modelica:' (a .mo file)")
             return None
         if comp is not None:
             comp.rollback = rollback
@@ -80,6 +92,19 @@ class ComponentChecks(Checker):
             self.err(where, f"component {name!r}: {exc}")
             return None
         comp = Component(name, "fmu", desc, fmu=fpath.resolve(), fmi=desc.fmi_version or fmi, where=spec.where)
+        if "guard_data" in spec:  # what the guards know of it (an rpr-cosim SSP's component annotation)
+            from .guards import GuardNeeds
+
+            try:
+                comp.guard = GuardNeeds.from_dict(spec["guard_data"])
+            except (ValueError, AttributeError) as exc:
+                self.err(spec.loc("guard_data"), f"component {name!r}: guard_data: {exc}")
+            else:
+                missing = [v for v in [r.var for r in comp.guard.ratings] + list(comp.guard.pose or ())
+                           if v not in desc.variables]
+                if missing:
+                    self.err(spec.loc("guard_data"), f"component {name!r}: guard_data names variables the FMU does "
+                                                     f"not have: {', '.join(missing)}")
         self._values(comp, spec)
         return comp
 
@@ -126,9 +151,16 @@ class ComponentChecks(Checker):
 
     def _model_component(self, name: str, spec: YMap, fmi: str) -> Component | None:
         if self.catalog is None:  # built before: from the FMU cache's recipe index, no block built
-            from .recipes import indexed_component
+            from .recipes import indexed_component, indexed_user_component
 
             comp = indexed_component(name, spec, fmi, Component)
+            sources = self._blocks_sources() if comp is None and isinstance(spec.get("model"), str) else None
+            if sources:  # a user's block of the scene's 'blocks:' files, unchanged since it was indexed
+                model = spec["model"]
+                comp = indexed_user_component(
+                    name, spec, fmi, Component, key=model, model=model, fidelity=spec.get("fidelity"),
+                    options=dict(spec.get("options", {})), sources=sources, origin=", ".join(sources),
+                    rebuild=lambda: self._user_block(model, spec))
             if comp is not None:
                 self._values(comp, spec, skip=set(comp.recipe.fixed))
                 return comp
@@ -139,9 +171,19 @@ class ComponentChecks(Checker):
             return None
         cat = catalog.catalog()
         model = spec["model"]
+        user = None
+        if isinstance(model, str) and model not in cat and self.catalog is None:
+            user = self.user_models(cat)
+            if user is False:
+                return None
+            if model in user:
+                catalog, cat = user, user.catalog()
+            else:
+                cat = {**cat, **user.catalog()}
         if not isinstance(model, str) or model not in cat:
             self.err(spec.loc("model"), f"component {name!r}: unknown model {model!r}{suggest(str(model), cat)} "
-                                        f"(catalog: {', '.join(sorted(cat))})")
+                                        f"(catalog: {', '.join(sorted(cat))}; your own: a 'blocks:' file of the scene, "
+                                        f"an '{ENTRY_POINT_GROUP}' entry point or 'modelica:')")
             return None
         fidelity = spec.get("fidelity", cat[model][0])
         if not isinstance(fidelity, str) or fidelity not in cat[model]:
@@ -162,7 +204,8 @@ class ComponentChecks(Checker):
         from models.block import BlockError
 
         try:
-            block = make_block(catalog, model, fidelity, options)
+            block = make_block(catalog, model, fidelity, options) if user is None else catalog.make(model, fidelity,
+                                                                                                      **options)
         except (BlockError, ValueError, TypeError) as exc:
             self.err(spec.loc("options") if "options" in spec else spec.loc("model"), f"component {name!r}: {exc}")
             return None
@@ -171,7 +214,8 @@ class ComponentChecks(Checker):
         fixed = {k: params[k] for k in params if k in structural}
         if fixed:
             try:
-                block = make_block(catalog, model, fidelity, {**options, **fixed})
+                block = catalog.make(model, fidelity, **options, **fixed) if user is not None else \
+                    make_block(catalog, model, fidelity, {**options, **fixed})
             except (BlockError, ValueError, TypeError) as exc:
                 self.err(params.loc(next(iter(fixed))), f"component {name!r}: {exc}")
                 return None
@@ -181,8 +225,146 @@ class ComponentChecks(Checker):
         if self.catalog is None:
             from .recipes import recipe_of
 
-            comp.recipe = recipe_of(spec, options, fixed, fmi)
+            if user is None:
+                comp.recipe = recipe_of(spec, options, fixed, fmi)
+            else:
+                comp.origin, comp.depends = user.models[model].origin, user.depends(model)
+                sources = self._blocks_sources() if not comp.origin.startswith("entry point") else None
+                if sources:  # indexed with its sources; an entry point's block is found by content only
+                    comp.recipe = recipe_of(spec, options, fixed, fmi, key=model, fidelity=spec.get("fidelity"),
+                                            sources=sources)
         self._values(comp, spec, skip=set(fixed))
+        return comp
+
+    def _base(self, where: Loc) -> Path:
+        return Path(where[0]).parent if where[1] else (self.path.parent if self.path else Path.cwd())
+
+    def user_models(self, reserved) -> UserCatalog | bool:
+        """The users' Python models: the scene's ``blocks:`` files and the ``rpr_cosim.blocks``
+        entry points (loaded once per scene); False after reporting why they cannot be loaded."""
+        if getattr(self, "_user", None) is not None:
+            return self._user
+        node, cat = self.tree.get("blocks", []), None
+        files = [node] if isinstance(node, str) else node
+        where = self.tree.loc("blocks") if "blocks" in self.tree else self.tree.where
+        if not isinstance(files, list) or not all(isinstance(f, str) for f in files):
+            self.err(where, f"blocks must be a Python file or a list of them, got {node!r}")
+            self._user = False
+            return False
+        try:
+            cat = entry_point_catalog(set(reserved))
+            for rel in files:
+                path = self._base(where) / rel
+                if not path.is_file():
+                    raise UserBlockError(f"blocks file {rel!r} not found (looked in {_display(path.parent)})")
+                module, digest = load_module_file(path)
+                cat.add(module_table(module, path.name), path.name, digest, set(reserved), module_depends(module))
+        except UserBlockError as exc:
+            self.err(where, str(exc))
+            self._user = False
+            return False
+        self._user = cat
+        return cat
+
+    def _blocks_sources(self) -> dict[str, str] | None:
+        """``{"blocks:<file>": SHA-256}`` of the scene's ``blocks:`` files (None without any, or
+        when one cannot be read: then the full path reports it)."""
+        node = self.tree.get("blocks")
+        files = [node] if isinstance(node, str) else node
+        if not files or not isinstance(files, list):
+            return None
+        where = self.tree.loc("blocks")
+        out = {}
+        for rel in files:
+            digest = source_digest(self._base(where) / rel) if isinstance(rel, str) else "missing"
+            if digest == "missing":
+                return None
+            out[f"blocks:{rel}"] = digest
+        return out
+
+    def _user_block(self, model: str, spec: YMap):
+        """The real block of a user's model (when an indexed component needs its equations)."""
+        user = self.user_models(default_catalog().catalog())
+        if user is False:
+            raise UserError("; ".join(p.message for p in self.problems if p.severity == "error"))
+        return user.make(model, spec.get("fidelity"), **dict(spec.get("options", {})))
+
+    def _modelica_component(self, name: str, spec: YMap, fmi: str) -> Component | None:
+        """``{modelica: FILE.mo, model: CLASS, options: {integrator, substeps}}``: the Modelica
+        class translated into a block (:func:`models.modelica.translate`)."""
+        from models.block import BlockError
+        from models.modelica import INTEGRATORS, translate
+
+        where, rel, cls = spec.loc("modelica"), spec["modelica"], spec.get("model")
+        if not isinstance(rel, str):
+            self.err(where, f"component {name!r}: modelica must be a .mo file path, got {rel!r}")
+            return None
+        if not isinstance(cls, str) or not cls:
+            self.err(spec.loc("model") if "model" in spec else where,
+                     f"component {name!r}: name the Modelica class to use with 'model:' (e.g. model: Gear)")
+            return None
+        if "fidelity" in spec:
+            self.err(spec.loc("fidelity"), f"component {name!r}: 'fidelity' applies to catalog models, not to a "
+                                           f"Modelica class")
+            return None
+        path = self._base(where) / rel
+        if not path.is_file():
+            near = suggest(Path(rel).name, [p.name for p in path.parent.glob("*.mo")]) if path.parent.is_dir() else ""
+            self.err(where, f"component {name!r}: Modelica file {rel!r} not found (looked in "
+                            f"{_display(path.parent)}){near}")
+            return None
+        options = dict(spec.get("options", {}))
+        bad = [k for k in options if k not in ("integrator", "substeps")]
+        for k in bad:
+            self.err(spec["options"].loc(k), f"component {name!r}: a Modelica component has no option {k!r}"
+                                             f"{suggest(str(k), ['integrator', 'substeps'])} (options: integrator, "
+                                             f"substeps)")
+        integrator, substeps = options.get("integrator", "auto"), options.get("substeps", 1)
+        if integrator not in INTEGRATORS:
+            self.err(spec["options"].loc("integrator"), f"component {name!r}: integrator {integrator!r}; expected "
+                                                        f"one of {', '.join(INTEGRATORS)}")
+            return None
+        if isinstance(substeps, bool) or not isinstance(substeps, int) or substeps < 1:
+            self.err(spec["options"].loc("substeps"), f"component {name!r}: substeps {substeps!r}; expected a whole "
+                                                      f"number >= 1")
+            return None
+        if bad:
+            return None
+        try:
+            text = read_modelica(path)
+        except UserBlockError as exc:
+            self.err(where, f"component {name!r}: {exc}")
+            return None
+
+        def block_of_text():
+            return translate(text, cls, path.name, name=cls.split(".")[-1].lower(), integrator=integrator,
+                             substeps=substeps)
+
+        from fmus.index import installed_version
+
+        key = f"modelica:{cls}"  # indexed with the text and the front end's version
+        sources = {"modelica": hashlib.sha256(text.encode()).hexdigest(),
+                   "rumoca": str(installed_version("rumoca", "rumoca"))}
+        if self.catalog is None:
+            from .recipes import indexed_user_component
+
+            comp = indexed_user_component(name, spec, fmi, Component, key=key, model=cls, fidelity="modelica",
+                                          options=options, sources=sources, origin=path.name, rebuild=block_of_text)
+            if comp is not None:
+                self._values(comp, spec)
+                return comp
+        try:
+            block = block_of_text()
+        except BlockError as exc:
+            self.err(where, f"component {name!r}: {exc}")
+            return None
+        comp = Component(name, "model", describe_block(block, f"{cls}/modelica"), model=cls, fidelity="modelica",
+                         options=options, fmi=fmi, block=block, where=spec.where, origin=path.name)
+        if self.catalog is None:
+            from .recipes import recipe_of
+
+            comp.recipe = recipe_of(spec, options, {}, fmi, key=key, fidelity="modelica", sources=sources)
+        self._values(comp, spec)
         return comp
 
     def _values(self, comp: Component, spec: YMap, skip: set[str] = frozenset()) -> None:

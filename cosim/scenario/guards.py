@@ -41,7 +41,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 from functools import lru_cache
 from typing import Any
 
@@ -75,6 +75,74 @@ class GuardSettings:
     @property
     def active(self) -> bool:
         return any(getattr(self, g) != "off" for g in GUARDS)
+
+
+@dataclass(frozen=True)
+class GuardedRating:
+    """One rated or stroke-limited variable of a component: ``[low, high]`` in ``unit``."""
+
+    var: str
+    low: float
+    high: float
+    kind: str  # "stroke" or "rated"
+    unit: str = ""
+    source: str = ""
+
+
+@dataclass(frozen=True)
+class GuardNeeds:
+    """What the run-time guards need of one component, as plain data (no CasADi block): its
+    catalog identity (``model/fidelity``), its ratings, and for a mechanism the pose variables
+    and the geometry vector (:data:`models.geometry.GEOMETRY_FIELDS`).  Made from the block at
+    scene load (:func:`guard_needs`), it travels with the component to batch workers and in the
+    SSP archive's component annotation (:meth:`as_dict`, :meth:`from_dict`)."""
+
+    identity: str
+    ratings: tuple[GuardedRating, ...] = ()
+    pose: tuple[str, str, str] | None = None
+    geometry: tuple[float, ...] | None = None
+
+    def as_dict(self) -> dict:
+        return {"identity": self.identity, "ratings": [asdict(r) for r in self.ratings],
+                **({"pose": list(self.pose), "geometry": list(self.geometry)} if self.pose else {})}
+
+    @classmethod
+    def from_dict(cls, data: Mapping) -> "GuardNeeds":
+        """The needs written by :meth:`as_dict`; ValueError (with the key) when malformed."""
+        try:
+            ratings = tuple(GuardedRating(str(r["var"]), float(r["low"]), float(r["high"]), str(r["kind"]),
+                                          str(r.get("unit", "")), str(r.get("source", "")))
+                            for r in data.get("ratings", ()))
+            pose = tuple(str(v) for v in data["pose"]) if data.get("pose") else None
+            geo = tuple(float(x) for x in data["geometry"]) if pose else None
+        except (KeyError, TypeError, ValueError) as exc:
+            raise ValueError(f"malformed guard data ({type(exc).__name__}: {exc})") from None
+        if any(r.kind not in ("stroke", "rated") for r in ratings):
+            raise ValueError("a rating's kind must be stroke or rated")
+        if pose is not None and (len(pose) != 3 or geo is None or len(geo) != 10):
+            raise ValueError("a mechanism's guard data needs 3 pose variables and 10 geometry values")
+        return cls(str(data.get("identity", "")), ratings, pose, geo)
+
+
+def guard_needs(comp) -> GuardNeeds | None:
+    """The guards' needs of component ``comp`` (:class:`GuardNeeds`): kept on the component
+    (``comp.guard``) once made; made from its catalog block when it has one; None for a component
+    without catalog identity (an external FMU: only the unstable guard applies to it)."""
+    have = getattr(comp, "guard", None)
+    if have is not None:
+        return have
+    blk = comp.block if comp.kind == "model" else None
+    if blk is None:
+        return None
+    variables = comp.description.variables
+    ratings = tuple(GuardedRating(var, float(r.low), float(r.high), r.kind,
+                                  variables[var].unit if var in variables else "", r.source)
+                    for var, r in blk.ratings.items())
+    pose = geo = None
+    if comp.model == "mechanism" and getattr(comp, "origin", None) is None and all(v in variables for v in POSE):
+        pose, geo = POSE, tuple(float(x) for x in geometry(comp).reshape(-1))
+    comp.guard = GuardNeeds(comp.label, ratings, pose, geo)
+    return comp.guard
 
 
 # --- scene time ----------------------------------------------------------------------------------
@@ -133,7 +201,7 @@ def check_scene(settings: GuardSettings, comps: Mapping[str, Any], duration: flo
     if duration is None:
         return
     for comp in comps.values():
-        if comp.kind != "model" or comp.model != "pose_setpoint" or comp.block is None:
+        if comp.kind != "model" or comp.model != "pose_setpoint" or comp.origin is not None or comp.block is None:
             continue
         for action, message in setpoint_problems(comp, duration, settings):
             (err if action == "stop" else warn)(comp.where, message)
@@ -267,4 +335,4 @@ def _singular_text(det: np.ndarray, k: int, t: np.ndarray, min_det: float) -> st
 
 
 
-__all__ = ["ACTIONS", "DEFAULTS", "GuardSettings", "check_scene", "det_j", "parse_settings", "setpoint_problems"]
+__all__ = ["ACTIONS", "DEFAULTS", "GuardNeeds", "GuardSettings", "GuardedRating", "check_scene", "guard_needs", "det_j", "parse_settings", "setpoint_problems"]

@@ -3,9 +3,9 @@ from __future__ import annotations
 
 
 TOP_KEYS = ("name", "description", "include", "start_time", "stop_time", "components", "connections", "master",
-            "outputs", "fidelity_tolerance", "fidelity_signals", "guards")
+            "outputs", "fidelity_tolerance", "fidelity_signals", "guards", "blocks")
 COMPONENT_KEYS = ("model", "fidelity", "options", "params", "start", "fmu", "fmi", "description", "hardware",
-                  "rollback", "rate")
+                  "rollback", "rate", "modelica", "guard_data")
 MASTER_KEYS = ("algorithm", "step", "order", "engine", "output_interval", "inputs", "realtime", "options", "tolerance")
 #: The accuracy a scene gets when it names no master algorithm (cosim.run.choose).
 DEFAULT_TOLERANCE = 1e-3

@@ -33,6 +33,8 @@ def _kind(spec: Any) -> tuple[str, Any]:
     if isinstance(spec, Mapping):
         if "fmu" in spec:
             return "fmu", spec.get("fmu")
+        if "modelica" in spec:
+            return "modelica", (spec.get("modelica"), spec.get("model"))
         if "model" in spec:
             return "model", spec.get("model")
         if "hardware" in spec:

@@ -28,6 +28,9 @@ class Component:
     recipe: Any = None  # fmus.index.Recipe of a component of the default catalog (its FMU's index key)
     rollback: bool = True  # false: stepped as a slave that cannot save/restore its state (``rollback: false``)
     rate: int = 1  # doSteps per macro step (cosim.master.multirate)
+    origin: str | None = None  # a user's block: where it is defined (a 'blocks:' file, an entry point, a .mo file)
+    depends: dict[str, str] = field(default_factory=dict)  # a user's Python block: files its module imported -> SHA-256
+    guard: Any = None  # cosim.scenario.guards.GuardNeeds: what the run-time guards need, as plain data
 
     @property
     def label(self) -> str:

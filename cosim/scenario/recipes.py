@@ -29,6 +29,27 @@ def indexed_component(name: str, spec: Mapping, fmi: str, make_component: Callab
                           options=dict(options), fmi=fmi, block=block, where=spec.where, recipe=recipe)
 
 
+def indexed_user_component(name: str, spec: Mapping, fmi: str, make_component: Callable[..., Any], *, key: str,
+                           model: str, fidelity: str | None, options: dict, sources: dict,
+                           rebuild: Callable[[], Any], origin: str) -> Any | None:
+    """A user's block (``model``, indexed under the recipe model ``key``, ``fidelity`` as
+    written, ``sources``) from
+    the index, made by ``make_component``; None on a miss.  ``rebuild`` builds the real block
+    when a run needs its equations."""
+    from fmus.index import lookup
+
+    params = spec.get("params", {})
+    if not isinstance(options, Mapping) or not isinstance(params, Mapping):
+        return None
+    hit = lookup(key, fidelity, dict(options), dict(params), fmi, sources=sources, rebuild=rebuild)
+    if hit is None:
+        return None
+    block, recipe = hit
+    fid = block.catalog_fidelity
+    return make_component(name, "model", _description(block, f"{model}/{fid}"), model=model, fidelity=fid,
+                          options=dict(options), fmi=fmi, block=block, where=spec.where, recipe=recipe, origin=origin)
+
+
 def _description(block, source: str):
     """:func:`cosim.slaves.describe_block` of an indexed block, made once per block and source
     (the index hands out one block per entry; descriptions are not modified after they are made)."""
@@ -40,11 +61,14 @@ def _description(block, source: str):
     return memo[source]
 
 
-def recipe_of(spec: Mapping, options: dict, fixed: dict, fmi: str):
-    """The :class:`fmus.index.Recipe` of a catalog component validated the full way."""
+def recipe_of(spec: Mapping, options: dict, fixed: dict, fmi: str, *, key: str | None = None,
+              fidelity: str | None = None, sources: dict | None = None):
+    """The :class:`fmus.index.Recipe` of a catalog component validated the full way (a user's
+    block: its recipe model ``key``, ``fidelity`` and ``sources``)."""
     from fmus.index import Recipe
 
-    return Recipe(spec["model"], spec.get("fidelity"), dict(options), dict(fixed), fmi)
+    return Recipe(key or spec["model"], fidelity if key else spec.get("fidelity"), dict(options), dict(fixed), fmi,
+                  dict(sources or {}))
 
 
 def component_fmu(comp, *, cache_dir: Path | None = None, progress: Callable[[str], None] | None = None) -> Path:
@@ -66,7 +90,8 @@ def component_fmu(comp, *, cache_dir: Path | None = None, progress: Callable[[st
     if getattr(comp, "recipe", None) is not None:
         from ..slaves.description import describe_fmu
 
-        record(comp.recipe, comp.fidelity, block, path, cache_dir, description=description_data(describe_fmu(path)))
+        record(comp.recipe, comp.fidelity, block, path, cache_dir, description=description_data(describe_fmu(path)),
+               depends=getattr(comp, "depends", None))
     return path
 
 

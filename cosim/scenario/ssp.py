@@ -23,6 +23,7 @@ mappings, non-Real parameter values, units that do not convert.
 from __future__ import annotations
 
 import hashlib
+import json
 import os
 import tempfile
 import zipfile
@@ -329,11 +330,32 @@ class _Reader:
             spec = YMap({"fmu": str(fmu)})
             spec.where = self.loc(el)
             spec.locs = {"fmu": self.loc(el)}
+            guards = self.guard_data(el, name)
+            if guards is not None:
+                spec["guard_data"] = guards
+                spec.locs["guard_data"] = spec.where
             out[name] = (el, spec, desc)
         for name, (el, spec, desc) in out.items():
             for bind_el, binding in self.bindings(el):
                 self.apply(binding, out, bind_el, name)
         return out
+
+    def guard_data(self, el, name: str):
+        """What the physical guards know of component ``el`` (its catalog ratings, pose and
+        geometry), from our component annotation's ``guards`` attribute; None without one."""
+        model = el.find(f"ssd:Annotations/ssc:Annotation[@type='{COMPONENT_ANNOTATION}']/rpr:Model", NS)
+        text = model.get("guards") if model is not None else None
+        if not text:
+            return None
+        try:
+            data = json.loads(text)
+        except ValueError as exc:
+            self.err(model.sourceline, f"component {name!r}: the guards annotation is not JSON ({exc})")
+            return None
+        if not isinstance(data, dict):
+            self.err(model.sourceline, f"component {name!r}: the guards annotation must be a JSON object")
+            return None
+        return data
 
     def check_connectors(self, el, name: str, desc) -> bool:
         from .problems import suggest

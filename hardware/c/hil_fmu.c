@@ -1,18 +1,22 @@
-/* The hardware FMU: FMI 2.0 co-simulation over the rig's I/O daemon (hardware/daemon.py).
+/* The hardware FMU: FMI 2.0 co-simulation over the rig's I/O daemon (hardware/c/board_*.c).
  *
  * Each doStep sends one authenticated COMMAND (the three leg voltages) to the board and waits,
  * up to `timeout` seconds, for its SAMPLE (three raw ADC counts, state, faults); the outputs are
- * that sample, converted by the two-point calibration of each leg.  A silent board (timeout,
+ * that sample, converted by the two-point calibration of each leg, and the board's own real-time
+ * figures of the session (tick lateness, CPU per tick, datagrams dropped and throttled).  A silent board (timeout,
  * refused connection) or a board in fault makes doStep return fmi2Error with the reason logged.
  * The rig cannot go back in time: canGetAndSetFMUstate is false and the state functions fail.
  *
  * Protocol (little-endian, see hardware/protocol.py): header "RP", version, type, session (u32),
  * sequence (u32), time (u64 ns); body; HMAC-SHA256 over header and body.  The session key is
- * HMAC(key, "rpr-session" | client nonce | server nonce).
+ * HMAC(key, "rpr-session" | client nonce | the board's challenge); the session opens with the
+ * first command under it.
  *
- * Life cycle: fmi2EnterInitializationMode connects (HELLO/WELCOME) and reads a first sample, so
- * the outputs are the rig's at t0; fmi2ExitInitializationMode arms the board (its 100 ms
- * watchdog starts); fmi2Terminate and fmi2FreeInstance stop it (outputs zero, no fault).
+ * Life cycle: fmi2EnterInitializationMode connects (HELLO/WELCOME) and reads a first sample
+ * (QUERY), so the outputs are the rig's at t0; the board stays idle (no watchdog) until the first
+ * doStep, whose command arms and runs it at once: whatever the master compiles or loads between
+ * initialisation and its first step cannot trip the 100 ms watchdog.  fmi2Terminate and
+ * fmi2FreeInstance stop it (outputs zero, no fault).
  */
 #define _POSIX_C_SOURCE 200112L
 #include <errno.h>
@@ -50,7 +54,14 @@ enum {
     VR_RAW_FULL = 20,    /* 20..22 leg[i].raw_full parameter */
     VR_STROKE_FULL = 23, /* 23..25 leg[i].stroke_full parameter [m] */
     VR_S_OFFSET = 26,    /* 26..28 leg[i].s_offset parameter [m] */
-    NR = 29
+    VR_TICK_LATE = 29,   /* board_tick_late output [s]: largest tick lateness since the last step */
+    VR_TICK_P50 = 30,    /* board_tick_p50 output [s] (session) */
+    VR_TICK_P99 = 31,    /* board_tick_p99 output [s] (session) */
+    VR_TICK_MAX = 32,    /* board_tick_max output [s] (session) */
+    VR_CPU_TICK = 33,    /* board_cpu_per_tick output [s] (session mean) */
+    VR_DROPPED = 34,     /* board_dropped output: datagrams the board dropped */
+    VR_THROTTLED = 35,   /* board_throttled output: of those, unauthenticated beyond its budget */
+    NR = 36
 };
 enum { VB_RESET = 0, NB = 1 };
 enum { VS_ADDRESS = 0, VS_KEYFILE = 1, NS = 2 };
@@ -77,7 +88,7 @@ typedef struct {
     int sock;
     uint8_t key[32], skey[32];
     uint32_t session, seq;
-    int connected;
+    int connected, armed;
     double time;
 } Hil;
 
@@ -111,7 +122,7 @@ static uint16_t get16(const uint8_t *p) { return (uint16_t)(p[0] | p[1] << 8); }
 static uint32_t get32(const uint8_t *p) { return (uint32_t)get16(p) | (uint32_t)get16(p + 2) << 16; }
 
 static size_t header(uint8_t *p, int type, uint32_t session, uint32_t seq) {
-    p[0] = 'R'; p[1] = 'P'; p[2] = 1; p[3] = (uint8_t)type;
+    p[0] = 'R'; p[1] = 'P'; p[2] = 2; p[3] = (uint8_t)type;
     put32(p + 4, session);
     put32(p + 8, seq);
     put64(p + 12, now_ns());
@@ -215,32 +226,40 @@ static int open_socket(Hil *h) {
     return 0;
 }
 
-/* Wait for a datagram of `type` (and `seq` unless 0) authenticated with `key`; 0 ok, -1 timeout,
- * -2 refused/socket error (reason logged by the caller from errno). */
-static int await(Hil *h, int type, uint32_t seq, const uint8_t *key, uint8_t *buf, size_t want, double timeout_s) {
+/* Wait for a datagram of `type` (and a sequence number seq..seq_hi unless seq is 0) authenticated
+ * with `key`; 0 ok, -1 timeout, -2 refused/socket error (reason logged by the caller from errno). */
+static int await_range(Hil *h, int type, uint32_t seq, uint32_t seq_hi, const uint8_t *key, uint8_t *buf, size_t want,
+                       double timeout_s) {
     uint64_t deadline = now_ns() + (uint64_t)(timeout_s * 1e9);
+    int last = 0;
     for (;;) {
         uint64_t t = now_ns();
         struct pollfd pfd;
         ssize_t n;
-        int ms;
-        if (t >= deadline) return -1;
-        ms = (int)((deadline - t + 999999) / 1000000);
+        int ms, ready;
+        /* past the deadline, still read what has arrived (this process may have been descheduled
+         * while the answer came): only an empty socket then is a timeout */
+        if (t >= deadline) last = 1;
+        ms = last ? 0 : (int)((deadline - t + 999999) / 1000000);
         pfd.fd = h->sock;
         pfd.events = POLLIN;
         pfd.revents = 0;
-        if (poll(&pfd, 1, ms) < 0) {
+        ready = poll(&pfd, 1, ms);
+        if (ready < 0) {
             if (errno == EINTR) continue;
             return -2;
         }
-        if (!(pfd.revents & (POLLIN | POLLERR))) continue;
+        if (!(pfd.revents & (POLLIN | POLLERR))) {
+            if (last) return -1;
+            continue;
+        }
         n = recv(h->sock, buf, 256, 0);
         if (n < 0) {
             if (errno == EINTR || errno == EAGAIN) continue;
             return -2;
         }
-        if ((size_t)n != want || buf[0] != 'R' || buf[1] != 'P' || buf[2] != 1 || buf[3] != type) continue;
-        if (seq && get32(buf + 8) != seq) continue; /* an answer to an older command */
+        if ((size_t)n != want || buf[0] != 'R' || buf[1] != 'P' || buf[2] != 2 || buf[3] != type) continue;
+        if (seq && (get32(buf + 8) < seq || get32(buf + 8) > seq_hi)) continue; /* an older command's */
         if (!check_mac(key, buf, (size_t)n)) continue;
         return 0;
     }
@@ -264,17 +283,28 @@ static int hello(Hil *h) {
     header(d, T_HELLO, 0, 0);
     memcpy(d + HDR, nonce, NONCE);
     hmac_sha256(h->key, 32, d, HDR + NONCE, d + HDR + NONCE);
-    if (send(h->sock, d, sizeof d, 0) < 0) {
-        silent(h, -2, "WELCOME");
-        return -1;
-    }
-    for (;;) {
-        rc = await(h, T_WELCOME, 0, h->key, r, HDR + 2 * NONCE + MAC, h->r[VR_TIMEOUT]);
-        if (rc != 0) {
-            silent(h, rc, "WELCOME to HELLO (a board in use by another master refuses it)");
-            return -1;
+    /* the same HELLO again every 5 ms until the timeout: a board under a flood authenticates only
+     * a few HELLOs per tick, and one it dropped unread it will read the next time */
+    {
+        uint64_t end = now_ns() + (uint64_t)(h->r[VR_TIMEOUT] * 1e9);
+        for (;;) {
+            uint64_t t = now_ns();
+            double slice = t >= end ? 0 : (double)(end - t) / 1e9;
+            if (slice <= 0) {
+                silent(h, -1, "WELCOME to HELLO (a board in use by another master refuses it)");
+                return -1;
+            }
+            if (send(h->sock, d, sizeof d, 0) < 0) {
+                silent(h, -2, "WELCOME");
+                return -1;
+            }
+            rc = await_range(h, T_WELCOME, 0, 0, h->key, r, HDR + 2 * NONCE + MAC, slice < 0.005 ? slice : 0.005);
+            if (rc == -2) {
+                silent(h, rc, "WELCOME to HELLO");
+                return -1;
+            }
+            if (rc == 0 && memcmp(r + HDR, nonce, NONCE) == 0) break;
         }
-        if (memcmp(r + HDR, nonce, NONCE) == 0) break;
     }
     h->session = get32(r + 4);
     memcpy(buf, "rpr-session", 11);
@@ -289,28 +319,44 @@ static int hello(Hil *h) {
 /* One command/sample exchange; updates the outputs.  0 ok, -1 failed (logged). */
 static int exchange(Hil *h, int flags, const double *volts) {
     uint8_t d[HDR + 16 + MAC], r[256];
+    static const int fig[] = {VR_TICK_LATE, VR_TICK_P50, VR_TICK_P99, VR_TICK_MAX};
     uint64_t t0;
     int i, rc, state, faults;
     double rtt;
-    header(d, T_COMMAND, h->session, ++h->seq);
-    memset(d + HDR, 0, 16);
-    d[HDR] = (uint8_t)flags;
-    for (i = 0; i < 3; i++) {
-        float f = (float)volts[i];
-        uint32_t u;
-        memcpy(&u, &f, 4);
-        put32(d + HDR + 4 + 4 * i, u);
-    }
-    hmac_sha256(h->skey, 32, d, HDR + 16, d + HDR + 16);
+    uint32_t first = h->seq + 1;
+    uint64_t end;
+    /* the same command under a new sequence number every 5 ms until the timeout: a datagram lost
+     * (a full socket queue under a flood, a lossy link) costs 5 ms, not the run; commands are
+     * idempotent (target voltages, ARM once idle, STOP, RESET), and a SAMPLE of any of them answers */
     t0 = now_ns();
-    if (send(h->sock, d, sizeof d, 0) < 0) {
-        silent(h, -2, "SAMPLE");
-        return -1;
-    }
-    rc = await(h, T_SAMPLE, h->seq, h->skey, r, HDR + 20 + MAC, h->r[VR_TIMEOUT]);
-    if (rc != 0) {
-        silent(h, rc, "SAMPLE");
-        return -1;
+    end = t0 + (uint64_t)(h->r[VR_TIMEOUT] * 1e9);
+    for (;;) {
+        uint64_t t = now_ns();
+        double slice = t >= end ? 0 : (double)(end - t) / 1e9;
+        if (slice <= 0) {
+            silent(h, -1, "SAMPLE");
+            return -1;
+        }
+        header(d, T_COMMAND, h->session, ++h->seq);
+        memset(d + HDR, 0, 16);
+        d[HDR] = (uint8_t)flags;
+        for (i = 0; i < 3; i++) {
+            float f = (float)volts[i];
+            uint32_t u;
+            memcpy(&u, &f, 4);
+            put32(d + HDR + 4 + 4 * i, u);
+        }
+        hmac_sha256(h->skey, 32, d, HDR + 16, d + HDR + 16);
+        if (send(h->sock, d, sizeof d, 0) < 0) {
+            silent(h, -2, "SAMPLE");
+            return -1;
+        }
+        rc = await_range(h, T_SAMPLE, first, h->seq, h->skey, r, HDR + 44 + MAC, slice < 0.005 ? slice : 0.005);
+        if (rc == 0) break;
+        if (rc == -2) {
+            silent(h, rc, "SAMPLE");
+            return -1;
+        }
     }
     rtt = (double)(now_ns() - t0) / 1e9;
     state = r[HDR];
@@ -327,6 +373,10 @@ static int exchange(Hil *h, int flags, const double *volts) {
     h->r[VR_FAULT] = faults;
     h->r[VR_STATE] = state;
     h->r[VR_RTT] = rtt;
+    h->r[VR_DROPPED] = get32(r + HDR + 16);
+    for (i = 0; i < 4; i++) h->r[fig[i]] = get32(r + HDR + 20 + 4 * i) / 1e6;
+    h->r[VR_CPU_TICK] = get32(r + HDR + 36) / 1e9;
+    h->r[VR_THROTTLED] = get32(r + HDR + 40);
     if (state == S_FAULT) {
         char text[256] = "";
         for (i = 0; i < 7; i++)
@@ -442,14 +492,10 @@ fmi2Status fmi2EnterInitializationMode(fmi2Component c) {
 }
 
 fmi2Status fmi2ExitInitializationMode(fmi2Component c) {
-    static const double zero[3] = {0, 0, 0};
     NEED(c);
     if (H->phase != ST_INIT || !H->connected) return fmi2Error;
-    if (exchange(H, F_ARM, zero) != 0) {
-        H->phase = ST_ERROR;
-        return fmi2Error;
-    }
-    H->phase = ST_STEP;
+    H->phase = ST_STEP; /* the board stays idle: the first doStep arms it */
+    H->armed = 0;
     return fmi2OK;
 }
 
@@ -483,7 +529,7 @@ fmi2Status fmi2SetReal(fmi2Component c, const fmi2ValueReference vr[], size_t n,
     NEED(c);
     for (i = 0; i < n; i++) {
         fmi2ValueReference r = vr[i];
-        int input = r < VR_S, param = r >= VR_TIMEOUT && r < NR;
+        int input = r < VR_S, param = r >= VR_TIMEOUT && r < VR_TICK_LATE;
         if (!input && !param) {
             say(H, fmi2Error, "logStatusError", "value reference %u is an output and cannot be set", (unsigned)r);
             return fmi2Error;
@@ -564,10 +610,11 @@ fmi2Status fmi2DoStep(fmi2Component c, fmi2Real t, fmi2Real h, fmi2Boolean noSet
         return fmi2Error;
     }
     for (i = 0; i < 3; i++) u[i] = H->r[VR_U + i];
-    if (exchange(H, F_RUN, u) != 0) {
+    if (exchange(H, F_RUN | (H->armed ? 0 : F_ARM), u) != 0) {
         H->phase = ST_ERROR;
         return fmi2Error;
     }
+    H->armed = 1;
     H->time = t + h;
     return fmi2OK;
 }

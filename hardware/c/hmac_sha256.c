@@ -60,12 +60,16 @@ void sha256_update(Sha256 *s, const uint8_t *data, size_t n) {
 
 void sha256_final(Sha256 *s, uint8_t out[32]) {
     uint64_t bits = s->length * 8;
-    uint8_t pad = 0x80, zero = 0, len[8];
     int i;
-    sha256_update(s, &pad, 1);
-    while (s->used != 56) sha256_update(s, &zero, 1);
-    for (i = 0; i < 8; i++) len[i] = (uint8_t)(bits >> (56 - 8 * i));
-    sha256_update(s, len, 8);
+    s->block[s->used++] = 0x80;
+    if (s->used > 56) {
+        memset(s->block + s->used, 0, 64 - s->used);
+        compress(s->h, s->block);
+        s->used = 0;
+    }
+    memset(s->block + s->used, 0, 56 - s->used);
+    for (i = 0; i < 8; i++) s->block[56 + i] = (uint8_t)(bits >> (56 - 8 * i));
+    compress(s->h, s->block);
     for (i = 0; i < 8; i++) {
         out[4 * i] = (uint8_t)(s->h[i] >> 24);
         out[4 * i + 1] = (uint8_t)(s->h[i] >> 16);
@@ -74,8 +78,8 @@ void sha256_final(Sha256 *s, uint8_t out[32]) {
     }
 }
 
-void hmac_sha256(const uint8_t *key, size_t key_len, const uint8_t *data, size_t n, uint8_t out[32]) {
-    uint8_t k[64], pad[64], inner[32];
+void hmac_key_init(HmacKey *hk, const uint8_t *key, size_t key_len) {
+    uint8_t k[64], pad[64];
     Sha256 s;
     size_t i;
     memset(k, 0, sizeof k);
@@ -87,15 +91,27 @@ void hmac_sha256(const uint8_t *key, size_t key_len, const uint8_t *data, size_t
         memcpy(k, key, key_len);
     }
     for (i = 0; i < 64; i++) pad[i] = k[i] ^ 0x36;
-    sha256_init(&s);
-    sha256_update(&s, pad, 64);
+    sha256_init(&hk->inner);
+    sha256_update(&hk->inner, pad, 64);
+    for (i = 0; i < 64; i++) pad[i] = k[i] ^ 0x5c;
+    sha256_init(&hk->outer);
+    sha256_update(&hk->outer, pad, 64);
+}
+
+void hmac_key_mac(const HmacKey *hk, const uint8_t *data, size_t n, uint8_t out[32]) {
+    uint8_t inner[32];
+    Sha256 s = hk->inner;
     sha256_update(&s, data, n);
     sha256_final(&s, inner);
-    for (i = 0; i < 64; i++) pad[i] = k[i] ^ 0x5c;
-    sha256_init(&s);
-    sha256_update(&s, pad, 64);
+    s = hk->outer;
     sha256_update(&s, inner, 32);
     sha256_final(&s, out);
+}
+
+void hmac_sha256(const uint8_t *key, size_t key_len, const uint8_t *data, size_t n, uint8_t out[32]) {
+    HmacKey hk;
+    hmac_key_init(&hk, key, key_len);
+    hmac_key_mac(&hk, data, n, out);
 }
 
 int hmac_equal(const uint8_t a[32], const uint8_t b[32]) {

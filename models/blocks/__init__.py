@@ -16,12 +16,11 @@ the bad name, with the closest valid name as a suggestion.
 """
 from __future__ import annotations
 
-import dataclasses
-import math
 from dataclasses import dataclass
 from typing import Any, Callable
 
 from ..block import Block, BlockError
+from ..user import with_defaults
 from . import actuator, mechanism, motor, oscillator, pid, setpoint
 from ._common import CONFIG, SUBSTEPS, Option, integrator_option, positive_float, suggest, unit_text
 
@@ -139,26 +138,7 @@ def make(model: str, fidelity: str | None = None, **opts: Any) -> Block:
         else:
             overrides[name] = value
     blk = entry.build(**construction)
-    if overrides:
-        index = {p.name: i for i, p in enumerate(blk.params)}
-        params = list(blk.params)
-        for name, value in overrides.items():
-            if name not in index:
-                valid = list(known) + list(index)
-                raise BlockError(f"{where}: unknown option or parameter {name!r}{suggest(name, valid)} "
-                                 f"(options: {', '.join(known) or 'none'}; parameters: {', '.join(index)})")
-            prm = params[index[name]]
-            try:
-                v = float(value)
-            except (TypeError, ValueError):
-                raise BlockError(f"{where}: parameter {name}={value!r} must be a number [{prm.unit or '1'}]") from None
-            if isinstance(value, bool) or not math.isfinite(v) or not (prm.lower <= v <= prm.upper):
-                raise BlockError(f"{where}: parameter {name}={value!r} is outside [{prm.lower}, {prm.upper}] "
-                                 f"[{prm.unit or '1'}]")
-            params[index[name]] = dataclasses.replace(prm, default=v)
-        blk = dataclasses.replace(blk, params=params)
-        blk.check()
-    return blk
+    return with_defaults(blk, where, overrides, list(known)) if overrides else blk
 
 
 __all__ = ["make", "catalog", "options", "detail_order", "Option"]

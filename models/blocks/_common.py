@@ -2,7 +2,6 @@
 parameters of a 3-RPR preset, construction options and "did you mean" suggestions."""
 from __future__ import annotations
 
-import difflib
 import math
 from dataclasses import dataclass
 from typing import Any, Callable, Sequence
@@ -10,15 +9,10 @@ from typing import Any, Callable, Sequence
 import casadi as ca
 
 from ..block import BlockError, Param, Rating
+from ..interface import suggest  # noqa: F401  (re-exported for the catalog)
 from ..geometry import GEOMETRY_FIELDS, INERTIA_FIELDS, PRESETS, preset
 
 INF = math.inf
-
-
-def suggest(name: str, choices: Sequence[str]) -> str:
-    """``"; did you mean 'x'?"`` for the closest of ``choices`` (difflib), or ``""``."""
-    close = difflib.get_close_matches(name, list(choices), n=1, cutoff=0.5)
-    return f"; did you mean {close[0]!r}?" if close else ""
 
 
 class ParamSet:

@@ -1,9 +1,11 @@
 """The master algorithms, one module each.  Importing this package imports every module listed in
 :data:`MODULES`, whose ``@register`` classes thereby enter :data:`cosim.master.ALGORITHMS`.
 
-A new algorithm is a module here holding an :class:`cosim.master.Algorithm` subclass decorated
-with :func:`cosim.master.register`, plus its name in :data:`MODULES` (a test checks that every
-module of this package is listed)."""
+A new algorithm is a module here holding a class decorated with :func:`cosim.master.register`: a
+fixed-step :class:`cosim.master.Algorithm` subclass (its ``_step_impl``), or a variable-step
+:class:`cosim.master.MasterAlgorithm` subclass naming its stepper (``stepper_for``, see
+:mod:`cosim.master.stepper`), plus its name in :data:`MODULES` (a test checks that every module
+of this package is listed)."""
 from __future__ import annotations
 
 import importlib

@@ -39,16 +39,17 @@ from __future__ import annotations
 
 import math
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from ...errors import UserError
 from ...slaves.slave import FAILING, Status
-from ..algorithm import Algorithm, AlgorithmOption, option_values, register
+from ..algorithm import AlgorithmOption, MasterAlgorithm, option_values, register
 from ..graph import gauss_seidel_order
-from ..lifecycle import RunStats, initialize, settled, slave_table
+from ..lifecycle import slave_table
+from ..stepper import StepInfo
 
 
 OPTIONS = (
@@ -248,89 +249,112 @@ class AdaptiveStepper:
         self.h = min(opt["h_max"], max(opt["h_min"], h * fac))
 
 
-def run_adaptive(system, *, start_ns: int = 0, stop_ns: int, options: dict | None, order: Sequence[int],
-                 observers: Sequence = (), progress: Callable[[int, int], None] | None = None,
-                 stats=None, stepper_cls: type[AdaptiveStepper] | None = None,
-                 declared: Sequence[AlgorithmOption] = OPTIONS, engine: str = "python"):
-    """Step an initialised ``system`` to ``stop_ns`` (see the module docstring), recording every
-    accepted step to ``observers``; ``stats`` (a :class:`cosim.master.RunStats`) is filled in.
-    ``stepper_cls`` (default :class:`AdaptiveStepper`) takes the steps, with ``options`` checked
-    against its algorithm's ``declared`` options.  ``engine`` ``"compiled"`` runs
-    :class:`AdaptiveStepper`'s accepted-step loop in C (:mod:`cosim.master.adaptive_engine`, the
-    same steps and values; not for other stepper classes), ``"python"`` here.  Returns the stepper
-    (``t_ns``, ``stats``, ``status``...)."""
-    opts = option_values(options, declared)
-    stepper = (stepper_cls or AdaptiveStepper)(system, order, opts, start_ns, stop_ns)
-    if engine == "compiled" and type(stepper) is not AdaptiveStepper:
-        raise ValueError(f"the compiled adaptive engine runs AdaptiveStepper only, not {type(stepper).__name__}")
-    v, idx = system.v, system.record_idx[:len(system.record_names)]  # without the guards' watched columns
-    if engine == "compiled":
-        from ..adaptive_engine import CompiledAdaptive
+class VariableStepper:
+    """A variable-step stepper (:class:`AdaptiveStepper` or a subclass, or its compiled loop
+    :class:`cosim.master.adaptive_engine.CompiledAdaptive`) as the driver loop
+    (:func:`cosim.master.stepper.drive`) steps it: one recorded row per accepted step, with the
+    guards' watched values after the recorded ones."""
 
-        stepper = CompiledAdaptive(stepper)  # set-up, like the fixed-step loop's: not in the loop's wall time
-    t_loop = time.perf_counter()
-    if engine == "compiled":
-        try:
-            _run_compiled(stepper, start_ns, stop_ns, len(idx), observers, progress)
-        finally:
-            stepper.close()
-        if stats is not None:
-            stats.wall_s = time.perf_counter() - t_loop
-        return stepper
-    rows = np.empty((256, 1 + len(idx)))
-    n = 0
-    last_progress = 0.0
-    while stepper.t_ns < stop_ns:
-        if not stepper.step():
-            break
-        rows[n, 0] = stepper.t
-        np.take(v, idx, out=rows[n, 1:])
-        n += 1
-        if n == len(rows):
-            for obs in observers:
-                obs.record(rows[:n])
-            n = 0
-        now = time.perf_counter()
-        if progress and now - last_progress > 0.1:
-            progress(stepper.t_ns - start_ns, stop_ns - start_ns)
-            last_progress = now
-    if n:
-        for obs in observers:
-            obs.record(rows[:n])
-    if progress:
-        progress(stepper.t_ns - start_ns, stop_ns - start_ns)
-    if stats is not None:
-        stats.wall_s = time.perf_counter() - t_loop
-    return stepper
-
-
-def _run_compiled(stepper, start_ns: int, stop_ns: int, n_rec: int, observers: Sequence,
-                  progress: Callable[[int, int], None] | None) -> None:
-    """The loop of :func:`run_adaptive` over :class:`cosim.master.adaptive_engine.CompiledAdaptive` chunks."""
-    rows = np.empty((4096, 1 + n_rec))
-    while stepper.t_ns < stop_ns and stepper.status == "running":
-        n = stepper.run(rows)
-        if n:
-            for obs in observers:
-                obs.record(rows[:n])
-        if progress:
-            progress(stepper.t_ns - start_ns, stop_ns - start_ns)
-
-
-@dataclass
-class VariableStats(RunStats):
-    """Run statistics of a variable-step run: the simulated time is where the last accepted step
-    ended; ``adaptive`` holds accepted/rejected steps, rollbacks and the smallest/largest step."""
-
-    t_end: float = 0.0
-    adaptive: dict = field(default_factory=dict)
+    def __init__(self, stepper, system, engine: str, start_ns: int):
+        self.stepper, self.system, self.engine = stepper, system, engine
+        self.start_ns, self.stop_ns = start_ns, stepper.stop_ns if engine == "python" else stepper.py.stop_ns
+        self.text_events: list[tuple[float, str, str]] = []
+        self.stepping_s = 0.0
+        self.dropped = 0  # accepted steps whose rows a guard dropped
 
     @property
-    def simulated_s(self) -> float:
-        return self.t_end
+    def status(self) -> str:
+        return self.stepper.status
 
-    def as_dict(self) -> dict:
-        return {**super().as_dict(), **self.adaptive}
+    @property
+    def message(self) -> str:
+        return self.stepper.message
+
+    @property
+    def t_ns(self) -> int:
+        return self.stepper.t_ns
+
+    @property
+    def t(self) -> float:
+        return self.stepper.t
+
+    def done(self) -> bool:
+        return self.stepper.t_ns >= self.stop_ns or self.stepper.status != "running"
+
+    def rows_needed(self, max_steps: int) -> int:
+        return max_steps
+
+    def block(self, rec: np.ndarray, max_steps: int) -> int:
+        st = self.stepper
+        if self.engine == "compiled":
+            return st.run(rec[:max_steps])
+        v, idx, typed = self.system.v, self.system.record_idx, self.system.typed
+        n = 0
+        while n < max_steps and st.t_ns < self.stop_ns:
+            if not st.step():
+                break
+            rec[n, 0] = st.t
+            np.take(v, idx, out=rec[n, 1:])
+            n += 1
+            if typed.texts:
+                self.text_events += [(st.t, c, x) for c, x in typed.text_changes()]
+        return n
+
+    def cut(self, t: float, rows_dropped: int) -> None:
+        self.dropped += rows_dropped
+        self._t_cut = t
+
+    def end(self, status: str, message: str) -> None:
+        self.stepper.status, self.stepper.message = status, message
+
+    def progress(self) -> tuple[int, int]:
+        return self.stepper.t_ns - self.start_ns, self.stop_ns - self.start_ns
+
+    def step_info(self, t0_ns: int):
+        st = self.stepper
+        py = st if self.engine == "python" else st.py
+        slopes = py.slopes if any(py.interp) else None
+        return StepInfo(t0_ns / 1e9, (st.t_ns - t0_ns) / 1e9, self.system.v, slopes, self.system,
+                        st.stats.accepted)
+
+    def fill(self, stats) -> None:
+        """The run statistics (:class:`cosim.master.lifecycle.VariableStats`)."""
+        st = self.stepper
+        acc = st.stats
+        stats.steps_done = acc.accepted - self.dropped
+        stats.t_end = getattr(self, "_t_cut", st.t)
+        if self.dropped:
+            del acc.steps[len(acc.steps) - self.dropped:]
+            acc.accepted -= self.dropped
+        stats.adaptive = acc.as_dict()
+        stats.steps_planned = stats.steps_done  # no plan: the controller chose every step
+        stats.slaves = slave_table(self.system, st.calls, st.slave_ns)
+        own = getattr(st, "master_ns", None)  # the compiled loop measures its own share itself
+        stats.master_s = own / 1e9 if own is not None else max(0.0, stats.wall_s - sum(st.slave_ns) / 1e9)
+
+    def close(self) -> None:
+        if self.engine == "compiled":
+            self.stepper.close()
+
+
+def variable_stepper(system, *, cls, step_ns: int, n_steps: int, order: Sequence[int] | None = None,
+                     options: dict | None = None, start_ns: int = 0, engine: str = "auto",
+                     **_fixed_step_only) -> VariableStepper:
+    """The stepper of the variable-step algorithm ``cls`` (its ``stepper`` class, default
+    :class:`AdaptiveStepper`) over the initialised ``system``, to ``start_ns + n_steps * step_ns``
+    (the scene's stop time; ``step_ns`` is only the fixed-step master's step).  ``engine``: auto
+    (the compiled loop where :func:`cosim.master.adaptive_engine.usable`), compiled or python."""
+    stop_ns = start_ns + n_steps * step_ns
+    opts = option_values(options, getattr(cls, "options", OPTIONS))
+    seq = list(order) if order is not None else gauss_seidel_order(len(system.slaves), system.slave_edges())
+    kind = getattr(cls, "stepper", None) or AdaptiveStepper
+    name = _engine(system, engine, kind is AdaptiveStepper, cls.name)
+    stepper = kind(system, seq, opts, start_ns, stop_ns)
+    if name == "compiled":
+        from ..adaptive_engine import CompiledAdaptive
+
+        stepper = CompiledAdaptive(stepper)
+    return VariableStepper(stepper, system, name, start_ns)
 
 
 def _engine(system, engine: str, compiled_exists: bool = True, name: str = "adaptive") -> str:
@@ -353,57 +377,14 @@ def _engine(system, engine: str, compiled_exists: bool = True, name: str = "adap
 
 
 @register
-class Adaptive(Algorithm):
-    """Registry entry of the error-controlled master (module docstring); it runs through
-    :func:`simulate_variable`, not the fixed-step loop."""
+class Adaptive(MasterAlgorithm):
+    """Registry entry of the error-controlled master (module docstring): its stepper
+    (:func:`variable_stepper`) is driven by the one run loop, :func:`cosim.master.simulate`."""
 
     name = "adaptive"
     variable_step = True
     needs_rollback = True
     options = OPTIONS
-
-    def _step_impl(self, t, h):  # pragma: no cover - variable-step runs never use the fixed-step loop
-        raise RuntimeError("adaptive runs through cosim.master.algorithms.adaptive.simulate_variable")
-
-
-def simulate_variable(system, cls, *, step_ns: int, n_steps: int, observers: Sequence = (),
-                      start_values: Sequence[dict[str, float]] | None = None, order: Sequence[int] | None = None,
-                      progress: Callable[[int, int], None] | None = None, meta: dict | None = None,
-                      options: dict | None = None, start_ns: int = 0,
-                      tolerances: Sequence[float | None] | None = None, engine: str = "auto", **_ignored):
-    """:func:`cosim.master.simulate` for a variable-step algorithm: initialise, run
-    :func:`run_adaptive` to ``n_steps * step_ns`` (the scene's stop time; ``step_ns`` is the first
-    step tried) and report to the observers as the fixed-step loop does.  ``engine``: auto (the
-    compiled loop where :func:`cosim.master.adaptive_engine.usable`), compiled or python."""
-    stop_ns = start_ns + n_steps * step_ns
-    stats = VariableStats(cls.name, "python", step_ns / 1e9, n_steps)
-    columns = ["time"] + system.record_names
-    declared = getattr(cls, "options", OPTIONS)
-    opts = option_values(options, declared)
-    for obs in observers:
-        obs.start(columns, dict(meta or {}, algorithm=cls.name, step=step_ns / 1e9, options=opts))
-    stepper = None
-
-    def fill() -> None:
-        if stepper is not None:
-            stats.steps_done, stats.t_end, stats.adaptive = stepper.stats.accepted, stepper.t, stepper.stats.as_dict()
-            stats.steps_planned = stats.steps_done  # no plan: the controller chose every step
-            stats.slaves = slave_table(system, stepper.calls, stepper.slave_ns)
-            own = getattr(stepper, "master_ns", None)  # the compiled loop measures its own share itself
-            stats.master_s = own / 1e9 if own is not None else max(0.0, stats.wall_s - sum(stepper.slave_ns) / 1e9)
-
-    with settled(stats, system, observers, lambda: stepper.t if stepper else None, fill) as end:
-        t0 = time.perf_counter()
-        initialize(system, start_values or [{} for _ in system.slaves], start_time=start_ns / 1e9,
-                   stop_time=stop_ns / 1e9, tolerances=tolerances)
-        seq = list(order) if order is not None else gauss_seidel_order(len(system.slaves), system.slave_edges())
-        stats.engine = _engine(system, engine, getattr(cls, "stepper", None) in (None, AdaptiveStepper), cls.name)
-        stats.init_s = time.perf_counter() - t0
-        row0 = np.concatenate([[start_ns / 1e9], system.v[system.record_idx[:len(system.record_names)]]])[None, :]
-        for obs in observers:
-            obs.record(row0)
-        stepper = run_adaptive(system, start_ns=start_ns, stop_ns=stop_ns, options=opts, order=seq,
-                               observers=observers, progress=progress, stats=stats,
-                               stepper_cls=getattr(cls, "stepper", None), declared=declared, engine=stats.engine)
-        end.from_loop(stepper)
-    return stats
+    #: a rejected step is rolled back and retried: its steps cannot be paced on the wall clock
+    paceable = False
+    stepper_for = staticmethod(variable_stepper)

@@ -50,10 +50,10 @@ import numpy as np
 
 from ...errors import UserError
 from ...slaves.slave import Status
-from ..algorithm import Algorithm, register
+from ..algorithm import MasterAlgorithm, register
 from ..system import CoupledSystem
 from ..algorithm import AlgorithmOption
-from .adaptive import AdaptiveStats, AdaptiveStepper
+from .adaptive import AdaptiveStats, AdaptiveStepper, variable_stepper
 
 OPTIONS = (
     AlgorithmOption("rtol", 1e-3, 1e-12, 1.0, "1", "energy residual of a bond per step, relative to the energy "
@@ -239,15 +239,13 @@ class EccoStepper(AdaptiveStepper):
 
 
 @register
-class Ecco(Algorithm):
-    """Registry entry of the power-bond master (module docstring); it runs through
-    :func:`cosim.master.algorithms.adaptive.simulate_variable` with :class:`EccoStepper`."""
+class Ecco(MasterAlgorithm):
+    """Registry entry of the power-bond master (module docstring): :class:`EccoStepper` driven by
+    the one run loop (:func:`cosim.master.algorithms.adaptive.variable_stepper`); its steps are
+    never retried, so a run can be paced in real time."""
 
     name = "ecco"
     variable_step = True
-    needs_rollback = False
     options = OPTIONS
     stepper = EccoStepper
-
-    def _step_impl(self, t, h):  # pragma: no cover - variable-step runs never use the fixed-step loop
-        raise RuntimeError("ecco runs through cosim.master.algorithms.adaptive.simulate_variable")
+    stepper_for = staticmethod(variable_stepper)
