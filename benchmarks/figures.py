@@ -1,4 +1,4 @@
-"""The accuracy figures of the README's Results section, measured and printed.
+"""The accuracy figures of the documentation's results pages, measured and printed.
 
 The tests assert these numbers against their independent sources (the thesis's tables as
 restated in SPEC.md, a Lagrange formulation, the virtual-work reference); this script prints
@@ -8,12 +8,22 @@ those equations a second time.
 
     python benchmarks/figures.py            # models: thesis tables (Ch. 4-7), Lagrange, stiffness series (~30 s)
     python benchmarks/figures.py --scenes   # also the scenes: pid_step, multibody, vw_compare (~2 min)
+    python benchmarks/figures.py --only kinematics   # Table 6.12, Chapter 7, virtual work vs Lagrange (~2 s)
+    python benchmarks/figures.py --check [PAGE.md ...]   # pages' quoted outputs against what the commands print
+
+``--check`` finds, in the documentation's pages (default: every ``docs/**/*.md``), each fenced
+block whose first line is ``$ COMMAND`` (the command's printed output quoted below it, whole or
+in part, with a line saying when and where it was printed just above the block), runs the cheap
+commands (:data:`CHEAP`: this script's kinematics section, the quick start's run against the
+monolithic reference) and reports every quoted line that the command no longer prints; exit code
+1 when one differs.  Blocks of expensive commands are listed as not checked.
 """
 from __future__ import annotations
 
 import argparse
 import sys
 import tempfile
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -31,6 +41,13 @@ TABLE_6_12 = [((-0.15, -0.15, 0.0), (0.3109, 0.3559, 0.2043)), ((-0.2, -0.15, 0.
 
 
 def models_figures() -> None:
+    kinematics_figures()
+    chapter_4_figures()
+    stiffness_series()
+
+
+def kinematics_figures() -> None:
+    """Table 6.12's leg lengths, Chapter 7's path and forces, virtual work against Lagrange."""
     from models import geometry as G
     from models import kinematics as K
     from models import virtual_work as V
@@ -57,8 +74,6 @@ def models_figures() -> None:
         worst = max(worst, np.abs(V.inverse_dynamics(cross, q, qd, qdd) - ref).max() / np.abs(ref).max())
     print(f"virtual work against Lagrange's equations ({len(STATES)} random states): max relative "
           f"difference {worst:.1e}")
-    chapter_4_figures()
-    stiffness_series()
 
 
 def chapter_4_figures() -> None:
@@ -132,11 +147,111 @@ def scene_figures(cache: Path) -> None:
               f"rates {e['v']:.1e}, accelerations {e['a']:.1e}, forces {e['f']:.1e}")
 
 
-def main() -> None:
+#: Sections of this script by ``--only`` name.
+SECTIONS = {"kinematics": kinematics_figures, "chapter4": chapter_4_figures, "stiffness": stiffness_series}
+def _this_script(*args: str) -> Callable[[], list[str]]:
+    def printed() -> list[str]:
+        import contextlib
+        import io
+
+        buf = io.StringIO()
+        with contextlib.redirect_stdout(buf):
+            run(parse(list(args)))
+        return buf.getvalue().splitlines()
+
+    return printed
+
+
+def _verb(*args: str) -> Callable[[], list[str]]:
+    """``rpr-cosim ARGS`` in a subprocess, writing into a temporary ``--out``."""
+    def printed() -> list[str]:
+        import os
+        import subprocess
+
+        with tempfile.TemporaryDirectory() as out:
+            env = dict(os.environ, PYTHONPATH=str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""))
+            res = subprocess.run([sys.executable, "-m", "cosim", *args, "--out", out], cwd=ROOT, env=env,
+                                 capture_output=True, text=True, timeout=600)
+        return res.stdout.splitlines()
+
+    return printed
+
+
+#: Commands cheap enough for ``--check`` (seconds each) -> what they print.
+CHEAP: dict[str, Callable[[], list[str]]] = {
+    "python benchmarks/figures.py --only kinematics": _this_script("--only", "kinematics"),
+    "rpr-cosim run scenarios/pid_step.yaml --reference": _verb("run", "scenarios/pid_step.yaml", "--reference"),
+}
+
+
+def quoted_blocks(page: Path) -> list[tuple[int, str, list[str], bool]]:
+    """(line of the first quoted line, the command, the quoted output lines, whether a 'Printed
+    on' date line stands just above the block) for every quoted command output in ``page``."""
+    lines = page.read_text().splitlines()
+    found = []
+    for i, line in enumerate(lines):
+        if line.strip() == "```text" and i + 1 < len(lines) and lines[i + 1].startswith("$ "):
+            command = " ".join(lines[i + 1][2:].split())
+            body = []
+            for ln in lines[i + 2:]:
+                if ln.strip().startswith("```"):
+                    break
+                body.append(ln)
+            dated = any("rinted on" in ln for ln in lines[max(0, i - 3):i])
+            found.append((i + 3, command, body, dated))
+    return found
+
+
+def check(pages: list[Path]) -> int:
+    """Compare every quoted output of the cheap commands in ``pages`` with what they print now."""
+    bad, seen, cache = 0, 0, {}
+    for page in pages:
+        for lineno, command, body, dated in quoted_blocks(page):
+            where = f"{page}:{lineno - 1}"
+            if not dated:
+                print(f"{where}: the quoted output of `{command}` says not when it was printed "
+                      f"(a 'printed on DATE on MACHINE' line just above the block)")
+                bad += 1
+            if command not in CHEAP:
+                print(f"{where}: not checked (expensive): {command}")
+                continue
+            seen += 1
+            if command not in cache:
+                cache[command] = CHEAP[command]()
+            now = cache[command]
+            for k, line in enumerate(body):
+                if line.strip() and line not in now:
+                    bad += 1
+                    close = max(now, key=lambda n: sum(a == b for a, b in zip(n, line)), default="")
+                    print(f"{page}:{lineno + k}: quoted figure no longer printed by `{command}`:\n"
+                          f"  page: {line}\n  now:  {close}")
+    print(f"figures --check: {seen} quoted outputs checked, {bad} problem{'s' if bad != 1 else ''}")
+    return 1 if bad else 0
+
+
+def parse(argv: list[str] | None = None) -> argparse.Namespace:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--scenes", action="store_true", help="also run the scenes (about two minutes)")
+    ap.add_argument("--only", choices=sorted(SECTIONS), help="print only this section of the models' figures")
+    ap.add_argument("--check", nargs="*", type=Path, metavar="PAGE",
+                    help="check the quoted outputs in these pages (default: docs/**/*.md) against what the cheap "
+                         "commands print now")
     ap.add_argument("--cache", type=Path, default=None, help="FMU cache (default: $RPR_COSIM_CACHE or a temporary one)")
-    args = ap.parse_args()
+    return ap.parse_args(argv)
+
+
+def main() -> int:
+    args = parse()
+    if args.check is not None:
+        return check(args.check or sorted((ROOT / "docs").rglob("*.md")))
+    run(args)
+    return 0
+
+
+def run(args: argparse.Namespace) -> None:
+    if args.only:
+        SECTIONS[args.only]()
+        return
     models_figures()
     if args.scenes:
         import os
@@ -147,4 +262,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main())

@@ -327,10 +327,13 @@ def settle_stale(out_dir: Path, previous: dict | None = None) -> list[str]:
         csv_part = part_path(csv_final)
         csv_now = csv_part if csv_part.exists() else csv_final
         rows = 0
-        if csv_now.exists():
+        if csv_now.exists() and csv_final.suffix == ".csv":  # a Parquet trace without its footer stays as it is
             trim_to_whole_rows(csv_now)
-            with open(csv_now, "a") as fh:
-                fh.write(f"# status: {json.dumps('killed')}\n# reason: {json.dumps(reason)}\n")
+            with open(csv_now, "rb") as fh:
+                commented = fh.read(1) == b"#"
+            if commented:  # a plain CSV keeps one header line and rows: the status is in the sidecar
+                with open(csv_now, "a") as fh:
+                    fh.write(f"# status: {json.dumps('killed')}\n# reason: {json.dumps(reason)}\n")
             with open(csv_now) as fh:
                 rows = max(0, sum(1 for ln in fh if ln.strip() and not ln.startswith("#")) - 1)
         data.update(status="killed", reason=reason, rows=rows)

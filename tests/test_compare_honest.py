@@ -18,8 +18,8 @@ def trace(t: np.ndarray, **cols: np.ndarray) -> Trace:
     return Trace(["time", *cols], np.column_stack([t, *cols.values()]))
 
 
-def write(path: Path, tr: Trace, status: str = "ok", reason: str = "") -> Path:
-    w = CsvTrace(path)
+def write(path: Path, tr: Trace, status: str = "ok", reason: str = "", commented: bool = False) -> Path:
+    w = CsvTrace(path, commented=commented)
     w.start(tr.columns, {"scene": path.stem})
     w.record(tr.data)
     w.finish(status, reason, {})
@@ -68,7 +68,8 @@ def test_the_sidecar_of_a_killed_run_is_read(tmp_path, good, capsys):
     """A run killed while writing leaves a CSV without its final status and a sidecar saying
     "running": not a result."""
     killed = tmp_path / "killed.csv"
-    text = good.read_text()
+    old = write(tmp_path / "old.csv", read_trace(good), commented=True)  # the commented form of earlier versions
+    text = old.read_text()
     killed.write_text(text[:text.index("# status:")])
     (tmp_path / "killed.json").write_text(json.dumps({"status": "running", "reason": ""}))
     assert run_status(read_trace(killed), killed) == ("running", "")
@@ -76,6 +77,20 @@ def test_the_sidecar_of_a_killed_run_is_read(tmp_path, good, capsys):
     assert "the run's status is 'running', not 'ok'" in capsys.readouterr().err
     (tmp_path / "killed.json").unlink()
     assert run_status(read_trace(killed), killed)[0] == "unfinished"
+
+
+def test_a_plain_trace_takes_its_status_from_the_sidecar(tmp_path, good, capsys):
+    """A plain CSV has no comment lines: the sidecar says how its run ended, also for a run
+    killed while writing (sidecar still "running")."""
+    assert not good.read_text().startswith("#") and good.read_text().splitlines()[0] == "time,m.x,m.y"
+    assert run_status(read_trace(good), good) == ("ok", "")
+    killed = tmp_path / "killed.csv"
+    killed.write_text("".join(good.read_text().splitlines(keepends=True)[:50]))
+    side = json.loads(good.with_suffix(".json").read_text())
+    (tmp_path / "killed.json").write_text(json.dumps({**side, "status": "running", "trace": "killed.csv"}))
+    assert run_status(read_trace(killed), killed) == ("running", "")
+    assert cli.main(["compare", str(killed), str(good)]) == 2
+    assert "the run's status is 'running', not 'ok'" in capsys.readouterr().err
 
 
 def test_a_trace_from_another_tool_has_an_unknown_status_and_is_compared_with_a_note(tmp_path, good, capsys):

@@ -50,7 +50,10 @@ class Steps:
         pass
 
     def finish(self, status, reason, stats):
-        pass
+        self.final = stats
+
+    def statistics(self):
+        return {"steps_seen": len(self.seen)}
 
 
 def pid_system(sets: dict) -> tuple:
@@ -87,6 +90,7 @@ def test_a_step_observer_sees_every_step_and_changes_no_bit(algorithm, engine):
     after = np.array([s[2] for s in obs.seen])
     assert np.array_equal(after, trace.data[1:, 1:])  # the values after each step are that step's row
     assert np.array_equal(obs.v0, trace.data[0, 1:])  # and the initial values the first row
+    assert obs.final["Steps"] == {"steps_seen": len(obs.seen)}  # its own figures in the statistics
     if algorithm != "gauss_seidel":
         assert len(set(np.round(h, 12))) > 10  # variable steps
 

@@ -1,6 +1,6 @@
 """``rpr-cosim fmu show``: every catalog parameter has a unit and a description, the FMU file view
-agrees with FMPy's reading of the modelDescription, and the README's model section is the
-generated text (documentation cannot drift from the code)."""
+agrees with FMPy's reading of the modelDescription, and the documentation site's model catalog is
+the generated text (documentation cannot drift from the code)."""
 from __future__ import annotations
 
 from pathlib import Path
@@ -59,9 +59,23 @@ def test_markdown_page_is_the_same_content(tmp_path):
         assert f"| `{p.name}` | {p.unit} |" in text
 
 
-def test_readme_model_section_is_generated_from_the_catalog():
-    assert model_doc.readme_section(ROOT / "README.md") == model_doc.catalog_markdown(), \
-        "README's model section is stale: run `rpr-cosim fmu show --readme`"
+def test_the_docs_model_catalog_is_what_fmu_show_markdown_prints(capsys):
+    """The site's model catalog is generated at build time from the same pages `fmu show --markdown` prints."""
+    from docgen.reference import models_page
+
+    page = models_page()
+    for model, fids in blocks.catalog().items():
+        for fid in fids:
+            assert main(["fmu", "show", f"{model}/{fid}", "--markdown"]) == 0
+            printed = capsys.readouterr().out
+            assert printed.replace(f"# `{model}/{fid}`", f"### `{model}/{fid}`", 1) in page, (model, fid)
+
+
+def test_fmu_show_readme_rewrites_a_marked_section(tmp_path):
+    readme = tmp_path / "README.md"
+    readme.write_text(f"intro\n{model_doc.BEGIN}\nstale\n{model_doc.END}\nend\n")
+    assert model_doc.update_readme(readme) and model_doc.readme_section(readme) == model_doc.catalog_markdown()
+    assert not model_doc.update_readme(readme)
 
 
 @pytest.mark.parametrize("what, expected", [("pdi", "did you mean 'pid'"), ("pid/analog", "no fidelity 'analog'"),

@@ -280,7 +280,7 @@ NUMERIC = {t for t in FT_TYPES if t not in ("String", "Binary")}
 
 
 def _allowed(a: str, b: str) -> bool:
-    """The documented conversions (README "FMUs from other tools"), written out independently."""
+    """The documented conversions (docs/how-to/external-fmu.md), written out independently."""
     if a not in NUMERIC or b not in NUMERIC or b in ("Enumeration", "Boolean"):
         return False
     if b in ("Float32", "Float64"):

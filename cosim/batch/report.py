@@ -13,7 +13,6 @@ from __future__ import annotations
 import math
 import re
 import sys
-import time
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -26,24 +25,20 @@ from .spec import Batch, PlotSpec
 
 # --- progress ------------------------------------------------------------------------------------
 class Progress:
-    """``done/total, running, failed, elapsed, time left`` on one line of ``stream`` (rewritten
-    in place on a terminal, a line every few seconds otherwise)."""
+    """The batch's progress bar (tqdm, :func:`cosim.run.progress.bar`): runs done of the total,
+    with the running and failed runs beside it; redrawn in place on a terminal, whole lines
+    without control characters in a pipe, a widget in a notebook."""
 
-    def __init__(self, stream=None, *, every_s: float | None = None):
+    def __init__(self, stream=None):
         self.stream = stream or sys.stderr
-        self.tty = hasattr(self.stream, "isatty") and self.stream.isatty()
-        self.every_s = every_s if every_s is not None else (0.1 if self.tty else 5.0)
         self.running: set[str] = set()
         self.saw_start = False
-        self.total = self.done = self.failed = self.ran = 0
+        self.total = self.done = self.failed = self.ran = self.skipped = self.told = 0
         self.capacity = 1
-        self.t0 = time.perf_counter()
-        self.last = 0.0
+        self.bar = None
 
     def begin(self, total: int, done: int, failed: int) -> None:
         self.total, self.done, self.failed, self.skipped = total, done, failed, done
-        self.t0 = time.perf_counter()
-        self.told = 0
         self._tell_skipped()
 
     def _tell_skipped(self) -> None:
@@ -60,15 +55,30 @@ class Progress:
         self.skipped += 1
         self.failed += not ok
 
+    def _bar(self):
+        if self.bar is None:
+            from ..run.progress import bar
+
+            self.bar = bar(self.total, "[batch]", unit="run", stream=self.stream, initial=self.done)
+        return self.bar
+
+    def _postfix(self) -> None:
+        left = self.total - self.done
+        running = len(self.running) if self.saw_start else min(self.capacity, left)
+        b = self._bar()
+        b.set_postfix_str(f"{running} running, {self.failed} failed", refresh=False)
+        b.update(self.done - b.n)
+
     def show(self) -> None:
-        """Print the line now (e.g. when the runs are handed out)."""
+        """Show the bar now (e.g. when the runs are handed out)."""
         self._tell_skipped()
-        self._show(force=True)
+        self._postfix()
+        self._bar().refresh()
 
     def started(self, run_id: str) -> None:
         self.saw_start = True
         self.running.add(run_id)
-        self._show()
+        self._postfix()
 
     def finished(self, run_id: str, ok: bool, capacity: int = 1) -> None:
         self.running.discard(run_id)
@@ -76,30 +86,17 @@ class Progress:
         self.done += 1
         self.ran += 1
         self.failed += not ok
-        self._show()
+        self._postfix()
 
     def line(self) -> str:
-        elapsed = time.perf_counter() - self.t0
-        left = self.total - self.done
-        running = len(self.running) if self.saw_start else min(self.capacity, left)
-        eta = f", about {elapsed / self.ran * left:.0f} s left" if self.ran and left else ""
-        return (f"[batch] {self.done}/{self.total} done, {running} running, {self.failed} failed, "
-                f"{elapsed:.1f} s{eta}")
-
-    def _show(self, force: bool = False) -> None:
-        now = time.perf_counter()
-        if not force and now - self.last < self.every_s and self.done < self.total:
-            return
-        self.last = now
-        self.stream.write(("\r" + self.line() + "\033[K") if self.tty else self.line() + "\n")
-        self.stream.flush()
+        """The bar's current text."""
+        return str(self._bar())
 
     def end(self) -> None:
         self._tell_skipped()
-        if self.done < self.total or self.tty:
-            self._show(force=True)
-        if self.tty:
-            self.stream.write("\n")
+        if self.done < self.total or self.bar is not None:
+            self._postfix()
+            self._bar().close()
         self.stream.flush()
 
 
@@ -291,7 +288,8 @@ def plot_hist(rows, metric: str, path: Path) -> Path:
 def run_trace_path(out: Path, run_id: str) -> Path | None:
     """The co-simulation trace of a run (not its reference)."""
     d = Path(out) / "runs" / run_id
-    found = sorted(p for p in d.glob("*.csv") if not p.name.endswith("_reference.csv")) if d.is_dir() else []
+    found = sorted(p for p in (*d.glob("*.csv"), *d.glob("*.parquet"))
+                   if not p.stem.endswith("_reference") and not p.stem.endswith(".prev")) if d.is_dir() else []
     return found[0] if found else None
 
 

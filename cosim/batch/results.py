@@ -10,6 +10,10 @@ initialisation, loop, trace files), ``wall_s`` (the whole run on its worker: ins
 reference, metrics), ``attempts`` (2 when a worker died and the run was retried) and
 ``worker`` (host:pid).
 
+With ``--format parquet`` the table is also written as ``<out>/results.parquet`` when the batch
+ends (:func:`write_parquet`; axes, metrics and statistics as typed columns, the batch's description
+as JSON under ``rpr-cosim`` in the schema's metadata); the CSV stays the table that resumes.
+
 Rows are appended as runs finish, each with one ``write`` and an ``fsync``, so an interrupted
 batch (Ctrl-C, kill -9, power loss) keeps every finished run; a row cut short by a crash is
 dropped when the table is opened again, and its run is redone.
@@ -140,4 +144,50 @@ def read_rows(path: Path) -> tuple[list[str], list[dict[str, Any]]]:
     return header, rows
 
 
-__all__ = ["ResultsTable", "STAT_COLUMNS", "base_columns", "read_rows"]
+def write_parquet(path: Path, columns: Sequence[str], rows: Sequence[dict[str, Any]], meta: dict) -> Path:
+    """The results table as Parquet (pyarrow): text columns as strings, the others as float64
+    (integers as int64), ``meta`` (JSON) under ``rpr-cosim`` in the schema's metadata."""
+    import json
+
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    fields, arrays = [], []
+    for c in columns:
+        values = [r.get(c) for r in rows]
+        if c in TEXT_COLUMNS:
+            kind = pa.string()
+            values = [None if v is None else str(v) for v in values]
+        elif c in INT_COLUMNS:
+            kind = pa.int64()
+        else:
+            kind = pa.float64()
+            values = [v if isinstance(v, (int, float)) or v is None else float("nan") for v in values]
+        fields.append(pa.field(c, kind))
+        arrays.append(pa.array(values, type=kind))
+    schema = pa.schema(fields, metadata={b"rpr-cosim": json.dumps(meta, default=str)})
+    tmp = Path(path).with_name(f".{Path(path).name}.part")
+    pq.write_table(pa.Table.from_arrays(arrays, schema=schema), str(tmp))
+    os.replace(tmp, path)
+    return Path(path)
+
+
+def read_table(path: Path) -> tuple[list[str], list[dict[str, Any]]]:
+    """Header and rows of a results table written as CSV (:func:`read_rows`) or Parquet."""
+    path = Path(path)
+    if path.suffix != ".parquet":
+        return read_rows(path)
+    if not path.is_file():
+        raise UserError(f"{path}: no results table (run the batch first)")
+    import pyarrow.parquet as pq
+
+    try:
+        table = pq.read_table(path)
+    except Exception as exc:  # ArrowInvalid, OSError
+        raise UserError(f"{path}: not a readable Parquet results table ({exc})") from None
+    header = list(table.column_names)
+    return header, [{c: (None if isinstance(v, float) and math.isnan(v) and c in INT_COLUMNS else v)
+                     for c, v in r.items()} for r in table.to_pylist()]
+
+
+__all__ = ["ResultsTable", "STAT_COLUMNS", "base_columns", "read_rows", "read_table", "write_parquet"]

@@ -296,7 +296,8 @@ def _write_files(run_dir: Path, files: dict[str, bytes]) -> None:
 
 def run_batch(batch: Batch, *, out: Path | None = None, executor=None, cache_dir: Path | None = None,
               reuse: bool = True, progress=None, log: Callable[[str], None] | None = None,
-              on_start: Callable[[Task, int], None] | None = None, catalog=None) -> BatchOutcome:
+              on_start: Callable[[Task, int], None] | None = None, catalog=None,
+              trace_format: str = "csv") -> BatchOutcome:
     """Run ``batch`` into ``out`` (default ``runs/<batch name>``) on ``executor`` (default: local
     processes, one per core), resuming: runs whose rows exist are skipped.
 
@@ -304,8 +305,13 @@ def run_batch(batch: Batch, *, out: Path | None = None, executor=None, cache_dir
     each next one while the workers run the previous ones.  ``progress`` is a
     :class:`cosim.batch.report.Progress` (or None); ``log`` gets one-line notes (FMU builds);
     ``on_start(task, pid)`` is called when a local worker starts a run.  A KeyboardInterrupt
-    stops the workers and propagates; every finished run is in the table.
+    stops the workers and propagates; every finished run is in the table.  ``trace_format``:
+    each run's trace file (:data:`cosim.trace.traces.TRACE_FORMATS`); with ``"parquet"`` the
+    table is also written as ``results.parquet`` at the end.
     """
+    from ..trace.traces import trace_suffix
+
+    trace_suffix(trace_format)
     from .executors import LocalExecutor
 
     t0 = time.perf_counter()
@@ -360,7 +366,7 @@ def run_batch(batch: Batch, *, out: Path | None = None, executor=None, cache_dir
                     yield Task(r.run_id, r.point.index, transportable(r.scene), fmus,
                                str((out / "runs" / r.run_id).resolve()), batch.metrics,
                                "monolithic" if batch.reference == "monolithic" else ("trace" if ref else None),
-                               blobs=extra or None)
+                               blobs=extra or None, trace_format=trace_format)
 
             todo = tasks()
             first = next(todo, None)  # resolves the first run and builds its FMUs: the workers' start
@@ -391,6 +397,11 @@ def run_batch(batch: Batch, *, out: Path | None = None, executor=None, cache_dir
                         progress.end()
             res.skipped, res.duplicates = planner.skipped, planner.duplicates
             res.rows = [r for r in table.rows if r["run_id"] in planner.ids]
+            if trace_format == "parquet":
+                from .results import write_parquet
+
+                write_parquet(out / "results.parquet", columns, table.rows,
+                              {**_describe(batch, columns), "metrics_key": key})
     res.wall_s = time.perf_counter() - t0
     return res
 

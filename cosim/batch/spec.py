@@ -39,7 +39,6 @@ targets are described in :mod:`cosim.batch.metrics`.
 """
 from __future__ import annotations
 
-import fnmatch
 import hashlib
 import math
 from collections.abc import Sequence
@@ -53,13 +52,44 @@ from ..errors import UserError
 from ..scenario import TOP_KEYS as SCENE_KEYS
 from ..scenario import Problem, SceneError, YList, YMap, apply_overrides, load_raw, read_yaml, suggest, validate
 from ..scenario.loading import NO_AUTO_FIDELITY
+from ..scenario.overrides import expand_path
 from .metrics import MEASURES, NEEDS_TARGET, MetricSpec
 
 Loc = tuple[str, int]
 
-TOP_KEYS = ("name", "description", "scene", "set", "grid", "zip", "random", "reference", "metrics", "report")
-AXIS_KEYS = ("path", "values", "from", "to", "num", "scale")
-RANDOM_KEYS = ("seed", "samples", "axes")
+#: Top-level keys of a batch file -> what each holds (the checks below accept exactly these; the
+#: documentation's batch-format reference is generated from these declarations).
+TOP = {
+    "name": "the batch's name (default: the file's stem); the output directory is runs/<name>",
+    "description": "free text",
+    "scene": "the base scene, relative to the batch file",
+    "set": "overrides for every run: a mapping of the paths `--set` takes to values",
+    "grid": "axes whose every combination runs: axis name -> values, or `{path, values}` / `{path, from, to, num, "
+            "scale}`",
+    "zip": "axes taken together, item by item (lists of equal lengths)",
+    "random": "Monte Carlo samples: `{seed, samples, axes: {name: {path, dist, ...}}}`",
+    "reference": "what `*_error` measures compare against: `monolithic` or `{trace: FILE}`",
+    "metrics": "per recorded signal: a list of measures, or `{target, band, measure}`",
+    "report": "`{sort: COLUMN, plots: [...]}`: the printed table's order and the charts",
+}
+#: Keys of one grid or zip axis given as a mapping -> what each holds.
+AXIS = {
+    "path": "the scene path it sets (as `--set`; `*` over component names sets every match)",
+    "values": "the list of values",
+    "from": "first value of a range",
+    "to": "last value of a range",
+    "num": "number of values of a range",
+    "scale": "`linear` (default) or `log` spacing of a range",
+}
+#: Keys of ``random:`` -> what each holds.
+RANDOM = {
+    "seed": "a whole number: the samples are reproducible from it",
+    "samples": "number of samples",
+    "axes": "axis name -> `{path, dist, ...}` with the distribution's parameters",
+}
+TOP_KEYS = tuple(TOP)
+AXIS_KEYS = tuple(AXIS)
+RANDOM_KEYS = tuple(RANDOM)
 DIST_KEYS = {"uniform": ("low", "high"), "normal": ("mean", "std"), "log_uniform": ("low", "high")}
 METRIC_KEYS = ("target", "band", "measure")
 PLOT_KINDS = {"lines": ("metric", "x", "lines"), "heatmap": ("metric", "x", "y"), "hist": ("metric",),
@@ -195,27 +225,6 @@ class _Checker:
         return node
 
 
-def _expand_path(path: str, components: Sequence[str]) -> tuple[list[str], str]:
-    """The scene paths of ``path`` (a '*' or '?' in the component name matches every component
-    it fits) and an error message ('' when fine)."""
-    parts = path.split(".")
-    if not all(parts):
-        return [], f"path {path!r} has an empty part; expected e.g. components.pid1.params.Kp or master.step"
-    if parts[0] != "components" or len(parts) < 2:
-        return [path], ""
-    name = parts[1]
-    if any(c in name for c in "*?["):
-        hits = [c for c in components if fnmatch.fnmatchcase(c, name)]
-        if not hits:
-            return [], f"{name!r} in {path!r} matches no component of the scene (components: {', '.join(components)})"
-        return [".".join(["components", h, *parts[2:]]) for h in hits], ""
-    if name not in components:
-        return [], f"unknown component {name!r} in {path!r}{suggest(name, components)}"
-    if len(parts) < 3:
-        return [], f"path {path!r} names a whole component; sweep one of its values, e.g. {path}.params.<name>"
-    return [path], ""
-
-
 def _grid_values(ck: _Checker, name: str, node: Any, where: Loc) -> tuple[tuple, tuple[Loc, ...]]:
     """Values of a grid/zip axis given as a list or as {from, to, num, scale}."""
     if isinstance(node, YList):
@@ -264,7 +273,7 @@ def _axis(ck: _Checker, name: Any, node: Any, where: Loc, components: Sequence[s
         ck.err(where, f"axis {name!r} is not a scene path; give one with path: (e.g. {{path: "
                       f"components.pid1.params.Kp, values: [...]}}) or use the path as the name")
         return None
-    paths, msg = _expand_path(path, components)
+    paths, msg = expand_path(path, components)
     if msg:
         ck.err(node.loc("path") if isinstance(node, YMap) and "path" in node else where, msg)
         return None
@@ -586,7 +595,7 @@ def load_batch(path: Path | str, *, catalog=None, auto_fidelity=None) -> Batch:
     fixed_locs: dict[str, Loc] = {}
     node = ck.mapping(data, "set", "set (path -> value)")
     for k, v in (node or {}).items():
-        paths, msg = _expand_path(str(k), comps)
+        paths, msg = expand_path(str(k), comps)
         if msg:
             ck.err(node.loc(k), f"set: {msg}")
         for p in paths:

@@ -44,6 +44,7 @@ class Task:
     attempt: int = 1
     blobs: dict[str, bytes] | None = None  # FMUs first needed by this run (not in Shared.blobs)
     started_at: float | None = None  # time.perf_counter() on its local worker when it started
+    trace_format: str = "csv"  # cosim.trace.traces.TRACE_FORMATS
 
 
 @dataclass
@@ -179,13 +180,13 @@ def _stats(stats: dict) -> dict[str, Any]:
             "real_time_factor": stats.get("real_time_factor"), "run_s": stats.get("run_s")}
 
 
-def _monolithic(scene: Scene, out_dir: Path) -> tuple[Trace | None, str]:
+def _monolithic(scene: Scene, out_dir: Path, trace_format: str = "csv") -> tuple[Trace | None, str]:
     from ..run.reference import reference
     from ..scenario import from_dict
 
     full = from_dict({**scene.data, "name": scene.name},
                      base_dir=scene.path.parent if scene.path else None)
-    ref = reference(full, out_dir=out_dir)
+    ref = reference(full, out_dir=out_dir, trace_format=trace_format)
     return ref.trace, ("" if ref.ok else f"monolithic reference {ref.status}: {ref.reason}")
 
 
@@ -204,7 +205,7 @@ def execute(task: Task, shared: Shared) -> Outcome:
             digest = task.fmus[name]
             slaves.append(STATE.take(name, digest, STATE.fmu_path(digest, blobs), shared.reuse))
         t_run = time.perf_counter()
-        res = run(task.scene, out_dir=out_dir, slaves=slaves)
+        res = run(task.scene, out_dir=out_dir, slaves=slaves, trace_format=task.trace_format)
         status, reason, stats, trace = res.status, res.reason, dict(res.stats), res.trace
         stats["run_s"] = time.perf_counter() - t_run
     except UserError as exc:
@@ -219,7 +220,7 @@ def execute(task: Task, shared: Shared) -> Outcome:
         ref, note = shared.reference, ""
         if task.reference == "monolithic":
             try:
-                ref, note = _monolithic(task.scene, out_dir)
+                ref, note = _monolithic(task.scene, out_dir, task.trace_format)
             except UserError as exc:
                 ref, note = None, f"no monolithic reference: {exc}"
         uses_ref = any(m.target == "reference" for m in task.metrics)

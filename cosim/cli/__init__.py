@@ -15,7 +15,7 @@ from ..errors import user_error_types
 
 #: Modules that contribute verbs, in the order they appear in ``--help``.
 VERB_MODULES = ("cosim.cli.analyze", "cosim.cli.fmu", "cosim.cli.run", "cosim.cli.compare", "cosim.cli.study",
-                "cosim.cli.ssp", "cosim.cli.board", "cosim.cli.batch")
+                "cosim.cli.ssp", "cosim.cli.board", "cosim.cli.batch", "cosim.cli.report")
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -2,10 +2,13 @@
 
     rpr-cosim batch BATCH.yaml [--workers N] [--scheduler ADDRESS | --dask] [--out DIR]
                                [--sort COLUMN] [--descending] [--no-plots] [--check]
+                               [--format csv|commented-csv|parquet] [--report]
 
 Runs go to local worker processes (one per core by default), to a Dask cluster at ADDRESS, or to
 a Dask LocalCluster of N workers (``--dask``).  Results: ``DIR/results.csv`` (one row per run),
-``DIR/runs/<run id>/`` (each run's trace), ``DIR/plots/`` (default ``DIR`` = ``runs/<batch>``).
+``DIR/runs/<run id>/`` (each run's trace), ``DIR/plots/`` (default ``DIR`` = ``runs/<batch>``);
+``--format parquet`` also ``DIR/results.parquet`` and Parquet traces; ``--report`` writes
+``DIR/report.html`` (and each run's ``runs/<run id>/report.html``).
 Running the same command again skips the runs already in the table, so an interrupted batch
 resumes where it stopped.  A batch file with problems prints one line per problem and exits
 with code 2 before any run; runs that fail are rows with their reason (exit code 0).
@@ -35,6 +38,11 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--no-reuse", action="store_true", help="load every FMU again for each run instead of "
                                                            "resetting the instances a worker keeps")
     p.add_argument("--check", action="store_true", help="only validate the batch and list its runs")
+    p.add_argument("--format", dest="trace_format", choices=["csv", "commented-csv", "parquet"], default="csv",
+                   help="each run's trace format (default plain csv); parquet also writes results.parquet")
+    p.add_argument("--report", action="store_true",
+                   help="also write report.html: the sortable results table and charts, each point linked to "
+                        "its run's own report")
     p.add_argument("--cache", type=Path, help="FMU cache directory (default $RPR_COSIM_CACHE or ~/.cache/rpr-cosim/fmus)")
     p.set_defaults(handler=_batch)
 
@@ -73,7 +81,7 @@ def _batch(args: argparse.Namespace) -> int:
         out = args.out or Path("runs") / batch.name
         try:
             res = run_batch(batch, out=out, executor=ex, cache_dir=args.cache, reuse=not args.no_reuse,
-                            progress=Progress(), log=lambda m: _say(f"[fmu] {m}"))
+                            progress=Progress(), log=lambda m: _say(f"[fmu] {m}"), trace_format=args.trace_format)
         except KeyboardInterrupt:
             _say(f"rpr-cosim batch: interrupted; the finished runs are in {out / 'results.csv'}; run the same "
                  f"command again to do the others")
@@ -120,6 +128,12 @@ def _summary(batch, res, args) -> None:
               else f"spread over {n_ok} ok runs:")
         print(format_spread(res.rows, batch.metric_columns))
     print(f"results: {res.out / 'results.csv'}")
+    if args.trace_format == "parquet":
+        print(f"results: {res.out / 'results.parquet'}")
+    if args.report and res.rows:
+        from .report import write_report
+
+        _say(f"report: {write_report(res.out)}")
     if not args.no_plots and res.rows:
         for p in make_plots(batch, res.out, res.rows, sort):
             _say(f"plot: {p}")

@@ -58,7 +58,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     sh.add_argument("--markdown", nargs="?", const="-", metavar="FILE",
                     help="write the same as a Markdown page (to FILE, default stdout)")
     sh.add_argument("--readme", nargs="?", const="README.md", type=Path, metavar="README",
-                    help="rewrite the README's generated model section from the catalog")
+                    help="rewrite the generated model section (between its BEGIN/END markers) of a Markdown file "
+                         "from the catalog; the documentation site's model catalog is generated at build time")
     sh.set_defaults(handler=_show)
 
 

@@ -1,9 +1,10 @@
 """``rpr-cosim run``: run a scene and report.
 
     rpr-cosim run SCENE.yaml [--set PATH=VALUE ...] [--out DIR] [--plot] [--animate] [--check]
+                             [--format csv|commented-csv|parquet] [--report]
 
-The trace streams to ``DIR/<scene>.csv`` (default ``DIR`` = ``runs/<scene>``) with a sidecar
-``<scene>.json``; a progress bar goes to stderr for long runs and a summary table (per-slave
+The trace streams to ``DIR/<scene>.csv`` (default ``DIR`` = ``runs/<scene>``; a plain CSV, or
+``<scene>.parquet``) with a sidecar ``<scene>.json``; ``--report`` writes ``<scene>.html``; a progress bar goes to stderr for long runs and a summary table (per-slave
 steps and time, real-time factor, final values) to stdout.  A scene with problems prints one
 line per problem (``file:line: error: ...``) and exits with code 2; a run that fails or is
 interrupted keeps its partial trace and exits with code 1; a run that a component asked to stop
@@ -33,6 +34,12 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="also integrate the scene as one ODE (CVODES) into <scene>_reference.csv and report the "
                         "co-simulation's error against it (catalog components only)")
     p.add_argument("--check", action="store_true", help="only validate the scene and print what it contains")
+    p.add_argument("--format", dest="trace_format", choices=["csv", "commented-csv", "parquet"], default="csv",
+                   help="trace file format: a plain CSV (default), a CSV with the metadata in '# key: value' "
+                        "comment lines, or Parquet (<scene>.parquet, metadata in its schema)")
+    p.add_argument("--report", action="store_true",
+                   help="also write <scene>.html: an interactive report (plots, animation, statistics) that opens "
+                        "offline in a browser")
     p.add_argument("--engine", choices=["auto", "compiled", "python"], help="override master.engine")
     p.add_argument("--cache", type=Path, help="FMU cache directory (default $RPR_COSIM_CACHE or ~/.cache/rpr-cosim/fmus)")
     p.add_argument("--max-trace", metavar="SIZE", default=None,
@@ -103,15 +110,16 @@ def _load_and_run(args: argparse.Namespace) -> int:
 
 
 def _run_locked(args: argparse.Namespace, scene, out: Path) -> int:
-    from ..run.execute import progress_bar, run
+    from ..run.execute import run
+    from ..run.progress import progress_bar
 
     try:
         res = run(scene, out_dir=out, cache_dir=args.cache, engine=args.engine, progress=progress_bar(),
                   log=lambda m: _say(f"[run] {m}" if m.startswith(scene.name + ":") or "trace" in m else f"[fmu] {m}"),
-                  max_trace_bytes=args.max_trace)
+                  max_trace_bytes=args.max_trace, trace_format=args.trace_format)
     except KeyboardInterrupt as exc:
         _say(f"rpr-cosim run: interrupted{' by ' + str(exc) if str(exc) else ''}; the partial trace and the reason "
-             f"are in {out / (scene.name + '.csv')}")
+             f"are in {out / (scene.name + ('.parquet' if args.trace_format == 'parquet' else '.csv'))}")
         raise
     _summary(res)
     if args.plot and len(res.trace.data):
@@ -127,8 +135,9 @@ def _run_locked(args: argparse.Namespace, scene, out: Path) -> int:
         c = scene.components.get(comp)
         m = manipulator_for(c.options, c.params) if c is not None else None
         _say(f"animation: {animate(res.trace, confined(out, f'{scene.name}.gif'), manipulator=m, component=comp, title=scene.name)}")
-    if args.reference:
-        _reference(scene, res, out, args.plot)
+    ref = _reference(scene, res, out, args.plot, args.trace_format) if args.reference else None
+    if args.report:
+        _say(f"report: {_report(scene, res, ref, out)}")
     if res.status == "stopped":  # a component asked to end the simulation: a normal end (FMI)
         _say(f"rpr-cosim run: {res.reason}")
         return 0
@@ -138,17 +147,40 @@ def _run_locked(args: argparse.Namespace, scene, out: Path) -> int:
     return 0
 
 
-def _reference(scene, res, out: Path, plot: bool) -> None:
+def _report(scene, res, ref, out: Path) -> Path | str:
+    """The run's interactive HTML report (:mod:`cosim.analysis.report`), beside its trace."""
+    from ..analysis.animate import pose_component
+    from ..analysis.charts import setpoint_pairs
+    from ..analysis.report import run_report
+    from ..errors import UserError
+    from ..scenario.geometry import manipulator_for
+    from ..scenario.units import units_of
+
+    if not len(res.trace.data):
+        return "none (the run recorded no rows)"
+    m = None
+    try:
+        c = scene.components.get(pose_component(res.trace))
+        m = manipulator_for(c.options, c.params) if c is not None else None
+    except UserError:
+        pass
+    return run_report(res.trace, confined(out, f"{scene.name}.html"), title=f"run {scene.name}",
+                      units=units_of(scene, res.fmus), pairs=setpoint_pairs(scene),
+                      reference=ref.trace if ref is not None else None, manipulator=m)
+
+
+def _reference(scene, res, out: Path, plot: bool, trace_format: str = "csv"):
     """Run the monolithic reference and print (and plot) the co-simulation's error against it."""
     from ..analysis.charts import plot_comparison
     from ..analysis.compare import compare, format_table
     from ..run.reference import reference
-    from ..run.execute import progress_bar
+    from ..run.progress import progress_bar
 
     scene = res.scene  # as it ran (the master's choice)
     irregular = res.stats.get("smallest_step") is not None  # variable steps: the reference at the same instants
     ref = reference(scene, out_dir=out, progress=progress_bar(), log=lambda m: _say(f"[reference] {m}"),
-                    times=res.trace.time if irregular and len(res.trace.data) > 1 else None)
+                    times=res.trace.time if irregular and len(res.trace.data) > 1 else None,
+                    trace_format=trace_format)
     st = ref.stats
     print(f"monolithic reference ({ref.trace.meta.get('method', 'CVODES')}, {ref.trace.meta.get('states')} states): "
           f"{ref.status}{' (' + ref.reason + ')' if ref.reason else ''}, {st['wall_s']:.2f} s; trace: {ref.trace_path}")
@@ -164,6 +196,7 @@ def _reference(scene, res, out: Path, plot: bool) -> None:
             from ..scenario.units import units_of
 
             _say(f"plot: {plot_comparison(res.trace, ref.trace, diffs, confined(out, f'{scene.name}_vs_reference.png'), labels=(scene.master.algorithm, 'reference'), units=units_of(scene, res.fmus))}")
+    return ref
 
 
 def _describe(scene) -> None:

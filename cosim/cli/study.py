@@ -52,6 +52,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="algorithm variant, e.g. jacobi/hold or gauss_seidel/linear; repeatable "
                         "(default: jacobi and gauss_seidel, hold and linear)")
     s.add_argument("--out", type=Path, help="output directory (default runs/<scene>_stability)")
+    s.add_argument("--report", action="store_true", help="also write <scene>_stability.html: the map with hover "
+                                                          "values, opening offline")
     s.add_argument("--cache", type=Path, help="FMU cache directory")
     s.set_defaults(handler=_stability)
     q = studies.add_parser("precision", help="error against cost (work-precision) of master algorithm variants",
@@ -81,6 +83,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="runs at once on local processes (default 1: the wall times are the cost measured, and "
                         "runs sharing cores slow each other)")
     q.add_argument("--no-peer", dest="peer", action="store_false", help="no ecospy point")
+    q.add_argument("--report", action="store_true", help="also write <scene>_precision.html: the work-precision "
+                                                          "chart with hover values, opening offline")
     q.add_argument("--out", type=Path, help="output directory, runs kept in runs/ and reused when the study is "
                                             "repeated (default runs/<scene>_precision)")
     q.add_argument("--cache", type=Path, help="FMU cache directory")
@@ -154,7 +158,7 @@ def _numbers(text: str, option: str, example: str) -> list[float]:
 
 def _stability(args: argparse.Namespace) -> int:
     from ..errors import UserError
-    from ..run.execute import progress_bar
+    from ..run.progress import progress_bar
     from ..study.stability import parse_range, plot_map, stability_map
 
     path, sep, rng = args.vary.partition("=")
@@ -184,7 +188,15 @@ def _stability(args: argparse.Namespace) -> int:
     if not smap.analytic:
         print(f"no analytic boundary: {smap.analytic_note}")
     print(f"table: {csv_path}\nchart: {png_path}", file=sys.stderr)
+    _report(args, csv_path)
     return 0
+
+
+def _report(args: argparse.Namespace, table: Path) -> None:
+    if args.report:
+        from ..analysis.report import study_report
+
+        print(f"report: {study_report(table)}", file=sys.stderr)
 
 
 def _precision(args: argparse.Namespace) -> int:
@@ -247,6 +259,7 @@ def _precision(args: argparse.Namespace) -> int:
             print(f"tolerance default's choice: {ch.algorithm} ({ch.chosen}), {ch.status}, worst {ch.worst:.2e}, "
                   f"{ch.wall_s:.3f} s{ratio}")
     print(f"table: {csv_path}\nchart: {png_path}\nruns: {out / 'runs'}", file=sys.stderr)
+    _report(args, csv_path)
     return 0
 
 

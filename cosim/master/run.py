@@ -33,6 +33,8 @@ def simulate(system: CoupledSystem, algorithm_name: str, *, step_ns: int, n_step
     interrupted (then the exception propagates after ``finish``).
     ``realtime`` (a :class:`cosim.master.realtime.RealtimeSettings`) paces every step on the wall clock.
     ``stop()``, asked before every block of steps, ends the run as "stopped" when it returns a reason.
+    An observer with a method ``statistics()`` adds what it returns to the run statistics (the
+    sidecar), under its ``name`` (default: its class name).
 
     ``guard`` (:class:`cosim.run.guards.Guard`) sees every row first, with the system's watched
     variables after the recorded ones; when it trips, the rows after the offending one are
@@ -72,6 +74,9 @@ def simulate(system: CoupledSystem, algorithm_name: str, *, step_ns: int, n_step
                 stats.wall_s = time.perf_counter() - stepper.t_loop
             stepper.fill(stats)
             stepper.close()  # before the slaves are freed (a compiled stepper's FMU states)
+        for obs in observers:  # an observer's own figures (e.g. an error estimate) go into the statistics
+            if hasattr(obs, "statistics"):
+                stats.extra[getattr(obs, "name", type(obs).__name__)] = obs.statistics()
         if pacer is not None:
             from .realtime import slave_figures
 

@@ -4,7 +4,6 @@ scene's master algorithm and return a :class:`RunResult`.  Everything it takes i
 (a path and a mapping), so a worker process can execute it."""
 from __future__ import annotations
 
-import sys
 import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field, replace
@@ -19,7 +18,7 @@ from ..master.estimate import EstimatingObserver
 from ..scenario import Scene, load
 from ..slaves.fmu import FmuSlave
 from ..slaves.slave import Slave
-from ..trace.traces import CsvTrace, MemoryTrace, Trace
+from ..trace.traces import MemoryTrace, Trace, trace_suffix, trace_writer
 
 
 @dataclass
@@ -77,16 +76,19 @@ def couple(scene: Scene, slaves: Sequence[Slave], watch: Sequence[tuple[str, str
     return CoupledSystem(slaves, links, record, [(index[c], v) for c, v in watch])
 
 
-def scene_observers(scene: Scene, out_dir: Path | None, suffix: str = "") -> tuple[MemoryTrace, list, Path | None]:
+def scene_observers(scene: Scene, out_dir: Path | None, suffix: str = "",
+                    trace_format: str = "csv") -> tuple[MemoryTrace, list, Path | None]:
     """The observers of a run of ``scene``: a :class:`MemoryTrace` and, with ``out_dir``, a
-    :class:`CsvTrace` streaming to ``out_dir/<name><suffix>.csv`` (returned as the trace path)."""
+    trace writer streaming to ``out_dir/<name><suffix>.csv`` (``.parquet`` for
+    ``trace_format="parquet"``; see :data:`cosim.trace.traces.TRACE_FORMATS`), returned as the
+    trace path."""
     from ..outputs import confined, safe_name
 
     memory = MemoryTrace()
     if out_dir is None:
         return memory, [memory], None
-    path = confined(out_dir, f"{safe_name(scene.name)}{suffix}.csv")
-    return memory, [memory, CsvTrace(path, extra={"scene_data": scene.data})], path
+    path = confined(out_dir, f"{safe_name(scene.name)}{suffix}{trace_suffix(trace_format)}")
+    return memory, [memory, trace_writer(path, trace_format, extra={"scene_data": scene.data})], path
 
 
 def scene_meta(scene: Scene) -> dict:
@@ -173,7 +175,7 @@ def run(scene: Scene | str | Path, overrides: Mapping[str, Any] | Sequence[str] 
         out_dir: Path | None = None, catalog=None, cache_dir: Path | None = None,
         progress: Callable[[int, int], None] | None = None, log: Callable[[str], None] | None = None,
         engine: str | None = None, slaves: Sequence[Slave] | None = None,
-        max_trace_bytes: int | str | None = None, auto_fidelity=None) -> RunResult:
+        max_trace_bytes: int | str | None = None, auto_fidelity=None, trace_format: str = "csv") -> RunResult:
     """Run a scene.
 
     Parameters
@@ -182,6 +184,8 @@ def run(scene: Scene | str | Path, overrides: Mapping[str, Any] | Sequence[str] 
     overrides : ``--set`` style overrides (mapping path -> value, or ``"path=value"`` strings);
         with a :class:`Scene` they are applied by reloading its file.
     out_dir : write ``<name>.csv`` (streamed) and ``<name>.json`` (sidecar) there.
+    trace_format : ``"csv"`` (plain, the default), ``"commented-csv"`` or ``"parquet"``
+        (``<name>.parquet``), see :mod:`cosim.trace.traces`.
     catalog : the model catalog (default :mod:`models.blocks`).
     cache_dir : FMU cache directory (default ``$RPR_COSIM_CACHE`` or ``~/.cache/rpr-cosim/fmus``).
     progress : called as ``progress(steps_done, steps_total)`` during the run.
@@ -203,18 +207,19 @@ def run(scene: Scene | str | Path, overrides: Mapping[str, Any] | Sequence[str] 
     from ..outputs import OutputLock, check_out_dir
 
     say = log or (lambda m: None)
+    trace_suffix(trace_format)  # an unknown format is one line before anything runs
     if out_dir is None:
         with signals_as_interrupts():
             return _run(scene, overrides, None, catalog, cache_dir, progress, say, engine, slaves, max_trace_bytes,
-                        auto_fidelity)
+                        auto_fidelity, trace_format)
     check_out_dir(out_dir)
     with signals_as_interrupts(), OutputLock(out_dir, log=say):
         return _run(scene, overrides, out_dir, catalog, cache_dir, progress, say, engine, slaves, max_trace_bytes,
-                    auto_fidelity)
+                    auto_fidelity, trace_format)
 
 
 def _run(scene, overrides, out_dir, catalog, cache_dir, progress, log, engine, slaves, max_trace_bytes,
-         auto_fidelity) -> RunResult:
+         auto_fidelity, trace_format="csv") -> RunResult:
     if not isinstance(scene, Scene):
         scene = load(scene, overrides, catalog=catalog, auto_fidelity=auto_fidelity)
     elif overrides:
@@ -263,7 +268,7 @@ def _run(scene, overrides, out_dir, catalog, cache_dir, progress, log, engine, s
         extra["choice"] = choice.as_dict()
         log(f"{scene.name}: {choice}")
     result = _once(scene, make_slaves, given, out_dir, progress, engine, repeat, extra, log,
-                   list(overrides.items()) if isinstance(overrides, Mapping) else list(overrides or []))
+                   list(overrides.items()) if isinstance(overrides, Mapping) else list(overrides or []), trace_format)
     result.fmus, result.build_s = paths, build_s
     return result
 
@@ -316,7 +321,7 @@ def _tolerances(scene: Scene) -> list:
 
 
 def _once(scene: Scene, make_slaves, slaves, out_dir, progress, engine, repeat: str | None, extra: dict,
-          log: Callable[[str], None] = lambda m: None, overrides: Sequence = ()) -> RunResult:
+          log: Callable[[str], None] = lambda m: None, overrides: Sequence = (), trace_format: str = "csv") -> RunResult:
     """One run of ``scene`` on ``slaves`` (None: ``make_slaves()``) with its error estimate (a
     companion run on ``make_slaves()`` first, when ``repeat`` is None), judged by it
     (:func:`cosim.master.estimate.judge`)."""
@@ -330,7 +335,7 @@ def _once(scene: Scene, make_slaves, slaves, out_dir, progress, engine, repeat: 
     system = couple(scene, slaves if slaves is not None else make_slaves(), guard.watch if guard else ())
     if guard:
         guard.bind(system.record_names + system.watch_names)
-    memory, inner, trace_path = scene_observers(scene, out_dir)
+    memory, inner, trace_path = scene_observers(scene, out_dir, trace_format=trace_format)
     estimator = EstimatingObserver(inner, ctrace, div, method, scene.master.tolerance, extra)
     observers = [estimator]
     meta = {**scene_meta(scene), "inputs": scene.master.inputs,
@@ -360,32 +365,3 @@ def _once(scene: Scene, make_slaves, slaves, out_dir, progress, engine, repeat: 
             stats = dict(stats, status=ob.status, reason=ob.reason)
             t.status, t.reason = ob.status, ob.reason
     return RunResult(scene, stats["status"], stats["reason"], t, stats, {}, trace_path, 0.0)
-
-
-def progress_bar(stream=sys.stderr, *, min_s: float = 0.5) -> Callable[[int, int], None]:
-    """A ``progress(done, total)`` callback drawing a bar on ``stream`` for runs longer than
-    ``min_s`` seconds (short runs print nothing).  The clock starts at the first call, i.e. when
-    the stepping starts, so FMU builds before it do not distort the time left."""
-    state = {"shown": False, "last": 0.0, "t0": None}
-
-    def update(done: int, total: int) -> None:
-        now = time.perf_counter()
-        if state["t0"] is None:
-            state["t0"] = now
-        t0 = state["t0"]
-        if now - t0 < min_s and done < total:
-            return
-        if done < total and now - state["last"] < 0.1:
-            return
-        if not state["shown"] and done >= total:
-            return
-        state["shown"], state["last"] = True, now
-        frac = done / total if total else 1.0
-        bar = "#" * int(30 * frac)
-        eta = (now - t0) * (1 - frac) / frac if frac > 0 else 0.0
-        stream.write(f"\r[run] |{bar:<30}| {100 * frac:5.1f}%  {now - t0:6.1f} s  eta {eta:5.1f} s")
-        if done >= total:
-            stream.write("\n")
-        stream.flush()
-
-    return update

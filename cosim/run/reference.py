@@ -130,11 +130,11 @@ def reference(scene: Scene | str | Path, overrides=None, *, out_dir: Path | None
               rtol: float = RTOL, atol: float = ATOL,
               progress: Callable[[int, int], None] | None = None, max_wall_s: float = MAX_WALL_S,
               max_steps: int = MAX_STEPS, log: Callable[[str], None] | None = None,
-              times: Sequence[float] | None = None) -> RunResult:
+              times: Sequence[float] | None = None, trace_format: str = "csv") -> RunResult:
     """Integrate the scene's monolithic ODE over ``[0, stop_time]`` and record the scene's outputs
     at its output instants, or at ``times`` [s] when given (increasing, from 0: e.g. the irregular
-    instants of a variable-step run, so that comparing with it needs no interpolation); the trace goes to ``out_dir/<name>_reference.csv`` when ``out_dir`` is
-    given.  A solver failure is a status (``failed``) with the partial trace kept; so is reaching
+    instants of a variable-step run, so that comparing with it needs no interpolation); the trace goes to ``out_dir/<name>_reference.csv`` (``.parquet`` with
+    ``trace_format="parquet"``) when ``out_dir`` is given.  A solver failure is a status (``failed``) with the partial trace kept; so is reaching
     ``max_wall_s`` seconds of wall time or ``max_steps`` CVODES steps.  What the solver prints is
     counted, not shown: ``log`` gets one line with the count and the first line, and the
     statistics keep the count (``solver_messages``)."""
@@ -145,10 +145,10 @@ def reference(scene: Scene | str | Path, overrides=None, *, out_dir: Path | None
         scene = load(scene, overrides)
     if out_dir is None:
         with signals_as_interrupts():
-            return _reference(scene, None, rtol, atol, progress, max_wall_s, max_steps, log, times)
+            return _reference(scene, None, rtol, atol, progress, max_wall_s, max_steps, log, times, trace_format)
     check_out_dir(out_dir)
     with signals_as_interrupts(), OutputLock(out_dir, log=log):
-        return _reference(scene, out_dir, rtol, atol, progress, max_wall_s, max_steps, log, times)
+        return _reference(scene, out_dir, rtol, atol, progress, max_wall_s, max_steps, log, times, trace_format)
 
 
 def _output_instants(scene: Scene, times: Sequence[float] | None) -> tuple[np.ndarray, bool]:
@@ -162,7 +162,8 @@ def _output_instants(scene: Scene, times: Sequence[float] | None) -> tuple[np.nd
     return grid, False
 
 
-def _reference(scene, out_dir, rtol, atol, progress, max_wall_s, max_steps, log, times=None) -> RunResult:
+def _reference(scene, out_dir, rtol, atol, progress, max_wall_s, max_steps, log, times=None,
+               trace_format="csv") -> RunResult:
     comp = composite(scene)
     dt = scene.master.record_every * scene.master.step
     grid, regular = _output_instants(scene, times)
@@ -170,7 +171,7 @@ def _reference(scene, out_dir, rtol, atol, progress, max_wall_s, max_steps, log,
     names = [tuple(o.split(".", 1)) for o in scene.outputs]
     signals = comp.signal_function(names)
     columns = ["time", *scene.outputs]
-    memory, observers, trace_path = scene_observers(scene, out_dir, "_reference")
+    memory, observers, trace_path = scene_observers(scene, out_dir, "_reference", trace_format)
     dae = comp.z.numel() > 0  # an algebraic loop: the loop's cut inputs are algebraic variables (IDAS)
     meta = {**scene_meta(scene), "method": "monolithic DAE, IDAS (BDF)" if dae else "monolithic ODE, CVODES (BDF)",
             "rtol": rtol, "atol": atol, "states": int(comp.x.numel()),

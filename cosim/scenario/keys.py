@@ -1,15 +1,68 @@
-"""The keys a scene file may use, and the values of its enumerated settings."""
+"""The keys a scene file may use, each with what it means, and the values of its enumerated
+settings.  The checkers (:mod:`cosim.scenario.validate`, ``check_*.py``) accept exactly these keys,
+and the documentation's scene-format reference is generated from these declarations."""
 from __future__ import annotations
 
-
-TOP_KEYS = ("name", "description", "include", "start_time", "stop_time", "components", "connections", "master",
-            "outputs", "fidelity_tolerance", "fidelity_signals", "guards", "blocks")
-COMPONENT_KEYS = ("model", "fidelity", "options", "params", "start", "fmu", "fmi", "description", "hardware",
-                  "rollback", "rate", "modelica", "guard_data")
-MASTER_KEYS = ("algorithm", "step", "order", "engine", "output_interval", "inputs", "realtime", "options", "tolerance")
-#: The accuracy a scene gets when it names no master algorithm (cosim.run.choose).
-DEFAULT_TOLERANCE = 1e-3
+#: Top-level keys of a scene file -> what each holds.
+TOP = {
+    "name": "the scene's name, the stem of every file a run writes (letters, digits, `_`, `-`, `.`; at most 100 "
+            "characters; default: the file's stem)",
+    "description": "free text",
+    "include": "another scene file (or an SSP archive) to start from; this file's keys then override it",
+    "start_time": "simulated start time [s] (default 0, or the FMUs' DefaultExperiment)",
+    "stop_time": "simulated stop time [s] (default: the FMUs' DefaultExperiment when they agree)",
+    "components": "mapping of component name -> component (catalog block, FMU file or hardware), see below",
+    "connections": "list of `src.output -> dst.input [* factor + offset] [as TYPE]` signals and "
+                   "`a.port <-> b.port` power bonds",
+    "master": "the master algorithm and its settings, see below",
+    "outputs": "the recorded variables: `component.variable` names or globs (`mech.platform.*`, `motor*.i`)",
+    "fidelity_tolerance": "tolerance of `fidelity: auto` (relative to range, default 1e-3)",
+    "fidelity_signals": "globs of the signals `fidelity: auto` compares (default: every recorded signal)",
+    "guards": "the physical guards (`stroke`, `rated`, `singularity`, `unstable`: stop | warn | off; "
+              "`min_det` [m], `max_abs`), or `off`",
+    "blocks": "Python files of your own blocks (each defines `BLOCKS`), relative to the scene; their models are "
+              "then used like catalog ones",
+}
+#: Keys of one component -> what each holds.
+COMPONENT = {
+    "model": "a catalog model (`rpr-cosim fmu list`): mechanism, dc_motor, pid, pose_setpoint, ...",
+    "fidelity": "the model's fidelity level (e.g. rigid, multibody, kinematic), or `auto` (the cheapest within "
+                "`fidelity_tolerance`)",
+    "options": "the model's build options (e.g. `config`, `integrator`, `substeps`)",
+    "params": "parameter values by name (units as `rpr-cosim fmu show` lists them; structural parameters of FMI 3.0 "
+              "FMUs too)",
+    "start": "start values of inputs and of variables with initial = exact or approx",
+    "fmu": "path of an FMI 2.0 or 3.0 co-simulation FMU from any tool, instead of `model`",
+    "fmi": "FMI version of a catalog block's FMU: `2.0` (default) or `3.0`",
+    "description": "free text",
+    "hardware": "the rig's I/O daemon: `{address: HOST:PORT, key: FILE}` (the hardware FMU)",
+    "rollback": "`false`: treat the component as one that cannot save and restore its state",
+    "rate": "doSteps per macro step (multirate, a whole number >= 1 dividing the step into whole nanoseconds)",
+    "modelica": "a Modelica file of your own (`.mo`), with `model:` naming its class (e.g. `Drive.RackPinion`)",
+    "guard_data": "what the physical guards know of an external FMU (its mechanism, legs and ratings; written by "
+                  "`ssp export` into an rpr-cosim SSP's component annotation)",
+}
+#: Keys of ``master:`` -> what each holds.
+MASTER = {
+    "algorithm": "the coupling algorithm: jacobi, gauss_seidel, iterative, adaptive, ecco (see the algorithms "
+                 "reference); none named: the master chooses one from `tolerance` (docs/accuracy.md)",
+    "step": "communication step [s] (for variable-step algorithms, the unit of stop_time only)",
+    "order": "Gauss-Seidel stepping order: a list of component names (default: found from the connections)",
+    "engine": "auto (compiled loop where the scene allows), compiled or python",
+    "output_interval": "recording interval [s], a whole multiple of the step (default: the step)",
+    "inputs": "how inputs vary over a step: hold (zero-order) or linear (interpolated / extrapolated)",
+    "realtime": "`true`, or `{max_misses, spin, priority}`: pace the communication points on the wall clock",
+    "options": "the algorithm's own options (declared by the algorithm, see the algorithms reference)",
+    "tolerance": "the worst error of a recorded signal relative to its range, in (0, 0.5); default 1e-3 when no "
+                 "algorithm is named (the master chooses one to meet it), else none; a run whose own error "
+                 "estimate is over 10x it ends inaccurate",
+}
+TOP_KEYS = tuple(TOP)
+COMPONENT_KEYS = tuple(COMPONENT)
+MASTER_KEYS = tuple(MASTER)
 #: How a slave's inputs vary over a communication step (see :mod:`cosim.master`).
 INPUT_MODES = ("hold", "linear")
 ENGINES = ("auto", "compiled", "python")
+#: The accuracy a scene gets when it names no master algorithm (cosim.run.choose).
+DEFAULT_TOLERANCE = 1e-3
 FMI_VERSIONS = ("2.0", "3.0")

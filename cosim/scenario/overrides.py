@@ -1,6 +1,11 @@
-"""``--set PATH=VALUE`` overrides applied to a scene tree, and the tree back as plain data."""
+"""``--set PATH=VALUE`` overrides applied to a scene tree, and the tree back as plain data.
+
+A path is the dotted keys of the scene (``master.step``, ``components.pid1.params.Kp``); a ``*``,
+``?`` or ``[...]`` in the component name sets every matching component
+(``components.pid*.params.Kp=40``), the same paths a batch axis takes (:func:`expand_path`)."""
 from __future__ import annotations
 
+import fnmatch
 from collections.abc import Mapping, Sequence
 from typing import Any
 
@@ -8,7 +13,7 @@ import yaml
 
 from ..errors import UserError
 from .merge import merge
-from .problems import Loc
+from .problems import Loc, suggest
 from .yamlfile import YList, YMap, _Loader
 
 
@@ -37,12 +42,46 @@ def _split_path(path: str) -> list[str]:
     return parts
 
 
+def expand_path(path: str, components: Sequence[str]) -> tuple[list[str], str]:
+    """The scene paths of ``path`` (a '*', '?' or '[' in the component name matches every
+    component it fits) and an error message ('' when fine).  ``--set`` and batch axes use it."""
+    parts = path.split(".")
+    if not all(parts):
+        return [], f"path {path!r} has an empty part; expected e.g. components.pid1.params.Kp or master.step"
+    if parts[0] != "components" or len(parts) < 2:
+        return [path], ""
+    name = parts[1]
+    if any(c in name for c in "*?["):
+        hits = [c for c in components if fnmatch.fnmatchcase(c, name)]
+        if not hits:
+            return [], f"{name!r} in {path!r} matches no component of the scene (components: {', '.join(components)})"
+        return [".".join(["components", h, *parts[2:]]) for h in hits], ""
+    if name not in components:
+        return [], f"unknown component {name!r} in {path!r}{suggest(name, components)}"
+    if len(parts) < 3:
+        return [], f"path {path!r} names a whole component; sweep one of its values, e.g. {path}.params.<name>"
+    return [path], ""
+
+
 def apply_overrides(tree: YMap, overrides: Mapping[str, Any] | Sequence[str] | None) -> YMap:
-    """Apply ``--set`` style overrides (a mapping path -> value, or ``"path=value"`` strings)."""
+    """Apply ``--set`` style overrides (a mapping path -> value, or ``"path=value"`` strings); a
+    wildcard in a component name sets every matching component (:func:`expand_path`)."""
     if not overrides:
         return tree
     items = list(overrides.items()) if isinstance(overrides, Mapping) else [parse_set(s) for s in overrides]
+    comps = tree.get("components") if isinstance(tree, Mapping) else None
+    names = [str(c) for c in comps] if isinstance(comps, Mapping) else []
+    expanded = []
     for path, value in items:
+        parts = str(path).split(".")
+        if len(parts) >= 2 and parts[0] == "components" and any(c in parts[1] for c in "*?["):
+            paths, msg = expand_path(str(path), names)
+            if msg:
+                raise UserError(f"--set {path}={value}: {msg}")
+            expanded += [(p, value) for p in paths]
+        else:
+            expanded.append((path, value))
+    for path, value in expanded:
         keys = _split_path(path)
         label = (f"--set {path}={value}", 0)
         over: Any = _to_y(value, label)

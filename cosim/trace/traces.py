@@ -4,12 +4,21 @@ An observer gets ``start(columns, meta)``, then ``record(rows)`` any number of t
 column 0 is time [s], the others the recorded variables named ``component.variable``), then
 ``finish(status, reason, stats)`` exactly once, also after a failure or an interrupt.
 
-:class:`CsvTrace` streams rows to a CSV file as the run goes: comment lines ``# key: <JSON>``
-carry the metadata (scene hash, algorithm, step, package versions) before the data and the
-outcome (status, reason, statistics) after it, String and Binary values are comment lines
-``# text: [t, "component.variable", "value"]`` among the rows (written when the value changes), and a sidecar ``<name>.json`` holds the same
-metadata and is rewritten at the end, so an interrupted or failed run leaves its partial trace
-and the reason on disk.  :func:`read_trace` reads such a file back.
+Trace files come in three formats (:data:`TRACE_FORMATS`), all streamed as the run goes, with a
+sidecar ``<name>.json`` holding the metadata (scene hash, algorithm, step, package versions, the
+scene's units) and, rewritten at the end, the outcome (status, reason, statistics), so an
+interrupted or failed run leaves its partial trace and the reason on disk:
+
+- ``csv`` (the default): a plain CSV, one header line (``time`` and the variables) then one row
+  per recorded instant, which spreadsheets and ``pandas.read_csv(path)`` open as they are;
+  String and Binary values go to the sidecar (``"text"``).
+- ``commented-csv``: the same rows between comment lines ``# key: <JSON>`` carrying the
+  metadata before the data and the outcome after it, String and Binary values as comment lines
+  ``# text: [t, "component.variable", "value"]`` among the rows (the format of earlier versions).
+- ``parquet`` (:class:`ParquetTrace`, pyarrow): one float64 column per variable, written by row
+  groups, the metadata and the outcome in the Parquet schema's key-value metadata.
+
+:func:`read_trace` reads every one of them back (and CSVs from other tools).
 """
 from __future__ import annotations
 
@@ -32,6 +41,27 @@ from .text import json_text, rows_text
 from ..errors import UserError
 
 FORMAT = "rpr-cosim trace 1"
+#: The trace file formats a run can write (see the module docstring); the first is the default.
+TRACE_FORMATS = ("csv", "commented-csv", "parquet")
+#: Key of the rpr-cosim metadata in a Parquet trace's schema (JSON); the outcome is under
+#: ``PARQUET_OUTCOME_KEY``, added when the run ends.
+PARQUET_META_KEY = b"rpr-cosim"
+PARQUET_OUTCOME_KEY = b"rpr-cosim.outcome"
+
+
+def trace_suffix(fmt: str) -> str:
+    """The file suffix of a trace written in ``fmt`` (one of :data:`TRACE_FORMATS`)."""
+    if fmt not in TRACE_FORMATS:
+        raise UserError(f"trace format {fmt!r}: expected one of {', '.join(TRACE_FORMATS)}")
+    return ".parquet" if fmt == "parquet" else ".csv"
+
+
+def trace_writer(path: Path, fmt: str = "csv", **kwargs) -> "CsvTrace":
+    """The observer writing a trace to ``path`` in ``fmt`` (:data:`TRACE_FORMATS`)."""
+    trace_suffix(fmt)
+    if fmt == "parquet":
+        return ParquetTrace(path, **kwargs)
+    return CsvTrace(path, commented=fmt == "commented-csv", **kwargs)
 
 
 def package_versions() -> dict[str, str]:
@@ -172,8 +202,9 @@ WRITER_THREAD = True
 
 
 class CsvTrace(Observer):
-    """Streams the rows to ``path`` (CSV, shortest round-trip decimal text) with the metadata
-    in comment lines and a sidecar ``path.with_suffix('.json')``.
+    """Streams the rows to ``path`` (CSV, shortest round-trip decimal text) and writes a sidecar
+    ``path.with_suffix('.json')`` with the metadata; with ``commented`` the metadata and outcome
+    are also comment lines of the CSV (module docstring), else the CSV is plain.
 
     Formatting floats as text costs time (~0.06 µs per value by block, :mod:`cosim.trace.text`;
     1 µs one by one in Python); so rows are formatted and written by a background thread, which runs while the
@@ -192,10 +223,12 @@ class CsvTrace(Observer):
     SIDECAR_RESERVE = 64 * 1024
 
     def __init__(self, path: Path, *, flush_every_s: float = 0.5, extra: dict | None = None,
-                 max_queued_bytes: int = 1 << 20) -> None:
+                 max_queued_bytes: int = 1 << 20, commented: bool = False) -> None:
         """``extra``: data for the sidecar only (e.g. the whole scene), kept out of the CSV header."""
         from ..outputs import part_path
 
+        self.commented = bool(commented)
+        self._text: list[list] = []  # String/Binary changes of a plain trace, for the sidecar
         self.path = Path(path)
         self.extra = dict(extra or {})
         self.sidecar = self.path.with_suffix(".json")
@@ -220,10 +253,11 @@ class CsvTrace(Observer):
                          started=time.strftime("%Y-%m-%dT%H:%M:%S%z"), trace=self.path.name)
         self._fd = os.open(self.part, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644)
         buf = io.StringIO()
-        buf.write(f"# {FORMAT}\n")
-        for k, v in self.meta.items():
-            if k != "format":
-                buf.write(_comment(k, v))
+        if self.commented:
+            buf.write(f"# {FORMAT}\n")
+            for k, v in self.meta.items():
+                if k != "format":
+                    buf.write(_comment(k, v))
         csv.writer(buf, lineterminator="\n").writerow(columns)
         try:
             self._write(buf.getvalue().encode())
@@ -313,6 +347,9 @@ class CsvTrace(Observer):
     def record_text(self, t, column, value) -> None:
         from ..interrupts import deferred
 
+        if not self.commented:
+            self._text.append([float(t), column, str(value)])
+            return
         if self._inline and self._fd is not None:
             self._write_inline(_comment("text", [float(t), column, str(value)]).encode())
         elif self._queue is not None:
@@ -344,18 +381,26 @@ class CsvTrace(Observer):
                 status = "failed"
             stats = dict(stats or {}, status=status, reason=reason)
         self.status, self.reason = status, reason
-        trailer = (_comment("status", status) + _comment("reason", reason) + _comment("rows", rows)
-                   + _comment("statistics", stats))
-        try:
-            self._write(trailer.encode())
-        except OSError:
-            try:  # the statistics are in the sidecar; the status line is what matters
-                self._write((_comment("status", status) + _comment("reason", reason)).encode())
+        if self.commented:
+            trailer = (_comment("status", status) + _comment("reason", reason) + _comment("rows", rows)
+                       + _comment("statistics", stats))
+            try:
+                self._write(trailer.encode())
             except OSError:
-                pass
+                try:  # the statistics are in the sidecar; the status line is what matters
+                    self._write((_comment("status", status) + _comment("reason", reason)).encode())
+                except OSError:
+                    pass
         os.close(self._fd)
         self._fd = None
-        self._write_sidecar({"status": status, "reason": reason, "rows": rows, "statistics": stats})
+        self._finish_sidecar(status, reason, rows, stats)
+
+    def _finish_sidecar(self, status: str, reason: str, rows: int, stats: dict) -> None:
+        """The final sidecar, then the files moved into place (:func:`cosim.outputs.place`)."""
+        end = {"status": status, "reason": reason, "rows": rows, "statistics": stats}
+        if self._text:
+            end["text"] = self._text
+        self._write_sidecar(end)
         from ..outputs import place
 
         self.note = place(self.part, self.path, status, part_sidecar=self.sidecar_part, sidecar=self.sidecar)
@@ -388,15 +433,120 @@ class CsvTrace(Observer):
                 fh.truncate(max(old, len(raw)))
 
 
+class ParquetTrace(CsvTrace):
+    """Writes the rows to ``path`` as Parquet (pyarrow, imported when a run writes one): a float64
+    column per variable, a row group per :meth:`record` call of at least ``group_rows`` rows
+    (smaller calls are gathered), the metadata as JSON under :data:`PARQUET_META_KEY` of the
+    schema and the outcome under :data:`PARQUET_OUTCOME_KEY`, added at the end.  The sidecar,
+    temporary names and placing are :class:`CsvTrace`'s; the rows are written in the caller's
+    thread (pyarrow's encoder releases the GIL).  A run killed before the end leaves a Parquet
+    file without its footer, which cannot be read: use CSV where a partial trace matters."""
+
+    def __init__(self, path: Path, *, group_rows: int = 4096, **kwargs) -> None:
+        kwargs.pop("commented", None)
+        super().__init__(path, **kwargs)
+        self.group_rows = int(group_rows)
+        self._pending: list[np.ndarray] = []
+        self._pending_rows = 0
+        self._pq = None
+        self._writer = None
+        self._schema = None
+
+    def start(self, columns, meta) -> None:
+        import pyarrow as pa
+        import pyarrow.parquet as pq
+
+        self._pq = pq
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self.meta = dict(meta, format=FORMAT, versions=package_versions(),
+                         started=time.strftime("%Y-%m-%dT%H:%M:%S%z"), trace=self.path.name)
+        self.columns = list(columns)
+        self._schema = pa.schema([pa.field(c, pa.float64()) for c in self.columns],
+                                 metadata={PARQUET_META_KEY: json.dumps(self.meta, default=_json_default)})
+        try:
+            self._writer = pq.ParquetWriter(str(self.part), self._schema, compression="zstd")
+            self._fd = -1  # "started" for the base class
+            self._write_sidecar({"status": "running", "reason": "", "pid": os.getpid(), "columns": self.columns},
+                                reserve=True)
+        except OSError as exc:
+            self._writer = None
+            self._fd = None
+            raise TraceWriteError(f"cannot write the trace {self.part}: {exc.strerror or exc}") from None
+
+    def record(self, rows) -> None:
+        self._raise_if_failed()
+        if not len(rows):
+            return
+        self._pending.append(np.array(rows, dtype=float, copy=True))
+        self._pending_rows += len(rows)
+        self.rows += len(rows)
+        if self._pending_rows >= self.group_rows:
+            self._flush()
+        self._raise_if_failed()
+
+    def _flush(self) -> None:
+        if not self._pending or self._writer is None:
+            return
+        import pyarrow as pa
+        from ..interrupts import deferred
+
+        block = np.vstack(self._pending)
+        self._pending, self._pending_rows = [], 0
+        try:
+            with deferred():
+                self._writer.write_table(pa.Table.from_arrays([pa.array(block[:, j]) for j in range(block.shape[1])],
+                                                              schema=self._schema))
+        except BaseException as exc:  # reported by record() and finish(); stops the run
+            self._error = exc
+
+    def record_text(self, t, column, value) -> None:
+        self._text.append([float(t), column, str(value)])
+
+    def _count_rows(self) -> int:
+        return self.rows
+
+    def _finish(self, status, reason, stats) -> None:
+        if self._fd is None:
+            return
+        self._flush()
+        rows = self.rows
+        if self._error is not None:
+            exc = self._error
+            text = f"writing the trace failed: {getattr(exc, 'strerror', None) or exc}"
+            if "TraceWriteError" not in reason:
+                reason = (reason + "; " if reason else "") + text
+            if status == "ok":
+                status = "failed"
+            stats = dict(stats or {}, status=status, reason=reason)
+        self.status, self.reason = status, reason
+        outcome = {"status": status, "reason": reason, "rows": rows, "statistics": stats}
+        if self._text:
+            outcome["text"] = self._text
+        try:
+            self._writer.add_key_value_metadata({PARQUET_OUTCOME_KEY: json.dumps(outcome, default=_json_default)})
+            self._writer.close()
+        except OSError:
+            pass
+        self._writer = None
+        self._fd = None
+        self._finish_sidecar(status, reason, rows, stats)
+
+
+#: Sidecar keys that are the outcome or bookkeeping, not metadata of the trace.
+_SIDECAR_OUTCOME = ("status", "reason", "rows", "statistics", "text", "pid", "columns", "scene_data")
+
+
 def read_trace(path: Path) -> Trace:
-    """Read a CSV trace written by :class:`CsvTrace` (partial or complete; a last row cut short by
-    a crash is dropped)."""
+    """Read a trace in any of :data:`TRACE_FORMATS` (partial or complete; a last CSV row cut
+    short by a crash is dropped), or a plain CSV from another tool (first column time)."""
     from ..outputs import settle_if_stale
 
     path = Path(path)
     settle_if_stale(path.parent)  # a run killed in that directory: mark it and put its trace in place
     if not path.is_file():
         raise UserError(f"{path}: no such trace file")
+    if path.suffix == ".parquet":
+        return _read_parquet(path)
     meta: dict = {}
     text: dict[str, list[tuple[float, str]]] = {}
     columns: list[str] | None = None
@@ -440,9 +590,56 @@ def read_trace(path: Path) -> Trace:
     if columns is None:
         raise UserError(f"{path}: no column header; is this an rpr-cosim trace?")
     data = np.array(rows, dtype=float).reshape(-1, len(columns))
+    if not meta:  # a plain CSV: its metadata and outcome are in the sidecar, when there is one
+        side = _sidecar(path)
+        if side.get("trace") == path.name or side.get("format") == FORMAT:
+            meta = {k: v for k, v in side.items() if k not in _SIDECAR_OUTCOME and k != "format"}
+            for t, column, value in side.get("text", []) or []:
+                text.setdefault(column, []).append((float(t), str(value)))
+            if side.get("status") not in (None, "running"):
+                meta.update(status=side["status"], reason=side.get("reason", ""),
+                            statistics=side.get("statistics", {}))
     if "status" not in meta:  # no status line: the run died; its sidecar may say why
         meta.update(_sidecar_outcome(path))
     return Trace(columns, data, meta, meta.pop("status", ""), meta.pop("reason", ""), meta.pop("statistics", {}), text)
+
+
+def _read_parquet(path: Path) -> Trace:
+    """A Parquet trace (:class:`ParquetTrace`), or any Parquet file of float columns whose first
+    column is time."""
+    try:
+        import pyarrow.parquet as pq
+
+        pf = pq.ParquetFile(path)
+        table = pf.read()
+    except ImportError:
+        raise UserError(f"{path}: reading Parquet needs pyarrow (pip install pyarrow)") from None
+    except Exception as exc:  # pyarrow's ArrowInvalid and OSError: not (or not a whole) Parquet file
+        raise UserError(f"{path}: not a readable Parquet trace ({exc})") from None
+    kv = pf.metadata.metadata or {}  # the file's key-value metadata: the schema's and the outcome added at the end
+    meta = json.loads(kv[PARQUET_META_KEY]) if PARQUET_META_KEY in kv else {}
+    outcome = json.loads(kv[PARQUET_OUTCOME_KEY]) if PARQUET_OUTCOME_KEY in kv else _sidecar_outcome(path)
+    text: dict[str, list[tuple[float, str]]] = {}
+    for t, column, value in outcome.get("text", []) or []:
+        text.setdefault(column, []).append((float(t), str(value)))
+    columns = list(table.column_names)
+    try:
+        data = np.column_stack([table.column(c).to_numpy(zero_copy_only=False).astype(float) for c in columns]) \
+            if table.num_rows else np.zeros((0, len(columns)))
+    except (TypeError, ValueError) as exc:
+        raise UserError(f"{path}: expected numeric columns in the Parquet trace ({exc})") from None
+    meta.pop("format", None)
+    return Trace(columns, data, meta, outcome.get("status", ""), outcome.get("reason", ""),
+                 outcome.get("statistics", {}), text)
+
+
+def _sidecar(path: Path) -> dict:
+    """The sidecar ``<path>.json`` of a trace, or {}."""
+    try:
+        data = json.loads(path.with_suffix(".json").read_text())
+    except (OSError, ValueError):
+        return {}
+    return data if isinstance(data, dict) else {}
 
 
 def _sidecar_outcome(path: Path) -> dict:

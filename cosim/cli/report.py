@@ -1,0 +1,136 @@
+"""``rpr-cosim report``: an interactive, self-contained HTML report of a run, batch or study.
+
+    rpr-cosim report OUT [-o FILE] [--runs]
+
+``OUT`` is what a verb wrote: a trace file (``runs/pid_step/pid_step.csv`` or ``.parquet``) or
+a run's directory (its one trace) -> the run's report beside the trace (``<name>.html``); a batch
+directory (``results.csv`` and ``batch.json``) -> ``OUT/report.html`` (with ``--runs`` also each run's own
+report, ``runs/<run id>/<name>.html``, linked from the batch's); a study table
+(``<scene>_precision.csv``, ``<scene>_stability.csv``) or its directory -> ``<table>.html``.
+The file opens offline (Plotly embedded, :mod:`cosim.analysis.report`).
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import re
+from pathlib import Path
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("report", help="write an interactive HTML report of a run, batch or study (opens offline)",
+                       description="Write one self-contained HTML file (Plotly embedded) for what a run, batch or "
+                                   "study wrote: zoomable linked plots with units, the animation, the statistics; "
+                                   "for a batch the sortable table and clickable charts; for a study its chart.")
+    p.add_argument("out", type=Path, help="a trace file, a run's directory, a batch's directory or a study's table")
+    p.add_argument("-o", "--output", type=Path, help="the HTML file to write (default beside what it reports)")
+    p.add_argument("--runs", action="store_true", help="for a batch, also write each run's own report (about 5 MB "
+                                                        "each) and link it from the batch's")
+    p.set_defaults(handler=_report)
+
+
+def _report(args: argparse.Namespace) -> int:
+    path = write_report(args.out, args.output, runs=args.runs)
+    print(f"report: {path}")
+    return 0
+
+
+def _traces_in(d: Path) -> list[Path]:
+    return sorted(p for p in (*d.glob("*.csv"), *d.glob("*.parquet"))
+                  if not p.stem.endswith("_reference") and not p.stem.endswith(".prev") and _is_trace(p))
+
+
+def _is_trace(p: Path) -> bool:
+    side = p.with_suffix(".json")
+    try:
+        data = json.loads(side.read_text())
+    except (OSError, ValueError):
+        return False
+    return isinstance(data, dict) and "scene_hash" in data
+
+
+def write_report(out: Path, output: Path | None = None, *, runs: bool = False) -> Path:
+    """The report of ``out`` (see the module docstring); returns the file written."""
+    from ..errors import UserError
+    from ..outputs import confined
+
+    out = Path(out)
+    if not out.exists():
+        raise UserError(f"{out}: no such file or directory")
+    if out.is_dir() and (out / "results.csv").is_file() and (out / "batch.json").is_file():
+        return _batch(out, output or confined(out, "report.html"), runs)
+    tables = [out] if out.is_file() and re.search(r"_(precision|stability)\.csv$", out.name) else (
+        sorted([*out.glob("*_precision.csv"), *out.glob("*_stability.csv")]) if out.is_dir() else [])
+    if tables:
+        from ..analysis.report import study_report
+
+        return study_report(tables[0], output or tables[0].with_suffix(".html"))
+    if out.is_dir():
+        found = _traces_in(out)
+        if not found:
+            raise UserError(f"{out}: no trace, batch (results.csv + batch.json) or study table to report")
+        out = found[0]
+    return run_file_report(out, output)
+
+
+def run_file_report(trace_path: Path, output: Path | None = None) -> Path:
+    """A run's report from its trace file and sidecar: units from the trace, setpoints from the
+    recorded connections, the manipulator from the scene kept in the sidecar."""
+    from ..analysis.report import run_report_from_files
+    from ..scenario.geometry import manipulator_for
+
+    trace_path = Path(trace_path)
+    side = {}
+    try:
+        side = json.loads(trace_path.with_suffix(".json").read_text())
+    except (OSError, ValueError):
+        pass
+    comps = ((side.get("scene_data") or {}).get("components") or {}) if isinstance(side, dict) else {}
+    m = None
+    for c in comps.values():
+        if isinstance(c, dict) and c.get("model") == "mechanism":
+            try:
+                m = manipulator_for(c.get("options") or {}, c.get("params") or {})
+            except (KeyError, TypeError, ValueError):
+                m = None
+            break
+    pairs = setpoints_of(side.get("connections") or [] if isinstance(side, dict) else [])
+    return run_report_from_files(trace_path, output, pairs=pairs, manipulator=m)
+
+
+def setpoints_of(connections: list[str]) -> dict[str, str]:
+    """Setpoint signal -> the signal it commands, from the trace's recorded connections
+    (``"src.var -> dst.setpoint"``, ``"src.var -> dst.measurement"``), as
+    :func:`cosim.analysis.charts.setpoint_pairs` finds them in a scene."""
+    src: dict[tuple[str, str], str] = {}
+    for text in connections:
+        m = re.match(r"\s*(\S+)\s*->\s*([^.\s]+)\.(\S+)", str(text))
+        if m:
+            src[(m.group(2), m.group(3))] = m.group(1)
+    return {src[(d, "setpoint")]: src[(d, "measurement")] for d, v in src if v == "setpoint"
+            and (d, "measurement") in src}
+
+
+def _batch(out: Path, output: Path, runs: bool = False) -> Path:
+    from ..analysis.report import batch_report
+    from ..batch.report import run_trace_path
+    from ..batch.results import read_rows
+
+    columns, rows = read_rows(out / "results.csv")
+    meta = json.loads((out / "batch.json").read_text())
+    axes = [a["name"] for a in meta.get("axes", [])]
+    metrics = [m["column"] for m in meta.get("metrics", [])]
+    traces, reports = {}, {}
+    for r in rows:
+        p = run_trace_path(out, r["run_id"])
+        if p is not None:
+            traces[r["run_id"]] = p
+            html_file = p.with_suffix(".html")
+            if runs:
+                run_file_report(p, html_file)
+            if html_file.is_file():
+                reports[r["run_id"]] = str(html_file.relative_to(output.parent)) if html_file.is_relative_to(
+                    output.parent) else html_file.as_uri()
+    return batch_report(output, rows, columns, axes, metrics, traces, title=f"batch {meta.get('batch', out.name)}",
+                        run_reports=reports)
+
