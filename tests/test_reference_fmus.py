@@ -330,7 +330,7 @@ def test_type_pair_connection(reference_fmus, a, b):
 def test_type_mismatch_reports_file_and_line(reference_fmus, tmp_path):
     ft = reference_fmus["2.0/Feedthrough"]
     scene = tmp_path / "bad.yaml"
-    scene.write_text(f"name: bad\nstop_time: 1\nmaster: {{step: 0.1}}\ncomponents:\n  f: {{fmu: {ft}}}\n"
+    scene.write_text(f"name: bad\nstop_time: 1\nmaster: {{algorithm: gauss_seidel, step: 0.1}}\ncomponents:\n  f: {{fmu: {ft}}}\n"
                      f"  g: {{fmu: {ft}}}\nconnections:\n  - f.Boolean_output -> g.Float64_continuous_input\n"
                      f"  - f.Float64_continuous_output -> g.Int32_input\n")
     from cosim.scenario import load
