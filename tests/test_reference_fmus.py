@@ -187,7 +187,7 @@ def test_stop_request_cli_exit_code_and_sidecar(reference_fmus, tmp_path, fmi):
     from cosim import cli
 
     scene = tmp_path / "stair.yaml"
-    scene.write_text(f"name: stair\ncomponents:\n  s: {{fmu: {reference_fmus[f'{fmi}/Stair']}}}\n")
+    scene.write_text(f"name: stair\nmaster: {{algorithm: gauss_seidel}}\ncomponents:\n  s: {{fmu: {reference_fmus[f'{fmi}/Stair']}}}\n")
     assert cli.main(["run", str(scene), "--out", str(tmp_path / "out")]) == 0
     side = json.loads((tmp_path / "out" / "stair.json").read_text())
     assert side["status"] == "stopped" and side["reason"].startswith("stopped by s at t = 9 s")
