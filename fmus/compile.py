@@ -78,6 +78,21 @@ def compiler(target: str = "host") -> str:
     return cc
 
 
+def compiler_identity() -> str:
+    """:func:`compiler`'s choice without running it: resolved path, size and modification time
+    ("none" without a compiler); part of the FMU cache fingerprint and the run-time libraries' key."""
+    try:
+        cc = compiler()
+    except BuildError:
+        return "none"
+    try:
+        path = os.path.realpath(shutil.which(cc) or cc)
+        st = os.stat(path)
+    except OSError as exc:
+        return f"{cc}: {exc}"
+    return f"{path}:{st.st_size}:{st.st_mtime_ns}"
+
+
 def runner(target: str = "host") -> list[str]:
     """The command prefix that runs a program built for ``target`` here: nothing for the host,
     qemu-user with the target's sysroot for a cross target (BuildError if qemu is missing)."""

@@ -40,6 +40,7 @@ from typing import Any
 from models.interface import BlockError, Flange, Param, Rating, Var
 
 from .cache import EXPORTER_VERSION, atomic_write, cache_root
+from .compile import compiler_identity
 
 INDEX_DIR = "index"
 FORMAT = 1
@@ -79,22 +80,6 @@ def installed_version(dist: str, module: str | None = None) -> str | None:
     return None
 
 
-def _compiler_identity() -> str:
-    """The C compiler (:func:`fmus.compile.compiler`'s choice) without running it: resolved path,
-    size and modification time (its flags are in ``fmus/compile.py``, whose source is hashed)."""
-    import shutil
-
-    cc = os.environ.get("CC") or shutil.which("gcc") or shutil.which("cc")
-    if not cc:
-        return "none"
-    try:
-        path = os.path.realpath(shutil.which(cc) or cc)
-        st = os.stat(path)
-    except OSError as exc:
-        return f"{cc}: {exc}"
-    return f"{path}:{st.st_size}:{st.st_mtime_ns}"
-
-
 @lru_cache(maxsize=1)
 def fingerprint() -> str:
     """SHA-256 (hex) over every input of an FMU besides its recipe (module docstring)."""
@@ -120,7 +105,7 @@ def fingerprint() -> str:
         add(f"dist/{dist}", str(installed_version(dist, module)).encode())
     add("exporter", EXPORTER_VERSION.encode())
     add("python", f"{sys.version_info[0]}.{sys.version_info[1]}".encode())
-    add("compiler", _compiler_identity().encode())
+    add("compiler", compiler_identity().encode())
     return h.hexdigest()
 
 

@@ -220,3 +220,15 @@ def test_ecco_ends_as_unstable_when_the_residual_stays_over_tolerance_at_the_ste
     assert stats.status == "unstable"
     assert "a <-> b" in stats.reason and "stayed over its tolerance for 100 steps" in stats.reason
     assert len(mem.trace.time) == 1 + 100 and mem.trace.time[-1] == pytest.approx(100e-6)
+
+
+@pytest.mark.parametrize("residual, expected", [(0.0, 0.0), (1e-9, float("inf"))])
+def test_run_residual_against_a_zero_tolerance(residual, expected):
+    """atol 0 and a bond that carried no energy: the run's scaled residual is 0 without a residual
+    and infinite with one (the tolerance admits none), not a ZeroDivisionError."""
+    from cosim.master.algorithms.ecco import BondRecord
+
+    rec = BondRecord(rtol=1e-3, atol=0.0)
+    rec.add(residual, 0.0, 0.0)
+    assert rec.run_scaled == expected
+    assert rec.as_dict()["run_scaled_residual"] == expected

@@ -26,18 +26,19 @@ def warm_imports() -> None:
 
 
 def warm(scenes: Iterable = ()) -> None:
-    """:func:`warm_imports`, the compiled master loop, and the stepping order of each scene's
+    """:func:`warm_imports`, the compiled master loops, and the stepping order of each scene's
     coupling (cached per process by :func:`cosim.master.gauss_seidel_order`)."""
-    from ..master import fastloop
+    from ..master import adaptive_engine, fastloop, iterative_engine
     from ..trace import text as tracetext
     from ..errors import UserError
     from ..master import gauss_seidel_order
 
     warm_imports()
-    try:
-        fastloop.library()
-    except UserError:  # no C compiler: the runs say so (or use the Python loop)
-        pass
+    for loop in (fastloop, adaptive_engine, iterative_engine):
+        try:
+            loop.library()
+        except UserError:  # no C compiler: the runs say so (or use the Python loop)
+            pass
     tracetext._c_rows()  # the compiled trace-text rewrite (None without a compiler)
     seen = set()
     for scene in scenes:

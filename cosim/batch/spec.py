@@ -48,7 +48,7 @@ from typing import Any
 
 import numpy as np
 
-from ..errors import UserError
+from ..errors import RUN_ERRORS
 from ..scenario import TOP_KEYS as SCENE_KEYS
 from ..scenario import Problem, SceneError, YList, YMap, apply_overrides, load_raw, read_yaml, suggest, validate
 from ..scenario.loading import NO_AUTO_FIDELITY
@@ -548,7 +548,7 @@ def _resolve_auto(ck: _Checker, base: YMap, scene_path: Path, fixed: dict, where
         return base
     try:
         tree, note = auto_fidelity(apply_overrides(base, fixed), scene_path)
-    except UserError as exc:
+    except RUN_ERRORS as exc:
         ck.err(where, f"fidelity: auto: {exc}")
         return base
     ck.problems.append(Problem(where[0], where[1], note, "note"))

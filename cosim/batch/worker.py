@@ -22,7 +22,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from ..errors import UserError
+from ..errors import RUN_ERRORS, UserError
 from ..scenario import Scene
 from ..scenario.guards import guard_needs
 from ..slaves.fmu import FmuSlave
@@ -208,7 +208,7 @@ def execute(task: Task, shared: Shared) -> Outcome:
         res = run(task.scene, out_dir=out_dir, slaves=slaves, trace_format=task.trace_format)
         status, reason, stats, trace = res.status, res.reason, dict(res.stats), res.trace
         stats["run_s"] = time.perf_counter() - t_run
-    except UserError as exc:
+    except RUN_ERRORS as exc:  # a user mistake or an FMU that cannot be built
         reason = str(exc)
     except Exception as exc:  # a run never takes the batch down: its failure is its row
         reason = f"{type(exc).__name__}: {exc}"

@@ -9,8 +9,11 @@ Package map (the public names are re-exported here: ``from cosim.master import X
                 :class:`Algorithm` base class, :data:`ALGORITHMS`, :func:`register`, :func:`algorithm`
 ``algorithms/`` one module per algorithm (``jacobi``, ``gauss_seidel``, ``adaptive``, ``ecco``,
                 ``iterative``), listed in :data:`cosim.master.algorithms.MODULES`
-``engine``      who runs the steps: the compiled loop (:mod:`cosim.master.fastloop`) or the Python loop;
-                :func:`choose_engine`, :func:`fixed_stepper`
+``engine``      who runs the steps: a compiled loop or the Python loop (the reference); :func:`choose_engine`,
+                :func:`fixed_stepper`
+``native``      the native engine's C prelude and its one slave struct (C text and ctypes from one
+                declaration); its loops: ``fastloop`` (Jacobi, Gauss-Seidel), ``adaptive_engine``
+                (adaptive, ecco), ``iterative_engine``; ``dense``: the Newton step's linear algebra
 ``stepper``     the one driver loop :func:`~cosim.master.stepper.drive` over the stepper protocol (pacing,
                 stop requests, guards, step observers, traces, text events, progress), :class:`StepInfo`
 ``run``         :func:`simulate`: an algorithm bound to its engine as a stepper, driven by ``drive``;

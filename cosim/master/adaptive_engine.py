@@ -1,4 +1,4 @@
-"""The compiled engine of ``master.algorithm: adaptive``: the accepted-step loop in C.
+"""The compiled engines of the variable-step masters ``adaptive`` and ``ecco``: their step loops in C.
 
 The same steps as :class:`cosim.master.algorithms.adaptive.AdaptiveStepper` (the Python loop stays the reference
 implementation; ``tests/test_adaptive_engine.py`` checks that both take the same steps and produce the
@@ -13,6 +13,10 @@ One call runs until it has recorded ``max_rows`` accepted steps, spent its wall-
 that Python handles signals between calls), reached the stop time, or met something it leaves
 to Python: a stop request, the step floor, or a failing get/set of an FMU state.
 
+``ecco`` (:class:`CompiledEcco`, the loop of :class:`cosim.master.algorithms.ecco.EccoStepper`)
+takes the same Gauss-Seidel step with linear inputs, never rolled back, and sizes the next step
+from the bonds' energy residual, with the same per-bond statistics and endings.
+
 Timing (per-slave wall time in the run statistics) reads the clock once per slave, as the
 fixed-step loop does: a slave's time includes preparing its inputs; the master's own time is the
 rest (saving and restoring states, the estimate, the controller, recording).
@@ -21,115 +25,89 @@ from __future__ import annotations
 
 import ctypes
 import math
-from ctypes import POINTER, c_double, c_int32, c_int64, c_void_p
+from ctypes import POINTER, c_int32, c_int64, c_void_p
 from functools import lru_cache
 
 import numpy as np
 
 from ..errors import UserError
-from .fastloop import FMI_CALL_TYPES
+from .native import CSlave, SlaveArray, c_struct, compile_loop, ctypes_struct
 
-SOURCE = FMI_CALL_TYPES + r"""
-#include <string.h>
-#include <math.h>
+#: The controller's state and the run's counters (``ad_ctl``), declared once for C and ctypes.
+CONTROL_FIELDS = (
+    ("int64_t", "t_ns", "current point [ns]"), ("int64_t", "stop_ns", "stop time [ns]"),
+    ("double", "h", "the next step tried [s]"), ("double", "h_prev", "the last accepted step [s] (0: none)"),
+    ("double", "err_prev", "the last accepted step's error"),
+    *[("double", k, "option") for k in ("rtol", "atol", "h_ref", "h_min", "h_max", "safety", "fac_min", "fac_max")],
+    ("double", "k_i", "controller gain"), ("double", "k_p", "controller gain"),
+    ("double", "p_lin", "order with linear inputs"), ("double", "p_hold", "order with held inputs"),
+    ("int32_t", "any_interp", "some slave follows input slopes"), ("int32_t", "timing", "time the slaves' calls"),
+    ("int64_t", "accepted", "statistics"), ("int64_t", "rejected", "statistics"),
+    ("int64_t", "rollbacks", "statistics"), ("int64_t", "discards", "statistics"),
+    ("double", "h_min_taken", "statistics"), ("double", "h_max_taken", "statistics"),
+    ("int32_t", "status", "why a call returned early: 0 running, 1 a slave asked to stop, 2 the step floor, "
+                          "3 getting an FMU state failed, 4 setting it failed"),
+    ("int32_t", "bad_slave", "the slave of that status"), ("int32_t", "bad_status", "its FMI status"),
+    ("double", "last_err", "the error at the step floor"),
+    ("int64_t", "master_ns", "wall time in this loop outside the slaves' calls (with timing)"),
+)
 
-typedef int (*state_get_t)(void *, void **);
-typedef int (*state_set_t)(void *, void *);
-typedef int (*bstatus_t)(void *, int, int *);
+#: ecco's controller state, its bonds (by index into v and the slaves) and their statistics (``ec_ctl``).
+ECCO_FIELDS = (
+    ("int64_t", "t_ns", "current point [ns]"), ("int64_t", "stop_ns", "stop time [ns]"),
+    ("double", "h", "the next step [s]"), ("double", "h_prev", "the last step [s] (0: none)"),
+    ("double", "err_prev", "the last step's error"),
+    *[("double", k, "option") for k in ("rtol", "atol", "h_min", "h_max", "safety", "fac_min", "fac_max", "k_i",
+                                        "k_p")],
+    ("int32_t", "timing", "time the slaves' calls"), ("int32_t", "n_bonds", "power bonds"),
+    ("const int64_t *", "out_idx", "per bond, v indices of y_a, y_b"),
+    ("const int64_t *", "in_idx", "per bond, v indices of u_a, u_b"),
+    ("const int32_t *", "side", "per bond, the slaves a, b"), ("const int32_t *", "slot", "per bond, u_a, u_b among "
+                                                                                         "their slaves' inputs"),
+    ("double *", "y0", "work: the bonds' outputs at the step's start"), ("double *", "scaled", "work: eps per bond"),
+    ("double *", "max_scaled", "per bond statistics"), ("double *", "max_residual", "[J]"),
+    ("double *", "residual_sum", "[J]"), ("double *", "abs_residual_sum", "[J]"), ("double *", "energy", "[J]"),
+    ("int64_t *", "over", "steps over tolerance"),
+    ("int64_t", "accepted", "statistics"), ("double", "h_min_taken", "statistics"),
+    ("double", "h_max_taken", "statistics"),
+    ("int32_t", "floor_patience", "steps over tolerance at h_min before the run ends"),
+    ("int32_t", "at_floor", "such steps in a row"), ("int32_t", "ending", "the run ends before the next step"),
+    ("int32_t", "end_bond", "the bond it ends on"), ("double", "end_scaled", "its eps"),
+    ("int32_t", "status", "why a call returned early: 0 running, 1 a slave asked to stop, 5 over tolerance at the "
+                          "floor, 6 a slave failed, 7 a residual not finite"),
+    ("int32_t", "bad_slave", "the slave of that status (the bond for 7)"), ("int32_t", "bad_status", "its FMI status"),
+    ("int64_t", "master_ns", "wall time in this loop outside the slaves' calls (with timing)"),
+)
 
-typedef struct {
-    int32_t fmi3, n_in, n_out, in_off, out_off, interp;
-    void *inst, *do_step, *get, *set, *set_der, *get_state, *set_state, *bool_status;
-    void **state;                 /* the slave's FMU state, allocated by its first get */
-    const uint32_t *in_vr;
-    const int64_t *in_src;
-    const uint32_t *out_vr;
-    const int32_t *orders;        /* all 1 */
-    const int8_t *fresh;          /* input interpolated (its source stepped before) */
-    double *cur, *prev, *slope, *guess;
-    int64_t calls, ns;
-} ad_slave;
+CControl = ctypes_struct("ad_ctl", CONTROL_FIELDS)
+CEccoControl = ctypes_struct("ec_ctl", ECCO_FIELDS)
 
-typedef struct {
-    int64_t t_ns, stop_ns;
-    double h, h_prev, err_prev;
-    double rtol, atol, h_ref, h_min, h_max, safety, fac_min, fac_max, k_i, k_p, p_lin, p_hold;
-    int32_t any_interp, timing;
-    int64_t accepted, rejected, rollbacks, discards;
-    double h_min_taken, h_max_taken;
-    /* why a call returned early: 0 running, 1 a slave asked to stop, 2 the step floor,
-       3 getting an FMU state failed, 4 setting it failed */
-    int32_t status, bad_slave, bad_status;
-    double last_err;
-    int64_t master_ns;  /* wall time in this loop outside the slaves' calls (with timing) */
-} ad_ctl;
-
-enum { ST_OK = 0, ST_WARNING = 1, ST_DISCARD = 2, ST_STOP = 100 };
-
-static inline int failing(int st) { return st >= 2 && st <= 5; }
-
-static inline int64_t now_ns(void) {
-    struct timespec ts;
-    clock_gettime(CLOCK_MONOTONIC, &ts);
-    return (int64_t)ts.tv_sec * 1000000000LL + ts.tv_nsec;
-}
-
-/* numpy's maximum/minimum: NaN if either is NaN; Python's max/min: the first unless the second
-   is larger/smaller */
-static inline double np_max(double a, double b) { return (isnan(a) || isnan(b)) ? NAN : (b > a ? b : a); }
-static inline double np_min(double a, double b) { return (isnan(a) || isnan(b)) ? NAN : (b < a ? b : a); }
-static inline double py_max(double a, double b) { return b > a ? b : a; }
-static inline double py_min(double a, double b) { return b < a ? b : a; }
-
-static int stop_asked(ad_slave *s) {   /* FMI 2.0 Discard with fmi2Terminated (status kind 3) */
-    int b = 0;
-    if (s->fmi3 || !s->bool_status) return 0;
-    if (((bstatus_t)s->bool_status)(s->inst, 3, &b) > ST_WARNING) return 0;
-    return b != 0;
-}
-
-static int slave_step(ad_slave *s, double *v, double t, double h) {
-    int st = 0;
-    double *in = v + s->in_off;
-    if (s->n_in) {
-        st = s->fmi3 ? ((io3_t)s->set)(s->inst, s->in_vr, (size_t)s->n_in, in, (size_t)s->n_in)
-                     : ((io2_t)s->set)(s->inst, s->in_vr, (size_t)s->n_in, in);
-        if (!failing(st) && s->interp)
-            st = ((der2_t)s->set_der)(s->inst, s->in_vr, (size_t)s->n_in, s->orders, s->slope);
-    }
+SOURCE = c_struct("ad_ctl", CONTROL_FIELDS) + c_struct("ec_ctl", ECCO_FIELDS) + r"""
+static int slave_step(rpr_slave *s, double *v, double t, double h) {
+    int st = set_inputs(s, v + s->in_off);
+    if (!failing(st) && s->interp && s->n_in) st = set_slopes(s);
     if (failing(st)) return st;
-    s->calls++;
-    if (s->fmi3) {
-        bool ev = 0, term = 0, early = 0;
-        double last = t;
-        st = ((step3_t)s->do_step)(s->inst, t, h, 0 /* may roll back */, &ev, &term, &early, &last);
-        if (st < 2 && term) return ST_STOP;
-    } else {
-        st = ((step2_t)s->do_step)(s->inst, t, h, 0);
-        if (st == ST_DISCARD && stop_asked(s)) return ST_STOP;
-    }
+    st = do_step(s, t, h);
     if (failing(st) || st == ST_STOP) return st;
-    if (!s->n_out) return 0;
-    return s->fmi3 ? ((io3_t)s->get)(s->inst, s->out_vr, (size_t)s->n_out, v + s->out_off, (size_t)s->n_out)
-                   : ((io2_t)s->get)(s->inst, s->out_vr, (size_t)s->n_out, v + s->out_off);
+    return get_outputs(s, v);
 }
 
-/* One Gauss-Seidel step of h from t (AdaptiveStepper._attempt); returns the scaled error, or
-   INFINITY with *bad set to the failing slave. */
-static double attempt(ad_slave *S, int32_t n, const int32_t *order, double *v, const double *lo,
-                      const double *hi, ad_ctl *c, double t, double h, int32_t *bad, int32_t *bad_st) {
-    int32_t k, i, j;
-    double err = 0.0, weight = h / c->h_ref;
-    int64_t tprev = c->timing ? now_ns() : 0;  /* one clock read per slave, as the fixed-step loop */
+/* One Gauss-Seidel step of h from t with linear inputs (AdaptiveStepper._attempt's stepping):
+   each input interpolated from a source that stepped before, extrapolated from the last two
+   points otherwise (s->guess: the extrapolation to t+h); returns -1, or the failing slave with
+   *bad_st its status. */
+static int32_t gs_step(rpr_slave *S, int32_t n, const int32_t *order, double *v, double h_prev, int32_t timing,
+                       double t, double h, int32_t *bad_st) {
+    int32_t k, j;
+    int64_t tprev = timing ? now_ns() : 0;  /* one clock read per slave, as the fixed-step loop */
     for (k = 0; k < n; ++k) {
-        ad_slave *s = &S[order[k]];
+        rpr_slave *s = &S[order[k]];
         double *in = v + s->in_off;
         int st;
-        i = order[k];
         for (j = 0; j < s->n_in; ++j) {
             double now = v[s->in_src[j]];
             if (s->interp) {
-                double ext = c->h_prev > 0 ? (s->cur[j] - s->prev[j]) / c->h_prev : 0.0;
+                double ext = h_prev > 0 ? (s->cur[j] - s->prev[j]) / h_prev : 0.0;
                 s->slope[j] = s->fresh[j] ? (now - s->cur[j]) / h : ext;
                 in[j] = s->fresh[j] ? s->cur[j] : now;
                 s->guess[j] = now + ext * h;
@@ -139,11 +117,23 @@ static double attempt(ad_slave *S, int32_t n, const int32_t *order, double *v, c
             }
         }
         st = slave_step(s, v, t, h);
-        if (c->timing) { int64_t t1 = now_ns(); s->ns += t1 - tprev; tprev = t1; }
-        if (failing(st) || st == ST_STOP) { *bad = i; *bad_st = st; return INFINITY; }
+        if (timing) { int64_t t1 = now_ns(); s->ns += t1 - tprev; tprev = t1; }
+        if (failing(st) || st == ST_STOP) { *bad_st = st; return order[k]; }
     }
+    *bad_st = 0;
+    return -1;
+}
+
+/* AdaptiveStepper._attempt: the step and its scaled coupling error, or INFINITY with *bad set to
+   the failing slave. */
+static double attempt(rpr_slave *S, int32_t n, const int32_t *order, double *v, const double *lo,
+                      const double *hi, ad_ctl *c, double t, double h, int32_t *bad, int32_t *bad_st) {
+    int32_t k, j;
+    double err = 0.0, weight = h / c->h_ref;
+    *bad = gs_step(S, n, order, v, c->h_prev, c->timing, t, h, bad_st);
+    if (*bad >= 0) return INFINITY;
     for (k = 0; k < n; ++k) {
-        ad_slave *s = &S[order[k]];
+        rpr_slave *s = &S[order[k]];
         for (j = 0; j < s->n_in; ++j) {
             int64_t src = s->in_src[j];
             double actual, span, tol, e;
@@ -156,9 +146,27 @@ static double attempt(ad_slave *S, int32_t n, const int32_t *order, double *v, c
             err = py_max(err, e);
         }
     }
-    *bad = -1;
-    *bad_st = 0;
     return err;
+}
+
+/* the sources' values at the new point become the current ones (AdaptiveStepper._commit) */
+static void shift_history(rpr_slave *S, int32_t n, const double *v) {
+    int32_t i, j;
+    for (i = 0; i < n; ++i) {
+        rpr_slave *s = &S[i];
+        for (j = 0; j < s->n_in; ++j) {
+            s->prev[j] = s->cur[j];
+            s->cur[j] = v[s->in_src[j]];
+        }
+    }
+}
+
+static inline void record(double *rec, int64_t rows, int32_t n_rec, int64_t t_ns, const double *v,
+                          const int64_t *rec_idx) {
+    double *row = rec + rows * (n_rec + 1);
+    int32_t j;
+    row[0] = (double)t_ns / 1e9;
+    for (j = 0; j < n_rec; ++j) row[j + 1] = v[rec_idx[j]];
 }
 
 static inline int64_t round_ns(double x) {   /* Python's round(x): half to even */
@@ -166,7 +174,7 @@ static inline int64_t round_ns(double x) {   /* Python's round(x): half to even 
     return (int64_t)nearbyint(x);
 }
 
-static int64_t rpr_adapt_loop(ad_slave *S, int32_t n, const int32_t *order, double *v, int64_t nv,
+static int64_t rpr_adapt_loop(rpr_slave *S, int32_t n, const int32_t *order, double *v, int64_t nv,
                               double *v_saved, double *lo, double *hi, ad_ctl *c, const int64_t *rec_idx,
                               int32_t n_rec, double *rec, int64_t *h_rec, int64_t max_rows, int64_t budget_ns,
                               int64_t t_start) {
@@ -178,7 +186,7 @@ static int64_t rpr_adapt_loop(ad_slave *S, int32_t n, const int32_t *order, doub
         double t = (double)c->t_ns / 1e9;
         memcpy(v_saved, v, (size_t)nv * sizeof(double));
         for (i = 0; i < n; ++i) {
-            int st = ((state_get_t)S[i].get_state)(S[i].inst, S[i].state);
+            int st = save_state(&S[i]);
             if (failing(st)) { c->status = 3; c->bad_slave = i; c->bad_status = st; return rows; }
         }
         for (;;) {
@@ -197,7 +205,7 @@ static int64_t rpr_adapt_loop(ad_slave *S, int32_t n, const int32_t *order, doub
             c->rejected++;
             if (bad >= 0) c->discards++;
             for (i = 0; i < n; ++i) {
-                int st = ((state_set_t)S[i].set_state)(S[i].inst, *S[i].state);
+                int st = restore_state(&S[i]);
                 if (failing(st)) { c->status = 4; c->bad_slave = i; c->bad_status = st; return rows; }
             }
             c->rollbacks++;
@@ -213,13 +221,7 @@ static int64_t rpr_adapt_loop(ad_slave *S, int32_t n, const int32_t *order, doub
         c->accepted++;
         c->h_min_taken = py_min(c->h_min_taken, h);
         c->h_max_taken = py_max(c->h_max_taken, h);
-        for (i = 0; i < n; ++i) {
-            ad_slave *s = &S[i];
-            for (j = 0; j < s->n_in; ++j) {
-                s->prev[j] = s->cur[j];
-                s->cur[j] = v[s->in_src[j]];
-            }
-        }
+        shift_history(S, n, v);
         for (j = 0; j < nv; ++j) {
             hi[j] = np_max(hi[j], v[j]);
             lo[j] = np_min(lo[j], v[j]);
@@ -234,13 +236,8 @@ static int64_t rpr_adapt_loop(ad_slave *S, int32_t n, const int32_t *order, doub
             if (h_ns < round_ns(c->h * 1e9)) fac = py_max(fac, 1.0);
             c->h = py_min(c->h_max, py_max(c->h_min, h * fac));
         }
-        {
-            double *row = rec + rows * (n_rec + 1);
-            row[0] = (double)c->t_ns / 1e9;
-            for (j = 0; j < n_rec; ++j) row[j + 1] = v[rec_idx[j]];
-            h_rec[rows] = h_ns;
-            ++rows;
-        }
+        record(rec, rows, n_rec, c->t_ns, v, rec_idx);
+        h_rec[rows++] = h_ns;
         if (budget_ns > 0 && (rows & 15) == 0 && now_ns() - t_start > budget_ns) break;
     }
     return rows;
@@ -250,46 +247,102 @@ static int64_t rpr_adapt_loop(ad_slave *S, int32_t n, const int32_t *order, doub
    event for Python (c->status != 0).  Each accepted step appends (t, v[rec_idx]...) to rec and
    its step [ns] to h_rec.  Returns the number of rows; with timing, adds the loop's own time
    outside the slaves' calls to c->master_ns. */
-int64_t rpr_adapt_run(ad_slave *S, int32_t n, const int32_t *order, double *v, int64_t nv, double *v_saved,
+int64_t rpr_adapt_run(rpr_slave *S, int32_t n, const int32_t *order, double *v, int64_t nv, double *v_saved,
                       double *lo, double *hi, ad_ctl *c, const int64_t *rec_idx, int32_t n_rec, double *rec,
                       int64_t *h_rec, int64_t max_rows, int64_t budget_ns) {
-    int64_t t_start = (budget_ns > 0 || c->timing) ? now_ns() : 0, slave_ns0 = 0, slave_ns1 = 0, rows;
-    int32_t i;
-    for (i = 0; i < n; ++i) slave_ns0 += S[i].ns;
+    int64_t t_start = (budget_ns > 0 || c->timing) ? now_ns() : 0, slave_ns0 = slaves_ns(S, n), rows;
     rows = rpr_adapt_loop(S, n, order, v, nv, v_saved, lo, hi, c, rec_idx, n_rec, rec, h_rec, max_rows, budget_ns,
                           t_start);
-    if (c->timing) {
-        for (i = 0; i < n; ++i) slave_ns1 += S[i].ns;
-        c->master_ns += (now_ns() - t_start) - (slave_ns1 - slave_ns0);
+    if (c->timing) c->master_ns += (now_ns() - t_start) - (slaves_ns(S, n) - slave_ns0);
+    return rows;
+}
+
+/* EccoStepper.step: steps (never retried) sized from the bonds' energy residual, until max_rows
+   rows, the stop time, the budget or an event for Python (c->status != 0); rows and h_rec as
+   rpr_adapt_run's. */
+static int64_t rpr_ecco_loop(rpr_slave *S, int32_t n, const int32_t *order, double *v, ec_ctl *c,
+                             const int64_t *rec_idx, int32_t n_rec, double *rec, int64_t *h_rec, int64_t max_rows,
+                             int64_t budget_ns, int64_t t_start) {
+    int64_t rows = 0;
+    int32_t b, k, bad, bad_st;
+    c->status = 0;
+    while (c->t_ns < c->stop_ns && rows < max_rows) {
+        double t = (double)c->t_ns / 1e9, h, hh, err, fac;
+        int64_t want = round_ns(c->h * 1e9), left = c->stop_ns - c->t_ns, h_ns;
+        if (c->ending) { c->status = 5; return rows; }
+        h_ns = want < left ? want : left;
+        if (h_ns < 1) h_ns = 1;
+        h = (double)h_ns / 1e9;
+        for (k = 0; k < 2 * c->n_bonds; ++k) c->y0[k] = v[c->out_idx[k]];
+        bad = gs_step(S, n, order, v, c->h_prev, c->timing, t, h, &bad_st);
+        if (bad >= 0) {
+            c->status = (bad_st == ST_STOP || (bad_st == ST_DISCARD && stop_asked(&S[bad]))) ? 1 : 6;
+            c->bad_slave = bad; c->bad_status = bad_st;
+            return rows;
+        }
+        hh = 0.5 * h;
+        for (b = 0; b < c->n_bonds; ++b) {   /* bond_energy */
+            double u0a = v[c->in_idx[2 * b]], u0b = v[c->in_idx[2 * b + 1]];
+            rpr_slave *sa = &S[c->side[2 * b]], *sb = &S[c->side[2 * b + 1]];
+            double ka = sa->interp ? sa->slope[c->slot[2 * b]] : 0.0;
+            double kb = sb->interp ? sb->slope[c->slot[2 * b + 1]] : 0.0;
+            double u1a = u0a + ka * h, u1b = u0b + kb * h;
+            double p0a = c->y0[2 * b] * u0a, p0b = c->y0[2 * b + 1] * u0b;
+            double p1a = v[c->out_idx[2 * b]] * u1a, p1b = v[c->out_idx[2 * b + 1]] * u1b;
+            double residual = hh * ((p0a - p0b) + (p1a - p1b));
+            double carried = hh * np_max(fabs(p0a) + fabs(p1a), fabs(p0b) + fabs(p1b));
+            c->scaled[b] = fabs(residual) / (c->atol + c->rtol * carried);
+            c->y0[2 * b] = residual;        /* kept for the statistics below */
+            c->y0[2 * b + 1] = carried;
+        }
+        for (b = 0; b < c->n_bonds; ++b) {
+            if (!isfinite(c->scaled[b])) { c->status = 7; c->bad_slave = b; return rows; }
+        }
+        for (b = 0; b < c->n_bonds; ++b) {   /* BondRecord.add */
+            double r = c->y0[2 * b], x = c->scaled[b];
+            c->max_scaled[b] = py_max(c->max_scaled[b], x);
+            c->max_residual[b] = py_max(c->max_residual[b], fabs(r));
+            c->residual_sum[b] += r;
+            c->abs_residual_sum[b] += fabs(r);
+            c->energy[b] += c->y0[2 * b + 1];
+            c->over[b] += x > 1.0;
+        }
+        /* AdaptiveStepper._commit */
+        c->accepted++;
+        c->h_min_taken = py_min(c->h_min_taken, h);
+        c->h_max_taken = py_max(c->h_max_taken, h);
+        shift_history(S, n, v);
+        c->t_ns += h_ns;
+        c->h_prev = h;
+        err = c->scaled[0];
+        for (b = 1; b < c->n_bonds; ++b) err = c->scaled[b] > err ? c->scaled[b] : err;
+        err = py_max(err, 1e-10);
+        c->at_floor = (err > 1.0 && h <= c->h_min * (1 + 1e-12)) ? c->at_floor + 1 : 0;
+        if (c->at_floor >= c->floor_patience) {
+            int32_t kmax = 0;
+            for (b = 1; b < c->n_bonds; ++b) if (c->scaled[b] > c->scaled[kmax]) kmax = b;
+            c->ending = 1; c->end_bond = kmax; c->end_scaled = c->scaled[kmax];
+        }
+        fac = pow(c->safety / err, c->k_i) * pow(c->err_prev / err, c->k_p);
+        c->err_prev = err;
+        fac = py_min(c->fac_max, py_max(c->fac_min, fac));   /* AdaptiveStepper._propose */
+        if (h_ns < round_ns(c->h * 1e9)) fac = py_max(fac, 1.0);
+        c->h = py_min(c->h_max, py_max(c->h_min, h * fac));
+        record(rec, rows, n_rec, c->t_ns, v, rec_idx);
+        h_rec[rows++] = h_ns;
+        if (budget_ns > 0 && (rows & 15) == 0 && now_ns() - t_start > budget_ns) break;
     }
     return rows;
 }
+
+int64_t rpr_ecco_run(rpr_slave *S, int32_t n, const int32_t *order, double *v, ec_ctl *c, const int64_t *rec_idx,
+                     int32_t n_rec, double *rec, int64_t *h_rec, int64_t max_rows, int64_t budget_ns) {
+    int64_t t_start = (budget_ns > 0 || c->timing) ? now_ns() : 0, slave_ns0 = slaves_ns(S, n), rows;
+    rows = rpr_ecco_loop(S, n, order, v, c, rec_idx, n_rec, rec, h_rec, max_rows, budget_ns, t_start);
+    if (c->timing) c->master_ns += (now_ns() - t_start) - (slaves_ns(S, n) - slave_ns0);
+    return rows;
+}
 """
-
-
-class CAdaptSlave(ctypes.Structure):
-    """Mirror of ``ad_slave`` in :data:`SOURCE`."""
-
-    _fields_ = [("fmi3", c_int32), ("n_in", c_int32), ("n_out", c_int32), ("in_off", c_int32),
-                ("out_off", c_int32), ("interp", c_int32), ("inst", c_void_p), ("do_step", c_void_p),
-                ("get", c_void_p), ("set", c_void_p), ("set_der", c_void_p), ("get_state", c_void_p),
-                ("set_state", c_void_p), ("bool_status", c_void_p), ("state", c_void_p), ("in_vr", c_void_p),
-                ("in_src", c_void_p), ("out_vr", c_void_p), ("orders", c_void_p), ("fresh", c_void_p),
-                ("cur", c_void_p), ("prev", c_void_p), ("slope", c_void_p), ("guess", c_void_p),
-                ("calls", c_int64), ("ns", c_int64)]
-
-
-class CAdaptControl(ctypes.Structure):
-    """Mirror of ``ad_ctl`` in :data:`SOURCE`."""
-
-    _fields_ = [("t_ns", c_int64), ("stop_ns", c_int64), ("h", c_double), ("h_prev", c_double),
-                ("err_prev", c_double), ("rtol", c_double), ("atol", c_double), ("h_ref", c_double),
-                ("h_min", c_double), ("h_max", c_double), ("safety", c_double), ("fac_min", c_double),
-                ("fac_max", c_double), ("k_i", c_double), ("k_p", c_double), ("p_lin", c_double),
-                ("p_hold", c_double), ("any_interp", c_int32), ("timing", c_int32), ("accepted", c_int64),
-                ("rejected", c_int64), ("rollbacks", c_int64), ("discards", c_int64),
-                ("h_min_taken", c_double), ("h_max_taken", c_double), ("status", c_int32),
-                ("bad_slave", c_int32), ("bad_status", c_int32), ("last_err", c_double), ("master_ns", c_int64)]
 
 
 #: Longest wall time of one call [ns]: it returns to Python (signals, progress) at least this often.
@@ -298,25 +351,28 @@ CALL_BUDGET_NS = 100_000_000
 
 @lru_cache(maxsize=1)
 def library() -> ctypes.CDLL:
-    """Compile (cached on disk, see :func:`cosim.master.fastloop.compile_library`) and load the engine."""
-    from .fastloop import compile_library
-
-    dll = compile_library(SOURCE, "rpr_adapt")
+    """Compile (once, cached on disk: :func:`cosim.master.native.compile_loop`) and load the engine."""
+    dll = compile_loop(SOURCE, "rpr_adapt")
     fn = dll.rpr_adapt_run
     fn.restype = c_int64
-    fn.argtypes = [POINTER(CAdaptSlave), c_int32, c_void_p, c_void_p, c_int64, c_void_p, c_void_p, c_void_p,
-                   POINTER(CAdaptControl), c_void_p, c_int32, c_void_p, c_void_p, c_int64, c_int64]
+    fn.argtypes = [POINTER(CSlave), c_int32, c_void_p, c_void_p, c_int64, c_void_p, c_void_p, c_void_p,
+                   POINTER(CControl), c_void_p, c_int32, c_void_p, c_void_p, c_int64, c_int64]
+    fn = dll.rpr_ecco_run
+    fn.restype = c_int64
+    fn.argtypes = [POINTER(CSlave), c_int32, c_void_p, c_void_p, POINTER(CEccoControl), c_void_p, c_int32, c_void_p,
+                   c_void_p, c_int64, c_int64]
     return dll
 
 
-def usable(system) -> bool:
-    """Whether the compiled engine can run ``system``: FMU slaves with C entry points and FMU
-    state get/set, scalar Float64 connections copied as they are, and a working C compiler."""
+def usable(system, rollback: bool = True) -> bool:
+    """Whether the compiled engine can run ``system``: FMU slaves with C entry points (and, with
+    ``rollback``, FMU state get/set), scalar Float64 connections copied as they are, and a working
+    C compiler."""
     if system.typed.active or system.transformed:
         return False
     for s in system.slaves:
         ne = s.native()
-        if ne is None or not (ne.get_state and ne.set_state):
+        if ne is None or (rollback and not (ne.get_state and ne.set_state)):
             return False
     try:
         library()
@@ -325,57 +381,28 @@ def usable(system) -> bool:
     return True
 
 
-class CompiledAdaptive:
-    """Drop-in for :class:`cosim.master.algorithms.adaptive.AdaptiveStepper` whose accepted-step loop runs in C.
-    It shares the stepper's setup (order, fresh inputs, options) and exposes the same ``t_ns``,
-    ``stats``, ``calls``, ``slave_ns``, ``status`` and ``message``; :meth:`run` replaces the
-    Python loop of :class:`cosim.master.algorithms.adaptive.VariableStepper` one block at a time."""
+class _CompiledVariable:
+    """What the compiled adaptive and ecco loops share: the slaves' structs with the stepper's
+    input history (fresh inputs, slopes, the sources' last two values), the recorded columns and
+    the per-slave counters."""
 
-    def __init__(self, stepper, timing: bool = True):
+    def __init__(self, stepper, states: bool):
         self.py = stepper  # the Python stepper: its setup, statistics and messages
-        sysm, opt = stepper.system, stepper.opt
+        sysm = stepper.system
         self.lib = library()
-        n = len(sysm.slaves)
-        self.arr = (CAdaptSlave * n)()
-        self.states = (c_void_p * n)()  # the FMU states, freed by close()
-        self.entries = []
-        self.keep: list = []
-        for i, s in enumerate(sysm.slaves):
-            ne = s.native()
-            self.entries.append(ne)
-            c = self.arr[i]
-            n_in = len(sysm.in_vrs[i])
-            c.fmi3, c.n_in, c.n_out = int(ne.fmi3), n_in, len(sysm.out_vrs[i])
-            c.in_off, c.out_off = sysm.in_off[i], sysm.out_off[i]
-            c.inst, c.do_step, c.get, c.set = ne.instance, ne.do_step, ne.get_real, ne.set_real
-            c.get_state, c.set_state, c.bool_status = ne.get_state, ne.set_state, ne.get_boolean_status
-            c.state = ctypes.addressof(self.states) + i * ctypes.sizeof(c_void_p)
+        self.arr = arr = SlaveArray(sysm, states=states)
+        for i in range(len(arr)):
+            c = arr[i]
+            n_in = c.n_in
             interp = bool(stepper.interp[i]) and n_in > 0
-            c.interp, c.set_der = int(interp), ne.set_input_derivatives if interp else 0
-            orders, fresh = np.ones(n_in, dtype=np.int32), stepper.fresh[i].astype(np.int8)
+            c.interp, c.set_der = int(interp), arr.entries[i].set_input_derivatives if interp else 0
             cur = np.ascontiguousarray(sysm.v[sysm.in_src[i]], dtype=np.float64)
-            prev, guess = cur.copy(), np.zeros(n_in)
-            slope = stepper.slopes[i]
-            self.keep += [orders, fresh, cur, prev, guess, slope, sysm.in_vrs[i], sysm.in_src[i], sysm.out_vrs[i]]
             if n_in:
-                c.in_vr, c.in_src = sysm.in_vrs[i].ctypes.data, sysm.in_src[i].ctypes.data
-                c.orders, c.fresh = orders.ctypes.data, fresh.ctypes.data
-                c.cur, c.prev, c.slope, c.guess = (cur.ctypes.data, prev.ctypes.data, slope.ctypes.data,
-                                                   guess.ctypes.data)
-            if c.n_out:
-                c.out_vr = sysm.out_vrs[i].ctypes.data
+                c.orders = arr.buffer(np.ones(n_in, dtype=np.int32), np.int32)
+                c.fresh = arr.buffer(stepper.fresh[i].astype(np.int8), np.int8)
+                c.cur, c.prev, c.guess = arr.buffer(cur), arr.buffer(cur.copy()), arr.buffer(np.zeros(n_in))
+                c.slope = arr.buffer(stepper.slopes[i])
         self.order = np.array(stepper.order, dtype=np.int32)
-        self.v_saved = np.empty_like(sysm.v)
-        self.lo, self.hi = stepper.lo, stepper.hi
-        self.ctl = ctl = CAdaptControl()
-        ctl.t_ns, ctl.stop_ns, ctl.h, ctl.h_prev, ctl.err_prev = (stepper.t_ns, stepper.stop_ns, stepper.h,
-                                                                   stepper.h_prev, stepper.err_prev)
-        for name in ("rtol", "atol", "h_ref", "h_min", "h_max", "safety", "fac_min", "fac_max"):
-            setattr(ctl, name, opt[name])
-        ctl.k_i, ctl.k_p = stepper.k_i, stepper.k_p
-        ctl.p_lin, ctl.p_hold = stepper.order_p_linear, stepper.order_p_hold
-        ctl.any_interp, ctl.timing = int(any(stepper.interp)), int(timing)
-        ctl.h_min_taken, ctl.h_max_taken = math.inf, 0.0
         self.rec_idx = np.ascontiguousarray(sysm.record_idx, dtype=np.int64)  # recorded, then watched (guards)
         self.h_rec = np.empty(0, dtype=np.int64)
         self.status, self.message = "running", ""
@@ -389,33 +416,62 @@ class CompiledAdaptive:
         return self.ctl.t_ns / 1e9
 
     @property
-    def stats(self):
-        st, c = self.py.stats, self.ctl
-        st.accepted, st.rejected, st.rollbacks, st.discards = c.accepted, c.rejected, c.rollbacks, c.discards
-        st.h_min_taken, st.h_max_taken = c.h_min_taken, c.h_max_taken
-        return st
-
-    @property
     def master_ns(self) -> int:
         """The master's own time in the compiled loop [ns] (outside the slaves' calls)."""
         return int(self.ctl.master_ns)
 
     @property
     def calls(self) -> list[int]:
-        return [int(c.calls) for c in self.arr]
+        return [int(c.calls) for c in self.arr.arr]
 
     @property
     def slave_ns(self) -> list[int]:
-        return [int(c.ns) for c in self.arr]
+        return [int(c.ns) for c in self.arr.arr]
+
+    def _rows(self, rec: np.ndarray) -> None:
+        if len(self.h_rec) < len(rec):
+            self.h_rec = np.empty(len(rec), dtype=np.int64)
+
+    def close(self) -> None:
+        """Free the FMU states (before the instances are freed)."""
+        self.arr.free_states()
+
+
+class CompiledAdaptive(_CompiledVariable):
+    """Drop-in for :class:`cosim.master.algorithms.adaptive.AdaptiveStepper` whose accepted-step loop runs in C.
+    It shares the stepper's setup (order, fresh inputs, options) and exposes the same ``t_ns``,
+    ``stats``, ``calls``, ``slave_ns``, ``status`` and ``message``; :meth:`run` replaces the
+    Python loop of :class:`cosim.master.algorithms.adaptive.VariableStepper` one block at a time."""
+
+    def __init__(self, stepper, timing: bool = True):
+        super().__init__(stepper, states=True)
+        opt = stepper.opt
+        self.v_saved = np.empty_like(stepper.system.v)
+        self.lo, self.hi = stepper.lo, stepper.hi
+        self.ctl = ctl = CControl()
+        ctl.t_ns, ctl.stop_ns, ctl.h, ctl.h_prev, ctl.err_prev = (stepper.t_ns, stepper.stop_ns, stepper.h,
+                                                                   stepper.h_prev, stepper.err_prev)
+        for name in ("rtol", "atol", "h_ref", "h_min", "h_max", "safety", "fac_min", "fac_max"):
+            setattr(ctl, name, opt[name])
+        ctl.k_i, ctl.k_p = stepper.k_i, stepper.k_p
+        ctl.p_lin, ctl.p_hold = stepper.order_p_linear, stepper.order_p_hold
+        ctl.any_interp, ctl.timing = int(any(stepper.interp)), int(timing)
+        ctl.h_min_taken, ctl.h_max_taken = math.inf, 0.0
+
+    @property
+    def stats(self):
+        st, c = self.py.stats, self.ctl
+        st.accepted, st.rejected, st.rollbacks, st.discards = c.accepted, c.rejected, c.rollbacks, c.discards
+        st.h_min_taken, st.h_max_taken = c.h_min_taken, c.h_max_taken
+        return st
 
     def run(self, rec: np.ndarray) -> int:
         """Accepted steps into ``rec`` (rows of time and the recorded values) until it is full,
         the stop time, the call's time budget or the end of the run; returns the rows written."""
         sysm, ctl = self.py.system, self.ctl
-        if len(self.h_rec) < len(rec):
-            self.h_rec = np.empty(len(rec), dtype=np.int64)
+        self._rows(rec)
         rows = int(self.lib.rpr_adapt_run(
-            self.arr, len(self.arr), self.order.ctypes.data, sysm.v.ctypes.data, len(sysm.v),
+            self.arr.arr, len(self.arr), self.order.ctypes.data, sysm.v.ctypes.data, len(sysm.v),
             self.v_saved.ctypes.data, self.lo.ctypes.data, self.hi.ctypes.data, ctypes.byref(ctl),
             self.rec_idx.ctypes.data if self.rec_idx.size else None, len(self.rec_idx), rec.ctypes.data,
             self.h_rec.ctypes.data, len(rec), CALL_BUDGET_NS))
@@ -445,11 +501,97 @@ class CompiledAdaptive:
             raise UserError(f"{s.name}: {what} the FMU state failed ({Status(st).name})"
                             + (f": {s.last_message}" if s.last_message else ""))
 
-    def close(self) -> None:
-        """Free the FMU states (before the instances are freed)."""
-        for i, ne in enumerate(self.entries):
-            if self.states[i] and ne.free_state:
-                fn = ctypes.CFUNCTYPE(c_int32, c_void_p, POINTER(c_void_p))(ne.free_state)
-                fn(ne.instance, ctypes.byref(c_void_p.from_address(ctypes.addressof(self.states) +
-                                                                    i * ctypes.sizeof(c_void_p))))
-                self.states[i] = None
+
+class CompiledEcco(_CompiledVariable):
+    """Drop-in for :class:`cosim.master.algorithms.ecco.EccoStepper` whose stepping runs in C: the
+    same steps (never retried), the same bond statistics and endings, bit for bit
+    (``tests/test_native.py``); the same interface as :class:`CompiledAdaptive`."""
+
+    def __init__(self, stepper, timing: bool = True):
+        super().__init__(stepper, states=False)
+        opt, bonds = stepper.opt, stepper.bonds
+        nb = len(bonds)
+        self.ctl = ctl = CEccoControl()
+        ctl.t_ns, ctl.stop_ns, ctl.h, ctl.h_prev, ctl.err_prev = (stepper.t_ns, stepper.stop_ns, stepper.h,
+                                                                   stepper.h_prev, stepper.err_prev)
+        for name in ("rtol", "atol", "h_min", "h_max", "safety", "fac_min", "fac_max", "k_i", "k_p"):
+            setattr(ctl, name, opt[name])
+        ctl.timing, ctl.n_bonds, ctl.floor_patience = int(timing), nb, stepper.floor_patience
+        ctl.h_min_taken, ctl.h_max_taken = math.inf, 0.0
+        buf = self.arr.buffer
+        ctl.out_idx = buf(np.array([b.out_idx for b in bonds]).ravel(), np.int64)
+        ctl.in_idx = buf(np.array([b.in_idx for b in bonds]).ravel(), np.int64)
+        ctl.side = buf(np.array([b.side for b in bonds]).ravel(), np.int32)
+        ctl.slot = buf(np.array([b.slot for b in bonds]).ravel(), np.int32)
+        ctl.y0, ctl.scaled = buf(np.zeros(2 * nb)), buf(np.zeros(nb))
+        self.bond_stats = {k: np.zeros(nb) for k in ("max_scaled", "max_residual", "residual_sum",
+                                                     "abs_residual_sum", "energy")}
+        self.bond_stats["over"] = np.zeros(nb, dtype=np.int64)
+        for k, a in self.bond_stats.items():
+            setattr(ctl, k, buf(a, a.dtype))
+
+    @property
+    def stats(self):
+        st, c = self.py.stats, self.ctl
+        st.accepted, st.h_min_taken, st.h_max_taken = c.accepted, c.h_min_taken, c.h_max_taken
+        for k, b in enumerate(self.py.bonds):
+            rec = st.bonds[b.name]
+            for name, a in self.bond_stats.items():
+                setattr(rec, name, int(a[k]) if name == "over" else float(a[k]))
+        return st
+
+    def run(self, rec: np.ndarray) -> int:
+        """Steps into ``rec`` as :meth:`CompiledAdaptive.run`."""
+        sysm, ctl = self.py.system, self.ctl
+        self._rows(rec)
+        rows = int(self.lib.rpr_ecco_run(
+            self.arr.arr, len(self.arr), self.order.ctypes.data, sysm.v.ctypes.data, ctypes.byref(ctl),
+            self.rec_idx.ctypes.data if self.rec_idx.size else None, len(self.rec_idx), rec.ctypes.data,
+            self.h_rec.ctypes.data, len(rec), CALL_BUDGET_NS))
+        self.py.stats.steps.extend((self.h_rec[:rows] / 1e9).tolist())
+        if ctl.status:
+            self._ended(ctl.status, ctl.bad_slave, ctl.bad_status)
+        return rows
+
+    def _ended(self, code: int, bad: int, st: int) -> None:
+        """The endings of :meth:`cosim.master.algorithms.ecco.EccoStepper.step`, worded alike."""
+        from ..slaves.slave import Status
+
+        py, sysm, t = self.py, self.py.system, self.t
+        if code == 1:
+            self.status = "stopped"
+            self.message = f"{sysm.slaves[bad].name} asked to terminate the simulation at t = {t:.9g} s"
+        elif code == 6:
+            sl = sysm.slaves[bad]
+            name = Status(st).name if st in Status._value2member_map_ else str(st)
+            self.status = "failed"
+            self.message = (f"{sl.name} returned {name} in the step from t = {t:.9g} s (ecco does not roll back)"
+                            + (f": {sl.last_message}" if sl.last_message else ""))
+        elif code == 7:
+            u0 = sysm.v[py._in_idx]
+            self.status = "unstable"
+            self.message = (f"the energy residual of bond {py.bonds[bad].name} is not finite in the step from "
+                            f"t = {t:.9g} s (y = {sysm.v[py._out_idx[bad]]}, u = {u0[bad]})")
+        else:
+            self.status = "unstable"
+            self.message = (f"the energy residual of bond {py.bonds[self.ctl.end_bond].name} stayed over its "
+                            f"tolerance for {self.ctl.at_floor} steps at the step floor h_min = "
+                            f"{py.opt['h_min']:g} s (scaled {self.ctl.end_scaled:.3g} at t = {t:.9g} s)")
+
+
+#: The compiled loop of each stepper class, by the ``native_loop`` its class itself declares (a
+#: subclass that changes the stepping declares none and runs in Python).
+LOOPS = {"adaptive": CompiledAdaptive, "ecco": CompiledEcco}
+
+
+def has_compiled(stepper_cls: type) -> bool:
+    """Whether ``stepper_cls`` has a compiled loop here."""
+    return stepper_cls.__dict__.get("native_loop") in LOOPS
+
+
+def compiled_stepper(stepper, timing: bool = True) -> _CompiledVariable:
+    """The compiled drop-in of ``stepper`` (:class:`CompiledAdaptive` or :class:`CompiledEcco`)."""
+    loop = LOOPS.get(type(stepper).__dict__.get("native_loop"))
+    if loop is None:
+        raise ValueError(f"no compiled loop runs {type(stepper).__name__}")
+    return loop(stepper, timing)

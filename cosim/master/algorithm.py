@@ -245,6 +245,11 @@ class Algorithm(MasterAlgorithm, ABC):
         if bad is not None and not self.stop_requested(*bad):
             self._fail(bad[0], bad[1], t)
             return
+        self.stopped_by(i, t)
+
+    def stopped_by(self, i: int, t: float) -> None:
+        """Slave ``i`` asked to stop in the step from ``t`` and the others completed that step: the
+        run ends as ``stopped`` at ``t_k+1`` (also after a compiled loop completed the step)."""
         self.k += 1
         sl = self.system.slaves[i]
         detail = sl.stop_detail() if hasattr(sl, "stop_detail") else ""

@@ -9,44 +9,40 @@ from .algorithm import Algorithm
 from .stepper import FixedStepper
 from .system import CoupledSystem
 
+#: :attr:`Algorithm.native_code` of the fixed-step loop's algorithms (0 Jacobi, 1 Gauss-Seidel) and of iterative
+ITERATIVE = 2
+
 
 class _Compiled:
-    """Runs an algorithm's steps in the compiled loop (:mod:`cosim.master.fastloop`)."""
+    """Runs an algorithm's steps in the compiled loop (:mod:`cosim.master.fastloop`; for
+    ``iterative``, :class:`cosim.master.iterative_engine.CompiledIterative`, which it returns)."""
+
+    def __new__(cls, alg: Algorithm):
+        if alg.native_code == ITERATIVE:
+            from .iterative_engine import CompiledIterative
+
+            return CompiledIterative(alg)
+        return super().__new__(cls)
 
     def __init__(self, alg: Algorithm):
         import ctypes
 
         from . import fastloop
+        from .native import SlaveArray
 
         self.lib = fastloop.library()
         sysm = alg.system
-        n = len(sysm.slaves)
-        self.arr = (fastloop.CSlave * n)()
-        self.keep = []
-        for i, s in enumerate(sysm.slaves):
-            ne = s.native()
-            if ne is None:
-                raise UserError(f"{s.name} has no C entry points; use master.engine: python")
-            c = self.arr[i]
-            c.fmi3, c.n_in, c.n_out = int(ne.fmi3), len(sysm.in_vrs[i]), len(sysm.out_vrs[i])
+        self.arr = arr = SlaveArray(sysm)
+        for i in range(len(arr)):
+            c = arr[i]
             if alg.interpolating[i]:
-                orders, fresh = np.ones(c.n_in, dtype=np.int32), alg.fresh[i].astype(np.int8)
-                self.keep += [orders, fresh]
-                c.interp, c.set_der = 1, ne.set_input_derivatives
-                c.orders, c.fresh = orders.ctypes.data, fresh.ctypes.data
-                c.hist, c.slope = alg.hist[i].ctypes.data, alg.slopes[i].ctypes.data
+                c.interp, c.set_der = 1, arr.entries[i].set_input_derivatives
+                c.orders, c.fresh = arr.buffer(np.ones(c.n_in, dtype=np.int32), np.int32), arr.buffer(
+                    alg.fresh[i].astype(np.int8), np.int8)
+                c.hist, c.slope = arr.buffer(alg.hist[i]), arr.buffer(alg.slopes[i])
             c.rate, c.sub_ns = alg.rates[i], alg.step_ns // alg.rates[i]
             if alg.rates[i] > 1 and alg.interpolating[i]:
-                base = np.empty(c.n_in)
-                self.keep.append(base)
-                c.base = base.ctypes.data
-            c.in_off, c.out_off = sysm.in_off[i], sysm.out_off[i]
-            c.inst, c.do_step, c.get, c.set = ne.instance, ne.do_step, ne.get_real, ne.set_real
-            for arr in (sysm.in_vrs[i], sysm.in_src[i], sysm.out_vrs[i]):
-                self.keep.append(arr)
-            c.in_vr = sysm.in_vrs[i].ctypes.data if c.n_in else None
-            c.in_src = sysm.in_src[i].ctypes.data if c.n_in else None
-            c.out_vr = sysm.out_vrs[i].ctypes.data if c.n_out else None
+                c.base = arr.buffer(np.empty(c.n_in))
         self.order = np.array(alg.order, dtype=np.int32)
         self.rec_idx = sysm.record_idx
         self.alg = alg
@@ -61,13 +57,13 @@ class _Compiled:
     def run(self, nsteps: int, rec_every: int, rec: np.ndarray) -> int:
         alg, sysm = self.alg, self.alg.system
         self.master_ns.value = 0
-        done = self.lib.rpr_run(self.arr, len(self.arr), self.order.ctypes.data, alg.native_code,
+        done = self.lib.rpr_run(self.arr.arr, len(self.arr), self.order.ctypes.data, alg.native_code,
                                 sysm.v.ctypes.data, alg.k, nsteps, alg.step_ns, int(alg.timing),
                                 self.rec_idx.ctypes.data if self.rec_idx.size else None, len(self.rec_idx),
                                 rec_every, rec.ctypes.data, self.c.byref(self.n_rows),
                                 self.c.byref(self.fail_slave), self.c.byref(self.fail_status),
                                 self.c.byref(self.master_ns), self.budget_ns)
-        for i, c in enumerate(self.arr):
+        for i, c in enumerate(self.arr.arr):
             alg.calls[i], alg.slave_ns[i] = c.calls, c.ns
         alg.master_ns += self.master_ns.value
         alg.k += int(done)
@@ -118,7 +114,10 @@ def choose_engine(system: CoupledSystem, alg_cls: type[Algorithm], engine: str, 
         raise UserError(f"master.engine must be auto, compiled or python, got {engine!r}")
     if engine == "python":
         return "python"
-    native = alg_cls.native_code is not None and all(s.native() is not None for s in system.slaves)
+    entries = [s.native() for s in system.slaves]
+    native = alg_cls.native_code is not None and all(ne is not None for ne in entries)
+    if native and getattr(alg_cls, "needs_rollback", False):  # iterative: the loop saves and restores states
+        native = all(ne.get_state and ne.set_state for ne in entries)
     if engine == "compiled" and system.transformed:
         raise UserError("master.engine: compiled copies connections as they are; connections with a linear "
                         "transformation (factor, offset) run in the Python loop: use master.engine: python or auto")
@@ -133,6 +132,9 @@ def choose_engine(system: CoupledSystem, alg_cls: type[Algorithm], engine: str, 
             raise UserError(f"master.engine: compiled needs FMU slaves and an algorithm with a compiled loop "
                             f"({alg_cls.name} / {', '.join(s.name for s in system.slaves if s.native() is None) or 'all FMUs'})")
         return "compiled"
-    from . import fastloop
+    if alg_cls.native_code == ITERATIVE:
+        from . import iterative_engine as loop
+    else:
+        from . import fastloop as loop
 
-    return "compiled" if native and fastloop.available() else "python"
+    return "compiled" if native and loop.available() else "python"

@@ -8,12 +8,13 @@ import shutil
 import tempfile
 from abc import ABC, abstractmethod
 from collections.abc import Callable, Sequence
-from ctypes import POINTER, c_bool, c_double, c_int, c_size_t, c_uint32, c_void_p
+from ctypes import POINTER, c_bool, c_double, c_int, c_uint32, c_void_p
 from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
 
+from fmus.fmi_functions import prototype
 
 from ..errors import UserError
 from .description import SlaveDescription, describe_fmu
@@ -78,16 +79,13 @@ def _unzip(path: Path) -> str:
     return _UNZIPPED[key]
 
 
-_DoStep2 = ctypes.CFUNCTYPE(c_int, c_void_p, c_double, c_double, c_int)
-_GetState = ctypes.CFUNCTYPE(c_int, c_void_p, POINTER(c_void_p))  # also the free function's signature
-_SetState = ctypes.CFUNCTYPE(c_int, c_void_p, c_void_p)
-_IO2 = ctypes.CFUNCTYPE(c_int, c_void_p, POINTER(c_uint32), c_size_t, POINTER(c_double))
-_DoStep3 = ctypes.CFUNCTYPE(c_int, c_void_p, c_double, c_double, c_bool, POINTER(c_bool), POINTER(c_bool),
-                            POINTER(c_bool), POINTER(c_double))
-_IO3 = ctypes.CFUNCTYPE(c_int, c_void_p, POINTER(c_uint32), c_size_t, POINTER(c_double), c_size_t)
-_RAW2 = ctypes.CFUNCTYPE(c_int, c_void_p, c_void_p, c_size_t, c_void_p)
-_RAW3 = ctypes.CFUNCTYPE(c_int, c_void_p, c_void_p, c_size_t, c_void_p, c_size_t)
-_SetDer2 = ctypes.CFUNCTYPE(c_int, c_void_p, POINTER(c_uint32), c_size_t, POINTER(c_int), POINTER(c_double))
+_DoStep2 = prototype("fmi2DoStep")
+_GetState = prototype("fmi2GetFMUstate")  # FMI 3.0's and the free functions have the same signature
+_SetState = prototype("fmi2SetFMUstate")
+_Get2, _Set2 = prototype("fmi2GetReal"), prototype("fmi2SetReal")
+_DoStep3 = prototype("fmi3DoStep")
+_Get3, _Set3 = prototype("fmi3GetFloat64"), prototype("fmi3SetFloat64")
+_SetDer2 = prototype("fmi2SetRealInputDerivatives")
 
 
 def _addr(fn) -> int:
@@ -126,8 +124,8 @@ class FmiVersion(ABC):
         ...
 
     @abstractmethod
-    def raw(self, type_name: str, ft) -> tuple[str, object, object]:
-        """(C type name, numpy storage type, ctypes prototype) of a typed getter or setter."""
+    def raw(self, type_name: str, ft) -> tuple[str, object]:
+        """(the type's name in the C function, numpy storage type) of a typed getter or setter."""
         ...
 
     @abstractmethod
@@ -152,7 +150,9 @@ class FmiVersion(ABC):
         ...
 
     @abstractmethod
-    def native(self, slave: "FmuSlave", dll, state: tuple[int, int, int]) -> NativeEntry:
+    def native(self, slave: "FmuSlave", dll, state: tuple[int, int, int], directional: int) -> NativeEntry:
+        """The C entry points (``state``: get/set/free FMU state, ``directional``:
+        GetDirectionalDerivative; 0 where absent)."""
         ...
 
 
@@ -175,8 +175,8 @@ class _Fmi2(FmiVersion):
 
     def bind_step(self, slave, dll):
         step = _DoStep2(_addr(dll.fmi2DoStep))
-        slave._get = _IO2(_addr(dll.fmi2GetReal))
-        slave._set = _IO2(_addr(dll.fmi2SetReal))
+        slave._get = _Get2(_addr(dll.fmi2GetReal))
+        slave._set = _Set2(_addr(dll.fmi2SetReal))
         inst = slave._inst
 
         def do_step(t: float, h: float) -> int:
@@ -194,7 +194,7 @@ class _Fmi2(FmiVersion):
         return ft.fmi2
 
     def raw(self, type_name, ft):
-        return ft.fmi2, (np.float64 if type_name == "Real" else np.int32), _RAW2
+        return ft.fmi2, (np.float64 if type_name == "Real" else np.int32)
 
     def raw_call(self, fn, inst, p_vr, n_vr, p_buf, n_values, keep):
         return lambda: fn(inst, p_vr, n_vr, p_buf) if keep else 0
@@ -219,10 +219,10 @@ class _Fmi2(FmiVersion):
 
         return slave.fmu.getRealStatus(fmi2LastSuccessfulTime)
 
-    def native(self, slave, dll, state):
+    def native(self, slave, dll, state, directional):
         der = _addr(dll.fmi2SetRealInputDerivatives) if slave.description.can_interpolate_inputs else 0
         return NativeEntry(False, slave.fmu.component, _addr(dll.fmi2DoStep), _addr(dll.fmi2GetReal),
-                           _addr(dll.fmi2SetReal), der, *state, _boolean_status(dll))
+                           _addr(dll.fmi2SetReal), der, *state, _boolean_status(dll), directional)
 
 
 class _Fmi3(FmiVersion):
@@ -240,8 +240,8 @@ class _Fmi3(FmiVersion):
 
     def bind_step(self, slave, dll):
         step = _DoStep3(_addr(dll.fmi3DoStep))
-        slave._get = _IO3(_addr(dll.fmi3GetFloat64))
-        slave._set = _IO3(_addr(dll.fmi3SetFloat64))
+        slave._get = _Get3(_addr(dll.fmi3GetFloat64))
+        slave._set = _Set3(_addr(dll.fmi3SetFloat64))
         flags = [c_bool(), c_bool(), c_bool()]  # eventHandlingNeeded, terminateSimulation, earlyReturn
         slave._last_t = c_double()
         p_flags, p_last, inst = [ctypes.byref(f) for f in flags], ctypes.byref(slave._last_t), slave._inst
@@ -263,7 +263,7 @@ class _Fmi3(FmiVersion):
         return ft.fmi3
 
     def raw(self, type_name, ft):
-        return ft.fmi3, (np.bool_ if type_name == "Boolean" else ft.dtype), _RAW3
+        return ft.fmi3, (np.bool_ if type_name == "Boolean" else ft.dtype)
 
     def raw_call(self, fn, inst, p_vr, n_vr, p_buf, n_values, keep):
         return lambda: fn(inst, p_vr, n_vr, p_buf, n_values) if keep else 0
@@ -277,9 +277,10 @@ class _Fmi3(FmiVersion):
     def last_time(self, slave):
         return slave._last_t.value
 
-    def native(self, slave, dll, state):
+    def native(self, slave, dll, state, directional):
         return NativeEntry(True, slave.fmu.component, _addr(dll.fmi3DoStep), _addr(dll.fmi3GetFloat64),
-                           _addr(dll.fmi3SetFloat64), 0, *state)
+                           _addr(dll.fmi3SetFloat64), 0, *state, directional_derivative=directional,
+                           last_time=ctypes.addressof(slave._last_t))
 
 
 FMI2, FMI3 = _Fmi2(), _Fmi3()
@@ -377,8 +378,9 @@ class FmuSlave(Slave):
         FMI storage type: FMI 2.0 Boolean and Enumeration are int32); returns the FMI status."""
         from .types import TYPES
 
-        ctype, dtype, proto = self.fmi.raw(type_name, TYPES[type_name])
-        fn = proto(_addr(getattr(self.fmu.dll, f"fmi{self.fmi.major}{verb.capitalize()}{ctype}")))
+        ctype, dtype = self.fmi.raw(type_name, TYPES[type_name])
+        fname = f"fmi{self.fmi.major}{verb.capitalize()}{ctype}"
+        fn = prototype(fname, raw=True)(_addr(getattr(self.fmu.dll, fname)))
         vr = np.ascontiguousarray(vrs, dtype=np.uint32)
         buf = np.zeros(n_values, dtype=dtype)
         inst, p_vr, n_vr, p_buf = self._inst, vr.ctypes.data, len(vr), buf.ctypes.data
@@ -494,7 +496,20 @@ class FmuSlave(Slave):
                 st = tuple(_addr(getattr(dll, x)) for x in self.fmi.state_names)
             except AttributeError:  # declared but not exported: no compiled rollback
                 st = (0, 0, 0)
-        return self.fmi.native(self, dll, st)
+        dd = 0
+        if self.description.provides_directional_derivative:
+            try:
+                dd = _addr(getattr(dll, f"fmi{self.fmi.major}GetDirectionalDerivative"))
+            except AttributeError:  # declared but not exported: finite differences
+                dd = 0
+        return self.fmi.native(self, dll, st, dd)
+
+    def state_slot(self) -> int:
+        """The address of this slave's FMU-state pointer (the one :meth:`save_state` fills): a
+        compiled loop that saves states there leaves them to be freed with the instance."""
+        if getattr(self, "_state", None) is None:
+            self._state = c_void_p()
+        return ctypes.addressof(self._state)
 
     @property
     def can_rollback(self) -> bool:

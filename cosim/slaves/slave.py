@@ -41,7 +41,8 @@ class NativeEntry:
     its doStep, GetReal/GetFloat64 and SetReal/SetFloat64 functions, and of
     fmi2SetRealInputDerivatives (0 when the slave does not interpolate inputs); for the compiled
     adaptive engine also get/set/free FMU state (0 when it cannot roll back) and
-    fmi2GetBooleanStatus (0 for FMI 3.0)."""
+    fmi2GetBooleanStatus (0 for FMI 3.0); for the compiled iterative engine the FMU's
+    GetDirectionalDerivative (0 when it does not provide directional derivatives)."""
 
     fmi3: bool
     instance: int
@@ -53,6 +54,9 @@ class NativeEntry:
     set_state: int = 0
     free_state: int = 0
     get_boolean_status: int = 0
+    directional_derivative: int = 0
+    #: FMI 3.0: the address of the double the slave reports its last successful time from (0: none)
+    last_time: int = 0
 
 
 class Slave(ABC):

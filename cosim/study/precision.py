@@ -53,7 +53,7 @@ from pathlib import Path
 import numpy as np
 
 from ..analysis.compare import Difference, compare
-from ..errors import UserError
+from ..errors import RUN_ERRORS, UserError
 from ..scenario import load
 from .fidelity import resolve_auto
 from ..trace.traces import Trace
@@ -219,7 +219,7 @@ def _refused(scene_path: Path | str, over: dict) -> str:
 
     try:
         load(scene_path, over, auto_fidelity=resolve_auto)
-    except (SceneError, UserError) as exc:
+    except (SceneError, *RUN_ERRORS) as exc:
         text = str(exc).strip().splitlines()
         return text[0] if text else type(exc).__name__
     return ""
@@ -502,7 +502,7 @@ def ecospy_row(scene_path, common: dict, step: float, record: float, ref: Trace,
         row.status = "ok"
         _fill_errors(row, relative_errors(compare(trace, ref, only), scale))
         row.reason = f"compared: {len(row.errors)} outputs without direct feedthrough"
-    except UserError as exc:
+    except RUN_ERRORS as exc:
         row.reason = str(exc)
     except Exception as exc:  # the peer's failure is its row, never the study's
         row.reason = f"{type(exc).__name__}: {exc}"

@@ -12,7 +12,7 @@ so the bytes are exactly those of ``",".join(map(repr, row))``.  Blocks with NaN
 (orjson writes ``null``) and installations without orjson take the ``repr`` path.
 
 The rewrite (rows apart, the two notations) is one pass of a few lines of C (:data:`C_SOURCE`,
-compiled once and cached like the master loop, :func:`cosim.master.fastloop.compile_library`): ~1 ns
+compiled once and cached like the master loop, :func:`fmus.native.load`): ~1 ns
 per byte, where doing it with Python's bytes and regular expressions cost twice orjson's own
 time.  Without a C compiler the same rewrite runs in Python.
 """
@@ -88,12 +88,12 @@ size_t rpr_csv_rows(const char *in, size_t n, char *out) {
 @lru_cache(maxsize=1)
 def _c_rows():
     """The compiled :data:`C_SOURCE` function, or None without a working C compiler."""
-    from ..errors import UserError
-    from ..master.fastloop import compile_library
+    from fmus.errors import BuildError
+    from fmus.native import load
 
     try:
-        fn = compile_library(C_SOURCE, "rpr_text").rpr_csv_rows
-    except (UserError, OSError):
+        fn = load(C_SOURCE, "rpr_text").rpr_csv_rows
+    except (BuildError, OSError):
         return None
     fn.restype = ctypes.c_size_t
     fn.argtypes = [ctypes.c_void_p, ctypes.c_size_t, ctypes.c_void_p]

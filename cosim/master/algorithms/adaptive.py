@@ -33,7 +33,8 @@ values belong to).  Statistics: accepted and rejected steps, rollbacks, smallest
 Engines: :class:`AdaptiveStepper` here is the reference implementation (Python loop); where every
 slave is an FMU with C entry points and state get/set (``master.engine`` auto or compiled),
 :mod:`cosim.master.adaptive_engine` runs the same accepted-step loop in C, step for step and bit
-for bit the same (``tests/test_adaptive_engine.py``).
+for bit the same (``tests/test_adaptive_engine.py``); likewise for ecco's stepper
+(``tests/test_native.py``).
 """
 from __future__ import annotations
 
@@ -91,6 +92,8 @@ class AdaptiveStepper:
     k_i, k_p = 0.7, 0.4
     #: every slave must save/restore its state (a rejected step is rolled back)
     needs_rollback = True
+    #: the compiled loop of exactly this class (:mod:`cosim.master.adaptive_engine`)
+    native_loop = "adaptive"
 
     def __init__(self, system, order: Sequence[int], options: dict[str, float], start_ns: int, stop_ns: int):
         self.system = system
@@ -251,7 +254,7 @@ class AdaptiveStepper:
 
 class VariableStepper:
     """A variable-step stepper (:class:`AdaptiveStepper` or a subclass, or its compiled loop
-    :class:`cosim.master.adaptive_engine.CompiledAdaptive`) as the driver loop
+    :class:`cosim.master.adaptive_engine.CompiledAdaptive` / ``CompiledEcco``) as the driver loop
     (:func:`cosim.master.stepper.drive`) steps it: one recorded row per accepted step, with the
     guards' watched values after the recorded ones."""
 
@@ -347,19 +350,21 @@ def variable_stepper(system, *, cls, step_ns: int, n_steps: int, order: Sequence
     stop_ns = start_ns + n_steps * step_ns
     opts = option_values(options, getattr(cls, "options", OPTIONS))
     seq = list(order) if order is not None else gauss_seidel_order(len(system.slaves), system.slave_edges())
+    from ..adaptive_engine import compiled_stepper, has_compiled
+
     kind = getattr(cls, "stepper", None) or AdaptiveStepper
-    name = _engine(system, engine, kind is AdaptiveStepper, cls.name)
+    name = _engine(system, engine, has_compiled(kind), cls.name, kind.needs_rollback)
     stepper = kind(system, seq, opts, start_ns, stop_ns)
     if name == "compiled":
-        from ..adaptive_engine import CompiledAdaptive
-
-        stepper = CompiledAdaptive(stepper)
+        stepper = compiled_stepper(stepper)
     return VariableStepper(stepper, system, name, start_ns)
 
 
-def _engine(system, engine: str, compiled_exists: bool = True, name: str = "adaptive") -> str:
-    """``"compiled"`` or ``"python"`` for ``engine`` in auto | compiled | python; only
-    :class:`AdaptiveStepper` has a compiled loop (``compiled_exists``)."""
+def _engine(system, engine: str, compiled_exists: bool = True, name: str = "adaptive",
+            rollback: bool = True) -> str:
+    """``"compiled"`` or ``"python"`` for ``engine`` in auto | compiled | python; the steppers
+    with a compiled loop (``compiled_exists``): :class:`AdaptiveStepper` and ecco's, which does
+    not roll back (``rollback``)."""
     from ..adaptive_engine import usable
 
     if engine not in ("auto", "compiled", "python"):
@@ -368,11 +373,11 @@ def _engine(system, engine: str, compiled_exists: bool = True, name: str = "adap
         raise UserError(f"master algorithm {name} has no compiled loop; use master.engine auto or python")
     if engine == "python" or not compiled_exists:
         return "python"
-    ok = usable(system)
+    ok = usable(system, rollback)
     if engine == "compiled" and not ok:
-        raise UserError("master.engine: compiled for adaptive needs FMU slaves with C entry points and FMU state "
-                        "get/set, scalar Float64 connections without transformation, and a C compiler; use engine "
-                        "auto or python")
+        raise UserError(f"master.engine: compiled for {name} needs FMU slaves with C entry points"
+                        f"{' and FMU state get/set' if rollback else ''}, scalar Float64 connections without "
+                        f"transformation, and a C compiler; use engine auto or python")
     return "compiled" if ok else "python"
 
 

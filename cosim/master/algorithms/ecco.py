@@ -39,6 +39,10 @@ stepping order, and per bond the largest scaled residual of a step, the largest 
 residual summed over the run (signed: the energy the coupling created) and its absolute sum [J],
 the energy carried [J], the net residual scaled like a step's (``|sum dE| / (atol + rtol * sum
 E)``) and the steps over tolerance.
+
+Engines: :class:`EccoStepper` is the reference (Python loop); with FMU slaves that have C entry
+points, :class:`cosim.master.adaptive_engine.CompiledEcco` takes the same steps in C, bit for bit
+(``tests/test_native.py``).
 """
 from __future__ import annotations
 
@@ -131,8 +135,12 @@ class BondRecord:
 
     @property
     def run_scaled(self) -> float:
-        """The run's net residual against the same tolerance: ``|sum dE| / (atol + rtol * sum E)``."""
-        return abs(self.residual_sum) / (self.atol + self.rtol * self.energy)
+        """The run's net residual against the same tolerance: ``|sum dE| / (atol + rtol * sum E)``
+        (0 for no residual, inf for a residual against a zero tolerance: ``atol`` 0 and no energy)."""
+        scale = self.atol + self.rtol * self.energy
+        if scale > 0:
+            return abs(self.residual_sum) / scale
+        return math.inf if self.residual_sum else 0.0
 
     def as_dict(self) -> dict:
         return {"max_scaled_residual": self.max_scaled, "max_energy_residual_J": self.max_residual,
@@ -167,6 +175,8 @@ class EccoStepper(AdaptiveStepper):
     rolled back, its size chosen from the bonds' energy residual."""
 
     needs_rollback = False
+    #: the compiled loop of exactly this class (:class:`cosim.master.adaptive_engine.CompiledEcco`)
+    native_loop = "ecco"
     #: steps in a row over tolerance at the step floor ``h_min`` after which the run ends as unstable
     floor_patience = 100
 

@@ -44,6 +44,11 @@ loop's values consistent before the first row is recorded.
 
 Statistics: passes (iterations) per step (mean and max), rollbacks (state restores), Jacobians
 built (from directional derivatives or finite differences) and Broyden updates.
+
+Engines: this class is the reference (Python loop); where every slave is an FMU with C entry
+points and state get/set, :mod:`cosim.master.iterative_engine` takes the same steps in C, bit for
+bit (``tests/test_native.py``; the start-time iteration stays here).  Newton's small linear
+algebra is :mod:`cosim.master.dense` in both: a fixed order of operations that C repeats exactly.
 """
 from __future__ import annotations
 
@@ -58,6 +63,7 @@ from ...slaves.slave import FAILING, Status
 from ..algorithm import Algorithm, register
 from ..system import CoupledSystem
 from ..algorithm import AlgorithmOption, option_values
+from .. import dense
 
 _ns = time.perf_counter_ns
 
@@ -100,6 +106,8 @@ class Iterative(Algorithm):
     """Strong coupling by fixed-point or Newton iteration within each macro step (module docstring)."""
 
     name = "iterative"
+    #: compiled: :mod:`cosim.master.iterative_engine` (engine.ITERATIVE)
+    native_code = 2
     sequential = True
     needs_rollback = True
     solves_algebraic_loops = True
@@ -282,7 +290,7 @@ class Iterative(Algorithm):
             cols = np.flatnonzero(np.any(du != 0.0, axis=1))
             if not len(cols):
                 continue
-            dy = self._local_jacobian(i, cols, t, h, step) @ du[cols]
+            dy = dense.matmul(self._local_jacobian(i, cols, t, h, step), du[cols])
             for q, (_, k) in enumerate(self.feeding[i]):
                 dv[k] = dy[q]
         zero = np.zeros(m)
@@ -339,14 +347,13 @@ class Iterative(Algorithm):
                         self.J, fresh_j = self._jacobian(t, h, step), True
                     elif r_old is not None:
                         dz, dr = z - z_old, r - r_old
-                        den = float(dz @ dz)
+                        den = dense.dot(dz, dz)
                         if den > 0:
                             jf = self.J - np.eye(m)
-                            self.J = self.J + np.outer(dr - jf @ dz, dz) / den
+                            self.J = self.J + np.outer(dr - dense.matvec(jf, dz), dz) / den
                             self.broyden += 1
-                    try:
-                        dz = np.linalg.solve(np.eye(m) - self.J, r)
-                    except np.linalg.LinAlgError:
+                    dz = dense.solve(np.eye(m) - self.J, r)
+                    if dz is None:
                         dz = r  # a singular I - J: one plain fixed-point pass, then Broyden again
                 else:
                     dz = opt["omega"] * r
