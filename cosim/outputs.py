@@ -25,13 +25,19 @@ import socket
 import sys
 import tempfile
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 from .errors import UserError
 
 #: Longest scene name accepted as a file name stem [characters].
 MAX_NAME = 100
+#: The lock file of an output directory, for runs, batches and studies alike.
 LOCK_NAME = ".rpr-cosim.lock"
+#: Endings of the names rpr-cosim gives files of its own next to a scene's (``<name>.prev.csv``,
+#: ``<name>_reference.csv``, ...): a scene name ending so could collide with another's files.
+RESERVED_ENDINGS = (".prev", ".part", ".tmp", ".lock", "_reference", "_vs_reference")
 _SAFE = re.compile(r"^[A-Za-z0-9_][A-Za-z0-9_.\-]*$")
 
 
@@ -46,6 +52,10 @@ def name_problem(name: object) -> str | None:
     if "/" in name or "\\" in name or ".." in name or not _SAFE.match(name):
         return (f"name {shown!r} must be a plain file name: letters, digits, '_', '-' and '.', not starting "
                 f"with '.' or '-', no '/' and no '..' (it names the trace files under --out)")
+    ending = next((e for e in RESERVED_ENDINGS if name.lower().endswith(e)), None)
+    if ending:
+        return (f"name {shown!r} ends with {ending!r}, which rpr-cosim uses for files of its own next to a "
+                f"scene's ({name[:-len(ending)] or 'x'}{ending}.csv could be another scene's); choose another name")
     return None
 
 
@@ -64,12 +74,19 @@ def stem_name(stem: str) -> str:
 
 
 def confined(out_dir: Path, filename: str) -> Path:
-    """``out_dir / filename`` after checking that it resolves inside ``out_dir``."""
+    """``out_dir / filename`` after checking that it resolves inside ``out_dir`` (symbolic links
+    included).  The path returned is the name itself, not a link's target: every file is created
+    afresh or renamed into place (:func:`create_new`, :func:`place`), which replaces a link of
+    that name instead of writing through it."""
     root = Path(out_dir).resolve()
-    path = (root / filename).resolve()
-    if path.parent != root and root not in path.parents:
-        raise UserError(f"refusing to write {filename!r}: it resolves to {path}, outside the output directory {root}")
-    return path
+    path = root / filename
+    folder = path.parent.resolve()
+    resolved = path.resolve()
+    for p in (folder / "x", resolved):
+        if path.name in ("", ".", "..") or (p.parent != root and root not in p.parents):
+            raise UserError(f"refusing to write {filename!r}: it resolves to {resolved}, outside the output "
+                            f"directory {root}")
+    return folder / path.name
 
 
 def check_out_dir(out_dir: Path) -> Path:
@@ -126,6 +143,9 @@ class OutputLock:
     without releasing it, settles that run's files first (:func:`settle_stale`).  Another live
     run holding it is a :class:`UserError` naming its pid."""
 
+    #: How long a lock whose holder died is waited for (its forked children still hold it) [s].
+    GRACE_S = 3.0
+
     def __init__(self, out_dir: Path, *, log=None):
         self.dir = Path(out_dir)
         self.log = log
@@ -137,8 +157,9 @@ class OutputLock:
             _HELD[key][1] += 1
             return self
         path = key / LOCK_NAME
-        for attempt in range(20):
-            fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+        deadline = time.monotonic() + self.GRACE_S
+        for attempt in range(100):
+            fd = _open_lock(path)
             try:
                 fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
             except OSError as exc:
@@ -149,6 +170,10 @@ class OutputLock:
                     time.sleep(0.05)
                     continue
                 held = _read_lock(path)
+                pid = held.get("pid")
+                if isinstance(pid, int) and not pid_alive(pid) and time.monotonic() < deadline:
+                    time.sleep(0.05)  # a killed batch's workers hold it until they notice (~0.2 s)
+                    continue
                 raise UserError(f"output directory {self.dir} is in use by another run (pid {held.get('pid', '?')}"
                                 f"{', ' + held['command'] if held.get('command') else ''}, started "
                                 f"{held.get('started', '?')}); wait for it to end or choose another --out") from None
@@ -159,7 +184,7 @@ class OutputLock:
             if same:
                 break
             os.close(fd)  # the file was replaced while we waited: take the new one
-        else:  # pragma: no cover - would need 20 replacements in a row
+        else:  # pragma: no cover - would need 100 replacements in a row
             raise UserError(f"output directory {self.dir}: could not take {LOCK_NAME}")
         previous = _read_lock(path)
         if previous.get("pid") and previous.get("pid") != os.getpid():
@@ -194,13 +219,25 @@ class OutputLock:
             os.close(fd)
 
 
+def _open_lock(path: Path) -> int:
+    """The lock file opened (created if needed) without following a symbolic link; a link planted
+    under its name is removed (a lock is never a link)."""
+    try:
+        return os.open(path, os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW | getattr(os, "O_CLOEXEC", 0), 0o644)
+    except OSError as exc:
+        if exc.errno != errno.ELOOP:
+            raise
+    os.unlink(path)
+    return os.open(path, os.O_RDWR | os.O_CREAT | os.O_EXCL | os.O_NOFOLLOW | getattr(os, "O_CLOEXEC", 0), 0o644)
+
+
 def holder(out_dir: Path) -> int | None:
     """The pid of the live process holding ``out_dir``'s lock, or None."""
     path = Path(out_dir) / LOCK_NAME
     if not path.exists():
         return None
     try:
-        fd = os.open(path, os.O_RDONLY)
+        fd = os.open(path, os.O_RDONLY | os.O_NOFOLLOW)
     except OSError:
         return None
     try:
@@ -233,6 +270,51 @@ def settle_if_stale(out_dir: Path, log=None) -> list[str]:
         return []
 
 
+# --- files that cannot be redirected ------------------------------------------------------------
+#: Flags of every file a run creates: never through a symbolic link, never an existing file.
+NEW_FILE = os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_NOFOLLOW | getattr(os, "O_CLOEXEC", 0)
+
+
+def create_new(path: Path, mode: int = 0o644) -> int:
+    """A file descriptor of ``path`` created afresh: whatever was there under that name (an old
+    temporary file, a planted symbolic link) is unlinked first, never followed or truncated."""
+    path = Path(path)
+    try:
+        os.unlink(path)
+    except FileNotFoundError:
+        pass
+    except IsADirectoryError:
+        raise UserError(f"refusing to write {path}: a directory of that name is in the way") from None
+    except OSError as exc:
+        if exc.errno in (errno.EISDIR, errno.EPERM) and path.is_dir():
+            raise UserError(f"refusing to write {path}: a directory of that name is in the way") from None
+        raise
+    return os.open(path, NEW_FILE, mode)
+
+
+def write_bytes(path: Path, data: bytes) -> None:
+    """Write ``path`` whole or not at all: a new temporary file (:func:`create_new`) renamed over
+    it (a rename replaces a symbolic link, it never writes through it)."""
+    path = Path(path)
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    fd = create_new(tmp)
+    try:
+        view, done = memoryview(data), 0
+        while done < len(data):
+            done += os.write(fd, view[done:])
+    except BaseException:
+        os.close(fd)
+        tmp.unlink(missing_ok=True)
+        raise
+    os.close(fd)
+    os.replace(tmp, path)
+
+
+def write_text(path: Path, text: str) -> None:
+    """:func:`write_bytes` of UTF-8 ``text``."""
+    write_bytes(path, text.encode())
+
+
 # --- temporary names and placement --------------------------------------------------------------
 def part_path(path: Path) -> Path:
     """The temporary name a file is written under until its run ends: ``.<name>.part``."""
@@ -244,6 +326,72 @@ def final_path(part: Path) -> Path:
     """Inverse of :func:`part_path`."""
     name = part.name
     return part.with_name(name[1:-len(".part")])
+
+
+def _head(path: Path, n: int = 4 << 20) -> bytes | None:
+    """The first ``n`` bytes of ``path`` (None when absent; b"" for a link or an unreadable file)."""
+    try:
+        fd = os.open(path, os.O_RDONLY | os.O_NOFOLLOW)
+    except FileNotFoundError:
+        return None
+    except OSError:
+        return b""
+    with os.fdopen(fd, "rb") as fh:
+        return fh.read(n)
+
+
+def check_ours(trace: Path) -> None:
+    """:class:`UserError` when a run's trace ``trace`` or its sidecar would replace a file that is
+    not an rpr-cosim trace or sidecar (a batch's ``results.csv`` or ``batch.json``, a study's table,
+    anything else): a run only ever replaces its own earlier outputs.  A trace is ours when it
+    says so (a commented CSV) or its sidecar does (a plain CSV, Parquet)."""
+    trace = Path(trace)
+    side = trace.with_suffix(".json")
+    side_head = _head(side)
+    side_ours = side_head is not None and b'"format": "rpr-cosim trace' in side_head
+    for path, head, ours in ((trace, _head(trace, 64), None), (side, side_head, side_ours)):
+        if head is None:
+            continue
+        if ours is None:
+            ours = head.startswith(b"# rpr-cosim trace") or (side_ours and not path.is_symlink())
+        if not ours:
+            raise UserError(f"refusing to replace {path}: it is not an rpr-cosim trace (another tool's file, or a "
+                            f"batch's or study's own); choose another --out or another scene name")
+
+
+@contextmanager
+def staged(final: Path) -> Iterator[Path]:
+    """A path to write ``final`` under (``.<stem>.part<suffix>``, created afresh by
+    :func:`create_new`, the suffix kept for writers that go by it) that is moved into place when
+    the block ends normally; after an exception (a signal) it is removed and an earlier
+    ``final`` stays as it was."""
+    final = Path(final)
+    part = final.with_name(f".{final.stem}.part{final.suffix}")
+    os.close(create_new(part))
+    try:
+        yield part
+    except BaseException:
+        part.unlink(missing_ok=True)
+        raise
+    os.replace(part, final)
+
+
+def amend_status(trace: Path, status: str, reason: str) -> None:
+    """Give a finished run (trace ``<out>/<name>.csv`` and its sidecar) a new final ``status`` and
+    ``reason`` (e.g. an animation interrupted after the run): status lines appended to the trace,
+    the sidecar rewritten (:func:`write_text`)."""
+    trace = Path(trace)
+    if (_head(trace, 1) or b"") == b"#":  # a commented CSV carries its status too; other formats: the sidecar
+        fd = os.open(trace, os.O_WRONLY | os.O_APPEND | os.O_NOFOLLOW)
+        with os.fdopen(fd, "a") as fh:
+            fh.write(f"# status: {json.dumps(status)}\n# reason: {json.dumps(reason)}\n")
+    side = trace.with_suffix(".json")
+    try:
+        data = json.loads(side.read_text())
+    except (OSError, ValueError):
+        data = {}
+    data.update(status=status, reason=reason)
+    write_text(side, json.dumps(data, indent=2))
 
 
 def prev_path(path: Path) -> Path:
@@ -291,7 +439,7 @@ def trim_to_whole_rows(path: Path) -> int:
     size = path.stat().st_size
     if size == 0:
         return 0
-    with open(path, "rb+") as fh:
+    with os.fdopen(os.open(path, os.O_RDWR | os.O_NOFOLLOW), "rb+") as fh:
         back = min(size, 1 << 16)
         fh.seek(size - back)
         tail = fh.read(back)
@@ -321,29 +469,52 @@ def settle_stale(out_dir: Path, previous: dict | None = None) -> list[str]:
             continue
         reason = (f"killed: the run ({who}) ended without finishing (SIGKILL, power loss or crash); "
                   f"found by pid {os.getpid()} at {time.strftime('%Y-%m-%dT%H:%M:%S%z')}")
-        trace_name = data.get("trace") or ""
+        rows, moved = _settle_side(out_dir, side, data, "killed", reason)
         final_side = final_path(side) if side.name.endswith(".part") else side
-        csv_final = out_dir / trace_name if trace_name else final_side.with_suffix(".csv")
-        csv_part = part_path(csv_final)
-        csv_now = csv_part if csv_part.exists() else csv_final
-        rows = 0
-        if csv_now.exists() and csv_final.suffix == ".csv":  # a Parquet trace without its footer stays as it is
-            trim_to_whole_rows(csv_now)
-            with open(csv_now, "rb") as fh:
-                commented = fh.read(1) == b"#"
-            if commented:  # a plain CSV keeps one header line and rows: the status is in the sidecar
-                with open(csv_now, "a") as fh:
-                    fh.write(f"# status: {json.dumps('killed')}\n# reason: {json.dumps(reason)}\n")
-            with open(csv_now) as fh:
-                rows = max(0, sum(1 for ln in fh if ln.strip() and not ln.startswith("#")) - 1)
-        data.update(status="killed", reason=reason, rows=rows)
-        tmp = side.with_name(side.name + ".tmp")
-        tmp.write_text(json.dumps(data, indent=2))
-        os.replace(tmp, side)
         note = f"{out_dir / final_side.name}: an earlier run was killed; marked \"killed\" ({rows} whole rows kept)"
-        if csv_now == csv_part:
-            moved = place(csv_part, csv_final, "killed", part_sidecar=side, sidecar=final_side)
-            if moved:
-                note += f"; {moved}"
-        notes.append(note)
+        notes.append(note + (f"; {moved}" if moved else ""))
     return notes
+
+
+def _settle_side(out_dir: Path, side: Path, data: dict, status: str, reason: str) -> tuple[int, str]:
+    """Give the run of sidecar ``side`` (its JSON ``data``) its final ``status`` and ``reason``:
+    the trace cut to whole rows, the status lines appended, both moved into place.  Returns the
+    rows kept and :func:`place`'s note."""
+    trace_name = data.get("trace") or ""
+    final_side = final_path(side) if side.name.endswith(".part") else side
+    csv_final = out_dir / trace_name if trace_name else final_side.with_suffix(".csv")
+    csv_part = part_path(csv_final)
+    csv_now = csv_part if csv_part.exists() else csv_final
+    rows = 0
+    if csv_now.exists() and csv_final.suffix == ".csv":  # a Parquet trace without its footer stays as it is
+        trim_to_whole_rows(csv_now)
+        with os.fdopen(os.open(csv_now, os.O_RDONLY | os.O_NOFOLLOW), "rb") as fh:
+            commented = fh.read(1) == b"#"
+        if commented:  # a plain CSV keeps one header line and rows: the status is in the sidecar
+            fd = os.open(csv_now, os.O_WRONLY | os.O_APPEND | os.O_NOFOLLOW)
+            with os.fdopen(fd, "a") as fh:
+                fh.write(f"# status: {json.dumps(status)}\n# reason: {json.dumps(reason)}\n")
+        with open(csv_now) as fh:
+            rows = max(0, sum(1 for ln in fh if ln.strip() and not ln.startswith("#")) - 1)
+    data.update(status=status, reason=reason, rows=rows)
+    write_text(side, json.dumps(data, indent=2))
+    moved = ""
+    if csv_now == csv_part:
+        moved = place(csv_part, csv_final, status, part_sidecar=side, sidecar=final_side)
+    return rows, moved
+
+
+def settle_run(trace: Path, status: str, reason: str) -> tuple[int, str] | None:
+    """Finish the run whose trace is ``trace`` (``<out>/<name>.csv``) when its process died while
+    it was running (a supervised run, :mod:`cosim.run.supervise`): the same as
+    :func:`settle_stale` with the supervisor's ``status`` and ``reason``.  Returns (rows kept,
+    placement note), or None when that run left no sidecar saying "running"."""
+    trace = Path(trace)
+    for side in (part_path(trace.with_suffix(".json")), trace.with_suffix(".json")):
+        try:
+            data = json.loads(side.read_text())
+        except (OSError, ValueError):
+            continue
+        if isinstance(data, dict) and data.get("status") == "running":
+            return _settle_side(trace.parent, side, data, status, reason)
+    return None

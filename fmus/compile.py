@@ -133,18 +133,26 @@ def library_suffix() -> str:
 
 
 def _run_compiler(compile_cmds: list[tuple[str, list[str]]], link: list[str], what: str) -> None:
-    """Compile (in parallel, one process each), then link; BuildError with the log's head."""
-    procs = [(obj, subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True))
-             for obj, cmd in compile_cmds]
+    """Compile (in parallel, one process each), then link; BuildError with the log's head.  The
+    compilers run in process groups of their own, ended with this process's build: a signal (or
+    any failure) here kills them too (the driver and its cc1/as/ld), not only this process."""
+    procs: list[subprocess.Popen] = []
     errors = []
-    for _, proc in procs:
-        out_text, err_text = proc.communicate()
-        if proc.returncode != 0:
-            errors.append((proc.returncode, (err_text or out_text).strip()))
-    if not errors:
-        res = subprocess.run(link, capture_output=True, text=True)
-        if res.returncode != 0:
-            errors.append((res.returncode, (res.stderr or res.stdout).strip()))
+    try:
+        procs += [_start(cmd) for _, cmd in compile_cmds]
+        for proc in procs:
+            out_text, err_text = proc.communicate()
+            if proc.returncode != 0:
+                errors.append((proc.returncode, (err_text or out_text).strip()))
+        if not errors:
+            proc = _start(link)
+            procs.append(proc)
+            out_text, err_text = proc.communicate()
+            if proc.returncode != 0:
+                errors.append((proc.returncode, (err_text or out_text).strip()))
+    except BaseException:
+        _stop_all(procs)
+        raise
     if errors:
         code, log_text = errors[0]
         head = " | ".join(log_text.splitlines()[:6])
@@ -178,6 +186,30 @@ def compile_program(src_dir: Path, sources: list[str], out: Path, *, name: str, 
             for s in sources]
     link = [cc, *[o for o, _ in cmds], "-o", str(out), *(["-static"] if static else []), "-lm"]
     _run_compiler(cmds, link, name)
+
+
+def _start(cmd: list[str]) -> subprocess.Popen:
+    """A compiler process in a process group of its own (the driver and its cc1/as/ld children),
+    so that :func:`_stop_all` ends all of them."""
+    return subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)
+
+
+def _stop_all(procs: list[subprocess.Popen]) -> None:
+    """Kill the process groups of ``procs`` still running and reap them."""
+    import os
+    import signal
+
+    for p in procs:
+        if p.poll() is None:
+            try:
+                os.killpg(p.pid, signal.SIGKILL)
+            except (ProcessLookupError, PermissionError):
+                pass
+    for p in procs:
+        try:
+            p.communicate(timeout=5)
+        except (subprocess.TimeoutExpired, OSError, ValueError):
+            pass
 
 
 def exported_symbols(library: Path) -> list[str]:

@@ -103,10 +103,16 @@ def test_output_jacobian_of_a_linear_slave_is_its_feedthrough():
 
 
 # --- the scene with an algebraic loop and its monolithic reference ------------------------------
-@pytest.mark.parametrize("alg", sorted(a for a, c in ALGORITHMS.items() if not getattr(c, "solves_algebraic_loops", False)))
+@pytest.mark.parametrize("alg", sorted(a for a, c in ALGORITHMS.items() if not getattr(c, "solves_algebraic_loops", False)
+                                      and not getattr(c, "delays_algebraic_loops", False)))
 def test_other_algorithms_refuse_the_loop_and_advise_iterative(alg):
     with pytest.raises(SceneError, match=r"algebraic loop .*fc\d\.\w+ -> .*master.algorithm: iterative"):
         load(FORCE_LOOP, {"master.algorithm": alg})
+
+
+def test_jacobi_runs_the_loop_with_its_one_step_delay_and_says_so():
+    sc = load(FORCE_LOOP, {"master.algorithm": "jacobi"})
+    assert any("jacobi runs it with its one-step coupling delay" in w.message for w in sc.warnings)
 
 
 def test_an_unknown_method_is_refused_at_its_line(tmp_path):

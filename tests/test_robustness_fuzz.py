@@ -1,10 +1,15 @@
-"""Seeded fuzzing of the scene loader over random mutations of the shipped scenes (issue #7):
-whatever a mutated scene says, loading it either succeeds or raises a one-line user error; it
-never escapes as any other exception (a traceback for the user)."""
+"""Seeded fuzzing of the scene and batch loaders over random mutations of the shipped scenes and
+batches (issues #7 and 20): whatever a mutated file says (deep nesting, complex keys, anchors,
+FMUs that are FMI 1.0 fakes or hold two model descriptions), loading it either succeeds or
+raises a one-line user error; it never escapes as any other exception (a traceback for the user).
+
+The default run makes about 6,000 cases; ``RPR_COSIM_FUZZ_SCALE=N`` makes N times as many."""
 from __future__ import annotations
 
 import copy
+import os
 import random
+import zipfile
 from pathlib import Path
 
 import pytest
@@ -16,13 +21,38 @@ ROOT = Path(__file__).resolve().parents[1]
 SCENES = ROOT / "scenarios"
 # the shipped scenes (batch files, scenarios/batch_*.yaml, are a different format: tests/test_batch_spec.py)
 SHIPPED = sorted(p.stem for p in SCENES.glob("*.yaml") if not p.stem.startswith("batch_"))
+BATCHES = sorted(p.stem for p in SCENES.glob("batch_*.yaml"))
+#: Multiplies the number of cases (the default keeps the suite quick).
+SCALE = max(1, int(os.environ.get("RPR_COSIM_FUZZ_SCALE", "1") or 1))
 
 #: Values a mutation puts somewhere: wrong types, extremes, names that try to leave a directory,
 #: nested structures, YAML look-alikes.
 ODD = [None, True, False, 0, -1, 1e308, -1e308, float("nan"), float("inf"), 1e-300, 2 ** 70, "", " ", "x" * 300,
        "../../etc/passwd", "/abs/path", "C:\\x", "nul\0byte", "é", "*", "[", "{a: 1}", "1e-3", "-> ", "<->",
        "mech.leg[9].s", "pid1.y -> pid1.y", [], {}, [1, 2], {"model": "pid"}, {"fmu": "missing.fmu"},
-       [[[[[]]]]], {"a": {"b": {"c": None}}}]
+       [[[[[]]]]], {"a": {"b": {"c": None}}}, {"fmu": "fake_fmi1.fmu"}, {"fmu": "two_descriptions.fmu"},
+       {"fmu": "climbs_out.fmu"}]
+#: Text a mutation inserts into a file: odd characters, deep nesting (beyond what the YAML reader
+#: recurses through), complex keys, anchors.
+INSERTS = [":", "-", "{", "}", "[", "]", "&a ", "*a", "!!str ", "\t", "'", '"', "#", "?", "%", "@", "|", ">", ",", "é",
+           "\x00", "1e999", "[" * 600 + "]" * 600, "{a: " * 300 + "1" + "}" * 300, "[" * 600,
+           "\n? [a, b]\n: 1\n", "\n? {a: 1}\n: 2\n", " fake_fmi1.fmu", " two_descriptions.fmu"]
+
+
+def hostile_archives(folder: Path) -> None:
+    """The FMUs the mutations point at: an FMI 1.0 fake whose description lacks most attributes,
+    an archive with two modelDescription.xml members, one with a member climbing out."""
+    with zipfile.ZipFile(folder / "fake_fmi1.fmu", "w") as z:
+        z.writestr("modelDescription.xml", '<?xml version="1.0"?><fmiModelDescription fmiVersion="1.0"/>')
+    import warnings
+
+    with zipfile.ZipFile(folder / "two_descriptions.fmu", "w") as z, warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # "Duplicate name": the point of this archive
+        z.writestr("modelDescription.xml", '<fmiModelDescription fmiVersion="2.0" modelName="a" guid="1"/>')
+        z.writestr("modelDescription.xml", "<garbage")
+    with zipfile.ZipFile(folder / "climbs_out.fmu", "w") as z:
+        z.writestr("modelDescription.xml", '<fmiModelDescription fmiVersion="2.0" modelName="a" guid="1"/>')
+        z.writestr("../../evil.so", "x")
 
 
 def _paths(node, prefix=()):
@@ -84,8 +114,7 @@ def mutate_text(text: str, rng: random.Random) -> str:
             lines[i], lines[j] = lines[j], lines[i]
         elif op < 0.7:
             pos = rng.randrange(len(lines[i]) + 1)
-            lines[i] = lines[i][:pos] + rng.choice([":", "-", "{", "}", "[", "]", "&a ", "*a", "!!str ", "\t", "'", '"',
-                                                    "#", "?", "%", "@", "|", ">", ",", "é", "\x00", "1e999"]) + lines[i][pos:]
+            lines[i] = lines[i][:pos] + rng.choice(INSERTS) + lines[i][pos:]
         elif op < 0.85:
             lines[i] = lines[i].replace(":", ": &x", 1) if ":" in lines[i] else lines[i]
             lines.append(f"extra: [*x, *x, *x]\n")
@@ -99,6 +128,17 @@ def _accept(fn) -> None:
         fn()
     except user_error_types():
         pass
+
+
+@pytest.fixture(scope="module")
+def archives(tmp_path_factory):
+    """A folder with the hostile FMUs (the base folder of the mutated trees)."""
+    folder = tmp_path_factory.mktemp("archives")
+    hostile_archives(folder)
+    for p in SCENES.iterdir():  # the files the shipped scenes refer to (relative to their folder)
+        if p.is_file() and not p.suffix == ".yaml":
+            (folder / p.name).write_bytes(p.read_bytes())
+    return folder
 
 
 @pytest.fixture(scope="module")
@@ -120,12 +160,12 @@ def shipped_trees(tmp_path_factory):
 
 @pytest.mark.parametrize("scene", SHIPPED)
 @pytest.mark.parametrize("seed", range(4))
-def test_mutated_scene_trees_load_or_give_a_user_error(shipped_trees, scene, seed):
+def test_mutated_scene_trees_load_or_give_a_user_error(shipped_trees, archives, scene, seed):
     rng = random.Random(f"tree-{scene}-{seed}")
-    for case in range(90):
+    for case in range(90 * SCALE):
         tree = mutate_tree(shipped_trees[scene], rng)
         try:
-            _accept(lambda: from_dict(tree, base_dir=SCENES))
+            _accept(lambda: from_dict(tree, base_dir=archives))
         except Exception as exc:  # pragma: no cover - the failure message is the point
             raise AssertionError(f"seed {seed} case {case}: {type(exc).__name__}: {exc}\n{tree}") from exc
 
@@ -134,16 +174,46 @@ def test_mutated_scene_trees_load_or_give_a_user_error(shipped_trees, scene, see
 @pytest.mark.parametrize("seed", range(2))
 def test_mutated_scene_files_load_or_give_a_user_error(tmp_path, scene, seed):
     rng = random.Random(f"text-{scene}-{seed}")
+    hostile_archives(tmp_path)
     text = (SCENES / f"{scene}.yaml").read_text()
     # the comment header costs parsing time and is never what breaks: fuzz the body
     body = "".join(ln for ln in text.splitlines(keepends=True) if not ln.startswith("#"))
     for fmu in SCENES.glob("*.fmu"):
         (tmp_path / fmu.name).write_bytes(fmu.read_bytes())
     path = tmp_path / f"{scene}.yaml"
-    for case in range(100):
+    for case in range(100 * SCALE):
         mutated = mutate_text(body, rng)
         path.write_bytes(mutated.encode("utf-8", errors="surrogatepass"))
         try:
             _accept(lambda: load(path))
         except Exception as exc:  # pragma: no cover
             raise AssertionError(f"seed {seed} case {case}: {type(exc).__name__}: {exc}\n{mutated}") from exc
+
+
+@pytest.mark.parametrize("batch", BATCHES)
+def test_mutated_batch_files_load_or_give_a_user_error(tmp_path, batch):
+    """Batch files: the same text mutations, plus huge grids and sample counts (refused by the
+    run limit in one line, before anything is expanded)."""
+    from cosim.batch.spec import load_batch
+
+    rng = random.Random(f"batch-{batch}")
+    text = (SCENES / f"{batch}.yaml").read_text()
+    body = "".join(ln for ln in text.splitlines(keepends=True) if not ln.startswith("#"))
+    for p in SCENES.glob("*.yaml"):
+        if not p.stem.startswith("batch_"):
+            (tmp_path / p.name).write_text(p.read_text())
+    hostile_archives(tmp_path)
+    path = tmp_path / f"{batch}.yaml"
+    extra = ["grid:\n" + "".join(f"  a{i}: {{path: stop_time, values: [{', '.join(map(str, range(1, 11)))}]}}\n"
+                                   for i in range(10)),
+             "random: {seed: 1, samples: 1000000000000, axes: {s: {path: stop_time, dist: uniform, low: 1, high: 2}}}\n",
+             "name: ../../evil\n", "name: /abs/evil\n", "grid: {stop_time: {from: 1, to: 2, num: 1000000000000}}\n"]
+    for case in range(40 * SCALE):
+        mutated = mutate_text(body, rng)
+        if rng.random() < 0.3:
+            mutated += rng.choice(extra)
+        path.write_bytes(mutated.encode("utf-8", errors="surrogatepass"))
+        try:
+            _accept(lambda: load_batch(path))
+        except Exception as exc:  # pragma: no cover
+            raise AssertionError(f"case {case}: {type(exc).__name__}: {exc}\n{mutated[:2000]}") from exc

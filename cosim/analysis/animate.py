@@ -92,8 +92,18 @@ def animate(trace: Trace, path: Path, *, manipulator: Manipulator | None = None,
         return [*legs, plat, centre, path_line, text]
 
     anim = FuncAnimation(fig, draw, frames=len(idx), blit=False)
+    from ..outputs import staged
+
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    anim.save(str(path), writer=PillowWriter(fps=fps))
-    plt.close(fig)
+    try:
+        with staged(path) as part:  # an interrupted animation never replaces a complete one
+            try:
+                anim.save(str(part), writer=PillowWriter(fps=fps))
+            except Exception as exc:  # the writer's own clean-up fails after a signal: the signal counts
+                if isinstance(exc.__context__, KeyboardInterrupt):
+                    raise exc.__context__ from None
+                raise
+    finally:
+        plt.close(fig)
     return path

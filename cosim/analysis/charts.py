@@ -135,10 +135,21 @@ def plot_comparison(test: Trace, ref: Trace, diffs, path: Path, *, labels: tuple
 
 
 def _save(fig, path: Path) -> Path:
+    return save_figure(fig, path, dpi=90)
+
+
+def save_figure(fig, path: Path, *, dpi: int | str = 90) -> Path:
+    """Write ``fig`` to ``path`` complete or not at all (a temporary name moved into place,
+    :func:`cosim.outputs.staged`, never through a link planted under that name) and close it."""
     import matplotlib.pyplot as plt
+
+    from ..outputs import staged
 
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=90)
-    plt.close(fig)
+    try:
+        with staged(path) as part:  # complete or not at all, never through a link
+            fig.savefig(part, dpi=dpi)
+    finally:
+        plt.close(fig)
     return path

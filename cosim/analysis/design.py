@@ -62,8 +62,11 @@ def format_table(table: Table) -> str:
 
 
 def write_csv(table: Table, path: Path) -> Path:
-    """Save the table as CSV with a header row (numbers at full precision)."""
-    with open(path, "w", newline="") as fh:
+    """Save the table as CSV with a header row (numbers at full precision), complete or not at
+    all and never through a link (:func:`cosim.outputs.staged`)."""
+    from ..outputs import staged
+
+    with staged(path) as part, open(part, "w", newline="") as fh:
         w = csv.writer(fh)
         w.writerow(table.keys or table.columns)
         for row in table.rows:
@@ -194,7 +197,9 @@ def save_map(result: WorkspaceResult, name: str, path: Path) -> Path:
     ax.set_xlabel("X position (cm)")
     ax.set_ylabel("Y position (cm)")
     ax.set_aspect("equal")
-    fig.savefig(path)
+    from .charts import save_figure
+
+    save_figure(fig, path, dpi="figure")
     return path
 
 
@@ -222,5 +227,7 @@ def save_platform_figures(rows: Sequence[A.PlatformSizeRow], out: Path) -> list[
         ax.legend()
         fig.tight_layout()
         paths.append(out / fname)
-        fig.savefig(paths[-1])
+        from .charts import save_figure
+
+        save_figure(fig, paths[-1], dpi="figure")
     return paths

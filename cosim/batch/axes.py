@@ -49,20 +49,32 @@ def _blocks(batch: Batch) -> Iterator[dict[str, Any]]:
                 yield {**g, **z, **(samples(batch, j) if batch.random else {})}
 
 
-def expand(batch: Batch) -> list[Point]:
-    """Every run of ``batch`` in order (grid outermost, then zip, then samples); a batch listing
-    its runs (:class:`cosim.batch.points.PointsBatch`) gives them as listed."""
+def points(batch: Batch) -> Iterator[Point]:
+    """Every run of ``batch`` in order (grid outermost, then zip, then samples), one at a time
+    (planning memory does not grow with the number of runs); a batch listing its runs
+    (:class:`cosim.batch.points.PointsBatch`) gives them as listed."""
     listed = getattr(batch, "points", None)
     if listed is not None:
-        return [Point(i, dict(values), {**batch.fixed, **over}) for i, (values, over) in enumerate(listed)]
+        for i, (values, over) in enumerate(listed):
+            yield Point(i, dict(values), {**batch.fixed, **over})
+        return
     paths = {ax.name: ax.paths for ax in batch.axes}
-    out = []
     for i, values in enumerate(_blocks(batch)):
         over = dict(batch.fixed)
         for name, v in values.items():
             over.update({p: v for p in paths[name]})
-        out.append(Point(i, values, over))
-    return out
+        yield Point(i, values, over)
 
 
-__all__ = ["Point", "draw", "expand", "samples"]
+def count(batch: Batch) -> int:
+    """The number of runs :func:`points` gives, without making them."""
+    listed = getattr(batch, "points", None)
+    return len(listed) if listed is not None else batch.n_runs
+
+
+def expand(batch: Batch) -> list[Point]:
+    """:func:`points` as a list."""
+    return list(points(batch))
+
+
+__all__ = ["Point", "count", "draw", "expand", "points", "samples"]

@@ -41,6 +41,7 @@ from multiprocessing.connection import wait
 from multiprocessing.reduction import ForkingPickler
 
 from ..errors import UserError
+from ..slaves import crumb
 from .worker import STATE, Outcome, Shared, Task, execute, worker_id
 
 OnStart = Callable[[Task, int], None]
@@ -74,12 +75,16 @@ def _die_with(parent_pid: int) -> None:
     threading.Thread(target=watch, name="batch-watchdog", daemon=True).start()
 
 
-def _worker_main(conn, shared: Shared, parent_pid: int, writer_thread: bool = True) -> None:
+def _worker_main(conn, shared: Shared, parent_pid: int, writer_thread: bool = True,
+                 crumb_path: str | None = None) -> None:
     """A local worker: runs tasks from ``conn`` until it receives None or the pipe closes;
-    ``writer_thread`` False: each run writes its trace in its stepping thread."""
+    ``writer_thread`` False: each run writes its trace in its stepping thread; ``crumb_path``:
+    the file its breadcrumb goes to (:mod:`cosim.slaves.crumb`), read by the batch process."""
     from ..trace import traces as trace
 
     trace.WRITER_THREAD = writer_thread
+    if crumb_path:
+        crumb.attach(crumb.mapped(crumb_path))
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     _die_with(parent_pid)
     STATE.detach()
@@ -105,9 +110,46 @@ class _Slot:
     """A worker process and the tasks sent to it, in order: the first is running (or about to),
     the next one waits in its pipe so that it starts as soon as the first ends."""
 
-    def __init__(self, proc, conn):
+    def __init__(self, proc, conn, crumb_path: str | None = None):
         self.proc, self.conn = proc, conn
         self.tasks: deque[Task] = deque()
+        self.crumb_path = crumb_path
+        self.crumb = crumb.mapped(crumb_path) if crumb_path else None
+        self.seen, self.since = None, time.monotonic()  # the crumb's sequence number, and since when
+        self.hung = ""  # why it was killed when one of its FMI calls hung
+
+    def where(self) -> tuple[bool, str]:
+        """Whether the worker is inside an FMI call, and where it is (or was) per its crumb."""
+        if self.crumb is None:
+            return False, ""
+        state = crumb.read(self.crumb)
+        return state["inside"], crumb.describe(state)
+
+    def check_hung(self, timeout: float) -> bool:
+        """Kill the worker when its current FMI call has run longer than ``timeout`` [s]."""
+        if self.crumb is None or not self.tasks or self.hung:
+            return False
+        state = crumb.read(self.crumb)
+        now = time.monotonic()
+        if not (state["inside"] and state["seq"] == self.seen):
+            self.seen, self.since = state["seq"], now
+            return False
+        if now - self.since <= timeout:
+            return False
+        self.hung = (f"{crumb.describe(state)} did not return within {timeout:g} s (the FMI call timeout, "
+                     f"$RPR_COSIM_CALL_TIMEOUT); the run was stopped")
+        self.proc.kill()
+        return True
+
+    def close(self) -> None:
+        if self.crumb is not None:
+            self.crumb.close()
+            self.crumb = None
+        if self.crumb_path:
+            try:
+                os.unlink(self.crumb_path)
+            except OSError:
+                pass
 
     @property
     def task(self) -> Task | None:
@@ -168,11 +210,12 @@ class LocalExecutor:
 
     def _spawn(self, ctx, shared: Shared) -> _Slot:
         ours, theirs = ctx.Pipe()
-        proc = ctx.Process(target=_worker_main, args=(theirs, shared, os.getpid(), self.writer_thread), daemon=True,
-                           name="rpr-batch-worker")
+        path = crumb.new_file()
+        proc = ctx.Process(target=_worker_main, args=(theirs, shared, os.getpid(), self.writer_thread, path),
+                           daemon=True, name="rpr-batch-worker")
         proc.start()
         theirs.close()
-        return _Slot(proc, ours)
+        return _Slot(proc, ours, path)
 
     def run(self, tasks: Iterable[Task], shared: Shared, on_done: OnDone, on_start: OnStart | None = None) -> None:
         """Run every task; returns when all are done (or raises KeyboardInterrupt after stopping
@@ -182,6 +225,9 @@ class LocalExecutor:
         if not source.pull():
             return
         slots: list[_Slot] = []
+        from ..run.supervise import POLL_S, call_timeout
+
+        timeout = call_timeout()
         try:
             ctx = _context([source.pending[0].scene], shared)
             while source.pending or any(s.tasks for s in slots):
@@ -189,7 +235,11 @@ class LocalExecutor:
                 if not source.pending:
                     source.pull()  # the next run, resolved while the workers run
                 busy = [s for s in slots if s.tasks]
-                ready = set(wait([s.conn for s in busy] + [s.proc.sentinel for s in busy]))  # idle until then
+                ready = set(wait([s.conn for s in busy] + [s.proc.sentinel for s in busy], timeout=POLL_S))
+                if not ready:  # nothing finished: is a run stuck in an FMI call?
+                    for s in busy:
+                        s.check_hung(timeout)
+                    continue
                 finished: list[tuple[Task, Outcome]] = []
                 for i, s in enumerate(slots):
                     if not s.tasks or not ({s.conn, s.proc.sentinel} & ready):
@@ -197,18 +247,24 @@ class LocalExecutor:
                     alive = self._drain(s, on_start, finished)
                     if alive and s.proc.sentinel not in ready:
                         continue
-                    if s.tasks:  # the worker died with this run: once more, on a new worker
+                    if s.tasks:  # the worker died with this run
+                        s.proc.join(timeout=1)
                         task, code = s.tasks.popleft(), s.proc.exitcode
                         source.pending.extendleft(reversed(s.tasks))  # sent, not started: as they were
                         s.tasks.clear()
-                        if task.attempt < 2:
+                        inside, where = s.where()
+                        if s.hung or inside:  # an FMU crashed or hung it: the run's outcome, not retried
+                            status = "hung" if s.hung else "crashed"
+                            reason = s.hung or _death(code, where)
+                            _settle_files(task, status, reason)
+                            finished.append((task, Outcome(task.run_id, status, reason, worker=str(s.proc.pid))))
+                        elif task.attempt < 2:  # killed from outside (out of memory?): once more, on a new worker
                             task.attempt += 1
                             source.pending.appendleft(task)
                         else:
-                            sig = f", {signal.Signals(-code).name}" if code and code < 0 else ""
-                            finished.append((task, Outcome(task.run_id, "failed", f"the worker process died twice "
-                                                           f"while running it (exit code {code}{sig})",
-                                                           worker=str(s.proc.pid))))
+                            reason = f"the worker process died twice while running it ({_death(code, where)})"
+                            _settle_files(task, "crashed", reason)
+                            finished.append((task, Outcome(task.run_id, "crashed", reason, worker=str(s.proc.pid))))
                     if source.pending or source.it is not None:
                         slots[i] = self._replace(ctx, shared, s)
                 try:
@@ -274,6 +330,7 @@ class LocalExecutor:
         self.replaced += 1
         s.proc.join(timeout=1)
         s.conn.close()
+        s.close()
         return self._spawn(ctx, shared)
 
     @staticmethod
@@ -292,6 +349,30 @@ class LocalExecutor:
                 s.proc.kill()
                 s.proc.join(timeout=1)
             s.conn.close()
+            s.close()
+
+
+def _death(code: int | None, where: str) -> str:
+    """How a worker ended (its exit code, negative for a signal) and where, per its crumb."""
+    if code is not None and code < 0:
+        how = f"died of {signal.Signals(-code).name} (signal {-code})"
+    else:
+        how = f"exited (code {code}) without finishing the run"
+    return f"the worker process {how}" + (f" in {where}" if where else "")
+
+
+def _settle_files(task: Task, status: str, reason: str) -> None:
+    """The run's trace and sidecar in its directory, given ``status`` and ``reason`` (its worker
+    died while they said "running")."""
+    if not task.out_dir:
+        return
+    from ..outputs import safe_name, settle_if_stale, settle_run
+
+    try:
+        settle_run(os.path.join(task.out_dir, f"{safe_name(task.scene.name)}.csv"), status, reason)
+        settle_if_stale(task.out_dir)  # the dead worker's lock file goes too
+    except (OSError, UserError):  # the row says it all the same
+        pass
 
 
 # --- Dask ----------------------------------------------------------------------------------------

@@ -324,11 +324,9 @@ def plot_traces(out: Path, rows, signal: str, runs: Any, sort: str | None, axes:
 
 
 def _save(fig, plt, path: Path) -> Path:
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=90)
-    plt.close(fig)
-    return path
+    from ..analysis.charts import save_figure
+
+    return save_figure(fig, path, dpi=90)
 
 
 def default_plots(batch: Batch) -> list[PlotSpec]:

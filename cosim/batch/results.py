@@ -73,6 +73,9 @@ class ResultsTable:
         """Create the table with its header, or read the rows already in it (checking the header
         and dropping a last row cut short)."""
         self.path.parent.mkdir(parents=True, exist_ok=True)
+        if self.path.is_symlink():
+            raise UserError(f"{self.path} is a symbolic link; a batch writes its results table only into a file "
+                            f"of its own (remove the link or choose another --out)")
         if self.path.is_file() and self.path.stat().st_size:
             self._repair()
             header, self.rows = read_rows(self.path)
@@ -80,14 +83,16 @@ class ResultsTable:
                 raise UserError(f"{self.path} was written by a batch with other columns (its axes or metrics "
                                 f"changed: {', '.join(sorted(set(header) ^ set(self.columns))) or 'order'}); "
                                 f"choose another --out")
-            self._fd = os.open(self.path, os.O_WRONLY | os.O_APPEND)
+            self._fd = os.open(self.path, os.O_WRONLY | os.O_APPEND | os.O_NOFOLLOW)
         else:
-            self._fd = os.open(self.path, os.O_WRONLY | os.O_CREAT | os.O_APPEND, 0o644)
+            from ..outputs import create_new
+
+            self._fd = create_new(self.path)
             self._write(self.columns)
         return self
 
     def _repair(self) -> None:
-        with open(self.path, "rb+") as fh:
+        with os.fdopen(os.open(self.path, os.O_RDWR | os.O_NOFOLLOW), "rb+") as fh:
             data = fh.read()
             if data and not data.endswith(b"\n"):
                 fh.truncate(data.rfind(b"\n") + 1)

@@ -10,16 +10,16 @@ Output directory (default ``runs/<batch name>``)::
     plots/                the summary's charts (:mod:`cosim.batch.report`)
 
 A run directory without a row is an unfinished attempt (the batch was interrupted while it ran);
-it is cleared and the run is done again when the batch is resumed.  Two batches never write into
-one directory at the same time (a lock file).
+it is cleared and the run is done again when the batch is resumed.  Nothing else writes into the
+directory at the same time: a batch takes the lock of runs and studies (:class:`cosim.outputs.
+OutputLock`).
 """
 from __future__ import annotations
 
-import fcntl
 import hashlib
 import itertools
 import json
-import os
+
 import shutil
 import sys
 import time
@@ -29,9 +29,9 @@ from pathlib import Path
 from typing import Any
 
 from ..errors import UserError
-from ..outputs import pid_alive
+from ..outputs import OutputLock, check_out_dir, confined, write_bytes, write_text
 from ..scenario import Problem, Scene, SceneError, apply_overrides, plain, validate
-from .axes import Point, expand
+from .axes import Point, count, points
 from .results import ResultsTable, base_columns
 from .spec import Batch, BatchError
 from .worker import Outcome, Shared, Task, transportable
@@ -91,7 +91,7 @@ def plan(batch: Batch, *, catalog=None) -> tuple[list[Planned], list[tuple[int, 
     problems: list[Problem] = []
     seen: dict[str, int] = {}
     dups: list[tuple[int, int]] = []
-    for p in expand(batch):
+    for p in points(batch):
         r = resolve(batch, p, catalog=catalog)
         if isinstance(r, Problem):
             problems.append(r)
@@ -118,14 +118,16 @@ class _Planner:
 
     def __init__(self, batch: Batch, done: set[str], *, catalog=None):
         self.batch, self.done, self.catalog = batch, done, catalog
-        self.points = expand(batch)
+        self.points = points(batch)  # lazily: planning memory stays bounded
+        self.n_points = count(batch)
         self.skipped = 0
         self.duplicates: list[tuple[int, int]] = []
         self.seen: dict[str, int] = {}  # run id -> first point resolving to it
         self.ids: set[str] = set()  # every run id met (valid scenes and invalid points)
         self.head: Planned | None = None
-        if self.points:
-            first = resolve(batch, self.points[0], catalog=catalog)
+        self.first = next(self.points, None)
+        if self.first is not None:
+            first = resolve(batch, self.first, catalog=catalog)
             if isinstance(first, Problem):
                 raise BatchError([first])
             self.head = first
@@ -134,7 +136,8 @@ class _Planner:
              on_skip: Callable[[str], None] = lambda run_id: None) -> Iterator[Planned]:
         """The runs to do, in the batch's order (see the class docstring); ``on_skip(run_id)`` for
         a run whose row exists, and for a point that duplicates an earlier one (``run_id`` "")."""
-        for i, p in enumerate(self.points):
+        head = [self.first] if self.first is not None else []
+        for i, p in enumerate(itertools.chain(head, self.points)):
             r = self.head if i == 0 else resolve(self.batch, p, catalog=self.catalog)
             if isinstance(r, Problem):
                 rid = invalid_id(self.batch, p)
@@ -205,45 +208,6 @@ def build_fmus(runs: Sequence[Planned], *, cache_dir: Path | None = None,
     return maps, shelf.blobs
 
 
-class _Lock:
-    """An exclusive lock on ``<out>/.lock`` (one batch per output directory).  Forked workers
-    share it; when the batch that wrote its pid there is gone, its workers (which end within
-    ~0.2 s of it) are waited for up to :attr:`GRACE_S`."""
-
-    GRACE_S = 3.0
-
-    def __init__(self, out: Path):
-        self.path = out / ".lock"
-
-    def __enter__(self):
-        self.path.parent.mkdir(parents=True, exist_ok=True)
-        self.fh = open(self.path, "a+")
-        deadline = time.monotonic() + self.GRACE_S
-        while True:
-            try:
-                fcntl.flock(self.fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
-                break
-            except BlockingIOError:
-                self.fh.seek(0)
-                who = self.fh.read().strip()
-                pid = who.split()[-1] if who else ""
-                if pid.isdigit() and not pid_alive(int(pid)) and time.monotonic() < deadline:
-                    time.sleep(0.05)  # a killed batch's workers still hold it until they notice
-                    continue
-            self.fh.close()
-            raise UserError(f"{self.path.parent}: another batch is running there ({who or 'pid unknown'}); wait for "
-                            f"it or choose another --out") from None
-        self.fh.seek(0)
-        self.fh.truncate()
-        self.fh.write(f"pid {os.getpid()}\n")
-        self.fh.flush()
-        return self
-
-    def __exit__(self, *exc):
-        fcntl.flock(self.fh, fcntl.LOCK_UN)
-        self.fh.close()
-
-
 def _describe(batch: Batch, columns: list[str]) -> dict:
     return {"batch": batch.name, "file": str(batch.path), "scene": str(batch.scene_path),
             "description": batch.description, "set": batch.fixed,
@@ -289,9 +253,7 @@ def row_of(run: Planned, outcome: Outcome, attempts: int) -> dict[str, Any]:
 def _write_files(run_dir: Path, files: dict[str, bytes]) -> None:
     run_dir.mkdir(parents=True, exist_ok=True)
     for name, data in files.items():
-        tmp = run_dir / f".{name}.tmp"
-        tmp.write_bytes(data)
-        os.replace(tmp, run_dir / name)
+        write_bytes(confined(run_dir, name), data)
 
 
 def run_batch(batch: Batch, *, out: Path | None = None, executor=None, cache_dir: Path | None = None,
@@ -319,7 +281,8 @@ def run_batch(batch: Batch, *, out: Path | None = None, executor=None, cache_dir
     ref = _check_reference(batch)
     columns = base_columns([a.name for a in batch.axes], batch.metric_columns)
     planner = _Planner(batch, set(), catalog=catalog)  # the first run's scene checked before anything is written
-    with _Lock(out):
+    check_out_dir(out)
+    with OutputLock(out, log=log):  # the lock of runs and studies too: one writer per directory
         meta_path = out / "batch.json"
         key = _metrics_key(batch)
         if meta_path.is_file():
@@ -329,12 +292,12 @@ def run_batch(batch: Batch, *, out: Path | None = None, executor=None, cache_dir
                                 f"--out (or remove {out / 'results.csv'})")
         with ResultsTable(out / "results.csv", columns) as table:
             planner.done = table.done
-            meta_path.write_text(json.dumps({**_describe(batch, columns), "metrics_key": key}, indent=2,
-                                            default=str))
+            write_text(meta_path, json.dumps({**_describe(batch, columns), "metrics_key": key}, indent=2,
+                                             default=str))
             res = BatchOutcome(out, columns, table.rows)
             outcome_of = {r["run_id"]: r["outcome"] for r in table.rows}
             if progress is not None:
-                progress.begin(len(planner.points), 0, 0)
+                progress.begin(planner.n_points, 0, 0)
 
             def skipped(run_id: str) -> None:
                 if progress is not None:

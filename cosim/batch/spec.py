@@ -51,11 +51,16 @@ import numpy as np
 from ..errors import RUN_ERRORS
 from ..scenario import TOP_KEYS as SCENE_KEYS
 from ..scenario import Problem, SceneError, YList, YMap, apply_overrides, load_raw, read_yaml, suggest, validate
+from ..outputs import name_problem, stem_name
 from ..scenario.loading import NO_AUTO_FIDELITY
 from ..scenario.overrides import expand_path
 from .metrics import MEASURES, NEEDS_TARGET, MetricSpec
 
 Loc = tuple[str, int]
+
+#: Default largest number of runs of a batch; ``$RPR_COSIM_MAX_RUNS`` or ``max_runs`` raise it.
+MAX_RUNS = 100_000
+MAX_RUNS_ENV = "RPR_COSIM_MAX_RUNS"
 
 #: Top-level keys of a batch file -> what each holds (the checks below accept exactly these; the
 #: documentation's batch-format reference is generated from these declarations).
@@ -195,6 +200,8 @@ def _is_number(v: Any) -> bool:
 
 
 class _Checker:
+    limit = MAX_RUNS  # the run limit of the batch being read (load_batch sets it)
+
     def __init__(self, file: str):
         self.file = file
         self.problems: list[Problem] = []
@@ -246,6 +253,10 @@ def _grid_values(ck: _Checker, name: str, node: Any, where: Loc) -> tuple[tuple,
         num, scale = node["num"], node.get("scale", "linear")
         if num < 1:
             ck.err(node.loc("num"), f"axis {name!r} is empty: num = {num}; give at least 1")
+            return (), ()
+        if num > ck.limit:  # refused before the values are made
+            ck.err(node.loc("num"), f"axis {name!r}: num = {num:,} values, more than the limit of {ck.limit:,} "
+                                    f"runs; sweep fewer values or raise the limit (${MAX_RUNS_ENV})")
             return (), ()
         if scale not in ("linear", "log"):
             ck.err(node.loc("scale"), f"axis {name!r}: scale = {scale!r}{suggest(str(scale), ['linear', 'log'])}; "
@@ -555,11 +566,44 @@ def _resolve_auto(ck: _Checker, base: YMap, scene_path: Path, fixed: dict, where
     return tree
 
 
-def load_batch(path: Path | str, *, catalog=None, auto_fidelity=None) -> Batch:
+def max_runs(value: object = None) -> int:
+    """The run limit: ``value``, else ``$RPR_COSIM_MAX_RUNS``, else :data:`MAX_RUNS`."""
+    import os
+
+    raw = value if value is not None else os.environ.get(MAX_RUNS_ENV) or MAX_RUNS
+    try:
+        n = int(float(raw))
+    except (TypeError, ValueError, OverflowError):
+        n = -1
+    if n < 1 or isinstance(raw, bool):
+        raise UserError(f"{'max_runs' if value is not None else '$' + MAX_RUNS_ENV}: expected a whole number of runs "
+                        f"(1 or more), got {raw!r}")
+    return n
+
+
+def _count_runs(ck: _Checker, data: YMap, grid: Sequence[Axis], zipped: Sequence[Axis], samples: int | None,
+                has_random: bool, limit: int) -> None:
+    """Refuse, with the numbers, a batch of more than ``limit`` runs (counted, not expanded)."""
+    sizes = [f"{len(a.values):,} ({a.name})" for a in grid]
+    n = math.prod(len(a.values) for a in grid)
+    if zipped:
+        n *= len(zipped[0].values)
+        sizes.append(f"{len(zipped[0].values):,} (zip)")
+    if has_random and isinstance(samples, int):
+        n *= samples
+        sizes.append(f"{samples:,} (random.samples)")
+    if n > limit:
+        ck.err(data.where, f"the batch makes {n:,} runs ({' x '.join(sizes)}), more than the limit of {limit:,}; "
+                           f"split it, sweep fewer values, or raise the limit (${MAX_RUNS_ENV})")
+
+
+def load_batch(path: Path | str, *, catalog=None, auto_fidelity=None, max_runs_: int | None = None) -> Batch:
     """Read and check a batch file; raises :class:`BatchError` listing every problem (each one
     line, ``file:line: error: message``).  ``fidelity: auto`` in its scene is resolved by
-    ``auto_fidelity`` (see :func:`cosim.scenario.load`)."""
+    ``auto_fidelity`` (see :func:`cosim.scenario.load`).  A batch of more runs than
+    ``max_runs_`` (default :func:`max_runs`) is refused before anything is expanded."""
     path = Path(path)
+    limit = max_runs(max_runs_)
     data, problems = read_yaml(path)
     file = problems[0].file if problems else str(path)
     ck = _Checker(file)
@@ -575,6 +619,10 @@ def load_batch(path: Path | str, *, catalog=None, auto_fidelity=None) -> Batch:
     file = data.where[0]
     ck.file = file
     ck.keys(data, TOP_KEYS, "the batch")
+    name = data.get("name") if data.get("name") is not None else stem_name(path.stem)
+    problem = name_problem(name)
+    if problem:  # the batch's name names its output directory: the rules of a scene's name
+        ck.err(data.loc("name"), f"batch {problem.replace('(it names the trace files under --out)', '(it names the output directory runs/<name>)')}")
     scene_rel = data.get("scene")
     if not isinstance(scene_rel, str):
         ck.err(data.loc("scene") if "scene" in data else data.where,
@@ -601,9 +649,13 @@ def load_batch(path: Path | str, *, catalog=None, auto_fidelity=None) -> Batch:
         for p in paths:
             fixed[p], fixed_locs[p] = v, node.loc(k)
     base = _resolve_auto(ck, base, scene_path, fixed, data.loc("scene"), auto_fidelity)
+    ck.limit = limit
     grid = _axes(ck, data, "grid", comps)
     zipped = _axes(ck, data, "zip", comps)
     rnd, seed, samples = _random(ck, data, comps)
+    _count_runs(ck, data, grid, zipped, samples, "random" in data, limit)
+    if ck.failed:  # nothing more is worth checking (and a huge batch is not walked)
+        raise BatchError(ck.problems)
     if not ("grid" in data or "zip" in data or "random" in data) and not ck.failed:
         ck.err(data.where, "the batch varies nothing; add grid:, zip: or random: axes")
     if zipped and len({len(a.values) for a in zipped}) > 1:
@@ -631,7 +683,7 @@ def load_batch(path: Path | str, *, catalog=None, auto_fidelity=None) -> Batch:
         _check_signals(ck, base, scene_path, fixed, metrics, plots, catalog)
     if any(p.severity == "error" for p in ck.problems):
         raise BatchError(ck.problems)
-    return Batch(str(data.get("name") or path.stem), path, str(data.get("description", "")), scene_path, fixed,
+    return Batch(str(name), path, str(data.get("description", "")), scene_path, fixed,
                  grid, zipped, rnd, seed, samples, reference, metrics, sort, plots, base,
                  {k: data.loc(k) for k in data}, [p for p in ck.problems if p.severity != "error"])
 

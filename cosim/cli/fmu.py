@@ -50,6 +50,10 @@ def register(sub: argparse._SubParsersAction) -> None:
                                       "modelDescription.xml against the FMI schema and FMPy's rules.  Prints one "
                                       "line per problem; the exit code is their number (at most 100).")
     ck.add_argument("fmu", type=Path, help="the .fmu file")
+    ck.add_argument("--behaviour", action="store_true",
+                    help="also run the FMU (two instances, state get/set/free, the noSetFMUStatePriorToCurrentPoint "
+                         "flag, reset, determinism, directional derivatives, setters, stop time) and print each "
+                         "departure from the FMI standard, and the workarounds a run applies")
     ck.set_defaults(handler=_check)
     sh = verbs.add_parser("show", help="interface, parameters (units, defaults, bounds), states and integrator "
                                        "of a catalog model or an FMU file")
@@ -177,27 +181,10 @@ def _list(args: argparse.Namespace) -> int:
     return 0
 
 
-def archive_problem(path: Path) -> str | None:
-    """Why ``path`` is not an FMU archive one may open (not a zip, or a member whose name is
-    absolute or climbs out with ``..``), or None."""
-    import zipfile
-
-    try:
-        with zipfile.ZipFile(path) as z:
-            names = z.namelist()
-    except (zipfile.BadZipFile, OSError, ValueError) as exc:
-        return f"not an FMU: not a zip archive ({exc})"
-    for n in names:
-        parts = n.replace("\\", "/").split("/")
-        if n.startswith(("/", "\\")) or (len(n) > 1 and n[1] == ":") or ".." in parts:
-            return f"unsafe FMU: member {n!r} has an absolute path or '..'; an FMU's files are relative to its root"
-    if "modelDescription.xml" not in names:
-        return "not an FMU: no modelDescription.xml at the archive's root"
-    return None
-
-
 def _check(args: argparse.Namespace) -> int:
     from fmpy.validation import validate_fmu
+
+    from ..slaves.archive import archive_problem
 
     if not args.fmu.is_file():
         raise UserError(f"{args.fmu}: no such FMU file")
@@ -210,8 +197,21 @@ def _check(args: argparse.Namespace) -> int:
         raise UserError(f"{args.fmu}: cannot read the model description ({str(exc).splitlines()[0] if str(exc) else type(exc).__name__})") from None
     for p in problems:
         print(p)
-    print(f"{args.fmu}: {len(problems)} problem(s)", file=sys.stderr)
-    return min(len(problems), 100)
+    n = len(problems)
+    if args.behaviour:
+        from ..slaves.behaviour import check_in_subprocess
+
+        found = check_in_subprocess(args.fmu)
+        for line in found["departures"]:
+            print(line)
+        fixes = [k for k, v in found["workarounds"].items() if v]
+        print(f"{args.fmu}: behaviour: {len(found['departures'])} departure(s) in {len(found['checks'])} checks "
+              f"({', '.join(found['checks'])}); skipped: "
+              f"{'; '.join(f'{k} ({v})' for k, v in found['skipped'].items()) or 'none'}; "
+              f"workarounds a run applies: {', '.join(fixes) or 'none'}", file=sys.stderr)
+        n += len(found["departures"])
+    print(f"{args.fmu}: {n} problem(s)", file=sys.stderr)
+    return min(n, 100)
 
 
 def _show(args: argparse.Namespace) -> int:

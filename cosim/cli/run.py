@@ -42,6 +42,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "offline in a browser")
     p.add_argument("--engine", choices=["auto", "compiled", "python"], help="override master.engine")
     p.add_argument("--cache", type=Path, help="FMU cache directory (default $RPR_COSIM_CACHE or ~/.cache/rpr-cosim/fmus)")
+    p.add_argument("--call-timeout", metavar="SECONDS", type=float, default=None,
+                   help="end the run as 'hung' when one FMI call takes longer (default $RPR_COSIM_CALL_TIMEOUT or 60)")
     p.add_argument("--max-trace", metavar="SIZE", default=None,
                    help="refuse a run whose trace would be larger, e.g. 20GB (default $RPR_COSIM_MAX_TRACE or 4GB)")
     p.set_defaults(handler=_run)
@@ -116,25 +118,13 @@ def _run_locked(args: argparse.Namespace, scene, out: Path) -> int:
     try:
         res = run(scene, out_dir=out, cache_dir=args.cache, engine=args.engine, progress=progress_bar(),
                   log=lambda m: _say(f"[run] {m}" if m.startswith(scene.name + ":") or "trace" in m else f"[fmu] {m}"),
-                  max_trace_bytes=args.max_trace, trace_format=args.trace_format)
+                  max_trace_bytes=args.max_trace, trace_format=args.trace_format, call_timeout=args.call_timeout)
     except KeyboardInterrupt as exc:
         _say(f"rpr-cosim run: interrupted{' by ' + str(exc) if str(exc) else ''}; the partial trace and the reason "
              f"are in {out / (scene.name + ('.parquet' if args.trace_format == 'parquet' else '.csv'))}")
         raise
     _summary(res)
-    if args.plot and len(res.trace.data):
-        from ..analysis.charts import plot_run, setpoint_pairs
-        from ..scenario.units import units_of
-
-        _say(f"plot: {plot_run(res.trace, confined(out, f'{scene.name}.png'), scene.name, units=units_of(scene, res.fmus), pairs=setpoint_pairs(scene))}")
-    if args.animate and len(res.trace.data):
-        from ..analysis.animate import animate, pose_component
-        from ..scenario.geometry import manipulator_for
-
-        comp = pose_component(res.trace)
-        c = scene.components.get(comp)
-        m = manipulator_for(c.options, c.params) if c is not None else None
-        _say(f"animation: {animate(res.trace, confined(out, f'{scene.name}.gif'), manipulator=m, component=comp, title=scene.name)}")
+    _products(args, scene, res, out)
     ref = _reference(scene, res, out, args.plot, args.trace_format) if args.reference else None
     if args.report:
         _say(f"report: {_report(scene, res, ref, out)}")
@@ -145,6 +135,45 @@ def _run_locked(args: argparse.Namespace, scene, out: Path) -> int:
         _say(f"rpr-cosim run: {res.status}: {res.reason}")
         return 1
     return 0
+
+
+def _products(args: argparse.Namespace, scene, res, out: Path) -> None:
+    """The plot and the animation of a run (each written under a temporary name and moved into
+    place when complete, :func:`cosim.outputs.staged`); a signal while they are written leaves an
+    earlier complete file as it was and gives the run's sidecar the status "interrupted"."""
+    from ..interrupts import signals_as_interrupts
+    from ..outputs import amend_status
+
+    doing = ""
+    try:
+        with signals_as_interrupts():
+            if args.plot and len(res.trace.data):
+                from ..analysis.charts import plot_run, setpoint_pairs
+                from ..scenario.units import units_of
+
+                final = confined(out, f"{scene.name}.png")
+                doing = f"the plot {final.name}"
+                plot_run(res.trace, final, scene.name, units=units_of(scene, res.fmus), pairs=setpoint_pairs(scene))
+                _say(f"plot: {final}")
+            if args.animate and len(res.trace.data):
+                from ..analysis.animate import animate, pose_component
+                from ..scenario.geometry import manipulator_for
+
+                comp = pose_component(res.trace)
+                c = scene.components.get(comp)
+                m = manipulator_for(c.options, c.params) if c is not None else None
+                final = confined(out, f"{scene.name}.gif")
+                doing = f"the animation {final.name}"
+                animate(res.trace, final, manipulator=m, component=comp, title=scene.name)
+                _say(f"animation: {final}")
+    except KeyboardInterrupt as exc:
+        if res.trace_path is not None:
+            amend_status(res.trace_path, "interrupted",
+                         f"interrupted by {exc or 'the user'} while writing {doing} (the run itself ended "
+                         f"{res.status}; an earlier complete file of that name is kept)")
+        _say(f"rpr-cosim run: interrupted{' by ' + str(exc) if str(exc) else ''} while writing {doing}; "
+             f"{res.trace_path.with_suffix('.json') if res.trace_path else 'the run'} says so")
+        raise
 
 
 def _report(scene, res, ref, out: Path) -> Path | str:
@@ -231,6 +260,10 @@ def _describe_choice(scene) -> None:
 
 def _summary(res) -> None:
     st = res.stats
+    if res.status in ("crashed", "hung"):  # the child process died: no statistics, the rows it wrote
+        print(f"scene {res.scene.name} [{res.scene.hash[:12]}]: {res.status} ({res.reason})")
+        print(f"  {len(res.trace.data)} whole rows kept" + (f"; trace: {res.trace_path}" if res.trace_path else ""))
+        return
     n = max(1, st["steps_done"])
     print(f"scene {res.scene.name} [{res.scene.hash[:12]}]: {res.status}"
           + (f" ({res.reason})" if res.reason else ""))

@@ -170,13 +170,14 @@ def _stability(args: argparse.Namespace) -> int:
     variants = _variants(args.variant)
     smap = stability_map(args.scene, path, values, steps, n_values=args.n, n_steps=args.n, variants=variants,
                          cache_dir=args.cache, progress=progress_bar())
-    from ..outputs import check_out_dir, confined
+    from ..outputs import OutputLock, check_out_dir, confined
 
     out = args.out or Path("runs") / f"{smap.scene}_stability"
     check_out_dir(out)  # files stay under --out (cosim.outputs)
-    csv_path, png_path = confined(out, f"{smap.scene}_stability.csv"), confined(out, f"{smap.scene}_stability.png")
-    smap.write_csv(csv_path)
-    plot_map(smap, png_path, args.scene)
+    with OutputLock(out):  # the lock of runs and batches: one writer per directory
+        csv_path, png_path = confined(out, f"{smap.scene}_stability.csv"), confined(out, f"{smap.scene}_stability.png")
+        smap.write_csv(csv_path)
+        plot_map(smap, png_path, args.scene)
     print(f"{smap.scene}: {len(smap.cells)} runs over step x {path}")
     print(f"{'variant':<24} {'stable':>7} {'unstable':>9} {'failed':>7}  {'agree with analytic':>20}")
     for v in smap.variants:
@@ -215,7 +216,7 @@ def _precision(args: argparse.Namespace) -> int:
         raise UserError(f"--tol {args.tol}: expected a positive relative tolerance")
     if not args.workers >= 1:
         raise UserError(f"--workers {args.workers}: expected at least 1 process")
-    from ..outputs import check_out_dir, confined
+    from ..outputs import OutputLock, check_out_dir, confined
     from ..scenario import load
     from ..study.fidelity import resolve_auto
 
@@ -226,13 +227,15 @@ def _precision(args: argparse.Namespace) -> int:
     def say(msg: str) -> None:
         print(msg, file=sys.stderr, flush=True)
 
-    study = precision_study(args.scene, _precision_variants(args.variant), steps, rtols=rtols, stop_time=args.stop,
-                            only=args.only or None, cache_dir=args.cache, overrides=args.sets, out=out,
-                            workers=args.workers, batch_progress=Progress(), peer=args.peer, log=say,
-                            progress=lambda m: say(f"  {m}"), tolerance=args.tol)
-    csv_path, png_path = confined(out, f"{study.scene}_precision.csv"), confined(out, f"{study.scene}_precision.png")
-    study.write_csv(csv_path)
-    plot_study(study, png_path)
+    with OutputLock(out):  # the lock of runs and batches: one writer per directory
+        study = precision_study(args.scene, _precision_variants(args.variant), steps, rtols=rtols,
+                                stop_time=args.stop, only=args.only or None, cache_dir=args.cache,
+                                overrides=args.sets, out=out, workers=args.workers, batch_progress=Progress(),
+                                peer=args.peer, log=say, progress=lambda m: say(f"  {m}"), tolerance=args.tol)
+        csv_path = confined(out, f"{study.scene}_precision.csv")
+        png_path = confined(out, f"{study.scene}_precision.png")
+        study.write_csv(csv_path)
+        plot_study(study, png_path)
     print(f"{study.scene}: {len(study.rows)} runs over {study.stop_time:g} s against the monolithic reference "
           f"({study.reference_wall_s:.3f} s)")
     print(f"{'variant':<22} {'step/tol':>11} {'status':>8} {'worst rel':>10} {'RMS rel':>10} {'signal':<22} "

@@ -30,15 +30,20 @@ class AlgorithmOption:
     upper: float
     unit: str
     description: str
+    integer: bool = False  # a count (e.g. iterations): whole numbers only
 
     def check(self, value) -> float:
         """The value as a float; ValueError with the bounds when it is not acceptable."""
+        kind = "a whole number" if self.integer else "a number"
         if isinstance(value, bool):
-            raise ValueError(f"{self.name} must be a number [{self.unit or '1'}]")
+            raise ValueError(f"{self.name} must be {kind} [{self.unit or '1'}]")
         try:
             v = float(value)
         except (TypeError, ValueError):  # a list, a mapping, a word
-            raise ValueError(f"{self.name} = {value!r} must be a number [{self.unit or '1'}]") from None
+            raise ValueError(f"{self.name} = {value!r} must be {kind} [{self.unit or '1'}]") from None
+        if self.integer and not v.is_integer():
+            raise ValueError(f"{self.name} = {value!r} must be a whole number (a count, {self.lower:g} to "
+                             f"{self.upper:g})")
         if not (math.isfinite(v) and self.lower <= v <= self.upper):
             raise ValueError(f"{self.name} = {value!r} is outside [{self.lower:g}, {self.upper:g}] [{self.unit or '1'}]")
         return v

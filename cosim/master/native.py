@@ -22,6 +22,8 @@ from fmus.fmi_functions import c_typedefs
 from fmus.native import NoCompiler, load
 
 from ..errors import UserError
+from ..slaves import crumb
+from ..slaves.crumb import C_SOURCE as CRUMB_SOURCE
 
 #: The slave struct ``rpr_slave``: (C type, name, what it is).  Pointers are addresses of the
 #: FMU's entry points or of numpy arrays the Python side keeps alive.
@@ -32,7 +34,7 @@ SLAVE_FIELDS: tuple[tuple[str, str, str], ...] = (
     ("int32_t", "in_off", "the inputs' place in v"),
     ("int32_t", "out_off", "the outputs' place in v"),
     ("int32_t", "interp", "1: linear inputs (fmi2SetRealInputDerivatives)"),
-    ("int32_t", "no_prior", "noSetFMUStatePriorToCurrentPoint of fmi3DoStep (the slave cannot roll back)"),
+    ("int32_t", "no_prior", "noSetFMUStatePriorToCurrentPoint of doStep (no state will be restored)"),
     ("int32_t", "rate", "multirate: doSteps per macro step (1: none)"),
     ("int64_t", "sub_ns", "multirate: the sub-step [ns]"),
     ("void *", "inst", "the FMU instance"),
@@ -99,7 +101,7 @@ PRELUDE = r"""
 #include <math.h>
 #include <time.h>
 
-""" + c_typedefs(_FMI_CALLS) + "\n" + c_struct("rpr_slave", SLAVE_FIELDS) + r"""
+""" + c_typedefs(_FMI_CALLS) + "\n" + CRUMB_SOURCE + "\n" + c_struct("rpr_slave", SLAVE_FIELDS) + r"""
 enum { ST_OK = 0, ST_WARNING = 1, ST_DISCARD = 2, ST_STOP = 100 };
 
 /* Discard, Error, Fatal, Pending: the statuses that end a step */
@@ -129,21 +131,23 @@ static int stop_asked(rpr_slave *s) {
 /* set the slave's inputs from in[] (its place in v) */
 static inline int set_inputs(rpr_slave *s, const double *in) {
     if (!s->n_in) return 0;
-    if (s->fmi3) return ((fmi3SetFloat64_t)s->set)(s->inst, s->in_vr, (size_t)s->n_in, in, (size_t)s->n_in);
-    return ((fmi2SetReal_t)s->set)(s->inst, s->in_vr, (size_t)s->n_in, in);
+    if (s->fmi3) return FMI(s->inst, C_SET, ((fmi3SetFloat64_t)s->set)(s->inst, s->in_vr, (size_t)s->n_in, in,
+                                                                        (size_t)s->n_in));
+    return FMI(s->inst, C_SET, ((fmi2SetReal_t)s->set)(s->inst, s->in_vr, (size_t)s->n_in, in));
 }
 
 /* set the slopes of linear inputs (fmi2SetRealInputDerivatives, order 1) */
 static inline int set_slopes(rpr_slave *s) {
-    return ((fmi2SetRealInputDerivatives_t)s->set_der)(s->inst, s->in_vr, (size_t)s->n_in, s->orders, s->slope);
+    return FMI(s->inst, C_SET_DER, ((fmi2SetRealInputDerivatives_t)s->set_der)(s->inst, s->in_vr, (size_t)s->n_in,
+                                                                                s->orders, s->slope));
 }
 
 /* read the slave's outputs into v */
 static inline int get_outputs(rpr_slave *s, double *v) {
     if (!s->n_out) return 0;
-    if (s->fmi3) return ((fmi3GetFloat64_t)s->get)(s->inst, s->out_vr, (size_t)s->n_out, v + s->out_off,
-                                                   (size_t)s->n_out);
-    return ((fmi2GetReal_t)s->get)(s->inst, s->out_vr, (size_t)s->n_out, v + s->out_off);
+    if (s->fmi3) return FMI(s->inst, C_GET, ((fmi3GetFloat64_t)s->get)(s->inst, s->out_vr, (size_t)s->n_out,
+                                                                        v + s->out_off, (size_t)s->n_out));
+    return FMI(s->inst, C_GET, ((fmi2GetReal_t)s->get)(s->inst, s->out_vr, (size_t)s->n_out, v + s->out_off));
 }
 
 /* one doStep from t of h; ST_STOP when the slave asks to end the simulation (FMI 3.0
@@ -154,12 +158,13 @@ static inline int do_step(rpr_slave *s, double t, double h) {
     if (s->fmi3) {
         bool ev = 0, term = 0, early = 0;
         double last = t;
-        st = ((fmi3DoStep_t)s->do_step)(s->inst, t, h, s->no_prior != 0, &ev, &term, &early, &last);
+        st = FMI_T(s->inst, C_DO_STEP, t, ((fmi3DoStep_t)s->do_step)(s->inst, t, h, s->no_prior != 0, &ev, &term,
+                                                                      &early, &last));
         if (s->last_time) *s->last_time = last;
         if (st <= ST_WARNING && term) return ST_STOP;
         return st;
     }
-    st = ((fmi2DoStep_t)s->do_step)(s->inst, t, h, 0);
+    st = FMI_T(s->inst, C_DO_STEP, t, ((fmi2DoStep_t)s->do_step)(s->inst, t, h, s->no_prior != 0));
     if (st == ST_DISCARD && stop_asked(s)) return ST_STOP;
     return st;
 }
@@ -172,8 +177,12 @@ static inline int64_t slaves_ns(const rpr_slave *S, int32_t n) {
     return ns;
 }
 
-static inline int save_state(rpr_slave *s) { return ((fmi2GetFMUstate_t)s->get_state)(s->inst, s->state); }
-static inline int restore_state(rpr_slave *s) { return ((fmi2SetFMUstate_t)s->set_state)(s->inst, *s->state); }
+static inline int save_state(rpr_slave *s) {
+    return FMI(s->inst, C_GET_STATE, ((fmi2GetFMUstate_t)s->get_state)(s->inst, s->state));
+}
+static inline int restore_state(rpr_slave *s) {
+    return FMI(s->inst, C_SET_STATE, ((fmi2SetFMUstate_t)s->set_state)(s->inst, *s->state));
+}
 """
 
 
@@ -181,12 +190,14 @@ def compile_loop(source: str, stem: str) -> ctypes.CDLL:
     """:data:`PRELUDE` + ``source`` compiled (once; cached on disk by :func:`fmus.native.load`)
     and loaded.  Raises :class:`UserError` when no C compiler works or the source does not compile."""
     try:
-        return load(PRELUDE + source, stem)
+        lib = load(PRELUDE + source, stem)
     except NoCompiler as exc:
         raise UserError(f"the compiled master loop needs a C compiler ({exc}); "
                         f"set master.engine: python to use the Python loop") from None
     except BuildError as exc:
         raise UserError(f"compiling the master loop failed: {exc}") from None
+    crumb.register_library(lib)  # its FMI calls write this process's breadcrumb (cosim.slaves.crumb)
+    return lib
 
 
 class SlaveArray:
@@ -208,7 +219,8 @@ class SlaveArray:
             c = self.arr[i]
             c.fmi3, c.n_in, c.n_out = int(ne.fmi3), len(system.in_vrs[i]), len(system.out_vrs[i])
             c.in_off, c.out_off = system.in_off[i], system.out_off[i]
-            c.no_prior, c.rate, c.sub_ns = int(not s.can_rollback), 1, 0
+            # the slave's own promise (cosim.slaves.fmu: true unless the algorithm may restore a state)
+            c.no_prior, c.rate, c.sub_ns = int(getattr(s, "no_prior", not s.can_rollback)), 1, 0
             c.inst, c.do_step, c.get, c.set = ne.instance, ne.do_step, ne.get_real, ne.set_real
             c.bool_status, c.last_time = ne.get_boolean_status, ne.last_time
             if states:

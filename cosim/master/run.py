@@ -49,10 +49,15 @@ def simulate(system: CoupledSystem, algorithm_name: str, *, step_ns: int, n_step
     if getattr(cls, "needs_rollback", False):
         fixed = [s.name for s in system.slaves if not s.can_rollback]
         if fixed:
+            why = "; ".join(f"{s.name}: {s.description.rollback_reason}" for s in system.slaves
+                            if s.name in fixed and s.description.rollback_reason)
             raise UserError(f"master algorithm {cls.name} needs rollback (get/set state) but {', '.join(fixed)} "
-                            f"cannot roll back (canGetAndSetFMUstate=false, e.g. hardware); use ecco (step "
+                            f"cannot roll back ({why or 'canGetAndSetFMUstate=false, e.g. hardware'}); use ecco (step "
                             f"control from power bonds, no rollback) or a fixed-step algorithm such as gauss_seidel "
                             f"or jacobi")
+    for s_ in system.slaves:  # FMI noSetFMUStatePriorToCurrentPoint: true unless the algorithm may restore states
+        if hasattr(s_, "forward_only"):
+            s_.forward_only = not getattr(cls, "needs_rollback", False)
     if realtime is not None and not getattr(cls, "paceable", True):  # refuse rather than run unpaced
         raise UserError(f"master algorithm {cls.name} chooses its own steps and cannot be paced in real time "
                         f"(it rolls rejected steps back); drop master.realtime or use ecco, gauss_seidel or jacobi")
@@ -92,7 +97,8 @@ def simulate(system: CoupledSystem, algorithm_name: str, *, step_ns: int, n_step
         t0 = time.perf_counter()
         initialize(system, start_values or [{} for _ in system.slaves], start_time=start_ns / 1e9,
                    stop_time=(start_ns + n_steps * step_ns) / 1e9, tolerances=tolerances,
-                   allow_loops=getattr(cls, "solves_algebraic_loops", False))
+                   allow_loops=getattr(cls, "solves_algebraic_loops", False)
+                   or getattr(cls, "delays_algebraic_loops", False))
         make = getattr(cls, "stepper_for", None) or fixed_stepper  # variable-step algorithms bring their own
         stepper = make(system, step_ns=step_ns, n_steps=n_steps, record_every=record_every, order=order,
                     cls=cls, timing=timing, inputs=inputs, start_ns=start_ns, rates=rates, options=options, engine=engine)

@@ -217,3 +217,11 @@ def choose(scene: Scene, pilot: Callable[[Scene], object] | None, log: Callable[
         choice.why += (f"; no pilot met the tolerance (last estimate {last:.3g})" if last is not None else
                        "; the pilots gave no estimate")
     return with_step(scene, alg, inputs, h_ns), choice
+
+
+def applied(scene: Scene, choice: dict) -> Scene:
+    """``scene`` as the :class:`Choice` ``choice`` (its :meth:`Choice.as_dict`) runs it."""
+    sets, alg = choice["settings"], choice["algorithm"]
+    if "rtol" in sets:
+        return with_rtol(scene, alg, sets["inputs"], sets["rtol"])
+    return with_step(scene, alg, sets["inputs"], round(sets["step"] * 1e9))

@@ -82,12 +82,13 @@ def scene_observers(scene: Scene, out_dir: Path | None, suffix: str = "",
     trace writer streaming to ``out_dir/<name><suffix>.csv`` (``.parquet`` for
     ``trace_format="parquet"``; see :data:`cosim.trace.traces.TRACE_FORMATS`), returned as the
     trace path."""
-    from ..outputs import confined, safe_name
+    from ..outputs import check_ours, confined, safe_name
 
     memory = MemoryTrace()
     if out_dir is None:
         return memory, [memory], None
     path = confined(out_dir, f"{safe_name(scene.name)}{suffix}{trace_suffix(trace_format)}")
+    check_ours(path)
     return memory, [memory, trace_writer(path, trace_format, extra={"scene_data": scene.data})], path
 
 
@@ -99,7 +100,8 @@ def scene_meta(scene: Scene) -> dict:
     return {"scene": scene.name, "scene_file": str(scene.path) if scene.path else None, "scene_hash": scene.hash,
             "start_time": scene.start_time, "stop_time": scene.stop_time,
             "output_interval": scene.master.record_every * scene.master.step,
-            "units": {name: units.get(name, "") for name in scene.outputs}}
+            "units": {name: units.get(name, "") for name in scene.outputs},
+            **({"notes": [f"{p.severity}: {p.message}" for p in scene.warnings]} if scene.warnings else {})}
 
 
 @dataclass(frozen=True)
@@ -175,7 +177,8 @@ def run(scene: Scene | str | Path, overrides: Mapping[str, Any] | Sequence[str] 
         out_dir: Path | None = None, catalog=None, cache_dir: Path | None = None,
         progress: Callable[[int, int], None] | None = None, log: Callable[[str], None] | None = None,
         engine: str | None = None, slaves: Sequence[Slave] | None = None,
-        max_trace_bytes: int | str | None = None, auto_fidelity=None, trace_format: str = "csv") -> RunResult:
+        max_trace_bytes: int | str | None = None, auto_fidelity=None, trace_format: str = "csv",
+        call_timeout: float | None = None) -> RunResult:
     """Run a scene.
 
     Parameters
@@ -196,6 +199,13 @@ def run(scene: Scene | str | Path, overrides: Mapping[str, Any] | Sequence[str] 
         or 4 GB; a number of bytes or a text such as ``"20GB"``).
     auto_fidelity : how ``fidelity: auto`` is resolved when loading (see :func:`cosim.scenario.load`;
         :func:`cosim.study.fidelity.resolve_auto`).
+    call_timeout : the longest one FMI call may take [s] before the run ends "hung" (default
+        ``$RPR_COSIM_CALL_TIMEOUT`` or 60 s).
+
+    FMU runs (``slaves`` not given) are supervised (:mod:`cosim.run.supervise`): the stepping
+    happens in a child process, so an FMU that crashes, exits or hangs ends the run with the
+    status "crashed" or "hung" (the component and FMI call in the reason) instead of taking the
+    caller with it.
 
     Returns a :class:`RunResult`; a numerical failure or a failed trace write (disk full) is a
     status, not an exception.  A KeyboardInterrupt (also SIGTERM and SIGHUP, see
@@ -210,16 +220,29 @@ def run(scene: Scene | str | Path, overrides: Mapping[str, Any] | Sequence[str] 
     trace_suffix(trace_format)  # an unknown format is one line before anything runs
     if out_dir is None:
         with signals_as_interrupts():
-            return _run(scene, overrides, None, catalog, cache_dir, progress, say, engine, slaves, max_trace_bytes,
-                        auto_fidelity, trace_format)
+            return _as_chosen(_run(scene, overrides, None, catalog, cache_dir, progress, say, engine, slaves,
+                                   max_trace_bytes, auto_fidelity, call_timeout, trace_format))
     check_out_dir(out_dir)
     with signals_as_interrupts(), OutputLock(out_dir, log=say):
-        return _run(scene, overrides, out_dir, catalog, cache_dir, progress, say, engine, slaves, max_trace_bytes,
-                    auto_fidelity, trace_format)
+        return _as_chosen(_run(scene, overrides, out_dir, catalog, cache_dir, progress, say, engine, slaves,
+                               max_trace_bytes, auto_fidelity, call_timeout, trace_format))
+
+
+def _as_chosen(res: RunResult) -> RunResult:
+    """``res`` with its scene as the master ran it (the choice of :mod:`cosim.run.choose`, which
+    the run's statistics carry: the stepping may have happened in a supervised child)."""
+    choice = res.stats.get("choice") if isinstance(res.stats, dict) else None
+    if choice and res.scene.master.auto:
+        from .choose import applied
+
+        res.scene = applied(res.scene, choice)
+    return res
 
 
 def _run(scene, overrides, out_dir, catalog, cache_dir, progress, log, engine, slaves, max_trace_bytes,
-         auto_fidelity, trace_format="csv") -> RunResult:
+         auto_fidelity, call_timeout=None, trace_format="csv") -> RunResult:
+    from . import supervise
+
     if not isinstance(scene, Scene):
         scene = load(scene, overrides, catalog=catalog, auto_fidelity=auto_fidelity)
     elif overrides:
@@ -228,32 +251,112 @@ def _run(scene, overrides, out_dir, catalog, cache_dir, progress, log, engine, s
         scene = load(scene.path, overrides, catalog=catalog, auto_fidelity=auto_fidelity)
     log(f"{scene.name}: {check_trace_size(scene, max_trace_bytes)}")
     t0 = time.perf_counter()
-    from ..scenario.recipes import slave_description
-
     if slaves is None:
         paths = build_components(scene, cache_dir=cache_dir, progress=log)
-    else:
-        paths = {}
-        if [s.name for s in slaves] != list(scene.components):
-            raise UserError(f"slaves must match the scene's components in order: {list(scene.components)}")
-        for s, c in zip(slaves, scene.components.values()):
+        build_s = time.perf_counter() - t0
+        if supervise.enabled():
+            from ..slaves.fmu import unpack_fmu
+
+            for p in paths.values():  # here, so that this process removes the folders at exit whatever the child does
+                unpack_fmu(p)
+            return _supervised(scene, out_dir, paths, None, progress, log, engine, overrides, call_timeout, build_s,
+                               trace_format)
+        status, reason, trace, stats, trace_path, build_step = _step(scene, out_dir, paths, None, progress, log,
+                                                                     engine, overrides, trace_format)
+        return RunResult(scene, status, reason, trace, stats, paths, trace_path, build_s + build_step)
+    if [s.name for s in slaves] != list(scene.components):
+        raise UserError(f"slaves must match the scene's components in order: {list(scene.components)}")
+    if supervise.enabled() and all(type(s) is FmuSlave and s.fmu is None and not s.reuse for s in slaves):
+        # fresh FMU slaves (a study's): supervised too, nothing of theirs is kept after the run
+        return _supervised(scene, out_dir, {}, slaves, progress, log, engine, overrides, call_timeout, 0.0,
+                           trace_format)
+    status, reason, trace, stats, trace_path, build_s = _step(scene, out_dir, {}, slaves, progress, log, engine,
+                                                              overrides, trace_format)
+    return RunResult(scene, status, reason, trace, stats, {}, trace_path, build_s)
+
+
+def _supervised(scene, out_dir, paths, slaves, progress, log, engine, overrides, call_timeout, build_s,
+                trace_format="csv") -> RunResult:
+    """:func:`_step` in a supervised child (:mod:`cosim.run.supervise`); a crash, a hung call or
+    a child that had to be killed after a signal becomes the run's status (the signal is raised
+    again once the files are settled)."""
+    from . import supervise
+
+    timeout = supervise.call_timeout(call_timeout)
+    try:
+        status, reason, trace, stats, trace_path, _ = supervise.supervised(
+            lambda say: _step(scene, out_dir, paths, slaves, progress, say, engine, overrides, trace_format),
+            timeout_s=timeout, log=log)
+    except supervise.Failed as failed:
+        res = _settle_failed(scene, out_dir, paths, build_s, failed, trace_format)
+        if failed.signal_exc is not None:
+            raise failed.signal_exc from None
+        return res
+    return RunResult(scene, status, reason, trace, stats, paths, trace_path, build_s)
+
+
+def _settle_failed(scene: Scene, out_dir: Path | None, paths: dict, build_s: float, failed,
+                   trace_format: str = "csv") -> RunResult:
+    """The result of a supervised run whose process crashed, hung or had to be killed: its files
+    settled with the supervisor's status and reason (:func:`cosim.outputs.settle_run`), or written
+    afresh when it had written nothing yet."""
+    import numpy as np
+
+    from ..master import RunStats
+    from ..outputs import confined, safe_name, settle_run
+    from ..trace.traces import read_trace
+
+    stats = RunStats(scene.master.algorithm, "", scene.master.step, scene.n_steps, status=failed.status,
+                     reason=failed.reason)
+    columns = ["time", *scene.outputs]
+    if out_dir is None:
+        return RunResult(scene, failed.status, failed.reason,
+                         Trace(columns, np.zeros((0, len(columns))), scene_meta(scene), failed.status, failed.reason,
+                               stats.as_dict()), stats.as_dict(), paths, None, build_s)
+    path = confined(out_dir, f"{safe_name(scene.name)}{trace_suffix(trace_format)}")
+    if settle_run(path, failed.status, failed.reason) is None:  # it died before writing anything
+        ob = trace_writer(path, trace_format, extra={"scene_data": scene.data})
+        ob.start(columns, scene_meta(scene))
+        ob.finish(failed.status, failed.reason, stats.as_dict())
+    trace = read_trace(path)
+    stats.steps_done = max(0, len(trace.data) - 1) * scene.master.record_every
+    trace.status, trace.reason, trace.stats = failed.status, failed.reason, stats.as_dict()
+    return RunResult(scene, failed.status, failed.reason, trace, stats.as_dict(), paths, path, build_s)
+
+
+def _step(scene: Scene, out_dir, paths, slaves, progress, log, engine, overrides, trace_format="csv"):
+    """Couple the slaves (FMUs from ``paths`` when ``slaves`` is None), step them (after the
+    master's choice, :mod:`cosim.run.choose`, for a scene that names no algorithm, and a companion
+    run for the error estimate, :mod:`cosim.master.estimate`) and return (status, reason, trace,
+    stats, trace path, seconds spent making the slaves)."""
+    from ..scenario.recipes import slave_description
+
+    t0 = time.perf_counter()
+    given = list(slaves) if slaves is not None else None
+
+    def prepared(made: list[Slave]) -> list[Slave]:
+        for s, c in zip(made, scene.components.values()):
+            if c.kind == "fmu" and s.description is not c.description and isinstance(s, FmuSlave):
+                # what the scene check found (feedthrough, behavioural workarounds) also for slaves made elsewhere
+                d = c.description
+                s.description = replace(s.description, feedthrough=d.feedthrough, workarounds=d.workarounds,
+                                        rollback_reason=d.rollback_reason,
+                                        can_get_set_state=s.description.can_get_set_state and d.can_get_set_state)
+                s.always_no_prior = "always_no_prior" in d.workarounds
             if not c.rollback and s.description.can_get_set_state:  # the scene forbids rollback of this component
                 s.description = replace(s.description, can_get_set_state=False)
-    build_s = time.perf_counter() - t0
-    given = list(slaves) if slaves is not None else None
+        return made
 
     def make_slaves() -> list[Slave]:
         """Fresh slaves of the scene's components, for companion and pilot runs (from the FMUs
         of the slaves handed over, when they were)."""
         if given is not None:
-            return [FmuSlave(s.name, s.path, s.description) for s in given]
-        made = [FmuSlave(name, paths[name], c.description if c.kind == "fmu" else slave_description(c, paths[name]))
-                for name, c in scene.components.items()]
-        for s, c in zip(made, scene.components.values()):
-            if not c.rollback and s.description.can_get_set_state:  # the scene forbids rollback of this component
-                s.description = replace(s.description, can_get_set_state=False)
-        return made
+            return prepared([FmuSlave(s.name, s.path, s.description) for s in given])
+        return prepared([FmuSlave(name, paths[name], c.description if c.kind == "fmu" else
+                                  slave_description(c, paths[name])) for name, c in scene.components.items()])
 
+    main = prepared(given) if given is not None else make_slaves()
+    build_s = time.perf_counter() - t0
     repeat = repeatable(scene)
     if repeat is None and given is not None and not all(isinstance(s, FmuSlave) for s in given):
         repeat = "the slaves were handed over ready, not as FMUs: a run is not repeated"
@@ -267,10 +370,9 @@ def _run(scene, overrides, out_dir, catalog, cache_dir, progress, log, engine, s
         scene, choice = choose(scene, pilot if repeat is None else None, log, why_not=repeat)
         extra["choice"] = choice.as_dict()
         log(f"{scene.name}: {choice}")
-    result = _once(scene, make_slaves, given, out_dir, progress, engine, repeat, extra, log,
-                   list(overrides.items()) if isinstance(overrides, Mapping) else list(overrides or []), trace_format)
-    result.fmus, result.build_s = paths, build_s
-    return result
+    res = _once(scene, make_slaves, main, out_dir, progress, engine, repeat, extra, log,
+                list(overrides.items()) if isinstance(overrides, Mapping) else list(overrides or []), trace_format)
+    return res.status, res.reason, res.trace, res.stats, res.trace_path, build_s
 
 
 def repeatable(scene: Scene) -> str | None:

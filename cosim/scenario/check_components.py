@@ -1,6 +1,7 @@
 """Validation of components: catalog models, external FMUs, hardware, their params and start values."""
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import math
 import re
@@ -86,6 +87,8 @@ class ComponentChecks(Checker):
         for key in ("fidelity", "options"):
             if key in spec:
                 self.err(spec.loc(key), f"component {name!r}: '{key}' applies to catalog models, not to an FMU")
+        if not self._xml(name, fpath, where):
+            return None
         try:
             desc = describe_fmu(fpath)
         except UserError as exc:
@@ -106,7 +109,157 @@ class ComponentChecks(Checker):
                     self.err(spec.loc("guard_data"), f"component {name!r}: guard_data names variables the FMU does "
                                                      f"not have: {', '.join(missing)}")
         self._values(comp, spec)
+        self._feedthrough(comp, spec)
+        self._flanges(comp, spec)
+        self._behaviour(comp, spec)
         return comp
+
+    def _flanges(self, comp: Component, spec: YMap) -> None:
+        """``flanges: {NAME: {effort: VAR, flow: VAR}}``: power ports of an external FMU, each a pair
+        of an effort (force, torque) and a flow (velocity) variable, one an input and the other an
+        output (which one the FMU computes gives the flange's causality); bonded with
+        ``'a.NAME <-> b.NAME'`` like a catalog model's flanges (ecco's energy residual uses them)."""
+        from models.interface import Flange
+
+        node = spec.get("flanges")
+        if node is None:
+            return
+        if not isinstance(node, YMap):
+            self.err(spec.loc("flanges"), f"component {comp.name!r}: flanges must be a mapping NAME: {{effort: VAR, "
+                                          f"flow: VAR}}, got {node!r}")
+            return
+        vs, found = comp.description.variables, []
+        for fname, fl in node.items():
+            where = node.loc(fname)
+            if not isinstance(fl, Mapping) or set(fl) != {"effort", "flow"}:
+                self.err(where, f"component {comp.name!r}: flange {fname!r} must be {{effort: VAR, flow: VAR}}, "
+                                f"got {fl!r}")
+                continue
+            kinds = []
+            for role in ("effort", "flow"):
+                var = vs.get(str(fl[role]))
+                if var is None or var.causality not in ("input", "output") or not var.fast:
+                    what = "does not exist" if var is None else f"is {var.causality} {var.type}"
+                    self.err(where, f"component {comp.name!r}: flange {fname!r}: {role} {fl[role]!r} {what}; it must "
+                                    f"be a Real input or output{suggest(str(fl[role]), vs) if var is None else ''}")
+                    break
+                kinds.append(var.causality)
+            else:
+                if kinds[0] == kinds[1]:
+                    self.err(where, f"component {comp.name!r}: flange {fname!r}: effort and flow are both "
+                                    f"{kinds[0]}s; one must be the input, the other the output")
+                    continue
+                if fname in vs:
+                    self.err(where, f"component {comp.name!r}: flange {fname!r} has the name of a variable; "
+                                    f"name it otherwise")
+                    continue
+                found.append(Flange(str(fname), str(fl["effort"]), str(fl["flow"]),
+                                    "effort_out" if kinds[0] == "output" else "flow_out"))
+        comp.description = dataclasses.replace(comp.description, flanges=list(comp.description.flanges) + found)
+
+    def _behaviour(self, comp: Component, spec: YMap) -> None:
+        """The behavioural check of an external FMU (:mod:`cosim.slaves.behaviour`, once per FMU hash):
+        each departure a warning, each workaround applied to the component and noted."""
+        from ..slaves import probe
+        from ..slaves.behaviour import check_in_subprocess
+
+        where = spec.loc("fmu")
+        try:
+            found, _ = probe.cached(comp.fmu, "behaviour", lambda: check_in_subprocess(comp.fmu))
+        except UserError as exc:
+            self.warn(where, f"component {comp.name!r}: {exc}")
+            return
+        for line in found["departures"]:
+            self.warn(where, f"component {comp.name!r} ({comp.label}): {line}")
+        desc, fixes = comp.description, found["workarounds"]
+        if fixes.get("always_no_prior"):
+            desc = dataclasses.replace(desc, workarounds=desc.workarounds + ("always_no_prior",))
+            self.note(where, f"component {comp.name!r}: workaround: every doStep passes "
+                             f"noSetFMUStatePriorToCurrentPoint = true (the FMU does not step right with false)")
+        if fixes.get("no_rollback") and desc.can_get_set_state:
+            desc = dataclasses.replace(desc, can_get_set_state=False,
+                                       rollback_reason="its FMU state restore does not restore (behavioural check)")
+            self.note(where, f"component {comp.name!r}: workaround: run without rollback (restoring its FMU state "
+                             f"does not restore it); adaptive and iterative refuse it")
+        if fixes.get("set_in_init"):
+            desc = dataclasses.replace(desc, workarounds=desc.workarounds + ("set_in_init",))
+            self.note(where, f"component {comp.name!r}: workaround: its parameters and start values are set again in "
+                             f"initialisation mode (it forgets values set before)")
+        if fixes.get("no_reset"):
+            desc = dataclasses.replace(desc, workarounds=desc.workarounds + ("no_reset",))
+            self.note(where, f"component {comp.name!r}: workaround: loaded anew for every run of a batch (its reset "
+                             f"does not reset it)")
+        comp.description = desc
+
+    def _xml(self, name: str, fpath: Path, where: Loc) -> bool:
+        """The FMU's modelDescription.xml checked (:mod:`cosim.slaves.xmlcheck`, once per FMU hash):
+        errors refuse the component, recommendations are warnings.  False on an error."""
+        from ..slaves import probe
+        from ..slaves.xmlcheck import check_xml
+
+        try:
+            found, _ = probe.cached(fpath, "xml", lambda: [list(p) for p in check_xml(fpath)])
+        except Exception as exc:  # an archive so broken that the checker itself fails: one line, no traceback
+            found = [["error", 0, f"cannot be checked ({type(exc).__name__}: {exc})"]]
+        for severity, line, msg in found:
+            at = f"modelDescription.xml{f' line {line}' if line else ''}"
+            (self.err if severity == "error" else self.warn)(where, f"component {name!r}: {fpath.name}: {at}: {msg}")
+        return not any(p[0] == "error" for p in found)
+
+    def _feedthrough(self, comp: Component, spec: YMap) -> None:
+        """The component's direct feedthrough: the scene's ``feedthrough:`` (``none``, ``all`` or a
+        mapping output -> inputs; unlisted outputs have none) wins; else the FMU's declared
+        dependencies; else, for an FMU that declares none, the feedthrough measured on a scratch
+        instance (:func:`cosim.slaves.probe.feedthrough`, cached by the FMU's hash), with a note."""
+        from ..slaves import probe
+
+        desc = comp.description
+        if "feedthrough" in spec:
+            ft = self._declared_feedthrough(comp, spec["feedthrough"], spec.loc("feedthrough"))
+            if ft is not None:
+                comp.description = dataclasses.replace(desc, feedthrough=ft, feedthrough_source="scene")
+            return
+        if not probe.undeclared_dependencies(desc):
+            return
+        try:
+            ft, _ = probe.feedthrough(comp.fmu, desc)
+        except UserError as exc:
+            self.warn(spec.loc("fmu"), f"component {comp.name!r}: its FMU declares no output dependencies and "
+                                       f"measuring them failed ({exc}); every output is taken to depend on every "
+                                       f"input (declare 'feedthrough:' in the scene)")
+            return
+        text = "; ".join(f"{y} <- {', '.join(us)}" for y, us in ft.items() if us) or "none"
+        self.note(spec.loc("fmu"), f"component {comp.name!r} ({comp.label}) declares no output dependencies; "
+                                   f"measured direct feedthrough: {text} (set 'feedthrough:' to override)")
+        comp.description = dataclasses.replace(desc, feedthrough=ft, feedthrough_source="measured")
+
+    def _declared_feedthrough(self, comp: Component, node: Any, where: Loc) -> dict[str, list[str]] | None:
+        desc = comp.description
+        ins, outs = desc.of("input"), desc.of("output")
+        if node in ("none", "all"):
+            return {y: (list(ins) if node == "all" else []) for y in outs}
+        if not isinstance(node, Mapping):
+            self.err(where, f"component {comp.name!r}: feedthrough = {node!r}; expected none, all, or a mapping "
+                            f"output: [inputs] of the outputs with direct feedthrough")
+            return None
+        ft: dict[str, list[str]] = {y: [] for y in outs}
+        ok = True
+        for y, us in node.items():
+            loc = node.loc(y) if hasattr(node, "loc") else where
+            if y not in outs:
+                self.err(loc, f"component {comp.name!r}: feedthrough names {y!r}, which is not an output"
+                              f"{suggest(str(y), outs)}")
+                ok = False
+                continue
+            us = [] if us in ("none", None) else list(ins) if us == "all" else [us] if isinstance(us, str) else us
+            if not isinstance(us, list) or any(u not in ins for u in us):
+                bad = us if not isinstance(us, list) else next(u for u in us if u not in ins)
+                self.err(loc, f"component {comp.name!r}: feedthrough {y}: {bad!r} is not an input"
+                              f"{suggest(str(bad), ins)} (expected a list of inputs, none or all)")
+                ok = False
+                continue
+            ft[y] = [str(u) for u in us]
+        return ft if ok else None
 
     def _hardware_component(self, name: str, spec: YMap) -> Component | None:
         """``{hardware: {address: HOST:PORT, key: FILE}}``: the hardware FMU (:mod:`hardware.fmu`),

@@ -195,6 +195,11 @@ class ConnectionChecks(Checker):
         if cyc:
             text = " -> ".join(f"{c}.{v}" for c, v in cyc)
             first = next((c for c in conns if (c.src, c.src_var) in cyc and (c.dst, c.dst_var) in cyc), conns[0])
+            if getattr(ALGORITHMS.get(algorithm), "delays_algebraic_loops", False):
+                self.note(first.where, f"algebraic loop (a cycle of direct feedthrough): {text}; {algorithm} runs it "
+                                       f"with its one-step coupling delay (each output on the loop is read at t_k "
+                                       f"from inputs of t_k-1), as libcosim and FMPy do")
+                return
             self.err(first.where, f"algebraic loop (a cycle of direct feedthrough): {text}; break it with a "
                                   f"component that has a state on the path (e.g. a motor with inductance, "
                                   f"fidelity full, or a continuous PID), or use master.algorithm: iterative, "

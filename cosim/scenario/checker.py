@@ -27,6 +27,10 @@ class Checker:
     def warn(self, where: Loc, msg: str) -> None:
         self.problems.append(Problem(where[0], where[1], msg, "warning"))
 
+    def note(self, where: Loc, msg: str) -> None:
+        """What the check found out or assumed (shown with the run, kept in its sidecar)."""
+        self.problems.append(Problem(where[0], where[1], msg, "note"))
+
     def number(self, node: YMap, key: str, what: str, *, required: bool = False, default=None):
         if key not in node:
             if required:

@@ -41,6 +41,10 @@ COMPONENT = {
     "modelica": "a Modelica file of your own (`.mo`), with `model:` naming its class (e.g. `Drive.RackPinion`)",
     "guard_data": "what the physical guards know of an external FMU (its mechanism, legs and ratings; written by "
                   "`ssp export` into an rpr-cosim SSP's component annotation)",
+    "feedthrough": "an FMU's direct feedthrough, which wins over its XML and the measured one: `none`, `all`, or a "
+                   "mapping output -> list of inputs (unlisted outputs have none)",
+    "flanges": "power ports of an FMU: `{NAME: {effort: VAR, flow: VAR}}` (one input, one output), bonded with "
+               "`a.NAME <-> b.NAME` (see docs/external-fmus.md)",
 }
 #: Keys of ``master:`` -> what each holds.
 MASTER = {

@@ -126,6 +126,12 @@ def load_raw(path: Path, problems: list[Problem], _chain: tuple[Path, ...] = ())
         from .ssp import scene_tree
 
         return scene_tree(path, problems)
+    from .osp import is_osp
+
+    if is_osp(path):  # libcosim's OspSystemStructure.xml read as a scene tree (cosim.scenario.osp)
+        from .osp import scene_tree as osp_tree
+
+        return osp_tree(path, problems)
     data, found = read_yaml(path)
     problems.extend(found)
     if data is None:
@@ -152,7 +158,8 @@ def load_raw(path: Path, problems: list[Problem], _chain: tuple[Path, ...] = ())
             continue
         target = (path.parent / item)
         if not target.is_file():
-            near = suggest(item, [p.name for p in path.parent.glob("*.yaml")] + [p.name for p in path.parent.glob("*.ssp")])
+            near = suggest(item, [p.name for p in path.parent.glob("*.yaml")] + [p.name for p in path.parent.glob("*.ssp")]
+                           + [p.name for p in path.parent.glob("*.xml")])
             problems.append(Problem(*loc, f"included scene {item!r} not found next to {path.name}{near}"))
             continue
         sub = load_raw(target, problems, _chain + (rp,))

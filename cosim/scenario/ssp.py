@@ -42,7 +42,10 @@ NS = {
     "ssm": "http://ssp-standard.org/SSP1/SystemStructureParameterMapping",
     "ssb": "http://ssp-standard.org/SSP1/SystemStructureSignalDictionary",
     "rpr": "https://github.com/rpr-cosim/ssp/1.0",
+    "osp": "http://opensimulationplatform.com/SSP/OSPAnnotations",
 }
+#: libcosim's annotation of the default experiment (its algorithm and base step)
+OSP_ANNOTATION = "com.opensimulationplatform"
 MASTER_ANNOTATION = "org.rpr-cosim.master"
 COMPONENT_ANNOTATION = "org.rpr-cosim.component"
 BOND_ANNOTATION = "org.rpr-cosim.bond"
@@ -187,6 +190,12 @@ class _Reader:
     def read(self):
         from lxml import etree
 
+        from ..slaves.archive import archive_problem
+
+        problem = archive_problem(self.path, "SSP", None)
+        if problem and not problem.startswith("not an SSP"):  # names and sizes before anything is read
+            self.err(0, problem, self.label)
+            return None
         try:
             zf = zipfile.ZipFile(self.path)
         except (zipfile.BadZipFile, OSError) as exc:
@@ -531,6 +540,10 @@ class _Reader:
         ann = root.find(f"ssd:DefaultExperiment/ssd:Annotations/ssc:Annotation[@type='{MASTER_ANNOTATION}']/rpr:Master",
                         NS)
         node = YMap()
+        osp = root.find(f"ssd:DefaultExperiment/ssd:Annotations/ssc:Annotation[@type='{OSP_ANNOTATION}']/osp:Algorithm",
+                        NS)
+        if ann is None and osp is not None:
+            return self.osp_master(osp), None, None
         if ann is None:
             step = self.foreign_step(comps)
             node.update({**FOREIGN_MASTER, "step": step})
@@ -556,6 +569,46 @@ class _Reader:
             outputs.where = self.loc(ann)
             outputs.locs = [self.loc(o) for o in outs]
         return node, outputs, ann.get("scene")
+
+    def osp_master(self, el):
+        """libcosim's annotation: ``FixedStepAlgorithm baseStepSize`` -> jacobi at that step (libcosim's
+        fixed step exchanges at t_k, then steps every slave); ``EccoAlgorithm`` -> ecco."""
+        from .yamlfile import YMap
+
+        node = YMap()
+        node.where = self.loc(el)
+        fixed, ecco = el.find("osp:FixedStepAlgorithm", NS), el.find("osp:EccoAlgorithm", NS)
+        alg = fixed if fixed is not None else ecco
+        if alg is None:
+            kids = [c.tag.split("}")[-1] for c in el if isinstance(c.tag, str)]
+            self.err(el.sourceline, f"{OSP_ANNOTATION} Algorithm: {', '.join(kids) or 'nothing'}; expected "
+                                    f"FixedStepAlgorithm or EccoAlgorithm")
+            return node
+        attr = "baseStepSize" if alg is fixed or alg.get("baseStepSize") is not None else "stepSize"
+        try:
+            step = float(alg.get(attr))
+        except (TypeError, ValueError):
+            self.err(alg.sourceline, f"{alg.tag.split('}')[-1]}: {attr} = {alg.get(attr)!r}; expected a step in seconds")
+            return node
+        node.update({"algorithm": "jacobi" if alg is fixed else "ecco", "step": step})
+        if alg is ecco:  # the EccoConfiguration of OspSystemStructure.xml as attributes (cosim.scenario.osp)
+            from .osp import ECCO_OPTIONS
+
+            opts = YMap()
+            opts.where = self.loc(alg)
+            for key, name in ECCO_OPTIONS.items():
+                raw = alg.get(key[0].lower() + key[1:])
+                if raw is not None:
+                    try:
+                        opts[name] = float(raw)
+                    except ValueError:
+                        self.err(alg.sourceline, f"EccoAlgorithm: {key[0].lower() + key[1:]} = {raw!r}; expected a number")
+                        continue
+                    opts.locs[name] = self.loc(alg)
+            if opts:
+                node["options"] = opts
+        node.locs = {k: self.loc(alg) for k in node}
+        return node
 
     def foreign_step(self, comps) -> float:
         import fmpy

@@ -58,6 +58,12 @@ def _construct_map(loader: _Loader, node: yaml.MappingNode) -> YMap:
     for knode, vnode in node.value:
         key = loader.construct_object(knode, deep=True)
         line = knode.start_mark.line + 1
+        if isinstance(key, (list, dict)):  # a complex key (``? [a, b]``): no name of ours is one
+            loader.duplicates.append(Problem(loader.filename, line, f"a key must be a name or a number, not a "
+                                                                     f"{'list' if isinstance(key, list) else 'mapping'} "
+                                                                     f"({'? [...]' if isinstance(key, list) else '? {...}'}); "
+                                                                     f"write it as a plain key"))
+            continue
         if key in m:
             loader.duplicates.append(Problem(loader.filename, line, f"duplicate key {key!r} (first at line "
                                                                      f"{m.locs[key][1]}); the last one would win"))
@@ -88,18 +94,25 @@ def _display(path: Path) -> str:
 
 #: Largest number of YAML values a scene may expand to (aliases count at every use).
 MAX_YAML_NODES = 200_000
+#: Deepest nesting of lists and mappings a file may have (no scene or batch needs more than ~10).
+MAX_YAML_DEPTH = 100
 
 
-def _expanded_size(root: Any) -> int:
+def _expanded_size(root: Any) -> tuple[int, bool, int]:
     """Number of values the YAML node graph ``root`` stands for with every alias expanded,
     counted without expanding (memoised on the shared nodes; a recursive alias or anything past
-    :data:`MAX_YAML_NODES` counts as too many)."""
+    :data:`MAX_YAML_NODES` counts as too many), whether any node is used twice (an alias), and
+    the deepest nesting."""
     too_many = MAX_YAML_NODES + 1
     memo: dict[int, int] = {}
     open_: set[int] = set()
-    stack = [(root, False)] if root is not None else []
+    stack = [(root, False, 1)] if root is not None else []
+    shared, deepest = False, 0
     while stack:
-        node, done = stack.pop()
+        node, done, depth = stack.pop()
+        deepest = max(deepest, depth)
+        if deepest > MAX_YAML_DEPTH:
+            return 0, shared, deepest
         kids = ([k for pair in node.value for k in pair] if isinstance(node, yaml.MappingNode)
                 else node.value if isinstance(node, yaml.SequenceNode) else [])
         if done:
@@ -107,17 +120,24 @@ def _expanded_size(root: Any) -> int:
             memo[id(node)] = min(1 + sum(memo.get(id(k), too_many) for k in kids), too_many)
             continue
         if id(node) in memo:
+            shared = True
             continue
         if id(node) in open_:
-            return too_many  # an alias inside its own anchor
+            return too_many, True, deepest  # an alias inside its own anchor
         open_.add(id(node))
-        stack.append((node, True))
+        stack.append((node, True, depth))
         for k in kids:
             if id(k) in open_:
-                return too_many
+                return too_many, True, deepest
             if id(k) not in memo:
-                stack.append((k, False))
-    return memo.get(id(root), 0)
+                stack.append((k, False, depth + 1))
+            else:
+                shared = True
+    return memo.get(id(root), 0), shared, deepest
+
+
+class _TooDeep(Exception):
+    """The file nests deeper than :data:`MAX_YAML_DEPTH`."""
 
 
 def read_yaml(path: Path) -> tuple[Any, list[Problem]]:
@@ -140,12 +160,23 @@ def read_yaml(path: Path) -> tuple[Any, list[Problem]]:
         line = text[:getattr(exc, "position", 0) or 0].count("\n") + 1
         return None, [Problem(name, line, f"YAML: {str(exc).splitlines()[0]}")]
     try:
-        node = loader.get_single_node()
-        size = _expanded_size(node)
+        try:
+            node = loader.get_single_node()
+        except RecursionError:  # the composer recurses once per level
+            node = None
+            raise _TooDeep from None
+        size, shared, depth = _expanded_size(node)
+        if depth > MAX_YAML_DEPTH:
+            raise _TooDeep
         if size > MAX_YAML_NODES:
-            return None, [Problem(name, 1, f"the scene expands to more than {MAX_YAML_NODES:,} YAML values "
-                                           f"(anchors and aliases repeat content); write it out plainly")]
+            why = ("(anchors and aliases repeat content); write it out plainly" if shared else
+                   "; a file of rpr-cosim needs far fewer (a batch axis of many values: {from:, to:, num:})")
+            return None, [Problem(name, 1, f"the file expands to more than {MAX_YAML_NODES:,} YAML values {why}"
+                                  if shared else f"the file holds more than {MAX_YAML_NODES:,} YAML values{why}")]
         data = loader.construct_document(node) if node is not None else None
+    except _TooDeep:
+        return None, [Problem(name, 1, f"lists or mappings nested more than {MAX_YAML_DEPTH} levels deep; no scene "
+                                       f"or batch needs that (an unclosed '[' or '{{'?)")]
     except yaml.MarkedYAMLError as exc:
         mark = exc.problem_mark or exc.context_mark
         line = mark.line + 1 if mark else 0

@@ -75,6 +75,10 @@ class SlaveDescription:
     guid: str = ""  # the FMU's GUID / instantiation token and model identifier ("" until read from an FMU)
     model_identifier: str = ""
     provides_directional_derivative: bool = False  # FMI get directional derivative (partials at the current instant)
+    dependencies_declared: bool = True  # False: no output lists its dependencies (FMI: each depends on every input)
+    feedthrough_source: str = "declared"  # declared, measured (cosim.slaves.probe) or scene (the scene's feedthrough:)
+    workarounds: tuple[str, ...] = ()  # from the behavioural check (cosim.slaves.behaviour): always_no_prior
+    rollback_reason: str = ""  # why rollback was taken away although the FMU declares it (behavioural check)
 
     def of(self, *causalities: str) -> list[str]:
         """Names of the variables with one of the given causalities, in declaration order."""
@@ -145,14 +149,37 @@ def resolve_shapes(desc: SlaveDescription, structural: dict[str, int]) -> SlaveD
     return dataclasses.replace(desc, variables=vs)
 
 
+def _declared_version(path: Path) -> str | None:
+    """The ``fmiVersion`` attribute of the FMU's model description (None when unreadable: the
+    full reader then says why)."""
+    import zipfile
+
+    from lxml import etree
+
+    try:
+        with zipfile.ZipFile(path) as z:
+            data = z.read("modelDescription.xml")
+        root = etree.fromstring(data, etree.XMLParser(resolve_entities=False, no_network=True, huge_tree=False))
+    except Exception:  # noqa: BLE001 - any unreadable description: fmpy's reader reports it
+        return None
+    v = root.get("fmiVersion")
+    return str(v) if v is not None else None
+
+
 def describe_fmu(path: Path) -> SlaveDescription:
     """Read an FMU's ``modelDescription.xml``.  Raises :class:`UserError` naming the file when it
     is not a readable co-simulation FMU."""
     import fmpy
 
+    from .archive import check_archive
+
     path = Path(path)
     if not path.is_file():
         raise UserError(f"{path}: no such FMU file")
+    check_archive(path)  # names, duplicates and sizes, before any reader unpacks a byte
+    version = _declared_version(path)
+    if version is not None and not version.startswith(("2", "3")):
+        raise UserError(f"{path}: FMI {version} FMUs are not supported; export it as FMI 2.0 or 3.0 co-simulation")
     try:
         md = fmpy.read_model_description(str(path), validate=False)
     except Exception as exc:  # fmpy raises bare Exceptions for any malformed archive or XML
@@ -166,12 +193,19 @@ def describe_fmu(path: Path) -> SlaveDescription:
                         f"{' and '.join(kinds) or 'no interface'} only); rpr-cosim steps co-simulation FMUs")
     vs: dict[str, Variable] = {v.name: _fmu_variable(v, md.fmiVersion) for v in md.modelVariables}
     de = md.defaultExperiment
-    default = {} if de is None else {k: float(x) for k, x in (("start", de.startTime), ("stop", de.stopTime),
-                                                               ("tolerance", de.tolerance), ("step", de.stepSize))
-                                     if x is not None}
+    default = {}
+    for k, x in (() if de is None else (("start", de.startTime), ("stop", de.stopTime), ("tolerance", de.tolerance),
+                                        ("step", de.stepSize))):
+        if x is not None:
+            try:
+                default[k] = float(x)
+            except (TypeError, ValueError):
+                attr = {"start": "startTime", "stop": "stopTime", "tolerance": "tolerance", "step": "stepSize"}[k]
+                raise UserError(f"{path}: <DefaultExperiment>: {attr}={x!r} is not a number") from None
     inputs = [v.name for v in md.modelVariables if v.causality == "input"]
     ft: dict[str, list[str]] = {}
     listed = {u.variable.name: u for u in md.outputs}
+    declared = any(u.dependencies is not None for u in md.outputs)
     for v in md.modelVariables:
         if v.causality != "output":
             continue
@@ -186,7 +220,7 @@ def describe_fmu(path: Path) -> SlaveDescription:
     interp = md.fmiVersion.startswith("2") and bool(getattr(cs, "canInterpolateInputs", False))
     ddx = bool(getattr(cs, "providesDirectionalDerivative", False) or getattr(cs, "providesDirectionalDerivatives", False))
     return SlaveDescription("fmu", str(path), vs, ft, [], period, md.fmiVersion, can_state, interp, default, kinds,
-                            md.guid or "", cs.modelIdentifier or "", ddx)
+                            md.guid or "", cs.modelIdentifier or "", ddx, declared)
 
 
 

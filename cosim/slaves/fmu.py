@@ -17,6 +17,8 @@ import numpy as np
 from fmus.fmi_functions import prototype
 
 from ..errors import UserError
+from . import crumb
+from .crumb import CALL, enter, leave
 from .description import SlaveDescription, describe_fmu
 from .slave import FAILING, NativeEntry, Slave, Status
 
@@ -69,13 +71,22 @@ def _sweep_dead_unzips() -> None:
 def _unzip(path: Path) -> str:
     import fmpy
 
+    from .archive import check_archive
+
     key = (str(path.resolve()), path.stat().st_mtime)
     if key not in _UNZIPPED:
         if not _UNZIPPED:  # once per process
             _sweep_dead_unzips()
-        # sources/ is not needed to load the binary (and is most of a generated FMU's bytes)
-        _UNZIPPED[key] = fmpy.extract(str(path), unzipdir=tempfile.mkdtemp(prefix=f"rpr-fmu-{os.getpid()}-"),
-                                      include=lambda name: not name.startswith("sources/"))
+        check_archive(path)  # member names and sizes before a byte is extracted
+        folder = tempfile.mkdtemp(prefix=f"rpr-fmu-{os.getpid()}-")
+        try:  # sources/ is not needed to load the binary (and is most of a generated FMU's bytes)
+            _UNZIPPED[key] = fmpy.extract(str(path), unzipdir=folder, include=lambda name: not name.startswith("sources/"))
+        except BaseException as exc:
+            shutil.rmtree(folder, ignore_errors=True)  # a failed extraction leaves nothing behind
+            if isinstance(exc, OSError):
+                raise UserError(f"{path}: cannot unpack the FMU into {tempfile.gettempdir()} "
+                                f"({exc.strerror or exc})") from None
+            raise
     return _UNZIPPED[key]
 
 
@@ -180,7 +191,7 @@ class _Fmi2(FmiVersion):
         inst = slave._inst
 
         def do_step(t: float, h: float) -> int:
-            st = step(inst, t, h, 0)
+            st = step(inst, t, h, 1 if slave.no_prior else 0)  # noSetFMUStatePriorToCurrentPoint
             if st == Status.DISCARD and slave.asked_to_stop():
                 return Status.STOP_REQUESTED
             return st
@@ -203,8 +214,8 @@ class _Fmi2(FmiVersion):
         return accessor(vrs)
 
     def enter_initialization(self, slave, start, stop, tolerance):
-        slave._call("fmi2SetupExperiment", slave.fmu.setupExperiment, tolerance, start, stop)
-        slave._call("fmi2EnterInitializationMode", slave.fmu.enterInitializationMode)
+        slave._call("fmi2SetupExperiment", slave.fmu.setupExperiment, tolerance, start, stop, call=4)
+        slave._call("fmi2EnterInitializationMode", slave.fmu.enterInitializationMode, call=5)
 
     def asked_to_stop(self, slave):
         from fmpy.fmi2 import fmi2Terminated
@@ -248,8 +259,8 @@ class _Fmi3(FmiVersion):
         terminate = flags[1]
 
         def do_step(t: float, h: float) -> int:
-            # noSetFMUStatePriorToCurrentPoint: only promised when this slave cannot be rolled back
-            st = step(inst, t, h, not slave.can_rollback, *p_flags, p_last)
+            # noSetFMUStatePriorToCurrentPoint: promised unless the algorithm may restore a state
+            st = step(inst, t, h, slave.no_prior, *p_flags, p_last)
             if st < 2 and terminate.value:
                 return Status.STOP_REQUESTED
             return st
@@ -272,7 +283,7 @@ class _Fmi3(FmiVersion):
         return accessor(vrs, n_values)
 
     def enter_initialization(self, slave, start, stop, tolerance):
-        slave._call("fmi3EnterInitializationMode", slave.fmu.enterInitializationMode, tolerance, start, stop)
+        slave._call("fmi3EnterInitializationMode", slave.fmu.enterInitializationMode, tolerance, start, stop, call=5)
 
     def last_time(self, slave):
         return slave._last_t.value
@@ -296,14 +307,28 @@ class FmuSlave(Slave):
         super().__init__(name, description or describe_fmu(self.path))
         self.fmi: FmiVersion = FMI3 if str(self.description.fmi_version).startswith("3") else FMI2
         self.fmu = None
+        self.always_no_prior = "always_no_prior" in self.description.workarounds
         self._terminated = False
         self._empty_vr = (c_uint32 * 1)()
         self._empty_val = (c_double * 1)()
+        self._ck = crumb.key(name, self.fmi3)  # this component in the breadcrumb (cosim.slaves.crumb)
 
     #: Keep the instance when a run ends (:meth:`free` leaves it alive) so that the next run's
     #: :meth:`instantiate` resets it (fmi2Reset / fmi3Reset) instead of loading the FMU again;
     #: :meth:`release` frees it for good.  Used by batches (:mod:`cosim.batch`).
     reuse: bool = False
+
+    #: Set by the run for an algorithm that never restores a state (fixed-step, ecco): every
+    #: doStep then promises ``noSetFMUStatePriorToCurrentPoint = true``.
+    forward_only: bool = False
+    #: Workaround from the behavioural check (:mod:`cosim.slaves.behaviour`) for an FMU that does
+    #: not advance when that flag is false: pass true always, rollbacks included.
+    always_no_prior: bool = False
+
+    @property
+    def no_prior(self) -> bool:
+        """The ``noSetFMUStatePriorToCurrentPoint`` this slave's doSteps pass."""
+        return self.forward_only or self.always_no_prior or not self.can_rollback
 
     # lifecycle ---------------------------------------------------------------------------------
     def instantiate(self) -> None:
@@ -317,11 +342,15 @@ class FmuSlave(Slave):
             md = fmpy.read_model_description(str(self.path), validate=False)
             guid, ident = md.guid, md.coSimulation.modelIdentifier
         unzip = _unzip(self.path)
+        enter(self._ck, CALL["fmi2Instantiate"])  # loading the binary and instantiating
         try:
             self.fmu = self.fmi.make(self, guid, unzip, ident)
         except Exception as exc:  # fmpy raises bare Exceptions for a missing binary or failed call
             raise UserError(f"{self.name}: cannot instantiate {self.path} ({exc}"
                             f"{'; ' + self.last_message if self.last_message else ''})") from None
+        finally:
+            leave()
+        crumb.name_instance(self.name, self.fmi3, self.fmu.component)
         self._inst = c_void_p(self.fmu.component)
         self.fmi.bind_step(self, self.fmu.dll)
 
@@ -333,12 +362,15 @@ class FmuSlave(Slave):
         self.messages.append(f"[{Status(status).name if status in Status._value2member_map_ else status}] "
                              f"{(message or b'').decode(errors='replace')}")
 
-    def _call(self, what: str, fn, *args) -> None:
+    def _call(self, what: str, fn, *args, call: int = 0) -> None:
+        enter(self._ck, call)
         try:
             fn(*args)
         except Exception as exc:  # fmpy's FMICallException and friends
             detail = f": {self.last_message}" if self.last_message else ""
             raise UserError(f"{self.name}: {what} failed ({exc}){detail}") from None
+        finally:
+            leave()
 
     def set_start(self, values: dict[str, object]) -> None:
         """Parameters and start values of any FMI type by name (arrays as lists); FMI 3.0
@@ -348,13 +380,14 @@ class FmuSlave(Slave):
         vs = self.description.variables
         structural = [k for k in values if vs[k].causality == "structuralParameter"]
         if structural and self.fmi.configuration_mode:
-            self._call("fmi3EnterConfigurationMode", self.fmu.enterConfigurationMode)
+            self._call("fmi3EnterConfigurationMode", self.fmu.enterConfigurationMode, call=3)
             for k in structural:
-                self._call(f"setting structural parameter {k}", self.set_values, k, values[k])
-            self._call("fmi3ExitConfigurationMode", self.fmu.exitConfigurationMode)
+                self._call(f"setting structural parameter {k}", self.set_values, k, values[k], call=3)
+            self._call("fmi3ExitConfigurationMode", self.fmu.exitConfigurationMode, call=3)
         for k, val in values.items():
             if k not in structural:
-                self._call(f"setting start value {k}", self.set_values, k, val)
+                self._call(f"setting start value {k}", self.set_values, k, val, call=3)
+        self._start = {k: v for k, v in values.items() if k not in structural}
 
     def _accessor(self, verb: str, type_name: str):
         from .types import TYPES
@@ -395,9 +428,13 @@ class FmuSlave(Slave):
 
     def enter_initialization(self, start_time: float, stop_time: float, tolerance: float | None = None) -> None:
         self.fmi.enter_initialization(self, start_time, stop_time, tolerance)
+        if "set_in_init" in self.description.workarounds:  # an FMU that forgets values set before initialisation
+            for k, val in getattr(self, "_start", {}).items():
+                if self.description.variables[k].variability != "constant":
+                    self._call(f"setting start value {k} in initialisation mode", self.set_values, k, val, call=3)
 
     def exit_initialization(self) -> None:
-        self._call("exitInitializationMode", self.fmu.exitInitializationMode)
+        self._call("exitInitializationMode", self.fmu.exitInitializationMode, call=6)
 
     def bind(self, in_vrs, in_buf, out_vrs, out_buf) -> None:
         self._in_vr = np.ascontiguousarray(in_vrs, dtype=np.uint32)
@@ -440,7 +477,10 @@ class FmuSlave(Slave):
         raise RuntimeError(f"{self.name}: pull() before bind()")
 
     def do_step(self, t: float, h: float) -> int:
-        return self._step(t, h)  # made by the FMI version at instantiation
+        enter(self._ck, 7, t)
+        st = self._step(t, h)  # made by the FMI version at instantiation
+        leave()
+        return st
 
     def asked_to_stop(self) -> bool:
         """After an FMI 2.0 Discard: did the FMU ask to end the simulation (fmi2Terminated)?"""
@@ -457,20 +497,23 @@ class FmuSlave(Slave):
     def terminate(self) -> None:
         if self.fmu is not None and not self._terminated:
             self._terminated = True
+            enter(self._ck, CALL["fmi2Terminate"])
             try:
                 self.fmu.terminate()
             except Exception:  # terminating after an Error/Fatal status may itself fail
                 pass
+            finally:
+                leave()
 
     def reset(self) -> None:
         """Return the instance to its state right after instantiation (FMI reset): every
         variable back to its default, ready for :meth:`set_start` and another run."""
         self.messages.clear()
-        self._call("reset", self.fmu.reset)
+        self._call("reset", self.fmu.reset, call=CALL["fmi2Reset"])
         self._terminated = False
 
     def free(self) -> None:
-        if not self.reuse:
+        if not self.reuse or "no_reset" in self.description.workarounds:  # a reset that does not reset: load anew
             self.release()
 
     def release(self) -> None:
@@ -480,10 +523,13 @@ class FmuSlave(Slave):
                 self._free_state()
             except Exception:  # a state of a failed instance: nothing more to do
                 pass
+            enter(self._ck, CALL["fmi2FreeInstance"])
             try:
                 self.fmu.freeInstance()
             except Exception:  # after Fatal, freeInstance is undefined: nothing more to do
                 pass
+            finally:
+                leave()
             self.fmu = None
 
     def native(self) -> NativeEntry | None:
@@ -530,7 +576,9 @@ class FmuSlave(Slave):
         state = getattr(self, "_state", None)
         if state is None:
             state = self._state = c_void_p()
+        enter(self._ck, CALL["fmi2GetFMUstate"])
         st = self._state_calls()[0](self._inst, ctypes.byref(state))
+        leave()
         if st in FAILING:
             raise UserError(f"{self.name}: getting the FMU state failed ({Status(st).name})"
                             + (f": {self.last_message}" if self.last_message else ""))
@@ -539,7 +587,9 @@ class FmuSlave(Slave):
         state = getattr(self, "_state", None)
         if state is None:
             raise RuntimeError(f"{self.name}: restore_state() before save_state()")
+        enter(self._ck, CALL["fmi2SetFMUstate"])
         st = self._state_calls()[1](self._inst, state)
+        leave()
         if st in FAILING:
             raise UserError(f"{self.name}: setting the FMU state failed ({Status(st).name})"
                             + (f": {self.last_message}" if self.last_message else ""))

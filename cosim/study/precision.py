@@ -134,8 +134,10 @@ class PrecisionStudy:
         return next((r for r in self.rows if r.chosen), None)
 
     def write_csv(self, path: Path) -> None:
+        from ..outputs import staged
+
         signals = list(dict.fromkeys(s for r in self.rows for s in r.errors))
-        with open(path, "w", newline="") as fh:
+        with staged(path) as part, open(part, "w", newline="") as fh:
             w = csv.writer(fh)
             w.writerow(["algorithm", "inputs", "step", "tolerance", "status", "worst_relative", "worst_signal",
                         "rms_relative", "wall_s", "do_steps", "accepted_steps", "rejected_steps", "rollbacks",
@@ -552,6 +554,6 @@ def plot_study(study: PrecisionStudy, path: Path) -> Path:
     ax.set_title(f"{study.scene}: work-precision over {study.stop_time:g} s")
     ax.grid(alpha=0.3, which="both")
     ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0))
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return Path(path)
+    from ..analysis.charts import save_figure
+
+    return save_figure(fig, Path(path), dpi=110)

@@ -75,7 +75,9 @@ class StabilityMap:
 
     def write_csv(self, path: Path) -> None:
         """One row per cell: variant, step [s], parameter value, outcome, reason, growth, rho."""
-        with open(path, "w", newline="") as fh:
+        from ..outputs import staged
+
+        with staged(path) as part, open(part, "w", newline="") as fh:
             w = csv.writer(fh)
             w.writerow(["algorithm", "inputs", "step", self.vary, "outcome", "rho_measured", "rho_analytic", "reason"])
             for c in self.cells:
@@ -295,6 +297,6 @@ def plot_map(smap: StabilityMap, path: Path, scene_path: Path | str | None = Non
         handles.append(Line2D([], [], color="k", label="analytic boundary: spectral radius = 1"))
     fig.legend(handles=handles, loc="outside lower center", ncols=len(handles))
     fig.suptitle(f"{smap.scene}: stability over step and {smap.vary}")
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return Path(path)
+    from ..analysis.charts import save_figure
+
+    return save_figure(fig, Path(path), dpi=110)

@@ -251,7 +251,9 @@ class CsvTrace(Observer):
         self.path.parent.mkdir(parents=True, exist_ok=True)
         self.meta = dict(meta, format=FORMAT, versions=package_versions(),
                          started=time.strftime("%Y-%m-%dT%H:%M:%S%z"), trace=self.path.name)
-        self._fd = os.open(self.part, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644)
+        from ..outputs import create_new
+
+        self._fd = create_new(self.part)  # never through a link planted under the part's name
         buf = io.StringIO()
         if self.commented:
             buf.write(f"# {FORMAT}\n")
@@ -263,10 +265,12 @@ class CsvTrace(Observer):
             self._write(buf.getvalue().encode())
             self._write_sidecar({"status": "running", "reason": "", "pid": os.getpid(), "columns": list(columns)},
                                 reserve=True)
-        except OSError as exc:
+        except OSError as exc:  # nothing of this run is left behind: no stale part files
             os.close(self._fd)
             self._fd = None
-            raise TraceWriteError(f"cannot write the trace {self.part}: {exc.strerror or exc}") from None
+            self.part.unlink(missing_ok=True)
+            self.sidecar_part.unlink(missing_ok=True)
+            raise TraceWriteError(f"cannot write the trace {self.path}: {exc.strerror or exc}") from None
         self._inline = not WRITER_THREAD
         if not self._inline:
             self._queue = queue.Queue()
@@ -417,16 +421,16 @@ class CsvTrace(Observer):
         data = json_text(dict(self.meta, **self.extra, **extra), default=_json_default)
         if reserve:
             data += " " * self.SIDECAR_RESERVE + "\n"
-        tmp = self.sidecar_part.with_name(f"{self.sidecar_part.name}.tmp")
+        from ..outputs import write_text
+
         try:
-            tmp.write_text(data)
-            os.replace(tmp, self.sidecar_part)
+            write_text(self.sidecar_part, data)
         except OSError:
-            tmp.unlink(missing_ok=True)
             if reserve or not self.sidecar_part.exists():
                 raise
             raw = data.encode()
-            with open(self.sidecar_part, "r+b") as fh:  # in place, inside the reserved blocks
+            fd = os.open(self.sidecar_part, os.O_RDWR | os.O_NOFOLLOW)
+            with os.fdopen(fd, "r+b") as fh:  # in place, inside the reserved blocks
                 old = fh.seek(0, os.SEEK_END)
                 fh.seek(0)
                 fh.write(raw + b" " * max(0, old - len(raw)))
@@ -463,6 +467,9 @@ class ParquetTrace(CsvTrace):
         self.columns = list(columns)
         self._schema = pa.schema([pa.field(c, pa.float64()) for c in self.columns],
                                  metadata={PARQUET_META_KEY: json.dumps(self.meta, default=_json_default)})
+        from ..outputs import create_new
+
+        os.close(create_new(self.part))  # a link planted under the part's name is replaced, not followed
         try:
             self._writer = pq.ParquetWriter(str(self.part), self._schema, compression="zstd")
             self._fd = -1  # "started" for the base class

@@ -89,7 +89,8 @@ OPTIONS = (
     AlgorithmOption("rtol", 1e-8, 1e-14, 1.0, "1", "convergence: |G(z) - z| <= atol + rtol max(|z|, |G(z)|) per "
                                                 "connection"),
     AlgorithmOption("atol", 1e-10, 0.0, math.inf, "signal unit", "absolute convergence tolerance"),
-    AlgorithmOption("max_iter", 50, 1, 10000, "1", "passes per macro step before the run ends as unstable"),
+    AlgorithmOption("max_iter", 50, 1, 10000, "1", "passes per macro step before the run ends as unstable",
+                    integer=True),
     ChoiceOption("jacobian", "auto", math.nan, math.nan, "", "Newton's slave Jacobians: 'auto' (directional "
                  "derivatives where the slave provides them, else finite differences of its step) or "
                  "'finite_difference'", choices=JACOBIANS),

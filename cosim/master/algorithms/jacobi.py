@@ -14,6 +14,8 @@ class Jacobi(Algorithm):
     name = "jacobi"
     native_code = 0
     multirate = True
+    #: needs no stepping order: a cycle of direct feedthrough runs with the one-step coupling delay
+    delays_algebraic_loops = True
 
     def _step_impl(self, t, h):
         gather, push, do, pull, acc, calls = (self._gather, self._push, self._do, self._pull, self.slave_ns,

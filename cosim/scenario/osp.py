@@ -1,0 +1,579 @@
+"""libcosim's system format: ``OspSystemStructure.xml`` read as a scene source (beside
+:mod:`cosim.scenario.ssp`), so ``rpr-cosim run OspSystemStructure.xml`` and ``include:`` of one
+validate and run it like any scene.
+
+What becomes what:
+
+``Simulator name source stepSize``  a component ``fmu: source`` (relative to the file); its
+    ``InitialValues`` (Real, Integer, Boolean, String) become ``params:`` or ``start:`` by the FMU
+    variable's causality.  Step sizes: the master step is the largest simulator step (else
+    ``BaseStepSize``), and a simulator with a smaller step runs at ``rate`` = master step / its step
+    (:mod:`cosim.master.multirate`) when that ratio is whole; otherwise a one-line refusal with the
+    numbers.  (libcosim exchanges a slower slave's values at its own step; we exchange at the
+    master step: the same when all steps are equal.)
+``VariableConnection``   a signal from whichever of the two variables is the FMU's output; with
+    ``powerBond="NAME"`` the two connections of one name between two simulators become a power
+    bond (a flange on each side: :meth:`ComponentChecks._flanges`), which ``ecco`` controls.
+``VariableGroupConnection``  resolved through ``<source stem>_OspModelDescription.xml`` next to the
+    FMU: ``Generic`` groups connect variable by variable in order; mechanical and electrical ports
+    (``LinearMechanicalPort``, ``AngularMechanicalPort``, ... : an effort group and a flow group)
+    become power bonds, one per variable pair.
+``SignalConnection`` through ``Functions``  a ``LinearTransformation`` (``in`` -> ``out``) folds into
+    the connection's factor and offset; ``Sum`` and ``VectorSum`` are refused (a connection carries one
+    source in rpr-cosim).
+``Algorithm``   ``fixedStep`` -> ``jacobi`` (libcosim's fixed-step algorithm exchanges at t_k, then steps
+    every slave), ``ecco`` -> ``ecco`` with ``EccoConfiguration`` mapped onto its options (safety factor,
+    first and largest step, change rates, PI gains; not the tolerances, which libcosim puts on the power
+    residual and we on the energy residual of a step, nor the smallest step, at which libcosim goes on
+    over tolerance and we end the run as unstable).
+``StartTime``, ``EndTime``, ``BaseStepSize``  the scene's start time, stop time and step.
+
+Bad input gets one line naming the file, the line and what is expected.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+from .problems import Problem
+
+ROOT_TAG = "OspSystemStructure"
+ALGORITHMS = {"fixedStep": "jacobi", "ecco": "ecco"}
+#: EccoConfiguration element -> our ecco option (cosim.master.algorithms.ecco)
+ECCO_OPTIONS = {"SafetyFactor": "safety", "StepSize": "h_init", "MaximumStepSize": "h_max", "MinimumChangeRate": "fac_min", "MaximumChangeRate": "fac_max",
+                "ProportionalGain": "k_p", "IntegralGain": "k_i"}
+#: libcosim's ECCO tolerances apply to the bonds' power residual [W]; ours to the energy residual of a
+#: step [J] (cosim.master.algorithms.ecco): not the same quantity, so ours keep their defaults (a note says so)
+ECCO_UNMAPPED = {"RelativeTolerance": "libcosim's ECCO tolerances bound the power residual [W], ours the energy "
+                                       "residual of a step [J]; ecco keeps its own rtol and atol",
+                 "AbsoluteTolerance": "libcosim's ECCO tolerances bound the power residual [W], ours the energy "
+                                      "residual of a step [J]; ecco keeps its own rtol and atol",
+                 "MinimumStepSize": "libcosim's ECCO goes on at its smallest step over tolerance; ours ends such a "
+                                    "run as unstable, so it keeps its own floor h_min"}
+#: OSP port groups: (effort group, flow group)
+PORTS = {"LinearMechanicalPort": ("Force", "LinearVelocity"),
+         "AngularMechanicalPort": ("Torque", "AngularVelocity"),
+         "ElectromagneticPort": ("Voltage", "Current"),
+         "HydraulicPort": ("Pressure", "VolumeFlowRate"),
+         "LinearMechanicalQuasiPort": ("Force", "LinearDisplacement"),
+         "AngularMechanicalQuasiPort": ("Torque", "AngularDisplacement")}
+
+
+def _local(el) -> str:
+    return el.tag.split("}")[-1] if isinstance(el.tag, str) else ""
+
+
+def _kids(el, name: str | None = None) -> list:
+    return [c for c in el if isinstance(c.tag, str) and (name is None or _local(c) == name)]
+
+
+def _kid(el, name: str):
+    found = _kids(el, name)
+    return found[0] if found else None
+
+
+def is_osp(path: Path) -> bool:
+    """Whether ``path`` is an XML file whose root element is ``OspSystemStructure``."""
+    if Path(path).suffix.lower() != ".xml":
+        return False
+    try:
+        head = Path(path).read_bytes()[:4096].decode("utf-8", errors="replace")
+    except OSError:
+        return False
+    return f"<{ROOT_TAG}" in head or f":{ROOT_TAG}" in head
+
+
+class _Reader:
+    def __init__(self, path: Path, problems: list[Problem]):
+        from .yamlfile import _display
+
+        self.path, self.problems = Path(path), problems
+        self.label = _display(self.path)
+        self.comps: dict[str, tuple] = {}  # name -> (element, spec YMap, description, fmu path)
+
+    def err(self, el, msg: str) -> None:
+        self.problems.append(Problem(self.label, getattr(el, "sourceline", 0) or 0, msg))
+
+    def loc(self, el) -> tuple[str, int]:
+        return (self.label, getattr(el, "sourceline", 0) or 0)
+
+    def number(self, el, text: str | None, what: str) -> float | None:
+        try:
+            x = float(text)
+        except (TypeError, ValueError):
+            self.err(el, f"{what} = {text!r}; expected a number")
+            return None
+        if x != x or x in (float("inf"), float("-inf")):
+            self.err(el, f"{what} = {text!r}; expected a finite number")
+            return None
+        return x
+
+    def read(self):
+        from lxml import etree
+
+        try:
+            root = etree.parse(str(self.path)).getroot()
+        except etree.XMLSyntaxError as exc:
+            self.problems.append(Problem(self.label, exc.lineno or 0, f"XML syntax: {exc.msg}"))
+            return None
+        except OSError as exc:
+            self.problems.append(Problem(self.label, 0, f"cannot read the file ({exc})"))
+            return None
+        if _local(root) != ROOT_TAG:
+            self.err(root, f"root element {_local(root)!r}; an OSP system structure has <{ROOT_TAG}>")
+            return None
+        return self.tree(root)
+
+    # ------------------------------------------------------------------------------------------
+    def tree(self, root):
+        from .yamlfile import YList, YMap
+
+        known = {"StartTime", "EndTime", "BaseStepSize", "Algorithm", "Simulators", "Functions", "Connections",
+                 "EccoConfiguration"}
+        for el in _kids(root):
+            if _local(el) not in known:
+                self.err(el, f"element <{_local(el)}> is not part of OspSystemStructure (expected "
+                             f"{', '.join(sorted(known))})")
+        base = self.time(root, "BaseStepSize")
+        start, stop = self.time(root, "StartTime"), self.time(root, "EndTime")
+        alg_el = _kid(root, "Algorithm")
+        alg = (alg_el.text or "").strip() if alg_el is not None else "fixedStep"
+        if alg not in ALGORITHMS:
+            self.err(alg_el, f"Algorithm {alg!r}; expected one of {', '.join(ALGORITHMS)}")
+            return None
+        sims = _kid(root, "Simulators")
+        if sims is None or not _kids(sims, "Simulator"):
+            self.err(root, "no <Simulators>/<Simulator>; a system needs at least one simulator")
+            return None
+        steps: dict[str, float] = {}
+        for el in _kids(sims, "Simulator"):
+            self.simulator(el, steps)
+        if any(p.severity == "error" for p in self.problems):
+            return None
+        master_step = max(list(steps.values()) + ([base] if base else []), default=None)
+        if master_step is None:
+            self.err(root, "no BaseStepSize and no simulator stepSize; give <BaseStepSize> in seconds")
+            return None
+        for name, (el, spec, _desc, _f) in self.comps.items():
+            h = steps.get(name, base or master_step)
+            ratio = master_step / h
+            if abs(ratio - round(ratio)) > 1e-9 * ratio:
+                self.err(el, f"simulator {name!r}: stepSize {h:g} s does not divide the master step {master_step:g} s "
+                             f"(the largest step; ratio {ratio:.6g}); rpr-cosim steps a faster slave a whole number "
+                             f"of times per master step")
+            elif round(ratio) != 1:
+                spec["rate"] = int(round(ratio))
+                spec.locs["rate"] = self.loc(el)
+        functions = self.functions(_kid(root, "Functions"))
+        conns = YList()
+        conns.where = self.loc(root)
+        node = _kid(root, "Connections")
+        for el in _kids(node) if node is not None else []:
+            kind = _local(el)
+            if kind == "VariableConnection":
+                self.variable_connection(el, conns)
+            elif kind == "VariableGroupConnection":
+                self.group_connection(el, conns)
+            elif kind == "SignalConnection":
+                self.signal_connection(el, functions, conns)
+            else:
+                self.err(el, f"<{kind}> connections are not supported (VariableConnection, VariableGroupConnection "
+                             f"and SignalConnection are)")
+        if any(p.severity == "error" for p in self.problems):
+            return None
+        tree = YMap()
+        tree.where = self.loc(root)
+        tree["name"] = self.path.stem if self.path.stem != ROOT_TAG else self.path.parent.name
+        tree.locs["name"] = self.loc(root)
+        if stop is not None:
+            tree["stop_time"] = stop
+            tree.locs["stop_time"] = self.loc(_kid(root, "EndTime"))
+        if start:
+            tree["start_time"] = start
+            tree.locs["start_time"] = self.loc(_kid(root, "StartTime"))
+        cmap = YMap()
+        cmap.where = self.loc(sims)
+        for name, (el, spec, _d, _f) in self.comps.items():
+            cmap[name] = spec
+            cmap.locs[name] = self.loc(el)
+        tree["components"] = cmap
+        tree.locs["components"] = self.loc(sims)
+        tree["connections"] = conns
+        tree.locs["connections"] = conns.where
+        master = YMap({"algorithm": ALGORITHMS[alg], "step": master_step})
+        master.where = self.loc(alg_el if alg_el is not None else root)
+        master.locs = {"algorithm": master.where, "step": master.where}
+        opts = self.ecco(_kid(root, "EccoConfiguration"))
+        if opts and ALGORITHMS[alg] == "ecco":
+            master["options"] = opts
+            master.locs["options"] = opts.where
+        tree["master"] = master
+        tree.locs["master"] = master.where
+        return None if any(p.severity == "error" for p in self.problems) else tree
+
+    def time(self, root, tag: str) -> float | None:
+        el = _kid(root, tag)
+        if el is None:
+            return None
+        x = self.number(el, (el.text or "").strip(), tag)
+        if x is not None and (x < 0 or (tag == "BaseStepSize" and x <= 0)):
+            self.err(el, f"{tag} = {x:g}; expected a {'positive' if tag == 'BaseStepSize' else 'non-negative'} "
+                         f"time in seconds")
+            return None
+        return x
+
+    def ecco(self, el):
+        from .yamlfile import YMap
+
+        if el is None:
+            return None
+        opts = YMap()
+        opts.where = self.loc(el)
+        for c in _kids(el):
+            key = ECCO_OPTIONS.get(_local(c))
+            if _local(c) in ECCO_UNMAPPED:
+                self.problems.append(Problem(self.label, c.sourceline or 0, f"EccoConfiguration {_local(c)}: "
+                                             f"{ECCO_UNMAPPED[_local(c)]} (set master.options to change it)", "note"))
+                continue
+            if key is None:
+                self.err(c, f"EccoConfiguration: <{_local(c)}> is unknown (expected {', '.join(ECCO_OPTIONS)})")
+                continue
+            x = self.number(c, (c.text or "").strip(), _local(c))
+            if x is not None:
+                opts[key] = x
+                opts.locs[key] = self.loc(c)
+        return opts
+
+    # simulators ---------------------------------------------------------------------------------
+    def simulator(self, el, steps: dict[str, float]) -> None:
+        from ..errors import UserError
+        from ..slaves.description import describe_fmu
+        from .yamlfile import YMap
+
+        name, src = el.get("name"), el.get("source")
+        if not name or not src:
+            self.err(el, "a <Simulator> needs name= and source= (the FMU, relative to this file)")
+            return
+        if name in self.comps:
+            self.err(el, f"simulator {name!r} is defined twice")
+            return
+        if "://" in src and not src.startswith("file://"):
+            self.err(el, f"simulator {name!r}: source {src!r}: only local FMU files are supported (no proxy or "
+                         f"remote URIs)")
+            return
+        fmu = (self.path.parent / src.removeprefix("file://")).resolve()
+        if not fmu.is_file():
+            self.err(el, f"simulator {name!r}: FMU {src!r} not found (looked in {fmu.parent})")
+            return
+        try:
+            desc = describe_fmu(fmu)
+        except UserError as exc:
+            self.err(el, f"simulator {name!r}: {exc}")
+            return
+        if el.get("stepSize") is not None:
+            h = self.number(el, el.get("stepSize"), f"simulator {name!r}: stepSize")
+            if h is not None and h <= 0:
+                self.err(el, f"simulator {name!r}: stepSize = {h:g}; expected a positive step in seconds")
+            elif h is not None:
+                steps[name] = h
+        spec = YMap({"fmu": str(fmu)})
+        spec.where = self.loc(el)
+        spec.locs = {"fmu": self.loc(el)}
+        ivs = _kid(el, "InitialValues")
+        for iv in _kids(ivs, "InitialValue") if ivs is not None else []:
+            self.initial_value(iv, name, spec, desc)
+        self.comps[name] = (el, spec, desc, fmu)
+
+    def initial_value(self, iv, comp: str, spec, desc) -> None:
+        from .problems import suggest
+        from .yamlfile import YMap
+
+        var = iv.get("variable")
+        v = desc.variables.get(var or "")
+        if v is None:
+            self.err(iv, f"simulator {comp!r}: no variable {var!r}{suggest(str(var), desc.variables)}")
+            return
+        typed = _kids(iv)
+        if len(typed) != 1 or _local(typed[0]) not in ("Real", "Integer", "Boolean", "String"):
+            self.err(iv, f"simulator {comp!r}: InitialValue {var!r} needs one <Real|Integer|Boolean|String value=.../>")
+            return
+        kind, text = _local(typed[0]), typed[0].get("value")
+        if text is None:
+            self.err(typed[0], f"simulator {comp!r}: InitialValue {var!r}: <{kind}> has no value=")
+            return
+        expect = {"Real": ("Real", "Float64", "Float32"), "Integer": ("Integer", "Int32", "Enumeration"),
+                  "Boolean": ("Boolean",), "String": ("String",)}[kind]
+        if v.fmi_type not in expect and v.type not in expect:
+            self.err(typed[0], f"simulator {comp!r}: InitialValue {var!r} is given as {kind} but the variable is "
+                               f"{v.fmi_type or v.type}")
+            return
+        if kind == "Real":
+            value = self.number(typed[0], text, f"simulator {comp!r}: {var}")
+        elif kind == "Integer":
+            try:
+                value = int(text)
+            except ValueError:
+                self.err(typed[0], f"simulator {comp!r}: {var} = {text!r}; expected an integer")
+                return
+        elif kind == "Boolean":
+            if text.strip().lower() not in ("true", "false", "1", "0"):
+                self.err(typed[0], f"simulator {comp!r}: {var} = {text!r}; expected true, false, 1 or 0")
+                return
+            value = text.strip().lower() in ("true", "1")
+        else:
+            value = text
+        if value is None:
+            return
+        key = "params" if v.causality in ("parameter", "structuralParameter") else "start"
+        if key not in spec:
+            spec[key] = YMap()
+            spec[key].where = self.loc(iv)
+            spec.locs[key] = self.loc(iv)
+        spec[key][var] = value
+        spec[key].locs[var] = self.loc(iv)
+
+    # connections ----------------------------------------------------------------------------------
+    def endpoint(self, el) -> tuple[str, str, str] | None:
+        """(simulator, variable, causality) of a <Variable simulator= name=/>."""
+        from .problems import suggest
+
+        sim, var = el.get("simulator"), el.get("name")
+        if sim not in self.comps:
+            self.err(el, f"unknown simulator {sim!r}{suggest(str(sim), self.comps)}")
+            return None
+        desc = self.comps[sim][2]
+        v = desc.variables.get(var or "")
+        if v is None:
+            self.err(el, f"simulator {sim!r} has no variable {var!r}{suggest(str(var), desc.variables)}")
+            return None
+        return sim, var, v.causality
+
+    def pair(self, el, a, b) -> tuple | None:
+        """(source, destination) endpoints of two variables: the output feeds the input."""
+        if a[2] == "output" and b[2] in ("input", "parameter"):
+            return a, b
+        if b[2] == "output" and a[2] in ("input", "parameter"):
+            return b, a
+        self.err(el, f"connection {a[0]}.{a[1]} ({a[2]}) - {b[0]}.{b[1]} ({b[2]}): one side must be an output, the "
+                     f"other an input")
+        return None
+
+    def add(self, conns, text: str, el) -> None:
+        conns.append(text)
+        conns.locs.append(self.loc(el))
+
+    def variable_connection(self, el, conns) -> None:
+        vs = _kids(el, "Variable")
+        if len(vs) != 2:
+            self.err(el, f"a VariableConnection joins two <Variable> elements, got {len(vs)}")
+            return
+        a, b = self.endpoint(vs[0]), self.endpoint(vs[1])
+        if a is None or b is None:
+            return
+        p = self.pair(el, a, b)
+        if p is None:
+            return
+        bond = el.get("powerBond")
+        if bond:
+            self.bond_half(el, bond, p, conns)
+        else:
+            self.add(conns, f"{p[0][0]}.{p[0][1]} -> {p[1][0]}.{p[1][1]}", el)
+
+    def bond_half(self, el, bond: str, p, conns) -> None:
+        """One of the two connections of ``powerBond``: the second makes the flanges and the bond."""
+        pending = getattr(self, "_bonds", None)
+        if pending is None:
+            pending = self._bonds = {}
+        (sa, va, _), (sb, vb, _) = p
+        key = (bond, frozenset((sa, sb)))
+        if key not in pending:
+            pending[key] = (el, p)
+            return
+        el0, p0 = pending.pop(key)
+        bond = "".join(ch if ch.isalnum() or ch == "_" else "_" for ch in bond)
+        (s0, v0, _), (d0, w0, _) = p0
+        if (s0, d0) != (sb, sa):
+            self.err(el, f"powerBond {bond!r}: its two connections must run in opposite directions between two "
+                         f"simulators (line {el0.sourceline}: {s0} -> {d0}; here: {sa} -> {sb})")
+            return
+        # p0: s0.v0 -> d0.w0, p: d0.va -> s0.vb.  The side whose output is the first variable of the
+        # force/velocity pair is not named in OSP: effort = the one libcosim's ECCO multiplies; for a
+        # bond the power is the product on each side, so which of the two we call effort does not matter
+        # as long as both sides agree: side s0 outputs v0 and takes vb; side d0 takes w0 and outputs va.
+        self.flange(s0, bond, effort=v0, flow=vb, el=el0)
+        self.flange(d0, bond, effort=w0, flow=va, el=el)
+        self.add(conns, f"{s0}.{bond} <-> {d0}.{bond}", el0)
+
+    def flange(self, comp: str, name: str, effort: str, flow: str, el) -> None:
+        from .yamlfile import YMap
+
+        spec = self.comps[comp][1]
+        if "flanges" not in spec:
+            spec["flanges"] = YMap()
+            spec["flanges"].where = self.loc(el)
+            spec.locs["flanges"] = self.loc(el)
+        node = YMap({"effort": effort, "flow": flow})
+        node.where = self.loc(el)
+        spec["flanges"][name] = node
+        spec["flanges"].locs[name] = self.loc(el)
+
+    def finish_bonds(self) -> None:
+        for (bond, _), (el, _p) in getattr(self, "_bonds", {}).items():
+            self.err(el, f"powerBond {bond!r} has one connection; a power bond takes two (effort one way, flow the "
+                         f"other)")
+
+    def model_description(self, comp: str, el):
+        """The simulator's ``<FMU stem>_OspModelDescription.xml`` (parsed), or None after an error."""
+        from lxml import etree
+
+        fmu = self.comps[comp][3]
+        cands = [fmu.with_name(f"{fmu.stem}_OspModelDescription.xml"),
+                 fmu.with_name(f"{comp}_OspModelDescription.xml")]
+        cands += [p for p in fmu.parent.glob("*_OspModelDescription.xml")
+                  if p.name.lower() in {c.name.lower() for c in cands}]
+        file = next((p for p in cands if p.is_file()), None)
+        if file is None:
+            self.err(el, f"simulator {comp!r}: variable groups need {cands[0].name} next to its FMU (not found in "
+                         f"{fmu.parent})")
+            return None
+        try:
+            return etree.parse(str(file)).getroot(), file
+        except etree.XMLSyntaxError as exc:
+            self.problems.append(Problem(str(file), exc.lineno or 0, f"XML syntax: {exc.msg}"))
+            return None
+
+    def group(self, comp: str, name: str, el):
+        """(kind, [variable lists per sub-group]) of variable group ``name`` of ``comp``."""
+        found = self.model_description(comp, el)
+        if found is None:
+            return None
+        root, file = found
+        groups = _kid(root, "VariableGroups")
+        for g in root.iter():
+            if isinstance(g.tag, str) and g.get("name") == name and g is not root and groups is not None:
+                kind = _local(g)
+                if kind in PORTS:
+                    effort, flow = PORTS[kind]
+                    parts = []
+                    for sub in (effort, flow):
+                        s = _kid(g, sub)
+                        parts.append([v.get("ref") for v in _kids(s, "Variable")] if s is not None else [])
+                    return kind, parts
+                if kind == "Generic":
+                    return kind, [[v.get("ref") for v in _kids(g, "Variable")]]
+                return kind, [[v.get("ref") for v in g.iter() if isinstance(v.tag, str) and _local(v) == "Variable"]]
+        self.err(el, f"simulator {comp!r}: no variable group {name!r} in {file.name}")
+        return None
+
+    def group_connection(self, el, conns) -> None:
+        gs = _kids(el, "VariableGroup")
+        if len(gs) != 2:
+            self.err(el, f"a VariableGroupConnection joins two <VariableGroup> elements, got {len(gs)}")
+            return
+        sides = []
+        for g in gs:
+            sim = g.get("simulator")
+            if sim not in self.comps:
+                self.err(g, f"unknown simulator {sim!r}")
+                return
+            found = self.group(sim, g.get("name"), g)
+            if found is None:
+                return
+            sides.append((sim, *found))
+        (sa, ka, pa), (sb, kb, pb) = sides
+        if ka != kb or [len(x) for x in pa] != [len(x) for x in pb]:
+            self.err(el, f"variable groups {sa}.{gs[0].get('name')} ({ka}, {[len(x) for x in pa]} variables) and "
+                         f"{sb}.{gs[1].get('name')} ({kb}, {[len(x) for x in pb]}) do not match")
+            return
+        for g, (sim, _k, parts) in zip(gs, sides):
+            desc = self.comps[sim][2]
+            for ref in (r for part in parts for r in part):
+                if ref not in desc.variables:
+                    self.err(g, f"variable group {g.get('name')!r} of {sim!r} names {ref!r}, which its FMU does not "
+                                f"have")
+                    return
+        if ka in PORTS:
+            (ea, fa), (eb, fb) = pa, pb
+            for i in range(len(ea)):
+                va = [(sa, ea[i]), (sa, fa[i])]
+                vb = [(sb, eb[i]), (sb, fb[i])]
+                caus = {v: self.comps[v[0]][2].variables[v[1]].causality for v in va + vb}
+                name = f"{gs[0].get('name')}_{i + 1}".replace(" ", "_") if len(ea) > 1 else \
+                    gs[0].get("name").replace(" ", "_")
+                name = "".join(ch if ch.isalnum() or ch == "_" else "_" for ch in name)
+                # effort of a meets effort of b: one computes it, the other takes it
+                if caus[va[0]] == caus[vb[0]] or caus[va[1]] == caus[vb[1]]:
+                    self.err(el, f"port {name}: {sa}.{ea[i]} / {sb}.{eb[i]} or {sa}.{fa[i]} / {sb}.{fb[i]} are both "
+                                 f"{caus[va[0]]}s; one side must compute what the other takes")
+                    return
+                self.flange(sa, name, effort=ea[i], flow=fa[i], el=el)
+                self.flange(sb, name, effort=eb[i], flow=fb[i], el=el)
+                self.add(conns, f"{sa}.{name} <-> {sb}.{name}", el)
+            return
+        for ra, rb in zip(pa[0], pb[0]):
+            a = (sa, ra, self.comps[sa][2].variables[ra].causality)
+            b = (sb, rb, self.comps[sb][2].variables[rb].causality)
+            p = self.pair(el, a, b)
+            if p is not None:
+                self.add(conns, f"{p[0][0]}.{p[0][1]} -> {p[1][0]}.{p[1][1]}", el)
+
+    # functions ----------------------------------------------------------------------------------
+    def functions(self, node) -> dict[str, tuple]:
+        out: dict[str, tuple] = {}
+        for el in _kids(node) if node is not None else []:
+            kind, name = _local(el), el.get("name")
+            if kind == "LinearTransformation":
+                k = self.number(el, el.get("factor", "1"), f"LinearTransformation {name!r}: factor")
+                c = self.number(el, el.get("offset", "0"), f"LinearTransformation {name!r}: offset")
+                if k is not None and c is not None:
+                    out[name] = (kind, el, k, c, {})
+            elif kind in ("Sum", "VectorSum"):
+                self.err(el, f"function {kind} {name!r}: summing signals is not supported by rpr-cosim (a connection "
+                             f"carries one source); add the signals inside an FMU")
+            else:
+                self.err(el, f"function <{kind}> is unknown (OSP defines LinearTransformation, Sum and VectorSum)")
+        return out
+
+    def signal_connection(self, el, functions, conns) -> None:
+        sig, var = _kid(el, "Signal"), _kid(el, "Variable")
+        if sig is None or var is None:
+            self.err(el, "a SignalConnection joins one <Signal function= name=/> and one <Variable simulator= name=/>")
+            return
+        fname, port = sig.get("function"), sig.get("name")
+        if fname not in functions:
+            self.err(sig, f"unknown function {fname!r} (functions: {', '.join(functions) or 'none'})")
+            return
+        v = self.endpoint(var)
+        if v is None:
+            return
+        kind, fel, k, c, ends = functions[fname]
+        if port not in ("in", "out"):
+            self.err(sig, f"LinearTransformation {fname!r} has signals 'in' and 'out', not {port!r}")
+            return
+        if port in ends:
+            self.err(sig, f"LinearTransformation {fname!r}: signal {port!r} is connected twice")
+            return
+        ends[port] = (v, sig)
+        if len(ends) == 2:
+            (src, _), (dst, s2) = ends["in"], ends["out"]
+            if src[2] != "output" or dst[2] not in ("input", "parameter"):
+                self.err(s2, f"LinearTransformation {fname!r}: 'in' takes an output ({src[0]}.{src[1]} is {src[2]}) and "
+                             f"'out' feeds an input ({dst[0]}.{dst[1]} is {dst[2]})")
+                return
+            text = f"{src[0]}.{src[1]} -> {dst[0]}.{dst[1]}"
+            if k != 1.0:
+                text += f" * {k!r}"
+            if c != 0.0:
+                text += f" {'-' if c < 0 else '+'} {abs(c)!r}"
+            self.add(conns, text, el)
+
+
+def scene_tree(path: Path | str, problems: list[Problem]):
+    """The scene tree of the OSP system structure ``path`` (see the module docstring), or None with
+    the reasons appended to ``problems``."""
+    r = _Reader(Path(path), problems)
+    tree = r.read()
+    if tree is not None:
+        r.finish_bonds()
+        if any(p.severity == "error" for p in problems):
+            return None
+    return tree
