@@ -16,7 +16,7 @@ SCENE = Path(__file__).resolve().parents[1] / "scenarios" / "pid_step.yaml"
 
 GOOD = f"""\
 scene: {SCENE}
-set: {{stop_time: 0.2}}
+set: {{master.algorithm: gauss_seidel, stop_time: 0.2}}
 grid:
   Kp: {{path: "components.pid*.params.Kp", values: [20, 30]}}
   components.pid1.params.Kd: {{from: 10, to: 40, num: 3, scale: log}}
@@ -50,7 +50,7 @@ def test_axes_expand_as_documented(tmp_path):
 def random_batch(seed, n) -> str:
     return f"""\
 scene: {SCENE}
-set: {{stop_time: 0.2}}
+set: {{master.algorithm: gauss_seidel, stop_time: 0.2}}
 random:
   seed: {seed}
   samples: {n}

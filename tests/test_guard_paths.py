@@ -37,7 +37,8 @@ PIDS = (1, 2, 3)
 
 
 def only(guard: str) -> dict[str, str]:
-    return {f"guards.{g}": "stop" if g == guard else "off" for g in GUARDS}
+    """One guard on, the others off, at the fixed step the findings were measured with."""
+    return {f"guards.{g}": "stop" if g == guard else "off" for g in GUARDS} | {"master.algorithm": "gauss_seidel"}
 
 
 #: guard -> (overrides, status, reason pattern at the start of the run's reason)

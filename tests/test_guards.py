@@ -42,13 +42,15 @@ def target(x1: float, y1: float, phi1: float) -> list[str]:
             f"components.target.params.phi1={phi1}"]
 
 
-PID_1E6 = [f"components.pid{i}.params.{k}={v}" for i in (1, 2, 3) for k, v in (("Kp", 1e6), ("u_max", 1e9))]
+#: the coupling these findings were filed with (the scene itself takes the tolerance default)
+GS = "master.algorithm=gauss_seidel"
+PID_1E6 = [GS] + [f"components.pid{i}.params.{k}={v}" for i in (1, 2, 3) for k, v in (("Kp", 1e6), ("u_max", 1e9))]
 
 
 # --- the shipped scene stays "ok" -----------------------------------------------------------------
 @pytest.fixture(scope="module")
 def pid_step():
-    return run(PID_STEP, {"outputs": ["mech.leg[*].s", "motor*.i", "motor*.u"]})
+    return run(PID_STEP, {"outputs": ["mech.leg[*].s", "motor*.i", "motor*.u"], "master.algorithm": "gauss_seidel"})
 
 
 def test_pid_step_is_ok_under_the_default_guards_and_within_the_ratings(pid_step):
@@ -67,9 +69,9 @@ def test_pid_step_is_ok_under_the_default_guards_and_within_the_ratings(pid_step
 # --- the findings, reproduced ---------------------------------------------------------------------
 @pytest.mark.parametrize("sets, status, reason", [
     # R = 0: the current runs away at once (legs 14 km without guards)
-    (["components.motor1.params.R=0"], "out_of_limits",
+    (["components.motor1.params.R=0", GS], "out_of_limits",
      r"^beyond rating: motor1\.i = 47\.8\d A at t = 0\.001 s, outside the rated \[-30, 30\] A"),
-    (["components.motor1.params.R=0", "guards.rated=off"], "out_of_limits",
+    (["components.motor1.params.R=0", "guards.rated=off", GS], "out_of_limits",
      r"^out of stroke: mech\.leg\[3\]\.s = 0\.09\d+ m at t = 0\.6\d+ s, outside the stroke \[0\.1, 0\.6\] m"),
     # PID gains 1e6 with a 1e9 output limit: the first voltage is thousands of volts
     (PID_1E6, "out_of_limits", r"^beyond rating: motor1\.u = 3\.129e\+04 V at t = 0 s, outside the rated \[-12, 12\] V"),
@@ -87,12 +89,14 @@ def test_impossible_runs_are_stopped_with_the_variable_time_and_value(sets, stat
     assert res.stats["steps_done"] == round(t_stop / 1e-3)
 
 
-def test_without_guards_the_pid_finding_still_reports_ok():
-    """The finding as filed: with every guard off the run is "ok" with legs kilometres long, which
-    is what the guards are for."""
+def test_without_guards_the_pid_finding_is_caught_by_the_error_estimate():
+    """The finding as filed: with every guard off the run went on to legs kilometres long and said
+    "ok"; the guards are for that, and without them the run's own error estimate (a companion at
+    half the step disagrees by more than the signals' range) ends it "unstable" (issue 19)."""
     res = run(PID_STEP, PID_1E6 + ["guards=off", "stop_time=0.5"])
-    assert res.ok and "guards" not in res.stats
+    assert "guards" not in res.stats
     assert res.trace.final()["mech.leg[1].s"] > 100 * LMAX
+    assert res.status == "unstable" and res.stats["estimate"]["signal"] in res.reason, res.reason
 
 
 def test_a_stopped_run_keeps_its_partial_trace_reason_and_exit_code(tmp_path, capsys):
@@ -106,7 +110,7 @@ def test_a_stopped_run_keeps_its_partial_trace_reason_and_exit_code(tmp_path, ca
 
 
 def test_warn_lets_the_run_go_on_and_records_the_first_crossing():
-    res = run(PID_STEP, ["components.motor1.params.R=0", "guards.rated=warn", "stop_time=0.05"])
+    res = run(PID_STEP, ["components.motor1.params.R=0", "guards.rated=warn", "stop_time=0.05", GS])
     assert res.ok
     (w,) = res.stats["guards"]["warnings"]
     assert w.startswith("beyond rating: motor1.i = 47.8")
@@ -141,7 +145,7 @@ def test_a_target_through_singular_poses_is_refused_and_stopped_at_run_time():
     assert f"commands leg 3 to {legs[2]:.4g} m" in text and "outside the stroke [0.1, 0.6] m" in text
     assert "commands a singular pose: |det J| = " in text and "below guards.min_det = 0.01 m" in text
     # accepted with warnings, then run with the stroke guard off: the mechanism crosses a singular pose
-    scene = load(PID_STEP, sets + ["guards.stroke=warn", "guards.singularity=warn"])
+    scene = load(PID_STEP, sets + ["guards.stroke=warn", "guards.singularity=warn", GS])
     assert len(scene.warnings) == 2
     forced = dataclasses.replace(scene, guards=dataclasses.replace(scene.guards, stroke="off", singularity="stop"))
     res = run(forced)

@@ -67,7 +67,7 @@ def runs(virtual_board, tmp_path_factory):
     # are not under SCHED_FIFO): the armhf leg waits up to 0.2 s for an answer, the board's
     # native 50 ms otherwise
     timeout = [] if target == "host" else ["components.rig.params.timeout=0.2"]
-    pure = run(SCENES / "rig_step.yaml", [STOP], out_dir=out)
+    pure = run(SCENES / "rig_step.yaml", [STOP, "master.algorithm=gauss_seidel"], out_dir=out)  # as the rig scene
     hil = run(SCENES / "rig_step_hil.yaml", [STOP, f"components.rig.hardware.address={address}",
                                              f"components.rig.hardware.key={key}",
                                              f"master.realtime.priority={PRIORITY}",

@@ -80,7 +80,10 @@ def test_multirate_trace_is_the_substepped_macro_map(variant, rates):
     traces = {}
     for engine in ("python", "compiled"):
         res = run(SCENE, overrides(alg, inputs, rates), engine=engine)
-        assert res.stats["status"] == "ok" and res.stats["engine"] == engine
+        # the whole span ran; at 50 ms on kc = 100 N/m the coupling is far off the coupled solution,
+        # which the run's own error estimate may say ("unstable"): this test is about the map
+        assert res.stats["status"] == "ok" or res.stats["reason"].startswith("the estimated error of ")
+        assert res.stats["engine"] == engine and res.stats["steps_done"] == round(STOP / STEP)
         for name, r in rates.items():
             assert res.stats["slaves"][name]["do_step_calls"] == r * round(STOP / STEP)
             assert res.stats["slaves"][name]["rate"] == r
@@ -109,10 +112,13 @@ def test_sub_steps_are_taken_at_exact_nanosecond_instants(monkeypatch):
     ov = {**overrides("gauss_seidel", "linear", {"mass2": 4}), "master.step": 0.1, "master.output_interval": 0.1,
           "stop_time": 3.0}
     run(SCENE, ov, engine="python")
-    fast = [(t, h) for n, t, h in seen if n == "mass2"]
+    # the run's own calls are the last ones (its error estimate's companion at half the step ran first)
+    fast = [(t, h) for n, t, h in seen if n == "mass2"][-120:]
     assert [t for t, _ in fast] == [k * 25_000_000 / 1e9 for k in range(120)]
     assert {h for _, h in fast} == {0.025}
-    assert [t for n, t, _ in seen if n == "mass1"] == [k * 100_000_000 / 1e9 for k in range(30)]
+    assert [t for n, t, _ in seen if n == "mass1"][-30:] == [k * 100_000_000 / 1e9 for k in range(30)]
+    companion = [(t, h) for n, t, h in seen if n == "mass2"][:-120]
+    assert len(companion) == 240 and {h for _, h in companion} == {0.0125}
 
 
 @pytest.mark.parametrize("rate, message", [

@@ -191,6 +191,12 @@ def test_iterative_same_statistics_and_ending(iterative_both):
         assert "mass2.f -> mass1.f" in c.reason
     elif name == "two_mass_unstable":
         assert c.status == "unstable" and "mass2.f = " in c.reason and "beyond" in c.reason
+    elif name in ("two_mass_hold", "two_mass_fixed_point", "two_mass_directional", "two_mass_fd"):
+        # inputs held on the stiff spring: converged in every step, yet far from the coupled solution
+        # (two_mass_hold: 1.16 of mass1.x's range off the monolithic reference, measured); the run's
+        # own error estimate ends it unstable, in both engines alike (above)
+        assert c.status == "unstable" and c.reason.startswith("the estimated error of "), c.reason
+        assert c.stats["rollbacks"] > 0
     else:
         assert c.status == "ok", c.reason
         assert c.stats["rollbacks"] > 0

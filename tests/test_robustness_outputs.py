@@ -254,7 +254,7 @@ def test_a_cache_that_cannot_be_written_falls_back_to_a_temporary_one_on_a_miss(
 
 # --- finding 4: bounded resources -------------------------------------------------------------------
 def test_the_size_estimate_matches_a_written_trace(tmp_path, cache):
-    scene = load(PID, ["stop_time=0.5"])
+    scene = load(PID, ["stop_time=0.5", "master.algorithm=gauss_seidel"])  # a fixed step: rows known before
     res = run(scene, out_dir=tmp_path, cache_dir=cache)
     est = estimate(scene)
     text = (tmp_path / "pid_step.csv").read_text()
@@ -310,7 +310,8 @@ def test_the_compiled_loop_returns_to_python_within_its_time_budget(cache, monke
     from cosim.master import fastloop
     from cosim import master
 
-    whole = run(PID, ["stop_time=0.5"], cache_dir=cache)
+    fixed = ["stop_time=0.5", "master.algorithm=gauss_seidel"]
+    whole = run(PID, fixed, cache_dir=cache)
     calls = []
     real = master._Compiled.run
 
@@ -323,8 +324,9 @@ def test_the_compiled_loop_returns_to_python_within_its_time_budget(cache, monke
     monkeypatch.setenv("RPR_COSIM_SUPERVISE", "0")  # the calls are counted in this process
     monkeypatch.setattr(fastloop, "CALL_BUDGET_NS", 1)
     monkeypatch.setattr(master._Compiled, "run", counted)
-    chunked = run(PID, ["stop_time=0.5"], cache_dir=cache)
-    assert chunked.ok and max(calls) == 16 and sum(calls) == 500
+    chunked = run(PID, fixed, cache_dir=cache)
+    # the run's 500 steps and its error estimate's companion run's 1000 (half the step)
+    assert chunked.ok and max(calls) == 16 and sum(calls) == 500 + 1000
     np.testing.assert_array_equal(chunked.trace.data, whole.trace.data)
 
 

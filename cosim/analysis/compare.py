@@ -194,14 +194,23 @@ def comparability(test: Trace, ref: Trace, *, test_path: Path | None = None, ref
                          labels or (str(test_path or "test"), str(ref_path or "reference")), tol)
 
 
-def format_table(diffs: Sequence[Difference], *, most: int | None = None) -> str:
-    """A text table, largest relative error first (``most`` rows at most)."""
+def format_table(diffs: Sequence[Difference], *, most: int | None = None,
+                 estimates: dict[str, float] | None = None) -> str:
+    """A text table, largest relative error first (``most`` rows at most); with ``estimates`` (the
+    first trace's own error estimate per signal, relative to its range, :mod:`cosim.master.estimate`)
+    a column of them beside the measured relative error."""
     from .tables import text_table
 
     rows = sorted(diffs, key=lambda d: -d.relative)[:most]
-    lines = [text_table(["variable", "max |diff|", "at t [s]", "rms", "range", "max/range"],
-                        [[d.name, f"{d.max_abs:.3e}", f"{d.at:.4f}", f"{d.rms:.3e}", f"{d.scale:.3e}", f"{d.relative:.2e}"]
-                         for d in rows])]
+    est = estimates or {}
+    columns = ["variable", "max |diff|", "at t [s]", "rms", "range", "max/range"] + (["estimated"] if est else [])
+    cells = []
+    for d in rows:
+        row = [d.name, f"{d.max_abs:.3e}", f"{d.at:.4f}", f"{d.rms:.3e}", f"{d.scale:.3e}", f"{d.relative:.2e}"]
+        if est:
+            row.append(f"{est[d.name]:.2e}" if est.get(d.name) is not None else "")
+        cells.append(row)
+    lines = [text_table(columns, cells)]
     if most is not None and len(diffs) > most:
         lines.append(f"  ... {len(diffs) - most} more variables with smaller relative errors")
     return "\n".join(lines)

@@ -58,7 +58,12 @@ def _compare(args: argparse.Namespace) -> int:
         raise UserError("refused: " + "; ".join(problems))
     diffs = compare(test, ref, args.only)
     print(f"{args.test} against {args.reference}: {len(diffs)} variables")
-    print(format_table(diffs, most=args.most))
+    est = (test.stats or {}).get("estimate") or {}
+    print(format_table(diffs, most=args.most, estimates=est.get("errors")))
+    if est.get("worst") is not None:
+        worst = max(diffs, key=lambda d: d.relative)
+        print(f"estimated worst error {est['worst']:.2g} of range ({est['signal']}), measured {worst.relative:.2g} "
+              f"({worst.name})")
     for note in checks.notes():
         print(f"note: {note}")
     if args.plot:

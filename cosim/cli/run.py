@@ -92,6 +92,11 @@ def _load_and_run(args: argparse.Namespace) -> int:
 
     if args.check:
         _describe(scene)
+        try:
+            _describe_choice(scene)
+        except UserError as exc:
+            _say(f"rpr-cosim run: {exc}")
+            return 2
         print(f"  expected: {estimate(scene)}")
         try:
             check_trace_size(scene, args.max_trace)
@@ -200,7 +205,10 @@ def _reference(scene, res, out: Path, plot: bool, trace_format: str = "csv"):
     from ..run.reference import reference
     from ..run.progress import progress_bar
 
+    scene = res.scene  # as it ran (the master's choice)
+    irregular = res.stats.get("smallest_step") is not None  # variable steps: the reference at the same instants
     ref = reference(scene, out_dir=out, progress=progress_bar(), log=lambda m: _say(f"[reference] {m}"),
+                    times=res.trace.time if irregular and len(res.trace.data) > 1 else None,
                     trace_format=trace_format)
     st = ref.stats
     print(f"monolithic reference ({ref.trace.meta.get('method', 'CVODES')}, {ref.trace.meta.get('states')} states): "
@@ -212,7 +220,7 @@ def _reference(scene, res, out: Path, plot: bool, trace_format: str = "csv"):
                 print(f"note: the {label} ended {r.status!r} at t = {r.trace.time[-1]:g} s ({r.reason}); the errors "
                       f"below cover the common span only")
         print("co-simulation against the reference:")
-        print(format_table(diffs, most=12))
+        print(format_table(diffs, most=12, estimates=(res.stats.get("estimate") or {}).get("errors")))
         if plot:
             from ..scenario.units import units_of
 
@@ -236,6 +244,20 @@ def _describe(scene) -> None:
               f"unstable {g.unstable} (|value| > {g.max_abs:g})")
 
 
+def _describe_choice(scene) -> None:
+    """What the master will run: the scene's algorithm, or the choice from its tolerance."""
+    m = scene.master
+    if not m.auto:
+        tol = f", tolerance {m.tolerance:g} (a run estimated over 10x it ends inaccurate)" if m.tolerance else ""
+        print(f"  master: {m.algorithm}, named by the scene{tol}")
+        return
+    from ..run.choose import kind
+
+    alg, why = kind(scene)
+    what = "rtol" if alg in ("adaptive", "ecco") else "fixed step"
+    print(f"  master: tolerance {m.tolerance:g} -> {alg}: {why}; its {what} from pilot runs' error estimates")
+
+
 def _summary(res) -> None:
     st = res.stats
     if res.status in ("crashed", "hung"):  # the child process died: no statistics, the rows it wrote
@@ -245,9 +267,21 @@ def _summary(res) -> None:
     n = max(1, st["steps_done"])
     print(f"scene {res.scene.name} [{res.scene.hash[:12]}]: {res.status}"
           + (f" ({res.reason})" if res.reason else ""))
+    choice = st.get("choice")
+    if choice:
+        sets = ", ".join(f"{k} {v:.3g}" if isinstance(v, float) else f"{k} {v}" for k, v in choice["settings"].items())
+        print(f"  master chose {choice['algorithm']} ({sets}) for tolerance {choice['tolerance']:g}: {choice['why']}"
+              + (f" [{len(choice['pilots'])} pilot runs]" if choice.get("pilots") else ""))
     print(f"  {st['algorithm']} ({st['engine']} loop), step {st['step']:g} s, {st['steps_done']}/{st['steps_planned']} "
           f"steps, simulated {st['simulated_s']:.6g} s in {st['wall_s']:.3f} s "
           f"(real-time factor {st['real_time_factor']:.1f}); build {res.build_s:.2f} s, init {st['init_s']:.3f} s")
+    est = st.get("estimate")
+    if est:
+        if est.get("worst") is None:
+            print(f"  no error estimate: {est.get('method')}")
+        else:
+            print(f"  estimated worst error {est['worst']:.2g} of range, {est['signal']} (at t = {est['at']:.6g} s; "
+                  f"{est['method']})")
     from ..analysis.tables import text_table
 
     total = st["wall_s"] or 1.0

@@ -231,7 +231,7 @@ def _precision(args: argparse.Namespace) -> int:
         study = precision_study(args.scene, _precision_variants(args.variant), steps, rtols=rtols,
                                 stop_time=args.stop, only=args.only or None, cache_dir=args.cache,
                                 overrides=args.sets, out=out, workers=args.workers, batch_progress=Progress(),
-                                peer=args.peer, log=say, progress=lambda m: say(f"  {m}"))
+                                peer=args.peer, log=say, progress=lambda m: say(f"  {m}"), tolerance=args.tol)
         csv_path = confined(out, f"{study.scene}_precision.csv")
         png_path = confined(out, f"{study.scene}_precision.png")
         study.write_csv(csv_path)
@@ -241,7 +241,7 @@ def _precision(args: argparse.Namespace) -> int:
     print(f"{'variant':<22} {'step/tol':>11} {'status':>8} {'worst rel':>10} {'RMS rel':>10} {'signal':<22} "
           f"{'wall s':>8} {'doSteps':>8} {'rejected':>8} {'rollbacks':>9}")
     for r in study.rows:
-        print(f"{r.algorithm + '/' + r.inputs:<22} {r.label:>11} {r.status:>8} {r.worst:>10.3e} {r.rms:>10.3e} "
+        print(("* " if r.chosen else "") + f"{r.algorithm + '/' + r.inputs:<22} {r.label:>11} {r.status:>8} {r.worst:>10.3e} {r.rms:>10.3e} "
               f"{r.worst_signal:<22} {r.wall_s:>8.3f} {r.do_steps:>8} {r.rejected:>8} {r.rollbacks:>9}"
               + (f"  ({r.reason})" if r.status != "ok" and r.reason else ""))
     for v in study.variants():
@@ -253,6 +253,14 @@ def _precision(args: argparse.Namespace) -> int:
     best = study.cheapest_within(args.tol)
     print(f"cheapest within {args.tol:g}: " + (f"{best.algorithm}/{best.inputs} at {best.label} "
                                                f"({best.worst:.2e}, {best.wall_s:.3f} s)" if best else "none"))
+    ch = study.choice()
+    if ch is not None:
+        if ch.chosen == "?":
+            print(f"tolerance default's choice: failed ({ch.reason})")
+        else:
+            ratio = f", {ch.wall_s / best.wall_s:.2f}x the cheapest's wall time" if best and ch.status == "ok" else ""
+            print(f"tolerance default's choice: {ch.algorithm} ({ch.chosen}), {ch.status}, worst {ch.worst:.2e}, "
+                  f"{ch.wall_s:.3f} s{ratio}")
     print(f"table: {csv_path}\nchart: {png_path}\nruns: {out / 'runs'}", file=sys.stderr)
     _report(args, csv_path)
     return 0

@@ -11,8 +11,10 @@ from pathlib import Path
 from typing import Any
 
 from ..errors import UserError
+from .companion import companion
 from .guards import scene_guard
 from ..master import CoupledSystem, Link, simulate
+from ..master.estimate import EstimatingObserver
 from ..scenario import Scene, load
 from ..slaves.fmu import FmuSlave
 from ..slaves.slave import Slave
@@ -218,12 +220,23 @@ def run(scene: Scene | str | Path, overrides: Mapping[str, Any] | Sequence[str] 
     trace_suffix(trace_format)  # an unknown format is one line before anything runs
     if out_dir is None:
         with signals_as_interrupts():
-            return _run(scene, overrides, None, catalog, cache_dir, progress, say, engine, slaves, max_trace_bytes,
-                        auto_fidelity, call_timeout, trace_format)
+            return _as_chosen(_run(scene, overrides, None, catalog, cache_dir, progress, say, engine, slaves,
+                                   max_trace_bytes, auto_fidelity, call_timeout, trace_format))
     check_out_dir(out_dir)
     with signals_as_interrupts(), OutputLock(out_dir, log=say):
-        return _run(scene, overrides, out_dir, catalog, cache_dir, progress, say, engine, slaves, max_trace_bytes,
-                    auto_fidelity, call_timeout, trace_format)
+        return _as_chosen(_run(scene, overrides, out_dir, catalog, cache_dir, progress, say, engine, slaves,
+                               max_trace_bytes, auto_fidelity, call_timeout, trace_format))
+
+
+def _as_chosen(res: RunResult) -> RunResult:
+    """``res`` with its scene as the master ran it (the choice of :mod:`cosim.run.choose`, which
+    the run's statistics carry: the stepping may have happened in a supervised child)."""
+    choice = res.stats.get("choice") if isinstance(res.stats, dict) else None
+    if choice and res.scene.master.auto:
+        from .choose import applied
+
+        res.scene = applied(res.scene, choice)
+    return res
 
 
 def _run(scene, overrides, out_dir, catalog, cache_dir, progress, log, engine, slaves, max_trace_bytes,
@@ -312,60 +325,145 @@ def _settle_failed(scene: Scene, out_dir: Path | None, paths: dict, build_s: flo
 
 
 def _step(scene: Scene, out_dir, paths, slaves, progress, log, engine, overrides, trace_format="csv"):
-    """Couple the slaves (FMUs from ``paths`` when ``slaves`` is None), step them and return
-    (status, reason, trace, stats, trace path, seconds spent making the slaves)."""
-    from ..trace.traces import TraceWriteError
+    """Couple the slaves (FMUs from ``paths`` when ``slaves`` is None), step them (after the
+    master's choice, :mod:`cosim.run.choose`, for a scene that names no algorithm, and a companion
+    run for the error estimate, :mod:`cosim.master.estimate`) and return (status, reason, trace,
+    stats, trace path, seconds spent making the slaves)."""
+    from ..scenario.recipes import slave_description
 
     t0 = time.perf_counter()
-    if slaves is None:
-        from ..scenario.recipes import slave_description
+    given = list(slaves) if slaves is not None else None
 
-        slaves = [FmuSlave(name, paths[name], c.description if c.kind == "fmu" else slave_description(c, paths[name]))
-                  for name, c in scene.components.items()]
-    for s, c in zip(slaves, scene.components.values()):
-        if c.kind == "fmu" and s.description is not c.description and isinstance(s, FmuSlave):
-            # what the scene check found (feedthrough, behavioural workarounds) also for slaves made elsewhere (batches)
-            d = c.description
-            s.description = replace(s.description, feedthrough=d.feedthrough, workarounds=d.workarounds,
-                                    rollback_reason=d.rollback_reason,
-                                    can_get_set_state=s.description.can_get_set_state and d.can_get_set_state)
-            s.always_no_prior = "always_no_prior" in d.workarounds
-        if not c.rollback and s.description.can_get_set_state:  # the scene forbids rollback of this component
-            s.description = replace(s.description, can_get_set_state=False)
+    def prepared(made: list[Slave]) -> list[Slave]:
+        for s, c in zip(made, scene.components.values()):
+            if c.kind == "fmu" and s.description is not c.description and isinstance(s, FmuSlave):
+                # what the scene check found (feedthrough, behavioural workarounds) also for slaves made elsewhere
+                d = c.description
+                s.description = replace(s.description, feedthrough=d.feedthrough, workarounds=d.workarounds,
+                                        rollback_reason=d.rollback_reason,
+                                        can_get_set_state=s.description.can_get_set_state and d.can_get_set_state)
+                s.always_no_prior = "always_no_prior" in d.workarounds
+            if not c.rollback and s.description.can_get_set_state:  # the scene forbids rollback of this component
+                s.description = replace(s.description, can_get_set_state=False)
+        return made
+
+    def make_slaves() -> list[Slave]:
+        """Fresh slaves of the scene's components, for companion and pilot runs (from the FMUs
+        of the slaves handed over, when they were)."""
+        if given is not None:
+            return prepared([FmuSlave(s.name, s.path, s.description) for s in given])
+        return prepared([FmuSlave(name, paths[name], c.description if c.kind == "fmu" else
+                                  slave_description(c, paths[name])) for name, c in scene.components.items()])
+
+    main = prepared(given) if given is not None else make_slaves()
     build_s = time.perf_counter() - t0
+    repeat = repeatable(scene)
+    if repeat is None and given is not None and not all(isinstance(s, FmuSlave) for s in given):
+        repeat = "the slaves were handed over ready, not as FMUs: a run is not repeated"
+    extra: dict = {}
+    if scene.master.auto:
+        from .choose import choose
+
+        def pilot(sc: Scene) -> RunResult:
+            return _once(sc, make_slaves, None, None, None, engine, repeat, {})
+
+        scene, choice = choose(scene, pilot if repeat is None else None, log, why_not=repeat)
+        extra["choice"] = choice.as_dict()
+        log(f"{scene.name}: {choice}")
+    res = _once(scene, make_slaves, main, out_dir, progress, engine, repeat, extra, log,
+                list(overrides.items()) if isinstance(overrides, Mapping) else list(overrides or []), trace_format)
+    return res.status, res.reason, res.trace, res.stats, res.trace_path, build_s
+
+
+def repeatable(scene: Scene) -> str | None:
+    """None when a run of ``scene`` may be repeated without side effects (companion and pilot runs
+    of :mod:`cosim.master.estimate` and :mod:`cosim.run.choose`); otherwise why not."""
+    if scene.master.realtime is not None:
+        return "a run paced in real time is not repeated (it may drive hardware)"
+    comps = scene.data.get("components") or {}
+    hw = [n for n, spec in comps.items() if isinstance(spec, Mapping) and "hardware" in spec]
+    if hw:
+        return f"{', '.join(hw)} is hardware: a run is not repeated"
+    return None
+
+
+def _companion_trace(scene: Scene, make_slaves, engine) -> tuple[tuple | None, float, str]:
+    """Run the companion of ``scene`` (:mod:`cosim.run.companion`) into memory: ``((time, values) or
+    None, divisor, method)``."""
+    slaves = make_slaves()
+    comp = companion(scene, any(s.description.can_interpolate_inputs for s in slaves))
+    if comp.scene is None:
+        return None, 1.0, comp.method
+    cs = comp.scene
+    memory = MemoryTrace()
+    system = couple(cs, slaves)
+    try:
+        simulate(system, cs.master.algorithm, step_ns=cs.master.step_ns, n_steps=cs.n_steps, record_every=1,
+                 observers=[memory], start_values=[c.start_values() for c in cs.components.values()],
+                 engine=engine or cs.master.engine, order=_order(cs), inputs=cs.master.inputs, start_ns=cs.start_ns,
+                 tolerances=_tolerances(cs), options=cs.master.options or None,
+                 rates=[c.rate for c in cs.components.values()], timing=False)
+    except UserError as exc:
+        return None, 1.0, f"{comp.method} could not run: {exc}"
+    except Exception as exc:  # the companion failed: no estimate
+        return None, 1.0, f"{comp.method} failed: {type(exc).__name__}: {exc}"
+    tr = memory.trace
+    if tr.status not in ("ok", "stopped"):  # a companion that failed says nothing of the run
+        return None, 1.0, f"{comp.method} ended {tr.status}: {tr.reason}"
+    return (tr.time, tr.data[:, 1:]), comp.div, comp.method
+
+
+def _order(scene: Scene) -> list[int] | None:
+    index = {n: i for i, n in enumerate(scene.components)}
+    return [index[n] for n in scene.master.order] if scene.master.order else None
+
+
+def _tolerances(scene: Scene) -> list:
+    return [c.description.default_experiment.get("tolerance") for c in scene.components.values()]
+
+
+def _once(scene: Scene, make_slaves, slaves, out_dir, progress, engine, repeat: str | None, extra: dict,
+          log: Callable[[str], None] = lambda m: None, overrides: Sequence = (), trace_format: str = "csv") -> RunResult:
+    """One run of ``scene`` on ``slaves`` (None: ``make_slaves()``) with its error estimate (a
+    companion run on ``make_slaves()`` first, when ``repeat`` is None), judged by it
+    (:func:`cosim.master.estimate.judge`)."""
+    from ..trace.traces import TraceWriteError
+
+    if repeat is None:
+        ctrace, div, method = _companion_trace(scene, make_slaves, engine)
+    else:
+        ctrace, div, method = None, 1.0, repeat
     guard = scene_guard(scene)
-    system = couple(scene, slaves, guard.watch if guard else ())
+    system = couple(scene, slaves if slaves is not None else make_slaves(), guard.watch if guard else ())
     if guard:
         guard.bind(system.record_names + system.watch_names)
-    memory, observers, trace_path = scene_observers(scene, out_dir, trace_format=trace_format)
+    memory, inner, trace_path = scene_observers(scene, out_dir, trace_format=trace_format)
+    estimator = EstimatingObserver(inner, ctrace, div, method, scene.master.tolerance, extra)
+    observers = [estimator]
     meta = {**scene_meta(scene), "inputs": scene.master.inputs,
             "components": {n: c.label for n, c in scene.components.items()},
             "connections": [str(c) for c in scene.connections],
-            "overrides": list(overrides.items()) if isinstance(overrides, Mapping) else list(overrides or [])}
-    index = {n: i for i, n in enumerate(scene.components)}
-    order = [index[n] for n in scene.master.order] if scene.master.order else None
+            "overrides": list(overrides)}
     try:
         stats = simulate(system, scene.master.algorithm, step_ns=scene.master.step_ns, n_steps=scene.n_steps,
                          record_every=scene.master.record_every, observers=observers,
                          start_values=[c.start_values() for c in scene.components.values()],
-                         engine=engine or scene.master.engine, order=order, progress=progress, meta=meta,
-                         inputs=scene.master.inputs, start_ns=scene.start_ns,
-                         tolerances=[c.description.default_experiment.get("tolerance")
-                                     for c in scene.components.values()],
+                         engine=engine or scene.master.engine, order=_order(scene), progress=progress, meta=meta,
+                         inputs=scene.master.inputs, start_ns=scene.start_ns, tolerances=_tolerances(scene),
                          realtime=scene.master.realtime, options=scene.master.options or None,
                          guard=guard, rates=[c.rate for c in scene.components.values()]).as_dict()
+        stats = getattr(estimator, "stats", stats)
     except TraceWriteError:  # disk full: the observers finished with the reason; report it as a status
         if memory.trace is None or not memory.trace.stats:
             raise
         stats = memory.trace.stats
     finally:
-        for ob in observers:
+        for ob in inner:
             if getattr(ob, "note", ""):
                 log(ob.note)
     t = memory.trace
-    for ob in observers:  # a trace writer that failed at the end turns "ok" into "failed"
+    for ob in inner:  # a trace writer that failed at the end turns "ok" into "failed"
         if getattr(ob, "status", stats["status"]) != stats["status"]:
             stats = dict(stats, status=ob.status, reason=ob.reason)
             t.status, t.reason = ob.status, ob.reason
-    return stats["status"], stats["reason"], t, stats, trace_path, build_s
-
+    return RunResult(scene, stats["status"], stats["reason"], t, stats, {}, trace_path, 0.0)

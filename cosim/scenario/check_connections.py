@@ -191,11 +191,7 @@ class ConnectionChecks(Checker):
     def algebraic_loops(self, comps: dict[str, Component], conns: list[Connection], algorithm: str | None = None) -> None:
         if getattr(ALGORITHMS.get(algorithm), "solves_algebraic_loops", False):
             return  # the algorithm iterates each step to a consistent solution of the loop
-        edges = [((c.src, c.src_var), (c.dst, c.dst_var)) for c in conns]
-        for comp in comps.values():
-            for y, us in comp.description.feedthrough.items():
-                edges += [((comp.name, u), (comp.name, y)) for u in us]
-        cyc = find_algebraic_loop(edges)
+        cyc = algebraic_loop(comps, conns)
         if cyc:
             text = " -> ".join(f"{c}.{v}" for c, v in cyc)
             first = next((c for c in conns if (c.src, c.src_var) in cyc and (c.dst, c.dst_var) in cyc), conns[0])
@@ -210,3 +206,12 @@ class ConnectionChecks(Checker):
                                   f"which solves the loop within each step")
 
     # master, time, outputs ------------------------------------------------------------------------------
+
+
+def algebraic_loop(comps: dict[str, Component], conns: list[Connection]) -> list[tuple[str, str]] | None:
+    """A cycle of direct feedthrough through the connections, as (component, variable) ports, or None."""
+    edges = [((c.src, c.src_var), (c.dst, c.dst_var)) for c in conns]
+    for comp in comps.values():
+        for y, us in comp.description.feedthrough.items():
+            edges += [((comp.name, u), (comp.name, y)) for u in us]
+    return find_algebraic_loop(edges)

@@ -11,7 +11,7 @@ from functools import lru_cache
 from ..slaves.types import TYPES
 from ..master import ALGORITHMS
 from .checker import Checker, _is_number
-from .keys import ENGINES, INPUT_MODES, MASTER_KEYS
+from .keys import DEFAULT_TOLERANCE, ENGINES, INPUT_MODES, MASTER_KEYS
 from .model import Component, MasterSettings
 from .problems import suggest
 from .yamlfile import YList, YMap
@@ -33,8 +33,16 @@ class MasterChecks(Checker):
             self.err(self.tree.loc("master"), f"master must be a mapping (algorithm, step, ...), got {node!r}")
             return None
         self.unknown_keys(node, MASTER_KEYS, "master")
-        alg = node.get("algorithm", "gauss_seidel")
+        auto = "algorithm" not in node
+        alg = node.get("algorithm", "gauss_seidel")  # auto: the fixed-step default until the run chooses
         ok = True
+        tolerance = self.tolerance(node, auto)
+        if tolerance is False:
+            ok, tolerance = False, None
+        if auto and "options" in node:
+            self.err(node.loc("options"), "master.options are an algorithm's options; name master.algorithm too, "
+                                          "or drop them and let master.tolerance choose the algorithm")
+            ok = False
         if not isinstance(alg, str) or alg not in ALGORITHMS:
             self.err(node.loc("algorithm"), f"unknown master algorithm {alg!r}{suggest(str(alg), ALGORITHMS)} "
                                             f"(known: {', '.join(sorted(ALGORITHMS))})")
@@ -42,6 +50,8 @@ class MasterChecks(Checker):
         if not node.where[0]:
             node.where = self.tree.where
         default_step = self.fmu_default(comps, "step", "master.step") if "step" not in node else None
+        if auto and default_step is None and "step" not in node:  # the first step the choice tries
+            default_step = self.number(node, "output_interval", "master.output_interval") or 1e-3
         step = default_step or self.number(node, "step", "master.step", required=True)
         step_ns = None
         if step is not None:
@@ -116,7 +126,20 @@ class MasterChecks(Checker):
         if not ok or step_ns is None or realtime is False:
             return None
         return MasterSettings(alg, step_ns / 1e9, step_ns, list(order) if order else None, engine, record_every,
-                              inputs, realtime, options)
+                              inputs, realtime, options, tolerance, auto, "inputs" in node)
+
+    def tolerance(self, node: YMap, auto: bool) -> float | None | bool:
+        """``master.tolerance``: the worst error of a recorded signal relative to its range that a
+        run may have (a number in (0, 0.5)); :data:`DEFAULT_TOLERANCE` when the scene names no
+        algorithm, None when it names one and no tolerance; False when invalid (reported)."""
+        if "tolerance" not in node:
+            return DEFAULT_TOLERANCE if auto else None
+        tol = node["tolerance"]
+        if not _is_number(tol) or not 0 < tol < 0.5:
+            self.err(node.loc("tolerance"), f"master.tolerance = {tol!r}; expected a number in (0, 0.5): the worst "
+                                            f"error of a recorded signal relative to its range, e.g. 1e-3")
+            return False
+        return float(tol)
 
     def rates(self, comps: dict[str, Component], step_ns: int, alg: object) -> bool:
         """``components.X.rate`` (doSteps per macro step, :mod:`cosim.master.multirate`): a whole

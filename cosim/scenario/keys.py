@@ -49,7 +49,7 @@ COMPONENT = {
 #: Keys of ``master:`` -> what each holds.
 MASTER = {
     "algorithm": "the coupling algorithm: jacobi, gauss_seidel, iterative, adaptive, ecco (see the algorithms "
-                 "reference)",
+                 "reference); none named: the master chooses one from `tolerance` (docs/accuracy.md)",
     "step": "communication step [s] (for variable-step algorithms, the unit of stop_time only)",
     "order": "Gauss-Seidel stepping order: a list of component names (default: found from the connections)",
     "engine": "auto (compiled loop where the scene allows), compiled or python",
@@ -57,6 +57,9 @@ MASTER = {
     "inputs": "how inputs vary over a step: hold (zero-order) or linear (interpolated / extrapolated)",
     "realtime": "`true`, or `{max_misses, spin, priority}`: pace the communication points on the wall clock",
     "options": "the algorithm's own options (declared by the algorithm, see the algorithms reference)",
+    "tolerance": "the worst error of a recorded signal relative to its range, in (0, 0.5); default 1e-3 when no "
+                 "algorithm is named (the master chooses one to meet it), else none; a run whose own error "
+                 "estimate is over 10x it ends inaccurate",
 }
 TOP_KEYS = tuple(TOP)
 COMPONENT_KEYS = tuple(COMPONENT)
@@ -64,4 +67,6 @@ MASTER_KEYS = tuple(MASTER)
 #: How a slave's inputs vary over a communication step (see :mod:`cosim.master`).
 INPUT_MODES = ("hold", "linear")
 ENGINES = ("auto", "compiled", "python")
+#: The accuracy a scene gets when it names no master algorithm (cosim.run.choose).
+DEFAULT_TOLERANCE = 1e-3
 FMI_VERSIONS = ("2.0", "3.0")

@@ -75,6 +75,11 @@ class MasterSettings:
     inputs: str = "hold"  # "hold" or "linear" (first-order hold, FMUs that can interpolate inputs)
     realtime: Any = None  # cosim.master.realtime.RealtimeSettings when the run is paced on the wall clock
     options: dict[str, float] = field(default_factory=dict)  # the algorithm's own options (its declaration)
+    #: the accuracy asked for: worst error of a recorded signal relative to its range (None: none asked)
+    tolerance: float | None = None
+    #: no algorithm named: the run chooses algorithm and settings from ``tolerance`` (cosim.run.choose)
+    auto: bool = False
+    inputs_given: bool = False  # master.inputs was set by the scene (the choice keeps it)
 
 
 @dataclass

@@ -52,7 +52,9 @@ def validate(tree: YMap, path: Path | None = None, *, catalog=None, problems: li
     if comps and not broken:
         ck.unconnected(comps, conns)
     if conns:
-        ck.algebraic_loops(comps, conns, master.algorithm if master is not None else None)
+        # a scene naming no algorithm may have a loop: the run then chooses iterative (cosim.run.choose)
+        ck.algebraic_loops(comps, conns, "iterative" if master is not None and master.auto else
+                           master.algorithm if master is not None else None)
     from .guards import check_scene, parse_settings
 
     guards = parse_settings(tree.get("guards"), lambda _key: tree.loc("guards"), ck.err)

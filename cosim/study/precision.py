@@ -59,6 +59,8 @@ from .fidelity import resolve_auto
 from ..trace.traces import Trace
 
 ECOSPY = "ecospy"
+#: how the reason of a run judged by its estimate begins (cosim.master.estimate.judge)
+ESTIMATED = "the estimated error of "
 
 
 @dataclass
@@ -85,6 +87,7 @@ class PrecisionRow:
     rejected: int = 0
     rollbacks: int = 0
     run_id: str = ""
+    chosen: str = ""  # the tolerance default's choice (cosim.run.choose): what it picked, else ""
 
     @property
     def variable(self) -> bool:
@@ -94,6 +97,8 @@ class PrecisionRow:
     @property
     def label(self) -> str:
         """The run's setting: ``rtol 1e-03`` or ``1 ms``."""
+        if self.chosen:
+            return "choice"
         return f"rtol {self.tolerance:.0e}" if self.variable else f"{self.step * 1e3:g} ms"
 
 
@@ -121,8 +126,12 @@ class PrecisionStudy:
 
     def cheapest_within(self, tol: float) -> PrecisionRow | None:
         """The fastest ok run whose worst relative error is at most ``tol``."""
-        ok = [r for r in self.rows if r.status == "ok" and r.worst <= tol]
+        ok = [r for r in self.rows if r.status == "ok" and r.worst <= tol and not r.chosen]
         return min(ok, key=lambda r: r.wall_s) if ok else None
+
+    def choice(self) -> PrecisionRow | None:
+        """The row of the tolerance default's choice, when the study ran it."""
+        return next((r for r in self.rows if r.chosen), None)
 
     def write_csv(self, path: Path) -> None:
         from ..outputs import staged
@@ -132,11 +141,11 @@ class PrecisionStudy:
             w = csv.writer(fh)
             w.writerow(["algorithm", "inputs", "step", "tolerance", "status", "worst_relative", "worst_signal",
                         "rms_relative", "wall_s", "do_steps", "accepted_steps", "rejected_steps", "rollbacks",
-                        "run_id", "reason", *(f"rel:{s}" for s in signals)])
+                        "run_id", "reason", "chosen", *(f"rel:{s}" for s in signals)])
             for r in self.rows:
                 w.writerow([r.algorithm, r.inputs, repr(r.step), "" if not r.variable else repr(r.tolerance),
                             r.status, f"{r.worst:.6g}", r.worst_signal, f"{r.rms:.6g}", f"{r.wall_s:.6g}",
-                            r.do_steps, r.accepted, r.rejected, r.rollbacks, r.run_id, r.reason,
+                            r.do_steps, r.accepted, r.rejected, r.rollbacks, r.run_id, r.reason, r.chosen,
                             *(f"{r.errors[s]:.6g}" if s in r.errors else "" for s in signals)])
 
 
@@ -238,6 +247,12 @@ def relative_errors(diffs: Sequence[Difference], scale: dict[str, float]) -> dic
     return out
 
 
+def judged(reason: str) -> bool:
+    """Did the run end "unstable" or "inaccurate" by its own error estimate (having run its whole
+    span, so that its errors can be measured like an ok run's)?"""
+    return reason.startswith(ESTIMATED)
+
+
 def _fill_errors(row: PrecisionRow, errors: dict[str, float]) -> None:
     row.errors = errors
     if errors:
@@ -260,7 +275,8 @@ def precision_study(scene_path: Path | str, variants: Sequence[tuple[str, str]],
                     only: Sequence[str] | None = None, cache_dir: Path | None = None,
                     progress: Callable[[str], None] | None = None, overrides: Sequence[str] | None = None,
                     out: Path | None = None, workers: int | None = 1, executor=None, batch_progress=None,
-                    peer: bool = False, log: Callable[[str], None] | None = None) -> PrecisionStudy:
+                    peer: bool = False, log: Callable[[str], None] | None = None,
+                    tolerance: float | None = None) -> PrecisionStudy:
     """Run the study (module docstring).  ``steps`` default to :func:`default_steps` of the
     scene's step, ``rtols`` to :data:`DEFAULT_RTOLS`; ``stop_time`` overrides the scene's (rounded
     to a whole number of recording intervals); ``only`` restricts the signals compared (globs);
@@ -268,7 +284,8 @@ def precision_study(scene_path: Path | str, variants: Sequence[tuple[str, str]],
     ``components.mech.rate=4``).  The runs go to ``out`` (a temporary directory when None) on
     ``executor`` (default: ``workers`` local processes); ``batch_progress`` is a
     :class:`cosim.batch.report.Progress`.  ``peer`` adds the ecospy row (``log`` gets the line
-    saying why not, when ecospy does not import)."""
+    saying why not, when ecospy does not import).  ``tolerance`` adds the row of the master's
+    own choice for ``master.tolerance`` at that value (:func:`choice_row`)."""
     from ..run.reference import reference
     from ..scenario import parse_set
 
@@ -312,8 +329,48 @@ def precision_study(scene_path: Path | str, variants: Sequence[tuple[str, str]],
             study.rows.append(row)
             if progress:
                 progress(_line(row))
+    row = choice_row(scene_path, common, tolerance, ref.trace, scale, only, cache_dir) if tolerance is not None \
+        else None
+    if row is not None:
+        study.rows.append(row)
+        if progress:
+            progress(_line(row))
     study.out = Path(out) if out is not None else None
     return study
+
+
+def choice_row(scene_path, common: dict, tolerance: float, ref: Trace, scale: dict[str, float],
+               only: Sequence[str] | None, cache_dir) -> PrecisionRow | None:
+    """The row of the scene run the way its tolerance default runs it (None when the scene names
+    its algorithm: there is no choice), ``master.tolerance`` = ``tolerance``;
+    the master chooses (:mod:`cosim.run.choose`) and the run is measured like every other row
+    (its wall time: the stepping loop of the final run, the pilots not counted)."""
+    from ..run.execute import run
+    from ..run.reference import reference
+    over = {**common, "master.tolerance": tolerance}
+    row = PrecisionRow("choice", "", math.nan, "failed", "", chosen="?")
+    if not load(scene_path, over, auto_fidelity=resolve_auto).master.auto:
+        return None
+    res = run(scene_path, over, cache_dir=cache_dir, auto_fidelity=resolve_auto)
+    ch = res.stats.get("choice") or {}
+    sets = ch.get("settings", {})
+    row.algorithm, row.inputs = ch.get("algorithm", "?"), sets.get("inputs", "")
+    row.step = sets.get("step", res.scene.master.step)
+    row.tolerance = sets["rtol"] if "rtol" in sets else math.nan
+    row.chosen = ", ".join(f"{k} {v:.3g}" if isinstance(v, float) else f"{k} {v}" for k, v in sets.items())
+    row.status, row.reason = res.status, res.reason
+    _costs(row, res.stats)
+    if res.status != "ok" and not judged(res.reason):
+        return row
+    against = ref
+    if res.stats.get("smallest_step") is not None:
+        at = reference(res.scene, times=res.trace.time)
+        if not at.ok:
+            row.status, row.reason = "failed", f"the reference at the run's instants failed: {at.reason}"
+            return row
+        against = at.trace
+    _fill_errors(row, relative_errors(compare(res.trace, against, only), scale))
+    return row
 
 
 def _key(values: dict) -> tuple:
@@ -356,7 +413,7 @@ def _measure(row: PrecisionRow, result: dict | None, out: Path, name: str, scene
     if sidecar.is_file():
         stats = json.loads(sidecar.read_text()).get("statistics") or {}
     _costs(row, stats)
-    if row.status != "ok":
+    if row.status != "ok" and not judged(row.reason):
         return
     try:
         trace = read_trace(path)
@@ -466,7 +523,8 @@ def plot_study(study: PrecisionStudy, path: Path) -> Path:
 
     fig, ax = plt.subplots(figsize=(10.5, 5.5), layout="constrained")
     for variant in study.variants():
-        pts = [r for r in study.rows if (r.algorithm, r.inputs) == variant and r.status == "ok" and r.worst > 0]
+        pts = [r for r in study.rows if (r.algorithm, r.inputs) == variant and r.status == "ok" and r.worst > 0
+               and not r.chosen]
         if not pts:
             continue
         if variant[0] == ECOSPY:
@@ -483,6 +541,12 @@ def plot_study(study: PrecisionStudy, path: Path) -> Path:
         for r in pts:
             ax.annotate(r.label, (r.wall_s, r.worst), fontsize=7, textcoords="offset points", xytext=(4, 3),
                         color=line.get_color())
+    ch = study.choice()
+    if ch is not None and ch.status == "ok" and ch.worst > 0:
+        ax.loglog([ch.wall_s], [ch.worst], marker="X", ms=13, ls="none", color="crimson",
+                  label=f"tolerance default's choice: {ch.algorithm} ({ch.chosen})")
+        ax.annotate("choice", (ch.wall_s, ch.worst), fontsize=8, textcoords="offset points", xytext=(6, -10),
+                    color="crimson")
     if math.isfinite(study.reference_wall_s):
         ax.axvline(study.reference_wall_s, color="k", ls=":", lw=1, label="monolithic reference (CVODES)")
     ax.set_xlabel("wall time of the stepping loop [s]")

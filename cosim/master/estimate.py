@@ -1,0 +1,220 @@
+"""How wrong a run is, from the run itself: the error estimate of every recorded signal and the
+verdict it gives (:func:`judge`).
+
+Method (Richardson extrapolation against a companion run): the run's error against the exact
+coupled solution is, to leading order, ``e(x) = C x^p`` in its accuracy parameter ``x`` (the
+communication step of a fixed-step algorithm, the tolerance of a variable-step one).  A companion
+run of the same scene at ``r x`` (half the step, a quarter of the tolerance:
+:mod:`cosim.run.companion`) then differs from the run by ``e(x) - e(r x) = (1 - r^p) e(x)``, so
+``|y_run - y_companion| / |1 - r^p|`` estimates
+the run's own error, signal by signal and instant by instant, including the start transient and
+whatever a coupling defect does downstream of where it enters (a local defect alone says nothing
+about that).  The estimate of a signal is the largest such difference over the run, relative to
+the signal's range in the run (max - min, at least :data:`FLAT`), the measure ``rpr-cosim
+compare`` reports against a reference.
+
+``p`` is the order the coupling has: 1 with held inputs, between 1 and 2 with linear inputs
+(2 in smooth stretches, 1 where a step is long against a time constant), about 3/4 in the tolerance
+of ``adaptive`` and ``ecco`` (``rpr-cosim study precision`` prints the observed orders); the
+divisor ``|1 - r^p|`` uses the middle of that range, so a run whose true order is at either end is
+estimated within a factor of 1.3 (docs/accuracy.md has the measured table).
+
+A coupling that has gone unstable diverges, and a companion at half the step diverges slower or
+not at all: their difference is then of the order of the signal's range, and the run is not "ok" but
+"unstable" (:data:`UNSTABLE`).  With a tolerance, an estimate more than :data:`INACCURATE` times
+over it is "inaccurate".
+"""
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+
+#: The smallest range an error is measured against [the signal's SI unit]: a signal that moves
+#: less over the run (a platform angle that a path keeps at 0 but the solvers' rounding nudges
+#: by 1e-8 rad) has no range to speak of, and an error of 1e-5 rad on it is not "10^3 of its
+#: range" but 0.1 of this floor.
+FLAT = 1e-4
+#: The share of a difference between irregular traces the interpolation's doubt leaves in any case
+#: (a kink may explain most of a difference, never all of it for sure).
+DOUBT_KEEPS = 0.1
+#: An estimate of this fraction of a signal's range or more: the coupling has gone unstable.
+UNSTABLE = 0.5
+#: An estimate more than this many times over the tolerance: the run is "inaccurate".
+INACCURATE = 10.0
+
+
+@dataclass
+class ErrorEstimate:
+    """The estimated error of a run: per recorded signal relative to its range (``errors``), the
+    ``worst`` one on ``signal`` at time ``at`` [s]; ``method`` says how it was measured;
+    ``worst`` is None when nothing could be estimated (``method`` says why)."""
+
+    worst: float | None
+    signal: str = ""
+    at: float = math.nan
+    errors: dict[str, float] = field(default_factory=dict)
+    method: str = ""
+
+    def as_dict(self) -> dict:
+        return {"worst": self.worst, "signal": self.signal, "at": None if math.isnan(self.at) else self.at,
+                "method": self.method, "errors": self.errors}
+
+    def summary(self) -> str:
+        """``estimated worst error 6e-4 of range, mech.platform.y`` (or why there is none)."""
+        if self.worst is None:
+            return f"no error estimate ({self.method})"
+        return f"estimated worst error {self.worst:.2g} of range, {self.signal} (at t = {self.at:.6g} s)"
+
+
+def divisor(ratio: float, order: float) -> float:
+    """``|ratio^order - 1|``: the difference between the run's error and its companion's (at
+    ``ratio`` times the run's step or tolerance), over the run's."""
+    return abs(ratio ** order - 1.0)
+
+
+def scale(x: np.ndarray) -> float:
+    """What an error of the signal ``x`` is measured against: its range (max - min), at least
+    :data:`FLAT`; inf when it has no finite value."""
+    finite = x[np.isfinite(x)]
+    if not len(finite):
+        return math.inf
+    return max(float(finite.max() - finite.min()), FLAT)
+
+
+def pchip(x: np.ndarray, y: np.ndarray, at: np.ndarray) -> np.ndarray:
+    """Monotone piecewise-cubic Hermite interpolation (Fritsch and Carlson) of ``y`` (one column
+    per signal) over increasing ``x`` at ``at``: exact at the nodes, no overshoot at a jump
+    (numpy only: the run path imports no scipy)."""
+    h = np.diff(x)[:, None]
+    delta = np.diff(y, axis=0) / h
+    d = np.zeros_like(y)
+    if len(x) > 2:
+        w1, w2 = 2 * h[1:] + h[:-1], h[1:] + 2 * h[:-1]
+        same = (np.sign(delta[:-1]) * np.sign(delta[1:])) > 0
+        with np.errstate(divide="ignore", invalid="ignore"):
+            harm = (w1 + w2) / (w1 / delta[:-1] + w2 / delta[1:])
+        d[1:-1] = np.where(same, harm, 0.0)
+    d[0], d[-1] = delta[0], delta[-1]
+    k = np.clip(np.searchsorted(x, at, side="right") - 1, 0, len(x) - 2)
+    hk = h[k]
+    s = ((at - x[k])[:, None]) / hk
+    h00, h10, h01, h11 = 2 * s**3 - 3 * s**2 + 1, s**3 - 2 * s**2 + s, -2 * s**3 + 3 * s**2, s**3 - s**2
+    return h00 * y[k] + h10 * hk * d[k] + h01 * y[k + 1] + h11 * hk * d[k + 1]
+
+
+def richardson(t: np.ndarray, x: np.ndarray, tc: np.ndarray, xc: np.ndarray, names: Sequence[str],
+               div: float, method: str) -> ErrorEstimate:
+    """The estimate from a run (instants ``t``, values ``x``, one column per name) and its companion
+    (``tc``, ``xc``): their largest difference over ``div`` per signal, relative to the run's range.
+    They are compared at the instants of the sparser one inside both spans, the denser one
+    interpolated there (monotone cubic: exact at shared instants, no overshoot at a jump), less
+    the interpolation's own doubt there (its distance from linear interpolation), which leaves at
+    least :data:`DOUBT_KEEPS` of the difference."""
+    lo, hi = max(t[0], tc[0]), min(t[-1], tc[-1])
+    if len(t) < 2 or len(tc) < 2 or hi <= lo:
+        return ErrorEstimate(None, method=f"{method}: the run and its companion share no time span")
+    sparse_t, dense_t, dense_x, sparse_x = (tc, t, x, xc) if len(tc) <= len(t) else (t, tc, xc, x)
+    keep = (sparse_t >= lo - 1e-12) & (sparse_t <= hi + 1e-12)
+    at = sparse_t[keep]
+    # the dense trace's instants strictly increasing (a stop request may repeat the last instant)
+    uniq = np.concatenate([[True], np.diff(dense_t) > 0])
+    with np.errstate(all="ignore"):
+        dt, dx = dense_t[uniq], dense_x[uniq]
+        interp = pchip(dt, dx, at)
+        # what interpolating cannot know (a kink between two accepted steps): the cubic's distance
+        # from the straight line, 0 at shared instants; taken off the difference
+        doubt = np.abs(interp - np.column_stack([np.interp(at, dt, dx[:, j]) for j in range(dx.shape[1])]))
+        diff = np.abs(interp - sparse_x[keep])
+        diff = np.where(np.isfinite(diff), np.maximum(diff - doubt, DOUBT_KEEPS * diff), diff)
+    errors: dict[str, float] = {}
+    worst, signal, when = -1.0, "", math.nan
+    for j, name in enumerate(names):
+        sc = scale(x[:, j])
+        col = diff[:, j]
+        if not np.isfinite(col).all() or not math.isfinite(sc):
+            e, k = math.inf, int(np.argmax(~np.isfinite(col))) if not np.isfinite(col).all() else 0
+        else:
+            m = float(col.max()) / div
+            e = m / sc
+            k = int(np.argmax(col))
+        errors[name] = e
+        if e > worst:
+            worst, signal, when = e, name, float(at[k]) if len(at) else math.nan
+    if worst < 0:
+        return ErrorEstimate(None, method=f"{method}: nothing recorded")
+    return ErrorEstimate(worst, signal, when, errors, method)
+
+
+def judge(status: str, reason: str, est: ErrorEstimate | None, tolerance: float | None) -> tuple[str, str]:
+    """The status and reason of a run in the light of its estimate: an "ok" (or "stopped") run
+    whose estimate reaches :data:`UNSTABLE` of a signal's range is "unstable", one more than
+    :data:`INACCURATE` times over ``tolerance`` "inaccurate"; anything else unchanged."""
+    if est is None or est.worst is None or status not in ("ok", "stopped"):
+        return status, reason
+    w = est.worst
+    later = f" ({reason})" if reason else ""
+    if not w < UNSTABLE:
+        return "unstable", (f"the estimated error of {est.signal} is {w:.3g} of its range (at t = {est.at:.6g} s): "
+                            f"the coupling has gone unstable; take a smaller step or master.tolerance{later}")
+    if tolerance is not None and w > INACCURATE * tolerance:
+        return "inaccurate", (f"the estimated error of {est.signal} is {w:.3g} of its range (at t = {est.at:.6g} s), "
+                              f"more than {INACCURATE:g}x the tolerance {tolerance:g}{later}")
+    return status, reason
+
+
+class EstimatingObserver:
+    """An observer of the run loop around the run's own observers: it forwards everything, keeps
+    the recorded rows, and when the run finishes estimates its error against ``companion``
+    (``(time, values)`` of the companion run, or None with ``why`` there is none), judges the run
+    (:func:`judge`) and finishes the inner observers with that status, the estimate in the
+    statistics (``estimate``) and ``extra`` statistics (e.g. the master's choice)."""
+
+    def __init__(self, inner: Sequence, companion: tuple[np.ndarray, np.ndarray] | None, div: float, method: str,
+                 tolerance: float | None, extra: dict | None = None):
+        self.inner, self.companion, self.div, self.method = list(inner), companion, div, method
+        self.tolerance, self.extra = tolerance, dict(extra or {})
+        self.rows: list[np.ndarray] = []
+        self.columns: list[str] = []
+        self.estimate: ErrorEstimate | None = None
+
+    def start(self, columns, meta) -> None:
+        self.columns = list(columns)
+        for ob in self.inner:
+            ob.start(columns, dict(meta, **self.extra))
+
+    def record(self, rows) -> None:
+        self.rows.append(np.array(rows, dtype=float, copy=True))
+        for ob in self.inner:
+            ob.record(rows)
+
+    def record_text(self, t, column, value) -> None:
+        for ob in self.inner:
+            if hasattr(ob, "record_text"):
+                ob.record_text(t, column, value)
+
+    def _estimate(self) -> ErrorEstimate:
+        if self.companion is None:
+            return ErrorEstimate(None, method=self.method)
+        data = np.concatenate(self.rows) if self.rows else np.empty((0, len(self.columns)))
+        if len(data) < 2:
+            return ErrorEstimate(None, method=f"{self.method}: fewer than two recorded rows")
+        tc, xc = self.companion
+        return richardson(data[:, 0], data[:, 1:], tc, xc, self.columns[1:], self.div, self.method)
+
+    def finish(self, status, reason, stats) -> None:
+        try:
+            self.estimate = self._estimate()
+        except Exception as exc:  # the estimate must never cost the run its trace
+            self.estimate = ErrorEstimate(None, method=f"{self.method}: {type(exc).__name__}: {exc}")
+        status, reason = judge(status, reason, self.estimate, self.tolerance)
+        stats = dict(stats or {}, status=status, reason=reason, estimate=self.estimate.as_dict(), **self.extra)
+        self.status, self.reason, self.stats = status, reason, stats
+        for ob in self.inner:
+            ob.finish(status, reason, stats)
+
+    @property
+    def note(self) -> str:
+        return "; ".join(n for n in (getattr(ob, "note", "") for ob in self.inner) if n)

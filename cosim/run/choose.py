@@ -1,0 +1,227 @@
+"""The master's choice for a scene that names no algorithm: algorithm and settings from
+``master.tolerance`` (default 1e-3 of each recorded signal's range) and what the scene allows.
+
+* an algebraic loop: ``iterative`` (it solves the loop within each step), at a fixed step;
+* real-time pacing, or slaves at several rates: ``gauss_seidel`` at a fixed step;
+* every slave can roll back: ``adaptive``, at an ``rtol`` that meets the tolerance;
+* power bonds, and a slave that cannot roll back: ``ecco``, at an ``rtol`` that meets it;
+* otherwise (a slave that cannot roll back, no bonds): ``gauss_seidel`` at a fixed step.
+
+Inputs are linear (slaves that cannot interpolate hold theirs) unless the scene sets ``master.inputs``.
+The setting (step or rtol) comes from pilot runs, each with its error estimate
+(:mod:`cosim.master.estimate`): a fixed step first over the first quarter of the run, from the
+scene's step, then ``h * (tolerance / 2 / estimate)^(1/p)`` snapped to a step that divides the
+output interval, checked over the whole run and refined while the estimate misses; a tolerance
+likewise over the whole run.  Where runs cannot be repeated (hardware, real-time pacing) there are
+no pilots: the scene's step is kept and the choice says so.
+"""
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass, field, replace
+
+from ..errors import UserError
+from ..master import ALGORITHMS
+from ..master.algorithm import option_values
+from ..scenario import Scene
+from ..scenario.check_connections import algebraic_loop
+from .companion import ORDER_HOLD, ORDER_LINEAR, ORDER_TOLERANCE
+
+#: The most fixed steps a chosen step may take over the run.
+MAX_STEPS = 10 ** 7
+#: Pilot runs at most (each with its companion).
+MAX_PILOTS = 5
+#: A setting is kept when its estimate is within the tolerance and above this fraction of it.
+LOW = 0.3
+#: The estimate a new setting aims at, as a fraction of the tolerance.
+TARGET = 0.6
+#: First rtol of adaptive and ecco, as a fraction of the tolerance (a start, refined by the pilots).
+FIRST_RTOL = {"adaptive": 1 / 30, "ecco": 1.0}
+
+
+@dataclass
+class Choice:
+    """What the master chose: ``algorithm``, ``settings`` (step [s], inputs, rtol), ``why`` (one
+    line) and the ``pilots`` that led there (setting, estimate)."""
+
+    algorithm: str
+    settings: dict
+    why: str
+    tolerance: float
+    pilots: list[dict] = field(default_factory=list)
+
+    def as_dict(self) -> dict:
+        return {"algorithm": self.algorithm, "settings": self.settings, "why": self.why, "tolerance": self.tolerance,
+                "pilots": self.pilots}
+
+    def __str__(self) -> str:
+        s = ", ".join(f"{k} {v:g}" if isinstance(v, float) else f"{k} {v}" for k, v in self.settings.items())
+        tried = f"; {len(self.pilots)} pilot run{'s' if len(self.pilots) != 1 else ''}" if self.pilots else ""
+        return f"master chose {self.algorithm} ({s}) for tolerance {self.tolerance:g}: {self.why}{tried}"
+
+
+def kind(scene: Scene) -> tuple[str, str]:
+    """(algorithm, why) for ``scene`` from what it allows (module docstring)."""
+    comps = scene.components.values()
+    fixed = [c.name for c in comps if not (c.rollback and c.description.can_get_set_state)]
+    loop = algebraic_loop(scene.components, scene.connections)
+    if loop:
+        text = " -> ".join(f"{c}.{v}" for c, v in loop)
+        if fixed:
+            raise UserError(f"scene {scene.name}: an algebraic loop ({text}) needs master algorithm iterative, which "
+                            f"rolls back every step, but {', '.join(fixed)} cannot roll back; break the loop with a "
+                            f"state on its path")
+        return "iterative", f"an algebraic loop ({text}): iterative solves it within each step"
+    if scene.master.realtime is not None:
+        return "gauss_seidel", "real-time pacing needs a fixed step"
+    rates = [c.name for c in comps if c.rate > 1]
+    if rates:
+        return "gauss_seidel", f"{', '.join(rates)} step{'s' if len(rates) == 1 else ''} at several rates per step"
+    if not fixed:
+        return "adaptive", "every slave can roll back: error-controlled steps"
+    if scene.bonds:
+        return "ecco", f"{', '.join(fixed)} cannot roll back; the power bonds control the step"
+    return "gauss_seidel", f"{', '.join(fixed)} cannot roll back and there are no power bonds: a fixed step"
+
+
+def steps_for(scene: Scene) -> Callable[[float], int | None]:
+    """A function from a wished step [s] to the largest step [ns] at most that long which divides
+    the output interval and the run and keeps every sampled block on whole samples (None: none)."""
+    m = scene.master
+    interval_ns, span_ns = m.record_every * m.step_ns, scene.n_steps * m.step_ns
+    periods = [(round(c.description.sample_period * 1e9), c.rate) for c in scene.components.values()
+               if c.description.sample_period]
+
+    def fits(h_ns: int) -> bool:
+        return span_ns % h_ns == 0 and all(h_ns % r == 0 and (h_ns // r) % ts == 0 for ts, r in periods if ts)
+
+    def step(h: float) -> int | None:
+        n = max(1, math.ceil(interval_ns / max(h * 1e9, 1.0)))
+        while n <= interval_ns:
+            if interval_ns % n == 0 and fits(interval_ns // n):
+                return interval_ns // n
+            n += 1
+        return None
+    return step
+
+
+def with_step(scene: Scene, algorithm: str, inputs: str, step_ns: int, window: float = 1.0) -> Scene:
+    """``scene`` at a fixed ``step_ns`` (same output interval), over the first ``window`` of its span."""
+    m = scene.master
+    interval_ns = m.record_every * m.step_ns
+    n = scene.n_steps * m.step_ns // step_ns
+    if window < 1.0:
+        per = interval_ns // step_ns
+        n = max(per, int(n * window) // per * per)
+    master = replace(m, algorithm=algorithm, step=step_ns / 1e9, step_ns=step_ns, record_every=interval_ns // step_ns,
+                     inputs=inputs, options={})
+    return replace(scene, master=master, n_steps=n, stop_time=(scene.start_ns + n * step_ns) / 1e9)
+
+
+def with_rtol(scene: Scene, algorithm: str, inputs: str, rtol: float) -> Scene:
+    """``scene`` with a variable-step ``algorithm`` at ``rtol``."""
+    opts = option_values({"rtol": rtol}, ALGORITHMS[algorithm].options)
+    return replace(scene, master=replace(scene.master, algorithm=algorithm, inputs=inputs, options=opts))
+
+
+def choose(scene: Scene, pilot: Callable[[Scene], object] | None, log: Callable[[str], None] = lambda m: None,
+           why_not: str | None = None) -> tuple[Scene, Choice]:
+    """The scene as the master will run it, and the :class:`Choice`; ``pilot(scene)`` runs a
+    scene into memory and returns its :class:`cosim.run.execute.RunResult` (None: runs cannot be
+    repeated, ``why_not``)."""
+    m, tol = scene.master, scene.master.tolerance
+    alg, why = kind(scene)
+    inputs = m.inputs if m.inputs_given else "linear"  # slaves that cannot interpolate hold their inputs
+    cls = ALGORITHMS[alg]
+    choice = Choice(alg, {"inputs": inputs}, why, tol)
+
+    def estimate_of(sc: Scene) -> float | None:
+        res = pilot(sc)
+        est = (res.stats.get("estimate") or {}).get("worst")
+        if res.status not in ("ok", "stopped", "inaccurate", "unstable") or est is None:
+            est = math.inf if res.status in ("failed", "unstable") else est
+        return est
+
+    if getattr(cls, "variable_step", False):
+        rtol = tol * FIRST_RTOL.get(alg, 1.0)
+        best = None
+        for _ in range(MAX_PILOTS if pilot else 0):
+            sc = with_rtol(scene, alg, inputs, rtol)
+            e = estimate_of(sc)
+            choice.pilots.append({"rtol": rtol, "estimate": e})
+            log(f"{scene.name}: pilot {alg} at rtol {rtol:.3g}: estimated worst error "
+                f"{e:.3g}" if e is not None else f"{scene.name}: pilot {alg} at rtol {rtol:.3g}: no estimate")
+            if e is None:
+                break
+            if e <= tol:
+                best = rtol if best is None else max(best, rtol)
+                if e >= LOW * tol:
+                    break
+            fac = (TARGET * tol / e) ** (1 / ORDER_TOLERANCE) if e > 0 and math.isfinite(e) else 0.1
+            nxt = rtol * min(30.0, max(1 / 30, fac))
+            if best is not None and nxt > rtol:  # looser than one that met it: only if below the last miss
+                misses = [p["rtol"] for p in choice.pilots if p["estimate"] is not None and p["estimate"] > tol]
+                if misses and nxt >= min(misses):
+                    nxt = math.sqrt(rtol * min(misses))
+            rtol = nxt
+        rtol = best if best is not None else rtol
+        choice.settings["rtol"] = rtol
+        if not pilot:
+            choice.why += f"; rtol {rtol:g} without pilot runs ({why_not})"
+        return with_rtol(scene, alg, inputs, rtol), choice
+
+    snap = steps_for(scene)
+    p = ORDER_LINEAR if inputs == "linear" else ORDER_HOLD
+    h_ns = snap(m.step) or m.step_ns
+    best = None
+    for k in range(MAX_PILOTS if pilot else 0):
+        window = 0.25 if k == 0 else 1.0
+        sc = with_step(scene, alg, inputs, h_ns, window)
+        e = estimate_of(sc)
+        choice.pilots.append({"step": h_ns / 1e9, "window_s": sc.stop_time - sc.start_time, "estimate": e})
+        log(f"{scene.name}: pilot {alg} at step {h_ns / 1e9:g} s over {sc.stop_time - sc.start_time:g} s: "
+            + (f"estimated worst error {e:.3g}" if e is not None else "no estimate"))
+        if e is None:
+            break
+        met = e <= tol and window == 1.0
+        if met:
+            best = h_ns if best is None else max(best, h_ns)
+            if e >= LOW * tol:
+                break
+        fac = (TARGET * tol / e) ** (1 / p) if e > 0 and math.isfinite(e) else 0.1
+        nxt = snap(h_ns / 1e9 * min(10.0, max(0.05, fac)))
+        if met and (nxt is None or nxt <= h_ns):
+            break  # no longer step to try
+        if e > tol and (nxt is None or nxt >= h_ns):
+            nxt = snap(h_ns / 2e9)
+            if nxt is None or nxt >= h_ns:
+                raise UserError(f"scene {scene.name}: no fixed step that divides the output interval "
+                                f"{m.record_every * m.step:g} s meets master.tolerance {tol:g} (estimated {e:.3g} at "
+                                f"step {h_ns / 1e9:g} s); record more often or relax the tolerance")
+        if scene.n_steps * m.step_ns // nxt > MAX_STEPS:
+            raise UserError(f"scene {scene.name}: meeting master.tolerance {tol:g} needs a step of about "
+                            f"{nxt / 1e9:.3g} s or less (estimated {e:.3g} at step {h_ns / 1e9:g} s), more than "
+                            f"{MAX_STEPS:.0e} steps; relax the tolerance or name an algorithm")
+        if best is not None and nxt >= min([q["step"] for q in choice.pilots if q["estimate"] is not None and
+                                             q["estimate"] > tol and q["window_s"] >= sc.stop_time - sc.start_time]
+                                            or [math.inf]) * 1e9:
+            break  # between a step that met it and one that missed: keep the one that met it
+        h_ns = nxt
+    h_ns = best if best is not None else h_ns
+    choice.settings["step"] = h_ns / 1e9
+    if not pilot:
+        choice.why += f"; the scene's step, without pilot runs ({why_not})"
+    elif best is None:
+        last = choice.pilots[-1]["estimate"] if choice.pilots else None
+        choice.why += (f"; no pilot met the tolerance (last estimate {last:.3g})" if last is not None else
+                       "; the pilots gave no estimate")
+    return with_step(scene, alg, inputs, h_ns), choice
+
+
+def applied(scene: Scene, choice: dict) -> Scene:
+    """``scene`` as the :class:`Choice` ``choice`` (its :meth:`Choice.as_dict`) runs it."""
+    sets, alg = choice["settings"], choice["algorithm"]
+    if "rtol" in sets:
+        return with_rtol(scene, alg, sets["inputs"], sets["rtol"])
+    return with_step(scene, alg, sets["inputs"], round(sets["step"] * 1e9))

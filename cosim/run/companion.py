@@ -1,0 +1,72 @@
+"""The companion of a run, against which its error is estimated (:mod:`cosim.master.estimate`):
+the same scene at half the communication step (fixed-step algorithms; recording at the run's own
+instants) or a quarter of the tolerance (``adaptive``, ``ecco``), not paced.  A finer companion,
+not a coarser one: it stays where the run's error behaves as its order says (a coarser one may
+leave that regime, e.g. a slave's own RK4 near its stability limit, and make a good run look
+bad).  Where half the step cannot be taken (an odd number of nanoseconds, a sampled block off its
+samples) the companion takes twice the step."""
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+from ..master import ALGORITHMS
+from ..master.estimate import divisor
+from ..scenario import Scene
+
+#: The companion's step over the run's (fixed step; COARSE where half cannot be taken) and its
+#: tolerance over the run's (variable step).
+STEP_RATIO, COARSE, TOLERANCE_RATIO = 0.5, 2.0, 0.25
+#: Orders assumed for the divisor (the middle of the range each coupling shows, see the estimate's docs).
+ORDER_HOLD, ORDER_LINEAR, ORDER_TOLERANCE = 1.0, 1.5, 0.75
+
+
+@dataclass(frozen=True)
+class Companion:
+    """The companion ``scene`` (None when there can be none, ``why``), the Richardson divisor
+    ``div`` and a one-line ``method``."""
+
+    scene: Scene | None
+    div: float = 1.0
+    method: str = ""
+
+
+def companion(scene: Scene, interpolating: bool) -> Companion:
+    """The companion of a run of ``scene`` (module docstring); ``interpolating``: some slave of the
+    run follows input slopes (its FMU can interpolate inputs)."""
+    m = scene.master
+    cls = ALGORITHMS[m.algorithm]
+    if getattr(cls, "variable_step", False):
+        opts = dict(m.options)
+        rtol = opts.get("rtol", next((o.default for o in cls.options if o.name == "rtol"), 1e-3))
+        lower = next((o.lower for o in cls.options if o.name == "rtol"), 0.0)
+        if rtol * TOLERANCE_RATIO < lower:
+            return Companion(None, method=f"rtol {rtol:g} leaves no room for a companion at {TOLERANCE_RATIO:g}x")
+        opts["rtol"] = rtol * TOLERANCE_RATIO
+        return Companion(replace(scene, master=replace(m, options=opts, realtime=None)),
+                         divisor(TOLERANCE_RATIO, ORDER_TOLERANCE),
+                         f"Richardson against a companion run at rtol {opts['rtol']:.3g} ({TOLERANCE_RATIO:g}x)")
+    order = ORDER_LINEAR if scene.master.inputs == "linear" and interpolating else ORDER_HOLD
+    if m.step_ns % 2 == 0 and _on_samples(scene, m.step_ns // 2):
+        step_ns = m.step_ns // 2
+        master = replace(m, step=step_ns / 1e9, step_ns=step_ns, record_every=2 * m.record_every, realtime=None)
+        return Companion(replace(scene, master=master, n_steps=2 * scene.n_steps), divisor(STEP_RATIO, order),
+                         f"Richardson against a companion run at step {step_ns / 1e9:g} s ({STEP_RATIO:g}x)")
+    n = scene.n_steps // 2
+    if n < 2:
+        return Companion(None, method="too few steps for a companion run at twice the step")
+    step_ns = 2 * m.step_ns
+    master = replace(m, step=step_ns / 1e9, step_ns=step_ns, record_every=1, realtime=None)
+    stop = (scene.start_ns + n * step_ns) / 1e9
+    return Companion(replace(scene, master=master, n_steps=n, stop_time=stop), divisor(COARSE, order),
+                     f"Richardson against a companion run at step {step_ns / 1e9:g} s ({COARSE:g}x)")
+
+
+def _on_samples(scene: Scene, step_ns: int) -> bool:
+    """Does a step of ``step_ns`` keep every sampled block on whole samples (and every rate whole)?"""
+    for c in scene.components.values():
+        if step_ns % c.rate:
+            return False
+        ts = round((c.description.sample_period or 0) * 1e9)
+        if ts and (step_ns // c.rate) % ts:
+            return False
+    return True

@@ -1,0 +1,164 @@
+"""Accurate by default (issue 19): every run's error estimate against the monolithic reference
+(CVODES, an independent integration of the same equations), the verdicts it gives ("unstable",
+"inaccurate"), and the master's choice from ``master.tolerance`` per kind of scene."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from cosim.analysis.compare import compare
+from cosim.cli import main
+from cosim.run.choose import kind
+from cosim.run.execute import run
+from cosim.run.reference import reference
+from cosim.scenario import load
+
+ROOT = Path(__file__).resolve().parents[1]
+SCENES = ROOT / "scenarios"
+
+TWO_MASS = """\
+name: two_mass_free
+stop_time: {stop}
+components:
+  mass1: {{model: oscillator, options: {{coupling: none}}, params: {{m: 1.0, k: 1.0, d: 0.1}}{rollback}}}
+  mass2: {{model: oscillator, options: {{coupling: spring}}, params: {{m: 1.0, k: 1.0, d: 0.1, kc: 100.0, x0: 0.1}}}}
+connections:
+  - mass2.f -> mass1.f
+  - mass1.x -> mass2.x_in
+  - mass1.v -> mass2.v_in
+master: {master}
+outputs: [mass1.x, mass1.v, mass2.s, mass2.v, mass2.f]
+"""
+
+
+def _scene(tmp_path: Path, master: str, stop: float = 2.0, rollback: bool = True) -> Path:
+    p = tmp_path / "two_mass_free.yaml"
+    p.write_text(TWO_MASS.format(stop=stop, master=master, rollback="" if rollback else ", rollback: false"))
+    return p
+
+
+def _true_worst(res) -> float:
+    irregular = res.stats.get("smallest_step") is not None
+    ref = reference(res.scene, times=res.trace.time if irregular else None)
+    return max(d.relative for d in compare(res.trace, ref.trace))
+
+
+@pytest.mark.parametrize("master", ["{algorithm: jacobi, step: 1e-3, inputs: hold}",
+                                    "{algorithm: gauss_seidel, step: 2e-3, inputs: hold}",
+                                    "{algorithm: adaptive, step: 1e-3, options: {rtol: 1e-4}}"])
+def test_the_estimate_is_within_a_factor_3_of_the_error_against_the_reference(tmp_path, cache, master):
+    res = run(_scene(tmp_path, master), cache_dir=cache)
+    assert res.status == "ok", res.reason
+    est, true = res.stats["estimate"]["worst"], _true_worst(res)
+    assert true / 3 <= est <= 3 * true, (est, true)
+    assert set(res.stats["estimate"]["errors"]) == set(res.scene.outputs)
+
+
+def test_two_mass_at_its_defaults_ends_unstable_and_names_the_signal(cache):
+    res = run(SCENES / "two_mass.yaml", cache_dir=cache)
+    assert res.status == "unstable"
+    sig = res.stats["estimate"]["signal"]
+    assert sig in res.scene.outputs and sig in res.reason and "of its range" in res.reason
+    assert _true_worst(res) > 100  # truly off: thousands of times the range
+
+
+def test_a_tolerance_the_run_misses_tenfold_is_inaccurate_exit_1(tmp_path, cache, capsys):
+    path = _scene(tmp_path, "{algorithm: jacobi, step: 1e-3, inputs: hold, tolerance: 1e-6}")
+    code = main(["run", str(path), "--out", str(tmp_path / "out"), "--cache", str(cache)])
+    out = capsys.readouterr()
+    assert code == 1
+    assert "inaccurate" in out.out and "more than 10x the tolerance 1e-06" in out.out
+    side = (tmp_path / "out" / "two_mass_free.json").read_text()
+    assert '"inaccurate"' in side and '"estimate"' in side
+
+
+def test_a_slave_without_rollback_and_no_bonds_gets_a_fixed_step_meeting_the_tolerance(tmp_path, cache):
+    res = run(_scene(tmp_path, "{step: 1e-2, output_interval: 1e-2}", stop=2.0, rollback=False), cache_dir=cache)
+    choice = res.stats["choice"]
+    assert choice["algorithm"] == "gauss_seidel" and "mass1 cannot roll back" in choice["why"]
+    assert res.status == "ok", res.reason
+    assert res.stats["estimate"]["worst"] <= 1e-3
+    assert _true_worst(res) <= 1e-3  # met against the reference, not only by its own estimate
+
+
+def test_every_slave_with_rollback_gets_adaptive_within_the_tolerance(tmp_path, cache):
+    res = run(_scene(tmp_path, "{step: 1e-2, output_interval: 1e-2, tolerance: 1e-3}"), cache_dir=cache)
+    assert res.stats["choice"]["algorithm"] == "adaptive"
+    assert res.status == "ok", res.reason
+    assert _true_worst(res) <= 1e-3
+
+
+@pytest.mark.parametrize("scene, sets, algorithm", [
+    ("pid_step.yaml", [], "adaptive"),
+    ("pid_step.yaml", ["components.mech.rollback=false"], "ecco"),  # power bonds, no rollback
+    ("pid_step.yaml", ["master.realtime=true"], "gauss_seidel"),  # pacing: a fixed step
+    ("force_loop.yaml", [], "iterative"),  # named by the scene (its point)
+    ("two_mass.yaml", [], "jacobi"),  # named by the scene: exactly that
+])
+def test_the_choice_per_kind_of_scene(scene, sets, algorithm):
+    sc = load(SCENES / scene, sets)
+    assert sc.master.auto == (algorithm not in ("jacobi", "iterative"))
+    got = kind(sc)[0] if sc.master.auto else sc.master.algorithm
+    assert got == algorithm
+
+
+def _unnamed(tmp_path: Path, scene: str) -> Path:
+    """A copy of a shipped scene that names no master algorithm."""
+    text = (SCENES / scene).read_text().replace("algorithm: iterative, ", "").replace("algorithm: gauss_seidel, ", "")
+    path = tmp_path / scene
+    path.write_text(text)
+    return path
+
+
+def test_run_check_shows_the_choice_before_anything_runs(tmp_path, capsys):
+    assert main(["run", str(SCENES / "pid_step.yaml"), "--check"]) == 0
+    assert "master: tolerance 0.001 -> adaptive: every slave can roll back" in capsys.readouterr().out
+    assert main(["run", str(_unnamed(tmp_path, "force_loop.yaml")), "--check"]) == 0
+    out = capsys.readouterr().out
+    assert "master: tolerance 0.001 -> iterative: an algebraic loop (motor1.flange.f -> fc1.measurement" in out
+    assert main(["run", str(SCENES / "two_mass.yaml"), "--check"]) == 0
+    assert "master: jacobi, named by the scene" in capsys.readouterr().out
+
+
+def test_an_algebraic_loop_gets_iterative_and_meets_the_tolerance(tmp_path, cache):
+    path = _unnamed(tmp_path, "force_loop.yaml")
+    res = run(path, ["stop_time=0.3"], cache_dir=cache)
+    assert res.stats["choice"]["algorithm"] == "iterative" and "algebraic loop" in res.stats["choice"]["why"]
+    assert res.status == "ok", res.reason
+    assert _true_worst(res) <= 1e-3
+
+
+@pytest.mark.parametrize("value", ["0", "0.7", "abc"])
+def test_a_bad_tolerance_is_one_line_naming_the_field(tmp_path, capsys, value):
+    path = _scene(tmp_path, f"{{step: 1e-2, tolerance: {value}}}")
+    assert main(["run", str(path), "--check"]) == 2
+    err = capsys.readouterr().err
+    assert "master.tolerance" in err and "expected a number in (0, 0.5)" in err
+
+
+def test_study_precision_marks_the_tolerance_defaults_choice_beside_the_cheapest(tmp_path, cache):
+    from cosim.study.precision import plot_study, precision_study
+
+    path = _scene(tmp_path, "{step: 1e-2, output_interval: 1e-2}")
+    st = precision_study(path, [("gauss_seidel", "hold")], [1e-2, 5e-3], stop_time=2.0, out=tmp_path / "study",
+                         cache_dir=cache, tolerance=1e-3)
+    choice = st.choice()
+    assert choice is not None and choice.algorithm == "adaptive" and "rtol" in choice.chosen
+    assert choice.status == "ok" and 0 < choice.worst <= 1e-3  # measured against the reference like every row
+    assert st.cheapest_within(1.0) is not choice  # the cheapest is one of the study's own runs
+    assert plot_study(st, tmp_path / "chart.png").stat().st_size > 0
+    named = precision_study(SCENES / "two_mass.yaml", [("jacobi", "hold")], [1e-2], stop_time=1.0,
+                            out=tmp_path / "named", cache_dir=cache, tolerance=1e-3)
+    assert named.choice() is None  # a scene that names its algorithm has no choice to mark
+
+
+def test_a_tolerance_no_fixed_step_can_meet_is_one_line_exit_2(tmp_path, cache, capsys, monkeypatch):
+    from cosim.run import choose
+
+    monkeypatch.setattr(choose, "MAX_STEPS", 1000)  # (10^7 in earnest; a small cap keeps the test short)
+    path = _scene(tmp_path, "{step: 1e-2, output_interval: 1e-2, tolerance: 1e-9}", rollback=False)
+    assert main(["run", str(path), "--out", str(tmp_path / "out"), "--cache", str(cache)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert "meeting master.tolerance 1e-09 needs a step of about" in err[-1] and "relax the tolerance" in err[-1]
+    assert not (tmp_path / "out" / "two_mass_free.csv").exists()  # nothing ran
