@@ -87,6 +87,13 @@ class ComponentChecks(Checker):
         for key in ("fidelity", "options"):
             if key in spec:
                 self.err(spec.loc(key), f"component {name!r}: '{key}' applies to catalog models, not to an FMU")
+        from ..slaves.archive import check_archive
+
+        try:  # the archive's members and sizes before anything reads it
+            check_archive(fpath)
+        except UserError as exc:
+            self.err(where, f"component {name!r}: {exc}")
+            return None
         if not self._xml(name, fpath, where):
             return None
         try:

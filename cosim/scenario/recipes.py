@@ -126,4 +126,5 @@ def description_from_data(data: dict):
         vs[v["name"]] = Variable(**v)
     rest = {k: v for k, v in data.items() if k not in ("variables", "flanges")}
     rest["interfaces"] = tuple(rest.get("interfaces") or ())
+    rest["workarounds"] = tuple(rest.get("workarounds") or ())
     return SlaveDescription(variables=vs, flanges=[Flange(**f) for f in data["flanges"]], **rest)

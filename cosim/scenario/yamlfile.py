@@ -140,6 +140,25 @@ class _TooDeep(Exception):
     """The file nests deeper than :data:`MAX_YAML_DEPTH`."""
 
 
+def _nests_too_deep(text: str) -> bool:
+    """True when ``text`` nests mappings or lists deeper than :data:`MAX_YAML_DEPTH`, found from the
+    parser's events (iterative), so that the composer, which recurses once per level, never runs
+    into the interpreter's recursion limit (where a finaliser that runs at that depth would fail
+    too).  A syntax error is left to the loader, which reports it with its line."""
+    depth = 0
+    try:
+        for ev in yaml.parse(text, Loader=getattr(yaml, "CSafeLoader", yaml.SafeLoader)):
+            if isinstance(ev, (yaml.MappingStartEvent, yaml.SequenceStartEvent)):
+                depth += 1
+                if depth > MAX_YAML_DEPTH:
+                    return True
+            elif isinstance(ev, (yaml.MappingEndEvent, yaml.SequenceEndEvent)):
+                depth -= 1
+    except (yaml.YAMLError, RecursionError):
+        return False
+    return False
+
+
 def read_yaml(path: Path) -> tuple[Any, list[Problem]]:
     """Parse one YAML file into YMap/YList; syntax errors and duplicate keys become problems."""
     name = _display(path)
@@ -160,6 +179,8 @@ def read_yaml(path: Path) -> tuple[Any, list[Problem]]:
         line = text[:getattr(exc, "position", 0) or 0].count("\n") + 1
         return None, [Problem(name, line, f"YAML: {str(exc).splitlines()[0]}")]
     try:
+        if _nests_too_deep(text):
+            raise _TooDeep
         try:
             node = loader.get_single_node()
         except RecursionError:  # the composer recurses once per level
