@@ -162,3 +162,28 @@ def test_a_tolerance_no_fixed_step_can_meet_is_one_line_exit_2(tmp_path, cache, 
     err = capsys.readouterr().err.strip().splitlines()
     assert "meeting master.tolerance 1e-09 needs a step of about" in err[-1] and "relax the tolerance" in err[-1]
     assert not (tmp_path / "out" / "two_mass_free.csv").exists()  # nothing ran
+
+
+def test_estimate_off_runs_no_companion_and_changes_nothing_else(cache):
+    """``master.estimate: false``: no companion run, no estimate and no verdict from one, and the
+    same trace bit for bit as the run with its estimate (the estimate only watches)."""
+    import numpy as np
+
+    sets = {"master.algorithm": "gauss_seidel", "master.step": 1e-3, "stop_time": 0.5}
+    on = run(SCENES / "pid_step.yaml", sets, cache_dir=cache)
+    off = run(SCENES / "pid_step.yaml", {**sets, "master.estimate": False}, cache_dir=cache)
+    assert on.stats["estimate"]["worst"] is not None
+    assert off.stats["estimate"]["worst"] is None and "master.estimate: false" in off.stats["estimate"]["method"]
+    assert off.status == on.status == "ok"
+    assert np.array_equal(off.trace.data, on.trace.data)
+
+
+@pytest.mark.parametrize("value, sets, message", [
+    ("maybe", {}, "master.estimate = 'maybe'; expected true"),
+    (False, {"master.algorithm": "gauss_seidel", "master.tolerance": 1e-3}, "leaves master.tolerance nothing"),
+])
+def test_a_bad_estimate_setting_is_one_line(value, sets, message):
+    from cosim.scenario.problems import SceneError
+
+    with pytest.raises(SceneError, match=message):
+        load(SCENES / "pid_step.yaml", {**sets, "master.estimate": value})

@@ -429,7 +429,9 @@ def _once(scene: Scene, make_slaves, slaves, out_dir, progress, engine, repeat: 
     (:func:`cosim.master.estimate.judge`)."""
     from ..trace.traces import TraceWriteError
 
-    if repeat is None:
+    if repeat is None and not scene.master.estimate:
+        ctrace, div, method = None, 1.0, "master.estimate: false"
+    elif repeat is None:
         ctrace, div, method = _companion_trace(scene, make_slaves, engine)
     else:
         ctrace, div, method = None, 1.0, repeat

@@ -125,8 +125,17 @@ class MasterChecks(Checker):
             ok = False
         if not ok or step_ns is None or realtime is False:
             return None
+        estimate = node.get("estimate", True)
+        if not isinstance(estimate, bool):
+            self.err(node.loc("estimate"), f"master.estimate = {estimate!r}; expected true (default: the run estimates "
+                                           f"its own error from a companion run) or false (no estimate, half the work)")
+            return None
+        if not estimate and tolerance is not None and not auto:
+            self.err(node.loc("estimate"), "master.estimate: false leaves master.tolerance nothing to check a run "
+                                           "against; drop one of them")
+            return None
         return MasterSettings(alg, step_ns / 1e9, step_ns, list(order) if order else None, engine, record_every,
-                              inputs, realtime, options, tolerance, auto, "inputs" in node)
+                              inputs, realtime, options, tolerance, auto, "inputs" in node, estimate)
 
     def tolerance(self, node: YMap, auto: bool) -> float | None | bool:
         """``master.tolerance``: the worst error of a recorded signal relative to its range that a

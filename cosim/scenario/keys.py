@@ -57,6 +57,9 @@ MASTER = {
     "inputs": "how inputs vary over a step: hold (zero-order) or linear (interpolated / extrapolated)",
     "realtime": "`true`, or `{max_misses, spin, priority}`: pace the communication points on the wall clock",
     "options": "the algorithm's own options (declared by the algorithm, see the algorithms reference)",
+    "estimate": "true (default): the run estimates its own error per signal from a companion run at half the "
+                "step or a quarter of the tolerance, and a run it shows wrong is not ok; false: no estimate (a "
+                "batch of many runs does half the work)",
     "tolerance": "the worst error of a recorded signal relative to its range, in (0, 0.5); default 1e-3 when no "
                  "algorithm is named (the master chooses one to meet it), else none; a run whose own error "
                  "estimate is over 10x it ends inaccurate",

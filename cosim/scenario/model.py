@@ -80,6 +80,8 @@ class MasterSettings:
     #: no algorithm named: the run chooses algorithm and settings from ``tolerance`` (cosim.run.choose)
     auto: bool = False
     inputs_given: bool = False  # master.inputs was set by the scene (the choice keeps it)
+    #: the run's own error estimate (a companion run, cosim.master.estimate); off: none, and no verdict from it
+    estimate: bool = True
 
 
 @dataclass
