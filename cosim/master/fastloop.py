@@ -104,12 +104,7 @@ int64_t rpr_run(rpr_slave *S, int32_t n, const int32_t *order, int32_t algorithm
             }
         }
         ++done;
-        if ((k + 1) % rec_every == 0) {
-            double *row = rec + rows * (n_rec + 1);
-            row[0] = (double)((k + 1) * step_ns) / 1e9;
-            for (c = 0; c < n_rec; ++c) row[c + 1] = v[rec_idx[c]];
-            ++rows;
-        }
+        if ((k + 1) % rec_every == 0) record_row(rec + rows++ * (n_rec + 1), (k + 1) * step_ns, v, rec_idx, n_rec);
         if (budget_ns > 0 && (done & 15) == 0 && now_ns() - t_start > budget_ns) break;
     }
 out:

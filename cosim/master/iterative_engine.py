@@ -366,12 +366,7 @@ int64_t rpr_iter_run(rpr_slave *S, int32_t n, const int32_t *order, double *v, i
         for (i = 0; i < n; ++i)   /* Iterative._accept */
             if (S[i].has_last && S[i].n_in) for (j = 0; j < S[i].n_in; ++j) S[i].start_in[j] = S[i].last_in[j];
         ++done;
-        if ((k + 1) % rec_every == 0) {
-            double *row = rec + rows * (n_rec + 1);
-            row[0] = (double)((k + 1) * step_ns) / 1e9;
-            for (j = 0; j < n_rec; ++j) row[j + 1] = v[rec_idx[j]];
-            ++rows;
-        }
+        if ((k + 1) % rec_every == 0) record_row(rec + rows++ * (n_rec + 1), (k + 1) * step_ns, v, rec_idx, n_rec);
         if (budget_ns > 0 && (done & 15) == 0 && now_ns() - t_start > budget_ns) break;
     }
     *n_rows = rows;

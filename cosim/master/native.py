@@ -170,6 +170,13 @@ static inline int do_step(rpr_slave *s, double t, double h) {
 }
 
 /* wall time in the slaves' calls so far [ns] */
+/* The recorded row of communication point t_ns [ns]: t [s], then v[rec_idx[0..n_rec)]. */
+static inline void record_row(double *row, int64_t t_ns, const double *v, const int64_t *rec_idx, int32_t n_rec) {
+    int32_t c;
+    row[0] = (double)t_ns / 1e9;
+    for (c = 0; c < n_rec; ++c) row[c + 1] = v[rec_idx[c]];
+}
+
 static inline int64_t slaves_ns(const rpr_slave *S, int32_t n) {
     int64_t ns = 0;
     int32_t i;
