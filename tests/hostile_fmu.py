@@ -139,6 +139,6 @@ def hostile_scene(folder: Path, fmu: Path, *, stop_time: float = 0.5, name: str 
     path.write_text(f"name: {name}\nstop_time: {stop_time}\n"
                     f"components:\n  a: {{fmu: {fmu}, start: {{u: 1.0}}}}\n  b: {{fmu: {fmu}}}\n"
                     f"connections:\n  - a.y -> b.u\n"
-                    f"master: {{algorithm: gauss_seidel, step: 1e-3}}\n"
+                    f"master: {{algorithm: gauss_seidel, step: 1e-3, estimate: false}}\n"  # no companion run first
                     f"outputs: [a.y, b.y]\n")
     return path

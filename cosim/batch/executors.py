@@ -253,7 +253,9 @@ class LocalExecutor:
                         source.pending.extendleft(reversed(s.tasks))  # sent, not started: as they were
                         s.tasks.clear()
                         inside, where = s.where()
-                        if s.hung or inside:  # an FMU crashed or hung it: the run's outcome, not retried
+                        # SIGKILL or SIGTERM came from outside (the OOM killer, a user): not the FMU's doing
+                        external = code in (-signal.SIGKILL, -signal.SIGTERM)
+                        if s.hung or (inside and not external):  # an FMU crashed or hung it: not retried
                             status = "hung" if s.hung else "crashed"
                             reason = s.hung or _death(code, where)
                             _settle_files(task, status, reason)
