@@ -352,16 +352,11 @@ CALL_BUDGET_NS = 100_000_000
 @lru_cache(maxsize=1)
 def library() -> ctypes.CDLL:
     """Compile (once, cached on disk: :func:`cosim.master.native.compile_loop`) and load the engine."""
-    dll = compile_loop(SOURCE, "rpr_adapt")
-    fn = dll.rpr_adapt_run
-    fn.restype = c_int64
-    fn.argtypes = [POINTER(CSlave), c_int32, c_void_p, c_void_p, c_int64, c_void_p, c_void_p, c_void_p,
-                   POINTER(CControl), c_void_p, c_int32, c_void_p, c_void_p, c_int64, c_int64]
-    fn = dll.rpr_ecco_run
-    fn.restype = c_int64
-    fn.argtypes = [POINTER(CSlave), c_int32, c_void_p, c_void_p, POINTER(CEccoControl), c_void_p, c_int32, c_void_p,
-                   c_void_p, c_int64, c_int64]
-    return dll
+    return compile_loop(SOURCE, "rpr_adapt", {
+        "rpr_adapt_run": [POINTER(CSlave), c_int32, c_void_p, c_void_p, c_int64, c_void_p, c_void_p, c_void_p,
+                          POINTER(CControl), c_void_p, c_int32, c_void_p, c_void_p, c_int64, c_int64],
+        "rpr_ecco_run": [POINTER(CSlave), c_int32, c_void_p, c_void_p, POINTER(CEccoControl), c_void_p, c_int32,
+                         c_void_p, c_void_p, c_int64, c_int64]})
 
 
 def usable(system, rollback: bool = True) -> bool:

@@ -122,13 +122,10 @@ out:
 def library() -> CDLL:
     """Compile (once per source and compiler, cached on disk) and load the loop library.
     Raises :class:`UserError` when no C compiler works."""
-    dll = compile_loop(SOURCE, "rpr_loop")
-    fn = dll.rpr_run
-    fn.restype = c_int64
-    fn.argtypes = [POINTER(CSlave), c_int32, c_void_p, c_int32, c_void_p, c_int64, c_int64, c_int64, c_int32,
-                   c_void_p, c_int32, c_int64, c_void_p, POINTER(c_int64), POINTER(c_int32), POINTER(c_int32),
-                   POINTER(c_int64), c_int64]
-    return dll
+    return compile_loop(SOURCE, "rpr_loop", {
+        "rpr_run": [POINTER(CSlave), c_int32, c_void_p, c_int32, c_void_p, c_int64, c_int64, c_int64, c_int32,
+                    c_void_p, c_int32, c_int64, c_void_p, POINTER(c_int64), POINTER(c_int32), POINTER(c_int32),
+                    POINTER(c_int64), c_int64]})
 
 
 def available() -> bool:

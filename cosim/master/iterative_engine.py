@@ -382,12 +382,9 @@ CALL_BUDGET_NS = 250_000_000
 @lru_cache(maxsize=1)
 def library() -> ctypes.CDLL:
     """Compile (once, cached on disk: :func:`cosim.master.native.compile_loop`) and load the engine."""
-    dll = compile_loop(SOURCE, "rpr_iter")
-    fn = dll.rpr_iter_run
-    fn.restype = c_int64
-    fn.argtypes = [POINTER(CSlave), ctypes.c_int32, c_void_p, c_void_p, c_int64, POINTER(CControl), c_int64,
-                   c_int64, c_int64, c_void_p, ctypes.c_int32, c_int64, c_void_p, POINTER(c_int64), c_int64]
-    return dll
+    return compile_loop(SOURCE, "rpr_iter", {
+        "rpr_iter_run": [POINTER(CSlave), ctypes.c_int32, c_void_p, c_void_p, c_int64, POINTER(CControl), c_int64,
+                         c_int64, c_int64, c_void_p, ctypes.c_int32, c_int64, c_void_p, POINTER(c_int64), c_int64]})
 
 
 class CompiledIterative:

@@ -193,9 +193,11 @@ static inline int restore_state(rpr_slave *s) {
 """
 
 
-def compile_loop(source: str, stem: str) -> ctypes.CDLL:
+def compile_loop(source: str, stem: str, entries: dict[str, list] | None = None) -> ctypes.CDLL:
     """:data:`PRELUDE` + ``source`` compiled (once; cached on disk by :func:`fmus.native.load`)
-    and loaded.  Raises :class:`UserError` when no C compiler works or the source does not compile."""
+    and loaded; each of ``entries`` (function name -> ctypes argument types) is declared as
+    returning ``int64_t``.  Raises :class:`UserError` when no C compiler works or the source does
+    not compile."""
     try:
         lib = load(PRELUDE + source, stem)
     except NoCompiler as exc:
@@ -204,6 +206,9 @@ def compile_loop(source: str, stem: str) -> ctypes.CDLL:
     except BuildError as exc:
         raise UserError(f"compiling the master loop failed: {exc}") from None
     crumb.register_library(lib)  # its FMI calls write this process's breadcrumb (cosim.slaves.crumb)
+    for name, argtypes in (entries or {}).items():
+        fn = getattr(lib, name)
+        fn.restype, fn.argtypes = ctypes.c_int64, argtypes
     return lib
 
 
