@@ -275,7 +275,7 @@ def test_a_flood_is_counted_and_the_master_drives_on(tmp_path, target):
         final = board.stop()
     print(f"{target}: {answered} commands answered during the flood; dropped {s['dropped']}, throttled "
           f"{s['throttled']}; daemon counters {final}")
-    assert s["state"] == P.RUNNING and s["faults"] == 0 and final["faults"] == 0
+    assert s["state"] == P.RUNNING and s["faults"] == 0 and final["faults"] == 0, final
     assert s["dropped"] == final["malformed"] + final["unauthenticated"] + final["old_session"] + \
         final["out_of_sequence"] + final["stale"] + final["throttled"]
     assert s["dropped"] >= 10_000  # what the kernel's socket buffer let through, at least a fifth
