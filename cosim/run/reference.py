@@ -131,14 +131,17 @@ def reference(scene: Scene | str | Path, overrides=None, *, out_dir: Path | None
               rtol: float = RTOL, atol: float = ATOL,
               progress: Callable[[int, int], None] | None = None, max_wall_s: float = MAX_WALL_S,
               max_steps: int = MAX_STEPS, log: Callable[[str], None] | None = None,
-              times: Sequence[float] | None = None, trace_format: str = "csv") -> RunResult:
+              times: Sequence[float] | None = None, trace_format: str = "csv", guarded: bool = True) -> RunResult:
     """Integrate the scene's monolithic ODE over ``[0, stop_time]`` and record the scene's outputs
     at its output instants, or at ``times`` [s] when given (increasing, from 0: e.g. the irregular
     instants of a variable-step run, so that comparing with it needs no interpolation); the trace goes to ``out_dir/<name>_reference.csv`` (``.parquet`` with
     ``trace_format="parquet"``) when ``out_dir`` is given.  A solver failure is a status (``failed``) with the partial trace kept; so is reaching
     ``max_wall_s`` seconds of wall time or ``max_steps`` CVODES steps.  What the solver prints is
     counted, not shown: ``log`` gets one line with the count and the first line, and the
-    statistics keep the count (``solver_messages``)."""
+    statistics keep the count (``solver_messages``).  The scene's guards hold the reference to
+    the same limits as its runs (a runaway truth ends ``out_of_limits``/``unstable``, cut at the
+    offending row); ``guarded=False`` integrates the maths alone, for a study's ruler, whose
+    runs are guarded themselves."""
     from ..interrupts import signals_as_interrupts
     from ..outputs import OutputLock, check_out_dir
 
@@ -146,10 +149,12 @@ def reference(scene: Scene | str | Path, overrides=None, *, out_dir: Path | None
         scene = load(scene, overrides)
     if out_dir is None:
         with signals_as_interrupts():
-            return _reference(scene, None, rtol, atol, progress, max_wall_s, max_steps, log, times, trace_format)
+            return _reference(scene, None, rtol, atol, progress, max_wall_s, max_steps, log, times, trace_format,
+                              guarded)
     check_out_dir(out_dir)
     with signals_as_interrupts(), OutputLock(out_dir, log=log):
-        return _reference(scene, out_dir, rtol, atol, progress, max_wall_s, max_steps, log, times, trace_format)
+        return _reference(scene, out_dir, rtol, atol, progress, max_wall_s, max_steps, log, times, trace_format,
+                          guarded)
 
 
 def _output_instants(scene: Scene, times: Sequence[float] | None) -> tuple[np.ndarray, bool]:
@@ -164,13 +169,13 @@ def _output_instants(scene: Scene, times: Sequence[float] | None) -> tuple[np.nd
 
 
 def _reference(scene, out_dir, rtol, atol, progress, max_wall_s, max_steps, log, times=None,
-               trace_format="csv") -> RunResult:
+               trace_format="csv", guarded=True) -> RunResult:
     comp = composite(scene)
     dt = scene.master.record_every * scene.master.step
     grid, regular = _output_instants(scene, times)
     n_out = len(grid) - 1
     names = [tuple(o.split(".", 1)) for o in scene.outputs]
-    guard = scene_guard(scene)  # the truth is held to the same limits as the runs it judges
+    guard = scene_guard(scene) if guarded else None  # the truth is held to the same limits as the runs it judges
     watch = [w for w in (guard.watch if guard else ()) if w not in names]
     signals = comp.signal_function(names + watch)
     if guard:
