@@ -237,9 +237,77 @@ def execute(task: Task, shared: Shared) -> Outcome:
     return Outcome(task.run_id, status, reason, metrics, _stats(stats), time.perf_counter() - t0, worker_id(), files)
 
 
-def run_remote(task: Task, shared: Shared) -> Outcome:
-    """The function a Dask worker calls (importable by name on the workers)."""
-    return execute(task, shared)
+def settle_files(task: Task, status: str, reason: str) -> None:
+    """The run's trace and sidecar in its directory, given ``status`` and ``reason`` (the process
+    that stepped it died while they said "running")."""
+    if not task.out_dir:
+        return
+    from ..outputs import safe_name, settle_if_stale, settle_run
+
+    try:
+        settle_run(os.path.join(task.out_dir, f"{safe_name(task.scene.name)}.csv"), status, reason)
+        settle_if_stale(task.out_dir)  # the dead process's lock file goes too
+    except (OSError, UserError):  # the row says it all the same
+        pass
 
 
-__all__ = ["Outcome", "Shared", "STATE", "Task", "execute", "run_remote", "transportable"]
+def _files(folder: Path) -> dict[str, bytes]:
+    return {p.name: p.read_bytes() for p in sorted(folder.iterdir()) if p.is_file() and not p.is_symlink()}
+
+
+def execute_supervised(task: Task, shared: Shared, call_timeout: float | None = None) -> Outcome:
+    """:func:`execute` in a forked child of this process, watched by :func:`cosim.run.supervise.
+    supervised`: an FMU that crashes, exits or hangs in one call longer than ``call_timeout`` [s]
+    makes the outcome "crashed" or "hung" (the component and FMI call in the reason, the run's
+    files settled) and this process goes on.  For processes that are not supervised themselves
+    (Dask workers); a run without ``out_dir`` steps into a temporary directory of this process
+    and its files come back in :attr:`Outcome.files`.
+
+    Before the fork this process does what every child would otherwise repeat (the imports, the
+    compiled loops, the task's FMUs written, described and unpacked), so that a child imports and
+    unpacks nothing.  The child's instances end with it (no reuse across runs)."""
+    from ..run import supervise
+    from . import preload
+
+    t0 = time.perf_counter()
+    preload.warm([task.scene])
+    blobs = {**shared.blobs, **task.blobs} if task.blobs else shared.blobs
+    STATE.prepare({d: blobs[d] for d in set(task.fmus.values()) if d in blobs})
+    tmp = None
+    if not task.out_dir:
+        tmp = tempfile.mkdtemp(prefix="rpr-run-")
+        task = dataclasses.replace(task, out_dir=tmp)
+
+    def child(say) -> Outcome:
+        STATE.lock = threading.Lock()  # another thread of this process may have held it at the fork
+        return execute(task, shared)
+
+    try:
+        try:
+            out = supervise.supervised(child, timeout_s=call_timeout)
+        except supervise.Failed as failed:
+            settle_files(task, failed.status, failed.reason)
+            if failed.signal_exc is not None:
+                raise failed.signal_exc from None
+            out = Outcome(task.run_id, failed.status, failed.reason)
+        out.wall_s, out.worker = time.perf_counter() - t0, worker_id()
+        if tmp is not None:
+            out.files = _files(Path(tmp))
+        return out
+    finally:
+        if tmp is not None:
+            shutil.rmtree(tmp, ignore_errors=True)
+
+
+def run_remote(task: Task, shared: Shared, call_timeout: float | None = None) -> Outcome:
+    """The function a Dask worker calls (importable by name on the workers): the run supervised
+    (:func:`execute_supervised`) unless ``$RPR_COSIM_SUPERVISE=0`` on the worker."""
+    from ..run import supervise
+
+    if not supervise.enabled():
+        return execute(task, shared)
+    return execute_supervised(task, shared, call_timeout)
+
+
+__all__ = ["Outcome", "Shared", "STATE", "Task", "execute", "execute_supervised", "run_remote", "settle_files",
+           "transportable"]

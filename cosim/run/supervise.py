@@ -57,9 +57,14 @@ class Failed(Exception):
         self.status, self.reason, self.signal_exc = status, reason, signal_exc
 
 
+_IN_CHILD = False  # True in a supervised child: what it runs is supervised already
+
+
 def enabled() -> bool:
-    """Whether runs are supervised here (``fork`` exists and ``$RPR_COSIM_SUPERVISE`` is not 0)."""
-    return hasattr(os, "fork") and os.environ.get(SUPERVISE_ENV, "1").strip().lower() not in ("0", "no", "false", "off")
+    """Whether runs are supervised here (``fork`` exists, ``$RPR_COSIM_SUPERVISE`` is not 0, and
+    this is not a supervised child already)."""
+    return (hasattr(os, "fork") and not _IN_CHILD
+            and os.environ.get(SUPERVISE_ENV, "1").strip().lower() not in ("0", "no", "false", "off"))
 
 
 def call_timeout(value: object = None) -> float:
@@ -96,6 +101,8 @@ def _die_with_parent() -> None:
 def _child(work: Callable[[Callable[[str], None]], Any], wfd: int, buf) -> None:
     from ..slaves import fmu
 
+    global _IN_CHILD
+    _IN_CHILD = True
     code = 0
     notes: list[str] = []
     inherited = set(fmu._UNZIPPED)  # the parent's unpacked FMUs: the parent removes those
