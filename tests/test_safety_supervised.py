@@ -191,6 +191,7 @@ def test_a_dask_batch_run_that_crashes_or_hangs_is_its_row_and_the_workers_live_
     from cosim.batch import load_batch, run_batch
     from cosim.batch.executors import DaskExecutor
     from cosim.batch.results import read_rows
+    from cosim.batch.worker import end_steppers
 
     spec = tmp_path / "b.yaml"
     spec.write_text(f"name: hd\nscene: {hostile}\n"
@@ -199,13 +200,15 @@ def test_a_dask_batch_run_that_crashes_or_hangs_is_its_row_and_the_workers_live_
     monkeypatch.setenv("RPR_COSIM_CALL_TIMEOUT", "1")  # the batch process's timeout goes to the workers
     with distributed.Client(dask_scheduler) as client:
         before = client.run(os.getpid)
-        client.run(os.putenv, "RPR_HOSTILE", how)  # the FMU reads it in the process stepping it
+        client.run(os.putenv, "RPR_HOSTILE", how)  # the FMU reads it in the process stepping it,
+        client.run(end_steppers)  # a child forked after this
         try:
             t0 = time.monotonic()
             res = run_batch(load_batch(spec), out=tmp_path / "out", executor=DaskExecutor(dask_scheduler))
             assert time.monotonic() - t0 < 60
         finally:
             client.run(os.unsetenv, "RPR_HOSTILE")
+            client.run(end_steppers)
         assert client.run(os.getpid) == before  # no worker died (nor was restarted by its nanny)
     assert res.ran == 4 and res.failed == 1
     rows = {str(r["tau"]): r for r in read_rows(tmp_path / "out" / "results.csv")[1]}

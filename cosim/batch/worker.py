@@ -18,6 +18,8 @@ import socket
 import tempfile
 import threading
 import time
+import uuid
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -54,6 +56,7 @@ class Shared:
     blobs: dict[str, bytes]  # content hash -> FMU file bytes
     reference: Trace | None = None
     reuse: bool = True  # keep instances between runs (FMI reset) instead of loading them again
+    token: str = field(default_factory=lambda: uuid.uuid4().hex)  # names this batch's Shared
 
 
 @dataclass
@@ -255,17 +258,53 @@ def _files(folder: Path) -> dict[str, bytes]:
     return {p.name: p.read_bytes() for p in sorted(folder.iterdir()) if p.is_file() and not p.is_symlink()}
 
 
-def execute_supervised(task: Task, shared: Shared, call_timeout: float | None = None) -> Outcome:
-    """:func:`execute` in a forked child of this process, watched by :func:`cosim.run.supervise.
-    supervised`: an FMU that crashes, exits or hangs in one call longer than ``call_timeout`` [s]
-    makes the outcome "crashed" or "hung" (the component and FMI call in the reason, the run's
-    files settled) and this process goes on.  For processes that are not supervised themselves
-    (Dask workers); a run without ``out_dir`` steps into a temporary directory of this process
-    and its files come back in :attr:`Outcome.files`.
+class _Local(threading.local):
+    server = None  # this thread's stepping child (cosim.run.supervise.Server)
+    token = None  # the Shared it holds
 
-    Before the fork this process does what every child would otherwise repeat (the imports, the
-    compiled loops, the task's FMUs written, described and unpacked), so that a child imports and
-    unpacks nothing.  The child's instances end with it (no reuse across runs)."""
+
+_LOCAL = _Local()
+_SERVERS: list = []  # every stepping child this process started, ended at exit
+
+
+def end_steppers() -> None:
+    """End this process's stepping children (each thread starts a new one at its next run: one
+    forked after a change of the environment an FMU reads sees the change)."""
+    for server in _SERVERS:
+        server.close()
+    _SERVERS.clear()
+
+
+atexit.register(end_steppers)
+
+
+def _serve_runs() -> Callable[[tuple], Outcome]:
+    """What a stepping child does with each request ``(task, token, shared or None)``: run the
+    task with the Shared of that token (sent with the first run of each batch)."""
+    kept: dict[str, Shared] = {}
+
+    def handle(request: tuple) -> Outcome:
+        task, token, shared = request
+        if shared is not None:
+            kept.clear()
+            kept[token] = shared
+        return execute(task, kept[token])
+
+    return handle
+
+
+def execute_supervised(task: Task, shared: Shared, call_timeout: float | None = None) -> Outcome:
+    """:func:`execute` in this thread's stepping child (:class:`cosim.run.supervise.Server`),
+    watched as ``rpr-cosim run`` watches its child: an FMU that crashes, exits or hangs in one
+    call longer than ``call_timeout`` [s] makes the outcome "crashed" or "hung" (the component
+    and FMI call in the reason, the run's files settled), the child is replaced at the next run,
+    and this process goes on.  For processes that are not supervised themselves (Dask workers);
+    a run without ``out_dir`` steps into a temporary directory of this process and its files
+    come back in :attr:`Outcome.files`.
+
+    The child is forked once per thread, after this process did what it would otherwise repeat
+    (the imports, the compiled loops, the FMUs written, described and unpacked), and keeps its
+    FMU instances between runs (reset, as a local worker does)."""
     from ..run import supervise
     from . import preload
 
@@ -277,18 +316,17 @@ def execute_supervised(task: Task, shared: Shared, call_timeout: float | None = 
     if not task.out_dir:
         tmp = tempfile.mkdtemp(prefix="rpr-run-")
         task = dataclasses.replace(task, out_dir=tmp)
-
-    def child(say) -> Outcome:
-        STATE.lock = threading.Lock()  # another thread of this process may have held it at the fork
-        return execute(task, shared)
-
     try:
+        if _LOCAL.server is None or not _LOCAL.server.alive:
+            _LOCAL.server = supervise.Server(_serve_runs(), on_start=STATE.detach, on_exit=STATE.remove_files)
+            _LOCAL.token = None
+            _SERVERS[:] = [s for s in _SERVERS if s.alive] + [_LOCAL.server]
         try:
-            out = supervise.supervised(child, timeout_s=call_timeout)
+            out = _LOCAL.server.call((task, shared.token, shared if _LOCAL.token != shared.token else None),
+                                     call_timeout)
+            _LOCAL.token = shared.token
         except supervise.Failed as failed:
             settle_files(task, failed.status, failed.reason)
-            if failed.signal_exc is not None:
-                raise failed.signal_exc from None
             out = Outcome(task.run_id, failed.status, failed.reason)
         out.wall_s, out.worker = time.perf_counter() - t0, worker_id()
         if tmp is not None:
@@ -309,5 +347,5 @@ def run_remote(task: Task, shared: Shared, call_timeout: float | None = None) ->
     return execute_supervised(task, shared, call_timeout)
 
 
-__all__ = ["Outcome", "Shared", "STATE", "Task", "execute", "execute_supervised", "run_remote", "settle_files",
+__all__ = ["Outcome", "Shared", "STATE", "Task", "end_steppers", "execute", "execute_supervised", "run_remote", "settle_files",
            "transportable"]
