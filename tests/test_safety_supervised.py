@@ -181,6 +181,9 @@ def test_a_batch_run_that_crashes_or_hangs_is_its_row_and_the_others_run(tmp_pat
     ("doStep@100:hang_noterm/0.2", "hung",
      "a.fmi2DoStep at t = 0.099 s did not return within 1 s (the FMI call timeout, $RPR_COSIM_CALL_TIMEOUT); "
      "the run was stopped"),
+    # SIGKILL looks like the OOM killer: a second attempt in a new child, killed again
+    ("doStep@100:sigkill/0.2", "crashed", "the run's process died of SIGKILL (signal 9) in a.fmi2DoStep at "
+                                          "t = 0.099 s (and so did its second attempt, in a new process)"),
 ])
 def test_a_dask_batch_run_that_crashes_or_hangs_is_its_row_and_the_workers_live_on(
         tmp_path, hostile, dask_scheduler, monkeypatch, how, status, reason):

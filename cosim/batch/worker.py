@@ -293,12 +293,25 @@ def _serve_runs() -> Callable[[tuple], Outcome]:
     return handle
 
 
+def _server():
+    """This thread's stepping child, started (again) when it has none alive."""
+    from ..run import supervise
+
+    if _LOCAL.server is None or not _LOCAL.server.alive:
+        _LOCAL.server = supervise.Server(_serve_runs(), on_start=STATE.detach, on_exit=STATE.remove_files)
+        _LOCAL.token = None
+        _SERVERS[:] = [s for s in _SERVERS if s.alive] + [_LOCAL.server]
+    return _LOCAL.server
+
+
 def execute_supervised(task: Task, shared: Shared, call_timeout: float | None = None) -> Outcome:
     """:func:`execute` in this thread's stepping child (:class:`cosim.run.supervise.Server`),
     watched as ``rpr-cosim run`` watches its child: an FMU that crashes, exits or hangs in one
     call longer than ``call_timeout`` [s] makes the outcome "crashed" or "hung" (the component
     and FMI call in the reason, the run's files settled), the child is replaced at the next run,
-    and this process goes on.  For processes that are not supervised themselves (Dask workers);
+    and this process goes on; a child killed by someone else (SIGKILL or SIGTERM: out of memory?)
+    or dead outside any FMI call gets a second attempt in a new child, as a local worker's run
+    does.  For processes that are not supervised themselves (Dask workers);
     a run without ``out_dir`` steps into a temporary directory of this process and its files
     come back in :attr:`Outcome.files`.
 
@@ -317,17 +330,21 @@ def execute_supervised(task: Task, shared: Shared, call_timeout: float | None = 
         tmp = tempfile.mkdtemp(prefix="rpr-run-")
         task = dataclasses.replace(task, out_dir=tmp)
     try:
-        if _LOCAL.server is None or not _LOCAL.server.alive:
-            _LOCAL.server = supervise.Server(_serve_runs(), on_start=STATE.detach, on_exit=STATE.remove_files)
-            _LOCAL.token = None
-            _SERVERS[:] = [s for s in _SERVERS if s.alive] + [_LOCAL.server]
-        try:
-            out = _LOCAL.server.call((task, shared.token, shared if _LOCAL.token != shared.token else None),
-                                     call_timeout)
-            _LOCAL.token = shared.token
-        except supervise.Failed as failed:
-            settle_files(task, failed.status, failed.reason)
-            out = Outcome(task.run_id, failed.status, failed.reason)
+        for attempt in (1, 2):
+            server = _server()
+            try:
+                out = server.call((task, shared.token, shared if _LOCAL.token != shared.token else None),
+                                  call_timeout)
+                _LOCAL.token = shared.token
+                break
+            except supervise.Failed as failed:
+                if failed.from_outside and attempt == 1:  # killed by someone else (out of memory?): once more
+                    shutil.rmtree(task.out_dir, ignore_errors=True)
+                    os.makedirs(task.out_dir)
+                    continue
+                reason = failed.reason + (" (and so did its second attempt, in a new process)" if attempt > 1 else "")
+                settle_files(task, failed.status, reason)
+                out = Outcome(task.run_id, failed.status, reason)
         out.wall_s, out.worker = time.perf_counter() - t0, worker_id()
         if tmp is not None:
             out.files = _files(Path(tmp))

@@ -50,11 +50,21 @@ T = TypeVar("T")
 
 class Failed(Exception):
     """How a supervised child ended when it did not return: ``status`` ("crashed", "hung" or
-    "interrupted") and ``reason``."""
+    "interrupted") and ``reason``; for "crashed", :attr:`from_outside` tells whether it may have
+    been killed by someone else (SIGKILL or SIGTERM: the OOM killer, a user) or died outside any
+    FMI call, rather than by an FMU."""
 
-    def __init__(self, status: str, reason: str, signal_exc: Interrupted | None = None):
+    def __init__(self, status: str, reason: str, signal_exc: Interrupted | None = None, from_outside: bool = False):
         super().__init__(reason)
         self.status, self.reason, self.signal_exc = status, reason, signal_exc
+        self.from_outside = from_outside
+
+
+def _crashed(status: int, state: dict, signal_exc: Interrupted | None = None) -> Failed:
+    """The :class:`Failed` of a child that ended with wait status ``status``, its crumb ``state``."""
+    external = os.WIFSIGNALED(status) and os.WTERMSIG(status) in (signal.SIGKILL, signal.SIGTERM)
+    return Failed("crashed", _describe_exit(status, crumb.describe(state)), signal_exc,
+                  external or not state["inside"])
 
 
 _IN_CHILD = False  # True in a supervised child: what it runs is supervised already
@@ -212,7 +222,7 @@ def supervised(work: Callable[[Callable[[str], None]], T], *, timeout_s: float |
             raise value
         if kind == "interrupted":
             raise signalled or Interrupted(value)
-        raise Failed("crashed", _describe_exit(status, crumb.describe(crumb.read(buf))), signalled)
+        raise _crashed(status, crumb.read(buf), signalled)
     except Failed:
         _remove_leftovers(pid)
         raise
@@ -368,9 +378,9 @@ class Server:
                 raise value
             return value
         status = status if status is not None else os.waitpid(self.pid, 0)[1]
-        where = crumb.describe(crumb.read(self.buf))
+        failed = _crashed(status, crumb.read(self.buf))
         self._closed(reaped=True)
-        raise Failed("crashed", _describe_exit(status, where))
+        raise failed
 
     def _closed(self, reaped: bool = True) -> None:
         """Forget the child (killed and reaped here unless ``reaped`` already) and its leftovers."""
