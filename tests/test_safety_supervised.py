@@ -220,3 +220,34 @@ def test_a_dask_batch_run_that_crashes_or_hangs_is_its_row_and_the_workers_live_
     for tau in (0.1, 0.3, 0.4):  # the Euler solution's maximum, y(0.5 s) = 1 - (1 - h / tau)^500
         assert float(rows[str(tau)]["a.y:max"]) == pytest.approx(1 - (1 - 1e-3 / tau) ** 500, rel=1e-9)
     assert_settled(tmp_path / "out" / "runs" / rows["0.2"]["run_id"], status, reason)
+
+
+def _handle(request):
+    """A stepping child's work for the Server test: echo, raise, or die."""
+    if request == "segv":
+        os.kill(os.getpid(), signal.SIGSEGV)
+    if request == "raise":
+        raise ValueError("no such run")
+    return request * 2
+
+
+def test_a_stepping_child_serves_requests_until_it_dies_and_says_how():
+    from cosim.run.supervise import Failed, Server
+
+    server = Server(_handle)
+    pid = server.pid
+    assert server.call(21) == 42 and server.call("ab") == "abab"
+    with pytest.raises(ValueError, match="no such run"):
+        server.call("raise")
+    assert server.alive and server.call(b"x" * 3_000_000) == b"x" * 6_000_000  # larger than a pipe's buffer
+    with pytest.raises(Failed) as failed:
+        server.call("segv")
+    assert failed.value.status == "crashed" and not server.alive
+    assert failed.value.reason == "the run's process died of SIGSEGV (signal 11) before the first FMI call"
+    assert failed.value.from_outside  # not inside an FMI call: a second attempt is worth it
+    with pytest.raises(ChildProcessError):
+        os.waitpid(pid, os.WNOHANG)  # reaped
+    other = Server(_handle)
+    assert other.call(1) == 2
+    other.close()
+    assert not other.alive
