@@ -293,12 +293,21 @@ def _serve_runs() -> Callable[[tuple], Outcome]:
     return handle
 
 
+def _start_stepping() -> None:
+    """In a new stepping child: its own instances and FMU folder, and each run's trace written
+    in the stepping thread (a run is one core, as on a local worker)."""
+    from ..trace import traces
+
+    STATE.detach()
+    traces.WRITER_THREAD = False
+
+
 def _server():
     """This thread's stepping child, started (again) when it has none alive."""
     from ..run import supervise
 
     if _LOCAL.server is None or not _LOCAL.server.alive:
-        _LOCAL.server = supervise.Server(_serve_runs(), on_start=STATE.detach, on_exit=STATE.remove_files)
+        _LOCAL.server = supervise.Server(_serve_runs(), on_start=_start_stepping, on_exit=STATE.remove_files)
         _LOCAL.token = None
         _SERVERS[:] = [s for s in _SERVERS if s.alive] + [_LOCAL.server]
     return _LOCAL.server
