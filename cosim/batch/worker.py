@@ -7,6 +7,10 @@ its CasADi blocks stripped, the content hash of each component's FMU, the metric
 :class:`Shared` per worker (the FMUs' bytes by hash, the reference trace).  A worker needs no
 shared filesystem: with ``Task.out_dir = None`` the run writes into a temporary directory and
 its files come back in :attr:`Outcome.files`.
+
+A local worker process is itself watched by the batch process; a Dask worker, which is not,
+runs each task in a supervised stepping child it forks once per thread
+(:func:`execute_supervised`, :class:`cosim.run.supervise.Server`).
 """
 from __future__ import annotations
 
