@@ -18,6 +18,10 @@ call it is in.  The parent waits for the child's result on a pipe and reads the 
 
 In every case the ``settle`` callback writes the final trace and sidecar (:func:`cosim.outputs.
 settle_run`).  ``$RPR_COSIM_SUPERVISE=0`` runs in-process (for debugging an FMU under gdb).
+
+:class:`Server` is the same watch around a child that stays: it serves one request after
+another (the runs of a Dask worker, keeping its FMU instances between them) until it dies or
+is closed.
 """
 from __future__ import annotations
 
