@@ -179,6 +179,8 @@ def choose(scene: Scene, pilot: Callable[[Scene], object] | None, log: Callable[
                     break
             fac = (TARGET * tol / e) ** (1 / ORDER_TOLERANCE) if e > 0 and math.isfinite(e) else 0.1
             nxt = rtol * min(30.0, max(1 / 30, fac))
+            if best is not None and not met and nxt <= best:
+                break  # a miss above one that met it, and the next try tighter still: keep the one that met it
             if best is not None and nxt > rtol:  # looser than one that met it: only if below the last miss
                 misses = [p["rtol"] for p in choice.pilots if p["estimate"] is not None and p["estimate"] > tol
                           and p["window_s"] >= sc.stop_time - sc.start_time]
@@ -213,6 +215,8 @@ def choose(scene: Scene, pilot: Callable[[Scene], object] | None, log: Callable[
         nxt = snap(h_ns / 1e9 * min(10.0, max(0.05, fac)))
         if met and (nxt is None or nxt <= h_ns):
             break  # no longer step to try
+        if best is not None and e > tol and (nxt is None or nxt <= best):
+            break  # a miss at a longer step than one that met it, and the next try shorter still: keep that one
         if e > tol and (nxt is None or nxt >= h_ns):
             nxt = snap(h_ns / 2e9)
             if nxt is None or nxt >= h_ns:
