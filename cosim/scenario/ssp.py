@@ -556,7 +556,7 @@ class _Reader:
         for key, attr in (("algorithm", "algorithm"), ("inputs", "inputs"), ("engine", "engine")):
             if ann.get(attr) is not None:
                 node[key] = ann.get(attr)
-        for key, attr in (("step", "step"), ("output_interval", "outputInterval")):
+        for key, attr in (("step", "step"), ("output_interval", "outputInterval"), ("tolerance", "tolerance")):
             if ann.get(attr) is not None:
                 node[key] = float(ann.get(attr))
         if ann.get("order"):
