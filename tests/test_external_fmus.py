@@ -3,6 +3,7 @@ checks (each check failed by a small C FMU built for it), libcosim's OspSystemSt
 SSP annotations, power bonds between external FMUs, and libcosimpy (libcosim) as the peer."""
 from __future__ import annotations
 
+import re
 import shutil
 import subprocess
 import sys
@@ -409,8 +410,8 @@ def test_crane_pair_under_jacobi_equals_libcosim_fixed_step_to_round_off(data):
 @needs_data
 @pytest.mark.parametrize("change, message", [
     (lambda x: x.replace('source="KnuckleBoomCrane.fmu"', 'source="Nope.fmu"'), r"OspSystemStructure.xml:14: .*FMU 'Nope.fmu' not found"),
-    (lambda x: x.replace('name="double" factor', 'name="s" inputCount="2" factor').replace("LinearTransformation", "Sum"),
-     r"OspSystemStructure.xml:22: .*function Sum 's': summing signals is not supported"),
+    (lambda x: x.replace('<LinearTransformation name="double"', '<Product name="double"'),
+     r"OspSystemStructure.xml:22: .*function <Product> is unknown \(OSP defines LinearTransformation, Sum and VectorSum\)"),
     (lambda x: x.replace('<Simulator name="KnuckleBoomCrane" source="KnuckleBoomCrane.fmu">',
                          '<Simulator name="KnuckleBoomCrane" source="KnuckleBoomCrane.fmu" stepSize="3e-4">').replace(
                          'source="CraneController.fmu"', 'source="CraneController.fmu" stepSize="4e-4"'),
@@ -425,6 +426,139 @@ def test_bad_osp_input_is_one_line_with_file_and_line(data, change, message):
     osp.write_text(change(CRANE_OSP.format(stop=1.0, bond=CRANE_BOND)))
     with pytest.raises(SceneError, match=message):
         load(osp)
+
+
+#: the crane pair with OSP's two summing functions: a Sum of the crane's three velocities into the
+#: controller's p_Crane.f[1], and a VectorSum of two variable groups (written here, with the
+#: controller's group that the test data lacks) into the controller's actuator limits
+CRANE_EMD = """<?xml version="1.0" encoding="utf-8" ?>
+<OspModelDescription xmlns="http://opensimulationplatform.com/MSMI/OSPModelDescription" version="0.1">
+    <VariableGroups>
+        <Generic name="actuatorLimits">
+            <Variable ref="Act_Limits[1]"/><Variable ref="Act_Limits[2]"/><Variable ref="Act_Limits[3]"/>
+        </Generic>{more}
+    </VariableGroups>
+</OspModelDescription>
+"""
+VELOCITIES = """
+        <Generic name="velocities">
+            <Variable ref="p_Crane.f[3]"/><Variable ref="p_Crane.f[2]"/><Variable ref="p_Crane.f[1]"/>
+        </Generic>"""
+SUMS_FUNCTIONS = """<Sum name="total" inputCount="3"/>
+        <VectorSum name="limits" inputCount="2" dimension="3"/>"""
+SUMS_CONNECTIONS = "\n".join(
+    [f"""<VariableConnection><Variable simulator="CraneController" name="p_Crane.e[{i}]"/>
+        <Variable simulator="KnuckleBoomCrane" name="p_Crane.e[{i}]"/></VariableConnection>""" for i in (1, 2, 3)]
+    + [f"""<VariableConnection><Variable simulator="KnuckleBoomCrane" name="p_Crane.f[{i}]"/>
+        <Variable simulator="CraneController" name="p_Crane.f[{i}]"/></VariableConnection>""" for i in (2, 3)]
+    + [f"""<SignalConnection><Variable simulator="KnuckleBoomCrane" name="p_Crane.f[{i + 1}]"/>
+        <Signal function="total" name="in[{i}]"/></SignalConnection>""" for i in (0, 1, 2)]
+    + ["""<SignalConnection><Signal function="total" name="out"/>
+        <Variable simulator="CraneController" name="p_Crane.f[1]"/></SignalConnection>""",
+       """<SignalGroupConnection><VariableGroup simulator="KnuckleBoomCrane" name="actuatorLimits"/>
+        <SignalGroup function="limits" name="in[0]"/></SignalGroupConnection>""",
+       """<SignalGroupConnection><VariableGroup simulator="KnuckleBoomCrane" name="velocities"/>
+        <SignalGroup function="limits" name="in[1]"/></SignalGroupConnection>""",
+       """<SignalGroupConnection><SignalGroup function="limits" name="out"/>
+        <VariableGroup simulator="CraneController" name="actuatorLimits"/></SignalGroupConnection>"""])
+
+
+def _crane_sums(data: Path, stop: float, change=lambda x: x) -> Path:
+    d = data / "fmi2"
+    (d / "KnuckleBoomCrane_OspModelDescription.xml").write_text(CRANE_EMD.format(more=VELOCITIES))
+    (d / "CraneController_OspModelDescription.xml").write_text(CRANE_EMD.format(more=""))
+    text = CRANE_OSP.format(stop=stop, bond=SUMS_CONNECTIONS)
+    start, end = text.index("<Functions>"), text.index("</Connections>")
+    text = text[:start] + f"<Functions>\n        {SUMS_FUNCTIONS}\n    </Functions>\n    <Connections>\n        " \
+        + SUMS_CONNECTIONS + "\n    " + text[end:]
+    osp = d / "OspSystemStructure.xml"
+    osp.write_text(change(text))
+    return osp
+
+
+@needs_data
+def test_osp_sum_and_vector_sum_run_as_libcosim_runs_them(data):
+    """Same convention as libcosim's fixed step: every input set from the outputs at t_k, the
+    functions evaluated on those outputs at once (no delay of their own), then every slave steps.
+    The crane's outputs and the controller's (which the sums feed) equal libcosimpy's to
+    round-off; the controller's summed inputs are exactly the sums of our crane outputs at the
+    same instant, and equal libcosim's one step later (libcosim's observer reads a slave's inputs
+    as they were set for the step just taken, before the functions' new outputs are transferred;
+    ours records an input as the value of its source now)."""
+    pytest.importorskip("libcosimpy")
+    import libcosim_peer
+
+    osp = _crane_sums(data, stop=0.1)
+    sc = load(osp)
+    assert sc.components["total"].model == "sum" and sc.components["total"].options == {"inputs": 3, "dimension": 1}
+    assert sc.components["limits"].options == {"inputs": 2, "dimension": 3}
+    assert "KnuckleBoomCrane.p_Crane.f[1] -> limits.in[1,2]" in [str(c) for c in sc.connections]
+    crane = ["KnuckleBoomCrane.p_Crane.f[1]", "KnuckleBoomCrane.p_Crane.f[2]", "KnuckleBoomCrane.p_Crane.f[3]",
+             "KnuckleBoomCrane.Act_Limits[1]", "KnuckleBoomCrane.Act_Limits[3]", "CraneController.p_Crane.e[1]",
+             "CraneController.p_Crane.e[3]"]
+    summed = ["CraneController.p_Crane.f[1]", "CraneController.Act_Limits[1]", "CraneController.Act_Limits[3]"]
+    times = np.arange(1, 101) * 1e-3
+    ref = libcosim_peer.run(osp.parent, times, crane + summed)
+    sc.master.estimate = False
+    sc.outputs = list(dict.fromkeys(sc.outputs + crane + summed))
+    res = run(sc)
+    assert res.ok, res.reason
+    tr = {n: np.interp(times, res.trace.time, res.trace[n]) for n in crane + summed}
+    for n in crane:
+        assert np.ptp(ref[n]) > 0
+        # round-off as in the crane test above (integer-nanosecond time to seconds)
+        np.testing.assert_allclose(tr[n], ref[n], rtol=0, atol=1e-8 * np.ptp(ref[n]))
+    f = [tr[f"KnuckleBoomCrane.p_Crane.f[{i}]"] for i in (1, 2, 3)]
+    np.testing.assert_allclose(tr["CraneController.p_Crane.f[1]"], f[0] + f[1] + f[2], rtol=0, atol=1e-15)
+    np.testing.assert_allclose(tr["CraneController.Act_Limits[1]"], tr["KnuckleBoomCrane.Act_Limits[1]"] + f[2],
+                               rtol=0, atol=1e-13)
+    np.testing.assert_allclose(tr["CraneController.Act_Limits[3]"], tr["KnuckleBoomCrane.Act_Limits[3]"] + f[0],
+                               rtol=0, atol=1e-13)
+    for n in summed:
+        later = np.interp(times - 1e-4, res.trace.time, res.trace[n])
+        assert np.max(np.abs(tr[n] - ref[n])) > 1e-4 * np.ptp(ref[n])  # the observation convention differs...
+        np.testing.assert_allclose(later, ref[n], rtol=0, atol=1e-8 * np.ptp(ref[n]))  # ...and only by it
+
+
+VELOCITIES_IN = """<SignalGroupConnection><VariableGroup simulator="KnuckleBoomCrane" name="velocities"/>
+        <SignalGroup function="limits" name="in[1]"/></SignalGroupConnection>"""
+
+
+@needs_data
+@pytest.mark.parametrize("change, message", [
+    (lambda x: x.replace('<Sum name="total" inputCount="3"/>', '<Sum name="total"/>'),
+     r":22: error: Sum 'total' needs inputCount= \(a whole number >= 1\)$"),
+    (lambda x: x.replace('inputCount="3"', 'inputCount="three"'),
+     r":22: error: Sum 'total': inputCount = 'three'; expected a whole number >= 1$"),
+    (lambda x: x.replace('dimension="3"', ''), r":23: error: VectorSum 'limits' needs dimension= \(a whole number >= 1\)$"),
+    (lambda x: x.replace('function="total" name="in[2]"', 'function="total" name="in[3]"'),
+     r":41: error: Sum 'total': signal 'in\[3\]' is out of range; inputCount = 3 gives in\[0\] \.\. in\[2\] "
+     r"\(0-based, as libcosim\)$"),
+    (lambda x: x.replace('function="total" name="in[2]"', 'function="total" name="in[1]"'),
+     r":41: error: Sum 'total': signal 'in\[1\]' is connected twice \(line 39\)$"),
+    (lambda x: x.replace('dimension="3"', 'dimension="2"'),
+     r":44: error: VectorSum 'limits' has dimension 2 but variable group 'actuatorLimits' of 'KnuckleBoomCrane' has "
+     r"3 variables$"),
+    (lambda x: x.replace(VELOCITIES_IN, ""),
+     r":23: error: VectorSum 'limits': signal in\[1\] is not connected \(every signal of a function must be\)$"),
+    (lambda x: x.replace('<Signal function="total" name="out"/>', '<Signal function="limits" name="out"/>'),
+     r":42: error: VectorSum 'limits' is connected by <SignalGroupConnection> \(a group of 3\), not <SignalConnection>$"),
+    (lambda x: x.replace('<Variable simulator="CraneController" name="p_Crane.f[1]"/></SignalConnection>',
+                         '<Variable simulator="KnuckleBoomCrane" name="p_Crane.f[1]"/></SignalConnection>'),
+     r":43: error: Sum 'total': signal 'out' feeds an input; KnuckleBoomCrane.p_Crane.f\[1\] is output "
+     r"\(expected input\)$"),
+])
+def test_malformed_osp_functions_are_one_line_with_file_and_line(data, change, message):
+    """Each mistake in a Sum or VectorSum is one line naming the file, the line and what is expected."""
+    osp = _crane_sums(data, stop=0.1, change=change)
+    with pytest.raises(SceneError) as exc:
+        load(osp)
+    lines = str(exc.value).strip().splitlines()
+    assert all(line.startswith(f"{osp}:") for line in lines), lines
+    assert re.search("OspSystemStructure.xml" + message, lines[0]), lines
+    # one line per element in error: three groups of the wrong dimension; a signal moved to the wrong
+    # function leaves the Sum's 'out' unconnected, which is said too
+    assert len(lines) == (3 if "dimension 2" in message else 2 if "not <SignalConnection>" in message else 1), lines
 
 
 @needs_data

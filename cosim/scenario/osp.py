@@ -19,8 +19,13 @@ What becomes what:
     (``LinearMechanicalPort``, ``AngularMechanicalPort``, ... : an effort group and a flow group)
     become power bonds, one per variable pair.
 ``SignalConnection`` through ``Functions``  a ``LinearTransformation`` (``in`` -> ``out``) folds into
-    the connection's factor and offset; ``Sum`` and ``VectorSum`` are refused (a connection carries one
-    source in rpr-cosim).
+    the connection's factor and offset; a ``Sum`` (``inputCount``: signals ``in[0]`` ..
+    ``in[inputCount-1]`` and ``out``, 0-based as libcosim's) and a ``VectorSum`` (``inputCount`` and
+    ``dimension``; connected by ``SignalGroupConnection`` to variable groups of ``dimension``
+    variables, element by element in the group's order) become a component of the function's name,
+    ``model: sum`` (:mod:`models.blocks.sums`: a memoryless block, which fixed-step Jacobi evaluates
+    within the exchange, so it adds no delay: libcosim's convention).  Every signal of a function
+    must be connected, once.
 ``Algorithm``   ``fixedStep`` -> ``jacobi`` (libcosim's fixed-step algorithm exchanges at t_k, then steps
     every slave), ``ecco`` -> ``ecco`` with ``EccoConfiguration`` mapped onto its options (safety factor,
     first and largest step, change rates, PI gains; not the tolerances, which libcosim puts on the power
@@ -32,6 +37,7 @@ Bad input gets one line naming the file, the line and what is expected.
 """
 from __future__ import annotations
 
+from dataclasses import dataclass, field
 from pathlib import Path
 
 from .problems import Problem
@@ -89,6 +95,7 @@ class _Reader:
         self.path, self.problems = Path(path), problems
         self.label = _display(self.path)
         self.comps: dict[str, tuple] = {}  # name -> (element, spec YMap, description, fmu path)
+        self.broken_functions: set[str] = set()  # functions refused at their definition
 
     def err(self, el, msg: str) -> None:
         self.problems.append(Problem(self.label, getattr(el, "sourceline", 0) or 0, msg))
@@ -173,11 +180,12 @@ class _Reader:
                 self.variable_connection(el, conns)
             elif kind == "VariableGroupConnection":
                 self.group_connection(el, conns)
-            elif kind == "SignalConnection":
-                self.signal_connection(el, functions, conns)
+            elif kind in ("SignalConnection", "SignalGroupConnection"):
+                self.signal_connection(el, functions, conns, group=kind == "SignalGroupConnection")
             else:
-                self.err(el, f"<{kind}> connections are not supported (VariableConnection, VariableGroupConnection "
-                             f"and SignalConnection are)")
+                self.err(el, f"<{kind}> connections are not supported (VariableConnection, VariableGroupConnection, "
+                             f"SignalConnection and SignalGroupConnection are)")
+        self.finish_functions(functions)
         if any(p.severity == "error" for p in self.problems):
             return None
         tree = YMap()
@@ -195,6 +203,9 @@ class _Reader:
         for name, (el, spec, _d, _f) in self.comps.items():
             cmap[name] = spec
             cmap.locs[name] = self.loc(el)
+        for name, spec in self.function_components(functions):
+            cmap[name] = spec
+            cmap.locs[name] = spec.where
         tree["components"] = cmap
         tree.locs["components"] = self.loc(sims)
         tree["connections"] = conns
@@ -517,54 +528,221 @@ class _Reader:
                 self.add(conns, f"{p[0][0]}.{p[0][1]} -> {p[1][0]}.{p[1][1]}", el)
 
     # functions ----------------------------------------------------------------------------------
-    def functions(self, node) -> dict[str, tuple]:
-        out: dict[str, tuple] = {}
+    def functions(self, node) -> dict[str, _Function]:
+        """The ``<Functions>``: each LinearTransformation folds into its connection; each Sum and
+        VectorSum becomes a component ``model: sum`` (:mod:`models.blocks.sums`) of its name."""
+        out: dict[str, _Function] = {}
         for el in _kids(node) if node is not None else []:
             kind, name = _local(el), el.get("name")
+            if kind not in ("LinearTransformation", "Sum", "VectorSum"):
+                self.err(el, f"function <{kind}> is unknown (OSP defines LinearTransformation, Sum and VectorSum)")
+                continue
+            if not name:
+                self.err(el, f"a <{kind}> needs name=")
+                continue
+            if name in out:
+                self.err(el, f"function {name!r} is defined twice (line {out[name].el.sourceline})")
+                continue
             if kind == "LinearTransformation":
                 k = self.number(el, el.get("factor", "1"), f"LinearTransformation {name!r}: factor")
                 c = self.number(el, el.get("offset", "0"), f"LinearTransformation {name!r}: offset")
                 if k is not None and c is not None:
-                    out[name] = (kind, el, k, c, {})
-            elif kind in ("Sum", "VectorSum"):
-                self.err(el, f"function {kind} {name!r}: summing signals is not supported by rpr-cosim (a connection "
-                             f"carries one source); add the signals inside an FMU")
-            else:
-                self.err(el, f"function <{kind}> is unknown (OSP defines LinearTransformation, Sum and VectorSum)")
+                    out[name] = _Function(kind, el, name, factor=k, offset=c)
+                continue
+            count = self.count(el, kind, name, "inputCount")
+            dim = self.count(el, kind, name, "dimension") if kind == "VectorSum" else 1
+            if count is None or dim is None:
+                self.broken_functions.add(name)  # said once here, not again at each of its connections
+                continue
+            comp = "".join(ch if ch.isalnum() or ch == "_" else "_" for ch in name)
+            if not comp or comp[0].isdigit():
+                comp = f"f_{comp}"
+            if comp in self.comps or any(f.comp == comp for f in out.values()):
+                self.err(el, f"{kind} {name!r}: its component name {comp!r} is already a simulator's or another "
+                             f"function's; rename the function")
+                continue
+            out[name] = _Function(kind, el, name, count=count, dim=dim, comp=comp)
         return out
 
-    def signal_connection(self, el, functions, conns) -> None:
-        sig, var = _kid(el, "Signal"), _kid(el, "Variable")
+    def count(self, el, kind: str, name: str, attr: str) -> int | None:
+        text = el.get(attr)
+        if text is None:
+            self.err(el, f"{kind} {name!r} needs {attr}= (a whole number >= 1)")
+            return None
+        try:
+            n = int(text.strip())
+        except ValueError:
+            n = 0
+        if n < 1:
+            self.err(el, f"{kind} {name!r}: {attr} = {text!r}; expected a whole number >= 1")
+            return None
+        return n
+
+    def function_components(self, functions: dict[str, _Function]) -> list[tuple[str, object]]:
+        """(name, spec) of the Sum and VectorSum components."""
+        from .yamlfile import YMap
+
+        comps = []
+        for f in functions.values():
+            if f.broken:
+                continue
+            if f.kind == "LinearTransformation":
+                continue
+            opts = YMap({"inputs": f.count, "dimension": f.dim})
+            opts.where = self.loc(f.el)
+            opts.locs = {"inputs": opts.where, "dimension": opts.where}
+            spec = YMap({"model": "sum", "options": opts})
+            spec.where = self.loc(f.el)
+            spec.locs = {"model": spec.where, "options": spec.where}
+            comps.append((f.comp, spec))
+        return comps
+
+    def signal_port(self, f: _Function, port: str, sig, group: bool) -> tuple[str, list[str]] | None:
+        """(direction, the function's variables) of signal ``port`` of ``f``: direction "in" or
+        "out"; the variables as the ``sum`` block names them (one, or ``dimension`` for a group)."""
+        import re
+
+        if f.kind == "LinearTransformation":
+            names = {"in": ["in"], "out": ["out"]}
+        elif f.kind == "Sum":
+            names = {f"in[{i}]": [f"in[{i}]"] for i in range(f.count)} | {"out": ["out"]}
+        else:
+            names = {f"in[{i}]": [f"in[{i},{j}]" for j in range(f.dim)] for i in range(f.count)}
+            names["out"] = [f"out[{j}]" for j in range(f.dim)]
+        if group != (f.kind == "VectorSum"):
+            self.err(sig, f"{f.kind} {f.name!r} is connected by "
+                          f"{'<SignalGroupConnection> (a group of ' + str(f.dim) + ')' if f.kind == 'VectorSum' else '<SignalConnection>'}, "
+                          f"not {'<SignalGroupConnection>' if group else '<SignalConnection>'}")
+            return None
+        if port not in names:
+            m = re.fullmatch(r"in\[(-?\d+)\]", port or "")
+            if m and f.kind != "LinearTransformation":
+                self.err(sig, f"{f.kind} {f.name!r}: signal {port!r} is out of range; inputCount = {f.count} gives "
+                              f"in[0] .. in[{f.count - 1}] (0-based, as libcosim)")
+            else:
+                self.err(sig, f"{f.kind} {f.name!r} has signals {', '.join(names)}, not {port!r}")
+            return None
+        if port in f.ends:
+            self.err(sig, f"{f.kind} {f.name!r}: signal {port!r} is connected twice (line {f.ends[port][1].sourceline})")
+            return None
+        return ("out" if port == "out" else "in"), names[port]
+
+    def signal_connection(self, el, functions, conns, group: bool = False) -> None:
+        tag, vtag = ("SignalGroup", "VariableGroup") if group else ("Signal", "Variable")
+        sig, var = _kid(el, tag), _kid(el, vtag)
         if sig is None or var is None:
-            self.err(el, "a SignalConnection joins one <Signal function= name=/> and one <Variable simulator= name=/>")
+            self.err(el, f"a {'SignalGroupConnection' if group else 'SignalConnection'} joins one <{tag} function= "
+                         f"name=/> and one <{vtag} simulator= name=/>")
             return
         fname, port = sig.get("function"), sig.get("name")
+        if fname in self.broken_functions:
+            return
         if fname not in functions:
-            self.err(sig, f"unknown function {fname!r} (functions: {', '.join(functions) or 'none'})")
+            from .problems import suggest
+
+            self.err(sig, f"unknown function {fname!r}{suggest(str(fname), functions)} (functions: "
+                          f"{', '.join(functions) or 'none'})")
             return
-        v = self.endpoint(var)
-        if v is None:
+        f = functions[fname]
+        before = len(self.problems)
+        try:
+            self.signal_end(el, f, port, sig, var, group, conns)
+        finally:
+            f.broken = f.broken or len(self.problems) > before  # its missing signals are not said again
+
+    def signal_end(self, el, f: _Function, port: str, sig, var, group: bool, conns) -> None:
+        fname = f.name
+        found = self.signal_port(f, port, sig, group)
+        if found is None:
             return
-        kind, fel, k, c, ends = functions[fname]
-        if port not in ("in", "out"):
-            self.err(sig, f"LinearTransformation {fname!r} has signals 'in' and 'out', not {port!r}")
-            return
-        if port in ends:
-            self.err(sig, f"LinearTransformation {fname!r}: signal {port!r} is connected twice")
-            return
-        ends[port] = (v, sig)
-        if len(ends) == 2:
-            (src, _), (dst, s2) = ends["in"], ends["out"]
-            if src[2] != "output" or dst[2] not in ("input", "parameter"):
-                self.err(s2, f"LinearTransformation {fname!r}: 'in' takes an output ({src[0]}.{src[1]} is {src[2]}) and "
-                             f"'out' feeds an input ({dst[0]}.{dst[1]} is {dst[2]})")
+        direction, fvars = found
+        if group:
+            sim = var.get("simulator")
+            if sim not in self.comps:
+                self.err(var, f"unknown simulator {sim!r}")
                 return
+            g = self.group(sim, var.get("name"), var)
+            if g is None:
+                return
+            refs = [r for part in g[1] for r in part]
+            if len(refs) != f.dim:
+                self.err(var, f"VectorSum {fname!r} has dimension {f.dim} but variable group {var.get('name')!r} of "
+                              f"{sim!r} has {len(refs)} variable{'s' if len(refs) != 1 else ''}")
+                return
+            ends = []
+            for ref in refs:
+                v = self.comps[sim][2].variables.get(ref)
+                if v is None:
+                    self.err(var, f"variable group {var.get('name')!r} of {sim!r} names {ref!r}, which its FMU does "
+                                  f"not have")
+                    return
+                ends.append((sim, ref, v.causality))
+        else:
+            v = self.endpoint(var)
+            if v is None:
+                return
+            ends = [v]
+        want = "output" if direction == "in" else "input"
+        for (sim, name, caus) in ends:
+            ok = caus == "output" if direction == "in" else caus in ("input", "parameter")
+            if not ok:
+                self.err(var, f"{f.kind} {fname!r}: signal {port!r} {'takes an output' if direction == 'in' else 'feeds an input'}"
+                              f"; {sim}.{name} is {caus} (expected {want})")
+                return
+            ftype = self.comps[sim][2].variables[name]
+            if (ftype.fmi_type or ftype.type) not in ("Real", "Float64", "Float32"):
+                self.err(var, f"{f.kind} {fname!r}: {sim}.{name} is {ftype.fmi_type or ftype.type}; OSP's functions "
+                              f"take Real signals")
+                return
+        f.ends[port] = (ends, sig)
+        if f.kind != "LinearTransformation":
+            for (sim, name, _), fv in zip(ends, fvars):
+                text = f"{sim}.{name} -> {f.comp}.{fv}" if direction == "in" else f"{f.comp}.{fv} -> {sim}.{name}"
+                self.add(conns, text, el)
+            return
+        if len(f.ends) == 2:
+            (src,), _ = f.ends["in"]
+            (dst,), _ = f.ends["out"]
             text = f"{src[0]}.{src[1]} -> {dst[0]}.{dst[1]}"
-            if k != 1.0:
-                text += f" * {k!r}"
-            if c != 0.0:
-                text += f" {'-' if c < 0 else '+'} {abs(c)!r}"
-            self.add(conns, text, el)
+            if f.factor != 1.0:
+                text += f" * {f.factor!r}"
+            if f.offset != 0.0:
+                text += f" {'-' if f.offset < 0 else '+'} {abs(f.offset)!r}"
+            self.add(conns, text, f.ends["out"][1])
+
+    def finish_functions(self, functions: dict[str, _Function]) -> None:
+        """Every signal of every function connected (libcosim refuses a function with one missing)."""
+        for f in functions.values():
+            if f.broken:
+                continue
+            if f.kind == "LinearTransformation":
+                ports = ["in", "out"]
+            elif f.kind == "Sum":
+                ports = [f"in[{i}]" for i in range(f.count)] + ["out"]
+            else:
+                ports = [f"in[{i}]" for i in range(f.count)] + ["out"]
+            missing = [p for p in ports if p not in f.ends]
+            if missing:
+                self.err(f.el, f"{f.kind} {f.name!r}: signal{'s' if len(missing) > 1 else ''} {', '.join(missing)} "
+                               f"{'are' if len(missing) > 1 else 'is'} not connected (every signal of a function must be)")
+
+
+@dataclass
+class _Function:
+    """One ``<Functions>`` entry: a LinearTransformation (``factor``, ``offset``) or a Sum /
+    VectorSum (``count`` inputs of ``dim`` elements, the component ``comp``); ``ends``: signal ->
+    (its variables, the <Signal> element)."""
+
+    kind: str
+    el: object
+    name: str
+    factor: float = 1.0
+    offset: float = 0.0
+    count: int = 1
+    dim: int = 1
+    comp: str = ""
+    ends: dict = field(default_factory=dict)
+    broken: bool = False  # one of its connections was refused
 
 
 def scene_tree(path: Path | str, problems: list[Problem]):
