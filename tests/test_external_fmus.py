@@ -307,7 +307,7 @@ def test_quarter_truck_from_yaml_default_algorithm_within_1pc_of_libcosim(data, 
 def test_quarter_truck_from_its_osp_file_runs_ecco_within_1pc_of_libcosim(data, libcosim_truck):
     sc = load(data / "fmi2" / "quarter_truck" / "OspSystemStructure.xml", ["stop_time=1.0"])
     assert sc.master.algorithm == "ecco" and sc.master.step == 1e-4
-    assert sc.master.options["safety"] == 0.99 and sc.master.options["h_max"] == 0.01
+    assert sc.master.options["safety"] == pytest.approx(0.99 ** (1 / 0.15)) and sc.master.options["h_max"] == 0.01
     assert [c.bond for c in sc.connections] == ["chassis.wheelchassis <-> wheel.wheelchassis"] * 2
     res = run(sc)
     assert res.ok, res.reason
@@ -319,6 +319,40 @@ def test_quarter_truck_bond_in_yaml_runs_ecco(data, libcosim_truck):
     res = run(load(_truck(data.parent, "ecco", stop=1.0, bond=True)))
     assert res.ok, res.reason
     _within_one_percent(res.trace, libcosim_truck, ["chassis.position", "wheel.position"], until=1.0)
+
+
+@needs_data
+def test_the_osp_ecco_configuration_arrives_in_our_ecco_run(data, tmp_path):
+    """libcosim's EccoConfiguration of the quarter truck mapped onto our ecco: exact where the
+    quantity is ours (steps, step ratios, PI exponents), converted where libcosim's formula differs
+    (its step ratio SafetyFactor * eps^-(k_i + k_p) * eps_prev^k_p is ours with safety =
+    SafetyFactor^(1/k_i); its scaled residual dE / (a + r dE) <= 1 is dE <= a / (1 - r)), and said in
+    the run's output and sidecar.  The floor: libcosim goes on at MinimumStepSize over tolerance, so
+    the same run with our own floor rule (floor_steps 100) ends as unstable."""
+    import json
+
+    osp = data / "fmi2" / "quarter_truck" / "OspSystemStructure.xml"
+    sc = load(osp, ["stop_time=0.05"])
+    want = {"h_init": 1e-4, "h_min": 1e-5, "h_max": 0.01, "fac_min": 0.2, "fac_max": 1.5, "k_p": 0.2, "k_i": 0.15,
+            "safety": 0.99 ** (1 / 0.15), "atol": 1e-6 / (1 - 1e-6), "rtol": 1e-12, "floor_steps": 0}
+    assert sc.master.algorithm == "ecco"
+    assert sc.master.options == pytest.approx(want, rel=1e-12)
+    res = subprocess.run([sys.executable, "-m", "cosim", "run", str(osp), "--set", "stop_time=0.05", "--out",
+                          str(tmp_path / "out")], cwd=ROOT, capture_output=True, text=True, timeout=300)
+    assert res.returncode == 0, res.stderr[-2000:]
+    side = json.loads(next((tmp_path / "out").glob("*.json")).read_text())
+    assert side["options"] == pytest.approx(want, rel=1e-12)
+    for said in ("EccoConfiguration SafetyFactor 0.99 -> ecco safety 0.935193",
+                 "EccoConfiguration AbsoluteTolerance 1e-06, RelativeTolerance 1e-06 -> ecco atol 1.000001e-06 J",
+                 "EccoConfiguration MinimumStepSize 1e-05 s -> ecco h_min and floor_steps 0",
+                 "ecco: libcosim's residual of a bond is |P_a - P_b| at the step's end"):
+        assert said in res.stdout + res.stderr, said
+        assert sum(said in n for n in side["notes"]) == 1, said
+    assert side["status"] == "ok"
+    bond = side["statistics"]["bonds"]["chassis.wheelchassis <-> wheel.wheelchassis"]
+    assert bond["steps_over_tolerance"] > 100  # at h_min, over libcosim's tight tolerance, going on as libcosim does
+    strict = run(load(osp, ["stop_time=0.05", "master.options.floor_steps=100"]), out_dir=tmp_path / "strict")
+    assert strict.status == "unstable" and "stayed over its tolerance for 100 steps at the step floor" in strict.reason
 
 
 @needs_data
@@ -592,7 +626,9 @@ def test_an_ssp_with_the_osp_ecco_annotation_loads_as_ecco_with_its_options(data
             zout.writestr(n, b)
     sc = load(out)
     assert sc.master.algorithm == "ecco" and sc.master.step == 1e-4
-    assert sc.master.options["safety"] == 0.9 and sc.master.options["h_max"] == 0.01
+    # safety factor 0.9 as our safety 0.9^(1/k_i) with our default k_i 0.1 (cosim.scenario.osp.ecco_options)
+    assert sc.master.options["safety"] == pytest.approx(0.9 ** 10) and sc.master.options["h_max"] == 0.01
+    assert any("EccoAlgorithm SafetyFactor 0.9 -> ecco safety 0.348678" in w.message for w in sc.warnings)
 
 
 @needs_data

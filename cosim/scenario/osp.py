@@ -27,10 +27,10 @@ What becomes what:
     within the exchange, so it adds no delay: libcosim's convention).  Every signal of a function
     must be connected, once.
 ``Algorithm``   ``fixedStep`` -> ``jacobi`` (libcosim's fixed-step algorithm exchanges at t_k, then steps
-    every slave), ``ecco`` -> ``ecco`` with ``EccoConfiguration`` mapped onto its options (safety factor,
-    first and largest step, change rates, PI gains; not the tolerances, which libcosim puts on the power
-    residual and we on the energy residual of a step, nor the smallest step, at which libcosim goes on
-    over tolerance and we end the run as unstable).
+    every slave), ``ecco`` -> ``ecco`` with ``EccoConfiguration`` mapped onto its options by
+    :func:`ecco_options`: the steps, step ratios and PI gains exactly, the safety factor and the
+    tolerances converted (stated in the function and, per run, in notes in its output and sidecar),
+    with what still differs said in a note.
 ``StartTime``, ``EndTime``, ``BaseStepSize``  the scene's start time, stop time and step.
 
 Bad input gets one line naming the file, the line and what is expected.
@@ -44,17 +44,76 @@ from .problems import Problem
 
 ROOT_TAG = "OspSystemStructure"
 ALGORITHMS = {"fixedStep": "jacobi", "ecco": "ecco"}
-#: EccoConfiguration element -> our ecco option (cosim.master.algorithms.ecco)
-ECCO_OPTIONS = {"SafetyFactor": "safety", "StepSize": "h_init", "MaximumStepSize": "h_max", "MinimumChangeRate": "fac_min", "MaximumChangeRate": "fac_max",
-                "ProportionalGain": "k_p", "IntegralGain": "k_i"}
-#: libcosim's ECCO tolerances apply to the bonds' power residual [W]; ours to the energy residual of a
-#: step [J] (cosim.master.algorithms.ecco): not the same quantity, so ours keep their defaults (a note says so)
-ECCO_UNMAPPED = {"RelativeTolerance": "libcosim's ECCO tolerances bound the power residual [W], ours the energy "
-                                       "residual of a step [J]; ecco keeps its own rtol and atol",
-                 "AbsoluteTolerance": "libcosim's ECCO tolerances bound the power residual [W], ours the energy "
-                                      "residual of a step [J]; ecco keeps its own rtol and atol",
-                 "MinimumStepSize": "libcosim's ECCO goes on at its smallest step over tolerance; ours ends such a "
-                                    "run as unstable, so it keeps its own floor h_min"}
+#: EccoConfiguration elements (libcosim's ``ecco_algorithm_params``) that are our ecco options exactly
+#: (:mod:`cosim.master.algorithms.ecco`): the first step, the step bounds, the bounds of the step ratio and
+#: the PI controller's exponents (libcosim: ratio = SafetyFactor * eps^-(k_i + k_p) * eps_prev^k_p, ours
+#: (safety / eps)^k_i * (eps_prev / eps)^k_p: the same exponents)
+ECCO_EXACT = {"StepSize": "h_init", "MinimumStepSize": "h_min", "MaximumStepSize": "h_max",
+              "MinimumChangeRate": "fac_min", "MaximumChangeRate": "fac_max", "ProportionalGain": "k_p",
+              "IntegralGain": "k_i"}
+#: the ones converted (see :func:`ecco_options`)
+ECCO_CONVERTED = ("SafetyFactor", "RelativeTolerance", "AbsoluteTolerance")
+ECCO_ELEMENTS = tuple(ECCO_EXACT) + ECCO_CONVERTED
+#: what differs whatever the options: said once per run that maps an EccoConfiguration
+ECCO_DIFFERENCES = ("ecco: libcosim's residual of a bond is |P_a - P_b| at the step's end times the step, combined "
+                    "over the bonds as a root mean square; ours integrates P_a - P_b over the step (trapezoidal rule) "
+                    "and takes the largest over the bonds (the same for one bond but for the rule)")
+
+
+def ecco_options(given: dict[str, float], k_i_default: float) -> tuple[dict[str, float], list[tuple[str, str]]]:
+    """Our ``ecco`` options for libcosim's ECCO parameters ``given`` (element name -> value) and the
+    notes saying each conversion and what does not map, as (element, one line).
+
+    Exact: :data:`ECCO_EXACT`.  Converted:
+
+    * ``SafetyFactor`` s: libcosim multiplies the step ratio by s, ours aims the scaled residual at
+      ``safety`` inside the integral term, ``(safety / eps)^k_i``: the same ratio for
+      ``safety = s^(1/k_i)`` (with k_i = IntegralGain, else our default); not with k_i = 0.
+    * ``AbsoluteTolerance`` a and ``RelativeTolerance`` r: libcosim scales the energy residual dE of a
+      step [J] (largest over the bonds) by ``a + r * dE``, so its relative term is relative to the
+      residual itself and ``eps <= 1`` means ``dE <= a / (1 - r)``: an absolute bound.  Ours scales by
+      ``atol + rtol * E`` (E the energy the bond carried): ``atol = a / (1 - r)`` and ``rtol`` its
+      smallest value (1e-12: no relative term) give the same bound; not with r >= 1.
+    * ``MinimumStepSize``: the same floor; libcosim goes on at it over tolerance, which ours does with
+      ``floor_steps = 0`` (its default ends the run as unstable after 100 such steps in a row).
+    """
+    opts = {ECCO_EXACT[k]: v for k, v in given.items() if k in ECCO_EXACT}
+    notes: list[tuple[str, str]] = []
+    if "SafetyFactor" in given:
+        sf, k_i = given["SafetyFactor"], opts.get("k_i", k_i_default)
+        if k_i > 0 and sf > 0:
+            opts["safety"] = sf ** (1.0 / k_i)
+            notes.append(("SafetyFactor", f"EccoConfiguration SafetyFactor {sf:g} -> ecco safety {opts['safety']:.6g} "
+                                          f"(= SafetyFactor^(1/k_i), k_i = {k_i:g}: libcosim multiplies the step ratio "
+                                          f"by it, ours aims the scaled residual at safety; the same step ratio)"))
+        else:
+            notes.append(("SafetyFactor", f"EccoConfiguration SafetyFactor {sf:g} is not mapped: with k_i = {k_i:g} "
+                                          f"our controller has no factor to match it; ecco keeps its safety"))
+    if "AbsoluteTolerance" in given or "RelativeTolerance" in given:
+        a, r = given.get("AbsoluteTolerance"), given.get("RelativeTolerance", 0.0)
+        if a is None:
+            notes.append(("RelativeTolerance", "EccoConfiguration RelativeTolerance is not mapped without "
+                                               "AbsoluteTolerance; ecco keeps its rtol and atol"))
+        elif r >= 1.0 or r < 0.0:
+            notes.append(("RelativeTolerance", f"EccoConfiguration RelativeTolerance {r:g} is not mapped (libcosim's "
+                                               f"residual is then never over tolerance); ecco keeps its rtol and atol"))
+        else:
+            opts["atol"], opts["rtol"] = a / (1.0 - r), 1e-12
+            notes.append(("AbsoluteTolerance", f"EccoConfiguration AbsoluteTolerance {a:g}, RelativeTolerance {r:g} -> "
+                                               f"ecco atol {opts['atol']:.9g} J, rtol 1e-12 (libcosim's relative term is "
+                                               f"relative to the residual itself: eps <= 1 is dE <= atol/(1 - rtol), an "
+                                               f"absolute bound on a step's energy residual)"))
+    if "MinimumStepSize" in given:
+        opts["floor_steps"] = 0
+        notes.append(("MinimumStepSize", f"EccoConfiguration MinimumStepSize {given['MinimumStepSize']:g} s -> ecco h_min "
+                                         f"and floor_steps 0: as libcosim, the run goes on at h_min over tolerance (such "
+                                         f"steps are counted in the statistics, 'over tolerance'; without floor_steps 0 "
+                                         f"ecco ends a run as unstable after 100 of them in a row)"))
+    if given:
+        notes.append(("", ECCO_DIFFERENCES))
+    return opts, notes
+
+
 #: OSP port groups: (effort group, flow group)
 PORTS = {"LinearMechanicalPort": ("Force", "LinearVelocity"),
          "AngularMechanicalPort": ("Torque", "AngularVelocity"),
@@ -233,25 +292,31 @@ class _Reader:
         return x
 
     def ecco(self, el):
+        """The EccoConfiguration as ecco options (:func:`ecco_options`), its notes added."""
+        from ..master.algorithms.ecco import OPTIONS
         from .yamlfile import YMap
 
         if el is None:
             return None
-        opts = YMap()
-        opts.where = self.loc(el)
+        given, where = {}, {}
         for c in _kids(el):
-            key = ECCO_OPTIONS.get(_local(c))
-            if _local(c) in ECCO_UNMAPPED:
-                self.problems.append(Problem(self.label, c.sourceline or 0, f"EccoConfiguration {_local(c)}: "
-                                             f"{ECCO_UNMAPPED[_local(c)]} (set master.options to change it)", "note"))
-                continue
-            if key is None:
-                self.err(c, f"EccoConfiguration: <{_local(c)}> is unknown (expected {', '.join(ECCO_OPTIONS)})")
+            if _local(c) not in ECCO_ELEMENTS:
+                self.err(c, f"EccoConfiguration: <{_local(c)}> is unknown (expected {', '.join(ECCO_ELEMENTS)})")
                 continue
             x = self.number(c, (c.text or "").strip(), _local(c))
             if x is not None:
-                opts[key] = x
-                opts.locs[key] = self.loc(c)
+                given[_local(c)], where[_local(c)] = x, c
+        k_i = next(o.default for o in OPTIONS if o.name == "k_i")
+        values, notes = ecco_options(given, k_i)
+        for elem, text in notes:
+            self.problems.append(Problem(self.label, getattr(where.get(elem, el), "sourceline", 0) or 0, text, "note"))
+        back = {v: k for k, v in ECCO_EXACT.items()} | {"safety": "SafetyFactor", "atol": "AbsoluteTolerance",
+                                                         "rtol": "AbsoluteTolerance", "floor_steps": "MinimumStepSize"}
+        opts = YMap()
+        opts.where = self.loc(el)
+        for key, x in values.items():
+            opts[key] = x
+            opts.locs[key] = self.loc(where.get(back[key], el))
         return opts
 
     # simulators ---------------------------------------------------------------------------------
