@@ -12,7 +12,7 @@ traces, with the rig at its 20.3 mm/s top speed:
 - pacing: a step that starts late lets the real plant run on with the previous voltage; 1-6 ms
   of lateness is 0.02-0.12 mm.
 
-Measured here (2 cores shared with other jobs, SCHED_FIFO 10): 0.19-0.21 mm.  The board and the
+Measured here (2 cores shared with other jobs, SCHED_FIFO 10, the plant at FIFO too): 0.15-0.17 mm.  The board and the
 loop ask for SCHED_FIFO when the test runs as root; otherwise they run at normal priority.
 """
 from __future__ import annotations
@@ -99,7 +99,8 @@ def test_paced_run_reports_the_boards_own_figures(runs):
 
     _, hil, out = runs
     board = hil.stats["realtime"]["slaves"]["rig"]
-    assert 0 < board["tick_p50"] <= board["tick_p99"] <= board["tick_max"] < 1.0  # [s]
+    # [s]; a command on time is a tick 0 us late: the median may be 0, the worst never is
+    assert 0 <= board["tick_p50"] <= board["tick_p99"] <= board["tick_max"] < 1.0 and board["tick_max"] > 0
     assert 0 < board["cpu_per_tick"] < 1e-3  # [s]: a tick's work is microseconds
     side = json.loads((out / "rig_step_hil.json").read_text())
     assert side["statistics"]["realtime"]["slaves"]["rig"] == pytest.approx(board)

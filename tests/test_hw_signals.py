@@ -226,7 +226,8 @@ def test_tick_jitter_and_cpu_per_tick_come_back_over_the_protocol(tmp_path, targ
           f"max {s['tick_max_s'] * 1e6:.0f} us")
     assert s["cpu_per_tick_s"] == pytest.approx(kernel, rel=0.5)
     assert 0 <= s["tick_p50_s"] <= s["tick_p99_s"] <= s["tick_max_s"]
-    assert final["ticks"] >= 0.9 * RATE * wall and final["tick_max_us"] >= s["tick_max_s"] * 1e6
+    # a command is the tick it arrives in; the timer ticks 1.5 periods after the last one at most
+    assert final["ticks"] >= 0.9 * RATE * wall / 1.5 and final["tick_max_us"] >= s["tick_max_s"] * 1e6
 
 
 def _flood(port: int, key_other: bytes, session: int, n: int) -> float:

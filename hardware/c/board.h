@@ -47,11 +47,20 @@ typedef struct {
     int hello_per_tick; /* HELLO authentications allowed per tick (the rest: throttled) */
 } Safety;
 
+/* An output attribute kept open (see io_open_out). */
+typedef struct {
+    int fd;    /* -1: closed */
+    int sysfs; /* 1: a sysfs attribute (each write at offset 0 is a new value) */
+    int len;   /* length of the text in a regular file (a fake tree) */
+} OutFile;
+
 typedef struct {
     /* files */
     char duty[PATHLEN], period[PATHLEN], enable[PATHLEN], dir_value[PATHLEN], dir_direction[PATHLEN], adc[PATHLEN];
     int adc_fd;
-    int line_fd; /* GPIO character-device line handle, or -1 (sysfs) */
+    int line_fd;       /* GPIO character-device line handle, or -1 (sysfs) */
+    OutFile duty_out;  /* duty_cycle, kept open */
+    OutFile dir_out;   /* sysfs DIR value, kept open (fd -1 with a character device) */
     /* state */
     int raw;
     int64_t raw_ok_ns;
@@ -106,6 +115,8 @@ typedef struct {
 /* board_io.c */
 int io_resolve(Board *b, const char *root, int gpio_mode, char *err, size_t errlen); /* mode 0 auto, 1 sysfs, 2 chardev */
 int io_write_int(const char *path, long v);
+int io_open_out(OutFile *o, const char *path);
+int io_put_int(OutFile *o, long v);
 int io_write_text(const char *path, const char *text);
 long io_read_int(const char *path, int *ok);
 int io_read_adc(Leg *leg, int *raw);
@@ -116,6 +127,9 @@ void io_close(Board *b);
 void board_init(Board *b, const uint8_t key[32], uint32_t first_session);
 int board_setup_outputs(Board *b);
 void board_tick(Board *b, int64_t now, int64_t late_ns);
+/* a tick's bookkeeping (count, HELLO budget, lateness statistics) for a command that did the
+ * tick's work (sample, checks, outputs) */
+void board_count_tick(Board *b, int64_t late_ns);
 size_t board_handle(Board *b, const uint8_t *d, size_t n, int64_t now, uint8_t *reply);
 void board_zero_outputs(Board *b);
 void board_close_outputs(Board *b);

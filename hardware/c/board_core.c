@@ -58,7 +58,7 @@ void board_init(Board *b, const uint8_t key[32], uint32_t first_session) {
     memset(b, 0, sizeof *b);
     b->safety = s;
     for (i = 0; i < LEGS; i++) {
-        b->legs[i].adc_fd = b->legs[i].line_fd = -1;
+        b->legs[i].adc_fd = b->legs[i].line_fd = b->legs[i].duty_out.fd = b->legs[i].dir_out.fd = -1;
         b->legs[i].raw = b->legs[i].duty_ns = b->legs[i].dir_high = b->legs[i].drive_raw = -1;
     }
     hmac_key_init(&b->key, key, 32);
@@ -72,7 +72,7 @@ void board_init(Board *b, const uint8_t key[32], uint32_t first_session) {
 static int write_leg(Board *b, Leg *leg, int duty, int dir_high, int force) {
     int rc = 0;
     if (force || duty != leg->duty_ns) {
-        if (io_write_int(leg->duty, duty) != 0) rc = -1;
+        if (io_put_int(&leg->duty_out, duty) != 0) rc = -1;
         else leg->duty_ns = duty;
         b->counters[C_WRITES]++;
     }
@@ -239,10 +239,14 @@ static void record_late(Board *b, int64_t late_ns) {
     }
 }
 
-void board_tick(Board *b, int64_t now, int64_t late_ns) {
+void board_count_tick(Board *b, int64_t late_ns) {
     b->counters[C_TICKS]++;
     b->hello_budget = b->safety.hello_per_tick;
     if (b->session.id) record_late(b, late_ns);
+}
+
+void board_tick(Board *b, int64_t now, int64_t late_ns) {
+    board_count_tick(b, late_ns);
     sample(b, now);
     if ((b->state == S_ARMED || b->state == S_RUNNING) && now - b->last_cmd_ns > b->safety.watchdog_s * 1e9) {
         char why[96];

@@ -24,6 +24,7 @@
 #include <sys/ioctl.h>
 #include <sys/random.h>
 #include <sys/stat.h>
+#include <sys/vfs.h>
 #include <time.h>
 #include <unistd.h>
 
@@ -66,6 +67,35 @@ long io_read_int(const char *path, int *ok) {
     return v;
 }
 
+/* An output attribute opened once and written with pwrite at offset 0: the tick's writes cost
+ * one system call and no path lookup.  sysfs takes every such write as a new value.  A regular
+ * file (a fake tree) is rewritten in place, padded with spaces to its old length and then cut
+ * to the new one, so a reader sees a whole number at every moment (int() ignores the spaces). */
+#define SYSFS_MAGIC_NUMBER 0x62656572
+int io_open_out(OutFile *o, const char *path) {
+    struct statfs fs;
+    struct stat st;
+    o->fd = open(path, O_WRONLY | O_CLOEXEC);
+    if (o->fd < 0) return -1;
+    o->sysfs = fstatfs(o->fd, &fs) == 0 && (unsigned long)fs.f_type == SYSFS_MAGIC_NUMBER;
+    o->len = fstat(o->fd, &st) == 0 && st.st_size < 64 ? (int)st.st_size : 0;
+    return 0;
+}
+
+int io_put_int(OutFile *o, long v) {
+    char buf[80];
+    int n = snprintf(buf, 64, "%ld", v), w = n;
+    if (o->fd < 0) return -1;
+    if (!o->sysfs && o->len > n) {
+        memset(buf + n, ' ', (size_t)(o->len - n));
+        w = o->len;
+    }
+    if (pwrite(o->fd, buf, (size_t)w, 0) != (ssize_t)w) return -1;
+    if (!o->sysfs && w > n && ftruncate(o->fd, n) != 0) return -1;
+    o->len = n;
+    return 0;
+}
+
 int io_read_adc(Leg *leg, int *raw) {
     char buf[24], *end;
     ssize_t n = pread(leg->adc_fd, buf, sizeof buf - 1, 0);
@@ -85,7 +115,7 @@ int io_set_dir(Leg *leg, int high) {
         data.values[0] = (uint8_t)(high != 0);
         return ioctl(leg->line_fd, GPIOHANDLE_SET_LINE_VALUES_IOCTL, &data) < 0 ? -1 : 0;
     }
-    return io_write_int(leg->dir_value, high != 0);
+    return io_put_int(&leg->dir_out, high != 0);
 }
 
 static int is_dir(const char *p) {
@@ -314,6 +344,14 @@ int io_resolve(Board *b, const char *root, int gpio_mode, char *err, size_t errl
         if ((gpio_mode == 2 ? gpio_chardev : gpio_sysfs)(root, k, leg, err, errlen) != 0) return -1;
         snprintf(e, sizeof e, "%s/in_voltage%d_raw", adc, PINS[i].adc);
         snprintf(leg->adc, PATHLEN, "%.*s", PATHLEN - 1, e);
+        if (io_open_out(&leg->duty_out, leg->duty) != 0) {
+            snprintf(err, errlen, "leg %d: PWM duty file %s: %s", i + 1, leg->duty, strerror(errno));
+            return -1;
+        }
+        if (leg->line_fd < 0 && io_open_out(&leg->dir_out, leg->dir_value) != 0) {
+            snprintf(err, errlen, "leg %d: GPIO value file %s: %s", i + 1, leg->dir_value, strerror(errno));
+            return -1;
+        }
         leg->adc_fd = open(leg->adc, O_RDONLY | O_CLOEXEC);
         if (leg->adc_fd < 0) {
             snprintf(err, errlen, "leg %d: ADC channel file %s: %s", i + 1, leg->adc, strerror(errno));
@@ -328,7 +366,9 @@ void io_close(Board *b) {
     for (i = 0; i < LEGS; i++) {
         if (b->legs[i].adc_fd >= 0) close(b->legs[i].adc_fd);
         if (b->legs[i].line_fd >= 0) close(b->legs[i].line_fd);
-        b->legs[i].adc_fd = b->legs[i].line_fd = -1;
+        if (b->legs[i].duty_out.fd >= 0) close(b->legs[i].duty_out.fd);
+        if (b->legs[i].dir_out.fd >= 0) close(b->legs[i].dir_out.fd);
+        b->legs[i].adc_fd = b->legs[i].line_fd = b->legs[i].duty_out.fd = b->legs[i].dir_out.fd = -1;
     }
 }
 

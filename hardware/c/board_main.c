@@ -5,8 +5,13 @@
  *
  * The loop: a timerfd on an absolute CLOCK_MONOTONIC schedule fires the ticks (no drift, no timer
  * slack); between ticks datagrams are handled one by one, and a due tick always goes first.
- * Each tick's lateness (start minus schedule) and the process CPU time per tick are measured and
- * sent back in every SAMPLE.  SIGTERM, SIGINT and SIGHUP end the loop at once (poll is
+ * A RUN command samples the ADC, checks and writes the outputs itself, so while a master drives
+ * at the board's rate its commands are the ticks (as a drive in a fieldbus's frame-synchronous
+ * mode cycles on the frames): the timer is then moved to 1.5 periods after each command and
+ * fires only when the master is late, so the watchdog and the checks never wait longer.  One
+ * wake-up per period instead of two.  Each tick's lateness (against the schedule, or for a
+ * command against the previous tick plus one period) and the process CPU time per tick are
+ * measured and sent back in every SAMPLE.  SIGTERM, SIGINT and SIGHUP end the loop at once (poll is
  * interrupted); the outputs are then zeroed and the PWM disabled.  A crash (SIGSEGV, SIGBUS,
  * SIGFPE, SIGILL, SIGABRT) zeroes the outputs from the signal handler with plain system calls
  * before the process dies.  Only SIGKILL leaves the outputs as they were (see the README: the
@@ -200,21 +205,31 @@ static int step_mode(Board *b) {
 
 /* --- the loop ------------------------------------------------------------------------------ */
 /* a tick if one is due: the timerfd's expirations since the last (non-blocking read) */
-static void tick_if_due(Board *b, int tfd, int64_t *due, int64_t tick) {
+static void tick_if_due(Board *b, int tfd, int64_t *due, int64_t tick, int64_t *last_tick) {
     uint64_t exp = 0;
     if (read(tfd, &exp, sizeof exp) == sizeof exp && exp > 0) {
         int64_t first = *due, now = now_ns(); /* the oldest expiry not served: missed ticks count */
         *due += (int64_t)exp * tick;
+        *last_tick = now;
         board_tick(b, now, now - first);
     }
+}
+
+/* the timer's next expiry at `due`, then every `tick` (a new setting drops pending expiries) */
+static int arm_timer(int tfd, int64_t due, int64_t tick) {
+    struct itimerspec its;
+    its.it_value.tv_sec = (time_t)(due / 1000000000ll);
+    its.it_value.tv_nsec = (long)(due % 1000000000ll);
+    its.it_interval.tv_sec = (time_t)(tick / 1000000000ll);
+    its.it_interval.tv_nsec = (long)(tick % 1000000000ll);
+    return timerfd_settime(tfd, TFD_TIMER_ABSTIME, &its, NULL);
 }
 
 #define BATCH 32
 
 static int serve(Board *b, int sock, double rate, double duration) {
     int64_t tick = (int64_t)llround(1e9 / rate), start = now_ns(), end = duration > 0 ? start + (int64_t)(duration * 1e9) : 0;
-    int64_t due = start + tick;
-    struct itimerspec its;
+    int64_t due = start + tick, last_tick = start;
     struct pollfd pfd[2];
     int tfd = timerfd_create(CLOCK_MONOTONIC, TFD_CLOEXEC | TFD_NONBLOCK);
     static uint8_t d[BATCH][256];
@@ -224,12 +239,7 @@ static int serve(Board *b, int sock, double rate, double duration) {
     struct sockaddr_in from[BATCH];
     b->resample_ns = tick / 2; /* a command within half a tick of the tick's sample uses it */
     if (tfd < 0) return fail(1, "timerfd_create: %s", strerror(errno));
-    memset(&its, 0, sizeof its);
-    its.it_value.tv_sec = (time_t)(due / 1000000000ll);
-    its.it_value.tv_nsec = (long)(due % 1000000000ll);
-    its.it_interval.tv_sec = (time_t)(tick / 1000000000ll);
-    its.it_interval.tv_nsec = (long)(tick % 1000000000ll);
-    if (timerfd_settime(tfd, TFD_TIMER_ABSTIME, &its, NULL) != 0) return fail(1, "timerfd_settime: %s", strerror(errno));
+    if (arm_timer(tfd, due, tick) != 0) return fail(1, "timerfd_settime: %s", strerror(errno));
     board_tick(b, start, 0);
     pfd[0].fd = tfd;
     pfd[0].events = POLLIN;
@@ -247,7 +257,7 @@ static int serve(Board *b, int sock, double rate, double duration) {
             if (errno == EINTR) continue;
             return fail(1, "poll: %s", strerror(errno));
         }
-        if (pfd[0].revents & POLLIN) tick_if_due(b, tfd, &due, tick);
+        if (pfd[0].revents & POLLIN) tick_if_due(b, tfd, &due, tick, &last_tick);
         if (!(pfd[1].revents & POLLIN)) continue;
         /* up to BATCH datagrams in one call (a flood costs one system call per BATCH); larger
          * datagrams than any of the protocol's are truncated, and then malformed */
@@ -264,9 +274,17 @@ static int serve(Board *b, int sock, double rate, double duration) {
         for (k = 0; k < n && !g_stop; k++) {
             size_t r, len = msgs[k].msg_len;
             now = now_ns();
-            if (now >= due) tick_if_due(b, tfd, &due, tick); /* a due tick goes first */
+            if (now >= due) tick_if_due(b, tfd, &due, tick, &last_tick); /* a due tick goes first */
             if (msgs[k].msg_hdr.msg_flags & MSG_TRUNC) len = sizeof d[k] + 1;
-            r = board_handle(b, d[k], len > sizeof d[k] ? 0 : len, now_ns(), reply);
+            now = now_ns();
+            r = board_handle(b, d[k], len > sizeof d[k] ? 0 : len, now, reply);
+            if (b->last_apply == now) { /* the command did the tick's work: it is this period's tick */
+                int64_t late = now - last_tick - tick;
+                board_count_tick(b, late > 0 ? late : 0);
+                last_tick = now;
+                due = now + tick + tick / 2;
+                if (arm_timer(tfd, due, tick) != 0) return fail(1, "timerfd_settime: %s", strerror(errno));
+            }
             if (r && sendto(sock, reply, r, MSG_DONTWAIT, (struct sockaddr *)&from[k], msgs[k].msg_hdr.msg_namelen) < 0 &&
                 g_verbose)
                 say("reply to %s:%d failed: %s", inet_ntoa(from[k].sin_addr), ntohs(from[k].sin_port), strerror(errno));
