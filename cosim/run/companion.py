@@ -39,12 +39,16 @@ def companion(scene: Scene, interpolating: bool) -> Companion:
         opts = dict(m.options)
         rtol = opts.get("rtol", next((o.default for o in cls.options if o.name == "rtol"), 1e-3))
         lower = next((o.lower for o in cls.options if o.name == "rtol"), 0.0)
-        if rtol * TOLERANCE_RATIO < lower:
+        atol = opts.get("atol", next((o.default for o in cls.options if o.name == "atol"), 0.0))
+        if rtol * TOLERANCE_RATIO >= lower:
+            opts["rtol"], what = rtol * TOLERANCE_RATIO, f"rtol {rtol * TOLERANCE_RATIO:.3g}"
+        elif atol > 0:  # rtol at its floor (e.g. libcosim's tolerances, cosim.scenario.osp): atol is the tolerance
+            opts["atol"], what = atol * TOLERANCE_RATIO, f"atol {atol * TOLERANCE_RATIO:.3g} (rtol at its floor)"
+        else:
             return Companion(None, method=f"rtol {rtol:g} leaves no room for a companion at {TOLERANCE_RATIO:g}x")
-        opts["rtol"] = rtol * TOLERANCE_RATIO
         return Companion(replace(scene, master=replace(m, options=opts, realtime=None)),
                          divisor(TOLERANCE_RATIO, ORDER_TOLERANCE),
-                         f"Richardson against a companion run at rtol {opts['rtol']:.3g} ({TOLERANCE_RATIO:g}x)")
+                         f"Richardson against a companion run at {what} ({TOLERANCE_RATIO:g}x)")
     order = ORDER_LINEAR if scene.master.inputs == "linear" and interpolating else ORDER_HOLD
     if m.step_ns % 2 == 0 and _on_samples(scene, m.step_ns // 2):
         step_ns = m.step_ns // 2
