@@ -16,6 +16,11 @@ with a flood of unauthenticated datagrams):
    (its session is open by then), once or every ``--flood-every`` seconds; the board's dropped
    and throttled counts.
 
+5. the machine's own floor: ``cyclictest`` (Debian ``rt-tests``, the standard latency probe of
+   real-time Linux, a C thread sleeping to 1 ms deadlines) beside the loop for the same seconds at
+   the loop's priority: its worst wake-up lateness and the wake-ups more than one period late.
+   What it sees late no user program on this machine can keep on time.
+
 ``--load N`` runs N busy processes beside (the "loaded" machine); ``--priority P`` runs the loop
 under SCHED_FIFO P and the board at P + 10 (root).  ``--target armhf`` runs the daemon's ARM
 build under qemu-user (figures of the emulation, not of a BeagleBone).
@@ -26,6 +31,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -110,6 +116,35 @@ def round_trip(address: str, key: Path, n: int) -> np.ndarray:
     return rtt
 
 
+def start_cyclictest(duration: float, priority: int) -> subprocess.Popen | None:
+    """cyclictest for ``duration`` s, 1 ms interval, histogram to 100 ms (None if not installed)."""
+    exe = shutil.which("cyclictest")
+    if not exe:
+        return None
+    cmd = [exe, "-m", "-q", "-i", "1000", "-D", f"{max(1, round(duration))}", "-h", "100000"]
+    cmd += ["-p", str(priority)] if priority else []
+    return subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+
+
+def cyclictest_figures(proc: subprocess.Popen | None) -> dict:
+    """Max wake-up lateness [us] and wake-ups later than 1 ms from cyclictest's histogram."""
+    if proc is None:
+        return {"vm_note": "cyclictest not installed (apt install rt-tests)"}
+    text = proc.communicate(timeout=60)[0]
+    late, total, worst = 0, 0, 0
+    for line in text.splitlines():
+        parts = line.split()
+        if len(parts) >= 2 and parts[0].isdigit() and parts[1].isdigit():
+            us, n = int(parts[0]), int(parts[1])
+            total += n
+            late += n if us > 1000 else 0
+        elif line.startswith("# Max Latencies:"):
+            worst = int(parts[-1])
+        elif line.startswith("# Histogram Overflows:"):
+            late += int(parts[-1])
+    return {"vm_max_us": worst, "vm_late": late, "vm_wakeups": total}
+
+
 def one(duration: float, priority: int, load: int, flood: bool, target: str, flood_every: float = 0.0) -> dict:
     tmp = Path(tempfile.mkdtemp(prefix="bench-hil-"))
     key = P.write_key(tmp / "board.key")
@@ -133,11 +168,13 @@ def one(duration: float, priority: int, load: int, flood: bool, target: str, flo
                                         str(time.time() + 1.0), str(time.time() + duration + 3), str(flood_every)], stdout=subprocess.PIPE, text=True,
                                        env=dict(os.environ, PYTHONPATH=str(ROOT)))
         c0, t0 = cpu_ns(pid), time.monotonic()
+        probe = start_cyclictest(duration, priority)
         res = run(ROOT / "scenarios/rig_step_hil.yaml",
                   {"stop_time": duration, "components.rig.hardware.address": address,
                    "components.rig.hardware.key": str(key), "master.realtime.priority": priority,
                    "master.realtime.max_misses": 1000000, "outputs": BOARD_OUTPUTS}, out_dir=tmp)
         wall = time.monotonic() - t0
+        out.update(cyclictest_figures(probe))
         out["loop_cpu_per_tick_us"] = (cpu_ns(pid) - c0) / 1e3 / (wall * 1000.0)
         rt = res.stats.get("realtime", {})
         tr = res.trace
@@ -183,6 +220,11 @@ def show(r: dict, duration: float) -> None:
           f"p99 {r.get('board_p99_us', 0):.0f} us, max {r.get('board_max_us', 0):.0f} us; CPU per tick "
           f"{r.get('board_cpu_us', 0):.1f} us (kernel: {r['loop_cpu_per_tick_us']:.1f} us serving the loop, "
           f"{r['idle_cpu_per_tick_us']:.1f} us idle)")
+    if "vm_max_us" in r:
+        print(f"  the machine itself (cyclictest, same seconds and priority): worst wake-up {r['vm_max_us']} us late, "
+              f"{r['vm_late']} of {r['vm_wakeups']} wake-ups more than 1 ms late")
+    else:
+        print(f"  the machine itself: {r.get('vm_note')}")
     if r["flood"]:
         print(f"  flood ({r.get('flood_sent') or 'still sending at the end'}): board dropped {r.get('dropped', 0)} datagrams, "
               f"{r.get('throttled', 0)} of them throttled")

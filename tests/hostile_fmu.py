@@ -3,7 +3,8 @@ lag ``y' = (u - y) / tau`` (explicit Euler) that misbehaves in one chosen FMI ca
 
 ``RPR_HOSTILE=<call>:<action>`` in the environment of the process that loads it picks the
 misbehaviour: call ``instantiate``, ``doStep`` (also ``doStep@N``, the N-th doStep) or
-``enterInit``; action ``segv`` (a NULL write), ``abort``, ``exit0`` (``exit(0)``), ``hang``
+``enterInit``; action ``segv`` (a NULL write), ``abort``, ``exit0`` (``exit(0)``), ``sigkill``
+(``raise(SIGKILL)``: as if the OOM killer struck), ``hang``
 (a busy loop), ``sleep`` (``sleep(3600)``) or ``hang_noterm`` (SIGTERM ignored, then a busy loop);
 a suffix ``/TAU`` (e.g. ``doStep@5:segv/0.2``) restricts it to the instance whose parameter
 ``tau`` is TAU (one run of a batch).
@@ -43,6 +44,7 @@ static void misbehave(const char *call, long n, double tau) {
     if (!strcmp(colon, "segv")) { volatile int *p = 0; *p = 1; }
     if (!strcmp(colon, "abort")) abort();
     if (!strcmp(colon, "exit0")) exit(0);
+    if (!strcmp(colon, "sigkill")) raise(SIGKILL);
     if (!strcmp(colon, "sleep")) sleep(3600);
     if (!strcmp(colon, "hang_noterm")) { signal(SIGTERM, SIG_IGN); signal(SIGINT, SIG_IGN); }
     if (!strcmp(colon, "hang") || !strcmp(colon, "hang_noterm")) for (;;) { }

@@ -198,3 +198,32 @@ def test_rpr_cosim_run_of_the_exported_ssp_stops_with_the_guard(tmp_path, archiv
     assert rc == 1
     assert f"{status}: beyond rating: motor1.u = " in capsys.readouterr().err
     check_sidecar(tmp_path, "rated", status, pattern)
+
+
+# --- the monolithic reference: the truth is held to the same limits ---------------------------------
+@pytest.mark.parametrize("guard", ["rated", "stroke"])
+def test_the_monolithic_reference_is_guarded(tmp_path, guard):
+    """The reference integrates the same runaway physics (one ODE, CVODES): it ends with the same
+    guard and reason as the co-simulation, its trace cut at the offending row.  (Past the stroke
+    the runaway variants stiffen: CVODES gives up at 0.2 s, before the singularity at 0.27 s and
+    the unstable bound, and says so: ``failed``, never ``ok``, test below.)"""
+    from cosim.run.reference import reference
+
+    sets, status, pattern = VARIANTS[guard]
+    ref = reference(PID_STEP, sets, out_dir=tmp_path)
+    assert ref.status == status, ref.reason
+    assert re.search(pattern, ref.reason), ref.reason
+    assert f"t = {ref.trace.time[-1]:.6g} s" in ref.reason
+    g = ref.stats["guards"]
+    assert g["applied"] == {x: ("stop" if x == guard else "off") for x in GUARDS}
+    assert g["rows_checked"] == len(ref.trace.time)
+
+
+@pytest.mark.parametrize("guard", ["singularity", "unstable"])
+def test_a_runaway_reference_never_ends_ok(guard):
+    from cosim.run.reference import reference
+
+    sets, status, pattern = VARIANTS[guard]
+    ref = reference(PID_STEP, sets)
+    assert ref.status in (status, "failed") and ref.reason, ref.reason
+    assert ref.trace.time[-1] < 0.3  # it did not reach the stop time

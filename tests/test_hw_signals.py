@@ -227,7 +227,7 @@ def test_tick_jitter_and_cpu_per_tick_come_back_over_the_protocol(tmp_path, targ
     assert s["cpu_per_tick_s"] == pytest.approx(kernel, rel=0.5)
     assert 0 <= s["tick_p50_s"] <= s["tick_p99_s"] <= s["tick_max_s"]
     # a command is the tick it arrives in; the timer ticks 1.5 periods after the last one at most
-    assert final["ticks"] >= 0.9 * RATE * wall / 1.5 and final["tick_max_us"] >= s["tick_max_s"] * 1e6
+    assert final["ticks"] >= 0.9 * RATE * wall / 1.5 and final["tick_max_us"] >= round(s["tick_max_s"] * 1e6)
 
 
 def _flood(port: int, key_other: bytes, session: int, n: int) -> float:
@@ -275,7 +275,7 @@ def test_a_flood_is_counted_and_the_master_drives_on(tmp_path, target):
         final = board.stop()
     print(f"{target}: {answered} commands answered during the flood; dropped {s['dropped']}, throttled "
           f"{s['throttled']}; daemon counters {final}")
-    assert s["state"] == P.RUNNING and s["faults"] == 0 and final["faults"] == 0
+    assert s["state"] == P.RUNNING and s["faults"] == 0 and final["faults"] == 0, final
     assert s["dropped"] == final["malformed"] + final["unauthenticated"] + final["old_session"] + \
         final["out_of_sequence"] + final["stale"] + final["throttled"]
     assert s["dropped"] >= 10_000  # what the kernel's socket buffer let through, at least a fifth

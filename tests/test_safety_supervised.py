@@ -172,3 +172,82 @@ def test_a_batch_run_that_crashes_or_hangs_is_its_row_and_the_others_run(tmp_pat
     assert res.returncode == 0, res.stderr
     assert "hung: " in res.stdout and "(tau=0.3): a.fmi2DoStep at t = 0.099 s did not return within 1 s" in res.stdout
     assert time.monotonic() - t0 < 280
+
+
+@pytest.mark.parametrize("how, status, reason", [
+    ("doStep@100:segv/0.2", "crashed", "the run's process died of SIGSEGV (signal 11) in a.fmi2DoStep at t = 0.099 s"),
+    ("doStep@50:exit0/0.2", "crashed",
+     "the run's process exited (code 0) without finishing the run in a.fmi2DoStep at t = 0.049 s"),
+    ("doStep@100:hang_noterm/0.2", "hung",
+     "a.fmi2DoStep at t = 0.099 s did not return within 1 s (the FMI call timeout, $RPR_COSIM_CALL_TIMEOUT); "
+     "the run was stopped"),
+    # SIGKILL looks like the OOM killer: a second attempt in a new child, killed again
+    ("doStep@100:sigkill/0.2", "crashed", "the run's process died of SIGKILL (signal 9) in a.fmi2DoStep at "
+                                          "t = 0.099 s (and so did its second attempt, in a new process)"),
+])
+def test_a_dask_batch_run_that_crashes_or_hangs_is_its_row_and_the_workers_live_on(
+        tmp_path, hostile, dask_scheduler, monkeypatch, how, status, reason):
+    """On a Dask cluster each run is supervised on its worker: the run whose FMU crashes or hangs
+    is its row with the call, its files settled, and the other runs (on the same worker processes,
+    which survive) are ok."""
+    distributed = pytest.importorskip("distributed")
+    from cosim.batch import load_batch, run_batch
+    from cosim.batch.executors import DaskExecutor
+    from cosim.batch.results import read_rows
+    from cosim.batch.worker import end_steppers
+
+    spec = tmp_path / "b.yaml"
+    spec.write_text(f"name: hd\nscene: {hostile}\n"
+                    f"grid:\n  tau: {{path: components.a.params.tau, values: [0.1, 0.2, 0.3, 0.4]}}\n"
+                    f"metrics:\n  a.y: [max]\n")
+    monkeypatch.setenv("RPR_COSIM_CALL_TIMEOUT", "1")  # the batch process's timeout goes to the workers
+    with distributed.Client(dask_scheduler) as client:
+        before = client.run(os.getpid)
+        client.run(os.putenv, "RPR_HOSTILE", how)  # the FMU reads it in the process stepping it,
+        client.run(end_steppers)  # a child forked after this
+        try:
+            t0 = time.monotonic()
+            res = run_batch(load_batch(spec), out=tmp_path / "out", executor=DaskExecutor(dask_scheduler))
+            assert time.monotonic() - t0 < 60
+        finally:
+            client.run(os.unsetenv, "RPR_HOSTILE")
+            client.run(end_steppers)
+        assert client.run(os.getpid) == before  # no worker died (nor was restarted by its nanny)
+    assert res.ran == 4 and res.failed == 1
+    rows = {str(r["tau"]): r for r in read_rows(tmp_path / "out" / "results.csv")[1]}
+    assert {t: r["outcome"] for t, r in rows.items()} == {"0.1": "ok", "0.2": status, "0.3": "ok", "0.4": "ok"}
+    assert reason in rows["0.2"]["reason"] and rows["0.2"]["attempts"] == 1
+    for tau in (0.1, 0.3, 0.4):  # the Euler solution's maximum, y(0.5 s) = 1 - (1 - h / tau)^500
+        assert float(rows[str(tau)]["a.y:max"]) == pytest.approx(1 - (1 - 1e-3 / tau) ** 500, rel=1e-9)
+    assert_settled(tmp_path / "out" / "runs" / rows["0.2"]["run_id"], status, reason)
+
+
+def _handle(request):
+    """A stepping child's work for the Server test: echo, raise, or die."""
+    if request == "segv":
+        os.kill(os.getpid(), signal.SIGSEGV)
+    if request == "raise":
+        raise ValueError("no such run")
+    return request * 2
+
+
+def test_a_stepping_child_serves_requests_until_it_dies_and_says_how():
+    from cosim.run.supervise import Failed, Server
+
+    server = Server(_handle)
+    pid = server.pid
+    assert server.call(21) == 42 and server.call("ab") == "abab"
+    with pytest.raises(ValueError, match="no such run"):
+        server.call("raise")
+    assert server.alive and server.call(b"x" * 3_000_000) == b"x" * 6_000_000  # larger than a pipe's buffer
+    with pytest.raises(Failed) as failed:
+        server.call("segv")
+    assert failed.value.status == "crashed" and not server.alive
+    assert failed.value.reason == "the run's process died of SIGSEGV (signal 11) before the first FMI call"
+    assert failed.value.from_outside  # not inside an FMI call: a second attempt is worth it
+    with pytest.raises(ChildProcessError):
+        os.waitpid(pid, os.WNOHANG)  # reaped
+    other = Server(_handle)
+    assert other.call(1) == 2
+    other.close()
+    assert not other.alive

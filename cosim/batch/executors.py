@@ -24,6 +24,11 @@ Dask (:class:`DaskExecutor`)
     worker that dies is restarted by its nanny and the scheduler reschedules its run; the
     ``LocalCluster`` allows one retry (``distributed.scheduler.allowed-failures = 1``), an
     external scheduler follows its own setting (default 3); after that the run is a failed row.
+    Each run is supervised on its worker (:func:`~cosim.batch.worker.execute_supervised`): the
+    worker forks a child that steps it and watches the child's breadcrumb, so an FMU that
+    crashes, exits or hangs (past the batch process's call timeout) makes that run's row
+    "crashed" or "hung" with the component and FMI call, and the worker lives on for the next
+    runs.
 """
 from __future__ import annotations
 
@@ -42,7 +47,7 @@ from multiprocessing.reduction import ForkingPickler
 
 from ..errors import UserError
 from ..slaves import crumb
-from .worker import STATE, Outcome, Shared, Task, execute, worker_id
+from .worker import STATE, Outcome, Shared, Task, execute, settle_files, worker_id
 
 OnStart = Callable[[Task, int], None]
 OnDone = Callable[[Task, Outcome], None]
@@ -258,14 +263,14 @@ class LocalExecutor:
                         if s.hung or (inside and not external):  # an FMU crashed or hung it: not retried
                             status = "hung" if s.hung else "crashed"
                             reason = s.hung or _death(code, where)
-                            _settle_files(task, status, reason)
+                            settle_files(task, status, reason)
                             finished.append((task, Outcome(task.run_id, status, reason, worker=str(s.proc.pid))))
                         elif task.attempt < 2:  # killed from outside (out of memory?): once more, on a new worker
                             task.attempt += 1
                             source.pending.appendleft(task)
                         else:
                             reason = f"the worker process died twice while running it ({_death(code, where)})"
-                            _settle_files(task, "crashed", reason)
+                            settle_files(task, "crashed", reason)
                             finished.append((task, Outcome(task.run_id, "crashed", reason, worker=str(s.proc.pid))))
                     if source.pending or source.it is not None:
                         slots[i] = self._replace(ctx, shared, s)
@@ -363,20 +368,6 @@ def _death(code: int | None, where: str) -> str:
     return f"the worker process {how}" + (f" in {where}" if where else "")
 
 
-def _settle_files(task: Task, status: str, reason: str) -> None:
-    """The run's trace and sidecar in its directory, given ``status`` and ``reason`` (its worker
-    died while they said "running")."""
-    if not task.out_dir:
-        return
-    from ..outputs import safe_name, settle_if_stale, settle_run
-
-    try:
-        settle_run(os.path.join(task.out_dir, f"{safe_name(task.scene.name)}.csv"), status, reason)
-        settle_if_stale(task.out_dir)  # the dead worker's lock file goes too
-    except (OSError, UserError):  # the row says it all the same
-        pass
-
-
 # --- Dask ----------------------------------------------------------------------------------------
 class DaskExecutor:
     """Runs on a Dask distributed cluster: an existing one at ``scheduler``, or a ``LocalCluster``
@@ -411,9 +402,12 @@ class DaskExecutor:
 
         from .worker import run_remote
 
+        from ..run.supervise import call_timeout
+
         tasks = list(tasks)
         if not tasks:
             return
+        timeout = call_timeout()  # this process's setting, for the workers' supervisors
         client, cluster = self._client()
         futures = {}
         try:
@@ -422,7 +416,7 @@ class DaskExecutor:
             tag = uuid.uuid4().hex[:8]
             for t in tasks:
                 t.out_dir = None
-                futures[client.submit(run_remote, t, shared_f, key=f"rpr-run-{t.run_id}-{tag}", pure=False)] = t
+                futures[client.submit(run_remote, t, shared_f, timeout, key=f"rpr-run-{t.run_id}-{tag}", pure=False)] = t
             for fut in as_completed(list(futures)):
                 t = futures[fut]
                 try:

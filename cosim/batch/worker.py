@@ -7,6 +7,10 @@ its CasADi blocks stripped, the content hash of each component's FMU, the metric
 :class:`Shared` per worker (the FMUs' bytes by hash, the reference trace).  A worker needs no
 shared filesystem: with ``Task.out_dir = None`` the run writes into a temporary directory and
 its files come back in :attr:`Outcome.files`.
+
+A local worker process is itself watched by the batch process; a Dask worker, which is not,
+runs each task in a supervised stepping child it forks once per thread
+(:func:`execute_supervised`, :class:`cosim.run.supervise.Server`).
 """
 from __future__ import annotations
 
@@ -18,6 +22,8 @@ import socket
 import tempfile
 import threading
 import time
+import uuid
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -54,6 +60,7 @@ class Shared:
     blobs: dict[str, bytes]  # content hash -> FMU file bytes
     reference: Trace | None = None
     reuse: bool = True  # keep instances between runs (FMI reset) instead of loading them again
+    token: str = field(default_factory=lambda: uuid.uuid4().hex)  # names this batch's Shared
 
 
 @dataclass
@@ -237,9 +244,138 @@ def execute(task: Task, shared: Shared) -> Outcome:
     return Outcome(task.run_id, status, reason, metrics, _stats(stats), time.perf_counter() - t0, worker_id(), files)
 
 
-def run_remote(task: Task, shared: Shared) -> Outcome:
-    """The function a Dask worker calls (importable by name on the workers)."""
-    return execute(task, shared)
+def settle_files(task: Task, status: str, reason: str) -> None:
+    """The run's trace and sidecar in its directory, given ``status`` and ``reason`` (the process
+    that stepped it died while they said "running")."""
+    if not task.out_dir:
+        return
+    from ..outputs import safe_name, settle_if_stale, settle_run
+
+    try:
+        settle_run(os.path.join(task.out_dir, f"{safe_name(task.scene.name)}.csv"), status, reason)
+        settle_if_stale(task.out_dir)  # the dead process's lock file goes too
+    except (OSError, UserError):  # the row says it all the same
+        pass
 
 
-__all__ = ["Outcome", "Shared", "STATE", "Task", "execute", "run_remote", "transportable"]
+def _files(folder: Path) -> dict[str, bytes]:
+    return {p.name: p.read_bytes() for p in sorted(folder.iterdir()) if p.is_file() and not p.is_symlink()}
+
+
+class _Local(threading.local):
+    server = None  # this thread's stepping child (cosim.run.supervise.Server)
+    token = None  # the Shared it holds
+
+
+_LOCAL = _Local()
+_SERVERS: list = []  # every stepping child this process started, ended at exit
+
+
+def end_steppers() -> None:
+    """End this process's stepping children (each thread starts a new one at its next run: one
+    forked after a change of the environment an FMU reads sees the change)."""
+    for server in _SERVERS:
+        server.close()
+    _SERVERS.clear()
+
+
+atexit.register(end_steppers)
+
+
+def _serve_runs() -> Callable[[tuple], Outcome]:
+    """What a stepping child does with each request ``(task, token, shared or None)``: run the
+    task with the Shared of that token (sent with the first run of each batch)."""
+    kept: dict[str, Shared] = {}
+
+    def handle(request: tuple) -> Outcome:
+        task, token, shared = request
+        if shared is not None:
+            kept.clear()
+            kept[token] = shared
+        return execute(task, kept[token])
+
+    return handle
+
+
+def _start_stepping() -> None:
+    """In a new stepping child: its own instances and FMU folder, and each run's trace written
+    in the stepping thread (a run is one core, as on a local worker)."""
+    from ..trace import traces
+
+    STATE.detach()
+    traces.WRITER_THREAD = False
+
+
+def _server():
+    """This thread's stepping child, started (again) when it has none alive."""
+    from ..run import supervise
+
+    if _LOCAL.server is None or not _LOCAL.server.alive:
+        _LOCAL.server = supervise.Server(_serve_runs(), on_start=_start_stepping, on_exit=STATE.remove_files)
+        _LOCAL.token = None
+        _SERVERS[:] = [s for s in _SERVERS if s.alive] + [_LOCAL.server]
+    return _LOCAL.server
+
+
+def execute_supervised(task: Task, shared: Shared, call_timeout: float | None = None) -> Outcome:
+    """:func:`execute` in this thread's stepping child (:class:`cosim.run.supervise.Server`),
+    watched as ``rpr-cosim run`` watches its child: an FMU that crashes, exits or hangs in one
+    call longer than ``call_timeout`` [s] makes the outcome "crashed" or "hung" (the component
+    and FMI call in the reason, the run's files settled), the child is replaced at the next run,
+    and this process goes on; a child killed by someone else (SIGKILL or SIGTERM: out of memory?)
+    or dead outside any FMI call gets a second attempt in a new child, as a local worker's run
+    does.  For processes that are not supervised themselves (Dask workers);
+    a run without ``out_dir`` steps into a temporary directory of this process and its files
+    come back in :attr:`Outcome.files`.
+
+    The child is forked once per thread, after this process did what it would otherwise repeat
+    (the imports, the compiled loops, the FMUs written, described and unpacked), and keeps its
+    FMU instances between runs (reset, as a local worker does)."""
+    from ..run import supervise
+    from . import preload
+
+    t0 = time.perf_counter()
+    preload.warm([task.scene])
+    blobs = {**shared.blobs, **task.blobs} if task.blobs else shared.blobs
+    STATE.prepare({d: blobs[d] for d in set(task.fmus.values()) if d in blobs})
+    tmp = None
+    if not task.out_dir:
+        tmp = tempfile.mkdtemp(prefix="rpr-run-")
+        task = dataclasses.replace(task, out_dir=tmp)
+    try:
+        for attempt in (1, 2):
+            server = _server()
+            try:
+                out = server.call((task, shared.token, shared if _LOCAL.token != shared.token else None),
+                                  call_timeout)
+                _LOCAL.token = shared.token
+                break
+            except supervise.Failed as failed:
+                if failed.from_outside and attempt == 1:  # killed by someone else (out of memory?): once more
+                    shutil.rmtree(task.out_dir, ignore_errors=True)
+                    os.makedirs(task.out_dir)
+                    continue
+                reason = failed.reason + (" (and so did its second attempt, in a new process)" if attempt > 1 else "")
+                settle_files(task, failed.status, reason)
+                out = Outcome(task.run_id, failed.status, reason)
+        out.wall_s, out.worker = time.perf_counter() - t0, worker_id()
+        if tmp is not None:
+            out.files = _files(Path(tmp))
+        return out
+    finally:
+        if tmp is not None:
+            shutil.rmtree(tmp, ignore_errors=True)
+
+
+def run_remote(task: Task, shared: Shared, call_timeout: float | None = None) -> Outcome:
+    """The function a Dask worker calls (importable by name on the workers): the run supervised
+    (:func:`execute_supervised`) unless ``$RPR_COSIM_SUPERVISE=0`` on the worker."""
+    from ..run import supervise
+
+    if not supervise.enabled():
+        return execute(task, shared)
+    return execute_supervised(task, shared, call_timeout)
+
+
+__all__ = ["Outcome", "Shared", "STATE", "Task", "end_steppers", "execute", "execute_supervised", "run_remote", "settle_files",
+           "transportable"]

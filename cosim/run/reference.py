@@ -30,6 +30,7 @@ from models.compose import Composite, compose
 
 from ..errors import UserError
 from .execute import RunResult, scene_meta, scene_observers
+from .guards import scene_guard
 from ..trace.traces import TraceWriteError
 from ..scenario import Scene, load
 
@@ -130,14 +131,17 @@ def reference(scene: Scene | str | Path, overrides=None, *, out_dir: Path | None
               rtol: float = RTOL, atol: float = ATOL,
               progress: Callable[[int, int], None] | None = None, max_wall_s: float = MAX_WALL_S,
               max_steps: int = MAX_STEPS, log: Callable[[str], None] | None = None,
-              times: Sequence[float] | None = None, trace_format: str = "csv") -> RunResult:
+              times: Sequence[float] | None = None, trace_format: str = "csv", guarded: bool = True) -> RunResult:
     """Integrate the scene's monolithic ODE over ``[0, stop_time]`` and record the scene's outputs
     at its output instants, or at ``times`` [s] when given (increasing, from 0: e.g. the irregular
     instants of a variable-step run, so that comparing with it needs no interpolation); the trace goes to ``out_dir/<name>_reference.csv`` (``.parquet`` with
     ``trace_format="parquet"``) when ``out_dir`` is given.  A solver failure is a status (``failed``) with the partial trace kept; so is reaching
     ``max_wall_s`` seconds of wall time or ``max_steps`` CVODES steps.  What the solver prints is
     counted, not shown: ``log`` gets one line with the count and the first line, and the
-    statistics keep the count (``solver_messages``)."""
+    statistics keep the count (``solver_messages``).  The scene's guards hold the reference to
+    the same limits as its runs (a runaway truth ends ``out_of_limits``/``unstable``, cut at the
+    offending row); ``guarded=False`` integrates the maths alone, for a study's ruler, whose
+    runs are guarded themselves."""
     from ..interrupts import signals_as_interrupts
     from ..outputs import OutputLock, check_out_dir
 
@@ -145,10 +149,12 @@ def reference(scene: Scene | str | Path, overrides=None, *, out_dir: Path | None
         scene = load(scene, overrides)
     if out_dir is None:
         with signals_as_interrupts():
-            return _reference(scene, None, rtol, atol, progress, max_wall_s, max_steps, log, times, trace_format)
+            return _reference(scene, None, rtol, atol, progress, max_wall_s, max_steps, log, times, trace_format,
+                              guarded)
     check_out_dir(out_dir)
     with signals_as_interrupts(), OutputLock(out_dir, log=log):
-        return _reference(scene, out_dir, rtol, atol, progress, max_wall_s, max_steps, log, times, trace_format)
+        return _reference(scene, out_dir, rtol, atol, progress, max_wall_s, max_steps, log, times, trace_format,
+                          guarded)
 
 
 def _output_instants(scene: Scene, times: Sequence[float] | None) -> tuple[np.ndarray, bool]:
@@ -163,13 +169,18 @@ def _output_instants(scene: Scene, times: Sequence[float] | None) -> tuple[np.nd
 
 
 def _reference(scene, out_dir, rtol, atol, progress, max_wall_s, max_steps, log, times=None,
-               trace_format="csv") -> RunResult:
+               trace_format="csv", guarded=True) -> RunResult:
     comp = composite(scene)
     dt = scene.master.record_every * scene.master.step
     grid, regular = _output_instants(scene, times)
     n_out = len(grid) - 1
     names = [tuple(o.split(".", 1)) for o in scene.outputs]
-    signals = comp.signal_function(names)
+    guard = scene_guard(scene) if guarded else None  # the truth is held to the same limits as the runs it judges
+    watch = [w for w in (guard.watch if guard else ()) if w not in names]
+    signals = comp.signal_function(names + watch)
+    if guard:
+        guard.bind(list(scene.outputs) + [f"{c}.{v}" for c, v in watch])
+    n_rec = 1 + len(names)
     columns = ["time", *scene.outputs]
     memory, observers, trace_path = scene_observers(scene, out_dir, "_reference", trace_format)
     dae = comp.z.numel() > 0  # an algebraic loop: the loop's cut inputs are algebraic variables (IDAS)
@@ -184,13 +195,18 @@ def _reference(scene, out_dir, rtol, atol, progress, max_wall_s, max_steps, log,
     if dae:  # a consistent start: the loop solved at the start state (IDAS would do it too)
         z = np.array(ca.rootfinder("start", "newton", ca.Function("g", [comp.z, comp.x], [comp.alg]))(z, x)).ravel()
 
-    def record(ts: np.ndarray, xs: np.ndarray, zs: np.ndarray | None = None) -> None:
+    def record(ts: np.ndarray, xs: np.ndarray, zs: np.ndarray | None = None) -> bool:
+        """Record the rows the guard lets through; False when it tripped."""
         vals = signals.map(len(ts))(xs, zs) if dae else signals.map(len(ts))(xs)
         rows = np.column_stack([ts, np.array(vals).T])
+        keep = guard.check(rows) if guard else None
+        if keep is not None:
+            rows = rows[:keep]
         for ob in observers:
-            ob.record(rows)
+            ob.record(rows[:, :n_rec])
+        return keep is None
 
-    record(np.zeros(1), x.reshape(-1, 1), z.reshape(-1, 1))
+    running = record(np.zeros(1), x.reshape(-1, 1), z.reshape(-1, 1))
     integrators: dict[int, ca.Function] = {}
     chunk, solver_steps, printed = CHUNK, 0, _Collapsed()
     per_interval = max(1, min(MAX_STEPS_PER_INTERVAL, int(max_steps)))
@@ -205,7 +221,7 @@ def _reference(scene, out_dir, rtol, atol, progress, max_wall_s, max_steps, log,
     try:
         if alarm:
             signal.setitimer(signal.ITIMER_REAL, max_wall_s)
-        while done < n_out:
+        while done < n_out and running:
             if time.perf_counter() - t0 > max_wall_s:
                 raise _WallCap()
             if solver_steps >= max_steps:
@@ -227,7 +243,7 @@ def _reference(scene, out_dir, rtol, atol, progress, max_wall_s, max_steps, log,
                     zs = np.array(sol["zf"]) if dae else None
             finally:
                 solver_steps += int(integrators[m].stats().get("nsteps", 0) or 0)
-            record(grid[done + 1:done + m + 1], xs, zs)
+            running = record(grid[done + 1:done + m + 1], xs, zs)
             x = xs[:, -1]
             if dae:
                 z = zs[:, -1]
@@ -264,12 +280,15 @@ def _reference(scene, out_dir, rtol, atol, progress, max_wall_s, max_steps, log,
             signal.setitimer(signal.ITIMER_REAL, 0)
             signal.signal(signal.SIGALRM, previous)
     wall = time.perf_counter() - t0
+    if guard and guard.tripped and status == "ok":
+        status, reason = guard.status, guard.reason
     if printed.lines and log:
         log(f"the solver printed {printed.lines:,} lines, not shown (first: {printed.first})")
     stats = {"algorithm": "monolithic", "engine": "cvodes", "step": dt, "steps_planned": n_out,
              "steps_done": done, "status": status, "reason": reason, "wall_s": wall,
              "simulated_s": float(grid[done]), "real_time_factor": float(grid[done]) / wall if wall > 0 else float("inf"),
-             "solver_steps": solver_steps, "solver_messages": printed.lines, "slaves": {}}
+             "solver_steps": solver_steps, "solver_messages": printed.lines, "slaves": {},
+             **({"guards": guard.summary()} if guard else {})}
     for ob in observers:
         ob.finish(status, reason, stats)
     for ob in observers:

@@ -18,6 +18,10 @@ call it is in.  The parent waits for the child's result on a pipe and reads the 
 
 In every case the ``settle`` callback writes the final trace and sidecar (:func:`cosim.outputs.
 settle_run`).  ``$RPR_COSIM_SUPERVISE=0`` runs in-process (for debugging an FMU under gdb).
+
+:class:`Server` is the same watch around a child that stays: it serves one request after
+another (the runs of a Dask worker, keeping its FMU instances between them) until it dies or
+is closed.
 """
 from __future__ import annotations
 
@@ -50,16 +54,31 @@ T = TypeVar("T")
 
 class Failed(Exception):
     """How a supervised child ended when it did not return: ``status`` ("crashed", "hung" or
-    "interrupted") and ``reason``."""
+    "interrupted") and ``reason``; for "crashed", :attr:`from_outside` tells whether it may have
+    been killed by someone else (SIGKILL or SIGTERM: the OOM killer, a user) or died outside any
+    FMI call, rather than by an FMU."""
 
-    def __init__(self, status: str, reason: str, signal_exc: Interrupted | None = None):
+    def __init__(self, status: str, reason: str, signal_exc: Interrupted | None = None, from_outside: bool = False):
         super().__init__(reason)
         self.status, self.reason, self.signal_exc = status, reason, signal_exc
+        self.from_outside = from_outside
+
+
+def _crashed(status: int, state: dict, signal_exc: Interrupted | None = None) -> Failed:
+    """The :class:`Failed` of a child that ended with wait status ``status``, its crumb ``state``."""
+    external = os.WIFSIGNALED(status) and os.WTERMSIG(status) in (signal.SIGKILL, signal.SIGTERM)
+    return Failed("crashed", _describe_exit(status, crumb.describe(state)), signal_exc,
+                  external or not state["inside"])
+
+
+_IN_CHILD = False  # True in a supervised child: what it runs is supervised already
 
 
 def enabled() -> bool:
-    """Whether runs are supervised here (``fork`` exists and ``$RPR_COSIM_SUPERVISE`` is not 0)."""
-    return hasattr(os, "fork") and os.environ.get(SUPERVISE_ENV, "1").strip().lower() not in ("0", "no", "false", "off")
+    """Whether runs are supervised here (``fork`` exists, ``$RPR_COSIM_SUPERVISE`` is not 0, and
+    this is not a supervised child already)."""
+    return (hasattr(os, "fork") and not _IN_CHILD
+            and os.environ.get(SUPERVISE_ENV, "1").strip().lower() not in ("0", "no", "false", "off"))
 
 
 def call_timeout(value: object = None) -> float:
@@ -93,6 +112,44 @@ def _die_with_parent() -> None:
         pass
 
 
+def _become_child(buf) -> None:
+    """In a freshly forked child: die with the parent, write the breadcrumb into ``buf``, and
+    supervise nothing itself (what it runs is supervised already)."""
+    global _IN_CHILD
+    _IN_CHILD = True
+    _die_with_parent()
+    crumb.attach(buf)
+
+
+def _dumps(payload: tuple) -> bytes:
+    """``payload`` pickled; an exception that does not pickle goes as its text."""
+    try:
+        return pickle.dumps(payload, protocol=pickle.HIGHEST_PROTOCOL)
+    except Exception as exc:  # noqa: BLE001
+        return pickle.dumps(("raise", UserError(f"{type(payload[1]).__name__}: {payload[1]} ({exc})"),
+                             *payload[2:]))
+
+
+def _write_all(fd: int, data: bytes) -> None:
+    view, done = memoryview(data), 0
+    while done < len(data):
+        done += os.write(fd, view[done:])
+
+
+def _end_child(code: int, inherited: set) -> None:
+    """Remove the FMU folders this child unpacked (``os._exit`` skips the atexit hook that would),
+    flush, and exit with ``code``."""
+    from ..slaves import fmu
+
+    try:
+        for key in set(fmu._UNZIPPED) - inherited:
+            shutil.rmtree(fmu._UNZIPPED[key], ignore_errors=True)
+        sys.stdout.flush()
+        sys.stderr.flush()
+    finally:
+        os._exit(code)
+
+
 def _child(work: Callable[[Callable[[str], None]], Any], wfd: int, buf) -> None:
     from ..slaves import fmu
 
@@ -100,8 +157,7 @@ def _child(work: Callable[[Callable[[str], None]], Any], wfd: int, buf) -> None:
     notes: list[str] = []
     inherited = set(fmu._UNZIPPED)  # the parent's unpacked FMUs: the parent removes those
     try:
-        _die_with_parent()
-        crumb.attach(buf)
+        _become_child(buf)
         try:
             payload = ("result", work(notes.append))
         except Interrupted as exc:
@@ -110,23 +166,11 @@ def _child(work: Callable[[Callable[[str], None]], Any], wfd: int, buf) -> None:
             payload = ("interrupted", int(signal.SIGINT))
         except BaseException as exc:  # noqa: BLE001 - everything goes to the parent
             payload = ("raise", exc)
-        try:
-            data = pickle.dumps((*payload, notes), protocol=pickle.HIGHEST_PROTOCOL)
-        except Exception as exc:  # an exception that does not pickle: its text
-            data = pickle.dumps(("raise", UserError(f"{type(payload[1]).__name__}: {payload[1]} ({exc})"), notes))
-        view, done = memoryview(data), 0
-        while done < len(data):
-            done += os.write(wfd, view[done:])
+        _write_all(wfd, _dumps((*payload, notes)))
     except BaseException:  # noqa: BLE001 - the parent sees no result and reports the exit
         code = 70
     finally:
-        try:
-            for key in set(fmu._UNZIPPED) - inherited:  # os._exit skips the atexit hook that would
-                shutil.rmtree(fmu._UNZIPPED[key], ignore_errors=True)
-            sys.stdout.flush()
-            sys.stderr.flush()
-        finally:
-            os._exit(code)
+        _end_child(code, inherited)
 
 
 def _describe_exit(status: int, where: str) -> str:
@@ -165,8 +209,24 @@ def supervised(work: Callable[[Callable[[str], None]], T], *, timeout_s: float |
         os.close(rfd)
         _child(work, wfd, buf)
     os.close(wfd)
+    say = log or (lambda m: None)
     try:
-        return _watch(pid, rfd, buf, timeout, log or (lambda m: None))
+        data, status, signalled = _watch(pid, rfd, buf, timeout)
+        if status is None:
+            status = os.waitpid(pid, 0)[1]
+        try:
+            kind, value, notes = pickle.loads(data) if data else (None, None, [])
+        except Exception:  # noqa: BLE001 - a result cut short: the child died writing it
+            kind, value, notes = None, None, []
+        for n in notes:
+            say(n)
+        if kind == "result":
+            return value
+        if kind == "raise":
+            raise value
+        if kind == "interrupted":
+            raise signalled or Interrupted(value)
+        raise _crashed(status, crumb.read(buf), signalled)
     except Failed:
         _remove_leftovers(pid)
         raise
@@ -175,8 +235,13 @@ def supervised(work: Callable[[Callable[[str], None]], T], *, timeout_s: float |
         buf.close()
 
 
-def _watch(pid: int, rfd: int, buf, timeout: float, log: Callable[[str], None]) -> Any:
-    chunks: list[bytes] = []
+def _watch(pid: int, rfd: int, buf, timeout: float, complete: Callable[[bytearray], bool] | None = None
+           ) -> tuple[bytes, int | None, Interrupted | None]:
+    """What child ``pid`` writes on ``rfd``, read until EOF (or until ``complete(data)``), while
+    its breadcrumb in ``buf`` is watched: returns (data, its wait status if it has exited, the
+    signal that interrupted this process); raises :class:`Failed` ("hung", or "interrupted"
+    when it did not end within :data:`GRACE_S` of a signal) after killing it."""
+    chunks = bytearray()
     seen, since, status, signalled = None, time.monotonic(), None, None
     deadline = None  # after a signal: when the child is killed
     while True:
@@ -185,7 +250,9 @@ def _watch(pid: int, rfd: int, buf, timeout: float, log: Callable[[str], None]) 
             if ready:
                 data = os.read(rfd, 1 << 20)
                 if data:
-                    chunks.append(data)
+                    chunks += data
+                    if complete is not None and complete(chunks):
+                        break
                     continue
                 break  # EOF: the child closed its end (exited, normally or not)
             done, st = os.waitpid(pid, os.WNOHANG)
@@ -219,21 +286,133 @@ def _watch(pid: int, rfd: int, buf, timeout: float, log: Callable[[str], None]) 
             except ProcessLookupError:
                 pass
             deadline = time.monotonic() + GRACE_S
-    if status is None:
-        status = os.waitpid(pid, 0)[1]
-    try:
-        kind, value, notes = pickle.loads(b"".join(chunks)) if chunks else (None, None, [])
-    except Exception:  # noqa: BLE001 - a result cut short: the child died writing it
-        kind, value, notes = None, None, []
-    for n in notes:
-        log(n)
-    if kind == "result":
-        return value
-    if kind == "raise":
-        raise value
-    if kind == "interrupted":
-        raise signalled or Interrupted(value)
-    raise Failed("crashed", _describe_exit(status, crumb.describe(crumb.read(buf))), signalled)
+    return bytes(chunks), status, signalled
+
+
+class Server:
+    """A supervised child that serves requests one after another, for a process that keeps what
+    its runs share (loaded FMU instances) between them and is not supervised itself (a Dask
+    worker).  ``handle(request)`` runs in the child, forked here once (after ``on_start()``
+    there); :meth:`call` sends it a request and watches the child as :func:`supervised` watches
+    a run.  A child that crashes or hangs raises :class:`Failed` from :meth:`call` and is gone
+    (:attr:`alive` False): start another.  ``on_exit()`` runs in the child when :meth:`close`
+    ends it."""
+
+    _HEADER = 8  # each message: its length (8 bytes, little-endian), then its pickle
+
+    def __init__(self, handle: Callable[[Any], Any], *, on_start: Callable[[], None] | None = None,
+                 on_exit: Callable[[], None] | None = None):
+        from ..slaves import fmu
+
+        self.buf = crumb.shared()
+        down_r, self._down = os.pipe()
+        self._up, up_w = os.pipe()
+        sys.stdout.flush()
+        sys.stderr.flush()
+        self.pid = os.fork()
+        if self.pid == 0:  # pragma: no cover - the child never returns
+            os.close(self._down)
+            os.close(self._up)
+            self._serve(handle, on_start, on_exit, down_r, up_w, set(fmu._UNZIPPED))
+        os.close(down_r)
+        os.close(up_w)
+        self._open = True
+
+    @classmethod
+    def _frame(cls, data: bytes) -> bytes:
+        return len(data).to_bytes(cls._HEADER, "little") + data
+
+    @classmethod
+    def _whole(cls, data: bytearray) -> bool:
+        return len(data) >= cls._HEADER and len(data) >= cls._HEADER + int.from_bytes(data[:cls._HEADER], "little")
+
+    def _serve(self, handle, on_start, on_exit, down: int, up: int, inherited: set) -> None:
+        code = 0
+        try:
+            _become_child(self.buf)
+            signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent decides
+            if on_start is not None:
+                on_start()
+            pending = bytearray()
+            while True:
+                while not self._whole(pending):
+                    data = os.read(down, 1 << 20)
+                    if not data:  # the parent closed its end: done
+                        if on_exit is not None:
+                            on_exit()
+                        return
+                    pending += data
+                n = self._HEADER + int.from_bytes(pending[:self._HEADER], "little")
+                request = pickle.loads(bytes(pending[self._HEADER:n]))
+                del pending[:n]
+                try:
+                    payload: tuple = ("result", handle(request))
+                except Exception as exc:  # noqa: BLE001 - to the parent
+                    payload = ("raise", exc)
+                _write_all(up, self._frame(_dumps(payload)))
+        except BaseException:  # noqa: BLE001 - the parent sees no result and reports the exit
+            code = 70
+        finally:
+            _end_child(code, inherited)
+
+    @property
+    def alive(self) -> bool:
+        """Whether the child is there to serve (it may have been killed while idle)."""
+        if self._open and os.waitpid(self.pid, os.WNOHANG)[0]:
+            self._closed()
+        return self._open
+
+    def call(self, request: Any, timeout_s: float | None = None) -> Any:
+        """``handle(request)``'s result (or its exception) from the child; :class:`Failed` when the
+        child crashed ("crashed") or one of its FMI calls ran longer than ``timeout_s``
+        ("hung"); it is gone then."""
+        timeout = call_timeout(timeout_s)
+        try:
+            _write_all(self._down, self._frame(pickle.dumps(request, protocol=pickle.HIGHEST_PROTOCOL)))
+        except OSError:  # it died while idle or reading the request
+            pass
+        try:
+            data, status, _ = _watch(self.pid, self._up, self.buf, timeout, self._whole)
+        except Failed:
+            self._closed()
+            raise
+        if self._whole(bytearray(data)):
+            kind, value = pickle.loads(data[self._HEADER:])
+            if kind == "raise":
+                raise value
+            return value
+        status = status if status is not None else os.waitpid(self.pid, 0)[1]
+        failed = _crashed(status, crumb.read(self.buf))
+        self._closed(reaped=True)
+        raise failed
+
+    def _closed(self, reaped: bool = True) -> None:
+        """Forget the child (killed and reaped here unless ``reaped`` already) and its leftovers."""
+        if not self._open:
+            return
+        self._open = False
+        for fd in (self._down, self._up):
+            if fd >= 0:
+                os.close(fd)
+        if not reaped:
+            _kill(self.pid)
+            os.waitpid(self.pid, 0)
+        _remove_leftovers(self.pid)
+        self.buf.close()
+
+    def close(self, wait_s: float = 2.0) -> None:
+        """End the child: at the end of its requests it runs ``on_exit`` and exits (killed if it
+        has not within ``wait_s`` [s])."""
+        if not self._open:
+            return
+        os.close(self._down)
+        self._down = -1
+        deadline, reaped = time.monotonic() + wait_s, False
+        while not reaped and time.monotonic() < deadline:
+            reaped = bool(os.waitpid(self.pid, os.WNOHANG)[0])
+            if not reaped:
+                time.sleep(0.005)
+        self._closed(reaped)
 
 
 def _kill(pid: int) -> None:
@@ -245,4 +424,4 @@ def _kill(pid: int) -> None:
             continue
 
 
-__all__ = ["DEFAULT_TIMEOUT_S", "Failed", "call_timeout", "enabled", "supervised"]
+__all__ = ["DEFAULT_TIMEOUT_S", "Failed", "Server", "call_timeout", "enabled", "supervised"]

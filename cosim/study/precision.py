@@ -300,7 +300,8 @@ def precision_study(scene_path: Path | str, variants: Sequence[tuple[str, str]],
     stop = stop_time if stop_time is not None else base.stop_time
     stop = max(1, round(stop / record)) * record
     common = {**sets, "stop_time": stop}
-    ref = reference(scene_path, {**common, "master.step": record, "master.output_interval": record})
+    # the ruler is maths, not a run: unguarded (the study's runs are guarded themselves)
+    ref = reference(scene_path, {**common, "master.step": record, "master.output_interval": record}, guarded=False)
     if not ref.ok:
         raise UserError(f"{base.name}: the monolithic reference failed ({ref.reason}); no study without it")
     study = PrecisionStudy(base.name, stop, record, float(ref.stats.get("wall_s", math.nan)))
@@ -364,7 +365,7 @@ def choice_row(scene_path, common: dict, tolerance: float, ref: Trace, scale: di
         return row
     against = ref
     if res.stats.get("smallest_step") is not None:
-        at = reference(res.scene, times=res.trace.time)
+        at = reference(res.scene, times=res.trace.time, guarded=False)
         if not at.ok:
             row.status, row.reason = "failed", f"the reference at the run's instants failed: {at.reason}"
             return row

@@ -239,6 +239,15 @@ static int serve(Board *b, int sock, double rate, double duration) {
     struct sockaddr_in from[BATCH];
     b->resample_ns = tick / 2; /* a command within half a tick of the tick's sample uses it */
     if (tfd < 0) return fail(1, "timerfd_create: %s", strerror(errno));
+    int filled = 0;
+    memset(msgs, 0, sizeof msgs);
+    for (filled = 0; filled < BATCH; filled++) {
+        iov[filled].iov_base = d[filled];
+        iov[filled].iov_len = sizeof d[filled];
+        msgs[filled].msg_hdr.msg_iov = &iov[filled];
+        msgs[filled].msg_hdr.msg_iovlen = 1;
+        msgs[filled].msg_hdr.msg_name = &from[filled];
+    }
     if (arm_timer(tfd, due, tick) != 0) return fail(1, "timerfd_settime: %s", strerror(errno));
     board_tick(b, start, 0);
     pfd[0].fd = tfd;
@@ -260,17 +269,14 @@ static int serve(Board *b, int sock, double rate, double duration) {
         if (pfd[0].revents & POLLIN) tick_if_due(b, tfd, &due, tick, &last_tick);
         if (!(pfd[1].revents & POLLIN)) continue;
         /* up to BATCH datagrams in one call (a flood costs one system call per BATCH); larger
-         * datagrams than any of the protocol's are truncated, and then malformed */
-        for (k = 0; k < BATCH; k++) {
-            iov[k].iov_base = d[k];
-            iov[k].iov_len = sizeof d[k];
-            memset(&msgs[k], 0, sizeof msgs[k]);
-            msgs[k].msg_hdr.msg_iov = &iov[k];
-            msgs[k].msg_hdr.msg_iovlen = 1;
-            msgs[k].msg_hdr.msg_name = &from[k];
+         * datagrams than any of the protocol's are truncated, and then malformed.  The kernel
+         * writes only the lengths and flags back: those are reset for the entries it filled */
+        for (k = 0; k < filled; k++) {
             msgs[k].msg_hdr.msg_namelen = sizeof from[k];
+            msgs[k].msg_hdr.msg_flags = 0;
         }
         n = recvmmsg(sock, msgs, BATCH, MSG_DONTWAIT, NULL);
+        filled = n > 0 ? n : 0;
         for (k = 0; k < n && !g_stop; k++) {
             size_t r, len = msgs[k].msg_len;
             now = now_ns();
