@@ -345,6 +345,8 @@ def _step(scene: Scene, out_dir, paths, slaves, progress, log, engine, overrides
                 s.always_no_prior = "always_no_prior" in d.workarounds
             if not c.rollback and s.description.can_get_set_state:  # the scene forbids rollback of this component
                 s.description = replace(s.description, can_get_set_state=False)
+            if c.memoryless and not s.description.memoryless:  # evaluated within Jacobi's exchange
+                s.description = replace(s.description, memoryless=True)
         return made
 
     def make_slaves() -> list[Slave]:
