@@ -60,7 +60,7 @@ def main() -> None:
     if args.no_timing:
         return
     scenes = {"pid_step": (ROOT / "scenarios" / "pid_step.yaml", [f"stop_time={args.stop:g}"]),
-              "vw_compare": (ROOT / "scenarios" / "vw_compare.yaml", [])}
+              "vw_compare": (ROOT / "scenarios" / "vw_compare.yaml", ["master.algorithm=gauss_seidel"])}
     print(f"{'scene':<12} {'guards on [s]':>14} {'off [s]':>9} {'overhead':>9}   (best of {args.repeat}, interleaved)")
     for name, (path, sets) in scenes.items():
         on, off = [], []

@@ -48,7 +48,7 @@ def force_loop(stop: float) -> None:
     print(f"force_loop over {stop:g} s at 1 ms; reference {ref.trace.meta.get('method')} {ref.stats['wall_s']:.3f} s")
     spans = {n: float(np.ptp(ref.trace[n])) for n in ref.trace.names}
     for label, opts in LOOP_VARIANTS:
-        res = run(scene, [f"stop_time={stop}", f"master.options={opts}"])
+        res = run(scene, [f"stop_time={stop}", "master.algorithm=iterative", f"master.options={opts}"])
         if res.status != "ok":
             print(f"  {label:44s} {res.status}: {res.reason[:110]}")
             continue

@@ -146,7 +146,7 @@ def scenes() -> None:
           f"{'us/step':>8} {'master us/step':>15}")
     for scene, sets in (("pid_step", []), ("pid_step", ["master.algorithm=jacobi"]),
                         ("pid_step", ["master.step=1e-4", "master.inputs=hold"]), ("pid_step_multibody", []),
-                        ("vw_compare", [])):
+                        ("vw_compare", ["master.algorithm=gauss_seidel"])):
         res = run(ROOT / "scenarios" / f"{scene}.yaml", sets)
         st = res.stats
         n = max(1, st["steps_done"])

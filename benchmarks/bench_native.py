@@ -73,7 +73,7 @@ def passes(stop_mass: float, stop_loop: float) -> None:
     print("1. cost per coupling pass: iterative (wall / passes) over compiled Gauss-Seidel (wall / steps)")
     mass = {"components.mass2.params.kc": 1000.0, "stop_time": stop_mass, "master.step": 0.005,
             "master.output_interval": 0.005}
-    loop = {"stop_time": stop_loop}
+    loop = {"stop_time": stop_loop, "master.algorithm": "iterative"}
     for label, scene, sets in (("two_mass", "two_mass.yaml", mass), ("force_loop", "force_loop.yaml", loop)):
         path = SCENARIOS / scene
         if label == "two_mass":

@@ -118,6 +118,11 @@ class Block:
 
     # -- derived structure --------------------------------------------------------------------
     @property
+    def memoryless(self) -> bool:
+        """No state, no sampling: every output is a function of the inputs and parameters now."""
+        return not self.states and self.integrator == "none" and not self.sample_period
+
+    @property
     def param_defaults(self) -> np.ndarray:
         return np.array([p.default for p in self.params], dtype=float)
 

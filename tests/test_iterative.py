@@ -117,8 +117,8 @@ def test_jacobi_runs_the_loop_with_its_one_step_delay_and_says_so():
 
 def test_an_unknown_method_is_refused_at_its_line(tmp_path):
     scene = tmp_path / "m.yaml"
-    scene.write_text(f"include: {FORCE_LOOP}\nmaster:\n  options: {{method: newtn}}\n")
-    with pytest.raises(SceneError, match=r"m.yaml:3: .*method = 'newtn' is not one of newton, fixed_point"):
+    scene.write_text(f"include: {FORCE_LOOP}\nmaster:\n  algorithm: iterative\n  options: {{method: newtn}}\n")
+    with pytest.raises(SceneError, match=r"m.yaml:4: .*method = 'newtn' is not one of newton, fixed_point"):
         load(scene)
 
 
@@ -161,7 +161,7 @@ def test_other_iterations_reach_the_same_solution(force_loop, options):
     be below 2/5.6) agree with the reference as well over the first 0.2 s."""
     from cosim.run.execute import run
 
-    res = run(FORCE_LOOP, ["stop_time=0.2", f"master.options={options}"])
+    res = run(FORCE_LOOP, ["stop_time=0.2", "master.algorithm=iterative", f"master.options={options}"])
     assert res.status == "ok", res.reason
     ref = force_loop[1].trace
     spans = {n: float(np.ptp(ref[n])) for n in ref.names}
@@ -175,7 +175,7 @@ def test_plain_fixed_point_diverges_on_the_force_loop(force_loop):
     connection, instead of hanging or running on inconsistent values."""
     from cosim.run.execute import run
 
-    res = run(FORCE_LOOP, ["stop_time=0.01", "master.options={method: fixed_point}"])
+    res = run(FORCE_LOOP, ["stop_time=0.01", "master.algorithm=iterative", "master.options={method: fixed_point}"])
     assert res.status == "unstable"
     assert "at the start time" in res.reason and "-> motor" in res.reason
 

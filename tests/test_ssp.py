@@ -62,6 +62,23 @@ def test_round_trip_is_bit_identical(scene, stop, cache, tmp_path):
     assert np.array_equal(back.trace.data, direct.trace.data)
 
 
+def test_a_scene_that_names_no_algorithm_travels_as_its_tolerance(cache, tmp_path):
+    """pid_step names no algorithm: its SSP carries the tolerance, not the fixed-step placeholder,
+    so a run of the SSP chooses as a run of the scene does (same choice, same trace to the bit),
+    and a tighter tolerance travels too."""
+    sc = load(SCENES / "pid_step.yaml", {"master.tolerance": 3e-3})
+    assert sc.master.auto
+    path = export(sc, tmp_path / "pid_step.ssp", cache_dir=cache)
+    back = load(path)
+    assert back.master.auto and back.master.tolerance == 3e-3 and back.master.inputs_given == sc.master.inputs_given
+    direct = run(SCENES / "pid_step.yaml", {"stop_time": 0.2, "master.tolerance": 3e-3}, cache_dir=cache)
+    again = run(path, {"stop_time": 0.2}, cache_dir=cache)
+    assert direct.ok and again.ok
+    assert direct.stats["choice"]["algorithm"] == again.stats["choice"]["algorithm"] == "adaptive"
+    assert direct.stats["choice"]["settings"] == again.stats["choice"]["settings"]
+    assert np.array_equal(again.trace.data, direct.trace.data)
+
+
 def _fmpy_with_initial_exchange(monkeypatch):
     """FMPy's simulate_ssp starts every connector at 0.0 and does no initial exchange; hand it the
     exchange our master does (inputs from the sources' outputs at t0, repeated until feedthrough

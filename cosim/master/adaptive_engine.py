@@ -70,7 +70,7 @@ ECCO_FIELDS = (
     ("int64_t *", "over", "steps over tolerance"),
     ("int64_t", "accepted", "statistics"), ("double", "h_min_taken", "statistics"),
     ("double", "h_max_taken", "statistics"),
-    ("int32_t", "floor_patience", "steps over tolerance at h_min before the run ends"),
+    ("int32_t", "floor_patience", "steps over tolerance at h_min before the run ends (0: never)"),
     ("int32_t", "at_floor", "such steps in a row"), ("int32_t", "ending", "the run ends before the next step"),
     ("int32_t", "end_bond", "the bond it ends on"), ("double", "end_scaled", "its eps"),
     ("int32_t", "status", "why a call returned early: 0 running, 1 a slave asked to stop, 5 over tolerance at the "
@@ -318,7 +318,7 @@ static int64_t rpr_ecco_loop(rpr_slave *S, int32_t n, const int32_t *order, doub
         for (b = 1; b < c->n_bonds; ++b) err = c->scaled[b] > err ? c->scaled[b] : err;
         err = py_max(err, 1e-10);
         c->at_floor = (err > 1.0 && h <= c->h_min * (1 + 1e-12)) ? c->at_floor + 1 : 0;
-        if (c->at_floor >= c->floor_patience) {
+        if (c->floor_patience > 0 && c->at_floor >= c->floor_patience) {
             int32_t kmax = 0;
             for (b = 1; b < c->n_bonds; ++b) if (c->scaled[b] > c->scaled[kmax]) kmax = b;
             c->ending = 1; c->end_bond = kmax; c->end_scaled = c->scaled[kmax];
@@ -511,7 +511,7 @@ class CompiledEcco(_CompiledVariable):
                                                                    stepper.h_prev, stepper.err_prev)
         for name in ("rtol", "atol", "h_min", "h_max", "safety", "fac_min", "fac_max", "k_i", "k_p"):
             setattr(ctl, name, opt[name])
-        ctl.timing, ctl.n_bonds, ctl.floor_patience = int(timing), nb, stepper.floor_patience
+        ctl.timing, ctl.n_bonds, ctl.floor_patience = int(timing), nb, stepper.patience
         ctl.h_min_taken, ctl.h_max_taken = math.inf, 0.0
         buf = self.arr.buffer
         ctl.out_idx = buf(np.array([b.out_idx for b in bonds]).ravel(), np.int64)

@@ -152,6 +152,10 @@ class Algorithm(MasterAlgorithm, ABC):
         self._pull = [x.pull for x in s]
         self._do = [x.do_step for x in s]
         self._gather = [_gatherer(system, i) for i in range(n)]
+        #: memoryless slaves (``SlaveDescription.memoryless``, e.g. a ``sum`` block) in stepping order, each
+        #: after the slaves that feed it: an algorithm that exchanges at t_k evaluates them within the
+        #: exchange (:meth:`_exchange`), with no delay of their own, as libcosim evaluates its functions
+        self.exchange = [i for i in self.order if getattr(s[i].description, "memoryless", False)]
         self._setup_inputs(inputs)
         self._setup_rates(rates)
 
@@ -291,6 +295,20 @@ class Algorithm(MasterAlgorithm, ABC):
         st = fn()
         self.slave_ns[i] += _ns() - t0
         return st
+
+    def _exchange(self) -> tuple[int, int] | None:
+        """Evaluate the memoryless slaves (:attr:`exchange`) on the outputs just read: each takes its
+        inputs now (held: no slope) and gives its outputs at once.  Returns ``(slave, status)`` of a
+        failing call, or None."""
+        for i in self.exchange:
+            self._gather[i]()
+            sl = self.system.slaves[i]
+            st = self._io(i, sl.push)
+            if st not in FAILING:
+                st = self._io(i, sl.pull)
+            if st in FAILING:
+                return i, st
+        return None
 
     def _advance(self, i: int, t: float, h: float) -> int:
         t0 = _ns()

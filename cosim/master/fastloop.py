@@ -41,6 +41,16 @@ static inline int push(rpr_slave *s, double *v, double inv_h) {
     return set_slopes(s);
 }
 
+/* a memoryless slave evaluated within Jacobi's exchange: its inputs from their sources now (held,
+   no slope), then its outputs (Algorithm._exchange) */
+static inline int exchange(rpr_slave *s, double *v) {
+    int j, st;
+    double *in = v + s->in_off;
+    for (j = 0; j < s->n_in; ++j) in[j] = v[s->in_src[j]];
+    if (s->n_in) { st = set_inputs(s, in); if (st > ST_WARNING) return st; }
+    return get_outputs(s, v);
+}
+
 /* one macro step from t_ns of a slave at rate > 1: sub-steps at the exact sub-instants, its
    inputs held or set on the macro step's line before every later sub-step (cosim.master.multirate) */
 static inline int advance(rpr_slave *s, double *v, int64_t t_ns, double t, double h) {
@@ -71,8 +81,8 @@ static inline int advance(rpr_slave *s, double *v, int64_t t_ns, double t, doubl
     *fail_status = st_; goto out; } } while (0)
 #define TICK(i) do { if (timing) { int64_t t_ = now_ns(); S[i].ns += t_ - tprev; tprev = t_; } } while (0)
 
-/* Run up to nsteps macro steps from step index k0.  algorithm 0 = Jacobi, 1 = Gauss-Seidel
-   (slaves in `order`).  After every `rec_every`-th step a row (t, v[rec_idx]...) is appended to
+/* Run up to nsteps macro steps from step index k0.  algorithm 0 = Jacobi (memoryless slaves then
+   evaluated in `order`), 1 = Gauss-Seidel (slaves in `order`).  After every `rec_every`-th step a row (t, v[rec_idx]...) is appended to
    rec.  Returns the number of steps completed; on a failure *fail_slave >= 0.  With
    budget_ns > 0 it also returns (early, no failure) once that much wall time has passed, so
    that Python can handle signals between calls. */
@@ -94,6 +104,12 @@ int64_t rpr_run(rpr_slave *S, int32_t n, const int32_t *order, int32_t algorithm
             for (i = 0; i < n; ++i) { CHECK(push(&S[i], v, inv_h), i); TICK(i); }
             for (i = 0; i < n; ++i) { CHECK(advance(&S[i], v, k * step_ns, t, h), i); TICK(i); }
             for (i = 0; i < n; ++i) { CHECK(get_outputs(&S[i], v), i); TICK(i); }
+            for (c = 0; c < n; ++c) {  /* memoryless slaves, in order: their inputs now, outputs at once */
+                i = order[c];
+                if (!S[i].memoryless) continue;
+                CHECK(exchange(&S[i], v), i);
+                TICK(i);
+            }
         } else {
             for (c = 0; c < n; ++c) {
                 i = order[c];

@@ -65,6 +65,7 @@ SLAVE_FIELDS: tuple[tuple[str, str, str], ...] = (
     ("int32_t", "has_last", "iterative: it ran in this step"),
     ("int32_t", "n_feed", "iterative: its outputs that feed some input"),
     ("const int32_t *", "feed", "iterative: their positions among its outputs"),
+    ("int32_t", "memoryless", "Jacobi: evaluated within the exchange, after every output is read"),
     ("int64_t", "calls", "doStep calls"),
     ("int64_t", "ns", "wall time in this slave's calls [ns] (with timing)"),
 )
@@ -235,6 +236,7 @@ class SlaveArray:
             c.no_prior, c.rate, c.sub_ns = int(getattr(s, "no_prior", not s.can_rollback)), 1, 0
             c.inst, c.do_step, c.get, c.set = ne.instance, ne.do_step, ne.get_real, ne.set_real
             c.bool_status, c.last_time = ne.get_boolean_status, ne.last_time
+            c.memoryless = int(getattr(s.description, "memoryless", False))
             if states:
                 c.get_state, c.set_state = ne.get_state, ne.set_state
                 c.state = ctypes.addressof(self.states) + i * ctypes.sizeof(ctypes.c_void_p)

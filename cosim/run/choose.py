@@ -3,6 +3,8 @@
 
 * an algebraic loop: ``iterative`` (it solves the loop within each step), at a fixed step;
 * real-time pacing, or slaves at several rates: ``gauss_seidel`` at a fixed step;
+* no feedback between the components (a chain): ``gauss_seidel`` at a fixed step (adaptive's
+  error control measures extrapolated inputs, and in a chain no input is extrapolated);
 * every slave can roll back: ``adaptive``, at an ``rtol`` that meets the tolerance;
 * power bonds, and a slave that cannot roll back: ``ecco``, at an ``rtol`` that meets it;
 * otherwise (a slave that cannot roll back, no bonds): ``gauss_seidel`` at a fixed step.
@@ -12,7 +14,9 @@ The setting (step or rtol) comes from pilot runs, each with its error estimate
 (:mod:`cosim.master.estimate`): a fixed step first over the first quarter of the run, from the
 scene's step, then ``h * (tolerance / 2 / estimate)^(1/p)`` snapped to a step that divides the
 output interval, checked over the whole run and refined while the estimate misses; a tolerance
-likewise over the whole run.  Where runs cannot be repeated (hardware, real-time pacing) there are
+likewise (its first pilot over the first quarter too).  The last pilot, when it ran the whole
+run at the chosen setting, is the run itself (:mod:`cosim.run.execute` writes it out rather than
+running it again).  Where runs cannot be repeated (hardware, real-time pacing) there are
 no pilots: the scene's step is kept and the choice says so.
 """
 from __future__ import annotations
@@ -22,7 +26,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 
 from ..errors import UserError
-from ..master import ALGORITHMS
+from ..master import ALGORITHMS, find_algebraic_loop
 from ..master.algorithm import option_values
 from ..scenario import Scene
 from ..scenario.check_connections import algebraic_loop
@@ -36,6 +40,8 @@ MAX_PILOTS = 5
 LOW = 0.3
 #: The estimate a new setting aims at, as a fraction of the tolerance.
 TARGET = 0.6
+#: The first pilot runs over this share of the run (the next ones over the whole run).
+WINDOW = 0.25
 #: First rtol of adaptive and ecco, as a fraction of the tolerance (a start, refined by the pilots).
 FIRST_RTOL = {"adaptive": 1 / 30, "ecco": 1.0}
 
@@ -78,6 +84,10 @@ def kind(scene: Scene) -> tuple[str, str]:
     rates = [c.name for c in comps if c.rate > 1]
     if rates:
         return "gauss_seidel", f"{', '.join(rates)} step{'s' if len(rates) == 1 else ''} at several rates per step"
+    if not fixed and find_algebraic_loop((c.src, c.dst) for c in scene.connections) is None:
+        return "gauss_seidel", ("no feedback between the components: in Gauss-Seidel order every input comes from a "
+                                "source that has stepped, a coupling error adaptive's control does not measure; a "
+                                "fixed step")
     if not fixed:
         return "adaptive", "every slave can roll back: error-controlled steps"
     if scene.bonds:
@@ -106,23 +116,30 @@ def steps_for(scene: Scene) -> Callable[[float], int | None]:
     return step
 
 
+def windowed(scene: Scene, window: float) -> Scene:
+    """``scene`` over the first ``window`` of its span (whole output intervals, at least one)."""
+    if window >= 1.0:
+        return scene
+    per = scene.master.record_every
+    n = max(per, int(scene.n_steps * window) // per * per)
+    return replace(scene, n_steps=n, stop_time=(scene.start_ns + n * scene.master.step_ns) / 1e9)
+
+
 def with_step(scene: Scene, algorithm: str, inputs: str, step_ns: int, window: float = 1.0) -> Scene:
     """``scene`` at a fixed ``step_ns`` (same output interval), over the first ``window`` of its span."""
     m = scene.master
     interval_ns = m.record_every * m.step_ns
     n = scene.n_steps * m.step_ns // step_ns
-    if window < 1.0:
-        per = interval_ns // step_ns
-        n = max(per, int(n * window) // per * per)
     master = replace(m, algorithm=algorithm, step=step_ns / 1e9, step_ns=step_ns, record_every=interval_ns // step_ns,
                      inputs=inputs, options={})
-    return replace(scene, master=master, n_steps=n, stop_time=(scene.start_ns + n * step_ns) / 1e9)
+    return windowed(replace(scene, master=master, n_steps=n, stop_time=(scene.start_ns + n * step_ns) / 1e9), window)
 
 
-def with_rtol(scene: Scene, algorithm: str, inputs: str, rtol: float) -> Scene:
-    """``scene`` with a variable-step ``algorithm`` at ``rtol``."""
+def with_rtol(scene: Scene, algorithm: str, inputs: str, rtol: float, window: float = 1.0) -> Scene:
+    """``scene`` with a variable-step ``algorithm`` at ``rtol``, over the first ``window`` of its span."""
     opts = option_values({"rtol": rtol}, ALGORITHMS[algorithm].options)
-    return replace(scene, master=replace(scene.master, algorithm=algorithm, inputs=inputs, options=opts))
+    return windowed(replace(scene, master=replace(scene.master, algorithm=algorithm, inputs=inputs, options=opts)),
+                    window)
 
 
 def choose(scene: Scene, pilot: Callable[[Scene], object] | None, log: Callable[[str], None] = lambda m: None,
@@ -146,22 +163,27 @@ def choose(scene: Scene, pilot: Callable[[Scene], object] | None, log: Callable[
     if getattr(cls, "variable_step", False):
         rtol = tol * FIRST_RTOL.get(alg, 1.0)
         best = None
-        for _ in range(MAX_PILOTS if pilot else 0):
-            sc = with_rtol(scene, alg, inputs, rtol)
+        for k in range(MAX_PILOTS if pilot else 0):
+            window = WINDOW if k == 0 else 1.0
+            sc = with_rtol(scene, alg, inputs, rtol, window)
             e = estimate_of(sc)
-            choice.pilots.append({"rtol": rtol, "estimate": e})
-            log(f"{scene.name}: pilot {alg} at rtol {rtol:.3g}: estimated worst error "
-                f"{e:.3g}" if e is not None else f"{scene.name}: pilot {alg} at rtol {rtol:.3g}: no estimate")
+            choice.pilots.append({"rtol": rtol, "window_s": sc.stop_time - sc.start_time, "estimate": e})
+            log(f"{scene.name}: pilot {alg} at rtol {rtol:.3g} over {sc.stop_time - sc.start_time:g} s: "
+                + (f"estimated worst error {e:.3g}" if e is not None else "no estimate"))
             if e is None:
                 break
-            if e <= tol:
+            met = e <= tol and window == 1.0
+            if met:
                 best = rtol if best is None else max(best, rtol)
                 if e >= LOW * tol:
                     break
             fac = (TARGET * tol / e) ** (1 / ORDER_TOLERANCE) if e > 0 and math.isfinite(e) else 0.1
             nxt = rtol * min(30.0, max(1 / 30, fac))
+            if best is not None and not met and nxt <= best:
+                break  # a miss above one that met it, and the next try tighter still: keep the one that met it
             if best is not None and nxt > rtol:  # looser than one that met it: only if below the last miss
-                misses = [p["rtol"] for p in choice.pilots if p["estimate"] is not None and p["estimate"] > tol]
+                misses = [p["rtol"] for p in choice.pilots if p["estimate"] is not None and p["estimate"] > tol
+                          and p["window_s"] >= sc.stop_time - sc.start_time]
                 if misses and nxt >= min(misses):
                     nxt = math.sqrt(rtol * min(misses))
             rtol = nxt
@@ -176,7 +198,7 @@ def choose(scene: Scene, pilot: Callable[[Scene], object] | None, log: Callable[
     h_ns = snap(m.step) or m.step_ns
     best = None
     for k in range(MAX_PILOTS if pilot else 0):
-        window = 0.25 if k == 0 else 1.0
+        window = WINDOW if k == 0 else 1.0
         sc = with_step(scene, alg, inputs, h_ns, window)
         e = estimate_of(sc)
         choice.pilots.append({"step": h_ns / 1e9, "window_s": sc.stop_time - sc.start_time, "estimate": e})
@@ -193,6 +215,8 @@ def choose(scene: Scene, pilot: Callable[[Scene], object] | None, log: Callable[
         nxt = snap(h_ns / 1e9 * min(10.0, max(0.05, fac)))
         if met and (nxt is None or nxt <= h_ns):
             break  # no longer step to try
+        if best is not None and e > tol and (nxt is None or nxt <= best):
+            break  # a miss at a longer step than one that met it, and the next try shorter still: keep that one
         if e > tol and (nxt is None or nxt >= h_ns):
             nxt = snap(h_ns / 2e9)
             if nxt is None or nxt >= h_ns:

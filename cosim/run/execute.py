@@ -345,6 +345,8 @@ def _step(scene: Scene, out_dir, paths, slaves, progress, log, engine, overrides
                 s.always_no_prior = "always_no_prior" in d.workarounds
             if not c.rollback and s.description.can_get_set_state:  # the scene forbids rollback of this component
                 s.description = replace(s.description, can_get_set_state=False)
+            if c.memoryless and not s.description.memoryless:  # evaluated within Jacobi's exchange
+                s.description = replace(s.description, memoryless=True)
         return made
 
     def make_slaves() -> list[Slave]:
@@ -361,18 +363,69 @@ def _step(scene: Scene, out_dir, paths, slaves, progress, log, engine, overrides
     if repeat is None and given is not None and not all(isinstance(s, FmuSlave) for s in given):
         repeat = "the slaves were handed over ready, not as FMUs: a run is not repeated"
     extra: dict = {}
+    pilots: list[RunResult] = []
     if scene.master.auto:
         from .choose import choose
 
         def pilot(sc: Scene) -> RunResult:
-            return _once(sc, make_slaves, None, None, None, engine, repeat, {})
+            pilots.append(_once(sc, make_slaves, None, None, None, engine, repeat, {}))
+            return pilots[-1]
 
         scene, choice = choose(scene, pilot if repeat is None else None, log, why_not=repeat)
         extra["choice"] = choice.as_dict()
         log(f"{scene.name}: {choice}")
-    res = _once(scene, make_slaves, main, out_dir, progress, engine, repeat, extra, log,
-                list(overrides.items()) if isinstance(overrides, Mapping) else list(overrides or []), trace_format)
+    over = list(overrides.items()) if isinstance(overrides, Mapping) else list(overrides or [])
+    same = next((p for p in reversed(pilots) if p.scene.master == scene.master and p.scene.n_steps == scene.n_steps
+                 and p.scene.stop_time == scene.stop_time and not p.trace.text), None)
+    if same is not None:  # the last pilot ran the chosen setting over the whole run: it is the run
+        res = _replay(same, scene, out_dir, progress, extra, log, over, trace_format)
+    else:
+        res = _once(scene, make_slaves, main, out_dir, progress, engine, repeat, extra, log, over, trace_format)
     return res.status, res.reason, res.trace, res.stats, res.trace_path, build_s
+
+
+def _run_meta(scene: Scene, overrides: Sequence) -> dict:
+    """The trace metadata of a run of ``scene``."""
+    return {**scene_meta(scene), "inputs": scene.master.inputs,
+            "components": {n: c.label for n, c in scene.components.items()},
+            "connections": [str(c) for c in scene.connections], "overrides": list(overrides)}
+
+
+def _replay(pilot: RunResult, scene: Scene, out_dir, progress, extra: dict, log, overrides: Sequence,
+            trace_format: str = "csv") -> RunResult:
+    """The run of ``scene`` that the pilot run ``pilot`` (the same scene at the same setting over
+    the same span, with its companion, estimate and verdict) already is: its rows, status and
+    statistics written to the run's observers (trace file, sidecar) with ``extra`` (the choice),
+    instead of running it once more."""
+    from ..trace.traces import TraceWriteError
+
+    memory, inner, trace_path = scene_observers(scene, out_dir, trace_format=trace_format)
+    tr = pilot.trace
+    status, reason, stats = pilot.status, pilot.reason, dict(pilot.stats, **extra)
+    try:
+        for ob in inner:
+            ob.start(tr.columns, {**tr.meta, **_run_meta(scene, overrides), **extra})
+        try:
+            for ob in inner:
+                ob.record(tr.data)
+        except TraceWriteError as exc:  # disk full: the run failed with the reason, its rows so far kept
+            status, reason = "failed", str(exc)
+            stats = dict(stats, status=status, reason=reason)
+        for ob in inner:
+            ob.finish(status, reason, stats)
+    finally:
+        for ob in inner:
+            if getattr(ob, "note", ""):
+                log(ob.note)
+    if progress:
+        progress(scene.n_steps, scene.n_steps)
+    t = memory.trace
+    for ob in inner:  # a trace writer that failed at the end turns "ok" into "failed"
+        if getattr(ob, "status", status) != status:
+            status, reason = ob.status, ob.reason
+            stats = dict(stats, status=status, reason=reason)
+            t.status, t.reason = status, reason
+    return RunResult(scene, status, reason, t, stats, {}, trace_path, 0.0)
 
 
 def repeatable(scene: Scene) -> str | None:
@@ -442,10 +495,7 @@ def _once(scene: Scene, make_slaves, slaves, out_dir, progress, engine, repeat: 
     memory, inner, trace_path = scene_observers(scene, out_dir, trace_format=trace_format)
     estimator = EstimatingObserver(inner, ctrace, div, method, scene.master.tolerance, extra)
     observers = [estimator]
-    meta = {**scene_meta(scene), "inputs": scene.master.inputs,
-            "components": {n: c.label for n, c in scene.components.items()},
-            "connections": [str(c) for c in scene.connections],
-            "overrides": list(overrides)}
+    meta = _run_meta(scene, overrides)
     try:
         stats = simulate(system, scene.master.algorithm, step_ns=scene.master.step_ns, n_steps=scene.n_steps,
                          record_every=scene.master.record_every, observers=observers,

@@ -6,7 +6,8 @@ miss), the scene's parameters and start values as one system-level parameter set
 power bond becomes its two signals, each tagged with an ``org.rpr-cosim.bond`` annotation), the
 units the connectors and parameters use with their SI base units, ``DefaultExperiment`` (the
 scene's start and stop times) and, as an ``org.rpr-cosim.master`` annotation of the default
-experiment, our master settings (algorithm, step, input mode, output interval, order, engine) and
+experiment, our master settings (algorithm, step, input mode, output interval, order, engine, tolerance; a scene
+that names no algorithm: its tolerance and no algorithm, so a run of the SSP chooses again) and
 the recorded outputs.  Both XML files are validated against the SSP 1.0 schemas that FMPy ships
 before the archive is written."""
 from __future__ import annotations
@@ -94,8 +95,13 @@ def ssd_document(scene, fmu_sources: dict[str, str], ssv_source: str):
     exp = etree.SubElement(root, _q("ssd", "DefaultExperiment"), startTime=_num(getattr(scene, "start_time", 0.0)),
                            stopTime=_num(scene.stop_time))
     m = scene.master
-    attrs = {"algorithm": m.algorithm, "step": _num(m.step), "inputs": m.inputs, "engine": m.engine,
+    # a scene that names no algorithm travels as its tolerance (a run of the SSP chooses again, on
+    # its machine, what the master would choose here), not as the fixed-step placeholder
+    attrs = {**({} if m.auto else {"algorithm": m.algorithm}), "step": _num(m.step),
+             **({"inputs": m.inputs} if not m.auto or m.inputs_given else {}), "engine": m.engine,
              "outputInterval": _num(m.record_every * m.step), "scene": scene.name}
+    if m.tolerance is not None:
+        attrs["tolerance"] = _num(m.tolerance)
     if m.order:
         attrs["order"] = " ".join(m.order)
     anns = etree.SubElement(exp, _q("ssd", "Annotations"))

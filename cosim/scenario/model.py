@@ -33,6 +33,14 @@ class Component:
     guard: Any = None  # cosim.scenario.guards.GuardNeeds: what the run-time guards need, as plain data
 
     @property
+    def memoryless(self) -> bool:
+        """A catalog or user block with no state and no sampling (e.g. ``sum``): its outputs are
+        functions of its inputs at every instant."""
+        b = self.block
+        return (self.kind == "model" and b is not None and not b.states and b.integrator == "none"
+                and not b.sample_period)
+
+    @property
     def label(self) -> str:
         return f"{self.model}/{self.fidelity}" if self.kind == "model" else (self.fmu.name if self.fmu else "?")
 

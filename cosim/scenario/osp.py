@@ -19,36 +19,101 @@ What becomes what:
     (``LinearMechanicalPort``, ``AngularMechanicalPort``, ... : an effort group and a flow group)
     become power bonds, one per variable pair.
 ``SignalConnection`` through ``Functions``  a ``LinearTransformation`` (``in`` -> ``out``) folds into
-    the connection's factor and offset; ``Sum`` and ``VectorSum`` are refused (a connection carries one
-    source in rpr-cosim).
+    the connection's factor and offset; a ``Sum`` (``inputCount``: signals ``in[0]`` ..
+    ``in[inputCount-1]`` and ``out``, 0-based as libcosim's) and a ``VectorSum`` (``inputCount`` and
+    ``dimension``; connected by ``SignalGroupConnection`` to variable groups of ``dimension``
+    variables, element by element in the group's order) become a component of the function's name,
+    ``model: sum`` (:mod:`models.blocks.sums`: a memoryless block, which fixed-step Jacobi evaluates
+    within the exchange, so it adds no delay: libcosim's convention).  Every signal of a function
+    must be connected, once.
 ``Algorithm``   ``fixedStep`` -> ``jacobi`` (libcosim's fixed-step algorithm exchanges at t_k, then steps
-    every slave), ``ecco`` -> ``ecco`` with ``EccoConfiguration`` mapped onto its options (safety factor,
-    first and largest step, change rates, PI gains; not the tolerances, which libcosim puts on the power
-    residual and we on the energy residual of a step, nor the smallest step, at which libcosim goes on
-    over tolerance and we end the run as unstable).
+    every slave), ``ecco`` -> ``ecco`` with ``EccoConfiguration`` mapped onto its options by
+    :func:`ecco_options`: the steps, step ratios and PI gains exactly, the safety factor and the
+    tolerances converted (stated in the function and, per run, in notes in its output and sidecar),
+    with what still differs said in a note.
 ``StartTime``, ``EndTime``, ``BaseStepSize``  the scene's start time, stop time and step.
 
 Bad input gets one line naming the file, the line and what is expected.
 """
 from __future__ import annotations
 
+from dataclasses import dataclass, field
 from pathlib import Path
 
 from .problems import Problem
 
 ROOT_TAG = "OspSystemStructure"
 ALGORITHMS = {"fixedStep": "jacobi", "ecco": "ecco"}
-#: EccoConfiguration element -> our ecco option (cosim.master.algorithms.ecco)
-ECCO_OPTIONS = {"SafetyFactor": "safety", "StepSize": "h_init", "MaximumStepSize": "h_max", "MinimumChangeRate": "fac_min", "MaximumChangeRate": "fac_max",
-                "ProportionalGain": "k_p", "IntegralGain": "k_i"}
-#: libcosim's ECCO tolerances apply to the bonds' power residual [W]; ours to the energy residual of a
-#: step [J] (cosim.master.algorithms.ecco): not the same quantity, so ours keep their defaults (a note says so)
-ECCO_UNMAPPED = {"RelativeTolerance": "libcosim's ECCO tolerances bound the power residual [W], ours the energy "
-                                       "residual of a step [J]; ecco keeps its own rtol and atol",
-                 "AbsoluteTolerance": "libcosim's ECCO tolerances bound the power residual [W], ours the energy "
-                                      "residual of a step [J]; ecco keeps its own rtol and atol",
-                 "MinimumStepSize": "libcosim's ECCO goes on at its smallest step over tolerance; ours ends such a "
-                                    "run as unstable, so it keeps its own floor h_min"}
+#: EccoConfiguration elements (libcosim's ``ecco_algorithm_params``) that are our ecco options exactly
+#: (:mod:`cosim.master.algorithms.ecco`): the first step, the step bounds, the bounds of the step ratio and
+#: the PI controller's exponents (libcosim: ratio = SafetyFactor * eps^-(k_i + k_p) * eps_prev^k_p, ours
+#: (safety / eps)^k_i * (eps_prev / eps)^k_p: the same exponents)
+ECCO_EXACT = {"StepSize": "h_init", "MinimumStepSize": "h_min", "MaximumStepSize": "h_max",
+              "MinimumChangeRate": "fac_min", "MaximumChangeRate": "fac_max", "ProportionalGain": "k_p",
+              "IntegralGain": "k_i"}
+#: the ones converted (see :func:`ecco_options`)
+ECCO_CONVERTED = ("SafetyFactor", "RelativeTolerance", "AbsoluteTolerance")
+ECCO_ELEMENTS = tuple(ECCO_EXACT) + ECCO_CONVERTED
+#: what differs whatever the options: said once per run that maps an EccoConfiguration
+ECCO_DIFFERENCES = ("ecco: libcosim's residual of a bond is |P_a - P_b| at the step's end times the step, combined "
+                    "over the bonds as a root mean square; ours integrates P_a - P_b over the step (trapezoidal rule) "
+                    "and takes the largest over the bonds (the same for one bond but for the rule)")
+
+
+def ecco_options(given: dict[str, float], k_i_default: float) -> tuple[dict[str, float], list[tuple[str, str]]]:
+    """Our ``ecco`` options for libcosim's ECCO parameters ``given`` (element name -> value) and the
+    notes saying each conversion and what does not map, as (element, one line).
+
+    Exact: :data:`ECCO_EXACT`.  Converted:
+
+    * ``SafetyFactor`` s: libcosim multiplies the step ratio by s, ours aims the scaled residual at
+      ``safety`` inside the integral term, ``(safety / eps)^k_i``: the same ratio for
+      ``safety = s^(1/k_i)`` (with k_i = IntegralGain, else our default); not with k_i = 0.
+    * ``AbsoluteTolerance`` a and ``RelativeTolerance`` r: libcosim scales the energy residual dE of a
+      step [J] (largest over the bonds) by ``a + r * dE``, so its relative term is relative to the
+      residual itself and ``eps <= 1`` means ``dE <= a / (1 - r)``: an absolute bound.  Ours scales by
+      ``atol + rtol * E`` (E the energy the bond carried): ``atol = a / (1 - r)`` and ``rtol`` its
+      smallest value (1e-12: no relative term) give the same bound; not with r >= 1.
+    * ``MinimumStepSize``: the same floor; libcosim goes on at it over tolerance, which ours does with
+      ``floor_steps = 0`` (its default ends the run as unstable after 100 such steps in a row).
+    """
+    opts = {ECCO_EXACT[k]: v for k, v in given.items() if k in ECCO_EXACT}
+    notes: list[tuple[str, str]] = []
+    if "SafetyFactor" in given:
+        sf, k_i = given["SafetyFactor"], opts.get("k_i", k_i_default)
+        if k_i > 0 and sf > 0:
+            opts["safety"] = sf ** (1.0 / k_i)
+            notes.append(("SafetyFactor", f"EccoConfiguration SafetyFactor {sf:g} -> ecco safety {opts['safety']:.6g} "
+                                          f"(= SafetyFactor^(1/k_i), k_i = {k_i:g}: libcosim multiplies the step ratio "
+                                          f"by it, ours aims the scaled residual at safety; the same step ratio)"))
+        else:
+            notes.append(("SafetyFactor", f"EccoConfiguration SafetyFactor {sf:g} is not mapped: with k_i = {k_i:g} "
+                                          f"our controller has no factor to match it; ecco keeps its safety"))
+    if "AbsoluteTolerance" in given or "RelativeTolerance" in given:
+        a, r = given.get("AbsoluteTolerance"), given.get("RelativeTolerance", 0.0)
+        if a is None:
+            notes.append(("RelativeTolerance", "EccoConfiguration RelativeTolerance is not mapped without "
+                                               "AbsoluteTolerance; ecco keeps its rtol and atol"))
+        elif r >= 1.0 or r < 0.0:
+            notes.append(("RelativeTolerance", f"EccoConfiguration RelativeTolerance {r:g} is not mapped (libcosim's "
+                                               f"residual is then never over tolerance); ecco keeps its rtol and atol"))
+        else:
+            opts["atol"], opts["rtol"] = a / (1.0 - r), 1e-12
+            notes.append(("AbsoluteTolerance", f"EccoConfiguration AbsoluteTolerance {a:g}, RelativeTolerance {r:g} -> "
+                                               f"ecco atol {opts['atol']:.9g} J, rtol 1e-12 (libcosim's relative term is "
+                                               f"relative to the residual itself: eps <= 1 is dE <= atol/(1 - rtol), an "
+                                               f"absolute bound on a step's energy residual)"))
+    if "MinimumStepSize" in given:
+        opts["floor_steps"] = 0
+        notes.append(("MinimumStepSize", f"EccoConfiguration MinimumStepSize {given['MinimumStepSize']:g} s -> ecco h_min "
+                                         f"and floor_steps 0: as libcosim, the run goes on at h_min over tolerance (such "
+                                         f"steps are counted in the statistics, 'over tolerance'; without floor_steps 0 "
+                                         f"ecco ends a run as unstable after 100 of them in a row)"))
+    if given:
+        notes.append(("", ECCO_DIFFERENCES))
+    return opts, notes
+
+
 #: OSP port groups: (effort group, flow group)
 PORTS = {"LinearMechanicalPort": ("Force", "LinearVelocity"),
          "AngularMechanicalPort": ("Torque", "AngularVelocity"),
@@ -89,6 +154,7 @@ class _Reader:
         self.path, self.problems = Path(path), problems
         self.label = _display(self.path)
         self.comps: dict[str, tuple] = {}  # name -> (element, spec YMap, description, fmu path)
+        self.broken_functions: set[str] = set()  # functions refused at their definition
 
     def err(self, el, msg: str) -> None:
         self.problems.append(Problem(self.label, getattr(el, "sourceline", 0) or 0, msg))
@@ -173,11 +239,12 @@ class _Reader:
                 self.variable_connection(el, conns)
             elif kind == "VariableGroupConnection":
                 self.group_connection(el, conns)
-            elif kind == "SignalConnection":
-                self.signal_connection(el, functions, conns)
+            elif kind in ("SignalConnection", "SignalGroupConnection"):
+                self.signal_connection(el, functions, conns, group=kind == "SignalGroupConnection")
             else:
-                self.err(el, f"<{kind}> connections are not supported (VariableConnection, VariableGroupConnection "
-                             f"and SignalConnection are)")
+                self.err(el, f"<{kind}> connections are not supported (VariableConnection, VariableGroupConnection, "
+                             f"SignalConnection and SignalGroupConnection are)")
+        self.finish_functions(functions)
         if any(p.severity == "error" for p in self.problems):
             return None
         tree = YMap()
@@ -195,6 +262,9 @@ class _Reader:
         for name, (el, spec, _d, _f) in self.comps.items():
             cmap[name] = spec
             cmap.locs[name] = self.loc(el)
+        for name, spec in self.function_components(functions):
+            cmap[name] = spec
+            cmap.locs[name] = spec.where
         tree["components"] = cmap
         tree.locs["components"] = self.loc(sims)
         tree["connections"] = conns
@@ -222,25 +292,31 @@ class _Reader:
         return x
 
     def ecco(self, el):
+        """The EccoConfiguration as ecco options (:func:`ecco_options`), its notes added."""
+        from ..master.algorithms.ecco import OPTIONS
         from .yamlfile import YMap
 
         if el is None:
             return None
-        opts = YMap()
-        opts.where = self.loc(el)
+        given, where = {}, {}
         for c in _kids(el):
-            key = ECCO_OPTIONS.get(_local(c))
-            if _local(c) in ECCO_UNMAPPED:
-                self.problems.append(Problem(self.label, c.sourceline or 0, f"EccoConfiguration {_local(c)}: "
-                                             f"{ECCO_UNMAPPED[_local(c)]} (set master.options to change it)", "note"))
-                continue
-            if key is None:
-                self.err(c, f"EccoConfiguration: <{_local(c)}> is unknown (expected {', '.join(ECCO_OPTIONS)})")
+            if _local(c) not in ECCO_ELEMENTS:
+                self.err(c, f"EccoConfiguration: <{_local(c)}> is unknown (expected {', '.join(ECCO_ELEMENTS)})")
                 continue
             x = self.number(c, (c.text or "").strip(), _local(c))
             if x is not None:
-                opts[key] = x
-                opts.locs[key] = self.loc(c)
+                given[_local(c)], where[_local(c)] = x, c
+        k_i = next(o.default for o in OPTIONS if o.name == "k_i")
+        values, notes = ecco_options(given, k_i)
+        for elem, text in notes:
+            self.problems.append(Problem(self.label, getattr(where.get(elem, el), "sourceline", 0) or 0, text, "note"))
+        back = {v: k for k, v in ECCO_EXACT.items()} | {"safety": "SafetyFactor", "atol": "AbsoluteTolerance",
+                                                         "rtol": "AbsoluteTolerance", "floor_steps": "MinimumStepSize"}
+        opts = YMap()
+        opts.where = self.loc(el)
+        for key, x in values.items():
+            opts[key] = x
+            opts.locs[key] = self.loc(where.get(back[key], el))
         return opts
 
     # simulators ---------------------------------------------------------------------------------
@@ -517,54 +593,221 @@ class _Reader:
                 self.add(conns, f"{p[0][0]}.{p[0][1]} -> {p[1][0]}.{p[1][1]}", el)
 
     # functions ----------------------------------------------------------------------------------
-    def functions(self, node) -> dict[str, tuple]:
-        out: dict[str, tuple] = {}
+    def functions(self, node) -> dict[str, _Function]:
+        """The ``<Functions>``: each LinearTransformation folds into its connection; each Sum and
+        VectorSum becomes a component ``model: sum`` (:mod:`models.blocks.sums`) of its name."""
+        out: dict[str, _Function] = {}
         for el in _kids(node) if node is not None else []:
             kind, name = _local(el), el.get("name")
+            if kind not in ("LinearTransformation", "Sum", "VectorSum"):
+                self.err(el, f"function <{kind}> is unknown (OSP defines LinearTransformation, Sum and VectorSum)")
+                continue
+            if not name:
+                self.err(el, f"a <{kind}> needs name=")
+                continue
+            if name in out:
+                self.err(el, f"function {name!r} is defined twice (line {out[name].el.sourceline})")
+                continue
             if kind == "LinearTransformation":
                 k = self.number(el, el.get("factor", "1"), f"LinearTransformation {name!r}: factor")
                 c = self.number(el, el.get("offset", "0"), f"LinearTransformation {name!r}: offset")
                 if k is not None and c is not None:
-                    out[name] = (kind, el, k, c, {})
-            elif kind in ("Sum", "VectorSum"):
-                self.err(el, f"function {kind} {name!r}: summing signals is not supported by rpr-cosim (a connection "
-                             f"carries one source); add the signals inside an FMU")
-            else:
-                self.err(el, f"function <{kind}> is unknown (OSP defines LinearTransformation, Sum and VectorSum)")
+                    out[name] = _Function(kind, el, name, factor=k, offset=c)
+                continue
+            count = self.count(el, kind, name, "inputCount")
+            dim = self.count(el, kind, name, "dimension") if kind == "VectorSum" else 1
+            if count is None or dim is None:
+                self.broken_functions.add(name)  # said once here, not again at each of its connections
+                continue
+            comp = "".join(ch if ch.isalnum() or ch == "_" else "_" for ch in name)
+            if not comp or comp[0].isdigit():
+                comp = f"f_{comp}"
+            if comp in self.comps or any(f.comp == comp for f in out.values()):
+                self.err(el, f"{kind} {name!r}: its component name {comp!r} is already a simulator's or another "
+                             f"function's; rename the function")
+                continue
+            out[name] = _Function(kind, el, name, count=count, dim=dim, comp=comp)
         return out
 
-    def signal_connection(self, el, functions, conns) -> None:
-        sig, var = _kid(el, "Signal"), _kid(el, "Variable")
+    def count(self, el, kind: str, name: str, attr: str) -> int | None:
+        text = el.get(attr)
+        if text is None:
+            self.err(el, f"{kind} {name!r} needs {attr}= (a whole number >= 1)")
+            return None
+        try:
+            n = int(text.strip())
+        except ValueError:
+            n = 0
+        if n < 1:
+            self.err(el, f"{kind} {name!r}: {attr} = {text!r}; expected a whole number >= 1")
+            return None
+        return n
+
+    def function_components(self, functions: dict[str, _Function]) -> list[tuple[str, object]]:
+        """(name, spec) of the Sum and VectorSum components."""
+        from .yamlfile import YMap
+
+        comps = []
+        for f in functions.values():
+            if f.broken:
+                continue
+            if f.kind == "LinearTransformation":
+                continue
+            opts = YMap({"inputs": f.count, "dimension": f.dim})
+            opts.where = self.loc(f.el)
+            opts.locs = {"inputs": opts.where, "dimension": opts.where}
+            spec = YMap({"model": "sum", "options": opts})
+            spec.where = self.loc(f.el)
+            spec.locs = {"model": spec.where, "options": spec.where}
+            comps.append((f.comp, spec))
+        return comps
+
+    def signal_port(self, f: _Function, port: str, sig, group: bool) -> tuple[str, list[str]] | None:
+        """(direction, the function's variables) of signal ``port`` of ``f``: direction "in" or
+        "out"; the variables as the ``sum`` block names them (one, or ``dimension`` for a group)."""
+        import re
+
+        if f.kind == "LinearTransformation":
+            names = {"in": ["in"], "out": ["out"]}
+        elif f.kind == "Sum":
+            names = {f"in[{i}]": [f"in[{i}]"] for i in range(f.count)} | {"out": ["out"]}
+        else:
+            names = {f"in[{i}]": [f"in[{i},{j}]" for j in range(f.dim)] for i in range(f.count)}
+            names["out"] = [f"out[{j}]" for j in range(f.dim)]
+        if group != (f.kind == "VectorSum"):
+            self.err(sig, f"{f.kind} {f.name!r} is connected by "
+                          f"{'<SignalGroupConnection> (a group of ' + str(f.dim) + ')' if f.kind == 'VectorSum' else '<SignalConnection>'}, "
+                          f"not {'<SignalGroupConnection>' if group else '<SignalConnection>'}")
+            return None
+        if port not in names:
+            m = re.fullmatch(r"in\[(-?\d+)\]", port or "")
+            if m and f.kind != "LinearTransformation":
+                self.err(sig, f"{f.kind} {f.name!r}: signal {port!r} is out of range; inputCount = {f.count} gives "
+                              f"in[0] .. in[{f.count - 1}] (0-based, as libcosim)")
+            else:
+                self.err(sig, f"{f.kind} {f.name!r} has signals {', '.join(names)}, not {port!r}")
+            return None
+        if port in f.ends:
+            self.err(sig, f"{f.kind} {f.name!r}: signal {port!r} is connected twice (line {f.ends[port][1].sourceline})")
+            return None
+        return ("out" if port == "out" else "in"), names[port]
+
+    def signal_connection(self, el, functions, conns, group: bool = False) -> None:
+        tag, vtag = ("SignalGroup", "VariableGroup") if group else ("Signal", "Variable")
+        sig, var = _kid(el, tag), _kid(el, vtag)
         if sig is None or var is None:
-            self.err(el, "a SignalConnection joins one <Signal function= name=/> and one <Variable simulator= name=/>")
+            self.err(el, f"a {'SignalGroupConnection' if group else 'SignalConnection'} joins one <{tag} function= "
+                         f"name=/> and one <{vtag} simulator= name=/>")
             return
         fname, port = sig.get("function"), sig.get("name")
+        if fname in self.broken_functions:
+            return
         if fname not in functions:
-            self.err(sig, f"unknown function {fname!r} (functions: {', '.join(functions) or 'none'})")
+            from .problems import suggest
+
+            self.err(sig, f"unknown function {fname!r}{suggest(str(fname), functions)} (functions: "
+                          f"{', '.join(functions) or 'none'})")
             return
-        v = self.endpoint(var)
-        if v is None:
+        f = functions[fname]
+        before = len(self.problems)
+        try:
+            self.signal_end(el, f, port, sig, var, group, conns)
+        finally:
+            f.broken = f.broken or len(self.problems) > before  # its missing signals are not said again
+
+    def signal_end(self, el, f: _Function, port: str, sig, var, group: bool, conns) -> None:
+        fname = f.name
+        found = self.signal_port(f, port, sig, group)
+        if found is None:
             return
-        kind, fel, k, c, ends = functions[fname]
-        if port not in ("in", "out"):
-            self.err(sig, f"LinearTransformation {fname!r} has signals 'in' and 'out', not {port!r}")
-            return
-        if port in ends:
-            self.err(sig, f"LinearTransformation {fname!r}: signal {port!r} is connected twice")
-            return
-        ends[port] = (v, sig)
-        if len(ends) == 2:
-            (src, _), (dst, s2) = ends["in"], ends["out"]
-            if src[2] != "output" or dst[2] not in ("input", "parameter"):
-                self.err(s2, f"LinearTransformation {fname!r}: 'in' takes an output ({src[0]}.{src[1]} is {src[2]}) and "
-                             f"'out' feeds an input ({dst[0]}.{dst[1]} is {dst[2]})")
+        direction, fvars = found
+        if group:
+            sim = var.get("simulator")
+            if sim not in self.comps:
+                self.err(var, f"unknown simulator {sim!r}")
                 return
+            g = self.group(sim, var.get("name"), var)
+            if g is None:
+                return
+            refs = [r for part in g[1] for r in part]
+            if len(refs) != f.dim:
+                self.err(var, f"VectorSum {fname!r} has dimension {f.dim} but variable group {var.get('name')!r} of "
+                              f"{sim!r} has {len(refs)} variable{'s' if len(refs) != 1 else ''}")
+                return
+            ends = []
+            for ref in refs:
+                v = self.comps[sim][2].variables.get(ref)
+                if v is None:
+                    self.err(var, f"variable group {var.get('name')!r} of {sim!r} names {ref!r}, which its FMU does "
+                                  f"not have")
+                    return
+                ends.append((sim, ref, v.causality))
+        else:
+            v = self.endpoint(var)
+            if v is None:
+                return
+            ends = [v]
+        want = "output" if direction == "in" else "input"
+        for (sim, name, caus) in ends:
+            ok = caus == "output" if direction == "in" else caus in ("input", "parameter")
+            if not ok:
+                self.err(var, f"{f.kind} {fname!r}: signal {port!r} {'takes an output' if direction == 'in' else 'feeds an input'}"
+                              f"; {sim}.{name} is {caus} (expected {want})")
+                return
+            ftype = self.comps[sim][2].variables[name]
+            if (ftype.fmi_type or ftype.type) not in ("Real", "Float64", "Float32"):
+                self.err(var, f"{f.kind} {fname!r}: {sim}.{name} is {ftype.fmi_type or ftype.type}; OSP's functions "
+                              f"take Real signals")
+                return
+        f.ends[port] = (ends, sig)
+        if f.kind != "LinearTransformation":
+            for (sim, name, _), fv in zip(ends, fvars):
+                text = f"{sim}.{name} -> {f.comp}.{fv}" if direction == "in" else f"{f.comp}.{fv} -> {sim}.{name}"
+                self.add(conns, text, el)
+            return
+        if len(f.ends) == 2:
+            (src,), _ = f.ends["in"]
+            (dst,), _ = f.ends["out"]
             text = f"{src[0]}.{src[1]} -> {dst[0]}.{dst[1]}"
-            if k != 1.0:
-                text += f" * {k!r}"
-            if c != 0.0:
-                text += f" {'-' if c < 0 else '+'} {abs(c)!r}"
-            self.add(conns, text, el)
+            if f.factor != 1.0:
+                text += f" * {f.factor!r}"
+            if f.offset != 0.0:
+                text += f" {'-' if f.offset < 0 else '+'} {abs(f.offset)!r}"
+            self.add(conns, text, f.ends["out"][1])
+
+    def finish_functions(self, functions: dict[str, _Function]) -> None:
+        """Every signal of every function connected (libcosim refuses a function with one missing)."""
+        for f in functions.values():
+            if f.broken:
+                continue
+            if f.kind == "LinearTransformation":
+                ports = ["in", "out"]
+            elif f.kind == "Sum":
+                ports = [f"in[{i}]" for i in range(f.count)] + ["out"]
+            else:
+                ports = [f"in[{i}]" for i in range(f.count)] + ["out"]
+            missing = [p for p in ports if p not in f.ends]
+            if missing:
+                self.err(f.el, f"{f.kind} {f.name!r}: signal{'s' if len(missing) > 1 else ''} {', '.join(missing)} "
+                               f"{'are' if len(missing) > 1 else 'is'} not connected (every signal of a function must be)")
+
+
+@dataclass
+class _Function:
+    """One ``<Functions>`` entry: a LinearTransformation (``factor``, ``offset``) or a Sum /
+    VectorSum (``count`` inputs of ``dim`` elements, the component ``comp``); ``ends``: signal ->
+    (its variables, the <Signal> element)."""
+
+    kind: str
+    el: object
+    name: str
+    factor: float = 1.0
+    offset: float = 0.0
+    count: int = 1
+    dim: int = 1
+    comp: str = ""
+    ends: dict = field(default_factory=dict)
+    broken: bool = False  # one of its connections was refused
 
 
 def scene_tree(path: Path | str, problems: list[Problem]):

@@ -556,7 +556,7 @@ class _Reader:
         for key, attr in (("algorithm", "algorithm"), ("inputs", "inputs"), ("engine", "engine")):
             if ann.get(attr) is not None:
                 node[key] = ann.get(attr)
-        for key, attr in (("step", "step"), ("output_interval", "outputInterval")):
+        for key, attr in (("step", "step"), ("output_interval", "outputInterval"), ("tolerance", "tolerance")):
             if ann.get(attr) is not None:
                 node[key] = float(ann.get(attr))
         if ann.get("order"):
@@ -592,19 +592,25 @@ class _Reader:
             return node
         node.update({"algorithm": "jacobi" if alg is fixed else "ecco", "step": step})
         if alg is ecco:  # the EccoConfiguration of OspSystemStructure.xml as attributes (cosim.scenario.osp)
-            from .osp import ECCO_OPTIONS
+            from ..master.algorithms.ecco import OPTIONS
+            from .osp import ECCO_ELEMENTS, ecco_options
+            from .problems import Problem
 
-            opts = YMap()
-            opts.where = self.loc(alg)
-            for key, name in ECCO_OPTIONS.items():
+            given = {}
+            for key in ECCO_ELEMENTS:
                 raw = alg.get(key[0].lower() + key[1:])
                 if raw is not None:
                     try:
-                        opts[name] = float(raw)
+                        given[key] = float(raw)
                     except ValueError:
                         self.err(alg.sourceline, f"EccoAlgorithm: {key[0].lower() + key[1:]} = {raw!r}; expected a number")
-                        continue
-                    opts.locs[name] = self.loc(alg)
+            values, notes = ecco_options(given, next(o.default for o in OPTIONS if o.name == "k_i"))
+            for _elem, text in notes:
+                loc = self.loc(alg)
+                self.problems.append(Problem(loc[0], loc[1], text.replace("EccoConfiguration ", "EccoAlgorithm "), "note"))
+            opts = YMap(values)
+            opts.where = self.loc(alg)
+            opts.locs = {k: self.loc(alg) for k in values}
             if opts:
                 node["options"] = opts
         node.locs = {k: self.loc(alg) for k in node}

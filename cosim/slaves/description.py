@@ -79,6 +79,9 @@ class SlaveDescription:
     feedthrough_source: str = "declared"  # declared, measured (cosim.slaves.probe) or scene (the scene's feedthrough:)
     workarounds: tuple[str, ...] = ()  # from the behavioural check (cosim.slaves.behaviour): always_no_prior
     rollback_reason: str = ""  # why rollback was taken away although the FMU declares it (behavioural check)
+    #: no state, no sampling: its outputs are functions of its inputs now (a catalog block such as ``sum``,
+    #: known from the scene; fixed-step Jacobi evaluates it within the exchange, see cosim.master)
+    memoryless: bool = False
 
     def of(self, *causalities: str) -> list[str]:
         """Names of the variables with one of the given causalities, in declaration order."""

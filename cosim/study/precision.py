@@ -13,8 +13,8 @@ CVODES at tight tolerances), then runs the co-simulation for every variant (algo
   enters there either.
 
 A run's error, per recorded signal, is its largest deviation from the reference relative to that
-signal's range in the reference (``compare``: max - min over the run, max |value| for a constant
-signal); the row keeps every signal's, the worst one and the RMS over signals.  Its cost is the
+signal's range in the reference (max - min over the run, at least
+:data:`cosim.master.estimate.FLAT`, as ``master.tolerance`` and the estimate measure it); the row keeps every signal's, the worst one and the RMS over signals.  Its cost is the
 wall time of the stepping loop (the run's own statistics: FMU builds, instantiation and the batch's
 overhead excluded, as the reference's excludes building its integrator), the doStep calls, and for
 the algorithms that have them the accepted and rejected steps and rollbacks.
@@ -54,6 +54,7 @@ import numpy as np
 
 from ..analysis.compare import Difference, compare
 from ..errors import RUN_ERRORS, UserError
+from ..master.estimate import FLAT
 from ..scenario import load
 from .fidelity import resolve_auto
 from ..trace.traces import Trace
@@ -228,13 +229,15 @@ def _refused(scene_path: Path | str, over: dict) -> str:
 
 
 def reference_scale(ref: Trace, names: Sequence[str]) -> dict[str, float]:
-    """Each signal's range in the reference (max - min; max |value| for a constant signal), the
-    scale relative errors are measured against (as :func:`cosim.analysis.compare.compare` does)."""
+    """Each signal's range in the reference (max - min), at least
+    :data:`cosim.master.estimate.FLAT` in its SI unit, the scale relative errors are measured
+    against: the measure of ``master.tolerance`` and of every run's estimate (a platform angle
+    that the path keeps at 0 moves 3e-8 rad in the reference, and an error of 1e-8 rad on it is
+    not a third of its range)."""
     out = {}
     for n in names:
         v = ref[n]
-        span = float(v.max() - v.min())
-        out[n] = span if span > 0 else float(np.abs(v).max())
+        out[n] = max(float(v.max() - v.min()), FLAT)
     return out
 
 

@@ -13,6 +13,7 @@ the bad name, with the closest valid name as a suggestion.
 | ``pose_setpoint`` | ``default`` | :mod:`.setpoint` |
 | ``oscillator`` | ``linear`` | :mod:`.oscillator` (master-algorithm test scenes) |
 | ``linear_actuator`` | ``rig``, ``single`` | :mod:`.actuator` |
+| ``sum`` | ``vector`` | :mod:`.sums` (OSP's Sum and VectorSum functions) |
 """
 from __future__ import annotations
 
@@ -21,8 +22,8 @@ from typing import Any, Callable
 
 from ..block import Block, BlockError
 from ..user import with_defaults
-from . import actuator, mechanism, motor, oscillator, pid, setpoint
-from ._common import CONFIG, SUBSTEPS, Option, integrator_option, positive_float, suggest, unit_text
+from . import actuator, mechanism, motor, oscillator, pid, setpoint, sums
+from ._common import CONFIG, SUBSTEPS, Option, integrator_option, positive_float, positive_int, suggest, unit_text
 
 #: Integrators of blocks whose equations are linear: ``exact`` (the default) and the two general ones.
 LINEAR_INTEGRATORS = ("exact", "radau", "rk4")
@@ -78,6 +79,12 @@ def _entries() -> dict[str, dict[str, _Entry]]:
         "linear_actuator": {
             "rig": _Entry(actuator.rig, (act, integrator_option("rk4"), SUBSTEPS)),
             "single": _Entry(actuator.single, (act, integrator_option("rk4"), SUBSTEPS)),
+        },
+        "sum": {
+            "vector": _Entry(sums.vector_sum, (
+                Option("inputs", 2, "number of summed inputs (vectors)", check=positive_int),
+                Option("dimension", 1, "elements per input and of the output (1: a scalar sum)",
+                       check=positive_int))),
         },
     }
 

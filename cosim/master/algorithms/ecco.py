@@ -31,8 +31,9 @@ form: a steady error settles at ``safety``, a growing one cuts the step at once)
 is never retried, so the defaults aim low (``safety`` 0.1) and change the step smoothly (small
 gains, ``fac_max`` 1.2): a step with ``eps > 1`` is kept, counted as over tolerance, and the next
 one is smaller.  A Discard or error from any slave ends the run as "failed" with the slave's
-reason; a residual that is not finite, or one over tolerance for 100 steps in a row at ``h_min``,
-as "unstable".
+reason; a residual that is not finite, or one over tolerance for ``floor_steps`` (100) steps in a row
+at ``h_min``, as "unstable" (``floor_steps: 0``: the run goes on at ``h_min``, as libcosim's ECCO does,
+those steps counted as over tolerance).
 
 Statistics (the run's sidecar, ``statistics``): accepted steps, smallest and largest step, the
 stepping order, and per bond the largest scaled residual of a step, the largest residual [J], the
@@ -73,6 +74,9 @@ OPTIONS = (
     AlgorithmOption("k_i", 0.1, 0.0, 2.0, "1", "integral gain of the PI step controller (exponent of the residual)"),
     AlgorithmOption("k_p", 0.2, 0.0, 2.0, "1", "proportional gain of the PI step controller (exponent of the "
                                                "residual's change)"),
+    AlgorithmOption("floor_steps", 100, 0, 1e9, "1", "steps in a row over tolerance at h_min after which the run ends "
+                                                     "as unstable (0: never; it goes on at h_min, as libcosim's ECCO "
+                                                     "does, the steps over tolerance counted)", integer=True),
 )
 
 
@@ -177,8 +181,6 @@ class EccoStepper(AdaptiveStepper):
     needs_rollback = False
     #: the compiled loop of exactly this class (:class:`cosim.master.adaptive_engine.CompiledEcco`)
     native_loop = "ecco"
-    #: steps in a row over tolerance at the step floor ``h_min`` after which the run ends as unstable
-    floor_patience = 100
 
     def __init__(self, system, order: Sequence[int], options: dict[str, float], start_ns: int, stop_ns: int):
         super().__init__(system, order, options, start_ns, stop_ns)
@@ -193,6 +195,8 @@ class EccoStepper(AdaptiveStepper):
         self._in_idx = np.array([b.in_idx for b in self.bonds])
         self.err_prev = options["safety"]
         self._at_floor = 0  # steps in a row at h_min over tolerance
+        #: such steps after which the run ends as unstable (option floor_steps; 0: never)
+        self.patience = int(options.get("floor_steps", 100))
         self._ending = ""  # why the run ends before the next step
 
     def _seen_slopes(self) -> np.ndarray:
@@ -237,7 +241,7 @@ class EccoStepper(AdaptiveStepper):
         self._commit(h, h_ns)
         err = max(float(np.max(scaled)), 1e-10)
         self._at_floor = self._at_floor + 1 if err > 1.0 and h <= opt["h_min"] * (1 + 1e-12) else 0
-        if self._at_floor >= self.floor_patience:  # this step is taken and recorded; the run ends before the next
+        if self.patience and self._at_floor >= self.patience:  # this step is taken and recorded; the run ends before the next
             k = int(np.argmax(scaled))
             self._ending = (f"the energy residual of bond {self.bonds[k].name} stayed over its tolerance for "
                             f"{self._at_floor} steps at the step floor h_min = {opt['h_min']:g} s (scaled "

@@ -9,7 +9,8 @@ from ..algorithm import Algorithm, _ns, register
 @register
 class Jacobi(Algorithm):
     """All slaves take inputs from outputs read at ``t_k``, then all step in parallel (in
-    principle), then all outputs are read (see :mod:`cosim.master` for the delay convention)."""
+    principle), then all outputs are read (see :mod:`cosim.master` for the delay convention); a
+    memoryless slave (a ``sum`` block) is then evaluated on them, so it adds no delay."""
 
     name = "jacobi"
     native_code = 0
@@ -45,7 +46,7 @@ class Jacobi(Algorithm):
             tp = tn
             if st in FAILING:
                 return i, st
-        return None
+        return self._exchange() if self.exchange else None
 
     def _finish_step(self, i, t, h):
         for j in range(i + 1, len(self._do)):
@@ -56,4 +57,4 @@ class Jacobi(Algorithm):
             st = self._io(j, self._pull[j])
             if st in FAILING:
                 return j, st
-        return None
+        return self._exchange()
