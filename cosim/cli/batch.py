@@ -79,7 +79,7 @@ def _batch(args: argparse.Namespace) -> int:
                             progress=Progress(), log=tagged("fmu"), trace_format=args.trace_format)
         except KeyboardInterrupt:
             say(f"rpr-cosim batch: interrupted; the finished runs are in {out / 'results.csv'}; run the same "
-                 f"command again to do the others")
+                f"command again to do the others")
             raise
     except BatchError as exc:
         return refuse(exc, "batch", args.batch)

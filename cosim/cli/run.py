@@ -108,7 +108,7 @@ def _run_locked(args: argparse.Namespace, scene, out: Path) -> int:
                   max_trace_bytes=args.max_trace, trace_format=args.trace_format, call_timeout=args.call_timeout)
     except KeyboardInterrupt as exc:
         say(f"rpr-cosim run: {interrupted(exc)}; the partial trace and the reason "
-             f"are in {out / (scene.name + ('.parquet' if args.trace_format == 'parquet' else '.csv'))}")
+            f"are in {out / (scene.name + ('.parquet' if args.trace_format == 'parquet' else '.csv'))}")
         raise
     _summary(res)
     _products(args, scene, res, out)
@@ -159,7 +159,7 @@ def _products(args: argparse.Namespace, scene, res, out: Path) -> None:
                          f"interrupted by {exc or 'the user'} while writing {doing} (the run itself ended "
                          f"{res.status}; an earlier complete file of that name is kept)")
         say(f"rpr-cosim run: {interrupted(exc)} while writing {doing}; "
-             f"{res.trace_path.with_suffix('.json') if res.trace_path else 'the run'} says so")
+            f"{res.trace_path.with_suffix('.json') if res.trace_path else 'the run'} says so")
         raise
 
 
