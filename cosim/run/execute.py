@@ -147,7 +147,7 @@ def parse_bytes(text: str | int | float) -> int:
         value = float("nan")
     if not m or not value >= 0:
         raise UserError(f"trace size limit {text!r}: expected a size such as 20GB, 500MB or 1e9")
-    return int(value * 1000 ** " kMGTP".index(m.group(2).upper() or " "))
+    return int(value * 1000 ** " KMGTP".index(m.group(2).upper() or " "))
 
 
 def estimate(scene: Scene) -> TraceEstimate:
