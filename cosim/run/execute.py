@@ -335,35 +335,38 @@ def _step(scene: Scene, out_dir, paths, slaves, progress, log, engine, overrides
     t0 = time.perf_counter()
     given = list(slaves) if slaves is not None else None
 
-    def prepared(made: list[Slave]) -> list[Slave]:
-        for s, c in zip(made, scene.components.values()):
-            if c.kind == "fmu" and s.description is not c.description and isinstance(s, FmuSlave):
-                # what the scene check found (feedthrough, behavioural workarounds) also for slaves made elsewhere
-                d = c.description
-                s.description = replace(s.description, feedthrough=d.feedthrough, workarounds=d.workarounds,
-                                        rollback_reason=d.rollback_reason,
-                                        can_get_set_state=s.description.can_get_set_state and d.can_get_set_state)
-                s.always_no_prior = "always_no_prior" in d.workarounds
-            if not c.rollback and s.description.can_get_set_state:  # the scene forbids rollback of this component
-                s.description = replace(s.description, can_get_set_state=False)
-            if c.memoryless and not s.description.memoryless:  # evaluated within Jacobi's exchange
-                s.description = replace(s.description, memoryless=True)
-        return made
+    comps = list(scene.components.values())
 
-    def make_slaves() -> list[Slave]:
-        """Fresh slaves of the scene's components, for companion and pilot runs (from the FMUs
-        of the slaves handed over, when they were)."""
+    def prepared(s: Slave, c) -> Slave:
+        if c.kind == "fmu" and s.description is not c.description and isinstance(s, FmuSlave):
+            # what the scene check found (feedthrough, behavioural workarounds) also for slaves made elsewhere
+            d = c.description
+            s.description = replace(s.description, feedthrough=d.feedthrough, workarounds=d.workarounds,
+                                    rollback_reason=d.rollback_reason,
+                                    can_get_set_state=s.description.can_get_set_state and d.can_get_set_state)
+            s.always_no_prior = "always_no_prior" in d.workarounds
+        if not c.rollback and s.description.can_get_set_state:  # the scene forbids rollback of this component
+            s.description = replace(s.description, can_get_set_state=False)
+        if c.memoryless and not s.description.memoryless:  # evaluated within Jacobi's exchange
+            s.description = replace(s.description, memoryless=True)
+        return s
+
+    def make_slave(i: int) -> Slave:
+        """A fresh slave of component ``i`` (from the FMU of the slave handed over, when it was)."""
+        c = comps[i]
         if given is not None:
-            return prepared([FmuSlave(s.name, s.path, s.description) for s in given])
-        return prepared([FmuSlave(name, paths[name], c.description if c.kind == "fmu" else
-                                  slave_description(c, paths[name])) for name, c in scene.components.items()])
+            return prepared(FmuSlave(given[i].name, given[i].path, given[i].description), c)
+        return prepared(FmuSlave(c.name, paths[c.name], c.description if c.kind == "fmu" else
+                                 slave_description(c, paths[c.name])), c)
 
-    main = prepared(given) if given is not None else make_slaves()
+    main = [prepared(s, c) for s, c in zip(given, comps)] if given is not None else [make_slave(i) for i in
+                                                                                       range(len(comps))]
     build_s = time.perf_counter() - t0
     repeat = repeatable(scene)
     if repeat is None and given is not None and not all(isinstance(s, FmuSlave) for s in given):
         repeat = "the slaves were handed over ready, not as FMUs: a run is not repeated"
-    instances = Instances(main, make_slaves)  # one load per FMU for the pilots, companions and the run
+    # one load per catalog FMU for the pilots, companions and the run; an external FMU's reset is not trusted
+    instances = Instances(main, make_slave, [c.kind != "fmu" for c in comps])
     try:
         extra: dict = {}
         pilots: list[RunResult] = []
