@@ -446,3 +446,19 @@ def test_an_ssp_whose_source_leaves_the_archive_is_refused_and_writes_nothing_ou
     # refused by the archive check shared with fmu check and run (issue 20), before the SSD is read
     assert rc == 2 and f"unsafe SSP: member {member!r} has an absolute path or '..'" in err, err
     assert not (tmp_path / "escaped.fmu").exists() and not list(cache.rglob("escaped.fmu"))
+
+
+@pytest.mark.parametrize("text, expected", [("1KB", 1000), ("1kB", 1000), ("500 MB", 500_000_000), ("20GB", 2e10),
+                                            ("1e9", 1e9), ("2.5k", 2500)])
+def test_trace_size_limits_read_as_si_bytes_whatever_the_case(text, expected):
+    from cosim.run.execute import parse_bytes
+
+    assert parse_bytes(text) == expected
+
+
+def test_a_bad_trace_size_limit_is_one_line(capsys):
+    from cosim.cli import main
+
+    assert main(["run", str(PID), "--max-trace", "lots", "--check"]) == 2
+    err = capsys.readouterr().err
+    assert "trace size limit 'lots': expected a size such as 20GB" in err and "Traceback" not in err

@@ -2,7 +2,11 @@
 
 Each verb lives in its own module exposing ``register(subparsers)``; the verb's handler takes the
 parsed arguments and returns an exit code.  A user mistake raises :class:`UserError` (or one of
-the domain errors listed in ``_USER_ERRORS``) and is printed as one line, never as a traceback.
+the domain errors of :func:`cosim.errors.user_error_types`) and is printed as one line, never as
+a traceback.
+Options that several verbs share are declared once in :mod:`cosim.cli.options`; what the verbs
+share while they run (messages on stderr, a file's problems, loading a scene) is in
+:mod:`cosim.cli.verb`.
 """
 from __future__ import annotations
 
@@ -12,6 +16,7 @@ import sys
 from collections.abc import Sequence
 
 from ..errors import user_error_types
+from .verb import interrupted
 
 #: Modules that contribute verbs, in the order they appear in ``--help``.
 VERB_MODULES = ("cosim.cli.analyze", "cosim.cli.fmu", "cosim.cli.run", "cosim.cli.compare", "cosim.cli.study",
@@ -42,7 +47,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         with signals_as_interrupts():
             return int(args.handler(args) or 0)
     except KeyboardInterrupt as exc:
-        print(f"rpr-cosim: interrupted{' by ' + str(exc) if str(exc) else ''}", file=sys.stderr)
+        print(f"rpr-cosim: {interrupted(exc)}", file=sys.stderr)
         return exit_code(exc)
     except user_error_types() as exc:
         print(f"rpr-cosim {args.verb}: error: {exc}", file=sys.stderr)

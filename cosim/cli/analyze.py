@@ -18,14 +18,16 @@ import time
 from pathlib import Path
 
 from ..errors import UserError
+from .options import add_verb
 
 STUDIES = ("configs", "platform-size", "all", "none")
 DEFAULT_MONTE_CARLO = 100_000
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser(
-        "analyze", help="workspace, singularity and DSI maps; the thesis's configuration and platform studies",
+    p = add_verb(
+        sub, "analyze", run,
+        help="workspace, singularity and DSI maps; the thesis's configuration and platform studies",
         description="Constant-orientation workspace, det J and DSI maps (PNG), singularity curves, and the "
                     "thesis's Table 4.5 (four configurations) and Table 4.9 (platform size) as text and CSV.")
     p.add_argument("--config", default="cross_leg", metavar="NAME",
@@ -41,7 +43,6 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help=f"Monte Carlo samples for the workspace area, 0 to skip (default {DEFAULT_MONTE_CARLO})")
     p.add_argument("--seed", default="0", metavar="S", help="random seed of the Monte Carlo estimate (default 0)")
     p.add_argument("--out", default="out/analysis", metavar="DIR", help="output directory (default ./out/analysis)")
-    p.set_defaults(handler=run)
 
 
 def _whole(option: str, text: str, lo: int, hi: int | None = None) -> int:

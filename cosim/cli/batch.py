@@ -16,20 +16,22 @@ with code 2 before any run; runs that fail are rows with their reason (exit code
 from __future__ import annotations
 
 import argparse
-import sys
 from pathlib import Path
+
+from .options import add_cache, add_out, add_report, add_trace_format, add_verb
+from .verb import refuse, say, tagged
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("batch", help="run a sweep or Monte Carlo batch of a scene (local processes or Dask)",
-                       description="Run every variant of a scene that a batch file describes, in parallel, "
-                                   "into one results table; rerunning resumes.")
+    p = add_verb(sub, "batch", _batch, help="run a sweep or Monte Carlo batch of a scene (local processes or Dask)",
+                 description="Run every variant of a scene that a batch file describes, in parallel, "
+                             "into one results table; rerunning resumes.")
     p.add_argument("batch", type=Path, help="batch file, e.g. scenarios/batch_pid_gains.yaml")
     p.add_argument("--workers", type=int, metavar="N", help="worker processes (default: one per core)")
     p.add_argument("--scheduler", metavar="ADDRESS", help="run on the Dask cluster of this scheduler, "
                                                            "e.g. tcp://10.0.0.5:8786")
     p.add_argument("--dask", action="store_true", help="start a Dask LocalCluster of --workers processes")
-    p.add_argument("--out", type=Path, help="output directory (default runs/<batch name>)")
+    add_out(p, "output directory (default runs/<batch name>)")
     p.add_argument("--sort", metavar="COLUMN", help="sort the printed table by this column (default: "
                                                     "report.sort, or the first metric)")
     p.add_argument("--descending", action="store_true", help="largest first")
@@ -38,17 +40,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--no-reuse", action="store_true", help="load every FMU again for each run instead of "
                                                            "resetting the instances a worker keeps")
     p.add_argument("--check", action="store_true", help="only validate the batch and list its runs")
-    p.add_argument("--format", dest="trace_format", choices=["csv", "commented-csv", "parquet"], default="csv",
-                   help="each run's trace format (default plain csv); parquet also writes results.parquet")
-    p.add_argument("--report", action="store_true",
-                   help="also write report.html: the sortable results table and charts, each point linked to "
-                        "its run's own report")
-    p.add_argument("--cache", type=Path, help="FMU cache directory (default $RPR_COSIM_CACHE or ~/.cache/rpr-cosim/fmus)")
-    p.set_defaults(handler=_batch)
-
-
-def _say(msg: str) -> None:
-    print(msg, file=sys.stderr)
+    add_trace_format(p, "each run's trace format (default plain csv); parquet also writes results.parquet")
+    add_report(p, "also write report.html: the sortable results table and charts, each point linked to "
+                  "its run's own report")
+    add_cache(p)
 
 
 def _batch(args: argparse.Namespace) -> int:
@@ -65,7 +60,7 @@ def _batch(args: argparse.Namespace) -> int:
     try:
         batch = load_batch(args.batch, auto_fidelity=resolve_auto)
         for note in batch.notes:
-            _say(str(note))
+            say(str(note))
         if args.sort is not None:
             from ..batch.results import base_columns
 
@@ -81,17 +76,13 @@ def _batch(args: argparse.Namespace) -> int:
         out = args.out or Path("runs") / batch.name
         try:
             res = run_batch(batch, out=out, executor=ex, cache_dir=args.cache, reuse=not args.no_reuse,
-                            progress=Progress(), log=lambda m: _say(f"[fmu] {m}"), trace_format=args.trace_format)
+                            progress=Progress(), log=tagged("fmu"), trace_format=args.trace_format)
         except KeyboardInterrupt:
-            _say(f"rpr-cosim batch: interrupted; the finished runs are in {out / 'results.csv'}; run the same "
-                 f"command again to do the others")
+            say(f"rpr-cosim batch: interrupted; the finished runs are in {out / 'results.csv'}; run the same "
+                f"command again to do the others")
             raise
     except BatchError as exc:
-        for p in exc.problems:
-            _say(str(p))
-        n = sum(p.severity == "error" for p in exc.problems)
-        _say(f"rpr-cosim batch: {args.batch}: {n} problem{'s' if n != 1 else ''}; nothing was run")
-        return 2
+        return refuse(exc, "batch", args.batch)
     _summary(batch, res, args)
     return 0
 
@@ -133,7 +124,7 @@ def _summary(batch, res, args) -> None:
     if args.report and res.rows:
         from .report import write_report
 
-        _say(f"report: {write_report(res.out)}")
+        say(f"report: {write_report(res.out)}")
     if not args.no_plots and res.rows:
         for p in make_plots(batch, res.out, res.rows, sort):
-            _say(f"plot: {p}")
+            say(f"plot: {p}")

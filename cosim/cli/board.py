@@ -27,24 +27,22 @@ import threading
 from pathlib import Path
 
 from ..errors import UserError
+from .options import add_actions, add_out, add_verb
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("board", help="the rig's I/O daemon (BeagleBone), its key, its build, and the virtual board",
-                       description="Hardware in the loop: the BeagleBone I/O daemon and the virtual board.")
-    verbs = p.add_subparsers(dest="board_verb", metavar="ACTION")
-    verbs.required = True
-    k = verbs.add_parser("keygen", help="make a new shared key file (owner-only permissions)")
+    verbs = add_actions(sub, "board", "board_verb",
+                        help="the rig's I/O daemon (BeagleBone), its key, its build, and the virtual board",
+                        description="Hardware in the loop: the BeagleBone I/O daemon and the virtual board.")
+    k = add_verb(verbs, "keygen", _keygen, help="make a new shared key file (owner-only permissions)")
     k.add_argument("file", type=Path)
-    k.set_defaults(handler=_keygen)
-    b = verbs.add_parser("build", help="write the daemon binary for this machine or the BeagleBone (armhf)")
-    b.add_argument("--target", default="host", choices=("host", "armhf"),
-                   help="host (this machine) or armhf (BeagleBone Black, statically linked; default host)")
-    b.add_argument("--out", type=Path, default=None, help="file to write (default ./rpr-board-TARGET)")
-    b.set_defaults(handler=_build)
-    for name, text in (("serve", "run the I/O daemon on the board's pins"),
-                       ("virtual", "run the daemon on a fake sysfs tree with a simulated rig behind it")):
-        s = verbs.add_parser(name, help=text)
+    b = add_verb(verbs, "build", _build, help="write the daemon binary for this machine or the BeagleBone (armhf)")
+    _add_target(b, "host (this machine) or armhf (BeagleBone Black, statically linked; default host)")
+    add_out(b, "file to write (default ./rpr-board-TARGET)")
+    for name, handler, text in (("serve", _serve, "run the I/O daemon on the board's pins"),
+                                ("virtual", _virtual, "run the daemon on a fake sysfs tree with a simulated rig "
+                                                      "behind it")):
+        s = add_verb(verbs, name, handler, help=text)
         s.add_argument("--key", type=Path, required=True, help="shared key file (rpr-cosim board keygen)")
         s.add_argument("--listen", default="127.0.0.1:5005", metavar="ADDR:PORT",
                        help="UDP address (default 127.0.0.1:5005, loopback only; port 0 picks a free one)")
@@ -54,8 +52,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                        help="run under SCHED_FIFO at priority P (1..99; needs root or CAP_SYS_NICE): keeps a 1 kHz "
                             "loop on time on a busy machine")
         s.add_argument("-v", "--verbose", action="store_true", help="log sessions and faults")
-        s.add_argument("--target", default="host", choices=("host", "armhf"),
-                       help="the daemon's build: host, or armhf under qemu-user (tests, benchmarks; default host)")
+        _add_target(s, "the daemon's build: host, or armhf under qemu-user (tests, benchmarks; default host)")
         if name == "serve":
             s.add_argument("--root", type=Path, default=Path("/"), help="sysfs root (default /; a fake tree in tests)")
             s.add_argument("--gpio", default="auto", choices=("auto", "sysfs", "chardev"),
@@ -63,7 +60,6 @@ def register(sub: argparse._SubParsersAction) -> None:
                                 "device when the board has one)")
             s.add_argument("--travel", default=None, metavar="LO,HI",
                            help="calibrated ends of the stroke [ADC counts] for the end and range checks")
-            s.set_defaults(handler=_serve)
         else:
             s.add_argument("--tree", type=Path, default=None, help="create the fake tree here (default: a temp dir, "
                                                                    "removed at exit)")
@@ -75,7 +71,11 @@ def register(sub: argparse._SubParsersAction) -> None:
             for flag, what in (("--stuck", "sensor of leg N frozen"), ("--unplug", "pot of leg N unplugged"),
                                ("--driver-fault", "driver of leg N gives no voltage")):
                 s.add_argument(flag, type=int, action="append", default=[], metavar="N", choices=(1, 2, 3), help=what)
-            s.set_defaults(handler=_virtual)
+
+
+def _add_target(p: argparse.ArgumentParser, help: str) -> None:
+    """``--target``: the daemon's build, for this machine (host) or the BeagleBone (armhf)."""
+    p.add_argument("--target", default="host", choices=("host", "armhf"), help=help)
 
 
 def _keygen(args) -> int:

@@ -18,45 +18,41 @@ import sys
 from pathlib import Path
 
 from ..errors import UserError
+from .options import add_actions, add_cache, add_out, add_sets, add_verb
+from .verb import tagged
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("fmu", help="build co-simulation FMUs and list the FMU cache",
-                       description="Build FMI 2.0/3.0 co-simulation FMUs from the model catalog, list the "
-                                   "catalog and the cache, and validate any FMU.")
-    verbs = p.add_subparsers(dest="fmu_verb", metavar="ACTION")
-    verbs.required = True
-    b = verbs.add_parser("build", help="build (or fetch from the cache) one FMU",
-                         description="Build one catalog model as a co-simulation FMU: CasADi generates its C, gcc "
-                                     "compiles it, and the result is cached by content (a second build of the same "
-                                     "block compiles nothing; a damaged cache entry is rebuilt).  Prints the FMU's "
-                                     "path on stdout.")
+    verbs = add_actions(sub, "fmu", "fmu_verb", help="build co-simulation FMUs and list the FMU cache",
+                        description="Build FMI 2.0/3.0 co-simulation FMUs from the model catalog, list the "
+                                    "catalog and the cache, and validate any FMU.")
+    b = add_verb(verbs, "build", _build, help="build (or fetch from the cache) one FMU",
+                 description="Build one catalog model as a co-simulation FMU: CasADi generates its C, gcc "
+                             "compiles it, and the result is cached by content (a second build of the same "
+                             "block compiles nothing; a damaged cache entry is rebuilt).  Prints the FMU's "
+                             "path on stdout.")
     b.add_argument("model", help="catalog model, e.g. mechanism, dc_motor, pid, pose_setpoint; or a user's block: "
                                  "FILE.mo:CLASS or FILE.py:MODEL[/FIDELITY]")
     b.add_argument("--fidelity", help="fidelity level (default: the model's first)")
-    b.add_argument("--set", dest="sets", action="append", default=[], metavar="NAME=VALUE",
-                   help="parameter override or construction option; repeatable")
+    add_sets(b, "parameter override or construction option; repeatable", metavar="NAME=VALUE")
     b.add_argument("--fmi", choices=["2", "3"], default="2", help="FMI version (default 2)")
-    b.add_argument("--out", type=Path, help="also copy the FMU into this directory")
-    b.add_argument("--cache", type=Path, help="cache directory (default $RPR_COSIM_CACHE or ~/.cache/rpr-cosim/fmus)")
-    b.set_defaults(handler=_build)
-    ls = verbs.add_parser("list", help="show the model catalog and the cached FMUs",
-                          description="List the catalog's models with their fidelities, and every FMU in the cache "
-                                      "with its FMI version, integrator, states and build time.")
-    ls.add_argument("--cache", type=Path, help="cache directory")
-    ls.set_defaults(handler=_list)
-    ck = verbs.add_parser("check", help="validate an FMU's modelDescription.xml (FMPy's checks)",
-                          description="Validate any FMU: the archive (a zip whose members stay inside it) and its "
-                                      "modelDescription.xml against the FMI schema and FMPy's rules.  Prints one "
-                                      "line per problem; the exit code is their number (at most 100).")
+    add_out(b, "also copy the FMU into this directory")
+    add_cache(b, "cache directory (default $RPR_COSIM_CACHE or ~/.cache/rpr-cosim/fmus)")
+    ls = add_verb(verbs, "list", _list, help="show the model catalog and the cached FMUs",
+                  description="List the catalog's models with their fidelities, and every FMU in the cache "
+                              "with its FMI version, integrator, states and build time.")
+    add_cache(ls, "cache directory")
+    ck = add_verb(verbs, "check", _check, help="validate an FMU's modelDescription.xml (FMPy's checks)",
+                  description="Validate any FMU: the archive (a zip whose members stay inside it) and its "
+                              "modelDescription.xml against the FMI schema and FMPy's rules.  Prints one "
+                              "line per problem; the exit code is their number (at most 100).")
     ck.add_argument("fmu", type=Path, help="the .fmu file")
     ck.add_argument("--behaviour", action="store_true",
                     help="also run the FMU (two instances, state get/set/free, the noSetFMUStatePriorToCurrentPoint "
                          "flag, reset, determinism, directional derivatives, setters, stop time) and print each "
                          "departure from the FMI standard, and the workarounds a run applies")
-    ck.set_defaults(handler=_check)
-    sh = verbs.add_parser("show", help="interface, parameters (units, defaults, bounds), states and integrator "
-                                       "of a catalog model or an FMU file")
+    sh = add_verb(verbs, "show", _show, help="interface, parameters (units, defaults, bounds), states and integrator "
+                                             "of a catalog model or an FMU file")
     sh.add_argument("what", nargs="?", help="MODEL[/FIDELITY] (e.g. pid/continuous), FILE.fmu, or a user's block: "
                                             "FILE.mo:CLASS or FILE.py:MODEL[/FIDELITY]")
     sh.add_argument("--markdown", nargs="?", const="-", metavar="FILE",
@@ -64,7 +60,6 @@ def register(sub: argparse._SubParsersAction) -> None:
     sh.add_argument("--readme", nargs="?", const="README.md", type=Path, metavar="README",
                     help="rewrite the generated model section (between its BEGIN/END markers) of a Markdown file "
                          "from the catalog; the documentation site's model catalog is generated at build time")
-    sh.set_defaults(handler=_show)
 
 
 def _blocks():
@@ -103,8 +98,6 @@ def _is_user_block(what: str) -> bool:
 
 
 def _build(args: argparse.Namespace) -> int:
-    import fmus
-
     if _is_user_block(args.model):
         return _build_user(args)
     blocks = _blocks()
@@ -121,13 +114,16 @@ def _build(args: argparse.Namespace) -> int:
     options = {k: v for k, v in numbers.items() if k not in names}
     if options:  # numeric construction options: let make() judge them
         block = blocks.make(args.model, args.fidelity, **words, **options)
+    return _deliver(block, overrides, args)
+
+
+def _deliver(block, overrides: dict[str, int | float], args: argparse.Namespace) -> int:
+    """Build ``block`` with its parameter ``overrides`` (or fetch it from the cache), copy the FMU
+    to ``--out`` if asked; print its path."""
+    import fmus
+
     path = fmus.build_fmu(block, fmi_version=args.fmi + ".0", cache_dir=args.cache, params=overrides,
-                          progress=lambda msg: print(f"[fmu] {msg}", file=sys.stderr))
-    return _deliver(path, args)
-
-
-def _deliver(path: Path, args: argparse.Namespace) -> int:
-    """Copy the FMU to ``--out`` if asked; print its path."""
+                          progress=tagged("fmu"))
     if args.out:
         args.out.mkdir(parents=True, exist_ok=True)
         dest = args.out / path.name
@@ -139,8 +135,6 @@ def _deliver(path: Path, args: argparse.Namespace) -> int:
 
 def _build_user(args: argparse.Namespace) -> int:
     """``fmu build FILE.mo:CLASS`` / ``FILE.py:MODEL``: a user's block, built and cached like ours."""
-    import fmus
-
     from ..scenario.user_blocks import UserBlockError, user_block
 
     if args.fidelity is not None:
@@ -154,9 +148,7 @@ def _build_user(args: argparse.Namespace) -> int:
     except UserBlockError as exc:
         raise UserError(str(exc)) from None
     overrides = {k: v for k, v in numbers.items() if k not in names}
-    path = fmus.build_fmu(block, fmi_version=args.fmi + ".0", cache_dir=args.cache, params=overrides,
-                          progress=lambda msg: print(f"[fmu] {msg}", file=sys.stderr))
-    return _deliver(path, args)
+    return _deliver(block, overrides, args)
 
 
 def _list(args: argparse.Namespace) -> int:

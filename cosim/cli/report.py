@@ -16,17 +16,19 @@ import json
 import re
 from pathlib import Path
 
+from .options import add_verb
+
 
 def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("report", help="write an interactive HTML report of a run, batch or study (opens offline)",
-                       description="Write one self-contained HTML file (Plotly embedded) for what a run, batch or "
-                                   "study wrote: zoomable linked plots with units, the animation, the statistics; "
-                                   "for a batch the sortable table and clickable charts; for a study its chart.")
+    p = add_verb(sub, "report", _report,
+                 help="write an interactive HTML report of a run, batch or study (opens offline)",
+                 description="Write one self-contained HTML file (Plotly embedded) for what a run, batch or "
+                             "study wrote: zoomable linked plots with units, the animation, the statistics; "
+                             "for a batch the sortable table and clickable charts; for a study its chart.")
     p.add_argument("out", type=Path, help="a trace file, a run's directory, a batch's directory or a study's table")
     p.add_argument("-o", "--output", type=Path, help="the HTML file to write (default beside what it reports)")
     p.add_argument("--runs", action="store_true", help="for a batch, also write each run's own report (about 5 MB "
                                                         "each) and link it from the batch's")
-    p.set_defaults(handler=_report)
 
 
 def _report(args: argparse.Namespace) -> int:

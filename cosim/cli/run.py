@@ -13,44 +13,36 @@ interrupted keeps its partial trace and exits with code 1; a run that a componen
 from __future__ import annotations
 
 import argparse
-import sys
 from pathlib import Path
 
 from ..outputs import confined
-
+from .options import add_cache, add_out, add_report, add_scene, add_sets, add_trace_format, add_verb
+from .verb import interrupted, load_scene, refuse, say, tagged
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("run", help="run a scene (YAML) as an FMI co-simulation",
-                       description="Run a scene: build its FMUs (cached), step them with the scene's master "
-                                   "algorithm, stream the trace to CSV and print a summary.")
-    p.add_argument("scene", type=Path, help="scene file, e.g. scenarios/pid_step.yaml")
-    p.add_argument("--set", dest="sets", action="append", default=[], metavar="PATH=VALUE",
-                   help="override a scene value, e.g. master.step=5e-4 or components.pid1.params.Kp=40; repeatable")
-    p.add_argument("--out", type=Path, help="output directory (default runs/<scene name>)")
+    p = add_verb(sub, "run", _run, help="run a scene (YAML) as an FMI co-simulation",
+                 description="Run a scene: build its FMUs (cached), step them with the scene's master "
+                             "algorithm, stream the trace to CSV and print a summary.")
+    add_scene(p)
+    add_sets(p, "override a scene value, e.g. master.step=5e-4 or components.pid1.params.Kp=40; repeatable")
+    add_out(p, "output directory (default runs/<scene name>)")
     p.add_argument("--plot", action="store_true", help="also write <scene>.png with the recorded outputs")
     p.add_argument("--animate", action="store_true", help="also write <scene>.gif of the platform and legs")
     p.add_argument("--reference", action="store_true",
                    help="also integrate the scene as one ODE (CVODES) into <scene>_reference.csv and report the "
                         "co-simulation's error against it (catalog components only)")
     p.add_argument("--check", action="store_true", help="only validate the scene and print what it contains")
-    p.add_argument("--format", dest="trace_format", choices=["csv", "commented-csv", "parquet"], default="csv",
-                   help="trace file format: a plain CSV (default), a CSV with the metadata in '# key: value' "
+    add_trace_format(p, "trace file format: a plain CSV (default), a CSV with the metadata in '# key: value' "
                         "comment lines, or Parquet (<scene>.parquet, metadata in its schema)")
-    p.add_argument("--report", action="store_true",
-                   help="also write <scene>.html: an interactive report (plots, animation, statistics) that opens "
-                        "offline in a browser")
+    add_report(p, "also write <scene>.html: an interactive report (plots, animation, statistics) that opens "
+                  "offline in a browser")
     p.add_argument("--engine", choices=["auto", "compiled", "python"], help="override master.engine")
-    p.add_argument("--cache", type=Path, help="FMU cache directory (default $RPR_COSIM_CACHE or ~/.cache/rpr-cosim/fmus)")
+    add_cache(p)
     p.add_argument("--call-timeout", metavar="SECONDS", type=float, default=None,
                    help="end the run as 'hung' when one FMI call takes longer (default $RPR_COSIM_CALL_TIMEOUT or 60)")
     p.add_argument("--max-trace", metavar="SIZE", default=None,
                    help="refuse a run whose trace would be larger, e.g. 20GB (default $RPR_COSIM_MAX_TRACE or 4GB)")
-    p.set_defaults(handler=_run)
-
-
-def _say(msg: str) -> None:
-    print(msg, file=sys.stderr)
 
 
 def _run(args: argparse.Namespace) -> int:
@@ -71,19 +63,14 @@ def _run(args: argparse.Namespace) -> int:
 
 
 def _load_and_run(args: argparse.Namespace) -> int:
-    from ..scenario import SceneError, load
-    from ..study.fidelity import resolve_auto
+    from ..scenario import SceneError
 
     try:
-        scene = load(args.scene, args.sets, auto_fidelity=resolve_auto)
+        scene = load_scene(args)
     except SceneError as exc:
-        for p in exc.problems:
-            _say(str(p))
-        n = sum(p.severity == "error" for p in exc.problems)
-        _say(f"rpr-cosim run: {args.scene}: {n} problem{'s' if n != 1 else ''}; nothing was run")
-        return 2
+        return refuse(exc, "run", args.scene)
     for w in scene.warnings:
-        _say(str(w))
+        say(str(w))
     from ..outputs import OutputLock, check_out_dir, safe_name
     from ..run.execute import check_trace_size
 
@@ -95,19 +82,19 @@ def _load_and_run(args: argparse.Namespace) -> int:
         try:
             _describe_choice(scene)
         except UserError as exc:
-            _say(f"rpr-cosim run: {exc}")
+            say(f"rpr-cosim run: {exc}")
             return 2
         print(f"  expected: {estimate(scene)}")
         try:
             check_trace_size(scene, args.max_trace)
         except UserError as exc:
-            _say(f"rpr-cosim run: {exc}")
+            say(f"rpr-cosim run: {exc}")
             return 2
         return 0
     check_trace_size(scene, args.max_trace)
     out = args.out or Path("runs") / safe_name(scene.name)
     check_out_dir(out)
-    with OutputLock(out, log=lambda m: _say(f"[run] {m}")):
+    with OutputLock(out, log=tagged("run")):
         return _run_locked(args, scene, out)
 
 
@@ -117,22 +104,22 @@ def _run_locked(args: argparse.Namespace, scene, out: Path) -> int:
 
     try:
         res = run(scene, out_dir=out, cache_dir=args.cache, engine=args.engine, progress=progress_bar(),
-                  log=lambda m: _say(f"[run] {m}" if m.startswith(scene.name + ":") or "trace" in m else f"[fmu] {m}"),
+                  log=lambda m: say(f"[run] {m}" if m.startswith(scene.name + ":") or "trace" in m else f"[fmu] {m}"),
                   max_trace_bytes=args.max_trace, trace_format=args.trace_format, call_timeout=args.call_timeout)
     except KeyboardInterrupt as exc:
-        _say(f"rpr-cosim run: interrupted{' by ' + str(exc) if str(exc) else ''}; the partial trace and the reason "
-             f"are in {out / (scene.name + ('.parquet' if args.trace_format == 'parquet' else '.csv'))}")
+        say(f"rpr-cosim run: {interrupted(exc)}; the partial trace and the reason "
+            f"are in {out / (scene.name + ('.parquet' if args.trace_format == 'parquet' else '.csv'))}")
         raise
     _summary(res)
     _products(args, scene, res, out)
     ref = _reference(scene, res, out, args.plot, args.trace_format) if args.reference else None
     if args.report:
-        _say(f"report: {_report(scene, res, ref, out)}")
+        say(f"report: {_report(scene, res, ref, out)}")
     if res.status == "stopped":  # a component asked to end the simulation: a normal end (FMI)
-        _say(f"rpr-cosim run: {res.reason}")
+        say(f"rpr-cosim run: {res.reason}")
         return 0
     if not res.ok:
-        _say(f"rpr-cosim run: {res.status}: {res.reason}")
+        say(f"rpr-cosim run: {res.status}: {res.reason}")
         return 1
     return 0
 
@@ -154,7 +141,7 @@ def _products(args: argparse.Namespace, scene, res, out: Path) -> None:
                 final = confined(out, f"{scene.name}.png")
                 doing = f"the plot {final.name}"
                 plot_run(res.trace, final, scene.name, units=units_of(scene, res.fmus), pairs=setpoint_pairs(scene))
-                _say(f"plot: {final}")
+                say(f"plot: {final}")
             if args.animate and len(res.trace.data):
                 from ..analysis.animate import animate, pose_component
                 from ..scenario.geometry import manipulator_for
@@ -165,14 +152,14 @@ def _products(args: argparse.Namespace, scene, res, out: Path) -> None:
                 final = confined(out, f"{scene.name}.gif")
                 doing = f"the animation {final.name}"
                 animate(res.trace, final, manipulator=m, component=comp, title=scene.name)
-                _say(f"animation: {final}")
+                say(f"animation: {final}")
     except KeyboardInterrupt as exc:
         if res.trace_path is not None:
             amend_status(res.trace_path, "interrupted",
                          f"interrupted by {exc or 'the user'} while writing {doing} (the run itself ended "
                          f"{res.status}; an earlier complete file of that name is kept)")
-        _say(f"rpr-cosim run: interrupted{' by ' + str(exc) if str(exc) else ''} while writing {doing}; "
-             f"{res.trace_path.with_suffix('.json') if res.trace_path else 'the run'} says so")
+        say(f"rpr-cosim run: {interrupted(exc)} while writing {doing}; "
+            f"{res.trace_path.with_suffix('.json') if res.trace_path else 'the run'} says so")
         raise
 
 
@@ -207,7 +194,7 @@ def _reference(scene, res, out: Path, plot: bool, trace_format: str = "csv"):
 
     scene = res.scene  # as it ran (the master's choice)
     irregular = res.stats.get("smallest_step") is not None  # variable steps: the reference at the same instants
-    ref = reference(scene, out_dir=out, progress=progress_bar(), log=lambda m: _say(f"[reference] {m}"),
+    ref = reference(scene, out_dir=out, progress=progress_bar(), log=tagged("reference"),
                     times=res.trace.time if irregular and len(res.trace.data) > 1 else None,
                     trace_format=trace_format)
     st = ref.stats
@@ -224,7 +211,7 @@ def _reference(scene, res, out: Path, plot: bool, trace_format: str = "csv"):
         if plot:
             from ..scenario.units import units_of
 
-            _say(f"plot: {plot_comparison(res.trace, ref.trace, diffs, confined(out, f'{scene.name}_vs_reference.png'), labels=(scene.master.algorithm, 'reference'), units=units_of(scene, res.fmus))}")
+            say(f"plot: {plot_comparison(res.trace, ref.trace, diffs, confined(out, f'{scene.name}_vs_reference.png'), labels=(scene.master.algorithm, 'reference'), units=units_of(scene, res.fmus))}")
     return ref
 
 

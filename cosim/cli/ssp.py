@@ -10,39 +10,35 @@ our master settings as an annotation; it validates against the SSP 1.0 schemas a
 from __future__ import annotations
 
 import argparse
-import sys
 from pathlib import Path
+
+from .options import add_actions, add_cache, add_out, add_scene, add_sets, add_verb
+from .verb import load_scene, refuse, tagged
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("ssp", help="export a scene as an SSP 1.0 archive (run one with 'run FILE.ssp')",
-                       description="Scenes as SSP 1.0 archives (System Structure and Parameterization).")
-    verbs = p.add_subparsers(dest="ssp_verb", metavar="ACTION")
-    verbs.required = True
-    e = verbs.add_parser("export", help="write SCENE as FILE.ssp (FMUs, parameter set, connections, master)")
-    e.add_argument("scene", type=Path, help="scene file, e.g. scenarios/pid_step.yaml")
-    e.add_argument("-o", "--out", type=Path, help="archive to write (default <scene name>.ssp here)")
-    e.add_argument("--set", dest="sets", action="append", default=[], metavar="PATH=VALUE",
-                   help="override a scene value before export; repeatable")
+    verbs = add_actions(sub, "ssp", "ssp_verb",
+                        help="export a scene as an SSP 1.0 archive (run one with 'run FILE.ssp')",
+                        description="Scenes as SSP 1.0 archives (System Structure and Parameterization).")
+    e = add_verb(verbs, "export", _export,
+                 help="write SCENE as FILE.ssp (FMUs, parameter set, connections, master)")
+    add_scene(e)
+    add_out(e, "archive to write (default <scene name>.ssp here)", "-o")
+    add_sets(e, "override a scene value before export; repeatable")
     e.add_argument("--force", action="store_true", help="replace an existing archive")
-    e.add_argument("--cache", type=Path, help="FMU cache directory (default $RPR_COSIM_CACHE or ~/.cache/rpr-cosim/fmus)")
-    e.set_defaults(handler=_export)
+    add_cache(e)
 
 
 def _export(args: argparse.Namespace) -> int:
-    from ..scenario import SceneError, load
-    from ..study.fidelity import resolve_auto
     from ..run.ssp_export import export
+    from ..scenario import SceneError
 
     try:
-        scene = load(args.scene, args.sets, auto_fidelity=resolve_auto)
+        scene = load_scene(args)
     except SceneError as exc:
-        for p in exc.problems:
-            print(p, file=sys.stderr)
-        print(f"rpr-cosim ssp: {args.scene}: nothing was exported", file=sys.stderr)
-        return 2
+        return refuse(exc, "ssp", args.scene, "nothing was exported", count=False)
     dest = args.out or Path(f"{scene.name}.ssp")
     path = export(scene, dest, cache_dir=args.cache, overwrite=args.force,
-                  progress=lambda m: print(f"[fmu] {m}", file=sys.stderr))
+                  progress=tagged("fmu"))
     print(path)
     return 0

@@ -30,77 +30,74 @@ from __future__ import annotations
 
 import argparse
 import math
-import sys
 from pathlib import Path
+
+from .options import (add_actions, add_cache, add_only, add_out, add_report, add_scene, add_sets, add_tol,
+                      add_variants, add_verb)
+from .verb import load_scene, say
+
+CATALOG_SCENE_HELP = "scene file of catalog components, e.g. scenarios/pid_step.yaml"
+STUDY_CACHE_HELP = "FMU cache directory"
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("study", help="measured studies of master algorithms (stability maps)",
-                       description="Studies that run a scene many times and chart the outcome.")
-    studies = p.add_subparsers(dest="study", metavar="STUDY")
-    studies.required = True
-    s = studies.add_parser("stability", help="stable/unstable map over communication step x one scene parameter",
-                           description="Run the scene over a log grid of communication steps and values of one "
-                                       "parameter, for each master algorithm variant, and chart where it is stable.")
-    s.add_argument("scene", type=Path, help="scene file, e.g. scenarios/two_mass.yaml")
+    studies = add_actions(sub, "study", "study", "STUDY",
+                          help="measured studies of master algorithms (stability maps)",
+                          description="Studies that run a scene many times and chart the outcome.")
+    s = add_verb(studies, "stability", _stability,
+                 help="stable/unstable map over communication step x one scene parameter",
+                 description="Run the scene over a log grid of communication steps and values of one "
+                             "parameter, for each master algorithm variant, and chart where it is stable.")
+    add_scene(s, "scene file, e.g. scenarios/two_mass.yaml")
     s.add_argument("--vary", required=True, metavar="PATH=LO:HI",
                    help="scene parameter and its range (log axis), e.g. components.mass2.params.kc=1:1e4")
     s.add_argument("--steps", default="1e-3:0.5", metavar="LO:HI", help="communication steps [s] (log axis; "
                                                                          "default 1e-3:0.5)")
     s.add_argument("--n", type=int, default=12, metavar="N", help="grid points per axis (default 12)")
-    s.add_argument("--variant", action="append", default=[], metavar="ALG/INPUTS",
-                   help="algorithm variant, e.g. jacobi/hold or gauss_seidel/linear; repeatable "
-                        "(default: jacobi and gauss_seidel, hold and linear)")
-    s.add_argument("--out", type=Path, help="output directory (default runs/<scene>_stability)")
-    s.add_argument("--report", action="store_true", help="also write <scene>_stability.html: the map with hover "
-                                                          "values, opening offline")
-    s.add_argument("--cache", type=Path, help="FMU cache directory")
-    s.set_defaults(handler=_stability)
-    q = studies.add_parser("precision", help="error against cost (work-precision) of master algorithm variants",
-                           description="Run the scene for every algorithm variant, fixed-step ones over the "
-                                       "communication step and variable-step ones (adaptive, ecco) over their "
-                                       "tolerance, measure each run against the scene's monolithic reference (max "
-                                       "error relative to each signal's range) and its cost (wall time of the "
-                                       "stepping loop, doSteps, rejected steps, rollbacks), print the table and draw "
-                                       "the work-precision chart; the peer master ecospy is a point where it is "
-                                       "installed.  Runs go through the batch runner: resumable in --out.")
-    q.add_argument("scene", type=Path, help="scene file of catalog components, e.g. scenarios/pid_step.yaml")
+    add_variants(s, "algorithm variant, e.g. jacobi/hold or gauss_seidel/linear; repeatable "
+                    "(default: jacobi and gauss_seidel, hold and linear)")
+    add_out(s, "output directory (default runs/<scene>_stability)")
+    add_report(s, "also write <scene>_stability.html: the map with hover values, opening offline")
+    add_cache(s, STUDY_CACHE_HELP)
+    q = add_verb(studies, "precision", _precision,
+                 help="error against cost (work-precision) of master algorithm variants",
+                 description="Run the scene for every algorithm variant, fixed-step ones over the "
+                             "communication step and variable-step ones (adaptive, ecco) over their "
+                             "tolerance, measure each run against the scene's monolithic reference (max "
+                             "error relative to each signal's range) and its cost (wall time of the "
+                             "stepping loop, doSteps, rejected steps, rollbacks), print the table and draw "
+                             "the work-precision chart; the peer master ecospy is a point where it is "
+                             "installed.  Runs go through the batch runner: resumable in --out.")
+    add_scene(q, CATALOG_SCENE_HELP)
     q.add_argument("--steps", metavar="H,H,...", help="communication steps [s], each halving the previous "
                                                       "(default: 4x the scene's step down to 1/8 of it)")
     q.add_argument("--rtols", metavar="R,R,...", help="tolerances (option rtol) of the variable-step algorithms "
                                                       "(default: 1e-2,1e-3,1e-4,1e-5)")
-    q.add_argument("--variant", action="append", default=[], metavar="ALG/INPUTS",
-                   help="algorithm variant, e.g. gauss_seidel/linear or adaptive; repeatable (default: every "
-                        "fixed-step algorithm with hold and linear, every variable-step one with its own linear "
-                        "inputs; a variant the scene refuses is a row with the reason)")
+    add_variants(q, "algorithm variant, e.g. gauss_seidel/linear or adaptive; repeatable (default: every "
+                    "fixed-step algorithm with hold and linear, every variable-step one with its own linear "
+                    "inputs; a variant the scene refuses is a row with the reason)")
     q.add_argument("--stop", type=float, metavar="T", help="simulated time per run [s] (default: the scene's)")
-    q.add_argument("--only", action="append", default=[], metavar="GLOB", help="compare only these signals")
-    q.add_argument("--set", dest="sets", action="append", default=[], metavar="PATH=VALUE",
-                   help="override a scene value in every run, e.g. components.mech.rate=4 (multirate)")
-    q.add_argument("--tol", type=float, default=1e-3, metavar="REL",
-                   help="report the cheapest run whose worst relative error is within REL (default 1e-3)")
+    add_only(q)
+    add_sets(q, "override a scene value in every run, e.g. components.mech.rate=4 (multirate)")
+    add_tol(q, "report the cheapest run whose worst relative error is within REL (default 1e-3)")
     q.add_argument("--workers", type=int, default=1, metavar="N",
                    help="runs at once on local processes (default 1: the wall times are the cost measured, and "
                         "runs sharing cores slow each other)")
     q.add_argument("--no-peer", dest="peer", action="store_false", help="no ecospy point")
-    q.add_argument("--report", action="store_true", help="also write <scene>_precision.html: the work-precision "
-                                                          "chart with hover values, opening offline")
-    q.add_argument("--out", type=Path, help="output directory, runs kept in runs/ and reused when the study is "
-                                            "repeated (default runs/<scene>_precision)")
-    q.add_argument("--cache", type=Path, help="FMU cache directory")
-    q.set_defaults(handler=_precision)
-    f = studies.add_parser("fidelity", help="error and cost of every fidelity combination; the cheapest within --tol",
-                           description="Run the scene with every combination of its models' fidelity levels, "
-                                       "measure each against the most detailed combination and its cost, and name the "
-                                       "cheapest combination within the tolerance.")
-    f.add_argument("scene", type=Path, help="scene file of catalog components, e.g. scenarios/pid_step.yaml")
-    f.add_argument("--tol", type=float, default=1e-3, metavar="REL",
-                   help="largest error relative to each signal's range (default 1e-3)")
-    f.add_argument("--only", action="append", default=[], metavar="GLOB", help="compare only these signals")
-    f.add_argument("--set", dest="sets", action="append", default=[], metavar="PATH=VALUE",
-                   help="override a scene value first, e.g. stop_time=1")
-    f.add_argument("--cache", type=Path, help="FMU cache directory")
-    f.set_defaults(handler=_fidelity)
+    add_report(q, "also write <scene>_precision.html: the work-precision chart with hover values, opening offline")
+    add_out(q, "output directory, runs kept in runs/ and reused when the study is repeated (default "
+               "runs/<scene>_precision)")
+    add_cache(q, STUDY_CACHE_HELP)
+    f = add_verb(studies, "fidelity", _fidelity,
+                 help="error and cost of every fidelity combination; the cheapest within --tol",
+                 description="Run the scene with every combination of its models' fidelity levels, "
+                             "measure each against the most detailed combination and its cost, and name the "
+                             "cheapest combination within the tolerance.")
+    add_scene(f, CATALOG_SCENE_HELP)
+    add_tol(f, "largest error relative to each signal's range (default 1e-3)")
+    add_only(f)
+    add_sets(f, "override a scene value first, e.g. stop_time=1")
+    add_cache(f, STUDY_CACHE_HELP)
 
 
 def _variants(texts: list[str]) -> list[tuple[str, str]]:
@@ -188,7 +185,7 @@ def _stability(args: argparse.Namespace) -> int:
         print(f"{v[0] + '/' + v[1]:<24} {count['stable']:>7} {count['unstable']:>9} {count['failed']:>7}  {agree:>20}")
     if not smap.analytic:
         print(f"no analytic boundary: {smap.analytic_note}")
-    print(f"table: {csv_path}\nchart: {png_path}", file=sys.stderr)
+    say(f"table: {csv_path}\nchart: {png_path}")
     _report(args, csv_path)
     return 0
 
@@ -197,7 +194,7 @@ def _report(args: argparse.Namespace, table: Path) -> None:
     if args.report:
         from ..analysis.report import study_report
 
-        print(f"report: {study_report(table)}", file=sys.stderr)
+        say(f"report: {study_report(table)}")
 
 
 def _precision(args: argparse.Namespace) -> int:
@@ -217,21 +214,19 @@ def _precision(args: argparse.Namespace) -> int:
     if not args.workers >= 1:
         raise UserError(f"--workers {args.workers}: expected at least 1 process")
     from ..outputs import OutputLock, check_out_dir, confined
-    from ..scenario import load
-    from ..study.fidelity import resolve_auto
 
-    name = load(args.scene, args.sets, auto_fidelity=resolve_auto).name  # the output directory is named after the scene
+    name = load_scene(args).name  # the output directory is named after the scene
     out = args.out or Path("runs") / f"{name}_precision"
     check_out_dir(out)  # files stay under --out (cosim.outputs)
 
-    def say(msg: str) -> None:
-        print(msg, file=sys.stderr, flush=True)
+    def log(msg: str) -> None:
+        say(msg, flush=True)
 
     with OutputLock(out):  # the lock of runs and batches: one writer per directory
         study = precision_study(args.scene, _precision_variants(args.variant), steps, rtols=rtols,
                                 stop_time=args.stop, only=args.only or None, cache_dir=args.cache,
                                 overrides=args.sets, out=out, workers=args.workers, batch_progress=Progress(),
-                                peer=args.peer, log=say, progress=lambda m: say(f"  {m}"), tolerance=args.tol)
+                                peer=args.peer, log=log, progress=lambda m: log(f"  {m}"), tolerance=args.tol)
         csv_path = confined(out, f"{study.scene}_precision.csv")
         png_path = confined(out, f"{study.scene}_precision.png")
         study.write_csv(csv_path)
@@ -261,7 +256,7 @@ def _precision(args: argparse.Namespace) -> int:
             ratio = f", {ch.wall_s / best.wall_s:.2f}x the cheapest's wall time" if best and ch.status == "ok" else ""
             print(f"tolerance default's choice: {ch.algorithm} ({ch.chosen}), {ch.status}, worst {ch.worst:.2e}, "
                   f"{ch.wall_s:.3f} s{ratio}")
-    print(f"table: {csv_path}\nchart: {png_path}\nruns: {out / 'runs'}", file=sys.stderr)
+    say(f"table: {csv_path}\nchart: {png_path}\nruns: {out / 'runs'}")
     _report(args, csv_path)
     return 0
 
@@ -273,7 +268,7 @@ def _fidelity(args: argparse.Namespace) -> int:
     if not args.tol > 0:
         raise UserError(f"--tol {args.tol}: expected a positive relative tolerance")
     study = fidelity_study(args.scene, args.sets, only=args.only or None, cache_dir=args.cache,
-                           progress=lambda m: print(f"  {m}", file=sys.stderr, flush=True))
+                           progress=lambda m: say(f"  {m}", flush=True))
     top = study.rows[0]
     print(f"{study.scene}: {len(study.rows)} fidelity combinations against the most detailed ({top.label})")
     print(f"{'combination':<62} {'status':>8} {'worst rel':>10} {'signal':<22} {'wall s':>8} {'speed-up':>8}")

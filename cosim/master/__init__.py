@@ -40,8 +40,9 @@ Jacobi
     3. every slave's outputs are read.  So a slave's input over ``[t_k, t_k+1]`` is its source's
     output at ``t_k`` -- and for an output with direct feedthrough, that output was evaluated at
     ``t_k`` with its own inputs from ``t_k-1``: each feedthrough hop adds one step of delay
-    (the "one-step delay" convention).  Except through a *memoryless* slave (no state, its outputs
-    functions of its inputs now: a ``sum`` block, OSP's Sum and VectorSum): after step 3 those are
+    (the "one-step delay" convention).  Except through a *memoryless* slave (a function of a
+    system file: a ``sum`` block, OSP's Sum and VectorSum; no state, its outputs functions of its
+    inputs now): after step 3 those are
     evaluated in order (inputs from the outputs just read, then their outputs), so they add no
     delay, as libcosim evaluates its functions (:attr:`Algorithm.exchange`).
 Gauss-Seidel

@@ -148,7 +148,7 @@ def parse_bytes(text: str | int | float) -> int:
         value = float("nan")
     if not m or not value >= 0:
         raise UserError(f"trace size limit {text!r}: expected a size such as 20GB, 500MB or 1e9")
-    return int(value * 1000 ** " kMGTP".index(m.group(2).upper() or " "))
+    return int(value * 1000 ** " KMGTP".index(m.group(2).upper() or " "))
 
 
 def estimate(scene: Scene) -> TraceEstimate:
@@ -399,6 +399,10 @@ def _run_meta(scene: Scene, overrides: Sequence) -> dict:
             "connections": [str(c) for c in scene.connections], "overrides": list(overrides)}
 
 
+#: Rows per block when a pilot run's rows are written as the run (:func:`_replay`).
+REPLAY_ROWS = 32
+
+
 def _replay(pilot: RunResult, scene: Scene, out_dir, progress, extra: dict, log, overrides: Sequence,
             trace_format: str = "csv") -> RunResult:
     """The run of ``scene`` that the pilot run ``pilot`` (the same scene at the same setting over
@@ -407,26 +411,42 @@ def _replay(pilot: RunResult, scene: Scene, out_dir, progress, extra: dict, log,
     instead of running it once more."""
     from ..trace.traces import TraceWriteError
 
+    from ..master import interruption_reason
+
     memory, inner, trace_path = scene_observers(scene, out_dir, trace_format=trace_format)
     tr = pilot.trace
     status, reason, stats = pilot.status, pilot.reason, dict(pilot.stats, **extra)
+    rows, n = tr.data, len(tr.data)
+    chunk = max(1, min(n, REPLAY_ROWS))
+    done = 0
     try:
         for ob in inner:
             ob.start(tr.columns, {**tr.meta, **_run_meta(scene, overrides), **extra})
         try:
-            for ob in inner:
-                ob.record(tr.data)
+            # in blocks, as a run records them: a full disk keeps whole rows, a signal or Ctrl-C
+            # (from the progress callback too) ends the run "interrupted" with the rows written
+            while done < n:
+                for ob in inner:
+                    ob.record(rows[done:done + chunk])
+                done += min(chunk, n - done)
+                if progress:
+                    progress(round(scene.n_steps * done / n), scene.n_steps)
         except TraceWriteError as exc:  # disk full: the run failed with the reason, its rows so far kept
             status, reason = "failed", str(exc)
             stats = dict(stats, status=status, reason=reason)
+        except KeyboardInterrupt as exc:
+            status = "interrupted"
+            reason = interruption_reason(exc, float(rows[done - 1, 0]) if done else None)
+            stats = dict(stats, status=status, reason=reason)
+            for ob in inner:
+                ob.finish(status, reason, stats)
+            raise
         for ob in inner:
             ob.finish(status, reason, stats)
     finally:
         for ob in inner:
             if getattr(ob, "note", ""):
                 log(ob.note)
-    if progress:
-        progress(scene.n_steps, scene.n_steps)
     t = memory.trace
     for ob in inner:  # a trace writer that failed at the end turns "ok" into "failed"
         if getattr(ob, "status", status) != status:

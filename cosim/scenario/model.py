@@ -9,6 +9,10 @@ from ..slaves.description import SlaveDescription
 from .problems import Loc, Problem
 
 
+#: Catalog blocks that stand for a system file's functions (:attr:`Component.memoryless`).
+FUNCTION_BLOCKS = frozenset({"vector_sum"})
+
+
 @dataclass
 class Component:
     """A validated component: how to build it and what it looks like."""
@@ -34,11 +38,12 @@ class Component:
 
     @property
     def memoryless(self) -> bool:
-        """A catalog or user block with no state and no sampling (e.g. ``sum``): its outputs are
-        functions of its inputs at every instant."""
+        """A block that stands for a system file's function (``sum``: OSP's Sum and VectorSum),
+        evaluated within Jacobi's exchange as libcosim evaluates its functions.  Every other block,
+        stateless or not, is a slave like any FMU, with Jacobi's one-step delay (so a scene runs
+        the same as its SSP export, whose FMUs carry no such mark)."""
         b = self.block
-        return (self.kind == "model" and b is not None and not b.states and b.integrator == "none"
-                and not b.sample_period)
+        return self.kind == "model" and b is not None and b.name in FUNCTION_BLOCKS and b.memoryless
 
     @property
     def label(self) -> str:

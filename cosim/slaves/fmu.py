@@ -367,10 +367,13 @@ class FmuSlave(Slave):
         try:
             fn(*args)
         except Exception as exc:  # fmpy's FMICallException and friends
-            detail = f": {self.last_message}" if self.last_message else ""
-            raise UserError(f"{self.name}: {what} failed ({exc}){detail}") from None
+            raise self._failed(what, exc) from None
         finally:
             leave()
+
+    def _failed(self, what: str, why: object) -> UserError:
+        """The one-line error of a failed FMI call: ``NAME: WHAT failed (WHY): the FMU's last message``."""
+        return UserError(f"{self.name}: {what} failed ({why})" + (f": {self.last_message}" if self.last_message else ""))
 
     def set_start(self, values: dict[str, object]) -> None:
         """Parameters and start values of any FMI type by name (arrays as lists); FMI 3.0
@@ -580,8 +583,7 @@ class FmuSlave(Slave):
         st = self._state_calls()[0](self._inst, ctypes.byref(state))
         leave()
         if st in FAILING:
-            raise UserError(f"{self.name}: getting the FMU state failed ({Status(st).name})"
-                            + (f": {self.last_message}" if self.last_message else ""))
+            raise self._failed("getting the FMU state", Status(st).name)
 
     def restore_state(self) -> None:
         state = getattr(self, "_state", None)
@@ -591,8 +593,7 @@ class FmuSlave(Slave):
         st = self._state_calls()[1](self._inst, state)
         leave()
         if st in FAILING:
-            raise UserError(f"{self.name}: setting the FMU state failed ({Status(st).name})"
-                            + (f": {self.last_message}" if self.last_message else ""))
+            raise self._failed("setting the FMU state", Status(st).name)
 
     def _free_state(self) -> None:
         state = getattr(self, "_state", None)
@@ -611,8 +612,7 @@ class FmuSlave(Slave):
                 seed = [1.0 if k == j else 0.0 for k in range(len(known))]
                 jac[:, j] = self.fmu.getDirectionalDerivative(unknown, known, seed)
         except Exception as exc:  # fmpy raises its FMICallException on a failing status
-            raise UserError(f"{self.name}: get directional derivative failed ({exc})"
-                            + (f": {self.last_message}" if self.last_message else "")) from None
+            raise self._failed("get directional derivative", exc) from None
         return jac
 
 

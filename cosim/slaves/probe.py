@@ -7,7 +7,6 @@ check; a check is run again only when its entry is missing or its ``version`` ch
 """
 from __future__ import annotations
 
-import hashlib
 import json
 import os
 import tempfile
@@ -20,14 +19,6 @@ from .description import SlaveDescription
 VERSIONS = {"feedthrough": 1, "xml": 1, "behaviour": 3}
 
 
-def fmu_digest(path: Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as fh:
-        for chunk in iter(lambda: fh.read(1 << 20), b""):
-            h.update(chunk)
-    return h.hexdigest()
-
-
 def _cache_file(digest: str) -> Path:
     from fmus import cache_root
 
@@ -37,7 +28,9 @@ def _cache_file(digest: str) -> Path:
 def cached(path: Path, key: str, compute: Callable[[], object]) -> tuple[object, bool]:
     """``compute()`` for the FMU ``path``, from the cache when it holds it: (value, from_cache).
     The value must be JSON data.  A cache that cannot be written is skipped."""
-    digest = fmu_digest(path)
+    from fmus.cache import file_digest
+
+    digest = file_digest(path)
     file = _cache_file(digest)
     try:
         data = json.loads(file.read_text())

@@ -163,19 +163,13 @@ def _auto_cache(cache_dir: Path | None) -> Path:
     return root
 
 
-def _plain(node: Any) -> Any:
-    if isinstance(node, Mapping):
-        return {str(k): _plain(v) for k, v in node.items()}
-    if isinstance(node, (list, tuple)):
-        return [_plain(v) for v in node]
-    return node
-
-
 def resolve_auto(tree: Any, path: Path, *, cache_dir: Path | None = None,
                  log: Callable[[str], None] | None = None) -> tuple[Any, str]:
     """Replace ``fidelity: auto`` by the cheapest levels within the scene's
     ``fidelity_tolerance`` (default :data:`AUTO_TOLERANCE`); returns the new tree and a one-line
     note of the choice.  The choice is cached by the hash of the scene's data."""
+    from ..scenario.overrides import plain
+
     tol = tree.get("fidelity_tolerance", AUTO_TOLERANCE)
     try:
         tol = float(tol)
@@ -184,7 +178,7 @@ def resolve_auto(tree: Any, path: Path, *, cache_dir: Path | None = None,
     if not tol > 0:
         raise UserError(f"{path}: fidelity_tolerance = {tree.get('fidelity_tolerance')!r}: expected a positive "
                         f"relative tolerance, e.g. 1e-4")
-    key = hashlib.sha256(json.dumps(_plain(tree), sort_keys=True, default=str).encode()).hexdigest()[:24]
+    key = hashlib.sha256(json.dumps(plain(tree), sort_keys=True, default=str).encode()).hexdigest()[:24]
     cached = _auto_cache(cache_dir) / f"{key}.json"
     choice = None
     if cached.is_file():
@@ -216,9 +210,11 @@ def _study_tree(tree: Any, path: Path, cache_dir: Path | None) -> FidelityStudy:
 
     import yaml
 
+    from ..scenario.overrides import plain
+
     with tempfile.TemporaryDirectory(prefix="rpr-fidelity-") as tmp:
         # written beside nothing: includes were already merged; FMU paths are made absolute
-        data = _plain(tree)
+        data = plain(tree)
         data.pop("include", None)
         for spec in (data.get("components") or {}).values():
             if isinstance(spec, dict) and "fmu" in spec and not Path(str(spec["fmu"])).is_absolute():

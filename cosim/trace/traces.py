@@ -376,14 +376,8 @@ class CsvTrace(Observer):
             self._thread = None
         rows = self.rows
         if self._error is not None:
-            exc = self._error
             rows = self._count_rows()
-            text = f"writing the trace failed: {getattr(exc, 'strerror', None) or exc} ({rows} whole rows kept)"
-            if "TraceWriteError" not in reason:
-                reason = (reason + "; " if reason else "") + text
-            if status == "ok":
-                status = "failed"
-            stats = dict(stats or {}, status=status, reason=reason)
+            status, reason, stats = self._failed(status, reason, stats, f" ({rows} whole rows kept)")
         self.status, self.reason = status, reason
         if self.commented:
             trailer = (_comment("status", status) + _comment("reason", reason) + _comment("rows", rows)
@@ -398,6 +392,16 @@ class CsvTrace(Observer):
         os.close(self._fd)
         self._fd = None
         self._finish_sidecar(status, reason, rows, stats)
+
+    def _failed(self, status: str, reason: str, stats: dict, kept: str = "") -> tuple[str, str, dict]:
+        """The outcome of a run whose trace could not be written (``self._error``): its reason
+        gains the write error (and ``kept``, what is left of the file), "ok" becomes "failed"."""
+        text = f"writing the trace failed: {getattr(self._error, 'strerror', None) or self._error}{kept}"
+        if "TraceWriteError" not in reason:
+            reason = (reason + "; " if reason else "") + text
+        if status == "ok":
+            status = "failed"
+        return status, reason, dict(stats or {}, status=status, reason=reason)
 
     def _finish_sidecar(self, status: str, reason: str, rows: int, stats: dict) -> None:
         """The final sidecar, then the files moved into place (:func:`cosim.outputs.place`)."""
@@ -518,13 +522,7 @@ class ParquetTrace(CsvTrace):
         self._flush()
         rows = self.rows
         if self._error is not None:
-            exc = self._error
-            text = f"writing the trace failed: {getattr(exc, 'strerror', None) or exc}"
-            if "TraceWriteError" not in reason:
-                reason = (reason + "; " if reason else "") + text
-            if status == "ok":
-                status = "failed"
-            stats = dict(stats or {}, status=status, reason=reason)
+            status, reason, stats = self._failed(status, reason, stats)
         self.status, self.reason = status, reason
         outcome = {"status": status, "reason": reason, "rows": rows, "statistics": stats}
         if self._text:
