@@ -237,3 +237,31 @@ def test_a_bad_estimate_setting_is_one_line(value, sets, message):
 
     with pytest.raises(SceneError, match=message):
         load(SCENES / "pid_step.yaml", {**sets, "master.estimate": value})
+
+
+@pytest.mark.parametrize("rollback", [True, False])
+def test_pilots_and_companions_on_the_runs_own_instances_change_nothing(tmp_path, cache, monkeypatch, rollback):
+    """The pilot and companion runs of a default run reset the run's own FMU instances
+    (:mod:`cosim.run.instances`) instead of loading every FMU again: the choice (every pilot's
+    estimate), the estimate and the trace are the same to the bit as with a fresh instance for
+    every run (``$RPR_COSIM_REUSE=0``), and each FMU is loaded once instead of once per run."""
+    import numpy as np
+
+    from cosim.slaves import fmu
+
+    loads = []
+    make = fmu._Fmi2.make
+    monkeypatch.setattr(fmu._Fmi2, "make", lambda self, slave, *a: loads.append(slave.name) or make(self, slave, *a))
+    monkeypatch.setenv("RPR_COSIM_SUPERVISE", "0")  # in this process, to count the loads
+    path = _scene(tmp_path, "{step: 1e-2, output_interval: 1e-2}", rollback=rollback)
+    res = {}
+    for reuse in ("0", "1"):
+        monkeypatch.setenv("RPR_COSIM_REUSE", reuse)
+        loads.clear()
+        res[reuse] = run(path, cache_dir=cache), list(loads)
+    (fresh, fresh_loads), (kept, kept_loads) = res["0"], res["1"]
+    assert kept.status == fresh.status == "ok"
+    runs = 2 * len(kept.stats["choice"]["pilots"])  # each pilot and its companion (the last pilot is the run)
+    assert runs >= 4 and len(fresh_loads) >= 2 * runs and sorted(kept_loads) == ["mass1", "mass2"]
+    assert kept.stats["choice"] == fresh.stats["choice"] and kept.stats["estimate"] == fresh.stats["estimate"]
+    assert np.array_equal(kept.trace.data, fresh.trace.data)

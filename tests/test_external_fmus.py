@@ -326,6 +326,31 @@ def test_quarter_truck_from_yaml_default_algorithm_within_1pc_of_libcosim(data, 
 
 
 @needs_data
+def test_an_external_fmus_companion_run_loads_it_anew(data, monkeypatch):
+    """A run's companion shares the run's instances only for the project's own FMUs
+    (:mod:`cosim.run.instances`): libcosim's Wheel keeps its position through fmi2Reset (the
+    behavioural check does not see it), so a companion on a reset instance would start where the
+    run ended and estimate 3e2 of the range at t = 0.  Loaded anew, the run is what it is with
+    sharing off."""
+    from cosim.slaves import fmu
+
+    loads = []
+    make = fmu._Fmi2.make
+    monkeypatch.setattr(fmu._Fmi2, "make", lambda self, slave, *a: loads.append(slave.name) or make(self, slave, *a))
+    monkeypatch.setenv("RPR_COSIM_SUPERVISE", "0")  # in this process, to count the loads
+    scene, res = load(_truck(data.parent, stop=0.01)), {}
+    for reuse in ("0", "1"):
+        monkeypatch.setenv("RPR_COSIM_REUSE", reuse)
+        loads.clear()
+        res[reuse] = run(scene), sorted(loads)
+    (fresh, fresh_loads), (kept, kept_loads) = res["0"], res["1"]
+    assert kept.status == fresh.status == "ok", kept.reason
+    assert kept_loads == fresh_loads == ["chassis", "chassis", "wheel", "wheel"]  # the companion's and the run's
+    assert kept.stats["estimate"] == fresh.stats["estimate"] and kept.stats["estimate"]["worst"] < 0.1
+    assert np.array_equal(kept.trace.data, fresh.trace.data)
+
+
+@needs_data
 def test_quarter_truck_from_its_osp_file_runs_ecco_within_1pc_of_libcosim(data, libcosim_truck):
     sc = load(data / "fmi2" / "quarter_truck" / "OspSystemStructure.xml", ["stop_time=1.0"])
     assert sc.master.algorithm == "ecco" and sc.master.step == 1e-4

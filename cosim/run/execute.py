@@ -13,6 +13,7 @@ from typing import Any
 from ..errors import UserError
 from .companion import companion
 from .guards import scene_guard
+from .instances import Instances
 from ..master import CoupledSystem, Link, simulate
 from ..master.estimate import EstimatingObserver
 from ..scenario import Scene, load
@@ -334,53 +335,60 @@ def _step(scene: Scene, out_dir, paths, slaves, progress, log, engine, overrides
     t0 = time.perf_counter()
     given = list(slaves) if slaves is not None else None
 
-    def prepared(made: list[Slave]) -> list[Slave]:
-        for s, c in zip(made, scene.components.values()):
-            if c.kind == "fmu" and s.description is not c.description and isinstance(s, FmuSlave):
-                # what the scene check found (feedthrough, behavioural workarounds) also for slaves made elsewhere
-                d = c.description
-                s.description = replace(s.description, feedthrough=d.feedthrough, workarounds=d.workarounds,
-                                        rollback_reason=d.rollback_reason,
-                                        can_get_set_state=s.description.can_get_set_state and d.can_get_set_state)
-                s.always_no_prior = "always_no_prior" in d.workarounds
-            if not c.rollback and s.description.can_get_set_state:  # the scene forbids rollback of this component
-                s.description = replace(s.description, can_get_set_state=False)
-            if c.memoryless and not s.description.memoryless:  # evaluated within Jacobi's exchange
-                s.description = replace(s.description, memoryless=True)
-        return made
+    comps = list(scene.components.values())
 
-    def make_slaves() -> list[Slave]:
-        """Fresh slaves of the scene's components, for companion and pilot runs (from the FMUs
-        of the slaves handed over, when they were)."""
+    def prepared(s: Slave, c) -> Slave:
+        if c.kind == "fmu" and s.description is not c.description and isinstance(s, FmuSlave):
+            # what the scene check found (feedthrough, behavioural workarounds) also for slaves made elsewhere
+            d = c.description
+            s.description = replace(s.description, feedthrough=d.feedthrough, workarounds=d.workarounds,
+                                    rollback_reason=d.rollback_reason,
+                                    can_get_set_state=s.description.can_get_set_state and d.can_get_set_state)
+            s.always_no_prior = "always_no_prior" in d.workarounds
+        if not c.rollback and s.description.can_get_set_state:  # the scene forbids rollback of this component
+            s.description = replace(s.description, can_get_set_state=False)
+        if c.memoryless and not s.description.memoryless:  # evaluated within Jacobi's exchange
+            s.description = replace(s.description, memoryless=True)
+        return s
+
+    def make_slave(i: int) -> Slave:
+        """A fresh slave of component ``i`` (from the FMU of the slave handed over, when it was)."""
+        c = comps[i]
         if given is not None:
-            return prepared([FmuSlave(s.name, s.path, s.description) for s in given])
-        return prepared([FmuSlave(name, paths[name], c.description if c.kind == "fmu" else
-                                  slave_description(c, paths[name])) for name, c in scene.components.items()])
+            return prepared(FmuSlave(given[i].name, given[i].path, given[i].description), c)
+        return prepared(FmuSlave(c.name, paths[c.name], c.description if c.kind == "fmu" else
+                                 slave_description(c, paths[c.name])), c)
 
-    main = prepared(given) if given is not None else make_slaves()
+    main = [prepared(s, c) for s, c in zip(given, comps)] if given is not None else [make_slave(i) for i in
+                                                                                       range(len(comps))]
     build_s = time.perf_counter() - t0
     repeat = repeatable(scene)
     if repeat is None and given is not None and not all(isinstance(s, FmuSlave) for s in given):
         repeat = "the slaves were handed over ready, not as FMUs: a run is not repeated"
-    extra: dict = {}
-    pilots: list[RunResult] = []
-    if scene.master.auto:
-        from .choose import choose
+    # one load per catalog FMU for the pilots, companions and the run; an external FMU's reset is not trusted
+    instances = Instances(main, make_slave, [c.kind != "fmu" for c in comps])
+    try:
+        extra: dict = {}
+        pilots: list[RunResult] = []
+        if scene.master.auto:
+            from .choose import choose
 
-        def pilot(sc: Scene) -> RunResult:
-            pilots.append(_once(sc, make_slaves, None, None, None, engine, repeat, {}))
-            return pilots[-1]
+            def pilot(sc: Scene) -> RunResult:
+                pilots.append(_once(sc, instances, None, None, None, engine, repeat, {}))
+                return pilots[-1]
 
-        scene, choice = choose(scene, pilot if repeat is None else None, log, why_not=repeat)
-        extra["choice"] = choice.as_dict()
-        log(f"{scene.name}: {choice}")
-    over = list(overrides.items()) if isinstance(overrides, Mapping) else list(overrides or [])
-    same = next((p for p in reversed(pilots) if p.scene.master == scene.master and p.scene.n_steps == scene.n_steps
-                 and p.scene.stop_time == scene.stop_time and not p.trace.text), None)
-    if same is not None:  # the last pilot ran the chosen setting over the whole run: it is the run
-        res = _replay(same, scene, out_dir, progress, extra, log, over, trace_format)
-    else:
-        res = _once(scene, make_slaves, main, out_dir, progress, engine, repeat, extra, log, over, trace_format)
+            scene, choice = choose(scene, pilot if repeat is None else None, log, why_not=repeat)
+            extra["choice"] = choice.as_dict()
+            log(f"{scene.name}: {choice}")
+        over = list(overrides.items()) if isinstance(overrides, Mapping) else list(overrides or [])
+        same = next((p for p in reversed(pilots) if p.scene.master == scene.master and p.scene.n_steps == scene.n_steps
+                     and p.scene.stop_time == scene.stop_time and not p.trace.text), None)
+        if same is not None:  # the last pilot ran the chosen setting over the whole run: it is the run
+            res = _replay(same, scene, out_dir, progress, extra, log, over, trace_format)
+        else:
+            res = _once(scene, instances, main, out_dir, progress, engine, repeat, extra, log, over, trace_format)
+    finally:
+        instances.close()
     return res.status, res.reason, res.trace, res.stats, res.trace_path, build_s
 
 
@@ -460,10 +468,10 @@ def repeatable(scene: Scene) -> str | None:
     return None
 
 
-def _companion_trace(scene: Scene, make_slaves, engine) -> tuple[tuple | None, float, str]:
-    """Run the companion of ``scene`` (:mod:`cosim.run.companion`) into memory: ``((time, values) or
-    None, divisor, method)``."""
-    slaves = make_slaves()
+def _companion_trace(scene: Scene, instances: Instances, engine) -> tuple[tuple | None, float, str]:
+    """Run the companion of ``scene`` (:mod:`cosim.run.companion`) on ``instances`` into memory:
+    ``((time, values) or None, divisor, method)``."""
+    slaves = instances.take()
     comp = companion(scene, any(s.description.can_interpolate_inputs for s in slaves))
     if comp.scene is None:
         return None, 1.0, comp.method
@@ -477,10 +485,13 @@ def _companion_trace(scene: Scene, make_slaves, engine) -> tuple[tuple | None, f
                  tolerances=_tolerances(cs), options=cs.master.options or None,
                  rates=[c.rate for c in cs.components.values()], timing=False)
     except UserError as exc:
+        instances.ended("failed")
         return None, 1.0, f"{comp.method} could not run: {exc}"
     except Exception as exc:  # the companion failed: no estimate
+        instances.ended("failed")
         return None, 1.0, f"{comp.method} failed: {type(exc).__name__}: {exc}"
     tr = memory.trace
+    instances.ended(tr.status)
     if tr.status not in ("ok", "stopped"):  # a companion that failed says nothing of the run
         return None, 1.0, f"{comp.method} ended {tr.status}: {tr.reason}"
     return (tr.time, tr.data[:, 1:]), comp.div, comp.method
@@ -495,21 +506,21 @@ def _tolerances(scene: Scene) -> list:
     return [c.description.default_experiment.get("tolerance") for c in scene.components.values()]
 
 
-def _once(scene: Scene, make_slaves, slaves, out_dir, progress, engine, repeat: str | None, extra: dict,
+def _once(scene: Scene, instances: Instances, slaves, out_dir, progress, engine, repeat: str | None, extra: dict,
           log: Callable[[str], None] = lambda m: None, overrides: Sequence = (), trace_format: str = "csv") -> RunResult:
-    """One run of ``scene`` on ``slaves`` (None: ``make_slaves()``) with its error estimate (a
-    companion run on ``make_slaves()`` first, when ``repeat`` is None), judged by it
+    """One run of ``scene`` on ``slaves`` (None: ``instances.take()``) with its error estimate (a
+    companion run on ``instances.take()`` first, when ``repeat`` is None), judged by it
     (:func:`cosim.master.estimate.judge`)."""
     from ..trace.traces import TraceWriteError
 
     if repeat is None and not scene.master.estimate:
         ctrace, div, method = None, 1.0, "master.estimate: false"
     elif repeat is None:
-        ctrace, div, method = _companion_trace(scene, make_slaves, engine)
+        ctrace, div, method = _companion_trace(scene, instances, engine)
     else:
         ctrace, div, method = None, 1.0, repeat
     guard = scene_guard(scene)
-    system = couple(scene, slaves if slaves is not None else make_slaves(), guard.watch if guard else ())
+    system = couple(scene, slaves if slaves is not None else instances.take(), guard.watch if guard else ())
     if guard:
         guard.bind(system.record_names + system.watch_names)
     memory, inner, trace_path = scene_observers(scene, out_dir, trace_format=trace_format)
@@ -533,6 +544,7 @@ def _once(scene: Scene, make_slaves, slaves, out_dir, progress, engine, repeat: 
         for ob in inner:
             if getattr(ob, "note", ""):
                 log(ob.note)
+    instances.ended(stats["status"])
     t = memory.trace
     for ob in inner:  # a trace writer that failed at the end turns "ok" into "failed"
         if getattr(ob, "status", stats["status"]) != stats["status"]:
