@@ -208,9 +208,12 @@ def execute(task: Task, shared: Shared) -> Outcome:
     status, reason, stats, trace = "failed", "", {}, None
     blobs = {**shared.blobs, **task.blobs} if task.blobs else shared.blobs
     try:
-        for name in task.scene.components:
+        for name, comp in task.scene.components.items():
             digest = task.fmus[name]
-            slaves.append(STATE.take(name, digest, STATE.fmu_path(digest, blobs), shared.reuse))
+            # only the project's own FMUs are kept between runs: an external FMU's reset may not
+            # reset (libcosim's Wheel keeps its position), so it is loaded anew for each run
+            keep = shared.reuse and comp.kind == "model"
+            slaves.append(STATE.take(name, digest, STATE.fmu_path(digest, blobs), keep))
         t_run = time.perf_counter()
         res = run(task.scene, out_dir=out_dir, slaves=slaves, trace_format=task.trace_format)
         status, reason, stats, trace = res.status, res.reason, dict(res.stats), res.trace
