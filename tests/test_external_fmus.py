@@ -118,6 +118,9 @@ def test_fmu_check_behaviour_finds_the_quarter_truck_wheels_flag_departure(data)
                          text=True, timeout=300)
     assert "fmi2DoStep: the standard says noSetFMUStatePriorToCurrentPoint" in res.stdout
     assert "with false" in res.stdout and "always_no_prior" in res.stderr
+    # driven away from its start, then reset: it keeps its position (a batch then loads it anew)
+    assert "fmi2Reset: the standard says reset returns the instance to its state after instantiation" in res.stdout
+    assert "no_reset" in res.stderr
     assert res.returncode >= 1
 
 

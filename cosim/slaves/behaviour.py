@@ -102,6 +102,14 @@ class _Fmu:
                 vals.append(float((inst.getInt32 if self.fmi3 else inst.getInteger)([v.valueReference])[0]))
         return vals
 
+    def drive(self, inst) -> None:
+        """Every real input set away from its start (start + 1, or twice it), so that the steps
+        that follow move the state (where inputs at rest leave it at the start)."""
+        for v in self.ins:
+            if v.type in REAL:
+                x = float(v.start) if v.start not in (None, "") else 0.0
+                (inst.setFloat64 if self.fmi3 else inst.setReal)([v.valueReference], [2 * x if x else 1.0])
+
     def step(self, inst, k: int, no_prior: bool, h: float | None = None) -> None:
         h = self.h if h is None else h
         inst.doStep(self.t0 + k * self.h, h, no_prior)
@@ -241,6 +249,7 @@ def check(path: Path) -> dict:
     ran("reset")
     r = f.new()
     f.init(r)
+    f.drive(r)  # the state moved away from the start, so a reset that keeps it shows
     f.run(r, True)
     try:
         r.reset()
