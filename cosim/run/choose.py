@@ -14,8 +14,8 @@ The setting (step or rtol) comes from pilot runs, each with its error estimate
 (:mod:`cosim.master.estimate`): a fixed step first over the first quarter of the run, from the
 scene's step, then ``h * (tolerance / 2 / estimate)^(1/p)`` snapped to a step that divides the
 output interval, checked over the whole run and refined while the estimate misses; a tolerance
-likewise (its first pilot over the first quarter too).  The last pilot, when it ran the whole
-run at the chosen setting, is the run itself (:mod:`cosim.run.execute` writes it out rather than
+likewise (its first pilot over the first quarter too).  The first whole-run pilot that meets the
+tolerance ends the search: it is the run itself (:mod:`cosim.run.execute` writes it out rather than
 running it again).  Where runs cannot be repeated (hardware, real-time pacing) there are
 no pilots: the scene's step is kept and the choice says so.
 """
@@ -36,8 +36,8 @@ from .companion import ORDER_HOLD, ORDER_LINEAR, ORDER_TOLERANCE
 MAX_STEPS = 10 ** 7
 #: Pilot runs at most (each with its companion).
 MAX_PILOTS = 5
-#: A setting is kept when its estimate is within the tolerance and above this fraction of it.
-LOW = 0.3
+#: The first whole-run pilot within the tolerance is kept: it is the run (written out, not run
+#: again), and a looser try would cost a run and its companion to save a fraction of one.
 #: The estimate a new setting aims at, as a fraction of the tolerance.
 TARGET = 0.6
 #: The first pilot runs over this share of the run (the next ones over the whole run).
@@ -173,10 +173,9 @@ def choose(scene: Scene, pilot: Callable[[Scene], object] | None, log: Callable[
             if e is None:
                 break
             met = e <= tol and window == 1.0
-            if met:
+            if met:  # this pilot is the run (cosim.run.execute keeps it): a looser try only adds cost
                 best = rtol if best is None else max(best, rtol)
-                if e >= LOW * tol:
-                    break
+                break
             fac = (TARGET * tol / e) ** (1 / ORDER_TOLERANCE) if e > 0 and math.isfinite(e) else 0.1
             nxt = rtol * min(30.0, max(1 / 30, fac))
             if best is not None and not met and nxt <= best:
@@ -207,10 +206,9 @@ def choose(scene: Scene, pilot: Callable[[Scene], object] | None, log: Callable[
         if e is None:
             break
         met = e <= tol and window == 1.0
-        if met:
+        if met:  # this pilot is the run (cosim.run.execute keeps it): a longer step only adds cost
             best = h_ns if best is None else max(best, h_ns)
-            if e >= LOW * tol:
-                break
+            break
         fac = (TARGET * tol / e) ** (1 / p) if e > 0 and math.isfinite(e) else 0.1
         nxt = snap(h_ns / 1e9 * min(10.0, max(0.05, fac)))
         if met and (nxt is None or nxt <= h_ns):
