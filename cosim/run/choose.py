@@ -153,40 +153,36 @@ def choose(scene: Scene, pilot: Callable[[Scene], object] | None, log: Callable[
     cls = ALGORITHMS[alg]
     choice = Choice(alg, {"inputs": inputs}, why, tol)
 
-    def estimate_of(sc: Scene) -> float | None:
+    def trial(sc: Scene, setting: dict, what: str) -> float | None:
+        """A pilot run of ``sc``: its estimate (inf for a failed or unstable run), recorded in the
+        choice and logged."""
         res = pilot(sc)
-        est = (res.stats.get("estimate") or {}).get("worst")
-        if res.status not in ("ok", "stopped", "inaccurate", "unstable") or est is None:
-            est = math.inf if res.status in ("failed", "unstable") else est
-        return est
+        e = (res.stats.get("estimate") or {}).get("worst")
+        if res.status not in ("ok", "stopped", "inaccurate", "unstable") or e is None:
+            e = math.inf if res.status in ("failed", "unstable") else e
+        window = sc.stop_time - sc.start_time
+        choice.pilots.append({**setting, "window_s": window, "estimate": e})
+        log(f"{scene.name}: pilot {alg} at {what} over {window:g} s: "
+            + (f"estimated worst error {e:.3g}" if e is not None else "no estimate"))
+        return e
 
+    def factor(e: float, order: float) -> float:
+        """How far to change the setting for the estimate to reach TARGET of the tolerance."""
+        return (TARGET * tol / e) ** (1 / order) if e > 0 and math.isfinite(e) else 0.1
+
+    # the first whole-run pilot within the tolerance ends the search: it is the run itself
+    # (cosim.run.execute keeps it), and a looser try would only add its cost
+    met = False
     if getattr(cls, "variable_step", False):
         rtol = tol * FIRST_RTOL.get(alg, 1.0)
-        best = None
         for k in range(MAX_PILOTS if pilot else 0):
             window = WINDOW if k == 0 else 1.0
-            sc = with_rtol(scene, alg, inputs, rtol, window)
-            e = estimate_of(sc)
-            choice.pilots.append({"rtol": rtol, "window_s": sc.stop_time - sc.start_time, "estimate": e})
-            log(f"{scene.name}: pilot {alg} at rtol {rtol:.3g} over {sc.stop_time - sc.start_time:g} s: "
-                + (f"estimated worst error {e:.3g}" if e is not None else "no estimate"))
+            e = trial(with_rtol(scene, alg, inputs, rtol, window), {"rtol": rtol}, f"rtol {rtol:.3g}")
             if e is None:
                 break
-            met = e <= tol and window == 1.0
-            if met:  # this pilot is the run (cosim.run.execute keeps it): a looser try only adds cost
-                best = rtol if best is None else max(best, rtol)
+            if met := e <= tol and window == 1.0:
                 break
-            fac = (TARGET * tol / e) ** (1 / ORDER_TOLERANCE) if e > 0 and math.isfinite(e) else 0.1
-            nxt = rtol * min(30.0, max(1 / 30, fac))
-            if best is not None and not met and nxt <= best:
-                break  # a miss above one that met it, and the next try tighter still: keep the one that met it
-            if best is not None and nxt > rtol:  # looser than one that met it: only if below the last miss
-                misses = [p["rtol"] for p in choice.pilots if p["estimate"] is not None and p["estimate"] > tol
-                          and p["window_s"] >= sc.stop_time - sc.start_time]
-                if misses and nxt >= min(misses):
-                    nxt = math.sqrt(rtol * min(misses))
-            rtol = nxt
-        rtol = best if best is not None else rtol
+            rtol *= min(30.0, max(1 / 30, factor(e, ORDER_TOLERANCE)))
         choice.settings["rtol"] = rtol
         if not pilot:
             choice.why += f"; rtol {rtol:g} without pilot runs ({why_not})"
@@ -195,26 +191,14 @@ def choose(scene: Scene, pilot: Callable[[Scene], object] | None, log: Callable[
     snap = steps_for(scene)
     p = ORDER_LINEAR if inputs == "linear" else ORDER_HOLD
     h_ns = snap(m.step) or m.step_ns
-    best = None
     for k in range(MAX_PILOTS if pilot else 0):
         window = WINDOW if k == 0 else 1.0
-        sc = with_step(scene, alg, inputs, h_ns, window)
-        e = estimate_of(sc)
-        choice.pilots.append({"step": h_ns / 1e9, "window_s": sc.stop_time - sc.start_time, "estimate": e})
-        log(f"{scene.name}: pilot {alg} at step {h_ns / 1e9:g} s over {sc.stop_time - sc.start_time:g} s: "
-            + (f"estimated worst error {e:.3g}" if e is not None else "no estimate"))
+        e = trial(with_step(scene, alg, inputs, h_ns, window), {"step": h_ns / 1e9}, f"step {h_ns / 1e9:g} s")
         if e is None:
             break
-        met = e <= tol and window == 1.0
-        if met:  # this pilot is the run (cosim.run.execute keeps it): a longer step only adds cost
-            best = h_ns if best is None else max(best, h_ns)
+        if met := e <= tol and window == 1.0:
             break
-        fac = (TARGET * tol / e) ** (1 / p) if e > 0 and math.isfinite(e) else 0.1
-        nxt = snap(h_ns / 1e9 * min(10.0, max(0.05, fac)))
-        if met and (nxt is None or nxt <= h_ns):
-            break  # no longer step to try
-        if best is not None and e > tol and (nxt is None or nxt <= best):
-            break  # a miss at a longer step than one that met it, and the next try shorter still: keep that one
+        nxt = snap(h_ns / 1e9 * min(10.0, max(0.05, factor(e, p))))
         if e > tol and (nxt is None or nxt >= h_ns):
             nxt = snap(h_ns / 2e9)
             if nxt is None or nxt >= h_ns:
@@ -225,16 +209,11 @@ def choose(scene: Scene, pilot: Callable[[Scene], object] | None, log: Callable[
             raise UserError(f"scene {scene.name}: meeting master.tolerance {tol:g} needs a step of about "
                             f"{nxt / 1e9:.3g} s or less (estimated {e:.3g} at step {h_ns / 1e9:g} s), more than "
                             f"{MAX_STEPS:.0e} steps; relax the tolerance or name an algorithm")
-        if best is not None and nxt >= min([q["step"] for q in choice.pilots if q["estimate"] is not None and
-                                             q["estimate"] > tol and q["window_s"] >= sc.stop_time - sc.start_time]
-                                            or [math.inf]) * 1e9:
-            break  # between a step that met it and one that missed: keep the one that met it
         h_ns = nxt
-    h_ns = best if best is not None else h_ns
     choice.settings["step"] = h_ns / 1e9
     if not pilot:
         choice.why += f"; the scene's step, without pilot runs ({why_not})"
-    elif best is None:
+    elif not met:
         last = choice.pilots[-1]["estimate"] if choice.pilots else None
         choice.why += (f"; no pilot met the tolerance (last estimate {last:.3g})" if last is not None else
                        "; the pilots gave no estimate")
