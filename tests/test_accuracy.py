@@ -128,7 +128,11 @@ def test_the_chosen_run_is_its_last_pilot_written_out(tmp_path, cache):
                                  f"options: {{rtol: {ch['settings']['rtol']!r}}}}}"), cache_dir=cache)
     assert np.array_equal(res.trace.data, named.trace.data)
     assert np.array_equal(read_trace(tmp_path / "out" / "two_mass_free.csv").data, named.trace.data)
-    assert res.stats["estimate"] == named.stats["estimate"]
+    # the pilot's estimate, against the pilot's companion (tighter than a named run's own): the
+    # same error measured against two companions agrees
+    assert res.stats["estimate"]["worst"] == ch["pilots"][-1]["estimate"]
+    assert f"rtol {ch['pilots'][-1]['companion_rtol']:.3g}" in res.stats["estimate"]["method"]
+    assert res.stats["estimate"]["worst"] == pytest.approx(named.stats["estimate"]["worst"], rel=0.3)
 
 
 def test_every_slave_with_rollback_gets_adaptive_within_the_tolerance(tmp_path, cache):
@@ -261,7 +265,34 @@ def test_pilots_and_companions_on_the_runs_own_instances_change_nothing(tmp_path
         res[reuse] = run(path, cache_dir=cache), list(loads)
     (fresh, fresh_loads), (kept, kept_loads) = res["0"], res["1"]
     assert kept.status == fresh.status == "ok"
-    runs = 2 * len(kept.stats["choice"]["pilots"])  # each pilot and its companion (the last pilot is the run)
-    assert runs >= 4 and len(fresh_loads) >= 2 * runs and sorted(kept_loads) == ["mass1", "mass2"]
+    pilots = kept.stats["choice"]["pilots"]  # each pilot and its companion (shared where it can be; the last pilot is the run)
+    runs = len(pilots) + len({p.get("companion_rtol", k) for k, p in enumerate(pilots)})
+    assert runs >= 2 and len(fresh_loads) == 2 * runs and sorted(kept_loads) == ["mass1", "mass2"]
     assert kept.stats["choice"] == fresh.stats["choice"] and kept.stats["estimate"] == fresh.stats["estimate"]
     assert np.array_equal(kept.trace.data, fresh.trace.data)
+
+
+def _clamped(t):
+    """A PID output leaving its 12 V limit at 3.9902 ms and falling at 11.3 V/ms to -12 V [V]."""
+    import numpy as np
+
+    return np.clip(12.0 - 11300.0 * (t - 0.0039902), -12.0, 12.0)[:, None]
+
+
+def test_two_exact_samplings_of_a_kink_estimate_no_error():
+    """The run and its companion sample the same signal exactly, on their own instants (those of
+    pid_step's default run and its companion around pid1.y's kink), and the kink (leaving the
+    limit) lies between two of the companion's: interpolating across it is what no interpolation
+    knows, not an error of the run (that default's estimate was 1e-3 of range on pid1.y from this,
+    its true error 6e-6; here 6.2e-4 with the cubic's distance from the chord as the only doubt).
+    A true offset is still measured in full."""
+    import numpy as np
+
+    from cosim.master.estimate import richardson
+
+    t = 0.0039776 + 1.31e-5 * np.arange(-300, 300)
+    tc = 0.0039857 + 0.83e-5 * np.arange(-480, 480)
+    est = richardson(t, _clamped(t), tc, _clamped(tc), ["pid1.y"], 0.5, "test")
+    assert est.worst < 2e-4  # what is left is the tenth of a difference the doubt always keeps
+    offset = richardson(t, _clamped(t), tc, _clamped(tc) + 0.024, ["pid1.y"], 0.5, "test")
+    assert offset.worst == pytest.approx(0.024 / 24.0 / 0.5, rel=0.1)

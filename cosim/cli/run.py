@@ -258,7 +258,8 @@ def _summary(res) -> None:
     if choice:
         sets = ", ".join(f"{k} {v:.3g}" if isinstance(v, float) else f"{k} {v}" for k, v in choice["settings"].items())
         print(f"  master chose {choice['algorithm']} ({sets}) for tolerance {choice['tolerance']:g}: {choice['why']}"
-              + (f" [{len(choice['pilots'])} pilot runs]" if choice.get("pilots") else ""))
+              + (f" [{len(choice['pilots'])} pilot run{'s' if len(choice['pilots']) != 1 else ''}]"
+                 if choice.get("pilots") else ""))
     print(f"  {st['algorithm']} ({st['engine']} loop), step {st['step']:g} s, {st['steps_done']}/{st['steps_planned']} "
           f"steps, simulated {st['simulated_s']:.6g} s in {st['wall_s']:.3f} s "
           f"(real-time factor {st['real_time_factor']:.1f}); build {res.build_s:.2f} s, init {st['init_s']:.3f} s")

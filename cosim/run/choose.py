@@ -11,13 +11,16 @@
 
 Inputs are linear (slaves that cannot interpolate hold theirs) unless the scene sets ``master.inputs``.
 The setting (step or rtol) comes from pilot runs, each with its error estimate
-(:mod:`cosim.master.estimate`): a fixed step first over the first quarter of the run, from the
+(:mod:`cosim.master.estimate`).  A fixed step: first over the first quarter of the run, from the
 scene's step, then ``h * (tolerance / 2 / estimate)^(1/p)`` snapped to a step that divides the
-output interval, checked over the whole run and refined while the estimate misses; a tolerance
-likewise (its first pilot over the first quarter too).  The first whole-run pilot that meets the
-tolerance ends the search: it is the run itself (:mod:`cosim.run.execute` writes it out rather than
-running it again).  Where runs cannot be repeated (hardware, real-time pacing) there are
-no pilots: the scene's step is kept and the choice says so.
+output interval, checked over the whole run and refined while the estimate misses.  A tolerance:
+every pilot over the whole run, the first at a tenth of the tolerance with a companion at a tenth
+of that, against which a later pilot is measured too while it is at least twice as loose as that
+companion (a pilot that misses costs one run, not two); the next rtol from the estimate and the
+order the divisor assumes.  The first whole-run pilot that meets the tolerance ends the search: it
+is the run itself (:mod:`cosim.run.execute` writes it out rather than running it again).  Where
+runs cannot be repeated (hardware, real-time pacing) there are no pilots: the scene's step is
+kept and the choice says so.
 """
 from __future__ import annotations
 
@@ -30,7 +33,7 @@ from ..master import ALGORITHMS, find_algebraic_loop
 from ..master.algorithm import option_values
 from ..scenario import Scene
 from ..scenario.check_connections import algebraic_loop
-from .companion import ORDER_HOLD, ORDER_LINEAR, ORDER_TOLERANCE
+from .companion import ORDER_HOLD, ORDER_LINEAR, ORDER_TOLERANCE, TOLERANCE_RATIO as RATIO
 
 #: The most fixed steps a chosen step may take over the run.
 MAX_STEPS = 10 ** 7
@@ -43,7 +46,15 @@ TARGET = 0.6
 #: The first pilot runs over this share of the run (the next ones over the whole run).
 WINDOW = 0.25
 #: First rtol of adaptive and ecco, as a fraction of the tolerance (a start, refined by the pilots).
-FIRST_RTOL = {"adaptive": 1 / 30, "ecco": 1.0}
+FIRST_RTOL = {"adaptive": 1 / 10, "ecco": 1.0}
+#: The first variable-step pilot's companion, as a fraction of its rtol: tighter than a run's own
+#: (:data:`cosim.run.companion.TOLERANCE_RATIO`), so that it measures a later, tighter pilot too.
+FIRST_COMPANION = 0.1
+#: A later pilot is measured against the first one's companion while that companion's rtol is at
+#: most this fraction of the pilot's (a closer pair leaves their difference to the step histories).
+REUSE = 0.5
+#: The estimate a new setting may aim at instead of TARGET when that spares a companion run.
+LOOSER = 0.8
 
 
 @dataclass
@@ -153,10 +164,10 @@ def choose(scene: Scene, pilot: Callable[[Scene], object] | None, log: Callable[
     cls = ALGORITHMS[alg]
     choice = Choice(alg, {"inputs": inputs}, why, tol)
 
-    def trial(sc: Scene, setting: dict, what: str) -> float | None:
-        """A pilot run of ``sc``: its estimate (inf for a failed or unstable run), recorded in the
-        choice and logged."""
-        res = pilot(sc)
+    def trial(sc: Scene, setting: dict, what: str, companion_rtol: float | None = None) -> float | None:
+        """A pilot run of ``sc`` (its companion at ``companion_rtol`` when given): its estimate (inf
+        for a failed or unstable run), recorded in the choice and logged."""
+        res = pilot(sc, companion_rtol) if companion_rtol is not None else pilot(sc)
         e = (res.stats.get("estimate") or {}).get("worst")
         if res.status not in ("ok", "stopped", "inaccurate", "unstable") or e is None:
             e = math.inf if res.status in ("failed", "unstable") else e
@@ -175,14 +186,17 @@ def choose(scene: Scene, pilot: Callable[[Scene], object] | None, log: Callable[
     met = False
     if getattr(cls, "variable_step", False):
         rtol = tol * FIRST_RTOL.get(alg, 1.0)
+        shared = rtol * FIRST_COMPANION  # the first pilot's companion, also every later pilot's it can measure
         for k in range(MAX_PILOTS if pilot else 0):
-            window = WINDOW if k == 0 else 1.0
-            e = trial(with_rtol(scene, alg, inputs, rtol, window), {"rtol": rtol}, f"rtol {rtol:.3g}")
-            if e is None:
+            crtol = shared if shared <= REUSE * rtol else None
+            e = trial(with_rtol(scene, alg, inputs, rtol), {"rtol": rtol, "companion_rtol": crtol or rtol * RATIO},
+                      f"rtol {rtol:.3g}", crtol)
+            if e is None or (met := e <= tol):
                 break
-            if met := e <= tol and window == 1.0:
-                break
-            rtol *= min(30.0, max(1 / 30, factor(e, ORDER_TOLERANCE)))
+            nxt = rtol * min(30.0, max(1 / 30, factor(e, ORDER_TOLERANCE)))
+            if nxt < shared / REUSE <= rtol and e * (shared / REUSE / rtol) ** ORDER_TOLERANCE <= LOOSER * tol:
+                nxt = shared / REUSE  # aiming a little higher spares a companion run
+            rtol = nxt
         choice.settings["rtol"] = rtol
         if not pilot:
             choice.why += f"; rtol {rtol:g} without pilot runs ({why_not})"

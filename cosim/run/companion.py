@@ -16,8 +16,9 @@ from ..scenario import Scene
 #: The companion's step over the run's (fixed step; COARSE where half cannot be taken) and its
 #: tolerance over the run's (variable step).
 STEP_RATIO, COARSE, TOLERANCE_RATIO = 0.5, 2.0, 0.25
-#: Orders assumed for the divisor (the middle of the range each coupling shows, see the estimate's docs).
-ORDER_HOLD, ORDER_LINEAR, ORDER_TOLERANCE = 1.0, 1.5, 0.75
+#: Orders assumed for the divisor: the middle of the range a step's coupling shows, the low end of
+#: a tolerance's (0.4 to 0.7 measured: an estimate then errs high), see the estimate's docs.
+ORDER_HOLD, ORDER_LINEAR, ORDER_TOLERANCE = 1.0, 1.5, 0.4
 
 
 @dataclass(frozen=True)
@@ -30,22 +31,26 @@ class Companion:
     method: str = ""
 
 
-def companion(scene: Scene, interpolating: bool) -> Companion:
+def companion(scene: Scene, interpolating: bool, rtol: float | None = None) -> Companion:
     """The companion of a run of ``scene`` (module docstring); ``interpolating``: some slave of the
-    run follows input slopes (its FMU can interpolate inputs)."""
+    run follows input slopes (its FMU can interpolate inputs); ``rtol``: a variable-step companion
+    at this rtol instead (below the run's: the master's pilots share one, :mod:`cosim.run.choose`)."""
     m = scene.master
     cls = ALGORITHMS[m.algorithm]
     if getattr(cls, "variable_step", False):
         opts = dict(m.options)
-        rtol = opts.get("rtol", next((o.default for o in cls.options if o.name == "rtol"), 1e-3))
+        own = opts.get("rtol", next((o.default for o in cls.options if o.name == "rtol"), 1e-3))
         lower = next((o.lower for o in cls.options if o.name == "rtol"), 0.0)
         atol = opts.get("atol", next((o.default for o in cls.options if o.name == "atol"), 0.0))
-        if rtol * TOLERANCE_RATIO >= lower:
-            opts["rtol"], what = rtol * TOLERANCE_RATIO, f"rtol {rtol * TOLERANCE_RATIO:.3g}"
+        given = rtol is not None and lower <= rtol < own
+        ratio = rtol / own if given else TOLERANCE_RATIO
+        if given or own * TOLERANCE_RATIO >= lower:
+            opts["rtol"] = rtol if given else own * TOLERANCE_RATIO
+            what = f"rtol {opts['rtol']:.3g}"
         elif atol > 0:  # rtol at its floor (e.g. libcosim's tolerances, cosim.scenario.osp): atol is the tolerance
             opts["atol"], what = atol * TOLERANCE_RATIO, f"atol {atol * TOLERANCE_RATIO:.3g} (rtol at its floor)"
         else:
-            return Companion(None, method=f"rtol {rtol:g} leaves no room for a companion at {TOLERANCE_RATIO:g}x")
+            return Companion(None, method=f"rtol {own:g} leaves no room for a companion at {TOLERANCE_RATIO:g}x")
         # the largest step halved too: where the step control sees no error (in a chain no input is
         # extrapolated) the steps sit at h_max whatever the tolerance, and a companion at a quarter
         # of it would repeat the run to the bit and estimate 0 (measured on vw_compare: 8e-2 off)
@@ -56,8 +61,8 @@ def companion(scene: Scene, interpolating: bool) -> Companion:
         if halved:
             opts["h_max"] = h_max * STEP_RATIO
         return Companion(replace(scene, master=replace(m, options=opts, realtime=None)),
-                         divisor(TOLERANCE_RATIO, ORDER_TOLERANCE),
-                         f"Richardson against a companion run at {what} ({TOLERANCE_RATIO:g}x)"
+                         divisor(ratio, ORDER_TOLERANCE),
+                         f"Richardson against a companion run at {what} ({ratio:.3g}x)"
                          + (f", h_max {opts['h_max']:.3g} s" if halved else ""))
     order = ORDER_LINEAR if scene.master.inputs == "linear" and interpolating else ORDER_HOLD
     if m.step_ns % 2 == 0 and _on_samples(scene, m.step_ns // 2):

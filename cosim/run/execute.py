@@ -373,8 +373,11 @@ def _step(scene: Scene, out_dir, paths, slaves, progress, log, engine, overrides
         if scene.master.auto:
             from .choose import choose
 
-            def pilot(sc: Scene) -> RunResult:
-                pilots.append(_once(sc, instances, None, None, None, engine, repeat, {}))
+            companions: list = []
+
+            def pilot(sc: Scene, companion_rtol: float | None = None) -> RunResult:
+                pilots.append(_once(sc, instances, None, None, None, engine, repeat, {},
+                                    companion_rtol=companion_rtol, companions=companions))
                 return pilots[-1]
 
             scene, choice = choose(scene, pilot if repeat is None else None, log, why_not=repeat)
@@ -468,14 +471,20 @@ def repeatable(scene: Scene) -> str | None:
     return None
 
 
-def _companion_trace(scene: Scene, instances: Instances, engine) -> tuple[tuple | None, float, str]:
-    """Run the companion of ``scene`` (:mod:`cosim.run.companion`) on ``instances`` into memory:
-    ``((time, values) or None, divisor, method)``."""
-    slaves = instances.take()
-    comp = companion(scene, any(s.description.can_interpolate_inputs for s in slaves))
+def _companion_trace(scene: Scene, instances: Instances, engine, rtol: float | None = None,
+                     ran: list | None = None) -> tuple[tuple | None, float, str]:
+    """Run the companion of ``scene`` (:mod:`cosim.run.companion`; at ``rtol`` when given) on
+    ``instances`` into memory: ``((time, values) or None, divisor, method)``.  ``ran`` keeps the
+    companions run so far as (scene, trace): one that is the same scene again is not run again."""
+    comp = companion(scene, any(s.description.can_interpolate_inputs for s in instances.main), rtol)
     if comp.scene is None:
         return None, 1.0, comp.method
     cs = comp.scene
+    same = next((tr for sc, tr in ran or () if sc.master == cs.master and sc.n_steps == cs.n_steps
+                 and sc.stop_time == cs.stop_time), None)
+    if same is not None:
+        return same, comp.div, comp.method + " (the earlier pilot's)"
+    slaves = instances.take()
     memory = MemoryTrace()
     system = couple(cs, slaves)
     try:
@@ -494,6 +503,8 @@ def _companion_trace(scene: Scene, instances: Instances, engine) -> tuple[tuple 
     instances.ended(tr.status)
     if tr.status not in ("ok", "stopped"):  # a companion that failed says nothing of the run
         return None, 1.0, f"{comp.method} ended {tr.status}: {tr.reason}"
+    if ran is not None:
+        ran.append((cs, (tr.time, tr.data[:, 1:])))
     return (tr.time, tr.data[:, 1:]), comp.div, comp.method
 
 
@@ -507,16 +518,18 @@ def _tolerances(scene: Scene) -> list:
 
 
 def _once(scene: Scene, instances: Instances, slaves, out_dir, progress, engine, repeat: str | None, extra: dict,
-          log: Callable[[str], None] = lambda m: None, overrides: Sequence = (), trace_format: str = "csv") -> RunResult:
+          log: Callable[[str], None] = lambda m: None, overrides: Sequence = (), trace_format: str = "csv",
+          companion_rtol: float | None = None, companions: list | None = None) -> RunResult:
     """One run of ``scene`` on ``slaves`` (None: ``instances.take()``) with its error estimate (a
-    companion run on ``instances.take()`` first, when ``repeat`` is None), judged by it
-    (:func:`cosim.master.estimate.judge`)."""
+    companion run on ``instances.take()`` first, when ``repeat`` is None: at ``companion_rtol``
+    when given, one of ``companions`` when it is the same, see :func:`_companion_trace`), judged
+    by it (:func:`cosim.master.estimate.judge`)."""
     from ..trace.traces import TraceWriteError
 
     if repeat is None and not scene.master.estimate:
         ctrace, div, method = None, 1.0, "master.estimate: false"
     elif repeat is None:
-        ctrace, div, method = _companion_trace(scene, instances, engine)
+        ctrace, div, method = _companion_trace(scene, instances, engine, companion_rtol, companions)
     else:
         ctrace, div, method = None, 1.0, repeat
     guard = scene_guard(scene)
