@@ -121,6 +121,18 @@ def test_compare_interpolates_the_reference_and_reports_absolute_and_relative_er
     assert "a.x" in format_table(list(d.values())).splitlines()[1]
 
 
+def test_an_error_on_a_signal_that_barely_moves_is_relative_to_the_floor_the_tolerance_has():
+    """computed_torque's platform angle: the path keeps it at 0, its reference moves 1.8e-18 rad,
+    the run is 5e-9 rad off: 5e-5 of the 1e-4 floor (as the tolerance and the estimate measure it),
+    not 3e9 of its range."""
+    t = np.linspace(0, 1, 11)
+    ref = synthetic({"mech.platform.phi": 1.8e-18 * t}, t)
+    test = synthetic({"mech.platform.phi": 1.8e-18 * t + 5e-9}, t)
+    (d,) = compare(test, ref)
+    assert d.scale == pytest.approx(1.8e-18) and d.relative == pytest.approx(5e-5)
+    assert "counts as 0.0001" in format_table([d])
+
+
 def test_compare_mistakes_are_user_errors():
     t = np.linspace(0, 1, 11)
     with pytest.raises(UserError, match="no variable matching mech.* in common"):

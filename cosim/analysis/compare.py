@@ -3,7 +3,9 @@ reference, one master algorithm or step against another, or a simulation against
 
 The second trace (the reference) is interpolated linearly onto the first one's instants inside
 the time span both cover; a variable's error is reported absolute and relative to the
-reference's range over that span (max - min, or max |value| for a constant signal).
+reference's range over that span (max - min, or max |value| for a constant signal), at least
+:data:`cosim.master.estimate.FLAT` as the tolerance and the error estimate measure it (a platform
+angle a path keeps at 0 moves 1e-18 rad: an error of 5e-9 rad on it is not 3e9 of its range).
 
 :func:`comparability` says whether such numbers can be trusted: both runs must have ended "ok"
 (the CSV's final status and its JSON sidecar; "stopped" at a component's own request counts),
@@ -21,6 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import UserError
+from ..master.estimate import FLAT
 from ..trace.traces import Trace
 
 
@@ -37,10 +40,8 @@ class Difference:
 
     @property
     def relative(self) -> float:
-        """``max_abs / scale`` (0 when both are 0, inf for a difference on a zero reference)."""
-        if self.scale > 0:
-            return self.max_abs / self.scale
-        return 0.0 if self.max_abs == 0 else float("inf")
+        """``max_abs / max(scale, FLAT)`` (the module docstring)."""
+        return self.max_abs / max(self.scale, FLAT)
 
 
 def common_names(test: Trace, ref: Trace, patterns: Sequence[str] | None = None) -> list[str]:
@@ -211,6 +212,8 @@ def format_table(diffs: Sequence[Difference], *, most: int | None = None,
             row.append(f"{est[d.name]:.2e}" if est.get(d.name) is not None else "")
         cells.append(row)
     lines = [text_table(columns, cells)]
+    if any(d.scale < FLAT for d in rows):
+        lines.append(f"  (a range below {FLAT:g} counts as {FLAT:g}, as the tolerance and the error estimate take it)")
     if most is not None and len(diffs) > most:
         lines.append(f"  ... {len(diffs) - most} more variables with smaller relative errors")
     return "\n".join(lines)
