@@ -217,7 +217,9 @@ def _reference(scene, res, out: Path, plot: bool, trace_format: str = "csv"):
 
 def _describe(scene) -> None:
     print(f"scene {scene.name}: {len(scene.components)} components, {len(scene.connections)} connections "
-          f"({len(scene.bonds)} bonds), {scene.master.algorithm} at {scene.master.step:g} s, "
+          f"({len(scene.bonds)} bonds), "
+          + (f"step {scene.master.step:g} s (algorithm chosen below)" if scene.master.auto else
+             f"{scene.master.algorithm} at {scene.master.step:g} s") + ", "
           f"stop {scene.stop_time:g} s ({scene.n_steps} steps)")
     for name, c in scene.components.items():
         extra = ", ".join(f"{k}={v:g}" if isinstance(v, float) else f"{k}={v}" for k, v in c.start_values().items())
