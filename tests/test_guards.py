@@ -130,7 +130,8 @@ def test_a_target_outside_the_workspace_is_refused_at_check_time(x1, capsys):
     sets = [a for s in target(x1, -0.15, 0.2) for a in ("--set", s)]
     assert cli.main(["run", str(PID_STEP), "--check"] + sets) == 2
     err = capsys.readouterr().err
-    assert f"pid_step.yaml:26: error: component 'target' (pose_setpoint/default) commands leg 1 to {legs[0]:.4g} m" in err
+    line = next(i for i, ln in enumerate(PID_STEP.read_text().splitlines(), 1) if ln.startswith("  target:"))
+    assert f"pid_step.yaml:{line}: error: component 'target' (pose_setpoint/default) commands leg 1 to {legs[0]:.4g} m" in err
 
 
 def test_a_target_through_singular_poses_is_refused_and_stopped_at_run_time():
