@@ -43,7 +43,7 @@ MAX_PILOTS = 5
 #: again), and a looser try would cost a run and its companion to save a fraction of one.
 #: The estimate a new setting aims at, as a fraction of the tolerance.
 TARGET = 0.6
-#: The first pilot runs over this share of the run (the next ones over the whole run).
+#: The first fixed-step pilot runs over this share of the run (the next ones over the whole run).
 WINDOW = 0.25
 #: First rtol of adaptive and ecco, as a fraction of the tolerance (a start, refined by the pilots).
 FIRST_RTOL = {"adaptive": 1 / 10, "ecco": 1.0}
@@ -146,18 +146,17 @@ def with_step(scene: Scene, algorithm: str, inputs: str, step_ns: int, window: f
     return windowed(replace(scene, master=master, n_steps=n, stop_time=(scene.start_ns + n * step_ns) / 1e9), window)
 
 
-def with_rtol(scene: Scene, algorithm: str, inputs: str, rtol: float, window: float = 1.0) -> Scene:
-    """``scene`` with a variable-step ``algorithm`` at ``rtol``, over the first ``window`` of its span."""
+def with_rtol(scene: Scene, algorithm: str, inputs: str, rtol: float) -> Scene:
+    """``scene`` with a variable-step ``algorithm`` at ``rtol``."""
     opts = option_values({"rtol": rtol}, ALGORITHMS[algorithm].options)
-    return windowed(replace(scene, master=replace(scene.master, algorithm=algorithm, inputs=inputs, options=opts)),
-                    window)
+    return replace(scene, master=replace(scene.master, algorithm=algorithm, inputs=inputs, options=opts))
 
 
-def choose(scene: Scene, pilot: Callable[[Scene], object] | None, log: Callable[[str], None] = lambda m: None,
+def choose(scene: Scene, pilot: Callable[[Scene, float | None], object] | None, log: Callable[[str], None] = lambda m: None,
            why_not: str | None = None) -> tuple[Scene, Choice]:
-    """The scene as the master will run it, and the :class:`Choice`; ``pilot(scene)`` runs a
-    scene into memory and returns its :class:`cosim.run.execute.RunResult` (None: runs cannot be
-    repeated, ``why_not``)."""
+    """The scene as the master will run it, and the :class:`Choice`; ``pilot(scene, companion_rtol)``
+    runs a scene into memory, its companion at ``companion_rtol`` when that is not None, and returns
+    its :class:`cosim.run.execute.RunResult` (None: runs cannot be repeated, ``why_not``)."""
     m, tol = scene.master, scene.master.tolerance
     alg, why = kind(scene)
     inputs = m.inputs if m.inputs_given else "linear"  # slaves that cannot interpolate hold their inputs
@@ -167,7 +166,7 @@ def choose(scene: Scene, pilot: Callable[[Scene], object] | None, log: Callable[
     def trial(sc: Scene, setting: dict, what: str, companion_rtol: float | None = None) -> float | None:
         """A pilot run of ``sc`` (its companion at ``companion_rtol`` when given): its estimate (inf
         for a failed or unstable run), recorded in the choice and logged."""
-        res = pilot(sc, companion_rtol) if companion_rtol is not None else pilot(sc)
+        res = pilot(sc, companion_rtol)
         e = (res.stats.get("estimate") or {}).get("worst")
         if res.status not in ("ok", "stopped", "inaccurate", "unstable") or e is None:
             e = math.inf if res.status in ("failed", "unstable") else e

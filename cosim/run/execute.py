@@ -503,7 +503,7 @@ def _companion_trace(scene: Scene, instances: Instances, engine, rtol: float | N
     instances.ended(tr.status)
     if tr.status not in ("ok", "stopped"):  # a companion that failed says nothing of the run
         return None, 1.0, f"{comp.method} ended {tr.status}: {tr.reason}"
-    if ran is not None:
+    if ran is not None and rtol is not None:  # a companion named by its rtol may be asked for again
         ran.append((cs, (tr.time, tr.data[:, 1:])))
     return (tr.time, tr.data[:, 1:]), comp.div, comp.method
 
