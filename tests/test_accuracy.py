@@ -296,3 +296,19 @@ def test_two_exact_samplings_of_a_kink_estimate_no_error():
     assert est.worst < 2e-4  # what is left is the tenth of a difference the doubt always keeps
     offset = richardson(t, _clamped(t), tc, _clamped(tc) + 0.024, ["pid1.y"], 0.5, "test")
     assert offset.worst == pytest.approx(0.024 / 24.0 / 0.5, rel=0.1)
+
+
+def test_the_readme_main_job_is_within_the_tolerance_and_its_pilots_share_a_companion(cache):
+    """pid_step at its defaults (the README's main job): every recorded variable within 1e-3 of
+    its range of the monolithic reference over the whole run, start transient included; its
+    first pilot (rtol 1e-4) misses, the second is measured against the first one's companion
+    rather than a new one (three runs, not four) and is the run."""
+    res = run(SCENES / "pid_step.yaml", cache_dir=cache)
+    assert res.status == "ok", res.reason
+    pilots = res.stats["choice"]["pilots"]
+    assert len(pilots) == 2 and pilots[0]["estimate"] > 1e-3 >= pilots[1]["estimate"]
+    assert pilots[1]["companion_rtol"] == pilots[0]["companion_rtol"]
+    assert "(the earlier pilot's)" in res.stats["estimate"]["method"]
+    true = _true_worst(res)
+    assert true <= 1e-3
+    assert true / 3 <= res.stats["estimate"]["worst"] <= 3 * true
