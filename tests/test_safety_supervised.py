@@ -224,6 +224,40 @@ def test_a_dask_batch_run_that_crashes_or_hangs_is_its_row_and_the_workers_live_
     assert_settled(tmp_path / "out" / "runs" / rows["0.2"]["run_id"], status, reason)
 
 
+
+def test_a_dask_worker_with_two_threads_supervises_each_threads_runs(tmp_path, hostile):
+    """``dask worker --nthreads 2``: each of the worker's threads forks its own stepping child, so
+    a run whose FMU crashes in one is its row while the other thread's runs go on, on the same
+    worker process (the docs recommend one thread per worker; two must still be right)."""
+    dask = pytest.importorskip("dask")
+    distributed = pytest.importorskip("distributed")
+    from cosim.batch import load_batch, run_batch
+    from cosim.batch.executors import DaskExecutor
+    from cosim.batch.results import read_rows
+    from cosim.batch.worker import end_steppers
+
+    spec = tmp_path / "b.yaml"
+    spec.write_text(f"name: hd2\nscene: {hostile}\n"
+                    f"grid:\n  tau: {{path: components.a.params.tau, values: [0.1, 0.2, 0.3, 0.4, 0.5, 0.6]}}\n"
+                    f"metrics:\n  a.y: [max]\n")
+    with dask.config.set({"distributed.scheduler.allowed-failures": 1}):
+        cluster = distributed.LocalCluster(n_workers=1, threads_per_worker=2, processes=True, dashboard_address=None)
+    try:
+        with distributed.Client(cluster.scheduler_address) as client:
+            before = client.run(os.getpid)
+            client.run(os.putenv, "RPR_HOSTILE", "doStep@100:segv/0.2")
+            client.run(end_steppers)
+            res = run_batch(load_batch(spec), out=tmp_path / "out", executor=DaskExecutor(cluster.scheduler_address))
+            assert client.run(os.getpid) == before
+    finally:
+        cluster.close()
+    assert res.ran == 6 and res.failed == 1
+    rows = {str(r["tau"]): r for r in read_rows(tmp_path / "out" / "results.csv")[1]}
+    assert {t for t, r in rows.items() if r["outcome"] != "ok"} == {"0.2"}
+    assert "died of SIGSEGV (signal 11) in a.fmi2DoStep" in rows["0.2"]["reason"]
+    for tau in (0.1, 0.3, 0.4, 0.5, 0.6):  # the Euler solution's maximum, y(0.5 s) = 1 - (1 - h / tau)^500
+        assert float(rows[str(tau)]["a.y:max"]) == pytest.approx(1 - (1 - 1e-3 / tau) ** 500, rel=1e-9)
+
 def _handle(request):
     """A stepping child's work for the Server test: echo, raise, or die."""
     if request == "segv":
