@@ -15,8 +15,7 @@ from __future__ import annotations
 from ctypes import CDLL, POINTER, c_int32, c_int64, c_void_p
 from functools import lru_cache
 
-from ..errors import UserError
-from .native import CSlave, compile_loop
+from .native import CSlave, builds, compile_loop
 
 #: Longest wall time of one call of the compiled loop [ns]; it returns to Python (where signals
 #: are handled) at least this often.
@@ -146,8 +145,4 @@ def library() -> CDLL:
 
 def available() -> bool:
     """True when the loop library can be built and loaded here."""
-    try:
-        library()
-    except UserError:
-        return False
-    return True
+    return builds(library)

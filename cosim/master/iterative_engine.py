@@ -22,7 +22,7 @@ from functools import lru_cache
 import numpy as np
 
 from ..errors import UserError
-from .native import CSlave, SlaveArray, c_struct, compile_loop, ctypes_struct
+from .native import CSlave, SlaveArray, builds, c_struct, compile_loop, ctypes_struct
 
 #: The iteration's options, state, scratch buffers and counters (``it_ctl``), declared once for C and ctypes.
 CONTROL_FIELDS = (
@@ -513,11 +513,7 @@ class CompiledIterative:
 
 def available() -> bool:
     """True when the engine's library can be built and loaded here."""
-    try:
-        library()
-    except UserError:
-        return False
-    return True
+    return builds(library)
 
 
 __all__ = ["CompiledIterative", "available", "library"]

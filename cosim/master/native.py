@@ -213,6 +213,17 @@ def compile_loop(source: str, stem: str, entries: dict[str, list] | None = None)
     return lib
 
 
+
+def builds(library) -> bool:
+    """True when ``library()`` (a compiled loop's loader, e.g. :func:`cosim.master.fastloop.library`)
+    builds and loads here."""
+    try:
+        library()
+    except UserError:
+        return False
+    return True
+
+
 class SlaveArray:
     """The :class:`CSlave` array of a system's slaves with their entry points and layout filled in
     (:meth:`cosim.slaves.slave.Slave.native`, the system's value-vector offsets and value
