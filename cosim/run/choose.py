@@ -33,7 +33,8 @@ from ..master import ALGORITHMS, find_algebraic_loop
 from ..master.algorithm import option_values
 from ..scenario import Scene
 from ..scenario.check_connections import algebraic_loop
-from .companion import ORDER_HOLD, ORDER_LINEAR, ORDER_TOLERANCE, TOLERANCE_RATIO as RATIO
+from .companion import ORDER_HOLD, ORDER_LINEAR, ORDER_TOLERANCE
+from .companion import TOLERANCE_RATIO as RATIO
 
 #: The most fixed steps a chosen step may take over the run.
 MAX_STEPS = 10 ** 7
@@ -146,9 +147,9 @@ def with_step(scene: Scene, algorithm: str, inputs: str, step_ns: int, window: f
     return windowed(replace(scene, master=master, n_steps=n, stop_time=(scene.start_ns + n * step_ns) / 1e9), window)
 
 
-def with_rtol(scene: Scene, algorithm: str, inputs: str, rtol: float) -> Scene:
-    """``scene`` with a variable-step ``algorithm`` at ``rtol``."""
-    opts = option_values({"rtol": rtol}, ALGORITHMS[algorithm].options)
+def with_rtol(scene: Scene, algorithm: str, inputs: str, rtol: float, h_max: float | None = None) -> Scene:
+    """``scene`` with a variable-step ``algorithm`` at ``rtol`` (and ``h_max`` [s] when given)."""
+    opts = option_values({"rtol": rtol} | ({"h_max": h_max} if h_max else {}), ALGORITHMS[algorithm].options)
     return replace(scene, master=replace(scene.master, algorithm=algorithm, inputs=inputs, options=opts))
 
 
@@ -183,26 +184,19 @@ def choose(scene: Scene, pilot: Callable[[Scene, float | None], object] | None, 
     # the first whole-run pilot within the tolerance ends the search: it is the run itself
     # (cosim.run.execute keeps it), and a looser try would only add its cost
     met = False
+    p = ORDER_LINEAR if inputs == "linear" else ORDER_HOLD
     if getattr(cls, "variable_step", False):
-        rtol = tol * FIRST_RTOL.get(alg, 1.0)
-        shared = rtol * FIRST_COMPANION  # the first pilot's companion, also every later pilot's it can measure
-        for k in range(MAX_PILOTS if pilot else 0):
-            crtol = shared if shared <= REUSE * rtol else None
-            e = trial(with_rtol(scene, alg, inputs, rtol), {"rtol": rtol, "companion_rtol": crtol or rtol * RATIO},
-                      f"rtol {rtol:.3g}", crtol)
-            if e is None or (met := e <= tol):
-                break
-            nxt = rtol * min(30.0, max(1 / 30, factor(e, ORDER_TOLERANCE)))
-            if nxt < shared / REUSE <= rtol and e * (shared / REUSE / rtol) ** ORDER_TOLERANCE <= LOOSER * tol:
-                nxt = shared / REUSE  # aiming a little higher spares a companion run
-            rtol = nxt
+        rtol, h_max, met, last = _tolerance_search(scene, alg, inputs, tol, trial, factor, p, bool(pilot))
         choice.settings["rtol"] = rtol
+        if h_max is not None:
+            choice.settings["h_max"] = h_max
         if not pilot:
             choice.why += f"; rtol {rtol:g} without pilot runs ({why_not})"
-        return with_rtol(scene, alg, inputs, rtol), choice
+        elif not met and last is not None:
+            choice.why += f"; no pilot met the tolerance (the closest estimated {last:.3g}, the run)"
+        return with_rtol(scene, alg, inputs, rtol, h_max), choice
 
     snap = steps_for(scene)
-    p = ORDER_LINEAR if inputs == "linear" else ORDER_HOLD
     h_ns = snap(m.step) or m.step_ns
     for k in range(MAX_PILOTS if pilot else 0):
         window = WINDOW if k == 0 else 1.0
@@ -233,9 +227,47 @@ def choose(scene: Scene, pilot: Callable[[Scene, float | None], object] | None, 
     return with_step(scene, alg, inputs, h_ns), choice
 
 
+def _tolerance_search(scene: Scene, alg: str, inputs: str, tol: float, trial, factor, p: float,
+                      piloted: bool) -> tuple[float, float | None, bool, float | None]:
+    """(rtol, h_max or None for the algorithm's, met, the estimate of the pilot that is the run)
+    for a variable-step ``alg`` (module docstring): pilots over the whole run, the first one's
+    companion shared while it can measure; when a pilot at a 3x tighter rtol is estimated no
+    better than 1/1.5 of the last, the largest step is what limits the error (ecco's steps at
+    ``h_max`` in a quiet stretch), and the next pilots shrink ``h_max`` by the order ``p`` of the
+    step's coupling instead.  When none meets the tolerance, the closest pilot is the run."""
+    rtol, h_max = tol * FIRST_RTOL.get(alg, 1.0), None
+    shared = rtol * FIRST_COMPANION  # the first pilot's companion, also every later pilot's it can measure
+    tried: list[tuple[float, float, float | None]] = []  # (estimate, rtol, h_max)
+    for _ in range(MAX_PILOTS if piloted else 0):
+        crtol = shared if shared <= REUSE * rtol else None
+        setting = {"rtol": rtol, "companion_rtol": crtol or rtol * RATIO} | ({"h_max": h_max} if h_max else {})
+        what = f"rtol {rtol:.3g}" + (f", h_max {h_max:.3g} s" if h_max else "")
+        e = trial(with_rtol(scene, alg, inputs, rtol, h_max), setting, what, crtol)
+        if e is None:
+            return rtol, h_max, False, None
+        if e <= tol:
+            return rtol, h_max, True, e
+        tried.append((e, rtol, h_max))
+        last = tried[-2] if len(tried) > 1 else None
+        if h_max is not None or (last is not None and last[1] >= 3 * rtol and last[0] < 1.5 * e):
+            h_max = (h_max or _default(alg, "h_max")) * min(0.9, max(0.1, factor(e, p)))
+        nxt = rtol * min(30.0, max(1 / 30, factor(e, ORDER_TOLERANCE)))
+        if nxt < shared / REUSE <= rtol and e * (shared / REUSE / rtol) ** ORDER_TOLERANCE <= LOOSER * tol:
+            nxt = shared / REUSE  # aiming a little higher spares a companion run
+        rtol = nxt
+    if not tried:
+        return rtol, h_max, False, None
+    e, rtol, h_max = min(tried, key=lambda x: x[0])
+    return rtol, h_max, False, e
+
+
+def _default(alg: str, option: str) -> float:
+    return next(o.default for o in ALGORITHMS[alg].options if o.name == option)
+
+
 def applied(scene: Scene, choice: dict) -> Scene:
     """``scene`` as the :class:`Choice` ``choice`` (its :meth:`Choice.as_dict`) runs it."""
     sets, alg = choice["settings"], choice["algorithm"]
     if "rtol" in sets:
-        return with_rtol(scene, alg, sets["inputs"], sets["rtol"])
+        return with_rtol(scene, alg, sets["inputs"], sets["rtol"], sets.get("h_max"))
     return with_step(scene, alg, sets["inputs"], round(sets["step"] * 1e9))
