@@ -241,7 +241,8 @@ def test_a_dask_worker_with_two_threads_supervises_each_threads_runs(tmp_path, h
                     f"grid:\n  tau: {{path: components.a.params.tau, values: [0.1, 0.2, 0.3, 0.4, 0.5, 0.6]}}\n"
                     f"metrics:\n  a.y: [max]\n")
     with dask.config.set({"distributed.scheduler.allowed-failures": 1}):
-        cluster = distributed.LocalCluster(n_workers=1, threads_per_worker=2, processes=True, dashboard_address=None)
+        cluster = distributed.LocalCluster(n_workers=1, threads_per_worker=2, processes=True,
+                                           dashboard_address="127.0.0.1:0")  # the session cluster has 8787
     try:
         with distributed.Client(cluster.scheduler_address) as client:
             before = client.run(os.getpid)
