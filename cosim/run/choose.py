@@ -17,7 +17,8 @@ output interval, checked over the whole run and refined while the estimate misse
 every pilot over the whole run, the first at a tenth of the tolerance with a companion at a tenth
 of that, against which a later pilot is measured too while it is at least twice as loose as that
 companion (a pilot that misses costs one run, not two); the next rtol from the estimate and the
-order the divisor assumes.  The first whole-run pilot that meets the tolerance ends the search: it
+order the divisor assumes, and a smaller ``h_max`` too once a tighter rtol stops moving the
+estimate (:func:`_tolerance_search`).  The first whole-run pilot that meets the tolerance ends the search: it
 is the run itself (:mod:`cosim.run.execute` writes it out rather than running it again).  Where
 runs cannot be repeated (hardware, real-time pacing) there are no pilots: the scene's step is
 kept and the choice says so.
@@ -192,8 +193,9 @@ def choose(scene: Scene, pilot: Callable[[Scene, float | None], object] | None, 
             choice.settings["h_max"] = h_max
         if not pilot:
             choice.why += f"; rtol {rtol:g} without pilot runs ({why_not})"
-        elif not met and last is not None:
-            choice.why += f"; no pilot met the tolerance (the closest estimated {last:.3g}, the run)"
+        elif not met:
+            choice.why += (f"; no pilot met the tolerance (the closest estimated {last:.3g}, the run)"
+                           if last is not None else "; the pilots gave no estimate")
         return with_rtol(scene, alg, inputs, rtol, h_max), choice
 
     snap = steps_for(scene)
@@ -232,9 +234,9 @@ def _tolerance_search(scene: Scene, alg: str, inputs: str, tol: float, trial, fa
     """(rtol, h_max or None for the algorithm's, met, the estimate of the pilot that is the run)
     for a variable-step ``alg`` (module docstring): pilots over the whole run, the first one's
     companion shared while it can measure; when a pilot at a 3x tighter rtol is estimated no
-    better than 1/1.5 of the last, the largest step is what limits the error (ecco's steps at
-    ``h_max`` in a quiet stretch), and the next pilots shrink ``h_max`` by the order ``p`` of the
-    step's coupling instead.  When none meets the tolerance, the closest pilot is the run."""
+    better than 1/1.5 of the last, the largest step limits the error as well (ecco's steps at
+    ``h_max`` in a quiet stretch), and from then on each pilot also shrinks ``h_max`` by the order
+    ``p`` of the step's coupling.  When none meets the tolerance, the closest pilot is the run."""
     rtol, h_max = tol * FIRST_RTOL.get(alg, 1.0), None
     shared = rtol * FIRST_COMPANION  # the first pilot's companion, also every later pilot's it can measure
     tried: list[tuple[float, float, float | None]] = []  # (estimate, rtol, h_max)
