@@ -27,7 +27,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from cosim.analysis.compare import compare  # noqa: E402
-from cosim.master.estimate import FLAT, UNSTABLE  # noqa: E402
+from cosim.master.estimate import UNSTABLE  # noqa: E402
 from cosim.run.execute import run  # noqa: E402
 from cosim.run.reference import reference  # noqa: E402
 
@@ -74,8 +74,8 @@ def case(scene: str, stop: float, sets: list[str], cache) -> dict:
     ref = reference(res.scene, times=res.trace.time if irregular else None)
     diffs = compare(res.trace, ref.trace)
     # relative to the reference's range, at least the estimate's floor FLAT (a signal flat by design)
-    worst = max(diffs, key=lambda d: d.max_abs / max(d.scale, FLAT))
-    row["true"], row["true_signal"] = worst.max_abs / max(worst.scale, FLAT), worst.name
+    worst = max(diffs, key=lambda d: d.relative)
+    row["true"], row["true_signal"] = worst.relative, worst.name
     e, t = row["estimate"], row["true"]
     if e is None:
         row["ratio"], row["verdict"] = math.nan, "no estimate"
