@@ -48,12 +48,14 @@ def _toolchain() -> tuple[str, str]:
     return cc, f"{compiler_identity()}\n{version}"
 
 
-def library_path(source: str, stem: str, flags: tuple[str, ...] = FLAGS) -> Path:
-    """Where :func:`load` keeps the library of ``source`` (built if missing).  Raises
+def library_path(source: str, stem: str, flags: tuple[str, ...] = FLAGS, libs: tuple[str, ...] = ()) -> Path:
+    """Where :func:`load` keeps the library of ``source`` (built if missing; ``libs``: linker
+    arguments after the source, e.g. ``-lsundials_cvodes``).  Raises
     :class:`NoCompiler` without a working compiler, :class:`BuildError` (the compiler's log, 500
     characters) when the source does not compile."""
     cc, ident = _toolchain()
-    key = hashlib.sha256("\0".join([source, ident, " ".join(flags), sys.platform]).encode()).hexdigest()[:20]
+    key = hashlib.sha256("\0".join([source, ident, " ".join(flags), sys.platform]
+                                   + ([" ".join(libs)] if libs else [])).encode()).hexdigest()[:20]
     from .cache import writable_root
 
     root = _cache_dir()
@@ -68,7 +70,7 @@ def library_path(source: str, stem: str, flags: tuple[str, ...] = FLAGS) -> Path
             src.write_text(source)
             out = Path(tmp) / lib.name
             try:
-                res = subprocess.run([cc, *flags, "-o", str(out), str(src), "-lm"], capture_output=True, text=True)
+                res = subprocess.run([cc, *flags, "-o", str(out), str(src), *libs, "-lm"], capture_output=True, text=True)
             except OSError as exc:
                 raise NoCompiler(f"{cc}: {exc}") from None
             if res.returncode != 0:

@@ -260,11 +260,7 @@ def test_structural_parameter_set_in_configuration_mode(reference_fmus):
         run(_check(reference_fmus, {"params": {"n": 3}}, "3.0/StateSpace"))
 
 
-@pytest.mark.parametrize("kinds,message", [
-    ('<ModelExchange modelIdentifier="m"/>', "has no co-simulation interface (it has model exchange only)"),
-    ('<ScheduledExecution modelIdentifier="m"/>', "has no co-simulation interface (it has scheduled execution only)"),
-])
-def test_interface_kinds_are_named(tmp_path, kinds, message):
+def _interfaces_fmu(tmp_path, kinds: str):
     fmu = tmp_path / "m.fmu"
     with zipfile.ZipFile(fmu, "w") as z:
         z.writestr("modelDescription.xml", f'<?xml version="1.0" encoding="UTF-8"?>\n<fmiModelDescription '
@@ -272,9 +268,28 @@ def test_interface_kinds_are_named(tmp_path, kinds, message):
                                            f'<ModelVariables><Float64 name="t" valueReference="0" '
                                            f'causality="independent"/></ModelVariables><ModelStructure/>'
                                            f'</fmiModelDescription>')
+    return fmu
+
+
+@pytest.mark.parametrize("kinds,interface,message", [
+    ('<ScheduledExecution modelIdentifier="m"/>', None,
+     "has scheduled execution only; rpr-cosim runs co-simulation and model-exchange FMUs (Scheduled Execution"),
+    ('<ModelExchange modelIdentifier="m"/>', "co_simulation", "interface co_simulation asked, but the FMU has model "
+                                                              "exchange only"),
+    ('<CoSimulation modelIdentifier="m"/>', "model_exchange", "interface model_exchange asked, but the FMU has "
+                                                              "co-simulation only"),
+])
+def test_interface_kinds_are_named(tmp_path, kinds, interface, message):
     with pytest.raises(UserError) as err:
-        describe_fmu(fmu)
+        describe_fmu(_interfaces_fmu(tmp_path, kinds), interface)
     assert message in str(err.value)
+
+
+def test_model_exchange_only_is_described_as_such(tmp_path):
+    both = '<ModelExchange modelIdentifier="m"/><CoSimulation modelIdentifier="m"/>'
+    assert describe_fmu(_interfaces_fmu(tmp_path, '<ModelExchange modelIdentifier="m"/>')).interface == "model exchange"
+    assert describe_fmu(_interfaces_fmu(tmp_path, both)).interface == "co-simulation"
+    assert describe_fmu(_interfaces_fmu(tmp_path, both), "model_exchange").interface == "model exchange"
 
 
 # --- type checks of connections -----------------------------------------------------------------------

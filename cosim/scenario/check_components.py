@@ -11,7 +11,7 @@ from typing import Any
 
 from ..errors import UserError
 from ..slaves.types import TYPES, display, parse_start
-from ..slaves.description import Variable, describe_block, describe_fmu, resolve_shapes
+from ..slaves.description import INTERFACES, Variable, describe_block, describe_fmu, resolve_shapes
 from fmus.index import source_digest
 
 from .catalog import default_catalog, make_block
@@ -56,6 +56,11 @@ class ComponentChecks(Checker):
             self.err(spec.loc("rollback"), f"component {name!r}: rollback = {rollback!r}; expected true or false "
                                            f"(false: the master may not save and restore its state, as for hardware)")
             rollback = True  # reported; check the rest of the component as usual
+        if "fmu" not in spec:
+            for key in ("interface", "rtol"):
+                if key in spec:
+                    self.err(spec.loc(key), f"component {name!r}: '{key}' applies to an FMU ('fmu:'), not to this "
+                                            f"component")
         if "hardware" in spec:
             comp = self._hardware_component(name, spec)
         elif "fmu" in spec:
@@ -96,11 +101,19 @@ class ComponentChecks(Checker):
             return None
         if not self._xml(name, fpath, where):
             return None
-        try:
-            desc = describe_fmu(fpath)
-        except UserError as exc:
-            self.err(where, f"component {name!r}: {exc}")
+        interface = spec.get("interface")
+        if interface is not None and interface not in INTERFACES:
+            self.err(spec.loc("interface"), f"component {name!r}: interface = {interface!r}; expected "
+                                            f"{' or '.join(INTERFACES)}")
             return None
+        try:
+            desc = describe_fmu(fpath, interface)
+        except UserError as exc:
+            self.err(spec.loc("interface") if interface is not None else where, f"component {name!r}: {exc}")
+            return None
+        rtol = self._solver_rtol(name, spec, desc)
+        if rtol is not None:
+            desc = dataclasses.replace(desc, solver_rtol=rtol)
         comp = Component(name, "fmu", desc, fmu=fpath.resolve(), fmi=desc.fmi_version or fmi, where=spec.where)
         if "guard_data" in spec:  # what the guards know of it (an rpr-cosim SSP's component annotation)
             from .guards import GuardNeeds
@@ -120,6 +133,20 @@ class ComponentChecks(Checker):
         self._flanges(comp, spec)
         self._behaviour(comp, spec)
         return comp
+
+    def _solver_rtol(self, name: str, spec: YMap, desc) -> float | None:
+        """The scene's ``rtol:`` of a model-exchange component (None: not given or wrong, reported)."""
+        if "rtol" not in spec:
+            return None
+        rtol = spec["rtol"]
+        if desc.interface != "model exchange":
+            self.err(spec.loc("rtol"), f"component {name!r}: rtol applies to a model-exchange FMU (CVODES's tolerance); "
+                                       f"this one runs as {desc.interface}")
+            return None
+        if isinstance(rtol, bool) or not isinstance(rtol, (int, float)) or not 1e-14 <= rtol < 1:
+            self.err(spec.loc("rtol"), f"component {name!r}: rtol = {rtol!r}; expected a number in [1e-14, 1)")
+            return None
+        return float(rtol)
 
     def _flanges(self, comp: Component, spec: YMap) -> None:
         """``flanges: {NAME: {effort: VAR, flow: VAR}}``: power ports of an external FMU, each a pair

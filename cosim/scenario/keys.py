@@ -32,7 +32,11 @@ COMPONENT = {
     "params": "parameter values by name (units as `rpr-cosim fmu show` lists them; structural parameters of FMI 3.0 "
               "FMUs too)",
     "start": "start values of inputs and of variables with initial = exact or approx",
-    "fmu": "path of an FMI 2.0 or 3.0 co-simulation FMU from any tool, instead of `model`",
+    "fmu": "path of an FMI 2.0 or 3.0 FMU (co-simulation or model exchange) from any tool, instead of `model`",
+    "interface": "which interface of an FMU that has both runs: `co_simulation` (the default where the FMU has it) "
+                 "or `model_exchange` (integrated by CVODES inside its slave)",
+    "rtol": "a model-exchange FMU's CVODES relative tolerance (default 1e-6, or the FMU's DefaultExperiment "
+            "tolerance when tighter; absolute: rtol times each state's nominal)",
     "fmi": "FMI version of a catalog block's FMU: `2.0` (default) or `3.0`",
     "description": "free text",
     "hardware": "the rig's I/O daemon: `{address: HOST:PORT, key: FILE}` (the hardware FMU)",

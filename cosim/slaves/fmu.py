@@ -302,9 +302,21 @@ class FmuSlave(Slave):
     initialisation and termination; the per-step calls go straight to the FMI functions through
     ctypes with preallocated buffers (or through the compiled loop via :meth:`native`)."""
 
+    #: The slave class of each interface other than co-simulation (its name in a description ->
+    #: class), registered by its module (model exchange: :mod:`cosim.slaves.model_exchange`).
+    kinds: dict[str, type] = {}
+
+    def __new__(cls, name: str, path: Path, description: SlaveDescription | None = None):
+        """An FMU's slave of the class its interface needs (``FmuSlave(...)`` of a model-exchange
+        description makes a model-exchange slave)."""
+        desc = description or describe_fmu(Path(path))
+        obj = super().__new__(FmuSlave.kinds.get(desc.interface, cls) if cls is FmuSlave else cls)
+        obj._described = desc
+        return obj
+
     def __init__(self, name: str, path: Path, description: SlaveDescription | None = None):
         self.path = Path(path)
-        super().__init__(name, description or describe_fmu(self.path))
+        super().__init__(name, description or getattr(self, "_described", None) or describe_fmu(self.path))
         self.fmi: FmiVersion = FMI3 if str(self.description.fmi_version).startswith("3") else FMI2
         self.fmu = None
         self.always_no_prior = "always_no_prior" in self.description.workarounds
@@ -344,7 +356,7 @@ class FmuSlave(Slave):
         unzip = _unzip(self.path)
         enter(self._ck, CALL["fmi2Instantiate"])  # loading the binary and instantiating
         try:
-            self.fmu = self.fmi.make(self, guid, unzip, ident)
+            self.fmu = self._make(guid, unzip, ident)
         except Exception as exc:  # fmpy raises bare Exceptions for a missing binary or failed call
             raise UserError(f"{self.name}: cannot instantiate {self.path} ({exc}"
                             f"{'; ' + self.last_message if self.last_message else ''})") from None
@@ -352,7 +364,15 @@ class FmuSlave(Slave):
             leave()
         crumb.name_instance(self.name, self.fmi3, self.fmu.component)
         self._inst = c_void_p(self.fmu.component)
-        self.fmi.bind_step(self, self.fmu.dll)
+        self._bind_step(self.fmu.dll)
+
+    def _make(self, guid: str, unzip: str, ident: str):
+        """The loaded and instantiated FMPy object of the FMU."""
+        return self.fmi.make(self, guid, unzip, ident)
+
+    def _bind_step(self, dll) -> None:
+        """``self._step(t, h) -> status`` and ``self._get``/``_set`` (Float64 by value reference)."""
+        self.fmi.bind_step(self, dll)
 
     def _on_log2(self, env, instance, status, category, message) -> None:
         self.messages.append(f"[{Status(status).name if status in Status._value2member_map_ else status}] "
