@@ -11,7 +11,8 @@
  * and takes over at the end of initialisation (me_start).  Rollback: me_save / me_restore keep
  * the FMU state (fmi*GetFMUstate) or, for an FMU that cannot save it, the time and continuous
  * states (set back through the ME interface); either way the solver restarts at the saved
- * point.  Compiled and cached by fmus.native (linked with -lsundials_cvodes and friends).
+ * point, and so does the step after a save (CVODES cannot save its history), so a repeated step
+ * is the first one to the bit.  Compiled and cached by fmus.native (linked with -lsundials_cvodes and friends).
  */
 #include <dlfcn.h>
 #include <math.h>
@@ -201,12 +202,12 @@ static int rhs(double t, N_Vector y, N_Vector ydot, void *data) {
     if (!failed(st)) st = s->set_x(s->inst, N_VGetArrayPointer(y), s->nx);
     if (!failed(st)) st = s->get_dx(s->inst, dx, s->nx);
     if (failed(st)) {
-        say(s, "the derivatives at t = %.17g s returned status %d", t, st);
+        say(s, "the derivatives at t = %.12g s returned status %d", t, st);
         return st == ST_DISCARD ? 1 : -1; /* Discard: CVODES tries a smaller step */
     }
     for (size_t i = 0; i < s->nx; i++)
         if (!isfinite(dx[i])) {
-            say(s, "the derivative of continuous state %zu is %g at t = %.17g s", i, dx[i], t);
+            say(s, "the derivative of continuous state %zu is %g at t = %.12g s", i, dx[i], t);
             return 1;
         }
     return 0;
@@ -218,12 +219,12 @@ static int roots_fn(double t, N_Vector y, double *g, void *data) {
     if (!failed(st) && s->nx) st = s->set_x(s->inst, N_VGetArrayPointer(y), s->nx);
     if (!failed(st)) st = s->get_z(s->inst, g, s->nz);
     if (failed(st)) {
-        say(s, "the event indicators at t = %.17g s returned status %d", t, st);
+        say(s, "the event indicators at t = %.12g s returned status %d", t, st);
         return -1;
     }
     for (size_t i = 0; i < s->nz; i++)
         if (!isfinite(g[i])) {
-            say(s, "event indicator %zu is %g at t = %.17g s", i, g[i], t);
+            say(s, "event indicator %zu is %g at t = %.12g s", i, g[i], t);
             return -1;
         }
     return 0;
@@ -297,13 +298,13 @@ static int iterate(MeSlave *s, double t) {
     int again = 1, term = 0, nominals = 0, values = 0, any_nominal = 0, rounds = 0;
     while (again) {
         if (++rounds > ME_MAX_ROUNDS) {
-            say(s, "the event iteration at t = %.17g s did not settle in %d rounds "
+            say(s, "the event iteration at t = %.12g s did not settle in %d rounds "
                    "(the FMU kept asking for new discrete states)", t, ME_MAX_ROUNDS);
             return ST_ERROR;
         }
         int st = update_round(s, &again, &term, &nominals, &values);
         if (failed(st)) {
-            say(s, "%s at t = %.17g s returned status %d", s->fmi3 ? "fmi3UpdateDiscreteStates" :
+            say(s, "%s at t = %.12g s returned status %d", s->fmi3 ? "fmi3UpdateDiscreteStates" :
                 "fmi2NewDiscreteStates", t, st);
             return st;
         }
@@ -317,7 +318,7 @@ static int iterate(MeSlave *s, double t) {
     if (!failed(st)) st = read_states(s, any_nominal || !s->cv);
     if (!failed(st) && s->nz) st = s->get_z(s->inst, s->z_prev, s->nz);
     if (failed(st)) {
-        say(s, "leaving event mode at t = %.17g s returned status %d", t, st);
+        say(s, "leaving event mode at t = %.12g s returned status %d", t, st);
         return st;
     }
     s->restart = 1;
@@ -329,7 +330,7 @@ static int handle_event(MeSlave *s, double t, int kind) {
     int st = s->set_time(s->inst, t);
     if (!failed(st)) st = s->enter_event_mode(s->inst);
     if (failed(st)) {
-        say(s, "entering event mode at t = %.17g s returned status %d", t, st);
+        say(s, "entering event mode at t = %.12g s returned status %d", t, st);
         return st;
     }
     return iterate(s, t);
@@ -376,9 +377,9 @@ int me_start(MeSlave *s, double t0) {
 static int input_event(MeSlave *s) {
     if (!s->nz) return ST_OK;
     int st = s->get_z(s->inst, s->zbuf, s->nz);
-    if (failed(st)) { say(s, "the event indicators at t = %.17g s returned status %d", s->t, st); return st; }
+    if (failed(st)) { say(s, "the event indicators at t = %.12g s returned status %d", s->t, st); return st; }
     for (size_t i = 0; i < s->nz; i++) {
-        if (!isfinite(s->zbuf[i])) { say(s, "event indicator %zu is %g at t = %.17g s", i, s->zbuf[i], s->t); return ST_ERROR; }
+        if (!isfinite(s->zbuf[i])) { say(s, "event indicator %zu is %g at t = %.12g s", i, s->zbuf[i], s->t); return ST_ERROR; }
         if ((s->zbuf[i] > 0) != (s->z_prev[i] > 0)) return handle_event(s, s->t, EV_INPUT);
     }
     return ST_OK;
@@ -389,7 +390,7 @@ int me_do_step(MeSlave *s, double t, double h, int no_prior) {
     if (s->terminated) { say(s, "doStep after the FMU asked to end the simulation"); return ST_ERROR; }
     if (!s->cv) { if (!s->message[0]) say(s, "doStep before initialisation"); return ST_ERROR; }
     if (fabs(t - s->t) > 1e-9 * (1.0 + fabs(t))) {
-        say(s, "doStep from t = %.17g s, but the FMU is at %.17g s", t, s->t);
+        say(s, "doStep from t = %.12g s, but the FMU is at %.12g s", t, s->t);
         return ST_ERROR;
     }
     s->message[0] = 0;
@@ -408,7 +409,7 @@ int me_do_step(MeSlave *s, double t, double h, int no_prior) {
         double tstop = tend;
         if (s->next_defined && s->next_time < tend) tstop = s->next_time;
         if (s->restart) {
-            if (CVodeReInit(s->cv, s->t, s->y)) { say(s, "restarting CVODES at t = %.17g s failed", s->t); return ST_ERROR; }
+            if (CVodeReInit(s->cv, s->t, s->y)) { say(s, "restarting CVODES at t = %.12g s failed", s->t); return ST_ERROR; }
             s->restart = 0;
             s->n_restarts++;
         }
@@ -418,19 +419,19 @@ int me_do_step(MeSlave *s, double t, double h, int no_prior) {
         if (flag < 0) {
             char why[1024];
             snprintf(why, sizeof why, "%s", s->message);
-            say(s, "CVODES failed at t = %.17g s (flag %d, %s)%s%s", tret, flag, CVodeGetReturnFlagName(flag),
+            say(s, "CVODES failed at t = %.12g s (flag %d, %s)%s%s", tret, flag, CVodeGetReturnFlagName(flag),
                 why[0] ? ": " : "", why);
             return ST_ERROR;
         }
         if (++steps > s->max_steps_per_step) {
-            say(s, "more than %ld CVODES steps in one communication step at t = %.17g s", s->max_steps_per_step, tret);
+            say(s, "more than %ld CVODES steps in one communication step at t = %.12g s", s->max_steps_per_step, tret);
             return ST_ERROR;
         }
         s->n_steps++;
         if (flag == CV_TSTOP_RETURN) tret = tstop;
         st = s->set_time(s->inst, tret);
         if (!failed(st) && s->nx) st = s->set_x(s->inst, N_VGetArrayPointer(s->y), s->nx);
-        if (failed(st)) { say(s, "setting the states at t = %.17g s returned status %d", tret, st); return st; }
+        if (failed(st)) { say(s, "setting the states at t = %.12g s returned status %d", tret, st); return st; }
         s->t = tret;
         int step_event = 0, term = 0;
         if (s->needs_completed) {
@@ -441,7 +442,7 @@ int me_do_step(MeSlave *s, double t, double h, int no_prior) {
             } else {
                 st = s->completed2(s->inst, no_prior != 0, &step_event, &term);
             }
-            if (failed(st)) { say(s, "CompletedIntegratorStep at t = %.17g s returned status %d", tret, st); return st; }
+            if (failed(st)) { say(s, "CompletedIntegratorStep at t = %.12g s returned status %d", tret, st); return st; }
             if (term) { s->terminated = 1; return ME_STOP; }
         }
         int kind = flag == CV_ROOT_RETURN ? EV_STATE
@@ -455,14 +456,14 @@ int me_do_step(MeSlave *s, double t, double h, int no_prior) {
             /* remember the indicators' signs for the input-event test of the next step */
             if (tret >= tend) {
                 st = s->get_z(s->inst, s->z_prev, s->nz);
-                if (failed(st)) { say(s, "the event indicators at t = %.17g s returned status %d", tret, st); return st; }
+                if (failed(st)) { say(s, "the event indicators at t = %.12g s returned status %d", tret, st); return st; }
             }
         }
     }
     s->t = tend;
     return ST_OK;
 chattering:
-    say(s, "more than %ld events in one communication step [%.17g, %.17g] s (chattering); the last at t = %.17g s",
+    say(s, "more than %ld events in one communication step [%.12g, %.12g] s (chattering); the last at t = %.12g s",
         s->max_events_per_step, t, tend, s->t);
     return ST_ERROR;
 }
@@ -481,6 +482,7 @@ int me_save(MeSlave *s) {
     s->s_t = s->t, s->s_next_time = s->next_time, s->s_next_defined = s->next_defined;
     s->s_terminated = s->terminated;
     s->saved = 1;
+    s->restart = 1; /* a saved point is a restart point: a repeated step is the first one to the bit */
     return ST_OK;
 }
 
@@ -500,8 +502,8 @@ int me_restore(MeSlave *s) {
         if (failed(st)) { say(s, "setting the continuous states returned status %d", st); return st; }
         for (size_t i = 0; i < s->nx; i++)
             if (dx[i] != s->s_dx[i] && !(isnan(dx[i]) && isnan(s->s_dx[i]))) {
-                say(s, "rollback through the continuous states: at t = %.17g s the derivative of state %zu is %.17g, "
-                       "%.17g when saved (the FMU has a discrete state it does not declare; it cannot roll back "
+                say(s, "rollback through the continuous states: at t = %.12g s the derivative of state %zu is %.12g, "
+                       "%.12g when saved (the FMU has a discrete state it does not declare; it cannot roll back "
                        "without an FMU state)", s->s_t, i, dx[i], s->s_dx[i]);
                 return ST_ERROR;
             }

@@ -1,0 +1,235 @@
+"""Model-exchange FMUs (cosim.slaves.model_exchange): the Reference FMUs made model-exchange only
+(their <CoSimulation> element dropped; with ``nostate`` also their FMU-state capability) run in
+scenes against independent sources: Dahlquist against exp(-t), BouncingBall against its analytic
+parabolas and impact times, VanDerPol and Stair against FMPy's own ModelExchange loop (CVODE) at
+rtol 1e-10; rollback (FMU state, continuous states) against the unrolled run."""
+from __future__ import annotations
+
+import dataclasses
+import math
+import re
+import zipfile
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from cosim.errors import UserError
+from cosim.master.run import simulate
+from cosim.master.system import CoupledSystem
+from cosim.run.execute import run
+from cosim.scenario import from_dict
+from cosim.slaves import FmuSlave, ModelExchangeSlave, describe_fmu
+from cosim.slaves.model_exchange import available
+
+fmpy = pytest.importorskip("fmpy")
+pytestmark = pytest.mark.skipif(bool(available()), reason=available() or "model exchange available")
+
+MODELS = ("BouncingBall", "VanDerPol", "Dahlquist", "Stair")
+
+
+def _me_only(src: Path, dst: Path, no_state: bool) -> Path:
+    """A copy of ``src`` without its <CoSimulation> element (and without canGetAndSetFMUstate)."""
+    with zipfile.ZipFile(src) as zin, zipfile.ZipFile(dst, "w", zipfile.ZIP_DEFLATED) as zout:
+        for item in zin.infolist():
+            data = zin.read(item.filename)
+            if item.filename == "modelDescription.xml":
+                xml = re.sub(r"<CoSimulation\b[^>]*?/>|<CoSimulation\b[^>]*[^/]>.*?</CoSimulation>", "",
+                             data.decode(), flags=re.S)
+                if no_state:
+                    xml = re.sub(r'canGetAndSetFMU[sS]tate="true"', 'canGetAndSetFMUstate="false"', xml)
+                    xml = xml.replace('canGetAndSetFMUstate="false"', 'canGetAndSetFMUState="false"') \
+                        if 'fmiVersion="3.0"' in xml else xml
+                data = xml.encode()
+            zout.writestr(item, data)
+    return dst
+
+
+@pytest.fixture(scope="session")
+def me_fmus(reference_fmus, tmp_path_factory) -> dict[str, Path]:
+    """``{"2/BouncingBall": path, "3/VanDerPol_nostate": path, ...}``: model-exchange-only copies."""
+    out = tmp_path_factory.mktemp("me")
+    fmus = {}
+    for v in ("2", "3"):
+        for m in MODELS:
+            for suffix, no_state in (("", False), ("_nostate", True)):
+                fmus[f"{v}/{m}{suffix}"] = _me_only(reference_fmus[f"{v}.0/{m}"], out / f"{m}{v}{suffix}.fmu", no_state)
+    return fmus
+
+
+def _scene(fmu: Path, step: float, stop: float, outputs, master: dict | None = None, **comp):
+    master = master or {"algorithm": "jacobi", "step": step}
+    return from_dict({"name": "me", "components": {"m": {"fmu": str(fmu), **comp}}, "master": master,
+                      "stop_time": stop, "outputs": [f"m.{o}" for o in outputs]})
+
+
+def _rel(a: np.ndarray, b: np.ndarray) -> float:
+    """Worst difference relative to the reference's range."""
+    return float(np.max(np.abs(a - b)) / max(np.ptp(b), 1e-300))
+
+
+def bouncing_ball(t: np.ndarray, h0=1.0, e=0.7, g=9.81, v_min=0.1):
+    """The Reference FMU's BouncingBall in closed form: height, velocity at ``t`` and the impact
+    times (the ball rests once it would rebound slower than v_min)."""
+    flights, impacts = [(0.0, h0, 0.0)], []
+    tk = math.sqrt(2 * h0 / g)
+    v_in = g * tk
+    while True:
+        impacts.append(tk)
+        v_up = e * v_in
+        if v_up < v_min:
+            flights.append((tk, 0.0, None))
+            break
+        flights.append((tk, 0.0, v_up))
+        tk, v_in = tk + 2 * v_up / g, v_up
+    starts = np.array([f[0] for f in flights])
+    h, v = np.zeros_like(t), np.zeros_like(t)
+    for i, ti in enumerate(t):
+        t0, hk, vk = flights[int(np.searchsorted(starts, ti, side="right")) - 1]
+        if vk is not None:
+            dt = ti - t0
+            h[i], v[i] = hk + vk * dt - g / 2 * dt * dt, vk - g * dt
+    return h, v, impacts
+
+
+@pytest.mark.parametrize("v", ["2", "3"])
+def test_model_exchange_only_is_described_and_refused_nowhere(me_fmus, v):
+    d = describe_fmu(me_fmus[f"{v}/BouncingBall"])
+    assert (d.interface, d.continuous_states, d.event_indicators, d.rollback_through) == ("model exchange", 2, 1,
+                                                                                         "FMU state")
+    assert describe_fmu(me_fmus[f"{v}/VanDerPol_nostate"]).rollback_through == "continuous states"
+    stair = describe_fmu(me_fmus[f"{v}/Stair_nostate"])
+    assert stair.discrete_states == ("counter",) and stair.rollback_through == "" and not stair.can_get_set_state
+
+
+@pytest.mark.parametrize("v", ["2", "3"])
+@pytest.mark.parametrize("rtol,tol", [(1e-10, 1e-6), (None, 1e-3)])
+def test_dahlquist_against_the_exponential(me_fmus, v, rtol, tol):
+    res = run(_scene(me_fmus[f"{v}/Dahlquist"], 0.1, 10.0, ["x"], **({"rtol": rtol} if rtol else {})))
+    assert res.status == "ok", res.reason
+    assert _rel(res.trace["m.x"], np.exp(-res.trace.time)) < tol
+
+
+@pytest.mark.parametrize("v", ["2", "3"])
+@pytest.mark.parametrize("rtol,tol", [(1e-10, 1e-6), (None, 1e-3)])
+def test_bouncing_ball_against_its_parabolas(me_fmus, v, rtol, tol):
+    res = run(_scene(me_fmus[f"{v}/BouncingBall"], 0.01, 3.0, ["h", "v"], **({"rtol": rtol} if rtol else {})))
+    assert res.status == "ok", res.reason
+    h, vel, _ = bouncing_ball(res.trace.time)
+    assert _rel(res.trace["m.h"], h) < tol and _rel(res.trace["m.v"], vel) < tol
+
+
+@pytest.mark.parametrize("v", ["2", "3"])
+def test_bouncing_ball_impacts_within_a_nanosecond(me_fmus, v):
+    """The slave's own event log (CVODES's roots) against the analytic impact times."""
+    path = me_fmus[f"{v}/BouncingBall"]
+    slave = ModelExchangeSlave("ball", path, dataclasses.replace(describe_fmu(path), solver_rtol=1e-12))
+    system = CoupledSystem([slave], [], [(0, "h")])
+    stats = simulate(system, "jacobi", step_ns=10_000_000, n_steps=300)
+    assert stats.status == "ok", stats.reason
+    found = [t for t, kind in slave.events() if kind == "state event"]
+    _, _, impacts = bouncing_ball(np.array([0.0]))
+    assert len(found) == len(impacts) == 11
+    assert max(abs(a - b) for a, b in zip(found, impacts)) < 1e-9
+
+
+def _fmpy_me(path: Path, stop: float, interval: float, names):
+    return fmpy.simulate_fmu(str(path), fmi_type="ModelExchange", relative_tolerance=1e-10,
+                             output_interval=interval, stop_time=stop, output=list(names))
+
+
+@pytest.mark.parametrize("v", ["2", "3"])
+@pytest.mark.parametrize("rtol,tol", [(1e-10, 1e-6), (None, 1e-3)])
+def test_vanderpol_against_fmpy(me_fmus, v, rtol, tol):
+    path = me_fmus[f"{v}/VanDerPol"]
+    res = run(_scene(path, 0.01, 20.0, ["x0", "x1"], **({"rtol": rtol} if rtol else {})))
+    ref = _fmpy_me(path, 20.0, 0.01, ["x0", "x1"])
+    assert res.status == "ok", res.reason
+    np.testing.assert_allclose(res.trace.time, ref["time"], atol=1e-12)
+    for n in ("x0", "x1"):
+        assert _rel(res.trace[f"m.{n}"], ref[n]) < tol, n
+
+
+@pytest.mark.parametrize("v", ["2", "3"])
+def test_stair_against_fmpy_event_for_event(me_fmus, v):
+    """Time events: the counter at each communication point is FMPy's value after the event
+    there (FMPy writes two rows at an event); the FMU ends the run at t = 9 s, where its counter
+    became 10 (FMPy stops on terminateSimulation before writing that row: it has 9 there)."""
+    path = me_fmus[f"{v}/Stair"]
+    res = run(_scene(path, 0.2, 10.0, ["counter"]))
+    ref = _fmpy_me(path, 10.0, 0.2, ["counter"])
+    assert res.status == "stopped" and "at t = 9 s" in res.reason, res.reason
+    after = {}
+    for t, c in zip(ref["time"], ref["counter"]):
+        after[round(t, 9)] = c  # the later of two rows at one time: after the event
+    ours = dict(zip(np.round(res.trace.time, 9), res.trace["m.counter"]))
+    assert sorted(ours) == sorted(after)
+    assert all(ours[t] == after[t] for t in ours if t < 9.0)
+    assert (ours[9.0], after[9.0]) == (10, 9)
+
+
+@pytest.mark.parametrize("v", ["2", "3"])
+@pytest.mark.parametrize("model,stop,outputs,nostate", [
+    ("VanDerPol", 5.0, ["x0", "x1"], ""), ("VanDerPol", 5.0, ["x0", "x1"], "_nostate"),
+    ("Dahlquist", 5.0, ["x"], ""), ("Dahlquist", 5.0, ["x"], "_nostate"),
+    ("BouncingBall", 2.0, ["h", "v"], ""),  # without FMU state: its stop is a hidden discrete state (next test)
+])
+def test_rollback_reproduces_the_step(me_fmus, v, model, stop, outputs, nostate):
+    """save, step, restore, step again: the same outputs to the bit (FMU state, or continuous
+    states where the FMU declares none), through the scene's adaptive master too."""
+    path = me_fmus[f"{v}/{model}{nostate}"]
+    slave = FmuSlave("m", path)
+    assert isinstance(slave, ModelExchangeSlave) and slave.can_rollback
+    system = CoupledSystem([slave], [], [(0, n) for n in outputs])
+    slave.instantiate()
+    slave.set_start({})
+    system.bind()
+    slave.enter_initialization(0.0, stop)
+    slave.exit_initialization()
+    t, h = 0.0, 0.05
+    while t < stop - 1e-9:
+        slave.save_state()
+        assert slave.do_step(t, h) == 0
+        slave.pull()
+        first = system.v.copy()
+        slave.restore_state()
+        assert slave.do_step(t, h) == 0
+        slave.pull()
+        assert np.array_equal(system.v, first), t
+        t += h
+    slave.terminate()
+    slave.release()
+    res = run(_scene(path, 0.01, stop, outputs, {"algorithm": "adaptive", "step": 0.01}))
+    assert res.status == "ok", res.reason
+
+
+@pytest.mark.parametrize("v", ["2", "3"])
+def test_a_hidden_discrete_state_stops_a_rollback_through_continuous_states(me_fmus, v):
+    """BouncingBall sets its gravity to 0 when it comes to rest (an undeclared discrete state):
+    restoring its continuous states across that instant is refused, naming the derivative."""
+    slave = FmuSlave("ball", me_fmus[f"{v}/BouncingBall_nostate"])
+    assert slave.description.rollback_through == "continuous states"
+    system = CoupledSystem([slave], [], [(0, "h")])
+    slave.instantiate()
+    slave.set_start({})
+    system.bind()
+    slave.enter_initialization(0.0, 3.0)
+    slave.exit_initialization()
+    assert slave.do_step(0.0, 2.4) == 0
+    slave.save_state()
+    assert slave.do_step(2.4, 0.2) == 0  # the ball comes to rest at 2.499 s
+    with pytest.raises(UserError, match=r"ball: restoring the state failed \(rollback through the continuous states: "
+                                        r"at t = 2.4 s the derivative of state 1 is 0, -9.81"):
+        slave.restore_state()
+    slave.release()
+
+
+def test_an_fmu_with_both_interfaces_runs_as_asked(reference_fmus):
+    path = reference_fmus["3.0/VanDerPol"]
+    res = run(_scene(path, 0.01, 2.0, ["x0"], interface="model_exchange", rtol=1e-10))
+    ref = _fmpy_me(path, 2.0, 0.01, ["x0"])
+    assert res.status == "ok" and _rel(res.trace["m.x0"], ref["x0"]) < 1e-6
+    with pytest.raises(Exception, match=r"interface = 'me'; expected co_simulation or model_exchange"):
+        _scene(path, 0.01, 2.0, ["x0"], interface="me")
+    with pytest.raises(Exception, match=r"rtol applies to a model-exchange FMU"):
+        _scene(path, 0.01, 2.0, ["x0"], rtol=1e-8)
