@@ -233,3 +233,30 @@ def test_an_fmu_with_both_interfaces_runs_as_asked(reference_fmus):
         _scene(path, 0.01, 2.0, ["x0"], interface="me")
     with pytest.raises(Exception, match=r"rtol applies to a model-exchange FMU"):
         _scene(path, 0.01, 2.0, ["x0"], rtol=1e-8)
+
+
+@pytest.mark.parametrize("name,says", [
+    ("3/Stair_nostate", ["model exchange: integrated by SUNDIALS CVODES", "0 continuous state(s)",
+                         "no rollback (no FMU state, and discrete variable(s) counter)", "[a scene gets this one]"]),
+    ("2/VanDerPol_nostate", ["rollback through its continuous states", "2 continuous state(s)"]),
+    ("2/BouncingBall", ["1 event indicator(s): state events located by CVODES's root finding",
+                        "rollback through its FMU state plus a solver restart"]),
+])
+def test_fmu_check_says_how_a_model_exchange_fmu_runs(me_fmus, capsys, name, says):
+    from cosim import cli
+
+    assert cli.main(["fmu", "check", str(me_fmus[name])]) == 0
+    out = capsys.readouterr().out
+    assert "co-simulation:" not in out
+    for text in says:
+        assert text in out, text
+
+
+def test_fmu_check_of_both_interfaces_names_the_default_and_the_other(reference_fmus, capsys):
+    from cosim import cli
+
+    assert cli.main(["fmu", "check", str(reference_fmus["3.0/Stair"])]) == 0
+    out = capsys.readouterr().out
+    assert "co-simulation: stepped by doStep" in out and "declares event mode and early return" in out
+    assert "[a scene gets this one]" in out.split("model exchange:")[0]
+    assert "[interface: model_exchange]" in out.split("model exchange:")[1]
