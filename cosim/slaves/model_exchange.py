@@ -246,6 +246,10 @@ class ModelExchangeSlave(FmuSlave):
     def restore_state(self) -> None:
         if not self.can_rollback:
             return Slave.restore_state(self)
+        if self._n_in:  # the inputs as they were at the save (part of an FMU state, not of the continuous states)
+            st = self._set_saved()
+            if st in FAILING:
+                raise self._failed("setting the inputs back", Status(st).name)
         enter(self._ck, CALL["fmi2SetFMUstate"])
         try:
             st = _library().me_restore(self._me)
@@ -253,10 +257,6 @@ class ModelExchangeSlave(FmuSlave):
             leave()
         if st in FAILING:
             raise self._failed("restoring the state", self._message())
-        if self._n_in:  # the inputs as they were at the save (part of an FMU state, not of the continuous states)
-            st = self._set_saved()
-            if st in FAILING:
-                raise self._failed("setting the inputs back", Status(st).name)
 
     # what happened -----------------------------------------------------------------------------
     def solver_stats(self) -> dict[str, int]:
