@@ -168,7 +168,7 @@ class Comparability:
                                + "; use --allow-failed to compare it anyway")
         if not allow_partial and self.partial:
             a, b = self.overlap or (float("nan"), float("nan"))
-            short = [(label, span) for label, span in ((self.labels[1], self.span), (self.labels[0], self.test_span))
+            short = [(label, span) for label, span in (("the reference", self.span), ("the test", self.test_span))
                      if span is not None and self._short(span)]
             what = []
             for label, (r0, r1) in short:
