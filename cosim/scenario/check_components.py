@@ -61,7 +61,9 @@ class ComponentChecks(Checker):
                 if key in spec:
                     self.err(spec.loc(key), f"component {name!r}: '{key}' applies to an FMU ('fmu:'), not to this "
                                             f"component")
-        if "hardware" in spec:
+        if "replay" in spec:
+            comp = self._replay_component(name, spec)
+        elif "hardware" in spec:
             comp = self._hardware_component(name, spec)
         elif "fmu" in spec:
             comp = self._fmu_component(name, spec, fmi)
@@ -70,8 +72,8 @@ class ComponentChecks(Checker):
         elif "model" in spec:
             comp = self._model_component(name, spec, fmi)
         else:
-            self.err(spec.where, f"component {name!r} needs 'model:' (a catalog model), 'fmu:' (a file) or "
-                                 f"'modelica:' (a .mo file)")
+            self.err(spec.where, f"component {name!r} needs 'model:' (a catalog model), 'fmu:' (a file), "
+                                 f"'modelica:' (a .mo file) or 'replay:' (a recording)")
             return None
         if comp is not None:
             comp.rollback = rollback
