@@ -335,3 +335,26 @@ def test_iterative_rollback_through_fmu_state_and_through_continuous_states_agre
     assert with_state.stats["rollbacks"] > 100
     assert np.array_equal(with_state.trace.data, through_x.trace.data)
     assert _monolithic_error(through_x) < 1e-2
+
+
+@pytest.mark.parametrize("v", ["2", "3"])
+@pytest.mark.parametrize("fault,last,says", [
+    (1, 0.5, r"a returned DISCARD in the step from t = 0.5 s .*CVODES failed at t = 0.5\d* s .*the derivative of "
+             r"continuous state 0 is nan at t = 0.5"),
+    (2, 0.5, r"a returned ERROR in the step from t = 0.5 s .*more than 1000 events in one communication step "
+             r"\[0.5, 0.51\] s \(chattering\)"),
+    (3, 0.49, r"a returned ERROR in the step from t = 0.49 s .*the event iteration at t = 0.5 s did not settle in "
+              r"100 rounds"),
+    (4, 0.5, r"a returned DISCARD in the step from t = 0.5 s .*event indicator 0 is nan at t = 0.5"),
+])
+def test_a_misbehaving_model_exchange_fmu_ends_the_run_naming_it(lag_fmus, v, fault, last, says):
+    """NaN derivatives, chattering, an event iteration that does not settle, a NaN indicator: the
+    run ends with the component, the time and what happened (tests/data/me_lag's fault parameter)."""
+    scene = from_dict({"name": "bad", "components": {"a": {"fmu": str(lag_fmus[v]), "params": {"fault": fault},
+                                                           "start": {"x": 1.0}}},
+                       "master": {"algorithm": "jacobi", "step": 0.01, "estimate": False}, "stop_time": 1.0,
+                       "outputs": ["a.x"]})
+    res = run(scene)
+    assert res.status == "failed"
+    assert re.search(says, res.reason), res.reason
+    assert res.trace.time[-1] == pytest.approx(last)  # the partial trace up to the last good point

@@ -421,7 +421,7 @@ int me_do_step(MeSlave *s, double t, double h, int no_prior) {
             snprintf(why, sizeof why, "%s", s->message);
             say(s, "CVODES failed at t = %.12g s (flag %d, %s)%s%s", tret, flag, CVodeGetReturnFlagName(flag),
                 why[0] ? ": " : "", why);
-            return ST_ERROR;
+            return ST_DISCARD; /* an adaptive master retries a shorter step; a fixed-step one stops */
         }
         if (++steps > s->max_steps_per_step) {
             say(s, "more than %ld CVODES steps in one communication step at t = %.12g s", s->max_steps_per_step, tret);

@@ -1,5 +1,7 @@
 /* Lag: a first-order lag with an input, der(x) = -k x + g u, y = x (no direct feedthrough), for
- * the model-exchange tests (two in a loop against the monolithic solution).  Built on the
+ * the model-exchange tests (two in a loop against the monolithic solution).  Parameter ``fault``
+ * makes it misbehave from t = 0.5 s: 1 NaN derivative, 2 a time event every 1e-7 s (chattering),
+ * 3 an event iteration that never settles, 4 a NaN event indicator; 0 (default): none.  Built on the
  * Reference FMUs' framework (its include/ and src/, read from ../shared at test time). */
 #ifndef config_h
 #define config_h
@@ -10,6 +12,8 @@
 #define MODEL_EXCHANGE
 
 #define MAX_CONTINUOUS_STATES 1
+#define MAX_EVENT_INDICATORS 1
+#define EVENT_UPDATE
 
 #define SET_FLOAT64
 
@@ -17,11 +21,11 @@
 #define DEFAULT_STOP_TIME 5
 
 typedef enum {
-    vr_time, vr_x, vr_der_x, vr_k, vr_g, vr_u
+    vr_time, vr_x, vr_der_x, vr_k, vr_g, vr_u, vr_fault
 } ValueReference;
 
 typedef struct {
-    double x, der_x, k, g, u;
+    double x, der_x, k, g, u, fault;
 } ModelData;
 
 #endif /* config_h */
