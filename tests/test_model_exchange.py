@@ -358,3 +358,16 @@ def test_a_misbehaving_model_exchange_fmu_ends_the_run_naming_it(lag_fmus, v, fa
     assert res.status == "failed"
     assert re.search(says, res.reason), res.reason
     assert res.trace.time[-1] == pytest.approx(last)  # the partial trace up to the last good point
+
+
+def test_run_check_says_how_a_model_exchange_component_runs(me_fmus, tmp_path, capsys):
+    from cosim import cli
+
+    scene = tmp_path / "ball.yaml"
+    scene.write_text(f"name: ball\ncomponents:\n  ball: {{fmu: {me_fmus['3/VanDerPol_nostate']}, rtol: 1e-9}}\n"
+                     f"master: {{algorithm: adaptive, step: 0.01}}\nstop_time: 1\noutputs: [ball.x0]\n")
+    assert cli.main(["run", str(scene), "--check"]) == 0
+    out = capsys.readouterr().out
+    assert ("model exchange, integrated by CVODES (rtol 1e-09); 2 continuous state(s), 0 event indicator(s); its "
+            "events are handled inside its steps and reach the other components at the next communication point; "
+            "rollback through its continuous states") in out

@@ -216,6 +216,8 @@ def _reference(scene, res, out: Path, plot: bool, trace_format: str = "csv"):
 
 
 def _describe(scene) -> None:
+    from ..slaves.plan import component_line
+
     print(f"scene {scene.name}: {len(scene.components)} components, {len(scene.connections)} connections "
           f"({len(scene.bonds)} bonds), "
           + (f"step {scene.master.step:g} s (algorithm chosen below)" if scene.master.auto else
@@ -224,6 +226,9 @@ def _describe(scene) -> None:
     for name, c in scene.components.items():
         extra = ", ".join(f"{k}={v:g}" if isinstance(v, float) else f"{k}={v}" for k, v in c.start_values().items())
         print(f"  {name:<12} {c.label:<28} {extra}")
+        how = component_line(c.description)
+        if how:
+            print(f"  {'':<12} {how}")
     for c in scene.connections:
         print(f"  {c}" + (f"   [bond {c.bond}]" if c.bond else ""))
     print(f"  outputs: {len(scene.outputs)} ({', '.join(scene.outputs[:6])}{', ...' if len(scene.outputs) > 6 else ''})")

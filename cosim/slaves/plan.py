@@ -49,6 +49,23 @@ def _cs_line(d: SlaveDescription, md) -> str:
     return line
 
 
+def component_line(d: SlaveDescription) -> str:
+    """One line on how a run steps a component of description ``d`` ('' for a plain co-simulation
+    component): a model-exchange FMU's solver, events and rollback."""
+    if d.interface != "model exchange":
+        return ""
+    from .model_exchange import DEFAULT_RTOL
+
+    rtol = d.solver_rtol if d.solver_rtol is not None else min(DEFAULT_RTOL, d.default_experiment.get("tolerance",
+                                                                                                       DEFAULT_RTOL))
+    rollback = {"FMU state": "rollback through its FMU state", "continuous states":
+                "rollback through its continuous states", "": "no rollback"}[d.rollback_through if d.can_get_set_state
+                                                                           else ""]
+    return (f"model exchange, integrated by CVODES (rtol {rtol:g}); {d.continuous_states} continuous state(s), "
+            f"{d.event_indicators} event indicator(s); its events are handled inside its steps and reach the other "
+            f"components at the next communication point; {rollback}")
+
+
 def run_plan(path: Path) -> tuple[list[str], list[str]]:
     """(lines saying what a run does with each interface of the FMU ``path``, departures from the
     standard seen in its capability flags).  Raises :class:`UserError` for an unreadable FMU."""
@@ -79,4 +96,4 @@ def run_plan(path: Path) -> tuple[list[str], list[str]]:
     return lines, departures
 
 
-__all__ = ["run_plan"]
+__all__ = ["component_line", "run_plan"]
