@@ -8,7 +8,9 @@ recognised by what they are (OSP in any encoding), comparisons refused when part
 or of different scenes, and an FMU unpacked under a file-size limit."""
 from __future__ import annotations
 
+import contextlib
 import csv
+import io
 import json
 import os
 import shutil
@@ -29,9 +31,23 @@ if not THIRD.is_dir():  # a worktree beside the main checkout
     THIRD = Path("/work/shared/third_party")
 
 
-def cli_run(*args, cwd=None, env=None, timeout=120) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "cosim", *map(str, args)], cwd=cwd or ROOT, capture_output=True,
-                          text=True, timeout=timeout, env={**os.environ, "PYTHONPATH": str(ROOT), **(env or {})})
+def cli_run(*args, cwd=None, env=None, timeout=120, process=False) -> subprocess.CompletedProcess:
+    """The CLI on ``args``: in this process (quick; an uncaught exception fails the test), or
+    in a child with ``process`` (what could hang: a FIFO)."""
+    if process:
+        return subprocess.run([sys.executable, "-m", "cosim", *map(str, args)], cwd=cwd or ROOT, capture_output=True,
+                              text=True, timeout=timeout, env={**os.environ, "PYTHONPATH": str(ROOT), **(env or {})})
+    out, err = io.StringIO(), io.StringIO()
+    with pytest.MonkeyPatch.context() as mp:
+        for k, v in (env or {}).items():
+            mp.setenv(k, v)
+        mp.chdir(cwd or ROOT)
+        with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+            try:
+                rc = cli.main([str(a) for a in args])
+            except SystemExit as exc:
+                rc = exc.code
+    return subprocess.CompletedProcess(args, rc, out.getvalue(), err.getvalue())
 
 
 def one_line(res: subprocess.CompletedProcess, *needles: str) -> None:
@@ -130,7 +146,7 @@ def test_a_blocks_file_that_is_not_a_small_regular_file_is_refused(tmp_path, kin
     elif kind == "too_large":
         Path(target).write_text("BLOCKS = {}\n" + "#" * 5000 + "\n")
     res = cli_run("run", _scene_with_blocks(tmp_path, target), "--check", env={"RPR_COSIM_MAX_FILE_BYTES": "4000"},
-                  timeout=60)
+                  timeout=60, process=kind == "fifo")
     assert res.returncode == 2 and "Traceback" not in res.stderr, res.stderr
     assert any(w in res.stderr for w in ("not found", "not a regular file", "more than the limit")), res.stderr
 
@@ -152,7 +168,7 @@ def test_a_blocks_module_that_exits_at_import_is_one_line(tmp_path, body, said):
 def test_a_scene_that_is_a_device_or_fifo_is_refused(tmp_path):
     os.mkfifo(tmp_path / "f.yaml")
     for target in ("/dev/zero", tmp_path / "f.yaml"):
-        res = cli_run("run", target, "--check", timeout=30)
+        res = cli_run("run", target, "--check", timeout=30, process=True)
         assert res.returncode == 2 and "not a regular file" in res.stderr and "Traceback" not in res.stderr
 
 
