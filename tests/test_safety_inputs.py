@@ -362,3 +362,28 @@ def test_an_fmu_unpacked_past_the_file_size_limit_leaves_no_folder(tmp_path):
                          env={**os.environ, "PYTHONPATH": str(ROOT), "TMPDIR": str(tmp)})
     one_line(res, "cannot unpack the FMU", "File too large")
     assert list(tmp.iterdir()) == []
+
+
+@pytest.fixture(scope="module")
+def two_mass_ssp(tmp_path_factory):
+    path = tmp_path_factory.mktemp("ssp") / "tm.ssp"
+    assert cli.main(["ssp", "export", str(TWO_MASS), "-o", str(path)]) == 0
+    return path
+
+
+@pytest.mark.parametrize("guards", ["[" * 100_000 + "]" * 100_000, '{"a":' * 1000 + "1" + "}" * 1000,
+                                    '{"identity": ' + "[" * 70 + "]" * 70 + "}"])
+def test_an_ssp_guard_annotation_nested_deep_is_one_problem(tmp_path, two_mass_ssp, guards):
+    import re
+
+    src = zipfile.ZipFile(two_mass_ssp)
+    deep = tmp_path / "deep.ssp"
+    with zipfile.ZipFile(deep, "w", zipfile.ZIP_DEFLATED) as z:
+        for info in src.infolist():
+            data = src.read(info)
+            if info.filename == "SystemStructure.ssd":
+                attr = guards.replace('"', "&quot;")
+                data = re.sub(r'guards="[^"]*"', lambda m: f'guards="{attr}"', data.decode(), count=1).encode()
+            z.writestr(info, data)
+    res = cli_run("run", deep, "--check")
+    assert res.returncode == 2 and "the guards annotation: JSON nested" in res.stderr, res.stderr
