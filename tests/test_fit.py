@@ -137,3 +137,22 @@ def test_unit_mismatch_of_the_data_is_refused(recording, tmp_path):
     with pytest.raises(UserError) as exc:
         build(_scene(recording), bad, ["rig.R"])
     assert "rig_recording.csv: column 'rig.leg[1].i' is in mA, the scene's rig.leg[1].i in A" in str(exc.value)
+
+
+@pytest.mark.parametrize("argv, expected", [
+    (["board", "record", "--set", "Rx=4.8"], "unknown option or parameter 'Rx'; did you mean 'R'?"),
+    (["board", "record", "--calibration", "4:0:3000"], "--calibration '4:0:3000': expected LEG:ZERO:FULL"),
+    (["board", "record", "--set", "R=-1"], "parameter R=-1.0 is outside [0.001, 1000.0]"),
+])
+def test_bad_plant_options_are_one_line(argv, expected, tmp_path, capsys):
+    assert cli.main(argv + ["--out", str(tmp_path / "rec.csv")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert expected in err and len(err.splitlines()) == 1, err
+
+
+def test_fit_verb_names_an_unknown_parameter_in_one_line(recording, tmp_path, capsys):
+    code = cli.main(["fit", str(SCENE), "--data", str(recording), "--params", "rig.R,motor*.R", "--out",
+                     str(tmp_path / "out"), "--set", f"components.rec.replay={recording}", "--set",
+                     f"stop_time={SECONDS}"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and err[-1].startswith("rpr-cosim fit: error: --params: 'motor*.R' matches no parameter"), err
