@@ -662,10 +662,10 @@ def _read_csv(fh, path: Path) -> tuple[list[str], np.ndarray, dict, dict]:
         if not raw:
             break
         lineno += 1
-        if len(raw) > MAX_LINE_BYTES:
-            raise UserError(f"{path}:{lineno}: a line longer than {MAX_LINE_BYTES:,} bytes; not an rpr-cosim trace")
         if b"\0" in raw:
             raise UserError(f"{path}: not an rpr-cosim trace (binary data)")
+        if len(raw) > MAX_LINE_BYTES:
+            raise UserError(f"{path}:{lineno}: a line longer than {MAX_LINE_BYTES:,} bytes; not an rpr-cosim trace")
         try:
             line = raw.decode("utf-8")
         except UnicodeDecodeError as exc:
