@@ -174,7 +174,7 @@ static int64_t rpr_ecco_loop(rpr_slave *S, int32_t n, const int32_t *order, doub
     while (c->t_ns < c->stop_ns && rows < max_rows) {
         double t = (double)c->t_ns / 1e9, h, hh, err, fac;
         int64_t want = round_ns(c->h * 1e9), left = c->stop_ns - c->t_ns, h_ns;
-        if (c->ending) { c->status = EC_FLOOR_PATIENCE; return rows; }
+        if (c->ending) { c->status = EC_FLOOR_PATIENCE; c->bad_slave = c->end_bond; return rows; }
         h_ns = want < left ? want : left;
         if (h_ns < 1) h_ns = 1;
         h = (double)h_ns / 1e9;

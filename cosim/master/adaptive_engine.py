@@ -29,7 +29,6 @@ from functools import lru_cache
 
 import numpy as np
 
-from ..errors import UserError
 from .entries import ADAPT_RUN, ADAPTIVE_CONTROL, ECCO_CONTROL, ECCO_RUN, struct
 from .native import SlaveArray, compile_loop
 
@@ -45,23 +44,6 @@ CALL_BUDGET_NS = 100_000_000
 def library() -> ctypes.CDLL:
     """Compile (once, cached on disk: :func:`cosim.master.native.compile_loop`) and load the engine."""
     return compile_loop("adaptive_engine.c", "rpr_adapt", [ADAPT_RUN, ECCO_RUN])
-
-
-def usable(system, rollback: bool = True) -> bool:
-    """Whether the compiled engine can run ``system``: FMU slaves with C entry points (and, with
-    ``rollback``, FMU state get/set), scalar Float64 connections copied as they are, and a working
-    C compiler."""
-    if system.typed.active or system.transformed:
-        return False
-    for s in system.slaves:
-        ne = s.native()
-        if ne is None or (rollback and not (ne.get_state and ne.set_state)):
-            return False
-    try:
-        library()
-    except UserError:
-        return False
-    return True
 
 
 class _CompiledVariable:
@@ -88,7 +70,6 @@ class _CompiledVariable:
         self.order = np.array(stepper.order, dtype=np.int32)
         self.rec_idx = np.ascontiguousarray(sysm.record_idx, dtype=np.int64)  # recorded, then watched (guards)
         self.h_rec = np.empty(0, dtype=np.int64)
-        self.status, self.message = "running", ""
 
     @property
     def t_ns(self) -> int:
@@ -115,6 +96,12 @@ class _CompiledVariable:
         if len(self.h_rec) < len(rec):
             self.h_rec = np.empty(len(rec), dtype=np.int64)
 
+    def _ended(self, code: int, bad: int, st: int, value: float = math.nan, count: int = 0) -> None:
+        """The loop returned with end code ``code``: the Python stepper, at the same point, ends
+        the run and words it (its ``_end``, the one wording of each ending)."""
+        self.py.t_ns = self.t_ns
+        self.py._end(code, bad, st, value, count)
+
     def close(self) -> None:
         """Free the FMU states (before the instances are freed)."""
         self.arr.free_states()
@@ -122,8 +109,8 @@ class _CompiledVariable:
 
 class CompiledAdaptive(_CompiledVariable):
     """Drop-in for :class:`cosim.master.algorithms.adaptive.AdaptiveStepper` whose accepted-step loop runs in C.
-    It shares the stepper's setup (order, fresh inputs, options) and exposes the same ``t_ns``,
-    ``stats``, ``calls``, ``slave_ns``, ``status`` and ``message``; :meth:`run` replaces the
+    It shares the stepper's setup (order, fresh inputs, options) and its outcome (status and
+    message), and exposes the same ``t_ns``, ``stats``, ``calls`` and ``slave_ns``; :meth:`run` replaces the
     Python loop of :class:`cosim.master.algorithms.adaptive.VariableStepper` one block at a time."""
 
     def __init__(self, stepper, timing: bool = True):
@@ -162,27 +149,6 @@ class CompiledAdaptive(_CompiledVariable):
         if ctl.status:
             self._ended(ctl.status, ctl.bad_slave, ctl.bad_status, ctl.last_err)
         return rows
-
-    def _ended(self, code: int, bad: int, st: int, err: float) -> None:
-        from ..slaves.slave import Status
-
-        sysm, opt, t = self.py.system, self.py.opt, self.t
-        if code == 1:
-            self.status = "stopped"
-            self.message = f"{sysm.slaves[bad].name} asked to terminate the simulation at t = {t:.9g} s"
-        elif code == 2:
-            s = sysm.slaves[bad] if bad >= 0 else None
-            who = s.name if s is not None else "the coupling error"
-            detail = (f"{s.name} returned {Status(st).name}" + (f": {s.last_message}" if s.last_message else "")
-                      if s is not None else f"scaled coupling error {err:.3g} > 1")
-            self.status = "unstable"
-            self.message = (f"the step floor h_min = {opt['h_min']:g} s was reached at t = {t:.9g} s "
-                            f"({detail}; limited by {who})")
-        else:
-            s = sysm.slaves[bad]
-            what = "getting" if code == 3 else "setting"
-            raise UserError(f"{s.name}: {what} the FMU state failed ({Status(st).name})"
-                            + (f": {s.last_message}" if s.last_message else ""))
 
 
 class CompiledEcco(_CompiledVariable):
@@ -233,33 +199,8 @@ class CompiledEcco(_CompiledVariable):
             self.h_rec.ctypes.data, len(rec), CALL_BUDGET_NS))
         self.py.stats.steps.extend((self.h_rec[:rows] / 1e9).tolist())
         if ctl.status:
-            self._ended(ctl.status, ctl.bad_slave, ctl.bad_status)
+            self._ended(ctl.status, ctl.bad_slave, ctl.bad_status, ctl.end_scaled, ctl.at_floor)
         return rows
-
-    def _ended(self, code: int, bad: int, st: int) -> None:
-        """The endings of :meth:`cosim.master.algorithms.ecco.EccoStepper.step`, worded alike."""
-        from ..slaves.slave import Status
-
-        py, sysm, t = self.py, self.py.system, self.t
-        if code == 1:
-            self.status = "stopped"
-            self.message = f"{sysm.slaves[bad].name} asked to terminate the simulation at t = {t:.9g} s"
-        elif code == 6:
-            sl = sysm.slaves[bad]
-            name = Status(st).name if st in Status._value2member_map_ else str(st)
-            self.status = "failed"
-            self.message = (f"{sl.name} returned {name} in the step from t = {t:.9g} s (ecco does not roll back)"
-                            + (f": {sl.last_message}" if sl.last_message else ""))
-        elif code == 7:
-            u0 = sysm.v[py._in_idx]
-            self.status = "unstable"
-            self.message = (f"the energy residual of bond {py.bonds[bad].name} is not finite in the step from "
-                            f"t = {t:.9g} s (y = {sysm.v[py._out_idx[bad]]}, u = {u0[bad]})")
-        else:
-            self.status = "unstable"
-            self.message = (f"the energy residual of bond {py.bonds[self.ctl.end_bond].name} stayed over its "
-                            f"tolerance for {self.ctl.at_floor} steps at the step floor h_min = "
-                            f"{py.opt['h_min']:g} s (scaled {self.ctl.end_scaled:.3g} at t = {t:.9g} s)")
 
 
 #: The compiled loop of each stepper class, by the ``native_loop`` its class itself declares (a

@@ -138,7 +138,7 @@ ECCO_CONTROL = Record("ec_ctl", (
     ("int32_t", "at_floor", "such steps in a row"), ("int32_t", "ending", "the run ends before the next step"),
     ("int32_t", "end_bond", "the bond it ends on"), ("double", "end_scaled", "its eps"),
     ("int32_t", "status", "why a call returned early (EccoEnd)"),
-    ("int32_t", "bad_slave", "the slave of that status (the bond for EC_NOT_FINITE)"),
+    ("int32_t", "bad_slave", "the slave of that status (the bond for EC_NOT_FINITE, EC_FLOOR_PATIENCE)"),
     ("int32_t", "bad_status", "its FMI status"),
     _STATS,
 ))

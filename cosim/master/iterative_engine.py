@@ -22,7 +22,8 @@ from functools import lru_cache
 import numpy as np
 
 from ..errors import UserError
-from .entries import ITER_RUN, ITERATIVE_CONTROL, struct
+from ..slaves.slave import Status
+from .entries import ITER_RUN, ITERATIVE_CONTROL, IterativeEnd, struct
 from .native import SlaveArray, builds, compile_loop
 
 CControl = struct(ITERATIVE_CONTROL)
@@ -81,8 +82,9 @@ class CompiledIterative:
         from .algorithms.iterative import FD_REL, GROWTH_LIMIT
 
         ctl.growth, ctl.fd_rel = GROWTH_LIMIT, FD_REL
-        for name in ("rollbacks", "jacobians", "directional", "broyden", "fd_steps"):  # the start's, counted on
-            setattr(ctl, name, getattr(alg, name))
+        # the start's counts, counted on
+        ctl.rollbacks, ctl.jacobians, ctl.directional = alg.rollbacks, alg.jacobians, alg.directional
+        ctl.broyden, ctl.fd_steps = alg.broyden, alg.fd_steps
         buf = arr.buffer
         self.z = np.array(alg.z, dtype=np.float64)
         self.z_prev = np.zeros(m) if alg.z_prev is None else np.array(alg.z_prev, dtype=np.float64)
@@ -127,15 +129,15 @@ class CompiledIterative:
             self.rec_idx.ctypes.data if self.rec_idx.size else None, len(self.rec_idx), rec_every, rec.ctypes.data,
             ctypes.byref(self.n_rows), self.budget_ns))
         code = int(ctl.status)
-        counted = done if code in (0, 2) else done + 1  # the step that ended the run counts its passes too
+        counted = done if code in (IterativeEnd.OK, IterativeEnd.STOPPED) else done + 1  # the step that ended the run counts its passes too
         alg.passes += [int(p) for p in self.passes[:counted] if p >= 0]
         for i, c in enumerate(self.arr.arr):
             alg.calls[i], alg.slave_ns[i] = c.calls, c.ns
-        for name in ("rollbacks", "jacobians", "directional", "broyden", "fd_steps"):
-            setattr(alg, name, int(getattr(ctl, name)))
+        alg.rollbacks, alg.jacobians, alg.directional = int(ctl.rollbacks), int(ctl.jacobians), int(ctl.directional)
+        alg.broyden, alg.fd_steps = int(ctl.broyden), int(ctl.fd_steps)
         alg.master_ns += ctl.master_ns
         rows = int(self.n_rows.value)
-        if code == 2:
+        if code == IterativeEnd.STOPPED:
             alg.k += done - 1
             alg.stopped_by(ctl.bad_slave, alg.t)
             rec[rows, 0] = alg.t
@@ -144,18 +146,17 @@ class CompiledIterative:
         alg.k += done
         t_fail = alg.t
         bad, st = int(ctl.bad_slave), int(ctl.bad_status)
-        if code == 1:
+        if code == IterativeEnd.FAILED:
             alg._fail(bad, st, t_fail)
-        elif code in (3, 4):
-            what = ("the coupling iteration diverged" if code == 3 else
+        elif code in (IterativeEnd.DIVERGED, IterativeEnd.NOT_CONVERGED):
+            what = ("the coupling iteration diverged" if code == IterativeEnd.DIVERGED else
                     f"the coupling iteration did not converge within max_iter = {int(ctl.max_iter)} passes")
             alg.passes.pop()  # _unstable records the step's passes itself
             alg._unstable(int(ctl.fail_it), True, t_fail, self.e.copy(), what, float(ctl.fail_err))
         elif code:
-            from ..slaves.slave import Status
-
             s = sysm.slaves[bad]
-            what = {5: "getting the FMU state", 6: "setting the FMU state", 7: "get directional derivative"}[code]
+            what = {IterativeEnd.SAVE: "getting the FMU state", IterativeEnd.RESTORE: "setting the FMU state",
+                    IterativeEnd.DIRECTIONAL: "get directional derivative"}[code]
             name = Status(st).name if st in Status._value2member_map_ else str(st)
             raise UserError(f"{s.name}: {what} failed ({name})" + (f": {s.last_message}" if s.last_message else ""))
         return rows

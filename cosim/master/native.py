@@ -88,10 +88,10 @@ class SlaveArray:
             c.fmi3, c.n_in, c.n_out = int(ne.fmi3), len(system.in_vrs[i]), len(system.out_vrs[i])
             c.in_off, c.out_off = system.in_off[i], system.out_off[i]
             # the slave's own promise (cosim.slaves.fmu: true unless the algorithm may restore a state)
-            c.no_prior, c.rate, c.sub_ns = int(getattr(s, "no_prior", not s.can_rollback)), 1, 0
+            c.no_prior, c.rate, c.sub_ns = int(s.no_prior), 1, 0
             c.inst, c.do_step, c.get, c.set = ne.instance, ne.do_step, ne.get_real, ne.set_real
             c.bool_status, c.last_time = ne.get_boolean_status, ne.last_time
-            c.memoryless = int(getattr(s.description, "memoryless", False))
+            c.memoryless = int(s.description.memoryless)
             if states:
                 c.get_state, c.set_state = ne.get_state, ne.set_state
                 c.state = ctypes.addressof(self.states) + i * ctypes.sizeof(ctypes.c_void_p)
