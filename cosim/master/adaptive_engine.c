@@ -67,6 +67,17 @@ static double attempt(rpr_slave *S, int32_t n, const int32_t *order, double *v, 
     return err;
 }
 
+/* AdaptiveStepper._propose, the one step-size rule of adaptive and ecco: the next step after an
+   accepted step h (h_ns [ns]; h_tried the step it was to be) is h times the controller's factor
+   fac, bounded by fac_min/fac_max and h_min/h_max; a step cut short to land on the stop time does
+   not shrink the proposal */
+static inline double propose(double h, int64_t h_ns, double h_tried, double fac, double fac_min, double fac_max,
+                             double h_min, double h_max) {
+    fac = py_min(fac_max, py_max(fac_min, fac));
+    if (h_ns < round_ns(h_tried * 1e9)) fac = py_max(fac, 1.0);
+    return py_min(h_max, py_max(h_min, h * fac));
+}
+
 /* the sources' values at the new point become the current ones (AdaptiveStepper._commit) */
 static void shift_history(rpr_slave *S, int32_t n, const double *v) {
     int32_t i, j;
@@ -137,9 +148,7 @@ static int64_t rpr_adapt_loop(rpr_slave *S, int32_t n, const int32_t *order, dou
             double e = py_max(err, 1e-10), fac;
             fac = c->safety * pow(e, -c->k_i / p) * pow(c->err_prev, c->k_p / p);
             c->err_prev = e;
-            fac = py_min(c->fac_max, py_max(c->fac_min, fac));
-            if (h_ns < round_ns(c->h * 1e9)) fac = py_max(fac, 1.0);
-            c->h = py_min(c->h_max, py_max(c->h_min, h * fac));
+            c->h = propose(h, h_ns, c->h, fac, c->fac_min, c->fac_max, c->h_min, c->h_max);
         }
         record_row(rec + rows * (n_rec + 1), c->t_ns, v, rec_idx, n_rec);
         h_rec[rows++] = h_ns;
@@ -230,9 +239,7 @@ static int64_t rpr_ecco_loop(rpr_slave *S, int32_t n, const int32_t *order, doub
         }
         fac = pow(c->safety / err, c->k_i) * pow(c->err_prev / err, c->k_p);
         c->err_prev = err;
-        fac = py_min(c->fac_max, py_max(c->fac_min, fac));   /* AdaptiveStepper._propose */
-        if (h_ns < round_ns(c->h * 1e9)) fac = py_max(fac, 1.0);
-        c->h = py_min(c->h_max, py_max(c->h_min, h * fac));
+        c->h = propose(h, h_ns, c->h, fac, c->fac_min, c->fac_max, c->h_min, c->h_max);
         record_row(rec + rows * (n_rec + 1), c->t_ns, v, rec_idx, n_rec);
         h_rec[rows++] = h_ns;
         if (budget_ns > 0 && (rows & 15) == 0 && now_ns() - t_start > budget_ns) break;
