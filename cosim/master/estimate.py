@@ -124,6 +124,20 @@ def interpolation_doubt(x: np.ndarray, y: np.ndarray, at: np.ndarray, interp: np
     return np.abs(interp - chord) + np.abs(nxt - prev) * w
 
 
+def near_events(at: np.ndarray, t: np.ndarray, tc: np.ndarray) -> np.ndarray:
+    """Which instants ``at`` lie within one of their own intervals of an event of either trace (a
+    time written twice: left and right limit, docs/explanation/events.md): a difference there is
+    the jump's, not the error's, so the estimate leaves them out."""
+    events = np.unique(np.concatenate([t[1:][np.diff(t) == 0], tc[1:][np.diff(tc) == 0]]))
+    if not events.size or len(at) < 2:
+        return np.zeros(len(at), dtype=bool)
+    gap = float(np.max(np.diff(np.unique(at))))
+    k = np.clip(np.searchsorted(events, at), 1, len(events)) if len(events) > 1 else np.ones(len(at), dtype=int)
+    lower = events[np.clip(k - 1, 0, len(events) - 1)]
+    upper = events[np.clip(k, 0, len(events) - 1)]
+    return np.minimum(np.abs(at - lower), np.abs(at - upper)) <= gap * (1 + 1e-9)
+
+
 def richardson(t: np.ndarray, x: np.ndarray, tc: np.ndarray, xc: np.ndarray, names: Sequence[str],
                div: float, method: str) -> ErrorEstimate:
     """The estimate from a run (instants ``t``, values ``x``, one column per name) and its companion
@@ -136,7 +150,7 @@ def richardson(t: np.ndarray, x: np.ndarray, tc: np.ndarray, xc: np.ndarray, nam
     if len(t) < 2 or len(tc) < 2 or hi <= lo:
         return ErrorEstimate(None, method=f"{method}: the run and its companion share no time span")
     sparse_t, dense_t, dense_x, sparse_x = (tc, t, x, xc) if len(tc) <= len(t) else (t, tc, xc, x)
-    keep = (sparse_t >= lo - 1e-12) & (sparse_t <= hi + 1e-12)
+    keep = (sparse_t >= lo - 1e-12) & (sparse_t <= hi + 1e-12) & ~near_events(sparse_t, t, tc)
     at = sparse_t[keep]
     # the dense trace's instants strictly increasing (a stop request may repeat the last instant)
     uniq = np.concatenate([[True], np.diff(dense_t) > 0])

@@ -93,6 +93,7 @@ class SlaveDescription:
     #: state and without discrete states), or "" (it cannot roll back)
     rollback_through: str = ""
     solver_rtol: float | None = None  # model exchange: CVODES's relative tolerance (the scene's rtol:)
+    has_event_mode: bool = False  # FMI 3.0 co-simulation: hasEventMode (event mode and early return usable)
 
     def of(self, *causalities: str) -> list[str]:
         """Names of the variables with one of the given causalities, in declaration order."""
@@ -267,7 +268,8 @@ def describe_fmu(path: Path, interface: str | None = None) -> SlaveDescription:
                   rollback_through=through)
         can_state = bool(through)
     else:
-        me = dict(rollback_through="FMU state" if can_state else "")
+        me = dict(rollback_through="FMU state" if can_state else "",
+                  has_event_mode=md.fmiVersion.startswith("3") and bool(getattr(cs, "hasEventMode", False)))
     return SlaveDescription("fmu", str(path), vs, ft, [], period, md.fmiVersion, can_state, interp, default, kinds,
                             md.guid or "", cs.modelIdentifier or "", ddx, declared, discrete_states=discrete, **me)
 

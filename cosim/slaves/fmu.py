@@ -267,7 +267,8 @@ class _Fmi3(FmiVersion):
 
         slave._log = fmi3LogMessageCallback(slave._on_log3)
         fmu = FMU3Slave(guid=guid, unzipDirectory=unzip, modelIdentifier=ident, instanceName=slave.name)
-        fmu.instantiate(logMessage=slave._log)
+        # event mode and early return only for a run whose algorithm ends its steps at events
+        fmu.instantiate(logMessage=slave._log, eventModeUsed=slave.event_mode, earlyReturnAllowed=slave.event_mode)
         return fmu
 
     def bind_step(self, slave, dll):
@@ -278,9 +279,11 @@ class _Fmi3(FmiVersion):
         slave._last_t = c_double()
         p_flags, p_last, inst = [ctypes.byref(f) for f in flags], ctypes.byref(slave._last_t), slave._inst
         terminate = flags[1]
+        slave._step_flags, slave._planned_end = flags, 0.0
 
         def do_step(t: float, h: float) -> int:
             # noSetFMUStatePriorToCurrentPoint: promised unless the algorithm may restore a state
+            slave._planned_end = t + h
             st = step(inst, t, h, slave.no_prior, *p_flags, p_last)
             if st < 2 and terminate.value:
                 return Status.STOP_REQUESTED
@@ -476,6 +479,21 @@ class FmuSlave(Slave):
 
     def exit_initialization(self) -> None:
         self._call("exitInitializationMode", self.fmu.exitInitializationMode, call=6)
+        if self.event_mode and self.fmi3:  # FMI 3.0: in event mode now; the initial event iteration, then step mode
+            for _ in range(100):
+                st, more, terminate = self.update_discrete_states()
+                if st in FAILING:
+                    raise self._failed("the initial event iteration", Status(st).name)
+                if terminate:
+                    raise UserError(f"{self.name}: the FMU asked to terminate the simulation in its initial event "
+                                    f"iteration")
+                if not more:
+                    break
+            else:
+                raise UserError(f"{self.name}: the initial event iteration did not settle in 100 rounds")
+            st = self.enter_step_mode()
+            if st in FAILING:
+                raise self._failed("fmi3EnterStepMode", Status(st).name)
 
     def bind(self, in_vrs, in_buf, out_vrs, out_buf) -> None:
         self._in_vr = np.ascontiguousarray(in_vrs, dtype=np.uint32)
@@ -522,6 +540,34 @@ class FmuSlave(Slave):
         st = self._step(t, h)  # made by the FMI version at instantiation
         leave()
         return st
+
+    def step_end(self) -> tuple[float, bool]:
+        if not (self.event_mode and self.fmi3):
+            return Slave.step_end(self)
+        event, _, early = (f.value for f in self._step_flags)
+        return (self._last_t.value if early else self._planned_end), bool(event)
+
+    def enter_event_mode(self) -> int:
+        return self._status_of("fmi3EnterEventMode", self.fmu.enterEventMode)
+
+    def update_discrete_states(self) -> tuple[int, bool, bool]:
+        try:
+            more, terminate, *_ = self.fmu.updateDiscreteStates()
+        except Exception as exc:  # fmpy's FMICallException: the status and the FMU's message
+            self.messages.append(f"[ERROR] fmi3UpdateDiscreteStates failed ({exc})")
+            return int(getattr(exc, "status", Status.ERROR)), False, False
+        return Status.OK, bool(more), bool(terminate)
+
+    def enter_step_mode(self) -> int:
+        return self._status_of("fmi3EnterStepMode", self.fmu.enterStepMode)
+
+    def _status_of(self, what: str, fn) -> int:
+        try:
+            fn()
+        except Exception as exc:  # fmpy's FMICallException
+            self.messages.append(f"[ERROR] {what} failed ({exc})")
+            return int(getattr(exc, "status", Status.ERROR))
+        return Status.OK
 
     def asked_to_stop(self) -> bool:
         """After an FMI 2.0 Discard: did the FMU ask to end the simulation (fmi2Terminated)?"""

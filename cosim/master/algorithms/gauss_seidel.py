@@ -14,6 +14,7 @@ class GaussSeidel(Algorithm):
     native_code = 1
     sequential = True
     multirate = True
+    ends_steps_at_events = True
 
     def _step_impl(self, t, h):
         gather, push, do, pull, acc, calls = (self._gather, self._push, self._do, self._pull, self.slave_ns,

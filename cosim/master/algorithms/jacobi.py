@@ -15,6 +15,7 @@ class Jacobi(Algorithm):
     name = "jacobi"
     native_code = 0
     multirate = True
+    ends_steps_at_events = True
     #: needs no stepping order: a cycle of direct feedthrough runs with the one-step coupling delay
     delays_algebraic_loops = True
 
