@@ -80,3 +80,18 @@ def test_a_component_that_cannot_roll_back_gets_the_event_late_and_the_sidecar_s
     t = res.trace.time
     # the bounce, and the FMU's second early return a step of its own later (as under FMPy)
     assert list(_events(t)) == pytest.approx([0.453, 0.454]) and np.all(np.diff(t) >= 0)
+
+
+@pytest.mark.parametrize("algorithm,says", [
+    ("jacobi", "events: a step ends at the earliest event of an FMI 3.0 event-mode component for the whole coupling"),
+    ("adaptive", "events: events are handled inside each component's steps and reach the others at the next "
+                 "communication point (FMI 3.0 event mode not used)"),
+])
+def test_run_check_says_what_the_algorithm_does_with_events(reference_fmus, tmp_path, capsys, algorithm, says):
+    from cosim import cli
+
+    scene = tmp_path / "s.yaml"
+    scene.write_text(f"name: s\ncomponents:\n  s: {{fmu: {reference_fmus['3.0/BouncingBall']}}}\n"
+                     f"master: {{algorithm: {algorithm}, step: 0.01}}\nstop_time: 1\n")
+    assert cli.main(["run", str(scene), "--check"]) == 0
+    assert says in capsys.readouterr().out

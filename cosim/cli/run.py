@@ -244,12 +244,23 @@ def _describe_choice(scene) -> None:
     if not m.auto:
         tol = f", tolerance {m.tolerance:g} (a run estimated over 10x it ends inaccurate)" if m.tolerance else ""
         print(f"  master: {m.algorithm}, named by the scene{tol}")
+        _describe_events(scene, m.algorithm)
         return
     from ..run.choose import kind
 
     alg, why = kind(scene)
     what = "rtol" if alg in ("adaptive", "ecco") else "fixed step"
     print(f"  master: tolerance {m.tolerance:g} -> {alg}: {why}; its {what} from pilot runs' error estimates")
+    _describe_events(scene, alg)
+
+
+def _describe_events(scene, name: str) -> None:
+    """What the algorithm ``name`` does with the components' events (said when a component has any)."""
+    from ..master.algorithm import algorithm
+
+    descs = [c.description for c in scene.components.values()]
+    if any(d.has_event_mode or d.event_indicators or d.interface == "model exchange" for d in descs):
+        print(f"  events: {algorithm(name).event_policy}")
 
 
 def _summary(res) -> None:

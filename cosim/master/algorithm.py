@@ -119,6 +119,9 @@ class MasterAlgorithm:
     #: ends a step at an FMI 3.0 event-mode component's event (early return) for the whole coupling
     #: and runs the event iteration there (docs/explanation/events.md); others leave events inside doStep
     ends_steps_at_events: ClassVar[bool] = False
+    #: what the algorithm does with events, as run --check and the sidecar say it
+    event_policy: ClassVar[str] = ("events are handled inside each component's steps and reach the others at the next "
+                                   "communication point (FMI 3.0 event mode not used)")
     #: a variable-step algorithm's stepper factory (:func:`cosim.master.algorithms.adaptive.variable_stepper`);
     #: None: a fixed-step algorithm, bound by :func:`cosim.master.engine.fixed_stepper`
     stepper_for: ClassVar[Callable | None] = None
@@ -387,8 +390,7 @@ class Algorithm(MasterAlgorithm, Outcome, ABC):
         if not self.event_slaves:
             return {}
         names = [self.system.slaves[i].name for i in self.event_slaves]
-        return {"events": {"mode": "the step ends at the earliest event of an event-mode component for the whole "
-                                   "coupling; event iteration across the coupling; two trace rows at each event",
+        return {"events": {"mode": self.event_policy,
                            "event_mode": names, "handled": self.events, "late": self.late_events[:10_000]}}
 
     def stop_requested(self, i: int, status: int) -> bool:
