@@ -263,40 +263,18 @@ def test_fmu_check_of_both_interfaces_names_the_default_and_the_other(reference_
 
 
 # --- a coupled pair of model-exchange FMUs in a loop ---------------------------------------------------
-LAG = Path(__file__).with_name("data") / "me_lag"
 #: a: der(x) = -x - u, b: der(x) = -2 x + u, a.x -> b.u, b.x -> a.u: the monolithic x' = A x, x(0) = (1, 0)
 PAIR_A = np.array([[-1.0, -1.0], [1.0, -2.0]])
 
 
 @pytest.fixture(scope="session")
 def lag_fmus(tmp_path_factory) -> dict[str, Path]:
-    """``{"2": Lag.fmu, "2_nostate": ..., "3": ..., "3_nostate": ...}``: tests/data/me_lag built on the
-    Reference FMUs' framework (its include/ and src/ from the source tree) with the C compiler."""
-    import shutil
-    import subprocess
-
-    from conftest import REFERENCE_FMUS_SRC
+    """``{"2": Lag.fmu, "2_nostate": ..., "3": ..., "3_nostate": ...}`` (``conftest.build_lag_fmus``)."""
+    from conftest import REFERENCE_FMUS_SRC, build_lag_fmus
 
     if not (REFERENCE_FMUS_SRC / "src" / "cosimulation.c").is_file():
         pytest.skip(f"the Reference FMUs' source is not at {REFERENCE_FMUS_SRC} (set RPR_REFERENCE_FMUS_SRC)")
-    out = tmp_path_factory.mktemp("lag")
-    fmus = {}
-    for v in ("2", "3"):
-        lib = out / f"Lag{v}.so"
-        cmd = [shutil.which("gcc") or "cc", "-shared", "-fPIC", "-O2", f"-DFMI_VERSION={v}", "-DDISABLE_PREFIX",
-               f"-I{REFERENCE_FMUS_SRC / 'include'}", f"-I{LAG}", str(REFERENCE_FMUS_SRC / "src" / f"fmi{v}Functions.c"),
-               str(REFERENCE_FMUS_SRC / "src" / "cosimulation.c"), str(LAG / "model.c"), "-o", str(lib)]
-        res = subprocess.run(cmd, capture_output=True, text=True)
-        assert res.returncode == 0, res.stderr[-2000:]
-        xml = (LAG / f"FMI{v}.xml").read_text()
-        for suffix, text in (("", xml), ("_nostate", re.sub(r'canGetAndSetFMU(s|S)tate="true"',
-                                                             r'canGetAndSetFMU\1tate="false"', xml))):
-            fmu = out / f"Lag{v}{suffix}.fmu"
-            with zipfile.ZipFile(fmu, "w") as z:
-                z.writestr("modelDescription.xml", text)
-                z.write(lib, f"binaries/{'linux64' if v == '2' else 'x86_64-linux'}/Lag.so")
-            fmus[f"{v}{suffix}"] = fmu
-    return fmus
+    return build_lag_fmus(REFERENCE_FMUS_SRC, tmp_path_factory.mktemp("lag"))
 
 
 def _pair(fmu: Path, master: dict, stop: float):
