@@ -650,7 +650,10 @@ def _read_csv(fh, path: Path) -> tuple[list[str], np.ndarray, dict, dict]:
         joined = b",".join(ln.strip() for _, ln in pending)
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            vals = np.fromstring(joined.decode("ascii", "replace"), dtype=float, sep=",")
+            try:
+                vals = np.fromstring(joined.decode("ascii", "replace"), dtype=float, sep=",")
+            except ValueError:  # a cell that is not a number: the line-by-line parse names its line
+                vals = np.zeros(0)
         if vals.size != len(pending) * len(columns) or any(ln.count(b",") != len(columns) - 1 for _, ln in pending):
             vals = np.array([_row(ln, lineno, len(columns), path) for lineno, ln in pending], dtype=float)
         blocks.append(vals.reshape(-1, len(columns)))
