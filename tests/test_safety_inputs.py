@@ -268,8 +268,8 @@ def test_a_deep_sidecar_is_one_line(tmp_path):
 def test_traces_over_the_limit_or_binary_are_refused_up_front(tmp_path):
     t = tmp_path / "t.csv"
     t.write_text("time,a.x\n" + "".join(f"{i / 100},{i}\n" for i in range(2000)))
-    one_line(cli_run("compare", t, t, env={"RPR_COSIM_MAX_TRACE_BYTES": "10000"}), "more than the limit of 10,000",
-             "RPR_COSIM_MAX_TRACE_BYTES")
+    one_line(cli_run("compare", t, t, env={"RPR_COSIM_MAX_TRACE": "10000"}), "more than the limit of 10,000",
+             "RPR_COSIM_MAX_TRACE")
     sparse = tmp_path / "sparse.csv"
     with open(sparse, "wb") as fh:
         fh.truncate(2 * 10 ** 9)  # a 2 GB hole: no disk, and read a block at a time
