@@ -1,8 +1,9 @@
 """Traces: outputs at communication points, recorded by observers apart from stepping.
 
-An observer gets ``start(columns, meta)``, then ``record(rows)`` any number of times (a 2-D array,
-column 0 is time [s], the others the recorded variables named ``component.variable``), then
-``finish(status, reason, stats)`` exactly once, also after a failure or an interrupt.
+An observer (:class:`cosim.trace.observer.Observer`) gets ``start(columns, meta)``, then
+``record(rows)`` any number of times (a 2-D array, column 0 is time [s], the others the recorded
+variables named ``component.variable``), then ``finish(status, reason, stats)`` exactly once, also
+after a failure or an interrupt.
 
 Trace files come in three formats (:data:`TRACE_FORMATS`), all streamed as the run goes, with a
 sidecar ``<name>.json`` holding the metadata (scene hash, algorithm, step, package versions, the
@@ -30,13 +31,13 @@ import platform
 import queue
 import threading
 import time
-from abc import ABC, abstractmethod
 from dataclasses import dataclass, field
 from functools import lru_cache
 from pathlib import Path
 
 import numpy as np
 
+from .observer import Observer
 from .text import json_text, rows_text
 from ..errors import UserError
 
@@ -80,23 +81,6 @@ def _package_versions() -> dict[str, str]:
                          ("fmpy", "fmpy"), ("PyYAML", "yaml")):
         out[dist] = installed_version(dist, module) or "not installed"
     return out
-
-
-class Observer(ABC):
-    """Receives the rows of a run (see the module docstring for the call order)."""
-
-    @abstractmethod
-    def start(self, columns: list[str], meta: dict) -> None: ...
-
-    @abstractmethod
-    def record(self, rows: np.ndarray) -> None: ...
-
-    @abstractmethod
-    def finish(self, status: str, reason: str, stats: dict) -> None: ...
-
-    def record_text(self, t: float, column: str, value: str) -> None:
-        """A String or Binary variable (``column``) took ``value`` (Binary as hexadecimal) at ``t``
-        [s]; called when it changes, between ``record`` calls.  Ignored by default."""
 
 
 @dataclass
