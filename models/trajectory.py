@@ -328,7 +328,7 @@ def leg_forces(m: Manipulator, q, qd, qdd, m_act: float = 0.0) -> np.ndarray:
     return leg_dynamics(m, q, qd, qdd, m_act)[3]
 
 
-def plan_toppra(m: Manipulator, waypoints, limits: Limits, gridpoints: int = 400) -> PiecewiseCubic:
+def plan_toppra(m: Manipulator, waypoints, limits: Limits, gridpoints: int = 100) -> PiecewiseCubic:
     """Time-optimal motion along a cubic spline through the waypoints (module docstring)."""
     import toppra as ta
     import toppra.algorithm as algo
