@@ -268,8 +268,8 @@ def test_a_deep_sidecar_is_one_line(tmp_path):
 def test_traces_over_the_limit_or_binary_are_refused_up_front(tmp_path):
     t = tmp_path / "t.csv"
     t.write_text("time,a.x\n" + "".join(f"{i / 100},{i}\n" for i in range(2000)))
-    one_line(cli_run("compare", t, t, env={"RPR_COSIM_MAX_TRACE_BYTES": "10000"}), "more than the limit of 10,000",
-             "RPR_COSIM_MAX_TRACE_BYTES")
+    one_line(cli_run("compare", t, t, env={"RPR_COSIM_MAX_TRACE": "10000"}), "more than the limit of 10,000",
+             "RPR_COSIM_MAX_TRACE")
     sparse = tmp_path / "sparse.csv"
     with open(sparse, "wb") as fh:
         fh.truncate(2 * 10 ** 9)  # a 2 GB hole: no disk, and read a block at a time
@@ -387,3 +387,15 @@ def test_an_ssp_guard_annotation_nested_deep_is_one_problem(tmp_path, two_mass_s
             z.writestr(info, data)
     res = cli_run("run", deep, "--check")
     assert res.returncode == 2 and "the guards annotation: JSON nested" in res.stderr, res.stderr
+
+
+@pytest.mark.parametrize("row", ["0.1,abc", "0.1,2,3", "0.1", "0.1,", "0.1,1e999999x", "0x1,2"])
+def test_a_trace_row_that_is_not_numbers_names_its_line(tmp_path, row):
+    from cosim.trace.traces import read_trace
+
+    t = tmp_path / "t.csv"
+    t.write_text("time,a\n0,1\n" + row + "\n0.2,3\n")
+    with pytest.raises(UserError, match=r"t.csv:3: expected 2 numbers separated by commas"):
+        read_trace(t)
+    t.write_text("time,a\n0,nan\n0.1,inf\n0.2,-inf\n0.3,1e-300\n0.4,-0.0\n0.5,2")  # last row without newline kept
+    assert read_trace(t).data[:, 1].tolist()[1:] == [float("inf"), float("-inf"), 1e-300, -0.0, 2.0]
