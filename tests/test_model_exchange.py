@@ -115,8 +115,11 @@ def test_dahlquist_against_the_exponential(me_fmus, v, rtol, tol):
 def test_bouncing_ball_against_its_parabolas(me_fmus, v, rtol, tol):
     res = run(_scene(me_fmus[f"{v}/BouncingBall"], 0.01, 3.0, ["h", "v"], **({"rtol": rtol} if rtol else {})))
     assert res.status == "ok", res.reason
-    h, vel, _ = bouncing_ball(res.trace.time)
+    h, vel, impacts = bouncing_ball(res.trace.time)
     assert _rel(res.trace["m.h"], h) < tol and _rel(res.trace["m.v"], vel) < tol
+    me = res.stats["model_exchange"]["m"]  # the sidecar: the slave's solver figures and its events
+    assert me["state_events"] == 11 and me["solver_steps"] > 100
+    assert np.max(np.abs(np.array([t for t, _ in me["events"]]) - impacts)) < 1e3 * tol
 
 
 @pytest.mark.parametrize("v", ["2", "3"])

@@ -91,6 +91,10 @@ def _gatherer(system: CoupledSystem, i: int) -> Callable[[], None]:
     return copy
 
 
+#: Events in one macro step beyond which a run with event-mode components ends (chattering).
+MAX_EVENTS_PER_STEP = 1000
+
+
 class MasterAlgorithm:
     """What the registry and the run (:func:`cosim.master.simulate`) know of every master
     algorithm, fixed or variable step: its name, declared options and abilities.  A fixed-step
@@ -299,13 +303,19 @@ class Algorithm(MasterAlgorithm, Outcome, ABC):
         from .stepper import StepResult
 
         if not early:
-            self.k, self.t_event = self.k + 1, None
+            self.k, self.t_event, self._events_in_step = self.k + 1, None, 0
             self._ahead.clear()
             asking = [i for i, (_, ev) in ends.items() if ev]
             if asking:
                 self.pending_event = StepResult(self.t_ns, True, asking[0], "event")
             return True
         t_e, who = early[0]
+        self._events_in_step = getattr(self, "_events_in_step", 0) + 1
+        if self._events_in_step > MAX_EVENTS_PER_STEP:
+            self.status, self.failed_slave = "failed", who
+            self.message = (f"{slaves[who].name}: more than {MAX_EVENTS_PER_STEP} events in the step from t = "
+                            f"{self.time_at(self.k):.9g} s (chattering); the last at t = {t_e:.9g} s")
+            return False
         for j in range(len(slaves)):
             if j == who or j in self._ahead or (j in ends and ends[j][0] <= t_e + tol):
                 continue
@@ -386,11 +396,15 @@ class Algorithm(MasterAlgorithm, Outcome, ABC):
         return True
 
     def event_statistics(self) -> dict:
-        """What the run did with events (for the run statistics): the events handled and the late ones."""
+        """What the run did with events (for the run statistics): the events handled and the late
+        ones; a model-exchange component's solver figures and its own events (``model_exchange``)."""
+        me = {x.name: {**x.solver_stats(), "events": [[t, kind] for t, kind in x.events()[:1000]]}
+              for x in self.system.slaves if hasattr(x, "solver_stats")}
+        out = {"model_exchange": me} if me else {}
         if not self.event_slaves:
-            return {}
+            return out
         names = [self.system.slaves[i].name for i in self.event_slaves]
-        return {"events": {"mode": self.event_policy,
+        return {**out, "events": {"mode": self.event_policy,
                            "event_mode": names, "handled": self.events, "late": self.late_events[:10_000]}}
 
     def stop_requested(self, i: int, status: int) -> bool:

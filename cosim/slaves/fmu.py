@@ -551,22 +551,23 @@ class FmuSlave(Slave):
         return self._status_of("fmi3EnterEventMode", self.fmu.enterEventMode)
 
     def update_discrete_states(self) -> tuple[int, bool, bool]:
-        try:
-            more, terminate, *_ = self.fmu.updateDiscreteStates()
-        except Exception as exc:  # fmpy's FMICallException: the status and the FMU's message
-            self.messages.append(f"[ERROR] fmi3UpdateDiscreteStates failed ({exc})")
-            return int(getattr(exc, "status", Status.ERROR)), False, False
-        return Status.OK, bool(more), bool(terminate)
+        out: list = []
+        st = self._status_of("fmi3UpdateDiscreteStates", lambda: out.extend(self.fmu.updateDiscreteStates()))
+        return (st, bool(out[0]), bool(out[1])) if out else (st, False, False)
 
     def enter_step_mode(self) -> int:
         return self._status_of("fmi3EnterStepMode", self.fmu.enterStepMode)
 
     def _status_of(self, what: str, fn) -> int:
+        """Call ``fn`` (an FMI call named ``what``, in the breadcrumb for the supervisor); its status."""
+        enter(self._ck, CALL[what])
         try:
             fn()
         except Exception as exc:  # fmpy's FMICallException
             self.messages.append(f"[ERROR] {what} failed ({exc})")
             return int(getattr(exc, "status", Status.ERROR))
+        finally:
+            leave()
         return Status.OK
 
     def asked_to_stop(self) -> bool:
