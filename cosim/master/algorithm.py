@@ -273,20 +273,25 @@ class Algorithm(MasterAlgorithm, Outcome, ABC):
     # FMI 3.0 event mode across the coupling (docs/explanation/events.md) --------------------------------
     def _event_step(self) -> bool:
         """:meth:`step` with event-mode slaves: from the current point (a grid point or an event) to
-        the next grid point, cut at the earliest time an event-mode slave returned early; the
-        others are rolled back and stepped to that time, or (when they cannot roll back) noted in
-        :attr:`late_events` and left at the grid point until the others catch up."""
+        the next grid point, cut at the earliest time an event-mode slave returned early.  Jacobi
+        steps the event-mode slaves first and the others only to that time (:meth:`_events_first`);
+        under Gauss-Seidel's order, a slave that stepped past it is rolled back and stepped to it,
+        or (when it cannot roll back) noted in :attr:`late_events` and left at the grid point
+        until the others catch up."""
         slaves = self.system.slaves
         t, t_end = self.t, self.time_at(self.k + 1)
         h = t_end - t if self.t_event is not None else self.h
-        saved = [i for i, x in enumerate(slaves) if x.can_rollback and i not in self._ahead] if len(slaves) > 1 else []
+        # what may step past an event: under Gauss-Seidel any slave, under Jacobi only the event-mode ones
+        may_pass = [i for i in range(len(slaves)) if self.sequential or i in self.event_slaves]
+        saved = [i for i in may_pass if slaves[i].can_rollback and i not in self._ahead] \
+            if len(self.event_slaves) > 1 or (self.sequential and len(slaves) > 1) else []
         for i in saved:
             slaves[i].save_state()
         do = self._do
         if self._ahead:  # they reached the grid point in the step an event cut: they wait there
             self._do = [(lambda _t, _h: Status.OK) if i in self._ahead else f for i, f in enumerate(do)]
         try:
-            bad = self._step_impl(t, h)
+            bad = self._step_impl(t, h) if self.sequential else self._events_first(t, h)
         finally:
             self._do = do
         if self.status != "running":
@@ -317,7 +322,8 @@ class Algorithm(MasterAlgorithm, Outcome, ABC):
                             f"{self.time_at(self.k):.9g} s (chattering); the last at t = {t_e:.9g} s")
             return False
         for j in range(len(slaves)):
-            if j == who or j in self._ahead or (j in ends and ends[j][0] <= t_e + tol):
+            if j == who or j in self._ahead or (j in ends and ends[j][0] <= t_e + tol) or \
+                    (not self.sequential and j not in ends):  # Jacobi stepped it only to t_e already
                 continue
             if j in saved:  # stepped past the event: back (its inputs with it), and to the event time
                 slaves[j].restore_state()
@@ -337,6 +343,33 @@ class Algorithm(MasterAlgorithm, Outcome, ABC):
         self.t_event = t_e
         self.pending_event = StepResult(self.t_ns, True, who, "event")
         return True
+
+    def _events_first(self, t: float, h: float) -> tuple[int, int] | None:
+        """A Jacobi step with event-mode slaves: every input from the outputs at ``t``, the
+        event-mode slaves step first, the others then only to the earliest time one of them
+        reached (no rollback needed, nothing late); ``(slave, status)`` of a failing call, or None."""
+        slaves, n = self.system.slaves, len(self.system.slaves)
+        for i in range(n):
+            self._gather[i]()
+            st = self._io(i, self._push[i])
+            if st in FAILING:
+                return i, st
+        first = [i for i in self.event_slaves if i not in self._ahead]
+        for i in first:
+            st = self._advance(i, t, h)
+            if st in FAILING or st == Status.STOP_REQUESTED:
+                return i, st
+        reached = min([slaves[i].step_end()[0] for i in first], default=t + h)
+        for i in range(n):
+            if i not in first:
+                st = self._advance(i, t, min(h, reached - t))
+                if st in FAILING or st == Status.STOP_REQUESTED:
+                    return i, st
+        for i in range(n):
+            st = self._io(i, self._pull[i])
+            if st in FAILING:
+                return i, st
+        return self._exchange() if self.exchange else None
 
     def event_iteration(self, event) -> None:
         """At the event time: every event-mode slave enters event mode; then rounds of exchange
