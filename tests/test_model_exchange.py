@@ -352,3 +352,40 @@ def test_run_check_says_how_a_model_exchange_component_runs(me_fmus, tmp_path, c
     assert ("model exchange, integrated by CVODES (rtol 1e-09); 2 continuous state(s), 0 event indicator(s); its "
             "events are handled inside its steps and reach the other components at the next communication point; "
             "rollback through its continuous states") in out
+
+
+SSD_ME = """<?xml version="1.0" encoding="UTF-8"?>
+<ssd:SystemStructureDescription xmlns:ssd="http://ssp-standard.org/SSP1/SystemStructureDescription"
+    xmlns:ssc="http://ssp-standard.org/SSP1/SystemStructureCommon" version="1.0" name="vdp">
+  <ssd:System name="Root">
+    <ssd:Elements>
+      <ssd:Component name="m" source="resources/vdp.fmu" implementation="{implementation}">
+        <ssd:Connectors>
+          <ssd:Connector name="x0" kind="output"><ssc:Real/></ssd:Connector>
+        </ssd:Connectors>
+      </ssd:Component>
+    </ssd:Elements>
+  </ssd:System>
+  <ssd:DefaultExperiment startTime="0.0" stopTime="2.0"/>
+</ssd:SystemStructureDescription>
+"""
+
+
+@pytest.mark.parametrize("implementation,interface", [("ModelExchange", "model exchange"),
+                                                      ("CoSimulation", "co-simulation")])
+def test_an_ssp_component_runs_through_the_implementation_it_names(reference_fmus, tmp_path, implementation,
+                                                                   interface):
+    from cosim.scenario import load
+
+    path = tmp_path / "vdp.ssp"
+    with zipfile.ZipFile(path, "w") as z:
+        z.writestr("SystemStructure.ssd", SSD_ME.format(implementation=implementation))
+        z.write(reference_fmus["2.0/VanDerPol"], "resources/vdp.fmu")
+    scene = load(path, {"outputs": ["m.x0"], "master": {"algorithm": "jacobi", "step": 0.01}})
+    assert scene.components["m"].description.interface == interface
+    res = run(scene)
+    assert res.ok, res.reason
+    if interface == "model exchange":
+        ref = _fmpy_me(reference_fmus["2.0/VanDerPol"], 2.0, 0.01, ["x0"])
+        assert _rel(res.trace["m.x0"], ref["x0"]) < 1e-3
+        assert "model_exchange" in res.stats
