@@ -389,3 +389,22 @@ def test_an_ssp_component_runs_through_the_implementation_it_names(reference_fmu
         ref = _fmpy_me(reference_fmus["2.0/VanDerPol"], 2.0, 0.01, ["x0"])
         assert _rel(res.trace["m.x0"], ref["x0"]) < 1e-3
         assert "model_exchange" in res.stats
+
+
+@pytest.mark.parametrize("v", ["2", "3"])
+def test_the_compiled_loops_step_a_model_exchange_fmu_as_the_python_loop_does(me_fmus, lag_fmus, v):
+    """The slave's C entry points in the compiled master loops: the same trace to the bit (Jacobi
+    on VanDerPol; adaptive, which saves and restores states in C, on the loop of two lags)."""
+    runs = {}
+    for engine in ("python", "compiled"):
+        res = run(_scene(me_fmus[f"{v}/VanDerPol"], 0.01, 5.0, ["x0", "x1"],
+                         {"algorithm": "jacobi", "step": 0.01, "engine": engine, "estimate": False}))
+        assert res.status == "ok" and res.stats["engine"] == engine, res.reason
+        runs[engine] = res.trace.data
+    assert np.array_equal(runs["python"], runs["compiled"])
+    for engine in ("python", "compiled"):
+        res = run(_pair(lag_fmus[v], {"algorithm": "adaptive", "step": 0.01, "engine": engine, "estimate": False},
+                        0.05))
+        assert res.status == "ok" and res.stats["engine"] == engine, res.reason
+        runs[engine] = res.trace.data
+    assert np.array_equal(runs["python"], runs["compiled"])

@@ -30,6 +30,7 @@ from fmus.errors import BuildError
 from fmus.native import NoCompiler, library_path
 
 from ..errors import UserError
+from . import crumb
 from .crumb import CALL, enter, leave
 from .fmu import FmuSlave, _addr, _Get2, _Get3, _Set2, _Set3
 from .slave import FAILING, NativeEntry, Slave, Status
@@ -155,6 +156,7 @@ class ModelExchangeSlave(FmuSlave):
                               MAX_EVENTS_PER_STEP, MAX_SOLVER_STEPS)
         if not self._me:
             raise UserError(f"{self.name}: out of memory for the model-exchange slave")
+        crumb.name_instance(self.name, False, self._me)  # the compiled loops name it by this pointer
         enter(self._ck, CALL["fmi2ExitInitializationMode"], self._t0)
         try:
             st = lib.me_start(self._me, self._t0)
@@ -228,7 +230,21 @@ class ModelExchangeSlave(FmuSlave):
             self._me = None
 
     def native(self) -> NativeEntry | None:
-        return None  # stepped from Python (the integration itself is compiled)
+        """The compiled slave's entry points in FMI 2.0 shapes (its pointer as the instance), for
+        the compiled master loops; FMU state get/set where it rolls back through its FMU state
+        (through continuous states its inputs are set back from Python: the Python loop)."""
+        if not self._me:
+            return None
+        lib = _library()
+        fn = {n: _addr(getattr(lib, f"me_native_{n}")) for n in ("do_step", "get_real", "set_real", "get_state",
+                                                                  "set_state", "free_state", "boolean_status")}
+        state = (fn["get_state"], fn["set_state"], fn["free_state"]) \
+            if self.can_rollback and self.description.rollback_through == "FMU state" else (0, 0, 0)
+        return NativeEntry(False, self._me, fn["do_step"], fn["get_real"], fn["set_real"], 0, *state,
+                           fn["boolean_status"], 0)
+
+    def _free_state(self) -> None:
+        self._state = None  # a compiled loop's saved state is the slave itself (freed with it)
 
     # rollback ----------------------------------------------------------------------------------
     def save_state(self) -> None:

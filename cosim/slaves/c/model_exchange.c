@@ -46,6 +46,8 @@ typedef int (*F_new2)(Inst, Fmi2EventInfo *);
 typedef int (*F_update3)(Inst, bool *, bool *, bool *, bool *, bool *, double *);
 typedef int (*F_state)(Inst, void **);
 typedef int (*F_setstate)(Inst, void *);
+typedef int (*F_real2)(Inst, const unsigned *, size_t, double *);
+typedef int (*F_real3)(Inst, const unsigned *, size_t, double *, size_t);
 
 enum { ST_OK = 0, ST_WARNING = 1, ST_DISCARD = 2, ST_ERROR = 3, ST_FATAL = 4 };
 /* me_do_step's extra result: the FMU asked to end the simulation (terminateSimulation) */
@@ -68,6 +70,7 @@ typedef struct {
     F_update3 update3;
     F_state get_state, free_state;
     F_setstate set_state;
+    void *get_real, *set_real;   /* fmi2GetReal/SetReal or fmi3GetFloat64/SetFloat64 */
 
     size_t nx, nz, ny;           /* ny = max(nx, 1): CVODES needs a state; a dummy one stays 1 */
     int needs_completed;
@@ -152,6 +155,8 @@ MeSlave *me_new(const char *lib_path, int fmi3, void *inst, long nx, long nz, in
         s->get_nominals = (F_vec2)sym(s, "fmi3GetNominalsOfContinuousStates", 1);
         s->completed3 = (F_completed3)sym(s, "fmi3CompletedIntegratorStep", 1);
         s->update3 = (F_update3)sym(s, "fmi3UpdateDiscreteStates", 1);
+        s->get_real = sym(s, "fmi3GetFloat64", 1);
+        s->set_real = sym(s, "fmi3SetFloat64", 1);
         s->get_state = (F_state)sym(s, "fmi3GetFMUState", use_fmu_state);
         s->set_state = (F_setstate)sym(s, "fmi3SetFMUState", use_fmu_state);
         s->free_state = (F_state)sym(s, "fmi3FreeFMUState", use_fmu_state);
@@ -166,6 +171,8 @@ MeSlave *me_new(const char *lib_path, int fmi3, void *inst, long nx, long nz, in
         s->get_nominals = (F_vec2)sym(s, "fmi2GetNominalsOfContinuousStates", 1);
         s->completed2 = (F_completed2)sym(s, "fmi2CompletedIntegratorStep", 1);
         s->new_discrete2 = (F_new2)sym(s, "fmi2NewDiscreteStates", 1);
+        s->get_real = sym(s, "fmi2GetReal", 1);
+        s->set_real = sym(s, "fmi2SetReal", 1);
         s->get_state = (F_state)sym(s, "fmi2GetFMUstate", use_fmu_state);
         s->set_state = (F_setstate)sym(s, "fmi2SetFMUstate", use_fmu_state);
         s->free_state = (F_state)sym(s, "fmi2FreeFMUstate", use_fmu_state);
@@ -515,6 +522,43 @@ int me_restore(MeSlave *s) {
     s->t = s->s_t, s->next_time = s->s_next_time, s->next_defined = s->s_next_defined;
     s->terminated = s->s_terminated;
     s->restart = 1;
+    return ST_OK;
+}
+
+/* --- entry points for the compiled master loops (FMI 2.0 shapes; the instance is the slave) --- */
+int me_native_do_step(MeSlave *s, double t, double h, int no_prior) {
+    int st = me_do_step(s, t, h, no_prior);
+    return st == ME_STOP ? ST_DISCARD : st; /* with me_native_boolean_status: a stop request */
+}
+
+int me_native_boolean_status(MeSlave *s, int kind, int *value) {
+    *value = kind == 3 && s->terminated; /* fmi2Terminated */
+    return ST_OK;
+}
+
+int me_native_get_real(MeSlave *s, const unsigned *vr, size_t n, double *values) {
+    return s->fmi3 ? ((F_real3)s->get_real)(s->inst, vr, n, values, n) : ((F_real2)s->get_real)(s->inst, vr, n, values);
+}
+
+int me_native_set_real(MeSlave *s, const unsigned *vr, size_t n, const double *values) {
+    return s->fmi3 ? ((F_real3)s->set_real)(s->inst, vr, n, (double *)values, n)
+                   : ((F_real2)s->set_real)(s->inst, vr, n, (double *)values);
+}
+
+/* the slave holds its one saved state itself: the pointer handed out is the slave */
+int me_native_get_state(MeSlave *s, void **state) {
+    *state = s;
+    return me_save(s);
+}
+
+int me_native_set_state(MeSlave *s, void *state) {
+    (void)state;
+    return me_restore(s);
+}
+
+int me_native_free_state(MeSlave *s, void **state) {
+    (void)s;
+    *state = NULL;
     return ST_OK;
 }
 
