@@ -330,11 +330,13 @@ class FmuSlave(Slave):
     #: class), registered by its module (model exchange: :mod:`cosim.slaves.model_exchange`).
     kinds: dict[str, type] = {}
 
-    def __new__(cls, name: str, path: Path, description: SlaveDescription | None = None):
+    def __new__(cls, name: str | None = None, path: Path | None = None, description: SlaveDescription | None = None):
         """An FMU's slave of the class its interface needs (``FmuSlave(...)`` of a model-exchange
-        description makes a model-exchange slave)."""
+        description makes a model-exchange slave); without arguments (copy, pickle) the class asked."""
+        if cls is not FmuSlave or path is None:
+            return super().__new__(cls)
         desc = description or describe_fmu(Path(path))
-        obj = super().__new__(FmuSlave.kinds.get(desc.interface, cls) if cls is FmuSlave else cls)
+        obj = super().__new__(FmuSlave.kinds.get(desc.interface, cls))
         obj._described = desc
         return obj
 
