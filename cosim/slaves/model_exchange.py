@@ -184,6 +184,13 @@ class ModelExchangeSlave(FmuSlave):
             sizes.append(int(n.value))
         return sizes[0], sizes[1]
 
+    @property
+    def last_message(self) -> str:
+        """The compiled slave's message about its last failure (also when a compiled master loop
+        made the call), else the FMU's last log message."""
+        msg = self._message() if getattr(self, "_me", None) else ""
+        return msg or Slave.last_message.fget(self)
+
     def _message(self) -> str:
         return (_library().me_message(self._me) or b"").decode(errors="replace") if self._me else ""
 
@@ -191,8 +198,6 @@ class ModelExchangeSlave(FmuSlave):
         st = _library().me_do_step(self._me, t, h, 1 if self.no_prior else 0)
         if st == _ME_STOP:
             return Status.STOP_REQUESTED
-        if st in FAILING:
-            self.messages.append(f"[{Status(st).name}] {self._message()}")
         return st
 
     def bind(self, in_vrs, in_buf, out_vrs, out_buf) -> None:
