@@ -12,7 +12,7 @@ the bad name, with the closest valid name as a suggestion.
 | ``pid`` | ``continuous``, ``discrete`` | :mod:`.pid` |
 | ``pose_setpoint`` | ``default`` | :mod:`.setpoint` |
 | ``oscillator`` | ``linear`` | :mod:`.oscillator` (master-algorithm test scenes) |
-| ``linear_actuator`` | ``rig``, ``single`` | :mod:`.actuator` |
+| ``linear_actuator`` | ``rig``, ``single``, ``motor`` | :mod:`.actuator` |
 | ``sum`` | ``vector`` | :mod:`.sums` (OSP's Sum and VectorSum functions) |
 | ``task_trajectory`` | ``planned`` | :mod:`.task` (a planned task: toppra, ruckig or a spline) |
 """
@@ -107,6 +107,8 @@ def _entries() -> dict[str, dict[str, _Entry]]:
         "linear_actuator": {
             "rig": _Entry(actuator.rig, (act, integrator_option("rk4"), SUBSTEPS)),
             "single": _Entry(actuator.single, (act, integrator_option("rk4"), SUBSTEPS)),
+            "motor": _Entry(actuator.motor_rig, (integrator_option("rk4"), Option(
+                "substeps", 4, "integrator substeps per communication step", check=SUBSTEPS.check))),
         },
         "task_trajectory": {
             "planned": _Entry(task.task_trajectory, task_options()),
