@@ -340,7 +340,7 @@ def plan_toppra(m: Manipulator, waypoints, limits: Limits, gridpoints: int = 100
     grid = np.unique(np.concatenate([np.linspace(0.0, ss[-1], gridpoints), ss]))
     F = limits.planning_force()
 
-    cons = [LegSpeedConstraint(m, limits.leg_speed), LegDynamicsConstraint(m, limits, F)]
+    cons = [leg_speed_constraint(m, limits.leg_speed), leg_dynamics_constraint(m, limits, F)]
     inst = algo.TOPPRA(cons, path, gridpoints=grid, parametrizer="ParametrizeSpline")
     traj = inst.compute_trajectory(0.0, 0.0)
     if traj is None:
@@ -354,62 +354,60 @@ def plan_toppra(m: Manipulator, waypoints, limits: Limits, gridpoints: int = 100
     return from_ppoly(cs.x, cs.c, wt)
 
 
-class LegDynamicsConstraint:
+def leg_dynamics_constraint(m: Manipulator, limits: Limits, F_max: float):
     """toppra constraint on every leg's acceleration ``|Ldd| <= leg_accel`` and force
     ``|F| <= F_max``, both ``a(s) s_ddot + b(s) s_dot^2 + c(s)`` (toppra's second-order form),
     evaluated over all gridpoints at once (toppra's own class calls them point by point)."""
+    # toppra is imported here, not with the module: only planning needs it
+    from toppra.constraint import DiscretizationType, SecondOrderConstraint
+    from toppra.constraint.linear_constraint import canlinear_colloc_to_interpolate
 
-    def __new__(cls, m: Manipulator, limits: Limits, F_max: float):
-        from toppra.constraint import DiscretizationType, SecondOrderConstraint
-        from toppra.constraint.linear_constraint import canlinear_colloc_to_interpolate
+    def both(q, v, a):  # (6, n): leg accelerations, then forces
+        _, _, Ldd, F = leg_dynamics(m, q, v, a, limits.m_act)
+        return np.concatenate([Ldd, F])
 
-        def both(q, v, a):  # (6, n): leg accelerations, then forces
-            _, _, Ldd, F = leg_dynamics(m, q, v, a, limits.m_act)
-            return np.concatenate([Ldd, F])
+    eye = np.vstack([np.eye(6), -np.eye(6)])
+    bound = np.concatenate([[limits.leg_accel] * 3, [F_max] * 3] * 2)
 
-        eye = np.vstack([np.eye(6), -np.eye(6)])
-        bound = np.concatenate([[limits.leg_accel] * 3, [F_max] * 3] * 2)
+    class _LegDynamics(SecondOrderConstraint):
+        def compute_constraint_params(self, path, gridpoints):
+            p, ps, pss = (path(gridpoints, k).T for k in (0, 1, 2))
+            zero = np.zeros_like(p)
+            c = both(p, zero, zero).T
+            a = both(p, zero, ps).T - c
+            b = both(p, ps, pss).T - c
+            n = len(gridpoints)
+            F, g = np.repeat(eye[None], n, axis=0), np.repeat(bound[None], n, axis=0)
+            return canlinear_colloc_to_interpolate(a, b, c, F, g, None, None, gridpoints)
 
-        class _LegDynamics(SecondOrderConstraint):
-            def compute_constraint_params(self, path, gridpoints):
-                p, ps, pss = (path(gridpoints, k).T for k in (0, 1, 2))
-                zero = np.zeros_like(p)
-                c = both(p, zero, zero).T
-                a = both(p, zero, ps).T - c
-                b = both(p, ps, pss).T - c
-                n = len(gridpoints)
-                F, g = np.repeat(eye[None], n, axis=0), np.repeat(bound[None], n, axis=0)
-                return canlinear_colloc_to_interpolate(a, b, c, F, g, None, None, gridpoints)
-
-        return _LegDynamics(both, lambda _q: eye, lambda _q: bound, dof=3,
-                            discretization_scheme=DiscretizationType.Interpolation)
+    return _LegDynamics(both, lambda _q: eye, lambda _q: bound, dof=3,
+                        discretization_scheme=DiscretizationType.Interpolation)
 
 
-class LegSpeedConstraint:
+def leg_speed_constraint(m: Manipulator, v_max: float):
     """toppra constraint ``|L_i'(s)| s_dot <= v_max`` on every leg: a bound on ``s_dot^2``."""
+    # toppra is imported here, not with the module: only planning needs it
+    from toppra.constraint import ConstraintType, DiscretizationType, LinearConstraint
 
-    def __new__(cls, m: Manipulator, v_max: float):
-        from toppra.constraint import ConstraintType, DiscretizationType, LinearConstraint
+    class _LegSpeed(LinearConstraint):
+        def __init__(self):
+            super().__init__()
+            self.constraint_type = ConstraintType.CanonicalLinear
+            self.discretization_type = DiscretizationType.Collocation
+            self.identical = True
+            self.dof = 3
+            self._format_string = f"    Leg speed limit {v_max} m/s\n"
 
-        class _LegSpeed(LinearConstraint):
-            def __init__(self):
-                super().__init__()
-                self.constraint_type = ConstraintType.CanonicalLinear
-                self.discretization_type = DiscretizationType.Collocation
-                self.identical = True
-                self.dof = 3
-                self._format_string = f"    Leg speed limit {v_max} m/s\n"
+        def compute_constraint_params(self, path, gridpoints):
+            q, qs = path(gridpoints).T, path(gridpoints, 1).T
+            Ls = leg_state(m, q, qs, np.zeros_like(q))[1]
+            peak = np.max(np.abs(Ls), axis=0)
+            with np.errstate(divide="ignore"):
+                xmax = np.where(peak > 0, (v_max / peak) ** 2, 1e12)
+            xbound = np.column_stack([np.zeros_like(xmax), xmax])
+            return None, None, None, None, None, None, xbound
 
-            def compute_constraint_params(self, path, gridpoints):
-                q, qs = path(gridpoints).T, path(gridpoints, 1).T
-                Ls = leg_state(m, q, qs, np.zeros_like(q))[1]
-                peak = np.max(np.abs(Ls), axis=0)
-                with np.errstate(divide="ignore"):
-                    xmax = np.where(peak > 0, (v_max / peak) ** 2, 1e12)
-                xbound = np.column_stack([np.zeros_like(xmax), xmax])
-                return None, None, None, None, None, None, xbound
-
-        return _LegSpeed()
+    return _LegSpeed()
 
 
 # --- the checked result -------------------------------------------------------------------------------
