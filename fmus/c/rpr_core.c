@@ -22,12 +22,17 @@
 #define RPR_CAT(a, b) RPR_CAT2(a, b)
 #define RPR_MAX1(n) ((n) > 0 ? (n) : 1)
 
-#define RPR_NV (1 + RPR_NP + RPR_NX + RPR_NU + RPR_NY)
+#ifndef RPR_EVENTS
+#define RPR_EVENTS 0
+#define RPR_NM 0
+#endif
+#define RPR_NV (1 + RPR_NP + RPR_NM + RPR_NX + RPR_NU + RPR_NY)
 #define RPR_P0 1
-#define RPR_X0 (RPR_P0 + RPR_NP)
+#define RPR_M0 (RPR_P0 + RPR_NP)
+#define RPR_X0 (RPR_M0 + RPR_NM)
 #define RPR_U0 (RPR_X0 + RPR_NX)
 #define RPR_Y0 (RPR_U0 + RPR_NU)
-#define RPR_NJAC (RPR_NY * (RPR_NX + RPR_NU + RPR_NP))
+#define RPR_NJAC (RPR_NY * (RPR_NX + RPR_NU + RPR_NP + RPR_NM))
 
 #define RPR_INTEGRATOR_NONE 0
 #define RPR_INTEGRATOR_RK4 1
@@ -59,10 +64,31 @@ RPR_DECLARE(RPR_F_STEP)
 RPR_DECLARE(RPR_F_OUT)
 RPR_DECLARE(RPR_F_START)
 RPR_DECLARE(RPR_F_JAC)
+#if RPR_EVENTS
+RPR_DECLARE(RPR_F_IND)
+RPR_DECLARE(RPR_F_UPD)
+RPR_DECLARE(RPR_F_MSTART)
+RPR_DECLARE(RPR_F_ODE)
+#define RPR_NWORK 8
+#else
+#define RPR_NWORK 4
+#endif
+
+/* Event bookkeeping (part of the FMU state): for each indicator the sign it had at the last
+   accepted point (zref: -1, 0, +1; after an event, the side it crossed to) and its value there
+   (zprev); for each sample the index k of its next instant offset + k period; counters. */
+#if RPR_EVENTS
+typedef struct {
+    double zref[RPR_MAX1(RPR_NZ)], zprev[RPR_MAX1(RPR_NZ)];
+    long long next_k[RPR_MAX1(RPR_NS)];
+    unsigned long long events, step_events;
+    double last_event_time;
+} RprEvents;
+#endif
 
 static const char *const log_names[RPR_N_LOG] = {"logStatusError", "logStatusDiscard",
                                                  "logStatusWarning", "logNonlinearSystems",
-                                                 "logCalls"};
+                                                 "logCalls", "logEvents"};
 static const char *const mode_names[] = {"instantiated", "initialization mode", "step mode",
                                          "terminated", "error"};
 
@@ -76,6 +102,9 @@ typedef struct {
     double du[RPR_MAX1(RPR_NU)];
     unsigned char x_set[RPR_MAX1(RPR_NX)];
     RprMemory memory;
+#if RPR_EVENTS
+    RprEvents ev;
+#endif
 } RprSnapshot;
 
 struct RprInstance {
@@ -97,6 +126,13 @@ struct RprInstance {
     RprMemory memory;
     double F_new[RPR_MAX1(RPR_NF)], Z_new[RPR_MAX1(RPR_STEP_MEMORY ? 3 * RPR_NX : 0)], info[4];
     unsigned long long factorisations, iterations; /* Radau with memory: totals since instantiation */
+#if RPR_EVENTS
+    RprEvents ev;
+    /* scratch of the event loop */
+    double z[RPR_MAX1(RPR_NZ)], zt[RPR_MAX1(RPR_NZ)], xe[RPR_MAX1(RPR_NX)], xd[RPR_MAX1(RPR_NX)];
+    double fa[RPR_MAX1(RPR_NX)], fb[RPR_MAX1(RPR_NX)], Zs[RPR_MAX1(3 * RPR_NX)], ut[RPR_MAX1(RPR_NU)];
+    double m_new[RPR_MAX1(RPR_NM)], x_new[RPR_MAX1(RPR_NX)];
+#endif
     const double **arg;
     double **res;
     rpr_int *iw;
@@ -161,10 +197,11 @@ static int call(RprInstance *c, rpr_casadi_fn f, const double *a0, const double 
 
 #if RPR_STEP_MEMORY
 /* One call of the kernel with memory from xa into xb; keeps what it returns for the next call. */
-static int call_step_memory(RprInstance *c, const double *xa, double h, double *xb, double *ok, double *err) {
+static int call_step_memory(RprInstance *c, const double *xa, const double *u, double h, double *xb, double *ok,
+                            double *err) {
     int status;
     RprMemory *m = &c->memory;
-    c->arg[0] = xa; c->arg[1] = c->v + RPR_U0; c->arg[2] = c->v + RPR_P0; c->arg[3] = &h;
+    c->arg[0] = xa; c->arg[1] = u; c->arg[2] = c->v + RPR_P0; c->arg[3] = &h;
     c->arg[4] = c->du; c->arg[5] = m->F; c->arg[6] = &m->hF; c->arg[7] = m->Z; c->arg[8] = &m->hZ;
     c->res[0] = xb; c->res[1] = ok; c->res[2] = err; c->res[3] = c->F_new; c->res[4] = c->Z_new; c->res[5] = c->info;
     status = ((rpr_casadi_fn)RPR_F_STEP)(c->arg, c->res, c->iw, c->w, 0);
@@ -201,10 +238,15 @@ static void set_defaults(RprInstance *c) {
     memset(&c->memory, 0, sizeof c->memory);
 }
 
-/* Before the end of initialisation, states not set by the user follow start(p). */
+/* Before the end of initialisation, modes follow mode_start(p) and states not set by the user
+   follow start(p). */
 static int refresh_start(RprInstance *c) {
     int i;
-    if (RPR_NX == 0 || c->mode >= RPR_MODE_STEP) return RPR_OK;
+    if (c->mode >= RPR_MODE_STEP) return RPR_OK;
+#if RPR_EVENTS && RPR_NM > 0
+    if (call(c, (rpr_casadi_fn)RPR_F_MSTART, P_(c), 0, 0, 0, c->v + RPR_M0, 0, 0)) return RPR_ERROR;
+#endif
+    if (RPR_NX == 0) return RPR_OK;
     if (call(c, (rpr_casadi_fn)RPR_F_START, P_(c), 0, 0, 0, c->x0, 0, 0)) return RPR_ERROR;
     for (i = 0; i < RPR_NX; ++i)
         if (!c->x_set[i]) X_(c)[i] = c->x0[i];
@@ -225,12 +267,18 @@ RprInstance *rpr_instantiate(const char *name, const char *token, RprLogger logg
                              int logging_on) {
     RprInstance *c;
     rpr_int sa = 0, sr = 0, si = 0, sw = 0, a, r, iw, w;
-    rpr_casadi_work works[4];
+    rpr_casadi_work works[RPR_NWORK];
     int k;
     works[0] = RPR_CAT(RPR_F_STEP, _work);
     works[1] = RPR_CAT(RPR_F_OUT, _work);
     works[2] = RPR_CAT(RPR_F_START, _work);
     works[3] = RPR_CAT(RPR_F_JAC, _work);
+#if RPR_EVENTS
+    works[4] = RPR_CAT(RPR_F_IND, _work);
+    works[5] = RPR_CAT(RPR_F_UPD, _work);
+    works[6] = RPR_CAT(RPR_F_MSTART, _work);
+    works[7] = RPR_CAT(RPR_F_ODE, _work);
+#endif
     c = (RprInstance *)calloc(1, sizeof(RprInstance));
     if (!c) return NULL;
     c->logger = logger;
@@ -248,7 +296,7 @@ RprInstance *rpr_instantiate(const char *name, const char *token, RprLogger logg
         free(c->name); free(c);
         return NULL;
     }
-    for (k = 0; k < 4; ++k) {
+    for (k = 0; k < RPR_NWORK; ++k) {
         works[k](&a, &r, &iw, &w);
         if (a > sa) sa = a;
         if (r > sr) sr = r;
@@ -321,6 +369,342 @@ static int same_time(double a, double b) {
     return fabs(a - b) <= RPR_TIME_TOL * (m > 1.0 ? m : 1.0);
 }
 
+/* ------------------------------------------------------------------------------------------ */
+#if RPR_EVENTS
+/* Events (docs/explanation/events.md): after each internal step the indicators are evaluated; a
+   sign change in an indicator's direction is located on the step's dense output by the Illinois
+   method, the step is retaken to the event time, the update applied (an event iteration while
+   updates fire further indicators), and integration restarts there.  Time events cut the
+   internal steps at their instants. */
+
+static double sgn(double z) { return z > 0 ? 1.0 : (z < 0 ? -1.0 : 0.0); }
+
+/* whether an indicator of direction d fires going from sign s to value z */
+static int fires(int d, double s, double z) {
+    return (d >= 0 && s < 0 && z >= 0) || (d <= 0 && s > 0 && z <= 0);
+}
+
+static double event_tol(double t) { return RPR_EVENT_TOL_ABS + RPR_EVENT_TOL_REL * fabs(t); }
+
+/* inputs at tau into the communication step: u + du tau */
+static void inputs_at(const RprInstance *c, double tau, double *u) {
+    int k;
+    for (k = 0; k < RPR_NU; ++k) u[k] = U_(c)[k] + c->du[k] * tau;
+}
+
+static int eval_z(RprInstance *c, double t, const double *x, const double *u, double *z) {
+    if (RPR_NZ == 0) return 0;
+    c->arg[0] = &t; c->arg[1] = x; c->arg[2] = u; c->arg[3] = P_(c);
+    c->res[0] = z;
+    return ((rpr_casadi_fn)RPR_F_IND)(c->arg, c->res, c->iw, c->w, 0);
+}
+
+static int eval_f(RprInstance *c, const double *x, const double *u, double *f) {
+    if (RPR_NX == 0) return 0;
+    c->arg[0] = x; c->arg[1] = u; c->arg[2] = P_(c);
+    c->res[0] = f;
+    return ((rpr_casadi_fn)RPR_F_ODE)(c->arg, c->res, c->iw, c->w, 0);
+}
+
+/* event k's update (k < nz: indicator k; nz + j: sample j) of x and of the modes in place */
+static int apply_update(RprInstance *c, int k, double t, double *x, const double *u) {
+    double kk = (double)k;
+    c->arg[0] = &kk; c->arg[1] = &t; c->arg[2] = x; c->arg[3] = u; c->arg[4] = P_(c);
+    c->res[0] = c->x_new; c->res[1] = c->m_new;
+    if (((rpr_casadi_fn)RPR_F_UPD)(c->arg, c->res, c->iw, c->w, 0)) return 1;
+    memcpy(x, c->x_new, sizeof(double) * RPR_NX);
+    memcpy(c->v + RPR_M0, c->m_new, sizeof(double) * RPR_NM);
+    return 0;
+}
+
+/* one internal step of length dt from x (inputs u at its start, slopes du) into xn; 0 when taken */
+static int internal_step(RprInstance *c, const double *x, const double *u, double dt, double *xn, double *err) {
+    double ok = 1.0;
+    *err = 0.0;
+    if (RPR_NX == 0) return 0;
+#if RPR_STEP_MEMORY
+    if (call_step_memory(c, x, u, dt, xn, &ok, err)) return 1;
+#else
+    if (call(c, (rpr_casadi_fn)RPR_F_STEP, x, u, P_(c), &dt, xn, &ok, err)) return 1;
+#endif
+    return ok == 1.0 ? 0 : 1;
+}
+
+/* the dense output of the internal step xa -> xb of length dt at s in [0, dt]: Radau IIA's
+   collocation polynomial (stage increments Zs), else the cubic Hermite interpolant (slopes fa, fb) */
+static void dense(const RprInstance *c, const double *xa, const double *xb, double dt, double s, double *x) {
+    int i;
+    double th = dt > 0 ? s / dt : 1.0;
+#if RPR_INTEGRATOR == RPR_INTEGRATOR_RADAU
+    static const double cn[3] = {0.15505102572168219, 0.64494897427831781, 1.0}; /* (4 -+ sqrt 6)/10, 1 */
+    double l[3];
+    int a, b;
+    (void)xb;
+    for (a = 0; a < 3; ++a) {
+        double num = th, den = cn[a];
+        for (b = 0; b < 3; ++b)
+            if (b != a) { num *= th - cn[b]; den *= cn[a] - cn[b]; }
+        l[a] = num / den;
+    }
+    for (i = 0; i < RPR_NX; ++i)
+        x[i] = xa[i] + l[0] * c->Zs[i] + l[1] * c->Zs[RPR_NX + i] + l[2] * c->Zs[2 * RPR_NX + i];
+#else
+    double h00 = (1 + 2 * th) * (1 - th) * (1 - th), h10 = th * (1 - th) * (1 - th);
+    double h01 = th * th * (3 - 2 * th), h11 = th * th * (th - 1);
+    for (i = 0; i < RPR_NX; ++i)
+        x[i] = h00 * xa[i] + h10 * dt * c->fa[i] + h01 * xb[i] + h11 * dt * c->fb[i];
+#endif
+}
+
+/* indicator i at s into the internal step starting at tau (time t + tau) */
+static int z_dense(RprInstance *c, int i, double t, double tau, const double *xa, const double *xb, double dt,
+                   double s, double *zi) {
+    dense(c, xa, xb, dt, s, c->xd);
+    inputs_at(c, tau + s, c->ut);
+    if (eval_z(c, t + tau + s, c->xd, c->ut, c->zt)) return 1;
+    *zi = c->zt[i];
+    return 0;
+}
+
+/* The crossing of indicator i inside the internal step [tau, tau + dt] (za strictly on the side it
+   leaves, zb on the other): Illinois on the dense output until the bracket is below tol; returns
+   the bracket's right end (the indicator has crossed there), in [0, dt]. */
+static int locate(RprInstance *c, int i, double t, double tau, const double *xa, const double *xb, double dt,
+                  double za, double zb, double tol, double *where) {
+    double a = 0.0, b = dt, ga = za, gb = zb, before = sgn(za), s, gs;
+    int side = 0, it;
+    for (it = 0; it < 200 && b - a > tol; ++it) {
+        s = (gb != ga) ? (a * gb - b * ga) / (gb - ga) : 0.5 * (a + b);
+        if (!(s > a && s < b)) s = 0.5 * (a + b);
+        if (s - a < 0.25 * tol) s = a + 0.25 * tol; /* step across the root once the bracket is small */
+        if (b - s < 0.25 * tol) s = b - 0.25 * tol;
+        if (z_dense(c, i, t, tau, xa, xb, dt, s, &gs)) return 1;
+        if (gs * before > 0) {
+            a = s; ga = gs;
+            if (side == -1) gb *= 0.5; /* Illinois: halve the stale end */
+            side = -1;
+        } else {
+            b = s; gb = gs;
+            if (side == 1) ga *= 0.5;
+            side = 1;
+            if (gs == 0.0) break;
+        }
+    }
+    *where = b;
+    return 0;
+}
+
+static double sample_time(int j, long long k) { return rpr_sample_offset[j] + (double)k * rpr_sample_period[j]; }
+
+static double next_sample_time(const RprInstance *c) {
+    double best = INFINITY;
+    int j;
+    for (j = 0; j < RPR_NS; ++j) {
+        double ts = sample_time(j, c->ev.next_k[j]);
+        if (ts < best) best = ts;
+    }
+    return best;
+}
+
+static void event_names_of(const int *fired, int nf, char *buf, size_t size) {
+    int j;
+    size_t used = 0;
+    buf[0] = '\0';
+    for (j = 0; j < nf && used + 2 < size; ++j)
+        used += (size_t)snprintf(buf + used, size - used, "%s'%s'", j ? ", " : "", rpr_event_names[fired[j]]);
+}
+
+/* The event iteration at te: apply the updates of fired[0..nf) in order, re-evaluate the
+   indicators, repeat with those the updates made fire (in their direction, against the values
+   before the round), at most RPR_EVENT_MAX_ROUNDS rounds.  c->z holds the indicators at (te, x)
+   on entry and on exit; the reference signs follow them. */
+static int event_iteration(RprInstance *c, double te, double *x, const double *u, int *fired, int nf) {
+    int rounds = 0, j, i;
+    char names[300];
+    while (nf > 0) {
+        if (++rounds > RPR_EVENT_MAX_ROUNDS) {
+            event_names_of(fired, nf, names, sizeof names);
+            return fail(c, "event iteration at t=%.17g s did not end after %d rounds: %s keep firing",
+                        te, RPR_EVENT_MAX_ROUNDS, names);
+        }
+        for (j = 0; j < nf; ++j) {
+            if (apply_update(c, fired[j], te, x, u)) return fail(c, "the update of event '%s' failed at t=%.17g s",
+                                                                 rpr_event_names[fired[j]], te);
+            c->ev.events++;
+            c->ev.step_events++;
+            rpr_log(c, RPR_OK, RPR_LOG_EVENTS, "event '%s' at t=%.17g s (round %d)", rpr_event_names[fired[j]],
+                    te, rounds);
+        }
+        for (i = 0; i < RPR_NX; ++i)
+            if (!isfinite(x[i])) return fail(c, "an event update at t=%.17g s made state '%s' non-finite", te,
+                                             rpr_names[RPR_X0 + i]);
+        if (c->ev.step_events > RPR_EVENT_MAX_PER_STEP) {
+            event_names_of(fired, nf, names, sizeof names);
+            return fail(c, "chattering: more than %d events in one communication step (the last at t=%.17g s, %s; "
+                           "events at ever shorter intervals, a Zeno sequence, or an update that does not clear "
+                           "its indicator)", RPR_EVENT_MAX_PER_STEP, te, names);
+        }
+        memcpy(c->zt, c->z, sizeof c->z);
+        if (eval_z(c, te, x, u, c->z)) return fail(c, "the event indicators failed at t=%.17g s", te);
+        nf = 0;
+        for (i = 0; i < RPR_NZ; ++i)
+            if (fires(rpr_direction[i], sgn(c->zt[i]), c->z[i])) fired[nf++] = i;
+    }
+    for (i = 0; i < RPR_NZ; ++i) { c->ev.zref[i] = sgn(c->z[i]); c->ev.zprev[i] = c->z[i]; }
+    memset(&c->memory, 0, sizeof c->memory); /* Radau restarts afresh after the jump */
+    c->ev.last_event_time = te;
+    return RPR_OK;
+}
+
+/* samples due at tnow (within the communication-point tolerance) fire, in index order */
+static int take_samples(RprInstance *c, double tnow, double *x, const double *u) {
+    int fired[RPR_MAX1(RPR_NZ + RPR_NS)], nf = 0, j;
+    for (j = 0; j < RPR_NS; ++j) {
+        double ts = sample_time(j, c->ev.next_k[j]);
+        if (ts <= tnow || same_time(ts, tnow)) {
+            fired[nf++] = RPR_NZ + j;
+            c->ev.next_k[j]++;
+            while (sample_time(j, c->ev.next_k[j]) <= tnow) c->ev.next_k[j]++; /* a sample skipped is not replayed */
+        }
+    }
+    if (nf == 0) return RPR_OK;
+    if (eval_z(c, tnow, x, u, c->z)) return fail(c, "the event indicators failed at t=%.17g s", tnow);
+    return event_iteration(c, tnow, x, u, fired, nf);
+}
+
+/* at the end of initialisation: indicator signs, the first sample instants, the samples at t0 */
+static int events_start(RprInstance *c) {
+    int i, j;
+    double t0 = c->v[0];
+    for (j = 0; j < RPR_NS; ++j) {
+        double k = ceil((t0 - rpr_sample_offset[j]) / rpr_sample_period[j]);
+        c->ev.next_k[j] = k > 0 ? (long long)k : 0;
+        if (c->ev.next_k[j] > 0 && same_time(sample_time(j, c->ev.next_k[j] - 1), t0)) c->ev.next_k[j]--;
+    }
+    c->ev.events = c->ev.step_events = 0;
+    c->ev.last_event_time = -INFINITY;
+    if (eval_z(c, t0, X_(c), U_(c), c->z)) return fail(c, "the event indicators failed at the start time");
+    for (i = 0; i < RPR_NZ; ++i) { c->ev.zref[i] = sgn(c->z[i]); c->ev.zprev[i] = c->z[i]; }
+    memcpy(c->xa, X_(c), sizeof(double) * RPR_NX);
+    if (take_samples(c, t0, c->xa, U_(c)) != RPR_OK) return RPR_ERROR;
+    memcpy(X_(c), c->xa, sizeof(double) * RPR_NX);
+    return RPR_OK;
+}
+
+/* doStep of a block with events: internal steps of h / substeps (cut at sample instants), each
+   checked for crossings, located, updated, restarted (see the comment above sgn). */
+static int events_do_step(RprInstance *c, double t, double h) {
+    double tau = 0.0, hs = RPR_NX ? h / RPR_SUBSTEPS : h, err = 0.0, *xa = c->xa, *xb = c->xb, *tmp;
+    double ua[RPR_MAX1(RPR_NU)], ub[RPR_MAX1(RPR_NU)];
+    double m_entry[RPR_MAX1(RPR_NM)];
+    RprEvents ev_entry = c->ev;
+    int fired[RPR_MAX1(RPR_NZ + RPR_NS)], nf, i, k, status = RPR_OK;
+    double s_at[RPR_MAX1(RPR_NZ)], z_at_e[RPR_MAX1(RPR_NZ)], before[RPR_MAX1(RPR_NZ)];
+    memcpy(m_entry, c->v + RPR_M0, sizeof(double) * RPR_NM);
+    memcpy(xa, X_(c), sizeof(double) * RPR_NX);
+    c->ev.step_events = 0;
+    inputs_at(c, 0.0, ua);
+    status = take_samples(c, t, xa, ua);
+    while (status == RPR_OK && tau < h) {
+        double dt = h - tau, ts = next_sample_time(c), best;
+        int cut = 0, slopes = 0;
+        if (hs < dt && dt - hs > 1e-9 * hs) dt = hs; /* no sliver before the communication point */
+        if (ts - t - tau < dt && !same_time(ts, t + h)) { dt = ts - t - tau; cut = 1; }
+        if (!(dt > 0)) dt = 0.0;
+        inputs_at(c, tau, ua);
+        if (internal_step(c, xa, ua, dt, xb, &err)) { status = RPR_DISCARD; break; }
+#if RPR_STEP_MEMORY
+        memcpy(c->Zs, c->Z_new, sizeof(double) * 3 * RPR_NX);
+#endif
+        inputs_at(c, tau + dt, ub);
+        if (eval_z(c, t + tau + dt, xb, ub, c->z)) { status = fail(c, "the event indicators failed at t=%.17g s", t + tau + dt); break; }
+        nf = 0;
+        for (i = 0; i < RPR_NZ; ++i)
+            if (fires(rpr_direction[i], c->ev.zref[i], c->z[i]) && fires(rpr_direction[i], sgn(c->ev.zprev[i]), c->z[i]))
+                fired[nf++] = i;
+        if (nf == 0) { /* no crossing: accept the internal step */
+            tmp = xa; xa = xb; xb = tmp;
+            tau = cut ? ts - t : tau + dt;
+            for (i = 0; i < RPR_NZ; ++i) { c->ev.zref[i] = sgn(c->z[i]); c->ev.zprev[i] = c->z[i]; }
+            if (cut) status = take_samples(c, t + tau, xa, ub);
+            continue;
+        }
+        /* locate each crossing; the earliest (and those within the tolerance of it) fire */
+        if (!slopes) {
+#if RPR_INTEGRATOR != RPR_INTEGRATOR_RADAU
+            if (eval_f(c, xa, ua, c->fa) || eval_f(c, xb, ub, c->fb)) { status = fail(c, "the ode failed"); break; }
+#endif
+            slopes = 1;
+        }
+        memcpy(z_at_e, c->z, sizeof c->z); /* (values at the step's end, reused below as scratch) */
+        best = dt;
+        for (k = 0; k < nf; ++k) {
+            i = fired[k];
+            before[i] = sgn(c->ev.zprev[i]);
+            if (locate(c, i, t, tau, xa, xb, dt, c->ev.zprev[i], z_at_e[i], event_tol(t + tau), &s_at[i])) {
+                status = fail(c, "the event indicators failed while locating '%s'", rpr_event_names[i]);
+                break;
+            }
+            if (s_at[i] < best) best = s_at[i];
+        }
+        if (status != RPR_OK) break;
+        {   /* the state at the event from the integrator itself, on the far side of each firing indicator */
+            double s = best, nudge = event_tol(t + tau);
+            int tries, far = 0, n2 = 0;
+            for (k = 0; k < nf; ++k)
+                if (s_at[fired[k]] <= best + event_tol(t + tau)) fired[n2++] = fired[k];
+            nf = n2;
+            for (tries = 0; tries < 12 && !far; ++tries) {
+                if (s >= dt) { memcpy(c->xe, xb, sizeof(double) * RPR_NX); s = dt; }
+                else if (internal_step(c, xa, ua, s, c->xe, &err)) { status = RPR_DISCARD; break; }
+                inputs_at(c, tau + s, ub);
+                if (eval_z(c, t + tau + s, c->xe, ub, c->z)) { status = fail(c, "the event indicators failed"); break; }
+                far = 1;
+                for (k = 0; k < nf; ++k)
+                    if (c->z[fired[k]] * before[fired[k]] > 0) far = 0;
+                if (!far) { s += nudge; nudge *= 2.0; }
+            }
+            if (status != RPR_OK) break;
+            tau += s;
+            memcpy(xa, c->xe, sizeof(double) * RPR_NX);
+        }
+        for (k = 0; k < nf; ++k) z_at_e[fired[k]] = c->z[fired[k]];
+        {
+            int located[RPR_MAX1(RPR_NZ)], nl = nf;
+            memcpy(located, fired, sizeof(int) * (size_t)nf);
+            status = event_iteration(c, t + tau, xa, ub, fired, nf);
+            /* an indicator the updates left as it was stays on the side it crossed to */
+            for (k = 0; k < nl && status == RPR_OK; ++k)
+                if (c->z[located[k]] == z_at_e[located[k]] && before[located[k]] != 0)
+                    c->ev.zref[located[k]] = -before[located[k]];
+        }
+        if (status == RPR_OK && next_sample_time(c) <= t + tau) status = take_samples(c, t + tau, xa, ub);
+    }
+    if (status != RPR_OK) { /* the step is not taken: back to its start */
+        memcpy(c->v + RPR_M0, m_entry, sizeof(double) * RPR_NM);
+        c->ev = ev_entry;
+        memset(&c->memory, 0, sizeof c->memory);
+        c->y_valid = 0;
+        if (status == RPR_DISCARD) {
+            c->discarded = 1;
+            rpr_log(c, RPR_DISCARD, RPR_LOG_DISCARD,
+                    "%s: doStep(t=%.17g, h=%.17g) discarded: an internal step failed (non-finite state or Radau "
+                    "Newton residual/tolerance %.3g); state kept at t=%.17g, retry with a smaller step",
+                    RPR_BLOCK_NAME, t, h, err, t);
+        }
+        return status;
+    }
+    memcpy(X_(c), xa, sizeof(double) * RPR_NX);
+    for (k = 0; k < RPR_NU; ++k) { U_(c)[k] += c->du[k] * h; c->du[k] = 0.0; }
+    if (c->ev.step_events)
+        rpr_log(c, RPR_OK, RPR_LOG_EVENTS, "doStep(t=%.17g, h=%.17g): %llu events (%llu since the start)", t, h,
+                c->ev.step_events, c->ev.events);
+    c->v[0] = t + h;
+    c->y_valid = 0;
+    return RPR_OK;
+}
+#endif
+
 int rpr_enter_init(RprInstance *c) {
     if (require_mode(c, "enterInitializationMode", M_INST)) return RPR_ERROR;
     c->mode = RPR_MODE_INIT;
@@ -337,6 +721,9 @@ int rpr_exit_init(RprInstance *c) {
                         X_(c)[i]);
     c->mode = RPR_MODE_STEP;
     c->y_valid = 0;
+#if RPR_EVENTS
+    if (events_start(c) != RPR_OK) return RPR_ERROR;
+#endif
     if (update_outputs(c) != RPR_OK) return fail(c, "the output function failed");
     return RPR_OK;
 }
@@ -362,7 +749,7 @@ int rpr_get_real(RprInstance *c, const unsigned int vr[], size_t n, double value
     for (i = 0; i < n; ++i) {
         if (vr[i] >= RPR_NV) return fail(c, "getReal: value reference %u does not exist", vr[i]);
         if (vr[i] >= RPR_Y0) { if (update_outputs(c) != RPR_OK) return fail(c, "the output function failed"); }
-        else if (vr[i] >= RPR_X0 && vr[i] < RPR_U0) refresh_start(c);
+        else if (vr[i] >= RPR_M0 && vr[i] < RPR_U0) refresh_start(c);
         value[i] = c->v[vr[i]];
     }
     return RPR_OK;
@@ -379,6 +766,9 @@ int rpr_set_real(RprInstance *c, const unsigned int vr[], size_t n, const double
         if (r == 0) return fail(c, "'time' cannot be set");
         if (r >= RPR_Y0) return fail(c, "output '%s' cannot be set (value %g)", rpr_names[r], x);
         if (!isfinite(x)) return fail(c, "'%s' cannot be set to the non-finite value %g", rpr_names[r], x);
+        if (r >= RPR_M0 && r < RPR_X0)
+            return fail(c, "mode '%s' is a discrete state the FMU computes (from its parameters, then at "
+                           "events): it cannot be set (value %g)", rpr_names[r], x);
         if (r < RPR_X0) { /* parameter */
             if (c->mode == RPR_MODE_STEP && !rpr_tunable[r - RPR_P0])
                 return fail(c, "parameter '%s' is fixed: set it before the end of initialization (value %g)",
@@ -464,11 +854,15 @@ int rpr_do_step(RprInstance *c, double t, double h) {
     }
 #endif
     c->discarded = 0;
+#if RPR_EVENTS
+    (void)k; (void)n; (void)xa; (void)xb; (void)tmp; (void)ok; (void)err;
+    return events_do_step(c, t, h);
+#endif
 #if RPR_NX > 0
     memcpy(xa, X_(c), sizeof(double) * RPR_NX);
     for (k = 0; k < n; ++k) {
 #if RPR_STEP_MEMORY
-        if (call_step_memory(c, xa, h, xb, &ok, &err) || !(ok == 1.0)) {
+        if (call_step_memory(c, xa, U_(c), h, xb, &ok, &err) || !(ok == 1.0)) {
 #else
         if (call(c, (rpr_casadi_fn)RPR_F_STEP, xa, U_(c), P_(c), &h, xb, &ok, &err) || !(ok == 1.0)) {
 #endif
@@ -524,6 +918,9 @@ static void snapshot(const RprInstance *c, RprSnapshot *s) {
     memcpy(s->du, c->du, sizeof c->du);
     memcpy(s->x_set, c->x_set, sizeof c->x_set);
     memcpy(&s->memory, &c->memory, sizeof c->memory);
+#if RPR_EVENTS
+    memcpy(&s->ev, &c->ev, sizeof c->ev);
+#endif
 }
 
 static int check_snapshot(RprInstance *c, const RprSnapshot *s) {
@@ -556,6 +953,9 @@ int rpr_set_state(RprInstance *c, const void *state) {
     memcpy(c->du, s->du, sizeof c->du);
     memcpy(c->x_set, s->x_set, sizeof c->x_set);
     memcpy(&c->memory, &s->memory, sizeof c->memory);
+#if RPR_EVENTS
+    memcpy(&c->ev, &s->ev, sizeof c->ev);
+#endif
     c->discarded = 0;
     return RPR_OK;
 }
@@ -603,6 +1003,7 @@ int rpr_directional_derivative(RprInstance *c, const unsigned int unknown[], siz
                                double sensitivity[]) {
     size_t i, j;
     if (require_mode(c, "getDirectionalDerivative", M_INIT | M_STEP | M_TERM)) return RPR_ERROR;
+    /* modes sit among the known columns right after the parameters: the Jacobian's p' = [p; m] */
     for (j = 0; j < n_known; ++j)
         if (known[j] >= RPR_NV || (known[j] != 0 && known_column(known[j]) < 0))
             return fail(c, "getDirectionalDerivative: known '%s' (vr %u) must be a state, input or parameter",

@@ -4,7 +4,8 @@
  * of FMUs may live in one process.  Variables are addressed by value reference (vr):
  *   vr 0                 time [s] (read-only)
  *   1 .. np              parameters
- *   then nx states, nu inputs, ny outputs (in the block's declaration order).
+ *   then nm modes (discrete states of a block with events), nx states, nu inputs, ny outputs
+ *   (in the block's declaration order).
  * The model data (sizes, defaults, names, the CasADi functions) comes from the generated
  * "rpr_model.h", which only rpr_core.c includes.
  *
@@ -21,7 +22,7 @@ enum { RPR_MODE_INSTANTIATED = 0, RPR_MODE_INIT = 1, RPR_MODE_STEP = 2, RPR_MODE
        RPR_MODE_ERROR = 4 };
 /* log categories (bit positions) */
 enum { RPR_LOG_ERROR = 0, RPR_LOG_DISCARD = 1, RPR_LOG_WARNING = 2, RPR_LOG_NONLINEAR = 3,
-       RPR_LOG_CALLS = 4, RPR_N_LOG = 5 };
+       RPR_LOG_CALLS = 4, RPR_LOG_EVENTS = 5, RPR_N_LOG = 6 };
 
 typedef struct RprInstance RprInstance;
 
