@@ -108,14 +108,21 @@ def check_block(block: Block) -> Stepper:
 def event_functions(block: Block) -> dict[str, ca.Function]:
     """The event functions of ``block`` in the core's arguments (``pm = [p; m]``, as the kernels of
     its continuous view): ``indicators(t, x, u, pm) -> z``, ``update(k, t, x, u, pm) -> (x, m)``,
-    ``mode_start(p) -> m0`` and ``ode(x, u, pm) -> xdot`` (the Hermite dense output's slopes)."""
+    ``mode_start(p) -> m0``, ``ode(x, u, pm) -> xdot`` (the Hermite dense output's slopes) and
+    ``zdot(t, x, u, du, pm)``, the indicators' rates along the trajectory (the side an indicator
+    leaves zero to after an event)."""
     ef = block.event_functions()
     nx, nu, np_, nm = block.x.numel(), block.u.numel(), block.p.numel(), block.m.numel()
     k, t, x, u, pm = (ca.MX.sym(n, s) for n, s in (("k", 1), ("t", 1), ("x", nx), ("u", nu), ("pm", np_ + nm)))
     p, m = pm[:np_], pm[np_:]
     name = block.name
     ode = block.continuous_view().functions()["ode"]
+    # dz/dt along the trajectory: time, states (their ode) and inputs (their slopes du)
+    ts, xs, us, dus, pms = (ca.SX.sym(n, s) for n, s in (("t", 1), ("x", nx), ("u", nu), ("du", nu), ("pm", np_ + nm)))
+    zs = ef["indicators"](ts, xs, us, pms[:np_], pms[np_:])
+    zdot = ca.jtimes(zs, ca.vertcat(ts, xs, us), ca.vertcat(1.0, ode(xs, us, pms), dus))
     return {
+        "zdot": ca.Function(f"{name}_event_zdot", [ts, xs, us, dus, pms], [zdot], ["t", "x", "u", "du", "pm"], ["zdot"]),
         "indicators": ca.Function(f"{name}_event_z", [t, x, u, pm], [ef["indicators"](t, x, u, p, m)],
                                   ["t", "x", "u", "pm"], ["z"]),
         "update": ca.Function(f"{name}_event_update", [k, t, x, u, pm], list(ef["update"](k, t, x, u, p, m)),
@@ -143,6 +150,7 @@ def _event_header(block: Block, ev: dict[str, ca.Function]) -> list[str]:
         f"#define RPR_EVENT_MAX_ROUNDS {EVENT_MAX_ROUNDS}\n#define RPR_EVENT_MAX_PER_STEP {EVENT_MAX_PER_STEP}\n",
         f"#define RPR_F_IND {ev['indicators'].name()}\n#define RPR_F_UPD {ev['update'].name()}\n",
         f"#define RPR_F_MSTART {ev['mode_start'].name()}\n#define RPR_F_ODE {ev['ode'].name()}\n",
+        f"#define RPR_F_ZDOT {ev['zdot'].name()}\n",
         _c_array("int", "rpr_direction", [str(int(d)) for d in block.directions]),
         _c_array("double", "rpr_sample_period", [_c_double(s.period) for s in block.sample_times]),
         _c_array("double", "rpr_sample_offset", [_c_double(s.offset) for s in block.sample_times]),

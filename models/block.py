@@ -260,7 +260,7 @@ class Block:
         cases = []
         for k, g in enumerate(list(self.updates) + [s.update for s in self.sample_times]):
             g = ident if g is None else g
-            cases.append(ca.Function(f"{self.name}_update{k}", args, [g[:nx], g[nx:]], names, ["x_new", "m_new"]))
+            cases.append(ca.Function(f"{self.name}_update{k}", args, [g[:nx, :], g[nx:, :]], names, ["x_new", "m_new"]))
         keep = ca.Function(f"{self.name}_update_none", args, [self.x, self.m], names, ["x_new", "m_new"])
         return {
             "indicators": ca.Function(f"{self.name}_indicators", args, [self.indicators], names, ["z"]),

@@ -69,7 +69,8 @@ RPR_DECLARE(RPR_F_IND)
 RPR_DECLARE(RPR_F_UPD)
 RPR_DECLARE(RPR_F_MSTART)
 RPR_DECLARE(RPR_F_ODE)
-#define RPR_NWORK 8
+RPR_DECLARE(RPR_F_ZDOT)
+#define RPR_NWORK 9
 #else
 #define RPR_NWORK 4
 #endif
@@ -278,6 +279,7 @@ RprInstance *rpr_instantiate(const char *name, const char *token, RprLogger logg
     works[5] = RPR_CAT(RPR_F_UPD, _work);
     works[6] = RPR_CAT(RPR_F_MSTART, _work);
     works[7] = RPR_CAT(RPR_F_ODE, _work);
+    works[8] = RPR_CAT(RPR_F_ZDOT, _work);
 #endif
     c = (RprInstance *)calloc(1, sizeof(RprInstance));
     if (!c) return NULL;
@@ -385,6 +387,8 @@ static int fires(int d, double s, double z) {
 }
 
 static double event_tol(double t) { return RPR_EVENT_TOL_ABS + RPR_EVENT_TOL_REL * fabs(t); }
+/* the look-ahead after an event: an indicator left at zero by it takes the side it moves to */
+static double look_ahead(double t) { return 1000.0 * event_tol(t); }
 
 /* inputs at tau into the communication step: u + du tau */
 static void inputs_at(const RprInstance *c, double tau, double *u) {
@@ -397,6 +401,13 @@ static int eval_z(RprInstance *c, double t, const double *x, const double *u, do
     c->arg[0] = &t; c->arg[1] = x; c->arg[2] = u; c->arg[3] = P_(c);
     c->res[0] = z;
     return ((rpr_casadi_fn)RPR_F_IND)(c->arg, c->res, c->iw, c->w, 0);
+}
+
+static int eval_zdot(RprInstance *c, double t, const double *x, const double *u, double *zd) {
+    if (RPR_NZ == 0) return 0;
+    c->arg[0] = &t; c->arg[1] = x; c->arg[2] = u; c->arg[3] = c->du; c->arg[4] = P_(c);
+    c->res[0] = zd;
+    return ((rpr_casadi_fn)RPR_F_ZDOT)(c->arg, c->res, c->iw, c->w, 0);
 }
 
 static int eval_f(RprInstance *c, const double *x, const double *u, double *f) {
@@ -471,8 +482,14 @@ static int z_dense(RprInstance *c, int i, double t, double tau, const double *xa
    the bracket's right end (the indicator has crossed there), in [0, dt]. */
 static int locate(RprInstance *c, int i, double t, double tau, const double *xa, const double *xb, double dt,
                   double za, double zb, double tol, double *where) {
-    double a = 0.0, b = dt, ga = za, gb = zb, before = sgn(za), s, gs;
+    double a = 0.0, b = dt, ga = za, gb = zb, before = sgn(za), s, gs, a0 = look_ahead(t + tau);
     int side = 0, it;
+    /* za may be a look-ahead value (the step starts at an event): bracket from a0 if z is on the
+       side it leaves there, so that the noise of an indicator left at zero is not taken for a root */
+    if (a0 > 0.25 * dt) a0 = 0.25 * dt;
+    if (z_dense(c, i, t, tau, xa, xb, dt, a0, &gs)) return 1;
+    if (gs * before > 0) { a = a0; ga = gs; }
+    else { b = a0; gb = gs; }
     for (it = 0; it < 200 && b - a > tol; ++it) {
         s = (gb != ga) ? (a * gb - b * ga) / (gb - ga) : 0.5 * (a + b);
         if (!(s > a && s < b)) s = 0.5 * (a + b);
@@ -550,7 +567,13 @@ static int event_iteration(RprInstance *c, double te, double *x, const double *u
         for (i = 0; i < RPR_NZ; ++i)
             if (fires(rpr_direction[i], sgn(c->zt[i]), c->z[i])) fired[nf++] = i;
     }
-    for (i = 0; i < RPR_NZ; ++i) { c->ev.zref[i] = sgn(c->z[i]); c->ev.zprev[i] = c->z[i]; }
+    /* each indicator's side just after the event: its value a look-ahead later, to first order */
+    if (eval_zdot(c, te, x, u, c->zt)) return fail(c, "the event indicators' rates failed at t=%.17g s", te);
+    for (i = 0; i < RPR_NZ; ++i) {
+        double zl = c->z[i] + c->zt[i] * look_ahead(te);
+        c->ev.zref[i] = sgn(zl);
+        c->ev.zprev[i] = zl;
+    }
     memset(&c->memory, 0, sizeof c->memory); /* Radau restarts afresh after the jump */
     c->ev.last_event_time = te;
     return RPR_OK;
@@ -668,16 +691,7 @@ static int events_do_step(RprInstance *c, double t, double h) {
             tau += s;
             memcpy(xa, c->xe, sizeof(double) * RPR_NX);
         }
-        for (k = 0; k < nf; ++k) z_at_e[fired[k]] = c->z[fired[k]];
-        {
-            int located[RPR_MAX1(RPR_NZ)], nl = nf;
-            memcpy(located, fired, sizeof(int) * (size_t)nf);
-            status = event_iteration(c, t + tau, xa, ub, fired, nf);
-            /* an indicator the updates left as it was stays on the side it crossed to */
-            for (k = 0; k < nl && status == RPR_OK; ++k)
-                if (c->z[located[k]] == z_at_e[located[k]] && before[located[k]] != 0)
-                    c->ev.zref[located[k]] = -before[located[k]];
-        }
+        status = event_iteration(c, t + tau, xa, ub, fired, nf);
         if (status == RPR_OK && next_sample_time(c) <= t + tau) status = take_samples(c, t + tau, xa, ub);
     }
     if (status != RPR_OK) { /* the step is not taken: back to its start */

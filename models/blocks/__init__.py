@@ -14,6 +14,7 @@ the bad name, with the closest valid name as a suggestion.
 | ``oscillator`` | ``linear`` | :mod:`.oscillator` (master-algorithm test scenes) |
 | ``linear_actuator`` | ``rig``, ``single`` | :mod:`.actuator` |
 | ``sum`` | ``vector`` | :mod:`.sums` (OSP's Sum and VectorSum functions) |
+| ``pendulum`` | ``stop`` | :mod:`.pendulum` (located events: impacts on a stop) |
 """
 from __future__ import annotations
 
@@ -22,7 +23,7 @@ from typing import Any, Callable
 
 from ..block import Block, BlockError
 from ..user import with_defaults
-from . import actuator, mechanism, motor, oscillator, pid, setpoint, sums
+from . import actuator, mechanism, motor, oscillator, pendulum, pid, setpoint, sums
 from ._common import CONFIG, SUBSTEPS, Option, integrator_option, positive_float, positive_int, suggest, unit_text
 
 #: Integrators of blocks whose equations are linear: ``exact`` (the default) and the two general ones.
@@ -79,6 +80,11 @@ def _entries() -> dict[str, dict[str, _Entry]]:
         "linear_actuator": {
             "rig": _Entry(actuator.rig, (act, integrator_option("rk4"), SUBSTEPS)),
             "single": _Entry(actuator.single, (act, integrator_option("rk4"), SUBSTEPS)),
+        },
+        "pendulum": {
+            "stop": _Entry(pendulum.stop, (integrator_option("rk4"),
+                                           Option("substeps", 10, "integrator substeps per communication step",
+                                                  check=SUBSTEPS.check))),
         },
         "sum": {
             "vector": _Entry(sums.vector_sum, (

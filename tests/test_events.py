@@ -1,0 +1,208 @@
+"""Events in blocks and FMUs (docs/explanation/events.md): the Block contract's checks, crossings
+located inside doStep against analytic event times, rollback with modes, bounded event iteration
+and chattering, time events."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import casadi as ca
+import numpy as np
+import pytest
+from fmpy import extract, read_model_description
+from fmpy.fmi2 import FMU2Slave
+from fmpy.validation import validate_fmu
+from scipy.special import ellipk
+
+from fmus import build_fmu
+from fmus.errors import BuildError
+from models.block import FALLING, RISING, Block, BlockError, Param, Sample, Var
+from models.blocks import make
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def analytic_impacts(n: int, L=0.5, g=9.81, theta0=1.0, e=0.7) -> np.ndarray:
+    """Impact times of the pendulum on a stop at its lowest point: a quarter period of the
+    nonlinear pendulum, then half periods, each amplitude from the previous impact's energy."""
+    w0, amp, t, out = np.sqrt(g / L), theta0, 0.0, []
+    for k in range(n):
+        K = ellipk(np.sin(amp / 2) ** 2)
+        t += (K if k == 0 else 2 * K) / w0
+        out.append(t)
+        amp = np.arccos(1 - e ** 2 * (1 - np.cos(amp)))
+    return np.array(out)
+
+
+class Slave:
+    """An FMI 2 slave of FMPy over a built FMU, addressed by variable names."""
+
+    def __init__(self, path: Path, name: str = "s") -> None:
+        md = read_model_description(str(path))
+        self.vr = {v.name: v.valueReference for v in md.modelVariables}
+        self.messages: list[str] = []
+        self.fmu = FMU2Slave(guid=md.guid, unzipDirectory=extract(str(path)),
+                             modelIdentifier=md.coSimulation.modelIdentifier, instanceName=name)
+        self.fmu.instantiate(loggingOn=False)
+
+    def start(self, **inputs: float) -> "Slave":
+        self.fmu.setupExperiment(startTime=0.0)
+        self.fmu.enterInitializationMode()
+        self.set(**inputs)
+        self.fmu.exitInitializationMode()
+        return self
+
+    def set(self, **values: float) -> None:
+        if values:
+            self.fmu.setReal([self.vr[k] for k in values], list(values.values()))
+
+    def get(self, *names: str) -> list[float]:
+        return self.fmu.getReal([self.vr[k] for k in names])
+
+
+@pytest.fixture(scope="module")
+def pendulum_fmus(cache) -> dict[str, Path]:
+    return {integ: build_fmu(make("pendulum", "stop", integrator=integ), cache_dir=cache) for integ in ("rk4", "radau")}
+
+
+def impact_times(path: Path, h: float, n: int = 5) -> np.ndarray:
+    s = Slave(path).start()
+    t, seen, times = 0.0, 0, []
+    while len(times) < n and t < 10:
+        s.fmu.doStep(t, h)
+        t += h
+        count, when = s.get("mode.impacts", "mode.t_impact")
+        if count > seen:
+            assert count == seen + 1, "two impacts in one communication step"
+            times.append(when)
+            seen = int(count)
+    return np.array(times)
+
+
+@pytest.mark.parametrize("integrator", ["rk4", "radau"])
+def test_pendulum_impacts_within_1e_9_s_of_the_elliptic_integral(pendulum_fmus, integrator):
+    got = impact_times(pendulum_fmus[integrator], 1e-2)
+    assert np.max(np.abs(got - analytic_impacts(5))) < 1e-9, got - analytic_impacts(5)
+
+
+def test_pendulum_fmus_pass_fmpy_validation(pendulum_fmus, cache):
+    assert validate_fmu(str(pendulum_fmus["rk4"])) == []
+    assert validate_fmu(str(build_fmu(make("pendulum", "stop"), fmi_version="3.0", cache_dir=cache))) == []
+
+
+def test_pendulum_scene_under_the_master_hits_the_analytic_times(cache):
+    from cosim.run.execute import run
+
+    res = run(ROOT / "scenarios" / "pendulum_stop.yaml", cache_dir=cache)
+    assert res.ok, res.reason
+    tr = res.trace
+    times = np.unique(tr["pend.t_impact"])[1:]
+    assert len(times) == 5
+    assert np.max(np.abs(times - analytic_impacts(5))) < 1e-9
+    # between impacts the angle never goes below the stop (the crossing's far side is within 1e-12 rad)
+    assert tr["pend.theta"].min() > -1e-9
+
+
+@pytest.mark.parametrize("integrator", ["rk4", "radau"])
+def test_rollback_restores_modes_and_finds_the_same_events(pendulum_fmus, integrator):
+    s = Slave(pendulum_fmus[integrator]).start()
+    s.fmu.doStep(0.0, 0.3)
+    state = s.fmu.getFMUstate()
+    blob = s.fmu.serializeFMUstate(state)
+    names = ("state.theta", "state.omega", "mode.impacts", "mode.t_impact")
+    s.fmu.doStep(0.3, 0.2)  # the first impact, at 0.378 s, is inside
+    first = s.get(*names)
+    assert first[2] == 1.0
+    s.fmu.setFMUstate(state)
+    assert s.get("mode.impacts")[0] == 0.0
+    s.fmu.doStep(0.3, 0.2)
+    assert s.get(*names) == first
+    s.fmu.setFMUstate(s.fmu.deSerializeFMUstate(blob))
+    s.fmu.doStep(0.3, 0.2)
+    assert s.get(*names) == first
+
+
+def test_modes_cannot_be_set(pendulum_fmus):
+    s = Slave(pendulum_fmus["rk4"]).start()
+    with pytest.raises(Exception):
+        s.set(**{"mode.impacts": 3.0})
+
+
+def _ball(e: float, **kw) -> Block:
+    """A ball under gravity on the floor (h = 0), restitution ``e``: Zeno for e < 1."""
+    h, v, g = ca.SX.sym("h"), ca.SX.sym("v"), ca.SX.sym("g")
+    return Block.build("ball", params=[Param("g", 9.81, "m/s2")], inputs=[], outputs=[Var("h", "m")],
+                       states=[Var("state.h", "m"), Var("state.v", "m/s")], p=g, u=ca.SX(0, 1),
+                       x=ca.vertcat(h, v), ode=ca.vertcat(v, -g), out=h, start=[1.0, 0.0],
+                       indicators=h, directions=[FALLING], updates=[ca.vertcat(h, -e * v)], event_names=["floor"], **kw)
+
+
+def test_zeno_ball_fails_the_step_naming_the_chattering(cache):
+    path = build_fmu(_ball(0.5), cache_dir=cache)
+    s = Slave(path).start()
+    logs: list[str] = []
+    # t_inf = sqrt(2/g) (1 + e) / (1 - e) = 1.355 s; the step that contains it fails
+    t, status = 0.0, None
+    for _ in range(300):
+        try:
+            s.fmu.doStep(t, 0.01)
+        except Exception as exc:  # FMPy raises on fmi2Error
+            status = str(exc)
+            break
+        t += 0.01
+    assert status is not None and 1.3 < t < 1.36, (t, status)
+
+
+def test_event_iteration_is_bounded():
+    """An update that flips a mode which flips its own indicator never settles."""
+    x, m = ca.SX.sym("x"), ca.SX.sym("m")
+    blk = Block.build("flip", params=[], inputs=[], outputs=[Var("y")], states=[Var("state.x")], p=ca.SX(0, 1),
+                      u=ca.SX(0, 1), x=x, ode=ca.SX(1.0), out=m, start=[0.0], modes=[Var("mode.m")], m=m,
+                      mode_start=[0.0], indicators=ca.vertcat(x - 0.5, m - 0.5), directions=[RISING, 0],
+                      updates=[ca.vertcat(x, 1 - m), ca.vertcat(x, 1 - m)], event_names=["go", "flip"])
+    s = Slave(build_fmu(blk)).start()
+    with pytest.raises(Exception):
+        s.fmu.doStep(0.0, 1.0)
+
+
+def test_time_events_sample_the_input_at_their_instants(cache):
+    """A sample-and-hold (no states, one mode) at 0.3 s inside 1 s steps, the input a ramp
+    given by its slope: the held values are the ramp at the sample instants."""
+    u, m, t = ca.SX.sym("u"), ca.SX.sym("held"), ca.SX.sym("t")
+    blk = Block.build("hold", params=[], inputs=[Var("u")], outputs=[Var("y")], states=[], p=ca.SX(0, 1), u=u,
+                      x=ca.SX(0, 1), ode=ca.SX(0, 1), out=m, start=ca.SX(0, 1), modes=[Var("mode.held")], m=m,
+                      mode_start=[-1.0], t=t, integrator="none",
+                      sample_times=[Sample(0.3, 0.1, ca.vertcat(u), "adc")])
+    s = Slave(build_fmu(blk, cache_dir=cache)).start(u=5.0)
+    assert s.get("y") == [-1.0]  # the first sample is at 0.1 s
+    held = []
+    for k in range(3):
+        s.set(u=5.0 + 2.0 * k)
+        s.fmu.setRealInputDerivatives([s.vr["u"]], [1], [2.0])  # u(t) = 5 + 2 t
+        s.fmu.doStep(float(k), 1.0)
+        held.append(s.get("y")[0])
+    # samples at 0.1, 0.4, 0.7 | 1.0, 1.3, 1.6, 1.9 | 2.2, 2.5, 2.8: the last of each step
+    assert held == pytest.approx([5 + 2 * 0.7, 5 + 2 * 1.9, 5 + 2 * 2.8], abs=1e-12)
+
+
+@pytest.mark.parametrize("change, message", [
+    (dict(directions=[2]), "direction of indicator"),
+    (dict(updates=[ca.SX.sym("q")]), "update of .z\[0\]. uses symbol .q."),
+    (dict(updates=[ca.SX.ones(2)]), "update of .z\[0\]. has shape"),
+    (dict(directions=[1, 1]), "2 directions for 1 indicators"),
+    (dict(integrator="discrete", sample_period=0.1), "events need one of the integrators"),
+    (dict(sample_times=[Sample(0.0)]), "finite period > 0"),
+])
+def test_block_event_declarations_are_checked(change, message):
+    x = ca.SX.sym("x")
+    kw = dict(params=[], inputs=[], outputs=[Var("y")], states=[Var("state.x")], p=ca.SX(0, 1), u=ca.SX(0, 1), x=x,
+              ode=-x, out=x, start=[1.0], indicators=x - 0.5, directions=[FALLING])
+    kw.update(change)
+    with pytest.raises(BlockError, match=message):
+        Block.build("b", **kw)
+
+
+def test_time_in_the_ode_is_refused_with_a_hint():
+    x, t = ca.SX.sym("x"), ca.SX.sym("t")
+    with pytest.raises(BlockError, match="time appears in indicators and updates only"):
+        Block.build("b", params=[], inputs=[], outputs=[Var("y")], states=[Var("state.x")], p=ca.SX(0, 1),
+                    u=ca.SX(0, 1), x=x, ode=-x + t, out=x, start=[1.0], t=t, indicators=x, directions=[FALLING])
