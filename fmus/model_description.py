@@ -260,9 +260,10 @@ def model_description(iface: Interface, *, fmi_version: str, guid: str, model_id
           "canHandleVariableCommunicationStepSize": "true",
           "canBeInstantiatedOnlyOncePerProcess": "false"}
     if fmi3:
+        events = "true" if blk.has_events else "false"  # event mode and early return at events
         cs.update({"canGetAndSetFMUState": "true", "canSerializeFMUState": "true",
-                   "providesDirectionalDerivatives": "true", "hasEventMode": "false",
-                   "canReturnEarlyAfterIntermediateUpdate": "false"})
+                   "providesDirectionalDerivatives": "true", "hasEventMode": events,
+                   "mightReturnEarlyFromDoStep": events, "canReturnEarlyAfterIntermediateUpdate": "false"})
     else:
         cs.update({"canInterpolateInputs": "true" if can_interpolate_inputs(blk) else "false", "maxOutputDerivativeOrder": "0",
                    "canRunAsynchronuously": "false", "canNotUseMemoryManagementFunctions": "true",

@@ -186,8 +186,8 @@ def test_time_events_sample_the_input_at_their_instants(cache):
 
 @pytest.mark.parametrize("change, message", [
     (dict(directions=[2]), "direction of indicator"),
-    (dict(updates=[ca.SX.sym("q")]), "update of .z\[0\]. uses symbol .q."),
-    (dict(updates=[ca.SX.ones(2)]), "update of .z\[0\]. has shape"),
+    (dict(updates=[ca.SX.sym("q")]), r"update of .z\[0\]. uses symbol .q."),
+    (dict(updates=[ca.SX.ones(2)]), r"update of .z\[0\]. has shape"),
     (dict(directions=[1, 1]), "2 directions for 1 indicators"),
     (dict(integrator="discrete", sample_period=0.1), "events need one of the integrators"),
     (dict(sample_times=[Sample(0.0)]), "finite period > 0"),
@@ -206,3 +206,36 @@ def test_time_in_the_ode_is_refused_with_a_hint():
     with pytest.raises(BlockError, match="time appears in indicators and updates only"):
         Block.build("b", params=[], inputs=[], outputs=[Var("y")], states=[Var("state.x")], p=ca.SX(0, 1),
                     u=ca.SX(0, 1), x=x, ode=-x + t, out=x, start=[1.0], t=t, indicators=x, directions=[FALLING])
+
+
+def test_fmi3_event_mode_returns_early_at_each_impact(cache):
+    """FMI 3 with eventModeUsed and earlyReturnAllowed: doStep stops at the impact with the state
+    at its left limit (rate still negative); the update comes in event mode."""
+    from fmpy.fmi3 import FMU3Slave
+
+    path = build_fmu(make("pendulum", "stop"), fmi_version="3.0", cache_dir=cache)
+    md = read_model_description(str(path))
+    vr = {v.name: v.valueReference for v in md.modelVariables}
+    fmu = FMU3Slave(guid=md.guid, unzipDirectory=extract(str(path)), modelIdentifier=md.coSimulation.modelIdentifier,
+                    instanceName="p")
+    fmu.instantiate(eventModeUsed=True, earlyReturnAllowed=True)
+    fmu.enterInitializationMode(startTime=0.0)
+    fmu.exitInitializationMode()
+    fmu.updateDiscreteStates()
+    fmu.enterStepMode()
+    t, times = 0.0, []
+    while len(times) < 5:
+        need, _, early, reached = fmu.doStep(t, 0.01)
+        if need:
+            assert early or reached == pytest.approx(t + 0.01)
+            theta, omega = fmu.getFloat64([vr["state.theta"], vr["state.omega"]])
+            assert omega < 0 and abs(theta) < 1e-9  # the left limit: not yet bounced
+            fmu.enterEventMode()
+            fmu.updateDiscreteStates()
+            assert fmu.getFloat64([vr["state.omega"]])[0] == pytest.approx(-0.7 * omega, rel=1e-15)
+            fmu.enterStepMode()
+            times.append(reached)
+        t = reached
+    assert np.max(np.abs(np.array(times) - analytic_impacts(5))) < 1e-9
+    fmu.terminate()
+    fmu.freeInstance()

@@ -84,6 +84,7 @@ typedef struct {
     long long next_k[RPR_MAX1(RPR_NS)];
     unsigned long long events, step_events;
     double last_event_time;
+    int pending[RPR_MAX1(RPR_NZ + RPR_NS)], npending; /* event mode: located, update not yet applied */
 } RprEvents;
 #endif
 
@@ -91,7 +92,7 @@ static const char *const log_names[RPR_N_LOG] = {"logStatusError", "logStatusDis
                                                  "logStatusWarning", "logNonlinearSystems",
                                                  "logCalls", "logEvents"};
 static const char *const mode_names[] = {"instantiated", "initialization mode", "step mode",
-                                         "terminated", "error"};
+                                         "terminated", "error", "event mode"};
 
 /* A snapshot (FMU state) is this fixed-size record; serialising it is a byte copy. */
 #define RPR_MAGIC 0x3153544155464d52ULL /* "RMFUATS1" */
@@ -134,6 +135,7 @@ struct RprInstance {
     double fa[RPR_MAX1(RPR_NX)], fb[RPR_MAX1(RPR_NX)], Zs[RPR_MAX1(3 * RPR_NX)], ut[RPR_MAX1(RPR_NU)];
     double m_new[RPR_MAX1(RPR_NM)], x_new[RPR_MAX1(RPR_NX)];
 #endif
+    int event_mode, early_return; /* FMI 3: eventModeUsed, and earlyReturnAllowed with it */
     const double **arg;
     double **res;
     rpr_int *iw;
@@ -354,6 +356,7 @@ static int require_mode(RprInstance *c, const char *fn, int ok_mask) {
 #define M_STEP (1 << RPR_MODE_STEP)
 #define M_TERM (1 << RPR_MODE_TERMINATED)
 #define M_ERR (1 << RPR_MODE_ERROR)
+#define M_EVENT (1 << RPR_MODE_EVENT)
 
 int rpr_setup(RprInstance *c, double start_time, int stop_defined, double stop_time) {
     if (require_mode(c, "setup", M_INST)) return RPR_ERROR;
@@ -595,6 +598,19 @@ static int take_samples(RprInstance *c, double tnow, double *x, const double *u)
     return event_iteration(c, tnow, x, u, fired, nf);
 }
 
+/* event mode with early return: the samples due at tnow become the pending event */
+static void pend_samples(RprInstance *c, double tnow) {
+    int j;
+    c->ev.npending = 0;
+    for (j = 0; j < RPR_NS; ++j) {
+        double ts = sample_time(j, c->ev.next_k[j]);
+        if (ts <= tnow || same_time(ts, tnow)) {
+            c->ev.pending[c->ev.npending++] = RPR_NZ + j;
+            c->ev.next_k[j]++;
+        }
+    }
+}
+
 /* at the end of initialisation: indicator signs, the first sample instants, the samples at t0 */
 static int events_start(RprInstance *c) {
     int i, j;
@@ -627,7 +643,14 @@ static int events_do_step(RprInstance *c, double t, double h) {
     memcpy(xa, X_(c), sizeof(double) * RPR_NX);
     c->ev.step_events = 0;
     inputs_at(c, 0.0, ua);
-    status = take_samples(c, t, xa, ua);
+    if (c->ev.npending) { /* an early return the importer did not handle in event mode: handle it now */
+        int n = c->ev.npending;
+        memcpy(fired, c->ev.pending, sizeof(int) * (size_t)n);
+        c->ev.npending = 0;
+        status = eval_z(c, t, xa, ua, c->z) ? fail(c, "the event indicators failed at t=%.17g s", t)
+                                            : event_iteration(c, t, xa, ua, fired, n);
+    }
+    if (status == RPR_OK) status = take_samples(c, t, xa, ua);
     while (status == RPR_OK && tau < h) {
         double dt = h - tau, ts = next_sample_time(c), best;
         int cut = 0, slopes = 0;
@@ -649,6 +672,7 @@ static int events_do_step(RprInstance *c, double t, double h) {
             tmp = xa; xa = xb; xb = tmp;
             tau = cut ? ts - t : tau + dt;
             for (i = 0; i < RPR_NZ; ++i) { c->ev.zref[i] = sgn(c->z[i]); c->ev.zprev[i] = c->z[i]; }
+            if (cut && c->early_return) { pend_samples(c, t + tau); break; }
             if (cut) status = take_samples(c, t + tau, xa, ub);
             continue;
         }
@@ -691,6 +715,12 @@ static int events_do_step(RprInstance *c, double t, double h) {
             tau += s;
             memcpy(xa, c->xe, sizeof(double) * RPR_NX);
         }
+        if (c->early_return) { /* stop at the event's left limit: the importer applies it in event mode */
+            memcpy(c->ev.pending, fired, sizeof(int) * (size_t)nf);
+            c->ev.npending = nf;
+            for (i = 0; i < RPR_NZ; ++i) { c->ev.zref[i] = sgn(c->z[i]); c->ev.zprev[i] = c->z[i]; }
+            break;
+        }
         status = event_iteration(c, t + tau, xa, ub, fired, nf);
         if (status == RPR_OK && next_sample_time(c) <= t + tau) status = take_samples(c, t + tau, xa, ub);
     }
@@ -708,12 +738,17 @@ static int events_do_step(RprInstance *c, double t, double h) {
         }
         return status;
     }
+    if (tau > h || !c->ev.npending) tau = h;
+    if (c->early_return && !c->ev.npending && same_time(next_sample_time(c), t + h)) pend_samples(c, t + h);
     memcpy(X_(c), xa, sizeof(double) * RPR_NX);
-    for (k = 0; k < RPR_NU; ++k) { U_(c)[k] += c->du[k] * h; c->du[k] = 0.0; }
+    for (k = 0; k < RPR_NU; ++k) { U_(c)[k] += c->du[k] * tau; c->du[k] = 0.0; }
     if (c->ev.step_events)
         rpr_log(c, RPR_OK, RPR_LOG_EVENTS, "doStep(t=%.17g, h=%.17g): %llu events (%llu since the start)", t, h,
                 c->ev.step_events, c->ev.events);
-    c->v[0] = t + h;
+    if (c->ev.npending)
+        rpr_log(c, RPR_OK, RPR_LOG_EVENTS, "doStep(t=%.17g, h=%.17g): returns at the event at t=%.17g s (%s)", t, h,
+                t + tau, rpr_event_names[c->ev.pending[0]]);
+    c->v[0] = tau == h ? t + h : t + tau;
     c->y_valid = 0;
     return RPR_OK;
 }
@@ -733,7 +768,7 @@ int rpr_exit_init(RprInstance *c) {
         if (!isfinite(X_(c)[i]))
             return fail(c, "start value of state '%s' is not finite (%g)", rpr_names[RPR_X0 + i],
                         X_(c)[i]);
-    c->mode = RPR_MODE_STEP;
+    c->mode = c->event_mode ? RPR_MODE_EVENT : RPR_MODE_STEP;
     c->y_valid = 0;
 #if RPR_EVENTS
     if (events_start(c) != RPR_OK) return RPR_ERROR;
@@ -743,7 +778,7 @@ int rpr_exit_init(RprInstance *c) {
 }
 
 int rpr_terminate(RprInstance *c) {
-    if (require_mode(c, "terminate", M_STEP | M_INIT)) return RPR_ERROR;
+    if (require_mode(c, "terminate", M_STEP | M_INIT | M_EVENT)) return RPR_ERROR;
     c->mode = RPR_MODE_TERMINATED;
     return RPR_OK;
 }
@@ -758,7 +793,7 @@ int rpr_reset(RprInstance *c) {
 int rpr_get_real(RprInstance *c, const unsigned int vr[], size_t n, double value[]) {
     size_t i;
     if (n == 0) return RPR_OK;
-    if (require_mode(c, "getReal/getFloat64", M_INST | M_INIT | M_STEP | M_TERM | M_ERR))
+    if (require_mode(c, "getReal/getFloat64", M_INST | M_INIT | M_STEP | M_TERM | M_ERR | M_EVENT))
         return RPR_ERROR;
     for (i = 0; i < n; ++i) {
         if (vr[i] >= RPR_NV) return fail(c, "getReal: value reference %u does not exist", vr[i]);
@@ -772,7 +807,7 @@ int rpr_get_real(RprInstance *c, const unsigned int vr[], size_t n, double value
 int rpr_set_real(RprInstance *c, const unsigned int vr[], size_t n, const double value[]) {
     size_t i;
     if (n == 0) return RPR_OK;
-    if (require_mode(c, "setReal/setFloat64", M_INST | M_INIT | M_STEP)) return RPR_ERROR;
+    if (require_mode(c, "setReal/setFloat64", M_INST | M_INIT | M_STEP | M_EVENT)) return RPR_ERROR;
     for (i = 0; i < n; ++i) {
         unsigned int r = vr[i];
         double x = value[i];
@@ -784,14 +819,14 @@ int rpr_set_real(RprInstance *c, const unsigned int vr[], size_t n, const double
             return fail(c, "mode '%s' is a discrete state the FMU computes (from its parameters, then at "
                            "events): it cannot be set (value %g)", rpr_names[r], x);
         if (r < RPR_X0) { /* parameter */
-            if (c->mode == RPR_MODE_STEP && !rpr_tunable[r - RPR_P0])
+            if (c->mode >= RPR_MODE_STEP && !rpr_tunable[r - RPR_P0])
                 return fail(c, "parameter '%s' is fixed: set it before the end of initialization (value %g)",
                             rpr_names[r], x);
             if (x < rpr_min[r] || x > rpr_max[r])
                 return fail(c, "parameter '%s' = %.17g is outside [%.17g, %.17g]", rpr_names[r], x,
                             rpr_min[r], rpr_max[r]);
         } else if (r < RPR_U0) { /* state */
-            if (c->mode == RPR_MODE_STEP)
+            if (c->mode >= RPR_MODE_STEP)
                 return fail(c, "state '%s' can only be set before the end of initialization (value %g); "
                                "use an FMU state to restore a step", rpr_names[r], x);
             if (!rpr_x_exact[r - RPR_X0])
@@ -939,7 +974,7 @@ static void snapshot(const RprInstance *c, RprSnapshot *s) {
 
 static int check_snapshot(RprInstance *c, const RprSnapshot *s) {
     if (s->magic != RPR_MAGIC || s->guid_hash != guid_hash() || s->nv != RPR_NV || s->nx != RPR_NX ||
-        s->mode < RPR_MODE_INSTANTIATED || s->mode > RPR_MODE_TERMINATED) {
+        s->mode < RPR_MODE_INSTANTIATED || s->mode > RPR_MODE_EVENT || s->mode == RPR_MODE_ERROR) {
         rpr_log(c, RPR_ERROR, RPR_LOG_ERROR, "%s: the FMU state was not made by this FMU (%s)",
                 RPR_BLOCK_NAME, RPR_GUID);
         return RPR_ERROR;
@@ -1016,7 +1051,7 @@ int rpr_directional_derivative(RprInstance *c, const unsigned int unknown[], siz
                                const unsigned int known[], size_t n_known, const double seed[],
                                double sensitivity[]) {
     size_t i, j;
-    if (require_mode(c, "getDirectionalDerivative", M_INIT | M_STEP | M_TERM)) return RPR_ERROR;
+    if (require_mode(c, "getDirectionalDerivative", M_INIT | M_STEP | M_TERM | M_EVENT)) return RPR_ERROR;
     /* modes sit among the known columns right after the parameters: the Jacobian's p' = [p; m] */
     for (j = 0; j < n_known; ++j)
         if (known[j] >= RPR_NV || (known[j] != 0 && known_column(known[j]) < 0))
@@ -1050,3 +1085,53 @@ int rpr_unsupported(RprInstance *c, const char *function) {
             RPR_BLOCK_NAME, function);
     return RPR_ERROR;
 }
+
+/* ------------------------------------------------------------------------------------------ */
+#if RPR_EVENTS
+int rpr_has_event_mode(void) { return 1; }
+void rpr_use_event_mode(RprInstance *c, int early_return) { c->event_mode = 1; c->early_return = early_return != 0; }
+int rpr_event_pending(const RprInstance *c) { return c->ev.npending > 0; }
+int rpr_enter_event_mode(RprInstance *c) {
+    if (require_mode(c, "enterEventMode", M_STEP)) return RPR_ERROR;
+    if (!c->event_mode) return fail(c, "enterEventMode: the FMU was instantiated with eventModeUsed = false");
+    c->mode = RPR_MODE_EVENT;
+    return RPR_OK;
+}
+int rpr_update_discrete_states(RprInstance *c, int *next_time_defined, double *next_time) {
+    int status = RPR_OK, n = c->ev.npending, fired[RPR_MAX1(RPR_NZ + RPR_NS)];
+    double t = c->v[0];
+    if (require_mode(c, "updateDiscreteStates", M_EVENT)) return RPR_ERROR;
+    c->ev.step_events = 0;
+    memcpy(c->xa, X_(c), sizeof(double) * RPR_NX);
+    if (n) {
+        memcpy(fired, c->ev.pending, sizeof(int) * (size_t)n);
+        c->ev.npending = 0;
+        status = eval_z(c, t, c->xa, U_(c), c->z) ? fail(c, "the event indicators failed at t=%.17g s", t)
+                                                  : event_iteration(c, t, c->xa, U_(c), fired, n);
+    }
+    if (status == RPR_OK) status = take_samples(c, t, c->xa, U_(c));
+    if (status != RPR_OK) return status;
+    memcpy(X_(c), c->xa, sizeof(double) * RPR_NX);
+    c->y_valid = 0;
+    *next_time = next_sample_time(c);
+    *next_time_defined = isfinite(*next_time);
+    return RPR_OK;
+}
+int rpr_enter_step_mode(RprInstance *c) {
+    if (require_mode(c, "enterStepMode", M_EVENT)) return RPR_ERROR;
+    c->mode = RPR_MODE_STEP;
+    return RPR_OK;
+}
+#else
+int rpr_has_event_mode(void) { return 0; }
+void rpr_use_event_mode(RprInstance *c, int early_return) { (void)c; (void)early_return; }
+int rpr_event_pending(const RprInstance *c) { (void)c; return 0; }
+int rpr_enter_event_mode(RprInstance *c) { return rpr_unsupported(c, "enterEventMode (hasEventMode is false)"); }
+int rpr_update_discrete_states(RprInstance *c, int *next_time_defined, double *next_time) {
+    (void)next_time_defined; (void)next_time;
+    return rpr_unsupported(c, "updateDiscreteStates (hasEventMode is false)");
+}
+int rpr_enter_step_mode(RprInstance *c) {
+    return rpr_unsupported(c, "enterStepMode (hasEventMode is false: step mode follows exitInitializationMode directly)");
+}
+#endif
