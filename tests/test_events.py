@@ -239,3 +239,50 @@ def test_fmi3_event_mode_returns_early_at_each_impact(cache):
     assert np.max(np.abs(np.array(times) - analytic_impacts(5))) < 1e-9
     fmu.terminate()
     fmu.freeInstance()
+
+
+@pytest.fixture(scope="module")
+def stop_mass(cache) -> Path:
+    return build_fmu(make("oscillator", "linear", stop="impact", k=0.0, d=0.0, m=1.0, x_max=0.5, e=0.6,
+                          v_rest=1e-3), cache_dir=cache)
+
+
+def test_a_mass_driven_into_a_stop_leaves_at_minus_e_times_the_impact_velocity(stop_mass):
+    """2 N on 1 kg from rest 0.5 m before the stop: impact at sqrt(0.5) s with sqrt(2) m/s; it
+    leaves at -0.6 sqrt(2) and comes back after 2 * 0.6 sqrt(2) / 2 s at 0.6 sqrt(2) m/s."""
+    s = Slave(stop_mass).start(f=2.0)
+    a, v1, e = 2.0, np.sqrt(2.0), 0.6
+    t1 = np.sqrt(0.5)
+    t, h = 0.0, 1e-3
+    while t + h < t1:
+        s.fmu.doStep(t, h)
+        t += h
+    s.fmu.doStep(t, h)  # the impact is inside this step
+    t += h
+    v_imp, v_now, x_now = s.get("v_impact", "v", "x")
+    assert v_imp == pytest.approx(v1, rel=1e-9)
+    assert v_now == pytest.approx(-e * v1 + a * (t - t1), rel=1e-9)
+    assert x_now == pytest.approx(0.5 - e * v1 * (t - t1) + a / 2 * (t - t1) ** 2, rel=1e-9)
+    t2 = t1 + 2 * e * v1 / a
+    while t < t2 + 0.01:
+        s.fmu.doStep(t, h)
+        t += h
+    assert s.get("impacts", "v_impact") == pytest.approx([2.0, e * v1], rel=1e-9)
+
+
+def test_a_mass_pushed_into_a_stop_comes_to_rest_and_leaves_when_pulled(stop_mass):
+    """The bounces shrink by 0.6 each until the rebound is below v_rest: the mass rests on the
+    stop (no chattering), then a pull releases it."""
+    s = Slave(stop_mass).start(f=2.0)
+    t, h = 0.0, 1e-2
+    for _ in range(400):
+        s.fmu.doStep(t, h)
+        t += h
+    x, v, n = s.get("x", "v", "impacts")
+    assert (x, v) == (0.5, 0.0)
+    # rebounds 0.6^k sqrt(2) down to v_rest = 1e-3: k = 14 bounces, the 15th impact rests
+    assert n == 1 + np.ceil(np.log(1e-3 / np.sqrt(2)) / np.log(0.6)) - 1
+    s.set(f=-1.0)
+    s.fmu.doStep(t, h)
+    x, v = s.get("x", "v")
+    assert v == pytest.approx(-1.0 * h, rel=1e-12) and x == pytest.approx(0.5 - h ** 2 / 2, rel=1e-12)

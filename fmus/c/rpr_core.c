@@ -81,6 +81,7 @@ RPR_DECLARE(RPR_F_ZDOT)
 #if RPR_EVENTS
 typedef struct {
     double zref[RPR_MAX1(RPR_NZ)], zprev[RPR_MAX1(RPR_NZ)];
+    double zlast[RPR_MAX1(RPR_NZ)]; /* the indicators' actual values where the last step ended */
     long long next_k[RPR_MAX1(RPR_NS)];
     unsigned long long events, step_events;
     double last_event_time;
@@ -576,6 +577,7 @@ static int event_iteration(RprInstance *c, double te, double *x, const double *u
         double zl = c->z[i] + c->zt[i] * look_ahead(te);
         c->ev.zref[i] = sgn(zl);
         c->ev.zprev[i] = zl;
+        c->ev.zlast[i] = c->z[i];
     }
     memset(&c->memory, 0, sizeof c->memory); /* Radau restarts afresh after the jump */
     c->ev.last_event_time = te;
@@ -623,7 +625,7 @@ static int events_start(RprInstance *c) {
     c->ev.events = c->ev.step_events = 0;
     c->ev.last_event_time = -INFINITY;
     if (eval_z(c, t0, X_(c), U_(c), c->z)) return fail(c, "the event indicators failed at the start time");
-    for (i = 0; i < RPR_NZ; ++i) { c->ev.zref[i] = sgn(c->z[i]); c->ev.zprev[i] = c->z[i]; }
+    for (i = 0; i < RPR_NZ; ++i) { c->ev.zref[i] = sgn(c->z[i]); c->ev.zprev[i] = c->ev.zlast[i] = c->z[i]; }
     memcpy(c->xa, X_(c), sizeof(double) * RPR_NX);
     if (take_samples(c, t0, c->xa, U_(c)) != RPR_OK) return RPR_ERROR;
     memcpy(X_(c), c->xa, sizeof(double) * RPR_NX);
@@ -651,6 +653,19 @@ static int events_do_step(RprInstance *c, double t, double h) {
                                             : event_iteration(c, t, xa, ua, fired, n);
     }
     if (status == RPR_OK) status = take_samples(c, t, xa, ua);
+    if (status == RPR_OK && RPR_NZ > 0) { /* inputs set at the communication point may fire an indicator there */
+        if (eval_z(c, t, xa, ua, c->z)) status = fail(c, "the event indicators failed at t=%.17g s", t);
+        nf = 0;
+        /* only an indicator the new inputs (or parameters) changed: the others keep their look-ahead side */
+        for (i = 0; status == RPR_OK && i < RPR_NZ; ++i)
+            if (c->z[i] != c->ev.zlast[i] && fires(rpr_direction[i], c->ev.zref[i], c->z[i]) &&
+                fires(rpr_direction[i], sgn(c->ev.zprev[i]), c->z[i]))
+                fired[nf++] = i;
+        if (status == RPR_OK && nf) status = event_iteration(c, t, xa, ua, fired, nf);
+        else if (status == RPR_OK)
+            for (i = 0; i < RPR_NZ; ++i)
+                if (c->z[i] != c->ev.zlast[i]) { c->ev.zref[i] = sgn(c->z[i]); c->ev.zprev[i] = c->ev.zlast[i] = c->z[i]; }
+    }
     while (status == RPR_OK && tau < h) {
         double dt = h - tau, ts = next_sample_time(c), best;
         int cut = 0, slopes = 0;
@@ -671,7 +686,7 @@ static int events_do_step(RprInstance *c, double t, double h) {
         if (nf == 0) { /* no crossing: accept the internal step */
             tmp = xa; xa = xb; xb = tmp;
             tau = cut ? ts - t : tau + dt;
-            for (i = 0; i < RPR_NZ; ++i) { c->ev.zref[i] = sgn(c->z[i]); c->ev.zprev[i] = c->z[i]; }
+            for (i = 0; i < RPR_NZ; ++i) { c->ev.zref[i] = sgn(c->z[i]); c->ev.zprev[i] = c->ev.zlast[i] = c->z[i]; }
             if (cut && c->early_return) { pend_samples(c, t + tau); break; }
             if (cut) status = take_samples(c, t + tau, xa, ub);
             continue;
@@ -718,7 +733,7 @@ static int events_do_step(RprInstance *c, double t, double h) {
         if (c->early_return) { /* stop at the event's left limit: the importer applies it in event mode */
             memcpy(c->ev.pending, fired, sizeof(int) * (size_t)nf);
             c->ev.npending = nf;
-            for (i = 0; i < RPR_NZ; ++i) { c->ev.zref[i] = sgn(c->z[i]); c->ev.zprev[i] = c->z[i]; }
+            for (i = 0; i < RPR_NZ; ++i) { c->ev.zref[i] = sgn(c->z[i]); c->ev.zprev[i] = c->ev.zlast[i] = c->z[i]; }
             break;
         }
         status = event_iteration(c, t + tau, xa, ub, fired, nf);

@@ -75,7 +75,9 @@ def _entries() -> dict[str, dict[str, _Entry]]:
                 Option("coupling", "none", "interface: 'none' (force in) or 'spring' (velocity in, coupling spring "
                                            "force out)", choices=oscillator.COUPLING),
                 integrator_option("rk4", LINEAR_INTEGRATORS), Option("substeps", 40, "integrator substeps per communication step",
-                                                 check=SUBSTEPS.check))),
+                                                 check=SUBSTEPS.check),
+                Option("stop", "none", "end stops: 'none' or 'impact' (located impacts with restitution, rest on a "
+                                       "stop; coupling 'none' only)", choices=oscillator.STOPS))),
         },
         "linear_actuator": {
             "rig": _Entry(actuator.rig, (act, integrator_option("rk4"), SUBSTEPS)),
