@@ -49,6 +49,8 @@ def _entries() -> dict[str, dict[str, _Entry]]:
                                       "state and a stiff spring-damper bond)", choices=motor.ROTOR)
     act = Option("actuator", "fa200", "actuator preset giving the parameter defaults: Firgelli FA-200-L-12 or "
                                       "the thesis's 'X' actuator", choices=tuple(actuator.ACTUATORS))
+    stops = Option("end_stops", "clamp", "end stops: 'clamp' (rate zeroed at the ends) or 'impact' (arrivals located "
+                                         "as events, restitution e, rest on the stop)", choices=actuator.END_STOPS)
     return {
         "mechanism": {
             "rigid": _Entry(mechanism.rigid, (CONFIG, integrator_option("rk4"), SUBSTEPS)),
@@ -80,8 +82,8 @@ def _entries() -> dict[str, dict[str, _Entry]]:
                                        "stop; coupling 'none' only)", choices=oscillator.STOPS))),
         },
         "linear_actuator": {
-            "rig": _Entry(actuator.rig, (act, integrator_option("rk4"), SUBSTEPS)),
-            "single": _Entry(actuator.single, (act, integrator_option("rk4"), SUBSTEPS)),
+            "rig": _Entry(actuator.rig, (act, integrator_option("rk4"), SUBSTEPS, stops)),
+            "single": _Entry(actuator.single, (act, integrator_option("rk4"), SUBSTEPS, stops)),
         },
         "pendulum": {
             "stop": _Entry(pendulum.stop, (integrator_option("rk4"),
