@@ -286,3 +286,39 @@ def test_a_mass_pushed_into_a_stop_comes_to_rest_and_leaves_when_pulled(stop_mas
     s.fmu.doStep(t, h)
     x, v = s.get("x", "v")
     assert v == pytest.approx(-1.0 * h, rel=1e-12) and x == pytest.approx(0.5 - h ** 2 / 2, rel=1e-12)
+
+
+def test_stiction_breaks_away_where_a_ramp_force_passes_fs_and_slides_by_coulomb(cache):
+    """f = 2 t N on 1 kg with Fs = 3 N, Fc = 2 N, no viscous friction: stuck until 1.5 s, then
+    dv/dt = 2 t - 2, v(t) = t^2 - 2.25 - 2 (t - 1.5)."""
+    path = build_fmu(make("sliding_mass", "stiction", m=1.0, Fc=2.0, Fs=3.0, b=0.0), cache_dir=cache)
+    s = Slave(path).start(f=0.0)
+    t, h = 0.0, 0.01
+    while t < 2.0 - 1e-12:
+        s.set(f=2.0 * t)
+        s.fmu.setRealInputDerivatives([s.vr["f"]], [1], [2.0])
+        s.fmu.doStep(t, h)
+        t += h
+        x, v, stuck = s.get("x", "v", "stuck")
+        if t < 1.5 - 1e-9:
+            assert (x, v, stuck) == (0.0, 0.0, 1.0)
+    assert stuck == 0.0
+    assert v == pytest.approx(t ** 2 - 2.25 - 2 * (t - 1.5), rel=1e-9)
+    assert x == pytest.approx((t ** 3 - 1.5 ** 3) / 3 - 2.25 * (t - 1.5) - (t - 1.5) ** 2, rel=1e-9)
+
+
+def test_a_sliding_mass_sticks_where_its_velocity_reaches_zero(cache):
+    """Sliding at 1 m/s against Fc = 2 N with f = 1 N (< Fs): it decelerates at 1 m/s2 and sticks
+    at t = 1 s, 0.5 m on, and stays (the surface then holds the 1 N)."""
+    path = build_fmu(make("sliding_mass", "stiction", m=1.0, Fc=2.0, Fs=3.0, b=0.0), cache_dir=cache)
+    s = Slave(path).start(f=3.5)
+    s.fmu.doStep(0.0, 1.0)  # breaks away at once (3.5 N > Fs), accelerates at 1.5 m/s2
+    x1, v1 = s.get("x", "v")
+    assert (x1, v1) == pytest.approx((0.75, 1.5), rel=1e-12)
+    s.set(f=1.0)  # now it decelerates at 1 m/s2: stops 1.5 s later, 1.125 m on
+    s.fmu.doStep(1.0, 1.0)
+    assert s.get("stuck")[0] == 0.0
+    s.fmu.doStep(2.0, 1.0)
+    x, v, stuck, friction = s.get("x", "v", "stuck", "friction")
+    assert (v, stuck, friction) == (0.0, 1.0, -1.0)
+    assert x == pytest.approx(0.75 + 1.125, rel=1e-12)

@@ -615,7 +615,7 @@ static void pend_samples(RprInstance *c, double tnow) {
 
 /* at the end of initialisation: indicator signs, the first sample instants, the samples at t0 */
 static int events_start(RprInstance *c) {
-    int i, j;
+    int i, j, nf = 0, fired[RPR_MAX1(RPR_NZ)];
     double t0 = c->v[0];
     for (j = 0; j < RPR_NS; ++j) {
         double k = ceil((t0 - rpr_sample_offset[j]) / rpr_sample_period[j]);
@@ -625,8 +625,14 @@ static int events_start(RprInstance *c) {
     c->ev.events = c->ev.step_events = 0;
     c->ev.last_event_time = -INFINITY;
     if (eval_z(c, t0, X_(c), U_(c), c->z)) return fail(c, "the event indicators failed at the start time");
-    for (i = 0; i < RPR_NZ; ++i) { c->ev.zref[i] = sgn(c->z[i]); c->ev.zprev[i] = c->ev.zlast[i] = c->z[i]; }
+    /* an indicator starts on the side its direction leaves: one already across fires at the start */
+    for (i = 0; i < RPR_NZ; ++i) {
+        c->ev.zref[i] = rpr_direction[i] > 0 ? -1.0 : (rpr_direction[i] < 0 ? 1.0 : sgn(c->z[i]));
+        c->ev.zprev[i] = c->ev.zlast[i] = c->z[i];
+        if (fires(rpr_direction[i], c->ev.zref[i], c->z[i])) fired[nf++] = i;
+    }
     memcpy(c->xa, X_(c), sizeof(double) * RPR_NX);
+    if (nf && event_iteration(c, t0, c->xa, U_(c), fired, nf) != RPR_OK) return RPR_ERROR;
     if (take_samples(c, t0, c->xa, U_(c)) != RPR_OK) return RPR_ERROR;
     memcpy(X_(c), c->xa, sizeof(double) * RPR_NX);
     return RPR_OK;

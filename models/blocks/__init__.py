@@ -15,6 +15,7 @@ the bad name, with the closest valid name as a suggestion.
 | ``linear_actuator`` | ``rig``, ``single`` | :mod:`.actuator` |
 | ``sum`` | ``vector`` | :mod:`.sums` (OSP's Sum and VectorSum functions) |
 | ``pendulum`` | ``stop`` | :mod:`.pendulum` (located events: impacts on a stop) |
+| ``sliding_mass`` | ``stiction``, ``smooth`` | :mod:`.friction` (Coulomb friction: stick and slip modes, or the tanh law) |
 """
 from __future__ import annotations
 
@@ -23,7 +24,7 @@ from typing import Any, Callable
 
 from ..block import Block, BlockError
 from ..user import with_defaults
-from . import actuator, mechanism, motor, oscillator, pendulum, pid, setpoint, sums
+from . import actuator, friction, mechanism, motor, oscillator, pendulum, pid, setpoint, sums
 from ._common import CONFIG, SUBSTEPS, Option, integrator_option, positive_float, positive_int, suggest, unit_text
 
 #: Integrators of blocks whose equations are linear: ``exact`` (the default) and the two general ones.
@@ -89,6 +90,14 @@ def _entries() -> dict[str, dict[str, _Entry]]:
             "stop": _Entry(pendulum.stop, (integrator_option("rk4"),
                                            Option("substeps", 10, "integrator substeps per communication step",
                                                   check=SUBSTEPS.check))),
+        },
+        "sliding_mass": {
+            "stiction": _Entry(friction.stiction, (integrator_option("rk4"),
+                                                   Option("substeps", 10, "integrator substeps per communication step",
+                                                          check=SUBSTEPS.check))),
+            "smooth": _Entry(friction.smooth, (integrator_option("radau"),
+                                               Option("substeps", 10, "integrator substeps per communication step",
+                                                      check=SUBSTEPS.check))),
         },
         "sum": {
             "vector": _Entry(sums.vector_sum, (
