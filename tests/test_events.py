@@ -322,3 +322,67 @@ def test_a_sliding_mass_sticks_where_its_velocity_reaches_zero(cache):
     x, v, stuck, friction = s.get("x", "v", "stuck", "friction")
     assert (v, stuck, friction) == (0.0, 1.0, -1.0)
     assert x == pytest.approx(0.75 + 1.125, rel=1e-12)
+
+
+def test_discrete_pid_with_time_events_equals_the_periodic_one_and_takes_any_step(cache):
+    """The samples as time events give the periodic block's values at a step equal to the
+    period, and the same samples when the master's step is 2.5 periods."""
+    kw = dict(sample_period=0.01, Kp=3.0, Ki=2.0, Kd=0.5, Tf=0.02)
+    periodic = Slave(build_fmu(make("pid", "discrete", **kw), cache_dir=cache), "a").start(setpoint=1.0)
+    events = Slave(build_fmu(make("pid", "discrete", timing="events", **kw), cache_dir=cache), "b").start(setpoint=1.0)
+    coarse = Slave(build_fmu(make("pid", "discrete", timing="events", **kw), cache_dir=cache), "c").start(setpoint=1.0)
+    meas = lambda t: 0.3 * np.floor(t / 0.05 + 1e-9)  # changes at multiples of 0.05 s only  # noqa: E731
+    for k in range(20):
+        t = 0.01 * k
+        for s in (periodic, events):
+            s.set(measurement=meas(t))
+            s.fmu.doStep(t, 0.01)
+        assert events.get("y", "state.I", "state.w") == pytest.approx(periodic.get("y", "state.I", "state.w"),
+                                                                       rel=1e-14, abs=1e-15)
+    for k in range(8):  # steps of 0.025 s: samples fall inside the steps
+        t = 0.025 * k
+        coarse.set(measurement=meas(t))
+        coarse.fmu.doStep(t, 0.025)
+        if k % 2 == 1:  # t + 0.025 is a multiple of 0.05: the same samples taken
+            events_at = (k + 1) * 0.025
+            assert coarse.get("state.I")[0] == pytest.approx(_pid_integral(events_at, meas), rel=1e-12)
+
+
+def _pid_integral(t_end: float, meas) -> float:
+    """The discrete integral after the samples k T < t_end (Ki = 2, setpoint 1, T = 0.01)."""
+    return sum(0.01 * 2.0 * (1.0 - meas(0.01 * k)) for k in range(int(round(t_end / 0.01))))
+
+
+def test_adc_codes_and_held_lengths_match_the_board_conversion(cache):
+    """The sampled ADC against hardware.convert (the board's own conversion, written apart):
+    a leg moving at 0.1 m/s sampled every ms inside 10 ms steps."""
+    from hardware.convert import Calibration, ideal_counts, quantise
+
+    s = Slave(build_fmu(make("sampled", "adc", period=1e-3), cache_dir=cache)).start(u=0.3)
+    cal = Calibration(s_offset=0.1)
+    for k in range(5):
+        t = 0.01 * k
+        s.set(u=0.3 + 0.1 * t)
+        s.fmu.setRealInputDerivatives([s.vr["u"]], [1], [0.1])
+        s.fmu.doStep(t, 0.01)
+        last = t + 0.009  # the last sample inside the step
+        raw = quantise(ideal_counts(0.3 + 0.1 * last - 0.1))
+        assert s.get("raw", "y") == pytest.approx([raw, cal.leg_length(raw)], rel=1e-12)
+
+
+def test_pwm_duty_matches_the_board_drive(cache):
+    """The sampled duty against hardware.convert: a command set at a communication point is
+    sampled at the step's start (the sample at the end belongs to the next step): the voltage
+    after step k is the one of command k - 1's successor, i.e. of the command set for step k
+    once its start sample (at k ms) is taken."""
+    from hardware.convert import drive_to_volts, volts_to_drive
+
+    s = Slave(build_fmu(make("sampled", "pwm"), cache_dir=cache)).start(u=0.0)
+    for k, volts in enumerate((3.14159, -7.2000003, 12.5, -0.00011)):
+        s.set(u=volts)
+        s.fmu.doStep(1e-3 * k, 1e-3)  # its start sample (at k ms, k >= 1) takes this command
+        drive = volts_to_drive(volts)
+        if k:
+            assert s.get("y")[0] == pytest.approx(drive_to_volts(drive.duty_ns, drive.dir_high), rel=1e-12,
+                                                  abs=1e-12)
+            assert abs(s.get("duty")[0]) == drive.duty_ns

@@ -17,6 +17,7 @@ the bad name, with the closest valid name as a suggestion.
 | ``task_trajectory`` | ``planned`` | :mod:`.task` (a planned task: toppra, ruckig or a spline) |
 | ``pendulum`` | ``stop`` | :mod:`.pendulum` (located events: impacts on a stop) |
 | ``sliding_mass`` | ``stiction``, ``smooth`` | :mod:`.friction` (Coulomb friction: stick and slip modes, or the tanh law) |
+| ``sampled`` | ``adc``, ``pwm`` | :mod:`.sampled` (the board's 12-bit ADC and PWM duty, samples as time events) |
 """
 from __future__ import annotations
 
@@ -25,7 +26,7 @@ from typing import Any, Callable
 
 from ..block import Block, BlockError
 from ..user import with_defaults
-from . import actuator, friction, mechanism, motor, oscillator, pendulum, pid, setpoint, sums, task
+from . import actuator, friction, mechanism, motor, oscillator, pendulum, pid, sampled, setpoint, sums, task
 from ._common import CONFIG, SUBSTEPS, Option, integrator_option, positive_float, positive_int, suggest, unit_text
 
 #: Integrators of blocks whose equations are linear: ``exact`` (the default) and the two general ones.
@@ -78,6 +79,7 @@ def _entries() -> dict[str, dict[str, _Entry]]:
                                       "state and a stiff spring-damper bond)", choices=motor.ROTOR)
     act = Option("actuator", "fa200", "actuator preset giving the parameter defaults: Firgelli FA-200-L-12 or "
                                       "the thesis's 'X' actuator", choices=tuple(actuator.ACTUATORS))
+    channels = Option("channels", 1, "number of channels (legs)", check=positive_int)
     stops = Option("end_stops", "clamp", "end stops: 'clamp' (rate zeroed at the ends) or 'impact' (arrivals located "
                                          "as events, restitution e, rest on the stop)", choices=actuator.END_STOPS)
     return {
@@ -95,7 +97,9 @@ def _entries() -> dict[str, dict[str, _Entry]]:
         "pid": {
             "continuous": _Entry(pid.continuous, pid_opts + (integrator_option("auto", ("auto",) + LINEAR_INTEGRATORS),
                                                              SUBSTEPS)),
-            "discrete": _Entry(pid.discrete, pid_opts + (sample,)),
+            "discrete": _Entry(pid.discrete, pid_opts + (sample, Option(
+                "timing", "periodic", "samples: 'periodic' (a discrete block: the step a multiple of the sample "
+                                      "period) or 'events' (time events: any step)", choices=pid.TIMING))),
         },
         "pose_setpoint": {
             "default": _Entry(setpoint.pose_setpoint, (CONFIG, Option("profile", "step", "trajectory profile",
@@ -131,6 +135,12 @@ def _entries() -> dict[str, dict[str, _Entry]]:
             "smooth": _Entry(friction.smooth, (integrator_option("radau"),
                                                Option("substeps", 10, "integrator substeps per communication step",
                                                       check=SUBSTEPS.check))),
+        },
+        "sampled": {
+            "adc": _Entry(sampled.adc, (channels, Option("period", 1e-3, "sample period [s] (time events)",
+                                                         check=positive_float))),
+            "pwm": _Entry(sampled.pwm, (channels, Option("period", 1e-3, "duty update period [s] (time events)",
+                                                         check=positive_float))),
         },
         "sum": {
             "vector": _Entry(sums.vector_sum, (
