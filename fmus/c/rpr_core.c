@@ -625,11 +625,12 @@ static int events_start(RprInstance *c) {
     c->ev.events = c->ev.step_events = 0;
     c->ev.last_event_time = -INFINITY;
     if (eval_z(c, t0, X_(c), U_(c), c->z)) return fail(c, "the event indicators failed at the start time");
-    /* an indicator starts on the side its direction leaves: one already across fires at the start */
+    /* a directed indicator strictly across its direction at the start fires there */
     for (i = 0; i < RPR_NZ; ++i) {
-        c->ev.zref[i] = rpr_direction[i] > 0 ? -1.0 : (rpr_direction[i] < 0 ? 1.0 : sgn(c->z[i]));
+        int across = rpr_direction[i] * c->z[i] > 0;
+        c->ev.zref[i] = across ? -sgn(c->z[i]) : sgn(c->z[i]);
         c->ev.zprev[i] = c->ev.zlast[i] = c->z[i];
-        if (fires(rpr_direction[i], c->ev.zref[i], c->z[i])) fired[nf++] = i;
+        if (across) fired[nf++] = i;
     }
     memcpy(c->xa, X_(c), sizeof(double) * RPR_NX);
     if (nf && event_iteration(c, t0, c->xa, U_(c), fired, nf) != RPR_OK) return RPR_ERROR;
