@@ -386,3 +386,69 @@ def test_pwm_duty_matches_the_board_drive(cache):
             assert s.get("y")[0] == pytest.approx(drive_to_volts(drive.duty_ns, drive.dir_high), rel=1e-12,
                                                   abs=1e-12)
             assert abs(s.get("duty")[0]) == drive.duty_ns
+
+
+# --- event scenes against their monolithic references (events design page: two measures) -------
+@pytest.fixture(scope="module")
+def stick_slip_runs(cache):
+    from cosim.run.execute import run
+    from cosim.run.reference import reference
+
+    scene = ROOT / "scenarios" / "stick_slip.yaml"
+    return run(scene, cache_dir=cache), reference(scene)
+
+
+def test_stick_slip_sticks_start_and_end_within_1e_4_s_of_the_reference(stick_slip_runs):
+    from cosim.analysis.compare import match_events, times_from_clock
+
+    cosim, ref = stick_slip_runs
+    assert cosim.ok and ref.status == "ok", (cosim.reason, ref.reason)
+    for kind in ("t_stick", "t_slip"):
+        timing = match_events(kind, times_from_clock(cosim.trace, f"mass.{kind}"), times_from_clock(ref.trace, f"mass.{kind}"))
+        assert timing.missing == () and timing.matched >= 8, timing
+        assert timing.max_error < 1e-4, timing
+
+
+def test_stick_slip_values_between_events_within_1e_3_of_range(stick_slip_runs):
+    from cosim.analysis.compare import compare, compare_between_events, times_from_clock, windows
+
+    cosim, ref = stick_slip_runs
+    pairs = [(times_from_clock(cosim.trace, n), times_from_clock(ref.trace, n)) for n in ("mass.t_stick", "mass.t_slip")]
+    names = ["mass.x", "mass.v", "mass.friction", "pid.y"]
+    between = compare_between_events(cosim.trace, ref.trace, windows(pairs, 1e-3), names)
+    assert max(d.relative for d in between) < 1e-3, [(d.name, d.relative) for d in between]
+    # the plain max-norm reads a switch a hair apart as an error of the jump's size
+    assert max(d.relative for d in compare(cosim.trace, ref.trace, ["mass.friction"])) > 10 * max(
+        d.relative for d in between if d.name == "mass.friction")
+
+
+def test_the_reference_finds_the_pendulum_impacts_itself():
+    """The event reference against the elliptic-integral times: an independent check of the
+    reference (its own solver, LSODA, and its own event location)."""
+    from cosim.run.reference import reference
+
+    res = reference(ROOT / "scenarios" / "pendulum_stop.yaml")
+    assert res.status == "ok"
+    times = [e["time"] for e in res.stats["events"]["list"]]
+    assert np.max(np.abs(np.array(times) - analytic_impacts(5))) < 1e-8
+    t = res.trace.time
+    pairs = np.nonzero(np.diff(t) == 0)[0]  # two rows per event: the left then the right limit
+    assert len(pairs) == 5
+    assert all(res.trace["pend.omega"][k] < 0 < res.trace["pend.omega"][k + 1] for k in pairs)
+
+
+def test_end_stop_scene_against_its_reference_between_events(cache):
+    from cosim.analysis.compare import compare_between_events, match_events, times_from_counter, windows
+    from cosim.run.execute import run
+    from cosim.run.reference import reference
+
+    scene = ROOT / "scenarios" / "rig_end_stop.yaml"
+    cosim, ref = run(scene, cache_dir=cache), reference(scene)
+    assert cosim.ok and ref.status == "ok"
+    assert cosim.trace["rig.leg[2].s"].max() == pytest.approx(0.36, abs=1e-12)  # on the stop, never past it
+    pairs = [(times_from_counter(cosim.trace, f"rig.leg[{i}].impacts"),
+              times_from_counter(ref.trace, f"rig.leg[{i}].impacts")) for i in (1, 2, 3)]
+    timing = match_events("leg 2 impacts", *pairs[1])
+    assert timing.matched == 1 and timing.missing == () and timing.max_error < 1e-3
+    between = compare_between_events(cosim.trace, ref.trace, windows(pairs, 1e-3), ["rig.leg*.s", "pid*.y"])
+    assert max(d.relative for d in between) < 1e-3, [(d.name, d.relative) for d in between]
