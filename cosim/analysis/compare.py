@@ -382,3 +382,26 @@ def compare_between_events(test: Trace, ref: Trace, event_windows: Sequence[tupl
     rms = np.sqrt(np.mean(d ** 2, axis=0))
     return [Difference(n, float(d[k[j], j]), float(t[k[j]]), float(rms[j]), float(scale[j]))
             for j, n in enumerate(names)]
+
+
+def event_times(trace: Trace, name: str) -> np.ndarray:
+    """Event times [s] recorded by ``name``: an event counter when every value is a whole number
+    (:func:`times_from_counter`), else a time-of-the-last-event signal (:func:`times_from_clock`)."""
+    if name not in trace.columns:
+        raise UserError(f"event signal {name!r} is not in the trace (recorded: {', '.join(trace.names[:6])}...)")
+    v = np.asarray(trace[name], dtype=float)
+    return times_from_counter(trace, name) if np.all(v == np.rint(v)) else times_from_clock(trace, name)
+
+
+def compare_events(test: Trace, ref: Trace, names: Sequence[str], patterns: Sequence[str] | None = None,
+                   interval: float | None = None) -> tuple[list[EventTiming], list[Difference]]:
+    """Both measures across events: the :class:`EventTiming` of each event signal in ``names``
+    (matched in order) and the value error between the events (:func:`compare_between_events`,
+    windows of the event-time error plus ``interval``, by default the test trace's largest
+    output interval)."""
+    pairs = [(event_times(test, n), event_times(ref, n)) for n in names]
+    timings = [match_events(n, a, b) for n, (a, b) in zip(names, pairs)]
+    if interval is None:
+        t = test.time
+        interval = float(np.max(np.diff(t))) if len(t) > 1 else 0.0
+    return timings, compare_between_events(test, ref, windows(pairs, interval), patterns)
