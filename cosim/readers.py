@@ -8,8 +8,9 @@ Limits (a number of bytes, or ``500MB``, ``2GB``):
 
 - ``$RPR_COSIM_MAX_FILE_BYTES``: a scene, a block's Python file, a sidecar, a batch's tables and
   other metadata files (default 64 MB);
-- ``$RPR_COSIM_MAX_TRACE_BYTES``: a trace file that ``compare``, ``report`` and the batch
-  summaries read (default 2 GB; reading keeps about 0.5 byte of memory per byte of CSV text);
+- ``$RPR_COSIM_MAX_TRACE``: a trace file that ``compare``, ``report`` and the batch
+  summaries read, the same limit as a run's trace may reach (default 4 GB; reading keeps the
+  values, about 0.45 byte of memory per byte of CSV text);
 - :data:`MAX_JSON_DEPTH`: arrays and objects nested in one JSON document (sidecars, trace
   metadata lines, the guards annotation of an SSP file).
 """
@@ -23,9 +24,9 @@ from pathlib import Path
 from .errors import UserError
 
 MAX_FILE_BYTES = 64 * 10 ** 6
-MAX_TRACE_BYTES = 2 * 10 ** 9
+MAX_TRACE_BYTES = 4 * 10 ** 9
 FILE_ENV = "RPR_COSIM_MAX_FILE_BYTES"
-TRACE_ENV = "RPR_COSIM_MAX_TRACE_BYTES"
+TRACE_ENV = "RPR_COSIM_MAX_TRACE"
 #: Most arrays and objects nested in one JSON document (the workbench writes 4 levels).
 MAX_JSON_DEPTH = 64
 

@@ -99,7 +99,7 @@ def record(path: Path | str, options: PlantOptions, *, seconds: float = 5.0, rat
     names = ([f"rig.leg[{i}].u" for i in LEGS] + [f"rig.leg[{i}].raw" for i in LEGS] +
              [f"rig.leg[{i}].s" for i in LEGS] + ([f"rig.leg[{i}].i" for i in LEGS] if rows and len(rows[0]) > 10
                                                    else []))
-    units = {n_: {"u": "V", "raw": "", "s": "m", "i": "A"}[n_.rsplit(".", 1)[1]] for n_ in names}
+    units = {n_: {"u": "V", "raw": "1", "s": "m", "i": "A"}[n_.rsplit(".", 1)[1]] for n_ in names}
     truth = {"fidelity": options.fidelity, "params": dict(options.params), "start": list(options.start),
              "noise": options.noise, "latency": options.latency, "current_noise": current_noise,
              "calibration": [{"raw_zero": c.raw_zero, "raw_full": c.raw_full, "stroke_full": c.stroke_full}

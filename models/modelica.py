@@ -231,6 +231,9 @@ def front_end(text: str, model: str, filename: str) -> tuple[dict, dict, str]:
     if pid == 0:  # the child: compile, send the result or the error, exit without cleanup
         code = 0
         try:
+            import faulthandler
+
+            faulthandler.disable()  # a crash is the parent's one line, not a dump of the child's stack
             os.close(read)
             try:
                 m = _compile(text, model, filename)

@@ -4,8 +4,8 @@ The motion is any vectorised function ``motion(t) -> (q, qd, qdd)`` (each (3, le
 ``(x, y, phi)`` [m, m, rad] and its time derivatives), e.g. :meth:`PiecewiseCubic.evaluate`.  It
 is sampled on a uniform grid (``dt``, default 1 ms); every checked quantity is written as a
 margin ``g(t) >= 0`` and the first sample where a margin turns negative brackets the crossing,
-which is then located by vectorised multisection (each round evaluates 64 times in the bracket
-at once) to :data:`TIME_TOL`.
+which is then located by vectorised multisection (each round evaluates 256 times in the bracket
+at once, only the margin's group: kinematic or dynamic) to :data:`TIME_TOL`.
 
 Checked, per leg where it applies:
 
@@ -31,7 +31,7 @@ import numpy as np
 from .analysis import THESIS_LENGTH_SCALE
 from .geometry import Manipulator
 from .kinematics import numpy_map
-from .trajectory import Limits, leg_forces, leg_state
+from .trajectory import Limits, leg_dynamics
 
 #: Tolerance [s] to which a crossing's time is located.
 TIME_TOL = 1e-12
@@ -91,29 +91,35 @@ class CheckResult:
 
 # --- the margins ---------------------------------------------------------------------------------
 def _margin_functions(m: Manipulator, limits: Limits, margins: Margins, motion: Motion, det_sign: float):
-    """``names`` and ``g(t) -> (len(names), len t)`` with one row per checked margin."""
+    """``names`` and two functions ``g(t) -> (rows, len t)``: the kinematic margins (stroke, det J,
+    DSI: cheap) and the dynamic ones (leg speed, acceleration, force, power, voltage), so that a
+    root search evaluates only the group of the margin it locates."""
     geo = m.geometry_vector()
     dex = numpy_map("dexterity", THESIS_LENGTH_SCALE)
-    names = ([f"leg {i} stroke min" for i in (1, 2, 3)] + [f"leg {i} stroke max" for i in (1, 2, 3)]
-             + ["det J = 0", "|det J| margin", "mu_x margin", "mu_y margin", "mu_phi margin"]
-             + [f"leg {i} {what}" for what in ("speed", "acceleration", "force", "power", "drive voltage")
-                for i in (1, 2, 3)])
+    kin_names = ([f"leg {i} stroke min" for i in (1, 2, 3)] + [f"leg {i} stroke max" for i in (1, 2, 3)]
+                 + ["det J = 0", "|det J| margin", "mu_x margin", "mu_y margin", "mu_phi margin"])
+    dyn_names = [f"leg {i} {what}" for what in ("speed", "acceleration", "force", "power", "drive voltage")
+                 for i in (1, 2, 3)]
     drive = limits.drive
 
-    def g(t: np.ndarray) -> np.ndarray:
-        q, qd, qdd = motion(t)
+    def stack(rows, n):
+        return np.concatenate([np.broadcast_to(np.asarray(r, float), (len(r), n)) for r in rows])
+
+    def g_kin(t: np.ndarray) -> np.ndarray:
+        q, _, _ = motion(t)
         det, dsi, L = dex(q, geo)
         det = np.broadcast_to(det[0], t.shape)
-        _, Ld, Ldd = leg_state(m, q, qd, qdd)
-        F = leg_forces(m, q, qd, qdd, limits.m_act)
-        u = drive.voltage(F, Ld)
-        rows = [L - m.Lmin, m.Lmax - L, [det_sign * det], [np.abs(det) - margins.det],
-                [dsi[1] - margins.dsi], [dsi[2] - margins.dsi], [dsi[3] - margins.dsi_phi],
-                limits.leg_speed - np.abs(Ld), limits.leg_accel - np.abs(Ldd), drive.F_max - np.abs(F),
-                drive.power - np.abs(F * Ld), limits.u_max - np.abs(u)]
-        return np.concatenate([np.broadcast_to(np.asarray(r, float), (len(r), t.size)) for r in rows])
+        return stack([L - m.Lmin, m.Lmax - L, [det_sign * det], [np.abs(det) - margins.det],
+                      [dsi[1] - margins.dsi], [dsi[2] - margins.dsi], [dsi[3] - margins.dsi_phi]], t.size)
 
-    return names, g
+    def g_dyn(t: np.ndarray) -> np.ndarray:
+        q, qd, qdd = motion(t)
+        _, Ld, Ldd, F = leg_dynamics(m, q, qd, qdd, limits.m_act)
+        u = drive.voltage(F, Ld)
+        return stack([limits.leg_speed - np.abs(Ld), limits.leg_accel - np.abs(Ldd), drive.F_max - np.abs(F),
+                      drive.power - np.abs(F * Ld), limits.u_max - np.abs(u)], t.size)
+
+    return [(kin_names, g_kin), (dyn_names, g_dyn)]
 
 
 def _limit_text(name: str, m: Manipulator, limits: Limits, margins: Margins) -> str:
@@ -137,10 +143,11 @@ def _limit_text(name: str, m: Manipulator, limits: Limits, margins: Margins) -> 
 
 # --- root finding --------------------------------------------------------------------------------------
 def locate(g_row: Callable[[np.ndarray], np.ndarray], a: float, b: float, tol: float = TIME_TOL,
-           points: int = 64) -> float:
+           points: int = 256) -> float:
     """The first time in ``[a, b]`` where ``g_row`` turns negative, given ``g_row(a) >= 0 > g_row(b)``:
     vectorised multisection down to ``tol``, then one secant step inside the last bracket."""
-    ga, gb = float(g_row(np.array([a]))[0]), float(g_row(np.array([b]))[0])
+    ends = g_row(np.array([a, b]))
+    ga, gb = float(ends[0]), float(ends[1])
     while b - a > tol:
         s = np.linspace(a, b, points)
         v = g_row(s)
@@ -162,24 +169,21 @@ def check_motion(m: Manipulator, motion: Motion, t0: float, t1: float, limits: L
     q0 = motion(np.array([t0]))[0]
     det0 = numpy_map("det")(q0, m.geometry_vector())[0]
     det_sign = 1.0 if float(np.ravel(det0)[0]) >= 0 else -1.0
-    names, g = _margin_functions(m, limits, margins, motion, det_sign)
-    G = g(t)
     per_name = {}
     violations = []
-    for k, name in enumerate(names):
-        per_name[name] = G[k]
-        bad = np.nonzero(G[k] < 0)[0]
-        if not bad.size:
-            continue
-        j = int(bad[0])
-        if j == 0:
-            tc = float(t[0])
-        else:
-            tc = locate(lambda s, k=k: g(s)[k], float(t[j - 1]), float(t[j]))
-        q = motion(np.array([tc]))[0][:, 0]
-        limit = _limit_text(name, m, limits, margins) if name != "det J = 0" else _crossing_text(G[k], j)
-        violations.append(Violation(tc, (float(q[0]), float(q[1]), float(q[2])), limit,
-                                    "at the start" if j == 0 else "located by root finding"))
+    for names, g in _margin_functions(m, limits, margins, motion, det_sign):
+        G = g(t)
+        for k, name in enumerate(names):
+            per_name[name] = G[k]
+            bad = np.nonzero(G[k] < 0)[0]
+            if not bad.size:
+                continue
+            j = int(bad[0])
+            tc = float(t[0]) if j == 0 else locate(lambda s, k=k, g=g: g(s)[k], float(t[j - 1]), float(t[j]))
+            q = motion(np.array([tc]))[0][:, 0]
+            limit = _limit_text(name, m, limits, margins) if name != "det J = 0" else _crossing_text(G[k], j)
+            violations.append(Violation(tc, (float(q[0]), float(q[1]), float(q[2])), limit,
+                                        "at the start" if j == 0 else "located by root finding"))
     violations.sort(key=lambda v: v.t)
     return CheckResult(t, per_name, violations, det_sign)
 

@@ -36,13 +36,14 @@ import math
 from dataclasses import dataclass, field, replace
 from functools import lru_cache
 
+import casadi as ca
 import numpy as np
 
-from .geometry import Manipulator
-from .kinematics import leg_motion_fn, numpy_map
 from .drives import DRIVES, Drive
+from .geometry import Manipulator
+from .kinematics import NG, leg_motion, numpy_map
 from .numeric import vectorize
-from .virtual_work import inverse_dynamics_fn
+from .virtual_work import NI, inverse_dynamics_fn
 
 METHODS = ("ruckig", "toppra", "spline")
 
@@ -53,8 +54,11 @@ class TrajectoryError(ValueError):
 
 # --- limits ---------------------------------------------------------------------------------------
 def _triple(name: str, v) -> tuple[float, float, float]:
-    vals = (float(v),) * 3 if np.isscalar(v) else tuple(float(x) for x in v)
-    if len(vals) != 3 or not all(math.isfinite(x) and x > 0 for x in vals):
+    try:
+        vals = (float(v),) * 3 if np.isscalar(v) else tuple(float(x) for x in v)
+    except (TypeError, ValueError):
+        vals = ()
+    if len(vals) != 3 or not all(math.isfinite(x) and 0 < x <= 1e6 for x in vals):
         raise TrajectoryError(f"limits.{name}: expected one positive number or three (x, y, phi), got {v!r}")
     return vals  # type: ignore[return-value]
 
@@ -97,7 +101,7 @@ def limits_from(spec: dict | None) -> Limits:
     out = {}
     for key, value in spec.items():
         if key == "drive":
-            if value not in DRIVES:
+            if not isinstance(value, str) or value not in DRIVES:
                 raise TrajectoryError(f"limits.drive: {value!r} is not a drive (expected one of {', '.join(DRIVES)})")
             out[key] = DRIVES[value]
         elif key.startswith("pose_"):
@@ -107,7 +111,7 @@ def limits_from(spec: dict | None) -> Limits:
                 x = float(value)
             except (TypeError, ValueError):
                 x = math.nan
-            if not (math.isfinite(x) and (x > 0 or (key == "m_act" and x >= 0))):
+            if not (math.isfinite(x) and x <= 1e6 and (x > 0 or (key == "m_act" and x >= 0))):
                 raise TrajectoryError(f"limits.{key}: expected a positive number, got {value!r}")
             out[key] = x
     lim = replace(base, **out)
@@ -193,6 +197,10 @@ def check_waypoints(waypoints) -> np.ndarray:
     bad = np.nonzero(~np.all(np.isfinite(w), axis=1))[0]
     if bad.size:
         raise TrajectoryError(f"waypoints[{bad[0]}]: not a finite pose: {w[bad[0]].tolist()}")
+    far = np.nonzero(np.any(np.abs(w) > 100.0, axis=1))[0]
+    if far.size:
+        raise TrajectoryError(f"waypoints[{far[0]}]: {w[far[0]].tolist()} is not a pose of a planar robot "
+                              "(expected metres and radians, |value| <= 100)")
     same = np.nonzero(np.all(np.diff(w, axis=0) == 0, axis=1))[0]
     if same.size:
         raise TrajectoryError(f"waypoints[{same[0] + 1}] repeats waypoints[{same[0]}]")
@@ -260,7 +268,10 @@ def plan_spline(waypoints, times) -> PiecewiseCubic:
     from scipy.interpolate import CubicSpline
 
     w = check_waypoints(waypoints)
-    t = np.asarray(times, dtype=float)
+    try:
+        t = np.asarray(times, dtype=float)
+    except (TypeError, ValueError):
+        raise TrajectoryError(f"times: expected {len(w)} times in s, one per waypoint, got {times!r}") from None
     if t.shape != (len(w),) or not np.all(np.isfinite(t)):
         raise TrajectoryError(f"times: expected {len(w)} finite times, one per waypoint, got {list(np.ravel(t))}")
     if np.any(np.diff(t) <= 0):
@@ -283,8 +294,27 @@ def _leg_rates_np():
 
 
 @lru_cache(maxsize=None)
-def _inverse_dynamics_np():
-    return vectorize(inverse_dynamics_fn())
+def leg_dynamics_fn() -> ca.Function:
+    """``(q, qd, qdd, g, m, m_act) -> (L, Ld, Ldd, F)``: leg lengths, rates, accelerations and the
+    forces of the motion (virtual-work inverse dynamics plus ``m_act Ldd``) in one function, its
+    common subexpressions shared (one numpy replay evaluates all four)."""
+    q, qd, qdd, g, mi, ma = (ca.SX.sym(n, k) for n, k in (("q", 3), ("qd", 3), ("qdd", 3), ("g", NG), ("m", NI),
+                                                          ("m_act", 1)))
+    mot = leg_motion(q, qd, qdd, g, mi[0], mi[1])
+    F = inverse_dynamics_fn()(q, qd, qdd, g, mi) + ma * mot.Ldd
+    return ca.Function("leg_dynamics", [q, qd, qdd, g, mi, ma], [mot.L, mot.Ld, mot.Ldd, F],
+                       ["q", "qd", "qdd", "g", "m", "m_act"], ["L", "Ld", "Ldd", "F"], {"cse": True})
+
+
+@lru_cache(maxsize=None)
+def _leg_dynamics_np():
+    return vectorize(leg_dynamics_fn())
+
+
+def leg_dynamics(m: Manipulator, q, qd, qdd, m_act: float = 0.0) -> tuple[np.ndarray, ...]:
+    """``L, Ld, Ldd, F`` (each (3, ...)) of :func:`leg_dynamics_fn` over poses (3, ...)."""
+    L, Ld, Ldd, F = _leg_dynamics_np()(q, qd, qdd, m.geometry_vector(), m.inertia.vector(), [float(m_act)])
+    return L, Ld, Ldd, F
 
 
 def leg_state(m: Manipulator, q, qd, qdd) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -295,13 +325,10 @@ def leg_state(m: Manipulator, q, qd, qdd) -> tuple[np.ndarray, np.ndarray, np.nd
 
 def leg_forces(m: Manipulator, q, qd, qdd, m_act: float = 0.0) -> np.ndarray:
     """Leg forces [N] (3, ...) for the motion: virtual-work inverse dynamics plus ``m_act Ldd``."""
-    tau = _inverse_dynamics_np()(q, qd, qdd, m.geometry_vector(), m.inertia.vector())[0]
-    if m_act:
-        tau = tau + m_act * leg_state(m, q, qd, qdd)[2]
-    return tau
+    return leg_dynamics(m, q, qd, qdd, m_act)[3]
 
 
-def plan_toppra(m: Manipulator, waypoints, limits: Limits, gridpoints: int = 400) -> PiecewiseCubic:
+def plan_toppra(m: Manipulator, waypoints, limits: Limits, gridpoints: int = 100) -> PiecewiseCubic:
     """Time-optimal motion along a cubic spline through the waypoints (module docstring)."""
     import toppra as ta
     import toppra.algorithm as algo
@@ -337,9 +364,8 @@ class LegDynamicsConstraint:
         from toppra.constraint.linear_constraint import canlinear_colloc_to_interpolate
 
         def both(q, v, a):  # (6, n): leg accelerations, then forces
-            Ldd = leg_state(m, q, v, a)[2]
-            tau = _inverse_dynamics_np()(q, v, a, m.geometry_vector(), m.inertia.vector())[0] + limits.m_act * Ldd
-            return np.concatenate([Ldd, tau])
+            _, _, Ldd, F = leg_dynamics(m, q, v, a, limits.m_act)
+            return np.concatenate([Ldd, F])
 
         eye = np.vstack([np.eye(6), -np.eye(6)])
         bound = np.concatenate([[limits.leg_accel] * 3, [F_max] * 3] * 2)
@@ -412,8 +438,7 @@ def sample_times(traj: PiecewiseCubic, per_segment: int = 16, dt: float = 1e-3) 
 def leg_profile(m: Manipulator, traj: PiecewiseCubic, t: np.ndarray, limits: Limits) -> dict[str, np.ndarray]:
     """Leg length, speed, acceleration, force, power and voltage (each (3, len t)) at times ``t``."""
     q, qd, qdd = traj.evaluate(t)
-    L, Ld, Ldd = leg_state(m, q, qd, qdd)
-    F = leg_forces(m, q, qd, qdd, limits.m_act)
+    L, Ld, Ldd, F = leg_dynamics(m, q, qd, qdd, limits.m_act)
     return {"L": L, "Ld": Ld, "Ldd": Ldd, "F": F, "P": F * Ld, "u": limits.drive.voltage(F, Ld)}
 
 

@@ -64,6 +64,19 @@ def test_ruckig_keeps_its_pose_limits_and_passes_every_waypoint():
     jerk = (qs[3] - 3 * qs[2] + 3 * qs[1] - qs[0]) / w ** 3
     for d in range(3):
         assert np.max(np.abs(jerk[d])) <= lim.pose_jerk[d] * (1 + 1e-6)
+    # exactly, from the segments' own polynomials: the rate is quadratic on a segment (extremes at
+    # its ends or at tau = -A/J), the acceleration linear (extremes at its ends)
+    seg = np.diff(traj.breaks)[:, None]
+    ends = [traj.V, traj.V + traj.A * seg + traj.J * seg ** 2 / 2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        tau = np.where(traj.J != 0, -traj.A / traj.J, 0.0)
+    tau = np.clip(tau, 0.0, seg)
+    inner = traj.V + traj.A * tau + traj.J * tau ** 2 / 2
+    v_peak = np.max(np.abs(np.stack(ends + [inner])), axis=(0, 1))
+    a_peak = np.max(np.abs(np.stack([traj.A, traj.A + traj.J * seg])), axis=(0, 1))
+    assert np.all(v_peak <= np.array(lim.pose_speed) * (1 + REL)), v_peak
+    assert np.all(a_peak <= np.array(lim.pose_accel) * (1 + REL)), a_peak
+    assert np.all(np.max(np.abs(traj.J), axis=0) <= np.array(lim.pose_jerk) * (1 + REL))
     # at least one limit is reached (the move is time-optimal per coordinate)
     assert np.max(np.abs(vel[0])) >= 0.999 * lim.pose_speed[0]
 

@@ -29,12 +29,13 @@ def overlay_text(result: FitResult, scene_file: Path, where: Path, sets: Sequenc
         _nested(tree, _split_path(path), value)
     for e in result.estimates:
         _nested(tree, ["components", e.unknown.component, "params", e.unknown.name], float(f"{e.value:.10g}"))
-    include = os.path.relpath(Path(scene_file).resolve(), Path(where).resolve().parent)
+    include = os.path.relpath(os.path.abspath(scene_file), os.path.abspath(Path(where).parent))
     lines = [f"# {scene.name} calibrated by rpr-cosim fit against {result.problem.data_path.name}:",
              f"# weighted RMS residual {result.rms_start:.4g} -> {result.rms_end:.4g} (relative to each signal's range)"]
     for e in result.estimates:
         ci = "not identifiable from these data" if e.half_width == float("inf") else f"+-{e.half_width:.3g}"
-        lines.append(f"#   {e.unknown.path} = {e.value:.6g} {e.unknown.unit} (95 %: {ci}; was {e.unknown.start:.6g})")
+        unit = "" if e.unknown.unit in ("", "1") else f" {e.unknown.unit}"
+        lines.append(f"#   {e.unknown.path} = {e.value:.6g}{unit} (95 %: {ci}; was {e.unknown.start:.6g})")
     body = yaml.safe_dump({"include": include, "name": f"{scene.name}_fitted",
                            "description": f"{scene.name} with parameters fitted to {result.problem.data_path.name}",
                            **tree}, sort_keys=False, default_flow_style=False)

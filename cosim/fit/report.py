@@ -18,6 +18,10 @@ def _interval(half: float, value: float) -> str:
     return f"+-{half:.3g}{rel}"
 
 
+def _unit(unit: str) -> str:
+    return "" if unit in ("", "1") else unit
+
+
 def lines(result: FitResult) -> list[str]:
     """The estimates, residuals and what the data cannot tell apart, one item a line."""
     pb = result.problem
@@ -29,11 +33,11 @@ def lines(result: FitResult) -> list[str]:
     for e in result.estimates:
         bound = "  at a bound" if e.unknown.path in result.at_bound else ""
         out.append(f"  {e.unknown.path:<{width}}  {e.unknown.start:>12.6g}  {e.value:>12.6g}  "
-                   f"{_interval(e.half_width, e.value):>22}  {e.unknown.unit}{bound}")
+                   f"{_interval(e.half_width, e.value):>22}  {_unit(e.unknown.unit)}{bound}")
     out.append(f"  residual (weighted RMS, relative to each signal's range): {result.rms_start:.4g} -> "
                f"{result.rms_end:.4g}")
     for s, unit, a, b in zip(pb.signals, pb.units, result.signal_rms_start, result.signal_rms_end):
-        out.append(f"    {s}: RMS {a:.4g} -> {b:.4g} {unit}")
+        out.append(f"    {s}: RMS {a:.4g} -> {b:.4g} {_unit(unit)}".rstrip())
     for group in result.unseen:
         out.append(f"  cannot tell apart (the data do not see a combination of them): {', '.join(group)}")
     loose = {e.unknown.path for e in result.estimates if not e.relative <= WIDE}

@@ -6,8 +6,8 @@ optimiser of ours.  Gauss-Newton-type steps need only the residuals' Jacobian, w
 model gives exactly; an NLP solver (IPOPT) would need the Hessian of the sum of squares or a
 quasi-Newton one, and does no better on a small, well-scaled least-squares problem.
 
-Statistics at the estimate, from the Jacobian ``J`` of the weighted residuals (columns scaled by
-the estimates, so that the ranks and correlations do not depend on units):
+Statistics at the estimate, from the Jacobian ``J`` of the weighted residuals (each column scaled
+to unit length, so that the ranks and correlations depend neither on units nor on a value at 0):
 
 - each signal's noise variance from its own residuals (``sigma_s^2 = mean r_s^2 * n / (n - p)``),
   so a signal with a larger noise (relative to its range) counts for less in the covariance;
@@ -32,7 +32,7 @@ from .problem import Problem, Unknown
 Z95 = 1.959963984540054
 RANK_TOL = 1e-7
 CORRELATED = 0.95
-#: Weight (in the estimates' relative units) above which an unseen direction moves a parameter.
+#: Weight (in the unit-length columns' space) above which an unseen direction moves a parameter.
 NULL_WEIGHT = 1e-4
 #: How far inside a bound a start on it is moved (relative), as the trust region needs.
 INSIDE = 1e-9
@@ -120,7 +120,8 @@ def solve(problem: Problem, *, start: np.ndarray | None = None, max_evaluations:
 def _statistics(problem: Problem, theta: np.ndarray, r: np.ndarray, J: np.ndarray):
     """95 % half-widths, correlation matrix, and the parameters of each unseen direction."""
     m, n, p = len(problem.signals), len(problem.time), len(theta)
-    d = np.where(theta != 0, np.abs(theta), 1.0)
+    norms = np.linalg.norm(J, axis=0)
+    d = np.where(norms > 0, 1.0 / np.where(norms > 0, norms, 1.0), 1.0)  # unit-free columns (Jacobi scaling)
     Js = J * d
     U, S, Vt = np.linalg.svd(Js, full_matrices=False)
     keep = S > RANK_TOL * S[0] if len(S) and S[0] > 0 else np.zeros(len(S), dtype=bool)

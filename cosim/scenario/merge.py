@@ -40,7 +40,7 @@ def _kind(spec: Any) -> tuple[str, Any]:
         if "hardware" in spec:
             return "hardware", "board"
         if "replay" in spec:
-            return "replay", spec.get("replay")
+            return "replay", None  # another recording of the same signals: interpolation and units stay
     return "", None
 
 

@@ -230,11 +230,13 @@ def _module_digest(module) -> str:
 def read_modelica(path: Path) -> str:
     """The text of a Modelica file (:class:`UserBlockError` when it cannot be read)."""
     from ..errors import UserError
-    from ..readers import read_regular
+    from ..readers import byte_limit, read_regular
     from models.modelica import MAX_SOURCE_BYTES
 
+    env = "RPR_COSIM_MAX_MODELICA_BYTES"  # may lower the front end's own bound, not raise it
     try:
-        return read_regular(path, "Modelica file", MAX_SOURCE_BYTES, "RPR_COSIM_MAX_MODELICA_BYTES").decode("utf-8")
+        return read_regular(path, "Modelica file", min(MAX_SOURCE_BYTES, byte_limit(env, MAX_SOURCE_BYTES)),
+                            env).decode("utf-8")
     except UserError as exc:
         raise UserBlockError(str(exc)) from None
     except UnicodeDecodeError as exc:

@@ -339,16 +339,13 @@ class FmuSlave(Slave):
     #: :meth:`release` frees it for good.  Used by batches (:mod:`cosim.batch`).
     reuse: bool = False
 
-    #: Set by the run for an algorithm that never restores a state (fixed-step, ecco): every
-    #: doStep then promises ``noSetFMUStatePriorToCurrentPoint = true``.
-    forward_only: bool = False
     #: Workaround from the behavioural check (:mod:`cosim.slaves.behaviour`) for an FMU that does
     #: not advance when that flag is false: pass true always, rollbacks included.
     always_no_prior: bool = False
 
     @property
     def no_prior(self) -> bool:
-        """The ``noSetFMUStatePriorToCurrentPoint`` this slave's doSteps pass."""
+        """The ``noSetFMUStatePriorToCurrentPoint`` this slave's doSteps pass (the workaround too)."""
         return self.forward_only or self.always_no_prior or not self.can_rollback
 
     # lifecycle ---------------------------------------------------------------------------------

@@ -1,8 +1,9 @@
 """Traces: outputs at communication points, recorded by observers apart from stepping.
 
-An observer gets ``start(columns, meta)``, then ``record(rows)`` any number of times (a 2-D array,
-column 0 is time [s], the others the recorded variables named ``component.variable``), then
-``finish(status, reason, stats)`` exactly once, also after a failure or an interrupt.
+An observer (:class:`cosim.trace.observer.Observer`) gets ``start(columns, meta)``, then
+``record(rows)`` any number of times (a 2-D array, column 0 is time [s], the others the recorded
+variables named ``component.variable``), then ``finish(status, reason, stats)`` exactly once, also
+after a failure or an interrupt.
 
 Trace files come in three formats (:data:`TRACE_FORMATS`), all streamed as the run goes, with a
 sidecar ``<name>.json`` holding the metadata (scene hash, algorithm, step, package versions, the
@@ -30,13 +31,13 @@ import platform
 import queue
 import threading
 import time
-from abc import ABC, abstractmethod
 from dataclasses import dataclass, field
 from functools import lru_cache
 from pathlib import Path
 
 import numpy as np
 
+from .observer import Observer
 from .text import json_text, rows_text
 from ..errors import UserError
 
@@ -80,23 +81,6 @@ def _package_versions() -> dict[str, str]:
                          ("fmpy", "fmpy"), ("PyYAML", "yaml")):
         out[dist] = installed_version(dist, module) or "not installed"
     return out
-
-
-class Observer(ABC):
-    """Receives the rows of a run (see the module docstring for the call order)."""
-
-    @abstractmethod
-    def start(self, columns: list[str], meta: dict) -> None: ...
-
-    @abstractmethod
-    def record(self, rows: np.ndarray) -> None: ...
-
-    @abstractmethod
-    def finish(self, status: str, reason: str, stats: dict) -> None: ...
-
-    def record_text(self, t: float, column: str, value: str) -> None:
-        """A String or Binary variable (``column``) took ``value`` (Binary as hexadecimal) at ``t``
-        [s]; called when it changes, between ``record`` calls.  Ignored by default."""
 
 
 @dataclass
@@ -575,9 +559,9 @@ def read_trace(path: Path) -> Trace:
     """Read a trace in any of :data:`TRACE_FORMATS` (partial or complete; a last CSV row cut
     short by a crash is dropped), or a plain CSV from another tool (first column time).
 
-    Bounded (:mod:`cosim.readers`): a regular file of at most ``$RPR_COSIM_MAX_TRACE_BYTES``
-    (default 2 GB), lines of at most :data:`MAX_LINE_BYTES`, read a block of rows at a time (about
-    half a byte of memory per byte of CSV), metadata lines depth-bounded JSON of the types of
+    Bounded (:mod:`cosim.readers`): a regular file of at most ``$RPR_COSIM_MAX_TRACE``
+    (default 4 GB, what a run may write), lines of at most :data:`MAX_LINE_BYTES`, read a block of rows at a time into one array grown in place (about
+    0.45 byte of memory per byte of CSV), metadata lines depth-bounded JSON of the types of
     :data:`META_TYPES`; anything else is a one-line :class:`UserError`."""
     from ..outputs import settle_if_stale
     from ..readers import TRACE_ENV, open_regular
@@ -640,7 +624,7 @@ def _read_csv(fh, path: Path) -> tuple[list[str], np.ndarray, dict, dict]:
     meta: dict = {}
     text: dict[str, list[tuple[float, str]]] = {}
     columns: list[str] | None = None
-    blocks: list[np.ndarray] = []
+    rows = _Rows(os.fstat(fh.fileno()).st_size)
     pending: list[tuple[int, bytes]] = []
     offset = 0
 
@@ -650,10 +634,13 @@ def _read_csv(fh, path: Path) -> tuple[list[str], np.ndarray, dict, dict]:
         joined = b",".join(ln.strip() for _, ln in pending)
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            vals = np.fromstring(joined.decode("ascii", "replace"), dtype=float, sep=",")
+            try:
+                vals = np.fromstring(joined.decode("ascii", "replace"), dtype=float, sep=",")
+            except ValueError:  # a cell that is not a number: the line-by-line parse names its line
+                vals = np.zeros(0)
         if vals.size != len(pending) * len(columns) or any(ln.count(b",") != len(columns) - 1 for _, ln in pending):
             vals = np.array([_row(ln, lineno, len(columns), path) for lineno, ln in pending], dtype=float)
-        blocks.append(vals.reshape(-1, len(columns)))
+        rows.add(vals.reshape(-1, len(columns)), offset)
         pending.clear()
 
     lineno = 0
@@ -662,10 +649,10 @@ def _read_csv(fh, path: Path) -> tuple[list[str], np.ndarray, dict, dict]:
         if not raw:
             break
         lineno += 1
-        if len(raw) > MAX_LINE_BYTES:
-            raise UserError(f"{path}:{lineno}: a line longer than {MAX_LINE_BYTES:,} bytes; not an rpr-cosim trace")
         if b"\0" in raw:
             raise UserError(f"{path}: not an rpr-cosim trace (binary data)")
+        if len(raw) > MAX_LINE_BYTES:
+            raise UserError(f"{path}:{lineno}: a line longer than {MAX_LINE_BYTES:,} bytes; not an rpr-cosim trace")
         try:
             line = raw.decode("utf-8")
         except UnicodeDecodeError as exc:
@@ -704,8 +691,35 @@ def _read_csv(fh, path: Path) -> tuple[list[str], np.ndarray, dict, dict]:
     if columns is None:
         raise UserError(f"{path}: no column header; is this an rpr-cosim trace?")
     flush()
-    data = np.vstack(blocks) if blocks else np.zeros((0, len(columns)))
+    data = rows.array(len(columns))
     return columns, data, meta, text
+
+
+class _Rows:
+    """The rows of a trace gathered into one array grown in place: sized from the file's bytes
+    per row so far, so that the whole is about one copy of the values (no list of blocks
+    stacked at the end, which would hold two)."""
+
+    def __init__(self, file_bytes: int) -> None:
+        self.file_bytes, self.n, self.buf = file_bytes, 0, None
+
+    def add(self, block: np.ndarray, read_bytes: int) -> None:
+        need = self.n + len(block)
+        if self.buf is None or need > len(self.buf):
+            per_row = max(1.0, read_bytes / need)
+            guess = max(need, int(1.02 * self.file_bytes / per_row) + 1)
+            grown = np.empty((guess if self.buf is None else max(guess, int(1.25 * need)), block.shape[1]))
+            if self.buf is not None:
+                grown[:self.n] = self.buf[:self.n]
+            self.buf = grown
+        self.buf[self.n:need] = block
+        self.n = need
+
+    def array(self, ncols: int) -> np.ndarray:
+        if self.buf is None:
+            return np.zeros((0, ncols))
+        self.buf.resize((self.n, ncols), refcheck=False)  # the unused tail freed in place (realloc)
+        return self.buf
 
 
 def _row(raw: bytes, lineno: int, n: int, path: Path) -> list[float]:

@@ -271,7 +271,7 @@ void board_tick(Board *b, int64_t now, int64_t late_ns) {
 
 /* --- datagrams ----------------------------------------------------------------------------- */
 static size_t seal(const HmacKey *k, uint8_t *d, int type, uint32_t session, uint32_t seq, int64_t now, size_t body) {
-    d[0] = 'R'; d[1] = 'P'; d[2] = PROTO_VERSION; d[3] = (uint8_t)type;
+    d[0] = PROTO_MAGIC0; d[1] = PROTO_MAGIC1; d[2] = PROTO_VERSION; d[3] = (uint8_t)type;
     put32(d + 4, session);
     put32(d + 8, seq);
     put64(d + 12, (uint64_t)now);
@@ -419,7 +419,7 @@ size_t board_handle(Board *b, const uint8_t *d, size_t n, int64_t now, uint8_t *
     int i, type;
     float volts[LEGS];
     b->counters[C_RECEIVED]++;
-    if (n < HDR + MAC || d[0] != 'R' || d[1] != 'P' || d[2] != PROTO_VERSION) {
+    if (n < HDR + MAC || d[0] != PROTO_MAGIC0 || d[1] != PROTO_MAGIC1 || d[2] != PROTO_VERSION) {
         b->counters[C_MALFORMED]++;
         return 0;
     }

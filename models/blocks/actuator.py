@@ -188,9 +188,9 @@ def motor_rig(integrator: str = "rk4", substeps: int = 4) -> Block:
                      lower=0.0, upper=0.1)
     s0 = [ps.add(f"leg[{i}].s0", S_OFFSET + STROKE / 2, "m", f"leg {i} length at the start", lower=0.0)
           for i in (1, 2, 3)]
-    rz = [ps.add(f"leg[{i}].raw_zero", 0.0, "", f"leg {i} pot: ADC counts at zero stroke", lower=-4096.0,
+    rz = [ps.add(f"leg[{i}].raw_zero", 0.0, "1", f"leg {i} pot: ADC counts at zero stroke", lower=-4096.0,
                  upper=4096.0) for i in (1, 2, 3)]
-    rf = [ps.add(f"leg[{i}].raw_full", RAW_FULL, "", f"leg {i} pot: ADC counts at pot_length", lower=1.0,
+    rf = [ps.add(f"leg[{i}].raw_full", RAW_FULL, "1", f"leg {i} pot: ADC counts at pot_length", lower=1.0,
                  upper=1e5) for i in (1, 2, 3)]
     u = ca.SX.sym("u", 3)
     xs = ca.SX.sym("x", 6)  # stroke, shaft speed per leg
@@ -209,7 +209,7 @@ def motor_rig(integrator: str = "rk4", substeps: int = 4) -> Block:
                    Var(f"state.leg[{i}].w", "rad/s", f"leg {i} motor speed")]
         outputs += [Var(f"leg[{i}].s", "m", f"leg {i} length"), Var(f"leg[{i}].stroke", "m", f"leg {i} stroke"),
                     Var(f"leg[{i}].v", "m/s", f"leg {i} extension rate"), Var(f"leg[{i}].i", "A", f"leg {i} current"),
-                    Var(f"leg[{i}].raw", "", f"leg {i} pot reading [ADC counts, before rounding]")]
+                    Var(f"leg[{i}].raw", "1", f"leg {i} pot reading [ADC counts, before rounding]")]
         start += [ca.fmin(stroke_max, ca.fmax(0, s0[j] - s_offset)), ca.SX(0)]
     return Block.build("linear_actuator", description="three lead-screw actuators, each a DC motor, read by "
                                                       "potentiometers (the rig, SPEC §7)",

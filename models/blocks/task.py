@@ -16,6 +16,9 @@ The clock is a state ``clock.t`` starting at ``t0`` (the scene's start time).
 """
 from __future__ import annotations
 
+import json
+from functools import lru_cache
+
 import casadi as ca
 import numpy as np
 
@@ -51,6 +54,19 @@ def piecewise_cubic(traj: PiecewiseCubic, t: ca.SX) -> tuple[ca.SX, ca.SX, ca.SX
     return q, qd, qdd
 
 
+@lru_cache(maxsize=32)
+def _planned(spec: str):
+    """The task and its motion for a task mapping (as JSON: a scene's loading and its checks build
+    the same block several times, and a toppra plan takes a fraction of a second)."""
+    try:
+        task = task_from(json.loads(spec))
+        return task, task.plan()
+    except TrajectoryError as exc:
+        raise BlockError(f"task_trajectory: {exc}") from None
+    except (ValueError, TypeError, ArithmeticError, RuntimeError) as exc:  # a planner refusing odd numbers
+        raise BlockError(f"task_trajectory: the task cannot be planned ({type(exc).__name__}: {exc})") from None
+
+
 def task_trajectory(config: str = "cross_leg", waypoints=None, method: str = "ruckig", times=None,
                     limits=None, margins=None, start: float = 0.0) -> Block:
     """The trajectory source of a planned task (module docstring)."""
@@ -59,11 +75,7 @@ def task_trajectory(config: str = "cross_leg", waypoints=None, method: str = "ru
         spec["times"] = times
     if margins is not None:
         spec["margins"] = margins
-    try:
-        task = task_from(spec)
-        traj = task.plan()
-    except TrajectoryError as exc:
-        raise BlockError(f"task_trajectory: {exc}") from None
+    task, traj = _planned(json.dumps(spec, sort_keys=True, default=repr))
     drive = task.limits.drive
     ps = ParamSet()
     g = geometry_params(ps, config)
