@@ -470,3 +470,24 @@ def test_compare_cli_measures_event_times_and_values_between_events(tmp_path, ca
     text = capsys.readouterr().out
     assert "events mass.t_stick: 9 matched" in text and "(values between events)" in text
     assert main(["compare", test, ref, "--tol", "1e-3", "--events", "mass.t_slip", "--event-tol", "1e-6"]) == 1
+
+
+def test_the_estimate_leaves_out_the_instants_around_events():
+    """A switch placed one step apart in a run and its companion: across it the max-norm reads the
+    jump (0.5 of range: 'unstable'); with the event marked (two rows at one time, or reported by
+    the master), the estimate measures the smooth error between events."""
+    from cosim.master.estimate import richardson
+
+    t = np.linspace(0.0, 1.0, 101)
+    tc = np.linspace(0.0, 1.0, 201)
+    smooth = lambda s, e: np.sin(3 * s) + e * s  # noqa: E731  (a small coupling error e)
+    x = (smooth(t, 1e-4) + (t >= 0.50)).reshape(-1, 1)
+    xc = (smooth(tc, 0.0) + (tc >= 0.505)).reshape(-1, 1)
+    plain = richardson(t, x, tc, xc, ["y"], 1.0, "test")
+    marked = richardson(t, x, tc, xc, ["y"], 1.0, "test", events=[0.5])
+    assert plain.worst > 0.3
+    assert marked.worst == pytest.approx(1e-4 / (np.ptp(x)), rel=0.2)
+    # the two-row convention marks the event by itself
+    t2 = np.insert(t, 50, 0.5)
+    x2 = np.insert(x, 50, smooth(0.5, 1e-4), axis=0)
+    assert richardson(t2, x2, tc, xc, ["y"], 1.0, "test").worst < 2e-4
