@@ -491,3 +491,31 @@ def test_the_estimate_leaves_out_the_instants_around_events():
     t2 = np.insert(t, 50, 0.5)
     x2 = np.insert(x, 50, smooth(0.5, 1e-4), axis=0)
     assert richardson(t2, x2, tc, xc, ["y"], 1.0, "test").worst < 2e-4
+
+
+def test_block_builder_events_give_the_catalog_pendulum(cache):
+    """The pendulum written with BlockBuilder's mode/when (the how-to's example) hits the same
+    analytic impact times as the catalog block."""
+    from models.user import BlockBuilder
+
+    b = BlockBuilder("bouncer", "pendulum against a stop, written with BlockBuilder")
+    L = b.param("L", 0.5, "m", "rod length", lower=1e-9)
+    e = b.param("e", 0.7, "1", "restitution", lower=0.0, upper=1.0)
+    th = b.state("theta", 1.0, "rad", "angle from the downward vertical")
+    w = b.state("omega", 0.0, "rad/s", "angular rate")
+    hits = b.mode("hits", 0.0, "1", "impacts so far")
+    last = b.mode("t_hit", 0.0, "s", "time of the last impact")
+    b.der(th, w)
+    b.der(w, -9.81 / L * ca.sin(th))
+    b.output("angle", th, "rad", "angle")
+    b.when(th, {w: -e * w, hits: hits + 1, last: b.time()}, direction=-1, name="stop")
+    blk = b.build(substeps=10)
+    s = Slave(build_fmu(blk, cache_dir=cache)).start()
+    t, times = 0.0, []
+    while len(times) < 5:
+        s.fmu.doStep(t, 0.01)
+        t += 0.01
+        n, when = s.get("hits", "t_hit")
+        if n > len(times):
+            times.append(when)
+    assert np.max(np.abs(np.array(times) - analytic_impacts(5))) < 1e-9
