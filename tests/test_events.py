@@ -519,3 +519,20 @@ def test_block_builder_events_give_the_catalog_pendulum(cache):
         if n > len(times):
             times.append(when)
     assert np.max(np.abs(np.array(times) - analytic_impacts(5))) < 1e-9
+
+
+def test_rig_step_with_sampled_adc_and_pwm_settles_within_one_count(cache):
+    """The ADC's and PWM's samples as time events in the loop: the run is ok, the ADC reports
+    whole codes, and each leg ends within one count (0.171 mm) of its target."""
+    from cosim.run.execute import run
+
+    res = run(ROOT / "scenarios" / "rig_step_sampled.yaml", cache_dir=cache)
+    assert res.ok, res.reason
+    tr = res.trace
+    count = 0.635 * 11e3 / (4096 * 10e3)
+    for i in (1, 2, 3):
+        raw = tr[f"adc.raw[{i}]"]
+        assert np.all(raw == np.rint(raw)) and raw.min() >= 0 and raw.max() <= 4095
+        assert abs(tr[f"rig.leg[{i}].s"][-1] - tr[f"target.leg[{i}].s"][-1]) < count
+        steps = np.diff(tr[f"adc.y[{i}]"]) / count  # the read-back length moves in whole counts
+        assert np.allclose(steps, np.rint(steps), atol=1e-6)
