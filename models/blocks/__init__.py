@@ -79,7 +79,8 @@ def _entries() -> dict[str, dict[str, _Entry]]:
                                       "state and a stiff spring-damper bond)", choices=motor.ROTOR)
     act = Option("actuator", "fa200", "actuator preset giving the parameter defaults: Firgelli FA-200-L-12 or "
                                       "the thesis's 'X' actuator", choices=tuple(actuator.ACTUATORS))
-    channels = Option("channels", 1, "number of channels (legs)", check=positive_int)
+    channels = Option("channels", 1, "number of channels (legs), 1 to 64",
+                      check=lambda v: positive_int(v) or (None if v <= 64 else "must be at most 64"))
     stops = Option("end_stops", "clamp", "end stops: 'clamp' (rate zeroed at the ends) or 'impact' (arrivals located "
                                          "as events, restitution e, rest on the stop)", choices=actuator.END_STOPS)
     return {
