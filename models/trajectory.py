@@ -58,8 +58,8 @@ def _triple(name: str, v) -> tuple[float, float, float]:
         vals = (float(v),) * 3 if np.isscalar(v) else tuple(float(x) for x in v)
     except (TypeError, ValueError):
         vals = ()
-    if len(vals) != 3 or not all(math.isfinite(x) and 0 < x <= 1e6 for x in vals):
-        raise TrajectoryError(f"limits.{name}: expected one positive number or three (x, y, phi), got {v!r}")
+    if len(vals) != 3 or not all(math.isfinite(x) and 1e-6 <= x <= 1e6 for x in vals):
+        raise TrajectoryError(f"limits.{name}: expected one number or three (x, y, phi) in 1e-6 .. 1e6, got {v!r}")
     return vals  # type: ignore[return-value]
 
 
@@ -111,8 +111,9 @@ def limits_from(spec: dict | None) -> Limits:
                 x = float(value)
             except (TypeError, ValueError):
                 x = math.nan
-            if not (math.isfinite(x) and x <= 1e6 and (x > 0 or (key == "m_act" and x >= 0))):
-                raise TrajectoryError(f"limits.{key}: expected a positive number, got {value!r}")
+            if not (math.isfinite(x) and x <= 1e6 and (x >= 1e-6 or (key == "m_act" and x >= 0))):
+                raise TrajectoryError(f"limits.{key}: expected a number in 1e-6 .. 1e6"
+                                      + (" (or 0)" if key == "m_act" else "") + f", got {value!r}")
             out[key] = x
     lim = replace(base, **out)
     if lim.u_max > lim.drive.U:
@@ -511,7 +512,21 @@ def plan(m: Manipulator, waypoints, method: str = "ruckig", limits: Limits | Non
     if method == "spline" or times is not None:
         if times is None:
             raise TrajectoryError("method spline: give one time per waypoint (times: [...])")
-        return plan_spline(waypoints, times)
+        return _within_duration(plan_spline(waypoints, times))
     if method == "ruckig":
-        return plan_ruckig(waypoints, limits)
-    return fit_to_limits(m, plan_toppra(m, waypoints, limits), limits)[0]
+        traj = plan_ruckig(waypoints, limits)
+    else:
+        traj = fit_to_limits(m, _within_duration(plan_toppra(m, waypoints, limits)), limits)[0]
+    return _within_duration(traj)
+
+
+#: Longest motion [s] a plan may take (a day: beyond it the limits are mistaken, and sampling it
+#: every millisecond would not fit in memory).
+MAX_DURATION = 86400.0
+
+
+def _within_duration(traj: PiecewiseCubic) -> PiecewiseCubic:
+    if not (math.isfinite(traj.duration) and traj.duration <= MAX_DURATION):
+        raise TrajectoryError(f"the motion would last {traj.duration:.4g} s (at most {MAX_DURATION:g} s): "
+                              "are the limits in m/s, m/s2 and V?")
+    return traj
