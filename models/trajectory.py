@@ -428,7 +428,9 @@ class Peaks:
 
 
 def sample_times(traj: PiecewiseCubic, per_segment: int = 16, dt: float = 1e-3) -> np.ndarray:
-    """Every break, ``per_segment`` points inside each segment, and a ``dt`` grid [s]."""
+    """Every break, ``per_segment`` points inside each segment, and a ``dt`` grid [s] (coarser
+    for a motion longer than :data:`MAX_SAMPLES` ``dt``)."""
+    dt = max(dt, traj.duration / MAX_SAMPLES)
     inner = (traj.breaks[:-1, None] + np.diff(traj.breaks)[:, None] * np.linspace(0, 1, per_segment + 1)[None, :])
     uniform = np.arange(traj.breaks[0], traj.breaks[-1], dt)
     return np.unique(np.concatenate([inner.ravel(), uniform, [traj.breaks[-1]]]))
@@ -520,6 +522,8 @@ def plan(m: Manipulator, waypoints, method: str = "ruckig", limits: Limits | Non
     return _within_duration(traj)
 
 
+#: Most samples of a motion's uniform grid (memory: a few hundred bytes per sample).
+MAX_SAMPLES = 1_000_000
 #: Longest motion [s] a plan may take (a day: beyond it the limits are mistaken, and sampling it
 #: every millisecond would not fit in memory).
 MAX_DURATION = 86400.0
