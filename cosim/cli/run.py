@@ -212,6 +212,11 @@ def _reference(scene, res, out: Path, plot: bool, trace_format: str = "csv"):
                       f"below cover the common span only")
         print("co-simulation against the reference:")
         print(format_table(diffs, most=12, estimates=(res.stats.get("estimate") or {}).get("errors")))
+        n_events = (st.get("events") or {}).get("count", 0)
+        if n_events:
+            print(f"note: the reference has {n_events} events; the errors above are max-norms across them (a jump "
+                  f"placed a hair apart reads as an error its size): `rpr-cosim compare TEST REFERENCE --events "
+                  f"SIGNAL` measures the event times and the values between events (docs/explanation/events.md)")
         if plot:
             from ..scenario.units import units_of
 
