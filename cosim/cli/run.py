@@ -77,9 +77,9 @@ def _load_and_run(args: argparse.Namespace) -> int:
     from ..errors import UserError
     from ..run.execute import estimate
 
-    refused = _motion_checks(scene, args)
     if args.check:
         _describe(scene)
+        refused = _motion_checks(scene, args)
         try:
             _describe_choice(scene)
         except UserError as exc:
@@ -92,7 +92,7 @@ def _load_and_run(args: argparse.Namespace) -> int:
             say(f"rpr-cosim run: {exc}")
             return 2
         return 1 if refused else 0
-    if refused:
+    if _motion_checks(scene, args):
         say("rpr-cosim run: nothing was run")
         return 1
     check_trace_size(scene, args.max_trace)
