@@ -63,3 +63,11 @@ def test_the_chapter_7_sine_path_is_a_task():
     q, qd, _ = traj.evaluate(s)
     assert np.max(np.abs(q[0] - (-0.25 + 0.05 * np.sin(math.pi * s)))) < 2e-6
     assert np.max(np.abs(qd[1] - 0.05 * math.pi * np.cos(math.pi * s))) < 1e-4
+
+
+def test_a_check_too_long_to_sample_is_one_line(tmp_path, capsys):
+    path = tmp_path / "slow.yaml"
+    path.write_text("waypoints: [[-0.15, -0.15, 0], [-0.2, -0.15, 0.2]]\ntimes: [0, 5000]\n")
+    assert main(["task", "check", str(path), "--dt", "1e-3", "--out", str(tmp_path)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "at most 1000000" in err[0]
