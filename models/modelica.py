@@ -10,8 +10,10 @@ our exporter (:mod:`fmus`: our integrators, our C core, strict FMI).
 What a model may contain (anything else is refused with ``file:line: construct``):
 
 - ``parameter Real`` with a value (a number, or an expression of other parameters: then it is
-  computed, not settable), a ``unit`` and a description string; ``min``/``max`` become bounds;
-- ``input Real`` / ``output Real`` with unit and description;
+  computed, not settable); ``min``/``max`` become bounds;
+- ``input Real`` / ``output Real``.  Units and description strings are optional, as in Modelica:
+  a variable without a unit is exported with none (unknown; a wildcard in the unit check), a
+  unit this module cannot read is exported with none too, and the description says which;
 - continuous ``Real`` variables; those that appear in ``der()`` are states (start value from
   ``start``, a number or an expression of parameters; exported as ``state.<name>``);
 - equations (acausal: the residuals are sorted and solved symbolically: one unknown at a time
@@ -481,29 +483,35 @@ class _Translation:
 
     def _finish(self, b: BlockBuilder, integrator: str, substeps: int) -> Block:
         if integrator != "auto":
-            return b.build(integrator=integrator, substeps=substeps)
+            return b.build(integrator=integrator, substeps=substeps, units_required=False)
         from .integrators import affine_parts
 
-        probe = b.build(integrator="rk4", substeps=substeps)  # (building does not change the builder)
+        probe = b.build(integrator="rk4", substeps=substeps, units_required=False)  # (building does not change the builder)
         if not probe.states or affine_parts(probe) is not None:
             exact = dataclasses.replace(probe, integrator="exact" if probe.states else "none")
             exact.check()
             return exact
-        return b.build(integrator="radau", substeps=substeps)
+        return b.build(integrator="radau", substeps=substeps, units_required=False)
 
     @staticmethod
     def _is_output(v: dict) -> bool:
         return v["attributes"].get("causality") == "output"
 
     def _doc(self, v: dict, kind: str) -> tuple[str, str]:
+        """``(unit, description)`` of a variable as the block declares it.  Both are optional in
+        Modelica: a missing unit is exported as none (unknown, a wildcard in the unit check), a
+        unit :mod:`models.units` does not read is shown in the description and exported as none,
+        and the description then says so."""
         a = v["attributes"]
         unit, text = (a.get("unit") or "").strip(), (a.get("description") or "").strip()
+        note = ""
         if not unit:
-            self._err(v, f"{kind} {v['name']!r} has no unit (declare it, e.g. Real {v['name']}(unit = \"1\") or "
-                         f"a type such as type Force = Real(unit = \"N\"))")
-        if not text:
-            self._err(v, f"{kind} {v['name']!r} has no description string")
-        return unit, text
+            note = "unit unknown: none declared"
+        elif units.parse(unit) is None:
+            note, unit = f"unit {unit!r} unknown here: not checked", ""
+        if note:
+            text = f"{text} ({note})" if text else f"{kind} {v['name']} (no description; {note})"
+        return unit, text or f"{kind} {v['name']} (no description)"
 
     def _parameter(self, b: BlockBuilder, k: int) -> None:
         v = self.vars[k]

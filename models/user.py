@@ -35,14 +35,14 @@ from .block import Block, BlockError, Flange, Param, Rating, Var
 from .interface import suggest
 
 
-def require_documented(block: Block, where: str = "") -> None:
+def require_documented(block: Block, where: str = "", *, units: bool = True) -> None:
     """Raise :class:`BlockError` (one line, naming the block and the variable) when a parameter,
-    input, output or state of ``block`` lacks a unit or a description."""
+    input, output or state of ``block`` lacks a unit (unless ``units`` is False) or a description."""
     label = where or f"block {block.name}"
     for kind, seq in (("parameter", block.params), ("input", block.inputs), ("output", block.outputs),
                       ("state", block.states)):
         for v in seq:
-            if not str(v.unit).strip():
+            if units and not str(v.unit).strip():
                 raise BlockError(f"{label}: {kind} {v.name!r} has no unit (give its SI unit, \"1\" when "
                                  f"dimensionless)")
             if not str(v.description).strip():
@@ -114,8 +114,11 @@ class BlockBuilder:
         self._ratings[variable] = Rating(float(low), float(high), kind, source)  # type: ignore[arg-type]
 
     # the block -------------------------------------------------------------------------------
-    def build(self, *, integrator: str = "rk4", substeps: int = 1, sample_period: float | None = None) -> Block:
-        """The checked block (:meth:`models.block.Block.build` and :func:`require_documented`)."""
+    def build(self, *, integrator: str = "rk4", substeps: int = 1, sample_period: float | None = None,
+              units_required: bool = True) -> Block:
+        """The checked block (:meth:`models.block.Block.build` and :func:`require_documented`;
+        ``units_required=False`` lets a variable's unit be empty, i.e. unknown, as a Modelica
+        model may leave it)."""
         missing = [v.name for v, _, _ in self._states if v.name not in self._ders]
         if missing:
             raise BlockError(f"block {self.name}: state {missing[0]!r} has no derivative (call der())")
@@ -137,7 +140,7 @@ class BlockBuilder:
             integrator=integrator if self._states else ("none" if integrator != "discrete" else integrator),
             substeps=substeps, sample_period=sample_period, flanges=list(self._flanges), fidelity=self.fidelity,
             ratings=dict(self._ratings))
-        require_documented(blk)
+        require_documented(blk, units=units_required)
         return blk
 
 

@@ -1,0 +1,261 @@
+"""The files a Modelica class is read from: the named file, then what its names reach through
+the source roots, file by file.
+
+A **source root** is a directory holding top-level classes as Modelica lays them out on disk
+(``Modelica/package.mo`` with ``Modelica/Mechanics/package.mo`` and
+``Modelica/Mechanics/Translational/Components/Mass.mo``, or a single ``Base.mo`` defining
+``Base``), as OpenModelica's ``MODELICAPATH`` names them.  The roots of a component are, in
+order: the directory of its file, the scene's ``modelica_path:`` and the environment's
+``MODELICAPATH`` (colon-separated).
+
+:func:`closure` reads the named file's names (every dotted identifier outside comments and
+strings: ``extends``, ``import``, component types, function calls; a name that is not a class is
+simply not found) and resolves each one as Modelica's lookup does, from the innermost enclosing
+package of the file's ``within`` outwards to the roots; a name found adds the files along its
+path (each enclosing ``package.mo``, then the file that defines it), whose names are read in
+turn.  The result is what the front end is given (and nothing else: a sibling file that no name
+reaches is never read, so it cannot shadow a class or slow the load) and what the cache key and
+the scene hash cover (an edit of any of these files rebuilds the component).
+"""
+from __future__ import annotations
+
+import hashlib
+import os
+import re
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+#: The environment variable OpenModelica reads for its library roots (colon-separated).
+ENV_VAR = "MODELICAPATH"
+#: A Modelica file larger than this is refused before it is read [bytes] (the MSL's largest is 1.1 MB).
+MAX_FILE_BYTES = 8 << 20
+#: At most this many files in one class's closure (the MSL examples need 30-120).
+MAX_FILES = 2000
+
+_LEX = re.compile(r'//[^\n]*|/\*.*?\*/|"(?:\\.|[^"\\])*"|[A-Za-z_][A-Za-z0-9_]*|\'(?:\\.|[^\'\\])*\'|\S', re.S)
+_KEYWORDS = frozenset("""algorithm and annotation block break class connect connector constant constrainedby
+der discrete each else elseif elsewhen encapsulated end enumeration equation expandable extends external false
+final flow for function if import impure in initial inner input loop model not operator or outer output package
+parameter partial protected public pure record redeclare replaceable return stream then true type when while
+within Real Integer Boolean String time""".split())
+
+
+class SourceError(ValueError):
+    """A Modelica source that cannot be read (one line naming the file)."""
+
+
+@dataclass
+class Sources:
+    """A class's files: ``main`` (the named file) and ``files`` (the others it reaches, in the
+    order found); ``digests`` maps each file (main first) to its SHA-256."""
+
+    main: Path
+    roots: list[Path]
+    files: list[Path] = field(default_factory=list)
+    digests: dict[str, str] = field(default_factory=dict)
+
+    def key(self) -> dict[str, str]:
+        """The digests as a recipe's ``sources`` (file names relative to their root when under one)."""
+        return {f"modelica:{self.label(Path(p))}": d for p, d in self.digests.items()}
+
+    def label(self, path: Path) -> str:
+        for root in self.roots:
+            try:
+                return str(path.relative_to(root))
+            except ValueError:
+                continue
+        return path.name
+
+
+def roots_from_env(environ: dict | None = None) -> list[Path]:
+    """The directories of ``MODELICAPATH`` (empty entries skipped)."""
+    value = (os.environ if environ is None else environ).get(ENV_VAR, "")
+    return [Path(p) for p in value.split(os.pathsep) if p.strip()]
+
+
+def read_text(path: Path) -> str:
+    """The text of a regular Modelica file of at most :data:`MAX_FILE_BYTES` (:class:`SourceError`)."""
+    try:
+        st = path.stat()
+        if not path.is_file():
+            raise SourceError(f"{path}: not a regular file")
+        if st.st_size > MAX_FILE_BYTES:
+            raise SourceError(f"{path}: {st.st_size} bytes; a Modelica file is read up to {MAX_FILE_BYTES} bytes")
+        return path.read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as exc:
+        raise SourceError(f"{path.name}: cannot read it ({getattr(exc, 'strerror', None) or exc})") from None
+
+
+_CLASS_WORDS = frozenset(("model", "block", "class", "package", "connector", "record", "function", "type"))
+
+
+def _names(text: str) -> tuple[list[str], list[str], list[str], list[str]]:
+    """``(within, top, members, names)``: the ``within`` package (as parts), the classes the
+    file defines at its top, those one level in (a package's members) and every dotted name it
+    uses."""
+    toks = [t for t in (m.group(0) for m in _LEX.finditer(text)) if not t.startswith(("//", "/*", '"'))]
+    within: list[str] = []
+    top: list[str] = []
+    members: list[str] = []
+    names: list[str] = []
+    stack: list[str] = []
+    i, n = 0, len(toks)
+    while i < n:
+        t = toks[i]
+        prev = toks[i - 1] if i else ""
+        if t == "within" and not stack:
+            j = i + 1
+            parts = []
+            while j < n and toks[j] != ";":
+                if toks[j] != ".":
+                    parts.append(toks[j])
+                j += 1
+            within, i = parts, j + 1
+            continue
+        if prev == "end" and stack and t == stack[-1]:
+            stack.pop()
+            i += 1
+            continue
+        if t in _CLASS_WORDS and prev != "end" and i + 1 < n and _ident(toks[i + 1]):
+            name = toks[i + 1]
+            if len(stack) <= 1:
+                (members if stack else top).append(name)
+            if i + 2 < n and toks[i + 2] != "=":  # a long class definition, closed by 'end name;'
+                stack.append(name)
+            i += 2
+            continue
+        if _ident(t) and t not in _KEYWORDS and prev != ".":
+            parts, j = [t], i + 1
+            while j + 1 < n and toks[j] == "." and _ident(toks[j + 1]):
+                parts.append(toks[j + 1])
+                j += 2
+            names.append(".".join(parts))
+            i = j
+            continue
+        i += 1
+    return within, top, members, names
+
+
+def _ident(tok: str) -> bool:
+    return tok[:1].isalpha() or tok[:1] == "_"
+
+
+class _Resolver:
+    """Maps qualified class names to the files along their path under the roots (memoised)."""
+
+    def __init__(self, roots: Sequence[Path], texts: dict[Path, str]):
+        self.roots = list(roots)
+        self.texts = texts  # files read so far (shared with the closure)
+        self.memo: dict[str, tuple[list[Path], int]] = {}
+        self.defined: dict[Path, set[str]] = {}
+        self.dirs: dict[str, frozenset[str]] = {}  # directory -> its entries
+
+    def locate(self, qualified: list[str]) -> tuple[list[Path], int]:
+        """``(files, matched)``: the files along ``qualified`` in the first root holding its
+        first part (each package's ``package.mo``, then a class's own file) and how many parts
+        matched a directory or a file; the rest of the name is inside the last file."""
+        key = ".".join(qualified)
+        if key not in self.memo:
+            best: tuple[list[Path], int] = ([], 0)
+            for root in self.roots:
+                found = self._under(root, qualified)
+                if found[1]:
+                    best = found
+                    break
+            self.memo[key] = best
+        return self.memo[key]
+
+    def _under(self, root: Path, parts: list[str]) -> tuple[list[Path], int]:
+        files: list[Path] = []
+        here = str(root)
+        for k, part in enumerate(parts):
+            entries = self._listing(here)
+            if part in entries and "package.mo" in self._listing(os.path.join(here, part)):
+                here = os.path.join(here, part)
+                files.append(Path(here, "package.mo"))
+            elif f"{part}.mo" in entries:
+                files.append(Path(here, f"{part}.mo"))
+                return files, k + 1
+            else:
+                return files, k
+        return files, len(parts)
+
+    def _listing(self, directory: str) -> frozenset[str]:
+        hit = self.dirs.get(directory)
+        if hit is None:
+            try:
+                hit = frozenset(os.listdir(directory))
+            except OSError:
+                hit = frozenset()
+            self.dirs[directory] = hit
+        return hit
+
+    def defines(self, path: Path, name: str) -> bool:
+        """Whether the file ``path`` declares a class ``name`` at its top or one level in."""
+        if path not in self.defined:
+            self.defined[path] = set(_names(self.texts[path])[2]) if path in self.texts else set()
+        return name in self.defined[path]
+
+    def resolve(self, within: list[str], parts: list[str]) -> list[Path]:
+        """The files of ``parts`` looked up from the innermost package of ``within`` outwards
+        (empty when it names no class of the roots)."""
+        for k in range(len(within), -1, -1):
+            files, matched = self.locate(within[:k] + parts)
+            if matched > k:
+                return files
+            if k and files and matched == len(files) and self._nested(files, within[:k], parts[0]):
+                return files
+        return []
+
+    def _nested(self, files: list[Path], scope: list[str], first: str) -> bool:
+        """Whether ``first`` is a class declared in the file holding the scope ``scope``."""
+        return bool(files) and files[-1] in self.texts and self.defines(files[-1], first)
+
+
+def closure(main: Path, roots: Iterable[Path], main_text: str | None = None) -> Sources:
+    """The files class names of ``main`` reach through ``roots`` (:class:`SourceError` when one
+    cannot be read or there are more than :data:`MAX_FILES`)."""
+    roots = [Path(r) for r in roots]
+    src = Sources(main, roots)
+    texts: dict[Path, str] = {}
+    resolver = _Resolver(roots, texts)
+    text = read_text(main) if main_text is None else main_text
+    texts[main] = text
+    src.digests[str(main)] = hashlib.sha256(text.encode()).hexdigest()
+    queue: list[Path] = [main]
+    seen = {main.resolve()}
+
+    def add(files: list[Path]) -> None:
+        for f in files:
+            real = f.resolve()
+            if real in seen:
+                continue
+            seen.add(real)
+            if len(seen) > MAX_FILES:
+                raise SourceError(f"{main.name}: its classes reach more than {MAX_FILES} files")
+            data = texts[f] = read_text(f)
+            src.files.append(f)
+            src.digests[str(f)] = hashlib.sha256(data.encode()).hexdigest()
+            queue.append(f)
+
+    while queue:
+        within, top, members, names = _names(texts[queue.pop(0)])
+        if within:  # the enclosing packages (their package.mo files), read before the names
+            add(resolver.locate(within)[0])
+        local = set(top) | set(members)
+        for name in dict.fromkeys(names):
+            parts = name.split(".")
+            if parts[0] not in local:  # a class of this file hides any other of that name
+                add(resolver.resolve(within, parts))
+    return src
+
+
+def class_file(qualified: str, roots: Iterable[Path]) -> Path | None:
+    """The file defining the library class ``qualified`` (e.g. ``Modelica.Blocks.Sources.Sine``
+    in ``Modelica/Blocks/Sources.mo``), None when no root holds its first part."""
+    files, matched = _Resolver([Path(r) for r in roots], {}).locate(qualified.split("."))
+    return files[-1] if matched and files else None
+
+
+__all__ = ["ENV_VAR", "Sources", "SourceError", "closure", "class_file", "roots_from_env", "read_text", "MAX_FILE_BYTES"]
