@@ -80,24 +80,18 @@ class ModelicaError(BlockError):
 _UNSUPPORTED = {
     "when": "when-equations are not supported (events: blocks are continuous)",
     "elsewhen": "when-equations are not supported (events: blocks are continuous)",
-    "algorithm": "algorithm sections are not supported (write equations)",
-    "function": "function definitions are not supported (their bodies are algorithms; use the built-in "
-                "functions or an expression)",
     "external": "external functions are not supported",
     "initial": "initial equations/algorithms are not supported (give start values)",
     "assert": "assert() is not supported", "terminate": "terminate() is not supported",
     "reinit": "reinit() is not supported (events)", "pre": "pre() is not supported (events)",
     "edge": "edge() is not supported (events)", "change": "change() is not supported (events)",
     "sample": "sample() is not supported (events)", "delay": "delay() is not supported",
-    "time": "time is not supported (blocks are autonomous: their equations may not depend on time)",
     "discrete": "discrete variables are not supported",
     "Integer": "Integer variables are not supported (Real only)",
     "Boolean": "Boolean variables are not supported (Real only)",
     "String": "String variables are not supported (Real only)",
     "inner": "inner/outer is not supported", "outer": "inner/outer is not supported",
     "stream": "stream connectors are not supported",
-    "import": "import is not supported (the Modelica Standard Library is not loaded: declare the SI types "
-              "you use in the file, e.g. type Force = Real(unit = \"N\"))",
 }
 _TOKEN = re.compile(r'//[^\n]*|/\*.*?\*/|"(?:\\.|[^"\\])*"|[A-Za-z_][A-Za-z0-9_]*|\S', re.S)
 
@@ -114,12 +108,18 @@ def _tokens(text: str):
 def unsupported(text: str, filename: str) -> None:
     """Raise :class:`ModelicaError` at the first construct the translation refuses."""
     toks = list(_tokens(text))
+    functions: list[str] = []  # the function definitions being read (their algorithms are taken)
     for k, (tok, line) in enumerate(toks):
+        prev = toks[k - 1][0] if k else ""
+        if tok == "function" and prev != "end" and k + 1 < len(toks):
+            functions.append(toks[k + 1][0])
+        elif prev == "end" and functions and tok == functions[-1]:
+            functions.pop()
+        if tok == "algorithm" and not functions:
+            raise ModelicaError(filename, line, "algorithm: algorithm sections of a model are not supported "
+                                                "(write equations; a function's algorithm is)")
         if tok in _UNSUPPORTED:
-            prev = toks[k - 1][0] if k else ""
             if prev == ".":  # a component's member named like a keyword-free builtin (a.time)
-                continue
-            if tok == "function" and prev == "end":
                 continue
             raise ModelicaError(filename, line, f"{tok}: {_UNSUPPORTED[tok]}")
 
@@ -137,26 +137,34 @@ def _first_line(text: str, name: str) -> int | None:
     return None
 
 
-def _compile(text: str, model: str, filename: str):
-    """rumoca's model of ``text`` (:class:`ModelicaError` with the line of a front-end error)."""
+def _compile(text: str, model: str, filename: str, roots: tuple[str, ...] = ()):
+    """rumoca's model of ``text`` (:class:`ModelicaError` with the line of a front-end error).
+
+    ``roots`` are the source roots rumoca may read (directories laid out as Modelica packages);
+    ``text`` is given under the name ``<filename>``, which is no path, so rumoca reads no file
+    beside it (a real path makes it load every ``.mo`` of that directory)."""
     try:
         import rumoca
     except ModuleNotFoundError:
         raise ModelicaError(filename, None, "Modelica components need the rumoca front end: pip install "
                                             "rumoca (the project's dependencies include it)") from None
+    virtual = f"<{filename}>"
     try:
-        return rumoca.Session().loads(text, model=model, filename=filename)
+        return rumoca.Session(roots=list(roots)).loads(text, model=model, filename=virtual)
     except rumoca.RumocaError as exc:
-        msg = str(exc)
+        msg = str(exc).replace(virtual, filename)
         first = msg.splitlines()[0] if msg else type(exc).__name__
         first = re.sub(r"^\S+ could not be compiled: ", "", first)
         loc = _LOCATION.search(msg)
+        where = filename
         line = int(loc.group(2)) if loc else None
-        if line is None:  # the compiler's summary has no location: its diagnostics do
-            for d in rumoca.validate_source(text, model=model, filename=filename):
-                where = _LOCATION.search(d.message or "")
-                if d.level == "error" and where:
-                    line = int(where.group(2))
+        if loc and loc.group(1) not in (filename, virtual):
+            where = loc.group(1)  # in a library file
+        if line is None and not roots:  # the compiler's summary has no location: its diagnostics do
+            for d in rumoca.validate_source(text, model=model, filename=virtual):
+                found = _LOCATION.search(d.message or "")
+                if d.level == "error" and found:
+                    line = int(found.group(2))
                     break
         for d in getattr(exc, "diagnostics", []) or []:
             if line is None and d.line and d.line > 1:
@@ -167,7 +175,19 @@ def _compile(text: str, model: str, filename: str):
                 line = _first_line(text, unresolved.group(1))
         if line is None and model and model not in _classes(text) and model.split(".")[-1] not in _classes(text):
             first = f"{first} (the file defines {', '.join(_classes(text)) or 'no class'})"
-        raise ModelicaError(filename, line, first.strip().rstrip(":")) from None
+        raise ModelicaError(where, line, first.strip().rstrip(":")) from None
+
+
+def front_end(text: str, model: str, filename: str = "model.mo", roots: tuple[str, ...] = ()) -> dict:
+    """What rumoca compiles of class ``model`` of ``text`` with the source ``roots``: ``{"name",
+    "dae", "flat"}`` (plain data: JSON-able, so a caller may cache it); :class:`ModelicaError`."""
+    m = _compile(text, model, filename, tuple(str(r) for r in roots))
+    dae = m.to_dict("dae")
+    if dae.get("schema_version") != DAE_SCHEMA:
+        raise ModelicaError(filename, None, f"rumoca {_rumoca_version()} writes DAE schema "
+                                            f"{dae.get('schema_version')}; this translator reads schema {DAE_SCHEMA} "
+                                            f"(rumoca 0.10.x)")
+    return {"name": m.name, "dae": dae, "flat": m.to_dict("flat")}
 
 
 def _classes(text: str) -> list[str]:
@@ -207,8 +227,11 @@ class _Graph:
     filename: str
     names: dict  # variable index -> name (for messages)
 
+    functions: list = dataclasses.field(default_factory=list)  # the DAE's functions (inlined at calls)
+
     def __post_init__(self):
         self.memo: dict[int, ca.SX] = {}
+        self.inlined: dict[tuple[int, int], tuple[list[ca.SX], ca.SX]] = {}  # (function, output) -> (params, body)
 
     def __call__(self, i: int) -> ca.SX:
         hit = self.memo.get(i)
@@ -220,13 +243,17 @@ class _Graph:
         (kind, body), = self.nodes[i].items()
         if kind == "literal":
             (t, v), = body.items()
+            if t == "boolean":
+                return ca.SX(1.0 if v else 0.0)
             if t not in ("real", "integer"):
-                self._refuse(i, f"a {t} literal is not supported (Real only)")
+                self._refuse(i, f"a {t} literal is not supported (Real, Integer and Boolean only)")
             return ca.SX(float(v))
         if kind == "coordinate":
-            key = next(iter(body.items()))
+            key = ("time", 0) if body == "time" else next(iter(body.items()))
+            if key[0] == "function_parameter":
+                key = ("function_parameter", (key[1]["function"], key[1]["ordinal"]))
             if key not in self.env:
-                self._refuse(i, f"{key[0]} is not supported here")
+                self._refuse(i, f"{key[0].replace('_', ' ')} is not supported here")
             return self.env[key]
         if kind == "binary":
             op = _BINARY.get(body["operator"])
@@ -249,7 +276,40 @@ class _Graph:
             for k in range(len(args) - 3, -1, -2):
                 value = ca.if_else(args[k], args[k + 1], value)
             return value
+        if kind == "call" and body.get("derivative") is None:
+            params, out = self._inline(i, body["function"], body.get("output", 0))
+            if len(params) != len(args):
+                self._refuse(i, f"a call of {self.functions[body['function']]['name']} with {len(args)} arguments "
+                                f"(it takes {len(params)})")
+            return ca.substitute(out, ca.vertcat(*params), ca.vertcat(*args)) if params else out
         self._refuse(i, f"the expression kind {kind!r} is not supported")
+
+    def _inline(self, i: int, f: int, output: int) -> tuple[list[ca.SX], ca.SX]:
+        """Output ``output`` of the DAE's function ``f`` as an expression of its parameters'
+        symbols: its algorithm (assignments in order) evaluated symbolically."""
+        key = (f, output)
+        if key in self.inlined:
+            return self.inlined[key]
+        fn = self.functions[f]
+        if fn.get("external") is not None:
+            self._refuse(i, f"{fn['name']} is an external function, which is not supported")
+        params = [ca.SX.sym(f"{fn['name']}.{p['name']}") for p in fn["parameters"]]
+        names = [v["name"] for v in fn["outputs"] + fn.get("locals", [])]
+        values: list[ca.SX | None] = [None] * len(names)
+        env = dict(self.env)
+        env.update({("function_parameter", (f, k)): s for k, s in enumerate(params)})
+        for stmt in fn.get("statements", []):
+            (skind, sbody), = stmt.items()
+            if skind != "assignment":
+                self._refuse(i, f"{fn['name']}: a {skind.replace('_', ' ')} statement in its algorithm is not "
+                                f"supported (assignments only)")
+            sub = dataclasses.replace(self, env={**env, **{("function_variable", (f, k)): v
+                                                            for k, v in enumerate(values) if v is not None}})
+            values[sbody["target"]] = sub(sbody["rhs"])
+        if values[output] is None:
+            self._refuse(i, f"{fn['name']}: its output {names[output]} is never assigned")
+        self.inlined[key] = (params, values[output])
+        return self.inlined[key]
 
     def _refuse(self, i: int, what: str):
         raise ModelicaError(self.filename, self.line_of(i), what)
@@ -284,7 +344,11 @@ class _Units:
         if kind == "literal":
             return None, True, "a number"
         if kind == "coordinate":
+            if body == "time":
+                return units.parse("s"), False, "time [s]"
             (what, k), = body.items()
+            if what not in ("parameter", "input", "output", "state", "derivative", "algebraic"):
+                return None, False, "?"
             d = self.units.get(k)
             label = f"{self.g.names.get(k, '?')} [{self.declared.get(k) or 'no unit'}]"
             if what == "derivative" and d is not None:
@@ -356,6 +420,11 @@ class _Units:
         raise ModelicaError(self.g.filename, self.g.line_of(i), what)
 
 
+def _short(e: ca.SX, limit: int = 120) -> str:
+    text = str(ca.simplify(e))
+    return text if len(text) <= limit else text[:limit] + "..."
+
+
 def _operand_starts(nodes: list) -> list[int]:
     """Where each node's operands begin in the DAE's shared operand list (consumed in node order)."""
     starts, k = [], 0
@@ -373,24 +442,24 @@ _VELOCITY_UNITS = ("m/s", "rad/s")
 
 
 def translate(text: str, model: str, filename: str = "model.mo", *, name: str | None = None,
-              integrator: str = "auto", substeps: int = 1) -> Block:
+              integrator: str = "auto", substeps: int = 1, roots: tuple[str, ...] = (),
+              compiled: dict | None = None, scan: bool = True) -> Block:
     """The :class:`Block` of Modelica ``model`` in ``text`` (``filename`` names it in messages).
 
     ``name`` is the block's name (default: the model's last name part, lower case);
     ``integrator`` is ``"auto"`` (``exact`` when the equations are linear, else ``radau``),
-    ``exact``, ``rk4`` or ``radau``.  Raises :class:`ModelicaError` (``file:line: what``)."""
+    ``exact``, ``rk4`` or ``radau``; ``roots`` are the source roots of the classes ``text``
+    uses; ``compiled`` is :func:`front_end`'s result when the caller has it (then rumoca is not
+    run); ``scan`` refuses the unsupported constructs found in ``text`` by their line first (off
+    for a library's file, whose other classes may use anything: the flattened class is checked
+    all the same).  Raises :class:`ModelicaError` (``file:line: what``)."""
     if integrator not in INTEGRATORS:
         raise ModelicaError(filename, None, f"integrator {integrator!r}; expected one of {', '.join(INTEGRATORS)}")
-    unsupported(text, filename)
-    m = _compile(text, model, filename)
-    dae = m.to_dict("dae")
-    if dae.get("schema_version") != DAE_SCHEMA:
-        raise ModelicaError(filename, None, f"rumoca {_rumoca_version()} writes DAE schema "
-                                            f"{dae.get('schema_version')}; this translator reads schema {DAE_SCHEMA} "
-                                            f"(rumoca 0.10.x)")
-    flat = m.to_dict("flat")
-    return _Translation(text, filename, dae["storage"], flat, m, name or model.split(".")[-1].lower()).block(
-        integrator, substeps)
+    if scan:
+        unsupported(text, filename)
+    fe = compiled if compiled is not None else front_end(text, model, filename, roots)
+    return _Translation(text, filename, fe["dae"]["storage"], fe["flat"], fe["name"],
+                        name or model.split(".")[-1].lower()).block(integrator, substeps)
 
 
 def _rumoca_version() -> str:
@@ -400,15 +469,15 @@ def _rumoca_version() -> str:
 
 
 class _Translation:
-    def __init__(self, text: str, filename: str, st: dict, flat: dict, m, name: str):
+    def __init__(self, text: str, filename: str, st: dict, flat: dict, model_name: str, name: str):
         self.text, self.filename, self.st, self.flat, self.name = text, filename, st, flat, name
-        self.description = (flat.get("model_description") or "").strip() or f"Modelica model {m.name}"
+        self.description = (flat.get("model_description") or "").strip() or f"Modelica model {model_name}"
         self.vars = st["variables"]
         ex = st["expressions"]
         self.nodes, self.prov = ex["nodes"], ex["provenance"]
         self.env: dict = {}
         self.graph = _Graph(self.nodes, ex["operands"], _operand_starts(self.nodes), self.env, self._node_line,
-                            filename, {k: v["name"] for k, v in enumerate(self.vars)})
+                            filename, {k: v["name"] for k, v in enumerate(self.vars)}, st.get("functions") or [])
         self.units = _Units(self.graph, {k: (v["attributes"].get("unit") or "") for k, v in enumerate(self.vars)})
 
     # source lines
@@ -447,6 +516,11 @@ class _Translation:
             self._err(v, f"{v['name']}: a {bad[0].replace('_', ' ')} variable is not supported (continuous Real only)")
         for k in roles.get("parameter", []):
             self._parameter(b, k)
+        if any(n == {"coordinate": "time"} for n in self.nodes):  # time as a clock state (blocks are autonomous)
+            clock = b.state("state.time", 0.0, "s", "the model's time: a clock state, d/dt = 1 from 0 at the run's "
+                                                    "start")
+            b.der(clock, 1.0)
+            self.env[("time", 0)] = clock
         for k in roles.get("input", []):
             v = self.vars[k]
             self.env[("input", k)] = b.input(v["name"], *self._doc(v, "input"))
@@ -468,18 +542,40 @@ class _Translation:
         flanges = self._connectors()
         residuals = self._residuals()
         solved, chosen = self._solve(b, residuals, unknown, flanges)
+        demoted = [k for k in states if ("state", k) in solved]  # computed from the others (index reduction)
+        if demoted:
+            gone = {self.env[("state", k)].name() for k in demoted}
+            b._states = [entry for entry in b._states if entry[1].name() not in gone]
+        states = [k for k in states if k not in demoted]
         for k in states:
             b.der(self.env[("state", k)], solved[("derivative", k)])
         value = {key[1]: solved[key] if key in solved else self.env[key] for key in unknown if key[0] != "derivative"}
         for k in states:
             value[k] = self.env[("state", k)]
+        top = [k for k in roles.get("output", []) if self._top_level(self.vars[k])]
         emit = [(k, lambda k=k: b.output(self.vars[k]["name"], value[k], *self._doc(self.vars[k], "output")))
-                for k in roles.get("output", []) + [j for j in states if self._is_output(self.vars[j])]]
+                for k in top + [j for j in states if self._is_output(self.vars[j])]]
         emit += [(min(fl["potential"], fl["flow"]), lambda fl=fl, c=c: self._flange(b, fl, c, value))
                  for fl, (c, _) in zip(flanges, chosen)]
         for _, add in sorted(emit, key=lambda e: e[0]):  # in declaration order
             add()
+        self._locals(b, value, set(top))
         return self._finish(b, integrator, substeps)
+
+    def _top_level(self, v: dict) -> bool:
+        """An output of the class itself (not of one of its components, ``sine1.y``)."""
+        return "." not in v["name"] and "[" not in v["name"]
+
+    def _locals(self, b: BlockBuilder, value: dict, done: set[int]) -> None:
+        """Every other variable of the model (states, algebraic variables, the outputs of its
+        components) as an FMI local under its Modelica name, so a scene can record it."""
+        taken = {v.name for v, _ in b._outputs} | {v.name for v, _ in b._inputs}
+        for k, v in enumerate(self.vars):
+            if k in done or k not in value or v["name"] in taken or v["role"] not in ("state", "algebraic", "output"):
+                continue
+            unit, text = self._doc(v, "variable")
+            b.output(v["name"], value[k], unit, text, local=True)
+            taken.add(v["name"])
 
     def _finish(self, b: BlockBuilder, integrator: str, substeps: int) -> Block:
         if integrator != "auto":
@@ -513,6 +609,11 @@ class _Translation:
             text = f"{text} ({note})" if text else f"{kind} {v['name']} (no description; {note})"
         return unit, text or f"{kind} {v['name']} (no description)"
 
+    def _scalar(self, v: dict) -> str:
+        types = self.st.get("value_types") or []
+        k = v.get("value_type")
+        return types[k].get("scalar", "real") if isinstance(k, int) and k < len(types) else "real"
+
     def _parameter(self, b: BlockBuilder, k: int) -> None:
         v = self.vars[k]
         a = v["attributes"]
@@ -520,7 +621,8 @@ class _Translation:
         if node is None:
             self._err(v, f"parameter {v['name']!r} has no value")
         value = self.graph(node)
-        if not value.is_constant():  # a parameter computed from others: not settable
+        if not value.is_constant() or self._scalar(v) != "real":
+            # computed from others, or a Boolean/Integer (structural: it selects equations): not settable
             self.env[("parameter", k)] = value
             return
         unit, text = self._doc(v, "parameter")
@@ -533,7 +635,7 @@ class _Translation:
         """What the token scan cannot see (e.g. a construct reached through an extends)."""
         for key, what in (("algorithms", "an algorithm section"), ("when_chains", "a when-equation"),
                           ("initial_equations", "an initial equation"), ("assert_equations", "an assert"),
-                          ("functions", "a function")):
+                          ):
             if self.flat.get(key):
                 raise ModelicaError(self.filename, None, f"the model contains {what}, which is not supported")
         if self.st.get("discrete_real_equations") or self.st.get("time_events") or self.st.get("delays"):
@@ -541,10 +643,12 @@ class _Translation:
 
     def _residuals(self) -> list[tuple[ca.SX, int | None]]:
         out = []
+        top_flows = {self.vars[fl["flow"]]["name"] for fl in self._connectors()}
         for op in self.st["continuous_equation_operations"]:
             (kind, body), = op.items()
             origin = (body.get("provenance") or {}).get("origin")
-            if isinstance(origin, dict) and origin.get("generated") == "flow_balance_equation":
+            if isinstance(origin, dict) and origin.get("generated") == "flow_balance_equation" and kind == "residual" \
+                    and {x.name() for x in ca.symvar(self.graph(body["residual"]))} <= top_flows:
                 continue  # "flow = 0" of an unconnected top-level connector: here a flange bonds it
             span = (body.get("provenance") or {}).get("span") or {}
             line = self._offset_line(span.get("start"))
@@ -585,27 +689,116 @@ class _Translation:
 
     def _solve(self, b: BlockBuilder, residuals, unknown: dict, flanges: list[dict]):
         """Choose each flange's causality so that the equations determine the unknowns; returns
-        the solved unknowns (key -> expression) and the choice per flange."""
-        res = ca.vertcat(*[r for r, _ in residuals]) if residuals else ca.SX(0, 1)
+        the solved unknowns (key -> expression) and the choice per flange.  Where no choice
+        does, the states tied by a constraint (an index-2 system, e.g. two masses joined rigidly,
+        or a spring's relative position that fixes a mass's one) are reduced first
+        (:meth:`_reduce_index`)."""
         options = []
         for fl in flanges:  # effort_out: the potential is given (an input); flow_out: the flow is given
             options.append([("effort_out", ("algebraic", fl["potential"])), ("flow_out", ("algebraic", fl["flow"]))])
-        for choice in product(*options) if flanges else [()]:
-            given = {key for _, key in choice}
-            keys = [k for k in unknown if k not in given]
-            if len(keys) != res.numel():
-                continue
-            w = ca.vertcat(*[unknown[k] for k in keys]) if keys else ca.SX(0, 1)
-            if keys and ca.sprank(ca.jacobian_sparsity(res, w)) < len(keys):
-                continue
-            subst = self._inputs_for(b, flanges, choice, unknown)
-            r = ca.substitute(res, ca.vertcat(*subst.keys()), ca.vertcat(*subst.values())) if subst else res
-            return self._sorted_solve(r, keys, unknown, residuals), choice
-        n_eq = res.numel()
+        choices = list(product(*options)) if flanges else [()]
+        for reduce in (False, True):
+            for choice in choices:
+                given = {key for _, key in choice}
+                keys = [k for k in unknown if k not in given]
+                rows = list(residuals)
+                if reduce:
+                    rows, keys = self._reduce_index(b, rows, keys, unknown)
+                    if rows is None:
+                        continue
+                res = ca.vertcat(*[r for r, _ in rows]) if rows else ca.SX(0, 1)
+                if len(keys) != res.numel():
+                    continue
+                w = ca.vertcat(*[unknown[k] for k in keys]) if keys else ca.SX(0, 1)
+                if keys and ca.sprank(ca.jacobian_sparsity(res, w)) < len(keys):
+                    continue
+                subst = self._inputs_for(b, flanges, choice, unknown)
+                r = ca.substitute(res, ca.vertcat(*subst.keys()), ca.vertcat(*subst.values())) if subst else res
+                return self._sorted_solve(r, keys, unknown, rows), choice
+        n_eq = len(residuals)
         raise ModelicaError(self.filename, None, f"the equations do not determine the model's variables: {n_eq} "
                                                  f"equations for {len(unknown) - len(flanges)} unknowns (states' "
                                                  f"derivatives, outputs and other variables; connectors counted with "
-                                                 f"one of their two variables given)")
+                                                 f"one of their two variables given)"
+                                                 + (f"; {self.index_problem}" if self.index_problem else ""))
+
+    index_problem = ""
+    _PRIORITY = {"Never": 0, "Avoid": 1, "Default": 2, "Prefer": 3, "Always": 4}
+
+    def _reduce_index(self, b: BlockBuilder, rows: list, keys: list, unknown: dict):
+        """Demote states tied by constraints until the equations determine the unknowns: a row
+        that the equations leave free of unknowns, ``g(x) = 0``, makes one of its states (the
+        one without a fixed start, then the lowest ``stateSelect``, the last declared) an unknown, and its time
+        derivative ``dg/dx . der(x) = 0`` is added (the dummy-derivative method on the
+        constraint as the equations give it).  Returns ``(rows, keys)``, or ``(None, None)``
+        with :attr:`index_problem` saying why not (a constraint through an input, whose
+        derivative the block does not have)."""
+        keys = list(keys)
+        rows = list(rows)
+        states = [key[1] for key in unknown if key[0] == "derivative"]
+        for _ in range(len(states) + 1):
+            res = ca.vertcat(*[r for r, _ in rows]) if rows else ca.SX(0, 1)
+            w = ca.vertcat(*[unknown[k] for k in keys]) if keys else ca.SX(0, 1)
+            if len(keys) == res.numel() and ca.sprank(ca.jacobian_sparsity(res, w)) == len(keys):
+                return rows, keys
+            free = self._constraints(res, keys, unknown)
+            if not free:
+                return None, None
+            g, line = free[0], None
+            live = [k for k in states if ("state", k) not in keys]
+            tied = [k for k in live if ca.depends_on(g, self.env[("state", k)])]
+            inputs = [s for s in ca.symvar(g) if s.name() in {v.name for v, _ in b._inputs}]
+            if inputs or not tied:
+                self.index_problem = (f"the states are tied by the constraint 0 = {_short(g)}"
+                                      + (f", which involves the input {inputs[0].name()} (its derivative is "
+                                         f"not known to the block)" if inputs else ""))
+                return None, None
+            k = min(tied, key=lambda j: (self._fixed(j), self._PRIORITY.get(
+                self.vars[j]["attributes"].get("state_select") or "Default", 2), -j))
+            unknown[("state", k)] = self.env[("state", k)]
+            keys.append(("state", k))
+            xs = ca.vertcat(*[self.env[("state", j)] for j in states])
+            xd = ca.vertcat(*[unknown[("derivative", j)] for j in states])
+            rows.append((ca.jtimes(g, xs, xd), line))
+        return None, None
+
+    def _fixed(self, k: int) -> bool:
+        """Whether state ``k`` has a start value that must hold (``fixed = true``): such a state
+        is kept, so the demoted one starts where the constraint puts it."""
+        fixed = self.vars[k]["attributes"].get("fixed")
+        return bool(fixed and all(fixed)) if isinstance(fixed, list) else bool(fixed)
+
+    def _constraints(self, res: ca.SX, keys: list, unknown: dict) -> list:
+        """The rows of ``res = 0`` left free of unknowns (and not identically zero) after
+        solving, one at a time, the rows linear in a single unknown: constraints among the
+        states (and parameters, inputs)."""
+        rows = [res[i] for i in range(res.numel())]
+        pending = {k: unknown[k] for k in keys}
+        out = []
+        progress = True
+        while progress:
+            progress = False
+            for i, r in enumerate(rows):
+                if r is None:
+                    continue
+                deps = [k for k, sym in pending.items() if ca.depends_on(r, sym)]
+                if not deps:
+                    rows[i] = None
+                    if not ca.simplify(r).is_zero():
+                        out.append(r)
+                    continue
+                if len(deps) != 1:
+                    continue
+                sym = pending[deps[0]]
+                coef = ca.jacobian(r, sym)
+                if ca.depends_on(coef, sym):
+                    continue
+                value = -ca.substitute(r, sym, ca.SX(0)) / coef
+                del pending[deps[0]]
+                rows = [None if (j == i or q is None) else ca.substitute(q, sym, value) for j, q in enumerate(rows)]
+                progress = True
+                break
+        return out
 
     def _inputs_for(self, b: BlockBuilder, flanges, choice, unknown) -> dict:
         """Declare each flange's given variable as an input; returns symbol -> its expression."""
@@ -709,4 +902,4 @@ class _Translation:
                 b.flange(name, fv["name"], pv["name"], "flow_out")
 
 
-__all__ = ["translate", "unsupported", "ModelicaError", "DAE_SCHEMA", "INTEGRATORS"]
+__all__ = ["translate", "front_end", "unsupported", "ModelicaError", "DAE_SCHEMA", "INTEGRATORS"]

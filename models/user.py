@@ -96,9 +96,10 @@ class BlockBuilder:
             raise BlockError(f"block {self.name}: the derivative of state {name!r} is given twice")
         self._ders[name] = ca.SX(rhs)
 
-    def output(self, name: str, expr, unit: str, description: str) -> None:
-        """An output ``name = expr`` (an expression of states, inputs and parameters)."""
-        self._outputs.append((Var(name, unit, description), ca.SX(expr)))
+    def output(self, name: str, expr, unit: str, description: str, *, local: bool = False) -> None:
+        """An output ``name = expr`` (an expression of states, inputs and parameters); ``local``:
+        an internal variable, exported as an FMI local (recordable, not connectable)."""
+        self._outputs.append((Var(name, unit, description, local), ca.SX(expr)))
 
     def flange(self, name: str, effort: str, flow: str, causality: str) -> None:
         """A power port made of an input and an output of this block: ``effort`` (force [N] or

@@ -19,9 +19,13 @@ the scene hash cover (an edit of any of these files rebuilds the component).
 """
 from __future__ import annotations
 
+import gzip
 import hashlib
+import json
 import os
 import re
+import shutil
+import tempfile
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -258,4 +262,133 @@ def class_file(qualified: str, roots: Iterable[Path]) -> Path | None:
     return files[-1] if matched and files else None
 
 
-__all__ = ["ENV_VAR", "Sources", "SourceError", "closure", "class_file", "roots_from_env", "read_text", "MAX_FILE_BYTES"]
+
+
+# --- a component's class, compiled once ----------------------------------------------------------
+@dataclass
+class ModelicaClass:
+    """A Modelica component's class: ``model`` (qualified name) defined in ``sources.main``
+    (a user's file or a library's), with everything it reads."""
+
+    model: str
+    text: str  # the main file's text
+    sources: Sources
+    library: bool  # the class was named by its qualified name (a class of the roots)
+
+    @property
+    def filename(self) -> str:
+        return self.sources.label(self.sources.main) if self.library else self.sources.main.name
+
+    def recipe_sources(self, front_end_version: str) -> dict[str, str]:
+        """What the FMU's recipe key covers: every file's digest and the front end's version."""
+        return {**self.sources.key(), "rumoca": front_end_version}
+
+    def compiled(self, *, cache: Path | None = None) -> dict:
+        """rumoca's result for the class (:func:`models.modelica.front_end`), from the disk cache
+        when these exact files were compiled before (``cache``: the directory, default the FMU
+        cache's ``modelica/``)."""
+        from models.modelica import DAE_SCHEMA
+
+        key = _compile_key(self, DAE_SCHEMA)
+        hit = _MEMO.get(key)
+        if hit is not None:
+            return hit
+        path = _cache_dir(cache) / f"{key}.json.gz"
+        if path.is_file():
+            try:
+                hit = json.loads(gzip.decompress(path.read_bytes()))
+            except (OSError, ValueError, EOFError):
+                hit = None  # a damaged entry: compiled again and rewritten
+        if hit is None:
+            hit = _compile_in_view(self)
+            try:
+                from fmus.cache import atomic_write
+
+                atomic_write(path, gzip.compress(json.dumps(hit).encode(), compresslevel=3))
+            except OSError:
+                pass  # a read-only cache: compiled again next time
+        _MEMO[key] = hit
+        return hit
+
+
+_MEMO: dict[str, dict] = {}
+
+
+def _cache_dir(cache: Path | None) -> Path:
+    from fmus.cache import cache_root, writable_root
+
+    return writable_root(cache_root(cache) / "modelica")
+
+
+def _compile_key(cls: ModelicaClass, schema: int) -> str:
+    from fmus.index import installed_version
+
+    h = hashlib.sha256(json.dumps([cls.model, cls.filename, str(installed_version("rumoca", "rumoca")), schema,
+                                   sorted(cls.sources.key().items())]).encode())
+    return h.hexdigest()[:32]
+
+
+def _compile_in_view(cls: ModelicaClass) -> dict:
+    """rumoca run on the class with a *view* of its roots as the only root: a temporary tree of
+    links to the closure's files (the main file excepted: it is given as text), so rumoca reads
+    exactly those.  A front-end error naming a file of the view names the real file."""
+    from models.modelica import ModelicaError, front_end
+
+    view = Path(tempfile.mkdtemp(prefix="rpr-modelica-view-"))
+    try:
+        links: dict[str, str] = {}
+        for f in cls.sources.files:
+            rel = cls.sources.label(f)
+            target = view / rel
+            if target.exists():
+                continue
+            target.parent.mkdir(parents=True, exist_ok=True)
+            os.symlink(f.resolve(), target)
+            links[str(target)] = str(f)
+        try:
+            return front_end(cls.text, cls.model, cls.filename, (str(view),) if links else ())
+        except ModelicaError as exc:
+            real = links.get(exc.filename)
+            if real is None and exc.filename.startswith(str(view)):
+                real = exc.filename[len(str(view)) + 1:]
+            if real is not None:
+                raise ModelicaError(real, exc.line, exc.message) from None
+            raise
+    finally:
+        shutil.rmtree(view, ignore_errors=True)
+
+
+def modelica_class(ref: str, model: str | None, base: Path, roots: Sequence[Path]) -> ModelicaClass:
+    """The class of a component: ``ref`` a ``.mo`` file (relative to ``base``) with ``model``
+    naming its class, or ``ref`` a qualified class name of the ``roots`` (``model`` then unused).
+    :class:`SourceError` (one line) when it cannot be found or read."""
+    if ref.endswith(".mo"):
+        main = (base / ref)
+        if not main.is_file():
+            raise SourceError(f"Modelica file {ref!r} not found (looked in {main.parent})")
+        text = read_text(main)
+        return ModelicaClass(str(model), text, closure(main, [main.parent, *roots], text), library=False)
+    if not re.fullmatch(r"[A-Za-z_]\w*(\.[A-Za-z_]\w*)*", ref):
+        raise SourceError(f"{ref!r} is neither a .mo file nor a qualified Modelica class name "
+                          f"(e.g. Modelica.Mechanics.Translational.Examples.Oscillator)")
+    if not roots:
+        raise SourceError(f"class {ref}: no Modelica source roots to find it in (set {ENV_VAR} or the scene's "
+                          f"modelica_path: to the directory holding {ref.split('.')[0]}/)")
+    main = class_file(ref, roots)
+    if main is None:
+        raise SourceError(f"class {ref}: no root holds {ref.split('.')[0]} (roots: "
+                          f"{', '.join(str(r) for r in roots)})")
+    text = read_text(main)
+    root = next((r for r in roots if _under_root(main, r)), main.parent)
+    return ModelicaClass(ref, text, closure(main, [root, *[r for r in roots if r != root]], text), library=True)
+
+
+def _under_root(path: Path, root: Path) -> bool:
+    try:
+        path.relative_to(root)
+        return True
+    except ValueError:
+        return False
+
+
+__all__ = ["ENV_VAR", "Sources", "SourceError", "closure", "class_file", "ModelicaClass", "modelica_class", "roots_from_env", "read_text", "MAX_FILE_BYTES"]
