@@ -345,6 +345,7 @@ def _compile_in_view(cls: ModelicaClass) -> dict:
             target.parent.mkdir(parents=True, exist_ok=True)
             os.symlink(f.resolve(), target)
             links[str(target)] = str(f)
+        saved = os.environ.pop(ENV_VAR, None)  # rumoca reads MODELICAPATH itself: the view is all it may read
         try:
             return front_end(cls.text, cls.model, cls.filename, (str(view),) if links else ())
         except ModelicaError as exc:
@@ -354,6 +355,9 @@ def _compile_in_view(cls: ModelicaClass) -> dict:
             if real is not None:
                 raise ModelicaError(real, exc.line, exc.message) from None
             raise
+        finally:
+            if saved is not None:
+                os.environ[ENV_VAR] = saved
     finally:
         shutil.rmtree(view, ignore_errors=True)
 
