@@ -773,32 +773,63 @@ class _Translation:
         solving, one at a time, the rows linear in a single unknown: constraints among the
         states (and parameters, inputs)."""
         rows = [res[i] for i in range(res.numel())]
-        pending = {k: unknown[k] for k in keys}
-        out = []
+        out: list = []
+        self._eliminate(rows, {k: unknown[k] for k in keys}, None, out)
+        return out
+
+    def _eliminate(self, rows: list, pending: dict, lines: list | None, free: list | None = None) -> dict:
+        """Solve, one at a time in row order, the rows linear in a single pending unknown,
+        substituting each solution into the other rows (``rows`` and ``pending`` are updated in
+        place; returns the solved unknowns).  A row left without unknowns must be zero: else it
+        is appended to ``free`` (a constraint) or, without ``free``, refused with its line."""
+        names = {sym.name(): k for k, sym in pending.items()}
+        deps = [{x.name() for x in ca.symvar(r)} & names.keys() for r in rows]
+        solved: dict = {}
+        solved_deps: dict = {}
         progress = True
-        while progress:
+        while pending and progress:
             progress = False
             for i, r in enumerate(rows):
                 if r is None:
                     continue
-                deps = [k for k, sym in pending.items() if ca.depends_on(r, sym)]
-                if not deps:
+                if not deps[i]:
                     rows[i] = None
-                    if not ca.simplify(r).is_zero():
-                        out.append(r)
+                    if not (r.is_zero() or (free is not None and ca.simplify(r).is_zero())):
+                        if free is None:
+                            raise ModelicaError(self.filename, lines[i] if lines else None,
+                                                "this equation is redundant or contradicts the others")
+                        free.append(r)
                     continue
-                if len(deps) != 1:
+                if len(deps[i]) != 1:
                     continue
-                sym = pending[deps[0]]
+                (nm,) = deps[i]
+                key = names[nm]
+                sym = pending[key]
                 coef = ca.jacobian(r, sym)
                 if ca.depends_on(coef, sym):
                     continue
                 value = -ca.substitute(r, sym, ca.SX(0)) / coef
-                del pending[deps[0]]
-                rows = [None if (j == i or q is None) else ca.substitute(q, sym, value) for j, q in enumerate(rows)]
+                del pending[key], names[nm]
+                rows[i] = None
+                vdeps = {x.name() for x in ca.symvar(value)} & names.keys()
+                for j, q in enumerate(rows):
+                    if q is not None and nm in deps[j]:
+                        rows[j] = ca.substitute(q, sym, value)
+                        deps[j] = (deps[j] - {nm}) | vdeps
+                for k2 in solved:
+                    if nm in solved_deps[k2]:
+                        solved[k2] = ca.substitute(solved[k2], sym, value)
+                        solved_deps[k2] = (solved_deps[k2] - {nm}) | vdeps
+                solved[key], solved_deps[key] = value, vdeps
                 progress = True
                 break
-        return out
+        if free is not None:  # the rows the eliminated unknowns leave without any
+            for i, r in enumerate(rows):
+                if r is not None and not deps[i]:
+                    rows[i] = None
+                    if not ca.simplify(r).is_zero():
+                        free.append(r)
+        return solved
 
     def _inputs_for(self, b: BlockBuilder, flanges, choice, unknown) -> dict:
         """Declare each flange's given variable as an input; returns symbol -> its expression."""
@@ -829,33 +860,7 @@ class _Translation:
         rows = [res[i] for i in range(res.numel())]
         lines = [line for _, line in residuals]
         pending = {k: unknown[k] for k in keys}
-        solved: dict = {}
-        progress = True
-        while pending and progress:
-            progress = False
-            for i, r in enumerate(rows):
-                if r is None:
-                    continue
-                deps = [k for k, s in pending.items() if ca.depends_on(r, s)]
-                if not deps:
-                    if not r.is_zero():
-                        raise ModelicaError(self.filename, lines[i], "this equation is redundant or "
-                                                                     "contradicts the others")
-                    rows[i] = None
-                    continue
-                if len(deps) != 1:
-                    continue
-                s = pending[deps[0]]
-                coef = ca.jacobian(r, s)
-                if ca.depends_on(coef, s):
-                    continue
-                value = -ca.substitute(r, s, ca.SX(0)) / coef
-                solved[deps[0]] = value
-                del pending[deps[0]]
-                rows = [None if (j == i or q is None) else ca.substitute(q, s, value) for j, q in enumerate(rows)]
-                solved = {k: ca.substitute(v, s, value) for k, v in solved.items()}
-                progress = True
-                break
+        solved = self._eliminate(rows, pending, lines)
         if pending:
             left = [r for r in rows if r is not None]
             R = ca.vertcat(*left)

@@ -337,7 +337,8 @@ def _compile_in_view(cls: ModelicaClass) -> dict:
     view = Path(tempfile.mkdtemp(prefix="rpr-modelica-view-"))
     try:
         links: dict[str, str] = {}
-        for f in cls.sources.files:
+        files = [cls.sources.main, *cls.sources.files] if cls.library else cls.sources.files
+        for f in files:
             rel = cls.sources.label(f)
             target = view / rel
             if target.exists():
@@ -347,7 +348,12 @@ def _compile_in_view(cls: ModelicaClass) -> dict:
             links[str(target)] = str(f)
         saved = os.environ.pop(ENV_VAR, None)  # rumoca reads MODELICAPATH itself: the view is all it may read
         try:
-            return front_end(cls.text, cls.model, cls.filename, (str(view),) if links else ())
+            if not cls.library:
+                return front_end(cls.text, cls.model, cls.filename, (str(view),) if links else ())
+            # a library's class is in the view (its file may be a package.mo the view needs); a
+            # one-line model extending it is compiled, its variables named as the class's own
+            wrapper = f"model RprCosimClass\n  extends {cls.model};\nend RprCosimClass;\n"
+            return {**front_end(wrapper, "RprCosimClass", cls.filename, (str(view),)), "name": cls.model}
         except ModelicaError as exc:
             real = links.get(exc.filename)
             if real is None and exc.filename.startswith(str(view)):
