@@ -37,7 +37,6 @@ MAX_FILE_BYTES = 8 << 20
 #: At most this many files in one class's closure (the MSL examples need 30-120).
 MAX_FILES = 2000
 
-_LEX = re.compile(r'//[^\n]*|/\*.*?\*/|"(?:\\.|[^"\\])*"|[A-Za-z_][A-Za-z0-9_]*|\'(?:\\.|[^\'\\])*\'|\S', re.S)
 _KEYWORDS = frozenset("""algorithm and annotation block break class connect connector constant constrainedby
 der discrete each else elseif elsewhen encapsulated end enumeration equation expandable extends external false
 final flow for function if import impure in initial inner input loop model not operator or outer output package
@@ -92,57 +91,45 @@ def read_text(path: Path) -> str:
 
 
 _CLASS_WORDS = frozenset(("model", "block", "class", "package", "connector", "record", "function", "type"))
+_NOISE = re.compile(r'//[^\n]*|/\*.*?\*/|"(?:\\.|[^"\\])*"', re.S)  # comments and strings
+_NAME = re.compile(r"(?<![\w.])([A-Za-z_]\w*(?:\s*\.\s*[A-Za-z_]\w*)*)")
+_STRUCTURE = re.compile(r"\bwithin\s+([\w.\s]*);|\bend\s+([A-Za-z_]\w*)\s*;|"
+                        r"(?<![\w.])(?:model|block|class|package|connector|record|function|type)\s+([A-Za-z_]\w*)"
+                        r"\s*(=)?")
 
 
 def _names(text: str) -> tuple[list[str], list[str], list[str], list[str]]:
     """``(within, top, members, names)``: the ``within`` package (as parts), the classes the
     file defines at its top, those one level in (a package's members) and every dotted name it
     uses."""
-    toks = [t for t in (m.group(0) for m in _LEX.finditer(text)) if not t.startswith(("//", "/*", '"'))]
+    clean = _NOISE.sub(" ", text)
     within: list[str] = []
     top: list[str] = []
     members: list[str] = []
-    names: list[str] = []
     stack: list[str] = []
-    i, n = 0, len(toks)
-    while i < n:
-        t = toks[i]
-        prev = toks[i - 1] if i else ""
-        if t == "within" and not stack:
-            j = i + 1
-            parts = []
-            while j < n and toks[j] != ";":
-                if toks[j] != ".":
-                    parts.append(toks[j])
-                j += 1
-            within, i = parts, j + 1
-            continue
-        if prev == "end" and stack and t == stack[-1]:
-            stack.pop()
-            i += 1
-            continue
-        if t in _CLASS_WORDS and prev != "end" and i + 1 < n and _ident(toks[i + 1]):
-            name = toks[i + 1]
+    for m in _STRUCTURE.finditer(clean):
+        if m.group(1) is not None:
+            if not stack:
+                within = [p for p in re.split(r"\s*\.\s*", m.group(1).strip()) if p]
+        elif m.group(2) is not None:
+            if stack and m.group(2) == stack[-1]:
+                stack.pop()
+        else:
+            start = clean.rfind("end", max(0, m.start() - 8), m.start())
+            if start >= 0 and not clean[start + 3:m.start()].strip():
+                continue  # 'end model' cannot happen, but 'end function' of an operator might
             if len(stack) <= 1:
-                (members if stack else top).append(name)
-            if i + 2 < n and toks[i + 2] != "=":  # a long class definition, closed by 'end name;'
-                stack.append(name)
-            i += 2
-            continue
-        if _ident(t) and t not in _KEYWORDS and prev != ".":
-            parts, j = [t], i + 1
-            while j + 1 < n and toks[j] == "." and _ident(toks[j + 1]):
-                parts.append(toks[j + 1])
-                j += 2
-            names.append(".".join(parts))
-            i = j
-            continue
-        i += 1
+                (members if stack else top).append(m.group(3))
+            if m.group(4) is None:  # a long class definition, closed by 'end name;'
+                stack.append(m.group(3))
+    names = []
+    for m in _NAME.finditer(clean):
+        name = m.group(1)
+        if any(c.isspace() for c in name):
+            name = re.sub(r"\s+", "", name)
+        if name.split(".", 1)[0] not in _KEYWORDS:
+            names.append(name)
     return within, top, members, names
-
-
-def _ident(tok: str) -> bool:
-    return tok[:1].isalpha() or tok[:1] == "_"
 
 
 class _Resolver:
@@ -151,17 +138,18 @@ class _Resolver:
     def __init__(self, roots: Sequence[Path], texts: dict[Path, str]):
         self.roots = list(roots)
         self.texts = texts  # files read so far (shared with the closure)
-        self.memo: dict[str, tuple[list[Path], int]] = {}
+        self.memo: dict[str, tuple[list[str], int]] = {}
         self.defined: dict[Path, set[str]] = {}
         self.dirs: dict[str, frozenset[str]] = {}  # directory -> its entries
+        self.resolved: dict[tuple, list[str]] = {}
 
-    def locate(self, qualified: list[str]) -> tuple[list[Path], int]:
+    def locate(self, qualified: list[str]) -> tuple[list[str], int]:
         """``(files, matched)``: the files along ``qualified`` in the first root holding its
         first part (each package's ``package.mo``, then a class's own file) and how many parts
         matched a directory or a file; the rest of the name is inside the last file."""
         key = ".".join(qualified)
         if key not in self.memo:
-            best: tuple[list[Path], int] = ([], 0)
+            best: tuple[list[str], int] = ([], 0)
             for root in self.roots:
                 found = self._under(root, qualified)
                 if found[1]:
@@ -170,16 +158,16 @@ class _Resolver:
             self.memo[key] = best
         return self.memo[key]
 
-    def _under(self, root: Path, parts: list[str]) -> tuple[list[Path], int]:
-        files: list[Path] = []
+    def _under(self, root: Path, parts: list[str]) -> tuple[list[str], int]:
+        files: list[str] = []
         here = str(root)
         for k, part in enumerate(parts):
             entries = self._listing(here)
             if part in entries and "package.mo" in self._listing(os.path.join(here, part)):
                 here = os.path.join(here, part)
-                files.append(Path(here, "package.mo"))
+                files.append(os.path.join(here, "package.mo"))
             elif f"{part}.mo" in entries:
-                files.append(Path(here, f"{part}.mo"))
+                files.append(os.path.join(here, f"{part}.mo"))
                 return files, k + 1
             else:
                 return files, k
@@ -201,9 +189,15 @@ class _Resolver:
             self.defined[path] = set(_names(self.texts[path])[2]) if path in self.texts else set()
         return name in self.defined[path]
 
-    def resolve(self, within: list[str], parts: list[str]) -> list[Path]:
+    def resolve(self, within: list[str], parts: list[str]) -> list[str]:
         """The files of ``parts`` looked up from the innermost package of ``within`` outwards
         (empty when it names no class of the roots)."""
+        key = (tuple(within), tuple(parts))
+        if key not in self.resolved:
+            self.resolved[key] = self._resolve(within, parts)
+        return self.resolved[key]
+
+    def _resolve(self, within: list[str], parts: list[str]) -> list[str]:
         for k in range(len(within), -1, -1):
             files, matched = self.locate(within[:k] + parts)
             if matched > k:
@@ -212,9 +206,10 @@ class _Resolver:
                 return files
         return []
 
-    def _nested(self, files: list[Path], scope: list[str], first: str) -> bool:
+    def _nested(self, files: list[str], scope: list[str], first: str) -> bool:
         """Whether ``first`` is a class declared in the file holding the scope ``scope``."""
-        return bool(files) and files[-1] in self.texts and self.defines(files[-1], first)
+        last = Path(files[-1]) if files else None
+        return last is not None and last in self.texts and self.defines(last, first)
 
 
 def closure(main: Path, roots: Iterable[Path], main_text: str | None = None) -> Sources:
@@ -228,12 +223,12 @@ def closure(main: Path, roots: Iterable[Path], main_text: str | None = None) -> 
     texts[main] = text
     src.digests[str(main)] = hashlib.sha256(text.encode()).hexdigest()
     queue: list[Path] = [main]
-    seen = {main.resolve()}
+    seen = {os.path.realpath(main)}
 
-    def add(files: list[Path]) -> None:
-        for f in files:
-            real = f.resolve()
-            if real in seen:
+    def add(files: list) -> None:
+        for f in map(Path, files):
+            real = str(f)
+            if real in seen or os.path.realpath(f) in seen:
                 continue
             seen.add(real)
             if len(seen) > MAX_FILES:
@@ -259,7 +254,7 @@ def class_file(qualified: str, roots: Iterable[Path]) -> Path | None:
     """The file defining the library class ``qualified`` (e.g. ``Modelica.Blocks.Sources.Sine``
     in ``Modelica/Blocks/Sources.mo``), None when no root holds its first part."""
     files, matched = _Resolver([Path(r) for r in roots], {}).locate(qualified.split("."))
-    return files[-1] if matched and files else None
+    return Path(files[-1]) if matched and files else None
 
 
 
