@@ -245,8 +245,8 @@ class _Graph:
             (t, v), = body.items()
             if t == "boolean":
                 return ca.SX(1.0 if v else 0.0)
-            if t not in ("real", "integer"):
-                self._refuse(i, f"a {t} literal is not supported (Real, Integer and Boolean only)")
+            if t not in ("real", "integer", "enumeration"):  # an enumeration literal is its ordinal
+                self._refuse(i, f"a {t} literal is not supported (Real, Integer, Boolean and enumerations only)")
             return ca.SX(float(v))
         if kind == "coordinate":
             key = ("time", 0) if body == "time" else next(iter(body.items()))
