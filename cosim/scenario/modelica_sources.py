@@ -32,8 +32,8 @@ from pathlib import Path
 
 #: The environment variable OpenModelica reads for its library roots (colon-separated).
 ENV_VAR = "MODELICAPATH"
-#: A Modelica file larger than this is refused before it is read [bytes] (the MSL's largest is 1.1 MB).
-MAX_FILE_BYTES = 8 << 20
+#: The environment variable that may lower the size bound of a Modelica file (the MSL's largest is 1.1 MB).
+MAX_BYTES_ENV = "RPR_COSIM_MAX_MODELICA_BYTES"
 #: At most this many files in one class's closure (the MSL examples need 30-120).
 MAX_FILES = 2000
 
@@ -78,16 +78,20 @@ def roots_from_env(environ: dict | None = None) -> list[Path]:
 
 
 def read_text(path: Path) -> str:
-    """The text of a regular Modelica file of at most :data:`MAX_FILE_BYTES` (:class:`SourceError`)."""
+    """The text of a regular Modelica file within the size bound (the front end's, which
+    ``RPR_COSIM_MAX_MODELICA_BYTES`` may lower; :class:`SourceError` naming the file)."""
+    from models.modelica import MAX_SOURCE_BYTES
+
+    from ..errors import UserError
+    from ..readers import byte_limit, read_regular
+
     try:
-        st = path.stat()
-        if not path.is_file():
-            raise SourceError(f"{path}: not a regular file")
-        if st.st_size > MAX_FILE_BYTES:
-            raise SourceError(f"{path}: {st.st_size} bytes; a Modelica file is read up to {MAX_FILE_BYTES} bytes")
-        return path.read_text(encoding="utf-8")
-    except (OSError, UnicodeDecodeError) as exc:
-        raise SourceError(f"{path.name}: cannot read it ({getattr(exc, 'strerror', None) or exc})") from None
+        return read_regular(path, "Modelica file", min(MAX_SOURCE_BYTES, byte_limit(MAX_BYTES_ENV, MAX_SOURCE_BYTES)),
+                            MAX_BYTES_ENV).decode("utf-8")
+    except UserError as exc:
+        raise SourceError(str(exc)) from None
+    except UnicodeDecodeError as exc:
+        raise SourceError(f"{path.name}: cannot read it ({exc})") from None
 
 
 _CLASS_WORDS = frozenset(("model", "block", "class", "package", "connector", "record", "function", "type"))
@@ -372,7 +376,16 @@ def modelica_class(ref: str, model: str | None, base: Path, roots: Sequence[Path
         if not main.is_file():
             raise SourceError(f"Modelica file {ref!r} not found (looked in {main.parent})")
         text = read_text(main)
-        return ModelicaClass(str(model), text, closure(main, [main.parent, *roots], text), library=False)
+        cls = ModelicaClass(str(model), text, closure(main, [main.parent, *roots], text), library=False)
+        from models.modelica import ModelicaError, bounded
+
+        for f in [main, *cls.sources.files]:  # the user's own files, before rumoca sees them
+            if _under_root(f, main.parent):
+                try:
+                    bounded(text if f == main else read_text(f), f.name)
+                except ModelicaError as exc:
+                    raise SourceError(str(exc)) from None
+        return cls
     if not re.fullmatch(r"[A-Za-z_]\w*(\.[A-Za-z_]\w*)*", ref):
         raise SourceError(f"{ref!r} is neither a .mo file nor a qualified Modelica class name "
                           f"(e.g. Modelica.Mechanics.Translational.Examples.Oscillator)")
@@ -396,4 +409,4 @@ def _under_root(path: Path, root: Path) -> bool:
         return False
 
 
-__all__ = ["ENV_VAR", "Sources", "SourceError", "closure", "class_file", "ModelicaClass", "modelica_class", "roots_from_env", "read_text", "MAX_FILE_BYTES"]
+__all__ = ["ENV_VAR", "Sources", "SourceError", "closure", "class_file", "ModelicaClass", "modelica_class", "roots_from_env", "read_text"]
