@@ -56,7 +56,7 @@ from itertools import product
 import casadi as ca
 
 from . import units
-from .block import Block, BlockError
+from .block import EITHER, FALLING, RISING, Block, BlockError, Var
 from .user import BlockBuilder
 
 #: The rumoca DAE schema this translator reads (``Model.to_dict("dae")["schema_version"]``).
@@ -78,18 +78,15 @@ class ModelicaError(BlockError):
 
 # --- what is refused, found in the text ----------------------------------------------------------
 _UNSUPPORTED = {
-    "when": "when-equations are not supported (events: blocks are continuous)",
-    "elsewhen": "when-equations are not supported (events: blocks are continuous)",
+    "elsewhen": "elsewhen is not supported yet (write one when-clause per condition)",
     "external": "external functions are not supported",
     "initial": "initial equations/algorithms are not supported (give start values)",
     "assert": "assert() is not supported", "terminate": "terminate() is not supported",
-    "reinit": "reinit() is not supported (events)", "pre": "pre() is not supported (events)",
-    "edge": "edge() is not supported (events)", "change": "change() is not supported (events)",
-    "sample": "sample() is not supported (events)", "delay": "delay() is not supported",
-    "discrete": "discrete variables are not supported",
-    "Integer": "Integer variables are not supported (Real only)",
-    "Boolean": "Boolean variables are not supported (Real only)",
-    "String": "String variables are not supported (Real only)",
+    "edge": "edge() is not supported yet (a when on a relation, reinit and pre are)",
+    "change": "change() is not supported yet (a when on a relation, reinit and pre are)",
+    "sample": "sample() is not supported yet (a when on a relation, reinit and pre are)",
+    "delay": "delay() is not supported",
+    "String": "String variables are not supported (Real, and Integer/Boolean parameters)",
     "inner": "inner/outer is not supported", "outer": "inner/outer is not supported",
     "stream": "stream connectors are not supported",
 }
@@ -517,6 +514,9 @@ class _Units:
         raise ModelicaError(self.g.filename, self.g.line_of(i), what)
 
 
+_REL = {"less": "<", "less_equal": "<=", "greater": ">", "greater_equal": ">="}
+
+
 def _short(e: ca.SX, limit: int = 120) -> str:
     text = str(ca.simplify(e))
     return text if len(text) <= limit else text[:limit] + "..."
@@ -576,6 +576,9 @@ class _Translation:
         self.env: dict = {}
         self.graph = _Graph(self.nodes, ex["operands"], _operand_starts(self.nodes), self.env, self._node_line,
                             filename, {k: v["name"] for k, v in enumerate(self.vars)}, st.get("functions") or [])
+        self.time = ca.SX.sym("t")  # the model's time (see _clock)
+        self.mode_syms = {}
+        self.event_fields: dict = {}
         self.units = _Units(self.graph, {k: (v["attributes"].get("unit") or "") for k, v in enumerate(self.vars)})
 
     # source lines
@@ -608,17 +611,16 @@ class _Translation:
         roles: dict[str, list[int]] = {}
         for k, v in enumerate(self.vars):
             roles.setdefault(v["role"], []).append(k)
-        bad = sorted(set(roles) - {"parameter", "input", "output", "state", "algebraic"})
+        bad = sorted(set(roles) - {"parameter", "input", "output", "state", "algebraic", "discrete_real", "constant"})
         if bad:
             v = self.vars[roles[bad[0]][0]]
             self._err(v, f"{v['name']}: a {bad[0].replace('_', ' ')} variable is not supported (continuous Real only)")
         for k in roles.get("parameter", []):
             self._parameter(b, k)
-        if any(n == {"coordinate": "time"} for n in self.nodes):  # time as a clock state (blocks are autonomous)
-            clock = b.state("state.time", 0.0, "s", "the model's time: a clock state, d/dt = 1 from 0 at the run's "
-                                                    "start")
-            b.der(clock, 1.0)
-            self.env[("time", 0)] = clock
+        for k in roles.get("constant", []):
+            self._parameter(b, k)
+        self.env[("time", 0)] = self.time  # replaced at the end: a clock state in ode/out, the block's t in events
+        self._modes(roles.get("discrete_real", []))
         for k in roles.get("input", []):
             v = self.vars[k]
             self.env[("input", k)] = b.input(v["name"], *self._doc(v, "input"))
@@ -632,7 +634,7 @@ class _Translation:
             if ca.depends_on(s0, ca.vertcat(*[self.env[("input", j)] for j in roles.get("input", [])])) \
                     if roles.get("input") else False:
                 self._err(v, f"{v['name']}: the start value may depend on parameters only")
-            self.env[("state", k)] = b.state(f"state.{v['name']}", s0, unit, text)
+            self.env[("state", k)] = self.env[("pre_state", k)] = b.state(f"state.{v['name']}", s0, unit, text)
             unknown[("derivative", k)] = ca.SX.sym(f"der_{v['name']}")
         for k in roles.get("output", []) + roles.get("algebraic", []):
             unknown[("algebraic", k)] = ca.SX.sym(self.vars[k]["name"])  # outputs are algebraic coordinates too
@@ -658,7 +660,12 @@ class _Translation:
         for _, add in sorted(emit, key=lambda e: e[0]):  # in declaration order
             add()
         self._locals(b, value, set(top))
-        return self._finish(b, integrator, substeps)
+        for k, sym in self.mode_syms.items():  # the discrete variables, recordable too
+            unit, text = self._doc(self.vars[k], "discrete variable")
+            b.output(self.vars[k]["name"], sym, unit, text, local=not self._is_output(self.vars[k]))
+        events = self._events(b)
+        self._clock(b)
+        return self._finish(b, integrator, substeps, events)
 
     def _top_level(self, v: dict) -> bool:
         """An output of the class itself (not of one of its components, ``sine1.y``)."""
@@ -675,17 +682,155 @@ class _Translation:
             b.output(v["name"], value[k], unit, text, local=True)
             taken.add(v["name"])
 
-    def _finish(self, b: BlockBuilder, integrator: str, substeps: int) -> Block:
+    def _finish(self, b: BlockBuilder, integrator: str, substeps: int, events: dict | None = None) -> Block:
         if integrator != "auto":
-            return b.build(integrator=integrator, substeps=substeps, units_required=False)
+            return b.build(integrator=integrator, substeps=substeps, units_required=False, events=events)
         from .integrators import affine_parts
 
-        probe = b.build(integrator="rk4", substeps=substeps, units_required=False)  # (building does not change the builder)
+        probe = b.build(integrator="rk4", substeps=substeps, units_required=False, events=events)  # (building does not change the builder)
         if not probe.states or affine_parts(probe) is not None:
             exact = dataclasses.replace(probe, integrator="exact" if probe.states else "none")
             exact.check()
             return exact
-        return b.build(integrator="radau", substeps=substeps, units_required=False)
+        return b.build(integrator="radau", substeps=substeps, units_required=False, events=events)
+
+    # events (docs/explanation/events.md): when-equations, reinit, pre, relations as indicators
+    def _modes(self, keys: list[int]) -> None:
+        """The discrete Real variables as the block's modes (``pre(v)`` is the mode's left value)."""
+        self.mode_syms: dict[int, ca.SX] = {}
+        self.mode_starts: list[ca.SX] = []
+        for k in keys:
+            v = self.vars[k]
+            sym = ca.SX.sym(f"mode.{v['name']}")
+            self.env[("discrete_real", k)] = self.env[("pre_discrete_real", k)] = sym
+            start = v["attributes"].get("start")
+            self.mode_starts.append(self.graph(start) if start is not None else ca.SX(0.0))
+            self.mode_syms[k] = sym
+
+    def _clock(self, b: BlockBuilder) -> None:
+        """``time`` in the continuous equations becomes a clock state (d/dt = 1 from 0 at the
+        run's start: blocks are autonomous); none is added when they do not use it."""
+        uses = any(ca.depends_on(e, self.time) for e in list(b._ders.values()) + [e for _, e in b._outputs]) or \
+            any(ca.depends_on(ca.SX(s0), self.time) for _, _, s0 in b._states)
+        if not uses:
+            return
+        clock = b.state("state.time", 0.0, "s", "the model's time: a clock state, d/dt = 1 from 0 at the run's start")
+        b.der(clock, 1.0)
+        b._ders = {k: ca.substitute(e, self.time, clock) for k, e in b._ders.items()}
+        b._outputs = [(v, ca.substitute(e, self.time, clock)) for v, e in b._outputs]
+        if self.event_fields:  # the clock is a state the updates keep: its row goes after the others
+            nx = len(b._states) - 1
+            self.event_fields["updates"] = [None if g is None else ca.vertcat(g[:nx], clock, g[nx:])
+                                            for g in self.event_fields["updates"]]
+
+    def _events(self, b: BlockBuilder) -> dict | None:
+        """The block's event fields from rumoca's roots, conditions, event actions and discrete
+        equations: each relation a root watches is an indicator ``lhs - rhs`` (a ``<``/``<=``
+        fires falling, ``>``/``>=`` rising, for a when-clause; either way when only an
+        if-expression reads it); a when-clause's update applies its ``reinit``s to the states and
+        solves its discrete equations for the modes' new values (``pre(v)`` the left values)."""
+        st = self.st
+        self.event_fields: dict = {}
+        for key, what in (("time_events", "a time event (sample(), a when on time alone)"), ("delays", "delay()"),
+                          ("clocks", "a clock (synchronous features)"), ("previous_values", "previous()")):
+            if st.get(key):
+                raise ModelicaError(self.filename, None, f"{what} is not supported yet")
+        roots = [r["root"] for r in st.get("roots", [])]
+        if not roots and not self.mode_syms:
+            return None
+        relations = [r["relation"] for r in st.get("relations", [])]
+        conditions = st.get("conditions", [])
+        xs = [sym for _, sym, _ in b._states]
+        ms = list(self.mode_syms.values())
+        indicators, directions, names, updates = [], [], [], []
+        by_relation: dict[int, int] = {}
+        for root in roots:
+            rel = relations[root["relation"]]
+            (kind, body), = self.nodes[rel["expression"]].items()
+            if kind != "binary" or body["operator"] not in ("less", "less_equal", "greater", "greater_equal"):
+                self._fail_node(rel["expression"], "a relation other than <, <=, >, >= as an event")
+            z = self.graph(body["lhs"]) - self.graph(body["rhs"])
+            by_relation[root["relation"]] = len(indicators)
+            indicators.append(z)
+            directions.append(FALLING if body["operator"] in ("less", "less_equal") else RISING)
+            names.append(f"{_short(self.graph(body['lhs']), 40)} {_REL[body['operator']]} "
+                         f"{_short(self.graph(body['rhs']), 40)}")
+            updates.append(None)
+        triggers: dict[int, list] = {}
+        for act in st.get("event_actions", []):
+            triggers.setdefault(act["trigger"], []).append(("action", act))
+        for eq in st.get("discrete_real_equations", []):
+            when = (eq.get("activation") or {}).get("when")
+            if when is None:
+                self._fail_span(eq, "a discrete equation outside a when-clause")
+            triggers.setdefault(when["trigger"], []).append(("equation", eq))
+        fired = set()
+        for trig, items in triggers.items():
+            node = (conditions[trig].get("node") or {}) if trig < len(conditions) else {}
+            if set(node) != {"relation"} or node["relation"] not in by_relation:
+                self._fail_span(items[0][1], "a when-condition other than one relation (initial(), sample(), edge(), "
+                                             "change(), and/or of relations)")
+            i = by_relation[node["relation"]]
+            updates[i] = self._update(items, xs, ms, b)
+            fired.add(i)
+        for i in range(len(indicators)):
+            if i not in fired:
+                directions[i] = EITHER  # a relation read by an if-expression: the step restarts where it switches
+        self.event_fields = {
+            "modes": [Var(f"mode.{self.vars[k]['name']}", *self._doc(self.vars[k], "discrete variable"))
+                      for k in self.mode_syms],
+            "m": ca.vertcat(*ms) if ms else ca.SX(0, 1), "mode_start": self.mode_starts, "t": self.time,
+            "indicators": ca.vertcat(*indicators) if indicators else ca.SX(0, 1), "directions": directions,
+            "event_names": names, "updates": updates}
+        return self.event_fields
+
+    def _update(self, items: list, xs: list, ms: list, b: BlockBuilder) -> ca.SX:
+        """``[x+; m+]`` of one when-clause: its discrete equations solved for the modes' new
+        values, then its reinits (which may read them)."""
+        new = {k: ca.SX.sym(f"new.{self.vars[k]['name']}") for k in self.mode_syms}
+        env = dict(self.env)
+        env.update({("discrete_real", k): s for k, s in new.items()})
+        g = dataclasses.replace(self.graph, env=env)
+        eqs = [g(it["residual"]) for kind, it in items if kind == "equation"]
+        for kind, it in items:
+            if kind == "action" and it.get("guard") != it.get("trigger"):
+                self._fail_span(it, "elsewhen is not supported yet (one when-clause per condition)")
+        solved: dict = {}
+        if eqs:
+            unknowns = [s for s in new.values() if any(ca.depends_on(e, s) for e in eqs)]
+            R, Z = ca.vertcat(*eqs), ca.vertcat(*unknowns)
+            J = ca.jacobian(R, Z)
+            if len(unknowns) != len(eqs) or ca.depends_on(J, Z):
+                self._fail_span(items[0][1], "the equations of this when-clause do not determine its discrete "
+                                             "variables one by one (each must be assigned once, linearly)")
+            sol = ca.solve(J, -ca.substitute(R, Z, ca.SX.zeros(Z.shape)))
+            solved = {unknowns[j].name(): sol[j] for j in range(len(unknowns))}
+        m_new = []
+        for k, m in zip(self.mode_syms, ms):
+            m_new.append(solved.get(new[k].name(), m))
+        subst_from = ca.vertcat(*new.values()) if new else ca.SX(0, 1)
+        subst_to = ca.vertcat(*m_new) if m_new else ca.SX(0, 1)
+        x_new = list(xs)
+        for kind, it in items:
+            if kind != "action":
+                continue
+            (akind, body), = it["kind"].items()
+            if akind != "reinitialize":
+                self._fail_span(it, f"the event action {akind!r} is not supported")
+            target = self.env.get(("state", body["state"]))
+            if target is None or not any(ca.is_equal(target, x) for x in xs):
+                self._fail_span(it, f"reinit of {self.vars[body['state']]['name']}, which is not a state here")
+            value = g(body["value"])
+            value = ca.substitute(value, subst_from, subst_to) if new else value
+            x_new[[j for j, x in enumerate(xs) if ca.is_equal(x, target)][0]] = value
+        return ca.vertcat(*(x_new + m_new))
+
+    def _fail_span(self, item: dict, what: str):
+        span = (item.get("provenance") or {}).get("span") or {}
+        raise ModelicaError(self.filename, self._offset_line(span.get("start")), what)
+
+    def _fail_node(self, i: int, what: str):
+        raise ModelicaError(self.filename, self._node_line(i), what)
 
     @staticmethod
     def _is_output(v: dict) -> bool:
@@ -731,13 +876,10 @@ class _Translation:
 
     def _refuse_flat(self) -> None:
         """What the token scan cannot see (e.g. a construct reached through an extends)."""
-        for key, what in (("algorithms", "an algorithm section"), ("when_chains", "a when-equation"),
-                          ("initial_equations", "an initial equation"), ("assert_equations", "an assert"),
-                          ):
+        for key, what in (("algorithms", "an algorithm section"), ("initial_equations", "an initial equation"),
+                          ("assert_equations", "an assert")):
             if self.flat.get(key):
                 raise ModelicaError(self.filename, None, f"the model contains {what}, which is not supported")
-        if self.st.get("discrete_real_equations") or self.st.get("time_events") or self.st.get("delays"):
-            raise ModelicaError(self.filename, None, "the model has events or delays, which are not supported")
 
     def _residuals(self) -> list[tuple[ca.SX, int | None]]:
         out = []

@@ -116,10 +116,12 @@ class BlockBuilder:
 
     # the block -------------------------------------------------------------------------------
     def build(self, *, integrator: str = "rk4", substeps: int = 1, sample_period: float | None = None,
-              units_required: bool = True) -> Block:
+              units_required: bool = True, events: dict | None = None) -> Block:
         """The checked block (:meth:`models.block.Block.build` and :func:`require_documented`;
         ``units_required=False`` lets a variable's unit be empty, i.e. unknown, as a Modelica
-        model may leave it)."""
+        model may leave it; ``events``: the block's event fields, ``modes``, ``m``,
+        ``mode_start``, ``t``, ``indicators``, ``directions``, ``updates``, ``event_names``,
+        ``sample_times``, as :class:`~models.block.Block` has them)."""
         missing = [v.name for v, _, _ in self._states if v.name not in self._ders]
         if missing:
             raise BlockError(f"block {self.name}: state {missing[0]!r} has no derivative (call der())")
@@ -140,7 +142,7 @@ class BlockBuilder:
             start=col([ca.SX(s) for _, _, s in self._states]),
             integrator=integrator if self._states else ("none" if integrator != "discrete" else integrator),
             substeps=substeps, sample_period=sample_period, flanges=list(self._flanges), fidelity=self.fidelity,
-            ratings=dict(self._ratings))
+            ratings=dict(self._ratings), **(events or {}))
         require_documented(blk, units=units_required)
         return blk
 
