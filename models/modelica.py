@@ -19,10 +19,21 @@ What a model may contain (anything else is refused with ``file:line: construct``
 - equations (acausal: the residuals are sorted and solved symbolically: one unknown at a time
   where an equation is linear in it, a linear algebraic loop by a symbolic sparse solve, a
   nonlinear one by Newton iterations unrolled into the generated code);
-- types declared in the file (``type Force = Real(unit = "N")``, as ``Modelica.Units.SI`` does;
-  the Modelica Standard Library itself is not loaded);
+- classes of other files and libraries (``extends``, ``import``), which rumoca reads from the
+  source ``roots`` its caller gives (:mod:`cosim.scenario.modelica_sources` chooses the files);
+- Boolean, Integer and enumeration parameters and constants (fixed: they select equations);
+- every other variable (algebraic, states, inner components' outputs) exported as an FMI local
+  under its Modelica name, so it can be recorded;
+- states tied by a constraint (index 2): one of them is computed from the constraint and its
+  time derivative is added (:meth:`_Translation._reduce_index`);
 - the built-in functions sin, cos, tan, asin, acos, atan, atan2, sinh, cosh, tanh, exp, log,
   log10, sqrt, abs, sign, min, max, floor, ceil, smooth, noEvent, homotopy and if-expressions;
+  functions whose algorithm is a sequence of assignments (inlined);
+- ``time`` (the block's event time in indicators and updates; a clock state where the continuous
+  equations read it);
+- events (docs/explanation/events.md): discrete Real variables are modes (``pre`` their left
+  value); ``when`` on a relation is an indicator with its update (``reinit`` and the clause's
+  discrete equations); a relation read by an if-expression is an indicator too;
 - connectors with one potential and one ``flow`` variable: each becomes a power-bond flange
   (:class:`~models.block.Flange`).  The potential is a velocity (``m/s``, ``rad/s``) or a position
   (``m``, ``rad``; then our flange carries its rate).  Which of the pair is an input is decided by
@@ -36,13 +47,13 @@ Units: rumoca 0.10 does not check them, so the translation does (:class:`_Units`
 dimension, and the arguments of sin, exp, tanh... be dimensionless; a variable without a unit is
 a wildcard, a number is a wildcard in a sum and a dimensionless factor in a product.
 
-Refused: when-equations, algorithm sections and functions (their bodies are algorithms),
-external functions, initial equations and algorithms, assert/terminate/reinit, event operators
-(pre, edge, change, sample, delay), ``time`` (blocks are autonomous), discrete, Integer, Boolean
-and String variables, inner/outer, stream connectors, arrays of connectors.
+Refused: algorithm sections of a model, statements other than assignments in functions,
+external functions, initial equations and algorithms, assert/terminate, ``sample``, ``edge``,
+``change``, ``elsewhen``, time events, ``delay``, Boolean/Integer discrete variables, String
+variables, inner/outer, stream connectors, arrays of connectors.
 
-``models/`` is maths only: :func:`translate` takes the model's text; reading files is the
-caller's (:mod:`cosim.scenario`).
+``models/`` is maths only: :func:`translate` takes the model's text (and rumoca reads the roots
+it is given); choosing and reading files is the caller's (:mod:`cosim.scenario`).
 """
 from __future__ import annotations
 
@@ -579,6 +590,7 @@ class _Translation:
         self.time = ca.SX.sym("t")  # the model's time (see _clock)
         self.mode_syms = {}
         self.event_fields: dict = {}
+        self.solved = None
         self.units = _Units(self.graph, {k: (v["attributes"].get("unit") or "") for k, v in enumerate(self.vars)})
 
     # source lines
@@ -663,6 +675,8 @@ class _Translation:
         for k, sym in self.mode_syms.items():  # the discrete variables, recordable too
             unit, text = self._doc(self.vars[k], "discrete variable")
             b.output(self.vars[k]["name"], sym, unit, text, local=not self._is_output(self.vars[k]))
+        known = {key: solved[key] for key in unknown if key in solved}  # events read the solved variables
+        self.solved = (ca.vertcat(*[unknown[k] for k in known]), ca.vertcat(*known.values())) if known else None
         events = self._events(b)
         self._clock(b)
         return self._finish(b, integrator, substeps, events)
@@ -776,6 +790,9 @@ class _Translation:
         for i in range(len(indicators)):
             if i not in fired:
                 directions[i] = EITHER  # a relation read by an if-expression: the step restarts where it switches
+        if self.solved is not None:  # indicators and updates in states, inputs, parameters and modes only
+            indicators = [ca.substitute(z, *self.solved) for z in indicators]
+            updates = [None if g is None else ca.substitute(g, *self.solved) for g in updates]
         self.event_fields = {
             "modes": [Var(f"mode.{self.vars[k]['name']}", *self._doc(self.vars[k], "discrete variable"))
                       for k in self.mode_syms],
