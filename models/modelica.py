@@ -1004,11 +1004,16 @@ class _Translation:
             g, line = free[0], None
             live = [k for k in states if ("state", k) not in keys]
             tied = [k for k in live if ca.depends_on(g, self.env[("state", k)])]
-            inputs = [s for s in ca.symvar(g) if s.name() in {v.name for v, _ in b._inputs}]
+            own = {self.env[("state", j)].name() for j in states} | {sym.name() for _, sym in b._params} | \
+                {sym.name() for sym in self.mode_syms.values()} | {self.time.name()}
+            own |= {self.env[("parameter", j)].name() for j in range(len(self.vars))
+                    if ("parameter", j) in self.env and self.env[("parameter", j)].is_symbolic()}
+            inputs = [s for s in ca.symvar(g) if s.name() not in own]
             if inputs or not tied:
                 self.index_problem = (f"the states are tied by the constraint 0 = {_short(g)}"
-                                      + (f", which involves the input {inputs[0].name()} (its derivative is "
-                                         f"not known to the block)" if inputs else ""))
+                                      + (f", which involves {inputs[0].name()}, an input or a variable the "
+                                         f"partner gives (its derivative is not known to the block)"
+                                         if inputs else ""))
                 return None, None
             k = min(tied, key=lambda j: (self._fixed(j), self._PRIORITY.get(
                 self.vars[j]["attributes"].get("state_select") or "Default", 2), -j))
