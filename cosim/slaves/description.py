@@ -121,7 +121,8 @@ def describe_block(block: Block, source: str = "") -> SlaveDescription:
     for u in block.inputs:
         vs[u.name] = Variable(u.name, "input", "continuous", "Real", 0.0, u.unit, u.description)
     for y in block.outputs:
-        vs[y.name] = Variable(y.name, "output", "continuous", "Real", None, y.unit, y.description)
+        vs[y.name] = Variable(y.name, "local" if y.local else "output", "continuous", "Real", None, y.unit,
+                              y.description)
     period = float(block.sample_period) if block.integrator == "discrete" and block.sample_period else None
     return SlaveDescription("block", source or block.name, vs, block.feedthrough(), list(block.flanges),
                             period, None, True)
