@@ -22,7 +22,6 @@ mappings, non-Real parameter values, units that do not convert.
 """
 from __future__ import annotations
 
-import hashlib
 import os
 import tempfile
 import zipfile
@@ -30,6 +29,8 @@ from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
+
+from fmus.cache import file_digest
 
 from ..errors import UserError
 
@@ -225,7 +226,7 @@ class _Reader:
         from fmus import cache_root
 
         if not hasattr(self, "digest"):
-            self.digest = hashlib.sha256(self.path.read_bytes()).hexdigest()[:16]
+            self.digest = file_digest(self.path)[:16]
         from ..outputs import confined
 
         dest = confined(cache_root(self.cache_dir) / "ssp" / self.digest, member)

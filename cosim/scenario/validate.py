@@ -6,6 +6,8 @@ import json
 from collections.abc import Mapping
 from pathlib import Path
 
+from fmus.cache import file_digest
+
 from .check_components import ComponentChecks
 from .check_connections import ConnectionChecks
 from .check_master import MasterChecks
@@ -26,7 +28,7 @@ def _hash(data: dict, comps: Mapping[str, Component]) -> str:
     for name in sorted(comps):
         c = comps[name]
         if c.fmu is not None:
-            h.update(name.encode() + hashlib.sha256(c.fmu.read_bytes()).digest())
+            h.update(name.encode() + bytes.fromhex(file_digest(c.fmu)))
         sources = getattr(getattr(c, "recipe", None), "sources", None)
         if sources:  # a user's block: the files that define it (a Modelica class: every file it reads)
             h.update(name.encode() + json.dumps(sources, sort_keys=True).encode())
