@@ -34,7 +34,9 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "tests"))
 
-from cosim.master import fastloop, native  # noqa: E402
+from cosim.master import fastloop  # noqa: E402
+from cosim.master.entries import RUN  # noqa: E402
+from cosim.master.native import compile_loop  # noqa: E402
 from cosim.run.execute import run  # noqa: E402
 from cosim.slaves import crumb  # noqa: E402
 
@@ -62,16 +64,9 @@ def loop_ns_per_call(steps: int, repeat: int) -> tuple[float, float, int]:
     scene = hostile_scene(folder, build_hostile_fmu(folder), stop_time=steps * 1e-3)
     sets = ["master.output_interval=1"]
     os.environ["RPR_COSIM_SUPERVISE"] = "0"  # the loop alone, in this process
-    from fmus.native import load
+    from fmus.native import FLAGS
 
-    no_crumb = crumb.C_SOURCE.replace(
-        "#define FMI(key, c, expr) (rpr_crumb->who = (int64_t)(intptr_t)(key), rpr_crumb->call = (c), "
-        "rpr_crumb->seq++, rpr_out(expr))", "#define FMI(key, c, expr) (expr)").replace(
-        "#define FMI_T(key, c, tt, expr) (rpr_crumb->t = (tt), FMI(key, c, expr))", "#define FMI_T(key, c, tt, expr) (expr)")
-    assert no_crumb != crumb.C_SOURCE
-    plain = load(native.PRELUDE.replace(crumb.C_SOURCE, no_crumb) + fastloop.SOURCE, "rpr_loop_nocrumb")
-    plain.rpr_set_crumb.argtypes = fastloop.library().rpr_set_crumb.argtypes
-    plain.rpr_run.restype, plain.rpr_run.argtypes = fastloop.library().rpr_run.restype, fastloop.library().rpr_run.argtypes
+    plain = compile_loop("fastloop.c", "rpr_loop_nocrumb", [RUN], (*FLAGS, "-DRPR_NO_CRUMB"))  # crumb.h's bare calls
     real = fastloop.library
 
     def wall(lib) -> float:

@@ -387,10 +387,8 @@ def amend_status(trace: Path, status: str, reason: str) -> None:
         with os.fdopen(fd, "a") as fh:
             fh.write(f"# status: {json.dumps(status)}\n# reason: {json.dumps(reason)}\n")
     side = trace.with_suffix(".json")
-    try:
-        data = json.loads(side.read_text())
-    except (OSError, ValueError):
-        data = {}
+    data = _json_file(side)
+    data = data if isinstance(data, dict) else {}
     data.update(status=status, reason=reason)
     write_text(side, json.dumps(data, indent=2))
 
@@ -402,10 +400,19 @@ def prev_path(path: Path) -> Path:
 
 
 def _status_of(sidecar: Path) -> str:
+    data = _json_file(sidecar)
+    return str(data.get("status", "")) if isinstance(data, dict) else ""
+
+
+def _json_file(path: Path):
+    """The JSON of a sidecar or lock file, or None when it is missing, not a regular file, too
+    large, too deeply nested or not JSON (:mod:`cosim.readers`)."""
+    from .readers import read_json
+
     try:
-        return str(json.loads(sidecar.read_text()).get("status", ""))
-    except (OSError, ValueError, AttributeError):
-        return ""
+        return read_json(path, "sidecar")
+    except UserError:
+        return None
 
 
 #: What a run named N writes into its output directory besides its trace: the files of one run's
@@ -484,13 +491,10 @@ def settle_stale(out_dir: Path, previous: dict | None = None) -> list[str]:
     who = f"pid {previous['pid']}" if previous and previous.get("pid") else "its process"
     notes = []
     for side in sorted(out_dir.glob(".*.json.part")) + sorted(out_dir.glob("*.json")):
-        try:
-            data = json.loads(side.read_text())
-        except (OSError, ValueError):
-            continue
+        data = _json_file(side)
         if not isinstance(data, dict) or data.get("status") != "running":
             continue
-        pid = data.get("pid")
+        pid = data.get("pid") if isinstance(data.get("pid"), int) and data.get("pid") > 0 else None
         if pid and pid != os.getpid() and pid_alive(pid) and holder(out_dir) == pid:
             continue
         reason = (f"killed: the run ({who}) ended without finishing (SIGKILL, power loss or crash); "
@@ -507,6 +511,9 @@ def _settle_side(out_dir: Path, side: Path, data: dict, status: str, reason: str
     the trace cut to whole rows, the status lines appended, both moved into place.  Returns the
     rows kept and :func:`place`'s note."""
     trace_name = data.get("trace") or ""
+    if not isinstance(trace_name, str) or Path(trace_name).name != trace_name or trace_name.startswith(".") \
+            or Path(trace_name).suffix not in (".csv", ".parquet"):
+        trace_name = ""  # a name read from a sidecar is data: only a plain trace name beside it counts
     final_side = final_path(side) if side.name.endswith(".part") else side
     csv_final = out_dir / trace_name if trace_name else final_side.with_suffix(".csv")
     csv_part = part_path(csv_final)
@@ -537,10 +544,7 @@ def settle_run(trace: Path, status: str, reason: str) -> tuple[int, str] | None:
     placement note), or None when that run left no sidecar saying "running"."""
     trace = Path(trace)
     for side in (part_path(trace.with_suffix(".json")), trace.with_suffix(".json")):
-        try:
-            data = json.loads(side.read_text())
-        except (OSError, ValueError):
-            continue
+        data = _json_file(side)
         if isinstance(data, dict) and data.get("status") == "running":
             return _settle_side(trace.parent, side, data, status, reason)
     return None

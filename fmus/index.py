@@ -200,11 +200,26 @@ def lookup(model: str, fidelity: str | None, options: dict, params: dict, fmi: s
 
 
 def source_digest(path: Path) -> str:
-    """SHA-256 (hex) of a file's bytes ("missing" when it cannot be read)."""
+    """SHA-256 (hex) of a file's bytes, read in blocks ("missing" when it cannot be read or is
+    not a regular file: a device such as /dev/zero or a FIFO is never read)."""
+    import os
+    import stat
+
     try:
-        return hashlib.sha256(Path(path).read_bytes()).hexdigest()
+        fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK)
     except OSError:
         return "missing"
+    try:
+        if not stat.S_ISREG(os.fstat(fd).st_mode):
+            return "missing"
+        h = hashlib.sha256()
+        while block := os.read(fd, 1 << 20):
+            h.update(block)
+        return h.hexdigest()
+    except OSError:
+        return "missing"
+    finally:
+        os.close(fd)
 
 
 def _unchanged(depends: dict) -> bool:

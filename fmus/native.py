@@ -16,13 +16,15 @@ import os
 import subprocess
 import sys
 import tempfile
+from collections.abc import Mapping
 from pathlib import Path
 
 from .compile import compiler, compiler_identity, compiler_version
 from .errors import BuildError
 
-#: Flags of every run-time library (part of the cache key).
-FLAGS = ("-O2", "-shared", "-fPIC", "-std=c99", "-D_POSIX_C_SOURCE=199309L")
+#: Flags of every run-time library (part of the cache key); its C is kept free of warnings
+#: (``tests/test_native.py`` compiles it with ``-Werror``).
+FLAGS = ("-O2", "-shared", "-fPIC", "-std=c99", "-D_POSIX_C_SOURCE=199309L", "-Wall", "-Wextra")
 
 
 class NoCompiler(BuildError):
@@ -48,12 +50,19 @@ def _toolchain() -> tuple[str, str]:
     return cc, f"{compiler_identity()}\n{version}"
 
 
-def library_path(source: str, stem: str, flags: tuple[str, ...] = FLAGS) -> Path:
-    """Where :func:`load` keeps the library of ``source`` (built if missing).  Raises
-    :class:`NoCompiler` without a working compiler, :class:`BuildError` (the compiler's log, 500
-    characters) when the source does not compile."""
+def _files(source: str | Mapping[str, str], stem: str) -> dict[str, str]:
+    return {f"{stem}.c": source} if isinstance(source, str) else dict(source)
+
+
+def library_path(source: str | Mapping[str, str], stem: str, flags: tuple[str, ...] = FLAGS) -> Path:
+    """Where :func:`load` keeps the library of ``source`` (built if missing): one C text, or
+    files (name -> text) whose ``.c`` files are compiled together, their headers beside them.
+    Raises :class:`NoCompiler` without a working compiler, :class:`BuildError` (the compiler's
+    log, 500 characters) when the source does not compile."""
     cc, ident = _toolchain()
-    key = hashlib.sha256("\0".join([source, ident, " ".join(flags), sys.platform]).encode()).hexdigest()[:20]
+    files = _files(source, stem)
+    text = "\0".join(f"{name}\0{files[name]}" for name in sorted(files))
+    key = hashlib.sha256("\0".join([text, ident, " ".join(flags), sys.platform]).encode()).hexdigest()[:20]
     from .cache import writable_root
 
     root = _cache_dir()
@@ -64,11 +73,13 @@ def library_path(source: str, stem: str, flags: tuple[str, ...] = FLAGS) -> Path
     lib = root / f"{stem}_{key}.so"
     if not lib.exists():
         with tempfile.TemporaryDirectory(dir=root) as tmp:
-            src = Path(tmp) / f"{stem}.c"
-            src.write_text(source)
+            for name, body in files.items():
+                (Path(tmp) / name).write_text(body)
+            sources = [str(Path(tmp) / name) for name in sorted(files) if name.endswith(".c")]
             out = Path(tmp) / lib.name
             try:
-                res = subprocess.run([cc, *flags, "-o", str(out), str(src), "-lm"], capture_output=True, text=True)
+                res = subprocess.run([cc, *flags, f"-I{tmp}", "-o", str(out), *sources, "-lm"], capture_output=True,
+                                     text=True)
             except OSError as exc:
                 raise NoCompiler(f"{cc}: {exc}") from None
             if res.returncode != 0:
@@ -77,8 +88,9 @@ def library_path(source: str, stem: str, flags: tuple[str, ...] = FLAGS) -> Path
     return lib
 
 
-def load(source: str, stem: str, flags: tuple[str, ...] = FLAGS) -> ctypes.CDLL:
-    """Compile ``source`` (once per source, compiler and flags; cached on disk) and load it."""
+def load(source: str | Mapping[str, str], stem: str, flags: tuple[str, ...] = FLAGS) -> ctypes.CDLL:
+    """Compile ``source`` (one C text or files, see :func:`library_path`; once per source,
+    compiler and flags; cached on disk) and load it."""
     return ctypes.CDLL(str(library_path(source, stem, flags)))
 
 

@@ -29,6 +29,7 @@ from typing import Callable
 
 from .convert import PERIOD_NS, ideal_counts
 from .pins import ADC_NAME_PREFIX, GPIO_BANKS, RIG_PINS, LegFiles, LegPins, resolve
+from .protocol import c_header
 
 C_DIR = Path(__file__).with_name("c")
 SOURCES = ["board_main.c", "board_core.c", "board_io.c", "hmac_sha256.c"]
@@ -84,6 +85,7 @@ def build(target: str = "host", *, static: bool | None = None, cache_dir: Path |
     static = target != "host" if static is None else static
     files = {n: (C_DIR / n).read_text() for n in SOURCES + HEADERS}
     files["board_config.h"] = config_header()
+    files["board_protocol.h"] = c_header()
     return build_program(NAME, files, SOURCES, target=target, static=static, cache_dir=cache_dir, progress=progress)
 
 

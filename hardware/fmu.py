@@ -24,6 +24,7 @@ from pathlib import Path
 from typing import Callable
 
 from .convert import Calibration
+from .protocol import c_header
 from .virtual import RIG_CALIBRATION
 
 C_DIR = Path(__file__).with_name("c")
@@ -152,6 +153,7 @@ def build_hil_fmu(*, address: str = "127.0.0.1:5005", key_file: str | Path = "~/
     files = {n: (C_DIR / n).read_text() for n in C_SOURCES + HEADERS}
     files |= {n: (FMI_HEADER_DIR / n).read_text() for n in FMI_HEADERS["2.0"]}
     files["hil_config.h"] = config_header(address, key_file, calibration, timeout)
+    files["board_protocol.h"] = c_header()
     xml = model_description(address, key_file, calibration, timeout)
     return build_from_sources(IDENT, files, list(C_SOURCES), xml, cache_dir=cache_dir, progress=progress,
                               record={"kind": "hardware", "integrator": "board", "states": 0, "address": address,

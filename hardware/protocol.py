@@ -75,6 +75,28 @@ FAULT_NAMES = {F_WATCHDOG: "watchdog", F_BAD_COMMAND: "non-finite command", F_AD
                F_EXCEPTION: "daemon exception"}
 
 
+#: COMMAND flags, daemon states and fault bits by name, for the C sides (:func:`c_header`)
+FLAG_NAMES = {"ARM": ARM, "RUN": RUN, "STOP": STOP, "RESET": RESET, "QUERY": QUERY}
+FAULT_BITS = {"WATCHDOG": F_WATCHDOG, "BAD_COMMAND": F_BAD_COMMAND, "ADC_STALE": F_ADC_STALE,
+              "ADC_RANGE": F_ADC_RANGE, "ADC_STUCK": F_ADC_STUCK, "IO": F_IO, "EXCEPTION": F_EXCEPTION}
+
+
+def c_header() -> str:
+    """``board_protocol.h``: this module's declarations as C, for the board daemon (``board.h``)
+    and the hardware FMU (``hil_fmu.c``), so neither writes the protocol again: the magic, the
+    version, the header, MAC and nonce lengths, each body's length, the types (``T_*``), the
+    COMMAND flags (``F_*``), the daemon states (``S_*``) and the fault bits (``FB_*``)."""
+    defines = {"PROTO_MAGIC0": f"'{chr(MAGIC[0])}'", "PROTO_MAGIC1": f"'{chr(MAGIC[1])}'", "PROTO_VERSION": VERSION,
+               "HDR": HEADER.size, "MAC": MAC_LEN, "NONCE": NONCE_LEN,
+               **{f"BODY_{TYPE_NAMES[t]}": body.size for t, body in BODY.items()}}
+    enums = [("T_", {n: t for t, n in TYPE_NAMES.items()}), ("F_", FLAG_NAMES),
+             ("S_", {n.upper(): v for v, n in STATE_NAMES.items()}), ("FB_", FAULT_BITS)]
+    lines = ["/* Generated from hardware/protocol.py: do not edit. */"]
+    lines += [f"#define {k} {v}" for k, v in defines.items()]
+    lines += ["enum { " + ", ".join(f"{prefix}{n} = {v}" for n, v in names.items()) + " };" for prefix, names in enums]
+    return "\n".join(lines) + "\n"
+
+
 class ProtocolError(ValueError):
     """A datagram that is not well formed (wrong length, magic, version or type)."""
 

@@ -11,6 +11,12 @@ tree, as fixed-width text in one write (a reader never sees a torn or empty valu
 Options reproduce what goes wrong on a rig: ADC noise (counts, standard deviation), sensor
 latency, a stuck sensor (the counts freeze), an unplugged sensor (the ADC reads 4095) and a
 driver fault (the motor gets no voltage), each per leg.
+
+The plant is any fidelity of the actuator block (``fidelity``: ``rig``, the FA-200's first-order
+speed lag, or ``motor``, a DC motor per leg) with its parameters overridden (``params``: the names
+``--set components.rig.params.NAME=VALUE`` takes), and each leg's pot has its own calibration
+(``calibration``: one for all legs or one per leg), so recordings with known true values can be
+made (:mod:`hardware.record`).
 """
 from __future__ import annotations
 
@@ -40,7 +46,30 @@ class PlantOptions:
     driver_fault: tuple[int, ...] = ()  # legs whose driver gives no voltage
     rate: float = 1000.0        # plant updates per second
     seed: int = 0
-    calibration: Calibration = field(default_factory=lambda: RIG_CALIBRATION)
+    calibration: Calibration | tuple[Calibration, Calibration, Calibration] = field(
+        default_factory=lambda: RIG_CALIBRATION)
+    fidelity: str = "rig"       # the actuator block's fidelity (rig: first-order lag; motor: a DC motor per leg)
+    params: dict[str, float] = field(default_factory=dict)  # the block's parameters by name (true values)
+
+    def calibrations(self) -> tuple[Calibration, Calibration, Calibration]:
+        """Each leg's pot calibration."""
+        cal = self.calibration
+        return (cal, cal, cal) if isinstance(cal, Calibration) else tuple(cal)
+
+
+def plant_block(options: PlantOptions, *, nominal: bool = False):
+    """The actuator block the plant integrates, its parameters overridden (``nominal``: at their
+    defaults, the FMU the plant loads and sets them on); a ValueError names an unknown parameter
+    or fidelity, or a value outside the parameter's bounds."""
+    from models.block import BlockError
+    from models.blocks import make
+
+    kw = {"actuator": options.actuator} if options.fidelity != "motor" else {}
+    try:
+        return make("linear_actuator", options.fidelity, **kw,
+                    **({} if nominal else {k: float(v) for k, v in options.params.items()}))
+    except BlockError as exc:
+        raise ValueError(f"virtual board plant: {exc}") from None
 
 
 class Plant:
@@ -51,23 +80,28 @@ class Plant:
         from fmpy.fmi2 import FMU2Slave
 
         import fmus
-        from models.blocks import make
 
         self.opt = options or PlantOptions()
+        self.cal = self.opt.calibrations()
+        if len(self.cal) != 3:
+            raise ValueError(f"virtual board plant: {len(self.cal)} calibrations; expected one or one per leg (3)")
         self.legs: list[LegFiles] = resolve(Path(root), RIG_PINS, export=False)
-        self.block = make("linear_actuator", "rig", actuator=self.opt.actuator)
-        path = fmus.build_fmu(self.block)
+        self.block = plant_block(self.opt)  # checks the overrides
+        path = fmus.build_fmu(plant_block(self.opt, nominal=True))  # one build; the values set on it
         md = read_model_description(str(path))
         vr = {v.name: v.valueReference for v in md.modelVariables}
         self.fmu = FMU2Slave(guid=md.guid, unzipDirectory=_unzip(path), modelIdentifier=md.coSimulation.modelIdentifier,
                              instanceName="virtual_rig")
         self.fmu.instantiate()
         self.fmu.setReal([vr[f"leg[{i}].s0"] for i in (1, 2, 3)], list(self.opt.start))
+        given = {k: float(v) for k, v in self.opt.params.items() if not k.endswith(".s0")}
+        self.fmu.setReal([vr[k] for k in given], list(given.values()))
         self.fmu.setupExperiment(startTime=0.0)
         self.fmu.enterInitializationMode()
         self.fmu.exitInitializationMode()
         self.vr_u = [vr[f"leg[{i}].u"] for i in (1, 2, 3)]
         self.vr_stroke = [vr[f"leg[{i}].stroke"] for i in (1, 2, 3)]
+        self.vr_current = [vr[f"leg[{i}].i"] for i in (1, 2, 3)] if "leg[1].i" in vr else None
         self.t = 0.0
         self.strokes = self.fmu.getReal(self.vr_stroke)
         self.rng = random.Random(self.opt.seed)
@@ -110,9 +144,16 @@ class Plant:
             return 0.0
         return drive_to_volts(duty, dir_high, period_ns=self._period[i])
 
+    def currents(self, volts: list[float]) -> list[float]:
+        """The motor currents [A] with ``volts`` applied now (the ``motor`` fidelity; the driver's
+        current sense of a virtual rig)."""
+        if self.vr_current is None:
+            raise ValueError(f"the {self.opt.fidelity!r} plant has no motor current (fidelity motor has)")
+        self.fmu.setReal(self.vr_u, list(volts))
+        return list(self.fmu.getReal(self.vr_current))
+
     def _levels(self) -> list[float]:
-        cal = self.opt.calibration
-        return [cal.counts(self.stroke(i)) for i in range(3)]
+        return [self.cal[i].counts(self.stroke(i)) for i in range(3)]
 
     def _write_counts(self, levels: list[float], now: float) -> None:
         self.history.append((now, levels))

@@ -50,11 +50,13 @@ class Composite:
         return ca.Function("signals", args, [ca.vertcat(*[self.signals[n] for n in names])])
 
 
-def compose(blocks: Mapping[str, Block], params: Mapping[str, np.ndarray], wires: Sequence[Wire], *,
+def compose(blocks: Mapping[str, Block], params: Mapping[str, np.ndarray | ca.SX], wires: Sequence[Wire], *,
             starts: Mapping[str, Mapping[str, float]] | None = None,
             inputs: Mapping[str, Mapping[str, float]] | None = None, loops: bool = False) -> Composite:
     """One ODE from ``blocks`` with numeric parameter vectors ``params`` (a DAE when ``loops``
-    allows an algebraic loop and the wiring has one: module docstring).
+    allows an algebraic loop and the wiring has one: module docstring).  A parameter vector may be
+    CasADi SX (some entries symbols, e.g. the parameters a fit estimates): ``ode`` and ``signals``
+    then depend on those symbols, and ``x0`` is SX as well.
 
     ``starts[block][state]`` overrides a state's start value; ``inputs[block][input]`` is the
     constant value of an input no wire feeds.  Raises :class:`BlockError` for a sampled
@@ -123,7 +125,8 @@ def compose(blocks: Mapping[str, Block], params: Mapping[str, np.ndarray], wires
         k += nx
         if nx:
             odes.append(fns[n]["ode"](xs[n], u, params[n]))
-            s0 = np.array(fns[n]["start"](params[n])).ravel()
+            s0 = fns[n]["start"](params[n])
+            s0 = s0 if isinstance(s0, ca.SX) else np.array(s0).ravel()  # symbolic parameters: a symbolic start
             for state, value in starts.get(n, {}).items():
                 s0[b.index("states", state)] = value
             x0.append(s0)
@@ -132,8 +135,9 @@ def compose(blocks: Mapping[str, Block], params: Mapping[str, np.ndarray], wires
     z = ca.vertcat(*[cut[k] for k in keys]) if keys else ca.SX(0, 1)
     alg = ca.vertcat(*[cut[k] - signals[feeds[k]] for k in keys]) if keys else ca.SX(0, 1)
     z0 = np.array([float(inputs.get(b, {}).get(i, 0.0)) for b, i in keys])
-    return Composite(X, ca.vertcat(*odes) if odes else ca.SX(0, 1),
-                     np.concatenate(x0) if x0 else np.zeros(0), signals, slices, z, alg, z0, keys)
+    symbolic = any(isinstance(s, ca.SX) for s in x0)
+    start = (ca.vertcat(*x0) if symbolic else np.concatenate(x0)) if x0 else np.zeros(0)
+    return Composite(X, ca.vertcat(*odes) if odes else ca.SX(0, 1), start, signals, slices, z, alg, z0, keys)
 
 
 def _direct_inputs(block: Block) -> set[str]:

@@ -168,6 +168,102 @@ def _compile(text: str, model: str, filename: str):
         raise ModelicaError(filename, line, first.strip().rstrip(":")) from None
 
 
+# --- bounds and crash isolation of the front end (issue 33) -----------------------------------------
+#: Most bytes of one Modelica source, most operators in one statement and most nested
+#: parentheses: checked on the text before rumoca sees it (a 5,000-term sum crashes rumoca with
+#: SIGSEGV; 500 terms overflow the translation's recursion).
+MAX_SOURCE_BYTES = 2 * 10 ** 6
+MAX_OPERATORS = 400
+MAX_NESTING = 64
+_OPERATORS = frozenset("+-*/^") | {".+", ".-", ".*", "./", ".^", "and", "or"}
+
+
+def bounded(text: str, filename: str) -> None:
+    """Raise :class:`ModelicaError` (with the line) when ``text`` exceeds :data:`MAX_SOURCE_BYTES`,
+    a statement has more than :data:`MAX_OPERATORS` operators or parentheses and brackets nest
+    deeper than :data:`MAX_NESTING`."""
+    if len(text.encode("utf-8", "surrogatepass")) > MAX_SOURCE_BYTES:
+        raise ModelicaError(filename, None, f"{len(text):,} characters, more than the limit of "
+                                            f"{MAX_SOURCE_BYTES:,} bytes for one Modelica file")
+    ops = depth = 0
+    start = None  # the line of the statement's first token
+    for tok, line in _tokens(text):
+        start = start or line
+        if tok == ";":
+            ops, start = 0, None
+        elif tok in "([{":
+            depth += 1
+            if depth > MAX_NESTING:
+                raise ModelicaError(filename, line, f"parentheses nested more than {MAX_NESTING} deep; split the "
+                                                    f"expression")
+        elif tok in ")]}":
+            depth = max(0, depth - 1)
+        elif tok in _OPERATORS:
+            ops += 1
+            if ops > MAX_OPERATORS:
+                raise ModelicaError(filename, start, f"a statement with more than {MAX_OPERATORS} operators; split "
+                                                     f"it into several equations (intermediate variables)")
+
+
+_FRONT_END: dict[tuple[str, str, str], tuple[dict, dict, str]] = {}  # (sha256, model, file) -> result
+
+
+def front_end(text: str, model: str, filename: str) -> tuple[dict, dict, str]:
+    """``(dae, flat, model name)``: rumoca's DAE and flat dictionaries of ``model`` in ``text``,
+    compiled in a forked child so that a crash of the compiler (a signal) is one
+    :class:`ModelicaError`, not the death of the workbench.  rumoca is imported once in this
+    process (the child inherits it); results are kept per source, model and file name, so a
+    second component of the same class compiles nothing."""
+    import hashlib
+    import os
+    import pickle
+    import signal
+
+    key = (hashlib.sha256(text.encode("utf-8", "surrogatepass")).hexdigest(), model, filename)
+    if key in _FRONT_END:
+        return _FRONT_END[key]
+    try:
+        import rumoca  # noqa: F401  (loaded here once, inherited by every child)
+    except ModuleNotFoundError:
+        pass  # _compile says so in one line
+    read, write = os.pipe()
+    pid = os.fork()
+    if pid == 0:  # the child: compile, send the result or the error, exit without cleanup
+        code = 0
+        try:
+            import faulthandler
+
+            faulthandler.disable()  # a crash is the parent's one line, not a dump of the child's stack
+            os.close(read)
+            try:
+                m = _compile(text, model, filename)
+                out = ("ok", (m.to_dict("dae"), m.to_dict("flat"), m.name))
+            except ModelicaError as exc:
+                out = ("error", (exc.filename, exc.line, exc.message))
+            except BaseException as exc:  # noqa: BLE001 - anything else, in one line
+                out = ("error", (filename, None, f"the Modelica front end failed: {type(exc).__name__}: "
+                                                 f"{str(exc).splitlines()[0] if str(exc) else ''}"))
+            with os.fdopen(write, "wb") as fh:
+                pickle.dump(out, fh, protocol=pickle.HIGHEST_PROTOCOL)
+        except BaseException:  # noqa: BLE001
+            code = 1
+        os._exit(code)
+    os.close(write)
+    with os.fdopen(read, "rb") as fh:
+        data = fh.read()
+    _, status = os.waitpid(pid, 0)
+    if os.WIFSIGNALED(status) or not data:
+        sig = os.WTERMSIG(status) if os.WIFSIGNALED(status) else None
+        how = f"died of {signal.Signals(sig).name} (signal {sig})" if sig else f"exited ({os.waitstatus_to_exitcode(status)})"
+        raise ModelicaError(filename, None, f"the Modelica front end (rumoca) {how} while compiling {model}; "
+                                            f"simplify the model (long or deeply nested expressions)")
+    kind, payload = pickle.loads(data)
+    if kind == "error":
+        raise ModelicaError(*payload)
+    _FRONT_END[key] = payload
+    return payload
+
+
 def _classes(text: str) -> list[str]:
     toks = [t for t, _ in _tokens(text)]
     return [toks[i + 1] for i, t in enumerate(toks[:-1])
@@ -379,15 +475,14 @@ def translate(text: str, model: str, filename: str = "model.mo", *, name: str | 
     ``exact``, ``rk4`` or ``radau``.  Raises :class:`ModelicaError` (``file:line: what``)."""
     if integrator not in INTEGRATORS:
         raise ModelicaError(filename, None, f"integrator {integrator!r}; expected one of {', '.join(INTEGRATORS)}")
+    bounded(text, filename)
     unsupported(text, filename)
-    m = _compile(text, model, filename)
-    dae = m.to_dict("dae")
+    dae, flat, model_name = front_end(text, model, filename)
     if dae.get("schema_version") != DAE_SCHEMA:
         raise ModelicaError(filename, None, f"rumoca {_rumoca_version()} writes DAE schema "
                                             f"{dae.get('schema_version')}; this translator reads schema {DAE_SCHEMA} "
                                             f"(rumoca 0.10.x)")
-    flat = m.to_dict("flat")
-    return _Translation(text, filename, dae["storage"], flat, m, name or model.split(".")[-1].lower()).block(
+    return _Translation(text, filename, dae["storage"], flat, model_name, name or model.split(".")[-1].lower()).block(
         integrator, substeps)
 
 
@@ -398,9 +493,9 @@ def _rumoca_version() -> str:
 
 
 class _Translation:
-    def __init__(self, text: str, filename: str, st: dict, flat: dict, m, name: str):
+    def __init__(self, text: str, filename: str, st: dict, flat: dict, model_name: str, name: str):
         self.text, self.filename, self.st, self.flat, self.name = text, filename, st, flat, name
-        self.description = (flat.get("model_description") or "").strip() or f"Modelica model {m.name}"
+        self.description = (flat.get("model_description") or "").strip() or f"Modelica model {model_name}"
         self.vars = st["variables"]
         ex = st["expressions"]
         self.nodes, self.prov = ex["nodes"], ex["provenance"]

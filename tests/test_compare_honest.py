@@ -103,21 +103,28 @@ def test_a_trace_from_another_tool_has_an_unknown_status_and_is_compared_with_a_
 
 
 @pytest.mark.parametrize("t_test, partial", [
-    (np.linspace(0.0, 1.0, 101), True),       # stops half way
-    (np.linspace(0.5, 2.0, 151), True),       # starts late
-    (np.linspace(0.0, 2.0, 21), False),       # coarser, whole span
-    (np.linspace(0.0, 1.995, 400), False),    # ends within half a sample of the span
-    (np.linspace(0.0, 3.0, 301), False),      # longer than the reference
+    (np.linspace(0.0, 1.0, 101), "the reference"),   # stops half way
+    (np.linspace(0.5, 2.0, 151), "the reference"),   # starts late
+    (np.linspace(0.0, 2.0, 21), ""),                 # coarser, whole span
+    (np.linspace(0.0, 1.995, 400), ""),              # ends within half a sample of the span
+    (np.linspace(0.0, 3.0, 301), "the test"),        # longer than the reference: its last third unchecked
+    (np.linspace(-1.0, 2.0, 301), "the test"),       # starts before the reference
+    (np.linspace(0.0, 20.0, 2001), "the test"),      # issue 33: ten times the reference's span
 ])
-def test_the_overlap_must_cover_the_reference_span(tmp_path, good, t_test, partial, capsys):
+def test_the_overlap_must_cover_both_spans(tmp_path, good, t_test, partial, capsys):
+    """The overlap must cover the reference's span and the test's (issue 33: a 0-2 s test
+    against a 0-0.2 s reference passed with error 0)."""
     test = write(tmp_path / "test.csv", trace(t_test, **{"m.x": np.sin(t_test), "m.y": np.cos(t_test)}))
     rc = cli.main(["compare", str(test), str(good)])
     assert rc == (2 if partial else 0)
     if partial:
         a, b = max(t_test[0], 0.0), min(t_test[-1], 2.0)
-        assert (f"the traces overlap over {a:g}..{b:g} s, {100 * (b - a) / 2:.3g} % of the reference's span 0..2 s"
-                in capsys.readouterr().err)
+        s0, s1 = (0.0, 2.0) if partial == "the reference" else (t_test[0], t_test[-1])
+        assert (f"the traces overlap over {a:g}..{b:g} s, {100 * (b - a) / (s1 - s0):.3g} % of {partial}'s span "
+                f"{s0:g}..{s1:g} s" in capsys.readouterr().err)
         assert cli.main(["compare", str(test), str(good), "--allow-partial"]) == 0
+        assert cli.main(["compare", str(good), str(test)]) == 2  # and the other way round
+        assert cli.main(["compare", str(good), str(test), "--tol", "1"]) == 1
 
 
 def test_columns_that_could_not_be_matched_are_reported(tmp_path, good, capsys):

@@ -21,12 +21,13 @@ from cosim.scenario import load
 from cosim.scenario.recipes import slave_description
 from cosim.slaves.fmu import FmuSlave
 from cosim.slaves.linear import LinearSlave
+from cosim.trace.observer import Observer
 from cosim.trace.traces import MemoryTrace
 
 PID_STEP = Path(__file__).resolve().parents[1] / "scenarios" / "pid_step.yaml"
 
 
-class Steps:
+class Steps(Observer):
     """A step observer: every step's (t, h, recorded values after it)."""
 
     def __init__(self, stop_after: int | None = None):

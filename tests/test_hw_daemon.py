@@ -355,3 +355,25 @@ def test_hello_flood_is_throttled_and_commands_go_on(tmp_path, target, gpio):
         assert d.counters["unauthenticated"] - after["unauthenticated"] == 1
     finally:
         d.close()
+
+
+@pytest.mark.parametrize("sender", [2 ** 63, 2 ** 64 - 1, 2 ** 63 - 1, 2 ** 63 + 1000 * MS])
+def test_sender_times_at_the_extremes_are_stale_and_move_no_offset(board, sender):
+    """Issue 33: a sender time of 2^63 overflowed ``now - (t + offset)`` (signed 64-bit) and was
+    accepted, moving the session's clock offset so that a 10 s old command was accepted next.
+    The arithmetic saturates; a time that is negative as a signed value, or far in the future,
+    is stale and changes nothing."""
+    d, m, tree = board
+    t0 = 100_000 * MS
+    m.hello(t0)
+    m.send(P.ARM, now=t0)
+    before, counters = faketree.snapshot(tree), dict(d.counters)
+    now = t0 + MS
+    assert d.handle(m.datagram(P.RUN, (12.0, 12.0, 12.0), sender), ADDR, now) is None
+    assert faketree.snapshot(tree) == before
+    changed = {k: d.counters[k] - counters[k] for k in counters if d.counters[k] != counters[k]}
+    assert changed == {"received": 1, "stale": 1}
+    # the offset did not move: a 10 s old command is still stale, a fresh one still runs
+    assert d.handle(m.datagram(P.RUN, (12.0, 12.0, 12.0), now - 10_000 * MS), ADDR, now + MS) is None
+    assert d.counters["stale"] == counters["stale"] + 2
+    assert m.send(P.RUN, (3.0, 3.0, 3.0), now + 2 * MS)["state"] == P.RUNNING

@@ -61,17 +61,83 @@ def test_ctypes_prototypes_follow_the_table():
     assert prototype("fmi2SetReal")._argtypes_[3] is ctypes.POINTER(ctypes.c_double)
 
 
-def test_slave_struct_mirror_has_the_c_layout(tmp_path):
-    """offsetof() of every field and sizeof() from the compiler, against the ctypes mirror."""
-    from cosim.master.native import PRELUDE, SLAVE_FIELDS, CSlave
-
-    names = [n for _, n, _ in SLAVE_FIELDS]
-    body = "\n".join(f"    out[{k}] = (int64_t)offsetof(rpr_slave, {n});" for k, n in enumerate(names))
-    code = PRELUDE + f"void layout(int64_t *out) {{\n{body}\n    out[{len(names)}] = (int64_t)sizeof(rpr_slave);\n}}\n"
-    lib = ctypes.CDLL(str(_compile(tmp_path, code, "-D_POSIX_C_SOURCE=199309L")))
+def _c_layout(tmp_path: Path, record, header: str) -> list[int]:
+    """offsetof() of every field of ``record`` and its sizeof(), from the C compiler reading ``header``."""
+    names = [n for _, n, _ in record.fields]
+    body = "\n".join(f"    out[{k}] = (int64_t)offsetof({record.name}, {n});" for k, n in enumerate(names))
+    code = header + f"void layout(int64_t *out) {{\n{body}\n    out[{len(names)}] = (int64_t)sizeof({record.name});\n}}\n"
+    lib = ctypes.CDLL(str(_compile(tmp_path, code, "-Wall", "-Wextra")))
     out = (ctypes.c_int64 * (len(names) + 1))()
     lib.layout(out)
-    assert list(out) == [getattr(CSlave, n).offset for n in names] + [ctypes.sizeof(CSlave)]
+    return list(out)
+
+
+def _mirror_layout(record, mirror) -> list[int]:
+    return [getattr(mirror, n).offset for _, n, _ in record.fields] + [ctypes.sizeof(mirror)]
+
+
+@pytest.mark.parametrize("name", ["rpr_crumb_t", "rpr_slave", "ad_ctl", "ec_ctl", "it_ctl"])
+def test_every_record_mirror_has_the_c_layout(tmp_path, name):
+    """offsetof() of every field and sizeof() from the compiler reading the generated header,
+    against the ctypes mirror the bindings use (the crumb: against the record the supervisor reads)."""
+    from cosim.master.entries import RECORDS, header, struct
+    from cosim.slaves.crumb import Record
+
+    record = next(r for r in RECORDS if r.name == name)
+    c = _c_layout(tmp_path, record, header())
+    if name == "rpr_crumb_t":  # the supervisor's record: the C record, then the names table's length
+        assert c == _mirror_layout(record, Record)[:-1] + [Record.table_len.offset]
+    else:
+        assert c == _mirror_layout(record, struct(record))
+
+
+def test_a_layout_mismatch_fails_the_check(tmp_path):
+    """The check above can fail: a mirror whose first field is declared wider than in C, or a C
+    header with two fields swapped, gives another layout."""
+    from cosim.master.entries import SLAVE, Record, ctypes_struct, header
+
+    c = _c_layout(tmp_path, SLAVE, header())
+    wider = Record(SLAVE.name, (("int64_t", *SLAVE.fields[0][1:]), *SLAVE.fields[1:]))
+    assert _mirror_layout(SLAVE, ctypes_struct(wider)) != c
+    swapped = Record(SLAVE.name, (SLAVE.fields[8], *SLAVE.fields[:8], *SLAVE.fields[9:]))  # sub_ns first
+    text = header().replace(SLAVE.c(), swapped.c())
+    assert swapped.c() in text
+    (tmp_path / "swapped").mkdir()  # a library of its own (dlopen keeps the first of a path)
+    assert _c_layout(tmp_path / "swapped", SLAVE, text) != c
+
+
+def test_entry_point_bindings_follow_their_declaration():
+    """The ctypes argument types of every entry point come from its one declaration: as many as
+    the C prototype has, a record by pointer to its mirror."""
+    from cosim.master import adaptive_engine, fastloop, iterative_engine
+    from cosim.master.entries import ADAPT_RUN, ECCO_RUN, ITER_RUN, RUN, argtype
+
+    for lib, entry in ((fastloop.library(), RUN), (adaptive_engine.library(), ADAPT_RUN),
+                       (adaptive_engine.library(), ECCO_RUN), (iterative_engine.library(), ITER_RUN)):
+        fn = getattr(lib, entry.name)
+        assert fn.argtypes == [argtype(t) for t, _, _ in entry.args] and fn.restype is ctypes.c_int64
+        assert entry.c().count(",") == len(entry.args) - 1
+    assert argtype("ad_ctl *") is ctypes.POINTER(adaptive_engine.CControl)
+
+
+def test_kernels_compile_without_warnings(tmp_path):
+    """Every kernel (and the trace writer's C) under -Wall -Wextra -Werror, from its own C file
+    with the generated header."""
+    from cosim.master.native import kernel_files
+    from cosim.trace.text import C_FILE
+    from fmus.compile import compiler
+    from fmus.native import FLAGS
+
+    for main in ("fastloop.c", "adaptive_engine.c", "iterative_engine.c"):
+        folder = tmp_path / main
+        folder.mkdir()
+        for name, text in kernel_files(main).items():
+            (folder / name).write_text(text)
+        res = subprocess.run([compiler(), *FLAGS, "-Werror", "-fsyntax-only", f"-I{folder}", str(folder / main)],
+                             capture_output=True, text=True)
+        assert res.returncode == 0, f"{main}: {res.stderr}"
+    res = subprocess.run([compiler(), *FLAGS, "-Werror", "-fsyntax-only", str(C_FILE)], capture_output=True, text=True)
+    assert res.returncode == 0, res.stderr
 
 
 ECCO_CASES = {

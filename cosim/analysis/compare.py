@@ -9,13 +9,15 @@ angle a path keeps at 0 moves 1e-18 rad: an error of 5e-9 rad on it is not 3e9 o
 
 :func:`comparability` says whether such numbers can be trusted: both runs must have ended "ok"
 (the CSV's final status and its JSON sidecar; "stopped" at a component's own request counts),
-the overlap must cover the reference's span, and
-the variables only one trace has are listed.
+the overlap must cover both traces' spans (a test run of 0-2 s against a reference of 0-0.2 s is
+as partial as the reverse), the two runs must simulate the same scene (scene hashes that differ
+are explained by the scene entries that differ: components, parameters, connections and inputs
+make them different scenes; the master's settings, outputs and times are how one scene was
+run, which is what comparisons are for), and the variables only one trace has are listed.
 """
 from __future__ import annotations
 
 import fnmatch
-import json
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -102,10 +104,12 @@ def run_status(trace: Trace, path: Path | None = None) -> tuple[str, str]:
     if trace.status:
         found.append((trace.status, trace.reason))
     if path is not None:
+        from ..readers import read_json
+
         sidecar = Path(path).with_suffix(".json")
         try:
-            data = json.loads(sidecar.read_text()) if sidecar.is_file() else None
-        except (OSError, ValueError):
+            data = read_json(sidecar, "sidecar") if sidecar.is_file() else None
+        except UserError:
             data = None
         if isinstance(data, dict) and isinstance(data.get("status"), str):
             found.append((data["status"], str(data.get("reason", ""))))
@@ -137,16 +141,30 @@ class Comparability:
     only_ref: list[str] = field(default_factory=list)
     labels: tuple[str, str] = ("test", "reference")
     tolerance: float = 0.0  # [s] slack on the span's ends (half the coarser sampling interval)
+    test_span: tuple[float, float] | None = None
+    hashes: tuple[str, str] = ("", "")
+    scene_diffs: list[str] = field(default_factory=list)  # entries that make them different scenes
+    run_diffs: list[str] = field(default_factory=list)  # how the same scene was run differently
 
-    @property
-    def partial(self) -> bool:
-        """The overlap misses part of the reference's span (by more than half a sample)."""
+    def _short(self, span: tuple[float, float]) -> bool:
         if self.overlap is None:
             return True
         tol = self.tolerance
-        return self.overlap[0] > self.span[0] + tol or self.overlap[1] < self.span[1] - tol
+        return self.overlap[0] > span[0] + tol or self.overlap[1] < span[1] - tol
 
-    def problems(self, *, allow_failed: bool = False, allow_partial: bool = False) -> list[str]:
+    @property
+    def partial(self) -> bool:
+        """The overlap misses part of either trace's span (by more than half a sample)."""
+        return self._short(self.span) or (self.test_span is not None and self._short(self.test_span))
+
+    @property
+    def different_scenes(self) -> bool:
+        """The sidecars' scene hashes differ in what is simulated (or cannot be explained)."""
+        a, b = self.hashes
+        return bool(a and b and a != b and (self.scene_diffs or not self.run_diffs))
+
+    def problems(self, *, allow_failed: bool = False, allow_partial: bool = False,
+                 allow_different_scenes: bool = False) -> list[str]:
         """One line per reason not to trust the comparison (each says how to override it)."""
         out = []
         if not allow_failed:
@@ -156,10 +174,21 @@ class Comparability:
                                + "; use --allow-failed to compare it anyway")
         if not allow_partial and self.partial:
             a, b = self.overlap or (float("nan"), float("nan"))
-            r0, r1 = self.span
-            frac = max(0.0, b - a) / (r1 - r0) if r1 > r0 and self.overlap else 0.0
-            out.append(f"the traces overlap over {a:g}..{b:g} s, {100 * frac:.3g} % of the reference's span "
-                       f"{r0:g}..{r1:g} s; use --allow-partial to compare the overlap only")
+            short = [(label, span) for label, span in (("the reference", self.span), ("the test", self.test_span))
+                     if span is not None and self._short(span)]
+            what = []
+            for label, (r0, r1) in short:
+                frac = max(0.0, b - a) / (r1 - r0) if r1 > r0 and self.overlap else 0.0
+                what.append(f"{100 * frac:.3g} % of {label}'s span {r0:g}..{r1:g} s")
+            out.append(f"the traces overlap over {a:g}..{b:g} s, {' and '.join(what)}; use --allow-partial to "
+                       f"compare the overlap only")
+        if not allow_different_scenes and self.different_scenes:
+            ha, hb = self.hashes
+            why = ("; ".join(self.scene_diffs[:6]) + (f"; ... ({len(self.scene_diffs)} in all)"
+                                                      if len(self.scene_diffs) > 6 else "")) \
+                if self.scene_diffs else "the sidecars do not record the scenes"
+            out.append(f"the runs are of different scenes (scene hash {ha[:12]} against {hb[:12]}): {why}; use "
+                       f"--allow-different-scenes to compare them anyway")
         return out
 
     def notes(self) -> list[str]:
@@ -174,7 +203,57 @@ class Comparability:
                 out.append(f"{label}: no run status recorded (not an rpr-cosim trace?); its validity is not checked")
             elif status == "stopped":
                 out.append(f"{label}: the run ended at a component's request ({reason})")
+        if self.run_diffs and self.hashes[0] != self.hashes[1]:
+            out.append("the same scene run differently: " + "; ".join(self.run_diffs[:6])
+                       + (f"; ... ({len(self.run_diffs)} in all)" if len(self.run_diffs) > 6 else ""))
         return out
+
+
+#: Scene entries that say how a scene is run and recorded, not what it simulates: differences
+#: there are what comparisons are for (and the time spans are checked by the overlap).
+HOW_KEYS = ("master", "name", "description", "outputs", "output_interval", "start_time", "stop_time", "report",
+            "trace_format", "realtime", "guards")
+
+
+def _flat(node, prefix: str = "") -> dict[str, object]:
+    if isinstance(node, dict):
+        out: dict[str, object] = {}
+        for k, v in node.items():
+            out.update(_flat(v, f"{prefix}.{k}" if prefix else str(k)))
+        return out or {prefix: {}}
+    return {prefix: node}
+
+
+def scene_differences(a: dict, b: dict) -> tuple[list[str], list[str]]:
+    """``(what, how)``: the entries of two scenes (a sidecar's ``scene_data``) that differ, as
+    ``"components.pid1.params.Kp = 40 against 30"``, split into what is simulated and how
+    (:data:`HOW_KEYS`)."""
+    fa, fb = _flat(a), _flat(b)
+    what, how = [], []
+    for key in sorted(set(fa) | set(fb)):
+        va, vb = fa.get(key, "(none)"), fb.get(key, "(none)")
+        if va != vb:
+            line = f"{key} = {str(va)[:40]} against {str(vb)[:40]}"
+            (how if key.split(".", 1)[0] in HOW_KEYS else what).append(line)
+    return what, how
+
+
+def _scene_of(trace: Trace, path: Path | None) -> tuple[str, dict | None]:
+    """The scene hash of a trace and its sidecar's ``scene_data`` (None without one)."""
+    h = trace.meta.get("scene_hash")
+    data = None
+    if path is not None:
+        from ..readers import read_json
+
+        side = Path(path).with_suffix(".json")
+        try:
+            got = read_json(side, "sidecar") if side.is_file() else None
+        except UserError:
+            got = None
+        if isinstance(got, dict):
+            data = got.get("scene_data") if isinstance(got.get("scene_data"), dict) else None
+            h = h or got.get("scene_hash")
+    return (h if isinstance(h, str) else ""), data
 
 
 def comparability(test: Trace, ref: Trace, *, test_path: Path | None = None, ref_path: Path | None = None,
@@ -197,8 +276,12 @@ def comparability(test: Trace, ref: Trace, *, test_path: Path | None = None, ref
         overlap = (float(a), float(b)) if b >= a else None
     dts = [float(np.median(np.diff(tr.time))) for tr in (test, ref) if len(tr.data) > 1]
     tol = 0.5 * max(dts, default=0.0) + 1e-9 * max(1.0, abs(span[1]) if np.isfinite(span[1]) else 1.0)
+    test_span = (float(test.time[0]), float(test.time[-1])) if len(test.data) else None
+    (ha, sa), (hb, sb) = _scene_of(test, test_path), _scene_of(ref, ref_path)
+    what, how = scene_differences(sa, sb) if sa is not None and sb is not None and ha != hb else ([], [])
     return Comparability(run_status(test, test_path), run_status(ref, ref_path), overlap, span, only_test, only_ref,
-                         labels or (str(test_path or "test"), str(ref_path or "reference")), tol)
+                         labels or (str(test_path or "test"), str(ref_path or "reference")), tol, test_span,
+                         (ha, hb), what, how)
 
 
 def format_table(diffs: Sequence[Difference], *, most: int | None = None,
@@ -226,4 +309,4 @@ def format_table(diffs: Sequence[Difference], *, most: int | None = None,
 
 
 __all__ = ["Comparability", "Difference", "aligned", "common_names", "comparability", "compare", "format_table",
-           "run_status"]
+           "run_status", "scene_differences"]

@@ -21,8 +21,6 @@ Written with pure functions of the data (a trace, a table's rows); the verbs pas
 from __future__ import annotations
 
 import csv
-import html
-import json
 import math
 from collections.abc import Mapping, Sequence
 from pathlib import Path
@@ -31,6 +29,7 @@ import numpy as np
 
 from ..trace.traces import Trace, read_trace
 from .charts import run_panels
+from .safe_html import href, label, script_json, text
 
 #: Colours of the lines of one panel (Plotly's default cycle).
 COLOURS = ("#1f77b4", "#ff7f0e", "#2ca02c", "#d62728", "#9467bd", "#8c564b", "#e377c2", "#7f7f7f",
@@ -59,8 +58,8 @@ th {{ background: #f3f3f3; cursor: pointer; }} td.text {{ text-align: left; }}
 
 def _status_html(status: str, reason: str) -> str:
     cls = "status-ok" if status == "ok" else "status-bad"
-    return (f'<p>status: <span class="{cls}" id="run-status">{html.escape(status or "unknown")}</span>'
-            + (f" &mdash; {html.escape(reason)}" if reason else "") + "</p>")
+    return (f'<p>status: <span class="{cls}" id="run-status">{text(status or "unknown")}</span>'
+            + (f" &mdash; {text(reason)}" if reason else "") + "</p>")
 
 
 def _figure_html(fig, div_id: str, first: bool) -> str:
@@ -77,10 +76,10 @@ def _page(path: Path, title: str, body: str) -> Path:
 
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    text = _PAGE.format(title=html.escape(title), body=body, written=time.strftime("%Y-%m-%d %H:%M:%S %Z"),
+    page = _PAGE.format(title=text(title), body=body, written=time.strftime("%Y-%m-%d %H:%M:%S %Z"),
                         plotly_version=plotly.__version__)
     tmp = path.with_name(f".{path.name}.part")
-    tmp.write_text(text, encoding="utf-8")
+    tmp.write_text(page, encoding="utf-8")
     tmp.replace(path)
     return path
 
@@ -128,7 +127,7 @@ def signals_figure(trace: Trace, *, units: Mapping[str, str] | None = None,
             fig.add_trace(go.Scattergl(x=t, y=trace[name][idx], name=label + _unit(name, units), mode="lines",
                                        line={"color": c, "width": 1.3, "dash": "dash" if dashed else "solid"},
                                        legendgroup=name, hovertemplate=f"{name}<br>t = %{{x:.6g}} s<br>%{{y:.6g}}"
-                                       f"{html.escape(_unit(name, units))}<extra></extra>"),
+                                       f"{_unit(name, units)}<extra></extra>"),
                           row=row, col=1)
             if ref is not None and not dashed and name in ref.columns:
                 r = np.interp(trace.time, ref.time, ref[name])
@@ -219,30 +218,39 @@ STAT_LABELS = {
 def _estimate_html(stats: Mapping) -> str:
     """The run's own error estimate (:mod:`cosim.master.estimate`): the worst signal, then the
     five largest, each relative to the signal's range."""
-    est = stats.get("estimate") or {}
+    est = stats.get("estimate") if isinstance(stats.get("estimate"), dict) else {}
     if not est:
         return ""
-    if est.get("worst") is None:
-        return f"<h2>error estimate</h2><p>none: {html.escape(str(est.get('method', '')))}</p>"
-    errs = sorted((est.get("errors") or {}).items(), key=lambda kv: -kv[1])[:5]
-    rows = "".join(f"<tr><td class='text'>{html.escape(n)}</td><td>{e:.3g}</td></tr>" for n, e in errs)
-    at = f" at t = {est['at']:.6g} s" if est.get("at") is not None else ""
+    if not isinstance(est.get("worst"), (int, float)):
+        return f"<h2>error estimate</h2><p>none: {text(est.get('method', ''))}</p>"
+    errors = est.get("errors") if isinstance(est.get("errors"), dict) else {}
+    errs = sorted(((n, e) for n, e in errors.items() if isinstance(e, (int, float))), key=lambda kv: -kv[1])[:5]
+    rows = "".join(f"<tr><td class='text'>{text(n)}</td><td>{e:.3g}</td></tr>" for n, e in errs)
+    at = f" at t = {est['at']:.6g} s" if isinstance(est.get("at"), (int, float)) else ""
     return (f"<h2>error estimate</h2><p>worst {est['worst']:.3g} of its range on "
-            f"<b>{html.escape(str(est.get('signal', '')))}</b>{at} ({html.escape(str(est.get('method', '')))})</p>"
+            f"<b>{text(est.get('signal', ''))}</b>{at} ({text(est.get('method', ''))})</p>"
             f"<table><tr><th>signal</th><th>estimated error [of range]</th></tr>{rows}</table>")
+
+
+def _setting(p: Mapping) -> str:
+    """A pilot's setting (``step 0.001`` or ``rtol 1e-05, h_max 0.01``)."""
+    return ", ".join(f"{k} {v:.3g}" for k, v in p.items()
+                     if k not in ("estimate", "window_s") and isinstance(v, float))
 
 
 def _choice_html(stats: Mapping) -> str:
     """What the master chose for the scene's tolerance (:mod:`cosim.run.choose`), with its pilots."""
-    ch = stats.get("choice") or {}
+    ch = stats.get("choice") if isinstance(stats.get("choice"), dict) else {}
     if not ch:
         return ""
-    sets = ", ".join(f"{k} {v:.3g}" if isinstance(v, float) else f"{k} {v}" for k, v in ch.get("settings", {}).items())
-    pilots = "".join(f"<tr><td class='text'>{html.escape(', '.join(f'{k} {v:.3g}' for k, v in p.items() if k not in ('estimate', 'window_s') and isinstance(v, float)))}</td>"
-                     f"<td>{p.get('window_s', float('nan')):.3g}</td><td>{_fmt(p.get('estimate'))}</td></tr>"
-                     for p in ch.get("pilots", []))
-    out = (f"<h2>the master's choice</h2><p>{html.escape(str(ch.get('algorithm', '')))} ({html.escape(sets)}) for "
-           f"tolerance {ch.get('tolerance', float('nan')):g}: {html.escape(str(ch.get('why', '')))}</p>")
+    settings = ch.get("settings") if isinstance(ch.get("settings"), dict) else {}
+    sets = ", ".join(f"{k} {v:.3g}" if isinstance(v, float) else f"{k} {v}" for k, v in settings.items())
+    pilots = "".join(f"<tr><td class='text'>{text(_setting(p))}</td><td>{text(_fmt(p.get('window_s')))}</td>"
+                     f"<td>{text(_fmt(p.get('estimate')))}</td></tr>"
+                     for p in ch.get("pilots") or () if isinstance(p, dict))
+    tol = ch.get("tolerance")
+    out = (f"<h2>the master's choice</h2><p>{text(ch.get('algorithm', ''))} ({text(sets)}) for tolerance "
+           f"{text(_fmt(tol))}: {text(ch.get('why', ''))}</p>")
     if pilots:
         out += (f"<table><tr><th>pilot setting</th><th>span [s]</th><th>estimated error [of range]</th></tr>"
                 f"{pilots}</table>")
@@ -250,21 +258,31 @@ def _choice_html(stats: Mapping) -> str:
 
 
 def _stats_table(stats: Mapping) -> str:
-    rows = "".join(f"<tr><td class='text'>{label}</td><td>{html.escape(_fmt(stats[k]))}"
+    rows = "".join(f"<tr><td class='text'>{name}</td><td>{text(_fmt(stats[k]))}"
                    f"{' ' + unit if unit and stats[k] is not None else ''}</td></tr>"
-                   for k, (label, unit) in STAT_LABELS.items() if k in stats)
-    slaves = stats.get("slaves") or {}
-    srows = "".join(f"<tr><td class='text'>{html.escape(n)}</td><td>{s.get('do_step_calls', '')}</td>"
-                    f"<td>{1e3 * float(s.get('wall_s', 0.0)):.3f}</td></tr>" for n, s in slaves.items())
+                   for k, (name, unit) in STAT_LABELS.items() if k in stats)
+    slaves = stats.get("slaves") if isinstance(stats.get("slaves"), dict) else {}
+    srows = "".join(f"<tr><td class='text'>{text(n)}</td><td>{text(_fmt(s.get('do_step_calls', '')))}</td>"
+                    f"<td>{text(_fmt(_ms(s.get('wall_s'))))}</td></tr>"
+                    for n, s in slaves.items() if isinstance(s, dict))
     out = (_estimate_html(stats) + _choice_html(stats)
            + f"<h2>statistics</h2><table id='stats'><tr><th>statistic</th><th>value</th></tr>{rows}</table>")
     if srows:
         out += (f"<h2>slaves</h2><table><tr><th>slave</th><th>doStep calls</th><th>time in doStep [ms]</th></tr>"
                 f"{srows}</table>")
-    warnings = (stats.get("guards") or {}).get("warnings") or []
+    guards = stats.get("guards") if isinstance(stats.get("guards"), dict) else {}
+    warnings = guards.get("warnings") if isinstance(guards.get("warnings"), list) else []
     if warnings:
-        out += "<h2>guard warnings</h2><ul>" + "".join(f"<li>{html.escape(str(w))}</li>" for w in warnings) + "</ul>"
+        out += "<h2>guard warnings</h2><ul>" + "".join(f"<li>{text(w)}</li>" for w in warnings) + "</ul>"
     return out
+
+
+def _ms(seconds) -> float | str:
+    """``seconds`` in milliseconds, or the text as it was when it is not a number."""
+    try:
+        return 1e3 * float(seconds)
+    except (TypeError, ValueError):
+        return "" if seconds is None else str(seconds)
 
 
 def _fmt(v) -> str:
@@ -282,26 +300,41 @@ def run_report(trace: Trace, path: Path, *, title: str = "", units: Mapping[str,
     if not len(trace.data):
         raise UserError(f"{path}: the run recorded no rows; nothing to report")
     title = title or f"run {trace.meta.get('scene', Path(path).stem)}"
-    figs = [_figure_html(signals_figure(trace, units=units, pairs=pairs, reference=reference,
-                                        max_points=max_points), "signals", True)]
+    figs = [_figure_html(signals_figure(_labelled(trace), units=_labels(units), pairs=_labels(pairs),
+                                        reference=_labelled(reference), max_points=max_points), "signals", True)]
     side = ""
     try:
-        side = _figure_html(animation_figure(trace, manipulator), "animation", False)
+        side = _figure_html(animation_figure(_labelled(trace), manipulator), "animation", False)
     except UserError as exc:  # no platform pose recorded
-        side = f"<p class='note'>no animation: {html.escape(str(exc))}</p>"
+        side = f"<p class='note'>no animation: {text(exc)}</p>"
     ref_note = ""
     if reference is not None:
-        ref_note = (f"<p>reference: {html.escape(str(reference.meta.get('method', 'monolithic')))}, "
-                    f"status {html.escape(reference.status or 'unknown')}</p>")
+        ref_note = (f"<p>reference: {text(reference.meta.get('method', 'monolithic'))}, "
+                    f"status {text(reference.status or 'unknown')}</p>")
     meta = trace.meta
-    head = (f"<p>scene <b>{html.escape(str(meta.get('scene', '')))}</b> "
-            f"[{html.escape(str(meta.get('scene_hash', ''))[:12])}]"
-            + (f", started {html.escape(str(meta['started']))}" if meta.get("started") else "")
-            + (f", {html.escape(str(meta['algorithm']))}" if meta.get("algorithm") else "") + "</p>"
+    head = (f"<p>scene <b>{text(meta.get('scene', ''))}</b> "
+            f"[{text(str(meta.get('scene_hash', ''))[:12])}]"
+            + (f", started {text(meta['started'])}" if meta.get("started") else "")
+            + (f", {text(meta['algorithm'])}" if meta.get("algorithm") else "") + "</p>"
             + _status_html(trace.status, trace.reason) + ref_note)
     body = (f"{head}<div class='row'><div class='plots'>{figs[0]}</div><div class='side'>{side}"
             f"{_stats_table(trace.stats)}</div></div>")
     return _page(path, title, body)
+
+
+def _labels(mapping: Mapping | None) -> dict[str, str] | None:
+    """``mapping``'s keys and values as Plotly labels (:func:`cosim.analysis.safe_html.label`)."""
+    if not isinstance(mapping, Mapping):
+        return None
+    return {label(k): label(v) for k, v in mapping.items()}
+
+
+def _labelled(trace: Trace | None) -> Trace | None:
+    """``trace`` with its column names and units as Plotly labels: what the charts draw of it."""
+    if trace is None:
+        return None
+    meta = dict(trace.meta, units=_labels(trace.meta.get("units")) or {})
+    return Trace([label(c) for c in trace.columns], trace.data, meta, trace.status, trace.reason, trace.stats)
 
 
 def run_report_from_files(trace_path: Path, path: Path | None = None, *, reference: Path | None = None,
@@ -346,10 +379,14 @@ var RUNS = %s;
 function showRun(id, scroll) {
   var run = RUNS[id]; if (!run) return;
   var data = run.signals.map(function (s) { return {x: run.t, y: s.y, name: s.name, mode: 'lines', type: 'scatter'}; });
-  Plotly.react('run-traces', data, {title: {text: 'run ' + id + ' (' + run.label + ')', font: {size: 13}},
+  Plotly.react('run-traces', data, {title: {text: 'run ' + run.shown + ' (' + run.label + ')', font: {size: 13}},
     xaxis: {title: {text: 'time [s]'}}, height: 420, template: 'plotly_white', margin: {t: 40}});
   var link = document.getElementById('run-link');
-  link.innerHTML = run.report ? '<a href="' + run.report + '">open the report of run ' + id + '</a>' : '';
+  link.textContent = '';
+  if (run.report) {
+    var a = document.createElement('a'); a.setAttribute('href', run.report);
+    a.textContent = 'open the report of run ' + run.id; link.appendChild(a);
+  }
   if (scroll) document.getElementById('run-traces').scrollIntoView({behavior: 'smooth'});
 }
 document.querySelectorAll('.js-plotly-plot').forEach(function (div) {
@@ -367,18 +404,17 @@ var first = Object.keys(RUNS)[0]; if (first) showRun(first);
 
 def _cell(v) -> str:
     if isinstance(v, float):
-        text = "nan" if math.isnan(v) else f"{v:.6g}"
-        return f"<td data-v='{v!r}'>{text}</td>"
+        shown = "nan" if math.isnan(v) else f"{v:.6g}"
+        return f"<td data-v='{v!r}'>{shown}</td>"
     if isinstance(v, int):
         return f"<td data-v='{v}'>{v}</td>"
-    s = "" if v is None else str(v)
-    return f"<td class='text' data-v='{html.escape(s, quote=True)}'>{html.escape(s)}</td>"
+    return f"<td class='text' data-v='{text(v)}'>{text(v)}</td>"
 
 
 def results_table_html(rows: Sequence[Mapping], columns: Sequence[str]) -> str:
     """The rows as a table sorted by clicking a header; a row's click shows its run's traces."""
-    head = "".join(f"<th>{html.escape(c)}</th>" for c in columns)
-    body = "".join(f"<tr data-run='{html.escape(str(r.get('run_id', '')))}'>"
+    head = "".join(f"<th>{text(c)}</th>" for c in columns)
+    body = "".join(f"<tr data-run='{text(r.get('run_id', ''))}'>"
                    + "".join(_cell(r.get(c)) for c in columns) + "</tr>" for r in rows)
     return f"<table class='sortable' id='results'><thead><tr>{head}</tr></thead><tbody>{body}</tbody></table>"
 
@@ -399,6 +435,7 @@ def metric_figures(rows: Sequence[Mapping], axes: Sequence[str], metrics: Sequen
     figs = []
     numeric = [a for a in axes if all(math.isfinite(_number(r.get(a))) for r in rows)]
     for metric in metrics:
+        shown = label(metric)
         if len(numeric) >= 2:
             xa, ya = numeric[0], numeric[1]
             xs, ys = sorted({_number(r[xa]) for r in rows}), sorted({_number(r[ya]) for r in rows})
@@ -410,24 +447,24 @@ def metric_figures(rows: Sequence[Mapping], axes: Sequence[str], metrics: Sequen
                     z[i][j] = _number(r.get(metric))
                 ids[i][j] = r["run_id"]
             fig = go.Figure(go.Heatmap(x=[f"{x:g}" for x in xs], y=[f"{y:g}" for y in ys], z=z, customdata=ids,
-                                       colorbar={"title": {"text": metric, "side": "right"}},
-                                       hovertemplate=f"{xa} = %{{x}}<br>{ya} = %{{y}}<br>{metric} = %{{z:.4g}}"
-                                                     "<br>run %{customdata}<extra></extra>"))
-            fig.update_layout(xaxis_title=xa, yaxis_title=ya)
+                                       colorbar={"title": {"text": shown, "side": "right"}},
+                                       hovertemplate=f"{label(xa)} = %{{x}}<br>{label(ya)} = %{{y}}<br>{shown} = "
+                                                     "%{z:.4g}<br>run %{customdata}<extra></extra>"))
+            fig.update_layout(xaxis_title=label(xa), yaxis_title=label(ya))
         elif numeric:
             xa = numeric[0]
             ok = sorted((r for r in rows if r.get("outcome") == "ok"), key=lambda r: _number(r[xa]))
             fig = go.Figure(go.Scatter(x=[_number(r[xa]) for r in ok], y=[_number(r.get(metric)) for r in ok],
                                        customdata=[r["run_id"] for r in ok], mode="lines+markers",
-                                       hovertemplate=f"{xa} = %{{x:.4g}}<br>{metric} = %{{y:.4g}}<br>run %{{customdata}}"
-                                                     "<extra></extra>"))
-            fig.update_layout(xaxis_title=xa, yaxis_title=metric)
+                                       hovertemplate=f"{label(xa)} = %{{x:.4g}}<br>{shown} = %{{y:.4g}}<br>run "
+                                                     "%{customdata}<extra></extra>"))
+            fig.update_layout(xaxis_title=label(xa), yaxis_title=shown)
         else:
             ok = [r for r in rows if r.get("outcome") == "ok"]
             fig = go.Figure(go.Scatter(x=list(range(len(ok))), y=[_number(r.get(metric)) for r in ok],
                                        customdata=[r["run_id"] for r in ok], mode="markers"))
-            fig.update_layout(xaxis_title="run", yaxis_title=metric)
-        fig.update_layout(title={"text": metric, "font": {"size": 13}}, height=420, template="plotly_white",
+            fig.update_layout(xaxis_title="run", yaxis_title=shown)
+        fig.update_layout(title={"text": shown, "font": {"size": 13}}, height=420, template="plotly_white",
                           margin={"t": 40})
         figs.append(fig)
     return figs
@@ -453,9 +490,11 @@ def batch_report(path: Path, rows: Sequence[Mapping], columns: Sequence[str], ax
             continue
         idx = decimate(len(tr.time), max_points)
         names = [s for s in shown if s in tr.columns] or tr.names[:6]
-        runs[r["run_id"]] = {"t": tr.time[idx].tolist(), "label": ", ".join(f"{a} = {_fmt(r.get(a))}" for a in axes),
-                             "signals": [{"name": n, "y": tr[n][idx].tolist()} for n in names],
-                             "report": (run_reports or {}).get(r["run_id"], "")}
+        link = (run_reports or {}).get(r["run_id"], "")
+        runs[r["run_id"]] = {"t": tr.time[idx].tolist(), "id": str(r["run_id"]), "shown": label(r["run_id"]),
+                             "label": label(", ".join(f"{a} = {_fmt(r.get(a))}" for a in axes)),
+                             "signals": [{"name": label(n), "y": tr[n][idx].tolist()} for n in names],
+                             "report": href(link) if link else ""}
     n_ok = sum(r.get("outcome") == "ok" for r in rows)
     parts = [f"<p>{len(rows)} runs, {n_ok} ok, {len(rows) - n_ok} not ok. Click a point of a chart or a row of "
              f"the table to see that run's traces below; click a header to sort.</p>"]
@@ -467,7 +506,7 @@ def batch_report(path: Path, rows: Sequence[Mapping], columns: Sequence[str], ax
     traces_fig.update_layout(height=420, template="plotly_white")
     parts.append("<h2>traces of the chosen run</h2><p id='run-link'></p>" + _figure_html(traces_fig, "run-traces", first))
     parts.append("<h2>results</h2>" + results_table_html(rows, columns))
-    body = "".join(parts) + _SORT_JS + _CLICK_JS % json.dumps(runs, allow_nan=True).replace("NaN", "null")
+    body = "".join(parts) + _SORT_JS + _CLICK_JS % script_json(runs)
     return _page(path, title or f"batch {Path(path).parent.name}", body)
 
 
@@ -489,12 +528,13 @@ def precision_figure(rows: Sequence[Mapping[str, str]]):
         vr = [r for r in rows if (r["algorithm"], r["inputs"]) == (alg, inp) and r["status"] in ("ok", "inaccurate")
               and _number(r["wall_s"]) > 0 and _number(r["worst_relative"]) > 0]
         vr.sort(key=lambda r: _number(r["wall_s"]))
-        text = [(f"tol {r['tolerance']}" if r.get("tolerance") else f"step {r['step']} s")
-                + f"<br>doSteps {r['do_steps']}<br>worst on {r['worst_signal']}" for r in vr]
+        hover = [label(f"tol {r['tolerance']}" if r.get("tolerance") else f"step {r['step']} s")
+                 + f"<br>doSteps {label(r['do_steps'])}<br>worst on {label(r['worst_signal'])}" for r in vr]
+        name = label(f"{alg}/{inp}")
         fig.add_trace(go.Scatter(x=[_number(r["wall_s"]) for r in vr], y=[_number(r["worst_relative"]) for r in vr],
-                                 name=f"{alg}/{inp}", mode="lines+markers", text=text,
+                                 name=name, mode="lines+markers", text=hover,
                                  marker={"color": COLOURS[k % len(COLOURS)]},
-                                 hovertemplate=f"{alg}/{inp}<br>wall %{{x:.4g}} s<br>worst %{{y:.3e}}<br>%{{text}}"
+                                 hovertemplate=f"{name}<br>wall %{{x:.4g}} s<br>worst %{{y:.3e}}<br>%{{text}}"
                                                "<extra></extra>"))
     fig.update_xaxes(type="log", title_text="wall time of the stepping loop [s]")
     fig.update_yaxes(type="log", title_text="worst error relative to range")
@@ -509,25 +549,25 @@ def stability_figure(rows: Sequence[Mapping[str, str]], vary: str):
     import plotly.graph_objects as go
 
     variants = list(dict.fromkeys((r["algorithm"], r["inputs"]) for r in rows))
-    fig = make_subplots(rows=1, cols=len(variants), subplot_titles=[f"{a}/{i}" for a, i in variants],
+    fig = make_subplots(rows=1, cols=len(variants), subplot_titles=[label(f"{a}/{i}") for a, i in variants],
                         shared_yaxes=True)
     code = {"stable": 0, "unstable": 1, "failed": 2}
     for k, v in enumerate(variants, 1):
         vr = [r for r in rows if (r["algorithm"], r["inputs"]) == v]
         steps, vals = sorted({_number(r["step"]) for r in vr}), sorted({_number(r[vary]) for r in vr})
         z = [[None] * len(steps) for _ in vals]
-        text = [[""] * len(steps) for _ in vals]
+        hover = [[""] * len(steps) for _ in vals]
         for r in vr:
             i, j = vals.index(_number(r[vary])), steps.index(_number(r["step"]))
             z[i][j] = code.get(r["outcome"], 2)
-            text[i][j] = (f"{r['outcome']}<br>growth/step {r['rho_measured']}<br>analytic rho {r['rho_analytic']}"
-                          + (f"<br>{html.escape(r['reason'][:120])}" if r.get("reason") else ""))
-        fig.add_trace(go.Heatmap(x=steps, y=vals, z=z, text=text, zmin=0, zmax=2, showscale=False,
+            hover[i][j] = (f"{label(r['outcome'])}<br>growth/step {label(r['rho_measured'])}<br>analytic rho "
+                           f"{label(r['rho_analytic'])}" + (f"<br>{label(r['reason'][:120])}" if r.get("reason") else ""))
+        fig.add_trace(go.Heatmap(x=steps, y=vals, z=z, text=hover, zmin=0, zmax=2, showscale=False,
                                  colorscale=[[0, "#4caf50"], [0.5, "#e53935"], [1, "#9e9e9e"]],
-                                 hovertemplate=f"step %{{x:.3g}} s<br>{vary} = %{{y:.4g}}<br>%{{text}}<extra></extra>"),
+                                 hovertemplate=f"step %{{x:.3g}} s<br>{label(vary)} = %{{y:.4g}}<br>%{{text}}<extra></extra>"),
                       row=1, col=k)
         fig.update_xaxes(type="log", title_text="step [s]", row=1, col=k)
-    fig.update_yaxes(type="log", title_text=vary, row=1, col=1)
+    fig.update_yaxes(type="log", title_text=label(vary), row=1, col=1)
     fig.update_layout(title={"text": "stability map: green stable, red unstable, grey failed", "font": {"size": 13}},
                       height=520, template="plotly_white")
     return fig

@@ -283,11 +283,31 @@ def plot_hist(rows, metric: str, path: Path) -> Path:
     return _save(fig, plt, path)
 
 
+def run_dir(out: Path, run_id: str) -> Path:
+    """``out/runs/<run_id>``, after checking that the run id read from the batch's table is a
+    plain name that resolves inside ``out/runs`` (a table is data: ``../../victim`` or a link
+    planted under a run's name is refused in one line, :class:`UserError`)."""
+    rid = str(run_id)
+    runs = Path(out) / "runs"
+    if (not rid or rid in (".", "..") or rid.startswith(".") or any(c in rid for c in "/\\\0")
+            or Path(rid).name != rid):
+        raise UserError(f"{Path(out) / 'results.csv'}: run_id {rid[:80]!r} is not a run directory name "
+                        f"(expected a plain name such as 3f2a9c0d1e4b5a6c)")
+    d = runs / rid
+    root = runs.resolve()
+    if d.exists() and d.resolve().parent != root:
+        raise UserError(f"{d}: the run's directory resolves to {d.resolve()}, outside {root}; refusing to read "
+                        f"or write through it")
+    return d
+
+
 def run_trace_path(out: Path, run_id: str) -> Path | None:
-    """The co-simulation trace of a run (not its reference)."""
-    d = Path(out) / "runs" / run_id
+    """The co-simulation trace of a run (not its reference), confined to ``out/runs``
+    (:func:`run_dir`)."""
+    d = run_dir(out, run_id)
     found = sorted(p for p in (*d.glob("*.csv"), *d.glob("*.parquet"))
                    if not p.stem.endswith("_reference") and not p.stem.endswith(".prev")) if d.is_dir() else []
+    found = [p for p in found if not p.is_symlink() and p.resolve().parent == d.resolve()]
     return found[0] if found else None
 
 
@@ -369,7 +389,6 @@ def make_plots(batch: Batch, out: Path, rows: Sequence[dict], sort: str | None) 
 def compare_batch(out: Path, reference, patterns: Sequence[str] | None = None) -> tuple[list[str], list[tuple[dict, list]]]:
     """Every ok run of the batch in ``out`` against one ``reference`` trace: the axes and, per
     run, its row and its :class:`cosim.analysis.compare.Difference` list."""
-    import json
 
     from ..analysis.compare import compare
     from ..trace.traces import read_trace
@@ -377,8 +396,8 @@ def compare_batch(out: Path, reference, patterns: Sequence[str] | None = None) -
 
     out = Path(out)
     _, rows = read_rows(out / "results.csv")
-    meta = json.loads((out / "batch.json").read_text()) if (out / "batch.json").is_file() else {}
-    axes = [a["name"] for a in meta.get("axes", [])]
+    meta = batch_meta(out)
+    axes = meta["axes"]
     found = []
     for r in rows:
         if r.get("outcome") != "ok":
@@ -390,6 +409,25 @@ def compare_batch(out: Path, reference, patterns: Sequence[str] | None = None) -
     if not found:
         raise UserError(f"{out}: no finished run with a trace to compare")
     return axes, found
+
+
+def batch_meta(out: Path) -> dict:
+    """``batch.json`` of the batch in ``out``, bounded and typed (:mod:`cosim.readers`):
+    ``{"batch": name, "axes": [axis names], "metrics": [metric columns]}`` (empty without one)."""
+    from ..readers import read_json
+
+    path = Path(out) / "batch.json"
+    data = read_json(path, "batch description") if path.exists() else {}
+    if not isinstance(data, dict):
+        raise UserError(f"{path}: expected a JSON object")
+    names = {}
+    for key, field_ in (("axes", "name"), ("metrics", "column")):
+        items = data.get(key) or []
+        if not isinstance(items, list) or not all(isinstance(i, dict) and isinstance(i.get(field_), str)
+                                                  for i in items):
+            raise UserError(f"{path}: '{key}' must be a list of objects with a string '{field_}'")
+        names[key] = [i[field_] for i in items]
+    return {"batch": str(data.get("batch", Path(out).name)), **names}
 
 
 def format_batch_comparison(axes: Sequence[str], found: Sequence[tuple[dict, list]], *, most: int | None = None) -> str:

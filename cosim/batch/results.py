@@ -131,10 +131,16 @@ class ResultsTable:
 def read_rows(path: Path) -> tuple[list[str], list[dict[str, Any]]]:
     """Header and rows of a results table (numbers as numbers; a row cut short is dropped)."""
     path = Path(path)
-    if not path.is_file():
+    if not path.exists():
         raise UserError(f"{path}: no results table (run the batch first)")
-    with open(path, newline="") as fh:
-        text = fh.read()
+    from ..readers import read_regular
+
+    try:
+        text = read_regular(path, "results table").decode("utf-8")
+    except UnicodeDecodeError as exc:
+        raise UserError(f"{path}: not a results table (not UTF-8 text at byte {exc.start})") from None
+    if "run_id" not in text.split("\n", 1)[0].split(","):
+        raise UserError(f"{path}: not a results table (no run_id column)")
     if text and not text.endswith("\n"):
         text = text[:text.rfind("\n") + 1]
     lines = list(csv.reader(io.StringIO(text)))

@@ -288,7 +288,10 @@ def run_batch(batch: Batch, *, out: Path | None = None, executor=None, cache_dir
         meta_path = out / "batch.json"
         key = _metrics_key(batch)
         if meta_path.is_file():
-            old = json.loads(meta_path.read_text()).get("metrics_key")
+            from ..readers import read_json
+
+            old = read_json(meta_path, "batch description")
+            old = old.get("metrics_key") if isinstance(old, dict) else None
             if old is not None and old != key:
                 raise UserError(f"{out} holds results of a batch with other metrics or reference; choose another "
                                 f"--out (or remove {out / 'results.csv'})")

@@ -19,8 +19,9 @@ from ..errors import user_error_types
 from .verb import interrupted
 
 #: Modules that contribute verbs, in the order they appear in ``--help``.
-VERB_MODULES = ("cosim.cli.analyze", "cosim.cli.fmu", "cosim.cli.run", "cosim.cli.compare", "cosim.cli.study",
-                "cosim.cli.ssp", "cosim.cli.board", "cosim.cli.batch", "cosim.cli.report")
+VERB_MODULES = ("cosim.cli.analyze", "cosim.cli.fmu", "cosim.cli.run", "cosim.cli.compare", "cosim.cli.fit",
+                "cosim.cli.study", "cosim.cli.ssp", "cosim.cli.board", "cosim.cli.batch", "cosim.cli.report",
+                "cosim.cli.design", "cosim.cli.task")
 
 
 def build_parser() -> argparse.ArgumentParser:

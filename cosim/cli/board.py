@@ -4,12 +4,15 @@
     rpr-cosim board serve --key FILE [--listen ADDR:PORT] [--root DIR] [--rate HZ] [--gpio MODE]
     rpr-cosim board build [--target host|armhf] [--out FILE]
     rpr-cosim board virtual --key FILE [--listen ADDR:PORT] [--noise C] [--latency S] [--stuck LEG] ...
+    rpr-cosim board record [--out FILE] [--seconds S] [--fidelity motor] [--set R=4.8] [--calibration 1:35:3600] ...
 
 ``serve`` runs the C daemon ``rpr-board`` (:mod:`hardware.daemon`; built and cached on first
 use) on the pins under ``--root`` ("/" on the board).  ``build --target armhf`` writes the
 statically linked binary that is copied to the BeagleBone (where it runs without Python).
 ``virtual`` runs the same daemon on a temporary fake sysfs tree and plays the rig behind it
-(:mod:`hardware.virtual`).  Both listen on loopback unless told otherwise.  The work is in
+(:mod:`hardware.virtual`); its plant takes true parameters (``--set``), per-leg pot calibrations
+(``--calibration``), noise and latency.  ``record`` drives that plant open-loop on synthetic time
+and writes a trace (:mod:`hardware.record`) to replay and fit (``rpr-cosim fit``).  Both listen on loopback unless told otherwise.  The work is in
 :mod:`hardware`; this module is the command line.
 """
 from __future__ import annotations
@@ -63,14 +66,87 @@ def register(sub: argparse._SubParsersAction) -> None:
         else:
             s.add_argument("--tree", type=Path, default=None, help="create the fake tree here (default: a temp dir, "
                                                                    "removed at exit)")
-            s.add_argument("--actuator", default="fa200", choices=("fa200", "x"))
-            s.add_argument("--start", default="0.31086,0.35586,0.20428", metavar="L1,L2,L3",
-                           help="leg lengths at the start [m] (default: Table 6.12's start pose)")
-            s.add_argument("--noise", type=float, default=0.0, metavar="COUNTS", help="ADC noise (std dev, counts)")
-            s.add_argument("--latency", type=float, default=0.0, metavar="S", help="sensor latency [s]")
+            _add_plant(s, "rig")
             for flag, what in (("--stuck", "sensor of leg N frozen"), ("--unplug", "pot of leg N unplugged"),
                                ("--driver-fault", "driver of leg N gives no voltage")):
                 s.add_argument(flag, type=int, action="append", default=[], metavar="N", choices=(1, 2, 3), help=what)
+
+
+    r = add_verb(verbs, "record", _record, help="record the virtual board's plant driven by a test voltage "
+                                                "(synthetic time, known true parameters): a trace to replay and fit")
+    add_out(r, "trace to write (default runs/record/rig_recording.csv)")
+    r.add_argument("--seconds", type=float, default=5.0, metavar="S", help="length of the recording (default 5 s)")
+    r.add_argument("--rate", type=float, default=1000.0, metavar="HZ", help="samples per second (default 1000)")
+    r.add_argument("--current-noise", type=float, default=0.0, metavar="A",
+                   help="noise of the motor currents (std dev [A]; fidelity motor)")
+    _add_plant(r, "motor")
+
+
+def _add_plant(s: argparse.ArgumentParser, fidelity: str) -> None:
+    """The virtual plant's options: its model, true parameters, pots, noise and latency."""
+    s.add_argument("--fidelity", default=fidelity, choices=("rig", "motor"),
+                   help=f"the actuator block: rig (first-order speed lag) or motor (a DC motor per leg; default "
+                        f"{fidelity})")
+    s.add_argument("--actuator", default="fa200", choices=("fa200", "x"), help="preset of the rig fidelity")
+    s.add_argument("--set", dest="sets", action="append", default=[], metavar="NAME=VALUE",
+                   help="a true parameter of the plant's block, e.g. R=4.8 or components.rig.params.R=4.8 "
+                        "(repeatable; rpr-cosim fmu show linear_actuator --fidelity motor lists them)")
+    s.add_argument("--calibration", action="append", default=[], metavar="LEG:ZERO:FULL",
+                   help="leg 1..3 (or 'all') pot: ADC counts at zero stroke and at 0.635 m (repeatable)")
+    s.add_argument("--start", default="0.31086,0.35586,0.20428", metavar="L1,L2,L3",
+                   help="leg lengths at the start [m] (default: Table 6.12's start pose)")
+    s.add_argument("--noise", type=float, default=0.0, metavar="COUNTS", help="ADC noise (std dev, counts)")
+    s.add_argument("--latency", type=float, default=0.0, metavar="S", help="sensor latency [s]")
+    s.add_argument("--seed", type=int, default=0, help="seed of the noise")
+
+
+def _plant_options(args, **extra):
+    """The plant options of the command line (a UserError names a malformed one)."""
+    from hardware import virtual
+    from hardware.convert import Calibration
+
+    try:
+        start = tuple(float(x) for x in args.start.split(","))
+        assert len(start) == 3
+    except (ValueError, AssertionError):
+        raise UserError(f"--start {args.start!r}: expected three leg lengths in metres, e.g. 0.31,0.36,0.2") from None
+    params = {}
+    for item in args.sets:
+        name, sep, value = item.partition("=")
+        m = re.fullmatch(r"(?:components\.[^.]+\.params\.)?(.+)", name.strip())
+        try:
+            params[m.group(1)] = float(value)
+        except ValueError:
+            raise UserError(f"--set {item!r}: expected NAME=NUMBER, e.g. R=4.8") from None
+        if not sep:
+            raise UserError(f"--set {item!r}: expected NAME=NUMBER, e.g. R=4.8")
+    cals = [virtual.RIG_CALIBRATION] * 3
+    for item in args.calibration:
+        parts = item.split(":")
+        try:
+            legs = (1, 2, 3) if parts[0] == "all" else (int(parts[0]),)
+            zero, full = float(parts[1]), float(parts[2])
+            assert len(parts) == 3 and all(leg in (1, 2, 3) for leg in legs)
+            for leg in legs:
+                cals[leg - 1] = Calibration(raw_zero=zero, raw_full=full, s_offset=virtual.RIG_CALIBRATION.s_offset)
+        except (ValueError, IndexError, AssertionError):
+            raise UserError(f"--calibration {item!r}: expected LEG:ZERO:FULL, e.g. 2:35:3650 (leg 1..3 or all)") \
+                from None
+    return virtual.PlantOptions(actuator=args.actuator, start=start, noise=args.noise, latency=args.latency,
+                                seed=args.seed, fidelity=args.fidelity, params=params, calibration=tuple(cals), **extra)
+
+
+def _record(args) -> int:
+    from hardware.record import record
+
+    opts = _plant_options(args)
+    out = args.out or Path("runs") / "record" / "rig_recording.csv"
+    try:
+        path = record(out, opts, seconds=args.seconds, rate=args.rate, current_noise=args.current_noise)
+    except ValueError as exc:
+        raise UserError(str(exc)) from None
+    print(f"rpr-cosim board record: {path} ({args.seconds:g} s at {args.rate:g} Hz, {args.fidelity} plant)")
+    return 0
 
 
 def _add_target(p: argparse.ArgumentParser, help: str) -> None:
@@ -204,11 +280,8 @@ def _virtual(args) -> int:
     from hardware import faketree, virtual
 
     opts = _common(args)
-    try:
-        start = tuple(float(x) for x in args.start.split(","))
-        assert len(start) == 3
-    except (ValueError, AssertionError):
-        raise UserError(f"--start {args.start!r}: expected three leg lengths in metres, e.g. 0.31,0.36,0.2") from None
+    opts_plant = _plant_options(args, stuck=tuple(args.stuck), unplugged=tuple(args.unplug),
+                                driver_fault=tuple(args.driver_fault))
     tmp = None
     if args.tree is None:
         tmp = Path(tempfile.mkdtemp(prefix="rpr-virtual-board-", dir=_memory_dir()))
@@ -218,10 +291,10 @@ def _virtual(args) -> int:
         if tree.exists() and any(tree.iterdir()):
             raise UserError(f"--tree {tree} exists and is not empty; give a new directory")
     faketree.make_fake_tree(tree)
-    opts_plant = virtual.PlantOptions(actuator=args.actuator, start=start, noise=args.noise, latency=args.latency,
-                                      stuck=tuple(args.stuck), unplugged=tuple(args.unplug),
-                                      driver_fault=tuple(args.driver_fault))
-    plant = virtual.Plant(tree, opts_plant)
+    try:
+        plant = virtual.Plant(tree, opts_plant)
+    except ValueError as exc:
+        raise UserError(str(exc)) from None
     child = _spawn([*_binary(args.target), *opts, "--root", str(tree)], stdout=subprocess.PIPE)
     err = _relay(child.stderr, sys.stderr)
     stopping = {"flag": False}

@@ -11,8 +11,11 @@ command can gate a script.
 A comparison is refused (exit 2; under ``--tol`` it fails with exit 1) when either run did not
 end "ok" (its CSV status or JSON sidecar: failed, out_of_limits, unstable, interrupted, unfinished;
 "stopped" at a component's own request counts as an end) unless
-``--allow-failed``, and when the traces overlap over less than the reference's time span unless
-``--allow-partial``.  Variables found in only one trace are listed as not compared.
+``--allow-failed``, when the traces overlap over less than either trace's time span (both
+directions) unless ``--allow-partial``, and when the sidecars' scene hashes differ in what is
+simulated (the differing entries are named) unless ``--allow-different-scenes``; runs of one scene
+with different master settings are compared, with a note naming the settings.  Variables found in
+only one trace are listed as not compared.
 """
 from __future__ import annotations
 
@@ -38,7 +41,10 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="compare even when a trace's run did not end 'ok' (failed, out_of_limits or unstable by a "
                         "guard, interrupted, unfinished)")
     p.add_argument("--allow-partial", action="store_true",
-                   help="compare even when the traces overlap over less than the reference's time span")
+                   help="compare even when the traces overlap over less than either trace's time span")
+    p.add_argument("--allow-different-scenes", action="store_true",
+                   help="compare even when the sidecars' scene hashes differ in what is simulated (components, "
+                        "parameters, connections, inputs); differences in the master's settings are always allowed")
 
 
 def _compare(args: argparse.Namespace) -> int:
@@ -53,7 +59,8 @@ def _compare(args: argparse.Namespace) -> int:
         return _compare_batch(args)
     test, ref = read_trace(args.test), read_trace(args.reference)
     checks = comparability(test, ref, test_path=args.test, ref_path=args.reference, patterns=args.only)
-    problems = checks.problems(allow_failed=args.allow_failed, allow_partial=args.allow_partial)
+    problems = checks.problems(allow_failed=args.allow_failed, allow_partial=args.allow_partial,
+                               allow_different_scenes=args.allow_different_scenes)
     if problems and args.tol is None:
         raise UserError("refused: " + "; ".join(problems))
     diffs = compare(test, ref, args.only)

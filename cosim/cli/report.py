@@ -12,7 +12,6 @@ The file opens offline (Plotly embedded, :mod:`cosim.analysis.report`).
 from __future__ import annotations
 
 import argparse
-import json
 import re
 from pathlib import Path
 
@@ -43,24 +42,29 @@ def _traces_in(d: Path) -> list[Path]:
 
 
 def _is_trace(p: Path) -> bool:
-    side = p.with_suffix(".json")
+    from ..errors import UserError
+    from ..readers import read_json
+
     try:
-        data = json.loads(side.read_text())
-    except (OSError, ValueError):
+        data = read_json(p.with_suffix(".json"), "sidecar")
+    except UserError:
         return False
     return isinstance(data, dict) and "scene_hash" in data
 
 
 def write_report(out: Path, output: Path | None = None, *, runs: bool = False) -> Path:
-    """The report of ``out`` (see the module docstring); returns the file written."""
+    """The report of ``out`` (see the module docstring); returns the file written.  ``output``
+    may be absolute or relative (to the working directory), whatever ``out`` is; a batch's own
+    run reports (``runs``) are written only inside the batch's ``runs/`` folder."""
     from ..errors import UserError
     from ..outputs import confined
 
     out = Path(out)
+    output = Path(output).absolute() if output is not None else None
     if not out.exists():
         raise UserError(f"{out}: no such file or directory")
     if out.is_dir() and (out / "results.csv").is_file() and (out / "batch.json").is_file():
-        return _batch(out, output or confined(out, "report.html"), runs)
+        return _batch(out.absolute(), output or confined(out, "report.html"), runs)
     tables = [out] if out.is_file() and re.search(r"_(precision|stability)\.csv$", out.name) else (
         sorted([*out.glob("*_precision.csv"), *out.glob("*_stability.csv")]) if out.is_dir() else [])
     if tables:
@@ -81,12 +85,11 @@ def run_file_report(trace_path: Path, output: Path | None = None) -> Path:
     from ..analysis.report import run_report_from_files
     from ..scenario.geometry import manipulator_for
 
+    from ..readers import read_json
+
     trace_path = Path(trace_path)
-    side = {}
-    try:
-        side = json.loads(trace_path.with_suffix(".json").read_text())
-    except (OSError, ValueError):
-        pass
+    side_path = trace_path.with_suffix(".json")
+    side = read_json(side_path, "sidecar") if side_path.exists() else {}
     comps = ((side.get("scene_data") or {}).get("components") or {}) if isinstance(side, dict) else {}
     m = None
     for c in comps.values():
@@ -96,7 +99,8 @@ def run_file_report(trace_path: Path, output: Path | None = None) -> Path:
             except (KeyError, TypeError, ValueError):
                 m = None
             break
-    pairs = setpoints_of(side.get("connections") or [] if isinstance(side, dict) else [])
+    conns = side.get("connections") if isinstance(side, dict) else None
+    pairs = setpoints_of(conns if isinstance(conns, list) else [])
     return run_report_from_files(trace_path, output, pairs=pairs, manipulator=m)
 
 
@@ -114,25 +118,29 @@ def setpoints_of(connections: list[str]) -> dict[str, str]:
 
 
 def _batch(out: Path, output: Path, runs: bool = False) -> Path:
+    """The batch's report; its run ids (data read from ``results.csv``) name directories inside
+    ``out/runs`` only (:func:`cosim.batch.report.run_dir`), checked for every row before anything
+    is written."""
+    import os
+
     from ..analysis.report import batch_report
-    from ..batch.report import run_trace_path
+    from ..batch.report import batch_meta, run_trace_path
     from ..batch.results import read_rows
+    from ..outputs import confined
 
     columns, rows = read_rows(out / "results.csv")
-    meta = json.loads((out / "batch.json").read_text())
-    axes = [a["name"] for a in meta.get("axes", [])]
-    metrics = [m["column"] for m in meta.get("metrics", [])]
+    meta = batch_meta(out)
+    found = {str(r["run_id"]): run_trace_path(out, str(r["run_id"])) for r in rows}  # every id checked first
     traces, reports = {}, {}
-    for r in rows:
-        p = run_trace_path(out, r["run_id"])
-        if p is not None:
-            traces[r["run_id"]] = p
-            html_file = p.with_suffix(".html")
-            if runs:
-                run_file_report(p, html_file)
-            if html_file.is_file():
-                reports[r["run_id"]] = str(html_file.relative_to(output.parent)) if html_file.is_relative_to(
-                    output.parent) else html_file.as_uri()
-    return batch_report(output, rows, columns, axes, metrics, traces, title=f"batch {meta.get('batch', out.name)}",
-                        run_reports=reports)
-
+    for rid, p in found.items():
+        if p is None:
+            continue
+        traces[rid] = p
+        html_file = confined(p.parent, p.with_suffix(".html").name)
+        if runs:
+            run_file_report(p, html_file)
+        if html_file.is_file():
+            rel = os.path.relpath(html_file, output.parent)
+            reports[rid] = rel if not rel.startswith("..") else html_file.absolute().as_uri()
+    return batch_report(output, rows, columns, meta["axes"], meta["metrics"], traces,
+                        title=f"batch {meta['batch']}", run_reports=reports)

@@ -77,6 +77,7 @@ def _load_and_run(args: argparse.Namespace) -> int:
     from ..errors import UserError
     from ..run.execute import estimate
 
+    refused = _motion_checks(scene, args)
     if args.check:
         _describe(scene)
         try:
@@ -90,7 +91,10 @@ def _load_and_run(args: argparse.Namespace) -> int:
         except UserError as exc:
             say(f"rpr-cosim run: {exc}")
             return 2
-        return 0
+        return 1 if refused else 0
+    if refused:
+        say("rpr-cosim run: nothing was run")
+        return 1
     check_trace_size(scene, args.max_trace)
     out = args.out or Path("runs") / safe_name(scene.name)
     check_out_dir(out)
@@ -213,6 +217,21 @@ def _reference(scene, res, out: Path, plot: bool, trace_format: str = "csv"):
 
             say(f"plot: {plot_comparison(res.trace, ref.trace, diffs, confined(out, f'{scene.name}_vs_reference.png'), labels=(scene.master.algorithm, 'reference'), units=units_of(scene, res.fmus))}")
     return ref
+
+
+def _motion_checks(scene, args: argparse.Namespace) -> bool:
+    """Check every planned task of the scene before it runs (:mod:`models.motion_check`); print
+    the result of each, and each refusal as one line.  True when a motion is refused."""
+    from ..analysis.task_report import scene_motion_checks
+
+    refused = False
+    for name, _task, traj, result in scene_motion_checks(scene):
+        if result.refusal:
+            refused = True
+            say(f"rpr-cosim run: {args.scene}: component {name!r}: {result.refusal.line()}")
+        elif args.check:
+            print(f"  motion of {name}: {traj.duration:.6g} s, passes every check ({len(result.t)} samples)")
+    return refused
 
 
 def _describe(scene) -> None:

@@ -9,13 +9,16 @@ Package map (the public names are re-exported here: ``from cosim.master import X
                 :class:`Algorithm` base class, :data:`ALGORITHMS`, :func:`register`, :func:`algorithm`
 ``algorithms/`` one module per algorithm (``jacobi``, ``gauss_seidel``, ``adaptive``, ``ecco``,
                 ``iterative``), listed in :data:`cosim.master.algorithms.MODULES`
-``engine``      who runs the steps: a compiled loop or the Python loop (the reference); :func:`choose_engine`,
-                :func:`fixed_stepper`
-``native``      the native engine's C prelude and its one slave struct (C text and ctypes from one
-                declaration); its loops: ``fastloop`` (Jacobi, Gauss-Seidel), ``adaptive_engine``
-                (adaptive, ecco), ``iterative_engine``; ``dense``: the Newton step's linear algebra
-``stepper``     the one driver loop :func:`~cosim.master.stepper.drive` over the stepper protocol (pacing,
-                stop requests, guards, step observers, traces, text events, progress), :class:`StepInfo`
+``engine``      who runs the steps: a compiled loop or the Python loop, chosen in one place for every
+                algorithm (:func:`choose_engine`); :func:`fixed_stepper`
+``entries``     the native kernels' records, end codes and entry points, declared once (the generated
+                C header and the ctypes bindings)
+``native``      compiling a kernel (C files beside their modules on ``native.h``) and the slave structs;
+                the kernels: ``fastloop`` (Jacobi, Gauss-Seidel), ``adaptive_engine`` (adaptive,
+                ecco), ``iterative_engine``; ``dense``: the Newton step's linear algebra
+``stepper``     the one driver loop :func:`~cosim.master.stepper.drive` over the :class:`Stepper` contract
+                (pacing, stop requests, events, guards, step observers, traces, text events,
+                progress), :class:`StepInfo`, :class:`StepResult`
 ``run``         :func:`simulate`: an algorithm bound to its engine as a stepper, driven by ``drive``;
                 :func:`initialize`, :class:`RunStats`
 ``multirate``   a slave at ``rate`` doSteps per macro step (Jacobi, Gauss-Seidel; both engines)
@@ -90,10 +93,10 @@ from .engine import _Compiled, choose_engine, fixed_stepper
 from .graph import find_algebraic_loop, gauss_seidel_order, topological_order
 from .lifecycle import RunStats, initialize, interruption_reason, slave_table
 from .run import simulate
-from .stepper import StepInfo, drive
+from .stepper import Outcome, StepInfo, StepResult, Stepper, drive
 from .system import CoupledSystem, Link
 
 __all__ = ["ALGORITHMS", "Adaptive", "Algorithm", "CoupledSystem", "GaussSeidel", "Iterative", "Jacobi", "Link", "MasterAlgorithm",
-           "RunStats", "StepInfo", "drive", "fixed_stepper",
+           "Outcome", "RunStats", "StepInfo", "StepResult", "Stepper", "drive", "fixed_stepper",
            "_Compiled", "algorithm", "algorithms", "choose_engine", "find_algebraic_loop", "gauss_seidel_order",
            "initialize", "interruption_reason", "register", "simulate", "slave_table", "topological_order"]

@@ -15,6 +15,7 @@ import numpy as np
 from ..errors import UserError
 from ..slaves.slave import FAILING, Status
 from .graph import gauss_seidel_order
+from .stepper import Outcome
 from .system import CoupledSystem
 
 _ns = time.perf_counter_ns
@@ -111,11 +112,18 @@ class MasterAlgorithm:
     multirate: ClassVar[bool] = False
     #: it solves algebraic loops (initialisation allows them)
     solves_algebraic_loops: ClassVar[bool] = False
+    #: it runs algebraic loops with a one-step delay (Jacobi: initialisation allows them)
+    delays_algebraic_loops: ClassVar[bool] = False
     #: algorithm code of the compiled fixed-step loop implementing the same steps, or None
     native_code: ClassVar[int | None] = None
+    #: a variable-step algorithm's stepper factory (:func:`cosim.master.algorithms.adaptive.variable_stepper`);
+    #: None: a fixed-step algorithm, bound by :func:`cosim.master.engine.fixed_stepper`
+    stepper_for: ClassVar[Callable | None] = None
+    #: a variable-step algorithm's stepping class (None: :class:`cosim.master.algorithms.adaptive.AdaptiveStepper`)
+    stepper: ClassVar[type | None] = None
 
 
-class Algorithm(MasterAlgorithm, ABC):
+class Algorithm(MasterAlgorithm, Outcome, ABC):
     """Base class of fixed-step master algorithms.  The public :meth:`step` advances one macro step and
     keeps :attr:`status` (``"running"``, ``"failed"``, ``"stopped"``); a subclass implements
     :meth:`_step_impl` and may name a compiled variant (:attr:`native_code`, see
@@ -134,10 +142,7 @@ class Algorithm(MasterAlgorithm, ABC):
         self.step_ns = int(step_ns)
         self.h = self.step_ns / 1e9
         self.start_ns = int(start_ns)  # the start time [ns]; the compiled loop runs only from 0
-        self.text_events: list[tuple[float, str, str]] = []  # (t, column, value) of recorded String/Binary
         self.k = 0
-        self.status = "running"
-        self.message = ""
         self.failed_slave: int | None = None
         n = len(system.slaves)
         self.order = list(order) if order is not None else gauss_seidel_order(n, system.slave_edges())
@@ -155,7 +160,7 @@ class Algorithm(MasterAlgorithm, ABC):
         #: memoryless slaves (``SlaveDescription.memoryless``, e.g. a ``sum`` block) in stepping order, each
         #: after the slaves that feed it: an algorithm that exchanges at t_k evaluates them within the
         #: exchange (:meth:`_exchange`), with no delay of their own, as libcosim evaluates its functions
-        self.exchange = [i for i in self.order if getattr(s[i].description, "memoryless", False)]
+        self.exchange = [i for i in self.order if s[i].description.memoryless]
         self._setup_inputs(inputs)
         self._setup_rates(rates)
 
@@ -261,11 +266,15 @@ class Algorithm(MasterAlgorithm, ABC):
         run ends as ``stopped`` at ``t_k+1`` (also after a compiled loop completed the step)."""
         self.k += 1
         sl = self.system.slaves[i]
-        detail = sl.stop_detail() if hasattr(sl, "stop_detail") else ""
+        detail = sl.stop_detail()
         self.status, self.failed_slave = "stopped", i
         self.message = (f"stopped by {sl.name} at t = {self.t:.9g} s: it asked to terminate the simulation in the "
                         f"step from t = {t:.9g} s" + (f" ({detail})" if detail else "")
                         + (f"; its last message: {sl.last_message}" if sl.last_message else ""))
+
+    def statistics(self) -> dict:
+        """The algorithm's own figures for the run statistics (none by default)."""
+        return {}
 
     def _finish_step(self, i: int, t: float, h: float) -> tuple[int, int] | None:
         """Complete the step from ``t`` after slave ``i`` stepped and asked to stop; returns

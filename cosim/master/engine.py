@@ -1,35 +1,88 @@
-"""Engines, who runs an algorithm's steps: the compiled loop (:mod:`cosim.master.fastloop`, for FMU
-slaves and algorithms with a ``native_code``) or the Python loop, its bit-identical reference."""
+"""Engines, who runs an algorithm's steps: a compiled loop (for FMU slaves and algorithms that
+have one) or the Python loop; the choice between them is made here, once for every algorithm
+(:func:`choose_engine`)."""
 from __future__ import annotations
+
+import ctypes
+from collections.abc import Callable
+from dataclasses import dataclass
 
 import numpy as np
 
 from ..errors import UserError
+from . import adaptive_engine, fastloop, iterative_engine
 from .algorithm import Algorithm
+from .native import SlaveArray, builds
 from .stepper import FixedStepper
 from .system import CoupledSystem
 
 #: :attr:`Algorithm.native_code` of the fixed-step loop's algorithms (0 Jacobi, 1 Gauss-Seidel) and of iterative
 ITERATIVE = 2
 
+ENGINES = ("auto", "compiled", "python")
+
+
+@dataclass(frozen=True)
+class CompiledLoop:
+    """What an algorithm's compiled loop is and needs: its library's loader (None: the algorithm
+    has none), FMU state get/set (``rollback``), a start at time 0 (``from_zero``)."""
+
+    algorithm: str
+    library: Callable[[], ctypes.CDLL] | None
+    rollback: bool = False
+    from_zero: bool = False
+
+
+def fixed_loop(cls: type[Algorithm]) -> CompiledLoop:
+    """The compiled loop of the fixed-step algorithm ``cls`` (by its :attr:`native_code`)."""
+    library = None if cls.native_code is None else (
+        iterative_engine.library if cls.native_code == ITERATIVE else fastloop.library)
+    return CompiledLoop(cls.name, library, cls.needs_rollback, from_zero=True)
+
+
+def _why_not(system: CoupledSystem, loop: CompiledLoop, start_ns: int) -> str:
+    """Why ``loop`` cannot run ``system`` ('' when it can)."""
+    if loop.library is None:
+        return "has no loop"
+    if system.transformed:
+        return ("copies connections as they are; connections with a linear transformation (factor, offset) run "
+                "in the Python loop")
+    if system.typed.active:
+        return "carries scalar Float64 variables only; this scene connects or records other types or arrays"
+    if loop.from_zero and start_ns:
+        return "runs from start_time 0"
+    entries = [(s.name, s.native()) for s in system.slaves]
+    missing = [name for name, ne in entries if ne is None]
+    if missing:
+        return f"needs FMU slaves with C entry points ({', '.join(missing)} has none)"
+    stateless = [name for name, ne in entries if loop.rollback and not (ne.get_state and ne.set_state)]
+    if stateless:
+        return f"needs FMU state get/set ({', '.join(stateless)} has none)"
+    return ""
+
+
+def choose_engine(system: CoupledSystem, engine: str, loop: CompiledLoop, start_ns: int = 0) -> str:
+    """``"compiled"`` or ``"python"`` for ``engine`` in auto | compiled | python: auto takes the
+    compiled loop where it can run the scene and builds here, compiled refuses with the reason a
+    scene it cannot run."""
+    if engine not in ENGINES:
+        raise UserError(f"master.engine must be auto, compiled or python, got {engine!r}")
+    if engine == "python":
+        return "python"
+    why = _why_not(system, loop, start_ns)
+    if engine == "compiled":
+        if why:
+            raise UserError(f"master.engine: compiled for {loop.algorithm} {why}; use master.engine auto or python")
+        return "compiled"  # a missing C compiler is said when the library is built
+    return "python" if why or not builds(loop.library) else "compiled"
+
 
 class _Compiled:
-    """Runs an algorithm's steps in the compiled loop (:mod:`cosim.master.fastloop`; for
-    ``iterative``, :class:`cosim.master.iterative_engine.CompiledIterative`, which it returns)."""
-
-    def __new__(cls, alg: Algorithm):
-        if alg.native_code == ITERATIVE:
-            from .iterative_engine import CompiledIterative
-
-            return CompiledIterative(alg)
-        return super().__new__(cls)
+    """Runs Jacobi's or Gauss-Seidel's steps in the compiled loop (:mod:`cosim.master.fastloop`):
+    ``run(nsteps, rec_every, rec) -> rows``, updating the algorithm's step count, status and
+    counters as its own loop would."""
 
     def __init__(self, alg: Algorithm):
-        import ctypes
-
-        from . import fastloop
-        from .native import SlaveArray
-
         self.lib = fastloop.library()
         sysm = alg.system
         self.arr = arr = SlaveArray(sysm)
@@ -46,7 +99,6 @@ class _Compiled:
         self.order = np.array(alg.order, dtype=np.int32)
         self.rec_idx = sysm.record_idx
         self.alg = alg
-        self.c = ctypes
         self.n_rows = ctypes.c_int64()
         self.fail_slave = ctypes.c_int32()
         self.fail_status = ctypes.c_int32()
@@ -60,9 +112,9 @@ class _Compiled:
         done = self.lib.rpr_run(self.arr.arr, len(self.arr), self.order.ctypes.data, alg.native_code,
                                 sysm.v.ctypes.data, alg.k, nsteps, alg.step_ns, int(alg.timing),
                                 self.rec_idx.ctypes.data if self.rec_idx.size else None, len(self.rec_idx),
-                                rec_every, rec.ctypes.data, self.c.byref(self.n_rows),
-                                self.c.byref(self.fail_slave), self.c.byref(self.fail_status),
-                                self.c.byref(self.master_ns), self.budget_ns)
+                                rec_every, rec.ctypes.data, ctypes.byref(self.n_rows),
+                                ctypes.byref(self.fail_slave), ctypes.byref(self.fail_status),
+                                ctypes.byref(self.master_ns), self.budget_ns)
         for i, c in enumerate(self.arr.arr):
             alg.calls[i], alg.slave_ns[i] = c.calls, c.ns
         alg.master_ns += self.master_ns.value
@@ -81,60 +133,22 @@ class _Compiled:
         return rows
 
 
-def _python_run(alg: Algorithm, nsteps: int, rec_every: int, rec: np.ndarray) -> int:
-    v, idx = alg.system.v, alg.system.record_idx
-    rows, typed = 0, alg.system.typed
-    for _ in range(nsteps):
-        ok = alg.step()
-        if (ok and alg.k % rec_every == 0) or alg.status == "stopped":
-            rec[rows, 0] = alg.t
-            np.take(v, idx, out=rec[rows, 1:])
-            rows += 1
-            if typed.texts:
-                alg.text_events += [(alg.t, c, x) for c, x in typed.text_changes()]
-        if not ok:
-            break
-    return rows
-
-
-
 def fixed_stepper(system: CoupledSystem, *, cls: type[Algorithm], step_ns: int, n_steps: int, record_every: int,
                   engine: str = "auto", options: dict | None = None, **kw) -> FixedStepper:
     """A fixed-step algorithm ``cls`` over the initialised ``system`` on its engine (``engine``:
     auto | compiled | python, see :func:`choose_engine`); ``kw`` go to the algorithm."""
-    alg = cls(system, step_ns, **kw, **({"options": options} if getattr(cls, "options", ()) else {}))
-    name = choose_engine(system, cls, engine, alg.start_ns)
-    runner = _Compiled(alg).run if name == "compiled" else (lambda n, e, r: _python_run(alg, n, e, r))
-    return FixedStepper(alg, runner, name, n_steps, record_every)
+    alg = cls(system, step_ns, **kw, **({"options": options} if cls.options else {}))
+    name = choose_engine(system, engine, fixed_loop(cls), alg.start_ns)
+    runner = None
+    if name == "compiled":
+        runner = (iterative_engine.CompiledIterative(alg) if cls.native_code == ITERATIVE else _Compiled(alg)).run
+    return FixedStepper(alg, runner, n_steps, record_every)
 
 
-def choose_engine(system: CoupledSystem, alg_cls: type[Algorithm], engine: str, start_ns: int = 0) -> str:
-    """``"compiled"`` or ``"python"`` for ``engine`` in auto | compiled | python."""
-    if engine not in ("auto", "compiled", "python"):
-        raise UserError(f"master.engine must be auto, compiled or python, got {engine!r}")
-    if engine == "python":
-        return "python"
-    entries = [s.native() for s in system.slaves]
-    native = alg_cls.native_code is not None and all(ne is not None for ne in entries)
-    if native and getattr(alg_cls, "needs_rollback", False):  # iterative: the loop saves and restores states
-        native = all(ne.get_state and ne.set_state for ne in entries)
-    if engine == "compiled" and system.transformed:
-        raise UserError("master.engine: compiled copies connections as they are; connections with a linear "
-                        "transformation (factor, offset) run in the Python loop: use master.engine: python or auto")
-    if engine == "compiled" and system.typed.active:
-        raise UserError("master.engine: compiled carries scalar Float64 variables only; this scene connects or "
-                        "records other types or arrays: use engine auto or python")
-    if engine == "compiled" and start_ns:
-        raise UserError("master.engine: compiled runs from start_time 0; use engine auto or python")
-    native = native and not system.typed.active and not start_ns and not system.transformed
-    if engine == "compiled":
-        if not native:
-            raise UserError(f"master.engine: compiled needs FMU slaves and an algorithm with a compiled loop "
-                            f"({alg_cls.name} / {', '.join(s.name for s in system.slaves if s.native() is None) or 'all FMUs'})")
-        return "compiled"
-    if alg_cls.native_code == ITERATIVE:
-        from . import iterative_engine as loop
-    else:
-        from . import fastloop as loop
+def variable_loop(name: str, stepper_cls: type) -> CompiledLoop:
+    """The compiled loop of a variable-step stepper class (:mod:`cosim.master.adaptive_engine`)."""
+    library = adaptive_engine.library if adaptive_engine.has_compiled(stepper_cls) else None
+    return CompiledLoop(name, library, stepper_cls.needs_rollback)
 
-    return "compiled" if native and loop.available() else "python"
+
+__all__ = ["CompiledLoop", "ENGINES", "ITERATIVE", "choose_engine", "fixed_loop", "fixed_stepper", "variable_loop"]

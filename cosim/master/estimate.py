@@ -34,6 +34,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ..trace.observer import Observer
+
 #: The smallest range an error is measured against [the signal's SI unit]: a signal that moves
 #: less over the run (a platform angle that a path keeps at 0 but the solvers' rounding nudges
 #: by 1e-8 rad) has no range to speak of, and an error of 1e-5 rad on it is not "10^3 of its
@@ -180,7 +182,7 @@ def judge(status: str, reason: str, est: ErrorEstimate | None, tolerance: float 
     return status, reason
 
 
-class EstimatingObserver:
+class EstimatingObserver(Observer):
     """An observer of the run loop around the run's own observers: it forwards everything, keeps
     the recorded rows, and when the run finishes estimates its error against ``companion``
     (``(time, values)`` of the companion run, or None with ``why`` there is none), judges the run
@@ -205,10 +207,17 @@ class EstimatingObserver:
         for ob in self.inner:
             ob.record(rows)
 
+    def initial(self, info) -> None:
+        for ob in self.inner:
+            ob.initial(info)
+
     def record_text(self, t, column, value) -> None:
         for ob in self.inner:
-            if hasattr(ob, "record_text"):
-                ob.record_text(t, column, value)
+            ob.record_text(t, column, value)
+
+    def record_event(self, t, component, kind) -> None:
+        for ob in self.inner:
+            ob.record_event(t, component, kind)
 
     def _estimate(self) -> ErrorEstimate:
         if self.companion is None:
@@ -232,4 +241,4 @@ class EstimatingObserver:
 
     @property
     def note(self) -> str:
-        return "; ".join(n for n in (getattr(ob, "note", "") for ob in self.inner) if n)
+        return "; ".join(ob.note for ob in self.inner if ob.note)

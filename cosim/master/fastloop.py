@@ -1,7 +1,8 @@
 """The compiled inner loop of the fixed-step master (Jacobi and Gauss-Seidel).
 
-A small C function, compiled on demand (:func:`cosim.master.native.compile_loop`: after the
-native engine's prelude, cached on disk by source and compiler; never committed), steps FMUs through their
+A small C function (``fastloop.c`` beside this module, its entry point declared in
+:data:`cosim.master.entries.RUN`), compiled on demand (:func:`cosim.master.native.compile_loop`:
+cached on disk by source and compiler; never committed), steps FMUs through their
 ``fmi2DoStep``/``fmi2GetReal``/``fmi2SetReal`` (or FMI 3.0 ``Float64``) entry points, which it
 receives as function pointers.  It implements exactly the algorithms of :mod:`cosim.master`
 (see there for the conventions); the Python loop is the reference it is tested against.
@@ -12,135 +13,21 @@ variables into ``v[out_off : out_off + n_out]`` and takes its connected inputs f
 """
 from __future__ import annotations
 
-from ctypes import CDLL, POINTER, c_int32, c_int64, c_void_p
+from ctypes import CDLL
 from functools import lru_cache
 
-from .native import CSlave, builds, compile_loop
+from .entries import RUN
+from .native import builds, compile_loop
 
 #: Longest wall time of one call of the compiled loop [ns]; it returns to Python (where signals
 #: are handled) at least this often.
 CALL_BUDGET_NS = 250_000_000
 
-#: The loop (after :data:`cosim.master.native.PRELUDE`: the slave struct, the FMI calls).
-SOURCE = r"""
-static inline int push(rpr_slave *s, double *v, double inv_h) {
-    int j, st;
-    double *in = v + s->in_off;
-    if (!s->n_in) return 0;
-    for (j = 0; j < s->n_in; ++j) in[j] = v[s->in_src[j]];
-    if (!s->interp) return set_inputs(s, in);
-    for (j = 0; j < s->n_in; ++j) {
-        double now = in[j];
-        s->slope[j] = (now - s->hist[j]) * inv_h;
-        if (s->fresh[j]) in[j] = s->hist[j];
-        s->hist[j] = now;
-    }
-    st = set_inputs(s, in);
-    if (st > ST_WARNING) return st;
-    return set_slopes(s);
-}
-
-/* a memoryless slave evaluated within Jacobi's exchange: its inputs from their sources now (held,
-   no slope), then its outputs (Algorithm._exchange) */
-static inline int exchange(rpr_slave *s, double *v) {
-    int j, st;
-    double *in = v + s->in_off;
-    for (j = 0; j < s->n_in; ++j) in[j] = v[s->in_src[j]];
-    if (s->n_in) { st = set_inputs(s, in); if (st > ST_WARNING) return st; }
-    return get_outputs(s, v);
-}
-
-/* one macro step from t_ns of a slave at rate > 1: sub-steps at the exact sub-instants, its
-   inputs held or set on the macro step's line before every later sub-step (cosim.master.multirate) */
-static inline int advance(rpr_slave *s, double *v, int64_t t_ns, double t, double h) {
-    int32_t j, m;
-    int st;
-    double hs, *in;
-    if (s->rate <= 1) return do_step(s, t, h);
-    hs = (double)s->sub_ns / 1e9;
-    in = v + s->in_off;
-    if (s->interp) for (m = 0; m < s->n_in; ++m) s->base[m] = in[m];
-    st = do_step(s, (double)t_ns / 1e9, hs);
-    for (j = 1; j < s->rate; ++j) {
-        if (st > ST_WARNING) return st;
-        if (s->interp) {
-            double tau = (double)(j * s->sub_ns) / 1e9;
-            for (m = 0; m < s->n_in; ++m) in[m] = s->slope[m] * tau + s->base[m];
-            st = set_inputs(s, in);
-            if (st > ST_WARNING) return st;
-            st = set_slopes(s);
-            if (st > ST_WARNING) return st;
-        }
-        st = do_step(s, (double)(t_ns + j * s->sub_ns) / 1e9, hs);
-    }
-    return st;
-}
-
-#define CHECK(expr, who) do { int st_ = (expr); if (st_ > ST_WARNING) { *fail_slave = (who); \
-    *fail_status = st_; goto out; } } while (0)
-#define TICK(i) do { if (timing) { int64_t t_ = now_ns(); S[i].ns += t_ - tprev; tprev = t_; } } while (0)
-
-/* Run up to nsteps macro steps from step index k0.  algorithm 0 = Jacobi (memoryless slaves then
-   evaluated in `order`), 1 = Gauss-Seidel (slaves in `order`).  After every `rec_every`-th step a row (t, v[rec_idx]...) is appended to
-   rec.  Returns the number of steps completed; on a failure *fail_slave >= 0.  With
-   budget_ns > 0 it also returns (early, no failure) once that much wall time has passed, so
-   that Python can handle signals between calls. */
-int64_t rpr_run(rpr_slave *S, int32_t n, const int32_t *order, int32_t algorithm, double *v,
-                int64_t k0, int64_t nsteps, int64_t step_ns, int32_t timing,
-                const int64_t *rec_idx, int32_t n_rec, int64_t rec_every, double *rec, int64_t *n_rows,
-                int32_t *fail_slave, int32_t *fail_status, int64_t *master_ns, int64_t budget_ns) {
-    int64_t k, done = 0, rows = 0, t_start = (timing || budget_ns > 0) ? now_ns() : 0, tprev = t_start;
-    int64_t slave_ns0 = 0, slave_ns1 = 0;
-    int32_t i, c;
-    double h = (double)step_ns / 1e9, inv_h = 1.0 / h;
-    for (i = 0; i < n; ++i) slave_ns0 += S[i].ns;
-    *fail_slave = -1;
-    *fail_status = 0;
-    for (k = k0; k < k0 + nsteps; ++k) {
-        double t = (double)(k * step_ns) / 1e9;
-        if (timing) tprev = now_ns();  /* time since the last slave call is the master's own */
-        if (algorithm == 0) {
-            for (i = 0; i < n; ++i) { CHECK(push(&S[i], v, inv_h), i); TICK(i); }
-            for (i = 0; i < n; ++i) { CHECK(advance(&S[i], v, k * step_ns, t, h), i); TICK(i); }
-            for (i = 0; i < n; ++i) { CHECK(get_outputs(&S[i], v), i); TICK(i); }
-            for (c = 0; c < n; ++c) {  /* memoryless slaves, in order: their inputs now, outputs at once */
-                i = order[c];
-                if (!S[i].memoryless) continue;
-                CHECK(exchange(&S[i], v), i);
-                TICK(i);
-            }
-        } else {
-            for (c = 0; c < n; ++c) {
-                i = order[c];
-                CHECK(push(&S[i], v, inv_h), i);
-                CHECK(advance(&S[i], v, k * step_ns, t, h), i);
-                CHECK(get_outputs(&S[i], v), i);
-                TICK(i);
-            }
-        }
-        ++done;
-        if ((k + 1) % rec_every == 0) record_row(rec + rows++ * (n_rec + 1), (k + 1) * step_ns, v, rec_idx, n_rec);
-        if (budget_ns > 0 && (done & 15) == 0 && now_ns() - t_start > budget_ns) break;
-    }
-out:
-    *n_rows = rows;
-    if (timing) {
-        for (i = 0; i < n; ++i) slave_ns1 += S[i].ns;
-        *master_ns += (now_ns() - t_start) - (slave_ns1 - slave_ns0);
-    }
-    return done;
-}
-"""
-
-
 @lru_cache(maxsize=1)
 def library() -> CDLL:
     """Compile (once per source and compiler, cached on disk) and load the loop library.
     Raises :class:`UserError` when no C compiler works."""
-    return compile_loop(SOURCE, "rpr_loop", {
-        "rpr_run": [POINTER(CSlave), c_int32, c_void_p, c_int32, c_void_p, c_int64, c_int64, c_int64, c_int32,
-                    c_void_p, c_int32, c_int64, c_void_p, POINTER(c_int64), POINTER(c_int32), POINTER(c_int32),
-                    POINTER(c_int64), c_int64]})
+    return compile_loop("fastloop.c", "rpr_loop", [RUN])
 
 
 def available() -> bool:

@@ -26,14 +26,15 @@ def simulate(system: CoupledSystem, algorithm_name: str, *, step_ns: int, n_step
     linear over each step (``inputs``, see :mod:`cosim.master`); a variable-step algorithm
     (adaptive, ecco) chooses its own steps, ``step_ns`` its first one's hint.
 
-    Observers receive ``start(columns, meta)``, ``record(rows)`` (rows of time and the recorded
-    values, at ``t_0`` and every ``record_every`` steps; every accepted step of a variable-step
-    run), optionally ``step(info)`` after every step (:class:`cosim.master.stepper.StepInfo`) and
-    ``record_text``, and ``finish(status, reason, stats)``, also when the run fails or is
-    interrupted (then the exception propagates after ``finish``).
+    Observers (:class:`cosim.trace.observer.Observer`) receive ``start(columns, meta)``,
+    ``initial(info)``, ``record(rows)`` (rows of time and the recorded values, at ``t_0`` and every
+    ``record_every`` steps; every accepted step of a variable-step run), ``step(info)`` after
+    every step where they override it (:class:`cosim.master.stepper.StepInfo`), ``record_text``,
+    ``record_event``, ``statistics()`` and ``finish(status, reason, stats)``, also when the run
+    fails or is interrupted (then the exception propagates after ``finish``).
     ``realtime`` (a :class:`cosim.master.realtime.RealtimeSettings`) paces every step on the wall clock.
     ``stop()``, asked before every block of steps, ends the run as "stopped" when it returns a reason.
-    An observer with a method ``statistics()`` adds what it returns to the run statistics (the
+    What an observer's ``statistics()`` returns (not None) goes into the run statistics (the
     sidecar), under its ``name`` (default: its class name).
 
     ``guard`` (:class:`cosim.run.guards.Guard`) sees every row first, with the system's watched
@@ -41,12 +42,12 @@ def simulate(system: CoupledSystem, algorithm_name: str, *, step_ns: int, n_step
     dropped and the run ends with the guard's status and reason.
     """
     cls = algorithm(algorithm_name)
-    variable = getattr(cls, "variable_step", False)
+    variable = cls.variable_step
     multirate = {s.name: int(r) for s, r in zip(system.slaves, rates or ()) if r != 1}
-    if multirate and not getattr(cls, "multirate", False):
+    if multirate and not cls.multirate:
         raise UserError(f"master algorithm {cls.name} does not step slaves at several rates "
                         f"({', '.join(f'{n}.rate = {r}' for n, r in multirate.items())}); use jacobi or gauss_seidel")
-    if getattr(cls, "needs_rollback", False):
+    if cls.needs_rollback:
         fixed = [s.name for s in system.slaves if not s.can_rollback]
         if fixed:
             why = "; ".join(f"{s.name}: {s.description.rollback_reason}" for s in system.slaves
@@ -56,9 +57,8 @@ def simulate(system: CoupledSystem, algorithm_name: str, *, step_ns: int, n_step
                             f"control from power bonds, no rollback) or a fixed-step algorithm such as gauss_seidel "
                             f"or jacobi")
     for s_ in system.slaves:  # FMI noSetFMUStatePriorToCurrentPoint: true unless the algorithm may restore states
-        if hasattr(s_, "forward_only"):
-            s_.forward_only = not getattr(cls, "needs_rollback", False)
-    if realtime is not None and not getattr(cls, "paceable", True):  # refuse rather than run unpaced
+        s_.forward_only = not cls.needs_rollback
+    if realtime is not None and not cls.paceable:  # refuse rather than run unpaced
         raise UserError(f"master algorithm {cls.name} chooses its own steps and cannot be paced in real time "
                         f"(it rolls rejected steps back); drop master.realtime or use ecco, gauss_seidel or jacobi")
     if record_every < 1:
@@ -75,13 +75,14 @@ def simulate(system: CoupledSystem, algorithm_name: str, *, step_ns: int, n_step
         if guard is not None:
             stats.guards = guard.summary()
         if stepper is not None:
-            if stats.wall_s == 0.0 and getattr(stepper, "t_loop", None) is not None:  # the loop was cut short
+            if stats.wall_s == 0.0 and stepper.t_loop is not None:  # the loop was cut short
                 stats.wall_s = time.perf_counter() - stepper.t_loop
             stepper.fill(stats)
             stepper.close()  # before the slaves are freed (a compiled stepper's FMU states)
         for obs in observers:  # an observer's own figures (e.g. an error estimate) go into the statistics
-            if hasattr(obs, "statistics"):
-                stats.extra[getattr(obs, "name", type(obs).__name__)] = obs.statistics()
+            figures = obs.statistics()
+            if figures is not None:
+                stats.extra[obs.name] = figures
         if pacer is not None:
             from .realtime import slave_figures
 
@@ -97,9 +98,8 @@ def simulate(system: CoupledSystem, algorithm_name: str, *, step_ns: int, n_step
         t0 = time.perf_counter()
         initialize(system, start_values or [{} for _ in system.slaves], start_time=start_ns / 1e9,
                    stop_time=(start_ns + n_steps * step_ns) / 1e9, tolerances=tolerances,
-                   allow_loops=getattr(cls, "solves_algebraic_loops", False)
-                   or getattr(cls, "delays_algebraic_loops", False))
-        make = getattr(cls, "stepper_for", None) or fixed_stepper  # variable-step algorithms bring their own
+                   allow_loops=cls.solves_algebraic_loops or cls.delays_algebraic_loops)
+        make = cls.stepper_for or fixed_stepper  # variable-step algorithms bring their own
         stepper = make(system, step_ns=step_ns, n_steps=n_steps, record_every=record_every, order=order,
                     cls=cls, timing=timing, inputs=inputs, start_ns=start_ns, rates=rates, options=options, engine=engine)
         stats.engine = stepper.engine

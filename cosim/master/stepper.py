@@ -1,11 +1,14 @@
-"""The one driver loop of every run (:func:`drive`) and the stepper protocol it drives.
+"""The one driver loop of every run (:func:`drive`) and the contracts it drives: the stepper
+(:class:`Stepper`), the outcome it owns (:class:`Outcome`), what a step returns
+(:class:`StepResult`); the observers' contract is :class:`cosim.trace.observer.Observer`.
 
 After libcosim's shape: an algorithm's step returns the step it actually took, or a failure
-status; the loop runs what comes before a step, the step, then the observers.  A *stepper*
-(:class:`Stepper`) is an algorithm bound to its engine: a fixed-step algorithm on the grid
-``t_k = start + k h`` (:class:`FixedStepper`: Jacobi, Gauss-Seidel, iterative; the compiled loop
-runs a block of steps natively and returns its rows, a block counts as steps taken), or a
-variable-step one (:class:`cosim.master.algorithms.adaptive.VariableStepper`: adaptive, ecco).
+status; the loop runs what comes before a step, the step, then the observers.  A *stepper* is an
+algorithm bound to its engine: a fixed-step algorithm on the grid ``t_k = start + k h``
+(:class:`FixedStepper`: Jacobi, Gauss-Seidel, iterative; the compiled loop runs a block of steps
+natively and returns its rows, a block counts as steps taken), or a variable-step one
+(:class:`cosim.master.algorithms.adaptive.VariableStepper`: adaptive, ecco).  The Python engine's
+block (one step at a time, a row at each recorded point) is written once, :meth:`Stepper.python_block`.
 
 Per block of steps :func:`drive` does, once for every algorithm:
 
@@ -13,23 +16,24 @@ Per block of steps :func:`drive` does, once for every algorithm:
    wall clock (:mod:`cosim.master.realtime`; paced and observed runs go one step per block);
 2. the block: ``stepper.block(rec, n)`` takes up to ``n`` steps and writes the recorded rows
    (time, the recorded values, then the guards' watched values) into ``rec``;
-3. after, the observers: the guard first (it may cut the rows after the first offending one and
+3. at an event (:attr:`Stepper.event`: the block ended early at an event time, its last row the
+   left limit): the event iteration (:meth:`Stepper.event_iteration`), then the right limit, a
+   second row at the same time (``docs/explanation/events.md``);
+4. after, the observers: the guard first (it may cut the rows after the first offending one and
    end the run with its status), step observers (:class:`StepInfo`), the traces' ``record``,
-   text events (String/Binary changes), progress.
-
-Step observers: an observer with a method ``step(info)`` sees every step (blocks of one step
-then); a non-empty string it returns ends the run as "failed" with that reason.  A method
-``initial(info)`` sees the values at the start time, once, after initialisation.
+   text events (String/Binary changes), events, progress.
 """
 from __future__ import annotations
 
 import time
+from abc import ABC, abstractmethod
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Protocol
+from typing import TYPE_CHECKING
 
 import numpy as np
 
+from ..trace.observer import Observer
 from .system import CoupledSystem
 
 if TYPE_CHECKING:
@@ -52,55 +56,153 @@ class StepInfo:
     k: int
 
 
-class Stepper(Protocol):
-    """What :func:`drive` steps (see the module docstring)."""
+@dataclass(frozen=True)
+class StepResult:
+    """What a step returns when it did not simply reach its planned end: the time it actually
+    reached ``t_ns`` [ns], that an event ended it there (``event``), and the component whose
+    event it was (``component``, a slave index; None for a time event of the master's own)."""
 
-    status: str
-    message: str
-    text_events: list[tuple[float, str, str]]
+    t_ns: int
+    event: bool = False
+    component: int | None = None
+    kind: str = ""  # the indicator's name, or "time event"
+
+
+class Outcome:
+    """How a run stands, kept by one object per run (the algorithm, or the variable-step stepping
+    it runs) and written by its engines, Python or compiled, as scipy's ``OdeSolver`` keeps its
+    own: :attr:`status` (``"running"``, then ``"failed"``, ``"stopped"``, ``"unstable"`` or a
+    guard's status) and :attr:`message` (why it ended)."""
+
+    status: str = "running"
+    message: str = ""
+
+    def end(self, status: str, message: str) -> None:
+        """End the run with ``status`` and ``message``."""
+        self.status, self.message = status, message
 
     @property
-    def t_ns(self) -> int: ...  # the current communication point [ns]
-
-    def block(self, rec: np.ndarray, max_steps: int) -> int: ...
-
-    def rows_needed(self, max_steps: int) -> int: ...
-
-    def cut(self, t: float, rows_dropped: int) -> None: ...
-
-    def end(self, status: str, message: str) -> None: ...
-
-    def progress(self) -> tuple[int, int]: ...
-
-    def step_info(self, t0_ns: int) -> StepInfo: ...
-
-    def done(self) -> bool: ...
+    def running(self) -> bool:
+        return self.status == "running"
 
 
-class FixedStepper:
-    """A fixed-step :class:`~cosim.master.algorithm.Algorithm` on its engine: ``runner(n,
-    record_every, rec) -> rows`` (:class:`cosim.master.engine._Compiled` or
-    :func:`cosim.master.engine._python_run`), ``n_steps`` macro steps, every ``record_every``-th
-    point recorded."""
+class Stepper(ABC):
+    """What :func:`drive` steps (the module docstring): an algorithm bound to its engine
+    (``"compiled"`` or ``"python"``).  Its :attr:`status` and :attr:`message` are its
+    :class:`Outcome`'s.  The event contract points (:attr:`event`, :meth:`event_iteration`,
+    :meth:`next_output_ns`) default to a run without events, every step on its own grid."""
 
-    def __init__(self, alg: "Algorithm", runner: Callable[[int, int, np.ndarray], int], engine: str, n_steps: int,
-                 record_every: int):
-        self.alg, self.runner, self.engine = alg, runner, engine
-        self.n_steps, self.record_every = n_steps, record_every
-        self.system = alg.system
+    def __init__(self, system: CoupledSystem, engine: str, outcome: Outcome):
+        self.system, self.engine, self.outcome = system, engine, outcome
+        #: (t, column, value) of recorded String/Binary changes since the observers last saw them
+        self.text_events: list[tuple[float, str, str]] = []
         self.stepping_s = 0.0  # wall time inside blocks (the Python engine's master time is this minus the slaves')
+        self.t_loop: float | None = None  # when the driver loop started (perf_counter)
+        #: the last block ended early at an event (its last row the left limit), or None
+        self.event: StepResult | None = None
 
     @property
     def status(self) -> str:
-        return self.alg.status
+        return self.outcome.status
 
     @property
     def message(self) -> str:
-        return self.alg.message
+        return self.outcome.message
+
+    def end(self, status: str, message: str) -> None:
+        self.outcome.end(status, message)
 
     @property
-    def text_events(self) -> list:
-        return self.alg.text_events
+    @abstractmethod
+    def t_ns(self) -> int:
+        """The current communication point [ns]."""
+
+    @property
+    def t(self) -> float:
+        """The current communication point [s]."""
+        return self.t_ns / 1e9
+
+    @abstractmethod
+    def done(self) -> bool: ...
+
+    @abstractmethod
+    def rows_needed(self, max_steps: int) -> int:
+        """Rows :meth:`block` may write for ``max_steps`` steps (one more is kept for an event)."""
+
+    @abstractmethod
+    def block(self, rec: np.ndarray, max_steps: int) -> int:
+        """Up to ``max_steps`` steps; the recorded rows written into ``rec``; returns their count."""
+
+    @abstractmethod
+    def cut(self, t: float, rows_dropped: int) -> None:
+        """A guard dropped the last ``rows_dropped`` rows: the run ends at ``t`` [s]."""
+
+    @abstractmethod
+    def progress(self) -> tuple[int, int]: ...
+
+    @abstractmethod
+    def step_info(self, t0_ns: int) -> StepInfo: ...
+
+    @abstractmethod
+    def fill(self, stats) -> None:
+        """The run statistics of the steps taken (:class:`cosim.master.lifecycle.RunStats`)."""
+
+    def close(self) -> None:
+        """Free what the engine holds before the slaves are freed (nothing by default)."""
+
+    def step(self) -> bool:
+        """The Python engine's one step (the algorithm's); False when the run ends."""
+        raise NotImplementedError(f"{type(self).__name__} has no Python step")
+
+    def recorded(self, ok: bool) -> bool:
+        """After a Python step (``ok``: it did not end the run): is its end point a recorded row?"""
+        return ok
+
+    def python_block(self, rec: np.ndarray, max_steps: int) -> int:
+        """The Python engine: up to ``max_steps`` :meth:`step` calls while the run goes on, a row
+        (time, the recorded values) at each :meth:`recorded` point, text changes noted there."""
+        v, idx, typed = self.system.v, self.system.record_idx, self.system.typed
+        rows = 0
+        for _ in range(max_steps):
+            ok = self.step()
+            if self.recorded(ok):
+                rec[rows, 0] = self.t
+                np.take(v, idx, out=rec[rows, 1:])
+                rows += 1
+                if typed.texts:
+                    self.text_events += [(self.t, c, x) for c, x in typed.text_changes()]
+            if not ok or self.done():
+                break
+        return rows
+
+    # -- the event contract (docs/explanation/events.md); no component reports events yet ----------
+    def event_iteration(self, event: StepResult) -> None:
+        """At the event instant ``event.t_ns``, after its left-limit row: enter event mode in every
+        component that has one, exchange, update discrete states until none asks for more (at most
+        100 rounds), leave event mode.  Nothing by default."""
+
+    def next_output_ns(self, t_ns: int) -> int | None:
+        """The output grid: the next point after ``t_ns`` a variable step lands on (or interpolates
+        to) for ``output_interval``; None by default (every accepted step is a row)."""
+        return None
+
+    def row(self, out: np.ndarray) -> None:
+        """The current point as a row: time [s], the recorded values."""
+        out[0] = self.t
+        np.take(self.system.v, self.system.record_idx, out=out[1:])
+
+
+class FixedStepper(Stepper):
+    """A fixed-step :class:`~cosim.master.algorithm.Algorithm` on its engine: ``runner(n,
+    record_every, rec) -> rows`` for the compiled one (:class:`cosim.master.engine.Compiled` or
+    :class:`cosim.master.iterative_engine.CompiledIterative`), :meth:`Stepper.python_block` over
+    :meth:`Algorithm.step` otherwise; ``n_steps`` macro steps, every ``record_every``-th point recorded."""
+
+    def __init__(self, alg: "Algorithm", runner: Callable[[int, int, np.ndarray], int] | None, n_steps: int,
+                 record_every: int):
+        super().__init__(alg.system, "python" if runner is None else "compiled", alg)
+        self.alg, self.runner = alg, runner
+        self.n_steps, self.record_every = n_steps, record_every
 
     @property
     def t_ns(self) -> int:
@@ -117,13 +219,19 @@ class FixedStepper:
         return max_steps // self.record_every + 1
 
     def block(self, rec: np.ndarray, max_steps: int) -> int:
-        return self.runner(min(max_steps, self.n_steps - self.alg.k), self.record_every, rec)
+        n = min(max_steps, self.n_steps - self.alg.k)
+        if self.runner is None:
+            return self.python_block(rec, n)
+        return self.runner(n, self.record_every, rec)
+
+    def step(self) -> bool:
+        return self.alg.step()
+
+    def recorded(self, ok: bool) -> bool:
+        return (ok and self.alg.k % self.record_every == 0) or self.alg.status == "stopped"
 
     def cut(self, t: float, rows_dropped: int) -> None:
         self.alg.k = round((t * 1e9 - self.alg.start_ns) / self.alg.step_ns)
-
-    def end(self, status: str, message: str) -> None:
-        self.alg.status, self.alg.message = status, message
 
     def progress(self) -> tuple[int, int]:
         return self.alg.k, self.n_steps
@@ -134,7 +242,6 @@ class FixedStepper:
         return StepInfo(t0_ns / 1e9, (self.t_ns - t0_ns) / 1e9, self.system.v, slopes, self.system, alg.k)
 
     def fill(self, stats) -> None:
-        """The run statistics of the steps taken (:class:`cosim.master.lifecycle.RunStats`)."""
         from .lifecycle import slave_table
 
         alg = self.alg
@@ -143,10 +250,7 @@ class FixedStepper:
         stats.steps_done = alg.k
         stats.master_s = alg.master_ns / 1e9
         stats.slaves = slave_table(self.system, alg.calls, alg.slave_ns, alg.rates)
-        stats.extra = alg.statistics() if hasattr(alg, "statistics") else {}
-
-    def close(self) -> None:
-        """Nothing to free (the compiled fixed-step loop keeps no FMU state)."""
+        stats.extra = alg.statistics()
 
 
 def guarded(guard, stepper: Stepper, rows: np.ndarray) -> np.ndarray:
@@ -163,23 +267,22 @@ def guarded(guard, stepper: Stepper, rows: np.ndarray) -> np.ndarray:
     return rows[:keep]
 
 
-def record_start(stepper: Stepper, system: CoupledSystem, observers: Sequence, guard, n_columns: int) -> None:
-    """The row at the start time (guarded, recorded) and the text values there; a step observer
-    with a method ``initial(info)`` sees the initialised values (``h`` = 0, ``k`` = 0)."""
+def record_start(stepper: Stepper, system: CoupledSystem, observers: Sequence[Observer], guard,
+                 n_columns: int) -> None:
+    """The row at the start time (guarded, recorded) and the text values there; every observer's
+    ``initial(info)`` sees the initialised values (``h`` = 0, ``k`` = 0)."""
     for obs in observers:
-        if hasattr(obs, "initial"):
-            obs.initial(stepper.step_info(stepper.t_ns))
+        obs.initial(stepper.step_info(stepper.t_ns))
     row0 = np.concatenate([[stepper.t_ns / 1e9], system.v[system.record_idx]])[None, :]
     row0 = guarded(guard, stepper, row0)
     for obs in observers:
         obs.record(row0[:, :n_columns])
     for c, x in system.typed.text_changes() if system.typed.texts else ():
         for obs in observers:
-            if hasattr(obs, "record_text"):
-                obs.record_text(stepper.t_ns / 1e9, c, x)
+            obs.record_text(stepper.t_ns / 1e9, c, x)
 
 
-def drive(stepper: Stepper, system: CoupledSystem, observers: Sequence, *, n_columns: int, guard=None,
+def drive(stepper: Stepper, system: CoupledSystem, observers: Sequence[Observer], *, n_columns: int, guard=None,
           pacer=None, progress: Callable[[int, int], None] | None = None,
           stop: Callable[[], str | None] | None = None, start_ns: int = 0) -> float:
     """Run ``stepper`` to its end (module docstring); returns the loop's wall time [s].
@@ -187,12 +290,11 @@ def drive(stepper: Stepper, system: CoupledSystem, observers: Sequence, *, n_col
     watched values after them.  ``pacer`` (:class:`cosim.master.realtime.Pacer`) paces each step's
     start at ``t - start_ns`` on the wall clock; ``stop()`` returning a reason ends the run as
     "stopped" before the next block."""
-    watchers = [obs for obs in observers if hasattr(obs, "step")]
-    texters = [obs for obs in observers if hasattr(obs, "record_text")]
+    watchers = [obs for obs in observers if obs.watches_steps()]
     single = pacer is not None or bool(watchers)
     chunk = 1 if single else 64
     width = 1 + len(system.record_idx)
-    rec = np.empty((stepper.rows_needed(chunk), width))
+    rec = np.empty((stepper.rows_needed(chunk) + 1, width))  # one more: an event's right limit
     t_loop = stepper.t_loop = time.perf_counter()
     while not stepper.done():
         if stop is not None:
@@ -204,11 +306,16 @@ def drive(stepper: Stepper, system: CoupledSystem, observers: Sequence, *, n_col
         if pacer is not None and not pacer.wait_ns(t0_ns - start_ns):
             stepper.end("failed", pacer.reason)
             break
-        need = stepper.rows_needed(chunk)
+        need = stepper.rows_needed(chunk) + 1
         if rec.shape[0] < need:
             rec = np.empty((need, width))
         tc = time.perf_counter()
         rows = stepper.block(rec, chunk)
+        event = stepper.event
+        if event is not None:  # the last row is the left limit; the right one after the event iteration
+            stepper.event_iteration(event)
+            stepper.row(rec[rows])
+            rows += 1
         dt = time.perf_counter() - tc
         stepper.stepping_s += dt
         block = guarded(guard, stepper, rec[:rows])
@@ -222,10 +329,15 @@ def drive(stepper: Stepper, system: CoupledSystem, observers: Sequence, *, n_col
         for obs in observers:
             obs.record(block[:, :n_columns])
         if events:
-            for obs in texters:
+            for obs in observers:
                 for ev in events:
                     obs.record_text(*ev)
             events.clear()
+        if event is not None:
+            stepper.event = None
+            name = system.slaves[event.component].name if event.component is not None else ""
+            for obs in observers:
+                obs.record_event(event.t_ns / 1e9, name, event.kind or "time event")
         if progress:
             progress(*stepper.progress())
         if dt < 0.05 and chunk < 1 << 20 and not single:  # aim at ~0.1 s per block: responsive to Ctrl-C
@@ -233,4 +345,4 @@ def drive(stepper: Stepper, system: CoupledSystem, observers: Sequence, *, n_col
     return time.perf_counter() - t_loop
 
 
-__all__ = ["FixedStepper", "StepInfo", "Stepper", "drive", "guarded", "record_start"]
+__all__ = ["FixedStepper", "Outcome", "StepInfo", "StepResult", "Stepper", "drive", "guarded", "record_start"]

@@ -19,13 +19,13 @@ import signal
 import sys
 import threading
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 
 import casadi as ca
 import numpy as np
 
-from models.block import BlockError
+from models.block import Block, BlockError
 from models.compose import Composite, compose
 
 from ..errors import UserError
@@ -101,19 +101,25 @@ class _Collapsed:
                 self.feed(block.decode(errors="replace"))
 
 
-def composite(scene: Scene) -> Composite:
+def composite(scene: Scene, *, symbols: Mapping[tuple[str, str], ca.SX] | None = None,
+              sources: Mapping[str, tuple[Block, ca.SX]] | None = None) -> Composite:
     """The scene's components and connections as one ODE (raises :class:`UserError` naming the
-    component that cannot join)."""
+    component that cannot join).  ``symbols[(component, parameter)]`` stands for that parameter's
+    value (the unknowns of a fit: the ODE is then symbolic in them); ``sources[component]`` is a
+    block and its symbolic parameter vector standing for a component without equations (a
+    replay's columns, whose values the caller feeds)."""
+    sources = sources or {}
     for name, comp in scene.components.items():
-        if comp.kind != "model":
+        if comp.kind != "model" and name not in sources:
             raise UserError(f"component {name!r} is an external FMU ({comp.label}); a monolithic reference "
                             f"needs the equations of every component (catalog models only)")
     from fmus.index import real_block  # the equations of a component indexed by recipe
 
-    blocks = {n: real_block(c.block) for n, c in scene.components.items()}
-    params = {n: c.block.param_vector(**c.params) for n, c in scene.components.items()}
-    state_names = {n: {v.name for v in c.block.states} for n, c in scene.components.items()}
-    input_names = {n: {v.name for v in c.block.inputs} for n, c in scene.components.items()}
+    blocks = {n: sources[n][0] if n in sources else real_block(c.block) for n, c in scene.components.items()}
+    params = {n: sources[n][1] if n in sources else _param_vector(blocks[n], c.params, n, symbols or {})
+              for n, c in scene.components.items()}
+    state_names = {n: {v.name for v in b.states} for n, b in blocks.items()}
+    input_names = {n: {v.name for v in b.inputs} for n, b in blocks.items()}
     starts = {n: {k: v for k, v in c.start.items() if k in state_names[n]} for n, c in scene.components.items()}
     inputs = {n: {k: v for k, v in c.start.items() if k in input_names[n]} for n, c in scene.components.items()}
     for c in scene.connections:
@@ -125,6 +131,22 @@ def composite(scene: Scene) -> Composite:
         return compose(blocks, params, wires, starts=starts, inputs=inputs, loops=True)
     except BlockError as exc:
         raise UserError(f"scene {scene.name}: no monolithic reference: {exc}") from None
+
+
+def _param_vector(block: Block, values: Mapping[str, float], name: str,
+                  symbols: Mapping[tuple[str, str], ca.SX]) -> np.ndarray | ca.SX:
+    """The block's parameter values as the scene sets them, symbols where ``symbols`` has them."""
+    vec = block.param_vector(**values)
+    mine = {p: sym for (comp, p), sym in symbols.items() if comp == name}
+    if not mine:
+        return vec
+    index = {p.name: i for i, p in enumerate(block.params)}
+    out = ca.SX(ca.DM(vec))
+    for p, sym in mine.items():
+        if p not in index:
+            raise UserError(f"component {name!r} has no parameter {p!r}")
+        out[index[p]] = sym
+    return out
 
 
 def reference(scene: Scene | str | Path, overrides=None, *, out_dir: Path | None = None,

@@ -58,7 +58,9 @@ class ComponentChecks(Checker):
             self.err(spec.loc("rollback"), f"component {name!r}: rollback = {rollback!r}; expected true or false "
                                            f"(false: the master may not save and restore its state, as for hardware)")
             rollback = True  # reported; check the rest of the component as usual
-        if "hardware" in spec:
+        if "replay" in spec:
+            comp = self._replay_component(name, spec)
+        elif "hardware" in spec:
             comp = self._hardware_component(name, spec)
         elif "fmu" in spec:
             comp = self._fmu_component(name, spec, fmi)
@@ -67,8 +69,8 @@ class ComponentChecks(Checker):
         elif "model" in spec:
             comp = self._model_component(name, spec, fmi)
         else:
-            self.err(spec.where, f"component {name!r} needs 'model:' (a catalog model), 'fmu:' (a file) or "
-                                 f"'modelica:' (a .mo file)")
+            self.err(spec.where, f"component {name!r} needs 'model:' (a catalog model), 'fmu:' (a file), "
+                                 f"'modelica:' (a .mo file) or 'replay:' (a recording)")
             return None
         if comp is not None:
             comp.rollback = rollback

@@ -36,6 +36,10 @@ COMPONENT = {
     "fmi": "FMI version of a catalog block's FMU: `2.0` (default) or `3.0`",
     "description": "free text",
     "hardware": "the rig's I/O daemon: `{address: HOST:PORT, key: FILE}` (the hardware FMU)",
+    "replay": "a recording played back (CSV or Parquet with a `time` column [s]): each column an output "
+              "(docs/how-to/calibrate.md)",
+    "interpolation": "a replay's interpolation between samples: `linear` (default) or `hold`",
+    "units": "a replay's column units, `{COLUMN: UNIT}` (win over the file's metadata)",
     "rollback": "`false`: treat the component as one that cannot save and restore its state",
     "rate": "doSteps per macro step (multirate, a whole number >= 1 dividing the step into whole nanoseconds)",
     "modelica": "a Modelica file of your own (`.mo`), with `model:` naming its class (e.g. `Drive.RackPinion`)",

@@ -39,6 +39,8 @@ def _kind(spec: Any) -> tuple[str, Any]:
             return "model", spec.get("model")
         if "hardware" in spec:
             return "hardware", "board"
+        if "replay" in spec:
+            return "replay", None  # another recording of the same signals: interpolation and units stay
     return "", None
 
 

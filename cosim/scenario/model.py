@@ -35,6 +35,7 @@ class Component:
     origin: str | None = None  # a user's block: where it is defined (a 'blocks:' file, an entry point, a .mo file)
     depends: dict[str, str] = field(default_factory=dict)  # a user's Python block: files its module imported -> SHA-256
     guard: Any = None  # cosim.scenario.guards.GuardNeeds: what the run-time guards need, as plain data
+    replay: Any = None  # cosim.scenario.replay.Recording of a ``replay:`` component (an FMU with the table in it)
 
     @property
     def memoryless(self) -> bool:

@@ -138,13 +138,29 @@ def _kid(el, name: str):
 
 def is_osp(path: Path) -> bool:
     """Whether ``path`` is an XML file whose root element is ``OspSystemStructure``."""
+    return root_tag(path) == ROOT_TAG
+
+
+def root_tag(path: Path) -> str | None:
+    """The local name of the root element of the XML file ``path`` (any encoding XML allows:
+    UTF-8, UTF-16 with its byte order mark, a declared one; any length of prolog, comments and
+    processing instructions before it), read up to that element only; None when ``path`` is not
+    a ``.xml`` regular file within the size limit (:mod:`cosim.readers`) or not XML."""
+    from lxml import etree
+
+    from ..errors import UserError
+    from ..readers import open_regular
+
     if Path(path).suffix.lower() != ".xml":
-        return False
+        return None
     try:
-        head = Path(path).read_bytes()[:4096].decode("utf-8", errors="replace")
-    except OSError:
-        return False
-    return f"<{ROOT_TAG}" in head or f":{ROOT_TAG}" in head
+        with open_regular(path, "XML file") as fh:
+            for _, el in etree.iterparse(fh, events=("start",), resolve_entities=False, no_network=True,
+                                         huge_tree=False, load_dtd=False):
+                return etree.QName(el).localname
+    except (UserError, etree.XMLSyntaxError, OSError, ValueError):
+        return None
+    return None
 
 
 class _Reader:

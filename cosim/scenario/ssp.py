@@ -23,7 +23,6 @@ mappings, non-Real parameter values, units that do not convert.
 from __future__ import annotations
 
 import hashlib
-import json
 import os
 import tempfile
 import zipfile
@@ -356,10 +355,13 @@ class _Reader:
         text = model.get("guards") if model is not None else None
         if not text:
             return None
+        from ..errors import UserError
+        from ..readers import loads_json
+
         try:
-            data = json.loads(text)
-        except ValueError as exc:
-            self.err(model.sourceline, f"component {name!r}: the guards annotation is not JSON ({exc})")
+            data = loads_json(text, "the guards annotation")
+        except UserError as exc:
+            self.err(model.sourceline, f"component {name!r}: {exc}")
             return None
         if not isinstance(data, dict):
             self.err(model.sourceline, f"component {name!r}: the guards annotation must be a JSON object")

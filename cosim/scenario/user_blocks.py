@@ -132,7 +132,13 @@ _DEPENDS: dict[str, dict[str, str]] = {}  # module name -> the files its import 
 def load_module_file(path: Path):
     """Import the Python file ``path`` as a module (a fresh one for every content); returns the
     module and the SHA-256 of its source.  :func:`module_depends` then lists the files it imported."""
-    data = path.read_bytes()
+    from ..errors import UserError
+    from ..readers import read_regular
+
+    try:
+        data = read_regular(path, "blocks file")
+    except UserError as exc:
+        raise UserBlockError(str(exc)) from None
     name = f"rpr_user_blocks_{hashlib.sha256(str(path.resolve()).encode() + data).hexdigest()[:16]}"
     if name in sys.modules and all(source_digest(Path(f)) == d for f, d in _DEPENDS.get(name, {}).items()):
         return sys.modules[name], hashlib.sha256(data).hexdigest()  # imported before, nothing it loaded changed
@@ -149,9 +155,9 @@ def load_module_file(path: Path):
     except SyntaxError as exc:
         del sys.modules[name]
         raise UserBlockError(f"{path.name}:{exc.lineno}: syntax error: {exc.msg}") from None
-    except Exception as exc:  # the user's module failed at import
+    except (Exception, SystemExit, KeyboardInterrupt) as exc:  # the user's module failed (or exited) at import
         del sys.modules[name]
-        raise UserBlockError(f"{path.name}: importing it raised {_one_line(exc)}") from None
+        raise UserBlockError(f"{path.name}: importing it raised {_import_failure(exc)}") from None
     finally:
         sys.path.remove(folder)
     files = {str(path.resolve()): hashlib.sha256(data).hexdigest()}
@@ -163,6 +169,16 @@ def load_module_file(path: Path):
                 del sys.modules[mod]  # the next scene's file of that name is imported afresh
     _DEPENDS[name] = files
     return module, hashlib.sha256(data).hexdigest()
+
+
+def _import_failure(exc: BaseException) -> str:
+    """What a user's module did at import, in one line: an exception (RecursionError included),
+    ``sys.exit()`` or a KeyboardInterrupt it raised itself."""
+    if isinstance(exc, SystemExit):
+        return f"SystemExit({exc.code!r}) (sys.exit() at import; a blocks file must only define BLOCKS)"
+    if isinstance(exc, KeyboardInterrupt):
+        return "KeyboardInterrupt (raised by the module at import)"
+    return _one_line(exc)
 
 
 def module_depends(module) -> dict[str, str]:
@@ -196,8 +212,8 @@ def entry_point_catalog(reserved: set[str]) -> UserCatalog:
         origin = f"entry point {ep.name} = {ep.value}"
         try:
             obj = ep.load()
-        except Exception as exc:
-            raise UserBlockError(f"{origin}: loading it raised {_one_line(exc)}") from None
+        except (Exception, SystemExit, KeyboardInterrupt) as exc:
+            raise UserBlockError(f"{origin}: loading it raised {_import_failure(exc)}") from None
         if inspect.ismodule(obj):
             table, src = module_table(obj, origin), _module_digest(obj)
         else:
@@ -213,10 +229,18 @@ def _module_digest(module) -> str:
 
 def read_modelica(path: Path) -> str:
     """The text of a Modelica file (:class:`UserBlockError` when it cannot be read)."""
+    from ..errors import UserError
+    from ..readers import byte_limit, read_regular
+    from models.modelica import MAX_SOURCE_BYTES
+
+    env = "RPR_COSIM_MAX_MODELICA_BYTES"  # may lower the front end's own bound, not raise it
     try:
-        return path.read_text(encoding="utf-8")
-    except (OSError, UnicodeDecodeError) as exc:
-        raise UserBlockError(f"{path.name}: cannot read it ({getattr(exc, 'strerror', None) or exc})") from None
+        return read_regular(path, "Modelica file", min(MAX_SOURCE_BYTES, byte_limit(env, MAX_SOURCE_BYTES)),
+                            env).decode("utf-8")
+    except UserError as exc:
+        raise UserBlockError(str(exc)) from None
+    except UnicodeDecodeError as exc:
+        raise UserBlockError(f"{path.name}: cannot read it ({exc})") from None
 
 
 def user_block(what: str, **options: Any):

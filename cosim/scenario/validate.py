@@ -11,12 +11,13 @@ from .check_connections import ConnectionChecks
 from .check_master import MasterChecks
 from .keys import TOP_KEYS
 from .model import Component, Scene
+from .replay import ReplayChecks
 from .overrides import plain
 from .problems import Problem, SceneError
 from .yamlfile import YMap
 
 
-class _Checker(ComponentChecks, ConnectionChecks, MasterChecks):
+class _Checker(ComponentChecks, ConnectionChecks, MasterChecks, ReplayChecks):
     """Every check of a scene."""
 
 
@@ -49,6 +50,7 @@ def validate(tree: YMap, path: Path | None = None, *, catalog=None, problems: li
     master = ck.master(comps)
     stop, n_steps, start, start_ns = ck.times(master, comps)
     outputs = ck.outputs(comps) if comps else []
+    ck.replay_scene(comps, conns, start, stop)
     if comps and not broken:
         ck.unconnected(comps, conns)
     if conns:

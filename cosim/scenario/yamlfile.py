@@ -162,10 +162,13 @@ def _nests_too_deep(text: str) -> bool:
 def read_yaml(path: Path) -> tuple[Any, list[Problem]]:
     """Parse one YAML file into YMap/YList; syntax errors and duplicate keys become problems."""
     name = _display(path)
+    from ..errors import UserError
+    from ..readers import read_regular
+
     try:
-        raw = Path(path).read_bytes()
-    except OSError as exc:
-        return None, [Problem(name, 0, f"cannot read the scene: {exc.strerror or exc}")]
+        raw = read_regular(Path(path), "scene")
+    except UserError as exc:
+        return None, [Problem(name, 0, str(exc).split(": ", 1)[-1])]
     try:
         text = raw.decode("utf-8")
     except UnicodeDecodeError as exc:

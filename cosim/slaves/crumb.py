@@ -17,6 +17,7 @@ import math
 import mmap
 import os
 from ctypes import c_double, c_int64
+from pathlib import Path
 
 #: FMI calls by index (FMI 2.0 names; :func:`call_name` gives the FMI 3.0 one).
 CALLS = ("", "loading the binary", "fmi2Instantiate", "fmi2SetReal (start values)", "fmi2SetupExperiment",
@@ -27,25 +28,30 @@ _FMI3 = {"fmi2Instantiate": "fmi3InstantiateCoSimulation", "fmi2SetReal (start v
          "fmi2SetupExperiment": "fmi3EnterInitializationMode", "fmi2GetReal": "fmi3GetFloat64",
          "fmi2SetReal": "fmi3SetFloat64", "fmi2GetFMUstate": "fmi3GetFMUState", "fmi2SetFMUstate": "fmi3SetFMUState"}
 CALL = {name: i for i, name in enumerate(CALLS)}
-#: The C side (compiled loops): ``FMI(key, call, expr)`` and ``FMI_T(key, call, t, expr)`` wrap
-#: an FMI call; ``rpr_set_crumb`` points the library at the shared record.
-C_SOURCE = r"""
-typedef struct { volatile int64_t seq, who, call; volatile double t; } rpr_crumb_t;
-static rpr_crumb_t rpr_crumb_own;
-static rpr_crumb_t *rpr_crumb = &rpr_crumb_own;
-void rpr_set_crumb(void *p) { rpr_crumb = p ? (rpr_crumb_t *)p : &rpr_crumb_own; }
-static inline int rpr_out(int st) { rpr_crumb->seq++; return st; }
-#define FMI(key, c, expr) (rpr_crumb->who = (int64_t)(intptr_t)(key), rpr_crumb->call = (c), rpr_crumb->seq++, rpr_out(expr))
-#define FMI_T(key, c, tt, expr) (rpr_crumb->t = (tt), FMI(key, c, expr))
-""" + "".join(f"#define C_{n} {i}\n" for n, i in (("DO_STEP", 7), ("GET", 8), ("SET", 9), ("SET_DER", 10),
-                                                  ("GET_STATE", 11), ("SET_STATE", 12), ("BOOL_STATUS", 16)))
+#: The record the compiled loops write (C ``rpr_crumb_t``, generated from this declaration by
+#: :func:`cosim.master.entries.header`; its macros ``FMI``/``FMI_T`` are in ``crumb.h`` beside this
+#: module): (C type, name, what it is).
+RECORD_FIELDS = (
+    ("volatile int64_t", "seq", "odd while an FMI call runs, even between calls"),
+    ("volatile int64_t", "who", "the component's key (its FMU instance pointer from C)"),
+    ("volatile int64_t", "call", "index into CALLS"),
+    ("volatile double", "t", "the communication point of a doStep [s]"),
+)
+#: The C names of the calls the compiled loops make (``C_<name>``, index into :data:`CALLS`).
+C_CALLS = {"DO_STEP": "fmi2DoStep", "GET": "fmi2GetReal", "SET": "fmi2SetReal", "SET_DER": "fmi2SetRealInputDerivatives",
+           "GET_STATE": "fmi2GetFMUstate", "SET_STATE": "fmi2SetFMUstate", "BOOL_STATUS": "fmi2GetBooleanStatus"}
+#: The C side's macros (compiled into every loop).
+C_HEADER = Path(__file__).with_name("crumb.h")
 
 SIZE = 1 << 16
 _TABLE = 64  # the JSON names table starts here
 
 
 class Record(ctypes.Structure):
-    _fields_ = [("seq", c_int64), ("who", c_int64), ("call", c_int64), ("t", c_double), ("table_len", c_int64)]
+    """The record (:data:`RECORD_FIELDS`), then the length of the names table after it."""
+
+    _fields_ = [*((n, c_double if t.endswith("double") else c_int64) for t, n, _ in RECORD_FIELDS),
+                ("table_len", c_int64)]
 
 
 class _State:
@@ -108,9 +114,8 @@ _LIBRARIES: list = []  # compiled loops (ctypes.CDLL) whose FMI(...) macros writ
 
 def register_library(lib) -> None:
     """Point a compiled loop's ``rpr_set_crumb`` at the current record (now, and again at every
-    :func:`attach`: a supervised child writes into the record its parent reads)."""
-    lib.rpr_set_crumb.argtypes = [ctypes.c_void_p]
-    lib.rpr_set_crumb.restype = None
+    :func:`attach`: a supervised child writes into the record its parent reads); its prototype
+    is bound by :func:`cosim.master.native.compile_loop`."""
     lib.rpr_set_crumb(address())
     if lib not in _LIBRARIES:
         _LIBRARIES.append(lib)
@@ -190,5 +195,5 @@ def describe(state: dict) -> str:
     return where + at + ("" if state["inside"] else " (it had returned; the master was between FMI calls)")
 
 
-__all__ = ["CALL", "CALLS", "C_SOURCE", "attach", "address", "key", "name_instance", "enter", "leave", "read",
+__all__ = ["CALL", "CALLS", "C_CALLS", "C_HEADER", "RECORD_FIELDS", "attach", "address", "key", "name_instance", "enter", "leave", "read",
            "describe", "shared"]

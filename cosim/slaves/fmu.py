@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import atexit
+import contextlib
 import ctypes
 import os
 import shutil
@@ -68,6 +69,24 @@ def _sweep_dead_unzips() -> None:
             shutil.rmtree(d, ignore_errors=True)
 
 
+@contextlib.contextmanager
+def _file_size_limit_as_error():
+    """While unpacking: a write past the file-size limit (``RLIMIT_FSIZE``) fails with EFBIG
+    instead of SIGXFSZ killing the process before its folder is removed (main thread only; a
+    signal disposition cannot be changed from another)."""
+    import signal
+    import threading
+
+    if threading.current_thread() is not threading.main_thread() or not hasattr(signal, "SIGXFSZ"):
+        yield
+        return
+    old = signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGXFSZ, old)
+
+
 def _unzip(path: Path) -> str:
     import fmpy
 
@@ -80,7 +99,9 @@ def _unzip(path: Path) -> str:
         check_archive(path)  # member names and sizes before a byte is extracted
         folder = tempfile.mkdtemp(prefix=f"rpr-fmu-{os.getpid()}-")
         try:  # sources/ is not needed to load the binary (and is most of a generated FMU's bytes)
-            _UNZIPPED[key] = fmpy.extract(str(path), unzipdir=folder, include=lambda name: not name.startswith("sources/"))
+            with _file_size_limit_as_error():
+                _UNZIPPED[key] = fmpy.extract(str(path), unzipdir=folder,
+                                              include=lambda name: not name.startswith("sources/"))
         except BaseException as exc:
             shutil.rmtree(folder, ignore_errors=True)  # a failed extraction leaves nothing behind
             if isinstance(exc, OSError):
@@ -318,16 +339,13 @@ class FmuSlave(Slave):
     #: :meth:`release` frees it for good.  Used by batches (:mod:`cosim.batch`).
     reuse: bool = False
 
-    #: Set by the run for an algorithm that never restores a state (fixed-step, ecco): every
-    #: doStep then promises ``noSetFMUStatePriorToCurrentPoint = true``.
-    forward_only: bool = False
     #: Workaround from the behavioural check (:mod:`cosim.slaves.behaviour`) for an FMU that does
     #: not advance when that flag is false: pass true always, rollbacks included.
     always_no_prior: bool = False
 
     @property
     def no_prior(self) -> bool:
-        """The ``noSetFMUStatePriorToCurrentPoint`` this slave's doSteps pass."""
+        """The ``noSetFMUStatePriorToCurrentPoint`` this slave's doSteps pass (the workaround too)."""
         return self.forward_only or self.always_no_prior or not self.can_rollback
 
     # lifecycle ---------------------------------------------------------------------------------

@@ -126,6 +126,10 @@ class Slave(ABC):
         fmi2Terminated)?  False by default."""
         return False
 
+    def stop_detail(self) -> str:
+        """Why and when the slave asked to stop (e.g. its last successful time), '' when unknown."""
+        return ""
+
     def terminate(self) -> None:
         """End the simulation (the instance may still be read)."""
 
@@ -137,10 +141,20 @@ class Slave(ABC):
         return None
 
     # rollback (variable-step and iterative algorithms) --------------------------------------------
+    #: Set by the run for an algorithm that never restores a state (fixed-step, ecco): every
+    #: doStep then promises ``noSetFMUStatePriorToCurrentPoint = true``.
+    forward_only: bool = False
+
     @property
     def can_rollback(self) -> bool:
         """Whether :meth:`save_state` and :meth:`restore_state` work (FMI get/set FMU state)."""
         return False
+
+    @property
+    def no_prior(self) -> bool:
+        """The ``noSetFMUStatePriorToCurrentPoint`` this slave's doSteps pass: true unless the
+        algorithm may restore its state."""
+        return self.forward_only or not self.can_rollback
 
     def save_state(self) -> None:
         """Remember the complete state, inputs and input slopes included (one slot: the next save

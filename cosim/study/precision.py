@@ -438,7 +438,10 @@ def _measure(row: PrecisionRow, result: dict | None, out: Path, name: str, scene
     stats = {}
     sidecar = path.with_suffix(".json")
     if sidecar.is_file():
-        stats = json.loads(sidecar.read_text()).get("statistics") or {}
+        from ..readers import read_json
+
+        side = read_json(sidecar, "sidecar")
+        stats = side.get("statistics") if isinstance(side, dict) and isinstance(side.get("statistics"), dict) else {}
     _costs(row, stats)
     if row.status != "ok" and not judged(row.reason):
         return

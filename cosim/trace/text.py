@@ -11,7 +11,7 @@ formatter, ~0.05 µs per value) and rewrites the only notation it writes differe
 so the bytes are exactly those of ``",".join(map(repr, row))``.  Blocks with NaN or infinity
 (orjson writes ``null``) and installations without orjson take the ``repr`` path.
 
-The rewrite (rows apart, the two notations) is one pass of a few lines of C (:data:`C_SOURCE`,
+The rewrite (rows apart, the two notations) is one pass of a few lines of C (:data:`C_FILE`,
 compiled once and cached like the master loop, :func:`fmus.native.load`): ~1 ns
 per byte, where doing it with Python's bytes and regular expressions cost twice orjson's own
 time.  Without a C compiler the same rewrite runs in Python.
@@ -22,6 +22,7 @@ import ctypes
 import json
 import re
 from functools import lru_cache
+from pathlib import Path
 
 import numpy as np
 
@@ -44,55 +45,18 @@ def repr_text(rows: np.ndarray) -> bytes:
     return "".join(",".join(map(repr, r)) + "\n" for r in np.asarray(rows, dtype=float).tolist()).encode()
 
 
-# orjson's text of a 2-D array without its outer brackets ("1e-7,0.00006],[2.5,...") -> CSV lines
-# in repr's notation; returns the bytes written to ``out`` (at most n + n / 2 + 1).
-C_SOURCE = r"""
-#include <stddef.h>
-#include <string.h>
-static int digit(char c) { return c >= '0' && c <= '9'; }
-size_t rpr_csv_rows(const char *in, size_t n, char *out) {
-    size_t i = 0, o = 0;
-    int start = 1;                       /* at the first character of a number */
-    while (i < n) {
-        char c = in[i];
-        if (start) {
-            start = 0;
-            size_t j = i;
-            if (c == '-') { out[o++] = '-'; j++; }
-            if (n - j >= 7 && memcmp(in + j, "0.0000", 6) == 0 && in[j + 6] >= '1' && in[j + 6] <= '9') {
-                size_t k = j + 7;        /* 0.0000DDD -> D.DDe-05 */
-                while (k < n && digit(in[k])) k++;
-                out[o++] = in[j + 6];
-                if (k > j + 7) { out[o++] = '.'; memcpy(out + o, in + j + 7, k - j - 7); o += k - j - 7; }
-                memcpy(out + o, "e-05", 4); o += 4;
-                i = k;
-                continue;
-            }
-            i = j;
-            continue;
-        }
-        if (c == ',') { out[o++] = ','; start = 1; i++; }
-        else if (c == ']') { out[o++] = '\n'; start = 1; i += 3; }  /* "],[": the next row */
-        else if (c == 'e' && i + 2 < n && in[i + 1] == '-' && digit(in[i + 2])
-                 && (i + 3 >= n || !digit(in[i + 3]))) {                /* e-7 -> e-07 */
-            memcpy(out + o, "e-0", 3); o += 3; out[o++] = in[i + 2]; i += 3;
-        }
-        else { out[o++] = c; i++; }
-    }
-    out[o++] = '\n';
-    return o;
-}
-"""
+#: The rewrite in C (orjson's text of a 2-D array -> CSV lines in repr's notation).
+C_FILE = Path(__file__).with_name("csv_rows.c")
 
 
 @lru_cache(maxsize=1)
 def _c_rows():
-    """The compiled :data:`C_SOURCE` function, or None without a working C compiler."""
+    """The compiled :data:`C_FILE` function, or None without a working C compiler."""
     from fmus.errors import BuildError
     from fmus.native import load
 
     try:
-        fn = load(C_SOURCE, "rpr_text").rpr_csv_rows
+        fn = load({C_FILE.name: C_FILE.read_text()}, "rpr_text").rpr_csv_rows
     except (BuildError, OSError):
         return None
     fn.restype = ctypes.c_size_t

@@ -1,8 +1,9 @@
 """Traces: outputs at communication points, recorded by observers apart from stepping.
 
-An observer gets ``start(columns, meta)``, then ``record(rows)`` any number of times (a 2-D array,
-column 0 is time [s], the others the recorded variables named ``component.variable``), then
-``finish(status, reason, stats)`` exactly once, also after a failure or an interrupt.
+An observer (:class:`cosim.trace.observer.Observer`) gets ``start(columns, meta)``, then
+``record(rows)`` any number of times (a 2-D array, column 0 is time [s], the others the recorded
+variables named ``component.variable``), then ``finish(status, reason, stats)`` exactly once, also
+after a failure or an interrupt.
 
 Trace files come in three formats (:data:`TRACE_FORMATS`), all streamed as the run goes, with a
 sidecar ``<name>.json`` holding the metadata (scene hash, algorithm, step, package versions, the
@@ -30,13 +31,13 @@ import platform
 import queue
 import threading
 import time
-from abc import ABC, abstractmethod
 from dataclasses import dataclass, field
 from functools import lru_cache
 from pathlib import Path
 
 import numpy as np
 
+from .observer import Observer
 from .text import json_text, rows_text
 from ..errors import UserError
 
@@ -80,23 +81,6 @@ def _package_versions() -> dict[str, str]:
                          ("fmpy", "fmpy"), ("PyYAML", "yaml")):
         out[dist] = installed_version(dist, module) or "not installed"
     return out
-
-
-class Observer(ABC):
-    """Receives the rows of a run (see the module docstring for the call order)."""
-
-    @abstractmethod
-    def start(self, columns: list[str], meta: dict) -> None: ...
-
-    @abstractmethod
-    def record(self, rows: np.ndarray) -> None: ...
-
-    @abstractmethod
-    def finish(self, status: str, reason: str, stats: dict) -> None: ...
-
-    def record_text(self, t: float, column: str, value: str) -> None:
-        """A String or Binary variable (``column``) took ``value`` (Binary as hexadecimal) at ``t``
-        [s]; called when it changes, between ``record`` calls.  Ignored by default."""
 
 
 @dataclass
@@ -541,72 +525,211 @@ class ParquetTrace(CsvTrace):
 _SIDECAR_OUTCOME = ("status", "reason", "rows", "statistics", "text", "pid", "columns", "scene_data")
 
 
+#: Longest line of a CSV trace [bytes] (a header of 10,000 long names fits).
+MAX_LINE_BYTES = 16 * 2 ** 20
+#: Rows parsed at once (memory: the rows' float64 values plus one block of text).
+_BLOCK_ROWS = 20000
+#: Types of the metadata keys the workbench reads back (a comment line or sidecar key of another
+#: type is refused in one line; other keys are kept as they are).
+META_TYPES: dict[str, tuple[type, ...]] = {
+    "status": (str,), "reason": (str,), "statistics": (dict,), "units": (dict,), "scene": (str,),
+    "scene_hash": (str,), "algorithm": (str,), "started": (str,), "method": (str,), "trace": (str,),
+    "overrides": (list,), "scene_data": (dict,), "rows": (int,), "connections": (list,),
+    "start_time": (int, float), "stop_time": (int, float)}
+
+
+def check_meta(key: str, value, where: str) -> None:
+    """One-line :class:`UserError` naming ``where`` when a metadata ``value`` is not of the type
+    the workbench expects under ``key`` (:data:`META_TYPES`)."""
+    types = META_TYPES.get(key)
+    if types is None or value is None:
+        return
+    if not isinstance(value, types) or isinstance(value, bool):
+        raise UserError(f"{where}: metadata {key!r} must be {' or '.join(_TYPE_NAMES[t] for t in types)}, "
+                        f"got {type(value).__name__}")
+    if key == "units" and not all(isinstance(v, str) for v in value.values()):
+        raise UserError(f"{where}: metadata 'units' must map variables to unit strings")
+
+
+_TYPE_NAMES = {str: "a string", dict: "a JSON object", list: "a JSON array", int: "a whole number",
+               float: "a number"}
+
+
 def read_trace(path: Path) -> Trace:
     """Read a trace in any of :data:`TRACE_FORMATS` (partial or complete; a last CSV row cut
-    short by a crash is dropped), or a plain CSV from another tool (first column time)."""
+    short by a crash is dropped), or a plain CSV from another tool (first column time).
+
+    Bounded (:mod:`cosim.readers`): a regular file of at most ``$RPR_COSIM_MAX_TRACE``
+    (default 4 GB, what a run may write), lines of at most :data:`MAX_LINE_BYTES`, read a block of rows at a time into one array grown in place (about
+    0.45 byte of memory per byte of CSV), metadata lines depth-bounded JSON of the types of
+    :data:`META_TYPES`; anything else is a one-line :class:`UserError`."""
     from ..outputs import settle_if_stale
+    from ..readers import TRACE_ENV, open_regular
 
     path = Path(path)
     settle_if_stale(path.parent)  # a run killed in that directory: mark it and put its trace in place
-    if not path.is_file():
+    if not path.exists():
         raise UserError(f"{path}: no such trace file")
     if path.suffix == ".parquet":
+        with open_regular(path, "trace", env=TRACE_ENV):
+            pass
         return _read_parquet(path)
-    meta: dict = {}
-    text: dict[str, list[tuple[float, str]]] = {}
-    columns: list[str] | None = None
-    rows: list[list[float]] = []
-    try:
-        content = path.read_bytes().decode("utf-8")
-    except UnicodeDecodeError as exc:
-        raise UserError(f"{path}: not an rpr-cosim trace (binary or not UTF-8 text at byte {exc.start})") from None
-    except OSError as exc:
-        raise UserError(f"{path}: cannot read the trace ({exc.strerror or exc})") from None
-    if "\0" in content:
-        raise UserError(f"{path}: not an rpr-cosim trace (binary data)")
-    lines = io.StringIO(content, newline="").readlines()
-    last_data = max((i for i, ln in enumerate(lines) if ln.strip() and not ln.startswith("#")), default=-1)
-    for lineno, line in enumerate(lines, 1):
-        if line.startswith("#"):
-            key, sep, value = line[1:].strip().partition(": ")
-            if sep:
-                try:
-                    parsed = json.loads(value)
-                except ValueError:
-                    parsed = value
-                if key == "text" and isinstance(parsed, list) and len(parsed) == 3:
-                    text.setdefault(parsed[1], []).append((float(parsed[0]), str(parsed[2])))
-                else:
-                    meta[key] = parsed
-            continue
-        if columns is None:
-            columns = next(csv.reader([line]))
-            continue
-        if line.strip():
-            try:
-                row = [float(x) for x in line.split(",")]
-                if len(row) != len(columns):
-                    raise ValueError
-                rows.append(row)
-            except ValueError:
-                if lineno - 1 == last_data and not line.endswith("\n"):
-                    continue  # a row cut short by a crash while it was being written
-                raise UserError(f"{path}:{lineno}: expected {len(columns)} numbers separated by commas") from None
-    if columns is None:
-        raise UserError(f"{path}: no column header; is this an rpr-cosim trace?")
-    data = np.array(rows, dtype=float).reshape(-1, len(columns))
+    with open_regular(path, "trace", env=TRACE_ENV) as fh:
+        columns, data, meta, text = _read_csv(fh, path)
     if not meta:  # a plain CSV: its metadata and outcome are in the sidecar, when there is one
         side = _sidecar(path)
         if side.get("trace") == path.name or side.get("format") == FORMAT:
             meta = {k: v for k, v in side.items() if k not in _SIDECAR_OUTCOME and k != "format"}
-            for t, column, value in side.get("text", []) or []:
-                text.setdefault(column, []).append((float(t), str(value)))
+            for k, v in meta.items():
+                check_meta(k, v, str(path.with_suffix(".json")))
+            text = _text_events(side.get("text"), str(path.with_suffix(".json")))
             if side.get("status") not in (None, "running"):
+                for k in ("status", "reason", "statistics"):
+                    check_meta(k, side.get(k), str(path.with_suffix(".json")))
                 meta.update(status=side["status"], reason=side.get("reason", ""),
                             statistics=side.get("statistics", {}))
     if "status" not in meta:  # no status line: the run died; its sidecar may say why
         meta.update(_sidecar_outcome(path))
-    return Trace(columns, data, meta, meta.pop("status", ""), meta.pop("reason", ""), meta.pop("statistics", {}), text)
+    return Trace(columns, data, meta, meta.pop("status", ""), meta.pop("reason", "") or "",
+                 meta.pop("statistics", {}) or {}, text)
+
+
+def _text_events(items, where: str) -> dict[str, list[tuple[float, str]]]:
+    """String/Binary changes ``[[t, column, value], ...]`` of a sidecar or Parquet outcome."""
+    text: dict[str, list[tuple[float, str]]] = {}
+    if items in (None, []):
+        return text
+    if not isinstance(items, list):
+        raise UserError(f"{where}: 'text' must be a list of [time, \"component.variable\", \"value\"]")
+    for item in items:
+        t, column, value = _text_event(item, where)
+        text.setdefault(column, []).append((t, value))
+    return text
+
+
+def _text_event(item, where: str) -> tuple[float, str, str]:
+    if (isinstance(item, list) and len(item) == 3 and isinstance(item[0], (int, float))
+            and not isinstance(item[0], bool) and isinstance(item[1], str)):
+        return float(item[0]), item[1], str(item[2])
+    raise UserError(f"{where}: a text event must be [time, \"component.variable\", \"value\"], got "
+                    f"{str(item)[:60]}")
+
+
+def _read_csv(fh, path: Path) -> tuple[list[str], np.ndarray, dict, dict]:
+    """Columns, rows, metadata and text events of a CSV trace read from the binary file ``fh``."""
+    import warnings
+
+    from ..readers import loads_json
+
+    meta: dict = {}
+    text: dict[str, list[tuple[float, str]]] = {}
+    columns: list[str] | None = None
+    rows = _Rows(os.fstat(fh.fileno()).st_size)
+    pending: list[tuple[int, bytes]] = []
+    offset = 0
+
+    def flush() -> None:
+        if not pending:
+            return
+        joined = b",".join(ln.strip() for _, ln in pending)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            try:
+                vals = np.fromstring(joined.decode("ascii", "replace"), dtype=float, sep=",")
+            except ValueError:  # a cell that is not a number: the line-by-line parse names its line
+                vals = np.zeros(0)
+        if vals.size != len(pending) * len(columns) or any(ln.count(b",") != len(columns) - 1 for _, ln in pending):
+            vals = np.array([_row(ln, lineno, len(columns), path) for lineno, ln in pending], dtype=float)
+        rows.add(vals.reshape(-1, len(columns)), offset)
+        pending.clear()
+
+    lineno = 0
+    while True:
+        raw = fh.readline(MAX_LINE_BYTES + 1)
+        if not raw:
+            break
+        lineno += 1
+        if b"\0" in raw:
+            raise UserError(f"{path}: not an rpr-cosim trace (binary data)")
+        if len(raw) > MAX_LINE_BYTES:
+            raise UserError(f"{path}:{lineno}: a line longer than {MAX_LINE_BYTES:,} bytes; not an rpr-cosim trace")
+        try:
+            line = raw.decode("utf-8")
+        except UnicodeDecodeError as exc:
+            raise UserError(f"{path}: not an rpr-cosim trace (binary or not UTF-8 text at byte "
+                            f"{offset + exc.start})") from None
+        offset += len(raw)
+        if line.startswith("#"):
+            key, sep, value = line[1:].strip().partition(": ")
+            if sep:
+                where = f"{path}:{lineno}"
+                try:
+                    parsed = loads_json(value, where)
+                except UserError as exc:
+                    if "nested" in str(exc):
+                        raise
+                    parsed = value
+                if key == "text":
+                    t, column, v = _text_event(parsed, where)
+                    text.setdefault(column, []).append((t, v))
+                else:
+                    check_meta(key, parsed, where)
+                    meta[key] = parsed
+            continue
+        if columns is None:
+            columns = next(csv.reader([line]), None) or ["time"]
+            continue
+        if line.strip():
+            if not raw.endswith(b"\n"):  # the last line: cut short by a crash while it was written?
+                try:
+                    _row(raw, lineno, len(columns), path)
+                except UserError:
+                    continue
+            pending.append((lineno, raw))
+            if len(pending) >= _BLOCK_ROWS:
+                flush()
+    if columns is None:
+        raise UserError(f"{path}: no column header; is this an rpr-cosim trace?")
+    flush()
+    data = rows.array(len(columns))
+    return columns, data, meta, text
+
+
+class _Rows:
+    """The rows of a trace gathered into one array grown in place: sized from the file's bytes
+    per row so far, so that the whole is about one copy of the values (no list of blocks
+    stacked at the end, which would hold two)."""
+
+    def __init__(self, file_bytes: int) -> None:
+        self.file_bytes, self.n, self.buf = file_bytes, 0, None
+
+    def add(self, block: np.ndarray, read_bytes: int) -> None:
+        need = self.n + len(block)
+        if self.buf is None or need > len(self.buf):
+            per_row = max(1.0, read_bytes / need)
+            guess = max(need, int(1.02 * self.file_bytes / per_row) + 1)
+            grown = np.empty((guess if self.buf is None else max(guess, int(1.25 * need)), block.shape[1]))
+            if self.buf is not None:
+                grown[:self.n] = self.buf[:self.n]
+            self.buf = grown
+        self.buf[self.n:need] = block
+        self.n = need
+
+    def array(self, ncols: int) -> np.ndarray:
+        if self.buf is None:
+            return np.zeros((0, ncols))
+        self.buf.resize((self.n, ncols), refcheck=False)  # the unused tail freed in place (realloc)
+        return self.buf
+
+
+def _row(raw: bytes, lineno: int, n: int, path: Path) -> list[float]:
+    try:
+        row = [float(x) for x in raw.split(b",")]
+    except ValueError:
+        row = []
+    if len(row) != n:
+        raise UserError(f"{path}:{lineno}: expected {n} numbers separated by commas")
+    return row
 
 
 def _read_parquet(path: Path) -> Trace:
@@ -621,12 +744,17 @@ def _read_parquet(path: Path) -> Trace:
         raise UserError(f"{path}: reading Parquet needs pyarrow (pip install pyarrow)") from None
     except Exception as exc:  # pyarrow's ArrowInvalid and OSError: not (or not a whole) Parquet file
         raise UserError(f"{path}: not a readable Parquet trace ({exc})") from None
+    from ..readers import loads_json
+
     kv = pf.metadata.metadata or {}  # the file's key-value metadata: the schema's and the outcome added at the end
-    meta = json.loads(kv[PARQUET_META_KEY]) if PARQUET_META_KEY in kv else {}
-    outcome = json.loads(kv[PARQUET_OUTCOME_KEY]) if PARQUET_OUTCOME_KEY in kv else _sidecar_outcome(path)
-    text: dict[str, list[tuple[float, str]]] = {}
-    for t, column, value in outcome.get("text", []) or []:
-        text.setdefault(column, []).append((float(t), str(value)))
+    meta = loads_json(kv[PARQUET_META_KEY], f"{path} (metadata)") if PARQUET_META_KEY in kv else {}
+    outcome = (loads_json(kv[PARQUET_OUTCOME_KEY], f"{path} (outcome)") if PARQUET_OUTCOME_KEY in kv
+               else _sidecar_outcome(path))
+    if not isinstance(meta, dict) or not isinstance(outcome, dict):
+        raise UserError(f"{path}: the rpr-cosim metadata of the Parquet trace must be JSON objects")
+    for k, v in (*meta.items(), *((k, outcome.get(k)) for k in ("status", "reason", "statistics"))):
+        check_meta(k, v, str(path))
+    text = _text_events(outcome.get("text"), str(path))
     columns = list(table.column_names)
     try:
         data = np.column_stack([table.column(c).to_numpy(zero_copy_only=False).astype(float) for c in columns]) \
@@ -634,27 +762,26 @@ def _read_parquet(path: Path) -> Trace:
     except (TypeError, ValueError) as exc:
         raise UserError(f"{path}: expected numeric columns in the Parquet trace ({exc})") from None
     meta.pop("format", None)
-    return Trace(columns, data, meta, outcome.get("status", ""), outcome.get("reason", ""),
-                 outcome.get("statistics", {}), text)
+    return Trace(columns, data, meta, outcome.get("status") or "", outcome.get("reason") or "",
+                 outcome.get("statistics") or {}, text)
 
 
 def _sidecar(path: Path) -> dict:
-    """The sidecar ``<path>.json`` of a trace, or {}."""
-    try:
-        data = json.loads(path.with_suffix(".json").read_text())
-    except (OSError, ValueError):
+    """The sidecar ``<path>.json`` of a trace, or {} when there is none (one that is there but
+    not a regular file, too large, too deeply nested or not JSON: :class:`UserError`)."""
+    from ..readers import read_json
+
+    side = path.with_suffix(".json")
+    if not side.exists():
         return {}
+    data = read_json(side, "sidecar")
     return data if isinstance(data, dict) else {}
 
 
 def _sidecar_outcome(path: Path) -> dict:
     """Status and reason of a trace without a status line, from its sidecar when that says the run
     did not end ok."""
-    side = path.with_suffix(".json")
-    try:
-        data = json.loads(side.read_text())
-    except (OSError, ValueError):
-        return {}
-    if not isinstance(data, dict) or data.get("status") in (None, "ok"):
+    data = _sidecar(path)
+    if data.get("status") in (None, "ok"):
         return {}
     return {"status": str(data["status"]), "reason": str(data.get("reason", ""))}

@@ -20,20 +20,9 @@
 #define LEGS 3
 #define PATHLEN 512
 
-/* protocol (hardware/protocol.py) */
-#define PROTO_VERSION 2
-#define HDR 20
-#define MAC 32
-#define NONCE 16
-enum { T_HELLO = 1, T_WELCOME = 2, T_COMMAND = 3, T_SAMPLE = 4 };
-#define BODY_HELLO NONCE
-#define BODY_WELCOME (2 * NONCE)
-#define BODY_COMMAND 16
-#define BODY_SAMPLE 44
-enum { F_ARM = 1, F_RUN = 2, F_STOP = 4, F_RESET = 8, F_QUERY = 16 };
-enum { S_IDLE = 0, S_ARMED = 1, S_RUNNING = 2, S_FAULT = 3 };
-enum { FB_WATCHDOG = 1, FB_BAD_COMMAND = 2, FB_ADC_STALE = 4, FB_ADC_RANGE = 8, FB_ADC_STUCK = 16, FB_IO = 32,
-       FB_EXCEPTION = 64 };
+/* the protocol: magic, version, lengths, types, flags, states, fault bits (generated from
+   hardware/protocol.py) */
+#include "board_protocol.h"
 
 /* counters, in this order in the status line (names as in hardware/daemon.py COUNTERS) */
 enum { C_RECEIVED, C_COMMANDS, C_MALFORMED, C_UNAUTHENTICATED, C_OLD_SESSION, C_OUT_OF_SEQUENCE, C_STALE, C_REFUSED,

@@ -50,6 +50,19 @@ static void put64(uint8_t *p, uint64_t v) { put32(p, (uint32_t)v); put32(p + 4, 
 static uint32_t get32(const uint8_t *p) { return (uint32_t)p[0] | (uint32_t)p[1] << 8 | (uint32_t)p[2] << 16 | (uint32_t)p[3] << 24; }
 static uint64_t get64(const uint8_t *p) { return (uint64_t)get32(p) | (uint64_t)get32(p + 4) << 32; }
 
+/* Saturating signed 64-bit time arithmetic [ns]: a sender time is data (2^63, -2^63), and an
+ * overflow on the staleness check would accept a stale command (issue 33). */
+#define FUTURE_NS 10000000000LL /* 10 s: far more than a hello's delay can shift the offset */
+
+static int64_t sat_add(int64_t a, int64_t b) {
+    int64_t r;
+    return __builtin_add_overflow(a, b, &r) ? (b > 0 ? INT64_MAX : INT64_MIN) : r;
+}
+static int64_t sat_sub(int64_t a, int64_t b) {
+    int64_t r;
+    return __builtin_sub_overflow(a, b, &r) ? (b < 0 ? INT64_MAX : INT64_MIN) : r;
+}
+
 void board_init(Board *b, const uint8_t key[32], uint32_t first_session) {
     int i;
     Safety s = {BOARD_V_MAX, BOARD_SLEW, BOARD_WATCHDOG_S, BOARD_STALE_MS, BOARD_ADC_STALE_S, BOARD_TRAVEL_LO,
@@ -258,7 +271,7 @@ void board_tick(Board *b, int64_t now, int64_t late_ns) {
 
 /* --- datagrams ----------------------------------------------------------------------------- */
 static size_t seal(const HmacKey *k, uint8_t *d, int type, uint32_t session, uint32_t seq, int64_t now, size_t body) {
-    d[0] = 'R'; d[1] = 'P'; d[2] = PROTO_VERSION; d[3] = (uint8_t)type;
+    d[0] = PROTO_MAGIC0; d[1] = PROTO_MAGIC1; d[2] = PROTO_VERSION; d[3] = (uint8_t)type;
     put32(d + 4, session);
     put32(d + 8, seq);
     put64(d + 12, (uint64_t)now);
@@ -311,7 +324,7 @@ static size_t hello(Board *b, const uint8_t *d, int64_t now, uint8_t *reply) {
     b->next_session = b->next_session + 1 ? b->next_session + 1 : 1;
     p->id = b->next_session;
     hmac_key_init(&p->key, skey, 32);
-    p->offset_ns = now - (int64_t)get64(d + 12);
+    p->offset_ns = sat_sub(now, (int64_t)get64(d + 12));
     return seal(&b->key, reply, T_WELCOME, p->id, 0, now, BODY_WELCOME);
 }
 
@@ -406,7 +419,7 @@ size_t board_handle(Board *b, const uint8_t *d, size_t n, int64_t now, uint8_t *
     int i, type;
     float volts[LEGS];
     b->counters[C_RECEIVED]++;
-    if (n < HDR + MAC || d[0] != 'R' || d[1] != 'P' || d[2] != PROTO_VERSION) {
+    if (n < HDR + MAC || d[0] != PROTO_MAGIC0 || d[1] != PROTO_MAGIC1 || d[2] != PROTO_VERSION) {
         b->counters[C_MALFORMED]++;
         return 0;
     }
@@ -445,13 +458,15 @@ size_t board_handle(Board *b, const uint8_t *d, size_t n, int64_t now, uint8_t *
         ses = &b->session;
     }
     {
-        int64_t t = (int64_t)get64(d + 12), late = now - (t + ses->offset_ns);
-        if (late > b->safety.stale_ms * 1e6) {
+        int64_t t = (int64_t)get64(d + 12), late = sat_sub(now, sat_add(t, ses->offset_ns));
+        /* a negative sender time (a monotonic clock never is), or one more than FUTURE_NS ahead
+         * of what the session's offset predicts, is refused as stale and moves no offset */
+        if (t < 0 || late > b->safety.stale_ms * 1e6 || late < -FUTURE_NS) {
             b->counters[C_STALE]++;
             ses->last_seq = seq;
             return 0;
         }
-        if (now - t < ses->offset_ns) ses->offset_ns = now - t;
+        if (sat_sub(now, t) < ses->offset_ns) ses->offset_ns = sat_sub(now, t);
     }
     ses->last_seq = seq;
     b->counters[C_COMMANDS]++;

@@ -66,12 +66,7 @@ enum {
 enum { VB_RESET = 0, NB = 1 };
 enum { VS_ADDRESS = 0, VS_KEYFILE = 1, NS = 2 };
 
-enum { T_HELLO = 1, T_WELCOME = 2, T_COMMAND = 3, T_SAMPLE = 4 };
-enum { F_ARM = 1, F_RUN = 2, F_STOP = 4, F_RESET = 8, F_QUERY = 16 };
-enum { S_IDLE = 0, S_ARMED = 1, S_RUNNING = 2, S_FAULT = 3 };
-#define HDR 20
-#define MAC 32
-#define NONCE 16
+#include "board_protocol.h" /* the protocol's constants, generated from hardware/protocol.py */
 
 typedef enum { ST_INSTANTIATED, ST_INIT, ST_STEP, ST_TERMINATED, ST_ERROR } Phase;
 
@@ -122,7 +117,7 @@ static uint16_t get16(const uint8_t *p) { return (uint16_t)(p[0] | p[1] << 8); }
 static uint32_t get32(const uint8_t *p) { return (uint32_t)get16(p) | (uint32_t)get16(p + 2) << 16; }
 
 static size_t header(uint8_t *p, int type, uint32_t session, uint32_t seq) {
-    p[0] = 'R'; p[1] = 'P'; p[2] = 2; p[3] = (uint8_t)type;
+    p[0] = PROTO_MAGIC0; p[1] = PROTO_MAGIC1; p[2] = PROTO_VERSION; p[3] = (uint8_t)type;
     put32(p + 4, session);
     put32(p + 8, seq);
     put64(p + 12, now_ns());
@@ -258,7 +253,7 @@ static int await_range(Hil *h, int type, uint32_t seq, uint32_t seq_hi, const ui
             if (errno == EINTR || errno == EAGAIN) continue;
             return -2;
         }
-        if ((size_t)n != want || buf[0] != 'R' || buf[1] != 'P' || buf[2] != 2 || buf[3] != type) continue;
+        if ((size_t)n != want || buf[0] != PROTO_MAGIC0 || buf[1] != PROTO_MAGIC1 || buf[2] != PROTO_VERSION || buf[3] != type) continue;
         if (seq && (get32(buf + 8) < seq || get32(buf + 8) > seq_hi)) continue; /* an older command's */
         if (!check_mac(key, buf, (size_t)n)) continue;
         return 0;
@@ -298,7 +293,7 @@ static int hello(Hil *h) {
                 silent(h, -2, "WELCOME");
                 return -1;
             }
-            rc = await_range(h, T_WELCOME, 0, 0, h->key, r, HDR + 2 * NONCE + MAC, slice < 0.005 ? slice : 0.005);
+            rc = await_range(h, T_WELCOME, 0, 0, h->key, r, HDR + BODY_WELCOME + MAC, slice < 0.005 ? slice : 0.005);
             if (rc == -2) {
                 silent(h, rc, "WELCOME to HELLO");
                 return -1;
@@ -318,7 +313,7 @@ static int hello(Hil *h) {
 
 /* One command/sample exchange; updates the outputs.  0 ok, -1 failed (logged). */
 static int exchange(Hil *h, int flags, const double *volts) {
-    uint8_t d[HDR + 16 + MAC], r[256];
+    uint8_t d[HDR + BODY_COMMAND + MAC], r[256];
     static const int fig[] = {VR_TICK_LATE, VR_TICK_P50, VR_TICK_P99, VR_TICK_MAX};
     uint64_t t0;
     int i, rc, state, faults;
@@ -338,7 +333,7 @@ static int exchange(Hil *h, int flags, const double *volts) {
             return -1;
         }
         header(d, T_COMMAND, h->session, ++h->seq);
-        memset(d + HDR, 0, 16);
+        memset(d + HDR, 0, BODY_COMMAND);
         d[HDR] = (uint8_t)flags;
         for (i = 0; i < 3; i++) {
             float f = (float)volts[i];
@@ -346,12 +341,12 @@ static int exchange(Hil *h, int flags, const double *volts) {
             memcpy(&u, &f, 4);
             put32(d + HDR + 4 + 4 * i, u);
         }
-        hmac_sha256(h->skey, 32, d, HDR + 16, d + HDR + 16);
+        hmac_sha256(h->skey, 32, d, HDR + BODY_COMMAND, d + HDR + BODY_COMMAND);
         if (send(h->sock, d, sizeof d, 0) < 0) {
             silent(h, -2, "SAMPLE");
             return -1;
         }
-        rc = await_range(h, T_SAMPLE, first, h->seq, h->skey, r, HDR + 44 + MAC, slice < 0.005 ? slice : 0.005);
+        rc = await_range(h, T_SAMPLE, first, h->seq, h->skey, r, HDR + BODY_SAMPLE + MAC, slice < 0.005 ? slice : 0.005);
         if (rc == 0) break;
         if (rc == -2) {
             silent(h, rc, "SAMPLE");

@@ -12,8 +12,9 @@ the bad name, with the closest valid name as a suggestion.
 | ``pid`` | ``continuous``, ``discrete`` | :mod:`.pid` |
 | ``pose_setpoint`` | ``default`` | :mod:`.setpoint` |
 | ``oscillator`` | ``linear`` | :mod:`.oscillator` (master-algorithm test scenes) |
-| ``linear_actuator`` | ``rig``, ``single`` | :mod:`.actuator` |
+| ``linear_actuator`` | ``rig``, ``single``, ``motor`` | :mod:`.actuator` |
 | ``sum`` | ``vector`` | :mod:`.sums` (OSP's Sum and VectorSum functions) |
+| ``task_trajectory`` | ``planned`` | :mod:`.task` (a planned task: toppra, ruckig or a spline) |
 """
 from __future__ import annotations
 
@@ -22,7 +23,7 @@ from typing import Any, Callable
 
 from ..block import Block, BlockError
 from ..user import with_defaults
-from . import actuator, mechanism, motor, oscillator, pid, setpoint, sums
+from . import actuator, mechanism, motor, oscillator, pid, setpoint, sums, task
 from ._common import CONFIG, SUBSTEPS, Option, integrator_option, positive_float, positive_int, suggest, unit_text
 
 #: Integrators of blocks whose equations are linear: ``exact`` (the default) and the two general ones.
@@ -33,6 +34,33 @@ LINEAR_INTEGRATORS = ("exact", "radau", "rk4")
 class _Entry:
     build: Callable[..., Block]
     options: tuple[Option, ...]
+
+
+def task_options() -> tuple[Option, ...]:
+    """Construction options of ``task_trajectory``: the task's keys (:mod:`models.task`); the
+    default task is the pid_step move (Table 6.8) as a ruckig motion."""
+    from ..trajectory import METHODS
+
+    def is_list(v):
+        return None if isinstance(v, (list, tuple)) else "must be a list"
+
+    def is_map(v):
+        return None if v is None or isinstance(v, dict) else "must be a mapping"
+
+    def is_time(v):
+        return None if isinstance(v, (int, float)) and not isinstance(v, bool) else "must be a time in s"
+
+    return (CONFIG,
+            Option("waypoints", [[-0.15, -0.15, 0.0], [-0.2, -0.15, 0.2]], "waypoints [[x, y, phi], ...] in m, m, rad",
+                   check=is_list),
+            Option("method", "ruckig", "ruckig (jerk-limited), toppra (time-optimal) or spline (given times)",
+                   choices=METHODS),
+            Option("times", None, "one time [s] per waypoint (method spline)",
+                   check=lambda v: None if v is None else is_list(v)),
+            Option("limits", None, "limits (models.trajectory.Limits keys: leg_speed, leg_accel, drive, u_max, m_act, "
+                                   "pose_speed, pose_accel, pose_jerk)", check=is_map),
+            Option("margins", None, "dexterity margins of the motion check (det, dsi, dsi_phi)", check=is_map),
+            Option("start", 0.0, "delay [s] before the motion", check=is_time))
 
 
 def _entries() -> dict[str, dict[str, _Entry]]:
@@ -79,6 +107,11 @@ def _entries() -> dict[str, dict[str, _Entry]]:
         "linear_actuator": {
             "rig": _Entry(actuator.rig, (act, integrator_option("rk4"), SUBSTEPS)),
             "single": _Entry(actuator.single, (act, integrator_option("rk4"), SUBSTEPS)),
+            "motor": _Entry(actuator.motor_rig, (integrator_option("rk4"), Option(
+                "substeps", 4, "integrator substeps per communication step", check=SUBSTEPS.check))),
+        },
+        "task_trajectory": {
+            "planned": _Entry(task.task_trajectory, task_options()),
         },
         "sum": {
             "vector": _Entry(sums.vector_sum, (

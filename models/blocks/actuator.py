@@ -106,3 +106,76 @@ def single(actuator: str = "fa200", integrator: str = "rk4", substeps: int = 1) 
         ode=ca.vertcat(dx, dv), out=ca.vertcat(p["s_offset"] + xs[0], xs[0], v_rod),
         start=ca.vertcat(ca.fmin(p["stroke_max"], ca.fmax(0, s0 - p["s_offset"])), 0), integrator=integrator,
         substeps=substeps, fidelity="single")
+
+
+#: The "motor" fidelity's defaults: a small 12 V DC motor behind the FA-200's gear and lead screw,
+#: chosen to match what SPEC §7 publishes (12 V, 20.32 mm/s no-load) and the "rig" fidelity's
+#: assumed 20 ms speed lag; the motor's own constants are not published (assumptions, to be
+#: calibrated on the rig with ``rpr-cosim fit``).  No-load speed 12 k / (k^2 + b R) = 923 rad/s,
+#: times ``lead`` = 20.3 mm/s; time constant J R / (k^2 + b R) = 20 ms; stall current 3 A.
+MOTOR = {"R": 4.0, "k": 0.01, "b": 7.5e-6, "J": 6.5e-7, "lead": 2.2e-5}
+#: The pots' nominal calibration (hardware.convert: an ideal 10 kOhm, 25-inch pot behind 1 kOhm on
+#: a 12-bit ADC): counts at zero stroke and at ``pot_length``.
+POT_LENGTH = 0.635
+RAW_FULL = 4096 * 10e3 / 11e3
+
+
+def motor_rig(integrator: str = "rk4", substeps: int = 4) -> Block:
+    """The rig's three legs, each a DC motor (armature resistance ``R``, torque and back-EMF constant
+    ``k``, viscous friction ``b``, inertia ``J`` at the motor) turning a lead screw of ``lead`` m/rad
+    that the platform cannot back-drive (no load force), read by a potentiometer on a 12-bit ADC:
+
+        i = (u - k w) / R,  J dw/dt = k i - b w,  dx/dt = lead w (0 at an end stop),
+        raw = raw_zero + (raw_full - raw_zero) (x - latency v) / pot_length
+
+    (inductance neglected: its 0.1 ms pole is far below the 1 ms loop).  ``raw`` is the ADC's
+    level before rounding, ``latency`` [s] the sensor's delay to first order (``x(t - latency)``
+    as ``x - latency v``).  The motor constants are the three actuators' (one type); each leg has
+    its own start ``leg[i].s0`` and pot calibration ``leg[i].raw_zero``, ``leg[i].raw_full``.
+    Interface: the "rig" fidelity's plus ``leg[i].i`` [A] and ``leg[i].raw`` [counts]."""
+    ps = ParamSet()
+    v_rated = ps.add("v_rated", 12.0, "V", "rated (driver supply) voltage: commands are clamped to +-v_rated",
+                     lower=1e-6)
+    R = ps.add("R", MOTOR["R"], "Ohm", "armature resistance (assumed)", lower=1e-3, upper=1e3)
+    k = ps.add("k", MOTOR["k"], "N.m/A", "torque constant = back-EMF constant [V s/rad] (assumed)", lower=1e-5,
+               upper=10.0)
+    b = ps.add("b", MOTOR["b"], "N.m.s/rad", "viscous friction at the motor (assumed)", lower=0.0, upper=1.0)
+    J = ps.add("J", MOTOR["J"], "kg.m2", "inertia at the motor: rotor, gear and screw (assumed)", lower=1e-12,
+               upper=1.0)
+    lead = ps.add("lead", MOTOR["lead"], "m/rad", "rod travel per motor radian (gear and lead screw)", lower=1e-9,
+                  upper=1.0)
+    stroke_max = ps.add("stroke_max", STROKE, "m", "usable stroke (end stops at 0 and stroke_max)", lower=1e-6)
+    s_offset = ps.add("s_offset", S_OFFSET, "m", "leg length at zero stroke", lower=0.0)
+    pot = ps.add("pot_length", POT_LENGTH, "m", "stroke at which raw_full is read", lower=1e-6)
+    latency = ps.add("latency", 0.0, "s", "sensor latency (first order: x(t - latency) = x - latency v)",
+                     lower=0.0, upper=0.1)
+    s0 = [ps.add(f"leg[{i}].s0", S_OFFSET + STROKE / 2, "m", f"leg {i} length at the start", lower=0.0)
+          for i in (1, 2, 3)]
+    rz = [ps.add(f"leg[{i}].raw_zero", 0.0, "1", f"leg {i} pot: ADC counts at zero stroke", lower=-4096.0,
+                 upper=4096.0) for i in (1, 2, 3)]
+    rf = [ps.add(f"leg[{i}].raw_full", RAW_FULL, "1", f"leg {i} pot: ADC counts at pot_length", lower=1.0,
+                 upper=1e5) for i in (1, 2, 3)]
+    u = ca.SX.sym("u", 3)
+    xs = ca.SX.sym("x", 6)  # stroke, shaft speed per leg
+    ode, out, states, inputs, outputs, start = [], [], [], [], [], []
+    for j, i in enumerate((1, 2, 3)):
+        x, w = xs[2 * j], xs[2 * j + 1]
+        u_sat = ca.fmin(v_rated, ca.fmax(-v_rated, u[j]))
+        cur = (u_sat - k * w) / R
+        at_end = ca.logic_or(ca.logic_and(x >= stroke_max, w > 0), ca.logic_and(x <= 0, w < 0))
+        v_rod = ca.if_else(at_end, 0, lead * w)
+        ode += [v_rod, (k * cur - b * w) / J]
+        raw = rz[j] + (rf[j] - rz[j]) * (x - latency * v_rod) / pot
+        out += [s_offset + x, x, v_rod, cur, raw]
+        inputs.append(Var(f"leg[{i}].u", "V", f"leg {i} driver voltage"))
+        states += [Var(f"state.leg[{i}].stroke", "m", f"leg {i} stroke"),
+                   Var(f"state.leg[{i}].w", "rad/s", f"leg {i} motor speed")]
+        outputs += [Var(f"leg[{i}].s", "m", f"leg {i} length"), Var(f"leg[{i}].stroke", "m", f"leg {i} stroke"),
+                    Var(f"leg[{i}].v", "m/s", f"leg {i} extension rate"), Var(f"leg[{i}].i", "A", f"leg {i} current"),
+                    Var(f"leg[{i}].raw", "1", f"leg {i} pot reading [ADC counts, before rounding]")]
+        start += [ca.fmin(stroke_max, ca.fmax(0, s0[j] - s_offset)), ca.SX(0)]
+    return Block.build("linear_actuator", description="three lead-screw actuators, each a DC motor, read by "
+                                                      "potentiometers (the rig, SPEC §7)",
+                       params=ps.params, inputs=inputs, outputs=outputs, states=states, p=ps.vector(), u=u, x=xs,
+                       ode=ca.vertcat(*ode), out=ca.vertcat(*out), start=ca.vertcat(*start), integrator=integrator,
+                       substeps=substeps, fidelity="motor")

@@ -49,8 +49,11 @@ from ...errors import UserError
 from ...slaves.slave import FAILING, Status
 from ..algorithm import AlgorithmOption, MasterAlgorithm, option_values, register
 from ..graph import gauss_seidel_order
+from ..adaptive_engine import compiled_stepper
+from ..engine import choose_engine, variable_loop
+from ..entries import AdaptiveEnd
 from ..lifecycle import slave_table
-from ..stepper import StepInfo
+from ..stepper import Outcome, StepInfo, Stepper
 
 
 OPTIONS = (
@@ -85,8 +88,10 @@ class AdaptiveStats:
                 "largest_step": self.h_max_taken if self.accepted else None, "discards": self.discards}
 
 
-class AdaptiveStepper:
-    """The stepping of :mod:`cosim.master.algorithms.adaptive` over an initialised, bound ``system``."""
+class AdaptiveStepper(Outcome):
+    """The stepping of :mod:`cosim.master.algorithms.adaptive` over an initialised, bound ``system``
+    (its Python engine; its compiled loop writes the same :class:`~cosim.master.stepper.Outcome`,
+    worded by the same :meth:`_end`)."""
 
     order_p_linear, order_p_hold = 3.0, 2.0  # mismatch O(h^2) / O(h), weighted by h
     k_i, k_p = 0.7, 0.4
@@ -112,6 +117,7 @@ class AdaptiveStepper:
         self.slopes = [np.zeros(len(b)) for b in sysm.in_buf]
         self.interp = [s.bind_slopes(self.slopes[i]) for i, s in enumerate(sysm.slaves)]
         self.prev_src = [sysm.v[src].copy() for src in sysm.in_src]  # source values at the previous point
+        self.cur_src = [sysm.v[src].copy() for src in sysm.in_src]  # and at the current one
         self.h_prev = 0.0
         self.lo, self.hi = sysm.v.copy(), sysm.v.copy()  # running range of every value
         self.h = min(max(options["h_init"], options["h_min"]), options["h_max"])
@@ -119,7 +125,7 @@ class AdaptiveStepper:
         self.stats = AdaptiveStats()
         self.calls = [0] * n
         self.slave_ns = [0] * n
-        self.status, self.message = "running", ""
+        self.master_ns: int | None = None  # the Python loop's own share is the wall time minus the slaves'
 
     @property
     def t(self) -> float:
@@ -200,8 +206,6 @@ class AdaptiveStepper:
         """Advance by one accepted step (retrying smaller after rejections); False when the run
         ends early (:attr:`status`, :attr:`message`)."""
         sysm, opt = self.system, self.opt
-        if not hasattr(self, "cur_src"):
-            self.cur_src = [sysm.v[src].copy() for src in sysm.in_src]
         v_saved = sysm.v.copy()
         for s in sysm.slaves:
             s.save_state()
@@ -211,8 +215,7 @@ class AdaptiveStepper:
             err, bad, st = self._attempt(h)
             p = self.order_p_linear if any(self.interp) and self.h_prev > 0 else self.order_p_hold
             if bad is not None and st == Status.STOP_REQUESTED:
-                self.status = "stopped"
-                self.message = f"{sysm.slaves[bad].name} asked to terminate the simulation at t = {self.t:.9g} s"
+                self._end(AdaptiveEnd.STOP_REQUESTED, bad, st)
                 return False
             if bad is None and (err <= 1.0 or self.h_prev == 0):  # the first step has no estimate
                 break
@@ -225,13 +228,7 @@ class AdaptiveStepper:
             np.copyto(sysm.v, v_saved)
             shrink = opt["fac_min"] if not math.isfinite(err) else max(opt["fac_min"], opt["safety"] * err ** (-1 / p))
             if h <= opt["h_min"] * (1 + 1e-12):
-                who = sysm.slaves[bad].name if bad is not None else "the coupling error"
-                detail = (f"{sysm.slaves[bad].name} returned {Status(st).name}"
-                          + (f": {sysm.slaves[bad].last_message}" if sysm.slaves[bad].last_message else "")
-                          if bad is not None else f"scaled coupling error {err:.3g} > 1")
-                self.status = "unstable"
-                self.message = (f"the step floor h_min = {opt['h_min']:g} s was reached at t = {self.t:.9g} s "
-                                f"({detail}; limited by {who})")
+                self._end(AdaptiveEnd.STEP_FLOOR, -1 if bad is None else bad, st, err)
                 return False
             self.h = max(opt["h_min"], h * min(shrink, 0.9))
         self._commit(h, h_ns)
@@ -240,6 +237,25 @@ class AdaptiveStepper:
         self.err_prev = e
         self._propose(h, h_ns, fac)
         return True
+
+    def _end(self, code: int, bad: int = -1, st: int = 0, value: float = math.nan, count: int = 0) -> None:
+        """End the run for end code ``code`` (:class:`cosim.master.entries.AdaptiveEnd`), in the
+        Python loop and the compiled one alike: ``bad`` the slave it concerns (-1: none), ``st`` its
+        FMI status, ``value`` the scaled error at the step floor.  A failed FMU state get/set is a
+        UserError."""
+        s = self.system.slaves[bad] if bad >= 0 else None
+        said = f": {s.last_message}" if s is not None and s.last_message else ""
+        if code == AdaptiveEnd.STOP_REQUESTED:
+            self.end("stopped", f"{s.name} asked to terminate the simulation at t = {self.t:.9g} s")
+        elif code == AdaptiveEnd.STEP_FLOOR:
+            who = s.name if s is not None else "the coupling error"
+            detail = f"{s.name} returned {Status(st).name}{said}" if s is not None else \
+                f"scaled coupling error {value:.3g} > 1"
+            self.end("unstable", f"the step floor h_min = {self.opt['h_min']:g} s was reached at t = {self.t:.9g} s "
+                                 f"({detail}; limited by {who})")
+        else:
+            what = "getting" if code == AdaptiveEnd.GET_STATE else "setting"
+            raise UserError(f"{s.name}: {what} the FMU state failed ({Status(st).name}){said}")
 
     def _propose(self, h: float, h_ns: int, fac: float) -> None:
         """The next step after an accepted step ``h`` (``h_ns``): ``h`` times the controller's
@@ -252,92 +268,70 @@ class AdaptiveStepper:
         self.h = min(opt["h_max"], max(opt["h_min"], h * fac))
 
 
-class VariableStepper:
+class VariableStepper(Stepper):
     """A variable-step stepper (:class:`AdaptiveStepper` or a subclass, or its compiled loop
     :class:`cosim.master.adaptive_engine.CompiledAdaptive` / ``CompiledEcco``) as the driver loop
     (:func:`cosim.master.stepper.drive`) steps it: one recorded row per accepted step, with the
-    guards' watched values after the recorded ones."""
+    guards' watched values after the recorded ones.  Its outcome is the Python stepper's, which
+    the compiled loop writes too."""
 
-    def __init__(self, stepper, system, engine: str, start_ns: int):
-        self.stepper, self.system, self.engine = stepper, system, engine
-        self.start_ns, self.stop_ns = start_ns, stepper.stop_ns if engine == "python" else stepper.py.stop_ns
-        self.text_events: list[tuple[float, str, str]] = []
-        self.stepping_s = 0.0
+    def __init__(self, stepping: AdaptiveStepper, compiled=None):
+        super().__init__(stepping.system, "python" if compiled is None else "compiled", stepping)
+        self.py, self.compiled = stepping, compiled
+        self.stepper = stepping if compiled is None else compiled  # whose t_ns, stats, calls count
+        self.start_ns, self.stop_ns = stepping.t_ns, stepping.stop_ns
         self.dropped = 0  # accepted steps whose rows a guard dropped
-
-    @property
-    def status(self) -> str:
-        return self.stepper.status
-
-    @property
-    def message(self) -> str:
-        return self.stepper.message
+        self._t_cut: float | None = None  # where a guard ended the run [s]
 
     @property
     def t_ns(self) -> int:
         return self.stepper.t_ns
 
-    @property
-    def t(self) -> float:
-        return self.stepper.t
-
     def done(self) -> bool:
-        return self.stepper.t_ns >= self.stop_ns or self.stepper.status != "running"
+        return self.stepper.t_ns >= self.stop_ns or self.status != "running"
 
     def rows_needed(self, max_steps: int) -> int:
         return max_steps
 
     def block(self, rec: np.ndarray, max_steps: int) -> int:
-        st = self.stepper
-        if self.engine == "compiled":
-            return st.run(rec[:max_steps])
-        v, idx, typed = self.system.v, self.system.record_idx, self.system.typed
-        n = 0
-        while n < max_steps and st.t_ns < self.stop_ns:
-            if not st.step():
-                break
-            rec[n, 0] = st.t
-            np.take(v, idx, out=rec[n, 1:])
-            n += 1
-            if typed.texts:
-                self.text_events += [(st.t, c, x) for c, x in typed.text_changes()]
-        return n
+        if self.compiled is not None:
+            return self.compiled.run(rec[:max_steps])
+        return self.python_block(rec, max_steps)
+
+    def step(self) -> bool:
+        return self.py.step()
 
     def cut(self, t: float, rows_dropped: int) -> None:
         self.dropped += rows_dropped
         self._t_cut = t
 
-    def end(self, status: str, message: str) -> None:
-        self.stepper.status, self.stepper.message = status, message
-
     def progress(self) -> tuple[int, int]:
         return self.stepper.t_ns - self.start_ns, self.stop_ns - self.start_ns
 
     def step_info(self, t0_ns: int):
-        st = self.stepper
-        py = st if self.engine == "python" else st.py
+        py = self.py
         slopes = py.slopes if any(py.interp) else None
-        return StepInfo(t0_ns / 1e9, (st.t_ns - t0_ns) / 1e9, self.system.v, slopes, self.system,
-                        st.stats.accepted)
+        return StepInfo(t0_ns / 1e9, (self.t_ns - t0_ns) / 1e9, self.system.v, slopes, self.system,
+                        self.stepper.stats.accepted)
 
     def fill(self, stats) -> None:
         """The run statistics (:class:`cosim.master.lifecycle.VariableStats`)."""
         st = self.stepper
         acc = st.stats
         stats.steps_done = acc.accepted - self.dropped
-        stats.t_end = getattr(self, "_t_cut", st.t)
+        stats.t_end = self.t if self._t_cut is None else self._t_cut
         if self.dropped:
             del acc.steps[len(acc.steps) - self.dropped:]
             acc.accepted -= self.dropped
         stats.adaptive = acc.as_dict()
         stats.steps_planned = stats.steps_done  # no plan: the controller chose every step
         stats.slaves = slave_table(self.system, st.calls, st.slave_ns)
-        own = getattr(st, "master_ns", None)  # the compiled loop measures its own share itself
+        own = st.master_ns  # the compiled loop measures its own share itself
         stats.master_s = own / 1e9 if own is not None else max(0.0, stats.wall_s - sum(st.slave_ns) / 1e9)
 
     def close(self) -> None:
-        if self.engine == "compiled":
-            self.stepper.close()
+        if self.compiled is not None:
+            self.compiled.close()
 
 
 def variable_stepper(system, *, cls, step_ns: int, n_steps: int, order: Sequence[int] | None = None,
@@ -345,40 +339,15 @@ def variable_stepper(system, *, cls, step_ns: int, n_steps: int, order: Sequence
                      **_fixed_step_only) -> VariableStepper:
     """The stepper of the variable-step algorithm ``cls`` (its ``stepper`` class, default
     :class:`AdaptiveStepper`) over the initialised ``system``, to ``start_ns + n_steps * step_ns``
-    (the scene's stop time; ``step_ns`` is only the fixed-step master's step).  ``engine``: auto
-    (the compiled loop where :func:`cosim.master.adaptive_engine.usable`), compiled or python."""
+    (the scene's stop time; ``step_ns`` is only the fixed-step master's step).  ``engine``: auto,
+    compiled or python (:func:`cosim.master.engine.choose_engine`)."""
     stop_ns = start_ns + n_steps * step_ns
-    opts = option_values(options, getattr(cls, "options", OPTIONS))
+    opts = option_values(options, cls.options)
     seq = list(order) if order is not None else gauss_seidel_order(len(system.slaves), system.slave_edges())
-    from ..adaptive_engine import compiled_stepper, has_compiled
-
-    kind = getattr(cls, "stepper", None) or AdaptiveStepper
-    name = _engine(system, engine, has_compiled(kind), cls.name, kind.needs_rollback)
-    stepper = kind(system, seq, opts, start_ns, stop_ns)
-    if name == "compiled":
-        stepper = compiled_stepper(stepper)
-    return VariableStepper(stepper, system, name, start_ns)
-
-
-def _engine(system, engine: str, compiled_exists: bool = True, name: str = "adaptive",
-            rollback: bool = True) -> str:
-    """``"compiled"`` or ``"python"`` for ``engine`` in auto | compiled | python; the steppers
-    with a compiled loop (``compiled_exists``): :class:`AdaptiveStepper` and ecco's, which does
-    not roll back (``rollback``)."""
-    from ..adaptive_engine import usable
-
-    if engine not in ("auto", "compiled", "python"):
-        raise UserError(f"master.engine must be auto, compiled or python, got {engine!r}")
-    if engine == "compiled" and not compiled_exists:
-        raise UserError(f"master algorithm {name} has no compiled loop; use master.engine auto or python")
-    if engine == "python" or not compiled_exists:
-        return "python"
-    ok = usable(system, rollback)
-    if engine == "compiled" and not ok:
-        raise UserError(f"master.engine: compiled for {name} needs FMU slaves with C entry points"
-                        f"{' and FMU state get/set' if rollback else ''}, scalar Float64 connections without "
-                        f"transformation, and a C compiler; use engine auto or python")
-    return "compiled" if ok else "python"
+    kind = cls.stepper or AdaptiveStepper
+    name = choose_engine(system, engine, variable_loop(cls.name, kind))
+    stepping = kind(system, seq, opts, start_ns, stop_ns)
+    return VariableStepper(stepping, compiled_stepper(stepping) if name == "compiled" else None)
 
 
 @register

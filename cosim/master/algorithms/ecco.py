@@ -58,6 +58,7 @@ from ...slaves.slave import Status
 from ..algorithm import MasterAlgorithm, register
 from ..system import CoupledSystem
 from ..algorithm import AlgorithmOption
+from ..entries import EccoEnd
 from .adaptive import AdaptiveStats, AdaptiveStepper, variable_stepper
 
 OPTIONS = (
@@ -197,7 +198,7 @@ class EccoStepper(AdaptiveStepper):
         self._at_floor = 0  # steps in a row at h_min over tolerance
         #: such steps after which the run ends as unstable (option floor_steps; 0: never)
         self.patience = int(options.get("floor_steps", 100))
-        self._ending = ""  # why the run ends before the next step
+        self._ending: tuple[int, float, int] | None = None  # the run ends before the next step: (bond, eps, steps)
 
     def _seen_slopes(self) -> np.ndarray:
         """Slopes [unit/s] of the bonds' inputs over the step just taken (0 where held)."""
@@ -207,34 +208,22 @@ class EccoStepper(AdaptiveStepper):
     def step(self) -> bool:
         """Advance by one step (never retried); False when the run ends early."""
         sysm, opt = self.system, self.opt
-        if self._ending:
-            self.status, self.message = "unstable", self._ending
+        if self._ending is not None:
+            self._end(EccoEnd.FLOOR_PATIENCE, self._ending[0], 0, self._ending[1], self._ending[2])
             return False
-        if not hasattr(self, "cur_src"):
-            self.cur_src = [sysm.v[src].copy() for src in sysm.in_src]
         h_ns = max(1, min(round(self.h * 1e9), self.stop_ns - self.t_ns))
         h = h_ns / 1e9
         y0 = sysm.v[self._out_idx]
         _, bad, st = self._attempt(h)
         if bad is not None:
-            sl = sysm.slaves[bad]
-            if st == Status.STOP_REQUESTED or (st == Status.DISCARD and sl.asked_to_stop()):
-                self.status = "stopped"
-                self.message = f"{sl.name} asked to terminate the simulation at t = {self.t:.9g} s"
-            else:
-                self.status = "failed"
-                name = Status(st).name if st in Status._value2member_map_ else str(st)
-                self.message = (f"{sl.name} returned {name} in the step from t = {self.t:.9g} s (ecco does not "
-                                f"roll back)" + (f": {sl.last_message}" if sl.last_message else ""))
+            asked = st == Status.STOP_REQUESTED or (st == Status.DISCARD and sysm.slaves[bad].asked_to_stop())
+            self._end(EccoEnd.STOP_REQUESTED if asked else EccoEnd.SLAVE_FAILED, bad, st)
             return False
         u0 = sysm.v[self._in_idx]
         residual, carried = bond_energy(h, y0, sysm.v[self._out_idx], u0, u0 + self._seen_slopes() * h)
         scaled = np.abs(residual) / (opt["atol"] + opt["rtol"] * carried)
         if not np.all(np.isfinite(scaled)):
-            k = int(np.argmin(np.isfinite(scaled)))
-            self.status = "unstable"
-            self.message = (f"the energy residual of bond {self.bonds[k].name} is not finite in the step from "
-                            f"t = {self.t:.9g} s (y = {sysm.v[self._out_idx[k]]}, u = {u0[k]})")
+            self._end(EccoEnd.NOT_FINITE, int(np.argmin(np.isfinite(scaled))))
             return False
         for b, r, e, x in zip(self.bonds, residual, carried, scaled):
             self.stats.bonds[b.name].add(float(r), float(e), float(x))
@@ -243,13 +232,33 @@ class EccoStepper(AdaptiveStepper):
         self._at_floor = self._at_floor + 1 if err > 1.0 and h <= opt["h_min"] * (1 + 1e-12) else 0
         if self.patience and self._at_floor >= self.patience:  # this step is taken and recorded; the run ends before the next
             k = int(np.argmax(scaled))
-            self._ending = (f"the energy residual of bond {self.bonds[k].name} stayed over its tolerance for "
-                            f"{self._at_floor} steps at the step floor h_min = {opt['h_min']:g} s (scaled "
-                            f"{scaled[k]:.3g} at t = {self.t:.9g} s)")
+            self._ending = (k, float(scaled[k]), self._at_floor)
         fac = (opt["safety"] / err) ** opt["k_i"] * (self.err_prev / err) ** opt["k_p"]
         self.err_prev = err
         self._propose(h, h_ns, fac)
         return True
+
+    def _end(self, code: int, bad: int = -1, st: int = 0, value: float = math.nan, count: int = 0) -> None:
+        """End the run for end code ``code`` (:class:`cosim.master.entries.EccoEnd`), in the Python
+        loop and the compiled one alike: ``bad`` the slave (the bond for NOT_FINITE and
+        FLOOR_PATIENCE), ``st`` its FMI status; at the floor ``value`` the bond's eps, ``count`` the
+        steps over tolerance there."""
+        sysm, t = self.system, self.t
+        if code == EccoEnd.STOP_REQUESTED:
+            self.end("stopped", f"{sysm.slaves[bad].name} asked to terminate the simulation at t = {t:.9g} s")
+        elif code == EccoEnd.SLAVE_FAILED:
+            sl = sysm.slaves[bad]
+            name = Status(st).name if st in Status._value2member_map_ else str(st)
+            self.end("failed", f"{sl.name} returned {name} in the step from t = {t:.9g} s (ecco does not roll back)"
+                     + (f": {sl.last_message}" if sl.last_message else ""))
+        elif code == EccoEnd.NOT_FINITE:
+            u0 = sysm.v[self._in_idx]
+            self.end("unstable", f"the energy residual of bond {self.bonds[bad].name} is not finite in the step from "
+                                 f"t = {t:.9g} s (y = {sysm.v[self._out_idx[bad]]}, u = {u0[bad]})")
+        else:
+            self.end("unstable", f"the energy residual of bond {self.bonds[bad].name} stayed over its tolerance for "
+                                 f"{count} steps at the step floor h_min = {self.opt['h_min']:g} s (scaled "
+                                 f"{value:.3g} at t = {t:.9g} s)")
 
 
 @register
