@@ -126,3 +126,29 @@ def test_every_term_a_summary_prints_is_in_the_glossary(tmp_path, cache, capsys)
         assert term.lower() in text, term
     for term, entry in SUMMARY_TERMS.items():
         assert f"**{entry.lower()}" in gloss and term.lower() in gloss, (term, entry)
+
+
+def test_the_fast_gif_draws_every_frame(tmp_path):
+    """Issue 32, item 11: frames blitted on a background rendered once, captions by Pillow: the
+    frame count and timing asked for, the legs (green) and the platform (orange) in the last
+    frame, and between the first and the last frame only the moving part changed (the speed is
+    benchmarks/bench_main_job.py's)."""
+    from PIL import Image
+
+    from cosim.analysis import animate as anim
+
+    t = np.linspace(0.0, 1.0, 201)
+    tr = Trace(["time", "mech.platform.x", "mech.platform.y", "mech.platform.phi"],
+               np.column_stack([t, -0.15 - 0.05 * t, -0.15 + 0.02 * t, 0.2 * t]))
+    path = anim.animate(tr, tmp_path / "a.gif", fps=10)
+    gif = Image.open(path)
+    assert gif.n_frames == 11 and gif.info["duration"] == 100 and gif.info.get("loop") == 0
+    first = np.asarray(gif.convert("RGB"), dtype=int)
+    gif.seek(10)
+    last = np.asarray(gif.convert("RGB"), dtype=int)
+    assert last.shape[:2] == (416, 416)
+    green = (np.abs(last - np.array([44, 160, 44])).sum(axis=2) < 60).sum()  # tab:green legs
+    orange = (np.abs(last - np.array([255, 166, 87])).sum(axis=2) < 90).sum()  # tab:orange at alpha 0.7
+    assert green > 300 and orange > 300, (green, orange)
+    moved = (np.abs(first - last).sum(axis=2) > 60).mean()
+    assert 0.005 < moved < 0.2, moved  # the platform moved and the rest stayed
