@@ -197,8 +197,7 @@ class ConnectionChecks(Checker):
                     bonds.append((a[0], a[1], b[0], b[1]))
                     bonded[a] = bonded[b] = where
             for c in new:
-                if not self.units_agree(comps, c, where):
-                    continue
+                self.units_agree(comps, c, where)  # reported; the connection still counts for the checks below
                 key = (c.dst, c.dst_var)
                 if key in fed:
                     self.err(where, f"input {c.dst}.{c.dst_var} is already connected (from "
