@@ -78,7 +78,8 @@ def check_block(block: Block) -> Stepper:
         stepper = Stepper(block)
     except BlockError as exc:
         raise BuildError(str(exc)) from None
-    p0 = block.param_defaults
+    plain = stepper.block  # the block between events (modes as trailing parameters) or the block itself
+    p0 = plain.param_defaults
     x0 = np.asarray(stepper.start(p0), dtype=float).reshape(-1)
     for i, v in enumerate(x0):
         if not math.isfinite(v):
@@ -87,7 +88,11 @@ def check_block(block: Block) -> Stepper:
     u0 = np.zeros(block.u.numel())
     checks = [("output", block.outputs, stepper.out(x0, u0, p0))]
     if block.x.numel():
-        checks.append(("ode of state", block.states, block.functions()["ode"](x0, u0, p0)))
+        checks.append(("ode of state", block.states, plain.functions()["ode"](x0, u0, p0)))
+    if block.has_events:
+        nz = block.indicators.numel()
+        z0 = event_functions(block)["indicators"](0.0, x0, u0, p0) if nz else []
+        checks.append(("event indicator", [type("E", (), {"name": nm}) for nm in block.event_names], z0))
     for what, seq, val in checks:
         for i, v in enumerate(np.asarray(val, dtype=float).reshape(-1)):
             if not math.isfinite(v):
@@ -98,6 +103,59 @@ def check_block(block: Block) -> Stepper:
         if not math.isfinite(ts):
             raise BuildError(f"block {block.name}: sample_period {ts} must be finite")
     return stepper
+
+
+def event_functions(block: Block) -> dict[str, ca.Function]:
+    """The event functions of ``block`` in the core's arguments (``pm = [p; m]``, as the kernels of
+    its continuous view): ``indicators(t, x, u, pm) -> z``, ``update(k, t, x, u, pm) -> (x, m)``,
+    ``mode_start(p) -> m0``, ``ode(x, u, pm) -> xdot`` (the Hermite dense output's slopes) and
+    ``zdot(t, x, u, du, pm)``, the indicators' rates along the trajectory (the side an indicator
+    leaves zero to after an event)."""
+    ef = block.event_functions()
+    nx, nu, np_, nm = block.x.numel(), block.u.numel(), block.p.numel(), block.m.numel()
+    k, t, x, u, pm = (ca.MX.sym(n, s) for n, s in (("k", 1), ("t", 1), ("x", nx), ("u", nu), ("pm", np_ + nm)))
+    p, m = pm[:np_], pm[np_:]
+    name = block.name
+    ode = block.continuous_view().functions()["ode"]
+    # dz/dt along the trajectory: time, states (their ode) and inputs (their slopes du)
+    ts, xs, us, dus, pms = (ca.SX.sym(n, s) for n, s in (("t", 1), ("x", nx), ("u", nu), ("du", nu), ("pm", np_ + nm)))
+    zs = ef["indicators"](ts, xs, us, pms[:np_], pms[np_:])
+    zdot = ca.jtimes(zs, ca.vertcat(ts, xs, us), ca.vertcat(1.0, ode(xs, us, pms), dus))
+    return {
+        "zdot": ca.Function(f"{name}_event_zdot", [ts, xs, us, dus, pms], [zdot], ["t", "x", "u", "du", "pm"], ["zdot"]),
+        "indicators": ca.Function(f"{name}_event_z", [t, x, u, pm], [ef["indicators"](t, x, u, p, m)],
+                                  ["t", "x", "u", "pm"], ["z"]),
+        "update": ca.Function(f"{name}_event_update", [k, t, x, u, pm], list(ef["update"](k, t, x, u, p, m)),
+                              ["k", "t", "x", "u", "pm"], ["x_new", "m_new"]),
+        "mode_start": ca.Function(f"{name}_event_m0", [block.p], [block.mode_start], ["p"], ["m0"]),
+        "ode": ca.Function(f"{name}_event_ode", [x, u, pm], [ode(x, u, pm)], ["x", "u", "pm"], ["xdot"]),
+    }
+
+
+#: Default event time tolerance of the core: a crossing's bracket is narrowed below
+#: ``EVENT_TOL_ABS + EVENT_TOL_REL |t|`` seconds.
+EVENT_TOL_ABS, EVENT_TOL_REL = 1e-12, 1e-12
+#: Bounds of the core's event handling: rounds of one event iteration, events in one communication step.
+EVENT_MAX_ROUNDS, EVENT_MAX_PER_STEP = 100, 1000
+
+
+def _event_header(block: Block, ev: dict[str, ca.Function]) -> list[str]:
+    nz, ns = block.indicators.numel(), len(block.sample_times)
+    names = list(block.event_names) + [s.name or f"sample[{j}]" for j, s in enumerate(block.sample_times)]
+    return [
+        "#define RPR_EVENTS 1\n",
+        f"#define RPR_NM {block.m.numel()}\n#define RPR_NZ {nz}\n#define RPR_NS {ns}\n",
+        f"#define RPR_SUBSTEPS {int(block.substeps)}\n",
+        f"#define RPR_EVENT_TOL_ABS {_c_double(EVENT_TOL_ABS)}\n#define RPR_EVENT_TOL_REL {_c_double(EVENT_TOL_REL)}\n",
+        f"#define RPR_EVENT_MAX_ROUNDS {EVENT_MAX_ROUNDS}\n#define RPR_EVENT_MAX_PER_STEP {EVENT_MAX_PER_STEP}\n",
+        f"#define RPR_F_IND {ev['indicators'].name()}\n#define RPR_F_UPD {ev['update'].name()}\n",
+        f"#define RPR_F_MSTART {ev['mode_start'].name()}\n#define RPR_F_ODE {ev['ode'].name()}\n",
+        f"#define RPR_F_ZDOT {ev['zdot'].name()}\n",
+        _c_array("int", "rpr_direction", [str(int(d)) for d in block.directions]),
+        _c_array("double", "rpr_sample_period", [_c_double(s.period) for s in block.sample_times]),
+        _c_array("double", "rpr_sample_offset", [_c_double(s.offset) for s in block.sample_times]),
+        _c_array("char *const", "rpr_event_names", [_c_string(nm) for nm in names]),
+    ]
 
 
 @dataclass
@@ -130,7 +188,8 @@ def generate(block: Block, stepper: Stepper, *, guid: str, ident: str) -> Genera
     fns = {"step": memory if memory is not None else stepper.kernel, "out": stepper.out, "start": stepper.start,
            "jac": stepper.out_jacobian}
     cg = ca.CodeGenerator("rpr_casadi.c", {"with_header": False, "with_export": False, "casadi_int": "long long int"})
-    for f in fns.values():
+    ev = event_functions(block) if block.has_events else {}
+    for f in list(fns.values()) + list(ev.values()):
         cg.add(f)
     code = cg.dump()
     bad = [ln.strip() for ln in code.splitlines() if ln.lstrip().startswith("#error")]
@@ -140,7 +199,7 @@ def generate(block: Block, stepper: Stepper, *, guid: str, ident: str) -> Genera
                          f"with linear_solver 'qr' (not newton, kinsol, cvodes or idas)")
     iface = interface(block)
     pv = iface.of_kind("parameter")
-    xs = iface.of_kind("state")
+    xs = iface.of_kind("state")  # (modes sit between the parameters and the states)
     lo = [_c_double(v.min if v.min is not None else -math.inf) for v in iface.variables]
     hi = [_c_double(v.max if v.max is not None else math.inf) for v in iface.variables]
     names = {k: f.name() for k, f in fns.items()}
@@ -167,6 +226,7 @@ def generate(block: Block, stepper: Stepper, *, guid: str, ident: str) -> Genera
         _c_array("double", "rpr_min", lo),
         _c_array("double", "rpr_max", hi),
         _c_array("char *const", "rpr_names", [_c_string(v.name) for v in iface.variables]),
+        *(_event_header(block, ev) if ev else ["#define RPR_EVENTS 0\n#define RPR_NM 0\n"]),
         "#endif\n",
     ]
     return Generated(iface, {"rpr_casadi.c": code, "rpr_model.h": "".join(header)}, names)
@@ -186,5 +246,5 @@ def static_sources(fmi_version: str) -> dict[str, str]:
     return ours | {n: (FMI_HEADER_DIR / n).read_text() for n in FMI_HEADERS[fmi_version]}
 
 
-__all__ = ["check_block", "generate", "with_parameters", "model_identifier", "static_sources",
+__all__ = ["check_block", "generate", "event_functions", "with_parameters", "model_identifier", "static_sources",
            "Generated", "IntegratorError"]

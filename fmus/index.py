@@ -263,6 +263,8 @@ def record(recipe: Recipe, fidelity: str, block, fmu: Path, cache_dir: Path | No
                        "sample_period": None if block.sample_period is None else float(block.sample_period),
                        "params": [asdict(p) for p in block.params], "inputs": [asdict(v) for v in block.inputs],
                        "outputs": [asdict(v) for v in block.outputs], "states": [asdict(v) for v in block.states],
+                       "modes": [asdict(v) for v in getattr(block, "modes", [])],
+                       "has_events": bool(getattr(block, "has_events", False)),
                        "flanges": [asdict(f) for f in block.flanges],
                        "ratings": {k: asdict(r) for k, r in block.ratings.items()},
                        "feedthrough": block.feedthrough(), "exact_start": exact},
@@ -299,7 +301,7 @@ def _json_default(x: Any) -> Any:
 # --- the indexed block ----------------------------------------------------------------------------
 class IndexedBlock:
     """A catalog block as its index entry recorded it: the interface (name, fidelity,
-    parameters, inputs, outputs, states, flanges, ratings, feedthrough, integrator) without the
+    parameters, inputs, outputs, states, modes, flanges, ratings, feedthrough, integrator) without the
     equations.  Anything else (``p``, ``ode``, ``functions()``...) is read from the real block,
     built from the recipe on first use (:meth:`real`)."""
 
@@ -313,6 +315,8 @@ class IndexedBlock:
         self.integrator, self.substeps, self.sample_period = b["integrator"], b["substeps"], b["sample_period"]
         self.params = [Param(**p) for p in b["params"]]
         self.inputs, self.outputs, self.states = ([Var(**v) for v in b[k]] for k in ("inputs", "outputs", "states"))
+        self.modes = [Var(**v) for v in b.get("modes", [])]
+        self.has_events = bool(b.get("has_events", False))
         self.flanges = [Flange(**f) for f in b["flanges"]]
         self.ratings = {k: Rating(**r) for k, r in b["ratings"].items()}
         self.exact_start = frozenset(b["exact_start"])

@@ -1,13 +1,15 @@
 """The FMU's variable table and its ``modelDescription.xml`` (FMI 2.0 and 3.0 co-simulation).
 
 Value references (shared with the C core, ``fmus/c/rpr_core.h``): 0 is ``time``, then the
-parameters, states, inputs and outputs in the block's declaration order.
+parameters, modes, states, inputs and outputs in the block's declaration order.
 
 - parameters: ``causality="parameter"``, ``variability="tunable"`` (``"fixed"`` when structural:
   settable until the end of initialisation), ``initial="exact"``;
 - states: ``causality="local"``, ``initial="exact"`` with their start value when ``start(p)`` does
   not depend on the parameters (they may then be set before the end of initialisation), else
   ``initial="calculated"`` (they follow the parameters);
+- modes (discrete states of a block with events): ``causality="local"``,
+  ``variability="discrete"``, ``initial="calculated"`` (from ``mode_start(p)``; not settable);
 - inputs: ``start`` 0; outputs: ``initial="calculated"``.
 
 Units are parsed into SI base-unit exponents (``kg.m2``, ``m/s2``, ``N.m.s/rad``...) so that
@@ -130,7 +132,7 @@ def _finite(x: float) -> float | None:
 def check_names(block: Block) -> None:
     """Every variable name must be a legal structured FMI name, and ``time`` is reserved."""
     for kind, seq in (("parameter", block.params), ("input", block.inputs), ("output", block.outputs),
-                      ("state", block.states)):
+                      ("state", block.states), ("mode", block.modes)):
         for v in seq:
             if v.name == "time":
                 raise BuildError(f"block {block.name}: {kind} 'time' clashes with the FMU's independent "
@@ -139,7 +141,7 @@ def check_names(block: Block) -> None:
                 raise BuildError(f"block {block.name}: {kind} name {v.name!r} is not a structured FMI name "
                                  f"(expected e.g. 'leg[1].s' or 'platform.x')")
     for kind, seq in (("parameter", block.params), ("input", block.inputs), ("output", block.outputs),
-                      ("state", block.states)):
+                      ("state", block.states), ("mode", block.modes)):
         for v in seq:
             if v.unit:
                 try:
@@ -163,6 +165,11 @@ def interface(block: Block) -> Interface:
         vs.append(FmuVariable(len(vs), prm.name, "parameter", "parameter",
                               "fixed" if prm.structural else "tunable", "exact", float(prm.default),
                               prm.unit, prm.description, _finite(prm.lower), _finite(prm.upper)))
+    m_start = np.asarray(ca.Function("m0", [block.p], [block.mode_start])(p0), dtype=float).reshape(-1) \
+        if block.m.numel() else []
+    for i, md in enumerate(block.modes):
+        vs.append(FmuVariable(len(vs), md.name, "mode", "local", "discrete", "calculated", None, md.unit,
+                              md.description or f"mode (discrete state; start {m_start[i]:g} at the defaults)"))
     for i, st in enumerate(block.states):
         vs.append(FmuVariable(len(vs), st.name, "state", "local", state_var,
                               "exact" if exact[i] else "calculated",
@@ -186,6 +193,8 @@ def interface(block: Block) -> Interface:
         xs_init = ca.vertcat(*[block.x[i] if exact[i] else block.start[i] for i in range(block.x.numel())]) \
             if block.x.numel() else block.x
         y_init = ca.substitute(block.out, block.x, xs_init) if block.x.numel() else block.out
+        if block.m.numel():  # modes start at mode_start(p)
+            y_init = ca.substitute(y_init, block.m, block.mode_start)
         sp_init = {name: (ca.jacobian_sparsity(y_init, sym) if sym.numel() else None)
                    for name, sym in (("p", block.p), ("u", block.u), ("x", block.x))}
         for k, vr in enumerate(vr_y):
@@ -207,6 +216,7 @@ LOG_CATEGORIES = (
     ("logStatusWarning", "warnings"),
     ("logNonlinearSystems", "Radau IIA Newton residual of every step"),
     ("logCalls", "instantiation and other calls"),
+    ("logEvents", "events located and handled inside doStep: time, indicator, rounds of the event iteration"),
 )
 
 
@@ -250,9 +260,10 @@ def model_description(iface: Interface, *, fmi_version: str, guid: str, model_id
           "canHandleVariableCommunicationStepSize": "true",
           "canBeInstantiatedOnlyOncePerProcess": "false"}
     if fmi3:
+        events = "true" if blk.has_events else "false"  # event mode and early return at events
         cs.update({"canGetAndSetFMUState": "true", "canSerializeFMUState": "true",
-                   "providesDirectionalDerivatives": "true", "hasEventMode": "false",
-                   "canReturnEarlyAfterIntermediateUpdate": "false"})
+                   "providesDirectionalDerivatives": "true", "hasEventMode": events,
+                   "mightReturnEarlyFromDoStep": events, "canReturnEarlyAfterIntermediateUpdate": "false"})
     else:
         cs.update({"canInterpolateInputs": "true" if can_interpolate_inputs(blk) else "false", "maxOutputDerivativeOrder": "0",
                    "canRunAsynchronuously": "false", "canNotUseMemoryManagementFunctions": "true",

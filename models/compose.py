@@ -42,12 +42,41 @@ class Composite:
     alg: ca.SX = field(default_factory=lambda: ca.SX(0, 1))
     z0: np.ndarray = field(default_factory=lambda: np.zeros(0))
     cuts: tuple[tuple[str, str], ...] = ()  # (block, input) of each algebraic variable
+    #: blocks with events: their modes stacked (``m``, start ``m0``) and every event of every block
+    #: as an expression of ``(t, x, m)`` (:class:`CompositeEvent`); ``ode`` and ``signals`` then
+    #: depend on ``m`` too
+    m: ca.SX = field(default_factory=lambda: ca.SX(0, 1))
+    m0: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    t: ca.SX = field(default_factory=lambda: ca.SX.sym("t"))
+    events: list["CompositeEvent"] = field(default_factory=list)
+
+    @property
+    def has_events(self) -> bool:
+        return bool(self.events) or self.m.numel() > 0
 
     def signal_function(self, names: Sequence[tuple[str, str]]) -> ca.Function:
-        """``x -> [signals...]`` (``(x, z) -> ...`` with an algebraic loop) for the given
-        ``(block, name)`` pairs."""
+        """``x -> [signals...]`` (``(x, z) -> ...`` with an algebraic loop, ``(x, m) -> ...`` with
+        modes) for the given ``(block, name)`` pairs."""
         args = [self.x, self.z] if self.z.numel() else [self.x]
+        if self.m.numel():
+            args.append(self.m)
         return ca.Function("signals", args, [ca.vertcat(*[self.signals[n] for n in names])])
+
+
+@dataclass
+class CompositeEvent:
+    """One event of one block in the composite: an indicator (``indicator`` with ``direction``)
+    or a sample (``period``, ``offset``), and its update of the whole ``(x, m)``; all expressions
+    of the composite's ``(t, x, m)``."""
+
+    name: str  # "<block>.<event>"
+    block: str
+    indicator: ca.SX | None
+    direction: int
+    new_x: ca.SX
+    new_m: ca.SX
+    period: float | None = None
+    offset: float = 0.0
 
 
 def compose(blocks: Mapping[str, Block], params: Mapping[str, np.ndarray | ca.SX], wires: Sequence[Wire], *,
@@ -75,7 +104,12 @@ def compose(blocks: Mapping[str, Block], params: Mapping[str, np.ndarray | ca.SX
         feeds[(dst, inp)] = (src, out)
 
     xs = {n: ca.SX.sym(f"x_{n}", b.x.numel()) for n, b in blocks.items()}
+    ms = {n: ca.SX.sym(f"m_{n}", b.m.numel()) for n, b in blocks.items()}
     fns = {n: b.functions() for n, b in blocks.items()}
+
+    def call(n: str, what: str, u: ca.SX):
+        args = (xs[n], u, params[n], ms[n]) if blocks[n].m.numel() else (xs[n], u, params[n])
+        return fns[n][what](*args)
     outs: dict[str, ca.SX] = {}
     cut: dict[tuple[str, str], ca.SX] = {}  # (block, input) -> its algebraic variable
 
@@ -111,33 +145,96 @@ def compose(blocks: Mapping[str, Block], params: Mapping[str, np.ndarray | ca.SX
                     cut[(n, i)] = ca.SX.sym(f"z_{n}_{i}")
             ready = [n]
         for n in ready:
-            outs[n] = fns[n]["out"](xs[n], input_vector(n, False), params[n])
+            outs[n] = call(n, "out", input_vector(n, False))
             pending.remove(n)
     signals: dict[tuple[str, str], ca.SX] = {}
+    inputs_now: dict[str, ca.SX] = {}
     odes, x0, slices, k = [], [], {}, 0
     for n, b in blocks.items():
         u = input_vector(n, True)
-        y = fns[n]["out"](xs[n], u, params[n])
+        y = call(n, "out", u)
+        inputs_now[n] = u
         signals.update({(n, v.name): u[j] for j, v in enumerate(b.inputs)})
         signals.update({(n, v.name): y[j] for j, v in enumerate(b.outputs)})
         nx = b.x.numel()
         slices[n] = slice(k, k + nx)
         k += nx
         if nx:
-            odes.append(fns[n]["ode"](xs[n], u, params[n]))
+            odes.append(call(n, "ode", u))
             s0 = fns[n]["start"](params[n])
             s0 = s0 if isinstance(s0, ca.SX) else np.array(s0).ravel()  # symbolic parameters: a symbolic start
             for state, value in starts.get(n, {}).items():
                 s0[b.index("states", state)] = value
             x0.append(s0)
     X = ca.vertcat(*xs.values())
+    M = ca.vertcat(*ms.values())
+    t = ca.SX.sym("t")
+    events = _events(blocks, params, xs, ms, inputs_now, X, M, t)
+    if (events or M.numel()) and cut:
+        # a loop of blocks whose outputs do not feed each other through: substitute it away
+        odes, signals, events = _unloop(cut, feeds, signals, odes, events)
+        cut = {}
+    m0 = np.concatenate([np.array(b.event_functions()["mode_start"](params[n])).ravel()
+                         for n, b in blocks.items() if b.m.numel()]) if M.numel() else np.zeros(0)
     keys = tuple(cut)
     z = ca.vertcat(*[cut[k] for k in keys]) if keys else ca.SX(0, 1)
     alg = ca.vertcat(*[cut[k] - signals[feeds[k]] for k in keys]) if keys else ca.SX(0, 1)
     z0 = np.array([float(inputs.get(b, {}).get(i, 0.0)) for b, i in keys])
     symbolic = any(isinstance(s, ca.SX) for s in x0)
     start = (ca.vertcat(*x0) if symbolic else np.concatenate(x0)) if x0 else np.zeros(0)
-    return Composite(X, ca.vertcat(*odes) if odes else ca.SX(0, 1), start, signals, slices, z, alg, z0, keys)
+    return Composite(X, ca.vertcat(*odes) if odes else ca.SX(0, 1), start, signals, slices, z, alg, z0, keys,
+                     M, m0, t, events)
+
+
+def _unloop(cut, feeds, signals, odes, events):
+    """Replace the cut inputs by their sources' expressions where the loop is false (no output
+    depends on itself through the cut: per output, not per block); a true algebraic loop with
+    events is refused (the event reference integrates ODEs)."""
+    keys = list(cut)
+    z = ca.vertcat(*[cut[k] for k in keys])
+    src = ca.vertcat(*[signals[feeds[k]] for k in keys])
+    for _ in range(len(keys) + 1):
+        if not ca.depends_on(src, z):
+            break
+        src = ca.substitute(src, z, src)
+    else:
+        raise BlockError(f"blocks with events in an algebraic loop through {', '.join(f'{b}.{i}' for b, i in keys)}: "
+                         f"the monolithic reference with events needs an ODE")
+
+    def sub(e):
+        return ca.substitute(e, z, src)
+
+    signals = {k: sub(v) for k, v in signals.items()}
+    odes = [sub(o) for o in odes]
+    for e in events:
+        e.new_x, e.new_m = sub(e.new_x), sub(e.new_m)
+        if e.indicator is not None:
+            e.indicator = sub(e.indicator)
+    return odes, signals, events
+
+
+def _events(blocks, params, xs, ms, inputs_now, X, M, t) -> list[CompositeEvent]:
+    """Every block's indicators and samples with their updates, on the composite's ``(t, X, M)``
+    (each block's own event functions, its inputs as the composite's signals)."""
+    out: list[CompositeEvent] = []
+    for n, b in blocks.items():
+        if not b.has_events:
+            continue
+        ef = b.event_functions()
+        u, p = inputs_now[n], params[n]
+        z = ef["indicators"](t, xs[n], u, p, ms[n])
+        own = ca.vertcat(xs[n], ms[n])
+        for k in range(b.indicators.numel() + len(b.sample_times)):
+            xn, mn = ef["update"](k, t, xs[n], u, p, ms[n])
+            new_x = ca.substitute(X, own, ca.vertcat(xn, mn))
+            new_m = ca.substitute(M, own, ca.vertcat(xn, mn))
+            if k < b.indicators.numel():
+                out.append(CompositeEvent(f"{n}.{b.event_names[k]}", n, z[k], int(b.directions[k]), new_x, new_m))
+            else:
+                smp = b.sample_times[k - b.indicators.numel()]
+                out.append(CompositeEvent(f"{n}.{smp.name or 'sample'}", n, None, 0, new_x, new_m, float(smp.period),
+                                          float(smp.offset)))
+    return out
 
 
 def _direct_inputs(block: Block) -> set[str]:

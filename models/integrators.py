@@ -570,13 +570,21 @@ class Stepper:
 
     ``step(x, u, p, h, du)`` runs ``samples(h)`` kernel calls, as the FMU does, and returns
     ``(x_next, ok)``; on failure ``x_next`` is the unchanged ``x``.
+
+    For a block with events, the kernels are those of its continuous view
+    (:meth:`Block.continuous_view`: ``p' = [p; m]``, one substep): :attr:`block` is that view and
+    :attr:`events` the declaration; the FMU's core takes the substeps, locates crossings and
+    applies updates itself, so :meth:`step` refuses such a block.
     """
 
     block: Block
+    events: Block | None = None
 
     def __post_init__(self) -> None:
         blk = self.block
         blk.check()
+        if blk.has_events:
+            self.events, self.block = blk, blk.continuous_view()
         if blk.integrator == "none" and blk.x.numel():
             raise BlockError(f"block {blk.name}: integrator 'none' but {blk.x.numel()} states "
                              f"({', '.join(v.name for v in blk.states)}); choose rk4, radau or discrete")
@@ -632,6 +640,9 @@ class Stepper:
     def step(self, x, u, p, h: float, du=None) -> tuple[np.ndarray, bool]:
         """Advance the state by one communication step ``h`` [s] with inputs ``u + du tau``
         (``du`` None: held); ``(x_next, ok)``."""
+        if self.events is not None:
+            raise IntegratorError(f"block {self.block.name}: has events; its steps are taken by the FMU's core "
+                                  f"(fmus), which locates crossings and applies updates")
         x0 = np.asarray(x, dtype=float).reshape(-1)
         du = np.zeros(self.block.u.numel()) if du is None else du
         xk = x0

@@ -58,8 +58,8 @@ def _triple(name: str, v) -> tuple[float, float, float]:
         vals = (float(v),) * 3 if np.isscalar(v) else tuple(float(x) for x in v)
     except (TypeError, ValueError):
         vals = ()
-    if len(vals) != 3 or not all(math.isfinite(x) and 0 < x <= 1e6 for x in vals):
-        raise TrajectoryError(f"limits.{name}: expected one positive number or three (x, y, phi), got {v!r}")
+    if len(vals) != 3 or not all(math.isfinite(x) and 1e-6 <= x <= 1e6 for x in vals):
+        raise TrajectoryError(f"limits.{name}: expected one number or three (x, y, phi) in 1e-6 .. 1e6, got {v!r}")
     return vals  # type: ignore[return-value]
 
 
@@ -111,8 +111,9 @@ def limits_from(spec: dict | None) -> Limits:
                 x = float(value)
             except (TypeError, ValueError):
                 x = math.nan
-            if not (math.isfinite(x) and x <= 1e6 and (x > 0 or (key == "m_act" and x >= 0))):
-                raise TrajectoryError(f"limits.{key}: expected a positive number, got {value!r}")
+            if not (math.isfinite(x) and x <= 1e6 and (x >= 1e-6 or (key == "m_act" and x >= 0))):
+                raise TrajectoryError(f"limits.{key}: expected a number in 1e-6 .. 1e6"
+                                      + (" (or 0)" if key == "m_act" else "") + f", got {value!r}")
             out[key] = x
     lim = replace(base, **out)
     if lim.u_max > lim.drive.U:
@@ -340,7 +341,7 @@ def plan_toppra(m: Manipulator, waypoints, limits: Limits, gridpoints: int = 100
     grid = np.unique(np.concatenate([np.linspace(0.0, ss[-1], gridpoints), ss]))
     F = limits.planning_force()
 
-    cons = [LegSpeedConstraint(m, limits.leg_speed), LegDynamicsConstraint(m, limits, F)]
+    cons = [leg_speed_constraint(m, limits.leg_speed), leg_dynamics_constraint(m, limits, F)]
     inst = algo.TOPPRA(cons, path, gridpoints=grid, parametrizer="ParametrizeSpline")
     traj = inst.compute_trajectory(0.0, 0.0)
     if traj is None:
@@ -354,62 +355,60 @@ def plan_toppra(m: Manipulator, waypoints, limits: Limits, gridpoints: int = 100
     return from_ppoly(cs.x, cs.c, wt)
 
 
-class LegDynamicsConstraint:
+def leg_dynamics_constraint(m: Manipulator, limits: Limits, F_max: float):
     """toppra constraint on every leg's acceleration ``|Ldd| <= leg_accel`` and force
     ``|F| <= F_max``, both ``a(s) s_ddot + b(s) s_dot^2 + c(s)`` (toppra's second-order form),
     evaluated over all gridpoints at once (toppra's own class calls them point by point)."""
+    # toppra is imported here, not with the module: only planning needs it
+    from toppra.constraint import DiscretizationType, SecondOrderConstraint
+    from toppra.constraint.linear_constraint import canlinear_colloc_to_interpolate
 
-    def __new__(cls, m: Manipulator, limits: Limits, F_max: float):
-        from toppra.constraint import DiscretizationType, SecondOrderConstraint
-        from toppra.constraint.linear_constraint import canlinear_colloc_to_interpolate
+    def both(q, v, a):  # (6, n): leg accelerations, then forces
+        _, _, Ldd, F = leg_dynamics(m, q, v, a, limits.m_act)
+        return np.concatenate([Ldd, F])
 
-        def both(q, v, a):  # (6, n): leg accelerations, then forces
-            _, _, Ldd, F = leg_dynamics(m, q, v, a, limits.m_act)
-            return np.concatenate([Ldd, F])
+    eye = np.vstack([np.eye(6), -np.eye(6)])
+    bound = np.concatenate([[limits.leg_accel] * 3, [F_max] * 3] * 2)
 
-        eye = np.vstack([np.eye(6), -np.eye(6)])
-        bound = np.concatenate([[limits.leg_accel] * 3, [F_max] * 3] * 2)
+    class _LegDynamics(SecondOrderConstraint):
+        def compute_constraint_params(self, path, gridpoints):
+            p, ps, pss = (path(gridpoints, k).T for k in (0, 1, 2))
+            zero = np.zeros_like(p)
+            c = both(p, zero, zero).T
+            a = both(p, zero, ps).T - c
+            b = both(p, ps, pss).T - c
+            n = len(gridpoints)
+            F, g = np.repeat(eye[None], n, axis=0), np.repeat(bound[None], n, axis=0)
+            return canlinear_colloc_to_interpolate(a, b, c, F, g, None, None, gridpoints)
 
-        class _LegDynamics(SecondOrderConstraint):
-            def compute_constraint_params(self, path, gridpoints):
-                p, ps, pss = (path(gridpoints, k).T for k in (0, 1, 2))
-                zero = np.zeros_like(p)
-                c = both(p, zero, zero).T
-                a = both(p, zero, ps).T - c
-                b = both(p, ps, pss).T - c
-                n = len(gridpoints)
-                F, g = np.repeat(eye[None], n, axis=0), np.repeat(bound[None], n, axis=0)
-                return canlinear_colloc_to_interpolate(a, b, c, F, g, None, None, gridpoints)
-
-        return _LegDynamics(both, lambda _q: eye, lambda _q: bound, dof=3,
-                            discretization_scheme=DiscretizationType.Interpolation)
+    return _LegDynamics(both, lambda _q: eye, lambda _q: bound, dof=3,
+                        discretization_scheme=DiscretizationType.Interpolation)
 
 
-class LegSpeedConstraint:
+def leg_speed_constraint(m: Manipulator, v_max: float):
     """toppra constraint ``|L_i'(s)| s_dot <= v_max`` on every leg: a bound on ``s_dot^2``."""
+    # toppra is imported here, not with the module: only planning needs it
+    from toppra.constraint import ConstraintType, DiscretizationType, LinearConstraint
 
-    def __new__(cls, m: Manipulator, v_max: float):
-        from toppra.constraint import ConstraintType, DiscretizationType, LinearConstraint
+    class _LegSpeed(LinearConstraint):
+        def __init__(self):
+            super().__init__()
+            self.constraint_type = ConstraintType.CanonicalLinear
+            self.discretization_type = DiscretizationType.Collocation
+            self.identical = True
+            self.dof = 3
+            self._format_string = f"    Leg speed limit {v_max} m/s\n"
 
-        class _LegSpeed(LinearConstraint):
-            def __init__(self):
-                super().__init__()
-                self.constraint_type = ConstraintType.CanonicalLinear
-                self.discretization_type = DiscretizationType.Collocation
-                self.identical = True
-                self.dof = 3
-                self._format_string = f"    Leg speed limit {v_max} m/s\n"
+        def compute_constraint_params(self, path, gridpoints):
+            q, qs = path(gridpoints).T, path(gridpoints, 1).T
+            Ls = leg_state(m, q, qs, np.zeros_like(q))[1]
+            peak = np.max(np.abs(Ls), axis=0)
+            with np.errstate(divide="ignore"):
+                xmax = np.where(peak > 0, (v_max / peak) ** 2, 1e12)
+            xbound = np.column_stack([np.zeros_like(xmax), xmax])
+            return None, None, None, None, None, None, xbound
 
-            def compute_constraint_params(self, path, gridpoints):
-                q, qs = path(gridpoints).T, path(gridpoints, 1).T
-                Ls = leg_state(m, q, qs, np.zeros_like(q))[1]
-                peak = np.max(np.abs(Ls), axis=0)
-                with np.errstate(divide="ignore"):
-                    xmax = np.where(peak > 0, (v_max / peak) ** 2, 1e12)
-                xbound = np.column_stack([np.zeros_like(xmax), xmax])
-                return None, None, None, None, None, None, xbound
-
-        return _LegSpeed()
+    return _LegSpeed()
 
 
 # --- the checked result -------------------------------------------------------------------------------
@@ -513,7 +512,21 @@ def plan(m: Manipulator, waypoints, method: str = "ruckig", limits: Limits | Non
     if method == "spline" or times is not None:
         if times is None:
             raise TrajectoryError("method spline: give one time per waypoint (times: [...])")
-        return plan_spline(waypoints, times)
+        return _within_duration(plan_spline(waypoints, times))
     if method == "ruckig":
-        return plan_ruckig(waypoints, limits)
-    return fit_to_limits(m, plan_toppra(m, waypoints, limits), limits)[0]
+        traj = plan_ruckig(waypoints, limits)
+    else:
+        traj = fit_to_limits(m, _within_duration(plan_toppra(m, waypoints, limits)), limits)[0]
+    return _within_duration(traj)
+
+
+#: Longest motion [s] a plan may take (a day: beyond it the limits are mistaken, and sampling it
+#: every millisecond would not fit in memory).
+MAX_DURATION = 86400.0
+
+
+def _within_duration(traj: PiecewiseCubic) -> PiecewiseCubic:
+    if not (math.isfinite(traj.duration) and traj.duration <= MAX_DURATION):
+        raise TrajectoryError(f"the motion would last {traj.duration:.4g} s (at most {MAX_DURATION:g} s): "
+                              "are the limits in m/s, m/s2 and V?")
+    return traj

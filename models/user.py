@@ -40,7 +40,7 @@ def require_documented(block: Block, where: str = "") -> None:
     input, output or state of ``block`` lacks a unit or a description."""
     label = where or f"block {block.name}"
     for kind, seq in (("parameter", block.params), ("input", block.inputs), ("output", block.outputs),
-                      ("state", block.states)):
+                      ("state", block.states), ("mode", block.modes)):
         for v in seq:
             if not str(v.unit).strip():
                 raise BlockError(f"{label}: {kind} {v.name!r} has no unit (give its SI unit, \"1\" when "
@@ -65,6 +65,10 @@ class BlockBuilder:
         self._outputs: list[tuple[Var, ca.SX]] = []
         self._flanges: list[Flange] = []
         self._ratings: dict[str, Rating] = {}
+        self._modes: list[tuple[Var, ca.SX, object]] = []
+        self._events: list[tuple[str, ca.SX, int, dict]] = []
+        self._samples: list[tuple[str, float, float, dict]] = []
+        self._t: ca.SX | None = None
 
     # declarations ----------------------------------------------------------------------------
     def param(self, name: str, default: float, unit: str, description: str, *, lower: float = -math.inf,
@@ -113,6 +117,55 @@ class BlockBuilder:
         """Operating limits of an input or output, enforced by the run-time guards."""
         self._ratings[variable] = Rating(float(low), float(high), kind, source)  # type: ignore[arg-type]
 
+    # events (docs/explanation/events.md) ----------------------------------------------------------
+    def mode(self, name: str, start, unit: str, description: str) -> ca.SX:
+        """A discrete state (a mode: constant between events, changed by :meth:`when` and
+        :meth:`sample`); ``start`` is a number or an expression of parameters."""
+        sym = ca.SX.sym(name)
+        self._modes.append((Var(name, unit, description), sym, start))
+        return sym
+
+    def time(self) -> ca.SX:
+        """The symbol of time [s], for indicators and resets (equations stay autonomous)."""
+        if self._t is None:
+            self._t = ca.SX.sym("t")
+        return self._t
+
+    def when(self, indicator, reset: Mapping, *, direction: int = 0, name: str = "") -> None:
+        """An event where ``indicator`` crosses zero (``direction`` +1 rising, -1 falling, 0
+        either), applying ``reset`` (state or mode symbol -> new value, from the values just
+        before; the others keep theirs): Modelica's ``when z < 0 then reinit(v, -e*pre(v))``
+        is ``when(z, {v: -e * v}, direction=-1)``."""
+        self._events.append((name or f"event{len(self._events)}", ca.SX(indicator), int(direction), dict(reset)))
+
+    def sample(self, period: float, reset: Mapping, *, offset: float = 0.0, name: str = "") -> None:
+        """A time event at ``offset + k period`` [s] applying ``reset`` (as :meth:`when`)."""
+        self._samples.append((name or f"sample{len(self._samples)}", float(period), float(offset), dict(reset)))
+
+    def _event_kw(self, x: ca.SX) -> dict:
+        from .block import Sample
+
+        if not (self._modes or self._events or self._samples):
+            return {}
+        syms = [x[i] for i in range(x.numel())] + [s for _, s, _ in self._modes]
+        names = {s.name() for s in syms}
+
+        def update(reset: Mapping, label: str) -> ca.SX:
+            new = {}
+            for k, v in reset.items():
+                key = k.name() if isinstance(k, ca.SX) and k.is_symbolic() else str(k)
+                if key not in names:
+                    raise BlockError(f"block {self.name}: {label} resets {key!r}, which is not a state or mode")
+                new[key] = ca.SX(v)
+            return ca.vertcat(*[new.get(s.name(), s) for s in syms])
+
+        return dict(modes=[v for v, _, _ in self._modes], m=_column([s for _, s, _ in self._modes]),
+                    mode_start=_column([ca.SX(s) for _, _, s in self._modes]), t=self._t,
+                    indicators=_column([z for _, z, _, _ in self._events]),
+                    directions=[d for _, _, d, _ in self._events], event_names=[n for n, _, _, _ in self._events],
+                    updates=[update(r, f"event {n!r}") for n, _, _, r in self._events],
+                    sample_times=[Sample(T, off, update(r, f"sample {n!r}"), n) for n, T, off, r in self._samples])
+
     # the block -------------------------------------------------------------------------------
     def build(self, *, integrator: str = "rk4", substeps: int = 1, sample_period: float | None = None) -> Block:
         """The checked block (:meth:`models.block.Block.build` and :func:`require_documented`)."""
@@ -127,6 +180,7 @@ class BlockBuilder:
                 self.param(SOLVER_ATOL, RADAU_ATOL, "1", "absolute tolerance of the Radau Newton iteration",
                            lower=1e-20, upper=1.0)
         col = _column
+        x = col([s for _, s, _ in self._states])
         blk = Block.build(
             self.name, description=self.description, params=[p for p, _ in self._params],
             inputs=[v for v, _ in self._inputs], outputs=[v for v, _ in self._outputs],
@@ -136,7 +190,7 @@ class BlockBuilder:
             start=col([ca.SX(s) for _, _, s in self._states]),
             integrator=integrator if self._states else ("none" if integrator != "discrete" else integrator),
             substeps=substeps, sample_period=sample_period, flanges=list(self._flanges), fidelity=self.fidelity,
-            ratings=dict(self._ratings))
+            ratings=dict(self._ratings), **self._event_kw(x))
         require_documented(blk)
         return blk
 

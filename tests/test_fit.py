@@ -156,3 +156,20 @@ def test_fit_verb_names_an_unknown_parameter_in_one_line(recording, tmp_path, ca
                      f"stop_time={SECONDS}"])
     err = capsys.readouterr().err.strip().splitlines()
     assert code == 2 and err[-1].startswith("rpr-cosim fit: error: --params: 'motor*.R' matches no parameter"), err
+
+
+def test_fit_of_pid_step_motors_against_cvodes(tmp_path):
+    """A scene without a replay (pid_step, closed loop) fitted to its own monolithic reference
+    (CVODES at 1e-10, a second integrator) run with R = 0.7 Ohm in every motor: the fit's RK4
+    takes ceil(1 ms x R/L / 0.5) = 5 substeps for the armature's pole (R/L = 0.574 / 0.251 mH from
+    Table 6.7) and recovers R from the nominal 0.574 Ohm."""
+    from cosim.run.reference import reference
+
+    ref = reference(load(ROOT / "scenarios" / "pid_step.yaml", ["stop_time=0.05", "components.motor*.params.R=0.7"]),
+                    out_dir=tmp_path)
+    assert ref.ok, ref.reason
+    pb = build(load(ROOT / "scenarios" / "pid_step.yaml", ["stop_time=0.05"]), ref.trace_path, ["motor*.R"],
+               signals=[f"motor{i}.i" for i in (1, 2, 3)])
+    assert pb.substeps == math.ceil(1e-3 * 0.574 / 0.251e-3 / 0.5) == 5
+    res = solve(pb)
+    assert np.allclose(res.theta, 0.7, rtol=1e-3), res.theta

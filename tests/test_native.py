@@ -120,6 +120,34 @@ def test_entry_point_bindings_follow_their_declaration():
     assert argtype("ad_ctl *") is ctypes.POINTER(adaptive_engine.CControl)
 
 
+def test_an_entry_point_declared_otherwise_than_defined_does_not_compile(tmp_path):
+    """The generated prototypes are what the compiler checks each kernel's definition against: a
+    declaration with one argument of another type (the ctypes binding would follow it) is an
+    error, as the true one is not."""
+    from dataclasses import replace
+
+    from cosim.master.entries import RUN
+    from cosim.master.native import kernel_files
+    from fmus.compile import compiler
+    from fmus.native import FLAGS
+
+    k = next(j for j, (t, _, _) in enumerate(RUN.args) if t == "int64_t")  # k0: int64_t -> int32_t
+    wrong = replace(RUN, args=(*RUN.args[:k], ("int32_t", *RUN.args[k][1:]), *RUN.args[k + 1:]))
+    results = []
+    for name, entry in (("right", RUN), ("wrong", wrong)):
+        folder = tmp_path / name
+        folder.mkdir()
+        files = kernel_files("fastloop.c")
+        files["rpr_decls.h"] = files["rpr_decls.h"].replace(RUN.c(), entry.c())
+        for n, text in files.items():
+            (folder / n).write_text(text)
+        res = subprocess.run([compiler(), *FLAGS, "-fsyntax-only", f"-I{folder}", str(folder / "fastloop.c")],
+                             capture_output=True, text=True)
+        results.append((res.returncode, res.stderr))
+    assert results[0][0] == 0, results[0][1]
+    assert results[1][0] != 0 and "conflicting types" in results[1][1]
+
+
 def test_kernels_compile_without_warnings(tmp_path):
     """Every kernel (and the trace writer's C) under -Wall -Wextra -Werror, from its own C file
     with the generated header."""

@@ -18,6 +18,7 @@ run, which is what comparisons are for), and the variables only one trace has ar
 from __future__ import annotations
 
 import fnmatch
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -310,3 +311,103 @@ def format_table(diffs: Sequence[Difference], *, most: int | None = None,
 
 __all__ = ["Comparability", "Difference", "aligned", "common_names", "comparability", "compare", "format_table",
            "run_status", "scene_differences"]
+
+
+# --- across events (docs/explanation/events.md, "Measures across jumps") ---------------------------
+@dataclass(frozen=True)
+class EventTiming:
+    """The events of one kind matched in order between a test and a reference trace: the largest
+    time difference ``max_error`` [s] (at the test's event time ``at``), the count matched, and
+    the events only one trace has (``missing``: ``("test" | "reference", time)``)."""
+
+    kind: str
+    matched: int
+    max_error: float
+    at: float
+    missing: tuple[tuple[str, float], ...] = ()
+
+
+def times_from_clock(trace: Trace, name: str) -> np.ndarray:
+    """Event times [s] kept by a time-of-the-last-event signal ``name`` (a block's mode such as
+    ``mass.t_stick``): its successive distinct values, exact whatever the output grid."""
+    v = np.asarray(trace[name], dtype=float)
+    keep = np.concatenate([[False], np.diff(v) != 0])
+    return v[keep]
+
+
+def times_from_counter(trace: Trace, name: str) -> np.ndarray:
+    """Event times [s] from an event counter ``name`` (e.g. ``rig.leg[2].impacts``): the first
+    instant of the trace at which it has grown, once per event counted (to the output interval)."""
+    v = np.asarray(trace[name], dtype=float)
+    rises = np.nonzero(np.diff(v) > 0)[0] + 1
+    return np.repeat(trace.time[rises], np.rint(np.diff(v)[rises - 1]).astype(int))
+
+
+def match_events(kind: str, test_times: Sequence[float], ref_times: Sequence[float]) -> EventTiming:
+    """The k-th event of ``test_times`` against the k-th of ``ref_times`` (both increasing)."""
+    a, b = np.asarray(test_times, dtype=float), np.asarray(ref_times, dtype=float)
+    n = min(len(a), len(b))
+    d = np.abs(a[:n] - b[:n])
+    k = int(np.argmax(d)) if n else 0
+    missing = tuple(("reference", float(t)) for t in a[n:]) + tuple(("test", float(t)) for t in b[n:])
+    return EventTiming(kind, n, float(d[k]) if n else 0.0, float(a[k]) if n else math.nan, missing)
+
+
+def windows(timings: Sequence[tuple[Sequence[float], Sequence[float]]], interval: float) -> list[tuple[float, float]]:
+    """The windows ``[t_e - delta_e, t_e + delta_e]`` around each matched event, with
+    ``delta_e = |t_test - t_ref| + interval`` (one output interval), covering both traces' times."""
+    out = []
+    for test_times, ref_times in timings:
+        for a, b in zip(test_times, ref_times):
+            delta = abs(a - b) + interval
+            out.append((min(a, b) - delta, max(a, b) + delta))
+    return out
+
+
+def compare_between_events(test: Trace, ref: Trace, event_windows: Sequence[tuple[float, float]],
+                           patterns: Sequence[str] | None = None) -> list[Difference]:
+    """:func:`compare` over the instants outside ``event_windows`` (:func:`windows`): the value
+    error between events, where a jump placed a hair apart in the two traces is not read as an
+    error the jump's size.  The reference's rows at an event (left and right limits at one time)
+    are interpolated from the side of the instant compared."""
+    names = common_names(test, ref, patterns)
+    t = test.time
+    keep = (t >= ref.time[0] - 1e-12) & (t <= ref.time[-1] + 1e-12)
+    for lo, hi in event_windows:
+        keep &= ~((t >= lo) & (t <= hi))
+    if not keep.any():
+        raise UserError("no instant of the test trace lies between the events' windows")
+    t = t[keep]
+    a = np.column_stack([test[n][keep] for n in names])
+    b = np.column_stack([np.interp(t, ref.time, ref[n]) for n in names])
+    d = np.abs(a - b)
+    k = np.argmax(d, axis=0)
+    full = np.column_stack([ref[n] for n in names])
+    span = full.max(axis=0) - full.min(axis=0)
+    scale = np.where(span > 0, span, np.abs(full).max(axis=0))
+    rms = np.sqrt(np.mean(d ** 2, axis=0))
+    return [Difference(n, float(d[k[j], j]), float(t[k[j]]), float(rms[j]), float(scale[j]))
+            for j, n in enumerate(names)]
+
+
+def event_times(trace: Trace, name: str) -> np.ndarray:
+    """Event times [s] recorded by ``name``: an event counter when every value is a whole number
+    (:func:`times_from_counter`), else a time-of-the-last-event signal (:func:`times_from_clock`)."""
+    if name not in trace.columns:
+        raise UserError(f"event signal {name!r} is not in the trace (recorded: {', '.join(trace.names[:6])}...)")
+    v = np.asarray(trace[name], dtype=float)
+    return times_from_counter(trace, name) if np.all(v == np.rint(v)) else times_from_clock(trace, name)
+
+
+def compare_events(test: Trace, ref: Trace, names: Sequence[str], patterns: Sequence[str] | None = None,
+                   interval: float | None = None) -> tuple[list[EventTiming], list[Difference]]:
+    """Both measures across events: the :class:`EventTiming` of each event signal in ``names``
+    (matched in order) and the value error between the events (:func:`compare_between_events`,
+    windows of the event-time error plus ``interval``, by default the test trace's largest
+    output interval)."""
+    pairs = [(event_times(test, n), event_times(ref, n)) for n in names]
+    timings = [match_events(n, a, b) for n, (a, b) in zip(names, pairs)]
+    if interval is None:
+        t = test.time
+        interval = float(np.max(np.diff(t))) if len(t) > 1 else 0.0
+    return timings, compare_between_events(test, ref, windows(pairs, interval), patterns)

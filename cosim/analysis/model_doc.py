@@ -57,12 +57,26 @@ def _integrator(block) -> str:
     if block.integrator == "discrete":
         return f"discrete update every {block.sample_period:g} s"
     if block.integrator == "none" or not block.states:
+        if getattr(block, "has_events", False):
+            return "none (no continuous states)" + _events(block)
         return "none (no continuous states; outputs are algebraic)"
     if block.integrator == "exact":
         return "exact (matrix exponential of the linear equations: exact and stable at any step)"
     name = {"rk4": "RK4 (explicit, 4th order)", "radau": "Radau IIA (implicit, 5th order)"}.get(block.integrator,
                                                                                                    block.integrator)
-    return f"{name}, {block.substeps} substep{'s' if block.substeps != 1 else ''} per communication step"
+    return f"{name}, {block.substeps} substep{'s' if block.substeps != 1 else ''} per communication step" + _events(block)
+
+
+def _events(block) -> str:
+    """``; events: ...`` for a block with events (docs/explanation/events.md), else ``""``."""
+    if not getattr(block, "has_events", False):
+        return ""
+    parts = [f"{len(block.modes)} mode{'s' if len(block.modes) != 1 else ''}"] if block.modes else []
+    if block.event_names:
+        parts.append("indicators " + ", ".join(block.event_names))
+    if block.sample_times:
+        parts.append("samples every " + ", ".join(f"{s.period:g} s" for s in block.sample_times))
+    return "; events located inside the step: " + "; ".join(parts)
 
 
 def model_info(model: str, fidelity: str | None = None) -> Info:

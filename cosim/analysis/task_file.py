@@ -42,7 +42,10 @@ def task_from_mapping(spec: dict, where: str, base: Path | None = None) -> Task:
     spec = dict(spec)
     if isinstance(spec.get("waypoints"), str):
         path = (base or Path(".")) / spec["waypoints"]
-        spec["waypoints"], times = read_waypoints_csv(path)
+        try:
+            spec["waypoints"], times = read_waypoints_csv(path)
+        except UserError as exc:
+            raise UserError(f"{where}: waypoints: {exc}") from None
         if times is not None and "times" not in spec:
             spec["times"] = times
             spec.setdefault("method", "spline")

@@ -309,8 +309,8 @@ def _virtual(args) -> int:
             child.wait(timeout=10)
             err.join(timeout=2)
             raise UserError(f"the daemon did not start (exit code {child.returncode})")
-        print(f"rpr-cosim board virtual: listening on {m.group(1)} (fake tree {tree}, {args.actuator} actuators)",
-              flush=True)
+        what = f"{args.actuator} actuators" if args.fidelity == "rig" else f"{args.fidelity} plant"
+        print(f"rpr-cosim board virtual: listening on {m.group(1)} (fake tree {tree}, {what})", flush=True)
         if args.rt_priority:
             _plant_priority(args.rt_priority - 1)
         plant.run(args.duration, stop=lambda: stopping["flag"] or child.poll() is not None)

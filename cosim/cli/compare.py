@@ -1,7 +1,7 @@
 """``rpr-cosim compare``: the differences between two traces.
 
     rpr-cosim compare TEST.csv REFERENCE.csv [--only PATTERN ...] [--plot FILE] [--tol REL]
-                      [--allow-failed] [--allow-partial]
+                      [--allow-failed] [--allow-partial] [--events SIGNAL ...] [--event-tol S]
 
 Prints, for every variable both traces recorded, the largest absolute difference, when it
 occurs, the RMS and the error relative to the reference's range (REFERENCE is interpolated onto
@@ -16,6 +16,14 @@ directions) unless ``--allow-partial``, and when the sidecars' scene hashes diff
 simulated (the differing entries are named) unless ``--allow-different-scenes``; runs of one scene
 with different master settings are compared, with a note naming the settings.  Variables found in
 only one trace are listed as not compared.
+
+With ``--events`` (scenes with discontinuities, docs/explanation/events.md), each SIGNAL is an
+event counter (whole numbers, e.g. ``rig.leg[2].impacts``) or a time-of-the-last-event signal
+(e.g. ``mass.t_stick``) recorded in both traces: the events are matched in order and their
+largest time difference printed, and the value errors are measured between events (outside a
+window of that difference plus one output interval around each), where a max-norm would read a
+jump placed a hair apart as an error the jump's size.  Under ``--tol`` a missing event fails, and
+so does an event-time error beyond ``--event-tol`` seconds (default: REL times the test's span).
 """
 from __future__ import annotations
 
@@ -42,6 +50,11 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "guard, interrupted, unfinished)")
     p.add_argument("--allow-partial", action="store_true",
                    help="compare even when the traces overlap over less than either trace's time span")
+    p.add_argument("--events", action="append", default=None, metavar="SIGNAL",
+                   help="an event counter or time-of-the-last-event signal: match the events, report their time "
+                        "error and measure values between events; repeatable")
+    p.add_argument("--event-tol", type=float, default=None, metavar="S",
+                   help="with --tol: the largest event-time error [s] (default: REL times the test's span)")
     p.add_argument("--allow-different-scenes", action="store_true",
                    help="compare even when the sidecars' scene hashes differ in what is simulated (components, "
                         "parameters, connections, inputs); differences in the master's settings are always allowed")
@@ -63,8 +76,18 @@ def _compare(args: argparse.Namespace) -> int:
                                allow_different_scenes=args.allow_different_scenes)
     if problems and args.tol is None:
         raise UserError("refused: " + "; ".join(problems))
-    diffs = compare(test, ref, args.only)
-    print(f"{args.test} against {args.reference}: {len(diffs)} variables")
+    timings = []
+    if args.events:
+        from ..analysis.compare import compare_events
+
+        timings, diffs = compare_events(test, ref, args.events, args.only)
+    else:
+        diffs = compare(test, ref, args.only)
+    print(f"{args.test} against {args.reference}: {len(diffs)} variables"
+          + (" (values between events)" if timings else ""))
+    for tm in timings:
+        miss = "; missing: " + ", ".join(f"{t:g} s (not in the {w})" for w, t in tm.missing) if tm.missing else ""
+        print(f"events {tm.kind}: {tm.matched} matched, largest time error {tm.max_error:.3g} s at {tm.at:g} s{miss}")
     est = (test.stats or {}).get("estimate") or {}
     print(format_table(diffs, most=args.most, estimates=est.get("errors")))
     if est.get("worst") is not None:
@@ -86,6 +109,13 @@ def _compare(args: argparse.Namespace) -> int:
                   f"tolerance {args.tol:g} (worst: {max(bad, key=lambda d: d.relative).name})", file=sys.stderr)
             return 1
         if problems:
+            return 1
+        span = float(test.time[-1] - test.time[0]) if len(test.time) else 0.0
+        limit = args.event_tol if args.event_tol is not None else args.tol * span
+        late = [tm for tm in timings if tm.missing or tm.max_error > limit]
+        if late:
+            print(f"rpr-cosim compare: events beyond the event time tolerance {limit:g} s or missing: "
+                  f"{', '.join(tm.kind for tm in late)}", file=sys.stderr)
             return 1
     return 0
 

@@ -9,7 +9,8 @@ that the data has (or ``--signals``) against the data, each weighted by its rang
 scene's values within the catalog bounds.  Prints each estimate with its 95 % interval, the
 residual before and after, and the parameters the data cannot tell apart; writes
 ``OUT/<scene>_fitted.yaml`` (an overlay of SCENE) and ``OUT/fit.json``; then runs the calibrated
-and the nominal scene as co-simulations and compares both with the data (``--no-check``: not).
+and the nominal scene as co-simulations and compares both with the data, with a plot of each
+(``OUT/fitted_vs_data.png``, ``OUT/nominal_vs_data.png``; ``--no-check``: none of this).
 """
 from __future__ import annotations
 
@@ -49,7 +50,7 @@ def _split(text: str | None) -> list[str]:
 def _fit(args: argparse.Namespace) -> int:
     from ..errors import UserError
     from ..fit import build, solve
-    from ..fit.confirm import check, lines as check_lines
+    from ..fit.confirm import check, lines as check_lines, plot
     from ..fit.overlay import write_overlay
     from ..fit.report import as_dict, lines
     from ..outputs import OutputLock, check_out_dir, safe_name
@@ -80,6 +81,7 @@ def _fit(args: argparse.Namespace) -> int:
                             log=tagged("run"))
             for line in check_lines([fitted, nominal], noise):
                 print(line)
+            print(f"  plots: {plot(fitted, out / 'fitted_vs_data.png')}, {plot(nominal, out / 'nominal_vs_data.png')}")
             record["check"] = {c.label: {d.name: {"rms": d.rms, "max_abs": d.max_abs, "at": d.at}
                                          for d in c.differences} for c in (fitted, nominal)}
         (out / "fit.json").write_text(json.dumps(record, indent=1) + "\n")

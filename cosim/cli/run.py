@@ -77,9 +77,9 @@ def _load_and_run(args: argparse.Namespace) -> int:
     from ..errors import UserError
     from ..run.execute import estimate
 
-    refused = _motion_checks(scene, args)
     if args.check:
         _describe(scene)
+        refused = _motion_checks(scene, args)
         try:
             _describe_choice(scene)
         except UserError as exc:
@@ -92,7 +92,7 @@ def _load_and_run(args: argparse.Namespace) -> int:
             say(f"rpr-cosim run: {exc}")
             return 2
         return 1 if refused else 0
-    if refused:
+    if _motion_checks(scene, args):
         say("rpr-cosim run: nothing was run")
         return 1
     check_trace_size(scene, args.max_trace)
@@ -212,6 +212,11 @@ def _reference(scene, res, out: Path, plot: bool, trace_format: str = "csv"):
                       f"below cover the common span only")
         print("co-simulation against the reference:")
         print(format_table(diffs, most=12, estimates=(res.stats.get("estimate") or {}).get("errors")))
+        n_events = (st.get("events") or {}).get("count", 0)
+        if n_events:
+            print(f"note: the reference has {n_events} events; the errors above are max-norms across them (a jump "
+                  f"placed a hair apart reads as an error its size): `rpr-cosim compare TEST REFERENCE --events "
+                  f"SIGNAL` measures the event times and the values between events (docs/explanation/events.md)")
         if plot:
             from ..scenario.units import units_of
 

@@ -10,7 +10,7 @@ from pathlib import Path
 from ..analysis.compare import Difference, compare
 from ..errors import UserError
 from ..run.execute import RunResult, run
-from ..trace.traces import read_trace
+from ..trace.traces import Trace, read_trace
 
 
 @dataclass
@@ -18,6 +18,16 @@ class Check:
     label: str
     run: RunResult
     differences: list[Difference]
+    data: Trace
+
+
+def plot(check_: Check, path: Path) -> Path:
+    """PNG of the run against the data, the worst signals first (as ``compare --plot``)."""
+    from ..analysis.charts import plot_comparison
+
+    units = {**check_.data.meta.get("units", {}), **check_.run.trace.meta.get("units", {})}
+    return plot_comparison(check_.run.trace, check_.data, check_.differences, path,
+                           labels=(check_.label, "data"), units=units)
 
 
 def check(label: str, scene: Path, overrides: Sequence[str], data: Path, signals: Sequence[str], out_dir: Path,
@@ -26,8 +36,9 @@ def check(label: str, scene: Path, overrides: Sequence[str], data: Path, signals
     res = run(scene, list(overrides), out_dir=out_dir, log=log)
     if res.status not in ("ok", "inaccurate"):
         raise UserError(f"the {label} co-simulation ended {res.status}: {res.reason}")
-    diffs = compare(res.trace, read_trace(data), None)
-    return Check(label, res, [d for d in diffs if d.name in signals])
+    recorded = read_trace(data)
+    diffs = compare(res.trace, recorded, None)
+    return Check(label, res, [d for d in diffs if d.name in signals], recorded)
 
 
 def lines(checks: Sequence[Check], noise: dict[str, float]) -> list[str]:
@@ -45,4 +56,4 @@ def lines(checks: Sequence[Check], noise: dict[str, float]) -> list[str]:
     return out
 
 
-__all__ = ["Check", "check", "lines"]
+__all__ = ["Check", "check", "lines", "plot"]

@@ -192,7 +192,8 @@ def _substeps(f: ca.Function, x0: np.ndarray, u0: np.ndarray, theta: np.ndarray,
     """Substeps per interval so that ``h / n * |lambda_max| <= STIFF_LIMIT`` at the start."""
     if not len(x0):
         return 1
-    jac = np.array(ca.Function("jx", f.mx_in(), [ca.jacobian(f.mx_out(0), f.mx_in(0))])(x0, u0, theta))
+    args = f.mx_in()
+    jac = np.array(ca.Function("jx", args, [ca.jacobian(f(*args), args[0])])(x0, u0, theta))
     rho = float(np.max(np.abs(np.linalg.eigvals(jac)))) if jac.size else 0.0
     return int(min(MAX_SUBSTEPS, max(1, math.ceil(h * rho / STIFF_LIMIT))))
 

@@ -124,19 +124,45 @@ def interpolation_doubt(x: np.ndarray, y: np.ndarray, at: np.ndarray, interp: np
     return np.abs(interp - chord) + np.abs(nxt - prev) * w
 
 
+def event_instants(t: np.ndarray) -> np.ndarray:
+    """The event times a trace marks itself: instants recorded twice in a row (the left and the
+    right limit of an event, docs/explanation/events.md)."""
+    t = np.asarray(t, dtype=float)
+    if len(t) < 3:
+        return np.zeros(0)
+    return t[1:-1][np.diff(t[:-1]) == 0]  # (a stop request may repeat the last instant: not an event)
+
+
+def outside_events(at: np.ndarray, events: Sequence[float], spacing: float) -> np.ndarray:
+    """Mask of the instants ``at`` outside ``[t_e - 2 spacing, t_e + 2 spacing]`` around each event:
+    there the run and its companion may place a jump a step apart, and a difference across it is
+    the jump's size, not an error (the value error between events of the events design page; the
+    window is two of the sparser trace's steps, the event-time difference two such runs can have)."""
+    keep = np.ones(len(at), dtype=bool)
+    for te in events:
+        keep &= np.abs(at - te) > 2 * spacing
+    return keep
+
+
 def richardson(t: np.ndarray, x: np.ndarray, tc: np.ndarray, xc: np.ndarray, names: Sequence[str],
-               div: float, method: str) -> ErrorEstimate:
+               div: float, method: str, events: Sequence[float] = ()) -> ErrorEstimate:
     """The estimate from a run (instants ``t``, values ``x``, one column per name) and its companion
     (``tc``, ``xc``): their largest difference over ``div`` per signal, relative to the run's range.
     They are compared at the instants of the sparser one inside both spans, the denser one
     interpolated there (monotone cubic: exact at shared instants, no overshoot at a jump), less
     the interpolation's own doubt there (:func:`interpolation_doubt`), which leaves at least
-    :data:`DOUBT_KEEPS` of the difference."""
+    :data:`DOUBT_KEEPS` of the difference.  Around ``events`` (times [s]: the run's reported
+    events and the instants either trace records twice) the instants within two of the sparser
+    trace's steps are left out (:func:`outside_events`)."""
     lo, hi = max(t[0], tc[0]), min(t[-1], tc[-1])
     if len(t) < 2 or len(tc) < 2 or hi <= lo:
         return ErrorEstimate(None, method=f"{method}: the run and its companion share no time span")
     sparse_t, dense_t, dense_x, sparse_x = (tc, t, x, xc) if len(tc) <= len(t) else (t, tc, xc, x)
     keep = (sparse_t >= lo - 1e-12) & (sparse_t <= hi + 1e-12)
+    events = sorted({*map(float, events), *event_instants(t), *event_instants(tc)})
+    if events:
+        keep &= outside_events(sparse_t, events, float(np.max(np.diff(sparse_t))))
+        method = f"{method}; {len(events)} events left out (two steps either side)"
     at = sparse_t[keep]
     # the dense trace's instants strictly increasing (a stop request may repeat the last instant)
     uniq = np.concatenate([[True], np.diff(dense_t) > 0])
@@ -195,6 +221,7 @@ class EstimatingObserver(Observer):
         self.tolerance, self.extra = tolerance, dict(extra or {})
         self.rows: list[np.ndarray] = []
         self.columns: list[str] = []
+        self.events: list[float] = []
         self.estimate: ErrorEstimate | None = None
 
     def start(self, columns, meta) -> None:
@@ -216,6 +243,7 @@ class EstimatingObserver(Observer):
             ob.record_text(t, column, value)
 
     def record_event(self, t, component, kind) -> None:
+        self.events.append(float(t))
         for ob in self.inner:
             ob.record_event(t, component, kind)
 
@@ -226,7 +254,7 @@ class EstimatingObserver(Observer):
         if len(data) < 2:
             return ErrorEstimate(None, method=f"{self.method}: fewer than two recorded rows")
         tc, xc = self.companion
-        return richardson(data[:, 0], data[:, 1:], tc, xc, self.columns[1:], self.div, self.method)
+        return richardson(data[:, 0], data[:, 1:], tc, xc, self.columns[1:], self.div, self.method, self.events)
 
     def finish(self, status, reason, stats) -> None:
         try:

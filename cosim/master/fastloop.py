@@ -31,5 +31,6 @@ def library() -> CDLL:
 
 
 def available() -> bool:
-    """True when the loop library can be built and loaded here."""
+    """True when the loop library can be built and loaded here (whether a run uses it is
+    :func:`cosim.master.engine.choose_engine`'s choice)."""
     return builds(library)

@@ -24,7 +24,7 @@ import numpy as np
 from ..errors import UserError
 from ..slaves.slave import Status
 from .entries import ITER_RUN, ITERATIVE_CONTROL, IterativeEnd, struct
-from .native import SlaveArray, builds, compile_loop
+from .native import SlaveArray, compile_loop
 
 CControl = struct(ITERATIVE_CONTROL)
 
@@ -162,9 +162,4 @@ class CompiledIterative:
         return rows
 
 
-def available() -> bool:
-    """True when the engine's library can be built and loaded here."""
-    return builds(library)
-
-
-__all__ = ["CompiledIterative", "available", "library"]
+__all__ = ["CompiledIterative", "library"]

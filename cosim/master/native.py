@@ -22,7 +22,7 @@ from fmus.native import NoCompiler, load
 
 from ..errors import UserError
 from ..slaves import crumb
-from .entries import SET_CRUMB, SLAVE, Entry, bind, struct
+from .entries import SET_CRUMB, SLAVE, Entry, bind, header, struct
 
 #: The slave struct's fields (C type, name, what it is), declared in :data:`cosim.master.entries.SLAVE`.
 SLAVE_FIELDS = SLAVE.fields
@@ -35,8 +35,6 @@ _HERE = Path(__file__).parent
 def kernel_files(main: str) -> dict[str, str]:
     """The files of the kernel ``main`` (a C file beside this module): it, ``native.h``,
     ``crumb.h`` and the generated ``rpr_decls.h``."""
-    from .entries import header
-
     return {"rpr_decls.h": header(), "native.h": (_HERE / "native.h").read_text(),
             "crumb.h": crumb.C_HEADER.read_text(), main: (_HERE / main).read_text()}
 

@@ -22,6 +22,42 @@ from ..slaves.slave import Slave
 from ..trace.traces import MemoryTrace, Trace, trace_suffix, trace_writer
 
 
+def _quiet(message: str) -> None:
+    """A log that says nothing."""
+
+
+@dataclass(frozen=True)
+class RunRequest:
+    """What a run of a scene is asked for besides the scene, passed down whole: the ``--set``
+    overrides as given (recorded in the trace's metadata), the output directory and trace format,
+    the engine (overriding ``master.engine``), the FMU cache, the catalog and ``fidelity: auto``'s
+    resolution for loading, the trace size limit, the supervision's call timeout, and where
+    progress and log lines go (see :func:`run` for each)."""
+
+    overrides: Mapping[str, Any] | Sequence[str] | None = None
+    out_dir: Path | None = None
+    trace_format: str = "csv"
+    engine: str | None = None
+    cache_dir: Path | None = None
+    catalog: Any = None
+    auto_fidelity: Any = None
+    max_trace_bytes: int | str | None = None
+    call_timeout: float | None = None
+    progress: Callable[[int, int], None] | None = None
+    log: Callable[[str], None] = _quiet
+
+    @property
+    def override_list(self) -> list:
+        """The overrides as a list (of items or ``"path=value"`` strings)."""
+        ov = self.overrides
+        return list(ov.items()) if isinstance(ov, Mapping) else list(ov or [])
+
+    def pilot(self) -> "RunRequest":
+        """The request of a run that only informs this one (a pilot, :mod:`cosim.run.choose`): in
+        memory, quiet, the same engine."""
+        return RunRequest(engine=self.engine)
+
+
 @dataclass
 class RunResult:
     """Outcome of :func:`run`: ``status`` is ``"ok"``, ``"failed"``, ``"stopped"`` (a component
@@ -217,16 +253,15 @@ def run(scene: Scene | str | Path, overrides: Mapping[str, Any] | Sequence[str] 
     from ..interrupts import signals_as_interrupts
     from ..outputs import OutputLock, check_out_dir
 
-    say = log or (lambda m: None)
+    request = RunRequest(overrides, out_dir, trace_format, engine, cache_dir, catalog, auto_fidelity, max_trace_bytes,
+                         call_timeout, progress, log or _quiet)
     trace_suffix(trace_format)  # an unknown format is one line before anything runs
     if out_dir is None:
         with signals_as_interrupts():
-            return _as_chosen(_run(scene, overrides, None, catalog, cache_dir, progress, say, engine, slaves,
-                                   max_trace_bytes, auto_fidelity, call_timeout, trace_format))
+            return _as_chosen(_run(scene, request, slaves))
     check_out_dir(out_dir)
-    with signals_as_interrupts(), OutputLock(out_dir, log=say):
-        return _as_chosen(_run(scene, overrides, out_dir, catalog, cache_dir, progress, say, engine, slaves,
-                               max_trace_bytes, auto_fidelity, call_timeout, trace_format))
+    with signals_as_interrupts(), OutputLock(out_dir, log=request.log):
+        return _as_chosen(_run(scene, request, slaves))
 
 
 def _as_chosen(res: RunResult) -> RunResult:
@@ -240,56 +275,51 @@ def _as_chosen(res: RunResult) -> RunResult:
     return res
 
 
-def _run(scene, overrides, out_dir, catalog, cache_dir, progress, log, engine, slaves, max_trace_bytes,
-         auto_fidelity, call_timeout=None, trace_format="csv") -> RunResult:
+def _run(scene: Scene | str | Path, request: RunRequest, slaves: Sequence[Slave] | None) -> RunResult:
     from . import supervise
 
+    overrides, log = request.overrides, request.log
     if not isinstance(scene, Scene):
-        scene = load(scene, overrides, catalog=catalog, auto_fidelity=auto_fidelity)
+        scene = load(scene, overrides, catalog=request.catalog, auto_fidelity=request.auto_fidelity)
     elif overrides:
         if scene.path is None or not Path(scene.path).is_file():
             raise UserError("overrides need the scene's file; pass the path instead of a Scene")
-        scene = load(scene.path, overrides, catalog=catalog, auto_fidelity=auto_fidelity)
-    log(f"{scene.name}: {check_trace_size(scene, max_trace_bytes)}")
+        scene = load(scene.path, overrides, catalog=request.catalog, auto_fidelity=request.auto_fidelity)
+    log(f"{scene.name}: {check_trace_size(scene, request.max_trace_bytes)}")
     t0 = time.perf_counter()
     if slaves is None:
-        paths = build_components(scene, cache_dir=cache_dir, progress=log)
+        paths = build_components(scene, cache_dir=request.cache_dir, progress=log)
         build_s = time.perf_counter() - t0
         if supervise.enabled():
             from ..slaves.fmu import unpack_fmu
 
             for p in paths.values():  # here, so that this process removes the folders at exit whatever the child does
                 unpack_fmu(p)
-            return _supervised(scene, out_dir, paths, None, progress, log, engine, overrides, call_timeout, build_s,
-                               trace_format)
-        status, reason, trace, stats, trace_path, build_step = _step(scene, out_dir, paths, None, progress, log,
-                                                                     engine, overrides, trace_format)
+            return _supervised(scene, request, paths, None, build_s)
+        status, reason, trace, stats, trace_path, build_step = _step(scene, request, paths, None)
         return RunResult(scene, status, reason, trace, stats, paths, trace_path, build_s + build_step)
     if [s.name for s in slaves] != list(scene.components):
         raise UserError(f"slaves must match the scene's components in order: {list(scene.components)}")
     if supervise.enabled() and all(type(s) is FmuSlave and s.fmu is None and not s.reuse for s in slaves):
         # fresh FMU slaves (a study's): supervised too, nothing of theirs is kept after the run
-        return _supervised(scene, out_dir, {}, slaves, progress, log, engine, overrides, call_timeout, 0.0,
-                           trace_format)
-    status, reason, trace, stats, trace_path, build_s = _step(scene, out_dir, {}, slaves, progress, log, engine,
-                                                              overrides, trace_format)
+        return _supervised(scene, request, {}, slaves, 0.0)
+    status, reason, trace, stats, trace_path, build_s = _step(scene, request, {}, slaves)
     return RunResult(scene, status, reason, trace, stats, {}, trace_path, build_s)
 
 
-def _supervised(scene, out_dir, paths, slaves, progress, log, engine, overrides, call_timeout, build_s,
-                trace_format="csv") -> RunResult:
+def _supervised(scene: Scene, request: RunRequest, paths: dict, slaves: Sequence[Slave] | None,
+                build_s: float) -> RunResult:
     """:func:`_step` in a supervised child (:mod:`cosim.run.supervise`); a crash, a hung call or
     a child that had to be killed after a signal becomes the run's status (the signal is raised
     again once the files are settled)."""
     from . import supervise
 
-    timeout = supervise.call_timeout(call_timeout)
+    timeout = supervise.call_timeout(request.call_timeout)
     try:
         status, reason, trace, stats, trace_path, _ = supervise.supervised(
-            lambda say: _step(scene, out_dir, paths, slaves, progress, say, engine, overrides, trace_format),
-            timeout_s=timeout, log=log)
+            lambda say: _step(scene, replace(request, log=say), paths, slaves), timeout_s=timeout, log=request.log)
     except supervise.Failed as failed:
-        res = _settle_failed(scene, out_dir, paths, build_s, failed, trace_format)
+        res = _settle_failed(scene, request.out_dir, paths, build_s, failed, request.trace_format)
         if failed.signal_exc is not None:
             raise failed.signal_exc from None
         return res
@@ -325,7 +355,7 @@ def _settle_failed(scene: Scene, out_dir: Path | None, paths: dict, build_s: flo
     return RunResult(scene, failed.status, failed.reason, trace, stats.as_dict(), paths, path, build_s)
 
 
-def _step(scene: Scene, out_dir, paths, slaves, progress, log, engine, overrides, trace_format="csv"):
+def _step(scene: Scene, request: RunRequest, paths: dict, slaves: Sequence[Slave] | None) -> tuple:
     """Couple the slaves (FMUs from ``paths`` when ``slaves`` is None), step them (after the
     master's choice, :mod:`cosim.run.choose`, for a scene that names no algorithm, and a companion
     run for the error estimate, :mod:`cosim.master.estimate`) and return (status, reason, trace,
@@ -376,20 +406,19 @@ def _step(scene: Scene, out_dir, paths, slaves, progress, log, engine, overrides
             companions: list = []
 
             def pilot(sc: Scene, companion_rtol: float | None = None) -> RunResult:
-                pilots.append(_once(sc, instances, None, None, None, engine, repeat, {},
-                                    companion_rtol=companion_rtol, companions=companions))
+                pilots.append(_once(sc, Stepping(instances, repeat, companions), request.pilot(), None, {},
+                                    companion_rtol))
                 return pilots[-1]
 
-            scene, choice = choose(scene, pilot if repeat is None else None, log, why_not=repeat)
+            scene, choice = choose(scene, pilot if repeat is None else None, request.log, why_not=repeat)
             extra["choice"] = choice.as_dict()
-            log(f"{scene.name}: {choice}")
-        over = list(overrides.items()) if isinstance(overrides, Mapping) else list(overrides or [])
+            request.log(f"{scene.name}: {choice}")
         same = next((p for p in reversed(pilots) if p.scene.master == scene.master and p.scene.n_steps == scene.n_steps
                      and p.scene.stop_time == scene.stop_time and not p.trace.text), None)
         if same is not None:  # the last pilot ran the chosen setting over the whole run: it is the run
-            res = _replay(same, scene, out_dir, progress, extra, log, over, trace_format)
+            res = _replay(same, scene, request, extra)
         else:
-            res = _once(scene, instances, main, out_dir, progress, engine, repeat, extra, log, over, trace_format)
+            res = _once(scene, Stepping(instances, repeat), request, main, extra)
     finally:
         instances.close()
     return res.status, res.reason, res.trace, res.stats, res.trace_path, build_s
@@ -406,8 +435,7 @@ def _run_meta(scene: Scene, overrides: Sequence) -> dict:
 REPLAY_ROWS = 32
 
 
-def _replay(pilot: RunResult, scene: Scene, out_dir, progress, extra: dict, log, overrides: Sequence,
-            trace_format: str = "csv") -> RunResult:
+def _replay(pilot: RunResult, scene: Scene, request: RunRequest, extra: dict) -> RunResult:
     """The run of ``scene`` that the pilot run ``pilot`` (the same scene at the same setting over
     the same span, with its companion, estimate and verdict) already is: its rows, status and
     statistics written to the run's observers (trace file, sidecar) with ``extra`` (the choice),
@@ -416,7 +444,8 @@ def _replay(pilot: RunResult, scene: Scene, out_dir, progress, extra: dict, log,
 
     from ..master import interruption_reason
 
-    memory, inner, trace_path = scene_observers(scene, out_dir, trace_format=trace_format)
+    memory, inner, trace_path = scene_observers(scene, request.out_dir, trace_format=request.trace_format)
+    progress = request.progress
     tr = pilot.trace
     status, reason, stats = pilot.status, pilot.reason, dict(pilot.stats, **extra)
     rows, n = tr.data, len(tr.data)
@@ -424,7 +453,7 @@ def _replay(pilot: RunResult, scene: Scene, out_dir, progress, extra: dict, log,
     done = 0
     try:
         for ob in inner:
-            ob.start(tr.columns, {**tr.meta, **_run_meta(scene, overrides), **extra})
+            ob.start(tr.columns, {**tr.meta, **_run_meta(scene, request.override_list), **extra})
         try:
             # in blocks, as a run records them: a full disk keeps whole rows, a signal or Ctrl-C
             # (from the progress callback too) ends the run "interrupted" with the rows written
@@ -448,8 +477,8 @@ def _replay(pilot: RunResult, scene: Scene, out_dir, progress, extra: dict, log,
             ob.finish(status, reason, stats)
     finally:
         for ob in inner:
-            if getattr(ob, "note", ""):
-                log(ob.note)
+            if ob.note:
+                request.log(ob.note)
     t = memory.trace
     for ob in inner:  # a trace writer that failed at the end turns "ok" into "failed"
         if getattr(ob, "status", status) != status:
@@ -471,11 +500,48 @@ def repeatable(scene: Scene) -> str | None:
     return None
 
 
-def _companion_trace(scene: Scene, instances: Instances, engine, rtol: float | None = None,
-                     ran: list | None = None) -> tuple[tuple | None, float, str]:
+@dataclass
+class Stepping:
+    """What the runs of one scene in a request share (pilots, companions, the run): the slave
+    ``instances``, why a run may not be repeated (``repeat``, None: it may), and for the pilots
+    the companions run so far (``companions``: (scene, (time, values)); None for the run itself)."""
+
+    instances: Instances
+    repeat: str | None
+    companions: list | None = None
+
+
+@dataclass(frozen=True)
+class Watched:
+    """What a run of a scene adds to its stepping that its companion run does not: progress, the
+    trace metadata and the guard; it is also paced (``master.realtime``), timed, and recorded at
+    ``master.output_interval`` (a companion records every step)."""
+
+    progress: Callable[[int, int], None] | None
+    meta: dict
+    guard: Any
+
+
+def simulate_scene(scene: Scene, system: CoupledSystem, observers: Sequence, engine: str | None,
+                   watched: Watched | None) -> Any:
+    """:func:`cosim.master.simulate` of ``scene`` over its coupled ``system``: the scene's master
+    settings mapped to the run's, written once (``engine`` overrides ``master.engine``); ``watched``
+    None for a companion run."""
+    m, w = scene.master, watched
+    return simulate(system, m.algorithm, step_ns=m.step_ns, n_steps=scene.n_steps, observers=observers,
+                    start_values=[c.start_values() for c in scene.components.values()], engine=engine or m.engine,
+                    order=_order(scene), inputs=m.inputs, start_ns=scene.start_ns, tolerances=_tolerances(scene),
+                    options=m.options or None, rates=[c.rate for c in scene.components.values()],
+                    record_every=m.record_every if w else 1, timing=w is not None, progress=w and w.progress,
+                    meta=w and w.meta, realtime=m.realtime if w else None, guard=w and w.guard)
+
+
+def _companion_trace(scene: Scene, stepping: Stepping, engine: str | None, rtol: float | None = None
+                     ) -> tuple[tuple | None, float, str]:
     """Run the companion of ``scene`` (:mod:`cosim.run.companion`; at ``rtol`` when given) on
-    ``instances`` into memory: ``((time, values) or None, divisor, method)``.  ``ran`` keeps the
-    companions run so far as (scene, trace): one that is the same scene again is not run again."""
+    ``stepping.instances`` into memory: ``((time, values) or None, divisor, method)``; one that is
+    the same scene as a companion in ``stepping.companions`` is not run again."""
+    instances, ran = stepping.instances, stepping.companions
     comp = companion(scene, any(s.description.can_interpolate_inputs for s in instances.main), rtol)
     if comp.scene is None:
         return None, 1.0, comp.method
@@ -488,11 +554,7 @@ def _companion_trace(scene: Scene, instances: Instances, engine, rtol: float | N
     memory = MemoryTrace()
     system = couple(cs, slaves)
     try:
-        simulate(system, cs.master.algorithm, step_ns=cs.master.step_ns, n_steps=cs.n_steps, record_every=1,
-                 observers=[memory], start_values=[c.start_values() for c in cs.components.values()],
-                 engine=engine or cs.master.engine, order=_order(cs), inputs=cs.master.inputs, start_ns=cs.start_ns,
-                 tolerances=_tolerances(cs), options=cs.master.options or None,
-                 rates=[c.rate for c in cs.components.values()], timing=False)
+        simulate_scene(cs, system, [memory], engine, None)
     except UserError as exc:
         instances.ended("failed")
         return None, 1.0, f"{comp.method} could not run: {exc}"
@@ -517,37 +579,30 @@ def _tolerances(scene: Scene) -> list:
     return [c.description.default_experiment.get("tolerance") for c in scene.components.values()]
 
 
-def _once(scene: Scene, instances: Instances, slaves, out_dir, progress, engine, repeat: str | None, extra: dict,
-          log: Callable[[str], None] = lambda m: None, overrides: Sequence = (), trace_format: str = "csv",
-          companion_rtol: float | None = None, companions: list | None = None) -> RunResult:
-    """One run of ``scene`` on ``slaves`` (None: ``instances.take()``) with its error estimate (a
-    companion run on ``instances.take()`` first, when ``repeat`` is None: at ``companion_rtol``
-    when given, one of ``companions`` when it is the same, see :func:`_companion_trace`), judged
-    by it (:func:`cosim.master.estimate.judge`)."""
+def _once(scene: Scene, stepping: Stepping, request: RunRequest, slaves: Sequence[Slave] | None, extra: dict,
+          companion_rtol: float | None = None) -> RunResult:
+    """One run of ``scene`` on ``slaves`` (None: ``stepping.instances.take()``) with its error
+    estimate (a companion run on ``instances.take()`` first, when ``stepping.repeat`` is None: at
+    ``companion_rtol`` when given, one of ``stepping.companions`` when it is the same, see
+    :func:`_companion_trace`), judged by it (:func:`cosim.master.estimate.judge`)."""
     from ..trace.traces import TraceWriteError
 
+    instances, repeat, engine = stepping.instances, stepping.repeat, request.engine
     if repeat is None and not scene.master.estimate:
         ctrace, div, method = None, 1.0, "master.estimate: false"
     elif repeat is None:
-        ctrace, div, method = _companion_trace(scene, instances, engine, companion_rtol, companions)
+        ctrace, div, method = _companion_trace(scene, stepping, engine, companion_rtol)
     else:
         ctrace, div, method = None, 1.0, repeat
     guard = scene_guard(scene)
     system = couple(scene, slaves if slaves is not None else instances.take(), guard.watch if guard else ())
     if guard:
         guard.bind(system.record_names + system.watch_names)
-    memory, inner, trace_path = scene_observers(scene, out_dir, trace_format=trace_format)
+    memory, inner, trace_path = scene_observers(scene, request.out_dir, trace_format=request.trace_format)
     estimator = EstimatingObserver(inner, ctrace, div, method, scene.master.tolerance, extra)
-    observers = [estimator]
-    meta = _run_meta(scene, overrides)
+    meta = _run_meta(scene, request.override_list)
     try:
-        stats = simulate(system, scene.master.algorithm, step_ns=scene.master.step_ns, n_steps=scene.n_steps,
-                         record_every=scene.master.record_every, observers=observers,
-                         start_values=[c.start_values() for c in scene.components.values()],
-                         engine=engine or scene.master.engine, order=_order(scene), progress=progress, meta=meta,
-                         inputs=scene.master.inputs, start_ns=scene.start_ns, tolerances=_tolerances(scene),
-                         realtime=scene.master.realtime, options=scene.master.options or None,
-                         guard=guard, rates=[c.rate for c in scene.components.values()]).as_dict()
+        stats = simulate_scene(scene, system, [estimator], engine, Watched(request.progress, meta, guard)).as_dict()
         stats = getattr(estimator, "stats", stats)
     except TraceWriteError:  # disk full: the observers finished with the reason; report it as a status
         if memory.trace is None or not memory.trace.stats:
@@ -555,8 +610,8 @@ def _once(scene: Scene, instances: Instances, slaves, out_dir, progress, engine,
         stats = memory.trace.stats
     finally:
         for ob in inner:
-            if getattr(ob, "note", ""):
-                log(ob.note)
+            if ob.note:
+                request.log(ob.note)
     instances.ended(stats["status"])
     t = memory.trace
     for ob in inner:  # a trace writer that failed at the end turns "ok" into "failed"

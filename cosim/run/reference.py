@@ -193,6 +193,8 @@ def _output_instants(scene: Scene, times: Sequence[float] | None) -> tuple[np.nd
 def _reference(scene, out_dir, rtol, atol, progress, max_wall_s, max_steps, log, times=None,
                trace_format="csv", guarded=True) -> RunResult:
     comp = composite(scene)
+    if comp.has_events:
+        return _event_reference(scene, comp, out_dir, rtol, atol, max_wall_s, log, times, trace_format, guarded)
     dt = scene.master.record_every * scene.master.step
     grid, regular = _output_instants(scene, times)
     n_out = len(grid) - 1
@@ -318,6 +320,59 @@ def _reference(scene, out_dir, rtol, atol, progress, max_wall_s, max_steps, log,
             log(ob.note)
     if interrupt is not None:
         raise interrupt if isinstance(interrupt, BaseException) else KeyboardInterrupt(str(interrupt))
+    return RunResult(scene, status, reason, memory.trace, stats, {}, trace_path, 0.0)
+
+
+def _event_reference(scene, comp, out_dir, rtol, atol, max_wall_s, log, times, trace_format, guarded) -> RunResult:
+    """The reference of a scene whose blocks have events (:mod:`.event_reference`): the output grid
+    plus two rows at each event; the sidecar's ``events`` lists them (time and block.event)."""
+    from .event_reference import EventReferenceError, integrate
+
+    grid, _ = _output_instants(scene, times)
+    names = [tuple(o.split(".", 1)) for o in scene.outputs]
+    guard = scene_guard(scene) if guarded else None
+    watch = [w for w in (guard.watch if guard else ()) if w not in names]
+    signals = comp.signal_function(names + watch)
+    if guard:
+        guard.bind(list(scene.outputs) + [f"{c}.{v}" for c, v in watch])
+    n_rec = 1 + len(names)
+    memory, observers, trace_path = scene_observers(scene, out_dir, "_reference", trace_format)
+    meta = {**scene_meta(scene), "method": "monolithic ODE with events, SciPy solve_ivp (LSODA), event to event",
+            "rtol": rtol, "atol": atol, "states": int(comp.x.numel()), "modes": int(comp.m.numel())}
+    for ob in observers:
+        ob.start(["time", *scene.outputs], meta)
+
+    def record(rows: np.ndarray) -> bool:
+        keep = guard.check(rows) if guard else None
+        if keep is not None:
+            rows = rows[:keep]
+        for ob in observers:
+            ob.record(rows[:, :n_rec])
+        return keep is None
+
+    t0 = time.perf_counter()
+    status, reason, reached, events = "ok", "", 0.0, None
+    try:
+        events, reached = integrate(comp, signals, grid, rtol, atol, record, t0 + max_wall_s)
+    except TimeoutError as exc:
+        status, reason = "failed", f"the reference reached its wall-time cap of {max_wall_s:g} s at {exc}"
+    except EventReferenceError as exc:
+        status, reason = "failed", str(exc)
+    except TraceWriteError as exc:
+        status, reason = "failed", f"TraceWriteError: {exc}"
+    wall = time.perf_counter() - t0
+    if guard and guard.tripped and status == "ok":
+        status, reason = guard.status, guard.reason
+    stats = {"algorithm": "monolithic", "engine": "scipy-lsoda", "step": scene.master.record_every * scene.master.step,
+             "status": status, "reason": reason, "wall_s": wall, "simulated_s": float(reached),
+             "real_time_factor": float(reached) / wall if wall > 0 else float("inf"), "slaves": {},
+             "events": {"count": events.total if events else 0,
+                        "list": [{"time": t, "event": n} for t, n in (events.items if events else [])]},
+             **({"guards": guard.summary()} if guard else {})}
+    for ob in observers:
+        ob.finish(status, reason, stats)
+    if log and events:
+        log(f"reference: {events.total} events")
     return RunResult(scene, status, reason, memory.trace, stats, {}, trace_path, 0.0)
 
 

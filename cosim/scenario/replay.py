@@ -15,6 +15,7 @@ from a column whose unit is unknown or differs from its destination's.
 """
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -122,9 +123,10 @@ class ReplayChecks(Checker):
             return None
         base = Path(where[0]).parent if where[1] else (self.path.parent if self.path else Path.cwd())
         fpath = Path(rel).expanduser()
-        fpath = fpath if fpath.is_absolute() else base / fpath
+        fpath = Path(os.path.normpath(fpath if fpath.is_absolute() else base / fpath))
         if not fpath.is_file():
-            self.err(where, f"component {name!r}: recording {_display(fpath)} not found")
+            self.err(where, f"component {name!r}: recording {_display(fpath)} not found (a relative path is "
+                            f"relative to the scene file)")
             return None
         try:
             rec = read_recording(fpath, {str(k): v for k, v in units.items()}, str(interp))

@@ -104,6 +104,8 @@ def describe_block(block: Block, source: str = "") -> SlaveDescription:
     for s in block.states:
         vs[s.name] = Variable(s.name, "local", "discrete" if block.integrator == "discrete" else "continuous",
                               "Real", None, s.unit, s.description)
+    for md in block.modes:  # discrete states of a block with events (docs/explanation/events.md)
+        vs[md.name] = Variable(md.name, "local", "discrete", "Real", None, md.unit, md.description)
     for u in block.inputs:
         vs[u.name] = Variable(u.name, "input", "continuous", "Real", 0.0, u.unit, u.description)
     for y in block.outputs:

@@ -46,16 +46,17 @@ fmi3Instance fmi3InstantiateCoSimulation(fmi3String instanceName, fmi3String ins
                                          fmi3LogMessageCallback logMessage,
                                          fmi3IntermediateUpdateCallback intermediateUpdate) {
     Fmi3Component *self;
-    (void)resourcePath; (void)visible; (void)earlyReturnAllowed;
+    (void)resourcePath; (void)visible;
     (void)requiredIntermediateVariables; (void)intermediateUpdate;
     self = (Fmi3Component *)calloc(1, sizeof(Fmi3Component));
     if (!self) return NULL;
     self->logger = logMessage;
     self->env = instanceEnvironment;
-    if (eventModeUsed || nRequiredIntermediateVariables > 0) {
+    if ((eventModeUsed && !rpr_has_event_mode()) || nRequiredIntermediateVariables > 0) {
         if (logMessage)
             logMessage(instanceEnvironment, fmi3Error, "logStatusError",
-                       "this FMU has no event mode and no intermediate variables (hasEventMode is false)");
+                       nRequiredIntermediateVariables > 0 ? "this FMU has no intermediate variables"
+                                                          : "this FMU has no event mode (hasEventMode is false)");
         free(self);
         return NULL;
     }
@@ -64,6 +65,8 @@ fmi3Instance fmi3InstantiateCoSimulation(fmi3String instanceName, fmi3String ins
         free(self);
         return NULL;
     }
+    /* event mode with early return: doStep stops at each event, the importer applies it in event mode */
+    if (eventModeUsed) rpr_use_event_mode(CORE(self), earlyReturnAllowed != fmi3False);
     return self;
 }
 
@@ -111,7 +114,7 @@ fmi3Status fmi3ExitInitializationMode(fmi3Instance c) {
 }
 fmi3Status fmi3EnterEventMode(fmi3Instance c) {
     CHECK(c);
-    return st(rpr_unsupported(CORE(c), "fmi3EnterEventMode (hasEventMode is false)"));
+    return st(rpr_enter_event_mode(CORE(c)));
 }
 fmi3Status fmi3Terminate(fmi3Instance c) {
     CHECK(c);
@@ -323,10 +326,18 @@ fmi3Status fmi3UpdateDiscreteStates(fmi3Instance c, fmi3Boolean *discreteStatesN
                                     fmi3Boolean *nominalsOfContinuousStatesChanged,
                                     fmi3Boolean *valuesOfContinuousStatesChanged, fmi3Boolean *nextEventTimeDefined,
                                     fmi3Float64 *nextEventTime) {
-    (void)discreteStatesNeedUpdate; (void)terminateSimulation; (void)nominalsOfContinuousStatesChanged;
-    (void)valuesOfContinuousStatesChanged; (void)nextEventTimeDefined; (void)nextEventTime;
+    int defined = 0, s;
+    double next = 0.0;
     CHECK(c);
-    return st(rpr_unsupported(CORE(c), "fmi3UpdateDiscreteStates (hasEventMode is false)"));
+    s = rpr_update_discrete_states(CORE(c), &defined, &next);
+    /* the core iterates the updates to the end itself: one call leaves nothing to update */
+    if (discreteStatesNeedUpdate) *discreteStatesNeedUpdate = fmi3False;
+    if (terminateSimulation) *terminateSimulation = fmi3False;
+    if (nominalsOfContinuousStatesChanged) *nominalsOfContinuousStatesChanged = fmi3False;
+    if (valuesOfContinuousStatesChanged) *valuesOfContinuousStatesChanged = fmi3True;
+    if (nextEventTimeDefined) *nextEventTimeDefined = defined ? fmi3True : fmi3False;
+    if (nextEventTime) *nextEventTime = defined ? next : 0.0;
+    return st(s);
 }
 
 /* --- model exchange: not provided --------------------------------------------------------- */
@@ -384,8 +395,7 @@ fmi3Status fmi3GetNumberOfContinuousStates(fmi3Instance c, size_t *n) {
 /* --- co-simulation ------------------------------------------------------------------------- */
 fmi3Status fmi3EnterStepMode(fmi3Instance c) {
     CHECK(c);
-    return st(rpr_unsupported(CORE(c), "fmi3EnterStepMode (hasEventMode is false: step mode follows "
-                                       "fmi3ExitInitializationMode directly)"));
+    return st(rpr_enter_step_mode(CORE(c)));
 }
 fmi3Status fmi3GetOutputDerivatives(fmi3Instance c, const fmi3ValueReference vr[], size_t nvr,
                                     const fmi3Int32 orders[], fmi3Float64 values[], size_t nValues) {
@@ -397,13 +407,17 @@ fmi3Status fmi3DoStep(fmi3Instance c, fmi3Float64 currentCommunicationPoint, fmi
                       fmi3Boolean noSetFMUStatePriorToCurrentPoint, fmi3Boolean *eventHandlingNeeded,
                       fmi3Boolean *terminateSimulation, fmi3Boolean *earlyReturn, fmi3Float64 *lastSuccessfulTime) {
     int s;
+    double reached;
     (void)noSetFMUStatePriorToCurrentPoint;
     CHECK(c);
     s = rpr_do_step(CORE(c), currentCommunicationPoint, communicationStepSize);
-    if (eventHandlingNeeded) *eventHandlingNeeded = fmi3False;
+    reached = rpr_time(CORE(c));
+    if (eventHandlingNeeded) *eventHandlingNeeded = rpr_event_pending(CORE(c)) ? fmi3True : fmi3False;
     if (terminateSimulation) *terminateSimulation = fmi3False;
-    if (earlyReturn) *earlyReturn = fmi3False;
-    if (lastSuccessfulTime) *lastSuccessfulTime = rpr_time(CORE(c));
+    if (earlyReturn)
+        *earlyReturn = (s <= RPR_WARNING && reached < currentCommunicationPoint + communicationStepSize) ? fmi3True
+                                                                                                     : fmi3False;
+    if (lastSuccessfulTime) *lastSuccessfulTime = reached;
     return st(s);
 }
 

@@ -4,7 +4,8 @@
  * of FMUs may live in one process.  Variables are addressed by value reference (vr):
  *   vr 0                 time [s] (read-only)
  *   1 .. np              parameters
- *   then nx states, nu inputs, ny outputs (in the block's declaration order).
+ *   then nm modes (discrete states of a block with events), nx states, nu inputs, ny outputs
+ *   (in the block's declaration order).
  * The model data (sizes, defaults, names, the CasADi functions) comes from the generated
  * "rpr_model.h", which only rpr_core.c includes.
  *
@@ -18,10 +19,10 @@
 
 enum { RPR_OK = 0, RPR_WARNING = 1, RPR_DISCARD = 2, RPR_ERROR = 3, RPR_FATAL = 4 };
 enum { RPR_MODE_INSTANTIATED = 0, RPR_MODE_INIT = 1, RPR_MODE_STEP = 2, RPR_MODE_TERMINATED = 3,
-       RPR_MODE_ERROR = 4 };
+       RPR_MODE_ERROR = 4, RPR_MODE_EVENT = 5 };
 /* log categories (bit positions) */
 enum { RPR_LOG_ERROR = 0, RPR_LOG_DISCARD = 1, RPR_LOG_WARNING = 2, RPR_LOG_NONLINEAR = 3,
-       RPR_LOG_CALLS = 4, RPR_N_LOG = 5 };
+       RPR_LOG_CALLS = 4, RPR_LOG_EVENTS = 5, RPR_N_LOG = 6 };
 
 typedef struct RprInstance RprInstance;
 
@@ -60,6 +61,16 @@ int rpr_set_input_derivatives(RprInstance *c, const unsigned int vr[], size_t n,
 int rpr_no_such_variables(RprInstance *c, const char *function, const unsigned int vr[], size_t n);
 
 int rpr_do_step(RprInstance *c, double t, double h);
+
+/* FMI 3 event mode (blocks with events only; docs/explanation/events.md).  With early return the
+   step stops at the first event, state at its left limit, and rpr_event_pending says so; the
+   importer enters event mode and rpr_update_discrete_states applies the update. */
+int rpr_has_event_mode(void);
+void rpr_use_event_mode(RprInstance *c, int early_return);
+int rpr_event_pending(const RprInstance *c);
+int rpr_enter_event_mode(RprInstance *c);
+int rpr_update_discrete_states(RprInstance *c, int *next_time_defined, double *next_time);
+int rpr_enter_step_mode(RprInstance *c);
 double rpr_time(const RprInstance *c);
 int rpr_last_step_discarded(const RprInstance *c);
 

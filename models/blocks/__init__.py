@@ -15,6 +15,9 @@ the bad name, with the closest valid name as a suggestion.
 | ``linear_actuator`` | ``rig``, ``single``, ``motor`` | :mod:`.actuator` |
 | ``sum`` | ``vector`` | :mod:`.sums` (OSP's Sum and VectorSum functions) |
 | ``task_trajectory`` | ``planned`` | :mod:`.task` (a planned task: toppra, ruckig or a spline) |
+| ``pendulum`` | ``stop`` | :mod:`.pendulum` (located events: impacts on a stop) |
+| ``sliding_mass`` | ``stiction``, ``smooth`` | :mod:`.friction` (Coulomb friction: stick and slip modes, or the tanh law) |
+| ``sampled`` | ``adc``, ``pwm`` | :mod:`.sampled` (the board's 12-bit ADC and PWM duty, samples as time events) |
 """
 from __future__ import annotations
 
@@ -23,7 +26,7 @@ from typing import Any, Callable
 
 from ..block import Block, BlockError
 from ..user import with_defaults
-from . import actuator, mechanism, motor, oscillator, pid, setpoint, sums, task
+from . import actuator, friction, mechanism, motor, oscillator, pendulum, pid, sampled, setpoint, sums, task
 from ._common import CONFIG, SUBSTEPS, Option, integrator_option, positive_float, positive_int, suggest, unit_text
 
 #: Integrators of blocks whose equations are linear: ``exact`` (the default) and the two general ones.
@@ -76,6 +79,10 @@ def _entries() -> dict[str, dict[str, _Entry]]:
                                       "state and a stiff spring-damper bond)", choices=motor.ROTOR)
     act = Option("actuator", "fa200", "actuator preset giving the parameter defaults: Firgelli FA-200-L-12 or "
                                       "the thesis's 'X' actuator", choices=tuple(actuator.ACTUATORS))
+    channels = Option("channels", 1, "number of channels (legs), 1 to 64",
+                      check=lambda v: positive_int(v) or (None if v <= 64 else "must be at most 64"))
+    stops = Option("end_stops", "clamp", "end stops: 'clamp' (rate zeroed at the ends) or 'impact' (arrivals located "
+                                         "as events, restitution e, rest on the stop)", choices=actuator.END_STOPS)
     return {
         "mechanism": {
             "rigid": _Entry(mechanism.rigid, (CONFIG, integrator_option("rk4"), SUBSTEPS)),
@@ -91,7 +98,9 @@ def _entries() -> dict[str, dict[str, _Entry]]:
         "pid": {
             "continuous": _Entry(pid.continuous, pid_opts + (integrator_option("auto", ("auto",) + LINEAR_INTEGRATORS),
                                                              SUBSTEPS)),
-            "discrete": _Entry(pid.discrete, pid_opts + (sample,)),
+            "discrete": _Entry(pid.discrete, pid_opts + (sample, Option(
+                "timing", "periodic", "samples: 'periodic' (a discrete block: the step a multiple of the sample "
+                                      "period) or 'events' (time events: any step)", choices=pid.TIMING))),
         },
         "pose_setpoint": {
             "default": _Entry(setpoint.pose_setpoint, (CONFIG, Option("profile", "step", "trajectory profile",
@@ -102,16 +111,37 @@ def _entries() -> dict[str, dict[str, _Entry]]:
                 Option("coupling", "none", "interface: 'none' (force in) or 'spring' (velocity in, coupling spring "
                                            "force out)", choices=oscillator.COUPLING),
                 integrator_option("rk4", LINEAR_INTEGRATORS), Option("substeps", 40, "integrator substeps per communication step",
-                                                 check=SUBSTEPS.check))),
+                                                 check=SUBSTEPS.check),
+                Option("stop", "none", "end stops: 'none' or 'impact' (located impacts with restitution, rest on a "
+                                       "stop; coupling 'none' only)", choices=oscillator.STOPS))),
         },
         "linear_actuator": {
-            "rig": _Entry(actuator.rig, (act, integrator_option("rk4"), SUBSTEPS)),
-            "single": _Entry(actuator.single, (act, integrator_option("rk4"), SUBSTEPS)),
+            "rig": _Entry(actuator.rig, (act, integrator_option("rk4"), SUBSTEPS, stops)),
+            "single": _Entry(actuator.single, (act, integrator_option("rk4"), SUBSTEPS, stops)),
             "motor": _Entry(actuator.motor_rig, (integrator_option("rk4"), Option(
                 "substeps", 4, "integrator substeps per communication step", check=SUBSTEPS.check))),
         },
         "task_trajectory": {
             "planned": _Entry(task.task_trajectory, task_options()),
+        },
+        "pendulum": {
+            "stop": _Entry(pendulum.stop, (integrator_option("rk4"),
+                                           Option("substeps", 10, "integrator substeps per communication step",
+                                                  check=SUBSTEPS.check))),
+        },
+        "sliding_mass": {
+            "stiction": _Entry(friction.stiction, (integrator_option("rk4"),
+                                                   Option("substeps", 10, "integrator substeps per communication step",
+                                                          check=SUBSTEPS.check))),
+            "smooth": _Entry(friction.smooth, (integrator_option("radau"),
+                                               Option("substeps", 10, "integrator substeps per communication step",
+                                                      check=SUBSTEPS.check))),
+        },
+        "sampled": {
+            "adc": _Entry(sampled.adc, (channels, Option("period", 1e-3, "sample period [s] (time events)",
+                                                         check=positive_float))),
+            "pwm": _Entry(sampled.pwm, (channels, Option("period", 1e-3, "duty update period [s] (time events)",
+                                                         check=positive_float))),
         },
         "sum": {
             "vector": _Entry(sums.vector_sum, (

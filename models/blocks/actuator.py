@@ -23,6 +23,13 @@ Actuator presets (construction option ``actuator``):
 
 Stroke: legs of 0.1 .. 0.6 m (SPEC §1): ``s_offset`` = 0.1 m, ``stroke_max`` = 0.5 m.
 
+End stops (construction option ``end_stops``): ``"clamp"`` (the default) stops the rod at the
+ends by zeroing its rate inside the right-hand side, while the motor speed state runs on;
+``"impact"`` locates the rod's arrival at a stop inside the FMU's step (:mod:`._stops`): an
+impact with restitution ``e`` (default 0: a lead screw does not bounce), then the rod rests on
+the stop (speed 0) until the drive pulls it away (``v_free`` changes sign).  Per leg it adds the
+outputs ``leg[i].impacts`` (``impacts`` for ``"single"``).
+
 Fidelities: ``"rig"``, the three legs of the rig in one block (inputs ``leg[i].u``, outputs
 ``leg[i].s``, ``leg[i].stroke``, ``leg[i].v``: the interface of the hardware FMU, so a scene swaps
 one for the other); ``"single"``, one actuator with a load-force input ``f_load``.  The
@@ -34,6 +41,7 @@ import casadi as ca
 
 from ..block import Block, Var
 from ._common import INF, ParamSet
+from ._stops import StopEvents, end_stops
 
 ACTUATORS = {
     "fa200": {"v_rated": 12.0, "v_nl": 0.02032, "f_stall": 890.0, "tau": 0.02},
@@ -41,6 +49,7 @@ ACTUATORS = {
 }
 STROKE = 0.5
 S_OFFSET = 0.1
+END_STOPS = ("clamp", "impact")
 
 
 def _common(ps: ParamSet, actuator: str) -> dict[str, ca.SX]:
@@ -57,26 +66,40 @@ def _common(ps: ParamSet, actuator: str) -> dict[str, ca.SX]:
     }
 
 
-def _leg(p: dict, u, f_load, x, v):
-    """(dx/dt, dv/dt, v at the rod) of one actuator."""
+def _stop_params(ps: ParamSet) -> dict[str, ca.SX]:
+    return {"e": ps.add("e", 0.0, "1", "coefficient of restitution of the end stops", lower=0.0, upper=1.0),
+            "v_rest": ps.add("v_rest", 1e-6, "m/s", "rebound speed below which the rod rests on a stop", lower=0.0)}
+
+
+def _leg(p: dict, u, f_load, x, v, ev: StopEvents | None = None, prefix: str = ""):
+    """(dx/dt, dv/dt, v at the rod[, impacts]) of one actuator; with ``ev``, its end stops are
+    located events (:mod:`._stops`), else clamped."""
     u_sat = ca.fmin(p["v_rated"], ca.fmax(-p["v_rated"], u))
     v_free = p["v_nl"] * u_sat / p["v_rated"] - p["v_nl"] * f_load / p["f_stall"]
+    if ev is not None:
+        dx, dv, modes = end_stops(ev, prefix, x, v, (v_free - v) / p["tau"], 0.0, p["stroke_max"], p["e"], p["v_rest"])
+        return dx, dv, dx, modes["impacts"]
     at_end = ca.logic_or(ca.logic_and(x >= p["stroke_max"], v > 0), ca.logic_and(x <= 0, v < 0))
     v_rod = ca.if_else(at_end, 0, v)
     return v_rod, (v_free - v) / p["tau"], v_rod
 
 
-def rig(actuator: str = "fa200", integrator: str = "rk4", substeps: int = 1) -> Block:
+def rig(actuator: str = "fa200", integrator: str = "rk4", substeps: int = 1, end_stops: str = "clamp") -> Block:
     """Three actuators, one per leg (module docstring)."""
     ps = ParamSet()
     p = _common(ps, actuator)
+    ev = StopEvents() if end_stops == "impact" else None
+    if ev is not None:
+        p.update(_stop_params(ps))
+    counts = []
     s0 = [ps.add(f"leg[{i}].s0", S_OFFSET + STROKE / 2, "m", f"leg {i} length at the start", lower=0.0) for i in (1, 2, 3)]
     u = ca.SX.sym("u", 3)
     xs = ca.SX.sym("x", 6)  # stroke, speed per leg
     ode, out, states, inputs, outputs, start = [], [], [], [], [], []
     for k, i in enumerate((1, 2, 3)):
         x, v = xs[2 * k], xs[2 * k + 1]
-        dx, dv, v_rod = _leg(p, u[k], 0.0, x, v)
+        dx, dv, v_rod, *n = _leg(p, u[k], 0.0, x, v, ev, f"leg[{i}].")
+        counts += n
         ode += [dx, dv]
         out += [p["s_offset"] + x, x, v_rod]
         inputs.append(Var(f"leg[{i}].u", "V", f"leg {i} driver voltage"))
@@ -84,28 +107,42 @@ def rig(actuator: str = "fa200", integrator: str = "rk4", substeps: int = 1) -> 
         outputs += [Var(f"leg[{i}].s", "m", f"leg {i} length"), Var(f"leg[{i}].stroke", "m", f"leg {i} stroke"),
                     Var(f"leg[{i}].v", "m/s", f"leg {i} extension rate")]
         start += [ca.fmin(p["stroke_max"], ca.fmax(0, s0[k] - p["s_offset"])), ca.SX(0)]
+    events = {}
+    if ev is not None:
+        out += counts
+        outputs += [Var(f"leg[{i}].impacts", "1", f"leg {i}: arrivals at an end stop so far") for i in (1, 2, 3)]
+        events = ev.block_kw(xs)
     return Block.build("linear_actuator", description=f"three {actuator} linear actuators (the rig, SPEC §7)",
                        params=ps.params, inputs=inputs, outputs=outputs, states=states, p=ps.vector(), u=u, x=xs,
                        ode=ca.vertcat(*ode), out=ca.vertcat(*out), start=ca.vertcat(*start), integrator=integrator,
-                       substeps=substeps, fidelity="rig")
+                       substeps=substeps, fidelity="rig", **events)
 
 
-def single(actuator: str = "fa200", integrator: str = "rk4", substeps: int = 1) -> Block:
+def single(actuator: str = "fa200", integrator: str = "rk4", substeps: int = 1, end_stops: str = "clamp") -> Block:
     """One actuator with a load force input (module docstring)."""
     ps = ParamSet()
     p = _common(ps, actuator)
     s0 = ps.add("s0", S_OFFSET + STROKE / 2, "m", "leg length at the start", lower=0.0)
+    ev = StopEvents() if end_stops == "impact" else None
+    if ev is not None:
+        p.update(_stop_params(ps))
     u = ca.SX.sym("u", 2)
     xs = ca.SX.sym("x", 2)
-    dx, dv, v_rod = _leg(p, u[0], u[1], xs[0], xs[1])
+    dx, dv, v_rod, *n = _leg(p, u[0], u[1], xs[0], xs[1], ev)
+    outputs = [Var("s", "m", "leg length"), Var("stroke", "m", "stroke"), Var("v", "m/s", "extension rate")]
+    out = [p["s_offset"] + xs[0], xs[0], v_rod]
+    events = {}
+    if ev is not None:
+        outputs.append(Var("impacts", "1", "arrivals at an end stop so far"))
+        out += n
+        events = ev.block_kw(xs)
     return Block.build(
         "linear_actuator", description=f"{actuator} linear actuator (SPEC §7)", params=ps.params,
         inputs=[Var("u", "V", "driver voltage"), Var("f_load", "N", "load force opposing extension")],
-        outputs=[Var("s", "m", "leg length"), Var("stroke", "m", "stroke"), Var("v", "m/s", "extension rate")],
-        states=[Var("state.stroke", "m", "stroke"), Var("state.v", "m/s", "speed")], p=ps.vector(), u=u, x=xs,
-        ode=ca.vertcat(dx, dv), out=ca.vertcat(p["s_offset"] + xs[0], xs[0], v_rod),
+        outputs=outputs, states=[Var("state.stroke", "m", "stroke"), Var("state.v", "m/s", "speed")], p=ps.vector(),
+        u=u, x=xs, ode=ca.vertcat(dx, dv), out=ca.vertcat(*out),
         start=ca.vertcat(ca.fmin(p["stroke_max"], ca.fmax(0, s0 - p["s_offset"])), 0), integrator=integrator,
-        substeps=substeps, fidelity="single")
+        substeps=substeps, fidelity="single", **events)
 
 
 #: The "motor" fidelity's defaults: a small 12 V DC motor behind the FA-200's gear and lead screw,

@@ -15,6 +15,11 @@ spring's rest point, velocity ``v`` [m/s]:
   other mass (positive along +x), ``v`` and ``s``.  (Keeping ``s`` rather than ``x`` as the state
   avoids a redundant state: with both, ``s - (x - x_other)`` would be a conserved, neutral mode.)
 
+Option ``stop="impact"`` (coupling ``none`` only) puts the mass between end stops at ``x_min``
+and ``x_max`` [m]: impacts located inside the FMU's step with Newton's restitution ``e``
+(``v+ = -e v-``), rest on a stop once the rebound is below ``v_rest`` [m/s], release when the
+force pushing into it falls to zero (:mod:`._stops`); outputs ``impacts`` and ``v_impact``.
+
 Neither variant has direct feedthrough (``f`` is a state output), so two of them close a loop
 without an algebraic loop, and every output at a communication point depends only on states.
 Both are linear time-invariant, so a master algorithm's macro step is a linear map whose spectral
@@ -25,13 +30,15 @@ from __future__ import annotations
 
 import casadi as ca
 
-from ..block import Block, Var
+from ..block import Block, BlockError, Var
 from ._common import ParamSet
+from ._stops import StopEvents, end_stops
 
 COUPLING = ("none", "spring")
+STOPS = ("none", "impact")
 
 
-def oscillator(coupling: str = "none", integrator: str = "rk4", substeps: int = 40) -> Block:
+def oscillator(coupling: str = "none", integrator: str = "rk4", substeps: int = 40, stop: str = "none") -> Block:
     """The mass-spring-damper (module docstring); ``coupling`` picks the interface."""
     ps = ParamSet()
     m = ps.add("m", 1.0, "kg", "mass", lower=1e-12)
@@ -42,6 +49,9 @@ def oscillator(coupling: str = "none", integrator: str = "rk4", substeps: int = 
     x, v = ca.SX.sym("x"), ca.SX.sym("v")
     states = [Var("state.x", "m", "position"), Var("state.v", "m/s", "velocity")]
     outputs = [Var("x", "m", "position"), Var("v", "m/s", "velocity")]
+    events: dict = {}
+    if stop != "none" and coupling != "none":
+        raise BlockError(f"oscillator: option stop={stop!r} needs coupling 'none' (a force input)")
     if coupling == "none":
         f = ca.SX.sym("f")
         inputs = [Var("f", "N", "external force on the mass")]
@@ -49,6 +59,19 @@ def oscillator(coupling: str = "none", integrator: str = "rk4", substeps: int = 
         ode = ca.vertcat(v, (-k * x - d * v + f) / m)
         out = ca.vertcat(x, v)
         start = ca.vertcat(x0, v0)
+        if stop == "impact":
+            lo = ps.add("x_min", -1.0, "m", "lower end stop")
+            hi = ps.add("x_max", 1.0, "m", "upper end stop")
+            e = ps.add("e", 0.5, "1", "coefficient of restitution of the stops", lower=0.0, upper=1.0)
+            v_rest = ps.add("v_rest", 1e-6, "m/s", "rebound speed below which the mass comes to rest on a stop",
+                            lower=0.0)
+            ev = StopEvents()
+            dx, dv, modes = end_stops(ev, "", x, v, ode[1], lo, hi, e, v_rest)
+            ode = ca.vertcat(dx, dv)
+            out = ca.vertcat(out, modes["impacts"], modes["v_impact"])
+            outputs = outputs + [Var("impacts", "1", "impacts on the stops so far"),
+                                 Var("v_impact", "m/s", "velocity of the last impact")]
+            events = ev.block_kw(xs)
     else:
         kc = ps.add("kc", 100.0, "N/m", "coupling spring to the other mass", lower=0.0)
         s_, x_in, v_in = ca.SX.sym("s"), ca.SX.sym("x_in"), ca.SX.sym("v_in")
@@ -63,4 +86,4 @@ def oscillator(coupling: str = "none", integrator: str = "rk4", substeps: int = 
     return Block.build(
         "oscillator", description=f"linear mass-spring-damper (coupling {coupling})", params=ps.params,
         inputs=inputs, outputs=outputs, states=states, p=ps.vector(), u=u, x=xs, ode=ode, out=out, start=start,
-        integrator=integrator, substeps=substeps, fidelity="linear")
+        integrator=integrator, substeps=substeps, fidelity="linear", **events)

@@ -39,7 +39,7 @@ from __future__ import annotations
 
 import casadi as ca
 
-from ..block import Block, Var
+from ..block import Block, Sample, Var
 from ..units import compose
 from ._common import ParamSet, solver_params
 
@@ -119,14 +119,29 @@ def continuous(form: str = "parallel", derivative: str = "error", anti_windup: s
         fidelity="continuous")
 
 
+TIMING = ("periodic", "events")
+
+
 def discrete(form: str = "parallel", derivative: str = "error", anti_windup: str = "none",
-             sample_period: float = 1e-3, unit_in: str = "m", unit_out: str = "V") -> Block:
-    """Sampled PID: forward-Euler integral, exact zero-order-hold update of the derivative filter."""
+             sample_period: float = 1e-3, unit_in: str = "m", unit_out: str = "V", timing: str = "periodic") -> Block:
+    """Sampled PID: forward-Euler integral, exact zero-order-hold update of the derivative filter.
+
+    ``timing="periodic"``: a discrete block (the communication step must be a whole multiple of
+    the sample period); ``"events"``: the samples are time events at ``k T`` (events design page),
+    the state ``(I, w)`` is a pair of modes updated there, so any communication step works and a
+    sample inside a step is taken at its instant with the input at that instant."""
     T = float(sample_period)
     ps, u, xs, (dI, dw, Tf, s), out, start = _law(form, derivative, anti_windup, unit_in, unit_out)
     inputs, outputs, states = _variables(unit_in, unit_out)
     I, w = xs[0], xs[1]
     update = ca.vertcat(I + T * dI, w + (1 - ca.exp(-T / Tf)) * (s - w))
+    if timing == "events":
+        return Block.build(
+            "pid", description=f"discrete PID (T = {T:g} s, samples as time events), {form} form, derivative on "
+                               f"{derivative}, anti-windup {anti_windup}",
+            params=ps.params, inputs=inputs, outputs=outputs, states=[], p=ps.vector(), u=u, x=ca.SX(0, 1),
+            ode=ca.SX(0, 1), out=out, start=ca.SX(0, 1), integrator="none", modes=states, m=xs, mode_start=start,
+            sample_times=[Sample(T, 0.0, update, "sample")], fidelity="discrete")
     return Block.build(
         "pid", description=f"discrete PID (T = {T:g} s), {form} form, derivative on {derivative}, "
                            f"anti-windup {anti_windup}",

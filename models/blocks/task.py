@@ -4,9 +4,8 @@ and the inverse-dynamics feedforward (construction options: a task, :mod:`models
 The task is planned when the block is built (:func:`models.task.Task.plan`) and its segments
 (:class:`models.trajectory.PiecewiseCubic`) become the block's structural data: on the segment
 holding the clock, ``q = P + V tau + A tau^2/2 + J tau^3/6`` with the segment's coefficients
-chosen by a chain of ``if_else`` on the clock (exact selections: one branch is always zero, so the
-FMU evaluates the planned polynomial itself, to round-off, in C as in numpy), after the last
-segment the end pose at rest.  A new plan is a new FMU (the cache keys it by content).
+chosen exactly (:func:`piecewise_cubic`), so the FMU evaluates the planned polynomial itself, to
+round-off, in C as in numpy; after the last segment the end pose at rest.  A new plan is a new FMU (the cache keys it by content).
 
 Outputs as :func:`models.blocks.setpoint.pose_setpoint` (``platform.*``, ``leg[i].s``, ``.v``,
 ``.a``), plus per leg the feedforward force ``leg[i].f_ff`` [N] (virtual-work inverse dynamics of
@@ -33,21 +32,20 @@ LEGS = (1, 2, 3)
 
 
 def piecewise_cubic(traj: PiecewiseCubic, t: ca.SX) -> tuple[ca.SX, ca.SX, ca.SX]:
-    """Pose, rate and acceleration (3-vectors) of ``traj`` at the symbolic time ``t``."""
+    """Pose, rate and acceleration (3-vectors) of ``traj`` at the symbolic time ``t``.
+
+    The segment holding ``t`` is picked by indicators ``ind_k = (t >= t_k)(t < t_k+1)`` (1 on
+    segment k, 0 elsewhere), and each coefficient is ``sum_k ind_k c_k``: an exact selection, since
+    every other term is a product with 0."""
     table = traj.table()
     hold = np.concatenate([[traj.breaks[-1]], traj.end, np.zeros(9)])
     table = np.vstack([table, hold])  # after the end: the end pose at rest
-    after = [t >= float(b) for b in table[1:, 0]]
-
-    def select(col: int) -> ca.SX:
-        expr = ca.SX(float(table[0, col]))
-        for k in range(1, len(table)):
-            expr = ca.if_else(after[k - 1], float(table[k, col]), expr)
-        return expr
-
-    start = select(0)
-    tau = ca.fmax(t - start, 0.0)
-    P, V, A, J = (ca.vertcat(*[select(1 + 3 * g + d) for d in range(3)]) for g in range(4))
+    starts = [float(b) for b in table[1:, 0]]
+    ind = ca.vertcat(*([t < starts[0]] + [(t >= a) * (t < b) for a, b in zip(starts[:-1], starts[1:])]
+                       + [t >= starts[-1]]))
+    coef = ca.mtimes(ca.DM(table).T, ind)  # (13, 1): start time, P, V, A, J of the segment holding t
+    tau = ca.fmax(t - coef[0], 0.0)
+    P, V, A, J = (coef[1 + 3 * g:4 + 3 * g] for g in range(4))
     q = P + tau * (V + tau * (A / 2 + tau * J / 6))
     qd = V + tau * (A + tau * J / 2)
     qdd = A + tau * J
