@@ -35,6 +35,32 @@ def test_a_rerun_keeps_the_earlier_good_set_whole_under_prev(tmp_path, cache, ca
     assert sorted(n.replace("pid_step.prev", "pid_step") for n in now if ".prev" in n) == first
     assert (out / "pid_step.prev.csv").read_bytes() == before  # the earlier trace, whole
     assert "kept the earlier good trace as pid_step.prev.csv; its run's" in err and "as pid_step.prev.*" in err
+    side = json.loads((out / "pid_step.json").read_text())
+    assert side["overrides"] == ["stop_time=0.05", "components.pid*.params.Kp=40"]  # it said [] after --set
+    assert json.loads((out / "pid_step.prev.json").read_text())["overrides"] == ["stop_time=0.05"]
+
+
+def test_the_sidecar_records_the_python_apis_overrides(tmp_path, cache):
+    from cosim.run.execute import run
+
+    run(PID, {"stop_time": 0.02, "components.pid1.params.Kd": 15}, out_dir=tmp_path, cache_dir=cache)
+    side = json.loads((tmp_path / "pid_step.json").read_text())
+    assert side["overrides"] == ["stop_time=0.02", "components.pid1.params.Kd=15"]
+
+
+def test_a_batch_runs_scene_carries_its_axis_values_as_overrides(tmp_path):
+    """What a batch run's sidecar records (the worker runs the scene :func:`resolve` made)."""
+    from cosim.batch.axes import points
+    from cosim.batch.runner import resolve
+    from cosim.batch.spec import load_batch
+
+    spec = tmp_path / "b.yaml"
+    spec.write_text(f"name: b\nscene: {PID}\nset: {{stop_time: 0.05}}\n"
+                    "grid:\n  Kp: {path: \"components.pid*.params.Kp\", values: [20, 40]}\n")
+    batch = load_batch(spec)
+    scenes = [resolve(batch, p).scene for p in points(batch)]
+    for scene, kp in zip(scenes, (20, 40)):  # the axis's wildcard as the batch expands it, one per PID
+        assert scene.overrides == ["stop_time=0.05", *(f"components.pid{i}.params.Kp={kp}" for i in (1, 2, 3))]
 
 
 def test_a_rerun_replaces_an_earlier_set_that_was_not_ok_whole(tmp_path):
