@@ -152,3 +152,22 @@ def test_the_fast_gif_draws_every_frame(tmp_path):
     assert green > 300 and orange > 300, (green, orange)
     moved = (np.abs(first - last).sum(axis=2) > 60).mean()
     assert 0.005 < moved < 0.2, moved  # the platform moved and the rest stayed
+
+
+def test_fmu_show_lists_what_each_option_choice_adds(capsys):
+    """Issue 32, item 9: the tutorial's oscillator uses x_in and kc (coupling: spring), which
+    ``fmu show oscillator`` (the default coupling: none) did not list; the variants are compared
+    with the blocks made at each choice."""
+    from models import blocks
+
+    assert main(["fmu", "show", "oscillator"]) == 0
+    out = capsys.readouterr().out
+    spring = blocks.make("oscillator", "linear", coupling="spring")
+    line = next(ln for ln in out.splitlines() if ln.strip().startswith("coupling=spring:"))
+    for v in spring.inputs:
+        if v.name in ("x_in", "v_in"):
+            assert f"+ input {v.name} [{v.unit}]" in line
+    assert "+ parameter kc [N/m]" in line
+    from cosim.analysis.model_doc import catalog_markdown
+
+    assert "`coupling=spring`: + input x_in [m]" in catalog_markdown()  # the catalog reference page too
