@@ -13,6 +13,7 @@ import pytest
 from cosim.cli import main
 from fmus.model_description import check_names, parse_unit
 from models import blocks
+from models.block import BlockError
 from models.units import compose, scaled
 
 DAMPER = '''\
@@ -114,7 +115,11 @@ def test_every_unit_of_the_catalog_is_readable_by_the_exporter():
         for fid in fids:
             variants = [{}] + [{o.name: c} for o in blocks.options(model, fid).values() for c in (o.choices or ())]
             for opts in variants:
-                blk = blocks.make(model, fid, **opts)
+                try:
+                    blk = blocks.make(model, fid, **opts)
+                except BlockError as exc:  # a choice that needs other options too (task_trajectory's spline)
+                    assert "give" in str(exc) or "needs" in str(exc), exc
+                    continue
                 check_names(blk)  # BuildError naming the variable otherwise
                 for v in [*blk.params, *blk.inputs, *blk.outputs, *blk.states]:
                     if v.unit:
