@@ -178,8 +178,8 @@ def interface(block: Block) -> Interface:
     for v in block.inputs:
         vs.append(FmuVariable(len(vs), v.name, "input", "input", "continuous", None, 0.0, v.unit, v.description))
     for v in block.outputs:
-        vs.append(FmuVariable(len(vs), v.name, "output", "output", "continuous", "calculated", None, v.unit,
-                              v.description))
+        vs.append(FmuVariable(len(vs), v.name, "output", "local" if v.local else "output", "continuous",
+                              "calculated", None, v.unit, v.description))
     iface = Interface(block, vs)
     vr_p = [v.vr for v in iface.of_kind("parameter")]
     vr_x = [v.vr for v in iface.of_kind("state")]
@@ -303,7 +303,7 @@ def model_description(iface: Interface, *, fmi_version: str, guid: str, model_id
             sv = ET.SubElement(mv, "ScalarVariable", attrs)
             ET.SubElement(sv, "Real", typed)
     ms = ET.SubElement(root, "ModelStructure")
-    outputs = iface.of_kind("output")
+    outputs = [v for v in iface.of_kind("output") if v.causality == "output"]  # locals are no unknowns
 
     def deps(vrs: list[int]) -> dict[str, str]:
         refs = [str(r) if fmi3 else str(r + 1) for r in vrs]  # FMI 2 uses 1-based indices

@@ -54,15 +54,18 @@ def _files(source: str | Mapping[str, str], stem: str) -> dict[str, str]:
     return {f"{stem}.c": source} if isinstance(source, str) else dict(source)
 
 
-def library_path(source: str | Mapping[str, str], stem: str, flags: tuple[str, ...] = FLAGS) -> Path:
+def library_path(source: str | Mapping[str, str], stem: str, flags: tuple[str, ...] = FLAGS,
+                 libs: tuple[str, ...] = ()) -> Path:
     """Where :func:`load` keeps the library of ``source`` (built if missing): one C text, or
-    files (name -> text) whose ``.c`` files are compiled together, their headers beside them.
+    files (name -> text) whose ``.c`` files are compiled together, their headers beside them;
+    ``libs``: linker arguments after the sources (e.g. ``-lsundials_cvodes``).
     Raises :class:`NoCompiler` without a working compiler, :class:`BuildError` (the compiler's
     log, 500 characters) when the source does not compile."""
     cc, ident = _toolchain()
     files = _files(source, stem)
     text = "\0".join(f"{name}\0{files[name]}" for name in sorted(files))
-    key = hashlib.sha256("\0".join([text, ident, " ".join(flags), sys.platform]).encode()).hexdigest()[:20]
+    key = hashlib.sha256("\0".join([text, ident, " ".join(flags), sys.platform]
+                                   + ([" ".join(libs)] if libs else [])).encode()).hexdigest()[:20]
     from .cache import writable_root
 
     root = _cache_dir()
@@ -78,8 +81,8 @@ def library_path(source: str | Mapping[str, str], stem: str, flags: tuple[str, .
             sources = [str(Path(tmp) / name) for name in sorted(files) if name.endswith(".c")]
             out = Path(tmp) / lib.name
             try:
-                res = subprocess.run([cc, *flags, f"-I{tmp}", "-o", str(out), *sources, "-lm"], capture_output=True,
-                                     text=True)
+                res = subprocess.run([cc, *flags, f"-I{tmp}", "-o", str(out), *sources, *libs, "-lm"],
+                                     capture_output=True, text=True)
             except OSError as exc:
                 raise NoCompiler(f"{cc}: {exc}") from None
             if res.returncode != 0:

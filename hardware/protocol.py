@@ -40,7 +40,9 @@ from pathlib import Path
 
 MAGIC = b"RP"
 VERSION = 2
-HEADER = struct.Struct("<2sBBIIQ")
+#: The header's fields, (name, struct code): the Python packing and the C offsets (``HDR_<NAME>``).
+HEADER_FIELDS = (("magic", "2s"), ("version", "B"), ("type", "B"), ("session", "I"), ("seq", "I"), ("time_ns", "Q"))
+HEADER = struct.Struct("<" + "".join(code for _, code in HEADER_FIELDS))
 MAC_LEN = 32
 NONCE_LEN = 16
 KEY_LEN = 32
@@ -53,9 +55,29 @@ ARM, RUN, STOP, RESET, QUERY = 1, 2, 4, 8, 16
 
 _HELLO = struct.Struct(f"<{NONCE_LEN}s")
 _WELCOME = struct.Struct(f"<{NONCE_LEN}s{NONCE_LEN}s")
-_COMMAND = struct.Struct("<B3xfff")
-# state, limits, faults, raw x3, pad, age_us, dropped, late_us, p50_us, p99_us, max_us, cpu_ns, throttled
-_SAMPLE = struct.Struct("<BBHHHHHIIIIIIII")
+#: The COMMAND and SAMPLE bodies' fields, (name, struct code), declared once: the Python packing
+#: and the C side's offsets (``COMMAND_<NAME>``, ``SAMPLE_<NAME>`` in :func:`c_header`) come from them.
+COMMAND_FIELDS = (("flags", "B"), ("pad", "3x"), ("volts", "3f"))
+SAMPLE_FIELDS = (("state", "B"), ("limits", "B"), ("faults", "H"), ("raw", "3H"), ("pad", "H"), ("age_us", "I"),
+                 ("dropped", "I"), ("late_us", "I"), ("p50_us", "I"), ("p99_us", "I"), ("max_us", "I"),
+                 ("cpu_ns", "I"), ("throttled", "I"))
+
+
+def _body(fields: tuple[tuple[str, str], ...]) -> struct.Struct:
+    return struct.Struct("<" + "".join(code for _, code in fields))
+
+
+def offsets(fields: tuple[tuple[str, str], ...]) -> dict[str, int]:
+    """Each field's byte offset in its body."""
+    out, at = {}, 0
+    for name, code in fields:
+        out[name] = at
+        at += struct.calcsize("<" + code)
+    return out
+
+
+_COMMAND = _body(COMMAND_FIELDS)
+_SAMPLE = _body(SAMPLE_FIELDS)
 BODY = {HELLO: _HELLO, WELCOME: _WELCOME, COMMAND: _COMMAND, SAMPLE: _SAMPLE}
 
 # daemon states
@@ -84,11 +106,15 @@ FAULT_BITS = {"WATCHDOG": F_WATCHDOG, "BAD_COMMAND": F_BAD_COMMAND, "ADC_STALE":
 def c_header() -> str:
     """``board_protocol.h``: this module's declarations as C, for the board daemon (``board.h``)
     and the hardware FMU (``hil_fmu.c``), so neither writes the protocol again: the magic, the
-    version, the header, MAC and nonce lengths, each body's length, the types (``T_*``), the
+    version, the header, MAC and nonce lengths, each body's length and its fields' offsets
+    (``COMMAND_*``, ``SAMPLE_*``), the types (``T_*``), the
     COMMAND flags (``F_*``), the daemon states (``S_*``) and the fault bits (``FB_*``)."""
     defines = {"PROTO_MAGIC0": f"'{chr(MAGIC[0])}'", "PROTO_MAGIC1": f"'{chr(MAGIC[1])}'", "PROTO_VERSION": VERSION,
                "HDR": HEADER.size, "MAC": MAC_LEN, "NONCE": NONCE_LEN,
-               **{f"BODY_{TYPE_NAMES[t]}": body.size for t, body in BODY.items()}}
+               **{f"BODY_{TYPE_NAMES[t]}": body.size for t, body in BODY.items()},
+               **{f"HDR_{n.upper()}": at for n, at in offsets(HEADER_FIELDS).items()},
+               **{f"COMMAND_{n.upper()}": at for n, at in offsets(COMMAND_FIELDS).items() if n != "pad"},
+               **{f"SAMPLE_{n.upper()}": at for n, at in offsets(SAMPLE_FIELDS).items() if n != "pad"}}
     enums = [("T_", {n: t for t, n in TYPE_NAMES.items()}), ("F_", FLAG_NAMES),
              ("S_", {n.upper(): v for v, n in STATE_NAMES.items()}), ("FB_", FAULT_BITS)]
     lines = ["/* Generated from hardware/protocol.py: do not edit. */"]

@@ -41,11 +41,15 @@ class Param:
 
 @dataclass(frozen=True)
 class Var:
-    """An input, output or state variable: structured ``name`` (e.g. ``leg[1].s``), unit, text."""
+    """An input, output or state variable: structured ``name`` (e.g. ``leg[1].s``), unit, text.
+    An output with ``local`` is an internal variable the block computes like an output but
+    exports as an FMI local: recordable, not an interface to connect (a Modelica model's
+    ``mass1.s``)."""
 
     name: str
     unit: str = ""
     description: str = ""
+    local: bool = False
 
 
 @dataclass(frozen=True)

@@ -10,17 +10,30 @@ our exporter (:mod:`fmus`: our integrators, our C core, strict FMI).
 What a model may contain (anything else is refused with ``file:line: construct``):
 
 - ``parameter Real`` with a value (a number, or an expression of other parameters: then it is
-  computed, not settable), a ``unit`` and a description string; ``min``/``max`` become bounds;
-- ``input Real`` / ``output Real`` with unit and description;
+  computed, not settable); ``min``/``max`` become bounds;
+- ``input Real`` / ``output Real``.  Units and description strings are optional, as in Modelica:
+  a variable without a unit is exported with none (unknown; a wildcard in the unit check), a
+  unit this module cannot read is exported with none too, and the description says which;
 - continuous ``Real`` variables; those that appear in ``der()`` are states (start value from
   ``start``, a number or an expression of parameters; exported as ``state.<name>``);
 - equations (acausal: the residuals are sorted and solved symbolically: one unknown at a time
   where an equation is linear in it, a linear algebraic loop by a symbolic sparse solve, a
   nonlinear one by Newton iterations unrolled into the generated code);
-- types declared in the file (``type Force = Real(unit = "N")``, as ``Modelica.Units.SI`` does;
-  the Modelica Standard Library itself is not loaded);
+- classes of other files and libraries (``extends``, ``import``), which rumoca reads from the
+  source ``roots`` its caller gives (:mod:`cosim.scenario.modelica_sources` chooses the files);
+- Boolean, Integer and enumeration parameters and constants (fixed: they select equations);
+- every other variable (algebraic, states, inner components' outputs) exported as an FMI local
+  under its Modelica name, so it can be recorded;
+- states tied by a constraint (index 2): one of them is computed from the constraint and its
+  time derivative is added (:meth:`_Translation._reduce_index`);
 - the built-in functions sin, cos, tan, asin, acos, atan, atan2, sinh, cosh, tanh, exp, log,
   log10, sqrt, abs, sign, min, max, floor, ceil, smooth, noEvent, homotopy and if-expressions;
+  functions whose algorithm is a sequence of assignments (inlined);
+- ``time`` (the block's event time in indicators and updates; a clock state where the continuous
+  equations read it);
+- events (docs/explanation/events.md): discrete Real variables are modes (``pre`` their left
+  value); ``when`` on a relation is an indicator with its update (``reinit`` and the clause's
+  discrete equations); a relation read by an if-expression is an indicator too;
 - connectors with one potential and one ``flow`` variable: each becomes a power-bond flange
   (:class:`~models.block.Flange`).  The potential is a velocity (``m/s``, ``rad/s``) or a position
   (``m``, ``rad``; then our flange carries its rate).  Which of the pair is an input is decided by
@@ -34,13 +47,13 @@ Units: rumoca 0.10 does not check them, so the translation does (:class:`_Units`
 dimension, and the arguments of sin, exp, tanh... be dimensionless; a variable without a unit is
 a wildcard, a number is a wildcard in a sum and a dimensionless factor in a product.
 
-Refused: when-equations, algorithm sections and functions (their bodies are algorithms),
-external functions, initial equations and algorithms, assert/terminate/reinit, event operators
-(pre, edge, change, sample, delay), ``time`` (blocks are autonomous), discrete, Integer, Boolean
-and String variables, inner/outer, stream connectors, arrays of connectors.
+Refused: algorithm sections of a model, statements other than assignments in functions,
+external functions, initial equations and algorithms, assert/terminate, ``sample``, ``edge``,
+``change``, ``elsewhen``, time events, ``delay``, Boolean/Integer discrete variables, String
+variables, inner/outer, stream connectors, arrays of connectors.
 
-``models/`` is maths only: :func:`translate` takes the model's text; reading files is the
-caller's (:mod:`cosim.scenario`).
+``models/`` is maths only: :func:`translate` takes the model's text (and rumoca reads the roots
+it is given); choosing and reading files is the caller's (:mod:`cosim.scenario`).
 """
 from __future__ import annotations
 
@@ -54,7 +67,7 @@ from itertools import product
 import casadi as ca
 
 from . import units
-from .block import Block, BlockError
+from .block import EITHER, FALLING, RISING, Block, BlockError, Var
 from .user import BlockBuilder
 
 #: The rumoca DAE schema this translator reads (``Model.to_dict("dae")["schema_version"]``).
@@ -76,26 +89,17 @@ class ModelicaError(BlockError):
 
 # --- what is refused, found in the text ----------------------------------------------------------
 _UNSUPPORTED = {
-    "when": "when-equations are not supported (events: blocks are continuous)",
-    "elsewhen": "when-equations are not supported (events: blocks are continuous)",
-    "algorithm": "algorithm sections are not supported (write equations)",
-    "function": "function definitions are not supported (their bodies are algorithms; use the built-in "
-                "functions or an expression)",
+    "elsewhen": "elsewhen is not supported yet (write one when-clause per condition)",
     "external": "external functions are not supported",
     "initial": "initial equations/algorithms are not supported (give start values)",
     "assert": "assert() is not supported", "terminate": "terminate() is not supported",
-    "reinit": "reinit() is not supported (events)", "pre": "pre() is not supported (events)",
-    "edge": "edge() is not supported (events)", "change": "change() is not supported (events)",
-    "sample": "sample() is not supported (events)", "delay": "delay() is not supported",
-    "time": "time is not supported (blocks are autonomous: their equations may not depend on time)",
-    "discrete": "discrete variables are not supported",
-    "Integer": "Integer variables are not supported (Real only)",
-    "Boolean": "Boolean variables are not supported (Real only)",
-    "String": "String variables are not supported (Real only)",
+    "edge": "edge() is not supported yet (a when on a relation, reinit and pre are)",
+    "change": "change() is not supported yet (a when on a relation, reinit and pre are)",
+    "sample": "sample() is not supported yet (a when on a relation, reinit and pre are)",
+    "delay": "delay() is not supported",
+    "String": "String variables are not supported (Real, and Integer/Boolean parameters)",
     "inner": "inner/outer is not supported", "outer": "inner/outer is not supported",
     "stream": "stream connectors are not supported",
-    "import": "import is not supported (the Modelica Standard Library is not loaded: declare the SI types "
-              "you use in the file, e.g. type Force = Real(unit = \"N\"))",
 }
 _TOKEN = re.compile(r'//[^\n]*|/\*.*?\*/|"(?:\\.|[^"\\])*"|[A-Za-z_][A-Za-z0-9_]*|\S', re.S)
 
@@ -112,12 +116,18 @@ def _tokens(text: str):
 def unsupported(text: str, filename: str) -> None:
     """Raise :class:`ModelicaError` at the first construct the translation refuses."""
     toks = list(_tokens(text))
+    functions: list[str] = []  # the function definitions being read (their algorithms are taken)
     for k, (tok, line) in enumerate(toks):
+        prev = toks[k - 1][0] if k else ""
+        if tok == "function" and prev != "end" and k + 1 < len(toks):
+            functions.append(toks[k + 1][0])
+        elif prev == "end" and functions and tok == functions[-1]:
+            functions.pop()
+        if tok == "algorithm" and not functions:
+            raise ModelicaError(filename, line, "algorithm: algorithm sections of a model are not supported "
+                                                "(write equations; a function's algorithm is)")
         if tok in _UNSUPPORTED:
-            prev = toks[k - 1][0] if k else ""
             if prev == ".":  # a component's member named like a keyword-free builtin (a.time)
-                continue
-            if tok == "function" and prev == "end":
                 continue
             raise ModelicaError(filename, line, f"{tok}: {_UNSUPPORTED[tok]}")
 
@@ -135,26 +145,34 @@ def _first_line(text: str, name: str) -> int | None:
     return None
 
 
-def _compile(text: str, model: str, filename: str):
-    """rumoca's model of ``text`` (:class:`ModelicaError` with the line of a front-end error)."""
+def _compile(text: str, model: str, filename: str, roots: tuple[str, ...] = ()):
+    """rumoca's model of ``text`` (:class:`ModelicaError` with the line of a front-end error).
+
+    ``roots`` are the source roots rumoca may read (directories laid out as Modelica packages);
+    ``text`` is given under the name ``<filename>``, which is no path, so rumoca reads no file
+    beside it (a real path makes it load every ``.mo`` of that directory)."""
     try:
         import rumoca
     except ModuleNotFoundError:
         raise ModelicaError(filename, None, "Modelica components need the rumoca front end: pip install "
                                             "rumoca (the project's dependencies include it)") from None
+    virtual = f"<{filename}>"
     try:
-        return rumoca.Session().loads(text, model=model, filename=filename)
+        return rumoca.Session(roots=list(roots)).loads(text, model=model, filename=virtual)
     except rumoca.RumocaError as exc:
-        msg = str(exc)
+        msg = str(exc).replace(virtual, filename)
         first = msg.splitlines()[0] if msg else type(exc).__name__
         first = re.sub(r"^\S+ could not be compiled: ", "", first)
         loc = _LOCATION.search(msg)
+        where = filename
         line = int(loc.group(2)) if loc else None
-        if line is None:  # the compiler's summary has no location: its diagnostics do
-            for d in rumoca.validate_source(text, model=model, filename=filename):
-                where = _LOCATION.search(d.message or "")
-                if d.level == "error" and where:
-                    line = int(where.group(2))
+        if loc and loc.group(1) not in (filename, virtual):
+            where = loc.group(1)  # in a library file
+        if line is None and not roots:  # the compiler's summary has no location: its diagnostics do
+            for d in rumoca.validate_source(text, model=model, filename=virtual):
+                found = _LOCATION.search(d.message or "")
+                if d.level == "error" and found:
+                    line = int(found.group(2))
                     break
         for d in getattr(exc, "diagnostics", []) or []:
             if line is None and d.line and d.line > 1:
@@ -165,7 +183,7 @@ def _compile(text: str, model: str, filename: str):
                 line = _first_line(text, unresolved.group(1))
         if line is None and model and model not in _classes(text) and model.split(".")[-1] not in _classes(text):
             first = f"{first} (the file defines {', '.join(_classes(text)) or 'no class'})"
-        raise ModelicaError(filename, line, first.strip().rstrip(":")) from None
+        raise ModelicaError(where, line, first.strip().rstrip(":")) from None
 
 
 # --- bounds and crash isolation of the front end (issue 33) -----------------------------------------
@@ -205,22 +223,25 @@ def bounded(text: str, filename: str) -> None:
                                                      f"it into several equations (intermediate variables)")
 
 
-_FRONT_END: dict[tuple[str, str, str], tuple[dict, dict, str]] = {}  # (sha256, model, file) -> result
+_FRONT_END: dict[tuple[str, str, str], dict] = {}  # (sha256, model, file) -> result
 
 
-def front_end(text: str, model: str, filename: str) -> tuple[dict, dict, str]:
-    """``(dae, flat, model name)``: rumoca's DAE and flat dictionaries of ``model`` in ``text``,
-    compiled in a forked child so that a crash of the compiler (a signal) is one
-    :class:`ModelicaError`, not the death of the workbench.  rumoca is imported once in this
-    process (the child inherits it); results are kept per source, model and file name, so a
-    second component of the same class compiles nothing."""
+def front_end(text: str, model: str, filename: str = "model.mo", roots: tuple[str, ...] = ()) -> dict:
+    """What rumoca compiles of class ``model`` of ``text`` with the source ``roots``: ``{"name",
+    "dae", "flat"}`` (plain data: JSON-able, so a caller may cache it), compiled in a forked child
+    so that a crash of the compiler (a signal) is one :class:`ModelicaError`, not the death of the
+    workbench.  rumoca is imported once in this process (the child inherits it); the result of a
+    text without roots is kept per source, model and file name, so a second component of the
+    same class compiles nothing (with roots, the caller keys the files it gives:
+    :mod:`cosim.scenario.modelica_sources`)."""
     import hashlib
     import os
     import pickle
     import signal
 
+    roots = tuple(str(r) for r in roots)
     key = (hashlib.sha256(text.encode("utf-8", "surrogatepass")).hexdigest(), model, filename)
-    if key in _FRONT_END:
+    if not roots and key in _FRONT_END:
         return _FRONT_END[key]
     try:
         import rumoca  # noqa: F401  (loaded here once, inherited by every child)
@@ -236,8 +257,8 @@ def front_end(text: str, model: str, filename: str) -> tuple[dict, dict, str]:
             faulthandler.disable()  # a crash is the parent's one line, not a dump of the child's stack
             os.close(read)
             try:
-                m = _compile(text, model, filename)
-                out = ("ok", (m.to_dict("dae"), m.to_dict("flat"), m.name))
+                m = _compile(text, model, filename, roots)
+                out = ("ok", {"name": m.name, "dae": m.to_dict("dae"), "flat": m.to_dict("flat")})
             except ModelicaError as exc:
                 out = ("error", (exc.filename, exc.line, exc.message))
             except BaseException as exc:  # noqa: BLE001 - anything else, in one line
@@ -257,10 +278,20 @@ def front_end(text: str, model: str, filename: str) -> tuple[dict, dict, str]:
         how = f"died of {signal.Signals(sig).name} (signal {sig})" if sig else f"exited ({os.waitstatus_to_exitcode(status)})"
         raise ModelicaError(filename, None, f"the Modelica front end (rumoca) {how} while compiling {model}; "
                                             f"simplify the model (long or deeply nested expressions)")
-    kind, payload = pickle.loads(data)
+    try:
+        kind, payload = pickle.loads(data)
+    except (pickle.UnpicklingError, EOFError, ValueError):
+        raise ModelicaError(filename, None, f"the Modelica front end (rumoca) gave no readable result for {model} "
+                                            f"(exit {os.waitstatus_to_exitcode(status)})") from None
     if kind == "error":
         raise ModelicaError(*payload)
-    _FRONT_END[key] = payload
+    dae = payload["dae"]
+    if dae.get("schema_version") != DAE_SCHEMA:
+        raise ModelicaError(filename, None, f"rumoca {_rumoca_version()} writes DAE schema "
+                                            f"{dae.get('schema_version')}; this translator reads schema {DAE_SCHEMA} "
+                                            f"(rumoca 0.10.x)")
+    if not roots:
+        _FRONT_END[key] = payload
     return payload
 
 
@@ -301,8 +332,11 @@ class _Graph:
     filename: str
     names: dict  # variable index -> name (for messages)
 
+    functions: list = dataclasses.field(default_factory=list)  # the DAE's functions (inlined at calls)
+
     def __post_init__(self):
         self.memo: dict[int, ca.SX] = {}
+        self.inlined: dict[tuple[int, int], tuple[list[ca.SX], ca.SX]] = {}  # (function, output) -> (params, body)
 
     def __call__(self, i: int) -> ca.SX:
         hit = self.memo.get(i)
@@ -314,13 +348,17 @@ class _Graph:
         (kind, body), = self.nodes[i].items()
         if kind == "literal":
             (t, v), = body.items()
-            if t not in ("real", "integer"):
-                self._refuse(i, f"a {t} literal is not supported (Real only)")
+            if t == "boolean":
+                return ca.SX(1.0 if v else 0.0)
+            if t not in ("real", "integer", "enumeration"):  # an enumeration literal is its ordinal
+                self._refuse(i, f"a {t} literal is not supported (Real, Integer, Boolean and enumerations only)")
             return ca.SX(float(v))
         if kind == "coordinate":
-            key = next(iter(body.items()))
+            key = ("time", 0) if body == "time" else next(iter(body.items()))
+            if key[0] == "function_parameter":
+                key = ("function_parameter", (key[1]["function"], key[1]["ordinal"]))
             if key not in self.env:
-                self._refuse(i, f"{key[0]} is not supported here")
+                self._refuse(i, f"{key[0].replace('_', ' ')} is not supported here")
             return self.env[key]
         if kind == "binary":
             op = _BINARY.get(body["operator"])
@@ -343,7 +381,40 @@ class _Graph:
             for k in range(len(args) - 3, -1, -2):
                 value = ca.if_else(args[k], args[k + 1], value)
             return value
+        if kind == "call" and body.get("derivative") is None:
+            params, out = self._inline(i, body["function"], body.get("output", 0))
+            if len(params) != len(args):
+                self._refuse(i, f"a call of {self.functions[body['function']]['name']} with {len(args)} arguments "
+                                f"(it takes {len(params)})")
+            return ca.substitute(out, ca.vertcat(*params), ca.vertcat(*args)) if params else out
         self._refuse(i, f"the expression kind {kind!r} is not supported")
+
+    def _inline(self, i: int, f: int, output: int) -> tuple[list[ca.SX], ca.SX]:
+        """Output ``output`` of the DAE's function ``f`` as an expression of its parameters'
+        symbols: its algorithm (assignments in order) evaluated symbolically."""
+        key = (f, output)
+        if key in self.inlined:
+            return self.inlined[key]
+        fn = self.functions[f]
+        if fn.get("external") is not None:
+            self._refuse(i, f"{fn['name']} is an external function, which is not supported")
+        params = [ca.SX.sym(f"{fn['name']}.{p['name']}") for p in fn["parameters"]]
+        names = [v["name"] for v in fn["outputs"] + fn.get("locals", [])]
+        values: list[ca.SX | None] = [None] * len(names)
+        env = dict(self.env)
+        env.update({("function_parameter", (f, k)): s for k, s in enumerate(params)})
+        for stmt in fn.get("statements", []):
+            (skind, sbody), = stmt.items()
+            if skind != "assignment":
+                self._refuse(i, f"{fn['name']}: a {skind.replace('_', ' ')} statement in its algorithm is not "
+                                f"supported (assignments only)")
+            sub = dataclasses.replace(self, env={**env, **{("function_variable", (f, k)): v
+                                                            for k, v in enumerate(values) if v is not None}})
+            values[sbody["target"]] = sub(sbody["rhs"])
+        if values[output] is None:
+            self._refuse(i, f"{fn['name']}: its output {names[output]} is never assigned")
+        self.inlined[key] = (params, values[output])
+        return self.inlined[key]
 
     def _refuse(self, i: int, what: str):
         raise ModelicaError(self.filename, self.line_of(i), what)
@@ -378,7 +449,11 @@ class _Units:
         if kind == "literal":
             return None, True, "a number"
         if kind == "coordinate":
+            if body == "time":
+                return units.parse("s"), False, "time [s]"
             (what, k), = body.items()
+            if what not in ("parameter", "input", "output", "state", "derivative", "algebraic"):
+                return None, False, "?"
             d = self.units.get(k)
             label = f"{self.g.names.get(k, '?')} [{self.declared.get(k) or 'no unit'}]"
             if what == "derivative" and d is not None:
@@ -450,6 +525,14 @@ class _Units:
         raise ModelicaError(self.g.filename, self.g.line_of(i), what)
 
 
+_REL = {"less": "<", "less_equal": "<=", "greater": ">", "greater_equal": ">="}
+
+
+def _short(e: ca.SX, limit: int = 120) -> str:
+    text = str(ca.simplify(e))
+    return text if len(text) <= limit else text[:limit] + "..."
+
+
 def _operand_starts(nodes: list) -> list[int]:
     """Where each node's operands begin in the DAE's shared operand list (consumed in node order)."""
     starts, k = [], 0
@@ -467,23 +550,25 @@ _VELOCITY_UNITS = ("m/s", "rad/s")
 
 
 def translate(text: str, model: str, filename: str = "model.mo", *, name: str | None = None,
-              integrator: str = "auto", substeps: int = 1) -> Block:
+              integrator: str = "auto", substeps: int = 1, roots: tuple[str, ...] = (),
+              compiled: dict | None = None, scan: bool = True) -> Block:
     """The :class:`Block` of Modelica ``model`` in ``text`` (``filename`` names it in messages).
 
     ``name`` is the block's name (default: the model's last name part, lower case);
     ``integrator`` is ``"auto"`` (``exact`` when the equations are linear, else ``radau``),
-    ``exact``, ``rk4`` or ``radau``.  Raises :class:`ModelicaError` (``file:line: what``)."""
+    ``exact``, ``rk4`` or ``radau``; ``roots`` are the source roots of the classes ``text``
+    uses; ``compiled`` is :func:`front_end`'s result when the caller has it (then rumoca is not
+    run); ``scan`` refuses the unsupported constructs found in ``text`` by their line first (off
+    for a library's file, whose other classes may use anything: the flattened class is checked
+    all the same).  Raises :class:`ModelicaError` (``file:line: what``)."""
     if integrator not in INTEGRATORS:
         raise ModelicaError(filename, None, f"integrator {integrator!r}; expected one of {', '.join(INTEGRATORS)}")
-    bounded(text, filename)
-    unsupported(text, filename)
-    dae, flat, model_name = front_end(text, model, filename)
-    if dae.get("schema_version") != DAE_SCHEMA:
-        raise ModelicaError(filename, None, f"rumoca {_rumoca_version()} writes DAE schema "
-                                            f"{dae.get('schema_version')}; this translator reads schema {DAE_SCHEMA} "
-                                            f"(rumoca 0.10.x)")
-    return _Translation(text, filename, dae["storage"], flat, model_name, name or model.split(".")[-1].lower()).block(
-        integrator, substeps)
+    if scan:
+        bounded(text, filename)
+        unsupported(text, filename)
+    fe = compiled if compiled is not None else front_end(text, model, filename, roots)
+    return _Translation(text, filename, fe["dae"]["storage"], fe["flat"], fe["name"],
+                        name or model.split(".")[-1].lower()).block(integrator, substeps)
 
 
 def _rumoca_version() -> str:
@@ -501,7 +586,11 @@ class _Translation:
         self.nodes, self.prov = ex["nodes"], ex["provenance"]
         self.env: dict = {}
         self.graph = _Graph(self.nodes, ex["operands"], _operand_starts(self.nodes), self.env, self._node_line,
-                            filename, {k: v["name"] for k, v in enumerate(self.vars)})
+                            filename, {k: v["name"] for k, v in enumerate(self.vars)}, st.get("functions") or [])
+        self.time = ca.SX.sym("t")  # the model's time (see _clock)
+        self.mode_syms = {}
+        self.event_fields: dict = {}
+        self.solved = None
         self.units = _Units(self.graph, {k: (v["attributes"].get("unit") or "") for k, v in enumerate(self.vars)})
 
     # source lines
@@ -534,12 +623,16 @@ class _Translation:
         roles: dict[str, list[int]] = {}
         for k, v in enumerate(self.vars):
             roles.setdefault(v["role"], []).append(k)
-        bad = sorted(set(roles) - {"parameter", "input", "output", "state", "algebraic"})
+        bad = sorted(set(roles) - {"parameter", "input", "output", "state", "algebraic", "discrete_real", "constant"})
         if bad:
             v = self.vars[roles[bad[0]][0]]
             self._err(v, f"{v['name']}: a {bad[0].replace('_', ' ')} variable is not supported (continuous Real only)")
         for k in roles.get("parameter", []):
             self._parameter(b, k)
+        for k in roles.get("constant", []):
+            self._parameter(b, k)
+        self.env[("time", 0)] = self.time  # replaced at the end: a clock state in ode/out, the block's t in events
+        self._modes(roles.get("discrete_real", []))
         for k in roles.get("input", []):
             v = self.vars[k]
             self.env[("input", k)] = b.input(v["name"], *self._doc(v, "input"))
@@ -553,7 +646,7 @@ class _Translation:
             if ca.depends_on(s0, ca.vertcat(*[self.env[("input", j)] for j in roles.get("input", [])])) \
                     if roles.get("input") else False:
                 self._err(v, f"{v['name']}: the start value may depend on parameters only")
-            self.env[("state", k)] = b.state(f"state.{v['name']}", s0, unit, text)
+            self.env[("state", k)] = self.env[("pre_state", k)] = b.state(f"state.{v['name']}", s0, unit, text)
             unknown[("derivative", k)] = ca.SX.sym(f"der_{v['name']}")
         for k in roles.get("output", []) + roles.get("algebraic", []):
             unknown[("algebraic", k)] = ca.SX.sym(self.vars[k]["name"])  # outputs are algebraic coordinates too
@@ -561,44 +654,225 @@ class _Translation:
         flanges = self._connectors()
         residuals = self._residuals()
         solved, chosen = self._solve(b, residuals, unknown, flanges)
+        demoted = [k for k in states if ("state", k) in solved]  # computed from the others (index reduction)
+        if demoted:
+            gone = {self.env[("state", k)].name() for k in demoted}
+            b._states = [entry for entry in b._states if entry[1].name() not in gone]
+        states = [k for k in states if k not in demoted]
         for k in states:
             b.der(self.env[("state", k)], solved[("derivative", k)])
         value = {key[1]: solved[key] if key in solved else self.env[key] for key in unknown if key[0] != "derivative"}
         for k in states:
             value[k] = self.env[("state", k)]
+        top = [k for k in roles.get("output", []) if self._top_level(self.vars[k])]
         emit = [(k, lambda k=k: b.output(self.vars[k]["name"], value[k], *self._doc(self.vars[k], "output")))
-                for k in roles.get("output", []) + [j for j in states if self._is_output(self.vars[j])]]
+                for k in top + [j for j in states if self._is_output(self.vars[j])]]
         emit += [(min(fl["potential"], fl["flow"]), lambda fl=fl, c=c: self._flange(b, fl, c, value))
                  for fl, (c, _) in zip(flanges, chosen)]
         for _, add in sorted(emit, key=lambda e: e[0]):  # in declaration order
             add()
-        return self._finish(b, integrator, substeps)
+        self._locals(b, value, set(top))
+        for k, sym in self.mode_syms.items():  # the discrete variables, recordable too
+            unit, text = self._doc(self.vars[k], "discrete variable")
+            b.output(self.vars[k]["name"], sym, unit, text, local=not self._is_output(self.vars[k]))
+        known = {key: solved[key] for key in unknown if key in solved}  # events read the solved variables
+        self.solved = (ca.vertcat(*[unknown[k] for k in known]), ca.vertcat(*known.values())) if known else None
+        events = self._events(b)
+        self._clock(b)
+        return self._finish(b, integrator, substeps, events)
 
-    def _finish(self, b: BlockBuilder, integrator: str, substeps: int) -> Block:
+    def _top_level(self, v: dict) -> bool:
+        """An output of the class itself (not of one of its components, ``sine1.y``)."""
+        return "." not in v["name"] and "[" not in v["name"]
+
+    def _locals(self, b: BlockBuilder, value: dict, done: set[int]) -> None:
+        """Every other variable of the model (states, algebraic variables, the outputs of its
+        components) as an FMI local under its Modelica name, so a scene can record it."""
+        taken = {v.name for v, _ in b._outputs} | {v.name for v, _ in b._inputs}
+        for k, v in enumerate(self.vars):
+            if k in done or k not in value or v["name"] in taken or v["role"] not in ("state", "algebraic", "output"):
+                continue
+            unit, text = self._doc(v, "variable")
+            b.output(v["name"], value[k], unit, text, local=True)
+            taken.add(v["name"])
+
+    def _finish(self, b: BlockBuilder, integrator: str, substeps: int, events: dict | None = None) -> Block:
         if integrator != "auto":
-            return b.build(integrator=integrator, substeps=substeps)
+            return b.build(integrator=integrator, substeps=substeps, units_required=False, events=events)
         from .integrators import affine_parts
 
-        probe = b.build(integrator="rk4", substeps=substeps)  # (building does not change the builder)
+        probe = b.build(integrator="rk4", substeps=substeps, units_required=False, events=events)  # (building does not change the builder)
         if not probe.states or affine_parts(probe) is not None:
             exact = dataclasses.replace(probe, integrator="exact" if probe.states else "none")
             exact.check()
             return exact
-        return b.build(integrator="radau", substeps=substeps)
+        return b.build(integrator="radau", substeps=substeps, units_required=False, events=events)
+
+    # events (docs/explanation/events.md): when-equations, reinit, pre, relations as indicators
+    def _modes(self, keys: list[int]) -> None:
+        """The discrete Real variables as the block's modes (``pre(v)`` is the mode's left value)."""
+        self.mode_syms: dict[int, ca.SX] = {}
+        self.mode_starts: list[ca.SX] = []
+        for k in keys:
+            v = self.vars[k]
+            sym = ca.SX.sym(f"mode.{v['name']}")
+            self.env[("discrete_real", k)] = self.env[("pre_discrete_real", k)] = sym
+            start = v["attributes"].get("start")
+            self.mode_starts.append(self.graph(start) if start is not None else ca.SX(0.0))
+            self.mode_syms[k] = sym
+
+    def _clock(self, b: BlockBuilder) -> None:
+        """``time`` in the continuous equations becomes a clock state (d/dt = 1 from 0 at the
+        run's start: blocks are autonomous); none is added when they do not use it."""
+        uses = any(ca.depends_on(e, self.time) for e in list(b._ders.values()) + [e for _, e in b._outputs]) or \
+            any(ca.depends_on(ca.SX(s0), self.time) for _, _, s0 in b._states)
+        if not uses:
+            return
+        clock = b.state("state.time", 0.0, "s", "the model's time: a clock state, d/dt = 1 from 0 at the run's start")
+        b.der(clock, 1.0)
+        b._ders = {k: ca.substitute(e, self.time, clock) for k, e in b._ders.items()}
+        b._outputs = [(v, ca.substitute(e, self.time, clock)) for v, e in b._outputs]
+        if self.event_fields:  # the clock is a state the updates keep: its row goes after the others
+            nx = len(b._states) - 1
+            self.event_fields["updates"] = [None if g is None else ca.vertcat(g[:nx], clock, g[nx:])
+                                            for g in self.event_fields["updates"]]
+
+    def _events(self, b: BlockBuilder) -> dict | None:
+        """The block's event fields from rumoca's roots, conditions, event actions and discrete
+        equations: each relation a root watches is an indicator ``lhs - rhs`` (a ``<``/``<=``
+        fires falling, ``>``/``>=`` rising, for a when-clause; either way when only an
+        if-expression reads it); a when-clause's update applies its ``reinit``s to the states and
+        solves its discrete equations for the modes' new values (``pre(v)`` the left values)."""
+        st = self.st
+        self.event_fields: dict = {}
+        for key, what in (("time_events", "a time event (sample(), a when on time alone)"), ("delays", "delay()"),
+                          ("clocks", "a clock (synchronous features)"), ("previous_values", "previous()")):
+            if st.get(key):
+                raise ModelicaError(self.filename, None, f"{what} is not supported yet")
+        roots = [r["root"] for r in st.get("roots", [])]
+        if not roots and not self.mode_syms:
+            return None
+        relations = [r["relation"] for r in st.get("relations", [])]
+        conditions = st.get("conditions", [])
+        xs = [sym for _, sym, _ in b._states]
+        ms = list(self.mode_syms.values())
+        indicators, directions, names, updates = [], [], [], []
+        by_relation: dict[int, int] = {}
+        for root in roots:
+            rel = relations[root["relation"]]
+            (kind, body), = self.nodes[rel["expression"]].items()
+            if kind != "binary" or body["operator"] not in ("less", "less_equal", "greater", "greater_equal"):
+                self._fail_node(rel["expression"], "a relation other than <, <=, >, >= as an event")
+            z = self.graph(body["lhs"]) - self.graph(body["rhs"])
+            by_relation[root["relation"]] = len(indicators)
+            indicators.append(z)
+            directions.append(FALLING if body["operator"] in ("less", "less_equal") else RISING)
+            names.append(f"{_short(self.graph(body['lhs']), 40)} {_REL[body['operator']]} "
+                         f"{_short(self.graph(body['rhs']), 40)}")
+            updates.append(None)
+        triggers: dict[int, list] = {}
+        for act in st.get("event_actions", []):
+            triggers.setdefault(act["trigger"], []).append(("action", act))
+        for eq in st.get("discrete_real_equations", []):
+            when = (eq.get("activation") or {}).get("when")
+            if when is None:
+                self._fail_span(eq, "a discrete equation outside a when-clause")
+            triggers.setdefault(when["trigger"], []).append(("equation", eq))
+        fired = set()
+        for trig, items in triggers.items():
+            node = (conditions[trig].get("node") or {}) if trig < len(conditions) else {}
+            if set(node) != {"relation"} or node["relation"] not in by_relation:
+                self._fail_span(items[0][1], "a when-condition other than one relation (initial(), sample(), edge(), "
+                                             "change(), and/or of relations)")
+            i = by_relation[node["relation"]]
+            updates[i] = self._update(items, xs, ms, b)
+            fired.add(i)
+        for i in range(len(indicators)):
+            if i not in fired:
+                directions[i] = EITHER  # a relation read by an if-expression: the step restarts where it switches
+        if self.solved is not None:  # indicators and updates in states, inputs, parameters and modes only
+            indicators = [ca.substitute(z, *self.solved) for z in indicators]
+            updates = [None if g is None else ca.substitute(g, *self.solved) for g in updates]
+        self.event_fields = {
+            "modes": [Var(f"mode.{self.vars[k]['name']}", *self._doc(self.vars[k], "discrete variable"))
+                      for k in self.mode_syms],
+            "m": ca.vertcat(*ms) if ms else ca.SX(0, 1), "mode_start": self.mode_starts, "t": self.time,
+            "indicators": ca.vertcat(*indicators) if indicators else ca.SX(0, 1), "directions": directions,
+            "event_names": names, "updates": updates}
+        return self.event_fields
+
+    def _update(self, items: list, xs: list, ms: list, b: BlockBuilder) -> ca.SX:
+        """``[x+; m+]`` of one when-clause: its discrete equations solved for the modes' new
+        values, then its reinits (which may read them)."""
+        new = {k: ca.SX.sym(f"new.{self.vars[k]['name']}") for k in self.mode_syms}
+        env = dict(self.env)
+        env.update({("discrete_real", k): s for k, s in new.items()})
+        g = dataclasses.replace(self.graph, env=env)
+        eqs = [g(it["residual"]) for kind, it in items if kind == "equation"]
+        for kind, it in items:
+            if kind == "action" and it.get("guard") != it.get("trigger"):
+                self._fail_span(it, "elsewhen is not supported yet (one when-clause per condition)")
+        solved: dict = {}
+        if eqs:
+            unknowns = [s for s in new.values() if any(ca.depends_on(e, s) for e in eqs)]
+            R, Z = ca.vertcat(*eqs), ca.vertcat(*unknowns)
+            J = ca.jacobian(R, Z)
+            if len(unknowns) != len(eqs) or ca.depends_on(J, Z):
+                self._fail_span(items[0][1], "the equations of this when-clause do not determine its discrete "
+                                             "variables one by one (each must be assigned once, linearly)")
+            sol = ca.solve(J, -ca.substitute(R, Z, ca.SX.zeros(Z.shape)))
+            solved = {unknowns[j].name(): sol[j] for j in range(len(unknowns))}
+        m_new = []
+        for k, m in zip(self.mode_syms, ms):
+            m_new.append(solved.get(new[k].name(), m))
+        subst_from = ca.vertcat(*new.values()) if new else ca.SX(0, 1)
+        subst_to = ca.vertcat(*m_new) if m_new else ca.SX(0, 1)
+        x_new = list(xs)
+        for kind, it in items:
+            if kind != "action":
+                continue
+            (akind, body), = it["kind"].items()
+            if akind != "reinitialize":
+                self._fail_span(it, f"the event action {akind!r} is not supported")
+            target = self.env.get(("state", body["state"]))
+            if target is None or not any(ca.is_equal(target, x) for x in xs):
+                self._fail_span(it, f"reinit of {self.vars[body['state']]['name']}, which is not a state here")
+            value = g(body["value"])
+            value = ca.substitute(value, subst_from, subst_to) if new else value
+            x_new[[j for j, x in enumerate(xs) if ca.is_equal(x, target)][0]] = value
+        return ca.vertcat(*(x_new + m_new))
+
+    def _fail_span(self, item: dict, what: str):
+        span = (item.get("provenance") or {}).get("span") or {}
+        raise ModelicaError(self.filename, self._offset_line(span.get("start")), what)
+
+    def _fail_node(self, i: int, what: str):
+        raise ModelicaError(self.filename, self._node_line(i), what)
 
     @staticmethod
     def _is_output(v: dict) -> bool:
         return v["attributes"].get("causality") == "output"
 
     def _doc(self, v: dict, kind: str) -> tuple[str, str]:
+        """``(unit, description)`` of a variable as the block declares it.  Both are optional in
+        Modelica: a missing unit is exported as none (unknown, a wildcard in the unit check), a
+        unit :mod:`models.units` does not read is shown in the description and exported as none,
+        and the description then says so."""
         a = v["attributes"]
         unit, text = (a.get("unit") or "").strip(), (a.get("description") or "").strip()
+        note = ""
         if not unit:
-            self._err(v, f"{kind} {v['name']!r} has no unit (declare it, e.g. Real {v['name']}(unit = \"1\") or "
-                         f"a type such as type Force = Real(unit = \"N\"))")
-        if not text:
-            self._err(v, f"{kind} {v['name']!r} has no description string")
-        return unit, text
+            note = "unit unknown: none declared"
+        elif units.parse(unit) is None:
+            note, unit = f"unit {unit!r} unknown here: not checked", ""
+        if note:
+            text = f"{text} ({note})" if text else f"{kind} {v['name']} (no description; {note})"
+        return unit, text or f"{kind} {v['name']} (no description)"
+
+    def _scalar(self, v: dict) -> str:
+        types = self.st.get("value_types") or []
+        k = v.get("value_type")
+        return types[k].get("scalar", "real") if isinstance(k, int) and k < len(types) else "real"
 
     def _parameter(self, b: BlockBuilder, k: int) -> None:
         v = self.vars[k]
@@ -607,7 +881,8 @@ class _Translation:
         if node is None:
             self._err(v, f"parameter {v['name']!r} has no value")
         value = self.graph(node)
-        if not value.is_constant():  # a parameter computed from others: not settable
+        if not value.is_constant() or self._scalar(v) != "real":
+            # computed from others, or a Boolean/Integer (structural: it selects equations): not settable
             self.env[("parameter", k)] = value
             return
         unit, text = self._doc(v, "parameter")
@@ -618,20 +893,19 @@ class _Translation:
 
     def _refuse_flat(self) -> None:
         """What the token scan cannot see (e.g. a construct reached through an extends)."""
-        for key, what in (("algorithms", "an algorithm section"), ("when_chains", "a when-equation"),
-                          ("initial_equations", "an initial equation"), ("assert_equations", "an assert"),
-                          ("functions", "a function")):
+        for key, what in (("algorithms", "an algorithm section"), ("initial_equations", "an initial equation"),
+                          ("assert_equations", "an assert")):
             if self.flat.get(key):
                 raise ModelicaError(self.filename, None, f"the model contains {what}, which is not supported")
-        if self.st.get("discrete_real_equations") or self.st.get("time_events") or self.st.get("delays"):
-            raise ModelicaError(self.filename, None, "the model has events or delays, which are not supported")
 
     def _residuals(self) -> list[tuple[ca.SX, int | None]]:
         out = []
+        top_flows = {self.vars[fl["flow"]]["name"] for fl in self._connectors()}
         for op in self.st["continuous_equation_operations"]:
             (kind, body), = op.items()
             origin = (body.get("provenance") or {}).get("origin")
-            if isinstance(origin, dict) and origin.get("generated") == "flow_balance_equation":
+            if isinstance(origin, dict) and origin.get("generated") == "flow_balance_equation" and kind == "residual" \
+                    and {x.name() for x in ca.symvar(self.graph(body["residual"]))} <= top_flows:
                 continue  # "flow = 0" of an unconnected top-level connector: here a flange bonds it
             span = (body.get("provenance") or {}).get("span") or {}
             line = self._offset_line(span.get("start"))
@@ -672,27 +946,152 @@ class _Translation:
 
     def _solve(self, b: BlockBuilder, residuals, unknown: dict, flanges: list[dict]):
         """Choose each flange's causality so that the equations determine the unknowns; returns
-        the solved unknowns (key -> expression) and the choice per flange."""
-        res = ca.vertcat(*[r for r, _ in residuals]) if residuals else ca.SX(0, 1)
+        the solved unknowns (key -> expression) and the choice per flange.  Where no choice
+        does, the states tied by a constraint (an index-2 system, e.g. two masses joined rigidly,
+        or a spring's relative position that fixes a mass's one) are reduced first
+        (:meth:`_reduce_index`)."""
         options = []
         for fl in flanges:  # effort_out: the potential is given (an input); flow_out: the flow is given
             options.append([("effort_out", ("algebraic", fl["potential"])), ("flow_out", ("algebraic", fl["flow"]))])
-        for choice in product(*options) if flanges else [()]:
-            given = {key for _, key in choice}
-            keys = [k for k in unknown if k not in given]
-            if len(keys) != res.numel():
-                continue
-            w = ca.vertcat(*[unknown[k] for k in keys]) if keys else ca.SX(0, 1)
-            if keys and ca.sprank(ca.jacobian_sparsity(res, w)) < len(keys):
-                continue
-            subst = self._inputs_for(b, flanges, choice, unknown)
-            r = ca.substitute(res, ca.vertcat(*subst.keys()), ca.vertcat(*subst.values())) if subst else res
-            return self._sorted_solve(r, keys, unknown, residuals), choice
-        n_eq = res.numel()
+        choices = list(product(*options)) if flanges else [()]
+        for reduce in (False, True):
+            for choice in choices:
+                given = {key for _, key in choice}
+                keys = [k for k in unknown if k not in given]
+                rows = list(residuals)
+                if reduce:
+                    rows, keys = self._reduce_index(b, rows, keys, unknown)
+                    if rows is None:
+                        continue
+                res = ca.vertcat(*[r for r, _ in rows]) if rows else ca.SX(0, 1)
+                if len(keys) != res.numel():
+                    continue
+                w = ca.vertcat(*[unknown[k] for k in keys]) if keys else ca.SX(0, 1)
+                if keys and ca.sprank(ca.jacobian_sparsity(res, w)) < len(keys):
+                    continue
+                subst = self._inputs_for(b, flanges, choice, unknown)
+                r = ca.substitute(res, ca.vertcat(*subst.keys()), ca.vertcat(*subst.values())) if subst else res
+                return self._sorted_solve(r, keys, unknown, rows), choice
+        n_eq = len(residuals)
         raise ModelicaError(self.filename, None, f"the equations do not determine the model's variables: {n_eq} "
                                                  f"equations for {len(unknown) - len(flanges)} unknowns (states' "
                                                  f"derivatives, outputs and other variables; connectors counted with "
-                                                 f"one of their two variables given)")
+                                                 f"one of their two variables given)"
+                                                 + (f"; {self.index_problem}" if self.index_problem else ""))
+
+    index_problem = ""
+    _PRIORITY = {"Never": 0, "Avoid": 1, "Default": 2, "Prefer": 3, "Always": 4}
+
+    def _reduce_index(self, b: BlockBuilder, rows: list, keys: list, unknown: dict):
+        """Demote states tied by constraints until the equations determine the unknowns: a row
+        that the equations leave free of unknowns, ``g(x) = 0``, makes one of its states (the
+        one without a fixed start, then the lowest ``stateSelect``, the last declared) an unknown, and its time
+        derivative ``dg/dx . der(x) = 0`` is added (the dummy-derivative method on the
+        constraint as the equations give it).  Returns ``(rows, keys)``, or ``(None, None)``
+        with :attr:`index_problem` saying why not (a constraint through an input, whose
+        derivative the block does not have)."""
+        keys = list(keys)
+        rows = list(rows)
+        states = [key[1] for key in unknown if key[0] == "derivative"]
+        for _ in range(len(states) + 1):
+            res = ca.vertcat(*[r for r, _ in rows]) if rows else ca.SX(0, 1)
+            w = ca.vertcat(*[unknown[k] for k in keys]) if keys else ca.SX(0, 1)
+            if len(keys) == res.numel() and ca.sprank(ca.jacobian_sparsity(res, w)) == len(keys):
+                return rows, keys
+            free = self._constraints(res, keys, unknown)
+            if not free:
+                return None, None
+            g, line = free[0], None
+            live = [k for k in states if ("state", k) not in keys]
+            tied = [k for k in live if ca.depends_on(g, self.env[("state", k)])]
+            own = {self.env[("state", j)].name() for j in states} | {sym.name() for _, sym in b._params} | \
+                {sym.name() for sym in self.mode_syms.values()} | {self.time.name()}
+            own |= {self.env[("parameter", j)].name() for j in range(len(self.vars))
+                    if ("parameter", j) in self.env and self.env[("parameter", j)].is_symbolic()}
+            inputs = [s for s in ca.symvar(g) if s.name() not in own]
+            if inputs or not tied:
+                self.index_problem = (f"the states are tied by the constraint 0 = {_short(g)}"
+                                      + (f", which involves {inputs[0].name()}, an input or a variable the "
+                                         f"partner gives (its derivative is not known to the block)"
+                                         if inputs else ""))
+                return None, None
+            k = min(tied, key=lambda j: (self._fixed(j), self._PRIORITY.get(
+                self.vars[j]["attributes"].get("state_select") or "Default", 2), -j))
+            unknown[("state", k)] = self.env[("state", k)]
+            keys.append(("state", k))
+            xs = ca.vertcat(*[self.env[("state", j)] for j in states])
+            xd = ca.vertcat(*[unknown[("derivative", j)] for j in states])
+            rows.append((ca.jtimes(g, xs, xd), line))
+        return None, None
+
+    def _fixed(self, k: int) -> bool:
+        """Whether state ``k`` has a start value that must hold (``fixed = true``): such a state
+        is kept, so the demoted one starts where the constraint puts it."""
+        fixed = self.vars[k]["attributes"].get("fixed")
+        return bool(fixed and all(fixed)) if isinstance(fixed, list) else bool(fixed)
+
+    def _constraints(self, res: ca.SX, keys: list, unknown: dict) -> list:
+        """The rows of ``res = 0`` left free of unknowns (and not identically zero) after
+        solving, one at a time, the rows linear in a single unknown: constraints among the
+        states (and parameters, inputs)."""
+        rows = [res[i] for i in range(res.numel())]
+        out: list = []
+        self._eliminate(rows, {k: unknown[k] for k in keys}, None, out)
+        return out
+
+    def _eliminate(self, rows: list, pending: dict, lines: list | None, free: list | None = None) -> dict:
+        """Solve, one at a time in row order, the rows linear in a single pending unknown,
+        substituting each solution into the other rows (``rows`` and ``pending`` are updated in
+        place; returns the solved unknowns).  A row left without unknowns must be zero: else it
+        is appended to ``free`` (a constraint) or, without ``free``, refused with its line."""
+        names = {sym.name(): k for k, sym in pending.items()}
+        deps = [{x.name() for x in ca.symvar(r)} & names.keys() for r in rows]
+        solved: dict = {}
+        solved_deps: dict = {}
+        progress = True
+        while pending and progress:
+            progress = False
+            for i, r in enumerate(rows):
+                if r is None:
+                    continue
+                if not deps[i]:
+                    rows[i] = None
+                    if not (r.is_zero() or (free is not None and ca.simplify(r).is_zero())):
+                        if free is None:
+                            raise ModelicaError(self.filename, lines[i] if lines else None,
+                                                "this equation is redundant or contradicts the others")
+                        free.append(r)
+                    continue
+                if len(deps[i]) != 1:
+                    continue
+                (nm,) = deps[i]
+                key = names[nm]
+                sym = pending[key]
+                coef = ca.jacobian(r, sym)
+                if ca.depends_on(coef, sym):
+                    continue
+                value = -ca.substitute(r, sym, ca.SX(0)) / coef
+                del pending[key], names[nm]
+                rows[i] = None
+                vdeps = {x.name() for x in ca.symvar(value)} & names.keys()
+                for j, q in enumerate(rows):
+                    if q is not None and nm in deps[j]:
+                        rows[j] = ca.substitute(q, sym, value)
+                        deps[j] = (deps[j] - {nm}) | vdeps
+                for k2 in solved:
+                    if nm in solved_deps[k2]:
+                        solved[k2] = ca.substitute(solved[k2], sym, value)
+                        solved_deps[k2] = (solved_deps[k2] - {nm}) | vdeps
+                solved[key], solved_deps[key] = value, vdeps
+                progress = True
+                break
+        if free is not None:  # the rows the eliminated unknowns leave without any
+            for i, r in enumerate(rows):
+                if r is not None and not deps[i]:
+                    rows[i] = None
+                    if not ca.simplify(r).is_zero():
+                        free.append(r)
+        return solved
 
     def _inputs_for(self, b: BlockBuilder, flanges, choice, unknown) -> dict:
         """Declare each flange's given variable as an input; returns symbol -> its expression."""
@@ -723,33 +1122,7 @@ class _Translation:
         rows = [res[i] for i in range(res.numel())]
         lines = [line for _, line in residuals]
         pending = {k: unknown[k] for k in keys}
-        solved: dict = {}
-        progress = True
-        while pending and progress:
-            progress = False
-            for i, r in enumerate(rows):
-                if r is None:
-                    continue
-                deps = [k for k, s in pending.items() if ca.depends_on(r, s)]
-                if not deps:
-                    if not r.is_zero():
-                        raise ModelicaError(self.filename, lines[i], "this equation is redundant or "
-                                                                     "contradicts the others")
-                    rows[i] = None
-                    continue
-                if len(deps) != 1:
-                    continue
-                s = pending[deps[0]]
-                coef = ca.jacobian(r, s)
-                if ca.depends_on(coef, s):
-                    continue
-                value = -ca.substitute(r, s, ca.SX(0)) / coef
-                solved[deps[0]] = value
-                del pending[deps[0]]
-                rows = [None if (j == i or q is None) else ca.substitute(q, s, value) for j, q in enumerate(rows)]
-                solved = {k: ca.substitute(v, s, value) for k, v in solved.items()}
-                progress = True
-                break
+        solved = self._eliminate(rows, pending, lines)
         if pending:
             left = [r for r in rows if r is not None]
             R = ca.vertcat(*left)
@@ -796,4 +1169,4 @@ class _Translation:
                 b.flange(name, fv["name"], pv["name"], "flow_out")
 
 
-__all__ = ["translate", "unsupported", "ModelicaError", "DAE_SCHEMA", "INTEGRATORS"]
+__all__ = ["translate", "front_end", "unsupported", "ModelicaError", "DAE_SCHEMA", "INTEGRATORS"]

@@ -31,7 +31,7 @@ import numpy as np
 from .analysis import THESIS_LENGTH_SCALE
 from .geometry import Manipulator
 from .kinematics import numpy_map
-from .trajectory import Limits, leg_dynamics
+from .trajectory import MAX_SAMPLES, Limits, TrajectoryError, leg_dynamics
 
 #: Tolerance [s] to which a crossing's time is located.
 TIME_TOL = 1e-12
@@ -165,6 +165,9 @@ def check_motion(m: Manipulator, motion: Motion, t0: float, t1: float, limits: L
                  margins: Margins = Margins(), dt: float = 1e-3) -> CheckResult:
     """Check ``motion`` over ``[t0, t1]`` [s] (module docstring)."""
     n = max(int(np.ceil((t1 - t0) / dt)), 1)
+    if n > MAX_SAMPLES:
+        raise TrajectoryError(f"checking {t1 - t0:.6g} s every {dt:g} s takes {n} samples (at most {MAX_SAMPLES}): "
+                              f"sample every {(t1 - t0) / MAX_SAMPLES:.3g} s or more")
     t = t0 + (t1 - t0) * np.arange(n + 1) / n
     q0 = motion(np.array([t0]))[0]
     det0 = numpy_map("det")(q0, m.geometry_vector())[0]

@@ -340,7 +340,7 @@ def plan_toppra(m: Manipulator, waypoints, limits: Limits, gridpoints: int = 100
     path = ta.SplineInterpolator(ss, w, bc_type="clamped")
     grid = np.unique(np.concatenate([np.linspace(0.0, ss[-1], gridpoints), ss]))
     F = limits.planning_force()
-
+    _check_path(m, path, ss)
     cons = [leg_speed_constraint(m, limits.leg_speed), leg_dynamics_constraint(m, limits, F)]
     inst = algo.TOPPRA(cons, path, gridpoints=grid, parametrizer="ParametrizeSpline")
     traj = inst.compute_trajectory(0.0, 0.0)
@@ -353,6 +353,22 @@ def plan_toppra(m: Manipulator, waypoints, limits: Limits, gridpoints: int = 100
     # the gridpoints include the waypoints' path parameters, and the spline's knots are their times
     wt = tuple(float(cs.x[int(np.searchsorted(grid, s))]) for s in ss)
     return from_ppoly(cs.x, cs.c, wt)
+
+
+def _check_path(m: Manipulator, path, ss: np.ndarray, n: int = 2000) -> None:
+    """Refuse a geometric path that leaves the stroke or crosses det J = 0: no timing makes it
+    feasible (the forces grow without bound at a singularity), so toppra is not asked to."""
+    s = np.linspace(0.0, ss[-1], n)
+    q = path(s).T
+    L = numpy_map("ik")(q, m.geometry_vector())[0]
+    det = np.ravel(numpy_map("det")(q, m.geometry_vector())[0])
+    bad = np.nonzero(np.any((L < m.Lmin) | (L > m.Lmax), axis=0) | (np.sign(det) != np.sign(det[0])))[0]
+    if bad.size:
+        k = int(bad[0])
+        after = int(np.searchsorted(ss, s[k], side="right")) - 1
+        what = "leaves the stroke" if np.any((L[:, k] < m.Lmin) | (L[:, k] > m.Lmax)) else "crosses det J = 0"
+        raise TrajectoryError(f"the path through the waypoints {what} at pose ({q[0, k]:.6f}, {q[1, k]:.6f}, "
+                              f"{q[2, k]:.6f}) after waypoints[{after}]: toppra cannot time it")
 
 
 def leg_dynamics_constraint(m: Manipulator, limits: Limits, F_max: float):
@@ -428,7 +444,9 @@ class Peaks:
 
 
 def sample_times(traj: PiecewiseCubic, per_segment: int = 16, dt: float = 1e-3) -> np.ndarray:
-    """Every break, ``per_segment`` points inside each segment, and a ``dt`` grid [s]."""
+    """Every break, ``per_segment`` points inside each segment, and a ``dt`` grid [s] (coarser
+    for a motion longer than :data:`MAX_SAMPLES` ``dt``)."""
+    dt = max(dt, traj.duration / MAX_SAMPLES)
     inner = (traj.breaks[:-1, None] + np.diff(traj.breaks)[:, None] * np.linspace(0, 1, per_segment + 1)[None, :])
     uniform = np.arange(traj.breaks[0], traj.breaks[-1], dt)
     return np.unique(np.concatenate([inner.ravel(), uniform, [traj.breaks[-1]]]))
@@ -494,6 +512,8 @@ def fit_to_limits(m: Manipulator, traj: PiecewiseCubic, limits: Limits, margin: 
     returns the result and the factor ``k >= 1`` applied."""
     k_total = 1.0
     for _ in range(max_rounds):
+        if traj.duration > MAX_DURATION:
+            break
         r = leg_ratios(peaks(m, traj, limits), limits)
         k = max(r["leg speed"], math.sqrt(r["leg acceleration"]), math.sqrt(r["leg force"]), r["drive voltage"] ** 0.5)
         if k <= 1.0:
@@ -520,6 +540,8 @@ def plan(m: Manipulator, waypoints, method: str = "ruckig", limits: Limits | Non
     return _within_duration(traj)
 
 
+#: Most samples of a motion's uniform grid (memory: a few hundred bytes per sample).
+MAX_SAMPLES = 1_000_000
 #: Longest motion [s] a plan may take (a day: beyond it the limits are mistaken, and sampling it
 #: every millisecond would not fit in memory).
 MAX_DURATION = 86400.0

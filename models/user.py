@@ -35,14 +35,14 @@ from .block import Block, BlockError, Flange, Param, Rating, Var
 from .interface import suggest
 
 
-def require_documented(block: Block, where: str = "") -> None:
+def require_documented(block: Block, where: str = "", *, units: bool = True) -> None:
     """Raise :class:`BlockError` (one line, naming the block and the variable) when a parameter,
-    input, output or state of ``block`` lacks a unit or a description."""
+    input, output or state of ``block`` lacks a unit (unless ``units`` is False) or a description."""
     label = where or f"block {block.name}"
     for kind, seq in (("parameter", block.params), ("input", block.inputs), ("output", block.outputs),
                       ("state", block.states), ("mode", block.modes)):
         for v in seq:
-            if not str(v.unit).strip():
+            if units and not str(v.unit).strip():
                 raise BlockError(f"{label}: {kind} {v.name!r} has no unit (give its SI unit, \"1\" when "
                                  f"dimensionless)")
             if not str(v.description).strip():
@@ -100,9 +100,10 @@ class BlockBuilder:
             raise BlockError(f"block {self.name}: the derivative of state {name!r} is given twice")
         self._ders[name] = ca.SX(rhs)
 
-    def output(self, name: str, expr, unit: str, description: str) -> None:
-        """An output ``name = expr`` (an expression of states, inputs and parameters)."""
-        self._outputs.append((Var(name, unit, description), ca.SX(expr)))
+    def output(self, name: str, expr, unit: str, description: str, *, local: bool = False) -> None:
+        """An output ``name = expr`` (an expression of states, inputs and parameters); ``local``:
+        an internal variable, exported as an FMI local (recordable, not connectable)."""
+        self._outputs.append((Var(name, unit, description, local), ca.SX(expr)))
 
     def flange(self, name: str, effort: str, flow: str, causality: str) -> None:
         """A power port made of an input and an output of this block: ``effort`` (force [N] or
@@ -167,8 +168,13 @@ class BlockBuilder:
                     sample_times=[Sample(T, off, update(r, f"sample {n!r}"), n) for n, T, off, r in self._samples])
 
     # the block -------------------------------------------------------------------------------
-    def build(self, *, integrator: str = "rk4", substeps: int = 1, sample_period: float | None = None) -> Block:
-        """The checked block (:meth:`models.block.Block.build` and :func:`require_documented`)."""
+    def build(self, *, integrator: str = "rk4", substeps: int = 1, sample_period: float | None = None,
+              units_required: bool = True, events: dict | None = None) -> Block:
+        """The checked block (:meth:`models.block.Block.build` and :func:`require_documented`;
+        ``units_required=False`` lets a variable's unit be empty, i.e. unknown, as a Modelica
+        model may leave it; ``events``: the block's event fields, ``modes``, ``m``,
+        ``mode_start``, ``t``, ``indicators``, ``directions``, ``updates``, ``event_names``,
+        ``sample_times``, as :class:`~models.block.Block` has them)."""
         missing = [v.name for v, _, _ in self._states if v.name not in self._ders]
         if missing:
             raise BlockError(f"block {self.name}: state {missing[0]!r} has no derivative (call der())")
@@ -190,8 +196,8 @@ class BlockBuilder:
             start=col([ca.SX(s) for _, _, s in self._states]),
             integrator=integrator if self._states else ("none" if integrator != "discrete" else integrator),
             substeps=substeps, sample_period=sample_period, flanges=list(self._flanges), fidelity=self.fidelity,
-            ratings=dict(self._ratings), **self._event_kw(x))
-        require_documented(blk)
+            ratings=dict(self._ratings), **(events if events is not None else self._event_kw(x)))
+        require_documented(blk, units=units_required)
         return blk
 
 

@@ -72,6 +72,35 @@ def build_reference_fmus(src: Path, dest: Path) -> dict[str, Path]:
     return {f"{d.name}/{f.stem}": f for d in dest.iterdir() for f in d.glob("*.fmu")}
 
 
+def build_lag_fmus(src: Path, dest: Path) -> dict[str, Path]:
+    """tests/data/me_lag (a first-order lag with an input, model exchange only) built on the
+    Reference FMUs' framework of ``src`` (its include/ and src/) with the C compiler into ``dest``:
+    ``{"2": Lag.fmu, "2_nostate": ..., "3": ..., "3_nostate": ...}`` (``_nostate``: its FMU-state
+    capability removed from the XML).  Raises RuntimeError with the compiler's message."""
+    import re
+    import zipfile
+
+    lag = Path(__file__).with_name("data") / "me_lag"
+    fmus = {}
+    for v in ("2", "3"):
+        lib = dest / f"Lag{v}.so"
+        cmd = [shutil.which(os.environ.get("CC", "gcc")) or "cc", "-shared", "-fPIC", "-O2", f"-DFMI_VERSION={v}",
+               "-DDISABLE_PREFIX", f"-I{src / 'include'}", f"-I{lag}", str(src / "src" / f"fmi{v}Functions.c"),
+               str(src / "src" / "cosimulation.c"), str(lag / "model.c"), "-o", str(lib)]
+        res = subprocess.run(cmd, capture_output=True, text=True)
+        if res.returncode != 0:
+            raise RuntimeError(f"building tests/data/me_lag failed: {res.stderr[-2000:]}")
+        xml = (lag / f"FMI{v}.xml").read_text()
+        for suffix, text in (("", xml), ("_nostate", re.sub(r'canGetAndSetFMU(s|S)tate="true"',
+                                                             r'canGetAndSetFMU\1tate="false"', xml))):
+            fmu = dest / f"Lag{v}{suffix}.fmu"
+            with zipfile.ZipFile(fmu, "w") as z:
+                z.writestr("modelDescription.xml", text)
+                z.write(lib, f"binaries/{'linux64' if v == '2' else 'x86_64-linux'}/Lag.so")
+            fmus[f"{v}{suffix}"] = fmu
+    return fmus
+
+
 @pytest.fixture(scope="session")
 def reference_fmus() -> dict[str, Path]:
     """``{"2.0/BouncingBall": path, "3.0/StateSpace": path, ...}``, built once per source."""

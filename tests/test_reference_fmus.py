@@ -117,8 +117,14 @@ def test_single_fmu_matches_fmpy(reference_fmus, model, fmi, algorithm):
     res = run(from_dict(scene))
     md = fmpy.read_model_description(str(path))
     t_stop = stop if stop is not None else md.defaultExperiment.stopTime
+    # FMI 3.0 with event mode (BouncingBall, Stair, ...): our run ends its steps at the FMU's events
+    # and writes two rows at each, as FMPy does with event mode and early return
+    events = fmi == "3.0" and bool(getattr(md.coSimulation, "hasEventMode", False))
     ref = fmpy.simulate_fmu(str(path), fmi_type="CoSimulation", output_interval=step, stop_time=float(t_stop),
-                            output=names, start_values=_fmpy_values({**params, **start}))
+                            output=names, start_values=_fmpy_values({**params, **start}), use_event_mode=events,
+                            early_return_allowed=events)
+    if res.status == "stopped":  # FMPy takes one more step after a terminate request in an event iteration
+        ref = ref[ref["time"] <= res.trace.time[-1] + ATOL]
     cols = _columns(ref, "m")
     _assert_equal_traces(res.trace, ref["time"], cols, [c for c in res.trace.names])
     assert sorted(res.trace.names) == sorted(cols)  # every variable FMPy records, and no other
@@ -173,12 +179,13 @@ def test_default_experiment_and_scene_start_time(reference_fmus):
     the scene's start_time and stop_time win over it; FMPy run from the same start agrees."""
     path = reference_fmus["3.0/BouncingBall"]
     res = run(from_dict({"name": "bb", "components": {"m": {"fmu": str(path)}}}))
-    assert res.trace.time[-1] == pytest.approx(3.0, abs=ATOL) and len(res.trace.time) == 301
+    grid = np.round(res.trace.time / 0.01, 6)
+    assert res.trace.time[-1] == pytest.approx(3.0, abs=ATOL) and len(np.unique(grid[grid == np.round(grid)])) == 301
     res = run(from_dict({"name": "bb", "start_time": 0.5, "stop_time": 1.5, "components": {"m": {"fmu": str(path)}},
                          "outputs": ["m.h", "m.v"]}))
     assert res.trace.time[0] == 0.5 and res.trace.time[-1] == pytest.approx(1.5, abs=ATOL)
     ref = fmpy.simulate_fmu(str(path), fmi_type="CoSimulation", start_time=0.5, output_interval=0.01, stop_time=1.5,
-                            output=["h", "v"])
+                            output=["h", "v"], use_event_mode=True, early_return_allowed=True)
     _assert_equal_traces(res.trace, ref["time"], _columns(ref, "m"), ["m.h", "m.v"])
 
 
@@ -260,11 +267,7 @@ def test_structural_parameter_set_in_configuration_mode(reference_fmus):
         run(_check(reference_fmus, {"params": {"n": 3}}, "3.0/StateSpace"))
 
 
-@pytest.mark.parametrize("kinds,message", [
-    ('<ModelExchange modelIdentifier="m"/>', "has no co-simulation interface (it has model exchange only)"),
-    ('<ScheduledExecution modelIdentifier="m"/>', "has no co-simulation interface (it has scheduled execution only)"),
-])
-def test_interface_kinds_are_named(tmp_path, kinds, message):
+def _interfaces_fmu(tmp_path, kinds: str):
     fmu = tmp_path / "m.fmu"
     with zipfile.ZipFile(fmu, "w") as z:
         z.writestr("modelDescription.xml", f'<?xml version="1.0" encoding="UTF-8"?>\n<fmiModelDescription '
@@ -272,9 +275,28 @@ def test_interface_kinds_are_named(tmp_path, kinds, message):
                                            f'<ModelVariables><Float64 name="t" valueReference="0" '
                                            f'causality="independent"/></ModelVariables><ModelStructure/>'
                                            f'</fmiModelDescription>')
+    return fmu
+
+
+@pytest.mark.parametrize("kinds,interface,message", [
+    ('<ScheduledExecution modelIdentifier="m"/>', None,
+     "has scheduled execution only; rpr-cosim runs co-simulation and model-exchange FMUs (Scheduled Execution"),
+    ('<ModelExchange modelIdentifier="m"/>', "co_simulation", "interface co_simulation asked, but the FMU has model "
+                                                              "exchange only"),
+    ('<CoSimulation modelIdentifier="m"/>', "model_exchange", "interface model_exchange asked, but the FMU has "
+                                                              "co-simulation only"),
+])
+def test_interface_kinds_are_named(tmp_path, kinds, interface, message):
     with pytest.raises(UserError) as err:
-        describe_fmu(fmu)
+        describe_fmu(_interfaces_fmu(tmp_path, kinds), interface)
     assert message in str(err.value)
+
+
+def test_model_exchange_only_is_described_as_such(tmp_path):
+    both = '<ModelExchange modelIdentifier="m"/><CoSimulation modelIdentifier="m"/>'
+    assert describe_fmu(_interfaces_fmu(tmp_path, '<ModelExchange modelIdentifier="m"/>')).interface == "model exchange"
+    assert describe_fmu(_interfaces_fmu(tmp_path, both)).interface == "co-simulation"
+    assert describe_fmu(_interfaces_fmu(tmp_path, both), "model_exchange").interface == "model exchange"
 
 
 # --- type checks of connections -----------------------------------------------------------------------
@@ -360,7 +382,8 @@ def test_array_size_mismatch_and_wrong_as(reference_fmus):
 
 @pytest.mark.parametrize("engine", ["python"])
 def test_converted_connections_carry_values(reference_fmus, engine):
-    """Stair's Int32 counter converted to Float64 and Int64 inputs of Feedthrough arrives unchanged."""
+    """Stair's Int32 counter converted to Float64 and Int64 inputs of Feedthrough arrives unchanged,
+    in the event iteration at its time events too (FMI 3.0 event mode: two rows at each)."""
     res = run(from_dict({"name": "conv", "stop_time": 3, "master": {"step": 0.5, "engine": engine},
                          "components": {"s": {"fmu": str(reference_fmus["3.0/Stair"])},
                                         "f": {"fmu": str(reference_fmus["3.0/Feedthrough"])}},
@@ -368,6 +391,9 @@ def test_converted_connections_carry_values(reference_fmus, engine):
                                          "s.counter -> f.Int64_input as Int64", "s.counter -> f.Int32_input"],
                          "outputs": ["s.counter", "f.Float64_continuous_output", "f.Int64_output",
                                      "f.Int32_output"]}))
-    expected = 1 + np.floor(res.trace.time + 1e-9)  # the counter counts the seconds from 1
+    t = res.trace.time
+    left = np.r_[np.diff(t) == 0, False]  # the left limit of the two rows at each event (FMI 3.0 event mode)
+    expected = 1 + np.floor(t + 1e-9) - left  # the counter counts the seconds from 1; the event iteration passes it on
+    assert left.sum() == 3 and res.stats["events"]["handled"] == 3  # at 1, 2 and 3 s
     for col in res.trace.names:
         np.testing.assert_array_equal(res.trace[col], expected)

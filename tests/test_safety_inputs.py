@@ -166,10 +166,17 @@ def test_a_blocks_module_that_exits_at_import_is_one_line(tmp_path, body, said):
 
 
 def test_a_scene_that_is_a_device_or_fifo_is_refused(tmp_path):
-    os.mkfifo(tmp_path / "f.yaml")
-    for target in ("/dev/zero", tmp_path / "f.yaml"):
+    """YAML scenes, SSP archives and OSP files alike (a FIFO blocked the zip reader; /dev/zero
+    named x.ssp fed it without end)."""
+    targets = ["/dev/zero"]
+    for name in ("f.yaml", "f.ssp", "f.xml"):
+        os.mkfifo(tmp_path / name)
+        targets.append(tmp_path / name)
+    (tmp_path / "z.ssp").symlink_to("/dev/zero")
+    targets.append(tmp_path / "z.ssp")
+    for target in targets:
         res = cli_run("run", target, "--check", timeout=30, process=True)
-        assert res.returncode == 2 and "not a regular file" in res.stderr and "Traceback" not in res.stderr
+        assert res.returncode == 2 and "not a regular file" in res.stderr and "Traceback" not in res.stderr, target
 
 
 def _sum_model(terms: int, nest: int = 0) -> str:
@@ -208,7 +215,7 @@ def test_a_crash_of_the_front_end_is_one_error_and_results_are_cached(monkeypatc
     calls = []
     real = mo._compile
 
-    def crash(text, model, filename):
+    def crash(*args):
         os.kill(os.getpid(), signal.SIGSEGV)
 
     monkeypatch.setattr(mo, "_compile", crash)

@@ -194,6 +194,9 @@ def test_limits_are_checked_on_the_motion_too():
     ({"waypoints": PICK, "limits": {"u_max": 20}}, "exceeds the drive's rated"),
     ({"waypoints": PICK, "times": [0, 1, 2]}, "times"),
     ({"waypoints": PICK, "method": "spline"}, "give one time per waypoint"),
+    ({"waypoints": [[-0.1, -0.15, 0.0], [0.1, -0.15, 0.0]], "method": "toppra"}, "crosses det J = 0 at pose (0.0"),
+    ({"waypoints": PICK, "limits": {"pose_speed": 1e-300}}, "limits.pose_speed"),
+    ({"waypoints": PICK, "times": [0, 1, 2, 3, 1e9]}, "would last"),
 ])
 def test_bad_tasks_say_what_is_wrong(spec, words):
     with pytest.raises(TrajectoryError, match=None) as exc:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import csv
 import math
+import os
 from pathlib import Path
 
 import numpy as np
@@ -42,7 +43,7 @@ def test_plan_writes_the_samples_from_csv_waypoints(tmp_path, capsys):
     ("waypoints: [[0, 0, 0]]\n", "at least two"),
     ("waypoints: [[-0.15, -0.15, 0], [-0.2, -0.15, 0.2]]\nlimits: {leg_speed: -1}\n", "limits.leg_speed"),
     ("waypoints: [[-0.15, -0.15, 0], [-0.2, -0.15, 0.2]]\nspeed: 1\n", "unknown key 'speed'"),
-    ("waypoints: [[-0.15, -0.15, 0]\n", "not valid YAML"),
+    ("waypoints: [[-0.15, -0.15, 0]\n", "YAML syntax"),
     ("waypoints: missing.csv\n", "missing.csv"),
 ])
 def test_bad_task_files_are_one_line(tmp_path, capsys, text, words):
@@ -63,3 +64,28 @@ def test_the_chapter_7_sine_path_is_a_task():
     q, qd, _ = traj.evaluate(s)
     assert np.max(np.abs(q[0] - (-0.25 + 0.05 * np.sin(math.pi * s)))) < 2e-6
     assert np.max(np.abs(qd[1] - 0.05 * math.pi * np.cos(math.pi * s))) < 1e-4
+
+
+def test_a_check_too_long_to_sample_is_one_line(tmp_path, capsys):
+    path = tmp_path / "slow.yaml"
+    path.write_text("waypoints: [[-0.15, -0.15, 0], [-0.2, -0.15, 0.2]]\ntimes: [0, 5000]\n")
+    assert main(["task", "check", str(path), "--dt", "1e-3", "--out", str(tmp_path)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "at most 1000000" in err[0]
+
+
+@pytest.mark.parametrize("make, words", [
+    (lambda d: Path("/dev/zero"), "character device, not a regular file"),
+    (lambda d: (os.mkfifo(d / "w.csv"), (d / "t.yaml").write_text("waypoints: w.csv\n"), d / "t.yaml")[-1],
+     "FIFO"),
+    (lambda d: ((d / "t.yaml").write_text("a: " + "[" * 200 + "]" * 200 + "\n"), d / "t.yaml")[-1],
+     "nested more than"),
+    (lambda d: d, "directory, not a regular file"),
+])
+def test_task_files_are_read_only_when_regular_and_bounded(tmp_path, capsys, make, words):
+    """A task file or its waypoints CSV that is a device, a FIFO (which would hang a plain open),
+    a directory or YAML nested without end is one line and exit 2, as a scene is."""
+    path = make(tmp_path)
+    assert main(["task", "check", str(path)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and words in err, err

@@ -46,9 +46,14 @@ class Loads:
 
 def loads_from_task(task, label: str, dt: float = 1e-3) -> Loads:
     """Loads along a planned task (:class:`models.task.Task`), sampled every ``dt`` [s]."""
-    from models.trajectory import leg_profile, sample_times
+    from models.trajectory import TrajectoryError, leg_profile, sample_times
 
-    traj = task.plan()
+    from ..errors import UserError
+
+    try:
+        traj = task.plan()
+    except TrajectoryError as exc:
+        raise UserError(f"{label}: {exc}") from None
     t = sample_times(traj, dt=dt)
     prof = leg_profile(task.manipulator, traj, t, task.limits)
     return Loads(label, t, prof["F"], prof["L"], prof["Ld"])

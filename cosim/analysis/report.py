@@ -78,9 +78,13 @@ def _page(path: Path, title: str, body: str) -> Path:
     path.parent.mkdir(parents=True, exist_ok=True)
     page = _PAGE.format(title=text(title), body=body, written=time.strftime("%Y-%m-%d %H:%M:%S %Z"),
                         plotly_version=plotly.__version__)
-    tmp = path.with_name(f".{path.name}.part")
-    tmp.write_text(page, encoding="utf-8")
-    tmp.replace(path)
+    from ..errors import UserError
+    from ..outputs import write_text
+
+    try:  # a new temporary file renamed into place: whole or nothing, never through a planted link
+        write_text(path, page)
+    except OSError as exc:
+        raise UserError(f"cannot write the report {path} ({exc.strerror or exc})") from None
     return path
 
 

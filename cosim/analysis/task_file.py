@@ -4,19 +4,22 @@ columns ``x, y, phi`` and optionally ``t`` (then the times of the waypoints)."""
 from __future__ import annotations
 
 import csv
+import io
 from pathlib import Path
 
 from models.task import Task, task_from
 from models.trajectory import TrajectoryError
 
 from ..errors import UserError
+from ..readers import open_regular
+from ..scenario.yamlfile import read_yaml
 
 
 def read_waypoints_csv(path: Path) -> tuple[list[list[float]], list[float] | None]:
     """Waypoints (and times, if a ``t`` column is present) from a CSV with a header row."""
     try:
-        with open(path, newline="") as fh:
-            rows = list(csv.DictReader(fh))
+        with open_regular(path, "waypoints file") as fh:
+            rows = list(csv.DictReader(io.TextIOWrapper(fh, newline="")))
     except OSError as exc:
         raise UserError(f"{path}: cannot read the waypoints ({exc.strerror or exc})") from None
     if not rows:
@@ -56,20 +59,17 @@ def task_from_mapping(spec: dict, where: str, base: Path | None = None) -> Task:
 
 
 def load_task(path: Path) -> Task:
-    """Read and parse a task file."""
-    import yaml
-
+    """Read and parse a task file (a regular file under the size limit, depth-bounded YAML, as a
+    scene is read)."""
     path = Path(path)
-    try:
-        spec = yaml.safe_load(path.read_text())
-    except OSError as exc:
-        raise UserError(f"{path}: cannot read the task ({exc.strerror or exc})") from None
-    except yaml.YAMLError as exc:
-        mark = getattr(exc, "problem_mark", None)
-        line = f", line {mark.line + 1}" if mark else ""
-        raise UserError(f"{path}{line}: not valid YAML ({getattr(exc, 'problem', exc)})") from None
+    spec, problems = read_yaml(path, "task file")
+    if problems:
+        first = problems[0]
+        line = f", line {first.line}" if first.line else ""
+        raise UserError(f"{path}{line}: {first.message}")
     if not isinstance(spec, dict):
         raise UserError(f"{path}: a task file is a mapping (config, method, waypoints, limits, margins...)")
+    spec = dict(spec)
     spec.pop("name", None)
     spec.pop("description", None)
     return task_from_mapping(spec, str(path), path.parent)

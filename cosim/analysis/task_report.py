@@ -10,7 +10,9 @@ import numpy as np
 from models import analysis as A
 from models.motion_check import CheckResult
 from models.task import Task
-from models.trajectory import PiecewiseCubic, leg_profile, leg_ratios, peaks
+from models.trajectory import PiecewiseCubic, TrajectoryError, leg_profile, leg_ratios, peaks
+
+from ..errors import UserError
 
 from .design import Table
 
@@ -103,6 +105,9 @@ def scene_motion_checks(scene) -> list[tuple[str, Task, PiecewiseCubic, CheckRes
         if comp.model != "task_trajectory":
             continue
         task = task_from_mapping(comp.options, f"component {name!r}")
-        traj = task.plan()
-        out.append((name, task, traj, task.check(traj)))
+        try:
+            traj = task.plan()
+            out.append((name, task, traj, task.check(traj)))
+        except TrajectoryError as exc:
+            raise UserError(f"component {name!r}: {exc}") from None
     return out

@@ -190,6 +190,17 @@ def _check(args: argparse.Namespace) -> int:
     for p in problems:
         print(p)
     n = len(problems)
+    from ..slaves.plan import run_plan
+
+    try:
+        plan, departures = run_plan(args.fmu)
+    except UserError as exc:
+        plan, departures = [], [str(exc)]
+    for line in plan:
+        print(f"{args.fmu}: a run: {line}")
+    for line in departures:
+        print(f"{args.fmu}: {line}")
+    n += len(departures)
     if args.behaviour:
         from ..slaves.behaviour import check_in_subprocess
 

@@ -240,6 +240,8 @@ def _motion_checks(scene, args: argparse.Namespace) -> bool:
 
 
 def _describe(scene) -> None:
+    from ..slaves.plan import component_line
+
     print(f"scene {scene.name}: {len(scene.components)} components, {len(scene.connections)} connections "
           f"({len(scene.bonds)} bonds), "
           + (f"step {scene.master.step:g} s (algorithm chosen below)" if scene.master.auto else
@@ -248,6 +250,9 @@ def _describe(scene) -> None:
     for name, c in scene.components.items():
         extra = ", ".join(f"{k}={v:g}" if isinstance(v, float) else f"{k}={v}" for k, v in c.start_values().items())
         print(f"  {name:<12} {c.label:<28} {extra}")
+        how = component_line(c.description)
+        if how:
+            print(f"  {'':<12} {how}")
     for c in scene.connections:
         print(f"  {c}" + (f"   [bond {c.bond}]" if c.bond else ""))
     print(f"  outputs: {len(scene.outputs)} ({', '.join(scene.outputs[:6])}{', ...' if len(scene.outputs) > 6 else ''})")
@@ -264,12 +269,23 @@ def _describe_choice(scene) -> None:
         tol = (f", tolerance {m.tolerance:g}{'' if m.tolerance_given else ' (the default)'}: a run estimated over "
                f"10x it ends inaccurate" if m.tolerance else ", tolerance none: no verdict on the run's estimate")
         print(f"  master: {m.algorithm}, named by the scene{tol}")
+        _describe_events(scene, m.algorithm)
         return
     from ..run.choose import kind
 
     alg, why = kind(scene)
     what = "rtol" if alg in ("adaptive", "ecco") else "fixed step"
     print(f"  master: tolerance {m.tolerance:g} -> {alg}: {why}; its {what} from pilot runs' error estimates")
+    _describe_events(scene, alg)
+
+
+def _describe_events(scene, name: str) -> None:
+    """What the algorithm ``name`` does with the components' events (said when a component has any)."""
+    from ..master.algorithm import algorithm
+
+    descs = [c.description for c in scene.components.values()]
+    if any(d.has_event_mode or d.event_indicators or d.interface == "model exchange" for d in descs):
+        print(f"  events: {algorithm(name).event_policy}")
 
 
 def verdict(tolerance: float | None, worst: float, status: str) -> str:

@@ -63,10 +63,10 @@ def _check(args: argparse.Namespace) -> int:
     task = load_task(args.task)
     try:
         traj = task.plan()
+        result = task.check(traj, dt)
     except TrajectoryError as exc:
         raise UserError(f"{args.task}: {exc}") from None
     print(format_table(summary_table(task, traj)))
-    result = task.check(traj, dt)
     for v in result.violations:
         print(f"  limit broken: {v.line()}")
     if args.plot:

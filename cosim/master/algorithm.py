@@ -91,6 +91,10 @@ def _gatherer(system: CoupledSystem, i: int) -> Callable[[], None]:
     return copy
 
 
+#: Events in one macro step beyond which a run with event-mode components ends (chattering).
+MAX_EVENTS_PER_STEP = 1000
+
+
 class MasterAlgorithm:
     """What the registry and the run (:func:`cosim.master.simulate`) know of every master
     algorithm, fixed or variable step: its name, declared options and abilities.  A fixed-step
@@ -116,6 +120,12 @@ class MasterAlgorithm:
     delays_algebraic_loops: ClassVar[bool] = False
     #: algorithm code of the compiled fixed-step loop implementing the same steps, or None
     native_code: ClassVar[int | None] = None
+    #: ends a step at an FMI 3.0 event-mode component's event (early return) for the whole coupling
+    #: and runs the event iteration there (docs/explanation/events.md); others leave events inside doStep
+    ends_steps_at_events: ClassVar[bool] = False
+    #: what the algorithm does with events, as run --check and the sidecar say it
+    event_policy: ClassVar[str] = ("events are handled inside each component's steps and reach the others at the next "
+                                   "communication point (FMI 3.0 event mode not used)")
     #: a variable-step algorithm's stepper factory (:func:`cosim.master.algorithms.adaptive.variable_stepper`);
     #: None: a fixed-step algorithm, bound by :func:`cosim.master.engine.fixed_stepper`
     stepper_for: ClassVar[Callable | None] = None
@@ -163,6 +173,13 @@ class Algorithm(MasterAlgorithm, Outcome, ABC):
         self.exchange = [i for i in self.order if s[i].description.memoryless]
         self._setup_inputs(inputs)
         self._setup_rates(rates)
+        #: slaves in FMI 3.0 event mode (set by the run for an algorithm that :attr:`ends_steps_at_events`)
+        self.event_slaves = [i for i, x in enumerate(s) if x.event_mode]
+        self.t_event: float | None = None  # the time [s] of an event that cut the current grid step
+        self.pending_event = None  # a cosim.master.stepper.StepResult for the run loop
+        self.events = 0  # events handled by the event iteration
+        self.late_events: list[dict] = []  # an event a slave that cannot roll back had already stepped past
+        self._ahead: set[int] = set()  # slaves at the grid point already while the others finish a cut step
 
     def _setup_rates(self, rates: Sequence[int] | None) -> None:
         """:attr:`rates`: doSteps per macro step of each slave (:mod:`cosim.master.multirate`)."""
@@ -218,8 +235,14 @@ class Algorithm(MasterAlgorithm, Outcome, ABC):
 
     @property
     def t(self) -> float:
-        """Current communication point [s] (``(start_ns + k * step_ns) / 1e9``)."""
-        return self.time_at(self.k)
+        """Current communication point [s]: ``(start_ns + k * step_ns) / 1e9``, or the time of the
+        event that cut the step to it."""
+        return self.time_at(self.k) if self.t_event is None else self.t_event
+
+    @property
+    def t_ns(self) -> int:
+        """Current communication point [ns] (an event's time rounded to the nanosecond)."""
+        return self.start_ns + self.k * self.step_ns if self.t_event is None else round(self.t_event * 1e9)
 
     def time_at(self, k: int) -> float:
         """Communication point ``k`` [s]."""
@@ -232,6 +255,8 @@ class Algorithm(MasterAlgorithm, Outcome, ABC):
         iteration that did not converge)."""
         if self.status != "running":
             raise RuntimeError(f"{self.name}: cannot step a run that is {self.status}")
+        if self.event_slaves:
+            return self._event_step()
         t = self.time_at(self.k)
         bad = self._step_impl(t, self.h)
         if self.status != "running":
@@ -244,6 +269,176 @@ class Algorithm(MasterAlgorithm, Outcome, ABC):
             return False
         self._fail(bad[0], bad[1], t)
         return False
+
+    # FMI 3.0 event mode across the coupling (docs/explanation/events.md) --------------------------------
+    def _event_step(self) -> bool:
+        """:meth:`step` with event-mode slaves: from the current point (a grid point or an event) to
+        the next grid point, cut at the earliest time an event-mode slave returned early.  Jacobi
+        steps the event-mode slaves first and the others only to that time (:meth:`_events_first`);
+        under Gauss-Seidel's order, a slave that stepped past it is rolled back and stepped to it,
+        or (when it cannot roll back) noted in :attr:`late_events` and left at the grid point
+        until the others catch up."""
+        slaves = self.system.slaves
+        t, t_end = self.t, self.time_at(self.k + 1)
+        h = t_end - t if self.t_event is not None else self.h
+        # what may step past an event: under Gauss-Seidel any slave, under Jacobi only the event-mode ones
+        may_pass = [i for i in range(len(slaves)) if self.sequential or i in self.event_slaves]
+        saved = [i for i in may_pass if slaves[i].can_rollback and i not in self._ahead] \
+            if len(self.event_slaves) > 1 or (self.sequential and len(slaves) > 1) else []
+        for i in saved:
+            slaves[i].save_state()
+        do = self._do
+        if self._ahead:  # they reached the grid point in the step an event cut: they wait there
+            self._do = [(lambda _t, _h: Status.OK) if i in self._ahead else f for i, f in enumerate(do)]
+        try:
+            bad = self._step_impl(t, h) if self.sequential else self._events_first(t, h)
+        finally:
+            self._do = do
+        if self.status != "running":
+            return False
+        if bad is not None:
+            if self.stop_requested(*bad):
+                self.complete_after_stop(bad[0], t)
+                return False
+            self._fail(bad[0], bad[1], t)
+            return False
+        ends = {i: slaves[i].step_end() for i in self.event_slaves if i not in self._ahead}
+        tol = 1e-12 * (1.0 + abs(t_end))
+        early = sorted((r, i) for i, (r, _) in ends.items() if r < t + h - tol)
+        from .stepper import StepResult
+
+        if not early:
+            self.k, self.t_event, self._events_in_step = self.k + 1, None, 0
+            self._ahead.clear()
+            asking = [i for i, (_, ev) in ends.items() if ev]
+            if asking:
+                self.pending_event = StepResult(self.t_ns, True, asking[0], "event")
+            return True
+        t_e, who = early[0]
+        self._events_in_step = getattr(self, "_events_in_step", 0) + 1
+        if self._events_in_step > MAX_EVENTS_PER_STEP:
+            self.status, self.failed_slave = "failed", who
+            self.message = (f"{slaves[who].name}: more than {MAX_EVENTS_PER_STEP} events in the step from t = "
+                            f"{self.time_at(self.k):.9g} s (chattering); the last at t = {t_e:.9g} s")
+            return False
+        for j in range(len(slaves)):
+            if j == who or j in self._ahead or (j in ends and ends[j][0] <= t_e + tol) or \
+                    (not self.sequential and j not in ends):  # Jacobi stepped it only to t_e already
+                continue
+            if j in saved:  # stepped past the event: back (its inputs with it), and to the event time
+                slaves[j].restore_state()
+                st = self._advance(j, t, t_e - t)
+                if st in FAILING:
+                    self._fail(j, st, t)
+                    return False
+            else:
+                self._ahead.add(j)
+                self.late_events.append({"component": slaves[j].name, "t": t_e, "event_of": slaves[who].name,
+                                         "reached": t + h})
+        for j in range(len(slaves)):
+            st = self._io(j, self._pull[j])
+            if st in FAILING:
+                self._fail(j, st, t)
+                return False
+        self.t_event = t_e
+        self.pending_event = StepResult(self.t_ns, True, who, "event")
+        return True
+
+    def _events_first(self, t: float, h: float) -> tuple[int, int] | None:
+        """A Jacobi step with event-mode slaves: every input from the outputs at ``t``, the
+        event-mode slaves step first, the others then only to the earliest time one of them
+        reached (no rollback needed, nothing late); ``(slave, status)`` of a failing call, or None."""
+        slaves, n = self.system.slaves, len(self.system.slaves)
+        for i in range(n):
+            self._gather[i]()
+            st = self._io(i, self._push[i])
+            if st in FAILING:
+                return i, st
+        first = [i for i in self.event_slaves if i not in self._ahead]
+        for i in first:
+            st = self._advance(i, t, h)
+            if st in FAILING or st == Status.STOP_REQUESTED:
+                return i, st
+        reached = min([slaves[i].step_end()[0] for i in first], default=t + h)
+        for i in range(n):
+            if i not in first:
+                st = self._advance(i, t, min(h, reached - t))
+                if st in FAILING or st == Status.STOP_REQUESTED:
+                    return i, st
+        for i in range(n):
+            st = self._io(i, self._pull[i])
+            if st in FAILING:
+                return i, st
+        return self._exchange() if self.exchange else None
+
+    def event_iteration(self, event) -> None:
+        """At the event time: every event-mode slave enters event mode; then rounds of exchange
+        (every slave's inputs from the current outputs) and discrete-state updates until none asks
+        for more and the outputs no longer change (at most 100 rounds); then step mode again
+        (docs/explanation/events.md)."""
+        slaves, ev = self.system.slaves, self.event_slaves
+        self.events += 1
+        for i in ev:
+            if self._check_event_call(i, slaves[i].enter_event_mode(), "entering event mode"):
+                return
+        asking: list[int] = []
+        before = self.system.v.copy()
+        for _ in range(100):
+            for i in self.order:
+                self._gather[i]()
+                if self._check_event_call(i, self._push[i](), "setting inputs in event mode"):
+                    return
+            asking = []
+            for i in ev:
+                st, more, terminate = slaves[i].update_discrete_states()
+                if self._check_event_call(i, st, "updating discrete states"):
+                    return
+                if terminate:  # the values it updated are the run's last (the right limit)
+                    for j in range(len(slaves)):
+                        self._pull[j]()
+                    self.status, self.failed_slave = "stopped", i
+                    self.message = f"stopped by {slaves[i].name} at t = {self.t:.9g} s: it asked to terminate the " \
+                                   f"simulation in its event iteration"
+                    return
+                if more:
+                    asking.append(i)
+            for i in range(len(slaves)):
+                if self._check_event_call(i, self._pull[i](), "reading outputs in event mode"):
+                    return
+            changed = not np.array_equal(self.system.v, before, equal_nan=True)
+            if not asking and not changed:  # settled: no update asked for and the exchange at a fixed point
+                break
+            np.copyto(before, self.system.v)
+        else:
+            self.status = "event_iteration_failed"
+            self.message = (f"the event iteration at t = {self.t:.9g} s did not settle in 100 rounds: "
+                            f"{', '.join(slaves[i].name for i in asking)} kept asking for new discrete states")
+            return
+        for i in ev:
+            if self._check_event_call(i, slaves[i].enter_step_mode(), "entering step mode"):
+                return
+
+    def _check_event_call(self, i: int, status: int, what: str) -> bool:
+        """True (and the run failed, naming slave ``i``, the time and ``what``) for a failing status."""
+        if status not in FAILING:
+            return False
+        sl = self.system.slaves[i]
+        self.status, self.failed_slave = "failed", i
+        self.message = (f"{sl.name}: {what} at the event at t = {self.t:.9g} s returned {Status(status).name}"
+                        + (f": {sl.last_message}" if sl.last_message else ""))
+        return True
+
+    def event_statistics(self) -> dict:
+        """What the run did with events (for the run statistics): the events handled and the late
+        ones; a model-exchange component's solver figures and its own events (``model_exchange``)."""
+        me = {x.name: {**x.solver_stats(), "events": [[t, kind] for t, kind in x.events()[:1000]]}
+              for x in self.system.slaves if hasattr(x, "solver_stats")}
+        out = {"model_exchange": me} if me else {}
+        if not self.event_slaves:
+            return out
+        names = [self.system.slaves[i].name for i in self.event_slaves]
+        return {**out, "events": {"mode": self.event_policy,
+                           "event_mode": names, "handled": self.events, "late": self.late_events[:10_000]}}
 
     def stop_requested(self, i: int, status: int) -> bool:
         """Is ``status`` from slave ``i`` a request to end the simulation (FMI 3.0

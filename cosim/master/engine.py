@@ -51,6 +51,8 @@ def _why_not(system: CoupledSystem, loop: CompiledLoop, start_ns: int) -> str:
         return "carries scalar Float64 variables only; this scene connects or records other types or arrays"
     if loop.from_zero and start_ns:
         return "runs from start_time 0"
+    if any(s.event_mode for s in system.slaves):
+        return "does not end its steps at events; FMI 3.0 event-mode components run in the Python loop"
     entries = [(s.name, s.native()) for s in system.slaves]
     missing = [name for name, ne in entries if ne is None]
     if missing:

@@ -56,8 +56,17 @@ def simulate(system: CoupledSystem, algorithm_name: str, *, step_ns: int, n_step
                             f"cannot roll back ({why or 'canGetAndSetFMUstate=false, e.g. hardware'}); use ecco (step "
                             f"control from power bonds, no rollback) or a fixed-step algorithm such as gauss_seidel "
                             f"or jacobi")
-    for s_ in system.slaves:  # FMI noSetFMUStatePriorToCurrentPoint: true unless the algorithm may restore states
+    for i, s_ in enumerate(system.slaves):  # FMI noSetFMUStatePriorToCurrentPoint: true unless the algorithm may restore states
         s_.forward_only = not cls.needs_rollback
+        # FMI 3.0 event mode and early return where the FMU has them and the algorithm ends steps at events
+        # (in the Python loop: a scene that asks for the compiled loop leaves the events inside doStep)
+        s_.event_mode = bool(cls.ends_steps_at_events and inputs == "hold" and engine != "compiled"
+                             and getattr(s_, "fmi3", False)
+                             and s_.description.has_event_mode and not (rates and rates[i] != 1))
+    if any(s_.event_mode for s_ in system.slaves) and len(system.slaves) > 1:
+        for s_ in system.slaves:  # an early return rolls the others back to the event time
+            if s_.can_rollback:
+                s_.forward_only = False
     if realtime is not None and not cls.paceable:  # refuse rather than run unpaced
         raise UserError(f"master algorithm {cls.name} chooses its own steps and cannot be paced in real time "
                         f"(it rolls rejected steps back); drop master.realtime or use ecco, gauss_seidel or jacobi")

@@ -171,7 +171,7 @@ class Stepper(ABC):
                 rows += 1
                 if typed.texts:
                     self.text_events += [(self.t, c, x) for c, x in typed.text_changes()]
-            if not ok or self.done():
+            if not ok or self.done() or self.event is not None:
                 break
         return rows
 
@@ -206,7 +206,7 @@ class FixedStepper(Stepper):
 
     @property
     def t_ns(self) -> int:
-        return self.alg.start_ns + self.alg.k * self.alg.step_ns
+        return self.alg.t_ns
 
     @property
     def t(self) -> float:
@@ -225,10 +225,17 @@ class FixedStepper(Stepper):
         return self.runner(n, self.record_every, rec)
 
     def step(self) -> bool:
-        return self.alg.step()
+        ok = self.alg.step()
+        if self.alg.pending_event is not None:  # the step ended at an event: its row is the left limit
+            self.event, self.alg.pending_event = self.alg.pending_event, None
+        return ok
 
     def recorded(self, ok: bool) -> bool:
-        return (ok and self.alg.k % self.record_every == 0) or self.alg.status == "stopped"
+        return ((ok and (self.alg.k % self.record_every == 0 and self.alg.t_event is None or self.event is not None))
+                or self.alg.status == "stopped")
+
+    def event_iteration(self, event: StepResult) -> None:
+        self.alg.event_iteration(event)
 
     def cut(self, t: float, rows_dropped: int) -> None:
         self.alg.k = round((t * 1e9 - self.alg.start_ns) / self.alg.step_ns)
@@ -250,7 +257,7 @@ class FixedStepper(Stepper):
         stats.steps_done = alg.k
         stats.master_s = alg.master_ns / 1e9
         stats.slaves = slave_table(self.system, alg.calls, alg.slave_ns, alg.rates)
-        stats.extra = alg.statistics()
+        stats.extra = {**alg.statistics(), **alg.event_statistics()}
 
 
 def guarded(guard, stepper: Stepper, rows: np.ndarray) -> np.ndarray:

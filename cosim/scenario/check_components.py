@@ -2,8 +2,8 @@
 from __future__ import annotations
 
 import dataclasses
-import hashlib
 import math
+import os
 import re
 from collections.abc import Mapping
 from pathlib import Path
@@ -11,7 +11,7 @@ from typing import Any
 
 from ..errors import UserError
 from ..slaves.types import TYPES, display, parse_start
-from ..slaves.description import Variable, describe_block, describe_fmu, resolve_shapes
+from ..slaves.description import INTERFACES, Variable, describe_block, describe_fmu, resolve_shapes
 from fmus.errors import BuildError
 from fmus.index import source_digest
 from fmus.model_description import check_names
@@ -22,7 +22,7 @@ from .keys import COMPONENT_KEYS, FMI_VERSIONS
 from .model import Component
 from .problems import Loc, suggest
 from .user_blocks import (ENTRY_POINT_GROUP, UserBlockError, UserCatalog, entry_point_catalog, load_module_file,
-                          module_depends, module_table, read_modelica)
+                          module_depends, module_table)
 from .yamlfile import YMap, _display
 
 
@@ -58,6 +58,11 @@ class ComponentChecks(Checker):
             self.err(spec.loc("rollback"), f"component {name!r}: rollback = {rollback!r}; expected true or false "
                                            f"(false: the master may not save and restore its state, as for hardware)")
             rollback = True  # reported; check the rest of the component as usual
+        if "fmu" not in spec:
+            for key in ("interface", "rtol"):
+                if key in spec:
+                    self.err(spec.loc(key), f"component {name!r}: '{key}' applies to an FMU ('fmu:'), not to this "
+                                            f"component")
         if "replay" in spec:
             comp = self._replay_component(name, spec)
         elif "hardware" in spec:
@@ -100,11 +105,19 @@ class ComponentChecks(Checker):
             return None
         if not self._xml(name, fpath, where):
             return None
-        try:
-            desc = describe_fmu(fpath)
-        except UserError as exc:
-            self.err(where, f"component {name!r}: {exc}")
+        interface = spec.get("interface")
+        if interface is not None and interface not in INTERFACES:
+            self.err(spec.loc("interface"), f"component {name!r}: interface = {interface!r}; expected "
+                                            f"{' or '.join(INTERFACES)}")
             return None
+        try:
+            desc = describe_fmu(fpath, interface)
+        except UserError as exc:
+            self.err(spec.loc("interface") if interface is not None else where, f"component {name!r}: {exc}")
+            return None
+        rtol = self._solver_rtol(name, spec, desc)
+        if rtol is not None:
+            desc = dataclasses.replace(desc, solver_rtol=rtol)
         comp = Component(name, "fmu", desc, fmu=fpath.resolve(), fmi=desc.fmi_version or fmi, where=spec.where)
         if "guard_data" in spec:  # what the guards know of it (an rpr-cosim SSP's component annotation)
             from .guards import GuardNeeds
@@ -124,6 +137,20 @@ class ComponentChecks(Checker):
         self._flanges(comp, spec)
         self._behaviour(comp, spec)
         return comp
+
+    def _solver_rtol(self, name: str, spec: YMap, desc) -> float | None:
+        """The scene's ``rtol:`` of a model-exchange component (None: not given or wrong, reported)."""
+        if "rtol" not in spec:
+            return None
+        rtol = spec["rtol"]
+        if desc.interface != "model exchange":
+            self.err(spec.loc("rtol"), f"component {name!r}: rtol applies to a model-exchange FMU (CVODES's tolerance); "
+                                       f"this one runs as {desc.interface}")
+            return None
+        if isinstance(rtol, bool) or not isinstance(rtol, (int, float)) or not 1e-14 <= rtol < 1:
+            self.err(spec.loc("rtol"), f"component {name!r}: rtol = {rtol!r}; expected a number in [1e-14, 1)")
+            return None
+        return float(rtol)
 
     def _flanges(self, comp: Component, spec: YMap) -> None:
         """``flanges: {NAME: {effort: VAR, flow: VAR}}``: power ports of an external FMU, each a pair
@@ -466,25 +493,36 @@ class ComponentChecks(Checker):
         return user.make(model, spec.get("fidelity"), **dict(spec.get("options", {})))
 
     def _modelica_component(self, name: str, spec: YMap, fmi: str) -> Component | None:
-        """``{modelica: FILE.mo, model: CLASS, options: {integrator, substeps}}``: the Modelica
-        class translated into a block (:func:`models.modelica.translate`)."""
+        """``{modelica: FILE.mo, model: CLASS, options: {integrator, substeps}}`` or ``{modelica:
+        QUALIFIED.CLASS}`` (a class of the source roots: the scene's ``modelica_path:`` and
+        ``MODELICAPATH``): the class translated into a block (:func:`models.modelica.translate`)
+        from the files it reads (:mod:`.modelica_sources`), which its recipe key covers."""
         from models.block import BlockError
         from models.modelica import INTEGRATORS, translate
 
+        from .modelica_sources import SourceError, modelica_class
+
         where, rel, cls = spec.loc("modelica"), spec["modelica"], spec.get("model")
-        if not isinstance(rel, str):
-            self.err(where, f"component {name!r}: modelica must be a .mo file path, got {rel!r}")
+        if not isinstance(rel, str) or not rel.strip():
+            self.err(where, f"component {name!r}: modelica must be a .mo file path or a qualified class name, "
+                            f"got {rel!r}")
             return None
-        if not isinstance(cls, str) or not cls:
+        file_ref = rel.endswith(".mo")
+        if file_ref and (not isinstance(cls, str) or not cls):
             self.err(spec.loc("model") if "model" in spec else where,
                      f"component {name!r}: name the Modelica class to use with 'model:' (e.g. model: Gear)")
             return None
+        if not file_ref and cls is not None and cls != rel:
+            self.err(spec.loc("model"), f"component {name!r}: modelica: {rel} names the class already; drop "
+                                        f"'model: {cls}'")
+            return None
+        cls = cls if file_ref else rel
         if "fidelity" in spec:
             self.err(spec.loc("fidelity"), f"component {name!r}: 'fidelity' applies to catalog models, not to a "
                                            f"Modelica class")
             return None
         path = self._base(where) / rel
-        if not path.is_file():
+        if file_ref and not path.is_file():
             near = suggest(Path(rel).name, [p.name for p in path.parent.glob("*.mo")]) if path.parent.is_dir() else ""
             self.err(where, f"component {name!r}: Modelica file {rel!r} not found (looked in "
                             f"{_display(path.parent)}){near}")
@@ -506,26 +544,29 @@ class ComponentChecks(Checker):
             return None
         if bad:
             return None
+        roots = self.modelica_roots()
+        if roots is None:
+            return None
         try:
-            text = read_modelica(path)
-        except UserBlockError as exc:
+            mc = modelica_class(rel, cls, self._base(where), roots)
+        except SourceError as exc:
             self.err(where, f"component {name!r}: {exc}")
             return None
+        origin = mc.filename
 
         def block_of_text():
-            return translate(text, cls, path.name, name=cls.split(".")[-1].lower(), integrator=integrator,
-                             substeps=substeps)
+            return translate(mc.text, mc.model, mc.filename, name=mc.model.split(".")[-1].lower(),
+                             integrator=integrator, substeps=substeps, compiled=mc.compiled(), scan=not mc.library)
 
         from fmus.index import installed_version
 
-        key = f"modelica:{cls}"  # indexed with the text and the front end's version
-        sources = {"modelica": hashlib.sha256(text.encode()).hexdigest(),
-                   "rumoca": str(installed_version("rumoca", "rumoca"))}
+        key = f"modelica:{mc.model}"  # indexed with the digests of every file it reads and the front end's version
+        sources = mc.recipe_sources(str(installed_version("rumoca", "rumoca")))
         if self.catalog is None:
             from .recipes import indexed_user_component
 
-            comp = indexed_user_component(name, spec, fmi, Component, key=key, model=cls, fidelity="modelica",
-                                          options=options, sources=sources, origin=path.name, rebuild=block_of_text)
+            comp = indexed_user_component(name, spec, fmi, Component, key=key, model=mc.model, fidelity="modelica",
+                                          options=options, sources=sources, origin=origin, rebuild=block_of_text)
             if comp is not None:
                 self._values(comp, spec)
                 return comp
@@ -534,14 +575,43 @@ class ComponentChecks(Checker):
         except BlockError as exc:
             self.err(where, f"component {name!r}: {exc}")
             return None
-        comp = Component(name, "model", describe_block(block, f"{cls}/modelica"), model=cls, fidelity="modelica",
-                         options=options, fmi=fmi, block=block, where=spec.where, origin=path.name)
+        comp = Component(name, "model", describe_block(block, f"{mc.model}/modelica"), model=mc.model,
+                         fidelity="modelica", options=options, fmi=fmi, block=block, where=spec.where, origin=origin)
         if self.catalog is None:
             from .recipes import recipe_of
 
             comp.recipe = recipe_of(spec, options, {}, fmi, key=key, fidelity="modelica", sources=sources)
         self._values(comp, spec)
         return comp
+
+    def modelica_roots(self) -> list[Path] | None:
+        """The Modelica source roots: the scene's ``modelica_path:`` (a list of directories or a
+        colon-separated string, relative to the scene), then ``MODELICAPATH``; None after
+        reporting a root that is not a directory."""
+        if getattr(self, "_modelica_roots", None) is not None:
+            return self._modelica_roots
+        from .modelica_sources import ENV_VAR, roots_from_env
+
+        node = self.tree.get("modelica_path", [])
+        where = self.tree.loc("modelica_path") if "modelica_path" in self.tree else self.tree.where
+        items = node.split(os.pathsep) if isinstance(node, str) else node
+        if not isinstance(items, list) or not all(isinstance(p, str) for p in items):
+            self.err(where, f"modelica_path must be a list of directories or a '{os.pathsep}'-separated string, "
+                            f"got {node!r}")
+            return None
+        roots = []
+        for p in [x for x in items if x.strip()]:
+            root = self._base(where) / os.path.expanduser(p)
+            if not root.is_dir():
+                self.err(where, f"modelica_path: {p!r} is not a directory (looked for {_display(root)})")
+                return None
+            roots.append(root)
+        env = roots_from_env()
+        missing = [str(r) for r in env if not r.is_dir()]
+        if missing:
+            self.warn(where, f"{ENV_VAR}: {missing[0]} is not a directory (skipped)")
+        self._modelica_roots = roots + [r for r in env if r.is_dir()]
+        return self._modelica_roots
 
     def _values(self, comp: Component, spec: YMap, skip: set[str] = frozenset()) -> None:
         """Check ``params`` and ``start`` against the component's variables."""

@@ -22,6 +22,8 @@ TOP = {
               "`min_det` [m], `max_abs`), or `off`",
     "blocks": "Python files of your own blocks (each defines `BLOCKS`), relative to the scene; their models are "
               "then used like catalog ones",
+    "modelica_path": "Modelica source roots (directories holding libraries such as `Modelica/`), a list or a "
+                     "`:`-separated string, relative to the scene; searched before `MODELICAPATH`",
 }
 #: Keys of one component -> what each holds.
 COMPONENT = {
@@ -32,7 +34,11 @@ COMPONENT = {
     "params": "parameter values by name (units as `rpr-cosim fmu show` lists them; structural parameters of FMI 3.0 "
               "FMUs too)",
     "start": "start values of inputs and of variables with initial = exact or approx",
-    "fmu": "path of an FMI 2.0 or 3.0 co-simulation FMU from any tool, instead of `model`",
+    "fmu": "path of an FMI 2.0 or 3.0 FMU (co-simulation or model exchange) from any tool, instead of `model`",
+    "interface": "which interface of an FMU that has both runs: `co_simulation` (the default where the FMU has it) "
+                 "or `model_exchange` (integrated by CVODES inside its slave)",
+    "rtol": "a model-exchange FMU's CVODES relative tolerance (default 1e-6, or the FMU's DefaultExperiment "
+            "tolerance when tighter; absolute: rtol times each state's nominal)",
     "fmi": "FMI version of a catalog block's FMU: `2.0` (default) or `3.0`",
     "description": "free text",
     "hardware": "the rig's I/O daemon: `{address: HOST:PORT, key: FILE}` (the hardware FMU)",
@@ -42,7 +48,9 @@ COMPONENT = {
     "units": "a replay's column units, `{COLUMN: UNIT}` (win over the file's metadata)",
     "rollback": "`false`: treat the component as one that cannot save and restore its state",
     "rate": "doSteps per macro step (multirate, a whole number >= 1 dividing the step into whole nanoseconds)",
-    "modelica": "a Modelica file of your own (`.mo`), with `model:` naming its class (e.g. `Drive.RackPinion`)",
+    "modelica": "a Modelica file of your own (`.mo`), with `model:` naming its class (e.g. `Drive.RackPinion`), or a "
+                "class of the Modelica source roots by its full name (e.g. "
+                "`Modelica.Mechanics.Translational.Examples.Oscillator`)",
     "guard_data": "what the physical guards know of an external FMU (its mechanism, legs and ratings; written by "
                   "`ssp export` into an rpr-cosim SSP's component annotation)",
     "feedthrough": "an FMU's direct feedthrough, which wins over its XML and the measured one: `none`, `all`, or a "

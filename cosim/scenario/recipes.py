@@ -127,4 +127,5 @@ def description_from_data(data: dict):
     rest = {k: v for k, v in data.items() if k not in ("variables", "flanges")}
     rest["interfaces"] = tuple(rest.get("interfaces") or ())
     rest["workarounds"] = tuple(rest.get("workarounds") or ())
+    rest["discrete_states"] = tuple(rest.get("discrete_states") or ())
     return SlaveDescription(variables=vs, flanges=[Flange(**f) for f in data["flanges"]], **rest)

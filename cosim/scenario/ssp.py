@@ -311,10 +311,12 @@ class _Reader:
             if kind != FMU_TYPE:
                 self.err(el.sourceline, f"component {name!r}: type {kind!r} is not supported (expected {FMU_TYPE})")
                 continue
-            if el.get("implementation", "any") == "ModelExchange":
-                self.err(el.sourceline, f"component {name!r}: implementation ModelExchange is not supported; "
-                                        f"rpr-cosim runs co-simulation FMUs")
+            implementation = el.get("implementation", "any")
+            if implementation == "ScheduledExecution":
+                self.err(el.sourceline, f"component {name!r}: implementation ScheduledExecution is not supported; "
+                                        f"rpr-cosim runs co-simulation and model-exchange FMUs")
                 continue
+            interface = {"ModelExchange": "model_exchange", "CoSimulation": "co_simulation"}.get(implementation)
             src = el.get("source")
             member = src[2:] if src.startswith("./") else src
             parts = member.replace("\\", "/").split("/")
@@ -329,7 +331,7 @@ class _Reader:
                 continue
             fmu = self.extract(member)
             try:
-                desc = describe_fmu(fmu)
+                desc = describe_fmu(fmu, interface)
             except UserError as exc:
                 self.err(el.sourceline, f"component {name!r}: {exc}")
                 continue
@@ -338,6 +340,9 @@ class _Reader:
             spec = YMap({"fmu": str(fmu)})
             spec.where = self.loc(el)
             spec.locs = {"fmu": self.loc(el)}
+            if interface is not None:  # SSP implementation="ModelExchange" / "CoSimulation"
+                spec["interface"] = interface
+                spec.locs["interface"] = spec.where
             guards = self.guard_data(el, name)
             if guards is not None:
                 spec["guard_data"] = guards

@@ -258,9 +258,15 @@ def user_block(what: str, **options: Any):
         if path.suffix == ".mo":
             from models.modelica import translate
 
+            from .modelica_sources import SourceError, modelica_class, roots_from_env
+
             if not name:
                 raise UserBlockError(f"{what}: name the Modelica class, e.g. {file}:Gear")
-            blk = translate(read_modelica(path), name, path.name, name=name.split(".")[-1].lower(),
+            try:
+                mc = modelica_class(path.name, name, path.parent, [r for r in roots_from_env() if r.is_dir()])
+            except SourceError as exc:
+                raise UserBlockError(str(exc)) from None
+            blk = translate(mc.text, name, path.name, name=name.split(".")[-1].lower(), compiled=mc.compiled(),
                             **{k: options[k] for k in ("integrator", "substeps") if k in options})
             return blk, f"{name}/modelica ({path.name})", [
                 ("integrator", "auto", "exact when the equations are linear, else radau (auto, exact, rk4, radau)"),

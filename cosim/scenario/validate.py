@@ -27,6 +27,9 @@ def _hash(data: dict, comps: Mapping[str, Component]) -> str:
         c = comps[name]
         if c.fmu is not None:
             h.update(name.encode() + hashlib.sha256(c.fmu.read_bytes()).digest())
+        sources = getattr(getattr(c, "recipe", None), "sources", None)
+        if sources:  # a user's block: the files that define it (a Modelica class: every file it reads)
+            h.update(name.encode() + json.dumps(sources, sort_keys=True).encode())
     return h.hexdigest()
 
 

@@ -159,14 +159,15 @@ def _nests_too_deep(text: str) -> bool:
     return False
 
 
-def read_yaml(path: Path) -> tuple[Any, list[Problem]]:
-    """Parse one YAML file into YMap/YList; syntax errors and duplicate keys become problems."""
+def read_yaml(path: Path, what: str = "scene") -> tuple[Any, list[Problem]]:
+    """Parse one YAML file (``what`` names it in messages) into YMap/YList; syntax errors and
+    duplicate keys become problems."""
     name = _display(path)
     from ..errors import UserError
     from ..readers import read_regular
 
     try:
-        raw = read_regular(Path(path), "scene")
+        raw = read_regular(Path(path), what)
     except UserError as exc:
         return None, [Problem(name, 0, str(exc).split(": ", 1)[-1])]
     try:

@@ -49,6 +49,13 @@ def archive_problem(path: Path, kind: str = "FMU", root_file: str | None = "mode
     """Why ``path`` is not a ``kind`` archive one may open, or None: not a zip, a member whose
     name is absolute or climbs out with ``..``, a member listed twice, more members or
     uncompressed bytes than :func:`limits`, or no ``root_file`` at its root."""
+    from ..readers import open_regular
+
+    try:  # a FIFO would block the zip reader, a device feed it without end
+        with open_regular(path, f"{kind} archive", 1 << 62):
+            pass
+    except UserError as exc:
+        return str(exc).split(": ", 1)[-1]
     try:
         with zipfile.ZipFile(path) as z:
             infos = z.infolist()

@@ -23,7 +23,8 @@ from pathlib import Path
 CALLS = ("", "loading the binary", "fmi2Instantiate", "fmi2SetReal (start values)", "fmi2SetupExperiment",
          "fmi2EnterInitializationMode", "fmi2ExitInitializationMode", "fmi2DoStep", "fmi2GetReal", "fmi2SetReal",
          "fmi2SetRealInputDerivatives", "fmi2GetFMUstate", "fmi2SetFMUstate", "fmi2Terminate",
-         "fmi2FreeInstance", "fmi2Reset", "fmi2GetBooleanStatus")
+         "fmi2FreeInstance", "fmi2Reset", "fmi2GetBooleanStatus", "fmi3EnterEventMode", "fmi3UpdateDiscreteStates",
+         "fmi3EnterStepMode")
 _FMI3 = {"fmi2Instantiate": "fmi3InstantiateCoSimulation", "fmi2SetReal (start values)": "fmi3Set (start values)",
          "fmi2SetupExperiment": "fmi3EnterInitializationMode", "fmi2GetReal": "fmi3GetFloat64",
          "fmi2SetReal": "fmi3SetFloat64", "fmi2GetFMUstate": "fmi3GetFMUState", "fmi2SetFMUstate": "fmi3SetFMUState"}

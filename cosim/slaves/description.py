@@ -82,6 +82,18 @@ class SlaveDescription:
     #: no state, no sampling: its outputs are functions of its inputs now (a catalog block such as ``sum``,
     #: known from the scene; fixed-step Jacobi evaluates it within the exchange, see cosim.master)
     memoryless: bool = False
+    #: the interface a run steps it through: "co-simulation", or "model exchange" (integrated by
+    #: CVODES inside the slave, cosim.slaves.model_exchange)
+    interface: str = "co-simulation"
+    continuous_states: int = 0  # model exchange: number of continuous states
+    event_indicators: int = 0  # model exchange: number of event indicators
+    needs_completed_integrator_step: bool = False  # model exchange: call CompletedIntegratorStep after each step
+    discrete_states: tuple[str, ...] = ()  # local and output variables of variability discrete (modes, counters)
+    #: how a rollback restores it: "FMU state", "continuous states" (model exchange without FMU
+    #: state and without discrete states), or "" (it cannot roll back)
+    rollback_through: str = ""
+    solver_rtol: float | None = None  # model exchange: CVODES's relative tolerance (the scene's rtol:)
+    has_event_mode: bool = False  # FMI 3.0 co-simulation: hasEventMode (event mode and early return usable)
 
     def of(self, *causalities: str) -> list[str]:
         """Names of the variables with one of the given causalities, in declaration order."""
@@ -109,7 +121,8 @@ def describe_block(block: Block, source: str = "") -> SlaveDescription:
     for u in block.inputs:
         vs[u.name] = Variable(u.name, "input", "continuous", "Real", 0.0, u.unit, u.description)
     for y in block.outputs:
-        vs[y.name] = Variable(y.name, "output", "continuous", "Real", None, y.unit, y.description)
+        vs[y.name] = Variable(y.name, "local" if y.local else "output", "continuous", "Real", None, y.unit,
+                              y.description)
     period = float(block.sample_period) if block.integrator == "discrete" and block.sample_period else None
     return SlaveDescription("block", source or block.name, vs, block.feedthrough(), list(block.flanges),
                             period, None, True)
@@ -171,9 +184,34 @@ def _declared_version(path: Path) -> str | None:
     return str(v) if v is not None else None
 
 
-def describe_fmu(path: Path) -> SlaveDescription:
-    """Read an FMU's ``modelDescription.xml``.  Raises :class:`UserError` naming the file when it
-    is not a readable co-simulation FMU."""
+#: The values of a component's ``interface:`` key -> the interface's name in a description.
+INTERFACES = {"co_simulation": "co-simulation", "model_exchange": "model exchange"}
+
+
+def _chosen_interface(path: Path, md, kinds: tuple[str, ...], interface: str | None) -> str:
+    """The interface a run uses: ``interface`` (a key of :data:`INTERFACES`) when given, else
+    co-simulation where the FMU has it, else model exchange.  Raises :class:`UserError`."""
+    if interface is not None:
+        if interface not in INTERFACES:
+            raise UserError(f"{path}: interface {interface!r}; expected one of {', '.join(INTERFACES)}")
+        name = INTERFACES[interface]
+        if name not in kinds:
+            raise UserError(f"{path}: interface {interface} asked, but the FMU has {' and '.join(kinds) or 'no interface'}"
+                            f" only")
+        return name
+    if md.coSimulation is not None:
+        return "co-simulation"
+    if md.modelExchange is not None:
+        return "model exchange"
+    raise UserError(f"{path}: the FMU has {' and '.join(kinds) or 'no interface'} only; rpr-cosim runs co-simulation "
+                    f"and model-exchange FMUs (Scheduled Execution, with clocks, is not supported)")
+
+
+def describe_fmu(path: Path, interface: str | None = None) -> SlaveDescription:
+    """Read an FMU's ``modelDescription.xml`` for the interface a run will use (``interface``:
+    ``co_simulation`` or ``model_exchange``; None: co-simulation where the FMU has it, else model
+    exchange).  Raises :class:`UserError` naming the file when it is not a readable FMU of a
+    supported interface."""
     import fmpy
 
     from .archive import check_archive
@@ -193,9 +231,7 @@ def describe_fmu(path: Path) -> SlaveDescription:
         raise UserError(f"{path}: FMI {md.fmiVersion} FMUs are not supported; export it as FMI 2.0 or 3.0 "
                         f"co-simulation")
     kinds = _interfaces(md)
-    if md.coSimulation is None:
-        raise UserError(f"{path}: the FMU has no co-simulation interface (it has "
-                        f"{' and '.join(kinds) or 'no interface'} only); rpr-cosim steps co-simulation FMUs")
+    chosen = _chosen_interface(path, md, kinds, interface)
     vs: dict[str, Variable] = {v.name: _fmu_variable(v, md.fmiVersion) for v in md.modelVariables}
     de = md.defaultExperiment
     default = {}
@@ -220,12 +256,25 @@ def describe_fmu(path: Path) -> SlaveDescription:
         else:
             ft[v.name] = [d.name for d in unknown.dependencies if d.causality == "input"]
     period = None
-    cs = md.coSimulation
+    cs = md.coSimulation if chosen == "co-simulation" else md.modelExchange
     can_state = bool(getattr(cs, "canGetAndSetFMUstate", False) or getattr(cs, "canGetAndSetFMUState", False))
-    interp = md.fmiVersion.startswith("2") and bool(getattr(cs, "canInterpolateInputs", False))
+    interp = chosen == "co-simulation" and md.fmiVersion.startswith("2") and bool(getattr(cs, "canInterpolateInputs", False))
     ddx = bool(getattr(cs, "providesDirectionalDerivative", False) or getattr(cs, "providesDirectionalDerivatives", False))
+    discrete = tuple(v.name for v in md.modelVariables if v.variability == "discrete"
+                     and (v.causality or "local") in ("local", "output"))
+    me = {}
+    if chosen == "model exchange":
+        nx = int(md.numberOfContinuousStates or 0)
+        through = "FMU state" if can_state else ("continuous states" if nx and not discrete else "")
+        me = dict(interface=chosen, continuous_states=nx, event_indicators=int(md.numberOfEventIndicators or 0),
+                  needs_completed_integrator_step=bool(getattr(cs, "needsCompletedIntegratorStep", False)),
+                  rollback_through=through)
+        can_state = bool(through)
+    else:
+        me = dict(rollback_through="FMU state" if can_state else "",
+                  has_event_mode=md.fmiVersion.startswith("3") and bool(getattr(cs, "hasEventMode", False)))
     return SlaveDescription("fmu", str(path), vs, ft, [], period, md.fmiVersion, can_state, interp, default, kinds,
-                            md.guid or "", cs.modelIdentifier or "", ddx, declared)
+                            md.guid or "", cs.modelIdentifier or "", ddx, declared, discrete_states=discrete, **me)
 
 
 

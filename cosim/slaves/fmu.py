@@ -267,7 +267,8 @@ class _Fmi3(FmiVersion):
 
         slave._log = fmi3LogMessageCallback(slave._on_log3)
         fmu = FMU3Slave(guid=guid, unzipDirectory=unzip, modelIdentifier=ident, instanceName=slave.name)
-        fmu.instantiate(logMessage=slave._log)
+        # event mode and early return only for a run whose algorithm ends its steps at events
+        fmu.instantiate(logMessage=slave._log, eventModeUsed=slave.event_mode, earlyReturnAllowed=slave.event_mode)
         return fmu
 
     def bind_step(self, slave, dll):
@@ -278,9 +279,11 @@ class _Fmi3(FmiVersion):
         slave._last_t = c_double()
         p_flags, p_last, inst = [ctypes.byref(f) for f in flags], ctypes.byref(slave._last_t), slave._inst
         terminate = flags[1]
+        slave._step_flags, slave._planned_end = flags, 0.0
 
         def do_step(t: float, h: float) -> int:
             # noSetFMUStatePriorToCurrentPoint: promised unless the algorithm may restore a state
+            slave._planned_end = t + h
             st = step(inst, t, h, slave.no_prior, *p_flags, p_last)
             if st < 2 and terminate.value:
                 return Status.STOP_REQUESTED
@@ -323,9 +326,23 @@ class FmuSlave(Slave):
     initialisation and termination; the per-step calls go straight to the FMI functions through
     ctypes with preallocated buffers (or through the compiled loop via :meth:`native`)."""
 
+    #: The slave class of each interface other than co-simulation (its name in a description ->
+    #: class), registered by its module (model exchange: :mod:`cosim.slaves.model_exchange`).
+    kinds: dict[str, type] = {}
+
+    def __new__(cls, name: str | None = None, path: Path | None = None, description: SlaveDescription | None = None):
+        """An FMU's slave of the class its interface needs (``FmuSlave(...)`` of a model-exchange
+        description makes a model-exchange slave); without arguments (copy, pickle) the class asked."""
+        if cls is not FmuSlave or path is None:
+            return super().__new__(cls)
+        desc = description or describe_fmu(Path(path))
+        obj = super().__new__(FmuSlave.kinds.get(desc.interface, cls))
+        obj._described = desc
+        return obj
+
     def __init__(self, name: str, path: Path, description: SlaveDescription | None = None):
         self.path = Path(path)
-        super().__init__(name, description or describe_fmu(self.path))
+        super().__init__(name, description or getattr(self, "_described", None) or describe_fmu(self.path))
         self.fmi: FmiVersion = FMI3 if str(self.description.fmi_version).startswith("3") else FMI2
         self.fmu = None
         self.always_no_prior = "always_no_prior" in self.description.workarounds
@@ -362,7 +379,7 @@ class FmuSlave(Slave):
         unzip = _unzip(self.path)
         enter(self._ck, CALL["fmi2Instantiate"])  # loading the binary and instantiating
         try:
-            self.fmu = self.fmi.make(self, guid, unzip, ident)
+            self.fmu = self._make(guid, unzip, ident)
         except Exception as exc:  # fmpy raises bare Exceptions for a missing binary or failed call
             raise UserError(f"{self.name}: cannot instantiate {self.path} ({exc}"
                             f"{'; ' + self.last_message if self.last_message else ''})") from None
@@ -370,7 +387,15 @@ class FmuSlave(Slave):
             leave()
         crumb.name_instance(self.name, self.fmi3, self.fmu.component)
         self._inst = c_void_p(self.fmu.component)
-        self.fmi.bind_step(self, self.fmu.dll)
+        self._bind_step(self.fmu.dll)
+
+    def _make(self, guid: str, unzip: str, ident: str):
+        """The loaded and instantiated FMPy object of the FMU."""
+        return self.fmi.make(self, guid, unzip, ident)
+
+    def _bind_step(self, dll) -> None:
+        """``self._step(t, h) -> status`` and ``self._get``/``_set`` (Float64 by value reference)."""
+        self.fmi.bind_step(self, dll)
 
     def _on_log2(self, env, instance, status, category, message) -> None:
         self.messages.append(f"[{Status(status).name if status in Status._value2member_map_ else status}] "
@@ -456,6 +481,21 @@ class FmuSlave(Slave):
 
     def exit_initialization(self) -> None:
         self._call("exitInitializationMode", self.fmu.exitInitializationMode, call=6)
+        if self.event_mode and self.fmi3:  # FMI 3.0: in event mode now; the initial event iteration, then step mode
+            for _ in range(100):
+                st, more, terminate = self.update_discrete_states()
+                if st in FAILING:
+                    raise self._failed("the initial event iteration", Status(st).name)
+                if terminate:
+                    raise UserError(f"{self.name}: the FMU asked to terminate the simulation in its initial event "
+                                    f"iteration")
+                if not more:
+                    break
+            else:
+                raise UserError(f"{self.name}: the initial event iteration did not settle in 100 rounds")
+            st = self.enter_step_mode()
+            if st in FAILING:
+                raise self._failed("fmi3EnterStepMode", Status(st).name)
 
     def bind(self, in_vrs, in_buf, out_vrs, out_buf) -> None:
         self._in_vr = np.ascontiguousarray(in_vrs, dtype=np.uint32)
@@ -502,6 +542,35 @@ class FmuSlave(Slave):
         st = self._step(t, h)  # made by the FMI version at instantiation
         leave()
         return st
+
+    def step_end(self) -> tuple[float, bool]:
+        if not (self.event_mode and self.fmi3):
+            return Slave.step_end(self)
+        event, _, early = (f.value for f in self._step_flags)
+        return (self._last_t.value if early else self._planned_end), bool(event)
+
+    def enter_event_mode(self) -> int:
+        return self._status_of("fmi3EnterEventMode", self.fmu.enterEventMode)
+
+    def update_discrete_states(self) -> tuple[int, bool, bool]:
+        out: list = []
+        st = self._status_of("fmi3UpdateDiscreteStates", lambda: out.extend(self.fmu.updateDiscreteStates()))
+        return (st, bool(out[0]), bool(out[1])) if out else (st, False, False)
+
+    def enter_step_mode(self) -> int:
+        return self._status_of("fmi3EnterStepMode", self.fmu.enterStepMode)
+
+    def _status_of(self, what: str, fn) -> int:
+        """Call ``fn`` (an FMI call named ``what``, in the breadcrumb for the supervisor); its status."""
+        enter(self._ck, CALL[what])
+        try:
+            fn()
+        except Exception as exc:  # fmpy's FMICallException
+            self.messages.append(f"[ERROR] {what} failed ({exc})")
+            return int(getattr(exc, "status", Status.ERROR))
+        finally:
+            leave()
+        return Status.OK
 
     def asked_to_stop(self) -> bool:
         """After an FMI 2.0 Discard: did the FMU ask to end the simulation (fmi2Terminated)?"""

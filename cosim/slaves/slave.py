@@ -140,6 +140,28 @@ class Slave(ABC):
         """C entry points for the compiled loop, or None (the Python loop is used)."""
         return None
 
+    # FMI 3.0 event mode (docs/explanation/events.md) -------------------------------------------------
+    #: Set by the run before instantiation for an algorithm that ends its steps at events: the
+    #: slave reports its events (and may end a step early at one) instead of handling them inside.
+    event_mode: bool = False
+
+    def step_end(self) -> tuple[float, bool]:
+        """After :meth:`do_step` in event mode: (the time it reached [s], whether an event there
+        needs handling)."""
+        raise RuntimeError(f"{self.name}: this slave has no event mode")
+
+    def enter_event_mode(self) -> int:
+        """Enter event mode at the current time; returns a :class:`Status`."""
+        raise RuntimeError(f"{self.name}: this slave has no event mode")
+
+    def update_discrete_states(self) -> tuple[int, bool, bool]:
+        """One round of the event iteration: (status, more rounds needed, terminate requested)."""
+        raise RuntimeError(f"{self.name}: this slave has no event mode")
+
+    def enter_step_mode(self) -> int:
+        """Leave event mode; returns a :class:`Status`."""
+        raise RuntimeError(f"{self.name}: this slave has no event mode")
+
     # rollback (variable-step and iterative algorithms) --------------------------------------------
     #: Set by the run for an algorithm that never restores a state (fixed-step, ecco): every
     #: doStep then promises ``noSetFMUStatePriorToCurrentPoint = true``.

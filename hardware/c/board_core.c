@@ -271,10 +271,11 @@ void board_tick(Board *b, int64_t now, int64_t late_ns) {
 
 /* --- datagrams ----------------------------------------------------------------------------- */
 static size_t seal(const HmacKey *k, uint8_t *d, int type, uint32_t session, uint32_t seq, int64_t now, size_t body) {
-    d[0] = PROTO_MAGIC0; d[1] = PROTO_MAGIC1; d[2] = PROTO_VERSION; d[3] = (uint8_t)type;
-    put32(d + 4, session);
-    put32(d + 8, seq);
-    put64(d + 12, (uint64_t)now);
+    d[HDR_MAGIC] = PROTO_MAGIC0; d[HDR_MAGIC + 1] = PROTO_MAGIC1; d[HDR_VERSION] = PROTO_VERSION;
+    d[HDR_TYPE] = (uint8_t)type;
+    put32(d + HDR_SESSION, session);
+    put32(d + HDR_SEQ, seq);
+    put64(d + HDR_TIME_NS, (uint64_t)now);
     hmac_key_mac(k, d, HDR + body, d + HDR + body);
     return HDR + body + MAC;
 }
@@ -324,7 +325,7 @@ static size_t hello(Board *b, const uint8_t *d, int64_t now, uint8_t *reply) {
     b->next_session = b->next_session + 1 ? b->next_session + 1 : 1;
     p->id = b->next_session;
     hmac_key_init(&p->key, skey, 32);
-    p->offset_ns = sat_sub(now, (int64_t)get64(d + 12));
+    p->offset_ns = sat_sub(now, (int64_t)get64(d + HDR_TIME_NS));
     return seal(&b->key, reply, T_WELCOME, p->id, 0, now, BODY_WELCOME);
 }
 
@@ -389,25 +390,25 @@ static size_t sample_reply(Board *b, uint32_t seq, int64_t now, uint8_t *reply) 
     uint64_t dropped = b->counters[C_MALFORMED] + b->counters[C_UNAUTHENTICATED] + b->counters[C_OLD_SESSION] +
                        b->counters[C_OUT_OF_SEQUENCE] + b->counters[C_STALE] + b->counters[C_THROTTLED];
     memset(p, 0, BODY_SAMPLE);
-    p[0] = (uint8_t)b->state;
+    p[SAMPLE_STATE] = (uint8_t)b->state;
     for (i = 0; i < LEGS; i++) {
         Leg *leg = &b->legs[i];
         int raw = leg->raw < 0 ? 0 : leg->raw > 65535 ? 65535 : leg->raw;
         limits |= leg->limit << (2 * i);
-        put16(p + 4 + 2 * i, (uint32_t)raw);
+        put16(p + SAMPLE_RAW + 2 * i, (uint32_t)raw);
         if (!leg->raw_ok_ns) all_ok = 0;
         else if ((now - leg->raw_ok_ns) / 1000 > age) age = (now - leg->raw_ok_ns) / 1000;
     }
-    p[1] = (uint8_t)limits;
-    put16(p + 2, (uint32_t)b->faults);
-    put32(p + 12, all_ok ? (uint32_t)(age > 0xFFFFFFFFll ? 0xFFFFFFFFll : age) : 0xFFFFFFFFu);
-    put32(p + 16, (uint32_t)dropped);
-    put32(p + 20, (uint32_t)(b->late_since_sample_ns / 1000));
-    put32(p + 24, b->p50_us);
-    put32(p + 28, b->p99_us);
-    put32(p + 32, (uint32_t)(b->late_max_ns / 1000));
-    put32(p + 36, b->cpu_per_tick_ns);
-    put32(p + 40, (uint32_t)b->counters[C_THROTTLED]);
+    p[SAMPLE_LIMITS] = (uint8_t)limits;
+    put16(p + SAMPLE_FAULTS, (uint32_t)b->faults);
+    put32(p + SAMPLE_AGE_US, all_ok ? (uint32_t)(age > 0xFFFFFFFFll ? 0xFFFFFFFFll : age) : 0xFFFFFFFFu);
+    put32(p + SAMPLE_DROPPED, (uint32_t)dropped);
+    put32(p + SAMPLE_LATE_US, (uint32_t)(b->late_since_sample_ns / 1000));
+    put32(p + SAMPLE_P50_US, b->p50_us);
+    put32(p + SAMPLE_P99_US, b->p99_us);
+    put32(p + SAMPLE_MAX_US, (uint32_t)(b->late_max_ns / 1000));
+    put32(p + SAMPLE_CPU_NS, b->cpu_per_tick_ns);
+    put32(p + SAMPLE_THROTTLED, (uint32_t)b->counters[C_THROTTLED]);
     b->late_since_sample_ns = 0;
     return seal(&b->session.key, reply, T_SAMPLE, b->session.id, seq, now, BODY_SAMPLE);
 }
@@ -419,18 +420,19 @@ size_t board_handle(Board *b, const uint8_t *d, size_t n, int64_t now, uint8_t *
     int i, type;
     float volts[LEGS];
     b->counters[C_RECEIVED]++;
-    if (n < HDR + MAC || d[0] != PROTO_MAGIC0 || d[1] != PROTO_MAGIC1 || d[2] != PROTO_VERSION) {
+    if (n < HDR + MAC || d[HDR_MAGIC] != PROTO_MAGIC0 || d[HDR_MAGIC + 1] != PROTO_MAGIC1 ||
+        d[HDR_VERSION] != PROTO_VERSION) {
         b->counters[C_MALFORMED]++;
         return 0;
     }
-    type = d[3];
+    type = d[HDR_TYPE];
     if (!((type == T_HELLO && n == HDR + BODY_HELLO + MAC) || (type == T_COMMAND && n == HDR + BODY_COMMAND + MAC))) {
         b->counters[C_MALFORMED]++;
         return 0;
     }
     if (type == T_HELLO) return hello(b, d, now, reply);
-    sid = get32(d + 4);
-    seq = get32(d + 8);
+    sid = get32(d + HDR_SESSION);
+    seq = get32(d + HDR_SEQ);
     if (sid && sid == b->session.id) {
         ses = &b->session;
     } else if (sid) {
@@ -458,7 +460,7 @@ size_t board_handle(Board *b, const uint8_t *d, size_t n, int64_t now, uint8_t *
         ses = &b->session;
     }
     {
-        int64_t t = (int64_t)get64(d + 12), late = sat_sub(now, sat_add(t, ses->offset_ns));
+        int64_t t = (int64_t)get64(d + HDR_TIME_NS), late = sat_sub(now, sat_add(t, ses->offset_ns));
         /* a negative sender time (a monotonic clock never is), or one more than FUTURE_NS ahead
          * of what the session's offset predicts, is refused as stale and moves no offset */
         if (t < 0 || late > b->safety.stale_ms * 1e6 || late < -FUTURE_NS) {
@@ -471,9 +473,9 @@ size_t board_handle(Board *b, const uint8_t *d, size_t n, int64_t now, uint8_t *
     ses->last_seq = seq;
     b->counters[C_COMMANDS]++;
     for (i = 0; i < LEGS; i++) {
-        uint32_t u = get32(d + HDR + 4 + 4 * i);
+        uint32_t u = get32(d + HDR + COMMAND_VOLTS + 4 * i);
         memcpy(&volts[i], &u, 4);
     }
-    command(b, d[HDR], volts, now);
+    command(b, d[HDR + COMMAND_FLAGS], volts, now);
     return sample_reply(b, seq, now, reply);
 }

@@ -117,10 +117,11 @@ static uint16_t get16(const uint8_t *p) { return (uint16_t)(p[0] | p[1] << 8); }
 static uint32_t get32(const uint8_t *p) { return (uint32_t)get16(p) | (uint32_t)get16(p + 2) << 16; }
 
 static size_t header(uint8_t *p, int type, uint32_t session, uint32_t seq) {
-    p[0] = PROTO_MAGIC0; p[1] = PROTO_MAGIC1; p[2] = PROTO_VERSION; p[3] = (uint8_t)type;
-    put32(p + 4, session);
-    put32(p + 8, seq);
-    put64(p + 12, now_ns());
+    p[HDR_MAGIC] = PROTO_MAGIC0; p[HDR_MAGIC + 1] = PROTO_MAGIC1; p[HDR_VERSION] = PROTO_VERSION;
+    p[HDR_TYPE] = (uint8_t)type;
+    put32(p + HDR_SESSION, session);
+    put32(p + HDR_SEQ, seq);
+    put64(p + HDR_TIME_NS, now_ns());
     return HDR;
 }
 
@@ -253,8 +254,9 @@ static int await_range(Hil *h, int type, uint32_t seq, uint32_t seq_hi, const ui
             if (errno == EINTR || errno == EAGAIN) continue;
             return -2;
         }
-        if ((size_t)n != want || buf[0] != PROTO_MAGIC0 || buf[1] != PROTO_MAGIC1 || buf[2] != PROTO_VERSION || buf[3] != type) continue;
-        if (seq && (get32(buf + 8) < seq || get32(buf + 8) > seq_hi)) continue; /* an older command's */
+        if ((size_t)n != want || buf[HDR_MAGIC] != PROTO_MAGIC0 || buf[HDR_MAGIC + 1] != PROTO_MAGIC1 ||
+            buf[HDR_VERSION] != PROTO_VERSION || buf[HDR_TYPE] != type) continue;
+        if (seq && (get32(buf + HDR_SEQ) < seq || get32(buf + HDR_SEQ) > seq_hi)) continue; /* an older command's */
         if (!check_mac(key, buf, (size_t)n)) continue;
         return 0;
     }
@@ -301,7 +303,7 @@ static int hello(Hil *h) {
             if (rc == 0 && memcmp(r + HDR, nonce, NONCE) == 0) break;
         }
     }
-    h->session = get32(r + 4);
+    h->session = get32(r + HDR_SESSION);
     memcpy(buf, "rpr-session", 11);
     memcpy(buf + 11, nonce, NONCE);
     memcpy(buf + 11 + NONCE, r + HDR + NONCE, NONCE);
@@ -334,12 +336,12 @@ static int exchange(Hil *h, int flags, const double *volts) {
         }
         header(d, T_COMMAND, h->session, ++h->seq);
         memset(d + HDR, 0, BODY_COMMAND);
-        d[HDR] = (uint8_t)flags;
+        d[HDR + COMMAND_FLAGS] = (uint8_t)flags;
         for (i = 0; i < 3; i++) {
             float f = (float)volts[i];
             uint32_t u;
             memcpy(&u, &f, 4);
-            put32(d + HDR + 4 + 4 * i, u);
+            put32(d + HDR + COMMAND_VOLTS + 4 * i, u);
         }
         hmac_sha256(h->skey, 32, d, HDR + BODY_COMMAND, d + HDR + BODY_COMMAND);
         if (send(h->sock, d, sizeof d, 0) < 0) {
@@ -354,24 +356,24 @@ static int exchange(Hil *h, int flags, const double *volts) {
         }
     }
     rtt = (double)(now_ns() - t0) / 1e9;
-    state = r[HDR];
-    faults = get16(r + HDR + 2);
+    state = r[HDR + SAMPLE_STATE];
+    faults = get16(r + HDR + SAMPLE_FAULTS);
     for (i = 0; i < 3; i++) {
-        double raw = get16(r + HDR + 4 + 2 * i);
+        double raw = get16(r + HDR + SAMPLE_RAW + 2 * i);
         double span = h->r[VR_RAW_FULL + i] - h->r[VR_RAW_ZERO + i];
         double stroke = span != 0 ? (raw - h->r[VR_RAW_ZERO + i]) * h->r[VR_STROKE_FULL + i] / span : NAN;
         h->r[VR_RAW + i] = raw;
         h->r[VR_STROKE + i] = stroke;
         h->r[VR_S + i] = h->r[VR_S_OFFSET + i] + stroke;
     }
-    h->r[VR_AGE] = get32(r + HDR + 12) / 1e6 + rtt / 2;
+    h->r[VR_AGE] = get32(r + HDR + SAMPLE_AGE_US) / 1e6 + rtt / 2;
     h->r[VR_FAULT] = faults;
     h->r[VR_STATE] = state;
     h->r[VR_RTT] = rtt;
-    h->r[VR_DROPPED] = get32(r + HDR + 16);
-    for (i = 0; i < 4; i++) h->r[fig[i]] = get32(r + HDR + 20 + 4 * i) / 1e6;
-    h->r[VR_CPU_TICK] = get32(r + HDR + 36) / 1e9;
-    h->r[VR_THROTTLED] = get32(r + HDR + 40);
+    h->r[VR_DROPPED] = get32(r + HDR + SAMPLE_DROPPED);
+    for (i = 0; i < 4; i++) h->r[fig[i]] = get32(r + HDR + SAMPLE_LATE_US + 4 * i) / 1e6;
+    h->r[VR_CPU_TICK] = get32(r + HDR + SAMPLE_CPU_NS) / 1e9;
+    h->r[VR_THROTTLED] = get32(r + HDR + SAMPLE_THROTTLED);
     if (state == S_FAULT) {
         char text[256] = "";
         for (i = 0; i < 7; i++)

@@ -67,13 +67,20 @@ def _planned(spec: str):
 
 def task_trajectory(config: str = "cross_leg", waypoints=None, method: str = "ruckig", times=None,
                     limits=None, margins=None, start: float = 0.0) -> Block:
-    """The trajectory source of a planned task (module docstring)."""
+    """The trajectory source of a planned task (module docstring).  Blocks are immutable in use, so
+    one is built per task (the options are mappings, which the scene loader's cache cannot key)."""
     spec = {"config": config, "waypoints": waypoints, "method": method, "limits": limits or {}, "start": start}
     if times is not None:
         spec["times"] = times
     if margins is not None:
         spec["margins"] = margins
-    task, traj = _planned(json.dumps(spec, sort_keys=True, default=repr))
+    return _block(json.dumps(spec, sort_keys=True, default=repr))
+
+
+@lru_cache(maxsize=32)
+def _block(spec: str) -> Block:
+    config = json.loads(spec)["config"]
+    task, traj = _planned(spec)
     drive = task.limits.drive
     ps = ParamSet()
     g = geometry_params(ps, config)

@@ -14,6 +14,12 @@ class GaussSeidel(Algorithm):
     native_code = 1
     sequential = True
     multirate = True
+    ends_steps_at_events = True
+    event_policy = ("a step ends at the earliest event of an FMI 3.0 event-mode component for the whole coupling "
+                    "(the others rolled back to it; one that cannot roll back gets it late, listed in the sidecar), "
+                    "event iteration across the coupling, two trace rows at each event, then the rest of the step; "
+                    "other components handle their events inside their steps (Python loop; the compiled loop leaves "
+                    "all events inside)")
 
     def _step_impl(self, t, h):
         gather, push, do, pull, acc, calls = (self._gather, self._push, self._do, self._pull, self.slave_ns,

@@ -1,0 +1,169 @@
+"""Every example of the Examples packages of Modelica.Mechanics.Translational,
+Modelica.Mechanics.Rotational and Modelica.Blocks (MSL 4.1.0) as a scene component: passing, or
+failing with the reason (rumoca's refusal, ours, or a run that does not end ok).
+
+The list is fixed by the library itself (each Examples package's ``package.order``, or the
+``model`` classes declared in it), so a refusal counts as a failure, not as out of scope.  For
+each example the script writes a one-component scene (``modelica: <example>``, the example's
+``experiment`` stop time and interval, or 1 s and 500 steps), then
+
+1. *check*: loads it (the files the class reaches, rumoca, our translation; a failure is
+   reported in the scene check's one line, whose reason is rumoca's when it names a
+   front-end error and ours otherwise);
+2. *run* (``--run``): builds the FMU and runs it; with reference results
+   (``--results``), compares the comparison signals (worst error relative to range; passing is
+   within 1e-3).
+
+It prints a Markdown table (``--out FILE`` writes it too) and the timings.  Usage:
+``python3 benchmarks/msl_examples.py [--msl DIR] [--results DIR] [--run] [--only SUBSTRING]``
+"""
+from __future__ import annotations
+
+import argparse
+import re
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from cosim.run.execute import run  # noqa: E402
+from cosim.scenario import SceneError, load  # noqa: E402
+from cosim.scenario.modelica_sources import _NOISE, class_file  # noqa: E402
+
+THIRD = ROOT.parent / "shared" / "third_party"
+PACKAGES = ("Modelica.Mechanics.Translational.Examples", "Modelica.Mechanics.Rotational.Examples",
+            "Modelica.Blocks.Examples")
+TOLERANCE = 1e-3
+_MODEL = re.compile(r"^\s*(?:encapsulated\s+)?(partial\s+)?(model|package|block|record|function|connector|type|class)"
+                    r"\s+([A-Za-z_]\w*)", re.M)
+
+
+def examples(msl: Path) -> list[str]:
+    """The examples (non-partial models) of :data:`PACKAGES`, in the library's order."""
+    out = []
+    for pkg in PACKAGES:
+        main = class_file(pkg, [msl])
+        folder = main.parent if main.name == "package.mo" and main.parent.name == pkg.split(".")[-1] else None
+        if folder is not None:  # a directory package: package.order, each entry's own file
+            for name in (folder / "package.order").read_text().split():
+                f = folder / f"{name}.mo"
+                if f.is_file() and _kind(f.read_text(), name) == "model":
+                    out.append(f"{pkg}.{name}")
+        else:  # a package inside a file (Blocks.Examples in Blocks/package.mo): its member models
+            text = _NOISE.sub(" ", main.read_text())
+            start = re.search(rf"\bpackage\s+{pkg.split('.')[-1]}\b", text).start()
+            end = re.search(rf"\bend\s+{pkg.split('.')[-1]}\s*;", text).end()
+            body, depth = text[start:end], 0
+            for m in re.finditer(r"\b(?:(end)\s+([A-Za-z_]\w*)\s*;|(partial\s+)?(model|package|block|record|function|"
+                                 r"connector|type|class)\s+([A-Za-z_]\w*)(\s*=)?)", body):
+                if m.group(1):
+                    depth -= m.group(2) not in ("if", "for", "when", "while")
+                    continue
+                if m.group(6) is None:
+                    depth += 1
+                if depth == 2 and m.group(4) == "model" and not m.group(3):
+                    out.append(f"{pkg}.{m.group(5)}")
+    return out
+
+
+def _kind(text: str, name: str) -> str:
+    for m in _MODEL.finditer(text):
+        if m.group(3) == name:
+            return "partial" if m.group(1) else m.group(2)
+    return "?"
+
+
+def experiment(msl: Path, example: str) -> tuple[float, float]:
+    """The example's stop time and output interval [s] from its ``experiment`` annotation."""
+    text = class_file(example, [msl]).read_text()
+    name = example.split(".")[-1]
+    at = re.search(rf"\bmodel\s+{name}\b", text)
+    end = re.search(rf"\bend\s+{name}\s*;", text[at.start():]) if at else None
+    body = text[at.start():at.start() + end.end()] if at and end else text
+    exp = re.search(r"experiment\s*\(([^)]*)\)", body)
+    fields = dict(re.findall(r"(\w+)\s*=\s*([-+0-9.eE]+)", exp.group(1))) if exp else {}
+    stop = float(fields.get("StopTime", 1.0))
+    interval = float(fields.get("Interval", stop / 500))
+    return stop, interval
+
+
+def reason(exc: Exception) -> str:
+    line = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+    line = re.sub(r"^.*?component 'c': ", "", line)
+    return line.replace("|", "\\|")[:220]
+
+
+def one(msl: Path, results: Path | None, example: str, folder: Path, do_run: bool) -> tuple[str, str, float]:
+    stop, interval = experiment(msl, example)
+    ref_dir = results / Path(*example.split(".")) if results else None
+    signals = []
+    if ref_dir is not None and (ref_dir / "comparisonSignals.txt").is_file():
+        signals = [s for s in (ref_dir / "comparisonSignals.txt").read_text().split() if s != "time"]
+        creation = (ref_dir / "creation.txt").read_text()
+        stop = float(creation.split("StopTime=")[1].split()[0])
+        interval = float(creation.split("Interval=")[1].split()[0])
+    scene = folder / "scene.yaml"
+    scene.write_text(f"stop_time: {stop}\nmodelica_path: [{msl}]\ncomponents:\n  c: {{modelica: {example}}}\n"
+                     f"master: {{algorithm: jacobi, step: {interval}, estimate: false}}\n"
+                     + (f"outputs: [{', '.join('c.' + s for s in signals)}]\n" if signals else ""))
+    t0 = time.perf_counter()
+    try:
+        load(scene)
+    except SceneError as exc:
+        return "fails", reason(exc), time.perf_counter() - t0
+    if not do_run:
+        return "translates", "", time.perf_counter() - t0
+    try:
+        res = run(scene, [], out_dir=folder / "out")
+    except Exception as exc:  # noqa: BLE001 - a table row, not a crash of the survey
+        return "fails", f"run: {reason(exc)}", time.perf_counter() - t0
+    if not res.ok:
+        return "fails", f"run: {res.reason}"[:220], time.perf_counter() - t0
+    if not signals:
+        return "passes", f"runs to {stop:g} s (no reference result here)", time.perf_counter() - t0
+    import pandas as pd
+
+    ref = pd.read_csv(ref_dir / f"{example.split('.')[-1]}.csv")
+    worst = max(float(np.abs(res.trace[f"c.{s}"] - np.interp(res.trace["time"], ref["time"], ref[s])).max()
+                      / max(np.ptp(ref[s]), 1e-300)) for s in signals)
+    verdict = "passes" if worst < TOLERANCE else "fails"
+    return verdict, f"against the MA reference result: worst {worst:.1e} of range", time.perf_counter() - t0
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--msl", type=Path, default=THIRD / "modelica-standard-library")
+    ap.add_argument("--results", type=Path, default=THIRD / "msl-reference-results")
+    ap.add_argument("--run", action="store_true", help="also build and run each example that translates")
+    ap.add_argument("--only", default="", help="only the examples whose name contains this")
+    ap.add_argument("--out", type=Path, help="also write the Markdown table here")
+    args = ap.parse_args(argv)
+    if not (args.msl / "Modelica" / "package.mo").is_file():
+        print(f"no Modelica Standard Library at {args.msl} (give --msl DIR)", file=sys.stderr)
+        return 2
+    rows = ["| example | result | reason or figure | time [s] |", "|---|---|---|---|"]
+    todo = [e for e in examples(args.msl) if args.only in e]
+    with tempfile.TemporaryDirectory() as tmp:
+        for k, example in enumerate(todo):
+            folder = Path(tmp) / str(k)
+            folder.mkdir()
+            verdict, why, secs = one(args.msl, args.results if args.results.is_dir() else None, example, folder,
+                                     args.run)
+            short = example.replace("Modelica.Mechanics.", "").replace("Modelica.", "")
+            rows.append(f"| `{short}` | {verdict} | {why} | {secs:.1f} |")
+            print(rows[-1], flush=True)
+    counts = {v: sum(f"| {v} |" in r for r in rows[2:]) for v in ("passes", "translates", "fails")}
+    summary = ", ".join(f"{n} {v}" for v, n in counts.items() if n)
+    print(f"{len(todo)} examples: {summary}")
+    if args.out:
+        args.out.write_text("\n".join(rows) + f"\n\n{len(todo)} examples: {summary}.\n")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

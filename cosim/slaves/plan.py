@@ -1,0 +1,98 @@
+"""What a run will do with an FMU, per interface it has (``rpr-cosim fmu check`` prints it): which
+interface a scene gets by default, how it is stepped or integrated, how it rolls back, what
+happens to its events; and the inconsistencies between its capability flags that the XML shows."""
+from __future__ import annotations
+
+from pathlib import Path
+
+from ..errors import UserError
+from .description import INTERFACES, SlaveDescription, describe_fmu
+
+
+def _me_line(d: SlaveDescription) -> str:
+    from .model_exchange import DEFAULT_RTOL, MAX_EVENTS_PER_STEP, available
+
+    events = []
+    if d.event_indicators:
+        events.append(f"{d.event_indicators} event indicator(s): state events located by CVODES's root finding")
+    events.append("time events at the FMU's next event time")
+    if d.needs_completed_integrator_step:
+        events.append("step events (CompletedIntegratorStep after every solver step)")
+    rollback = {"FMU state": "rollback through its FMU state plus a solver restart",
+                "continuous states": "rollback through its continuous states (it declares no FMU state and no "
+                                     "discrete variable; a hidden discrete state is caught at the restore)",
+                "": f"no rollback (no FMU state, and discrete variable(s) {', '.join(d.discrete_states[:5])}"
+                    f"{' ...' if len(d.discrete_states) > 5 else ''}): adaptive and iterative refuse it"}[d.rollback_through]
+    why = available()
+    return (f"model exchange: integrated by SUNDIALS CVODES inside its slave (BDF, rtol {DEFAULT_RTOL:g} unless the "
+            f"scene's rtol: or the FMU's DefaultExperiment is tighter), {d.continuous_states} continuous state(s); "
+            f"{'; '.join(events)}; handled inside each communication step (event iteration at most 100 rounds, at "
+            f"most {MAX_EVENTS_PER_STEP} events per step); {rollback}"
+            + (f"; NOT AVAILABLE HERE: {why}" if why else ""))
+
+
+def _cs_line(d: SlaveDescription, md) -> str:
+    cs = md.coSimulation
+    rollback = ("rollback through its FMU state" if d.can_get_set_state
+                else "no rollback (no FMU state): adaptive and iterative refuse it")
+    line = f"co-simulation: stepped by doStep at the communication points; {rollback}"
+    if md.fmiVersion.startswith("3"):
+        if getattr(cs, "hasEventMode", False):
+            line += ("; declares event mode: under jacobi and gauss_seidel (Python loop) it is instantiated with event "
+                     "mode and early return, its events end the step for the whole coupling (event iteration, two "
+                     "trace rows); other algorithms and the compiled loop leave its events inside its doStep")
+        else:
+            line += "; no event mode: its events are handled inside its doStep"
+    else:
+        line += "; its events are handled inside its doStep (FMI 2.0)"
+    return line
+
+
+def component_line(d: SlaveDescription) -> str:
+    """One line on how a run steps a component of description ``d`` ('' for a plain co-simulation
+    component): a model-exchange FMU's solver, events and rollback."""
+    if d.interface != "model exchange":
+        return ""
+    from .model_exchange import DEFAULT_RTOL
+
+    rtol = d.solver_rtol if d.solver_rtol is not None else min(DEFAULT_RTOL, d.default_experiment.get("tolerance",
+                                                                                                       DEFAULT_RTOL))
+    rollback = {"FMU state": "rollback through its FMU state", "continuous states":
+                "rollback through its continuous states", "": "no rollback"}[d.rollback_through if d.can_get_set_state
+                                                                           else ""]
+    return (f"model exchange, integrated by CVODES (rtol {rtol:g}); {d.continuous_states} continuous state(s), "
+            f"{d.event_indicators} event indicator(s); its events are handled inside its steps and reach the other "
+            f"components at the next communication point; {rollback}")
+
+
+def run_plan(path: Path) -> tuple[list[str], list[str]]:
+    """(lines saying what a run does with each interface of the FMU ``path``, departures from the
+    standard seen in its capability flags).  Raises :class:`UserError` for an unreadable FMU."""
+    import fmpy
+
+    md = fmpy.read_model_description(str(path), validate=False)
+    lines, departures = [], []
+    default = None
+    for key, name in INTERFACES.items():
+        if getattr(md, "coSimulation" if key == "co_simulation" else "modelExchange") is None:
+            continue
+        try:
+            d = describe_fmu(path, key)
+        except UserError as exc:
+            departures.append(str(exc))
+            continue
+        if default is None:
+            default = name
+        text = _me_line(d) if key == "model_exchange" else _cs_line(d, md)
+        lines.append(f"{text}{' [a scene gets this one]' if default == name else ' [interface: ' + key + ']'}")
+    if getattr(md, "scheduledExecution", None) is not None:
+        lines.append("scheduled execution: not supported (a scene gets a one-line refusal when it has nothing else)")
+    cs = md.coSimulation
+    if cs is not None and getattr(cs, "canReturnEarlyAfterIntermediateUpdate", False) \
+            and not getattr(cs, "providesIntermediateUpdate", False):
+        departures.append("<CoSimulation>: canReturnEarlyAfterIntermediateUpdate=true needs providesIntermediateUpdate="
+                          "true (FMI 3.0, 4.3.1: early return is asked for in the intermediate update callback)")
+    return lines, departures
+
+
+__all__ = ["component_line", "run_plan"]

@@ -1,0 +1,102 @@
+"""FMI 3.0 co-simulation with event mode and early return across the coupling
+(docs/explanation/events.md): the Reference FMUs BouncingBall and Stair against FMPy's
+``simulate_fmu(use_event_mode=True, early_return_allowed=True)`` event for event, and a coupled pair
+where one FMU's event changes the other's input at the same instant (not a step late)."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from cosim.run.execute import run
+from cosim.scenario import from_dict
+
+fmpy = pytest.importorskip("fmpy")
+
+
+def _events(t: np.ndarray) -> np.ndarray:
+    """The times written twice (left and right limit of an event)."""
+    return t[1:][np.diff(t) == 0]
+
+
+@pytest.mark.parametrize("algorithm", ["jacobi", "gauss_seidel"])
+@pytest.mark.parametrize("model,step,outputs", [("BouncingBall", 0.01, ["h", "v"]), ("Stair", 0.2, ["counter"])])
+def test_event_mode_equals_fmpy_event_for_event(reference_fmus, model, step, outputs, algorithm):
+    path = reference_fmus[f"3.0/{model}"]
+    res = run(from_dict({"name": "ev", "components": {"m": {"fmu": str(path)}}, "outputs": [f"m.{o}" for o in outputs],
+                         "master": {"algorithm": algorithm, "step": step}}))
+    ref = fmpy.simulate_fmu(str(path), use_event_mode=True, early_return_allowed=True, output_interval=step,
+                            output=outputs)
+    if model == "Stair":  # it asks to stop in its event iteration at 9 s; FMPy takes one more step after that
+        assert res.status == "stopped" and "at t = 9 s" in res.reason, res.reason
+        ref = ref[ref["time"] <= 9.0 + 1e-9]
+    else:
+        assert res.status == "ok", res.reason
+    t = res.trace.time
+    assert len(t) == len(ref) and np.max(np.abs(t - ref["time"])) < 1e-12
+    ev = _events(t)
+    np.testing.assert_array_equal(ev, _events(np.asarray(ref["time"])))
+    assert len(ev) == {"BouncingBall": 24, "Stair": 9}[model] and res.stats["events"]["handled"] == len(ev)
+    for o in outputs:
+        theirs = np.asarray(ref[o], dtype=float)
+        assert np.max(np.abs(res.trace[f"m.{o}"] - theirs)) <= 1e-9 * np.ptp(theirs), o
+
+
+@pytest.mark.parametrize("algorithm", ["jacobi", "gauss_seidel"])
+def test_an_event_reaches_the_coupled_fmu_at_its_time(reference_fmus, algorithm):
+    """BouncingBall's velocity drives Feedthrough: at each bounce the right-limit row has the new
+    velocity in both (the event iteration exchanged it); Feedthrough, stepped past the bounce, was
+    rolled back to it.  Without event mode (the compiled loop leaves events inside doStep) the
+    bounce reaches Feedthrough a step later."""
+    comps = {"ball": {"fmu": str(reference_fmus["3.0/BouncingBall"])},
+             "f": {"fmu": str(reference_fmus["3.0/Feedthrough"])}}
+    scene = {"name": "pair", "components": comps, "connections": ["ball.v -> f.Float64_continuous_input"],
+             "stop_time": 1.2, "outputs": ["ball.v", "f.Float64_continuous_output"]}
+    res = run(from_dict({**scene, "master": {"algorithm": algorithm, "step": 0.01, "estimate": False}}))
+    assert res.status == "ok", res.reason
+    t, v, y = res.trace.time, res.trace["ball.v"], res.trace["f.Float64_continuous_output"]
+    right = np.r_[False, np.diff(t) == 0]
+    bounces = right & (v > 0) & (np.r_[0.0, v[:-1]] < 0)
+    assert bounces.sum() == 2  # at 0.453 and 1.089 s
+    np.testing.assert_array_equal(y[bounces], v[bounces])
+    assert res.stats["events"]["late"] == []
+    plain = run(from_dict({**scene, "master": {"algorithm": algorithm, "step": 0.01, "estimate": False,
+                                               "engine": "compiled"}}))
+    tp, vp, yp = plain.trace.time, plain.trace["ball.v"], plain.trace["f.Float64_continuous_output"]
+    first = int(np.argmax(vp > 0))  # the first row after the first bounce
+    assert len(_events(tp)) == 0 and tp[first] == pytest.approx(0.46)
+    assert yp[first] < 0 if algorithm == "jacobi" else yp[first] > 0  # Jacobi: the bounce a step late
+
+
+def test_a_component_that_cannot_roll_back_gets_the_event_late_and_the_sidecar_says_so(reference_fmus):
+    """Gauss-Seidel steps VanDerPol (no rollback here) past the bounce before the ball returns
+    early: it gets the bounce at the next grid point, and the sidecar says so.  Jacobi steps the
+    event-mode ball first and VanDerPol only to the bounce: nothing late."""
+    comps = {"ball": {"fmu": str(reference_fmus["3.0/BouncingBall"])},
+             "f": {"fmu": str(reference_fmus["3.0/VanDerPol"]), "rollback": False}}
+    scene = {"name": "late", "components": comps, "stop_time": 0.6, "outputs": ["ball.h", "f.x0"]}
+    res = run(from_dict({**scene, "master": {"algorithm": "jacobi", "step": 0.01, "estimate": False}}))
+    assert res.status == "ok" and res.stats["events"]["late"] == [], res.reason
+    res = run(from_dict({**scene, "master": {"algorithm": "gauss_seidel", "step": 0.01, "estimate": False,
+                                             "order": ["f", "ball"]}}))
+    assert res.status == "ok", res.reason
+    late = res.stats["events"]["late"]
+    assert [(e["component"], e["event_of"]) for e in late] == [("f", "ball")]
+    assert late[0]["t"] == pytest.approx(0.453) and late[0]["reached"] == pytest.approx(0.46)
+    t = res.trace.time
+    # the bounce, and the FMU's second early return a step of its own later (as under FMPy)
+    assert list(_events(t)) == pytest.approx([0.453, 0.454]) and np.all(np.diff(t) >= 0)
+
+
+@pytest.mark.parametrize("algorithm,says", [
+    ("jacobi", "events: a step ends at the earliest event of an FMI 3.0 event-mode component for the whole coupling"),
+    ("adaptive", "events: events are handled inside each component's steps and reach the others at the next "
+                 "communication point (FMI 3.0 event mode not used)"),
+])
+def test_run_check_says_what_the_algorithm_does_with_events(reference_fmus, tmp_path, capsys, algorithm, says):
+    from cosim import cli
+
+    scene = tmp_path / "s.yaml"
+    scene.write_text(f"name: s\ncomponents:\n  s: {{fmu: {reference_fmus['3.0/BouncingBall']}}}\n"
+                     f"master: {{algorithm: {algorithm}, step: 0.01}}\nstop_time: 1\n")
+    assert cli.main(["run", str(scene), "--check"]) == 0
+    assert says in capsys.readouterr().out

@@ -1,0 +1,69 @@
+"""Modelica events (models/modelica.py on the Block event contract, docs/explanation/events.md):
+`when` on a relation with `reinit` and `pre` becomes an indicator and its update; the pendulum
+against a stop written in Modelica hits the analytic impact times; what is not translated yet is
+refused naming file, line and construct."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+from scipy.special import ellipk
+
+pytest.importorskip("rumoca")
+
+from cosim.run.execute import run  # noqa: E402
+from models.block import EITHER, FALLING  # noqa: E402
+from models.modelica import ModelicaError, translate  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def analytic_impacts(n: int, L=0.5, g=9.81, theta0=1.0, e=0.7) -> np.ndarray:
+    """The pendulum's impacts on a stop at its lowest point: a quarter period, then half periods
+    (complete elliptic integral K), each amplitude from the energy the previous impact left."""
+    w0, amp, t, out = np.sqrt(g / L), theta0, 0.0, []
+    for k in range(n):
+        K = ellipk(np.sin(amp / 2) ** 2)
+        t += (K if k == 0 else 2 * K) / w0
+        out.append(t)
+        amp = np.arccos(1 - e ** 2 * (1 - np.cos(amp)))
+    return np.array(out)
+
+
+def test_a_when_with_reinit_and_pre_is_an_indicator_and_its_update():
+    b = translate((ROOT / "scenarios/user/PendulumStop.mo").read_text(), "PendulumStop", "PendulumStop.mo")
+    assert [v.name for v in b.modes] == ["mode.impacts", "mode.t_impact"] and b.directions == [FALLING]
+    ev = b.event_functions()
+    x, m, p = [-1e-3, -2.0], [3.0, 1.5], b.param_defaults
+    z = float(ev["indicators"](1.7, x, [], p, m))
+    x_new, m_new = ev["update"](0, 1.7, x, [], p, m)
+    assert z == -1e-3
+    assert np.array(x_new).ravel().tolist() == [-1e-3, pytest.approx(0.7 * 2.0)]  # omega+ = -e pre(omega)
+    assert np.array(m_new).ravel().tolist() == [4.0, 1.7]  # impacts = pre(impacts) + 1; t_impact = time
+
+
+def test_the_modelica_pendulum_hits_the_analytic_impact_times(tmp_path):
+    res = run(ROOT / "scenarios" / "pendulum_stop_modelica.yaml", [], out_dir=tmp_path)
+    assert res.ok, res.reason
+    times = np.unique(res.trace["pend.t_impact"])[1:]
+    assert len(times) == 5
+    assert np.max(np.abs(times - analytic_impacts(5))) < 1e-9, times - analytic_impacts(5)
+
+
+def test_a_relation_read_by_an_if_expression_restarts_the_step_where_it_switches():
+    b = translate('model Sat "a saturated integrator"\n  input Real u;\n  Real x(start = 0);\n  output Real y;\n'
+                  'equation\n  der(x) = if x > 1 then 0 else u;\n  y = x;\nend Sat;\n', "Sat", "Sat.mo")
+    assert b.directions == [EITHER] and float(b.event_functions()["indicators"](0, [1.25], [0.0], [], [])) == 0.25
+
+
+@pytest.mark.parametrize("body, line, what", [
+    ("  when sample(0, 0.1) then\n    n = pre(n) + 1;\n  end when;", 6, "sample"),
+    ("  when x > 1 then\n    n = 1;\n  elsewhen x < 0 then\n    n = 2;\n  end when;", 8, "elsewhen"),
+    ("  when edge(x > 1) then\n    n = 1;\n  end when;", 6, "edge"),
+])
+def test_what_is_not_translated_yet_names_file_line_and_construct(body, line, what):
+    text = f'model E "e"\n  Real x(start = 0);\n  discrete Real n(start = 0);\nequation\n  der(x) = 1;\n{body}\nend E;\n'
+    with pytest.raises(ModelicaError) as err:
+        translate(text, "E", "E.mo")
+    assert str(err.value).startswith(f"E.mo:{line}: {what}"), str(err.value)
