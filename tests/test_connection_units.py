@@ -126,3 +126,11 @@ def test_every_unit_of_the_catalog_is_readable_by_the_exporter():
                         parse_unit(v.unit)
                         seen += 1
     assert seen > 200
+
+
+def test_a_sum_carries_the_unit_of_what_it_sums(capsys):
+    """pick_and_place adds a PID's volts and the feedforward's volts in a ``sum`` block, whose
+    declared "1" is no dimension (Modelica's Add declares none): not refused."""
+    scene = Path(__file__).resolve().parents[1] / "scenarios" / "pick_and_place.yaml"
+    code = main(["run", str(scene), "--check"])
+    assert code == 0, capsys.readouterr().err

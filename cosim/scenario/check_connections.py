@@ -16,6 +16,11 @@ from .problems import Loc, suggest
 from .yamlfile import YList
 
 
+#: Catalog models whose signals carry whatever unit they are given (their declared "1" is no
+#: dimension): a connection to or from one is not unit-checked.
+UNIT_AGNOSTIC = ("sum",)
+
+
 class ConnectionChecks(Checker):
     """Checks of the ``connections:`` section."""
 
@@ -102,9 +107,12 @@ class ConnectionChecks(Checker):
         """Modelica's rule for a connection: both ends in compatible units.  Refused: a different
         dimension (``m/s -> m``), or the same one at another scale (``mm -> m``: the master passes
         the number, so the factor is named).  Not checked: an end without a unit or with a symbol
-        not known to :mod:`models.units`, and a connection with a factor or offset (it converts,
-        and its numbers carry no unit)."""
+        not known to :mod:`models.units`, a connection with a factor or offset (it converts, and its
+        numbers carry no unit), and the ends of a :data:`UNIT_AGNOSTIC` block (a sum carries the
+        unit of what it sums, as Modelica's ``Add`` declares none)."""
         if c.factor != 1.0 or c.offset != 0.0:
+            return True
+        if comps[c.src].model in UNIT_AGNOSTIC or comps[c.dst].model in UNIT_AGNOSTIC:
             return True
         ua = comps[c.src].description.variables[c.src_var].unit
         ub = comps[c.dst].description.variables[c.dst_var].unit
