@@ -10,9 +10,10 @@
 * :class:`OutputLock` (``<out>/.rpr-cosim.lock``, ``flock`` plus the holder's pid) lets one run
   write into a directory at a time; a lock left by a dead process is stale: its sidecars that
   still say "running" are marked "killed" (:func:`settle_stale`).
-* :func:`place` moves a finished trace (written under a temporary name) into place; a good
-  earlier trace of the same name is kept as ``<name>.prev.csv`` instead of being replaced by a
-  run that is not ok.
+* :func:`place` moves a finished trace (written under a temporary name) into place; the earlier
+  run of the same name goes whole (trace, sidecar, plot, animation, report, reference): a good
+  one is kept as ``<name>.prev.*`` instead of being replaced by a run that is not ok, any other
+  is removed, so a directory never mixes two runs' files.
 """
 from __future__ import annotations
 
@@ -414,27 +415,52 @@ def _json_file(path: Path):
         return None
 
 
+#: What a run named N writes into its output directory besides its trace: the files of one run's
+#: set (``N`` + each ending).  A rerun replaces the whole set or keeps it whole (:func:`place`).
+RUN_SET_ENDINGS = (".csv", ".parquet", ".json", ".png", ".gif", ".html", "_reference.csv", "_reference.parquet",
+                   "_reference.json", "_vs_reference.png")
+
+
+def run_set(out_dir: Path, stem: str) -> list[Path]:
+    """The files of the run named ``stem`` in ``out_dir`` (:data:`RUN_SET_ENDINGS`) that exist."""
+    out_dir = Path(out_dir)
+    return [out_dir / f"{stem}{e}" for e in RUN_SET_ENDINGS if os.path.lexists(out_dir / f"{stem}{e}")]
+
+
 def place(part: Path, final: Path, status: str, *, part_sidecar: Path | None = None,
           sidecar: Path | None = None) -> str:
     """Move a finished trace ``part`` (and its sidecar) to ``final``; returns a note saying what
-    happened to an earlier trace of that name ("" when there was none).
+    happened to the earlier run of that name ("" when there was none).
 
-    Policy: the name always holds the latest run.  An earlier trace whose sidecar says "ok"
-    moves to ``<stem>.prev.csv`` (with its sidecar, replacing an older ``.prev``); an earlier
-    trace that was not ok is replaced, so a good ``.prev`` from before it stays.  A failing
-    rerun therefore never destroys the last good trace, and the note says where it is."""
+    Policy: the name always holds the latest run, and a directory holds whole runs, never a mix
+    of two (a new trace beside an older run's plot, report or reference).  The earlier run's set
+    (:func:`run_set`: trace, sidecar, plot, animation, report, reference) moves whole to
+    ``<stem>.prev.*`` when its sidecar says "ok" (replacing the older ``.prev`` set whole);
+    a set that was not ok is removed, so a good ``.prev`` set from before it stays.  A failing
+    rerun therefore never destroys the last good run, and the note says where it is."""
     note = ""
     final = Path(final)
-    if final.exists():
-        old_status = _status_of(sidecar) if sidecar is not None and sidecar.exists() else ""
+    stem, folder = final.stem, final.parent
+    earlier = run_set(folder, stem)
+    if earlier:
+        side = sidecar if sidecar is not None else final.with_suffix(".json")
+        old_status = _status_of(side) if side.exists() else ""
+        trace = next((p for p in earlier if p.suffix in (".csv", ".parquet") and p.stem == stem), final)
+        others = len([p for p in earlier if p not in (trace, final.with_suffix(".json"))])
         if old_status == "ok":
-            os.replace(final, prev_path(final))
-            if sidecar is not None and sidecar.exists():
-                os.replace(sidecar, prev_path(sidecar))
-            note = (f"kept the earlier good trace as {prev_path(final).name}"
-                    + ("" if status == "ok" else f" (this run is {status})"))
+            for old in run_set(folder, f"{stem}.prev"):
+                old.unlink()
+            for old in earlier:
+                os.replace(old, folder / f"{stem}.prev{old.name[len(stem):]}")
+            note = (f"kept the earlier good trace as {prev_path(trace).name}"
+                    + ("" if status == "ok" else f" (this run is {status})")
+                    + (f"; its run's {others} other file{'s' if others != 1 else ''} too, as {stem}.prev.*"
+                       if others > 0 else ""))
         else:
-            note = f"replaced the earlier trace {final.name} (its status was {old_status or 'unknown'})"
+            for old in earlier:
+                old.unlink()
+            note = (f"replaced the earlier trace {trace.name} (its status was {old_status or 'unknown'})"
+                    + (f"; its run's {others} other file{'s' if others != 1 else ''} removed" if others > 0 else ""))
     os.replace(part, final)
     if part_sidecar is not None and part_sidecar.exists() and sidecar is not None:
         os.replace(part_sidecar, sidecar)

@@ -28,7 +28,7 @@ TIMING = {"init_s", "loop_s", "real_time_factor", "run_s", "wall_s", "worker"}
 GRID24 = f"""\
 name: grid24
 scene: {SCENE}
-set: {{master.algorithm: gauss_seidel, stop_time: 0.2}}
+set: {{master.algorithm: gauss_seidel, master.tolerance: none, stop_time: 0.2}}
 grid:
   Kp: {{path: "components.pid*.params.Kp", values: [20, 30, 40, 50]}}
   Kd: {{path: "components.pid*.params.Kd", values: [10, 20, 30]}}
@@ -121,7 +121,7 @@ def test_a_failing_fmu_is_a_failed_row_and_the_others_finish(tmp_path):
     batches are guarded, and the rated guard would stop the diverging PID's voltage first)."""
     text = f"""\
 scene: {SCENE}
-set: {{master.algorithm: gauss_seidel, stop_time: 1.5, components.pid1.options.integrator: rk4, components.pid2.options.integrator: rk4,
+set: {{master.algorithm: gauss_seidel, master.tolerance: none, stop_time: 1.5, components.pid1.options.integrator: rk4, components.pid2.options.integrator: rk4,
       components.pid3.options.integrator: rk4, guards: "off"}}
 zip:
   master.step: [1.0e-3, 1.0e-2, 2.0e-3]
@@ -155,7 +155,7 @@ def _tf_samples(first_bad: bool) -> tuple[str, list[float]]:
     for seed in range(1, 200):
         text = f"""\
 scene: {SCENE}
-set: {{master.algorithm: gauss_seidel, stop_time: 0.05}}
+set: {{master.algorithm: gauss_seidel, master.tolerance: none, stop_time: 0.05}}
 random:
   seed: {seed}
   samples: 4
@@ -211,7 +211,7 @@ def test_a_run_needing_another_fmu_gets_it_with_its_task(tmp_path):
 
     text = f"""\
 scene: {SCENE}
-set: {{master.algorithm: gauss_seidel, stop_time: 0.05}}
+set: {{master.algorithm: gauss_seidel, master.tolerance: none, stop_time: 0.05}}
 grid:
   kernel: {{path: components.pid1.options.integrator, values: [exact, rk4]}}
 """
@@ -221,7 +221,8 @@ grid:
     assert res.ran == 2 and res.failed == 0
     assert sent[0] is None and len(sent[1]) == 1  # the workers start with run 0's FMUs; run 1 brings its PID
     by_kernel = {r["kernel"]: r for r in res.rows}
-    plain = run(SCENE, ["stop_time=0.05", "components.pid1.options.integrator=rk4", "master.algorithm=gauss_seidel"],
+    plain = run(SCENE, ["stop_time=0.05", "components.pid1.options.integrator=rk4", "master.algorithm=gauss_seidel",
+                         "master.tolerance=none"],
                 out_dir=tmp_path / "plain")
     rk4 = data_lines(run_trace_path(tmp_path / "out", by_kernel["rk4"]["run_id"]))
     exact = data_lines(run_trace_path(tmp_path / "out", by_kernel["exact"]["run_id"]))
@@ -231,7 +232,7 @@ grid:
 def test_a_worker_killed_mid_run_is_replaced_and_the_run_completes(tmp_path):
     text = f"""\
 scene: {SCENE}
-set: {{master.algorithm: gauss_seidel}}
+set: {{master.algorithm: gauss_seidel, master.tolerance: none}}
 zip:
   stop_time: [0.2, 0.3, 3.0, 0.4, 0.5]
 metrics:
@@ -257,7 +258,7 @@ metrics:
 RESUME = f"""\
 name: resume
 scene: {SCENE}
-set: {{master.algorithm: gauss_seidel, stop_time: 1.0}}
+set: {{master.algorithm: gauss_seidel, master.tolerance: none, stop_time: 1.0}}
 grid:
   Kp: {{path: "components.pid*.params.Kp", values: [20, 25, 30, 35, 40, 45]}}
   Kd: {{path: "components.pid*.params.Kd", values: [10, 15, 20, 25]}}
@@ -316,7 +317,7 @@ def test_an_interrupted_batch_resumes_with_only_the_missing_runs(tmp_path, sig):
 def test_random_samples_do_not_depend_on_the_number_of_workers(tmp_path):
     text = f"""\
 scene: {SCENE}
-set: {{master.algorithm: gauss_seidel, stop_time: 0.1}}
+set: {{master.algorithm: gauss_seidel, master.tolerance: none, stop_time: 0.1}}
 random:
   seed: 11
   samples: 4

@@ -18,7 +18,7 @@ ROOT = Path(__file__).resolve().parents[1]
 BATCH = f"""\
 name: starts
 scene: {ROOT / "scenarios" / "pid_step.yaml"}
-set: {{master.algorithm: gauss_seidel, stop_time: 0.1}}
+set: {{master.algorithm: gauss_seidel, master.tolerance: none, stop_time: 0.1}}
 grid:
   Kp: {{path: "components.pid*.params.Kp", values: [20, 60]}}
   Kd: {{path: "components.pid*.params.Kd", values: [10, 30]}}

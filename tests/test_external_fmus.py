@@ -347,7 +347,8 @@ def test_an_external_fmus_companion_run_loads_it_anew(data, monkeypatch):
         loads.clear()
         res[reuse] = run(scene), sorted(loads)
     (fresh, fresh_loads), (kept, kept_loads) = res["0"], res["1"]
-    assert kept.status == fresh.status == "ok", kept.reason
+    # judged alike (0.01 s of the truck at the OSP file's step: 0.015 of range, "inaccurate" at the default 1e-3)
+    assert kept.status == fresh.status and kept.status in ("ok", "inaccurate"), kept.reason
     assert kept_loads == fresh_loads == ["chassis", "chassis", "wheel", "wheel"]  # the companion's and the run's
     assert kept.stats["estimate"] == fresh.stats["estimate"] and kept.stats["estimate"]["worst"] < 0.1
     assert np.array_equal(kept.trace.data, fresh.trace.data)
@@ -682,7 +683,9 @@ def test_libcosims_demo_ssp_runs_at_its_annotation_step_and_stop_time(data):
     sc = load(data / "ssp" / "demo" / "demo.ssp")
     assert sc.master.algorithm == "jacobi" and sc.master.step == 1e-4 and sc.stop_time == 2e-4
     res = run(sc)
-    assert res.ok, res.reason
+    # two steps of the crane at the file's 0.1 ms: its estimate (0.195 of range) judges it inaccurate
+    # at the default tolerance; the annotation's step and stop time are what this test is about
+    assert res.status in ("ok", "inaccurate"), res.reason
     np.testing.assert_allclose(res.trace.time, [0.0, 1e-4, 2e-4])
 
 
@@ -709,9 +712,9 @@ def test_workarounds_are_stated_in_the_run_output_and_sidecar(data, tmp_path):
     import json
 
     scene = _truck(data.parent, stop=0.01)
-    res = subprocess.run([sys.executable, "-m", "cosim", "run", str(scene), "--out", str(tmp_path / "out")],
-                         cwd=ROOT, capture_output=True, text=True, timeout=300)
-    assert res.returncode == 0, res.stderr[-2000:]
+    res = subprocess.run([sys.executable, "-m", "cosim", "run", str(scene), "--set", "master.tolerance=none",
+                          "--out", str(tmp_path / "out")], cwd=ROOT, capture_output=True, text=True, timeout=300)
+    assert res.returncode == 0, res.stderr[-2000:]  # no verdict asked: the workarounds are the point
     said = "component 'wheel': workaround: every doStep passes noSetFMUStatePriorToCurrentPoint = true"
     assert said in res.stdout + res.stderr
     side = json.loads((tmp_path / "out" / "quarter_truck.json").read_text())

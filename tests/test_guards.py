@@ -50,7 +50,8 @@ PID_1E6 = [GS] + [f"components.pid{i}.params.{k}={v}" for i in (1, 2, 3) for k, 
 # --- the shipped scene stays "ok" -----------------------------------------------------------------
 @pytest.fixture(scope="module")
 def pid_step():
-    return run(PID_STEP, {"outputs": ["mech.leg[*].s", "motor*.i", "motor*.u"], "master.algorithm": "gauss_seidel"})
+    return run(PID_STEP, {"outputs": ["mech.leg[*].s", "motor*.i", "motor*.u"], "master.algorithm": "gauss_seidel",
+                          "master.tolerance": "none"})  # the guards, not the accuracy, at the thesis's 1 ms
 
 
 def test_pid_step_is_ok_under_the_default_guards_and_within_the_ratings(pid_step):
@@ -110,8 +111,9 @@ def test_a_stopped_run_keeps_its_partial_trace_reason_and_exit_code(tmp_path, ca
 
 
 def test_warn_lets_the_run_go_on_and_records_the_first_crossing():
-    res = run(PID_STEP, ["components.motor1.params.R=0", "guards.rated=warn", "stop_time=0.05", GS])
-    assert res.ok
+    res = run(PID_STEP, ["components.motor1.params.R=0", "guards.rated=warn", "stop_time=0.05", GS,
+                         "master.tolerance=none"])  # the guard's warning, not the accuracy of a 0-ohm motor at 1 ms
+    assert res.ok, res.reason
     (w,) = res.stats["guards"]["warnings"]
     assert w.startswith("beyond rating: motor1.i = 47.8")
 

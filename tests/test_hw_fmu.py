@@ -149,6 +149,8 @@ def test_board_fault_is_an_fmi_error_with_the_reason(hil_fmu, keyfile, tmp_path,
     assert error is not None and "status 3" in str(error)
     assert steps > 0 and final["fault_bits"] & P.F_ADC_STUCK and state == P.FAULT and int(fault) & P.F_ADC_STUCK
     assert any("is in fault (position stuck while driven)" in m for m in messages)
+    # how to clear it, for the component the FMU is (issue 32, item 8)
+    assert any("run again with --set components.rig.params.reset_fault=true" in m for m in messages), messages
     assert [f.duty.read_text() for f in pins.resolve(tree, export=False)] == ["0", "0", "0"]
 
 

@@ -24,6 +24,7 @@ ROOT = Path(__file__).resolve().parents[1]
 SCENES = ROOT / "scenarios"
 #: the coupling these tests measure (the scene itself takes the tolerance default, cosim.run.choose)
 GS = "master.algorithm=gauss_seidel"
+NOV = "master.tolerance=none"  # these runs are measured against the reference here, not judged
 
 
 def sine_scene(**master):
@@ -64,7 +65,7 @@ def test_held_inputs_converge_to_the_reference_at_first_order(pid_reference, cac
     """Gauss-Seidel with held inputs is first order: halving the step halves the pose error
     against the monolithic solution (measured ratios 2.00, 2.01)."""
     assert pid_reference.ok, pid_reference.reason
-    errors = [pose_error(run(SCENES / "pid_step.yaml", ["stop_time=1", f"master.step={h}", "master.inputs=hold", GS],
+    errors = [pose_error(run(SCENES / "pid_step.yaml", ["stop_time=1", f"master.step={h}", "master.inputs=hold", GS, NOV],
                              cache_dir=cache), pid_reference) for h in (5e-4, 2.5e-4, 1.25e-4)]
     r1, r2 = errors[0] / errors[1], errors[1] / errors[2]
     assert 1.8 < r1 < 2.2 and 1.8 < r2 < 2.2, errors
@@ -77,9 +78,9 @@ def test_linear_inputs_converge_faster_and_are_far_closer_at_1_ms(pid_reference,
     error partly cancelled the coupling error), over 100 times closer than holding at the same
     step; halving the step from 0.5 ms divides the error by more than 3 (second order, blunted by
     the voltage limiter's kink)."""
-    lin = {h: pose_error(run(SCENES / "pid_step.yaml", ["stop_time=1", f"master.step={h}", GS], cache_dir=cache),
+    lin = {h: pose_error(run(SCENES / "pid_step.yaml", ["stop_time=1", f"master.step={h}", GS, NOV], cache_dir=cache),
                          pid_reference) for h in (1e-3, 5e-4, 2.5e-4)}
-    held = pose_error(run(SCENES / "pid_step.yaml", ["stop_time=1", "master.inputs=hold", GS], cache_dir=cache),
+    held = pose_error(run(SCENES / "pid_step.yaml", ["stop_time=1", "master.inputs=hold", GS, NOV], cache_dir=cache),
                       pid_reference)
     assert lin[1e-3] < 2e-4 and lin[1e-3] < held / 100, (lin, held)
     assert lin[5e-4] / lin[2.5e-4] > 3, lin
@@ -165,6 +166,7 @@ def test_cli_compare_table_plot_and_tolerance_exit_code(tmp_path, capsys):
 
 def test_cli_run_with_reference_reports_the_error_table(tmp_path, capsys, cache):
     rc = cli.main(["run", str(SCENES / "pid_step.yaml"), "--set", "stop_time=0.3", "--set", "master.step=5e-4", "--set", GS,
+                   "--set", NOV,
                    "--reference", "--out", str(tmp_path), "--cache", str(cache)])
     out = capsys.readouterr().out
     assert rc == 0

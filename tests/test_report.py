@@ -84,7 +84,10 @@ def test_a_run_report_opens_offline_with_its_plots_and_animation(run_report, tmp
     dom, console = browse(run_report, tmp_path / "run.png")
     assert not js_errors(console), console
     assert dom.count('class="main-svg"') >= 2  # the signals and the animation drawn by Plotly
-    assert 'id="run-status">ok<' in dom and "real_time_factor" in dom
+    assert 'id="run-status">ok<' in dom and "real-time factor (simulated / wall time)" in dom
+    # issue 32, item 10: labelled statistics with units, the estimate and the choice; no raw keys
+    assert "real_time_factor" not in dom and "wall_s" not in dom and "wall time of the stepping" in dom
+    assert "error estimate" in dom and "worst " in dom and "the master's choice" in dom
     assert "mech.platform.x: error against the reference" in dom and "t = " in dom
     img = pixels(tmp_path / "run.png")
     h, w, _ = img.shape

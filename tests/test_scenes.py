@@ -21,6 +21,9 @@ SCENES = ROOT / "scenarios"
 LEGS = (1, 2, 3)
 #: the coupling these tests are about (the scene itself takes the tolerance default, cosim.run.choose)
 GS = "master.algorithm=gauss_seidel"
+#: these tests measure the coupling at the scene's step against the thesis, not against the
+#: tolerance (Gauss-Seidel at 1 ms is 5-18 % of range off in the first ms): no verdict asked
+NOV = "master.tolerance=none"
 
 # SPEC §6 / thesis Table 6.12
 TARGET_POSE = (-0.2, -0.15, 0.2)
@@ -34,7 +37,7 @@ BAND_LEG, BAND_PHI = 0.5e-3, 0.003  # the thesis's end-state agreement, used as 
 @pytest.fixture(scope="module")
 def pid_rigid(cache):
     """pid_step (Gauss-Seidel at 1 ms, linear inputs), run on to 15 s to see it settle."""
-    return run(SCENES / "pid_step.yaml", ["stop_time=15", GS], cache_dir=cache)
+    return run(SCENES / "pid_step.yaml", ["stop_time=15", GS, NOV], cache_dir=cache)
 
 
 def leg_error(tr) -> np.ndarray:
@@ -90,8 +93,8 @@ def test_pid_step_multibody_agrees_with_rigid(cache):
     Both fidelities run with the scene's coupling (Gauss-Seidel at 1 ms, linear inputs).  Stated
     tolerance: 5e-6 m on the leg lengths and platform position, 2e-5 rad on phi, over the whole
     5 s (measured: legs 2.5e-6 / 1.2e-6 / 1.7e-6 m, x 1.0e-6 m, y 0.8e-6 m, phi 7.1e-6 rad)."""
-    a = run(SCENES / "pid_step.yaml", [GS], cache_dir=cache).trace
-    mb = run(SCENES / "pid_step_multibody.yaml", [GS], cache_dir=cache)
+    a = run(SCENES / "pid_step.yaml", [GS, NOV], cache_dir=cache).trace
+    mb = run(SCENES / "pid_step_multibody.yaml", [GS, NOV], cache_dir=cache)
     b = mb.trace
     assert mb.ok, mb.reason
     assert mb.scene.components["mech"].fidelity == "multibody" and len(b.time) == 5001
@@ -144,7 +147,7 @@ def vw_errors(tr, mech: str, t_from: float = 0.05) -> dict[str, float]:
     return out
 
 
-VW_GS = ["master.algorithm=gauss_seidel"]
+VW_GS = ["master.algorithm=gauss_seidel", NOV]
 
 
 @pytest.fixture(scope="module")
@@ -354,7 +357,7 @@ def test_a_third_party_pythonfmu_fmu_runs_inside_a_scene(tmp_path, cache):
 def test_cli_run_writes_trace_sidecar_plot_and_animation(tmp_path, cache):
     out = tmp_path / "out"
     res = subprocess.run([sys.executable, "-m", "cosim", "run", str(SCENES / "pid_step.yaml"), "--set",
-                          "stop_time=0.3", "--set", GS, "--out", str(out), "--plot", "--animate", "--cache", str(cache)],
+                          "stop_time=0.3", "--set", GS, "--set", NOV, "--out", str(out), "--plot", "--animate", "--cache", str(cache)],
                          cwd=ROOT, capture_output=True, text=True, timeout=300)
     assert res.returncode == 0, res.stderr
     assert "real-time factor" in res.stdout and "mech.platform.phi" in res.stdout
@@ -374,7 +377,7 @@ def test_cli_run_writes_trace_sidecar_plot_and_animation(tmp_path, cache):
 def test_fmi3_components_give_the_fmi2_trajectory(cache):
     """The same scene with every catalog component exported as FMI 3.0: bit-identical trace."""
     names = ["target", "pid1", "pid2", "pid3", "motor1", "motor2", "motor3", "mech"]
-    held = ["stop_time=0.5", "master.inputs=hold", GS]  # FMI 3.0 has no input derivatives
+    held = ["stop_time=0.5", "master.inputs=hold", GS, NOV]  # FMI 3.0 has no input derivatives
     v2 = run(SCENES / "pid_step.yaml", held, cache_dir=cache)
     v3 = run(SCENES / "pid_step.yaml", held + [f"components.{n}.fmi=3.0" for n in names], cache_dir=cache)
     # held inputs at 1 ms: both judged "unstable" by their error estimate (2.2x range off), alike

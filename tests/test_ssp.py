@@ -57,7 +57,7 @@ def test_round_trip_is_bit_identical(scene, stop, cache, tmp_path):
     direct = run(SCENES / f"{scene}.yaml", {"stop_time": stop, **gs}, cache_dir=cache)
     back = run(path, {"stop_time": stop}, cache_dir=cache)
     assert back.scene.master == direct.scene.master and back.scene.outputs == direct.scene.outputs
-    assert direct.ok and back.ok
+    assert direct.status == back.status and direct.status in ("ok", "inaccurate")  # GS at 1 ms: judged alike
     assert back.trace.names == direct.trace.names
     assert np.array_equal(back.trace.data, direct.trace.data)
 

@@ -104,7 +104,7 @@ def test_pid_step_ecospy_point_is_our_jacobi_hold(cache, tmp_path):
     st = precision_study(PID_STEP, [("jacobi", "hold")], [1e-3], stop_time=0.05, out=tmp_path, cache_dir=cache,
                          peer=True)
     ours, peer = st.rows
-    assert peer.algorithm == "ecospy" and peer.status == "ok", peer.reason
+    assert peer.algorithm == "ecospy" and peer.status == "inaccurate", peer.reason  # held at 1 ms: 0.4 of range off
     assert len(peer.errors) >= 10 and "motor1.i" in peer.errors and "pid1.y" not in peer.errors  # PID: feedthrough
     assert peer.errors == {n: ours.errors[n] for n in peer.errors}
     assert peer.do_steps == ours.do_steps

@@ -20,7 +20,7 @@ from cosim.trace.traces import read_trace
 
 ROOT = Path(__file__).resolve().parents[1]
 SCENE = ROOT / "scenarios" / "pid_step.yaml"
-SHORT = ["stop_time=0.3", "master.algorithm=gauss_seidel"]  # a fixed step: 301 rows
+SHORT = ["stop_time=0.3", "master.algorithm=gauss_seidel", "master.tolerance=none"]  # a fixed step: 301 rows
 
 
 @pytest.fixture(scope="module")
@@ -89,7 +89,7 @@ def test_a_broken_parquet_file_is_one_line(tmp_path, capsys):
 
 def test_a_batch_in_parquet_writes_its_table_and_traces_in_parquet_and_reads_them(tmp_path):
     batch = tmp_path / "b.yaml"
-    batch.write_text(f"name: b\nscene: {SCENE}\nset: {{master.algorithm: gauss_seidel, stop_time: 0.2}}\n"
+    batch.write_text(f"name: b\nscene: {SCENE}\nset: {{master.algorithm: gauss_seidel, master.tolerance: none, stop_time: 0.2}}\n"
                      "grid:\n  Kp: {path: \"components.pid*.params.Kp\", values: [20, 40]}\n"
                      "metrics:\n  mech.platform.phi: [max]\n")
     out = tmp_path / "out"

@@ -44,20 +44,25 @@ def _ylabel(names: Sequence[str], units: Mapping[str, str]) -> str:
 
 
 def run_panels(names: Sequence[str], units: Mapping[str, str], pairs: Mapping[str, str] | None = None,
-               most: int = 24) -> list[Panel]:
+               most: int | None = None) -> list[Panel]:
     """Axes of a run chart: like variables together (``pid1.y``, ``pid2.y``; ``leg[1..3].s``), a
-    setpoint dashed on the axes of the signal it commands (``pairs``), the unit on each y axis."""
+    setpoint dashed on the axes of the signal it commands (``pairs``), the unit on each y axis;
+    every variable of ``names`` on one (``most``: at most that many axes, for a preview)."""
     pairs = {s: m for s, m in (pairs or {}).items() if s in names and m in names}
     groups: dict[str, list[str]] = {}
     for name in names:
         if name not in pairs:
             groups.setdefault(_group_key(name), []).append(name)
     panels = []
-    for key, members in list(groups.items())[:most]:
+    for key, members in list(groups.items())[:most]:  # most None: all of them
         lines = [(n, False) for n in members]
         lines += [(s, True) for s, m in pairs.items() if m in members]
         panels.append(Panel(key, _ylabel([n for n, _ in lines], units), lines))
     return panels
+
+
+#: Beyond this many axes a run chart takes three columns instead of two (a tall page, never fewer axes).
+WIDE = 24
 
 
 def plot_run(trace: Trace, path: Path, title: str, *, units: Mapping[str, str] | None = None,
@@ -68,8 +73,8 @@ def plot_run(trace: Trace, path: Path, title: str, *, units: Mapping[str, str] |
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    panels = run_panels(trace.names, units or {}, pairs)
-    ncol = 2 if len(panels) > 1 else 1
+    panels = run_panels(trace.names, units or {}, pairs)  # every recorded variable: a taller page, none dropped
+    ncol = 1 if len(panels) == 1 else 2 if len(panels) <= WIDE else 3
     nrow = -(-len(panels) // ncol)
     fig, axes = plt.subplots(nrow, ncol, figsize=(6 * ncol, 2.2 * nrow), sharex=True, squeeze=False)
     for ax, panel in zip(axes.flat, panels):
@@ -89,7 +94,11 @@ def plot_run(trace: Trace, path: Path, title: str, *, units: Mapping[str, str] |
     for ax in axes[-1]:
         ax.set_xlabel("time [s]")
     fig.suptitle(title)
-    fig.tight_layout()
+    # fixed margins in inches instead of tight_layout, which renders every tick label once more
+    # to measure it (a third of pid_step's 2.3 s plot)
+    w, h = fig.get_size_inches()
+    fig.subplots_adjust(left=0.95 / w, right=1 - 0.15 / w, bottom=0.5 / h, top=1 - 0.55 / h, hspace=0.45,
+                        wspace=0.2 * ncol)
     return _save(fig, path)
 
 

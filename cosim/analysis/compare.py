@@ -47,12 +47,18 @@ class Difference:
         return self.max_abs / max(self.scale, FLAT)
 
 
+def matches(name: str, pattern: str) -> bool:
+    """``name`` matches the ``--only`` glob ``pattern``: ``*``, ``?`` and classes such as ``[xy]``
+    as in a shell, or with its brackets read literally (``mech.leg[1].s``, ``leg[*].s``)."""
+    return fnmatch.fnmatchcase(name, pattern) or fnmatch.fnmatchcase(name, pattern.replace("[", "[[]"))
+
+
 def common_names(test: Trace, ref: Trace, patterns: Sequence[str] | None = None) -> list[str]:
     """Variables recorded in both traces (in ``test``'s order), optionally filtered by glob
     ``patterns`` (e.g. ``mech.platform.*``); none in common is a :class:`UserError`."""
     names = [n for n in test.names if n in ref.columns]
     if patterns:
-        names = [n for n in names if any(fnmatch.fnmatchcase(n, p.replace("[", "[[]")) for p in patterns)]
+        names = [n for n in names if any(matches(n, p) for p in patterns)]
     if not names:
         what = f" matching {', '.join(patterns)}" if patterns else ""
         raise UserError(f"the traces have no variable{what} in common "
@@ -257,7 +263,7 @@ def comparability(test: Trace, ref: Trace, *, test_path: Path | None = None, ref
     restrict the unmatched-variable report like ``--only``)."""
 
     def wanted(n: str) -> bool:
-        return not patterns or any(fnmatch.fnmatchcase(n, p.replace("[", "[[]")) for p in patterns)
+        return not patterns or any(matches(n, p) for p in patterns)
 
     only_test = [n for n in test.names if n not in ref.columns and wanted(n)]
     only_ref = [n for n in ref.names if n not in test.columns and wanted(n)]

@@ -51,6 +51,9 @@ class Info:
     integrator: str
     options: list[tuple[str, str, str]] = field(default_factory=list)  # name, default, description
     from_file: bool = False  # an FMU file: flanges are not declared in a modelDescription
+    #: what each other choice of an option changes: (``option=choice``, [change, ...]) where a
+    #: change reads ``+ input x_in [m]`` or ``- output f [N]`` against the default block
+    variants: list[tuple[str, list[str]]] = field(default_factory=list)
 
 
 def _integrator(block) -> str:
@@ -83,6 +86,7 @@ def model_info(model: str, fidelity: str | None = None) -> Info:
     """The catalog model ``model`` at ``fidelity`` (default its first); :class:`UserError` naming
     the closest valid name otherwise."""
     import models.blocks as blocks
+    from models.block import BlockError
 
     from ..scenario import suggest
 
@@ -95,7 +99,32 @@ def model_info(model: str, fidelity: str | None = None) -> Info:
                         f"(expected one of {', '.join(cat[model])})")
     opts = [(o.name, str(o.default), o.description + (f" ({', '.join(o.choices)})" if o.choices else ""))
             for o in blocks.options(model, fidelity).values()]
-    return block_info(blocks.make(model, fidelity), f"{model}/{fidelity}", opts)
+    base = blocks.make(model, fidelity)
+    info = block_info(base, f"{model}/{fidelity}", opts)
+    for o in blocks.options(model, fidelity).values():
+        for choice in o.choices or ():
+            if choice == o.default:
+                continue
+            try:
+                other = blocks.make(model, fidelity, **{o.name: choice})
+            except (BlockError, ValueError, TypeError) as exc:  # a choice that needs other options too
+                info.variants.append((f"{o.name}={choice}", [f"needs more options ({exc})"]))
+                continue
+            changes = _differences(base, other)
+            if changes:
+                info.variants.append((f"{o.name}={choice}", changes))
+    return info
+
+
+def _differences(base, other) -> list[str]:
+    """The variables ``other`` has that ``base`` has not (``+``) and the reverse (``-``)."""
+    out = []
+    for kind, attr in (("input", "inputs"), ("output", "outputs"), ("parameter", "params"), ("state", "states")):
+        a = {v.name: v.unit for v in getattr(base, attr)}
+        b = {v.name: v.unit for v in getattr(other, attr)}
+        out += [f"+ {kind} {n} [{u or '-'}]" for n, u in b.items() if n not in a]
+        out += [f"- {kind} {n}" for n in a if n not in b]
+    return out
 
 
 def user_block_info(what: str) -> Info:
@@ -175,6 +204,9 @@ def text(info: Info) -> str:
     if info.options:
         lines.append("  options:")
         lines += [f"    {n} = {d}  {t}" for n, d, t in info.options]
+    if info.variants:
+        lines.append("  option variants (what another choice adds or removes):")
+        lines += [f"    {v}: {', '.join(ch)}" for v, ch in info.variants]
     for label, vs in (("inputs", info.inputs), ("outputs", info.outputs), ("states", info.states)):
         lines.append(f"  {label}: {len(vs)}" + ("" if vs else " (none)"))
         w = max((len(v.name) for v in vs), default=0)
@@ -205,6 +237,8 @@ def markdown(info: Info, level: int = 3) -> str:
     out = [f"{h} `{info.title}`", "", f"{info.description}.", "", f"Integrator: {info.integrator}."]
     if info.options:
         out.append("Options: " + "; ".join(f"`{n}` = `{d}` ({_cell(t)})" for n, d, t in info.options) + ".")
+    if info.variants:
+        out.append("Option variants: " + "; ".join(f"`{v}`: {_cell(', '.join(ch))}" for v, ch in info.variants) + ".")
     out.append("")
     out += ["| signal | kind | unit | description |", "|---|---|---|---|"]
     for kind, vs in (("input", info.inputs), ("output", info.outputs), ("state", info.states)):

@@ -322,6 +322,7 @@ def plot_traces(out: Path, rows, signal: str, runs: Any, sort: str | None, axes:
     else:
         chosen = ordered if runs == "all" else ordered[:int(runs)]
     fig, ax = plt.subplots(figsize=(8, 4.5), layout="constrained")
+    units: set[str] = set()
     for r in chosen[:200]:
         p = run_trace_path(out, r["run_id"])
         if p is None:
@@ -329,12 +330,13 @@ def plot_traces(out: Path, rows, signal: str, runs: Any, sort: str | None, axes:
         tr = read_trace(p)
         if signal not in tr.columns:
             continue
+        units.add((tr.meta.get("units") or {}).get(signal) or "1")
         label = ", ".join(f"{a}={_fmt(r.get(a))}" for a in axes) or r["run_id"]
         ax.plot(tr.time, tr[signal], lw=1, alpha=0.85 if len(chosen) <= 12 else 0.4, label=label)
     if 1 < len(chosen) <= 12:
         ax.legend(fontsize=7)
     ax.set_xlabel("time [s]")
-    ax.set_ylabel(signal)
+    ax.set_ylabel(f"{signal} [{', '.join(sorted(units)) or '1'}]")  # the unit the runs' sidecars give
     ax.grid(alpha=0.3)
     ax.set_title(f"{signal}: {len(chosen)} runs" + (f" (first by {sort})" if sort and runs != "all" and not isinstance(runs, list) else ""),
                  fontsize=10)

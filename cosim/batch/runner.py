@@ -31,6 +31,7 @@ from typing import Any
 from ..errors import UserError
 from ..outputs import OutputLock, check_out_dir, confined, write_bytes, write_text
 from ..scenario import Problem, Scene, SceneError, apply_overrides, plain, validate
+from ..scenario.overrides import override_texts
 from .axes import Point, count, points
 from .results import ResultsTable, base_columns
 from .spec import Batch, BatchError
@@ -74,6 +75,7 @@ def resolve(batch: Batch, point: Point, *, catalog=None) -> Planned | Problem:
         values = ", ".join(f"{k}={v!r}" for k, v in point.values.items())
         where = batch.where.get("scene", (str(batch.path), 0))
         return Problem(where[0], where[1], f"run {point.index} ({values}): {err.message if err else exc}")
+    scene.overrides = override_texts(point.overrides)
     return Planned(point, scene, scene.hash[:16])
 
 

@@ -161,7 +161,7 @@ def _products(args: argparse.Namespace, scene, res, out: Path) -> None:
         if res.trace_path is not None:
             amend_status(res.trace_path, "interrupted",
                          f"interrupted by {exc or 'the user'} while writing {doing} (the run itself ended "
-                         f"{res.status}; an earlier complete file of that name is kept)")
+                         f"{res.status}; the earlier good run's files, complete, are kept as {scene.name}.prev.*)")
         say(f"rpr-cosim run: {interrupted(exc)} while writing {doing}; "
             f"{res.trace_path.with_suffix('.json') if res.trace_path else 'the run'} says so")
         raise
@@ -266,7 +266,8 @@ def _describe_choice(scene) -> None:
     """What the master will run: the scene's algorithm, or the choice from its tolerance."""
     m = scene.master
     if not m.auto:
-        tol = f", tolerance {m.tolerance:g} (a run estimated over 10x it ends inaccurate)" if m.tolerance else ""
+        tol = (f", tolerance {m.tolerance:g}{'' if m.tolerance_given else ' (the default)'}: a run estimated over "
+               f"10x it ends inaccurate" if m.tolerance else ", tolerance none: no verdict on the run's estimate")
         print(f"  master: {m.algorithm}, named by the scene{tol}")
         _describe_events(scene, m.algorithm)
         return
@@ -285,6 +286,22 @@ def _describe_events(scene, name: str) -> None:
     descs = [c.description for c in scene.components.values()]
     if any(d.has_event_mode or d.event_indicators or d.interface == "model exchange" for d in descs):
         print(f"  events: {algorithm(name).event_policy}")
+
+
+def verdict(tolerance: float | None, worst: float, status: str) -> str:
+    """What the run's estimate ``worst`` says against the scene's ``tolerance`` (one phrase)."""
+    from ..master.estimate import INACCURATE
+
+    if status == "unstable":
+        return "unstable (the estimate reaches half a signal's range)"
+    if tolerance is None:
+        return "none (master.tolerance: none)"
+    if worst <= tolerance:
+        return f"within the tolerance {tolerance:g}"
+    if worst <= INACCURATE * tolerance:
+        return (f"{worst / tolerance:.2g}x the tolerance {tolerance:g}, below the {INACCURATE:g}x that makes a run "
+                f"inaccurate")
+    return f"inaccurate ({worst / tolerance:.2g}x the tolerance {tolerance:g})"
 
 
 def _summary(res) -> None:
@@ -312,6 +329,7 @@ def _summary(res) -> None:
         else:
             print(f"  estimated worst error {est['worst']:.2g} of range, {est['signal']} (at t = {est['at']:.6g} s; "
                   f"{est['method']})")
+            print(f"  verdict: {verdict(res.scene.master.tolerance, est['worst'], res.status)}")
     from ..analysis.tables import text_table
 
     total = st["wall_s"] or 1.0

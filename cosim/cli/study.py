@@ -233,12 +233,12 @@ def _precision(args: argparse.Namespace) -> int:
         plot_study(study, png_path)
     print(f"{study.scene}: {len(study.rows)} runs over {study.stop_time:g} s against the monolithic reference "
           f"({study.reference_wall_s:.3f} s)")
-    print(f"{'variant':<22} {'step/tol':>11} {'status':>8} {'worst rel':>10} {'RMS rel':>10} {'signal':<22} "
+    print(f"{'variant':<22} {'step/tol':>11} {'status':>10} {'worst rel':>10} {'RMS rel':>10} {'signal':<22} "
           f"{'wall s':>8} {'doSteps':>8} {'rejected':>8} {'rollbacks':>9}")
     for r in study.rows:
-        print(("* " if r.chosen else "") + f"{r.algorithm + '/' + r.inputs:<22} {r.label:>11} {r.status:>8} {r.worst:>10.3e} {r.rms:>10.3e} "
+        print(("* " if r.chosen else "") + f"{r.algorithm + '/' + r.inputs:<22} {r.label:>11} {r.status:>10} {r.worst:>10.3e} {r.rms:>10.3e} "
               f"{r.worst_signal:<22} {r.wall_s:>8.3f} {r.do_steps:>8} {r.rejected:>8} {r.rollbacks:>9}"
-              + (f"  ({r.reason})" if r.status != "ok" and r.reason else ""))
+              + (f"  ({r.reason})" if r.reason else ""))
     for v in study.variants():
         p = study.order(v)
         if math.isfinite(p):
@@ -268,14 +268,20 @@ def _fidelity(args: argparse.Namespace) -> int:
     if not args.tol > 0:
         raise UserError(f"--tol {args.tol}: expected a positive relative tolerance")
     study = fidelity_study(args.scene, args.sets, only=args.only or None, cache_dir=args.cache,
-                           progress=lambda m: say(f"  {m}", flush=True))
+                           progress=lambda m: say(f"  {m}", flush=True), tolerance=args.tol)
     top = study.rows[0]
-    print(f"{study.scene}: {len(study.rows)} fidelity combinations against the most detailed ({top.label})")
-    print(f"{'combination':<62} {'status':>8} {'worst rel':>10} {'signal':<22} {'wall s':>8} {'speed-up':>8}")
+    print(f"{study.scene}: {len(study.rows)} fidelity combinations against the most detailed ({top.label})"
+          + (f"; each run within master.tolerance {study.run_tolerance:g} of its own exact solution"
+             if study.run_tolerance else ""))
+    print(f"{'combination':<62} {'status':>10} {'worst rel':>10} {'signal':<22} {'wall s':>8} {'speed-up':>8}")
     for r in study.rows:
+        if r.status == "invalid":  # a combination that cannot run: no figures, the reason
+            print(f"{r.label:<62} invalid: {r.reason}")
+            continue
         speed = top.wall_s / r.wall_s if r.status == "ok" and r.wall_s > 0 else float("nan")
-        print(f"{r.label:<62} {r.status:>8} {r.worst:>10.3e} {r.worst_signal:<22} {r.wall_s:>8.3f} {speed:>8.1f}"
-              + (f"  ({r.reason})" if r.status != "ok" and r.reason else ""))
+        print(f"{r.label:<62} {r.status:>10} {r.worst:>10.3e} {r.worst_signal:<22} {r.wall_s:>8.3f} {speed:>8.1f}"
+              + (f"  ({r.reason})" if r.status != "ok" and r.reason else "")
+              + (f"  (compared without {', '.join(r.dropped)}: not recorded at these levels)" if r.dropped else ""))
     best = study.cheapest_within(args.tol)
     print(f"cheapest within {args.tol:g}: {best.label} ({best.worst:.2e}, {top.wall_s / best.wall_s:.1f}x faster "
           f"than the most detailed)" if best else f"cheapest within {args.tol:g}: none")

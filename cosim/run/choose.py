@@ -2,7 +2,8 @@
 ``master.tolerance`` (default 1e-3 of each recorded signal's range) and what the scene allows.
 
 * an algebraic loop: ``iterative`` (it solves the loop within each step), at a fixed step;
-* real-time pacing, or slaves at several rates: ``gauss_seidel`` at a fixed step;
+* real-time pacing, a sampled block (a discrete PID), or slaves at several rates: ``gauss_seidel``
+  at a fixed step (on whole samples);
 * no feedback between the components (a chain): ``gauss_seidel`` at a fixed step (adaptive's
   error control measures extrapolated inputs, and in a chain no input is extrapolated);
 * every slave can roll back: ``adaptive``, at an ``rtol`` that meets the tolerance;
@@ -94,6 +95,10 @@ def kind(scene: Scene) -> tuple[str, str]:
         return "iterative", f"an algebraic loop ({text}): iterative solves it within each step"
     if scene.master.realtime is not None:
         return "gauss_seidel", "real-time pacing needs a fixed step"
+    sampled = [c.name for c in comps if c.description.sample_period]
+    if sampled:  # a variable step would cut a sample period (doStep refuses a step off its samples)
+        return "gauss_seidel", (f"{', '.join(sampled)} sample{'s' if len(sampled) == 1 else ''} at a fixed period: "
+                                f"a fixed step on whole samples")
     rates = [c.name for c in comps if c.rate > 1]
     if rates:
         return "gauss_seidel", f"{', '.join(rates)} step{'s' if len(rates) == 1 else ''} at several rates per step"
@@ -179,7 +184,11 @@ def choose(scene: Scene, pilot: Callable[[Scene, float | None], object] | None, 
         return e
 
     def factor(e: float, order: float) -> float:
-        """How far to change the setting for the estimate to reach TARGET of the tolerance."""
+        """How far to change the setting for the estimate to reach TARGET of the tolerance: an
+        estimate of 0 (nothing the coupling changes, a lone FMU) asks for no finer setting, the
+        most a step may grow (:func:`choose` caps it at 10x); a failed pilot (inf) a tenth."""
+        if e == 0:
+            return math.inf
         return (TARGET * tol / e) ** (1 / order) if e > 0 and math.isfinite(e) else 0.1
 
     # the first whole-run pilot within the tolerance ends the search: it is the run itself

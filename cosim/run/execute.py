@@ -17,6 +17,7 @@ from .instances import Instances
 from ..master import CoupledSystem, Link, simulate
 from ..master.estimate import EstimatingObserver
 from ..scenario import Scene, load
+from ..scenario.overrides import override_texts
 from ..slaves.fmu import FmuSlave
 from ..slaves.slave import Slave
 from ..trace.traces import MemoryTrace, Trace, trace_suffix, trace_writer
@@ -424,11 +425,14 @@ def _step(scene: Scene, request: RunRequest, paths: dict, slaves: Sequence[Slave
     return res.status, res.reason, res.trace, res.stats, res.trace_path, build_s
 
 
-def _run_meta(scene: Scene, overrides: Sequence) -> dict:
-    """The trace metadata of a run of ``scene``."""
+def _run_meta(scene: Scene, overrides: Mapping[str, Any] | Sequence[str] | None) -> dict:
+    """The trace metadata of a run of ``scene``; ``overrides``: every one it was loaded with (the
+    scene's own record of them, :attr:`Scene.overrides`: ``--set``, a batch axis, the Python API),
+    else those of the request, as ``path=value`` texts."""
     return {**scene_meta(scene), "inputs": scene.master.inputs,
             "components": {n: c.label for n, c in scene.components.items()},
-            "connections": [str(c) for c in scene.connections], "overrides": list(overrides)}
+            "connections": [str(c) for c in scene.connections],
+            "overrides": scene.overrides or override_texts(overrides)}
 
 
 #: Rows per block when a pilot run's rows are written as the run (:func:`_replay`).
@@ -453,7 +457,7 @@ def _replay(pilot: RunResult, scene: Scene, request: RunRequest, extra: dict) ->
     done = 0
     try:
         for ob in inner:
-            ob.start(tr.columns, {**tr.meta, **_run_meta(scene, request.override_list), **extra})
+            ob.start(tr.columns, {**tr.meta, **_run_meta(scene, request.overrides), **extra})
         try:
             # in blocks, as a run records them: a full disk keeps whole rows, a signal or Ctrl-C
             # (from the progress callback too) ends the run "interrupted" with the rows written
@@ -600,7 +604,7 @@ def _once(scene: Scene, stepping: Stepping, request: RunRequest, slaves: Sequenc
         guard.bind(system.record_names + system.watch_names)
     memory, inner, trace_path = scene_observers(scene, request.out_dir, trace_format=request.trace_format)
     estimator = EstimatingObserver(inner, ctrace, div, method, scene.master.tolerance, extra)
-    meta = _run_meta(scene, request.override_list)
+    meta = _run_meta(scene, request.overrides)
     try:
         stats = simulate_scene(scene, system, [estimator], engine, Watched(request.progress, meta, guard)).as_dict()
         stats = getattr(estimator, "stats", stats)

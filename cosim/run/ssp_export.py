@@ -100,7 +100,7 @@ def ssd_document(scene, fmu_sources: dict[str, str], ssv_source: str):
     attrs = {**({} if m.auto else {"algorithm": m.algorithm}), "step": _num(m.step),
              **({"inputs": m.inputs} if not m.auto or m.inputs_given else {}), "engine": m.engine,
              "outputInterval": _num(m.record_every * m.step), "scene": scene.name}
-    if m.tolerance is not None:
+    if m.tolerance is not None and (m.tolerance_given or m.auto):
         attrs["tolerance"] = _num(m.tolerance)
     if m.order:
         attrs["order"] = " ".join(m.order)

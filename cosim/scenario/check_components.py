@@ -12,7 +12,9 @@ from typing import Any
 from ..errors import UserError
 from ..slaves.types import TYPES, display, parse_start
 from ..slaves.description import INTERFACES, Variable, describe_block, describe_fmu, resolve_shapes
+from fmus.errors import BuildError
 from fmus.index import source_digest
+from fmus.model_description import check_names
 
 from .catalog import default_catalog, make_block
 from .checker import Checker, _is_number
@@ -408,6 +410,8 @@ class ComponentChecks(Checker):
             except (BlockError, ValueError, TypeError) as exc:
                 self.err(params.loc(next(iter(fixed))), f"component {name!r}: {exc}")
                 return None
+        if not self._units_readable(name, block, spec):
+            return None
         desc = describe_block(block, f"{model}/{fidelity}")
         comp = Component(name, "model", desc, model=model, fidelity=fidelity, options=options, fmi=fmi,
                          block=block, where=spec.where)
@@ -424,6 +428,16 @@ class ComponentChecks(Checker):
                                             sources=sources)
         self._values(comp, spec, skip=set(fixed))
         return comp
+
+    def _units_readable(self, name: str, block, spec: YMap) -> bool:
+        """Every unit of ``block`` one the FMU exporter can write (:func:`fmus.model_description.
+        check_names`): refused here, at the options that made it, not when the FMU is built."""
+        try:
+            check_names(block)
+        except BuildError as exc:
+            self.err(spec.loc("options") if "options" in spec else spec.loc("model"), f"component {name!r}: {exc}")
+            return False
+        return True
 
     def _base(self, where: Loc) -> Path:
         return Path(where[0]).parent if where[1] else (self.path.parent if self.path else Path.cwd())

@@ -3,6 +3,9 @@ from __future__ import annotations
 
 import dataclasses
 
+from models.units import scaled
+from models.units import text as unit_text
+
 from ..slaves.types import TYPES, canonical, conversion, display
 from ..master import ALGORITHMS, find_algebraic_loop
 from ..slaves.description import Variable
@@ -11,6 +14,11 @@ from .merge import _ARROW, _AS, split_transform
 from .model import Component, Connection
 from .problems import Loc, suggest
 from .yamlfile import YList
+
+
+#: Catalog models whose signals carry whatever unit they are given (their declared "1" is no
+#: dimension): a connection to or from one is not unit-checked.
+UNIT_AGNOSTIC = ("sum",)
 
 
 class ConnectionChecks(Checker):
@@ -95,6 +103,35 @@ class ConnectionChecks(Checker):
             return False
         return True
 
+    def units_agree(self, comps: dict[str, Component], c: Connection, where: Loc) -> bool:
+        """Modelica's rule for a connection: both ends in compatible units.  Refused: a different
+        dimension (``m/s -> m``), or the same one at another scale (``mm -> m``: the master passes
+        the number, so the factor is named).  Not checked: an end without a unit or with a symbol
+        not known to :mod:`models.units`, a connection with a factor or offset (it converts, and its
+        numbers carry no unit), and the ends of a :data:`UNIT_AGNOSTIC` block (a sum carries the
+        unit of what it sums, as Modelica's ``Add`` declares none)."""
+        if c.factor != 1.0 or c.offset != 0.0:
+            return True
+        if comps[c.src].model in UNIT_AGNOSTIC or comps[c.dst].model in UNIT_AGNOSTIC:
+            return True
+        ua = comps[c.src].description.variables[c.src_var].unit
+        ub = comps[c.dst].description.variables[c.dst_var].unit
+        a, b = scaled(ua), scaled(ub)
+        if a is None or b is None or ua.strip() == ub.strip():
+            return True
+        lhs, rhs = f"{c.src}.{c.src_var} [{ua}]", f"{c.dst}.{c.dst_var} [{ub}]"
+        if a[1] != b[1]:
+            self.err(where, f"incompatible units: {lhs} -> {rhs} ({unit_text(a[1])} is not {unit_text(b[1])}); "
+                            f"connect a signal of the input's unit, or convert with '* FACTOR' where a ratio "
+                            f"is meant")
+            return False
+        ratio = a[0] / b[0]
+        if abs(ratio - 1.0) > 1e-12:
+            self.err(where, f"units differ in scale: {lhs} -> {rhs}; the master passes the number as it is: "
+                            f"write '{c.src}.{c.src_var} -> {c.dst}.{c.dst_var} * {ratio:.12g}'")
+            return False
+        return True
+
     def connections(self, comps: dict[str, Component]) -> tuple[list[Connection], list[tuple]]:
         node = self.tree.get("connections", YList())
         if not isinstance(node, list):
@@ -168,6 +205,7 @@ class ConnectionChecks(Checker):
                     bonds.append((a[0], a[1], b[0], b[1]))
                     bonded[a] = bonded[b] = where
             for c in new:
+                self.units_agree(comps, c, where)  # reported; the connection still counts for the checks below
                 key = (c.dst, c.dst_var)
                 if key in fed:
                     self.err(where, f"input {c.dst}.{c.dst_var} is already connected (from "

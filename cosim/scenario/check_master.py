@@ -39,6 +39,7 @@ class MasterChecks(Checker):
         tolerance = self.tolerance(node, auto)
         if tolerance is False:
             ok, tolerance = False, None
+        tolerance_given = "tolerance" in node and tolerance is not None
         if auto and "options" in node:
             self.err(node.loc("options"), "master.options are an algorithm's options; name master.algorithm too, "
                                           "or drop them and let master.tolerance choose the algorithm")
@@ -130,23 +131,32 @@ class MasterChecks(Checker):
             self.err(node.loc("estimate"), f"master.estimate = {estimate!r}; expected true (default: the run estimates "
                                            f"its own error from a companion run) or false (no estimate, half the work)")
             return None
-        if not estimate and tolerance is not None and not auto:
+        if not estimate and tolerance_given and not auto:
             self.err(node.loc("estimate"), "master.estimate: false leaves master.tolerance nothing to check a run "
                                            "against; drop one of them")
             return None
         return MasterSettings(alg, step_ns / 1e9, step_ns, list(order) if order else None, engine, record_every,
-                              inputs, realtime, options, tolerance, auto, "inputs" in node, estimate)
+                              inputs, realtime, options, tolerance, auto, "inputs" in node, estimate, tolerance_given)
 
     def tolerance(self, node: YMap, auto: bool) -> float | None | bool:
         """``master.tolerance``: the worst error of a recorded signal relative to its range that a
-        run may have (a number in (0, 0.5)); :data:`DEFAULT_TOLERANCE` when the scene names no
-        algorithm, None when it names one and no tolerance; False when invalid (reported)."""
+        run may have (a number in (0, 0.5)), :data:`DEFAULT_TOLERANCE` when not given, whether the
+        scene names its algorithm or not: a run whose estimate is over 10x it is "inaccurate".
+        ``none`` (or null): the scene wants no verdict (None; only with a named algorithm, the
+        choice needs a tolerance).  False when invalid (reported)."""
         if "tolerance" not in node:
-            return DEFAULT_TOLERANCE if auto else None
+            return DEFAULT_TOLERANCE
         tol = node["tolerance"]
+        if tol is None or (isinstance(tol, str) and tol.strip().lower() == "none"):
+            if auto:
+                self.err(node.loc("tolerance"), "master.tolerance: none (no verdict) needs master.algorithm: the "
+                                                "master chooses its algorithm to meet a tolerance")
+                return False
+            return None
         if not _is_number(tol) or not 0 < tol < 0.5:
             self.err(node.loc("tolerance"), f"master.tolerance = {tol!r}; expected a number in (0, 0.5): the worst "
-                                            f"error of a recorded signal relative to its range, e.g. 1e-3")
+                                            f"error of a recorded signal relative to its range, e.g. 1e-3 (or none: "
+                                            f"no verdict on the run)")
             return False
         return float(tol)
 

@@ -72,9 +72,9 @@ MASTER = {
     "estimate": "true (default): the run estimates its own error per signal from a companion run at half the "
                 "step or a quarter of the tolerance, and a run it shows wrong is not ok; false: no estimate (a "
                 "batch of many runs does half the work)",
-    "tolerance": "the worst error of a recorded signal relative to its range, in (0, 0.5); default 1e-3 when no "
-                 "algorithm is named (the master chooses one to meet it), else none; a run whose own error "
-                 "estimate is over 10x it ends inaccurate",
+    "tolerance": "the worst error of a recorded signal relative to its range, in (0, 0.5); default 1e-3 (no "
+                 "algorithm named: the master chooses one to meet it); a run whose own error estimate is over 10x "
+                 "it ends inaccurate, a named algorithm's too; `none` with a named algorithm: no verdict",
 }
 TOP_KEYS = tuple(TOP)
 COMPONENT_KEYS = tuple(COMPONENT)

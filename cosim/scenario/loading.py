@@ -8,7 +8,7 @@ from typing import Any
 
 from .merge import _components_as_map, load_raw
 from .model import Scene
-from .overrides import _to_y, apply_overrides
+from .overrides import _to_y, apply_overrides, override_texts
 from .problems import Loc, Problem, SceneError
 from .validate import validate
 from .yamlfile import YMap
@@ -38,7 +38,9 @@ def load(path: Path | str, overrides: Mapping[str, Any] | Sequence[str] | None =
             raise SceneError([Problem(auto[0], auto[1], NO_AUTO_FIDELITY)])
         tree, note = auto_fidelity(tree, path)
         problems.append(Problem(auto[0], auto[1], note, "note"))
-    return validate(tree, path, catalog=catalog, problems=problems)
+    scene = validate(tree, path, catalog=catalog, problems=problems)
+    scene.overrides = override_texts(overrides)
+    return scene
 
 
 NO_AUTO_FIDELITY = ("fidelity: auto is chosen by the fidelity study, which this caller did not provide: run the "

@@ -89,13 +89,16 @@ class MasterSettings:
     inputs: str = "hold"  # "hold" or "linear" (first-order hold, FMUs that can interpolate inputs)
     realtime: Any = None  # cosim.master.realtime.RealtimeSettings when the run is paced on the wall clock
     options: dict[str, float] = field(default_factory=dict)  # the algorithm's own options (its declaration)
-    #: the accuracy asked for: worst error of a recorded signal relative to its range (None: none asked)
+    #: the accuracy asked for: worst error of a recorded signal relative to its range (default 1e-3;
+    #: None: the scene wants no verdict, ``tolerance: none``)
     tolerance: float | None = None
     #: no algorithm named: the run chooses algorithm and settings from ``tolerance`` (cosim.run.choose)
     auto: bool = False
     inputs_given: bool = False  # master.inputs was set by the scene (the choice keeps it)
     #: the run's own error estimate (a companion run, cosim.master.estimate); off: none, and no verdict from it
     estimate: bool = True
+    #: master.tolerance was written in the scene (not the default)
+    tolerance_given: bool = False
 
 
 @dataclass
@@ -118,3 +121,6 @@ class Scene:
     start_time: float = 0.0  # [s] the scene's start_time, else the FMUs' default experiment, else 0
     start_ns: int = 0
     guards: Any = None  # cosim.run.guards.GuardSettings (physical guards of a run)
+    #: the overrides it was loaded with (``--set``, a batch axis, the Python API), as ``path=value``
+    #: texts in the order applied (:func:`cosim.scenario.overrides.override_texts`); the sidecar's
+    overrides: list[str] = field(default_factory=list)

@@ -34,6 +34,18 @@ def parse_set(item: str) -> tuple[str, Any]:
     return path, value
 
 
+def override_texts(overrides: Mapping[str, Any] | Sequence[str] | None) -> list[str]:
+    """``overrides`` (a mapping path -> value or ``"path=value"`` texts) as ``"path=value"`` texts,
+    each value written as ``--set`` would take it (JSON for numbers, lists and mappings)."""
+    import json
+
+    if not overrides:
+        return []
+    if not isinstance(overrides, Mapping):
+        return [str(s).strip() for s in overrides]
+    return [f"{k}={v if isinstance(v, str) else json.dumps(v, default=str)}" for k, v in overrides.items()]
+
+
 def _split_path(path: str) -> list[str]:
     parts = path.split(".")
     for i, p in enumerate(parts):
@@ -83,6 +95,12 @@ def apply_overrides(tree: YMap, overrides: Mapping[str, Any] | Sequence[str] | N
             expanded.append((path, value))
     for path, value in expanded:
         keys = _split_path(path)
+        if len(keys) == 2 and keys[0] == "components":
+            names.append(keys[1])  # a component set whole: later paths may reach into it
+        elif len(keys) > 2 and keys[0] == "components" and names and keys[1] not in names:
+            raise UserError(f"--set {path}={value}: the scene has no component {keys[1]!r}{suggest(keys[1], names)} "
+                            f"(components: {', '.join(names)}); a new component is set whole, e.g. "
+                            f"--set 'components.{keys[1]}={{model: pid}}'")
         label = (f"--set {path}={value}", 0)
         over: Any = _to_y(value, label)
         for k in reversed(keys):

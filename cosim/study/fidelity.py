@@ -21,6 +21,7 @@ import itertools
 import json
 import math
 import os
+import re
 import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
@@ -45,6 +46,7 @@ class FidelityRow:
     worst: float = math.nan
     worst_signal: str = ""
     wall_s: float = math.nan
+    dropped: list[str] = field(default_factory=list)  # output patterns that match nothing at these levels
 
     @property
     def label(self) -> str:
@@ -56,6 +58,7 @@ class FidelityStudy:
     scene: str
     models: dict[str, list[str]]  # model -> levels studied, highest first
     rows: list[FidelityRow] = field(default_factory=list)
+    run_tolerance: float | None = None  # the master.tolerance each combination ran at (None: the scene's)
 
     def cheapest_within(self, tol: float) -> FidelityRow | None:
         ok = [r for r in self.rows if r.status == "ok" and r.worst <= tol]
@@ -106,13 +109,46 @@ def _with_levels(tree: Any, levels: Mapping[str, str], only_auto: bool) -> Any:
     return out
 
 
+#: A combination's runs are asked to be this much more accurate than the study's tolerance, so
+#: that the co-simulation's own error does not decide which fidelity is within it.
+RUN_MARGIN = 10.0
+#: A scene problem a combination may drop and still be compared: an ``outputs:`` pattern that
+#: matches nothing at these levels (``motor*.i`` of an ideal motor, which has no current).
+_UNMATCHED_OUTPUT = re.compile(r"^output pattern '(.+?)' matches no input or output")
+
+
+def _validated(tree: Any, path: Path):
+    """The scene of a combination's ``tree`` and the output patterns dropped for it (patterns
+    that match nothing at its levels); :class:`SceneError` for any other problem."""
+    from ..scenario import SceneError, validate
+
+    dropped: list[str] = []
+    for _ in range(2):
+        try:
+            return validate(tree, path), dropped
+        except SceneError as exc:
+            errors = [p for p in exc.problems if p.severity == "error"]
+            unmatched = [m.group(1) for p in errors if (m := _UNMATCHED_OUTPUT.match(p.message))]
+            if not unmatched or len(unmatched) != len(errors) or not isinstance(tree.get("outputs"), list):
+                raise
+            tree = copy.deepcopy(tree)
+            tree["outputs"] = [o for o in tree["outputs"] if o not in unmatched]
+            dropped += unmatched
+    return validate(tree, path), dropped
+
+
 def fidelity_study(scene_path: Path | str, overrides: Mapping[str, Any] | Sequence[str] | None = None, *,
                    only_auto: bool = False, only: Sequence[str] | None = None, cache_dir: Path | None = None,
-                   progress: Callable[[str], None] | None = None) -> FidelityStudy:
+                   progress: Callable[[str], None] | None = None, tolerance: float | None = None) -> FidelityStudy:
     """Run every combination (module docstring); the first row is the highest combination.
-    ``only`` restricts the compared signals (globs; default every recorded signal)."""
+    ``only`` restricts the compared signals (globs; default every recorded signal).  With
+    ``tolerance``, a scene whose master chooses runs each combination at a tolerance
+    :data:`RUN_MARGIN` times tighter (the co-simulation's error then cannot decide the answer).
+    A combination that cannot make a valid scene or cannot run is "invalid" with the reason; an
+    output pattern that matches nothing at its levels is dropped (the row says so) and the
+    combination is compared over the signals both recorded."""
     from ..run.execute import run
-    from ..scenario import SceneError, apply_overrides, default_catalog, validate
+    from ..scenario import SceneError, apply_overrides, default_catalog
 
     path = Path(scene_path)
     catalog = default_catalog()
@@ -121,12 +157,17 @@ def fidelity_study(scene_path: Path | str, overrides: Mapping[str, Any] | Sequen
     if not models:
         raise UserError(f"{path}: no catalog component has more than one fidelity level to study")
     study = FidelityStudy(str(tree.get("name") or path.stem), models)
+    master = tree.get("master") if isinstance(tree.get("master"), Mapping) else {}
+    if tolerance is not None and "algorithm" not in master:
+        tight = min(float(master.get("tolerance", AUTO_TOLERANCE)), tolerance / RUN_MARGIN)
+        tree = apply_overrides(tree, {"master.tolerance": tight})
+        study.run_tolerance = tight
     reference = None
     for combo in itertools.product(*models.values()):
         levels = dict(zip(models, combo))
         row = FidelityRow(levels, "invalid")
         try:
-            scene = validate(_with_levels(tree, levels, only_auto), path)
+            scene, dropped = _validated(_with_levels(tree, levels, only_auto), path)
         except SceneError as exc:
             first = next((p for p in exc.problems if p.severity == "error"), None)
             row.reason = first.message if first else str(exc)
@@ -134,8 +175,20 @@ def fidelity_study(scene_path: Path | str, overrides: Mapping[str, Any] | Sequen
             if reference is None:
                 raise UserError(f"{path}: the most detailed combination ({row.label}) is not a valid scene: "
                                 f"{row.reason}") from None
+            if progress:
+                progress(f"{row.label:<60} invalid: {row.reason}")
             continue
-        res = run(scene, cache_dir=cache_dir)
+        try:
+            res = run(scene, cache_dir=cache_dir)
+        except UserError as exc:  # a clash found when the run starts (the master's choice, a build)
+            row.reason = str(exc)
+            study.rows.append(row)
+            if reference is None:
+                raise UserError(f"{path}: the most detailed combination ({row.label}) cannot run: {exc}") from None
+            if progress:
+                progress(f"{row.label:<60} invalid: {row.reason}")
+            continue
+        row.dropped = dropped
         row.status, row.reason, row.wall_s = res.status, res.reason, float(res.stats.get("wall_s", math.nan))
         if reference is None:
             if not res.ok:
@@ -148,7 +201,7 @@ def fidelity_study(scene_path: Path | str, overrides: Mapping[str, Any] | Sequen
         study.rows.append(row)
         if progress:
             progress(f"{row.label:<60} {row.status:<8} worst {row.worst:10.3e} {row.worst_signal:<20} "
-                     f"{row.wall_s:8.3f} s")
+                     f"{row.wall_s:8.3f} s" + (f" (without {', '.join(dropped)})" if dropped else ""))
     return study
 
 
@@ -189,7 +242,7 @@ def resolve_auto(tree: Any, path: Path, *, cache_dir: Path | None = None,
     if choice is None:
         if log:
             log(f"[fidelity] {path.name}: studying fidelity levels for 'auto' (tolerance {tol:g}); cached afterwards")
-        study = _study_tree(tree, path, cache_dir)
+        study = _study_tree(tree, path, cache_dir, tol)
         best = study.cheapest_within(tol)
         if best is None:
             best = study.rows[0]
@@ -204,7 +257,7 @@ def resolve_auto(tree: Any, path: Path, *, cache_dir: Path | None = None,
     return _with_levels(tree, levels, True), note
 
 
-def _study_tree(tree: Any, path: Path, cache_dir: Path | None) -> FidelityStudy:
+def _study_tree(tree: Any, path: Path, cache_dir: Path | None, tolerance: float | None = None) -> FidelityStudy:
     """:func:`fidelity_study` over an in-memory tree (the one being loaded)."""
     import tempfile
 
@@ -225,4 +278,4 @@ def _study_tree(tree: Any, path: Path, cache_dir: Path | None) -> FidelityStudy:
         if signals is not None and (not isinstance(signals, list) or not all(isinstance(x, str) for x in signals)):
             raise UserError(f"{path}: fidelity_signals: expected a list of signal names or globs, e.g. "
                             f"[mech.platform.x, 'mech.leg[*].s']")
-        return fidelity_study(scene_file, only_auto=True, only=signals, cache_dir=cache_dir)
+        return fidelity_study(scene_file, only_auto=True, only=signals, cache_dir=cache_dir, tolerance=tolerance)

@@ -54,7 +54,7 @@ import numpy as np
 
 from ..analysis.compare import Difference, compare
 from ..errors import RUN_ERRORS, UserError
-from ..master.estimate import FLAT
+from ..master.estimate import FLAT, INACCURATE
 from ..scenario import load
 from .fidelity import resolve_auto
 from ..trace.traces import Trace
@@ -62,6 +62,10 @@ from ..trace.traces import Trace
 ECOSPY = "ecospy"
 #: how the reason of a run judged by its estimate begins (cosim.master.estimate.judge)
 ESTIMATED = "the estimated error of "
+#: how the reason of a row the study judged by its measured error begins (:func:`judge_rows`)
+MEASURED = "the measured error of "
+#: the statuses of rows whose errors were measured over the whole run
+MEASURED_STATUSES = ("ok", "inaccurate")
 
 
 @dataclass
@@ -119,7 +123,7 @@ class PrecisionStudy:
         """Observed order of ``variant``: slope of log(error) over log(step), or over log(rtol)
         for a variable-step variant (nan with fewer than two ok runs)."""
         pts = [(r.tolerance if r.variable else r.step, r.worst) for r in self.rows
-               if (r.algorithm, r.inputs) == variant and r.status == "ok" and 0 < r.worst < math.inf]
+               if (r.algorithm, r.inputs) == variant and r.status in MEASURED_STATUSES and 0 < r.worst < math.inf]
         if len(pts) < 2 or len({p[0] for p in pts}) < 2:
             return math.nan
         h, e = np.log(np.array(pts)).T
@@ -256,6 +260,20 @@ def judged(reason: str) -> bool:
     return reason.startswith(ESTIMATED)
 
 
+def judge_row(row: PrecisionRow, tolerance: float | None) -> None:
+    """Give an "ok" ``row`` the verdict of its error measured against the reference: "inaccurate"
+    when its worst is more than :data:`cosim.master.estimate.INACCURATE` times ``tolerance``,
+    as a run's own estimate judges it (None: the scene wants no verdict, the reason says so)."""
+    if row.status != "ok" or not math.isfinite(row.worst):
+        return
+    if tolerance is None:
+        row.reason = "no verdict: the scene's master.tolerance is none"
+    elif row.worst > INACCURATE * tolerance:
+        row.status = "inaccurate"
+        row.reason = (f"{MEASURED}{row.worst_signal} against the reference is {row.worst:.3g} of its range, more "
+                      f"than {INACCURATE:g}x the tolerance {tolerance:g}")
+
+
 def _fill_errors(row: PrecisionRow, errors: dict[str, float]) -> None:
     row.errors = errors
     if errors:
@@ -308,6 +326,8 @@ def precision_study(scene_path: Path | str, variants: Sequence[tuple[str, str]],
     if not ref.ok:
         raise UserError(f"{base.name}: the monolithic reference failed ({ref.reason}); no study without it")
     study = PrecisionStudy(base.name, stop, record, float(ref.stats.get("wall_s", math.nan)))
+    # every row judged as a run's estimate judges it: the study's tolerance, else the scene's
+    verdict_tol = tolerance if tolerance is not None and base.master.tolerance is not None else base.master.tolerance
     scale = reference_scale(ref.trace, ref.trace.names)
     points = _plan(variants, steps, rtols, record)
     refused = {i: _refused(scene_path, {**common, **over}) for i, (_, over) in enumerate(points)}
@@ -323,6 +343,7 @@ def precision_study(scene_path: Path | str, variants: Sequence[tuple[str, str]],
             if not refused[i]:
                 _measure(row, rows_by_values.get(_key(values)), where, base.name, scene_path,
                          {**common, **over}, ref.trace, scale, only)
+                judge_row(row, verdict_tol)
             study.rows.append(row)
             if progress:
                 progress(_line(row))
@@ -330,12 +351,14 @@ def precision_study(scene_path: Path | str, variants: Sequence[tuple[str, str]],
         near = min(steps, key=lambda h: abs(math.log(h / base.master.step)))  # the scene's step, if studied
         row = ecospy_row(scene_path, common, near, record, ref.trace, scale, only, cache_dir, log)
         if row is not None:
+            judge_row(row, verdict_tol)
             study.rows.append(row)
             if progress:
                 progress(_line(row))
     row = choice_row(scene_path, common, tolerance, ref.trace, scale, only, cache_dir) if tolerance is not None \
         else None
     if row is not None:
+        judge_row(row, verdict_tol)
         study.rows.append(row)
         if progress:
             progress(_line(row))
@@ -384,7 +407,7 @@ def _key(values: dict) -> tuple:
 
 
 def _line(row: PrecisionRow) -> str:
-    return (f"{row.algorithm:<13} {row.inputs:<7} {row.label:<11} {row.status:<8} worst {row.worst:10.3e} "
+    return (f"{row.algorithm:<13} {row.inputs:<7} {row.label:<11} {row.status:<10} worst {row.worst:10.3e} "
             f"({row.worst_signal or row.reason[:60]})  {row.wall_s:7.3f} s")
 
 
@@ -530,7 +553,8 @@ def plot_study(study: PrecisionStudy, path: Path) -> Path:
 
     fig, ax = plt.subplots(figsize=(10.5, 5.5), layout="constrained")
     for variant in study.variants():
-        pts = [r for r in study.rows if (r.algorithm, r.inputs) == variant and r.status == "ok" and r.worst > 0
+        pts = [r for r in study.rows if (r.algorithm, r.inputs) == variant and r.status in MEASURED_STATUSES
+               and r.worst > 0
                and not r.chosen]
         if not pts:
             continue

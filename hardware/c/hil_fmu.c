@@ -381,8 +381,9 @@ static int exchange(Hil *h, int flags, const double *volts) {
                 if (text[0]) strcat(text, ", ");
                 strcat(text, FAULTS[i]);
             }
-        say(h, fmi2Error, "logStatusError", "board at %s is in fault (%s): motors stopped, fault latched until a "
-            "reset (parameter reset_fault)", h->address, text[0] ? text : "unknown");
+        say(h, fmi2Error, "logStatusError", "board at %s is in fault (%s): motors stopped, the fault stays latched "
+            "until cleared; check the rig, then run again with --set components.%s.params.reset_fault=true",
+            h->address, text[0] ? text : "unknown", h->name);
         return -1;
     }
     return 0;

@@ -40,6 +40,7 @@ from __future__ import annotations
 import casadi as ca
 
 from ..block import Block, Sample, Var
+from ..units import compose
 from ._common import ParamSet, solver_params
 
 FORMS = ("parallel", "standard")
@@ -52,11 +53,13 @@ def _law(form: str, derivative: str, anti_windup: str, unit_in: str = "m", unit_
     ``unit_in`` is the unit of setpoint and measurement, ``unit_out`` that of the output (the
     gains' units follow from them)."""
     ps = ParamSet()
-    per = f"{unit_out}/{unit_in}"
+    per = compose((unit_out, 1), (unit_in, -1))  # one '/' however the units are written (N/(m/s) -> N.s/m)
     if form == "parallel":
         Kp = ps.add("Kp", 30.0, per, "proportional gain (Table 6.7)")
-        Ki = ps.add("Ki", 80.0, f"{unit_out}/({unit_in}.s)", "integral gain (Table 6.7 read as parallel gains)")
-        Kd = ps.add("Kd", 20.0, f"{unit_out}.s/{unit_in}", "derivative gain (Table 6.7 read as parallel gains)")
+        Ki = ps.add("Ki", 80.0, compose((unit_out, 1), (unit_in, -1), ("s", -1)),
+                    "integral gain (Table 6.7 read as parallel gains)")
+        Kd = ps.add("Kd", 20.0, compose((unit_out, 1), ("s", 1), (unit_in, -1)),
+                    "derivative gain (Table 6.7 read as parallel gains)")
         Tf = ps.add("Tf", 1e-3, "s", "derivative filter time constant", lower=1e-9)
         ki, kd = Ki, Kd
     else:

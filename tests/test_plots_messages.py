@@ -1,0 +1,173 @@
+"""Plots that draw every recorded variable with units (issue 32, item 7) and messages that help
+(item 8): did-you-mean for a misspelt component in a ``--set`` path, ``compare --only`` globs with
+character classes as the docs write them."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from cosim.analysis import charts
+from cosim.analysis.compare import common_names, matches
+from cosim.cli import main
+from cosim.scenario import load
+from cosim.trace.traces import Trace, read_trace, trace_writer
+
+SCENES = Path(__file__).resolve().parents[1] / "scenarios"
+
+
+def test_vw_compares_run_chart_draws_every_recorded_variable():
+    """The issue's measurement: vw_compare.png lacked the multibody half (panels beyond 24 dropped)."""
+    scene = load(SCENES / "vw_compare.yaml")
+    panels = charts.run_panels(scene.outputs, {})
+    drawn = [n for p in panels for n, _ in p.lines]
+    assert len(panels) > 24 and sorted(drawn) == sorted(scene.outputs)
+    assert any(n.startswith("multibody.") for n in drawn)
+
+
+def test_a_chart_of_many_panels_is_one_taller_page(tmp_path, monkeypatch):
+    names = [f"block_{chr(97 + i // 26)}{chr(97 + i % 26)}.v" for i in range(30)]
+    t = np.linspace(0, 1, 11)
+    tr = Trace(["time", *names], np.column_stack([t, *[t * k for k in range(30)]]))
+    seen = {}
+    real = charts._save
+    monkeypatch.setattr(charts, "_save", lambda fig, path: seen.setdefault("fig", fig) and real(fig, path))
+    charts.plot_run(tr, tmp_path / "many.png", "many", units={n: "m" for n in names})
+    axes = [ax for ax in seen["fig"].axes if ax.get_visible()]
+    assert len(axes) == 30 and all(ax.get_ylabel() == "[m]" for ax in axes)
+    assert (tmp_path / "many.png").stat().st_size > 0
+
+
+def test_batch_trace_plots_carry_the_unit(tmp_path, monkeypatch):
+    from cosim.batch import report
+
+    for rid, k in (("a1", 1.0), ("b2", 2.0)):
+        ob = trace_writer(tmp_path / "runs" / rid / "s.csv")
+        ob.start(["time", "m.x"], {"units": {"m.x": "m"}})
+        ob.record(np.array([[0.0, 0.0], [1.0, k]]))
+        ob.finish("ok", "", {})
+    assert read_trace(tmp_path / "runs" / "a1" / "s.csv").meta["units"] == {"m.x": "m"}
+    seen = {}
+    monkeypatch.setattr(report, "_save", lambda fig, plt, path: seen.setdefault("fig", fig))
+    rows = [{"run_id": "a1", "outcome": "ok"}, {"run_id": "b2", "outcome": "ok"}]
+    report.plot_traces(tmp_path, rows, "m.x", "all", None, [], tmp_path / "p.png")
+    assert seen["fig"].axes[0].get_ylabel() == "m.x [m]"
+
+
+def test_a_misspelt_component_in_a_set_path_gets_the_closest_name(capsys):
+    code = main(["run", str(SCENES / "pid_step.yaml"), "--set", "components.pdi1.params.Kp=40", "--check"])
+    err = capsys.readouterr().err
+    assert code == 2 and "the scene has no component 'pdi1'; did you mean 'pid1'?" in err
+    assert "needs 'model:'" not in err and "Traceback" not in err
+
+
+def test_a_new_component_set_whole_is_still_allowed():
+    scene = load(SCENES / "pid_step.yaml", ["components.extra={model: pid}", "components.extra.params.Kp=3"])
+    assert scene.components["extra"].params["Kp"] == 3
+
+
+@pytest.mark.parametrize("pattern, hits", [
+    ("mech.platform.[xy]", ["mech.platform.x", "mech.platform.y"]),  # the issue's pattern
+    ("mech.platform.*", ["mech.platform.x", "mech.platform.y", "mech.platform.phi"]),
+    ("mech.leg[1].s", ["mech.leg[1].s"]), ("mech.leg[*].s", ["mech.leg[1].s", "mech.leg[2].s"]),
+])
+def test_only_patterns_work_as_documented(pattern, hits):
+    names = ["mech.platform.x", "mech.platform.y", "mech.platform.phi", "mech.leg[1].s", "mech.leg[2].s"]
+    assert [n for n in names if matches(n, pattern)] == hits
+    tr = Trace(["time", *names], np.zeros((2, 6)))
+    assert common_names(tr, tr, [pattern]) == hits
+
+
+def test_version(capsys):
+    """``rpr-cosim --version`` (issue 32, item 11) prints the version pyproject.toml declares."""
+    import re
+
+    with pytest.raises(SystemExit) as done:
+        main(["--version"])
+    declared = re.search(r'^version = "([^"]+)"', (SCENES.parent / "pyproject.toml").read_text(), re.M).group(1)
+    assert done.value.code == 0 and capsys.readouterr().out.strip() == f"rpr-cosim {declared}"
+
+
+def test_every_folder_of_sources_shipped_is_a_listed_package():
+    """setuptools warns a wall of text for a folder of package data that Python could import
+    ('hardware.c' is absent from packages): every such folder of ours is listed."""
+    import tomllib
+
+    conf = tomllib.loads((SCENES.parent / "pyproject.toml").read_text())["tool"]["setuptools"]
+    listed = set(conf["packages"]["find"]["include"])
+    for folder in ("fmus/c", "hardware/c"):
+        assert folder.replace("/", ".") in listed and folder.replace("/", ".") in conf["package-data"]
+
+
+#: The terms a run summary prints (its fixed words: status, verdict, table headers, labels) -> the
+#: glossary entry that explains each.
+SUMMARY_TERMS = {"master chose": "choice", "pilot run": "pilot run", "compiled loop": "compiled loop",
+                 "real-time factor": "real-time factor", "build": "build", "init": "init",
+                 "estimated worst error": "error estimate", "of range": "range", "companion run": "companion run",
+                 "verdict": "verdict", "doStep": "doStep", "us/step": "doStep", "share": "doStep",
+                 "final values": "final values", "trace": "trace", "scene hash": "scene hash", "status": "status",
+                 "inaccurate": "status", "tolerance": "tolerance"}
+
+
+def test_every_term_a_summary_prints_is_in_the_glossary(tmp_path, cache, capsys):
+    """Issue 32, item 8: a run that chooses (pilots, companion) and a named one judged inaccurate;
+    each term of :data:`SUMMARY_TERMS` is in what they print and has a glossary entry."""
+    gloss = (SCENES.parent / "docs" / "reference" / "glossary.md").read_text().lower()
+    main(["run", str(SCENES / "pid_step.yaml"), "--set", "stop_time=0.05", "--out", str(tmp_path / "a"),
+          "--cache", str(cache)])
+    main(["run", str(SCENES / "pid_step.yaml"), "--set", "stop_time=0.05", "--set", "master.algorithm=gauss_seidel",
+          "--out", str(tmp_path / "b"), "--cache", str(cache)])
+    printed = capsys.readouterr()
+    text = (printed.out + printed.err).lower()
+    for term in SUMMARY_TERMS:
+        if term in ("scene hash", "status"):
+            continue  # printed as [digits] and as the status itself
+        assert term.lower() in text, term
+    for term, entry in SUMMARY_TERMS.items():
+        assert f"**{entry.lower()}" in gloss and term.lower() in gloss, (term, entry)
+
+
+def test_the_fast_gif_draws_every_frame(tmp_path):
+    """Issue 32, item 11: frames blitted on a background rendered once, captions by Pillow: the
+    frame count and timing asked for, the legs (green) and the platform (orange) in the last
+    frame, and between the first and the last frame only the moving part changed (the speed is
+    benchmarks/bench_main_job.py's)."""
+    from PIL import Image
+
+    from cosim.analysis import animate as anim
+
+    t = np.linspace(0.0, 1.0, 201)
+    tr = Trace(["time", "mech.platform.x", "mech.platform.y", "mech.platform.phi"],
+               np.column_stack([t, -0.15 - 0.05 * t, -0.15 + 0.02 * t, 0.2 * t]))
+    path = anim.animate(tr, tmp_path / "a.gif", fps=10)
+    gif = Image.open(path)
+    assert gif.n_frames == 11 and gif.info["duration"] == 100 and gif.info.get("loop") == 0
+    first = np.asarray(gif.convert("RGB"), dtype=int)
+    gif.seek(10)
+    last = np.asarray(gif.convert("RGB"), dtype=int)
+    assert last.shape[:2] == (416, 416)
+    green = (np.abs(last - np.array([44, 160, 44])).sum(axis=2) < 60).sum()  # tab:green legs
+    orange = (np.abs(last - np.array([255, 166, 87])).sum(axis=2) < 90).sum()  # tab:orange at alpha 0.7
+    assert green > 300 and orange > 300, (green, orange)
+    moved = (np.abs(first - last).sum(axis=2) > 60).mean()
+    assert 0.005 < moved < 0.2, moved  # the platform moved and the rest stayed
+
+
+def test_fmu_show_lists_what_each_option_choice_adds(capsys):
+    """Issue 32, item 9: the tutorial's oscillator uses x_in and kc (coupling: spring), which
+    ``fmu show oscillator`` (the default coupling: none) did not list; the variants are compared
+    with the blocks made at each choice."""
+    from models import blocks
+
+    assert main(["fmu", "show", "oscillator"]) == 0
+    out = capsys.readouterr().out
+    spring = blocks.make("oscillator", "linear", coupling="spring")
+    line = next(ln for ln in out.splitlines() if ln.strip().startswith("coupling=spring:"))
+    for v in spring.inputs:
+        if v.name in ("x_in", "v_in"):
+            assert f"+ input {v.name} [{v.unit}]" in line
+    assert "+ parameter kc [N/m]" in line
+    from cosim.analysis.model_doc import catalog_markdown
+
+    assert "`coupling=spring`: + input x_in [m]" in catalog_markdown()  # the catalog reference page too
