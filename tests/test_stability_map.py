@@ -175,7 +175,11 @@ def test_precision_study_observes_the_theoretical_coupling_order(two_mass_precis
     (the coupling error dominates: each slave's RK4 with 40 substeps is far more accurate)."""
     assert two_mass_precision.order(variant) == pytest.approx(order, abs=0.3)
     rows = [r for r in two_mass_precision.rows if (r.algorithm, r.inputs) == variant]
-    assert all(r.status == "ok" for r in rows) and all(a.worst > b.worst for a, b in zip(rows, rows[1:]))
+    assert all(a.worst > b.worst for a, b in zip(rows, rows[1:]))
+    # every step ran its whole span; a row is "inaccurate" exactly where its error against the
+    # reference is over 10x the scene's tolerance (1e-3), the verdict a run's own estimate gives
+    assert all(r.status == ("inaccurate" if r.worst > 10 * 1e-3 else "ok") for r in rows), \
+        [(r.step, r.status, r.worst) for r in rows]
 
 
 def test_precision_study_cheapest_within_tolerance(two_mass_precision):

@@ -246,8 +246,9 @@ def _tolerance_search(scene: Scene, alg: str, inputs: str, tol: float, trial, fa
     better than 1/1.5 of the last, the largest step limits the error as well (ecco's steps at
     ``h_max`` in a quiet stretch), and from then on each pilot also shrinks ``h_max`` by the order
     ``p`` of the step's coupling.  When none meets the tolerance, the closest pilot is the run."""
-    rtol, h_max = tol * FIRST_RTOL.get(alg, 1.0), None
-    shared = rtol * FIRST_COMPANION  # the first pilot's companion, also every later pilot's it can measure
+    floor = _lower(alg, "rtol")  # a tolerance far below the rtol's range: the pilots meet it by h_max
+    rtol, h_max = max(tol * FIRST_RTOL.get(alg, 1.0), floor), None
+    shared = max(rtol * FIRST_COMPANION, floor)  # the first pilot's companion, also every later pilot's it can measure
     tried: list[tuple[float, float, float | None]] = []  # (estimate, rtol, h_max)
     for _ in range(MAX_PILOTS if piloted else 0):
         crtol = shared if shared <= REUSE * rtol else None
@@ -260,12 +261,12 @@ def _tolerance_search(scene: Scene, alg: str, inputs: str, tol: float, trial, fa
             return rtol, h_max, True, e
         tried.append((e, rtol, h_max))
         last = tried[-2] if len(tried) > 1 else None
-        if h_max is not None or (last is not None and last[1] >= 3 * rtol and last[0] < 1.5 * e):
+        if h_max is not None or rtol <= floor or (last is not None and last[1] >= 3 * rtol and last[0] < 1.5 * e):
             h_max = (h_max or _default(alg, "h_max")) * min(0.9, max(0.1, factor(e, p)))
         nxt = rtol * min(30.0, max(1 / 30, factor(e, ORDER_TOLERANCE)))
         if nxt < shared / REUSE <= rtol and e * (shared / REUSE / rtol) ** ORDER_TOLERANCE <= LOOSER * tol:
             nxt = shared / REUSE  # aiming a little higher spares a companion run
-        rtol = nxt
+        rtol = max(nxt, floor)
     if not tried:
         return rtol, h_max, False, None
     e, rtol, h_max = min(tried, key=lambda x: x[0])
@@ -274,6 +275,10 @@ def _tolerance_search(scene: Scene, alg: str, inputs: str, tol: float, trial, fa
 
 def _default(alg: str, option: str) -> float:
     return next(o.default for o in ALGORITHMS[alg].options if o.name == option)
+
+
+def _lower(alg: str, option: str) -> float:
+    return next(o.lower for o in ALGORITHMS[alg].options if o.name == option)
 
 
 def applied(scene: Scene, choice: dict) -> Scene:

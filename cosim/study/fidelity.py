@@ -242,7 +242,7 @@ def resolve_auto(tree: Any, path: Path, *, cache_dir: Path | None = None,
     if choice is None:
         if log:
             log(f"[fidelity] {path.name}: studying fidelity levels for 'auto' (tolerance {tol:g}); cached afterwards")
-        study = _study_tree(tree, path, cache_dir, tol)
+        study = _study_tree(tree, path, cache_dir)  # the scene's own master tolerance (a 10x tighter one cannot be met at 1e-6)
         best = study.cheapest_within(tol)
         if best is None:
             best = study.rows[0]
