@@ -31,8 +31,9 @@ TRACE_ENV = "RPR_COSIM_MAX_TRACE"
 MAX_JSON_DEPTH = 64
 
 
-def byte_limit(env: str, default: int) -> int:
-    """``$env`` as a number of bytes (``2GB`` style accepted), else ``default``."""
+def byte_limit(env: str, default: int, unit: str = "bytes (e.g. 2GB)") -> int:
+    """``$env`` as a number of bytes (``2GB`` style accepted), else ``default``; ``unit`` names
+    what is counted in the message for a bad value."""
     raw = os.environ.get(env, "").strip()
     if not raw:
         return default
@@ -43,7 +44,7 @@ def byte_limit(env: str, default: int) -> int:
     except ValueError:
         n = 0
     if n < 1:
-        raise UserError(f"${env}: expected a positive number of bytes (e.g. 2GB), got {raw!r}")
+        raise UserError(f"${env}: expected a positive number of {unit}, got {raw!r}")
     return n
 
 

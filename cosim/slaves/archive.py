@@ -5,11 +5,11 @@ extracting a byte).  The same check serves ``fmu check``, ``run`` (the FMU's unp
 the SSP reader."""
 from __future__ import annotations
 
-import os
 import zipfile
 from pathlib import Path
 
 from ..errors import UserError
+from ..readers import byte_limit
 
 #: Defaults: most members and uncompressed bytes of one archive (a generated FMU of this project
 #: has ~10 members and ~1 MB; FMUs of other tools rarely exceed 100 MB).
@@ -22,23 +22,7 @@ BYTES_ENV = "RPR_COSIM_MAX_ARCHIVE_BYTES"
 def limits() -> tuple[int, int]:
     """(members, uncompressed bytes) an archive may have: ``$RPR_COSIM_MAX_ARCHIVE_MEMBERS`` and
     ``$RPR_COSIM_MAX_ARCHIVE_BYTES`` (a number, or e.g. ``2GB``), else the defaults."""
-    out = []
-    for env, default in ((MEMBERS_ENV, MAX_MEMBERS), (BYTES_ENV, MAX_BYTES)):
-        raw = os.environ.get(env, "").strip()
-        if not raw:
-            out.append(default)
-            continue
-        text = raw.upper().rstrip("B")
-        scale = 1000 ** " KMGT".index(text[-1]) if text and text[-1] in "KMGT" else 1
-        try:
-            n = int(float(text[:-1] if scale > 1 else text) * scale)
-        except ValueError:
-            n = 0
-        if n < 1:
-            raise UserError(f"${env}: expected a positive number{' of bytes (e.g. 2GB)' if env == BYTES_ENV else ''}, "
-                            f"got {raw!r}")
-        out.append(n)
-    return out[0], out[1]
+    return byte_limit(MEMBERS_ENV, MAX_MEMBERS, "members"), byte_limit(BYTES_ENV, MAX_BYTES)
 
 
 def _human(n: int) -> str:
