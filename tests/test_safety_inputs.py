@@ -325,7 +325,7 @@ def runs(tmp_path_factory):
                        ("kc", ["stop_time=0.2", "components.mass2.params.kc=50"]),
                        ("step", ["stop_time=0.2", "master.step=5e-3"])):
         args = ["run", str(TWO_MASS), "--out", str(root / name), "--set", "master.algorithm=gauss_seidel",
-                "--set", "master.step=1e-3"]
+                "--set", "master.step=1e-3", "--set", "master.tolerance=none"]  # no verdict: not about accuracy
         for s in sets:
             args += ["--set", s]
         assert cli.main(args) in (0, 1)
