@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 
 from cosim.cli import main
-from fmus.model_description import check_names, parse_unit
+from fmus.names import check_names, parse_unit
 from models import blocks
 from models.block import BlockError
 from models.units import compose, scaled

@@ -227,6 +227,8 @@ def _reference(scene, res, out: Path, plot: bool, trace_format: str = "csv"):
 def _motion_checks(scene, args: argparse.Namespace) -> bool:
     """Check every planned task of the scene before it runs (:mod:`models.motion_check`); print
     the result of each, and each refusal as one line.  True when a motion is refused."""
+    if not any(c.model == "task_trajectory" for c in scene.components.values()):
+        return False  # no planned task: the planners (CasADi, toppra) stay unimported
     from ..analysis.task_report import scene_motion_checks
 
     refused = False

@@ -14,7 +14,7 @@ from ..slaves.types import TYPES, display, parse_start
 from ..slaves.description import INTERFACES, Variable, describe_block, describe_fmu, resolve_shapes
 from fmus.errors import BuildError
 from fmus.index import source_digest
-from fmus.model_description import check_names
+from fmus.names import check_names
 
 from .catalog import default_catalog, make_block
 from .checker import Checker, _is_number

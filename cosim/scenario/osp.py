@@ -146,13 +146,13 @@ def root_tag(path: Path) -> str | None:
     UTF-8, UTF-16 with its byte order mark, a declared one; any length of prolog, comments and
     processing instructions before it), read up to that element only; None when ``path`` is not
     a ``.xml`` regular file within the size limit (:mod:`cosim.readers`) or not XML."""
+    if Path(path).suffix.lower() != ".xml":
+        return None
     from lxml import etree
 
     from ..errors import UserError
     from ..readers import open_regular
 
-    if Path(path).suffix.lower() != ".xml":
-        return None
     try:
         with open_regular(path, "XML file") as fh:
             for _, el in etree.iterparse(fh, events=("start",), resolve_entities=False, no_network=True,
