@@ -15,7 +15,7 @@ import numpy as np
 from ..errors import UserError
 from ..slaves.slave import FAILING, Status
 from .graph import gauss_seidel_order
-from .stepper import Outcome
+from .stepper import Outcome, StepResult
 from .system import CoupledSystem
 
 _ns = time.perf_counter_ns
@@ -305,8 +305,6 @@ class Algorithm(MasterAlgorithm, Outcome, ABC):
         ends = {i: slaves[i].step_end() for i in self.event_slaves if i not in self._ahead}
         tol = 1e-12 * (1.0 + abs(t_end))
         early = sorted((r, i) for i, (r, _) in ends.items() if r < t + h - tol)
-        from .stepper import StepResult
-
         if not early:
             self.k, self.t_event, self._events_in_step = self.k + 1, None, 0
             self._ahead.clear()

@@ -29,15 +29,12 @@ import time
 from abc import ABC, abstractmethod
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
+from typing import Any
 
 import numpy as np
 
 from ..trace.observer import Observer
 from .system import CoupledSystem
-
-if TYPE_CHECKING:
-    from .algorithm import Algorithm
 
 
 @dataclass
@@ -198,7 +195,8 @@ class FixedStepper(Stepper):
     :class:`cosim.master.iterative_engine.CompiledIterative`), :meth:`Stepper.python_block` over
     :meth:`Algorithm.step` otherwise; ``n_steps`` macro steps, every ``record_every``-th point recorded."""
 
-    def __init__(self, alg: "Algorithm", runner: Callable[[int, int, np.ndarray], int] | None, n_steps: int,
+    def __init__(self, alg: Any,  # a cosim.master.algorithm.Algorithm (which imports this module)
+                 runner: Callable[[int, int, np.ndarray], int] | None, n_steps: int,
                  record_every: int):
         super().__init__(alg.system, "python" if runner is None else "compiled", alg)
         self.alg, self.runner = alg, runner
