@@ -196,7 +196,7 @@ def choose(scene: Scene, pilot: Callable[[Scene, float | None], object] | None, 
     met = False
     p = ORDER_LINEAR if inputs == "linear" else ORDER_HOLD
     if getattr(cls, "variable_step", False):
-        rtol, h_max, met, last = _tolerance_search(scene, alg, inputs, tol, trial, factor, p, bool(pilot))
+        rtol, h_max, met, last = _tolerance_search(scene, choice, trial, factor, p, bool(pilot))
         choice.settings["rtol"] = rtol
         if h_max is not None:
             choice.settings["h_max"] = h_max
@@ -238,14 +238,16 @@ def choose(scene: Scene, pilot: Callable[[Scene, float | None], object] | None, 
     return with_step(scene, alg, inputs, h_ns), choice
 
 
-def _tolerance_search(scene: Scene, alg: str, inputs: str, tol: float, trial, factor, p: float,
+def _tolerance_search(scene: Scene, choice: Choice, trial, factor, p: float,
                       piloted: bool) -> tuple[float, float | None, bool, float | None]:
     """(rtol, h_max or None for the algorithm's, met, the estimate of the pilot that is the run)
     for a variable-step ``alg`` (module docstring): pilots over the whole run, the first one's
     companion shared while it can measure; when a pilot at a 3x tighter rtol is estimated no
     better than 1/1.5 of the last, the largest step limits the error as well (ecco's steps at
     ``h_max`` in a quiet stretch), and from then on each pilot also shrinks ``h_max`` by the order
-    ``p`` of the step's coupling.  When none meets the tolerance, the closest pilot is the run."""
+    ``p`` of the step's coupling.  When none meets the tolerance, the closest pilot is the run.
+    The algorithm, its inputs and the tolerance are the ``choice``'s."""
+    alg, inputs, tol = choice.algorithm, choice.settings["inputs"], choice.tolerance
     floor = _lower(alg, "rtol")  # a tolerance far below the rtol's range: the pilots meet it by h_max
     rtol, h_max = max(tol * FIRST_RTOL.get(alg, 1.0), floor), None
     shared = max(rtol * FIRST_COMPANION, floor)  # the first pilot's companion, also every later pilot's it can measure

@@ -48,6 +48,14 @@ class EventLog:
             self.items.append((t, name))
 
 
+@dataclass(frozen=True)
+class Tolerances:
+    """The solver's relative and absolute tolerances (``rtol``, ``atol`` [state units])."""
+
+    rtol: float
+    atol: float
+
+
 class EventReferenceError(RuntimeError):
     """The reference could not go on (chattering, an event iteration that does not end)."""
 
@@ -95,11 +103,13 @@ def _iterate(model: _Model, fired: list, t: float, x, m, log: EventLog):
                               f"({', '.join(e.name for e in fired)} keep firing)")
 
 
-def integrate(comp: Composite, signals: ca.Function, grid: np.ndarray, rtol: float, atol: float,
+def integrate(comp: Composite, signals: ca.Function, grid: np.ndarray, tol: Tolerances,
               record: Callable[[np.ndarray], bool], deadline: float = math.inf) -> tuple[EventLog, float]:
-    """Integrate ``comp`` over ``grid`` (output instants from 0), calling ``record(rows)`` with rows
-    ``[t, signals...]`` (the grid's rows and two per event) until it returns False; returns the
-    event log and the time reached."""
+    """Integrate ``comp`` over ``grid`` (output instants from 0) at the tolerances ``tol``, calling
+    ``record(rows)`` with rows ``[t, signals...]`` (the grid's rows and two per event) until it
+    returns False; returns the event log and the time reached (``deadline``: a
+    :func:`time.perf_counter` value past which it raises :class:`TimeoutError`)."""
+    rtol, atol = tol.rtol, tol.atol
     model = _Model(comp, signals)
     log = EventLog()
     x, m = np.array(comp.x0, dtype=float).ravel(), np.array(comp.m0, dtype=float).ravel()

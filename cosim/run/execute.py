@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 from typing import Any
 
@@ -46,6 +46,21 @@ class RunRequest:
     call_timeout: float | None = None
     progress: Callable[[int, int], None] | None = None
     log: Callable[[str], None] = _quiet
+
+    @classmethod
+    def of(cls, overrides: Mapping[str, Any] | Sequence[str] | None, base: "RunRequest | None",
+           options: Mapping[str, Any]) -> "RunRequest":
+        """The request of ``run(scene, overrides, request=base, **options)``: ``base`` (default: all
+        defaults) with ``overrides`` (when given) and the keyword ``options`` (field names) set;
+        a keyword that is no field is a :class:`TypeError` naming it, as a misspelt argument is."""
+        unknown = sorted(set(options) - {f.name for f in fields(cls)})
+        if unknown:
+            raise TypeError(f"run() got unexpected keyword argument(s) {', '.join(unknown)}; "
+                            f"expected some of {', '.join(f.name for f in fields(cls))}")
+        changes = {**options, **({"overrides": overrides} if overrides is not None else {})}
+        if changes.get("log", _quiet) is None:
+            changes["log"] = _quiet
+        return replace(base or cls(), **changes)
 
     @property
     def override_list(self) -> list:
@@ -212,11 +227,7 @@ def check_trace_size(scene: Scene, max_trace_bytes: int | str | None = None) -> 
 
 
 def run(scene: Scene | str | Path, overrides: Mapping[str, Any] | Sequence[str] | None = None, *,
-        out_dir: Path | None = None, catalog=None, cache_dir: Path | None = None,
-        progress: Callable[[int, int], None] | None = None, log: Callable[[str], None] | None = None,
-        engine: str | None = None, slaves: Sequence[Slave] | None = None,
-        max_trace_bytes: int | str | None = None, auto_fidelity=None, trace_format: str = "csv",
-        call_timeout: float | None = None) -> RunResult:
+        slaves: Sequence[Slave] | None = None, request: RunRequest | None = None, **options: Any) -> RunResult:
     """Run a scene.
 
     Parameters
@@ -224,6 +235,9 @@ def run(scene: Scene | str | Path, overrides: Mapping[str, Any] | Sequence[str] 
     scene : a validated :class:`Scene` or the path of a scene file.
     overrides : ``--set`` style overrides (mapping path -> value, or ``"path=value"`` strings);
         with a :class:`Scene` they are applied by reloading its file.
+    slaves : ready slaves in scene order instead of FMUs built from the scene (non-FMU slaves).
+    request : a whole :class:`RunRequest` (its ``overrides`` are used when ``overrides`` is None);
+        else the keyword ``options`` below are its fields.
     out_dir : write ``<name>.csv`` (streamed) and ``<name>.json`` (sidecar) there.
     trace_format : ``"csv"`` (plain, the default), ``"commented-csv"`` or ``"parquet"``
         (``<name>.parquet``), see :mod:`cosim.trace.traces`.
@@ -232,7 +246,6 @@ def run(scene: Scene | str | Path, overrides: Mapping[str, Any] | Sequence[str] 
     progress : called as ``progress(steps_done, steps_total)`` during the run.
     log : one-line messages about building FMUs.
     engine : overrides ``master.engine`` (auto | compiled | python).
-    slaves : ready slaves in scene order instead of FMUs built from the scene (non-FMU slaves).
     max_trace_bytes : refuse a run whose trace would be larger (default ``$RPR_COSIM_MAX_TRACE``
         or 4 GB; a number of bytes or a text such as ``"20GB"``).
     auto_fidelity : how ``fidelity: auto`` is resolved when loading (see :func:`cosim.scenario.load`;
@@ -254,9 +267,9 @@ def run(scene: Scene | str | Path, overrides: Mapping[str, Any] | Sequence[str] 
     from ..interrupts import signals_as_interrupts
     from ..outputs import OutputLock, check_out_dir
 
-    request = RunRequest(overrides, out_dir, trace_format, engine, cache_dir, catalog, auto_fidelity, max_trace_bytes,
-                         call_timeout, progress, log or _quiet)
-    trace_suffix(trace_format)  # an unknown format is one line before anything runs
+    request = RunRequest.of(overrides, request, options)
+    out_dir = request.out_dir
+    trace_suffix(request.trace_format)  # an unknown format is one line before anything runs
     if out_dir is None:
         with signals_as_interrupts():
             return _as_chosen(_run(scene, request, slaves))

@@ -20,7 +20,9 @@ import sys
 import threading
 import time
 from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import casadi as ca
 import numpy as np
@@ -149,11 +151,23 @@ def _param_vector(block: Block, values: Mapping[str, float], name: str,
     return out
 
 
-def reference(scene: Scene | str | Path, overrides=None, *, out_dir: Path | None = None,
-              rtol: float = RTOL, atol: float = ATOL,
-              progress: Callable[[int, int], None] | None = None, max_wall_s: float = MAX_WALL_S,
-              max_steps: int = MAX_STEPS, log: Callable[[str], None] | None = None,
-              times: Sequence[float] | None = None, trace_format: str = "csv", guarded: bool = True) -> RunResult:
+@dataclass(frozen=True)
+class ReferenceRequest:
+    """What a reference is asked for besides the scene (see :func:`reference` for each field)."""
+
+    out_dir: Path | None = None
+    rtol: float = RTOL
+    atol: float = ATOL
+    progress: Callable[[int, int], None] | None = None
+    max_wall_s: float = MAX_WALL_S
+    max_steps: int = MAX_STEPS
+    log: Callable[[str], None] | None = None
+    times: Sequence[float] | None = None
+    trace_format: str = "csv"
+    guarded: bool = True
+
+
+def reference(scene: Scene | str | Path, overrides=None, **options: Any) -> RunResult:
     """Integrate the scene's monolithic ODE over ``[0, stop_time]`` and record the scene's outputs
     at its output instants, or at ``times`` [s] when given (increasing, from 0: e.g. the irregular
     instants of a variable-step run, so that comparing with it needs no interpolation); the trace goes to ``out_dir/<name>_reference.csv`` (``.parquet`` with
@@ -163,20 +177,21 @@ def reference(scene: Scene | str | Path, overrides=None, *, out_dir: Path | None
     statistics keep the count (``solver_messages``).  The scene's guards hold the reference to
     the same limits as its runs (a runaway truth ends ``out_of_limits``/``unstable``, cut at the
     offending row); ``guarded=False`` integrates the maths alone, for a study's ruler, whose
-    runs are guarded themselves."""
+    runs are guarded themselves.  The keyword ``options`` are the fields of
+    :class:`ReferenceRequest` (``out_dir``, ``rtol``, ``atol``, ``progress``, ``max_wall_s``,
+    ``max_steps``, ``log``, ``times``, ``trace_format``, ``guarded``)."""
     from ..interrupts import signals_as_interrupts
     from ..outputs import OutputLock, check_out_dir
 
+    req = ReferenceRequest(**options)
     if not isinstance(scene, Scene):
         scene = load(scene, overrides)
-    if out_dir is None:
+    if req.out_dir is None:
         with signals_as_interrupts():
-            return _reference(scene, None, rtol, atol, progress, max_wall_s, max_steps, log, times, trace_format,
-                              guarded)
-    check_out_dir(out_dir)
-    with signals_as_interrupts(), OutputLock(out_dir, log=log):
-        return _reference(scene, out_dir, rtol, atol, progress, max_wall_s, max_steps, log, times, trace_format,
-                          guarded)
+            return _reference(scene, req)
+    check_out_dir(req.out_dir)
+    with signals_as_interrupts(), OutputLock(req.out_dir, log=req.log):
+        return _reference(scene, req)
 
 
 def _output_instants(scene: Scene, times: Sequence[float] | None) -> tuple[np.ndarray, bool]:
@@ -190,11 +205,12 @@ def _output_instants(scene: Scene, times: Sequence[float] | None) -> tuple[np.nd
     return grid, False
 
 
-def _reference(scene, out_dir, rtol, atol, progress, max_wall_s, max_steps, log, times=None,
-               trace_format="csv", guarded=True) -> RunResult:
+def _reference(scene: Scene, req: ReferenceRequest) -> RunResult:
     comp = composite(scene)
     if comp.has_events:
-        return _event_reference(scene, comp, out_dir, rtol, atol, max_wall_s, log, times, trace_format, guarded)
+        return _event_reference(scene, comp, req)
+    out_dir, rtol, atol, progress, log, times = req.out_dir, req.rtol, req.atol, req.progress, req.log, req.times
+    max_wall_s, max_steps, trace_format, guarded = req.max_wall_s, req.max_steps, req.trace_format, req.guarded
     dt = scene.master.record_every * scene.master.step
     grid, regular = _output_instants(scene, times)
     n_out = len(grid) - 1
@@ -323,11 +339,13 @@ def _reference(scene, out_dir, rtol, atol, progress, max_wall_s, max_steps, log,
     return RunResult(scene, status, reason, memory.trace, stats, {}, trace_path, 0.0)
 
 
-def _event_reference(scene, comp, out_dir, rtol, atol, max_wall_s, log, times, trace_format, guarded) -> RunResult:
+def _event_reference(scene: Scene, comp: Composite, req: ReferenceRequest) -> RunResult:
     """The reference of a scene whose blocks have events (:mod:`.event_reference`): the output grid
     plus two rows at each event; the sidecar's ``events`` lists them (time and block.event)."""
-    from .event_reference import EventReferenceError, integrate
+    from .event_reference import EventReferenceError, Tolerances, integrate
 
+    out_dir, rtol, atol, max_wall_s, log = req.out_dir, req.rtol, req.atol, req.max_wall_s, req.log
+    times, trace_format, guarded = req.times, req.trace_format, req.guarded
     grid, _ = _output_instants(scene, times)
     names = [tuple(o.split(".", 1)) for o in scene.outputs]
     guard = scene_guard(scene) if guarded else None
@@ -353,7 +371,7 @@ def _event_reference(scene, comp, out_dir, rtol, atol, max_wall_s, log, times, t
     t0 = time.perf_counter()
     status, reason, reached, events = "ok", "", 0.0, None
     try:
-        events, reached = integrate(comp, signals, grid, rtol, atol, record, t0 + max_wall_s)
+        events, reached = integrate(comp, signals, grid, Tolerances(rtol, atol), record, t0 + max_wall_s)
     except TimeoutError as exc:
         status, reason = "failed", f"the reference reached its wall-time cap of {max_wall_s:g} s at {exc}"
     except EventReferenceError as exc:
@@ -376,4 +394,4 @@ def _event_reference(scene, comp, out_dir, rtol, atol, max_wall_s, log, times, t
     return RunResult(scene, status, reason, memory.trace, stats, {}, trace_path, 0.0)
 
 
-__all__ = ["composite", "reference", "RTOL", "ATOL"]
+__all__ = ["composite", "reference", "ReferenceRequest", "RTOL", "ATOL"]

@@ -305,6 +305,7 @@ class Server:
         from ..slaves import fmu
 
         self.buf = crumb.shared()
+        self._handle, self._on_start, self._on_exit = handle, on_start, on_exit
         down_r, self._down = os.pipe()
         self._up, up_w = os.pipe()
         sys.stdout.flush()
@@ -313,7 +314,7 @@ class Server:
         if self.pid == 0:  # pragma: no cover - the child never returns
             os.close(self._down)
             os.close(self._up)
-            self._serve(handle, on_start, on_exit, down_r, up_w, set(fmu._UNZIPPED))
+            self._serve(down_r, up_w, set(fmu._UNZIPPED))
         os.close(down_r)
         os.close(up_w)
         self._open = True
@@ -326,7 +327,9 @@ class Server:
     def _whole(cls, data: bytearray) -> bool:
         return len(data) >= cls._HEADER and len(data) >= cls._HEADER + int.from_bytes(data[:cls._HEADER], "little")
 
-    def _serve(self, handle, on_start, on_exit, down: int, up: int, inherited: set) -> None:
+    def _serve(self, down: int, up: int, inherited: set) -> None:
+        """The child's loop: requests read from ``down``, answers written to ``up``."""
+        handle, on_start, on_exit = self._handle, self._on_start, self._on_exit
         code = 0
         try:
             _become_child(self.buf)

@@ -227,13 +227,14 @@ class ConnectionChecks(Checker):
                                           f"scene; it keeps its default start value {start if start is not None else 0.0}")
 
     def algebraic_loops(self, comps: dict[str, Component], conns: list[Connection], algorithm: str | None = None) -> None:
-        if getattr(ALGORITHMS.get(algorithm), "solves_algebraic_loops", False):
+        cls = ALGORITHMS.get(algorithm)  # None: no algorithm named (auto), or one unknown (reported elsewhere)
+        if cls is not None and cls.solves_algebraic_loops:
             return  # the algorithm iterates each step to a consistent solution of the loop
         cyc = algebraic_loop(comps, conns)
         if cyc:
             text = " -> ".join(f"{c}.{v}" for c, v in cyc)
             first = next((c for c in conns if (c.src, c.src_var) in cyc and (c.dst, c.dst_var) in cyc), conns[0])
-            if getattr(ALGORITHMS.get(algorithm), "delays_algebraic_loops", False):
+            if cls is not None and cls.delays_algebraic_loops:
                 self.note(first.where, f"algebraic loop (a cycle of direct feedthrough): {text}; {algorithm} runs it "
                                        f"with its one-step coupling delay (each output on the loop is read at t_k "
                                        f"from inputs of t_k-1), as libcosim and FMPy do")
