@@ -11,7 +11,7 @@ from __future__ import annotations
 import importlib
 
 #: the algorithm modules, in registry order (the order of defaults such as the study's algorithms)
-MODULES = ("jacobi", "gauss_seidel", "adaptive", "ecco", "iterative")
+MODULES = ("jacobi", "gauss_seidel", "adaptive", "ecco", "iterative", "jacobi_extrapolated")
 
 for _name in MODULES:
     importlib.import_module(f"{__name__}.{_name}")
