@@ -136,8 +136,9 @@ class FmiVersion(ABC):
     input_derivatives = False  # fmi2SetRealInputDerivatives (linear inputs inside the FMU)
 
     @abstractmethod
-    def make(self, slave: "FmuSlave", guid: str, unzip: str, ident: str):
-        """The loaded and instantiated FMPy slave object."""
+    def make(self, slave: "FmuSlave", guid: str, unzip: str, ident: str, model_exchange: bool = False):
+        """The loaded and instantiated FMPy object: its co-simulation interface, or with
+        ``model_exchange`` its model-exchange one (:mod:`cosim.slaves.model_exchange`)."""
         ...
 
     @abstractmethod
@@ -193,15 +194,16 @@ class _Fmi2(FmiVersion):
     state_names = ("fmi2GetFMUstate", "fmi2SetFMUstate", "fmi2FreeFMUstate")
     input_derivatives = True
 
-    def make(self, slave, guid, unzip, ident):
-        from fmpy.fmi2 import FMU2Slave, defaultCallbacks, fmi2CallbackFunctions, fmi2CallbackLoggerTYPE
+    def make(self, slave, guid, unzip, ident, model_exchange=False):
+        from fmpy.fmi2 import FMU2Model, FMU2Slave, defaultCallbacks, fmi2CallbackFunctions, fmi2CallbackLoggerTYPE
 
         cb = fmi2CallbackFunctions()
         cb.logger = fmi2CallbackLoggerTYPE(slave._on_log2)
         cb.allocateMemory = defaultCallbacks.allocateMemory
         cb.freeMemory = defaultCallbacks.freeMemory
         slave._callbacks = cb
-        fmu = FMU2Slave(guid=guid, unzipDirectory=unzip, modelIdentifier=ident, instanceName=slave.name)
+        kind = FMU2Model if model_exchange else FMU2Slave
+        fmu = kind(guid=guid, unzipDirectory=unzip, modelIdentifier=ident, instanceName=slave.name)
         fmu.instantiate(callbacks=cb)
         return fmu
 
@@ -262,10 +264,14 @@ class _Fmi3(FmiVersion):
     state_names = ("fmi3GetFMUState", "fmi3SetFMUState", "fmi3FreeFMUState")
     configuration_mode = True
 
-    def make(self, slave, guid, unzip, ident):
-        from fmpy.fmi3 import FMU3Slave, fmi3LogMessageCallback
+    def make(self, slave, guid, unzip, ident, model_exchange=False):
+        from fmpy.fmi3 import FMU3Model, FMU3Slave, fmi3LogMessageCallback
 
         slave._log = fmi3LogMessageCallback(slave._on_log3)
+        if model_exchange:
+            fmu = FMU3Model(guid=guid, unzipDirectory=unzip, modelIdentifier=ident, instanceName=slave.name)
+            fmu.instantiate(logMessage=slave._log)
+            return fmu
         fmu = FMU3Slave(guid=guid, unzipDirectory=unzip, modelIdentifier=ident, instanceName=slave.name)
         # event mode and early return only for a run whose algorithm ends its steps at events
         fmu.instantiate(logMessage=slave._log, eventModeUsed=slave.event_mode, earlyReturnAllowed=slave.event_mode)

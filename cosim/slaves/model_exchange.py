@@ -108,23 +108,7 @@ class ModelExchangeSlave(FmuSlave):
         super().instantiate()
 
     def _make(self, guid: str, unzip: str, ident: str):
-        if self.fmi3:
-            from fmpy.fmi3 import FMU3Model, fmi3LogMessageCallback
-
-            self._log = fmi3LogMessageCallback(self._on_log3)
-            fmu = FMU3Model(guid=guid, unzipDirectory=unzip, modelIdentifier=ident, instanceName=self.name)
-            fmu.instantiate(logMessage=self._log)
-            return fmu
-        from fmpy.fmi2 import FMU2Model, defaultCallbacks, fmi2CallbackFunctions, fmi2CallbackLoggerTYPE
-
-        cb = fmi2CallbackFunctions()
-        cb.logger = fmi2CallbackLoggerTYPE(self._on_log2)
-        cb.allocateMemory = defaultCallbacks.allocateMemory
-        cb.freeMemory = defaultCallbacks.freeMemory
-        self._callbacks = cb
-        fmu = FMU2Model(guid=guid, unzipDirectory=unzip, modelIdentifier=ident, instanceName=self.name)
-        fmu.instantiate(callbacks=cb)
-        return fmu
+        return self.fmi.make(self, guid, unzip, ident, model_exchange=True)
 
     def _bind_step(self, dll) -> None:
         if self.fmi3:
