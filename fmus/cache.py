@@ -13,7 +13,7 @@ import hashlib
 import json
 import os
 import tempfile
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from pathlib import Path
 
 #: Bump when the C core, the wrapper conventions or the generated layout change meaning.
@@ -68,13 +68,18 @@ def writable_root(root: Path, warn=None) -> Path:
         return tmp
 
 
+def stream_digest(read: Callable[[int], bytes]) -> str:
+    """SHA-256 (hex) of what ``read(n)`` returns, 1 MiB at a time, until it returns nothing."""
+    h = hashlib.sha256()
+    while block := read(1 << 20):
+        h.update(block)
+    return h.hexdigest()
+
+
 def file_digest(path: Path) -> str:
     """SHA-256 (hex) of a file's bytes."""
-    h = hashlib.sha256()
     with open(path, "rb") as fh:
-        for block in iter(lambda: fh.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()
+        return stream_digest(fh.read)
 
 
 def verify(fmu: Path) -> str:

@@ -39,7 +39,7 @@ from typing import Any
 
 from models.interface import BlockError, Flange, Param, Rating, Var
 
-from .cache import EXPORTER_VERSION, atomic_write, cache_root
+from .cache import EXPORTER_VERSION, atomic_write, cache_root, stream_digest
 from .compile import compiler_identity
 
 INDEX_DIR = "index"
@@ -212,10 +212,7 @@ def source_digest(path: Path) -> str:
     try:
         if not stat.S_ISREG(os.fstat(fd).st_mode):
             return "missing"
-        h = hashlib.sha256()
-        while block := os.read(fd, 1 << 20):
-            h.update(block)
-        return h.hexdigest()
+        return stream_digest(lambda n: os.read(fd, n))
     except OSError:
         return "missing"
     finally:
