@@ -270,16 +270,6 @@ def test_fmu_check_of_both_interfaces_names_the_default_and_the_other(reference_
 PAIR_A = np.array([[-1.0, -1.0], [1.0, -2.0]])
 
 
-@pytest.fixture(scope="session")
-def lag_fmus(tmp_path_factory) -> dict[str, Path]:
-    """``{"2": Lag.fmu, "2_nostate": ..., "3": ..., "3_nostate": ...}`` (``conftest.build_lag_fmus``)."""
-    from conftest import REFERENCE_FMUS_SRC, build_lag_fmus
-
-    if not (REFERENCE_FMUS_SRC / "src" / "cosimulation.c").is_file():
-        pytest.skip(f"the Reference FMUs' source is not at {REFERENCE_FMUS_SRC} (set RPR_REFERENCE_FMUS_SRC)")
-    return build_lag_fmus(REFERENCE_FMUS_SRC, tmp_path_factory.mktemp("lag"))
-
-
 def _pair(fmu: Path, master: dict, stop: float):
     return from_dict({"name": "pair", "components": {
         "a": {"fmu": str(fmu), "params": {"k": 1.0, "g": -1.0}, "start": {"x": 1.0}},
