@@ -148,3 +148,25 @@ def test_the_sidecar_says_what_every_algorithm_does_with_events(reference_fmus, 
                            "stop_time": 0.2, "outputs": ["p.x0"],
                            "master": {"algorithm": algorithm, "step": 0.01, "estimate": False}}))
     assert plain.status == "ok" and "events" not in plain.stats, plain.reason
+
+
+
+def test_the_tolerance_choice_gives_event_mode_fmus_an_algorithm_that_ends_steps_at_events(lag_fmus, reference_fmus):
+    """A loop of two lags that can roll back: without events the choice is adaptive (which leaves
+    events inside the steps); as FMI 3.0 event-mode FMUs (tests/data/me_lag's FMI3cs.xml) it is
+    gauss_seidel with held inputs (event mode needs them), and the chosen run is in event mode."""
+    from cosim.run.choose import kind
+
+    def pair(fmu):
+        return from_dict({"name": "auto", "stop_time": 1.0, "outputs": ["a.x", "b.x"],
+                          "components": {"a": {"fmu": str(fmu), "params": {"k": 1.0, "g": -1.0}, "start": {"x": 1.0}},
+                                         "b": {"fmu": str(fmu), "params": {"k": 2.0, "g": 1.0}}},
+                          "connections": ["a.x -> b.u", "b.x -> a.u"], "master": {"tolerance": 1e-3, "step": 0.01}})
+
+    assert kind(pair(lag_fmus["3"]))[0] == "adaptive"
+    scene = pair(lag_fmus["3cs"])
+    alg, why = kind(scene)
+    assert alg == "gauss_seidel" and "a, b report events (FMI 3.0 event mode)" in why and "adaptive" in why
+    res = run(scene)
+    assert res.stats["choice"]["algorithm"] == "gauss_seidel" and res.stats["choice"]["settings"]["inputs"] == "hold"
+    assert res.stats["events"]["event_mode"] == ["a", "b"]
