@@ -398,3 +398,27 @@ def test_the_compiled_loops_step_a_model_exchange_fmu_as_the_python_loop_does(me
         assert res.status == "ok" and res.stats["engine"] == engine, res.reason
         runs[engine] = res.trace.data
     assert np.array_equal(runs["python"], runs["compiled"])
+
+
+@pytest.mark.parametrize("v", ["2", "3"])
+def test_fmu_check_flags_a_derivative_that_names_no_state(me_fmus, tmp_path, capsys, v):
+    """The standard: every derivative of <ModelStructure> names its continuous state (derivative=).
+    VanDerPol with that attribute dropped from der(x0): fmu check counts the departure."""
+    from cosim import cli
+
+    src, dst = me_fmus[f"{v}/VanDerPol"], tmp_path / "bad.fmu"
+    with zipfile.ZipFile(src) as zin, zipfile.ZipFile(dst, "w") as zout:
+        for item in zin.infolist():
+            data = zin.read(item.filename)
+            if item.filename == "modelDescription.xml":
+                xml = data.decode()
+                i = xml.index('name="der(x0)"')
+                head, tail = xml[:i], xml[i:]
+                tail = re.sub(r'\s*derivative="\d+"', "", tail, count=1)
+                data = (head + tail).encode()
+            zout.writestr(item, data)
+    assert cli.main(["fmu", "check", str(me_fmus[f"{v}/VanDerPol"])]) == 0
+    capsys.readouterr()
+    assert cli.main(["fmu", "check", str(dst)]) >= 1
+    out = capsys.readouterr()
+    assert "derivative 'der(x0)' names no state (no derivative= attribute)" in out.out
