@@ -75,8 +75,8 @@ def build_reference_fmus(src: Path, dest: Path) -> dict[str, Path]:
 def build_lag_fmus(src: Path, dest: Path) -> dict[str, Path]:
     """tests/data/me_lag (a first-order lag with an input, model exchange only) built on the
     Reference FMUs' framework of ``src`` (its include/ and src/) with the C compiler into ``dest``:
-    ``{"2": Lag.fmu, "2_nostate": ..., "3": ..., "3_nostate": ...}`` (``_nostate``: its FMU-state
-    capability removed from the XML).  Raises RuntimeError with the compiler's message."""
+    ``{"2": Lag.fmu, "2_nostate": ..., "3": ..., "3_nostate": ..., "3cs": ...}`` (``_nostate``: its
+    FMU-state capability removed from the XML; ``3cs``: FMI 3.0 co-simulation with event mode).  Raises RuntimeError with the compiler's message."""
     import re
     import zipfile
 
@@ -98,7 +98,20 @@ def build_lag_fmus(src: Path, dest: Path) -> dict[str, Path]:
                 z.writestr("modelDescription.xml", text)
                 z.write(lib, f"binaries/{'linux64' if v == '2' else 'x86_64-linux'}/Lag.so")
             fmus[f"{v}{suffix}"] = fmu
+    cs = dest / "Lag3cs.fmu"  # the same FMI 3.0 binary as a co-simulation FMU with event mode (FMI3cs.xml)
+    with zipfile.ZipFile(cs, "w") as z:
+        z.writestr("modelDescription.xml", (lag / "FMI3cs.xml").read_text())
+        z.write(dest / "Lag3.so", "binaries/x86_64-linux/Lag.so")
+    fmus["3cs"] = cs
     return fmus
+
+
+@pytest.fixture(scope="session")
+def lag_fmus(tmp_path_factory) -> dict[str, Path]:
+    """:func:`build_lag_fmus` once per session (skips without the Reference FMUs' source)."""
+    if not (REFERENCE_FMUS_SRC / "src" / "cosimulation.c").is_file():
+        pytest.skip(f"the Reference FMUs' source is not at {REFERENCE_FMUS_SRC} (set RPR_REFERENCE_FMUS_SRC)")
+    return build_lag_fmus(REFERENCE_FMUS_SRC, tmp_path_factory.mktemp("lag"))
 
 
 @pytest.fixture(scope="session")

@@ -82,6 +82,8 @@ def test_a_component_that_cannot_roll_back_gets_the_event_late_and_the_sidecar_s
     late = res.stats["events"]["late"]
     assert [(e["component"], e["event_of"]) for e in late] == [("f", "ball")]
     assert late[0]["t"] == pytest.approx(0.453) and late[0]["reached"] == pytest.approx(0.46)
+    assert res.stats["events"]["notes"] == ["f had stepped past ball's event at t = 0.453 s and cannot roll back: the "
+                                            "event reached it at the next communication point, t = 0.46 s"]
     t = res.trace.time
     # the bounce, and the FMU's second early return a step of its own later (as under FMPy)
     assert list(_events(t)) == pytest.approx([0.453, 0.454]) and np.all(np.diff(t) >= 0)
@@ -100,3 +102,71 @@ def test_run_check_says_what_the_algorithm_does_with_events(reference_fmus, tmp_
                      f"master: {{algorithm: {algorithm}, step: 0.01}}\nstop_time: 1\n")
     assert cli.main(["run", str(scene), "--check"]) == 0
     assert says in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("n,edges,first,order", [
+    (3, [(0, 1)], [2], [2, 0, 1]),  # independent of the others: first
+    (3, [(0, 1)], [1], [0, 1, 2]),  # fed by 0 without feedback: after it (stepping it first would cut 0 -> 1)
+    (2, [(0, 1), (1, 0)], [1], [1, 0]),  # a loop: either order cuts one edge, the event-reporting one first
+    (3, [(0, 1), (1, 2), (2, 0)], [], [0, 1, 2]),  # none: the fewest-cut order as before
+])
+def test_gauss_seidel_puts_event_reporting_slaves_first_where_the_coupling_allows(n, edges, first, order):
+    from cosim.master import gauss_seidel_order
+
+    assert gauss_seidel_order(n, edges, first) == order
+    cuts = lambda o: sum(o.index(a) > o.index(b) for a, b in edges)  # noqa: E731
+    assert cuts(gauss_seidel_order(n, edges, first)) == cuts(gauss_seidel_order(n, edges))
+
+
+def test_gauss_seidel_steps_the_event_mode_fmu_first_so_nothing_is_late(reference_fmus):
+    """The default order steps the ball (event mode) before VanDerPol (cannot roll back), which then
+    steps only to each bounce: no event late, and VanDerPol equals its run alone at the grid points
+    (its own dynamics do not depend on where its steps were cut: FMPy's CS run at the same step)."""
+    comps = {"f": {"fmu": str(reference_fmus["3.0/VanDerPol"]), "rollback": False},
+             "ball": {"fmu": str(reference_fmus["3.0/BouncingBall"])}}
+    scene = {"name": "first", "components": comps, "stop_time": 0.6, "outputs": ["ball.h", "f.x0"],
+             "master": {"algorithm": "gauss_seidel", "step": 0.01, "estimate": False}}
+    res = run(from_dict(scene))
+    assert res.status == "ok", res.reason
+    assert res.stats["events"]["late"] == [] and res.stats["events"]["handled"] >= 1
+    t = res.trace.time
+    assert list(_events(t)) == pytest.approx([0.453, 0.454])  # the bounce at its own time, as in the late test
+
+
+@pytest.mark.parametrize("algorithm", ["jacobi", "gauss_seidel", "adaptive", "iterative"])
+def test_the_sidecar_says_what_every_algorithm_does_with_events(reference_fmus, algorithm):
+    """Every algorithm's run of an FMU with events carries its event policy (``events.mode``), the
+    one ``run --check`` prints; a plain FMU's run says nothing about events."""
+    from cosim.master.algorithm import algorithm as alg
+
+    ball = run(from_dict({"name": "s", "components": {"s": {"fmu": str(reference_fmus["3.0/BouncingBall"])}},
+                          "stop_time": 0.2, "outputs": ["s.h"],
+                          "master": {"algorithm": algorithm, "step": 0.01, "estimate": False}}))
+    assert ball.status == "ok", ball.reason
+    assert ball.stats["events"]["mode"] == alg(algorithm).event_policy
+    plain = run(from_dict({"name": "p", "components": {"p": {"fmu": str(reference_fmus["3.0/VanDerPol"])}},
+                           "stop_time": 0.2, "outputs": ["p.x0"],
+                           "master": {"algorithm": algorithm, "step": 0.01, "estimate": False}}))
+    assert plain.status == "ok" and "events" not in plain.stats, plain.reason
+
+
+
+def test_the_tolerance_choice_gives_event_mode_fmus_an_algorithm_that_ends_steps_at_events(lag_fmus, reference_fmus):
+    """A loop of two lags that can roll back: without events the choice is adaptive (which leaves
+    events inside the steps); as FMI 3.0 event-mode FMUs (tests/data/me_lag's FMI3cs.xml) it is
+    gauss_seidel with held inputs (event mode needs them), and the chosen run is in event mode."""
+    from cosim.run.choose import kind
+
+    def pair(fmu):
+        return from_dict({"name": "auto", "stop_time": 1.0, "outputs": ["a.x", "b.x"],
+                          "components": {"a": {"fmu": str(fmu), "params": {"k": 1.0, "g": -1.0}, "start": {"x": 1.0}},
+                                         "b": {"fmu": str(fmu), "params": {"k": 2.0, "g": 1.0}}},
+                          "connections": ["a.x -> b.u", "b.x -> a.u"], "master": {"tolerance": 1e-3, "step": 0.01}})
+
+    assert kind(pair(lag_fmus["3"]))[0] == "adaptive"
+    scene = pair(lag_fmus["3cs"])
+    alg, why = kind(scene)
+    assert alg == "gauss_seidel" and "a, b report events (FMI 3.0 event mode)" in why and "adaptive" in why
+    res = run(scene)
+    assert res.stats["choice"]["algorithm"] == "gauss_seidel" and res.stats["choice"]["settings"]["inputs"] == "hold"
+    assert res.stats["events"]["event_mode"] == ["a", "b"]

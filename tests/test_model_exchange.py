@@ -270,16 +270,6 @@ def test_fmu_check_of_both_interfaces_names_the_default_and_the_other(reference_
 PAIR_A = np.array([[-1.0, -1.0], [1.0, -2.0]])
 
 
-@pytest.fixture(scope="session")
-def lag_fmus(tmp_path_factory) -> dict[str, Path]:
-    """``{"2": Lag.fmu, "2_nostate": ..., "3": ..., "3_nostate": ...}`` (``conftest.build_lag_fmus``)."""
-    from conftest import REFERENCE_FMUS_SRC, build_lag_fmus
-
-    if not (REFERENCE_FMUS_SRC / "src" / "cosimulation.c").is_file():
-        pytest.skip(f"the Reference FMUs' source is not at {REFERENCE_FMUS_SRC} (set RPR_REFERENCE_FMUS_SRC)")
-    return build_lag_fmus(REFERENCE_FMUS_SRC, tmp_path_factory.mktemp("lag"))
-
-
 def _pair(fmu: Path, master: dict, stop: float):
     return from_dict({"name": "pair", "components": {
         "a": {"fmu": str(fmu), "params": {"k": 1.0, "g": -1.0}, "start": {"x": 1.0}},
@@ -408,3 +398,27 @@ def test_the_compiled_loops_step_a_model_exchange_fmu_as_the_python_loop_does(me
         assert res.status == "ok" and res.stats["engine"] == engine, res.reason
         runs[engine] = res.trace.data
     assert np.array_equal(runs["python"], runs["compiled"])
+
+
+@pytest.mark.parametrize("v", ["2", "3"])
+def test_fmu_check_flags_a_derivative_that_names_no_state(me_fmus, tmp_path, capsys, v):
+    """The standard: every derivative of <ModelStructure> names its continuous state (derivative=).
+    VanDerPol with that attribute dropped from der(x0): fmu check counts the departure."""
+    from cosim import cli
+
+    src, dst = me_fmus[f"{v}/VanDerPol"], tmp_path / "bad.fmu"
+    with zipfile.ZipFile(src) as zin, zipfile.ZipFile(dst, "w") as zout:
+        for item in zin.infolist():
+            data = zin.read(item.filename)
+            if item.filename == "modelDescription.xml":
+                xml = data.decode()
+                i = xml.index('name="der(x0)"')
+                head, tail = xml[:i], xml[i:]
+                tail = re.sub(r'\s*derivative="\d+"', "", tail, count=1)
+                data = (head + tail).encode()
+            zout.writestr(item, data)
+    assert cli.main(["fmu", "check", str(me_fmus[f"{v}/VanDerPol"])]) == 0
+    capsys.readouterr()
+    assert cli.main(["fmu", "check", str(dst)]) >= 1
+    out = capsys.readouterr()
+    assert "derivative 'der(x0)' names no state (no derivative= attribute)" in out.out

@@ -286,7 +286,7 @@ def _describe_events(scene, name: str) -> None:
     from ..master.algorithm import algorithm
 
     descs = [c.description for c in scene.components.values()]
-    if any(d.has_event_mode or d.event_indicators or d.interface == "model exchange" for d in descs):
+    if any(d.has_events for d in descs):
         print(f"  events: {algorithm(name).event_policy}")
 
 
@@ -360,6 +360,11 @@ def _summary(res) -> None:
             shown = ", ".join(f"{k} {1e6 * v:.0f} us" if k.startswith(("tick", "cpu")) else f"{k} {v:g}"
                               for k, v in fig.items())
             print(f"  real time of {name}: {shown}")
+    events = st.get("events") or {}
+    for note in (events.get("notes") or [])[:5]:
+        print(f"  note: {note}")
+    if len(events.get("late") or []) > 5:
+        print(f"  note: {len(events['late']) - 5} more events reached a component late (the sidecar's events.late)")
     for w in st.get("guards", {}).get("warnings", []):
         print(f"  guard warning: {w}")
     for g, how in st.get("guards", {}).get("applied", {}).items():

@@ -91,6 +91,13 @@ def _gatherer(system: CoupledSystem, i: int) -> Callable[[], None]:
     return copy
 
 
+def late_note(late: dict) -> str:
+    """The sidecar's and the summary's note on an event a component received late (an entry of
+    :attr:`Algorithm.late_events`)."""
+    return (f"{late['component']} had stepped past {late['event_of']}'s event at t = {late['t']:.9g} s and cannot "
+            f"roll back: the event reached it at the next communication point, t = {late['reached']:.9g} s")
+
+
 #: Events in one macro step beyond which a run with event-mode components ends (chattering).
 MAX_EVENTS_PER_STEP = 1000
 
@@ -155,7 +162,10 @@ class Algorithm(MasterAlgorithm, Outcome, ABC):
         self.k = 0
         self.failed_slave: int | None = None
         n = len(system.slaves)
-        self.order = list(order) if order is not None else gauss_seidel_order(n, system.slave_edges())
+        # a sequential algorithm steps FMI 3.0 event-mode slaves as early as the coupling allows: their
+        # early return then cuts the later slaves' step, and fewer have stepped past the event
+        events_first = [i for i, x in enumerate(system.slaves) if x.event_mode] if self.sequential else ()
+        self.order = list(order) if order is not None else gauss_seidel_order(n, system.slave_edges(), events_first)
         if sorted(self.order) != list(range(n)):
             raise UserError(f"master order must list every slave once, got {self.order}")
         self.calls = [0] * n  # doStep calls per slave
@@ -180,6 +190,7 @@ class Algorithm(MasterAlgorithm, Outcome, ABC):
         self.events = 0  # events handled by the event iteration
         self.late_events: list[dict] = []  # an event a slave that cannot roll back had already stepped past
         self._ahead: set[int] = set()  # slaves at the grid point already while the others finish a cut step
+        self._reached: dict[int, float] = {}  # the time [s] each slave reached in the current event step
 
     def _setup_rates(self, rates: Sequence[int] | None) -> None:
         """:attr:`rates`: doSteps per macro step of each slave (:mod:`cosim.master.multirate`)."""
@@ -275,9 +286,10 @@ class Algorithm(MasterAlgorithm, Outcome, ABC):
         """:meth:`step` with event-mode slaves: from the current point (a grid point or an event) to
         the next grid point, cut at the earliest time an event-mode slave returned early.  Jacobi
         steps the event-mode slaves first and the others only to that time (:meth:`_events_first`);
-        under Gauss-Seidel's order, a slave that stepped past it is rolled back and stepped to it,
-        or (when it cannot roll back) noted in :attr:`late_events` and left at the grid point
-        until the others catch up."""
+        Gauss-Seidel steps in its order, the slaves after an early return only to its time
+        (:meth:`_events_in_order`); a slave that stepped past the event is rolled back and stepped
+        to it, or (when it cannot roll back) noted in :attr:`late_events` and left at the grid
+        point until the others catch up."""
         slaves = self.system.slaves
         t, t_end = self.t, self.time_at(self.k + 1)
         h = t_end - t if self.t_event is not None else self.h
@@ -287,11 +299,12 @@ class Algorithm(MasterAlgorithm, Outcome, ABC):
             if len(self.event_slaves) > 1 or (self.sequential and len(slaves) > 1) else []
         for i in saved:
             slaves[i].save_state()
+        self._reached.clear()
         do = self._do
         if self._ahead:  # they reached the grid point in the step an event cut: they wait there
             self._do = [(lambda _t, _h: Status.OK) if i in self._ahead else f for i, f in enumerate(do)]
         try:
-            bad = self._step_impl(t, h) if self.sequential else self._events_first(t, h)
+            bad = self._events_in_order(t, h) if self.sequential else self._events_first(t, h)
         finally:
             self._do = do
         if self.status != "running":
@@ -321,7 +334,7 @@ class Algorithm(MasterAlgorithm, Outcome, ABC):
             return False
         for j in range(len(slaves)):
             if j == who or j in self._ahead or (j in ends and ends[j][0] <= t_e + tol) or \
-                    (not self.sequential and j not in ends):  # Jacobi stepped it only to t_e already
+                    (j not in ends and self._reached.get(j, t + h) <= t_e + tol):  # stepped only to t_e already
                 continue
             if j in saved:  # stepped past the event: back (its inputs with it), and to the event time
                 slaves[j].restore_state()
@@ -332,7 +345,7 @@ class Algorithm(MasterAlgorithm, Outcome, ABC):
             else:
                 self._ahead.add(j)
                 self.late_events.append({"component": slaves[j].name, "t": t_e, "event_of": slaves[who].name,
-                                         "reached": t + h})
+                                         "reached": self._reached.get(j, t + h)})
         for j in range(len(slaves)):
             st = self._io(j, self._pull[j])
             if st in FAILING:
@@ -341,6 +354,31 @@ class Algorithm(MasterAlgorithm, Outcome, ABC):
         self.t_event = t_e
         self.pending_event = StepResult(self.t_ns, True, who, "event")
         return True
+
+    def _events_in_order(self, t: float, h: float) -> tuple[int, int] | None:
+        """A Gauss-Seidel step with event-mode slaves: in :attr:`order`, each slave from the
+        freshest outputs; once an event-mode slave has returned early, the slaves after it step only
+        to that time (:attr:`_reached`), so only those before it can have stepped past the event
+        (the order puts event-mode slaves first where the coupling allows); ``(slave, status)`` of a
+        failing call, or None."""
+        slaves, reached, tol = self.system.slaves, t + h, 1e-12 * (1.0 + abs(t + h))
+        for i in self.order:
+            self._gather[i]()
+            st = self._io(i, self._push[i])
+            if st in FAILING:
+                return i, st
+            hi = min(h, reached - t)
+            if hi > tol:  # (an event at t itself: nothing to step)
+                st = self._advance(i, t, hi)
+                if st in FAILING or st == Status.STOP_REQUESTED:
+                    return i, st
+            self._reached[i] = t + hi
+            if i in self.event_slaves and i not in self._ahead:
+                reached = min(reached, slaves[i].step_end()[0])
+            st = self._io(i, self._pull[i])
+            if st in FAILING:
+                return i, st
+        return None
 
     def _events_first(self, t: float, h: float) -> tuple[int, int] | None:
         """A Jacobi step with event-mode slaves: every input from the outputs at ``t``, the
@@ -360,9 +398,12 @@ class Algorithm(MasterAlgorithm, Outcome, ABC):
         reached = min([slaves[i].step_end()[0] for i in first], default=t + h)
         for i in range(n):
             if i not in first:
-                st = self._advance(i, t, min(h, reached - t))
-                if st in FAILING or st == Status.STOP_REQUESTED:
-                    return i, st
+                hi = min(h, reached - t)
+                if hi > 1e-12 * (1.0 + abs(t + h)):  # (an event at t itself: nothing to step)
+                    st = self._advance(i, t, hi)
+                    if st in FAILING or st == Status.STOP_REQUESTED:
+                        return i, st
+                self._reached[i] = t + hi
         for i in range(n):
             st = self._io(i, self._pull[i])
             if st in FAILING:
@@ -435,8 +476,9 @@ class Algorithm(MasterAlgorithm, Outcome, ABC):
         if not self.event_slaves:
             return out
         names = [self.system.slaves[i].name for i in self.event_slaves]
-        return {**out, "events": {"mode": self.event_policy,
-                           "event_mode": names, "handled": self.events, "late": self.late_events[:10_000]}}
+        notes = [late_note(e) for e in self.late_events[:100]]
+        return {**out, "events": {"mode": self.event_policy, "event_mode": names, "handled": self.events,
+                                  "late": self.late_events[:10_000], **({"notes": notes} if notes else {})}}
 
     def stop_requested(self, i: int, status: int) -> bool:
         """Is ``status`` from slave ``i`` a request to end the simulation (FMI 3.0

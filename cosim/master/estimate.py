@@ -257,6 +257,8 @@ class EstimatingObserver(Observer):
         return richardson(data[:, 0], data[:, 1:], tc, xc, self.columns[1:], self.div, self.method, self.events)
 
     def finish(self, status, reason, stats) -> None:
+        for figures in ((stats or {}).get("model_exchange") or {}).values():  # events inside ME components' steps
+            self.events.extend(float(t) for t, _ in figures.get("events", ()))
         try:
             self.estimate = self._estimate()
         except Exception as exc:  # the estimate must never cost the run its trace

@@ -96,29 +96,43 @@ def _sccs(n: int, succ: list[set[int]]) -> list[list[int]]:
     return out
 
 
-def gauss_seidel_order(n: int, edges: Iterable[tuple[int, int]]) -> list[int]:
+def gauss_seidel_order(n: int, edges: Iterable[tuple[int, int]], first: Iterable[int] = ()) -> list[int]:
     """Stepping order of ``n`` slaves for Gauss-Seidel: sources before the slaves they feed.
 
     ``edges`` are (source slave, destination slave) pairs.  Strongly connected groups are
     ordered topologically; inside a group the order cuts the fewest edges (edges that go
     backwards, whose destination sees the source's output from the previous point) -- found by
     exhaustive search up to seven slaves, greedily (by out-degree minus in-degree) beyond;
-    ties go to the declaration order."""
-    return list(_gauss_seidel_order(n, frozenset((a, b) for a, b in edges if a != b)))
+    ties go to the declaration order, except that the slaves in ``first`` (event-reporting
+    slaves: an early return then cuts the others' step, docs/explanation/events.md) come as early
+    as the coupling allows: before any slave they do not depend on, and first among the orders of
+    a group that cut the fewest edges."""
+    e = frozenset((a, b) for a, b in edges if a != b)
+    first = sorted(set(first))
+    if not first:
+        return list(_gauss_seidel_order(n, e))
+    # relabel so that the slaves in ``first`` are the smallest (the tie-break prefers them), then back
+    rank = first + [v for v in range(n) if v not in first]
+    new = {v: i for i, v in enumerate(rank)}
+    order = _gauss_seidel_order(n, frozenset((new[a], new[b]) for a, b in e), len(first))
+    return [rank[v] for v in order]
 
 
 @lru_cache(maxsize=128)
-def _gauss_seidel_order(n: int, e: frozenset[tuple[int, int]]) -> tuple[int, ...]:
+def _gauss_seidel_order(n: int, e: frozenset[tuple[int, int]], n_first: int = 0) -> tuple[int, ...]:
     """:func:`gauss_seidel_order`, cached: a batch asks it again for every run of the same scene
     (the fewest-cut order of a group of up to seven slaves, :func:`cosim.master.feedback_order.fewest_cut_order`,
-    takes under a millisecond; the exhaustive search it replaces took ~0.04-0.2 s)."""
+    takes under a millisecond; the exhaustive search it replaces took ~0.04-0.2 s).  With
+    ``n_first``, the groups holding a slave below ``n_first`` go first among those ready."""
     succ = [set() for _ in range(n)]
     for a, b in e:
         succ[a].add(b)
     comps = _sccs(n, succ)[::-1]  # topological order of the condensation
     comp_of = {v: ci for ci, c in enumerate(comps) for v in c}
     cedges = {(comp_of[a], comp_of[b]) for a, b in e if comp_of[a] != comp_of[b]}
-    corder = topological_order(list(range(len(comps))), cedges)
+    ranked = sorted(range(len(comps)), key=lambda ci: (min(comps[ci]) >= n_first, min(comps[ci]))) if n_first \
+        else range(len(comps))
+    corder = topological_order(list(ranked), cedges)
     order: list[int] = []
     for ci in corder:
         comp = comps[ci]

@@ -87,6 +87,7 @@ def simulate(system: CoupledSystem, algorithm_name: str, *, step_ns: int, n_step
             if stats.wall_s == 0.0 and stepper.t_loop is not None:  # the loop was cut short
                 stats.wall_s = time.perf_counter() - stepper.t_loop
             stepper.fill(stats)
+            stats.extra = with_events(system, cls, stats.extra)
             stepper.close()  # before the slaves are freed (a compiled stepper's FMU states)
         for obs in observers:  # an observer's own figures (e.g. an error estimate) go into the statistics
             figures = obs.statistics()
@@ -118,3 +119,17 @@ def simulate(system: CoupledSystem, algorithm_name: str, *, step_ns: int, n_step
                              progress=progress, stop=stop, start_ns=start_ns)
         end.from_loop(stepper)
     return stats
+
+
+def with_events(system: CoupledSystem, cls, extra: dict) -> dict:
+    """The run statistics ``extra`` with what algorithm ``cls`` does with events (``events.mode``,
+    said for every algorithm when a component may have events) and each model-exchange
+    component's solver figures and events (``model_exchange``) where the stepper gave none."""
+    out = dict(extra or {})
+    if any(s.description.has_events for s in system.slaves):
+        out["events"] = {"mode": cls.event_policy, **(out.get("events") or {})}
+    me = {s.name: {**s.solver_stats(), "events": [[t, kind] for t, kind in s.events()[:1000]]}
+          for s in system.slaves if hasattr(s, "solver_stats")}
+    if me:
+        out["model_exchange"] = {**me, **(out.get("model_exchange") or {})}
+    return out

@@ -8,7 +8,10 @@
   error control measures extrapolated inputs, and in a chain no input is extrapolated);
 * every slave can roll back: ``adaptive``, at an ``rtol`` that meets the tolerance;
 * power bonds, and a slave that cannot roll back: ``ecco``, at an ``rtol`` that meets it;
-* otherwise (a slave that cannot roll back, no bonds): ``gauss_seidel`` at a fixed step.
+* otherwise (a slave that cannot roll back, no bonds): ``gauss_seidel`` at a fixed step;
+* and whatever the above says, FMI 3.0 event-mode components (but no algebraic loop): an algorithm
+  that ends its steps at their events (``gauss_seidel``, held inputs), so an event is not smeared
+  over a step in the pilots' estimates either.
 
 Inputs are linear (slaves that cannot interpolate hold theirs) unless the scene sets ``master.inputs``.
 The setting (step or rtol) comes from pilot runs, each with its error estimate
@@ -82,7 +85,30 @@ class Choice:
 
 
 def kind(scene: Scene) -> tuple[str, str]:
-    """(algorithm, why) for ``scene`` from what it allows (module docstring)."""
+    """(algorithm, why) for ``scene`` from what it allows (module docstring); a scene with FMI 3.0
+    event-mode components gets an algorithm that ends its steps at their events (gauss_seidel,
+    with held inputs: :func:`event_inputs`) unless it needs ``iterative`` for an algebraic loop."""
+    alg, why = _kind(scene)
+    events = event_components(scene)
+    if events and alg != "iterative" and not ALGORITHMS[alg].ends_steps_at_events:
+        return "gauss_seidel", (f"{', '.join(events)} report{'s' if len(events) == 1 else ''} events (FMI 3.0 event "
+                                f"mode): gauss_seidel ends its steps at them for the whole coupling ({alg} would leave "
+                                f"them inside the components' steps); held inputs, a fixed step")
+    return alg, why
+
+
+def event_components(scene: Scene) -> list[str]:
+    """The components of ``scene`` that can report events through FMI 3.0 event mode."""
+    return [c.name for c in scene.components.values() if c.description.has_event_mode]
+
+
+def event_inputs(scene: Scene, alg: str) -> bool:
+    """Must ``alg`` hold the inputs so that event mode is used (it ends steps at events only then)?"""
+    return bool(event_components(scene)) and ALGORITHMS[alg].ends_steps_at_events
+
+
+def _kind(scene: Scene) -> tuple[str, str]:
+    """(algorithm, why) from what the scene allows, events aside (module docstring)."""
     comps = scene.components.values()
     fixed = [c.name for c in comps if not (c.rollback and c.description.can_get_set_state)]
     loop = algebraic_loop(scene.components, scene.connections)
@@ -166,7 +192,8 @@ def choose(scene: Scene, pilot: Callable[[Scene, float | None], object] | None, 
     its :class:`cosim.run.execute.RunResult` (None: runs cannot be repeated, ``why_not``)."""
     m, tol = scene.master, scene.master.tolerance
     alg, why = kind(scene)
-    inputs = m.inputs if m.inputs_given else "linear"  # slaves that cannot interpolate hold their inputs
+    # slaves that cannot interpolate hold their inputs; event mode needs held inputs
+    inputs = m.inputs if m.inputs_given else ("hold" if event_inputs(scene, alg) else "linear")
     cls = ALGORITHMS[alg]
     choice = Choice(alg, {"inputs": inputs}, why, tol)
 

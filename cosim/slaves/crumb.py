@@ -187,12 +187,14 @@ def read(buf: mmap.mmap) -> dict:
 
 
 def describe(state: dict) -> str:
-    """``"pid1.fmi2DoStep at t = 0.25 s"`` (or ``""`` before the first FMI call)."""
+    """``"pid1.fmi2DoStep at t = 0.25 s"`` (or ``""`` before the first FMI call); the time also for
+    the event-mode calls (the event's time)."""
     if not state.get("seq") or not state.get("call"):
         return ""
     where = f"{state['component']}.{state['call']}" if state["component"] else state["call"]
     t = state.get("t")
-    at = f" at t = {t:.6g} s" if t is not None and state["call"].endswith("DoStep") and not math.isnan(t) else ""
+    timed = state["call"].endswith(("DoStep", "EnterEventMode", "UpdateDiscreteStates", "EnterStepMode"))
+    at = f" at t = {t:.6g} s" if t is not None and timed and not math.isnan(t) else ""
     return where + at + ("" if state["inside"] else " (it had returned; the master was between FMI calls)")
 
 

@@ -95,6 +95,14 @@ class SlaveDescription:
     solver_rtol: float | None = None  # model exchange: CVODES's relative tolerance (the scene's rtol:)
     has_event_mode: bool = False  # FMI 3.0 co-simulation: hasEventMode (event mode and early return usable)
 
+    @property
+    def has_events(self) -> bool:
+        """It may have events: FMI 3.0 event mode, event indicators, model exchange (time events at
+        least), discrete variables (modes, counters, samples)."""
+        return (self.has_event_mode or bool(self.event_indicators) or self.interface == "model exchange"
+                or bool(self.discrete_states)
+                or any(v.variability == "discrete" and v.causality in ("local", "output") for v in self.variables.values()))
+
     def of(self, *causalities: str) -> list[str]:
         """Names of the variables with one of the given causalities, in declaration order."""
         return [v.name for v in self.variables.values() if v.causality in causalities]

@@ -567,8 +567,9 @@ class FmuSlave(Slave):
         return self._status_of("fmi3EnterStepMode", self.fmu.enterStepMode)
 
     def _status_of(self, what: str, fn) -> int:
-        """Call ``fn`` (an FMI call named ``what``, in the breadcrumb for the supervisor); its status."""
-        enter(self._ck, CALL[what])
+        """Call ``fn`` (an FMI call named ``what``, in the breadcrumb for the supervisor with the
+        event's time); its status."""
+        enter(self._ck, CALL[what], self.step_end()[0])
         try:
             fn()
         except Exception as exc:  # fmpy's FMICallException

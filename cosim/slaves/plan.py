@@ -31,6 +31,23 @@ def _me_line(d: SlaveDescription) -> str:
             + (f"; NOT AVAILABLE HERE: {why}" if why else ""))
 
 
+def _me_departures(md) -> list[str]:
+    """What the XML shows against the standard's rules for continuous states (FMI 2.0 3.3.1, FMI 3.0
+    2.4.8): every listed derivative names its state (``derivative=``), a continuous real variable."""
+    out = []
+    real = ("Real", "Float64", "Float32")
+    for u in md.derivatives:
+        var = u.variable
+        state = getattr(var, "derivative", None)
+        if state is None:
+            out.append(f"<ModelStructure>: derivative {var.name!r} names no state (no derivative= attribute): a "
+                       f"model-exchange run cannot tell which variable it integrates")
+        elif state.variability != "continuous" or state.type not in real:
+            out.append(f"<ModelStructure>: state {state.name!r} of derivative {var.name!r} is {state.type} "
+                       f"{state.variability}; a continuous state must be a continuous real variable")
+    return out
+
+
 def _cs_line(d: SlaveDescription, md) -> str:
     cs = md.coSimulation
     rollback = ("rollback through its FMU state" if d.can_get_set_state
@@ -87,6 +104,8 @@ def run_plan(path: Path) -> tuple[list[str], list[str]]:
         lines.append(f"{text}{' [a scene gets this one]' if default == name else ' [interface: ' + key + ']'}")
     if getattr(md, "scheduledExecution", None) is not None:
         lines.append("scheduled execution: not supported (a scene gets a one-line refusal when it has nothing else)")
+    if md.modelExchange is not None:
+        departures += _me_departures(md)
     cs = md.coSimulation
     if cs is not None and getattr(cs, "canReturnEarlyAfterIntermediateUpdate", False) \
             and not getattr(cs, "providesIntermediateUpdate", False):

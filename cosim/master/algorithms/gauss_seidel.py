@@ -16,7 +16,9 @@ class GaussSeidel(Algorithm):
     multirate = True
     ends_steps_at_events = True
     event_policy = ("a step ends at the earliest event of an FMI 3.0 event-mode component for the whole coupling "
-                    "(the others rolled back to it; one that cannot roll back gets it late, listed in the sidecar), "
+                    "(event-mode components step first where the coupling allows, the ones after an early return only to its "
+                    "time; one stepped past it is rolled back to it, or, when it cannot roll back, gets it at the next "
+                    "communication point, listed in the sidecar), "
                     "event iteration across the coupling, two trace rows at each event, then the rest of the step; "
                     "other components handle their events inside their steps (Python loop; the compiled loop leaves "
                     "all events inside)")

@@ -2,6 +2,14 @@
 #include "config.h"
 #include "model.h"
 #include <math.h>
+#include <stddef.h>
+
+/* Faults 5 to 8 stand for an FMU that crashes or hangs inside an FMI call (the supervisor's case). */
+static void misbehave(ModelInstance *comp, int crash, int hang) {
+    const int fault = (int)M(fault);
+    if (fault == crash) { volatile int *p = NULL; *p = 1; }
+    if (fault == hang) for (;;) { }
+}
 
 Status setStartValues(ModelInstance *comp) {
     M(x) = 0.0;
@@ -87,6 +95,7 @@ Status setContinuousStates(ModelInstance *comp, const double x[], size_t nx) {
 
 Status getDerivatives(ModelInstance *comp, double dx[], size_t nx) {
     ASSERT_SIZE_T(nx, 1);
+    if (comp->time > 0.5) misbehave(comp, 5, 6);
     calculateValues(comp);
     dx[0] = M(der_x);
     return OK;
@@ -104,14 +113,15 @@ Status getEventIndicators(ModelInstance *comp, double z[], size_t nz) {
 }
 
 /* The faults' events: one at t = 0.5 s, then (fault 2) one every 1e-7 s, or (fault 3) an
- * iteration that always asks for more. */
+ * iteration that always asks for more, or (faults 7, 8) a crash or a hang in that event's update. */
 Status eventUpdate(ModelInstance *comp) {
     const int fault = (int)M(fault);
+    if (comp->time >= 0.5) misbehave(comp, 7, 8);
     comp->newDiscreteStatesNeeded = fault == 3 && comp->time >= 0.5;
     comp->terminateSimulation = false;
     comp->nominalsOfContinuousStatesChanged = false;
     comp->valuesOfContinuousStatesChanged = false;
-    comp->nextEventTimeDefined = fault == 2 || (fault == 3 && comp->time < 0.5);
+    comp->nextEventTimeDefined = fault == 2 || ((fault == 3 || fault >= 7) && comp->time < 0.5);
     comp->nextEventTime = comp->time < 0.5 ? 0.5 : comp->time + 1e-7;
     return OK;
 }
