@@ -79,8 +79,13 @@ def run_report(tmp_path_factory):
 
 
 def test_a_run_report_opens_offline_with_its_plots_and_animation(run_report, tmp_path):
+    import plotly
+
     text = run_report.read_text()
-    assert not re.findall(r"<script[^>]*\bsrc=", text) and "Plotly.newPlot" in text  # every script inline
+    # every script inline but Plotly's library, written once beside the report (no network)
+    assert re.findall(r"<script[^>]*\bsrc=\"([^\"]*)\"", text) == [f"plotly-{plotly.__version__}.min.js"]
+    assert (run_report.parent / f"plotly-{plotly.__version__}.min.js").stat().st_size > 1e6
+    assert "Plotly.newPlot" in text
     dom, console = browse(run_report, tmp_path / "run.png")
     assert not js_errors(console), console
     assert dom.count('class="main-svg"') >= 2  # the signals and the animation drawn by Plotly
@@ -95,6 +100,42 @@ def test_a_run_report_opens_offline_with_its_plots_and_animation(run_report, tmp
     assert near(left, (31, 119, 180)) > 1500  # the signals' lines (Plotly blue), not a blank page
     assert near(right, (255, 178, 110), tol=25) > 2000  # the platform, filled orange, beside the plots
     assert near(right, (44, 160, 44)) > 150  # its legs, green inside their stroke
+
+
+_PROBE = """<pre id="probe"></pre><script>
+window.addEventListener('load', function () {
+  var gd = document.getElementById('signals'), out = [];
+  function seen() { var x = gd.data[0].x, y = gd.data[0].y;
+    return [x.length, Math.min.apply(null, y), Math.max.apply(null, y), x[0], x[x.length - 1]].join(' '); }
+  out.push(seen());
+  Plotly.relayout(gd, {'xaxis.range': [0.5, 0.6]}).then(function () {
+    out.push(seen()); document.getElementById('probe').textContent = out.join('\\n'); });
+});
+</script></body>"""
+
+
+def test_a_run_report_draws_every_extreme_and_every_row_on_zoom(tmp_path):
+    """Issue 32, item 10: 20,001 rows of a known signal with one-row spikes are drawn decimated
+    (fewer points than rows, both spikes kept) and, zoomed to 0.5-0.6 s, every row of that span."""
+    from cosim.analysis.report import run_report
+    from cosim.trace.traces import Trace
+
+    t = np.linspace(0.0, 2.0, 20001)
+    y = np.sin(2 * np.pi * t)
+    y[7777], y[13001] = 5.0, -4.0  # one-row spikes, far outside the sine
+    page = run_report(Trace(["time", "probe.y"], np.column_stack([t, y]), {"scene": "probe"}, "ok"),
+                      tmp_path / "probe.html")
+    assert page.stat().st_size < 1.5e6  # 20,001 rows at full resolution and the page around them
+    page.write_text(page.read_text().replace("</body>", _PROBE))
+    dom, console = browse(page, tmp_path / "probe.png")
+    assert not js_errors(console), console
+    rows = re.search(r'<pre id="probe">([^<]*)</pre>', dom).group(1).split("\n")
+    n0, lo0, hi0, *_ = map(float, rows[0].split())
+    assert n0 < len(t) / 4 and lo0 == -4.0 and hi0 == 5.0  # decimated, every extreme kept
+    n1, lo1, hi1, a, b = map(float, rows[1].split())
+    inside = np.flatnonzero((t >= 0.5) & (t <= 0.6))
+    assert n1 == len(inside) + 2 and a == t[inside[0] - 1] and b == t[inside[-1] + 1]  # every row, one beyond
+    assert lo1 == pytest.approx(y[inside[0] - 1:inside[-1] + 2].min(), rel=1e-6)
 
 
 def test_the_report_verb_rewrites_a_run_report_from_its_files(run_report, tmp_path, capsys):
@@ -126,7 +167,7 @@ def test_a_batch_report_has_its_sortable_table_and_clickable_heat_maps(tmp_path)
     assert "Kp = 20, Kd = 10" in dom  # the first run's traces shown below the charts
     # a click on a heat-map cell shows that cell's run below (the event Plotly emits on a click)
     last = re.findall(r"<tr data-run=\"([0-9a-f]{16})\"", dom)[-1]
-    clicked = tmp_path / "clicked.html"
+    clicked = out / "clicked.html"  # beside the batch report and its Plotly library
     clicked.write_text(page.read_text().replace("</body>", "<script>document.getElementById('metric-0').emit("
                                                  f"'plotly_click', {{points: [{{customdata: '{last}'}}]}});</script></body>"))
     dom2, console2 = browse(clicked, tmp_path / "clicked.png")

@@ -117,8 +117,7 @@ def comparison_figure(test: Trace, ref: Trace, diffs, *, labels: tuple[str, str]
     worst = sorted(diffs, key=lambda d: -d.relative)[:most]
     names = [d.name for d in worst]
     t, a, b = aligned(test, ref, names)
-    fig, axes = plt.subplots(len(names), 2, figsize=(11, 1.9 * len(names) + 0.8), sharex=True, squeeze=False,
-                             layout="constrained")
+    fig, axes = plt.subplots(len(names), 2, figsize=(11, 1.9 * len(names) + 0.8), sharex=True, squeeze=False)
     for j, (n, d) in enumerate(zip(names, worst)):
         ax, ad = axes[j]
         unit = units.get(n, "") or "1"
@@ -134,6 +133,10 @@ def comparison_figure(test: Trace, ref: Trace, diffs, *, labels: tuple[str, str]
     axes[0, 0].legend(fontsize=8)
     for x in axes[-1]:
         x.set_xlabel("time [s]")
+    # fixed margins in inches: constrained layout measured every tick label again (2/3 of pid_step's plot)
+    w, h = fig.get_size_inches()
+    fig.subplots_adjust(left=0.95 / w, right=1 - 0.15 / w, bottom=0.5 / h, top=1 - 0.35 / h, hspace=0.5,
+                        wspace=0.22)
     return fig
 
 

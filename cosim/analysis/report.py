@@ -1,7 +1,15 @@
-"""Interactive reports: one self-contained HTML file per run, batch or study, opening offline.
+"""Interactive reports: one HTML file per run, batch or study, opening offline.
 
-Plotly draws every chart with its JavaScript embedded once per file (``include_plotlyjs=True``,
-about 4.6 MB), so a report needs no network and no server: e-mail it, open it from a USB stick.
+Plotly draws every chart; its library (``plotly-<version>.min.js``, 4.8 MB, from the plotly
+package) is written once beside the reports of a directory and loaded from there, so a report
+needs no network and no server: copy it with that file beside it.  Inlined in every page it made
+pid_step's report 13 MB.
+
+A run's signals are kept once in the page, at full resolution, as base64 typed arrays (the time
+in float64; each column in float32 as its offset from its mid-range, so its precision is its
+range / 1.7e7; the error against the reference computed in float64 and kept in float32); the
+browser draws each line min/max-decimated to the pixels of the visible span (every extreme kept)
+and again on each zoom, so zooming in shows every recorded row (pid_step: 1.3 MB instead of 13).
 
 - :func:`run_report`: the recorded signals on linked, zoomable time axes (one panel per group of
   like signals, :func:`cosim.analysis.charts.run_panels`, each y axis in its unit, setpoints
@@ -37,6 +45,7 @@ COLOURS = ("#1f77b4", "#ff7f0e", "#2ca02c", "#d62728", "#9467bd", "#8c564b", "#e
 
 _PAGE = """<!DOCTYPE html>
 <html lang="en"><head><meta charset="utf-8"><title>{title}</title>
+<script src="{plotly_file}" charset="utf-8"></script>
 <style>
 body {{ font-family: system-ui, sans-serif; margin: 1.2em; color: #222; }}
 h1 {{ font-size: 1.4em; }} h2 {{ font-size: 1.1em; margin-top: 1.4em; }}
@@ -51,7 +60,7 @@ th {{ background: #f3f3f3; cursor: pointer; }} td.text {{ text-align: left; }}
 </style></head><body>
 <h1>{title}</h1>
 {body}
-<p class="note">rpr-cosim report, written {written}. Plotly {plotly_version}, embedded: this file opens offline.</p>
+<p class="note">rpr-cosim report, written {written}. Plotly {plotly_version}, from {plotly_file} beside this file: it opens offline.</p>
 </body></html>
 """
 
@@ -65,27 +74,44 @@ def _status_html(status: str, reason: str) -> str:
 def _figure_html(fig, div_id: str, first: bool) -> str:
     import plotly.io as pio
 
-    return pio.to_html(fig, include_plotlyjs=bool(first), full_html=False, div_id=div_id,
+    return pio.to_html(fig, include_plotlyjs=False, full_html=False, div_id=div_id,
                        config={"displaylogo": False, "responsive": True})
 
 
-def _page(path: Path, title: str, body: str) -> Path:
+def _page(path: Path, title: str, body: str, library_dir: Path | None = None) -> Path:
     import time
 
     import plotly
 
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
+    import os
+
+    library = Path(library_dir or path.parent) / f"plotly-{plotly.__version__}.min.js"
     page = _PAGE.format(title=text(title), body=body, written=time.strftime("%Y-%m-%d %H:%M:%S %Z"),
-                        plotly_version=plotly.__version__)
+                        plotly_version=plotly.__version__,
+                        plotly_file=text(href(os.path.relpath(library, path.parent))))
     from ..errors import UserError
     from ..outputs import write_text
 
     try:  # a new temporary file renamed into place: whole or nothing, never through a planted link
+        _library(library)
         write_text(path, page)
     except OSError as exc:
         raise UserError(f"cannot write the report {path} ({exc.strerror or exc})") from None
     return path
+
+
+def _library(path: Path) -> None:
+    """Plotly's JavaScript at ``path``, written once (kept when it is already there, whole)."""
+    from plotly.offline import get_plotlyjs
+
+    from ..outputs import write_text
+
+    js = get_plotlyjs()
+    if path.is_file() and not path.is_symlink() and path.stat().st_size == len(js.encode()):
+        return
+    write_text(path, js)
 
 
 def decimate(n: int, max_points: int) -> np.ndarray:
@@ -130,7 +156,7 @@ def signals_figure(trace: Trace, *, units: Mapping[str, str] | None = None,
             label = f"{name} (setpoint)" if dashed else name
             fig.add_trace(go.Scattergl(x=t, y=trace[name][idx], name=label + _unit(name, units), mode="lines",
                                        line={"color": c, "width": 1.3, "dash": "dash" if dashed else "solid"},
-                                       legendgroup=name, hovertemplate=f"{name}<br>t = %{{x:.6g}} s<br>%{{y:.6g}}"
+                                       legendgroup=name, meta={"col": name, "kind": "run"}, hovertemplate=f"{name}<br>t = %{{x:.6g}} s<br>%{{y:.6g}}"
                                        f"{_unit(name, units)}<extra></extra>"),
                           row=row, col=1)
             if ref is not None and not dashed and name in ref.columns:
@@ -138,9 +164,11 @@ def signals_figure(trace: Trace, *, units: Mapping[str, str] | None = None,
                 fig.add_trace(go.Scattergl(x=ref.time[decimate(len(ref.time), max_points)],
                                            y=ref[name][decimate(len(ref.time), max_points)],
                                            name=f"{name} (reference)", mode="lines", legendgroup=name,
+                                           meta={"col": name, "kind": "ref"},
                                            line={"color": c, "width": 1, "dash": "dot"}), row=row, col=1)
                 fig.add_trace(go.Scattergl(x=t, y=(trace[name] - r)[idx], name=f"{name} - reference",
                                            mode="lines", legendgroup=name, showlegend=False,
+                                           meta={"col": name, "kind": "err"},
                                            line={"color": c, "width": 1}), row=row, col=2)
         fig.update_yaxes(title_text=panel.ylabel, title_font={"size": 10}, row=row, col=1)
         if ncol == 2:
@@ -191,12 +219,12 @@ def animation_figure(trace: Trace, manipulator=None, component: str | None = Non
     steps = [{"args": [[f.name], {"frame": {"duration": 0, "redraw": False}, "mode": "immediate"}],
               "label": f.name, "method": "animate"} for f in frames]
     fig.update_layout(
-        # the title on the left and below the top margin: the toolbar (top right) never covers it
+        # the title just above the plot area, below the toolbar (the top 30 px of the 70 px margin)
         title={"text": f"{comp}: platform and legs", "font": {"size": 13}, "x": 0.01, "xanchor": "left",
-               "y": 0.97, "yanchor": "top"}, template="plotly_white",
+               "yref": "paper", "y": 1.0, "yanchor": "bottom", "pad": {"b": 8}}, template="plotly_white",
         xaxis={"range": [lo[0] - pad, hi[0] + pad], "title": "x [m]"},
         yaxis={"range": [lo[1] - pad, hi[1] + pad], "title": "y [m]", "scaleanchor": "x", "scaleratio": 1},
-        height=540, showlegend=False, margin={"l": 50, "r": 10, "t": 60, "b": 40},
+        height=540, showlegend=False, margin={"l": 50, "r": 10, "t": 70, "b": 40},
         updatemenus=[{"type": "buttons", "x": 0, "y": -0.12, "xanchor": "left", "buttons": [
             {"label": "play", "method": "animate",
              "args": [None, {"frame": {"duration": 60, "redraw": False}, "fromcurrent": True}]},
@@ -297,15 +325,20 @@ def _fmt(v) -> str:
 
 def run_report(trace: Trace, path: Path, *, title: str = "", units: Mapping[str, str] | None = None,
                pairs: Mapping[str, str] | None = None, reference: Trace | None = None, manipulator=None,
-               max_points: int = 20000) -> Path:
-    """Write the report of one run (module docstring) to ``path``; returns the path."""
+               max_points: int = 20000, library_dir: Path | None = None) -> Path:
+    """Write the report of one run (module docstring) to ``path``; returns the path.  Plotly's
+    library goes to ``library_dir`` (default beside the report: a batch's run reports share the
+    batch's)."""
     from ..errors import UserError
 
     if not len(trace.data):
         raise UserError(f"{path}: the run recorded no rows; nothing to report")
     title = title or f"run {trace.meta.get('scene', Path(path).stem)}"
-    figs = [_figure_html(signals_figure(_labelled(trace), units=_labels(units), pairs=_labels(pairs),
-                                        reference=_labelled(reference), max_points=max_points), "signals", True)]
+    shown, ref = _labelled(trace), _labelled(reference)
+    fig = signals_figure(shown, units=_labels(units), pairs=_labels(pairs), reference=ref, max_points=2)
+    for tr in fig.data:  # drawn by the browser from the full-resolution data (module docstring)
+        tr.x, tr.y = [], []
+    figs = [_figure_html(fig, "signals", True) + _ZOOM_JS % script_json(full_resolution(shown, ref))]
     side = ""
     try:
         side = _figure_html(animation_figure(_labelled(trace), manipulator), "animation", False)
@@ -323,7 +356,98 @@ def run_report(trace: Trace, path: Path, *, title: str = "", units: Mapping[str,
             + _status_html(trace.status, trace.reason) + ref_note)
     body = (f"{head}<div class='row'><div class='plots'>{figs[0]}</div><div class='side'>{side}"
             f"{_stats_table(trace.stats)}</div></div>")
-    return _page(path, title, body)
+    return _page(path, title, body, library_dir)
+
+
+def _b64(a: np.ndarray, dtype: str) -> str:
+    import base64
+
+    return base64.b64encode(np.ascontiguousarray(a, dtype=dtype).tobytes()).decode("ascii")
+
+
+def _offsets(data: np.ndarray) -> tuple[list[float], list[str]]:
+    """Columns of ``data`` as (mid-range, base64 float32 offsets from it): precision range / 1.7e7."""
+    mids, cols = [], []
+    for col in data.T:
+        fin = col[np.isfinite(col)]
+        mid = float(0.5 * (fin.min() + fin.max())) if len(fin) else 0.0
+        mids.append(mid)
+        cols.append(_b64(col - mid, "<f4"))
+    return mids, cols
+
+
+def full_resolution(trace: Trace, reference: Trace | None = None) -> dict:
+    """Every row of ``trace`` (and of ``reference``, with the error against it at the trace's
+    instants) as the compact base64 arrays the run report's page draws from (module docstring)."""
+    mids, cols = _offsets(trace.data[:, 1:])
+    out = {"t": _b64(trace.time, "<f8"), "names": trace.names, "mid": mids, "v": cols, "err": {}, "ref": None}
+    if reference is not None and len(reference.data):
+        common = [n for n in trace.names if n in reference.columns]
+        err = np.column_stack([trace[n] - np.interp(trace.time, reference.time, reference[n]) for n in common]) \
+            if common else np.zeros((len(trace.time), 0))
+        out["err"] = {n: _b64(err[:, k], "<f4") for k, n in enumerate(common)}
+        if np.array_equal(reference.time, trace.time):  # the reference is the run minus the error: kept once
+            out["ref"] = "same"
+        else:
+            rmids, rcols = _offsets(reference.data[:, 1:])
+            out["ref"] = {"t": _b64(reference.time, "<f8"), "names": reference.names, "mid": rmids, "v": rcols}
+    return out
+
+
+#: The run report's drawing: decode the arrays, then draw each line min/max-decimated to about
+#: two points per pixel of the visible span, again on every zoom or pan (every row when zoomed in).
+_ZOOM_JS = r"""<script>
+window.addEventListener('load', function () {
+  var D = %s, gd = document.getElementById('signals');
+  function arr(s, T) { var b = atob(s), u = new Uint8Array(b.length);
+    for (var i = 0; i < b.length; i++) u[i] = b.charCodeAt(i); return new T(u.buffer); }
+  function cols(src) { var o = {}; src.names.forEach(function (n, k) {
+    var v = arr(src.v[k], Float32Array), m = src.mid[k], y = new Float64Array(v.length);
+    for (var i = 0; i < v.length; i++) y[i] = v[i] + m; o[n] = y; }); return o; }
+  var t = arr(D.t, Float64Array), run = cols(D), err = {}, rt = null, ref = {};
+  Object.keys(D.err).forEach(function (n) { var e = arr(D.err[n], Float32Array), y = new Float64Array(e.length);
+    for (var i = 0; i < e.length; i++) y[i] = e[i]; err[n] = y; });
+  if (D.ref === 'same') { rt = t; Object.keys(err).forEach(function (n) { var y = new Float64Array(t.length);
+    for (var i = 0; i < t.length; i++) y[i] = run[n][i] - err[n][i]; ref[n] = y; }); }
+  else if (D.ref) { rt = arr(D.ref.t, Float64Array); ref = cols(D.ref); }
+  function series(meta) {
+    if (meta.kind === 'ref') return [rt, ref[meta.col]];
+    return [t, meta.kind === 'err' ? err[meta.col] : run[meta.col]];
+  }
+  function first(x, v) { var lo = 0, hi = x.length; while (lo < hi) { var m = (lo + hi) >> 1;
+    if (x[m] < v) lo = m + 1; else hi = m; } return lo; }
+  function view(x, y, a, b, buckets) {
+    var j = first(x, b); while (j < x.length && x[j] <= b) j++;  // one row beyond the span each side
+    var i0 = Math.max(0, first(x, a) - 1), i1 = Math.min(x.length, j + 1), n = i1 - i0;
+    var xs = [], ys = [];
+    if (n <= 2 * buckets) { for (var i = i0; i < i1; i++) { xs.push(x[i]); ys.push(y[i]); } return [xs, ys]; }
+    for (var k = 0; k < buckets; k++) {
+      var s = i0 + Math.floor(k * n / buckets), e = i0 + Math.floor((k + 1) * n / buckets), lo = s, hi = s;
+      for (var j = s; j < e; j++) { if (y[j] < y[lo]) lo = j; if (y[j] > y[hi]) hi = j; }
+      var p = Math.min(lo, hi), q = Math.max(lo, hi);
+      xs.push(x[p]); ys.push(y[p]); if (q !== p) { xs.push(x[q]); ys.push(y[q]); }
+    }
+    return [xs, ys];
+  }
+  var busy = false;
+  function draw(a, b) {
+    var buckets = Math.max(200, Math.round(gd.clientWidth || 1000)), X = [], Y = [], idx = [];
+    gd.data.forEach(function (tr, k) { var s = series(tr.meta || {}); if (!s[0] || !s[1]) return;
+      var v = view(s[0], s[1], a, b, buckets); X.push(v[0]); Y.push(v[1]); idx.push(k); });
+    busy = true; Plotly.restyle(gd, {x: X, y: Y}, idx); busy = false;
+  }
+  draw(-Infinity, Infinity);
+  gd.on('plotly_relayout', function (ev) {
+    if (busy) return;
+    var key = Object.keys(ev).filter(function (k) { return /^xaxis\d*\.range\[0\]$/.test(k); })[0];
+    if (key) { draw(ev[key], ev[key.replace('[0]', '[1]')]); return; }
+    var r = Object.keys(ev).filter(function (k) { return /^xaxis\d*\.range$/.test(k); })[0];
+    if (r) { draw(ev[r][0], ev[r][1]); return; }
+    if (Object.keys(ev).some(function (k) { return /^xaxis\d*\.autorange$/.test(k); })) draw(-Infinity, Infinity);
+  });
+  gd.dataset.drawn = 'yes';
+});
+</script>"""
 
 
 def _labels(mapping: Mapping | None) -> dict[str, str] | None:
@@ -343,7 +467,7 @@ def _labelled(trace: Trace | None) -> Trace | None:
 
 def run_report_from_files(trace_path: Path, path: Path | None = None, *, reference: Path | None = None,
                           units: Mapping[str, str] | None = None, pairs: Mapping[str, str] | None = None,
-                          manipulator=None) -> Path:
+                          manipulator=None, library_dir: Path | None = None) -> Path:
     """:func:`run_report` of a trace file (any format; its ``<name>_reference`` beside it is
     overlaid when present), written to ``path`` (default ``<trace>.html``)."""
     trace_path = Path(trace_path)
@@ -356,7 +480,7 @@ def run_report_from_files(trace_path: Path, path: Path | None = None, *, referen
                 break
     ref = read_trace(reference) if reference is not None else None
     return run_report(trace, path or trace_path.with_suffix(".html"), units=units, pairs=pairs, reference=ref,
-                      manipulator=manipulator)
+                      manipulator=manipulator, library_dir=library_dir)
 
 
 # --- a batch ------------------------------------------------------------------------------------

@@ -26,8 +26,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                              "for a batch the sortable table and clickable charts; for a study its chart.")
     p.add_argument("out", type=Path, help="a trace file, a run's directory, a batch's directory or a study's table")
     p.add_argument("-o", "--output", type=Path, help="the HTML file to write (default beside what it reports)")
-    p.add_argument("--runs", action="store_true", help="for a batch, also write each run's own report (about 5 MB "
-                                                        "each) and link it from the batch's")
+    p.add_argument("--runs", action="store_true", help="for a batch, also write each run's own report (up to about 2 MB "
+                                                        "each, sharing the batch's Plotly library) and link it from the batch's")
 
 
 def _report(args: argparse.Namespace) -> int:
@@ -79,7 +79,7 @@ def write_report(out: Path, output: Path | None = None, *, runs: bool = False) -
     return run_file_report(out, output)
 
 
-def run_file_report(trace_path: Path, output: Path | None = None) -> Path:
+def run_file_report(trace_path: Path, output: Path | None = None, library_dir: Path | None = None) -> Path:
     """A run's report from its trace file and sidecar: units from the trace, setpoints from the
     recorded connections, the manipulator from the scene kept in the sidecar."""
     from ..analysis.report import run_report_from_files
@@ -101,7 +101,7 @@ def run_file_report(trace_path: Path, output: Path | None = None) -> Path:
             break
     conns = side.get("connections") if isinstance(side, dict) else None
     pairs = setpoints_of(conns if isinstance(conns, list) else [])
-    return run_report_from_files(trace_path, output, pairs=pairs, manipulator=m)
+    return run_report_from_files(trace_path, output, pairs=pairs, manipulator=m, library_dir=library_dir)
 
 
 def setpoints_of(connections: list[str]) -> dict[str, str]:
@@ -138,7 +138,7 @@ def _batch(out: Path, output: Path, runs: bool = False) -> Path:
         traces[rid] = p
         html_file = confined(p.parent, p.with_suffix(".html").name)
         if runs:
-            run_file_report(p, html_file)
+            run_file_report(p, html_file, library_dir=output.parent)  # one Plotly library for the batch
         if html_file.is_file():
             rel = os.path.relpath(html_file, output.parent)
             reports[rid] = rel if not rel.startswith("..") else html_file.absolute().as_uri()
