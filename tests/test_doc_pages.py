@@ -95,3 +95,31 @@ def test_no_page_sends_the_reader_to_material_a_clone_lacks():
            if re.search(r"SPEC(\.md)?\s*§|\.\./shared/", line)]
     assert bad == []
     assert "## " in (ROOT / "docs" / "explanation" / "thesis.md").read_text()
+
+
+def test_the_tutorial_prints_what_it_quotes(tmp_path, cache):
+    """Issue 32, item 9: the tutorial's cheap steps (every step but the multibody build, the
+    fidelity study, the batch and the rig) run in a copy of the scenes, in the page's order; each
+    exits 0 and prints every line the page quotes, each figure within its last printed digit
+    (``python -m docgen.tutorial --update`` rewrites the quotes that drift)."""
+    import shutil
+
+    from docgen import quoted, tutorial
+
+    shutil.copytree(ROOT / "scenarios", tmp_path / "scenarios")
+    printed = tutorial.run_steps(tutorial.PAGE, tmp_path, expensive=False, cache=cache)
+    assert all(lines[-1] == "(exit status 0)" for lines in printed.values()), \
+        {c: lines[-4:] for c, lines in printed.items() if lines[-1] != "(exit status 0)"}
+    blocks = [b for b in quoted.quoted_blocks(tutorial.PAGE) if tutorial._quote_key(b[1]) in printed]
+    assert len(blocks) >= 4 and all(dated for *_, dated in blocks)
+    for lineno, command, body, _ in blocks:
+        assert quoted.drifted(body, printed[tutorial._quote_key(command)]) == [], (lineno, command)
+    # a figure one unit past its last digit is found; wall times and the hash are not compared
+    lineno, command, body, _ = blocks[0]
+    now = printed[tutorial._quote_key(command)]
+    line = next(ln for ln in body if "estimated worst error" in ln)
+    value = quoted.NUMBER.findall(line.split("error", 1)[1])[0]
+    worse = line.replace(value, f"{float(value) + 2 * quoted.last_digit(value):.{len(value.split('.')[1])}f}", 1)
+    assert [d[1] for d in quoted.drifted([worse], now)] == [worse]
+    scene_line = next(ln for ln in now if ln.startswith("scene pid_step ["))
+    assert quoted.drifted([re.sub(r"\[\w+\]", "[0123456789ab]", scene_line)], now) == []
