@@ -1,5 +1,6 @@
 """The mkdocs hook of the documentation (``hooks:`` in mkdocs.yml): adds the reference pages
-generated from the code (:data:`docgen.reference.PAGES`) to the build, and puts every page of
+generated from the code (:data:`docgen.reference.PAGES`) to the build (in place of their
+committed copies, so the site never shows a stale one), and puts every page of
 ``docs/`` that the nav does not name under "More topics", so that a page a contributor adds is
 never left out of the site."""
 from __future__ import annotations
@@ -38,6 +39,9 @@ def on_config(config, **kwargs):
 def on_files(files, config, **kwargs):
     from mkdocs.structure.files import File
 
-    for rel, page in PAGES.items():
+    for rel, page in PAGES.items():  # the committed copy replaced by what the code generates now
+        committed = files.get_file_from_path(rel)
+        if committed is not None:
+            files.remove(committed)
         files.append(File.generated(config, rel, content=page()))
     return files

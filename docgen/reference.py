@@ -12,8 +12,10 @@ they cannot drift from what the program accepts:
   (:class:`cosim.master.algorithm.AlgorithmOption`).
 
 Each function returns the page's Markdown; :data:`PAGES` maps the page's path under ``docs/`` to
-its function.  The mkdocs hook (:mod:`docgen.hooks`) adds them at build time;
-``python -m docgen OUT`` writes them into ``OUT`` to read them.
+its function.  They are committed under ``docs/`` so that links to them resolve in the repository
+too (``python -m docgen docs`` rewrites them; ``tests/test_docs.py`` fails while a committed page
+differs from what the code generates), and the mkdocs hook (:mod:`docgen.hooks`) regenerates them
+at build time.
 """
 from __future__ import annotations
 
@@ -21,9 +23,10 @@ import argparse
 import inspect
 import math
 from collections.abc import Callable, Mapping
+from pathlib import Path
 
-GENERATED = ("<!-- generated from the code by docgen/reference.py at build time: edit the declarations, not "
-             "this page -->\n\n")
+GENERATED = ("<!-- generated from the code by docgen/reference.py (`python -m docgen docs` rewrites it; the site "
+             "build regenerates it): edit the declarations, not this page -->\n\n")
 
 
 def _cell(text: object) -> str:
@@ -230,3 +233,9 @@ PAGES: dict[str, Callable[[], str]] = {
     "reference/models.md": models_page,
     "reference/algorithms.md": algorithms_page,
 }
+
+
+def stale_pages(docs: Path) -> list[str]:
+    """The generated pages whose copy under ``docs`` is missing or differs from what the code
+    generates now."""
+    return [rel for rel, page in PAGES.items() if not (docs / rel).is_file() or (docs / rel).read_text() != page()]

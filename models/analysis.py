@@ -1,4 +1,4 @@
-"""Workspace, singularity and dexterity (DSI) analysis of a 3-RPR design (SPEC §2, thesis Ch. 4).
+"""Workspace, singularity and dexterity (DSI) analysis of a 3-RPR design (thesis.md §2, thesis Ch. 4).
 
 Everything here is numpy over grids, evaluating the CasADi expressions of
 :mod:`models.kinematics` through :func:`models.kinematics.numpy_map` (``"dexterity"`` gives
@@ -9,7 +9,7 @@ Conventions
 -----------
 - Poses and grid coordinates are in metres; ``phi`` [rad] is held constant (constant-orientation
   workspace).
-- ``length_scale`` is the factor applied to the rotational column of ``J`` (SPEC §2): 100 gives the
+- ``length_scale`` is the factor applied to the rotational column of ``J`` (thesis.md §2): 100 gives the
   centimetre-unit maps of Chapter 4 (``det J``, ``mu`` and ``mu_phi`` in cm; ``mu_x``, ``mu_y``
   are unitless).  :data:`THESIS_LENGTH_SCALE` is that value.
 - A map is a 2-D array indexed ``[row, column] = [y, x]``; points outside the workspace hold NaN.
@@ -32,7 +32,7 @@ from .kinematics import numpy_map
 THESIS_LENGTH_SCALE = 100.0
 #: Half width [m] of the thesis's square window ``[-0.6, 0.6)``.
 THESIS_HALF_WIDTH = 0.6
-#: Grid size used by the thesis for Table 4.5, per configuration (SPEC §2).
+#: Grid size used by the thesis for Table 4.5, per configuration (thesis.md §2).
 THESIS_GRID = {"config1": 500, "config2": 500, "config3": 800, "config4": 500}
 #: The four configurations of Table 4.2, in the thesis's order.
 CONFIGURATIONS = ("config1", "config2", "config3", "config4")

@@ -55,13 +55,13 @@ def dc_drive(name: str, U: float, R: float, kt: float, b: float, rack: float, i_
     return Drive(name, U, U / alpha, U / beta, i_max * kt / rack)
 
 
-#: The Table 6.7 motor (SPEC §6) as the dc_motor block declares it: R [Ohm], kt [N m/A] (145 rpm/V),
+#: The Table 6.7 motor (thesis.md §6) as the dc_motor block declares it: R [Ohm], kt [N m/A] (145 rpm/V),
 #: b [N m s/rad], rack [m/rad]; the 12 V rating and the driver's 30 A peak (models.blocks.motor;
 #: tests/test_task.py checks that the two agree).
 TABLE_6_7 = {"R": 0.574, "kt": 60.0 / (2 * math.pi * 145.0), "b": 86e-6, "rack": 0.05}
 U_RATED, I_PEAK = 12.0, 30.0
 
-#: The Table 6.7 motor of the simulated loop, and the rig's Firgelli FA-200-L-12 (SPEC §7:
+#: The Table 6.7 motor of the simulated loop, and the rig's Firgelli FA-200-L-12 (thesis.md §7:
 #: 12 V, 20.32 mm/s, 890 N).
 DRIVES = {
     "table67": dc_drive("table67", U_RATED, TABLE_6_7["R"], TABLE_6_7["kt"], TABLE_6_7["b"], TABLE_6_7["rack"], I_PEAK),

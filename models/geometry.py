@@ -1,4 +1,4 @@
-"""Manipulator description of the 3-RPR planar parallel manipulator (SPEC §1, §4).
+"""Manipulator description of the 3-RPR planar parallel manipulator (thesis.md §1, §4).
 
 Conventions (SI units):
 - Pose of the platform centre C is ``q = (x, y, phi)`` [m, m, rad].
@@ -18,7 +18,7 @@ import numpy as np
 CROSS_ANGLES = (math.pi / 6, 5 * math.pi / 6, 3 * math.pi / 2)
 #: Homothetic pairing: B_i at the same polar angle about C as A_i about the base centre, so at
 #: phi = 0 the platform is a scaled copy of the base and the legs meet in the homothety centre
-#: (singular everywhere at phi = 0, SPEC §1-2).
+#: (singular everywhere at phi = 0, thesis.md §1-2).
 HOMOTHETIC_ANGLES = (-math.pi / 6, 7 * math.pi / 6, math.pi / 2)
 
 #: Names and order of the flat geometry vector used by the symbolic models.
@@ -32,7 +32,7 @@ class GeometryError(ValueError):
 
 
 def base_joints(side: float) -> np.ndarray:
-    """Fixed joints A1..A3 [m] of an equilateral base of the given side (SPEC §1), shape (3, 2)."""
+    """Fixed joints A1..A3 [m] of an equilateral base of the given side (thesis.md §1), shape (3, 2)."""
     o = side / math.sqrt(3.0)
     c30, s30 = math.cos(math.pi / 6), math.sin(math.pi / 6)
     return np.array([[-o * c30, o * s30], [o * c30, o * s30], [0.0, -o]])
@@ -40,7 +40,7 @@ def base_joints(side: float) -> np.ndarray:
 
 @dataclass(frozen=True)
 class Inertia:
-    """Mass properties of the legs and platform (SPEC §4, Table 7.1).
+    """Mass properties of the legs and platform (thesis.md §4, Table 7.1).
 
     ``e1``: distance [m] from ``A_i`` back to the cylinder's mass centre (at ``A_i - e1 s_i``).
     ``e2``: distance [m] from ``B_i`` back to the rod's mass centre (at ``A_i + (L_i - e2) s_i``).

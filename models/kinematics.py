@@ -1,4 +1,4 @@
-"""3-RPR kinematics, written once in CasADi symbols (SPEC §1–§3, thesis Chapters 4–5).
+"""3-RPR kinematics, written once in CasADi symbols (thesis.md §1–§3, thesis Chapters 4–5).
 
 Symbolic inputs are ``q = (x, y, phi)`` [m, m, rad] and the flat geometry vector ``g`` (see
 :data:`models.geometry.GEOMETRY_FIELDS`).  Every equation here is a CasADi expression; the
@@ -108,7 +108,7 @@ class LegMotion:
 
 
 def leg_motion(q, qd, qdd, g, e1=0.3, e2=0.3) -> LegMotion:
-    """Velocity and acceleration kinematics by the matrix approach of Chapter 5 (SPEC §3)."""
+    """Velocity and acceleration kinematics by the matrix approach of Chapter 5 (thesis.md §3)."""
     wp, alp = qd[2], qdd[2]
     vp, ap = qd[0:2], qdd[0:2]
     A = fixed_joints(g)

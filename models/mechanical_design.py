@@ -1,4 +1,4 @@
-"""The static design checks of the thesis's Chapter 8 (SPEC §8): fixed-joint shaft, bearings,
+"""The static design checks of the thesis's Chapter 8 (thesis.md §8): fixed-joint shaft, bearings,
 clamp and actuator, as plain functions of the loads.
 
 Conventions (SI units throughout: N, m, N m, Pa; lengths of the shaft sketch in m):
@@ -26,7 +26,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-#: Inputs of Chapter 8 as printed (Section 8.1.2 and Table 8.1; SPEC §8).
+#: Inputs of Chapter 8 as printed (Section 8.1.2 and Table 8.1; thesis.md §8).
 PLATFORM_MASS = 3.0          # kg
 ACTUATOR_MASS = 4.0          # kg: motor 2, rod 1, cylinder 1 (Table 8.1)
 HORIZONTAL_FORCE = 100.0     # N, at the load point

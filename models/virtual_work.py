@@ -1,4 +1,4 @@
-"""Inverse dynamics of the 3-RPR by the principle of virtual work (SPEC §4, thesis §6.7, App. B).
+"""Inverse dynamics of the 3-RPR by the principle of virtual work (thesis.md §4, thesis §6.7, App. B).
 
 ``J^T tau + F_p + sum_i (J_ci^T F_ci + J_ri^T F_ri) = 0`` where ``F = (-m a_x, -m a_y, -I alpha)``
 are the inertial wrenches of the platform, the cylinders and the rods, and each ``J_*`` maps the

@@ -3,6 +3,7 @@
 character classes as the docs write them."""
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
 import numpy as np
@@ -110,6 +111,43 @@ SUMMARY_TERMS = {"master chose": "choice", "pilot run": "pilot run", "compiled l
                  "inaccurate": "status", "tolerance": "tolerance"}
 
 
+def summary_terms(lines: list[str]) -> set[str]:
+    """The labels a run's printed summary uses, collected from its text: every table's column
+    labels, the label before ':' of each line (``verdict``, ``final values``, ``plot``...), the
+    heading of a parenthesised result (``monolithic reference (...)``) and the method words of its
+    statistics lines."""
+    terms: set[str] = set()
+    words = re.compile(r"\b(Richardson|companion run|pilot runs?|compiled loop|python loop|real-time factor|h_max|"
+                       r"rtol|rejected|build|init|inputs (?:linear|hold)|of range)\b")
+    for ln in lines:
+        s = ln.strip()
+        if re.match(r"^(slave|variable)\s{2,}", s):
+            terms |= set(re.split(r"\s{2,}", s))
+            continue
+        m = re.match(r"^([a-z][a-z -]*?)(?: at t = [^:]*)?:", s)
+        if m and not s.startswith(("rpr-cosim", "scene ")):
+            terms.add(m.group(1))
+        terms |= set(words.findall(s))
+        m = re.match(r"^([a-z][a-z -]+?) \(", s)
+        if m and not ln.startswith(" "):
+            terms.add(m.group(1))
+    return terms
+
+
+def test_every_label_of_a_real_summary_has_a_glossary_entry(tmp_path, cache, capsys):
+    """Issue 32, item 8, from what a run prints rather than a list: pid_step with the reference
+    table, plot and report; each label :func:`summary_terms` collects is a bold entry of the
+    glossary (in a bold term)."""
+    gloss = (SCENES.parent / "docs" / "reference" / "glossary.md").read_text().lower()
+    code = main(["run", str(SCENES / "pid_step.yaml"), "--set", "stop_time=0.05", "--reference", "--plot",
+                 "--report", "--out", str(tmp_path), "--cache", str(cache)])
+    printed = capsys.readouterr()
+    terms = summary_terms((printed.out + printed.err).splitlines())
+    assert code == 0 and {"max |diff|", "rms", "us/step", "verdict", "final values", "plot"} <= terms, terms
+    entries = " | ".join(re.findall(r"\*\*(.+?)\*\*", gloss))  # the glossary's bold terms
+    assert sorted(t for t in terms if t.lower() not in entries) == []
+
+
 def test_every_term_a_summary_prints_is_in_the_glossary(tmp_path, cache, capsys):
     """Issue 32, item 8: a run that chooses (pilots, companion) and a named one judged inaccurate;
     each term of :data:`SUMMARY_TERMS` is in what they print and has a glossary entry."""
@@ -171,3 +209,28 @@ def test_fmu_show_lists_what_each_option_choice_adds(capsys):
     from cosim.analysis.model_doc import catalog_markdown
 
     assert "`coupling=spring`: + input x_in [m]" in catalog_markdown()  # the catalog reference page too
+
+
+@pytest.mark.parametrize("pattern, hint", [("mehc.platform.*", "did you mean 'mech.platform.*'?"),
+                                           ("mech.platfrom.x", "did you mean 'mech.platform.x'?")])
+def test_compare_only_names_the_closest_component_or_variable(pattern, hint):
+    """Issue 32, item 8: did-you-mean wherever a path names a component (compare --only too)."""
+    from cosim.errors import UserError
+
+    names = ["mech.platform.x", "mech.platform.y", "pid1.y"]
+    tr = Trace(["time", *names], np.zeros((2, 4)))
+    with pytest.raises(UserError, match=hint.replace("?", r"\?").replace("*", r"\*").replace(".", r"\.")):
+        common_names(tr, tr, [pattern])
+
+
+def test_a_misspelt_component_in_a_connection_or_an_output_gets_the_closest_name(tmp_path, capsys):
+    """The scene's connections and outputs: one line each naming the closest component."""
+    text = (SCENES / "pid_step.yaml").read_text()
+    assert "mech.leg[1].s -> pid1.measurement" in text and "  - mech.platform.*" in text
+    bad = tmp_path / "bad.yaml"
+    bad.write_text(text.replace("mech.leg[1].s -> pid1.measurement", "mech.leg[1].s -> pdi1.measurement")
+                   .replace("  - mech.platform.*", "  - mehc.platform.*"))
+    assert main(["run", str(bad), "--check"]) == 2
+    err = capsys.readouterr().err
+    assert "unknown component 'pdi1' in 'pdi1.measurement'; did you mean 'pid1'?" in err
+    assert "'mehc.platform.*'" in err and "did you mean 'mech.platform." in err

@@ -17,6 +17,7 @@ run, which is what comparisons are for), and the variables only one trace has ar
 """
 from __future__ import annotations
 
+import difflib
 import fnmatch
 import math
 from collections.abc import Sequence
@@ -61,9 +62,24 @@ def common_names(test: Trace, ref: Trace, patterns: Sequence[str] | None = None)
         names = [n for n in names if any(matches(n, p) for p in patterns)]
     if not names:
         what = f" matching {', '.join(patterns)}" if patterns else ""
-        raise UserError(f"the traces have no variable{what} in common "
+        hint = "".join(_closest(p, [n for n in test.names if n in ref.columns]) for p in patterns or ())
+        raise UserError(f"the traces have no variable{what} in common{hint} "
                         f"(first: {', '.join(test.names[:3])}...; second: {', '.join(ref.names[:3])}...)")
     return names
+
+
+def _closest(pattern: str, names: Sequence[str]) -> str:
+    """``"; did you mean 'X'?"`` for an ``--only`` pattern that matches nothing: its component
+    replaced by the closest component of ``names`` (``mech.platfrom.*`` is not, but ``mehc.*``
+    is), else the closest whole name; ``""`` when none is close."""
+    components = sorted({n.split(".", 1)[0] for n in names})
+    head, dot, rest = pattern.partition(".")
+    if dot and not any(fnmatch.fnmatchcase(c, head) for c in components):
+        close = difflib.get_close_matches(head, components, n=1, cutoff=0.5)
+        if close:
+            return f"; did you mean {close[0] + dot + rest!r}?"
+    close = difflib.get_close_matches(pattern, list(names), n=1, cutoff=0.5)
+    return f"; did you mean {close[0]!r}?" if close else ""
 
 
 def aligned(test: Trace, ref: Trace, names: Sequence[str]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

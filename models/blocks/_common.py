@@ -70,7 +70,7 @@ _INERTIA_TEXT = {
 
 
 def inertia_params(ps: ParamSet, config: str) -> ca.SX:
-    """Mass parameters (SPEC §4, Table 7.1) with the preset's defaults; returns the symbolic
+    """Mass parameters (thesis.md §4, Table 7.1) with the preset's defaults; returns the symbolic
     inertia vector ``m`` in the order of :data:`~models.geometry.INERTIA_FIELDS`."""
     inertia = preset(config).inertia
     syms = []
@@ -82,9 +82,9 @@ def inertia_params(ps: ParamSet, config: str) -> ca.SX:
 
 def stroke_ratings(config: str, legs: Sequence[int] = (1, 2, 3)) -> dict[str, Rating]:
     """``leg[i].s`` must stay inside the stroke ``[Lmin, Lmax]`` of the preset ``config``
-    (SPEC §1: 0.10-0.60 m)."""
+    (thesis.md §1: 0.10-0.60 m)."""
     m = preset(config)
-    return {f"leg[{i}].s": Rating(m.Lmin, m.Lmax, "stroke", f"actuator stroke of the {config} preset (SPEC §1)")
+    return {f"leg[{i}].s": Rating(m.Lmin, m.Lmax, "stroke", f"actuator stroke of the {config} preset (thesis.md §1)")
             for i in legs}
 
 

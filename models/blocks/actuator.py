@@ -1,4 +1,4 @@
-"""Electric linear actuator with a lead screw, voltage in (the rig of thesis Chapter 8, SPEC §7).
+"""Electric linear actuator with a lead screw, voltage in (the rig of thesis Chapter 8, thesis.md §7).
 
 Per leg: the driver applies ``u`` [V], clamped to the rated ``+-v_rated``.  The screw is not
 back-drivable and the motor's force-speed line is straight: the speed the motor settles at is
@@ -12,7 +12,7 @@ the leg length is ``s = s_offset + x``.
 
 Actuator presets (construction option ``actuator``):
 
-- ``"fa200"``: Firgelli FA-200-L-12 (SPEC §7): 12 V, 0.8 in/s = 20.32 mm/s top speed, 200 lbf =
+- ``"fa200"``: Firgelli FA-200-L-12 (thesis.md §7): 12 V, 0.8 in/s = 20.32 mm/s top speed, 200 lbf =
   890 N dynamic force (used as the stall force of the line: the datasheet gives no other); the
   time constant is not published: ``tau`` = 20 ms is an assumption (a geared DC motor), set it from
   a step response of the rig.
@@ -21,7 +21,7 @@ Actuator presets (construction option ``actuator``):
   ``tau = v_nl / 147 m/s2`` = 3.4 ms reproduce that acceleration from rest at the rated voltage,
   ``f_stall`` = 100 N is an assumption.  Set the parameters once the actuator is measured.
 
-Stroke: legs of 0.1 .. 0.6 m (SPEC §1): ``s_offset`` = 0.1 m, ``stroke_max`` = 0.5 m.
+Stroke: legs of 0.1 .. 0.6 m (thesis.md §1): ``s_offset`` = 0.1 m, ``stroke_max`` = 0.5 m.
 
 End stops (construction option ``end_stops``): ``"clamp"`` (the default) stops the rod at the
 ends by zeroing its rate inside the right-hand side, while the motor speed state runs on;
@@ -112,7 +112,7 @@ def rig(actuator: str = "fa200", integrator: str = "rk4", substeps: int = 1, end
         out += counts
         outputs += [Var(f"leg[{i}].impacts", "1", f"leg {i}: arrivals at an end stop so far") for i in (1, 2, 3)]
         events = ev.block_kw(xs)
-    return Block.build("linear_actuator", description=f"three {actuator} linear actuators (the rig, SPEC §7)",
+    return Block.build("linear_actuator", description=f"three {actuator} linear actuators (the rig, thesis.md §7)",
                        params=ps.params, inputs=inputs, outputs=outputs, states=states, p=ps.vector(), u=u, x=xs,
                        ode=ca.vertcat(*ode), out=ca.vertcat(*out), start=ca.vertcat(*start), integrator=integrator,
                        substeps=substeps, fidelity="rig", **events)
@@ -137,7 +137,7 @@ def single(actuator: str = "fa200", integrator: str = "rk4", substeps: int = 1, 
         out += n
         events = ev.block_kw(xs)
     return Block.build(
-        "linear_actuator", description=f"{actuator} linear actuator (SPEC §7)", params=ps.params,
+        "linear_actuator", description=f"{actuator} linear actuator (thesis.md §7)", params=ps.params,
         inputs=[Var("u", "V", "driver voltage"), Var("f_load", "N", "load force opposing extension")],
         outputs=outputs, states=[Var("state.stroke", "m", "stroke"), Var("state.v", "m/s", "speed")], p=ps.vector(),
         u=u, x=xs, ode=ca.vertcat(dx, dv), out=ca.vertcat(*out),
@@ -146,7 +146,7 @@ def single(actuator: str = "fa200", integrator: str = "rk4", substeps: int = 1, 
 
 
 #: The "motor" fidelity's defaults: a small 12 V DC motor behind the FA-200's gear and lead screw,
-#: chosen to match what SPEC §7 publishes (12 V, 20.32 mm/s no-load) and the "rig" fidelity's
+#: chosen to match what thesis.md §7 publishes (12 V, 20.32 mm/s no-load) and the "rig" fidelity's
 #: assumed 20 ms speed lag; the motor's own constants are not published (assumptions, to be
 #: calibrated on the rig with ``rpr-cosim fit``).  No-load speed 12 k / (k^2 + b R) = 923 rad/s,
 #: times ``lead`` = 20.3 mm/s; time constant J R / (k^2 + b R) = 20 ms; stall current 3 A.
@@ -212,7 +212,7 @@ def motor_rig(integrator: str = "rk4", substeps: int = 4) -> Block:
                     Var(f"leg[{i}].raw", "1", f"leg {i} pot reading [ADC counts, before rounding]")]
         start += [ca.fmin(stroke_max, ca.fmax(0, s0[j] - s_offset)), ca.SX(0)]
     return Block.build("linear_actuator", description="three lead-screw actuators, each a DC motor, read by "
-                                                      "potentiometers (the rig, SPEC §7)",
+                                                      "potentiometers (the rig, thesis.md §7)",
                        params=ps.params, inputs=inputs, outputs=outputs, states=states, p=ps.vector(), u=u, x=xs,
                        ode=ca.vertcat(*ode), out=ca.vertcat(*out), start=ca.vertcat(*start), integrator=integrator,
                        substeps=substeps, fidelity="motor")

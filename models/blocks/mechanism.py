@@ -2,7 +2,7 @@
 
 Shared interface of the dynamic fidelities (``rigid``, ``multibody``):
 
-- inputs ``leg[i].f`` [N]: actuator force along leg i, positive when it extends the leg (SPEC §4);
+- inputs ``leg[i].f`` [N]: actuator force along leg i, positive when it extends the leg (thesis.md §4);
 - outputs ``platform.x``, ``platform.y`` [m], ``platform.phi`` [rad], ``platform.vx``,
   ``platform.vy`` [m/s], ``platform.omega`` [rad/s] (global frame), ``leg[i].s`` [m] (leg length
   ``|B_i - A_i|``) and ``leg[i].v`` [m/s] (its rate);
@@ -18,7 +18,7 @@ Shared interface of the dynamic fidelities (``rigid``, ``multibody``):
 
 All equations come from :mod:`models.kinematics` and :mod:`models.virtual_work`; the multibody
 fidelity builds its own body equations (Newton–Euler, penalty joints) but places its bodies with
-the same kinematics and the same mass-centre conventions (SPEC §3).
+the same kinematics and the same mass-centre conventions (thesis.md §3).
 """
 from __future__ import annotations
 
@@ -97,7 +97,7 @@ def rigid(config: str, integrator: str = "rk4", substeps: int = 1) -> Block:
         ("q.vx", "m/s", "velocity of C, x"), ("q.vy", "m/s", "velocity of C, y"), ("q.omega", "rad/s", "angular rate"))]
     solver_params(ps, integrator)
     return Block.build(
-        "mechanism", description="3-RPR mechanism, rigid 3-DOF dynamics by virtual work (SPEC §4)",
+        "mechanism", description="3-RPR mechanism, rigid 3-DOF dynamics by virtual work (thesis.md §4)",
         params=ps.params, inputs=FORCE_INPUTS, outputs=POSE_OUTPUTS + LEG_OUTPUTS, states=states,
         p=ps.vector(), u=f, x=xs, ode=ca.vertcat(qd, qdd), out=ca.vertcat(q, qd, L, Ld),
         start=ca.vertcat(q0, qd0), integrator=integrator, substeps=substeps,

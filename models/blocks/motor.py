@@ -1,4 +1,4 @@
-"""DC motor driving a leg through a rack and pinion (thesis Table 6.7, SPEC §6).
+"""DC motor driving a leg through a rack and pinion (thesis Table 6.7, thesis.md §6).
 
 Interface: input ``u`` [V] (armature voltage) and the flange ``flange``: flow ``flange.v`` [m/s]
 in (the leg's extension rate), effort ``flange.f`` [N] out (force along the leg, positive
@@ -23,7 +23,7 @@ Rotor inertia ``J`` and viscous friction ``b`` (construction option ``rotor``):
 
 Torque constant.  Table 6.7 prints the gyrator as "145" without a unit.  Read as a speed constant
 of 145 rpm/V it gives ``kt = 60 / (2 pi 145) = 0.0659 N m/A``; 0.145 N m/A is the other
-candidate (SPEC §6).  Both were run in the closed-loop scene of Table 6.10 (monolithic CasADi/CVODES
+candidate (thesis.md §6).  Both were run in the closed-loop scene of Table 6.10 (monolithic CasADi/CVODES
 at 1e-9: rigid mechanism with ``leg[i].m_act = J/rack**2``, three full motors, parallel PID
 Kp = 30, Ki = 80, Kd = 20 with a 1 ms derivative filter on the error, +/-12 V, step from
 (-0.15, -0.15, 0) to (-0.2, -0.15, 0.2)); Table 6.10 shows phi peaking at ~0.30 rad near 1.3 s,
@@ -58,15 +58,15 @@ KT_RPM_PER_V = 60.0 / (2 * math.pi * 145.0)  # 145 rpm/V as N m/A (= V s/rad)
 KT_DEFAULT = KT_RPM_PER_V
 
 #: Rated armature voltage [V]: the FA-200-L-12 is a 12 V actuator and Table 6.7 limits the PID
-#: output to +-12 V (SPEC §6-7).
+#: output to +-12 V (thesis.md §6-7).
 U_RATED = 12.0
-#: Peak current [A] of the motor driver: the thesis's Cytron "13 A" driver (SPEC §7) carries
+#: Peak current [A] of the motor driver: the thesis's Cytron "13 A" driver (thesis.md §7) carries
 #: 13 A continuously and 30 A at peak (its datasheet).  The Table 6.7 motor stalls at
 #: 12 V / 0.574 Ohm = 20.9 A, which the setpoint kick of pid_step reaches for a few milliseconds.
 I_PEAK = 30.0
 RATINGS = {
-    "u": Rating(-U_RATED, U_RATED, "rated", "12 V actuator, Table 6.7 output limit (SPEC §6-7)"),
-    "i": Rating(-I_PEAK, I_PEAK, "rated", "peak current of the 13 A motor driver (SPEC §7; 30 A peak)"),
+    "u": Rating(-U_RATED, U_RATED, "rated", "12 V actuator, Table 6.7 output limit (thesis.md §6-7)"),
+    "i": Rating(-I_PEAK, I_PEAK, "rated", "peak current of the 13 A motor driver (thesis.md §7; 30 A peak)"),
 }
 
 FLANGE = Flange("flange", effort="flange.f", flow="flange.v", causality="effort_out")

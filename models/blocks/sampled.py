@@ -2,7 +2,7 @@
 12-bit ADC and the drivers' PWM duty, each quantised and held between samples.
 
 ``adc`` (per channel ``u`` -> ``y``, ``raw``)
-    The rig's leg sensing (SPEC §7, :mod:`hardware.convert`): 1.8 V -> 1 kOhm -> a potentiometer
+    The rig's leg sensing (thesis.md §7, :mod:`hardware.convert`): 1.8 V -> 1 kOhm -> a potentiometer
     of ``pot_ohm`` over ``pot_length`` -> ground, read by the BeagleBone's 12-bit ADC over 0..1.8 V.
     A leg of length ``u`` [m] (stroke ``u - s_offset``) gives the level
     ``raw* = 4096 ((u - s_offset) / pot_length) pot_ohm / (pot_ohm + series_ohm)`` counts; the ADC

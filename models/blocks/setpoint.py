@@ -17,7 +17,7 @@ Profiles (construction option ``profile``):
   ``t_step`` on (defaults: Table 6.8, start (-0.15, -0.15, 0) -> target (-0.2, -0.15, 0.2),
   ``t_step = 0``: the goal from the first instant, as in the thesis); rates are zero;
 - ``"ramp"``: linear from start to goal over ``duration`` seconds from ``t_step``;
-- ``"sine"``: Chapter 7's path (SPEC §5), ``pose = centre + amplitude sin(2 pi freq t + phase)``
+- ``"sine"``: Chapter 7's path (thesis.md §5), ``pose = centre + amplitude sin(2 pi freq t + phase)``
   with centre ``(xc, yc, phic)`` = (-0.25, -0.15, 0), amplitudes ``(amp_x, amp_y, amp_phi)``
   = (0.05, 0.05, 0) and ``freq`` = 0.5 Hz, i.e. ``x = -0.25 + 0.05 sin(pi t)``.
 """
@@ -66,13 +66,13 @@ def pose_setpoint(config: str = "cross_leg", profile: str = "step") -> Block:
         qd = ca.if_else(moving, (goal - start) / duration, zero)
         qdd = zero
     else:
-        centre = ca.vertcat(ps.add("xc", -0.25, "m", "path centre: x (SPEC §5)"),
-                            ps.add("yc", -0.15, "m", "path centre: y (SPEC §5)"),
-                            ps.add("phic", 0.0, "rad", "path centre: orientation (SPEC §5)"))
-        amp = ca.vertcat(ps.add("amp_x", 0.05, "m", "amplitude in x (SPEC §5)"),
-                         ps.add("amp_y", 0.05, "m", "amplitude in y (SPEC §5)"),
-                         ps.add("amp_phi", 0.0, "rad", "amplitude in orientation (SPEC §5)"))
-        freq = ps.add("freq", 0.5, "Hz", "frequency (SPEC §5: sin(pi t), 0.5 Hz)")
+        centre = ca.vertcat(ps.add("xc", -0.25, "m", "path centre: x (thesis.md §5)"),
+                            ps.add("yc", -0.15, "m", "path centre: y (thesis.md §5)"),
+                            ps.add("phic", 0.0, "rad", "path centre: orientation (thesis.md §5)"))
+        amp = ca.vertcat(ps.add("amp_x", 0.05, "m", "amplitude in x (thesis.md §5)"),
+                         ps.add("amp_y", 0.05, "m", "amplitude in y (thesis.md §5)"),
+                         ps.add("amp_phi", 0.0, "rad", "amplitude in orientation (thesis.md §5)"))
+        freq = ps.add("freq", 0.5, "Hz", "frequency (thesis.md §5: sin(pi t), 0.5 Hz)")
         phase = ps.add("phase", 0.0, "rad", "phase at t = 0")
         wt = 2 * math.pi * freq
         arg = wt * clock + phase
