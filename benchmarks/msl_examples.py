@@ -44,6 +44,9 @@ THIRD = ROOT.parent / "shared" / "third_party"
 PACKAGES = ("Modelica.Mechanics.Translational.Examples", "Modelica.Mechanics.Rotational.Examples",
             "Modelica.Blocks.Examples")
 TOLERANCE = 1e-3
+#: Integrator substeps where one per output interval is not enough (as tests/test_modelica_msl.py:
+#: PID_Controller's stiff spring-damper).
+SUBSTEPS = {"Modelica.Blocks.Examples.PID_Controller": 4}
 _MODEL = re.compile(r"^\s*(?:encapsulated\s+)?(partial\s+)?(model|package|block|record|function|connector|type|class)"
                     r"\s+([A-Za-z_]\w*)", re.M)
 
@@ -114,7 +117,8 @@ def one(msl: Path, results: Path | None, example: str, folder: Path, do_run: boo
         stop = float(creation.split("StopTime=")[1].split()[0])
         interval = float(creation.split("Interval=")[1].split()[0])
     scene = folder / "scene.yaml"
-    scene.write_text(f"stop_time: {stop}\nmodelica_path: [{msl}]\ncomponents:\n  c: {{modelica: {example}}}\n"
+    options = f", options: {{substeps: {SUBSTEPS[example]}}}" if example in SUBSTEPS else ""
+    scene.write_text(f"stop_time: {stop}\nmodelica_path: [{msl}]\ncomponents:\n  c: {{modelica: {example}{options}}}\n"
                      f"master: {{algorithm: jacobi, step: {interval}, estimate: false}}\n"
                      + (f"outputs: [{', '.join('c.' + s for s in signals)}]\n" if signals else ""))
     t0 = time.perf_counter()
