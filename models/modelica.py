@@ -47,10 +47,15 @@ Units: rumoca 0.10 does not check them, so the translation does (:class:`_Units`
 dimension, and the arguments of sin, exp, tanh... be dimensionless; a variable without a unit is
 a wildcard, a number is a wildcard in a sum and a dimensionless factor in a product.
 
+Also taken: initial equations and ``fixed = true`` (:meth:`_Translation._initial`), Boolean and
+Integer variables of always-active equations (modes settled after every event), relations on
+time as time events, one-element arrays and for-equations over them, asserts on parameters.
+
 Refused: algorithm sections of a model, statements other than assignments in functions,
-external functions, initial equations and algorithms, assert/terminate, ``sample``, ``edge``,
-``change``, ``elsewhen``, time events, ``delay``, Boolean/Integer discrete variables, String
-variables, inner/outer, stream connectors, arrays of connectors.
+external functions, initial algorithms, terminate, ``sample``, ``edge``, ``change``,
+``elsewhen``, ``when initial()``, Boolean/Integer variables assigned in a when-clause, arrays of
+more than one element, ``delay``, String variables, inner/outer, stream connectors, arrays of
+connectors.
 
 ``models/`` is maths only: :func:`translate` takes the model's text (and rumoca reads the roots
 it is given); choosing and reading files is the caller's (:mod:`cosim.scenario`).
