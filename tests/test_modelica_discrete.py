@@ -56,7 +56,7 @@ def test_initial_equations_set_the_start_values(tmp_path):
 
 SWITCH = """model Switch "a Boolean on time (a time event) and an Integer on a state (a state event)"
   Boolean on = time >= 0.5;
-  Integer n = if x > 1 then 3 else 1;
+  Integer n = if x > 0.9 then 3 else 1;
   Real x(start = 0);
   Real s(start = 0);
 equation
@@ -67,18 +67,18 @@ end Switch;
 
 
 def test_boolean_and_integer_discrete_variables_switch_at_their_events(tmp_path):
-    """x = 0 until the time event at 0.5 s, then rate 1 until x = 1 (t = 1.5 s, a state event
-    located inside a communication step of 0.04 s), then rate 3: x = 1 + 3 (t - 1.5).  The Boolean and
+    """x = 0 until the time event at 0.5 s, then rate 1 until x = 0.9 (t = 1.4 s, a state event
+    located inside a communication step of 0.04 s), then rate 3: x = 0.9 + 3 (t - 1.4).  The Boolean and
     the Integer are modes, recorded as 0/1 and 1/3."""
     b = translate(SWITCH, "Switch", "Switch.mo")
     assert [v.name for v in b.modes] == ["mode.on", "mode.n"]
     assert [s.offset for s in b.sample_times] == [0.0, 0.5]  # the initial event, the time event
     tr = simulate(tmp_path, SWITCH, "Switch", 2.0, 0.04, ["x", "on", "n", "s"])
     t = np.asarray(tr["time"])
-    exact = np.where(t < 0.5, 0.0, np.where(t < 1.5, t - 0.5, 1 + 3 * (t - 1.5)))
+    exact = np.where(t < 0.5, 0.0, np.where(t < 1.4, t - 0.5, 0.9 + 3 * (t - 1.4)))
     assert np.max(np.abs(tr["c.x"] - exact)) < 1e-9
     assert set(np.asarray(tr["c.on"])[t > 0.52]) == {1.0} and set(np.asarray(tr["c.on"])[t < 0.48]) == {0.0}
-    assert set(np.asarray(tr["c.n"])[t > 1.52]) == {3.0} and set(np.asarray(tr["c.n"])[t < 1.48]) == {1.0}
+    assert set(np.asarray(tr["c.n"])[t > 1.42]) == {3.0} and set(np.asarray(tr["c.n"])[t < 1.38]) == {1.0}
     assert np.max(np.abs(tr["c.s"] - t)) < 1e-12  # noEvent: no indicator, a smooth ramp here
 
 

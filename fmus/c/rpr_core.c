@@ -730,8 +730,7 @@ static int events_do_step(RprInstance *c, double t, double h) {
                 if (eval_z(c, t + tau + s, c->xe, ub, c->z)) { status = fail(c, "the event indicators failed"); break; }
                 far = 1;
                 for (k = 0; k < nf; ++k)
-                    if (before[fired[k]] != 0 && c->z[fired[k]] * before[fired[k]] >= 0) far = 0; /* strictly across:
-                        a relation read at the event (x > 1 at z = 0) has its new value */
+                    if (c->z[fired[k]] * before[fired[k]] > 0) far = 0;
                 if (!far) { s += nudge; nudge *= 2.0; }
             }
             if (status != RPR_OK) break;
