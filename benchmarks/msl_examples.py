@@ -7,20 +7,24 @@ The list is fixed by the library itself (each Examples package's ``package.order
 each example the script writes a one-component scene (``modelica: <example>``, the example's
 ``experiment`` stop time and interval, or 1 s and 500 steps), then
 
-1. *check*: loads it (the files the class reaches, rumoca, our translation; a failure is
-   reported in the scene check's one line, whose reason is rumoca's when it names a
-   front-end error and ours otherwise);
+1. *check*: compiles the class with rumoca (a failure there is rumoca's, with its message), then
+   loads the scene (our translation: a failure there is ours, with the construct);
 2. *run* (``--run``): builds the FMU and runs it; with reference results
    (``--results``), compares the comparison signals (worst error relative to range; passing is
    within 1e-3).
 
-It prints a Markdown table (``--out FILE`` writes it too) and the timings.  Usage:
-``python3 benchmarks/msl_examples.py [--msl DIR] [--results DIR] [--run] [--only SUBSTRING]``
+Each example runs in a forked child with a time limit (``--timeout``, 600 s: a longer one is a
+failure "timeout"), so one hang does not stop the survey.  It prints a Markdown table (``--out
+FILE`` writes it too) and the timings.  Usage: ``python3 benchmarks/msl_examples.py [--msl DIR]
+[--results DIR] [--run] [--only SUBSTRING] [--timeout S]``
 """
 from __future__ import annotations
 
 import argparse
+import os
+import pickle
 import re
+import signal
 import sys
 import tempfile
 import time
@@ -33,12 +37,16 @@ sys.path.insert(0, str(ROOT))
 
 from cosim.run.execute import run  # noqa: E402
 from cosim.scenario import SceneError, load  # noqa: E402
-from cosim.scenario.modelica_sources import _NOISE, class_file  # noqa: E402
+from cosim.scenario.modelica_sources import _NOISE, class_file, modelica_class  # noqa: E402
+from models.modelica import ModelicaError  # noqa: E402
 
 THIRD = ROOT.parent / "shared" / "third_party"
 PACKAGES = ("Modelica.Mechanics.Translational.Examples", "Modelica.Mechanics.Rotational.Examples",
             "Modelica.Blocks.Examples")
 TOLERANCE = 1e-3
+#: Integrator substeps where one per output interval is not enough (as tests/test_modelica_msl.py:
+#: PID_Controller's stiff spring-damper).
+SUBSTEPS = {"Modelica.Blocks.Examples.PID_Controller": 4}
 _MODEL = re.compile(r"^\s*(?:encapsulated\s+)?(partial\s+)?(model|package|block|record|function|connector|type|class)"
                     r"\s+([A-Za-z_]\w*)", re.M)
 
@@ -98,7 +106,8 @@ def reason(exc: Exception) -> str:
     return line.replace("|", "\\|")[:220]
 
 
-def one(msl: Path, results: Path | None, example: str, folder: Path, do_run: bool) -> tuple[str, str, float]:
+def one(msl: Path, results: Path | None, example: str, folder: Path, do_run: bool) -> tuple[str, str, str, float]:
+    """``(verdict, whose, reason or figure, seconds)`` of one example."""
     stop, interval = experiment(msl, example)
     ref_dir = results / Path(*example.split(".")) if results else None
     signals = []
@@ -108,31 +117,63 @@ def one(msl: Path, results: Path | None, example: str, folder: Path, do_run: boo
         stop = float(creation.split("StopTime=")[1].split()[0])
         interval = float(creation.split("Interval=")[1].split()[0])
     scene = folder / "scene.yaml"
-    scene.write_text(f"stop_time: {stop}\nmodelica_path: [{msl}]\ncomponents:\n  c: {{modelica: {example}}}\n"
+    options = f", options: {{substeps: {SUBSTEPS[example]}}}" if example in SUBSTEPS else ""
+    scene.write_text(f"stop_time: {stop}\nmodelica_path: [{msl}]\ncomponents:\n  c: {{modelica: {example}{options}}}\n"
                      f"master: {{algorithm: jacobi, step: {interval}, estimate: false}}\n"
                      + (f"outputs: [{', '.join('c.' + s for s in signals)}]\n" if signals else ""))
     t0 = time.perf_counter()
     try:
+        modelica_class(example, None, folder, [msl]).compiled()
+    except ModelicaError as exc:
+        return "fails", "rumoca", reason(exc), time.perf_counter() - t0
+    try:
         load(scene)
     except SceneError as exc:
-        return "fails", reason(exc), time.perf_counter() - t0
+        return "fails", "ours", reason(exc), time.perf_counter() - t0
     if not do_run:
-        return "translates", "", time.perf_counter() - t0
+        return "translates", "", "", time.perf_counter() - t0
     try:
         res = run(scene, [], out_dir=folder / "out")
     except Exception as exc:  # noqa: BLE001 - a table row, not a crash of the survey
-        return "fails", f"run: {reason(exc)}", time.perf_counter() - t0
+        return "fails", "ours", f"run: {reason(exc)}", time.perf_counter() - t0
     if not res.ok:
-        return "fails", f"run: {res.reason}"[:220], time.perf_counter() - t0
+        return "fails", "ours", f"run: {res.reason}"[:220].replace("|", "\\|"), time.perf_counter() - t0
     if not signals:
-        return "passes", f"runs to {stop:g} s (no reference result here)", time.perf_counter() - t0
+        return "passes", "", f"runs to {stop:g} s (no reference result here)", time.perf_counter() - t0
     import pandas as pd
 
     ref = pd.read_csv(ref_dir / f"{example.split('.')[-1]}.csv")
     worst = max(float(np.abs(res.trace[f"c.{s}"] - np.interp(res.trace["time"], ref["time"], ref[s])).max()
                       / max(np.ptp(ref[s]), 1e-300)) for s in signals)
     verdict = "passes" if worst < TOLERANCE else "fails"
-    return verdict, f"against the MA reference result: worst {worst:.1e} of range", time.perf_counter() - t0
+    return verdict, "" if worst < TOLERANCE else "ours", f"against the MA reference result: worst {worst:.1e} of " \
+                                                         f"range", time.perf_counter() - t0
+
+
+def limited(timeout: float, *args) -> tuple[str, str, str, float]:
+    """:func:`one` in a forked child, killed after ``timeout`` seconds (a failure "timeout")."""
+    t0 = time.perf_counter()
+    read, write = os.pipe()
+    pid = os.fork()
+    if pid == 0:
+        os.close(read)
+        try:
+            out = one(*args)
+        except BaseException as exc:  # noqa: BLE001 - a row, whatever happened
+            out = ("fails", "ours", f"crashed: {reason(exc)}", time.perf_counter() - t0)
+        with os.fdopen(write, "wb") as fh:
+            pickle.dump(out, fh)
+        os._exit(0)
+    os.close(write)
+    signal.signal(signal.SIGALRM, lambda *_: os.kill(pid, signal.SIGKILL))
+    signal.alarm(max(1, int(timeout)))
+    with os.fdopen(read, "rb") as fh:
+        data = fh.read()
+    signal.alarm(0)
+    os.waitpid(pid, 0)
+    if not data:
+        return "fails", "", f"timeout: no result within {timeout:g} s", time.perf_counter() - t0
+    return pickle.loads(data)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -142,23 +183,26 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--run", action="store_true", help="also build and run each example that translates")
     ap.add_argument("--only", default="", help="only the examples whose name contains this")
     ap.add_argument("--out", type=Path, help="also write the Markdown table here")
+    ap.add_argument("--timeout", type=float, default=600.0, help="seconds per example (default 600)")
     args = ap.parse_args(argv)
     if not (args.msl / "Modelica" / "package.mo").is_file():
         print(f"no Modelica Standard Library at {args.msl} (give --msl DIR)", file=sys.stderr)
         return 2
-    rows = ["| example | result | reason or figure | time [s] |", "|---|---|---|---|"]
+    rows = ["| example | result | whose | reason or figure | time [s] |", "|---|---|---|---|---|"]
     todo = [e for e in examples(args.msl) if args.only in e]
     with tempfile.TemporaryDirectory() as tmp:
         for k, example in enumerate(todo):
             folder = Path(tmp) / str(k)
             folder.mkdir()
-            verdict, why, secs = one(args.msl, args.results if args.results.is_dir() else None, example, folder,
-                                     args.run)
+            verdict, whose, why, secs = limited(args.timeout, args.msl, args.results if args.results.is_dir()
+                                                else None, example, folder, args.run)
             short = example.replace("Modelica.Mechanics.", "").replace("Modelica.", "")
-            rows.append(f"| `{short}` | {verdict} | {why} | {secs:.1f} |")
+            rows.append(f"| `{short}` | {verdict} | {whose} | {why} | {secs:.1f} |")
             print(rows[-1], flush=True)
     counts = {v: sum(f"| {v} |" in r for r in rows[2:]) for v in ("passes", "translates", "fails")}
-    summary = ", ".join(f"{n} {v}" for v, n in counts.items() if n)
+    whose = {w: sum(f"| fails | {w} |" in r for r in rows[2:]) for w in ("rumoca", "ours")}
+    summary = ", ".join(f"{n} {v}" for v, n in counts.items() if n) + \
+        (f" ({whose['rumoca']} refused by rumoca, {whose['ours']} by us or failing in our run)" if counts["fails"] else "")
     print(f"{len(todo)} examples: {summary}")
     if args.out:
         args.out.write_text("\n".join(rows) + f"\n\n{len(todo)} examples: {summary}.\n")

@@ -47,10 +47,15 @@ Units: rumoca 0.10 does not check them, so the translation does (:class:`_Units`
 dimension, and the arguments of sin, exp, tanh... be dimensionless; a variable without a unit is
 a wildcard, a number is a wildcard in a sum and a dimensionless factor in a product.
 
+Also taken: initial equations and ``fixed = true`` (:meth:`_Translation._initial`), Boolean and
+Integer variables of always-active equations (modes settled after every event), relations on
+time as time events, one-element arrays and for-equations over them, asserts on parameters.
+
 Refused: algorithm sections of a model, statements other than assignments in functions,
-external functions, initial equations and algorithms, assert/terminate, ``sample``, ``edge``,
-``change``, ``elsewhen``, time events, ``delay``, Boolean/Integer discrete variables, String
-variables, inner/outer, stream connectors, arrays of connectors.
+external functions, initial algorithms, terminate, ``sample``, ``edge``, ``change``,
+``elsewhen``, ``when initial()``, Boolean/Integer variables assigned in a when-clause, arrays of
+more than one element, ``delay``, String variables, inner/outer, stream connectors, arrays of
+connectors.
 
 ``models/`` is maths only: :func:`translate` takes the model's text (and rumoca reads the roots
 it is given); choosing and reading files is the caller's (:mod:`cosim.scenario`).
@@ -67,7 +72,7 @@ from itertools import product
 import casadi as ca
 
 from . import units
-from .block import EITHER, FALLING, RISING, Block, BlockError, Var
+from .block import EITHER, FALLING, RISING, Block, BlockError, Sample, Var
 from .user import BlockBuilder
 
 #: The rumoca DAE schema this translator reads (``Model.to_dict("dae")["schema_version"]``).
@@ -77,6 +82,8 @@ NEWTON_ITERATIONS = 12
 #: A nonlinear loop is closed when its residual is below this, relative to ``1 + |z|``.
 NEWTON_TOL = 1e-10
 INTEGRATORS = ("auto", "exact", "rk4", "radau")
+#: The period of a time event that fires once (a Sample's period must be finite).
+ONCE = 1e300
 
 
 class ModelicaError(BlockError):
@@ -91,7 +98,6 @@ class ModelicaError(BlockError):
 _UNSUPPORTED = {
     "elsewhen": "elsewhen is not supported yet (write one when-clause per condition)",
     "external": "external functions are not supported",
-    "initial": "initial equations/algorithms are not supported (give start values)",
     "assert": "assert() is not supported", "terminate": "terminate() is not supported",
     "edge": "edge() is not supported yet (a when on a relation, reinit and pre are)",
     "change": "change() is not supported yet (a when on a relation, reinit and pre are)",
@@ -319,6 +325,10 @@ _BUILTIN = {
     "smooth": lambda order, a: a, "no_event": lambda a: a, "homotopy": lambda actual, simplified: actual,
 }
 
+#: Array built-in functions, taken on one-element arrays (the only arrays translated yet).
+_ONE_ELEMENT = ("ones", "zeros", "fill", "sum", "product", "scalar", "vector", "size", "promoted_cat1",
+                "promoted_cat2")
+
 
 @dataclass
 class _Graph:
@@ -357,6 +367,8 @@ class _Graph:
             key = ("time", 0) if body == "time" else next(iter(body.items()))
             if key[0] == "function_parameter":
                 key = ("function_parameter", (key[1]["function"], key[1]["ordinal"]))
+            elif key[0] == "binder":
+                key = ("binder", (key[1]["domain"], key[1]["ordinal"]))
             if key not in self.env:
                 self._refuse(i, f"{key[0].replace('_', ' ')} is not supported here")
             return self.env[key]
@@ -371,11 +383,34 @@ class _Graph:
                 self._refuse(i, f"operator {body['operator']} is not supported")
             return op(self(body["operand"]))
         args = [self(self.operands[self.starts[i] + k]) for k in range(body.get("operand_count", 0))]
+        if kind == "builtin" and body["builtin"] in _ONE_ELEMENT:  # array builtins on one-element arrays
+            name = body["builtin"]
+            if name in ("ones", "zeros", "fill"):
+                sizes = args if name != "fill" else args[1:]
+                if any(not n.is_constant() or float(ca.evalf(n)) != 1.0 for n in sizes):
+                    self._refuse(i, f"{name}() of more than one element is not supported yet (one-element arrays only)")
+                return {"ones": ca.SX(1.0), "zeros": ca.SX(0.0)}.get(name, args[0])
+            if name == "size":  # every array translated has one element
+                return ca.SX(1.0)
+            if name.startswith("promoted_cat"):  # a concatenation: a column (a value only for size computations)
+                return ca.vertcat(*args)
+            if len(args) != 1:
+                self._refuse(i, f"{name}() of {len(args)} arrays is not supported yet (one-element arrays only)")
+            return args[0]  # sum, product, scalar, vector, a concatenation of one one-element array
+        if kind == "builtin" and body["builtin"] in ("min", "max") and len(args) == 1:
+            return (ca.mmin if body["builtin"] == "min" else ca.mmax)(args[0])  # min/max of an array
         if kind == "builtin":
             fn = _BUILTIN.get(body["builtin"])
             if fn is None:
                 self._refuse(i, f"the function {body['builtin']}() is not supported")
             return fn(*args)
+        if kind == "array":  # only arrays of one element are taken: such an array is its element
+            if len(args) != 1:
+                self._refuse(i, f"an array of {len(args)} elements is not supported yet (scalars and "
+                                f"one-element arrays only)")
+            return args[0]
+        if kind == "index":  # of a one-element array (see array): the element
+            return self(body["base"])
         if kind == "conditional":  # (c1, v1, c2, v2, ..., else)
             value = args[-1]
             for k in range(len(args) - 3, -1, -2):
@@ -496,6 +531,8 @@ class _Units:
                 if a[0] is not None and a[0] != units.ONE:
                     self._fail(i, f"the argument of {name}() is {a[2]}; expected a dimensionless value")
                 return units.ONE, False, "1"
+            if name in ("min", "max") and len(args) == 1:
+                return args[0]
             if name in ("min", "max", "atan2", "homotopy"):
                 d = self._same(i, f"{name}()", args[0], args[1])
                 return (units.ONE if name == "atan2" else d), False, self._label(d)
@@ -591,6 +628,8 @@ class _Translation:
         self.mode_syms = {}
         self.event_fields: dict = {}
         self.solved = None
+        self.param_values: dict[str, float] = {}
+        self.always: dict[int, int] = {}
         self.units = _Units(self.graph, {k: (v["attributes"].get("unit") or "") for k, v in enumerate(self.vars)})
 
     # source lines
@@ -623,16 +662,18 @@ class _Translation:
         roles: dict[str, list[int]] = {}
         for k, v in enumerate(self.vars):
             roles.setdefault(v["role"], []).append(k)
-        bad = sorted(set(roles) - {"parameter", "input", "output", "state", "algebraic", "discrete_real", "constant"})
+            dims = self._dims(v)
+            if math.prod(dims) != 1:
+                self._err(v, f"{v['name']}: an array of {'x'.join(map(str, dims))} elements is not supported yet "
+                             f"(scalars and one-element arrays only)")
+        bad = sorted(set(roles) - {"parameter", "input", "output", "state", "algebraic", "discrete_real",
+                                   "discrete_value", "constant"})
         if bad:
             v = self.vars[roles[bad[0]][0]]
             self._err(v, f"{v['name']}: a {bad[0].replace('_', ' ')} variable is not supported (continuous Real only)")
-        for k in roles.get("parameter", []):
-            self._parameter(b, k)
-        for k in roles.get("constant", []):
-            self._parameter(b, k)
+        self._parameters(b, roles.get("constant", []) + roles.get("parameter", []))
         self.env[("time", 0)] = self.time  # replaced at the end: a clock state in ode/out, the block's t in events
-        self._modes(roles.get("discrete_real", []))
+        self._modes(roles.get("discrete_real", []) + roles.get("discrete_value", []))
         for k in roles.get("input", []):
             v = self.vars[k]
             self.env[("input", k)] = b.input(v["name"], *self._doc(v, "input"))
@@ -677,9 +718,16 @@ class _Translation:
             b.output(self.vars[k]["name"], sym, unit, text, local=not self._is_output(self.vars[k]))
         known = {key: solved[key] for key in unknown if key in solved}  # events read the solved variables
         self.solved = (ca.vertcat(*[unknown[k] for k in known]), ca.vertcat(*known.values())) if known else None
+        self._initial(b, states, value)
         events = self._events(b)
         self._clock(b)
         return self._finish(b, integrator, substeps, events)
+
+    def _dims(self, v: dict) -> list[int]:
+        types = self.st.get("value_types") or []
+        k = v.get("value_type")
+        dims = types[k].get("dimensions", []) if isinstance(k, int) and k < len(types) else []
+        return [d if isinstance(d, int) else -1 for d in dims]
 
     def _top_level(self, v: dict) -> bool:
         """An output of the class itself (not of one of its components, ``sine1.y``)."""
@@ -716,7 +764,8 @@ class _Translation:
         for k in keys:
             v = self.vars[k]
             sym = ca.SX.sym(f"mode.{v['name']}")
-            self.env[("discrete_real", k)] = self.env[("pre_discrete_real", k)] = sym
+            kind = v["role"]  # discrete_real, or discrete_value (a Boolean or Integer held as a real)
+            self.env[(kind, k)] = self.env[(f"pre_{kind}", k)] = sym
             start = v["attributes"].get("start")
             self.mode_starts.append(self.graph(start) if start is not None else ca.SX(0.0))
             self.mode_syms[k] = sym
@@ -736,6 +785,9 @@ class _Translation:
             nx = len(b._states) - 1
             self.event_fields["updates"] = [None if g is None else ca.vertcat(g[:nx], clock, g[nx:])
                                             for g in self.event_fields["updates"]]
+            for smp in self.event_fields.get("sample_times", []):
+                if smp.update is not None:
+                    smp.update = ca.vertcat(smp.update[:nx], clock, smp.update[nx:])
 
     def _events(self, b: BlockBuilder) -> dict | None:
         """The block's event fields from rumoca's roots, conditions, event actions and discrete
@@ -745,12 +797,15 @@ class _Translation:
         solves its discrete equations for the modes' new values (``pre(v)`` the left values)."""
         st = self.st
         self.event_fields: dict = {}
-        for key, what in (("time_events", "a time event (sample(), a when on time alone)"), ("delays", "delay()"),
-                          ("clocks", "a clock (synchronous features)"), ("previous_values", "previous()")):
+        for key, what in (("clocks", "sample() (a periodic clock)"), ("delays", "delay()"),
+                          ("previous_values", "previous()")):
             if st.get(key):
-                raise ModelicaError(self.filename, None, f"{what} is not supported yet")
+                item = st[key][0]
+                self._fail_span(item if isinstance(item, dict) else {}, f"{what} is not supported yet")
         roots = [r["root"] for r in st.get("roots", [])]
-        if not roots and not self.mode_syms:
+        always = self._always()
+        actions = [a for a in st.get("event_actions", []) if not self._assert(a)]
+        if not roots and not self.mode_syms and not st.get("time_events"):
             return None
         relations = [r["relation"] for r in st.get("relations", [])]
         conditions = st.get("conditions", [])
@@ -771,7 +826,7 @@ class _Translation:
                          f"{_short(self.graph(body['rhs']), 40)}")
             updates.append(None)
         triggers: dict[int, list] = {}
-        for act in st.get("event_actions", []):
+        for act in actions:
             triggers.setdefault(act["trigger"], []).append(("action", act))
         for eq in st.get("discrete_real_equations", []):
             when = (eq.get("activation") or {}).get("when")
@@ -793,13 +848,156 @@ class _Translation:
         if self.solved is not None:  # indicators and updates in states, inputs, parameters and modes only
             indicators = [ca.substitute(z, *self.solved) for z in indicators]
             updates = [None if g is None else ca.substitute(g, *self.solved) for g in updates]
+        samples = []
+        if always:  # the modes' start values settled at the start state, t = 0 (inputs 0 until the initial event)
+            m0 = self._settle(xs, ms)
+            if xs:
+                m0 = ca.substitute(m0, ca.vertcat(*xs), ca.vertcat(*[ca.SX(s0) for _, _, s0 in b._states]))
+            us = [sym for _, sym in b._inputs]
+            m0 = ca.substitute(m0, ca.vertcat(self.time, *us), ca.SX.zeros(1 + len(us)))
+            m0 = ca.substitute(m0, ca.vertcat(*ms), ca.vertcat(*self.mode_starts))
+            self.mode_starts = [m0[j] for j in range(m0.numel())]
+        if always:  # every event ends by settling the always-active discrete equations
+            updates = [self._settled(xs, ms, g) for g in updates]
+            samples.append(Sample(ONCE, 0.0, self._settled(xs, ms, None), "initial"))
+        for te in st.get("time_events", []):  # an instant known in advance (a relation on time)
+            inst = te.get("instant") if isinstance(te, dict) else None
+            if not isinstance(inst, dict) or not inst.get("den"):
+                self._fail_span(te if isinstance(te, dict) else {}, "a time event other than a fixed instant")
+            samples.append(Sample(ONCE, inst["num"] / inst["den"], self._settled(xs, ms, None) if always else None,
+                                  f"time event at {inst['num'] / inst['den']:g} s"))
         self.event_fields = {
             "modes": [Var(f"mode.{self.vars[k]['name']}", *self._doc(self.vars[k], "discrete variable"))
                       for k in self.mode_syms],
             "m": ca.vertcat(*ms) if ms else ca.SX(0, 1), "mode_start": self.mode_starts, "t": self.time,
             "indicators": ca.vertcat(*indicators) if indicators else ca.SX(0, 1), "directions": directions,
-            "event_names": names, "updates": updates}
+            "event_names": names, "updates": updates, "sample_times": samples}
         return self.event_fields
+
+    @property
+    def param_names(self) -> set[str]:
+        return set(self.param_values)
+
+    def _initial(self, b: BlockBuilder, states: list[int], value: dict) -> None:
+        """The start values the initial equations determine (``initial equation`` sections and
+        ``fixed = true`` on any variable): the states without a fixed start are the unknowns
+        (those the equations reach, chosen to keep the system structurally regular; the others
+        keep their start values), solved symbolically in the parameters (a linear system by a
+        sparse solve, a nonlinear one by Newton from the start values)."""
+        ops = self.st.get("initialization_equation_operations", [])
+        rows, lines = [], []
+        for op in ops:
+            (kind, body), = op.items()
+            if kind != "residual":
+                self._fail_span(body, f"an initial equation of kind {kind!r} is not supported")
+            rows.append(self.graph(body["residual"]))
+            lines.append(body)
+        for k, v in enumerate(self.vars):
+            if v["role"] in ("algebraic", "output") and self._fixed(k) and v["attributes"].get("start") is not None \
+                    and k in value:
+                rows.append(value[k] - self.graph(v["attributes"]["start"]))
+        if not rows:
+            return
+        xs = {self.env[("state", k)].name(): k for k in states}
+        starts = {sym.name(): s0 for _, sym, s0 in b._states}
+        syms = [sym for _, sym, _ in b._states]
+        E = ca.vertcat(*rows)
+        if self.solved is not None:
+            E = ca.substitute(E, *self.solved)
+        E = ca.substitute(E, self.time, ca.SX(0.0))
+        if self.mode_syms:
+            E = ca.substitute(E, ca.vertcat(*self.mode_syms.values()), ca.vertcat(*self.mode_starts))
+        us = [sym for _, sym in b._inputs]
+        if us and ca.depends_on(E, ca.vertcat(*us)):
+            self._fail_span(lines[0] if lines else {}, "an initial equation reads an input (start values may "
+                                                       "depend on parameters only)")
+        free = [s for s in syms if s.name() in xs and not self._fixed(xs[s.name()])]
+        chosen: list = []
+        for s in free:  # the unknowns: a largest structurally regular choice, in declaration order
+            if len(chosen) == E.numel():
+                break
+            trial = chosen + [s]
+            if ca.sprank(ca.jacobian_sparsity(E, ca.vertcat(*trial))) == len(trial):
+                chosen = trial
+        if len(chosen) != E.numel():
+            self._fail_span(lines[0] if lines else {}, f"the initial equations ({E.numel()}, with the fixed start "
+                                                       f"values of variables) do not determine as many states "
+                                                       f"(found {len(chosen)} they can fix)")
+        others = [s for s in syms if not any(s is c or ca.is_equal(s, c) for c in chosen)]
+        if others:
+            E = ca.substitute(E, ca.vertcat(*others), ca.vertcat(*[ca.SX(starts[s.name()]) for s in others]))
+        Z = ca.vertcat(*chosen)
+        J = ca.jacobian(E, Z)
+        if not ca.depends_on(J, Z):
+            sol = ca.solve(J, -ca.substitute(E, Z, ca.SX.zeros(Z.shape)))
+        else:
+            sol = ca.vertcat(*[ca.SX(starts[s.name()]) for s in chosen])
+            for _ in range(NEWTON_ITERATIONS):
+                sol = sol - ca.solve(ca.substitute(J, Z, sol), ca.substitute(E, Z, sol))
+        new = {c.name(): sol[j] for j, c in enumerate(chosen)}
+        b._states = [(var, sym, new.get(sym.name(), s0)) for var, sym, s0 in b._states]
+
+    def _always(self) -> dict[int, int]:
+        """The always-active discrete equations of Boolean and Integer variables (``b = x > 1``):
+        variable index -> the node of its value.  A when-assigned one is refused by its line."""
+        out = {}
+        for o in self.st.get("discrete_value_owners", []):
+            br = o.get("branches", [])
+            if len(o["targets"]) != 1 or len(br) != 1 or br[0].get("activation") != "always" \
+                    or len(br[0].get("values", [])) != 1:
+                self._fail_span(o, f"{self.vars[o['targets'][0]]['name']}: a Boolean or Integer variable assigned in "
+                                   f"a when-clause is not supported yet (a discrete Real is)")
+            out[o["targets"][0]] = br[0]["values"][0]["value"]
+        self.always = out
+        return out
+
+    def _settle(self, xs: list, ms: list) -> ca.SX:
+        """The modes after solving the always-active discrete equations at ``(t, x, u, p, m)``
+        (a fixed point, reached in at most one round per such variable: they are acyclic)."""
+        keys = list(self.mode_syms)
+        values = {k: self.graph(node) for k, node in self.always.items()}
+        if self.solved is not None:
+            values = {k: ca.substitute(v, *self.solved) for k, v in values.items()}
+        m = ca.vertcat(*ms)
+        f = ca.vertcat(*[values.get(k, self.mode_syms[k]) for k in keys])
+        cur = m
+        for _ in range(len(values) + 1):
+            cur = ca.substitute(f, m, cur)
+        return cur
+
+    def _settled(self, xs: list, ms: list, g: ca.SX | None) -> ca.SX:
+        """The update ``g`` (None: the identity) followed by the settling of the discrete equations."""
+        nx = len(xs)
+        x_new = ca.vertcat(*xs) if g is None else g[:nx]
+        m_new = ca.vertcat(*ms) if g is None else g[nx:]
+        settled = self._settle(xs, ms)
+        if xs:
+            settled = ca.substitute(settled, ca.vertcat(*xs), x_new)
+        settled = ca.substitute(settled, ca.vertcat(*ms), m_new)
+        return ca.vertcat(x_new, settled)
+
+    def _assert(self, act: dict) -> bool:
+        """Whether the event action is an assert: one on parameters only is checked here, at the
+        parameters' defaults (a failing one refused with its line); one on variables is not
+        checked during a run (said in the docs)."""
+        kind = act.get("kind") or {}
+        if "assert" not in kind:
+            return False
+        guard = (self.st["conditions"][act["guard"]].get("node") or {}) if act.get("guard") is not None else {}
+        node = (self.st["conditions"][guard["not"]].get("node") or {}).get("discrete") \
+            if isinstance(guard, dict) and "not" in guard else None
+        if node is None:
+            return True
+        cond = self.graph(node)
+        if self.solved is not None:
+            cond = ca.substitute(cond, *self.solved)
+        params = [sym for sym in ca.symvar(cond) if sym.name() in self.param_names]
+        if len(params) == len(ca.symvar(cond)):
+            value = ca.Function("a", [ca.vertcat(*params) if params else ca.SX(0, 1)], [cond])(
+                [self.param_values[s.name()] for s in params])
+            if float(value) == 0.0:
+                self._fail_span(act, "an assert on the parameters fails at their values")
+        return True
 
     def _update(self, items: list, xs: list, ms: list, b: BlockBuilder) -> ca.SX:
         """``[x+; m+]`` of one when-clause: its discrete equations solved for the modes' new
@@ -874,6 +1072,24 @@ class _Translation:
         k = v.get("value_type")
         return types[k].get("scalar", "real") if isinstance(k, int) and k < len(types) else "real"
 
+    def _parameters(self, b: BlockBuilder, keys: list[int]) -> None:
+        """The parameters and constants, each after those its value reads (in rounds: a binding
+        may name one declared later)."""
+        pending = list(keys)
+        while pending:
+            left = []
+            for k in pending:
+                try:
+                    self._parameter(b, k)
+                except ModelicaError as exc:
+                    if "parameter is not supported here" not in exc.message and \
+                            "constant is not supported here" not in exc.message:
+                        raise
+                    left.append(k)
+            if len(left) == len(pending):
+                self._parameter(b, left[0])  # raises: a cycle, or a reference to no parameter
+            pending = left
+
     def _parameter(self, b: BlockBuilder, k: int) -> None:
         v = self.vars[k]
         a = v["attributes"]
@@ -890,13 +1106,18 @@ class _Translation:
         default = float(ca.evalf(value))
         self.env[("parameter", k)] = b.param(v["name"], default, unit, text,
                                              lower=-math.inf if lo is None else lo, upper=math.inf if hi is None else hi)
+        self.param_values[self.env[("parameter", k)].name()] = default
 
     def _refuse_flat(self) -> None:
         """What the token scan cannot see (e.g. a construct reached through an extends)."""
-        for key, what in (("algorithms", "an algorithm section"), ("initial_equations", "an initial equation"),
-                          ("assert_equations", "an assert")):
+        for key, what in (("algorithms", "an algorithm section"), ("initial_algorithms", "an initial algorithm")):
             if self.flat.get(key):
                 raise ModelicaError(self.filename, None, f"the model contains {what}, which is not supported")
+        for chain in self.flat.get("when_chains") or []:
+            if chain.get("else_when"):
+                span = chain.get("span") or {}
+                raise ModelicaError(self.filename, self._offset_line(span.get("start")) if self.text else None,
+                                    "elsewhen is not supported yet (write one when-clause per condition)")
 
     def _residuals(self) -> list[tuple[ca.SX, int | None]]:
         out = []
@@ -909,6 +1130,9 @@ class _Translation:
                 continue  # "flow = 0" of an unconnected top-level connector: here a flange bonds it
             span = (body.get("provenance") or {}).get("span") or {}
             line = self._offset_line(span.get("start"))
+            if kind == "structured":  # a for-equation: its bodies at each value of its binders
+                out += [(e, line) for e in self._for_equation(body, line)]
+                continue
             if kind != "residual":
                 raise ModelicaError(self.filename, line, f"an equation of kind {kind!r} is not supported")
             self.units(body["residual"])  # raises at a unit mismatch
@@ -916,6 +1140,22 @@ class _Translation:
             if e.numel() != 1:
                 raise ModelicaError(self.filename, line, "array equations are not supported (write scalars)")
             out.append((e, line))
+        return out
+
+    def _for_equation(self, body: dict, line: int | None) -> list[ca.SX]:
+        """The scalar residuals of a structured (for-) equation: each body at each combination of
+        its domain's binder values."""
+        domains = self.st.get("domains", [])
+        dom = domains[body["domain"]] if body.get("domain") is not None and body["domain"] < len(domains) else None
+        if dom is None or dom.get("parent") is not None:
+            raise ModelicaError(self.filename, line, "a nested for-equation is not supported yet")
+        binders = dom["domain"]["binders"]
+        ranges = [range(bd["lower"], bd["upper"] + 1, bd.get("step") or 1) for bd in binders]
+        out = []
+        for values in product(*ranges):
+            env = {**self.env, **{("binder", (body["domain"], k)): ca.SX(float(v)) for k, v in enumerate(values)}}
+            g = dataclasses.replace(self.graph, env=env)
+            out += [g(node) for node in body["bodies"]]
         return out
 
     # connectors

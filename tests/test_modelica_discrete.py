@@ -1,0 +1,119 @@
+"""Modelica as users write it, translated into the event-aware Block (models/modelica.py,
+docs/explanation/modelica.md): initial equations, Boolean and Integer discrete variables,
+relations on time as time events, relations on states as state events, noEvent, one-element
+arrays and for-equations over them.  Each small model runs as a scene component and is compared
+with its analytic solution; what is not translated yet is refused naming file, line and construct."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+pytest.importorskip("rumoca")
+
+from cosim.run.execute import run  # noqa: E402
+from models.modelica import ModelicaError, translate  # noqa: E402
+
+
+def simulate(tmp_path, text: str, model: str, stop: float, step: float, outputs: list[str]):
+    (tmp_path / f"{model}.mo").write_text(text)
+    scene = tmp_path / "scene.yaml"
+    scene.write_text(f"stop_time: {stop}\ncomponents:\n  c: {{modelica: {model}.mo, model: {model}}}\n"
+                     f"connections: []\nmaster: {{algorithm: jacobi, step: {step}, estimate: false}}\n"
+                     f"outputs: [{', '.join(repr('c.' + o) for o in outputs)}]\n")
+    res = run(scene, [], out_dir=tmp_path / "out")
+    assert res.ok, res.reason
+    return res.trace
+
+
+LAG = """model Lag "first-order lags started by initial equations"
+  parameter Real T = 0.5;
+  parameter Real k = 2;
+  Real x;
+  Real y;
+initial equation
+  x = 2 * k;
+  der(y) = 0;
+equation
+  T * der(x) = k - x;
+  der(y) = k - 4 * y;
+end Lag;
+"""
+
+
+def test_initial_equations_set_the_start_values(tmp_path):
+    """x(0) = 2k from an equation, y(0) = k/4 from der(y) = 0 (a steady state): x(t) = k + k
+    exp(-t/T), y stays at k/4."""
+    b = translate(LAG, "Lag", "Lag.mo")
+    import casadi as ca
+
+    start = np.array(ca.Function("s", [b.p], [b.start])(b.param_defaults)).ravel()
+    assert start.tolist() == [4.0, 0.5]
+    tr = simulate(tmp_path, LAG, "Lag", 2.0, 0.01, ["x", "y"])
+    t = np.asarray(tr["time"])
+    assert np.max(np.abs(tr["c.x"] - (2 + 2 * np.exp(-t / 0.5)))) < 1e-6
+    assert np.max(np.abs(tr["c.y"] - 0.5)) < 1e-12
+
+
+SWITCH = """model Switch "a Boolean on time (a time event) and an Integer on a state (a state event)"
+  Boolean on = time >= 0.5;
+  Integer n = if x > 0.9 then 3 else 1;
+  Real x(start = 0);
+  Real s(start = 0);
+equation
+  der(x) = if on then n else 0;
+  der(s) = if noEvent(s > 10) then 0 else 1;
+end Switch;
+"""
+
+
+def test_boolean_and_integer_discrete_variables_switch_at_their_events(tmp_path):
+    """x = 0 until the time event at 0.5 s, then rate 1 until x = 0.9 (t = 1.4 s, a state event
+    located inside a communication step of 0.04 s), then rate 3: x = 0.9 + 3 (t - 1.4).  The Boolean and
+    the Integer are modes, recorded as 0/1 and 1/3."""
+    b = translate(SWITCH, "Switch", "Switch.mo")
+    assert [v.name for v in b.modes] == ["mode.on", "mode.n"]
+    assert [s.offset for s in b.sample_times] == [0.0, 0.5]  # the initial event, the time event
+    tr = simulate(tmp_path, SWITCH, "Switch", 2.0, 0.04, ["x", "on", "n", "s"])
+    t = np.asarray(tr["time"])
+    exact = np.where(t < 0.5, 0.0, np.where(t < 1.4, t - 0.5, 0.9 + 3 * (t - 1.4)))
+    assert np.max(np.abs(tr["c.x"] - exact)) < 1e-9
+    assert set(np.asarray(tr["c.on"])[t > 0.52]) == {1.0} and set(np.asarray(tr["c.on"])[t < 0.48]) == {0.0}
+    assert set(np.asarray(tr["c.n"])[t > 1.42]) == {3.0} and set(np.asarray(tr["c.n"])[t < 1.38]) == {1.0}
+    assert np.max(np.abs(tr["c.s"] - t)) < 1e-12  # noEvent: no indicator, a smooth ramp here
+
+
+CHAIN = """model Chain "a one-element array and a for-equation over it"
+  parameter Real tau[1] = {0.25};
+  Real a[1](each start = 1);
+equation
+  for i in 1:1 loop
+    der(a[i]) = -a[i] / tau[i];
+  end for;
+end Chain;
+"""
+
+
+def test_a_for_equation_over_a_one_element_array(tmp_path):
+    tr = simulate(tmp_path, CHAIN, "Chain", 1.0, 0.01, ["a"])
+    t = np.asarray(tr["time"])
+    assert np.max(np.abs(tr["c.a"] - np.exp(-t / 0.25))) < 1e-6
+
+
+@pytest.mark.parametrize("body, line, what", [
+    ("  when sample(0, 0.1) then\n    y = pre(y) + 1;\n  end when;", 6, "sample()"),
+    ("  when x > 1 then\n    y = 1;\n  elsewhen x < 0 then\n    y = 2;\n  end when;", 8, "elsewhen"),
+    ("  when edge(x > 1) then\n    y = 1;\n  end when;", 6, "edge()"),
+    ("  when initial() then\n    y = 1;\n  end when;", 6, "a when-condition other than one relation"),
+])
+def test_what_is_not_translated_yet_names_file_line_and_construct(body, line, what):
+    text = f'model E "e"\n  Real x(start = 0);\n  discrete Real y(start = 0);\nequation\n  der(x) = 1;\n{body}\nend E;\n'
+    with pytest.raises(ModelicaError) as err:
+        translate(text, "E", "E.mo")
+    assert str(err.value).startswith("E.mo:") and what in str(err.value), str(err.value)
+
+
+def test_an_array_of_several_elements_is_refused_naming_it():
+    text = 'model A "a"\n  Real a[3](each start = 1);\nequation\n  der(a) = -a;\nend A;\n'
+    with pytest.raises(ModelicaError) as err:
+        translate(text, "A", "A.mo")
+    assert str(err.value).startswith("A.mo:2: a: an array of 3 elements is not supported yet"), str(err.value)
