@@ -14,7 +14,7 @@ from ..errors import UserError
 from .companion import companion
 from .guards import scene_guard
 from .instances import Instances
-from ..master import CoupledSystem, Link, simulate
+from ..master import ALGORITHMS, CoupledSystem, Link, simulate
 from ..master.estimate import EstimatingObserver
 from ..scenario import Scene, load
 from ..scenario.overrides import override_texts
@@ -536,7 +536,9 @@ def simulate_scene(scene: Scene, system: CoupledSystem, observers: Sequence, eng
                     start_values=[c.start_values() for c in scene.components.values()], engine=engine or m.engine,
                     order=_order(scene), inputs=m.inputs, start_ns=scene.start_ns, tolerances=_tolerances(scene),
                     options=m.options or None, rates=[c.rate for c in scene.components.values()],
-                    record_every=m.record_every if w else 1, timing=w is not None, progress=w and w.progress,
+                    # a variable-step companion lands on the run's own output grid (the same steps)
+                    record_every=m.record_every if w or ALGORITHMS[m.algorithm].variable_step else 1,
+                    record=m.record, timing=w is not None, progress=w and w.progress,
                     meta=w and w.meta, realtime=m.realtime if w else None, guard=w and w.guard)
 
 
