@@ -18,7 +18,7 @@ def _events(t: np.ndarray) -> np.ndarray:
     return t[1:][np.diff(t) == 0]
 
 
-@pytest.mark.parametrize("algorithm", ["jacobi", "gauss_seidel", "adaptive"])
+@pytest.mark.parametrize("algorithm", ["jacobi", "gauss_seidel", "iterative", "adaptive"])
 @pytest.mark.parametrize("model,step,outputs", [("BouncingBall", 0.01, ["h", "v"]), ("Stair", 0.2, ["counter"])])
 def test_event_mode_equals_fmpy_event_for_event(reference_fmus, model, step, outputs, algorithm):
     path = reference_fmus[f"3.0/{model}"]
@@ -44,7 +44,7 @@ def test_event_mode_equals_fmpy_event_for_event(reference_fmus, model, step, out
         assert np.max(np.abs(res.trace[f"m.{o}"] - theirs)) <= 1e-9 * np.ptp(theirs), o
 
 
-@pytest.mark.parametrize("algorithm", ["jacobi", "gauss_seidel", "adaptive"])
+@pytest.mark.parametrize("algorithm", ["jacobi", "gauss_seidel", "iterative", "adaptive"])
 def test_an_event_reaches_the_coupled_fmu_at_its_time(reference_fmus, algorithm):
     """BouncingBall's velocity drives Feedthrough: at each bounce the right-limit row has the new
     velocity in both (the event iteration exchanged it); Feedthrough, stepped past the bounce, was
@@ -93,8 +93,8 @@ def test_a_component_that_cannot_roll_back_gets_the_event_late_and_the_sidecar_s
 @pytest.mark.parametrize("algorithm,says", [
     ("jacobi", "events: a step ends at the earliest event of an FMI 3.0 event-mode component for the whole coupling"),
     ("adaptive", "events: an event of an FMI 3.0 event-mode component is a step boundary for the whole coupling"),
-    ("iterative", "events: events are handled inside each component's steps and reach the others at the next "
-                  "communication point (FMI 3.0 event mode not used)"),
+    ("iterative", "events: a step ends at the earliest event of an FMI 3.0 event-mode component for the whole "
+                  "coupling: every component is rolled back and the coupling iterated again to the event time"),
 ])
 def test_run_check_says_what_the_algorithm_does_with_events(reference_fmus, tmp_path, capsys, algorithm, says):
     from cosim import cli
