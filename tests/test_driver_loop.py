@@ -69,7 +69,8 @@ def run_pid(sets: dict, engine: str, observers=()):
     mem = MemoryTrace()
     stats = simulate(system, scene.master.algorithm, step_ns=scene.master.step_ns, n_steps=scene.n_steps,
                      observers=[mem, *observers], start_values=[c.start_values() for c in scene.components.values()],
-                     engine=engine, inputs=scene.master.inputs, options=scene.master.options or None)
+                     engine=engine, inputs=scene.master.inputs, options=scene.master.options or None,
+                     record=scene.master.record)
     return mem.trace, stats
 
 
@@ -77,7 +78,7 @@ def run_pid(sets: dict, engine: str, observers=()):
                                                ("adaptive", "compiled"), ("adaptive", "python"),
                                                ("ecco", "python")])
 def test_a_step_observer_sees_every_step_and_changes_no_bit(algorithm, engine):
-    sets = {"master.algorithm": algorithm}
+    sets = {"master.algorithm": algorithm, "master.record": "steps"}  # a row at every step, to compare with
     plain, _ = run_pid(sets, engine)
     obs = Steps()
     trace, stats = run_pid(sets, engine, [obs])

@@ -30,7 +30,8 @@ def pid_step_ecco():
     scene = SCENARIOS / "pid_step.yaml"
     outputs = load(scene).outputs
     extra = [f"mech.leg[{i}].{v}" for i in LEGS for v in ("f", "v")]
-    res = run(scene, {**NON_ROLLBACK, "outputs": list(dict.fromkeys(outputs + extra))})
+    # every accepted step recorded (master.record: steps), so that the residual can be recomputed per step
+    res = run(scene, {**NON_ROLLBACK, "master.record": "steps", "outputs": list(dict.fromkeys(outputs + extra))})
     ref = reference(scene, {"master.step": 1e-4, "master.output_interval": 1e-4})
     return res, ref.trace
 
@@ -197,7 +198,7 @@ def test_ecco_is_paced_in_real_time_step_by_step():
     mem = MemoryTrace()
     t0 = time.perf_counter()
     stats = simulate(_bonded_pair(), "ecco", step_ns=10_000_000, n_steps=10, observers=[mem],
-                     realtime=RealtimeSettings(max_misses=10_000))
+                     realtime=RealtimeSettings(max_misses=10_000), record="steps")
     wall = time.perf_counter() - t0
     assert stats.status == "ok", stats.reason
     t = mem.trace.time
@@ -216,7 +217,7 @@ def test_ecco_ends_as_unstable_when_the_residual_stays_over_tolerance_at_the_ste
                            [(0, "y[1]")])
     mem = MemoryTrace()
     stats = simulate(system, "ecco", step_ns=10_000_000, n_steps=10, observers=[mem],
-                     options={"atol": 0.0, "rtol": 1e-12, "h_min": 1e-6, "h_init": 1e-6})
+                     options={"atol": 0.0, "rtol": 1e-12, "h_min": 1e-6, "h_init": 1e-6}, record="steps")
     assert stats.status == "unstable"
     assert "a <-> b" in stats.reason and "stayed over its tolerance for 100 steps" in stats.reason
     assert len(mem.trace.time) == 1 + 100 and mem.trace.time[-1] == pytest.approx(100e-6)

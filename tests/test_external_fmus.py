@@ -356,7 +356,11 @@ def test_an_external_fmus_companion_run_loads_it_anew(data, monkeypatch):
 
 @needs_data
 def test_quarter_truck_from_its_osp_file_runs_ecco_within_1pc_of_libcosim(data, libcosim_truck):
-    sc = load(data / "fmi2" / "quarter_truck" / "OspSystemStructure.xml", ["stop_time=1.0"])
+    # every accepted step recorded, as libcosim's observers record ECCO's steps (on the OSP file's 0.1 ms
+    # output grid our ecco lands 1.34x as many steps and estimates 0.0102 of range: "inaccurate", 10.2x the
+    # default tolerance, against 0.0053 recording its steps; its error against a run at atol 1e-9 is
+    # 0.0049 of range on the grid and 0.0037 on its own steps)
+    sc = load(data / "fmi2" / "quarter_truck" / "OspSystemStructure.xml", ["stop_time=1.0", "master.record=steps"])
     assert sc.master.algorithm == "ecco" and sc.master.step == 1e-4
     assert sc.master.options["safety"] == pytest.approx(0.99 ** (1 / 0.15)) and sc.master.options["h_max"] == 0.01
     assert [c.bond for c in sc.connections] == ["chassis.wheelchassis <-> wheel.wheelchassis"] * 2
@@ -388,8 +392,9 @@ def test_the_osp_ecco_configuration_arrives_in_our_ecco_run(data, tmp_path):
             "safety": 0.99 ** (1 / 0.15), "atol": 1e-6 / (1 - 1e-6), "rtol": 1e-12, "floor_steps": 0}
     assert sc.master.algorithm == "ecco"
     assert sc.master.options == pytest.approx(want, rel=1e-12)
-    res = subprocess.run([sys.executable, "-m", "cosim", "run", str(osp), "--set", "stop_time=0.05", "--out",
-                          str(tmp_path / "out")], cwd=ROOT, capture_output=True, text=True, timeout=300)
+    res = subprocess.run([sys.executable, "-m", "cosim", "run", str(osp), "--set", "stop_time=0.05", "--set",
+                          "master.record=steps", "--out", str(tmp_path / "out")],  # (see the test above)
+                         cwd=ROOT, capture_output=True, text=True, timeout=300)
     assert res.returncode == 0, res.stderr[-2000:]
     side = json.loads(next((tmp_path / "out").glob("*.json")).read_text())
     assert side["options"] == pytest.approx(want, rel=1e-12)

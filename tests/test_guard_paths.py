@@ -81,7 +81,10 @@ def check_sidecar(out: Path, guard: str, status: str, pattern: str) -> dict:
                                                ("ecco", "python"), ("iterative", "python")])
 def test_run_is_guarded_with_every_algorithm(tmp_path, guard, algorithm, engine):
     sets, status, pattern = VARIANTS[guard]
-    res = run(PID_STEP, {**sets, "master.algorithm": algorithm}, out_dir=tmp_path, engine=engine)
+    # a variable-step run records every accepted step here: on its 1 ms output grid a state that diverges
+    # within a millisecond meets the step floor ("unstable", said by the controller) before a guard sees a row
+    steps = {"master.record": "steps"} if algorithm in ("adaptive", "ecco") else {}
+    res = run(PID_STEP, {**sets, **steps, "master.algorithm": algorithm}, out_dir=tmp_path, engine=engine)
     assert res.stats["engine"] == engine
     assert res.status == status, res.reason
     assert re.search(pattern, res.reason), res.reason
@@ -92,9 +95,13 @@ def test_run_is_guarded_with_every_algorithm(tmp_path, guard, algorithm, engine)
 
 def test_a_variable_step_run_cut_by_a_guard_counts_only_the_steps_it_kept(tmp_path):
     sets, _, _ = VARIANTS["stroke"]
-    res = run(PID_STEP, {**sets, "master.algorithm": "ecco"})
+    res = run(PID_STEP, {**sets, "master.algorithm": "ecco", "master.record": "steps"})
     assert res.stats["steps_done"] == res.stats["accepted_steps"] == len(res.trace.time) - 1
     assert res.stats["simulated_s"] == res.trace.time[-1]
+    grid = run(PID_STEP, {**sets, "master.algorithm": "ecco"})  # on the output grid: the steps up to its last row
+    steps = grid.stats["steps_done"]
+    assert steps == grid.stats["accepted_steps"] > len(grid.trace.time) - 1
+    assert grid.stats["simulated_s"] == grid.trace.time[-1]
 
 
 # --- batches: local workers and Dask ---------------------------------------------------------------

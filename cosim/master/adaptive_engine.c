@@ -78,6 +78,30 @@ static inline double propose(double h, int64_t h_ns, double h_tried, double fac,
     return py_min(h_max, py_max(h_min, h * fac));
 }
 
+/* AdaptiveStepper._plan_ns: the step [ns] from t_ns for the proposal h: the rest of the way to
+   the next output point (on the grid from start_ns; the stop time at most) when the proposal
+   reaches it, else that way split into the fewest equal steps no longer than the proposal (ceiling
+   divisions, the last step landing); without a grid, the proposal clipped to the stop time */
+static int64_t plan_ns(double h, int64_t t_ns, int64_t start_ns, int64_t grid_ns, int64_t stop_ns) {
+    int64_t want = round_ns(h * 1e9), target = stop_ns, left, n;
+    if (grid_ns > 0) {
+        int64_t k = (t_ns - start_ns) / grid_ns + 1;   /* t_ns >= start_ns: the floor division */
+        int64_t at = start_ns + k * grid_ns;
+        target = at < stop_ns ? at : stop_ns;
+    }
+    left = target - t_ns;
+    if (want >= left) return left > 1 ? left : 1;
+    if (grid_ns <= 0) return want > 1 ? want : 1;
+    n = (left + (want > 1 ? want : 1) - 1) / (want > 1 ? want : 1);
+    n = (left + n - 1) / n;
+    return n > 1 ? n : 1;
+}
+
+/* is t_ns an output point (AdaptiveStepper._on_output)? */
+static inline int on_output(int64_t t_ns, int64_t start_ns, int64_t grid_ns, int64_t stop_ns) {
+    return grid_ns <= 0 || t_ns >= stop_ns || (t_ns - start_ns) % grid_ns == 0;
+}
+
 /* the sources' values at the new point become the current ones (AdaptiveStepper._commit) */
 static void shift_history(rpr_slave *S, int32_t n, const double *v) {
     int32_t i, j;
@@ -92,13 +116,13 @@ static void shift_history(rpr_slave *S, int32_t n, const double *v) {
 
 static int64_t rpr_adapt_loop(rpr_slave *S, int32_t n, const int32_t *order, double *v, int64_t nv,
                               double *v_saved, double *lo, double *hi, ad_ctl *c, const int64_t *rec_idx,
-                              int32_t n_rec, double *rec, int64_t *h_rec, int64_t max_rows, int64_t budget_ns,
+                              int32_t n_rec, double *rec, int64_t *h_rec, int64_t max_steps, int64_t budget_ns,
                               int64_t t_start) {
-    int64_t rows = 0, h_ns = 0;
+    int64_t rows = 0, steps = 0, h_ns = 0;
     int32_t i, j, bad, bad_st;
     double h = 0.0, err = 0.0, p;
     c->status = AD_RUNNING;
-    while (c->t_ns < c->stop_ns && rows < max_rows) {
+    while (c->t_ns < c->stop_ns && steps < max_steps) {
         double t = (double)c->t_ns / 1e9;
         memcpy(v_saved, v, (size_t)nv * sizeof(double));
         for (i = 0; i < n; ++i) {
@@ -106,10 +130,8 @@ static int64_t rpr_adapt_loop(rpr_slave *S, int32_t n, const int32_t *order, dou
             if (failing(st)) { c->status = AD_GET_STATE; c->bad_slave = i; c->bad_status = st; return rows; }
         }
         for (;;) {
-            int64_t want = round_ns(c->h * 1e9), left = c->stop_ns - c->t_ns;
             double shrink;
-            h_ns = want < left ? want : left;
-            if (h_ns < 1) h_ns = 1;
+            h_ns = plan_ns(c->h, c->t_ns, c->start_ns, c->grid_ns, c->stop_ns);
             h = (double)h_ns / 1e9;
             err = attempt(S, n, order, v, lo, hi, c, t, h, &bad, &bad_st);
             p = (c->any_interp && c->h_prev > 0) ? c->p_lin : c->p_hold;
@@ -150,42 +172,42 @@ static int64_t rpr_adapt_loop(rpr_slave *S, int32_t n, const int32_t *order, dou
             c->err_prev = e;
             c->h = propose(h, h_ns, c->h, fac, c->fac_min, c->fac_max, c->h_min, c->h_max);
         }
-        record_row(rec + rows * (n_rec + 1), c->t_ns, v, rec_idx, n_rec);
-        h_rec[rows++] = h_ns;
-        if (budget_ns > 0 && (rows & 15) == 0 && now_ns() - t_start > budget_ns) break;
+        if (on_output(c->t_ns, c->start_ns, c->grid_ns, c->stop_ns))
+            record_row(rec + (rows++) * (n_rec + 1), c->t_ns, v, rec_idx, n_rec);
+        h_rec[steps++] = h_ns;
+        if (budget_ns > 0 && (steps & 15) == 0 && now_ns() - t_start > budget_ns) break;
     }
     return rows;
 }
 
-/* Accepted steps until max_rows rows are recorded, the stop time, the wall-time budget, or an
-   event for Python (c->status != 0).  Each accepted step appends (t, v[rec_idx]...) to rec and
-   its step [ns] to h_rec.  Returns the number of rows; with timing, adds the loop's own time
+/* Up to max_steps accepted steps, until the stop time, the wall-time budget, or an event for
+   Python (c->status != 0).  Each accepted step appends its step [ns] to h_rec, and one that ends
+   on an output point (t, v[rec_idx]...) to rec.  Returns the number of rows; with timing, adds the loop's own time
    outside the slaves' calls to c->master_ns. */
 int64_t rpr_adapt_run(rpr_slave *S, int32_t n, const int32_t *order, double *v, int64_t nv, double *v_saved,
                       double *lo, double *hi, ad_ctl *c, const int64_t *rec_idx, int32_t n_rec, double *rec,
-                      int64_t *h_rec, int64_t max_rows, int64_t budget_ns) {
+                      int64_t *h_rec, int64_t max_steps, int64_t budget_ns) {
     int64_t t_start = (budget_ns > 0 || c->timing) ? now_ns() : 0, slave_ns0 = slaves_ns(S, n), rows;
-    rows = rpr_adapt_loop(S, n, order, v, nv, v_saved, lo, hi, c, rec_idx, n_rec, rec, h_rec, max_rows, budget_ns,
+    rows = rpr_adapt_loop(S, n, order, v, nv, v_saved, lo, hi, c, rec_idx, n_rec, rec, h_rec, max_steps, budget_ns,
                           t_start);
     if (c->timing) c->master_ns += (now_ns() - t_start) - (slaves_ns(S, n) - slave_ns0);
     return rows;
 }
 
-/* EccoStepper.step: steps (never retried) sized from the bonds' energy residual, until max_rows
-   rows, the stop time, the budget or an event for Python (c->status != 0); rows and h_rec as
+/* EccoStepper.step: steps (never retried) sized from the bonds' energy residual, up to max_steps
+   steps, the stop time, the budget or an event for Python (c->status != 0); rows and h_rec as
    rpr_adapt_run's. */
 static int64_t rpr_ecco_loop(rpr_slave *S, int32_t n, const int32_t *order, double *v, ec_ctl *c,
-                             const int64_t *rec_idx, int32_t n_rec, double *rec, int64_t *h_rec, int64_t max_rows,
+                             const int64_t *rec_idx, int32_t n_rec, double *rec, int64_t *h_rec, int64_t max_steps,
                              int64_t budget_ns, int64_t t_start) {
-    int64_t rows = 0;
+    int64_t rows = 0, steps = 0;
     int32_t b, k, bad, bad_st;
     c->status = EC_RUNNING;
-    while (c->t_ns < c->stop_ns && rows < max_rows) {
+    while (c->t_ns < c->stop_ns && steps < max_steps) {
         double t = (double)c->t_ns / 1e9, h, hh, err, fac;
-        int64_t want = round_ns(c->h * 1e9), left = c->stop_ns - c->t_ns, h_ns;
+        int64_t h_ns;
         if (c->ending) { c->status = EC_FLOOR_PATIENCE; c->bad_slave = c->end_bond; return rows; }
-        h_ns = want < left ? want : left;
-        if (h_ns < 1) h_ns = 1;
+        h_ns = plan_ns(c->h, c->t_ns, c->start_ns, c->grid_ns, c->stop_ns);
         h = (double)h_ns / 1e9;
         for (k = 0; k < 2 * c->n_bonds; ++k) c->y0[k] = v[c->out_idx[k]];
         bad = gs_step(S, n, order, v, c->h_prev, c->timing, t, h, &bad_st);
@@ -240,17 +262,18 @@ static int64_t rpr_ecco_loop(rpr_slave *S, int32_t n, const int32_t *order, doub
         fac = pow(c->safety / err, c->k_i) * pow(c->err_prev / err, c->k_p);
         c->err_prev = err;
         c->h = propose(h, h_ns, c->h, fac, c->fac_min, c->fac_max, c->h_min, c->h_max);
-        record_row(rec + rows * (n_rec + 1), c->t_ns, v, rec_idx, n_rec);
-        h_rec[rows++] = h_ns;
-        if (budget_ns > 0 && (rows & 15) == 0 && now_ns() - t_start > budget_ns) break;
+        if (on_output(c->t_ns, c->start_ns, c->grid_ns, c->stop_ns))
+            record_row(rec + (rows++) * (n_rec + 1), c->t_ns, v, rec_idx, n_rec);
+        h_rec[steps++] = h_ns;
+        if (budget_ns > 0 && (steps & 15) == 0 && now_ns() - t_start > budget_ns) break;
     }
     return rows;
 }
 
 int64_t rpr_ecco_run(rpr_slave *S, int32_t n, const int32_t *order, double *v, ec_ctl *c, const int64_t *rec_idx,
-                     int32_t n_rec, double *rec, int64_t *h_rec, int64_t max_rows, int64_t budget_ns) {
+                     int32_t n_rec, double *rec, int64_t *h_rec, int64_t max_steps, int64_t budget_ns) {
     int64_t t_start = (budget_ns > 0 || c->timing) ? now_ns() : 0, slave_ns0 = slaves_ns(S, n), rows;
-    rows = rpr_ecco_loop(S, n, order, v, c, rec_idx, n_rec, rec, h_rec, max_rows, budget_ns, t_start);
+    rows = rpr_ecco_loop(S, n, order, v, c, rec_idx, n_rec, rec, h_rec, max_steps, budget_ns, t_start);
     if (c->timing) c->master_ns += (now_ns() - t_start) - (slaves_ns(S, n) - slave_ns0);
     return rows;
 }

@@ -9,9 +9,11 @@ Every operation is done in the same order and precision as the Python loop (no f
 multiply-add: ``-std=c99`` keeps ``-ffp-contract=off``; ``nearbyint`` rounds half to even like
 Python's ``round``), which is what makes the two agree exactly.
 
-One call runs until it has recorded ``max_rows`` accepted steps, spent its wall-time budget (so
-that Python handles signals between calls), reached the stop time, or met something it leaves
-to Python: a stop request, the step floor, or a failing get/set of an FMU state.
+One call runs until it has taken ``max_steps`` accepted steps (recording those that land on an
+output point, the same rows as the Python loop), spent its wall-time budget (so that Python
+handles signals between calls), reached the stop time, or met something it leaves to Python: a
+stop request, the step floor, or a failing get/set of an FMU state.  FMI 3.0 event-mode components
+run in the Python loop (:func:`cosim.master.engine.choose_engine` says so).
 
 ``ecco`` (:class:`CompiledEcco`, the loop of :class:`cosim.master.algorithms.ecco.EccoStepper`)
 takes the same Gauss-Seidel step with linear inputs, never rolled back, and sizes the next step
@@ -121,6 +123,7 @@ class CompiledAdaptive(_CompiledVariable):
         self.ctl = ctl = CControl()
         ctl.t_ns, ctl.stop_ns, ctl.h, ctl.h_prev, ctl.err_prev = (stepper.t_ns, stepper.stop_ns, stepper.h,
                                                                    stepper.h_prev, stepper.err_prev)
+        ctl.start_ns, ctl.grid_ns = stepper.start_ns, stepper.grid_ns
         for name in ("rtol", "atol", "h_ref", "h_min", "h_max", "safety", "fac_min", "fac_max"):
             setattr(ctl, name, opt[name])
         ctl.k_i, ctl.k_p = stepper.k_i, stepper.k_p
@@ -136,16 +139,18 @@ class CompiledAdaptive(_CompiledVariable):
         return st
 
     def run(self, rec: np.ndarray) -> int:
-        """Accepted steps into ``rec`` (rows of time and the recorded values) until it is full,
-        the stop time, the call's time budget or the end of the run; returns the rows written."""
+        """Up to ``len(rec)`` accepted steps, until the stop time, the call's time budget or the end
+        of the run; the rows (time and the recorded values) of those that land on an output point
+        written into ``rec``; returns their count."""
         sysm, ctl = self.py.system, self.ctl
         self._rows(rec)
+        before = ctl.accepted
         rows = int(self.lib.rpr_adapt_run(
             self.arr.arr, len(self.arr), self.order.ctypes.data, sysm.v.ctypes.data, len(sysm.v),
             self.v_saved.ctypes.data, self.lo.ctypes.data, self.hi.ctypes.data, ctypes.byref(ctl),
             self.rec_idx.ctypes.data if self.rec_idx.size else None, len(self.rec_idx), rec.ctypes.data,
             self.h_rec.ctypes.data, len(rec), CALL_BUDGET_NS))
-        self.py.stats.steps.extend((self.h_rec[:rows] / 1e9).tolist())
+        self.py.stats.steps.extend((self.h_rec[:ctl.accepted - before] / 1e9).tolist())
         if ctl.status:
             self._ended(ctl.status, ctl.bad_slave, ctl.bad_status, ctl.last_err)
         return rows
@@ -163,6 +168,7 @@ class CompiledEcco(_CompiledVariable):
         self.ctl = ctl = CEccoControl()
         ctl.t_ns, ctl.stop_ns, ctl.h, ctl.h_prev, ctl.err_prev = (stepper.t_ns, stepper.stop_ns, stepper.h,
                                                                    stepper.h_prev, stepper.err_prev)
+        ctl.start_ns, ctl.grid_ns = stepper.start_ns, stepper.grid_ns
         for name in ("rtol", "atol", "h_min", "h_max", "safety", "fac_min", "fac_max", "k_i", "k_p"):
             setattr(ctl, name, opt[name])
         ctl.timing, ctl.n_bonds, ctl.floor_patience = int(timing), nb, stepper.patience
@@ -193,11 +199,12 @@ class CompiledEcco(_CompiledVariable):
         """Steps into ``rec`` as :meth:`CompiledAdaptive.run`."""
         sysm, ctl = self.py.system, self.ctl
         self._rows(rec)
+        before = ctl.accepted
         rows = int(self.lib.rpr_ecco_run(
             self.arr.arr, len(self.arr), self.order.ctypes.data, sysm.v.ctypes.data, ctypes.byref(ctl),
             self.rec_idx.ctypes.data if self.rec_idx.size else None, len(self.rec_idx), rec.ctypes.data,
             self.h_rec.ctypes.data, len(rec), CALL_BUDGET_NS))
-        self.py.stats.steps.extend((self.h_rec[:rows] / 1e9).tolist())
+        self.py.stats.steps.extend((self.h_rec[:ctl.accepted - before] / 1e9).tolist())
         if ctl.status:
             self._ended(ctl.status, ctl.bad_slave, ctl.bad_status, ctl.end_scaled, ctl.at_floor)
         return rows

@@ -102,6 +102,97 @@ def late_note(late: dict) -> str:
 MAX_EVENTS_PER_STEP = 1000
 
 
+class EventIteration:
+    """The event iteration across the coupling at an event time (docs/explanation/events.md), one
+    for every algorithm that ends its steps at events: it needs ``system``, ``order``,
+    ``event_slaves`` (the slaves in FMI 3.0 event mode), ``_gather``/``_push``/``_pull`` per slave,
+    the outcome (``status``, ``message``, ``failed_slave``), the counters ``events`` and
+    ``late_events``, ``event_policy`` and ``t`` (the event time [s]); :meth:`bind_events` sets
+    those an algorithm does not keep itself."""
+
+    #: what the algorithm does with events, as run --check and the sidecar say it
+    event_policy: str = ""
+
+    def bind_events(self, system: CoupledSystem) -> None:
+        """The event slaves, counters and per-slave input/output calls of ``system``."""
+        self.event_slaves = [i for i, x in enumerate(system.slaves) if x.event_mode]
+        self.events, self.late_events, self.failed_slave = 0, [], None
+        self._gather = [_gatherer(system, i) for i in range(len(system.slaves))]
+        self._push = [x.push for x in system.slaves]
+        self._pull = [x.pull for x in system.slaves]
+
+    def event_iteration(self, event) -> None:
+        """At the event time: every event-mode slave enters event mode; then rounds of exchange
+        (every slave's inputs from the current outputs) and discrete-state updates until none asks
+        for more and the outputs no longer change (at most 100 rounds); then step mode again
+        (docs/explanation/events.md)."""
+        slaves, ev = self.system.slaves, self.event_slaves
+        self.events += 1
+        for i in ev:
+            if self._check_event_call(i, slaves[i].enter_event_mode(), "entering event mode"):
+                return
+        asking: list[int] = []
+        before = self.system.v.copy()
+        for _ in range(100):
+            for i in self.order:
+                self._gather[i]()
+                if self._check_event_call(i, self._push[i](), "setting inputs in event mode"):
+                    return
+            asking = []
+            for i in ev:
+                st, more, terminate = slaves[i].update_discrete_states()
+                if self._check_event_call(i, st, "updating discrete states"):
+                    return
+                if terminate:  # the values it updated are the run's last (the right limit)
+                    for j in range(len(slaves)):
+                        self._pull[j]()
+                    self.status, self.failed_slave = "stopped", i
+                    self.message = f"stopped by {slaves[i].name} at t = {self.t:.9g} s: it asked to terminate the " \
+                                   f"simulation in its event iteration"
+                    return
+                if more:
+                    asking.append(i)
+            for i in range(len(slaves)):
+                if self._check_event_call(i, self._pull[i](), "reading outputs in event mode"):
+                    return
+            changed = not np.array_equal(self.system.v, before, equal_nan=True)
+            if not asking and not changed:  # settled: no update asked for and the exchange at a fixed point
+                break
+            np.copyto(before, self.system.v)
+        else:
+            self.status = "event_iteration_failed"
+            self.message = (f"the event iteration at t = {self.t:.9g} s did not settle in 100 rounds: "
+                            f"{', '.join(slaves[i].name for i in asking)} kept asking for new discrete states")
+            return
+        for i in ev:
+            if self._check_event_call(i, slaves[i].enter_step_mode(), "entering step mode"):
+                return
+
+    def _check_event_call(self, i: int, status: int, what: str) -> bool:
+        """True (and the run failed, naming slave ``i``, the time and ``what``) for a failing status."""
+        if status not in FAILING:
+            return False
+        sl = self.system.slaves[i]
+        self.status, self.failed_slave = "failed", i
+        self.message = (f"{sl.name}: {what} at the event at t = {self.t:.9g} s returned {Status(status).name}"
+                        + (f": {sl.last_message}" if sl.last_message else ""))
+        return True
+
+    def event_statistics(self) -> dict:
+        """What the run did with events (for the run statistics): the events handled and the late
+        ones; a model-exchange component's solver figures and its own events (``model_exchange``)."""
+        me = {x.name: {**x.solver_stats(), "events": [[t, kind] for t, kind in x.events()[:1000]]}
+              for x in self.system.slaves if hasattr(x, "solver_stats")}
+        out = {"model_exchange": me} if me else {}
+        if not self.event_slaves:
+            return out
+        names = [self.system.slaves[i].name for i in self.event_slaves]
+        notes = [late_note(e) for e in self.late_events[:100]]
+        return {**out, "events": {"mode": self.event_policy, "event_mode": names, "handled": self.events,
+                                  "late": self.late_events[:10_000], **({"notes": notes} if notes else {})}}
+
+
+
 class MasterAlgorithm:
     """What the registry and the run (:func:`cosim.master.simulate`) know of every master
     algorithm, fixed or variable step: its name, declared options and abilities.  A fixed-step
@@ -140,7 +231,7 @@ class MasterAlgorithm:
     stepper: ClassVar[type | None] = None
 
 
-class Algorithm(MasterAlgorithm, Outcome, ABC):
+class Algorithm(MasterAlgorithm, EventIteration, Outcome, ABC):
     """Base class of fixed-step master algorithms.  The public :meth:`step` advances one macro step and
     keeps :attr:`status` (``"running"``, ``"failed"``, ``"stopped"``); a subclass implements
     :meth:`_step_impl` and may name a compiled variant (:attr:`native_code`, see
@@ -409,76 +500,6 @@ class Algorithm(MasterAlgorithm, Outcome, ABC):
             if st in FAILING:
                 return i, st
         return self._exchange() if self.exchange else None
-
-    def event_iteration(self, event) -> None:
-        """At the event time: every event-mode slave enters event mode; then rounds of exchange
-        (every slave's inputs from the current outputs) and discrete-state updates until none asks
-        for more and the outputs no longer change (at most 100 rounds); then step mode again
-        (docs/explanation/events.md)."""
-        slaves, ev = self.system.slaves, self.event_slaves
-        self.events += 1
-        for i in ev:
-            if self._check_event_call(i, slaves[i].enter_event_mode(), "entering event mode"):
-                return
-        asking: list[int] = []
-        before = self.system.v.copy()
-        for _ in range(100):
-            for i in self.order:
-                self._gather[i]()
-                if self._check_event_call(i, self._push[i](), "setting inputs in event mode"):
-                    return
-            asking = []
-            for i in ev:
-                st, more, terminate = slaves[i].update_discrete_states()
-                if self._check_event_call(i, st, "updating discrete states"):
-                    return
-                if terminate:  # the values it updated are the run's last (the right limit)
-                    for j in range(len(slaves)):
-                        self._pull[j]()
-                    self.status, self.failed_slave = "stopped", i
-                    self.message = f"stopped by {slaves[i].name} at t = {self.t:.9g} s: it asked to terminate the " \
-                                   f"simulation in its event iteration"
-                    return
-                if more:
-                    asking.append(i)
-            for i in range(len(slaves)):
-                if self._check_event_call(i, self._pull[i](), "reading outputs in event mode"):
-                    return
-            changed = not np.array_equal(self.system.v, before, equal_nan=True)
-            if not asking and not changed:  # settled: no update asked for and the exchange at a fixed point
-                break
-            np.copyto(before, self.system.v)
-        else:
-            self.status = "event_iteration_failed"
-            self.message = (f"the event iteration at t = {self.t:.9g} s did not settle in 100 rounds: "
-                            f"{', '.join(slaves[i].name for i in asking)} kept asking for new discrete states")
-            return
-        for i in ev:
-            if self._check_event_call(i, slaves[i].enter_step_mode(), "entering step mode"):
-                return
-
-    def _check_event_call(self, i: int, status: int, what: str) -> bool:
-        """True (and the run failed, naming slave ``i``, the time and ``what``) for a failing status."""
-        if status not in FAILING:
-            return False
-        sl = self.system.slaves[i]
-        self.status, self.failed_slave = "failed", i
-        self.message = (f"{sl.name}: {what} at the event at t = {self.t:.9g} s returned {Status(status).name}"
-                        + (f": {sl.last_message}" if sl.last_message else ""))
-        return True
-
-    def event_statistics(self) -> dict:
-        """What the run did with events (for the run statistics): the events handled and the late
-        ones; a model-exchange component's solver figures and its own events (``model_exchange``)."""
-        me = {x.name: {**x.solver_stats(), "events": [[t, kind] for t, kind in x.events()[:1000]]}
-              for x in self.system.slaves if hasattr(x, "solver_stats")}
-        out = {"model_exchange": me} if me else {}
-        if not self.event_slaves:
-            return out
-        names = [self.system.slaves[i].name for i in self.event_slaves]
-        notes = [late_note(e) for e in self.late_events[:100]]
-        return {**out, "events": {"mode": self.event_policy, "event_mode": names, "handled": self.events,
-                                  "late": self.late_events[:10_000], **({"notes": notes} if notes else {})}}
 
     def stop_requested(self, i: int, status: int) -> bool:
         """Is ``status`` from slave ``i`` a request to end the simulation (FMI 3.0

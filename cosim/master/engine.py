@@ -136,9 +136,10 @@ class _Compiled:
 
 
 def fixed_stepper(system: CoupledSystem, *, cls: type[Algorithm], step_ns: int, n_steps: int, record_every: int,
-                  engine: str = "auto", options: dict | None = None, **kw) -> FixedStepper:
+                  engine: str = "auto", options: dict | None = None, record: str = "grid", **kw) -> FixedStepper:
     """A fixed-step algorithm ``cls`` over the initialised ``system`` on its engine (``engine``:
-    auto | compiled | python, see :func:`choose_engine`); ``kw`` go to the algorithm."""
+    auto | compiled | python, see :func:`choose_engine`); ``kw`` go to the algorithm (``record``:
+    a fixed-step run's steps are its grid)."""
     alg = cls(system, step_ns, **kw, **({"options": options} if cls.options else {}))
     name = choose_engine(system, engine, fixed_loop(cls), alg.start_ns)
     runner = None

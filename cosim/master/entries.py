@@ -101,6 +101,8 @@ _STATS = ("int64_t", "master_ns", "wall time in this loop outside the slaves' ca
 #: The adaptive controller's state and the run's counters (``ad_ctl``).
 ADAPTIVE_CONTROL = Record("ad_ctl", (
     ("int64_t", "t_ns", "current point [ns]"), ("int64_t", "stop_ns", "stop time [ns]"),
+    ("int64_t", "start_ns", "start time [ns]: the output grid's origin"),
+    ("int64_t", "grid_ns", "output interval [ns] the steps land on (0: none)"),
     ("double", "h", "the next step tried [s]"), ("double", "h_prev", "the last accepted step [s] (0: none)"),
     ("double", "err_prev", "the last accepted step's error"),
     *[("double", k, "option") for k in ("rtol", "atol", "h_ref", "h_min", "h_max", "safety", "fac_min", "fac_max")],
@@ -119,6 +121,8 @@ ADAPTIVE_CONTROL = Record("ad_ctl", (
 #: ecco's controller state, its bonds (by index into v and the slaves) and their statistics (``ec_ctl``).
 ECCO_CONTROL = Record("ec_ctl", (
     ("int64_t", "t_ns", "current point [ns]"), ("int64_t", "stop_ns", "stop time [ns]"),
+    ("int64_t", "start_ns", "start time [ns]: the output grid's origin"),
+    ("int64_t", "grid_ns", "output interval [ns] the steps land on (0: none)"),
     ("double", "h", "the next step [s]"), ("double", "h_prev", "the last step [s] (0: none)"),
     ("double", "err_prev", "the last step's error"),
     *[("double", k, "option") for k in ("rtol", "atol", "h_min", "h_max", "safety", "fac_min", "fac_max", "k_i",
@@ -251,15 +255,15 @@ ADAPT_RUN = Entry("rpr_adapt_run", (
     ("const int32_t *", "order", "the stepping order"), ("double *", "v", "the value vector"),
     ("int64_t", "nv", "its length"), ("double *", "v_saved", "work: v at the step's start"),
     ("double *", "lo", "running minimum of v"), ("double *", "hi", "running maximum of v"),
-    ("ad_ctl *", "c", "the controller"), *_IO, ("double *", "rec", "the rows recorded"),
-    ("int64_t *", "h_rec", "out: each row's step [ns]"), ("int64_t", "max_rows", "rows at most"),
+    ("ad_ctl *", "c", "the controller"), *_IO, ("double *", "rec", "the rows recorded (at most one per step)"),
+    ("int64_t *", "h_rec", "out: each accepted step [ns]"), ("int64_t", "max_steps", "steps at most"),
     ("int64_t", "budget_ns", "return after this much wall time (0: no limit)")))
 
 ECCO_RUN = Entry("rpr_ecco_run", (
     ("rpr_slave *", "S", "the slaves"), ("int32_t", "n", "their count"),
     ("const int32_t *", "order", "the stepping order"), ("double *", "v", "the value vector"),
-    ("ec_ctl *", "c", "the controller"), *_IO, ("double *", "rec", "the rows recorded"),
-    ("int64_t *", "h_rec", "out: each row's step [ns]"), ("int64_t", "max_rows", "rows at most"),
+    ("ec_ctl *", "c", "the controller"), *_IO, ("double *", "rec", "the rows recorded (at most one per step)"),
+    ("int64_t *", "h_rec", "out: each accepted step [ns]"), ("int64_t", "max_steps", "steps at most"),
     ("int64_t", "budget_ns", "return after this much wall time (0: no limit)")))
 
 ITER_RUN = Entry("rpr_iter_run", (

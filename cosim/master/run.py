@@ -20,7 +20,8 @@ def simulate(system: CoupledSystem, algorithm_name: str, *, step_ns: int, n_step
              progress: Callable[[int, int], None] | None = None, meta: dict | None = None,
              inputs: str = "hold", start_ns: int = 0, tolerances: Sequence[float | None] | None = None,
              realtime=None, options: dict | None = None, guard=None,
-             rates: Sequence[int] | None = None, stop: Callable[[], str | None] | None = None) -> RunStats:
+             rates: Sequence[int] | None = None, stop: Callable[[], str | None] | None = None,
+             record: str = "grid") -> RunStats:
     """Initialise ``system`` and run it from ``start_ns`` to ``start_ns + n_steps * step_ns``:
     ``n_steps`` macro steps of ``step_ns`` nanoseconds for a fixed-step algorithm, inputs held or
     linear over each step (``inputs``, see :mod:`cosim.master`); a variable-step algorithm
@@ -28,7 +29,8 @@ def simulate(system: CoupledSystem, algorithm_name: str, *, step_ns: int, n_step
 
     Observers (:class:`cosim.trace.observer.Observer`) receive ``start(columns, meta)``,
     ``initial(info)``, ``record(rows)`` (rows of time and the recorded values, at ``t_0`` and every
-    ``record_every`` steps; every accepted step of a variable-step run), ``step(info)`` after
+    ``record_every`` steps, where a variable-step run lands a step too; with ``record="steps"`` every
+    accepted step of a variable-step run instead; two rows at each event), ``step(info)`` after
     every step where they override it (:class:`cosim.master.stepper.StepInfo`), ``record_text``,
     ``record_event``, ``statistics()`` and ``finish(status, reason, stats)``, also when the run
     fails or is interrupted (then the exception propagates after ``finish``).
@@ -60,10 +62,12 @@ def simulate(system: CoupledSystem, algorithm_name: str, *, step_ns: int, n_step
         s_.forward_only = not cls.needs_rollback
         # FMI 3.0 event mode and early return where the FMU has them and the algorithm ends steps at events
         # (in the Python loop: a scene that asks for the compiled loop leaves the events inside doStep)
-        s_.event_mode = bool(cls.ends_steps_at_events and inputs == "hold" and engine != "compiled"
+        # (a variable-step master cuts its step at an event by rolling every slave back: all must roll back)
+        s_.event_mode = bool(cls.ends_steps_at_events and (inputs == "hold" or variable) and engine != "compiled"
                              and getattr(s_, "fmi3", False)
-                             and s_.description.has_event_mode and not (rates and rates[i] != 1))
-    if any(s_.event_mode for s_ in system.slaves) and len(system.slaves) > 1:
+                             and s_.description.has_event_mode and not (rates and rates[i] != 1)
+                             and not (variable and not all(x.can_rollback for x in system.slaves)))
+    if any(s_.event_mode for s_ in system.slaves) and (len(system.slaves) > 1 or variable):
         for s_ in system.slaves:  # an early return rolls the others back to the event time
             if s_.can_rollback:
                 s_.forward_only = False
@@ -72,6 +76,8 @@ def simulate(system: CoupledSystem, algorithm_name: str, *, step_ns: int, n_step
                         f"(it rolls rejected steps back); drop master.realtime or use ecco, gauss_seidel or jacobi")
     if record_every < 1:
         raise UserError(f"record_every must be >= 1, got {record_every}")
+    if record not in ("grid", "steps"):
+        raise UserError(f"record must be grid or steps, got {record!r}")
     stats = (VariableStats if variable else RunStats)(cls.name, "", step_ns / 1e9, n_steps)
     columns = ["time"] + system.record_names
     extra = {"options": option_values(options, cls.options)} if variable else {}
@@ -111,7 +117,8 @@ def simulate(system: CoupledSystem, algorithm_name: str, *, step_ns: int, n_step
                    allow_loops=cls.solves_algebraic_loops or cls.delays_algebraic_loops)
         make = cls.stepper_for or fixed_stepper  # variable-step algorithms bring their own
         stepper = make(system, step_ns=step_ns, n_steps=n_steps, record_every=record_every, order=order,
-                    cls=cls, timing=timing, inputs=inputs, start_ns=start_ns, rates=rates, options=options, engine=engine)
+                    cls=cls, timing=timing, inputs=inputs, start_ns=start_ns, rates=rates, options=options, engine=engine,
+                    record=record)
         stats.engine = stepper.engine
         stats.init_s = time.perf_counter() - t0
         record_start(stepper, system, observers, guard, len(columns))

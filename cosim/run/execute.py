@@ -14,7 +14,7 @@ from ..errors import UserError
 from .companion import companion
 from .guards import scene_guard
 from .instances import Instances
-from ..master import CoupledSystem, Link, simulate
+from ..master import ALGORITHMS, CoupledSystem, Link, simulate
 from ..master.estimate import EstimatingObserver
 from ..scenario import Scene, load
 from ..scenario.overrides import override_texts
@@ -166,9 +166,17 @@ class TraceEstimate:
     rows: int
     columns: int
     bytes: int
+    #: a component may report events (FMI 3.0 event mode): two more rows at each (one where it falls on an
+    #: output point, whose row is then the left limit)
+    events: bool = False
+    #: ``master.record: steps`` under a variable-step algorithm: a row per accepted step, ``rows`` a guess
+    per_step: bool = False
 
     def __str__(self) -> str:
-        return (f"{self.steps:,} steps, {self.rows:,} rows x {self.columns} columns, "
+        rows = (f"one row per accepted step (about {self.rows:,} at the output interval)" if self.per_step
+                else f"{self.rows:,} rows")
+        more = " + 2 per event (1 at an output point)" if self.events else ""
+        return (f"{self.steps:,} steps, {rows}{more} x {self.columns} columns, "
                 f"trace about {human_bytes(self.bytes)}")
 
 
@@ -205,9 +213,14 @@ def parse_bytes(text: str | int | float) -> int:
 
 def estimate(scene: Scene) -> TraceEstimate:
     """The trace a run of ``scene`` would write (before anything is built)."""
-    rows = scene.n_steps // scene.master.record_every + 1
+    m = scene.master
+    rows = scene.n_steps // m.record_every + 1
     cols = len(scene.outputs) + 1
-    return TraceEstimate(scene.n_steps, rows, cols, rows * cols * BYTES_PER_VALUE)
+    cls = ALGORITHMS[m.algorithm]
+    events = (m.auto or cls.ends_steps_at_events) and any(c.description.has_event_mode
+                                                          for c in scene.components.values())
+    per_step = m.record == "steps" and (m.auto or cls.variable_step)
+    return TraceEstimate(scene.n_steps, rows, cols, rows * cols * BYTES_PER_VALUE, events, per_step)
 
 
 def check_trace_size(scene: Scene, max_trace_bytes: int | str | None = None) -> TraceEstimate:
@@ -549,7 +562,9 @@ def simulate_scene(scene: Scene, system: CoupledSystem, observers: Sequence, eng
                     start_values=[c.start_values() for c in scene.components.values()], engine=engine or m.engine,
                     order=_order(scene), inputs=m.inputs, start_ns=scene.start_ns, tolerances=_tolerances(scene),
                     options=m.options or None, rates=[c.rate for c in scene.components.values()],
-                    record_every=m.record_every if w else 1, timing=w is not None, progress=w and w.progress,
+                    # a variable-step companion lands on the run's own output grid (the same steps)
+                    record_every=m.record_every if w or ALGORITHMS[m.algorithm].variable_step else 1,
+                    record=m.record, timing=w is not None, progress=w and w.progress,
                     meta=w and w.meta, realtime=m.realtime if w else None, guard=w and w.guard)
 
 

@@ -11,7 +11,7 @@ from functools import lru_cache
 from ..slaves.types import TYPES
 from ..master import ALGORITHMS
 from .checker import Checker, _is_number
-from .keys import DEFAULT_TOLERANCE, ENGINES, INPUT_MODES, MASTER_KEYS
+from .keys import DEFAULT_TOLERANCE, ENGINES, INPUT_MODES, MASTER_KEYS, RECORD_MODES
 from .model import Component, MasterSettings
 from .problems import suggest
 from .yamlfile import YList, YMap
@@ -77,6 +77,12 @@ class MasterChecks(Checker):
                                          f"hold (zero-order hold) or linear (inputs interpolated or extrapolated "
                                          f"over the step)")
             ok = False
+        record = node.get("record", "grid")
+        if record not in RECORD_MODES:
+            self.err(node.loc("record"), f"master.record = {record!r}{suggest(str(record), RECORD_MODES)}; expected "
+                                         f"grid (a row at every output point) or steps (a row at every step a "
+                                         f"variable-step algorithm accepted)")
+            ok = False
         order = node.get("order")
         if order is not None:
             if not isinstance(order, list) or not all(isinstance(x, str) for x in order):
@@ -136,7 +142,8 @@ class MasterChecks(Checker):
                                            "against; drop one of them")
             return None
         return MasterSettings(alg, step_ns / 1e9, step_ns, list(order) if order else None, engine, record_every,
-                              inputs, realtime, options, tolerance, auto, "inputs" in node, estimate, tolerance_given)
+                              inputs, realtime, options, tolerance, auto, "inputs" in node, estimate, tolerance_given,
+                              record)
 
     def tolerance(self, node: YMap, auto: bool) -> float | None | bool:
         """``master.tolerance``: the worst error of a recorded signal relative to its range that a

@@ -65,7 +65,10 @@ MASTER = {
     "step": "communication step [s] (for variable-step algorithms, the unit of stop_time only)",
     "order": "Gauss-Seidel stepping order: a list of component names (default: found from the connections)",
     "engine": "auto (compiled loop where the scene allows), compiled or python",
-    "output_interval": "recording interval [s], a whole multiple of the step (default: the step)",
+    "output_interval": "recording interval [s], a whole multiple of the step (default: the step); variable-step "
+                       "algorithms land a step on every output point",
+    "record": "grid (default): a row at every output point (output_interval) plus two per event; steps: a row at "
+              "every step a variable-step algorithm accepted instead (irregular times)",
     "inputs": "how inputs vary over a step: hold (zero-order) or linear (interpolated / extrapolated)",
     "realtime": "`true`, or `{max_misses, spin, priority}`: pace the communication points on the wall clock",
     "options": "the algorithm's own options (declared by the algorithm, see the algorithms reference)",
@@ -82,6 +85,8 @@ MASTER_KEYS = tuple(MASTER)
 #: How a slave's inputs vary over a communication step (see :mod:`cosim.master`).
 INPUT_MODES = ("hold", "linear")
 ENGINES = ("auto", "compiled", "python")
+#: What a run records (``master.record``): the output grid, or every accepted step of a variable-step master.
+RECORD_MODES = ("grid", "steps")
 #: The accuracy a scene gets when it names no master algorithm (cosim.run.choose).
 DEFAULT_TOLERANCE = 1e-3
 FMI_VERSIONS = ("2.0", "3.0")

@@ -99,6 +99,9 @@ class MasterSettings:
     estimate: bool = True
     #: master.tolerance was written in the scene (not the default)
     tolerance_given: bool = False
+    #: what the run records: "grid" (every output point, plus two rows per event) or "steps" (every
+    #: accepted step of a variable-step algorithm)
+    record: str = "grid"
 
 
 @dataclass

@@ -27,8 +27,20 @@ nanoseconds.  A step below ``h_min`` that still fails ends the run as "unstable"
 The first step (``h_init``, default 0.1 us) has no error estimate: there is no input history to
 extrapolate from yet; the controller then grows the step by at most ``fac_max`` per step.
 
-Every accepted step is recorded (the trace's time column is irregular: each row is the instant its
-values belong to).  Statistics: accepted and rejected steps, rollbacks, smallest and largest step.
+Output grid: the steps land on every output point ``start + k output_interval`` (a proposal that
+reaches the next point is cut to it, one that does not is evened out over the way there, so that no
+sliver of a step is left before a point; a step cut to a point does not shrink the next proposal, as
+at the stop time), and the trace has a row there, the same instants as a fixed-step run's and as the
+companion's that estimates the error: values the coupling computed, not interpolated.
+``master.record: steps`` records every accepted step instead (no landing: an irregular time column).
+
+Events (FMI 3.0 event mode and early return, docs/explanation/events.md): an event is a step
+boundary.  When an event-mode slave returns early at ``t_e`` inside a step, every slave is rolled
+back and the step retaken to ``t_e`` (counted as a cut, not a rejection; the controller keeps its
+proposal); the trace records the left limit, the event iteration runs across the coupling, then the
+right limit, and the inputs' extrapolation history is moved by the jump.
+
+Statistics: accepted and rejected steps, rollbacks, smallest and largest step, steps cut at events.
 
 Engines: :class:`AdaptiveStepper` here is the reference implementation (Python loop); where every
 slave is an FMU with C entry points and state get/set (``master.engine`` auto or compiled),
@@ -47,13 +59,13 @@ import numpy as np
 
 from ...errors import UserError
 from ...slaves.slave import FAILING, Status
-from ..algorithm import AlgorithmOption, MasterAlgorithm, option_values, register
+from ..algorithm import MAX_EVENTS_PER_STEP, AlgorithmOption, EventIteration, MasterAlgorithm, option_values, register
 from ..graph import gauss_seidel_order
 from ..adaptive_engine import compiled_stepper
 from ..engine import choose_engine, variable_loop
 from ..entries import AdaptiveEnd
 from ..lifecycle import slave_table
-from ..stepper import Outcome, StepInfo, Stepper
+from ..stepper import Outcome, StepInfo, StepResult, Stepper
 
 
 OPTIONS = (
@@ -81,17 +93,20 @@ class AdaptiveStats:
     h_max_taken: float = 0.0
     discards: int = 0
     steps: list[float] = field(default_factory=list)  # accepted step sizes [s], in order
+    event_cuts: int = 0  # steps retaken to end at an event (not rejections)
 
     def as_dict(self) -> dict:
         return {"accepted_steps": self.accepted, "rejected_steps": self.rejected, "rollbacks": self.rollbacks,
                 "smallest_step": self.h_min_taken if self.accepted else None,
-                "largest_step": self.h_max_taken if self.accepted else None, "discards": self.discards}
+                "largest_step": self.h_max_taken if self.accepted else None, "discards": self.discards,
+                **({"steps_cut_at_events": self.event_cuts} if self.event_cuts else {})}
 
 
-class AdaptiveStepper(Outcome):
+class AdaptiveStepper(EventIteration, Outcome):
     """The stepping of :mod:`cosim.master.algorithms.adaptive` over an initialised, bound ``system``
     (its Python engine; its compiled loop writes the same :class:`~cosim.master.stepper.Outcome`,
-    worded by the same :meth:`_end`)."""
+    worded by the same :meth:`_end`).  ``grid_ns``: the output interval [ns] its steps land on
+    (from ``start_ns``; 0: none, only the stop time)."""
 
     order_p_linear, order_p_hold = 3.0, 2.0  # mismatch O(h^2) / O(h), weighted by h
     k_i, k_p = 0.7, 0.4
@@ -100,12 +115,19 @@ class AdaptiveStepper(Outcome):
     #: the compiled loop of exactly this class (:mod:`cosim.master.adaptive_engine`)
     native_loop = "adaptive"
 
-    def __init__(self, system, order: Sequence[int], options: dict[str, float], start_ns: int, stop_ns: int):
+    def __init__(self, system, order: Sequence[int], options: dict[str, float], start_ns: int, stop_ns: int,
+                 grid_ns: int = 0):
         self.system = system
         self.order = list(order)
         self.opt = options
         self.stop_ns = stop_ns
         self.t_ns = start_ns
+        self.start_ns, self.grid_ns = start_ns, int(grid_ns)
+        self.landed = True  # the last accepted step ended on an output point (or the stop time)
+        self.bind_events(system)
+        #: the last accepted step ended at an event (a StepResult for the run loop), else None
+        self.pending_event: StepResult | None = None
+        self._events_here = 0  # events in a row without a step of positive length between them
         sysm, n = system, len(system.slaves)
         for s in sysm.slaves if self.needs_rollback else ():
             if not s.can_rollback:
@@ -201,6 +223,13 @@ class AdaptiveStepper(Outcome):
         np.minimum(self.lo, sysm.v, out=self.lo)
         self.t_ns += h_ns
         self.h_prev = h
+        self.landed = self._on_output(self.t_ns)
+        if self.event_slaves:
+            self._note_event()
+
+    def _on_output(self, t_ns: int) -> bool:
+        """Is ``t_ns`` an output point (on the grid, or the stop time; every point without a grid)?"""
+        return not self.grid_ns or t_ns >= self.stop_ns or (t_ns - self.start_ns) % self.grid_ns == 0
 
     def step(self) -> bool:
         """Advance by one accepted step (retrying smaller after rejections); False when the run
@@ -209,16 +238,29 @@ class AdaptiveStepper(Outcome):
         v_saved = sysm.v.copy()
         for s in sysm.slaves:
             s.save_state()
+        cut: int | None = None  # an event's time [ns] the step is retaken to
         while True:
-            h_ns = max(1, min(round(self.h * 1e9), self.stop_ns - self.t_ns))
+            h_ns = self._plan_ns() if cut is None else cut - self.t_ns
             h = h_ns / 1e9
             err, bad, st = self._attempt(h)
             p = self.order_p_linear if any(self.interp) and self.h_prev > 0 else self.order_p_hold
             if bad is not None and st == Status.STOP_REQUESTED:
                 self._end(AdaptiveEnd.STOP_REQUESTED, bad, st)
                 return False
+            if bad is None and self.event_slaves:
+                early = self._early_return(h_ns)
+                if early is not None:  # an event inside the step: it ends there for every slave (no rejection)
+                    if early <= self.t_ns:
+                        return self._no_progress(early)
+                    cut = early
+                    self.stats.event_cuts += 1
+                    for s in sysm.slaves:
+                        s.restore_state()
+                    np.copyto(sysm.v, v_saved)
+                    continue
             if bad is None and (err <= 1.0 or self.h_prev == 0):  # the first step has no estimate
                 break
+            cut = None  # retried smaller: the event, if still inside, is found again
             self.stats.rejected += 1
             if bad is not None:
                 self.stats.discards += 1
@@ -232,11 +274,80 @@ class AdaptiveStepper(Outcome):
                 return False
             self.h = max(opt["h_min"], h * min(shrink, 0.9))
         self._commit(h, h_ns)
+        if cut is not None:  # a step cut short at an event says nothing new of the error: keep the proposal
+            return True
         e = max(err, 1e-10)
         fac = opt["safety"] * e ** (-self.k_i / p) * self.err_prev ** (self.k_p / p)
         self.err_prev = e
         self._propose(h, h_ns, fac)
         return True
+
+    # -- the output grid (docs/explanation/events.md, "Trace rows") ------------------------------------
+    def target_ns(self) -> int:
+        """The next output point after the current time [ns]: on the grid ``start + k grid_ns``,
+        at most the stop time (the stop time itself without a grid)."""
+        if not self.grid_ns:
+            return self.stop_ns
+        k = (self.t_ns - self.start_ns) // self.grid_ns + 1
+        return min(self.start_ns + k * self.grid_ns, self.stop_ns)
+
+    def _plan_ns(self) -> int:
+        """The step [ns] from the current time for the controller's proposal :attr:`h`: the rest of
+        the way to the next output point when the proposal reaches it, else that way split into the
+        fewest equal steps no longer than the proposal (no sliver of a step before a point; whole
+        nanoseconds, the last one landing).  Without a grid, the proposal clipped to the stop time."""
+        want, left = round(self.h * 1e9), self.target_ns() - self.t_ns
+        if want >= left:
+            return max(1, left)
+        if not self.grid_ns:
+            return max(1, want)
+        n = -(-left // max(1, want))
+        return max(1, -(-left // n))
+
+    # -- events: a step boundary (docs/explanation/events.md) -------------------------------------------
+    def _early_return(self, h_ns: int) -> int | None:
+        """The earliest time [ns] an event-mode slave returned early inside the step of ``h_ns``
+        just taken, or None when every one reached its end."""
+        t1 = self.t_ns + h_ns
+        ends = [round(self.system.slaves[i].step_end()[0] * 1e9) for i in self.event_slaves]
+        early = min(ends, default=t1)
+        return early if early < t1 else None
+
+    def _no_progress(self, at_ns: int) -> bool:
+        """An event-mode slave returned early at the step's start: the run ends (False)."""
+        who = min(self.event_slaves, key=lambda i: self.system.slaves[i].step_end()[0])
+        self.failed_slave = who
+        self.end("failed", f"{self.system.slaves[who].name} returned early at t = {at_ns / 1e9:.9g} s, the start of "
+                           f"its step, without an event to handle there")
+        return False
+
+    def _note_event(self) -> None:
+        """After an accepted step: an event-mode slave that asks for event handling at its end makes
+        the step's end an event (:attr:`pending_event`, its row the left limit)."""
+        asking = [i for i in self.event_slaves if self.system.slaves[i].step_end()[1]]
+        if not asking:
+            self._events_here = 0
+            return
+        self._events_here += 1
+        if self._events_here > MAX_EVENTS_PER_STEP:
+            self.failed_slave = asking[0]
+            self.end("failed", f"{self.system.slaves[asking[0]].name}: more than {MAX_EVENTS_PER_STEP} events in a row "
+                               f"without a step between them at t = {self.t:.9g} s (chattering)")
+            return
+        self.pending_event = StepResult(self.t_ns, True, asking[0], "event")
+
+    def after_events(self) -> None:
+        """After the event iteration: the inputs' history carries the jump (the sources' values at
+        the event's left and previous points moved by it, so that the next step's extrapolation
+        keeps its slope), and the ranges take in the right limit."""
+        sysm = self.system
+        for i, src in enumerate(sysm.in_src):
+            if len(src):
+                jump = sysm.v[src] - self.cur_src[i]
+                self.cur_src[i] += jump
+                self.prev_src[i] += jump
+        np.maximum(self.hi, sysm.v, out=self.hi)
+        np.minimum(self.lo, sysm.v, out=self.lo)
 
     def _end(self, code: int, bad: int = -1, st: int = 0, value: float = math.nan, count: int = 0) -> None:
         """End the run for end code ``code`` (:class:`cosim.master.entries.AdaptiveEnd`), in the
@@ -273,14 +384,15 @@ class VariableStepper(Stepper):
     :class:`cosim.master.adaptive_engine.CompiledAdaptive` / ``CompiledEcco``) as the driver loop
     (:func:`cosim.master.stepper.drive`) steps it: one recorded row per accepted step, with the
     guards' watched values after the recorded ones.  Its outcome is the Python stepper's, which
-    the compiled loop writes too."""
+    the compiled loop writes too.  Rows: at every output point the steps land on (every accepted
+    step without a grid, ``master.record: steps``), and two at each event."""
 
     def __init__(self, stepping: AdaptiveStepper, compiled=None):
         super().__init__(stepping.system, "python" if compiled is None else "compiled", stepping)
         self.py, self.compiled = stepping, compiled
         self.stepper = stepping if compiled is None else compiled  # whose t_ns, stats, calls count
         self.start_ns, self.stop_ns = stepping.t_ns, stepping.stop_ns
-        self.dropped = 0  # accepted steps whose rows a guard dropped
+        self.dropped = 0  # accepted steps after the row where a guard ended the run
         self._t_cut: float | None = None  # where a guard ended the run [s]
 
     @property
@@ -299,10 +411,23 @@ class VariableStepper(Stepper):
         return self.python_block(rec, max_steps)
 
     def step(self) -> bool:
-        return self.py.step()
+        ok = self.py.step()
+        if self.py.pending_event is not None:  # the step ended at an event: its row is the left limit
+            self.event, self.py.pending_event = self.py.pending_event, None
+        return ok
+
+    def recorded(self, ok: bool) -> bool:
+        return ok and (self.py.landed or self.event is not None)
+
+    def next_output_ns(self, t_ns: int) -> int | None:
+        return self.py.target_ns() if self.py.grid_ns else None
+
+    def event_iteration(self, event: StepResult) -> None:
+        self.py.event_iteration(event)
+        if self.py.running:
+            self.py.after_events()
 
     def cut(self, t: float, rows_dropped: int) -> None:
-        self.dropped += rows_dropped
         self._t_cut = t
 
     def progress(self) -> tuple[int, int]:
@@ -318,6 +443,9 @@ class VariableStepper(Stepper):
         """The run statistics (:class:`cosim.master.lifecycle.VariableStats`)."""
         st = self.stepper
         acc = st.stats
+        if self._t_cut is not None:  # a guard dropped the rows after t_cut: the steps after it are not the run's
+            ends = self.start_ns + np.cumsum(np.round(np.asarray(acc.steps) * 1e9))
+            self.dropped = int(np.sum(ends > round(self._t_cut * 1e9)))
         stats.steps_done = acc.accepted - self.dropped
         stats.t_end = self.t if self._t_cut is None else self._t_cut
         if self.dropped:
@@ -326,6 +454,8 @@ class VariableStepper(Stepper):
         stats.adaptive = acc.as_dict()
         stats.steps_planned = stats.steps_done  # no plan: the controller chose every step
         stats.slaves = slave_table(self.system, st.calls, st.slave_ns)
+        if self.py.event_slaves:
+            stats.extra.update(self.py.event_statistics())
         own = st.master_ns  # the compiled loop measures its own share itself
         stats.master_s = own / 1e9 if own is not None else max(0.0, stats.wall_s - sum(st.slave_ns) / 1e9)
 
@@ -335,18 +465,20 @@ class VariableStepper(Stepper):
 
 
 def variable_stepper(system, *, cls, step_ns: int, n_steps: int, order: Sequence[int] | None = None,
-                     options: dict | None = None, start_ns: int = 0, engine: str = "auto",
-                     **_fixed_step_only) -> VariableStepper:
+                     options: dict | None = None, start_ns: int = 0, engine: str = "auto", record_every: int = 1,
+                     record: str = "grid", **_fixed_step_only) -> VariableStepper:
     """The stepper of the variable-step algorithm ``cls`` (its ``stepper`` class, default
     :class:`AdaptiveStepper`) over the initialised ``system``, to ``start_ns + n_steps * step_ns``
-    (the scene's stop time; ``step_ns`` is only the fixed-step master's step).  ``engine``: auto,
-    compiled or python (:func:`cosim.master.engine.choose_engine`)."""
+    (the scene's stop time; ``step_ns`` is only the fixed-step master's step), landing on the
+    output grid of ``record_every * step_ns`` (``record="steps"``: no grid, every accepted step
+    recorded).  ``engine``: auto, compiled or python (:func:`cosim.master.engine.choose_engine`)."""
     stop_ns = start_ns + n_steps * step_ns
     opts = option_values(options, cls.options)
     seq = list(order) if order is not None else gauss_seidel_order(len(system.slaves), system.slave_edges())
     kind = cls.stepper or AdaptiveStepper
     name = choose_engine(system, engine, variable_loop(cls.name, kind))
-    stepping = kind(system, seq, opts, start_ns, stop_ns)
+    stepping = kind(system, seq, opts, start_ns, stop_ns, step_ns * record_every if record == "grid" else 0)
+    stepping.event_policy = cls.event_policy
     return VariableStepper(stepping, compiled_stepper(stepping) if name == "compiled" else None)
 
 
@@ -358,6 +490,9 @@ class Adaptive(MasterAlgorithm):
     name = "adaptive"
     variable_step = True
     needs_rollback = True
+    ends_steps_at_events = True
+    event_policy = ("an event of an FMI 3.0 event-mode component is a step boundary for the whole coupling: the "
+                    "step is retaken to the event time (no rejection counted), then the event iteration")
     options = OPTIONS
     #: a rejected step is rolled back and retried: its steps cannot be paced on the wall clock
     paceable = False

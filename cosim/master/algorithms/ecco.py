@@ -183,8 +183,9 @@ class EccoStepper(AdaptiveStepper):
     #: the compiled loop of exactly this class (:class:`cosim.master.adaptive_engine.CompiledEcco`)
     native_loop = "ecco"
 
-    def __init__(self, system, order: Sequence[int], options: dict[str, float], start_ns: int, stop_ns: int):
-        super().__init__(system, order, options, start_ns, stop_ns)
+    def __init__(self, system, order: Sequence[int], options: dict[str, float], start_ns: int, stop_ns: int,
+                 grid_ns: int = 0):
+        super().__init__(system, order, options, start_ns, stop_ns, grid_ns)
         self.bonds = find_bonds(system)
         if not self.bonds:
             raise UserError("master algorithm ecco controls its step from the energy residual of power bonds "
@@ -211,14 +212,30 @@ class EccoStepper(AdaptiveStepper):
         if self._ending is not None:
             self._end(EccoEnd.FLOOR_PATIENCE, self._ending[0], 0, self._ending[1], self._ending[2])
             return False
-        h_ns = max(1, min(round(self.h * 1e9), self.stop_ns - self.t_ns))
-        h = h_ns / 1e9
+        h_ns = self._plan_ns()
         y0 = sysm.v[self._out_idx]
-        _, bad, st = self._attempt(h)
-        if bad is not None:
-            asked = st == Status.STOP_REQUESTED or (st == Status.DISCARD and sysm.slaves[bad].asked_to_stop())
-            self._end(EccoEnd.STOP_REQUESTED if asked else EccoEnd.SLAVE_FAILED, bad, st)
-            return False
+        if self.event_slaves:  # (the run uses event mode only where every slave can roll back)
+            v_saved = sysm.v.copy()
+            for s in sysm.slaves:
+                s.save_state()
+        cut: int | None = None
+        while True:
+            h = h_ns / 1e9
+            _, bad, st = self._attempt(h)
+            if bad is not None:
+                asked = st == Status.STOP_REQUESTED or (st == Status.DISCARD and sysm.slaves[bad].asked_to_stop())
+                self._end(EccoEnd.STOP_REQUESTED if asked else EccoEnd.SLAVE_FAILED, bad, st)
+                return False
+            early = self._early_return(h_ns) if self.event_slaves else None
+            if early is None:
+                break
+            if early <= self.t_ns:
+                return self._no_progress(early)
+            cut, h_ns = early, early - self.t_ns  # an event inside the step: retaken to end there
+            self.stats.event_cuts += 1
+            for s in sysm.slaves:
+                s.restore_state()
+            np.copyto(sysm.v, v_saved)
         u0 = sysm.v[self._in_idx]
         residual, carried = bond_energy(h, y0, sysm.v[self._out_idx], u0, u0 + self._seen_slopes() * h)
         scaled = np.abs(residual) / (opt["atol"] + opt["rtol"] * carried)
@@ -228,6 +245,8 @@ class EccoStepper(AdaptiveStepper):
         for b, r, e, x in zip(self.bonds, residual, carried, scaled):
             self.stats.bonds[b.name].add(float(r), float(e), float(x))
         self._commit(h, h_ns)
+        if cut is not None:  # a step cut short at an event: the controller keeps its proposal
+            return True
         err = max(float(np.max(scaled)), 1e-10)
         self._at_floor = self._at_floor + 1 if err > 1.0 and h <= opt["h_min"] * (1 + 1e-12) else 0
         if self.patience and self._at_floor >= self.patience:  # this step is taken and recorded; the run ends before the next
@@ -269,6 +288,10 @@ class Ecco(MasterAlgorithm):
 
     name = "ecco"
     variable_step = True
+    ends_steps_at_events = True
+    event_policy = ("an event of an FMI 3.0 event-mode component is a step boundary for the whole coupling: the "
+                    "step is retaken to the event time, then the event iteration (where every component can roll "
+                    "back; otherwise events are handled inside each component's steps)")
     options = OPTIONS
     stepper = EccoStepper
     stepper_for = staticmethod(variable_stepper)

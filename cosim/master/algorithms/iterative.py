@@ -60,10 +60,11 @@ import numpy as np
 
 from ...errors import UserError
 from ...slaves.slave import FAILING, Status
-from ..algorithm import Algorithm, register
+from ..algorithm import MAX_EVENTS_PER_STEP, Algorithm, register
 from ..system import CoupledSystem
 from ..algorithm import AlgorithmOption, option_values
 from .. import dense
+from ..stepper import StepResult
 
 _ns = time.perf_counter_ns
 
@@ -109,6 +110,10 @@ class Iterative(Algorithm):
     name = "iterative"
     #: compiled: :mod:`cosim.master.iterative_engine` (engine.ITERATIVE)
     native_code = 2
+    ends_steps_at_events = True
+    event_policy = ("a step ends at the earliest event of an FMI 3.0 event-mode component for the whole coupling: "
+                    "every component is rolled back and the coupling iterated again to the event time, then the "
+                    "event iteration; the rest of the step rejoins the grid")
     sequential = True
     needs_rollback = True
     solves_algebraic_loops = True
@@ -379,6 +384,62 @@ class Iterative(Algorithm):
         self.message = (f"{what} {where}: scaled residual {err:.3g} > 1 after {it} passes, worst on {worst} "
                         f"(method {self.opt['method']}; try method: newton, a smaller omega or a smaller step)")
         return None
+
+    # --- FMI 3.0 event mode (docs/explanation/events.md) ---------------------------------------------
+    def _event_step(self) -> bool:
+        """:meth:`Algorithm.step` with event-mode slaves: the iterated step from the current point
+        (a grid point or an event) to the next grid point; where an event-mode slave returned early
+        at ``t_e``, every slave is rolled back and the coupling iterated again over ``[t, t_e]``
+        (the event ends the step for the whole coupling), then the event iteration."""
+        slaves, sysm = self.system.slaves, self.system
+        t, t_end = self.t, self.time_at(self.k + 1)
+        kept = (sysm.v.copy(), self.z.copy(), None if self.z_prev is None else self.z_prev.copy(),
+                None if self.J is None else self.J.copy(), [x.copy() for x in self.start_in])
+        for s in slaves:
+            s.save_state()
+        bad = self._step_impl(t, t_end - t)
+        ends = {i: slaves[i].step_end() for i in self.event_slaves} if bad is None else {}
+        tol = 1e-12 * (1.0 + abs(t_end))
+        early = sorted((r, i) for i, (r, _) in ends.items() if r < t_end - tol)
+        if bad is None and self.status == "running" and early:
+            t_e, who = early[0]
+            self._events_in_step = getattr(self, "_events_in_step", 0) + 1
+            if self._events_in_step > MAX_EVENTS_PER_STEP or t_e <= t:
+                self.status, self.failed_slave = "failed", who
+                self.message = (f"{slaves[who].name}: more than {MAX_EVENTS_PER_STEP} events in the step from t = "
+                                f"{self.time_at(self.k):.9g} s (chattering); the last at t = {t_e:.9g} s")
+                return False
+            for s in slaves:
+                s.restore_state()
+            v, self.z, self.z_prev, self.J, self.start_in = kept
+            np.copyto(sysm.v, v)
+            bad = self._step_impl(t, t_e - t)
+            if bad is None and self.status == "running":
+                self.t_event = t_e
+                self.pending_event = StepResult(self.t_ns, True, who, "event")
+                return True
+        if self.status != "running":
+            return False
+        if bad is not None:
+            if self.stop_requested(*bad):
+                self.complete_after_stop(bad[0], t)
+            else:
+                self._fail(bad[0], bad[1], t)
+            return False
+        self.k, self.t_event, self._events_in_step = self.k + 1, None, 0
+        asking = [i for i, (_, ev) in ends.items() if ev]
+        if asking:
+            self.pending_event = StepResult(self.t_ns, True, asking[0], "event")
+        return True
+
+    def event_iteration(self, event) -> None:
+        """The event iteration (:meth:`Algorithm.event_iteration`); after it the cut inputs and
+        every slave's inputs at the point are the right limit's, and the next first guess does not
+        extrapolate across the jump."""
+        super().event_iteration(event)
+        if self.status == "running":
+            self.z, self.z_prev = self._cut_values(), None
+            self.start_in = [b.copy() for b in self.system.in_buf]
 
     # --- the Algorithm interface -----------------------------------------------------------------
     def _step_impl(self, t: float, h: float) -> tuple[int, int] | None:
