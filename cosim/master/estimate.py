@@ -291,16 +291,16 @@ def judge(status: str, reason: str, est: ErrorEstimate | None, tolerance: float 
         return status, reason
     w = est.worst
     later = f" ({reason})" if reason else ""
+    if tolerance is not None and est.missing:  # first: the values then differ across the jump
+        name, (a, b) = next(iter(est.missing.items()))
+        return "inaccurate", (f"{name} has {a} events in the run and {b} in its companion run: an event is missing "
+                              f"in one of them{later}")
     if not w < UNSTABLE:
         return "unstable", (f"the estimated error of {est.signal} is {w:.3g} of its range (at t = {est.at:.6g} s): "
                             f"the coupling has gone unstable; take a smaller step or master.tolerance{later}")
     if tolerance is not None and w > INACCURATE * tolerance:
         return "inaccurate", (f"the estimated error of {est.signal} is {w:.3g} of its range (at t = {est.at:.6g} s), "
                               f"more than {INACCURATE:g}x the tolerance {tolerance:g}{later}")
-    if tolerance is not None and est.missing:
-        name, (a, b) = next(iter(est.missing.items()))
-        return "inaccurate", (f"{name} has {a} events in the run and {b} in its companion run: an event is missing "
-                              f"in one of them{later}")
     et = event_time_tolerance(tolerance)
     if et is not None and est.event_time is not None and est.event_time > INACCURATE * et:
         return "inaccurate", (f"the estimated event-time error of {est.event_signal} is {est.event_time:.3g} s, more "
