@@ -105,8 +105,8 @@ def test_a_leg_run_into_its_end_stop_goes_on_and_the_sidecar_counts_the_impacts(
     assert res.trace.time[-1] == pytest.approx(2.0)
     ref = reference(scene)
     located = [e for e in ref.stats["events"]["list"] if "2" in str(e)]
-    counts = res.stats["events"]["rig"]
+    counts = res.stats["events"]["counted"]["rig"]
     assert counts == {"leg[1].impacts": 0, "leg[2].impacts": 1, "leg[3].impacts": 0}
     assert counts["leg[2].impacts"] == len(located) == 1, ref.stats["events"]["list"]
     sidecar = json.loads((tmp_path / "rig_end_stop.json").read_text())
-    assert sidecar["statistics"]["events"] == {"rig": counts}
+    assert sidecar["statistics"]["events"]["counted"] == {"rig": counts}

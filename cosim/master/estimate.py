@@ -311,7 +311,7 @@ def judge(status: str, reason: str, est: ErrorEstimate | None, tolerance: float 
 def event_counts(names: Sequence[str], data: np.ndarray, modes: Sequence[str]) -> dict[str, dict[str, int]]:
     """The events a run counted, per component: each recorded mode that is a counter (whole
     numbers, never decreasing: ``leg[2].impacts``, ``sticks``), its increase over the run, e.g.
-    ``{"rig": {"leg[2].impacts": 3}}`` (the sidecar's ``statistics.events``)."""
+    ``{"rig": {"leg[2].impacts": 3}}`` (the sidecar's ``statistics.events.counted``)."""
     out: dict[str, dict[str, int]] = {}
     for j, name in enumerate(names):
         if name not in modes or not len(data):
@@ -330,7 +330,7 @@ class EstimatingObserver(Observer):
     the recorded rows, and when the run finishes estimates its error against ``companion``
     (``(time, values)`` of the companion run, or None with ``why`` there is none), judges the run
     (:func:`judge`) and finishes the inner observers with that status, the estimate in the
-    statistics (``estimate``), the counted events (``events``, :func:`event_counts`) and ``extra``
+    statistics (``estimate``), the counted events (``events.counted``, :func:`event_counts`) and ``extra``
     statistics (e.g. the master's choice).  ``modes``: the recorded columns that are modes of
     components with state events (their changes are the events the estimate matches)."""
 
@@ -387,8 +387,8 @@ class EstimatingObserver(Observer):
         stats = dict(stats or {}, status=status, reason=reason, estimate=self.estimate.as_dict(), **self.extra)
         data = np.concatenate(self.rows) if self.rows else np.empty((0, len(self.columns)))
         counts = event_counts(self.columns[1:], data, self.modes)
-        if counts:
-            stats["events"] = counts
+        if counts:  # beside the master's own event statistics (event mode: "handled", "late")
+            stats["events"] = {**(stats.get("events") or {}), "counted": counts}
         self.status, self.reason, self.stats = status, reason, stats
         for ob in self.inner:
             ob.finish(status, reason, stats)
