@@ -51,6 +51,9 @@ INACCURATE = 10.0
 #: The event time tolerance is the tolerance times this span [s]: 1e-4 s at the default 1e-3 of
 #: range, the bound the events design page states for stick intervals (docs/explanation/events.md).
 EVENT_TIME_SPAN = 0.1
+#: A discrete variable that changes at more than this share of the recorded rows is a sampled
+#: value (an external FMU's held output), not a mode whose changes are events to match.
+SAMPLED_SHARE = 0.1
 
 
 def event_time_tolerance(tolerance: float | None) -> float | None:
@@ -208,6 +211,8 @@ def match_modes(t: np.ndarray, x: np.ndarray, tc: np.ndarray, xc: np.ndarray, na
     for j in modes:
         a, exact = mode_changes(t, x[:, j])
         b, exact_c = mode_changes(tc, xc[:, j])
+        if max(len(a), len(b)) > SAMPLED_SHARE * min(len(t), len(tc)):  # changes at most rows: a sampled value
+            continue
         if len(a) != len(b):
             out.missing[names[j]] = (len(a), len(b))
             out.windows += [(te - interval, te + interval) for te in (*a, *b)]
@@ -253,6 +258,8 @@ def richardson(t: np.ndarray, x: np.ndarray, tc: np.ndarray, xc: np.ndarray, nam
         if match.matched or match.missing:
             method = f"{method}; {match.matched} mode events matched, values around them left out"
     at = sparse_t[keep]
+    if not len(at):
+        return ErrorEstimate(None, method=f"{method}: the events leave no recorded instant between them")
     # the dense trace's instants strictly increasing (a stop request may repeat the last instant)
     uniq = np.concatenate([[True], np.diff(dense_t) > 0])
     with np.errstate(all="ignore"):
