@@ -48,6 +48,17 @@ DOUBT_KEEPS = 0.1
 UNSTABLE = 0.5
 #: An estimate more than this many times over the tolerance: the run is "inaccurate".
 INACCURATE = 10.0
+#: The event time tolerance is the tolerance times this span [s]: 1e-4 s at the default 1e-3 of
+#: range, the bound the events design page states for stick intervals (docs/explanation/events.md).
+EVENT_TIME_SPAN = 0.1
+#: A discrete variable that changes at more than this share of the recorded rows is a sampled
+#: value (an external FMU's held output), not a mode whose changes are events to match.
+SAMPLED_SHARE = 0.1
+
+
+def event_time_tolerance(tolerance: float | None) -> float | None:
+    """The event time tolerance [s] of a run judged at ``tolerance`` (of range): :data:`EVENT_TIME_SPAN` times it."""
+    return None if tolerance is None else tolerance * EVENT_TIME_SPAN
 
 
 @dataclass
@@ -61,16 +72,32 @@ class ErrorEstimate:
     at: float = math.nan
     errors: dict[str, float] = field(default_factory=dict)
     method: str = ""
+    #: events: the estimated event-time error [s] of the matched events (None: no event), the mode
+    #: it is worst on, how many were matched, and the modes whose event counts differ (run, companion)
+    event_time: float | None = None
+    event_signal: str = ""
+    events: int = 0
+    missing: dict[str, tuple[int, int]] = field(default_factory=dict)
 
     def as_dict(self) -> dict:
-        return {"worst": self.worst, "signal": self.signal, "at": None if math.isnan(self.at) else self.at,
-                "method": self.method, "errors": self.errors}
+        out = {"worst": self.worst, "signal": self.signal, "at": None if math.isnan(self.at) else self.at,
+               "method": self.method, "errors": self.errors}
+        if self.events or self.missing:
+            out["events"] = {"matched": self.events, "time_error": self.event_time, "signal": self.event_signal,
+                             "missing": {k: list(v) for k, v in self.missing.items()}}
+        return out
 
     def summary(self) -> str:
         """``estimated worst error 6e-4 of range, mech.platform.y`` (or why there is none)."""
         if self.worst is None:
             return f"no error estimate ({self.method})"
-        return f"estimated worst error {self.worst:.2g} of range, {self.signal} (at t = {self.at:.6g} s)"
+        text = f"estimated worst error {self.worst:.2g} of range, {self.signal} (at t = {self.at:.6g} s)"
+        if self.event_time is not None:
+            text += f"; event times within {self.event_time:.2g} s ({self.events} events, {self.event_signal})"
+        if self.missing:
+            text += "; events missing in one of the two runs: " + ", ".join(
+                f"{k} {a} against {b}" for k, (a, b) in self.missing.items())
+        return text
 
 
 def divisor(ratio: float, order: float) -> float:
@@ -144,8 +171,66 @@ def outside_events(at: np.ndarray, events: Sequence[float], spacing: float) -> n
     return keep
 
 
+def mode_changes(t: np.ndarray, col: np.ndarray) -> tuple[np.ndarray, bool]:
+    """The event times [s] a recorded mode (a discrete variable) marks: the rows where its value
+    changes, and whether they are exact: a *clock* (a mode set to ``time`` at its event, e.g.
+    ``t_stick``) holds the event time itself, anything else (a counter, a stuck flag) gives the
+    first row after the event, exact to the recorded interval."""
+    ok = np.isfinite(col)
+    t, col = t[ok], col[ok]
+    k = np.flatnonzero(np.diff(col) != 0) + 1
+    if not len(k):
+        return np.zeros(0), False
+    v, lo, hi = col[k], t[k - 1], t[k]
+    eps = 1e-9 * max(1.0, float(np.abs(t).max()))
+    clock = bool(np.all((v >= lo - eps) & (v <= hi + eps)))
+    return (v.astype(float) if clock else hi.astype(float)), clock
+
+
+@dataclass
+class EventMatch:
+    """The matched events of a run and its companion: the estimated event-time error [s] (the
+    largest difference over the divisor; a non-clock mode's difference less its resolution, one
+    recorded interval), its mode, the count matched, the windows around them where values are not
+    compared, and the modes whose counts differ."""
+
+    time_error: float | None = None
+    signal: str = ""
+    matched: int = 0
+    windows: list[tuple[float, float]] = field(default_factory=list)
+    missing: dict[str, tuple[int, int]] = field(default_factory=dict)
+
+
+def match_modes(t: np.ndarray, x: np.ndarray, tc: np.ndarray, xc: np.ndarray, names: Sequence[str],
+                modes: Sequence[int], div: float, interval: float) -> EventMatch:
+    """Match the k-th event of each recorded mode (columns ``modes``) in the run with the k-th in
+    its companion (docs/explanation/events.md, "Measures across jumps"): the event-time error and
+    the windows ``[t_e - d, t_e + d]``, ``d = |t_run - t_companion| + interval`` per matched event;
+    a mode whose counts differ is listed as missing events, its every event windowed."""
+    out = EventMatch()
+    for j in modes:
+        a, exact = mode_changes(t, x[:, j])
+        b, exact_c = mode_changes(tc, xc[:, j])
+        if max(len(a), len(b)) > SAMPLED_SHARE * min(len(t), len(tc)):  # changes at most rows: a sampled value
+            continue
+        if len(a) != len(b):
+            out.missing[names[j]] = (len(a), len(b))
+            out.windows += [(te - interval, te + interval) for te in (*a, *b)]
+            continue
+        if not len(a):
+            continue
+        dt = np.abs(a - b)
+        d = dt if exact and exact_c else np.maximum(dt - interval, 0.0)
+        out.windows += [(lo - interval, hi + interval) for lo, hi in zip(np.minimum(a, b), np.maximum(a, b))]
+        out.matched += len(a)
+        e = float(d.max()) / div
+        if out.time_error is None or e > out.time_error:
+            out.time_error, out.signal = e, names[j]
+    return out
+
+
 def richardson(t: np.ndarray, x: np.ndarray, tc: np.ndarray, xc: np.ndarray, names: Sequence[str],
-               div: float, method: str, events: Sequence[float] = ()) -> ErrorEstimate:
+               div: float, method: str, events: Sequence[float] = (), modes: Sequence[int] = ()) -> ErrorEstimate:
     """The estimate from a run (instants ``t``, values ``x``, one column per name) and its companion
     (``tc``, ``xc``): their largest difference over ``div`` per signal, relative to the run's range.
     They are compared at the instants of the sparser one inside both spans, the denser one
@@ -153,7 +238,9 @@ def richardson(t: np.ndarray, x: np.ndarray, tc: np.ndarray, xc: np.ndarray, nam
     the interpolation's own doubt there (:func:`interpolation_doubt`), which leaves at least
     :data:`DOUBT_KEEPS` of the difference.  Around ``events`` (times [s]: the run's reported
     events and the instants either trace records twice) the instants within two of the sparser
-    trace's steps are left out (:func:`outside_events`)."""
+    trace's steps are left out (:func:`outside_events`).  ``modes``: the columns of recorded modes;
+    their events are matched (:func:`match_modes`), the event-time error estimated and the values
+    around each matched pair left out."""
     lo, hi = max(t[0], tc[0]), min(t[-1], tc[-1])
     if len(t) < 2 or len(tc) < 2 or hi <= lo:
         return ErrorEstimate(None, method=f"{method}: the run and its companion share no time span")
@@ -163,7 +250,16 @@ def richardson(t: np.ndarray, x: np.ndarray, tc: np.ndarray, xc: np.ndarray, nam
     if events:
         keep &= outside_events(sparse_t, events, float(np.max(np.diff(sparse_t))))
         method = f"{method}; {len(events)} events left out (two steps either side)"
+    match = EventMatch()
+    if len(modes):
+        match = match_modes(t, x, tc, xc, names, modes, div, float(np.max(np.diff(sparse_t))))
+        for w0, w1 in match.windows:
+            keep &= (sparse_t < w0) | (sparse_t > w1)
+        if match.matched or match.missing:
+            method = f"{method}; {match.matched} mode events matched, values around them left out"
     at = sparse_t[keep]
+    if not len(at):
+        return ErrorEstimate(None, method=f"{method}: the events leave no recorded instant between them")
     # the dense trace's instants strictly increasing (a stop request may repeat the last instant)
     uniq = np.concatenate([[True], np.diff(dense_t) > 0])
     with np.errstate(all="ignore"):
@@ -188,24 +284,52 @@ def richardson(t: np.ndarray, x: np.ndarray, tc: np.ndarray, xc: np.ndarray, nam
             worst, signal, when = e, name, float(at[k]) if len(at) else math.nan
     if worst < 0:
         return ErrorEstimate(None, method=f"{method}: nothing recorded")
-    return ErrorEstimate(worst, signal, when, errors, method)
+    return ErrorEstimate(worst, signal, when, errors, method, match.time_error, match.signal, match.matched,
+                         match.missing)
 
 
 def judge(status: str, reason: str, est: ErrorEstimate | None, tolerance: float | None) -> tuple[str, str]:
     """The status and reason of a run in the light of its estimate: an "ok" (or "stopped") run
     whose estimate reaches :data:`UNSTABLE` of a signal's range is "unstable", one more than
-    :data:`INACCURATE` times over ``tolerance`` "inaccurate"; anything else unchanged."""
+    :data:`INACCURATE` times over ``tolerance`` "inaccurate", and so is one whose event-time error
+    is more than that over :func:`event_time_tolerance`, or whose companion has a different number
+    of events (a missing event fails any gate); anything else unchanged."""
     if est is None or est.worst is None or status not in ("ok", "stopped"):
         return status, reason
     w = est.worst
     later = f" ({reason})" if reason else ""
+    if tolerance is not None and est.missing:  # first: the values then differ across the jump
+        name, (a, b) = next(iter(est.missing.items()))
+        return "inaccurate", (f"{name} has {a} events in the run and {b} in its companion run: an event is missing "
+                              f"in one of them{later}")
     if not w < UNSTABLE:
         return "unstable", (f"the estimated error of {est.signal} is {w:.3g} of its range (at t = {est.at:.6g} s): "
                             f"the coupling has gone unstable; take a smaller step or master.tolerance{later}")
     if tolerance is not None and w > INACCURATE * tolerance:
         return "inaccurate", (f"the estimated error of {est.signal} is {w:.3g} of its range (at t = {est.at:.6g} s), "
                               f"more than {INACCURATE:g}x the tolerance {tolerance:g}{later}")
+    et = event_time_tolerance(tolerance)
+    if et is not None and est.event_time is not None and est.event_time > INACCURATE * et:
+        return "inaccurate", (f"the estimated event-time error of {est.event_signal} is {est.event_time:.3g} s, more "
+                              f"than {INACCURATE:g}x the event time tolerance {et:g} s{later}")
     return status, reason
+
+
+def event_counts(names: Sequence[str], data: np.ndarray, modes: Sequence[str]) -> dict[str, dict[str, int]]:
+    """The events a run counted, per component: each recorded mode that is a counter (whole
+    numbers, never decreasing: ``leg[2].impacts``, ``sticks``), its increase over the run, e.g.
+    ``{"rig": {"leg[2].impacts": 3}}`` (the sidecar's ``statistics.events.counted``)."""
+    out: dict[str, dict[str, int]] = {}
+    for j, name in enumerate(names):
+        if name not in modes or not len(data):
+            continue
+        col = data[:, j + 1]
+        col = col[np.isfinite(col)]
+        if not len(col) or np.any(col != np.round(col)) or np.any(np.diff(col) < 0):
+            continue
+        comp, var = name.split(".", 1)
+        out.setdefault(comp, {})[var] = int(col[-1] - col[0])
+    return out
 
 
 class EstimatingObserver(Observer):
@@ -213,11 +337,14 @@ class EstimatingObserver(Observer):
     the recorded rows, and when the run finishes estimates its error against ``companion``
     (``(time, values)`` of the companion run, or None with ``why`` there is none), judges the run
     (:func:`judge`) and finishes the inner observers with that status, the estimate in the
-    statistics (``estimate``) and ``extra`` statistics (e.g. the master's choice)."""
+    statistics (``estimate``), the counted events (``events.counted``, :func:`event_counts`) and ``extra``
+    statistics (e.g. the master's choice).  ``modes``: the recorded columns that are modes of
+    components with state events (their changes are the events the estimate matches)."""
 
     def __init__(self, inner: Sequence, companion: tuple[np.ndarray, np.ndarray] | None, div: float, method: str,
-                 tolerance: float | None, extra: dict | None = None):
+                 tolerance: float | None, extra: dict | None = None, modes: Sequence[str] = ()):
         self.inner, self.companion, self.div, self.method = list(inner), companion, div, method
+        self.modes = list(modes)
         self.tolerance, self.extra = tolerance, dict(extra or {})
         self.rows: list[np.ndarray] = []
         self.columns: list[str] = []
@@ -254,7 +381,9 @@ class EstimatingObserver(Observer):
         if len(data) < 2:
             return ErrorEstimate(None, method=f"{self.method}: fewer than two recorded rows")
         tc, xc = self.companion
-        return richardson(data[:, 0], data[:, 1:], tc, xc, self.columns[1:], self.div, self.method, self.events)
+        names = self.columns[1:]
+        modes = [j for j, n in enumerate(names) if n in set(self.modes)]
+        return richardson(data[:, 0], data[:, 1:], tc, xc, names, self.div, self.method, self.events, modes)
 
     def finish(self, status, reason, stats) -> None:
         for figures in ((stats or {}).get("model_exchange") or {}).values():  # events inside ME components' steps
@@ -265,6 +394,10 @@ class EstimatingObserver(Observer):
             self.estimate = ErrorEstimate(None, method=f"{self.method}: {type(exc).__name__}: {exc}")
         status, reason = judge(status, reason, self.estimate, self.tolerance)
         stats = dict(stats or {}, status=status, reason=reason, estimate=self.estimate.as_dict(), **self.extra)
+        data = np.concatenate(self.rows) if self.rows else np.empty((0, len(self.columns)))
+        counts = event_counts(self.columns[1:], data, self.modes)
+        if counts:  # beside the master's own event statistics (event mode: "handled", "late")
+            stats["events"] = {**(stats.get("events") or {}), "counted": counts}
         self.status, self.reason, self.stats = status, reason, stats
         for ob in self.inner:
             ob.finish(status, reason, stats)

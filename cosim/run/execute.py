@@ -602,6 +602,25 @@ def _companion_trace(scene: Scene, stepping: Stepping, engine: str | None, rtol:
     return (tr.time, tr.data[:, 1:]), comp.div, comp.method
 
 
+def event_modes(scene: Scene) -> list[str]:
+    """The modes (discrete variables) of the scene's components with state events, as recorded
+    column names (a catalog block's ``mode.X`` and its output ``X``): their changes are events
+    whose time depends on the run.  A sampled component's
+    discrete variables change at its sample instants, the same in every run: not among them."""
+    out = []
+    for name, c in scene.components.items():
+        d = c.description
+        discrete = [v.name for v in d.variables.values()
+                    if v.variability == "discrete" and v.causality in ("local", "output")]
+        if not discrete or d.sample_period or (c.block is not None and getattr(c.block, "sample_times", None)):
+            continue
+        for v in discrete:  # a catalog block's mode "mode.stuck" is also its output "stuck"
+            out.append(f"{name}.{v}")
+            if v.startswith("mode.") and v[5:] in d.variables:
+                out.append(f"{name}.{v[5:]}")
+    return out
+
+
 def _order(scene: Scene) -> list[int] | None:
     index = {n: i for i, n in enumerate(scene.components)}
     return [index[n] for n in scene.master.order] if scene.master.order else None
@@ -631,7 +650,7 @@ def _once(scene: Scene, stepping: Stepping, request: RunRequest, slaves: Sequenc
     if guard:
         guard.bind(system.record_names + system.watch_names)
     memory, inner, trace_path = scene_observers(scene, request.out_dir, trace_format=request.trace_format)
-    estimator = EstimatingObserver(inner, ctrace, div, method, scene.master.tolerance, extra)
+    estimator = EstimatingObserver(inner, ctrace, div, method, scene.master.tolerance, extra, event_modes(scene))
     meta = _run_meta(scene, request.overrides)
     try:
         stats = simulate_scene(scene, system, [estimator], engine, Watched(request.progress, meta, guard)).as_dict()
