@@ -10,8 +10,8 @@
 * power bonds, and a slave that cannot roll back: ``ecco``, at an ``rtol`` that meets it;
 * otherwise (a slave that cannot roll back, no bonds): ``gauss_seidel`` at a fixed step;
 * and whatever the above says, FMI 3.0 event-mode components (but no algebraic loop): an algorithm
-  that ends its steps at their events (``gauss_seidel``, held inputs), so an event is not smeared
-  over a step in the pilots' estimates either.
+  that ends its steps at their events (the one above where it does, else ``gauss_seidel``), with
+  held inputs, so an event is not smeared over a step in the pilots' estimates either.
 
 Inputs are linear (slaves that cannot interpolate hold theirs) unless the scene sets ``master.inputs``.
 The setting (step or rtol) comes from pilot runs, each with its error estimate
@@ -86,8 +86,9 @@ class Choice:
 
 def kind(scene: Scene) -> tuple[str, str]:
     """(algorithm, why) for ``scene`` from what it allows (module docstring); a scene with FMI 3.0
-    event-mode components gets an algorithm that ends its steps at their events (gauss_seidel,
-    with held inputs: :func:`event_inputs`) unless it needs ``iterative`` for an algebraic loop."""
+    event-mode components gets an algorithm that ends its steps at their events (the one chosen
+    above where it does, else gauss_seidel; held inputs: :func:`event_inputs`) unless it needs
+    ``iterative`` for an algebraic loop."""
     alg, why = _kind(scene)
     events = event_components(scene)
     if events and alg != "iterative" and not ALGORITHMS[alg].ends_steps_at_events:
