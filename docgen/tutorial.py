@@ -120,7 +120,7 @@ def check(page: Path = PAGE, *, expensive: bool = False, cache: Path | None = No
         shutil.copytree(ROOT / "scenarios", work / "scenarios")
         printed = run_steps(page, work, expensive=expensive, cache=cache)
     lines = page.read_text().splitlines()
-    problems = checked = 0
+    problems = checked = rewritten = 0
     for lineno, command, body, dated in quoted_blocks(page):
         key = _quote_key(command)
         if key not in printed:
@@ -135,13 +135,15 @@ def check(page: Path = PAGE, *, expensive: bool = False, cache: Path | None = No
             say(f"{page.name}:{lineno + k}: `{command}` no longer prints\n  page: {line}\n  now:  {close}")
             if update and close and skeleton(close) == skeleton(line):
                 lines[lineno - 1 + k] = close
+                rewritten += 1
         if update:
             for d in range(max(0, lineno - 6), lineno - 2):
                 lines[d] = re.sub(r"rinted on \d{4}-\d\d-\d\d", f"rinted on {datetime.date.today()}", lines[d])
     if update:
         page.write_text("\n".join(lines) + "\n")
     say(f"tutorial: {checked} quoted outputs checked, {problems} problem{'s' if problems != 1 else ''}"
-        + (" (rewritten)" if update and problems else ""))
+        + (f" ({rewritten} rewritten; the others changed their words: edit them by hand)"
+           if update and problems > rewritten else " (rewritten)" if update and problems else ""))
     return problems
 
 
