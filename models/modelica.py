@@ -101,7 +101,6 @@ _UNSUPPORTED = {
     "assert": "assert() is not supported", "terminate": "terminate() is not supported",
     "edge": "edge() is not supported yet (a when on a relation, reinit and pre are)",
     "change": "change() is not supported yet (a when on a relation, reinit and pre are)",
-    "sample": "sample() is not supported yet (a when on a relation, reinit and pre are)",
     "delay": "delay() is not supported",
     "String": "String variables are not supported (Real, and Integer/Boolean parameters)",
     "inner": "inner/outer is not supported", "outer": "inner/outer is not supported",
@@ -797,15 +796,14 @@ class _Translation:
         solves its discrete equations for the modes' new values (``pre(v)`` the left values)."""
         st = self.st
         self.event_fields: dict = {}
-        for key, what in (("clocks", "sample() (a periodic clock)"), ("delays", "delay()"),
-                          ("previous_values", "previous()")):
+        for key, what in (("delays", "delay()"), ("previous_values", "previous()")):
             if st.get(key):
                 item = st[key][0]
                 self._fail_span(item if isinstance(item, dict) else {}, f"{what} is not supported yet")
         roots = [r["root"] for r in st.get("roots", [])]
         always = self._always()
         actions = [a for a in st.get("event_actions", []) if not self._assert(a)]
-        if not roots and not self.mode_syms and not st.get("time_events"):
+        if not roots and not self.mode_syms and not st.get("time_events") and not st.get("clocks"):
             return None
         relations = [r["relation"] for r in st.get("relations", [])]
         conditions = st.get("conditions", [])
@@ -833,9 +831,15 @@ class _Translation:
             if when is None:
                 self._fail_span(eq, "a discrete equation outside a when-clause")
             triggers.setdefault(when["trigger"], []).append(("equation", eq))
+        for trig, k, val in self.when_values:  # a Boolean or Integer assigned in a when-clause: v = value
+            triggers.setdefault(trig, []).append(("value", {**val, "target": k}))
         fired = set()
+        periodic = []  # (period, start, update, name) of the when-clauses on sample()
         for trig, items in triggers.items():
             node = (conditions[trig].get("node") or {}) if trig < len(conditions) else {}
+            if set(node) == {"clock"}:
+                periodic.append(self._sample(node["clock"], items, xs, ms, b))
+                continue
             if set(node) != {"relation"} or node["relation"] not in by_relation:
                 self._fail_span(items[0][1], "a when-condition other than one relation (initial(), sample(), edge(), "
                                              "change(), and/or of relations)")
@@ -848,6 +852,7 @@ class _Translation:
         if self.solved is not None:  # indicators and updates in states, inputs, parameters and modes only
             indicators = [ca.substitute(z, *self.solved) for z in indicators]
             updates = [None if g is None else ca.substitute(g, *self.solved) for g in updates]
+            periodic = [(T, t0, ca.substitute(g, *self.solved), name) for T, t0, g, name in periodic]
         samples = []
         if always:  # the modes' start values settled at the start state, t = 0 (inputs 0 until the initial event)
             m0 = self._settle(xs, ms)
@@ -866,6 +871,8 @@ class _Translation:
                 self._fail_span(te if isinstance(te, dict) else {}, "a time event other than a fixed instant")
             samples.append(Sample(ONCE, inst["num"] / inst["den"], self._settled(xs, ms, None) if always else None,
                                   f"time event at {inst['num'] / inst['den']:g} s"))
+        for T, t0, g, name in periodic:  # sample(start, interval): start + k interval, k = 0, 1, ...
+            samples.append(Sample(T, t0, self._settled(xs, ms, g) if always else g, name))
         self.event_fields = {
             "modes": [Var(f"mode.{self.vars[k]['name']}", *self._doc(self.vars[k], "discrete variable"))
                       for k in self.mode_syms],
@@ -941,12 +948,20 @@ class _Translation:
         """The always-active discrete equations of Boolean and Integer variables (``b = x > 1``):
         variable index -> the node of its value.  A when-assigned one is refused by its line."""
         out = {}
+        self.when_values: list[tuple[int, int, dict]] = []  # (trigger, variable, owner) of when-assigned ones
         for o in self.st.get("discrete_value_owners", []):
             br = o.get("branches", [])
-            if len(o["targets"]) != 1 or len(br) != 1 or br[0].get("activation") != "always" \
-                    or len(br[0].get("values", [])) != 1:
+            if len(o["targets"]) != 1 or len(br) != 1 or len(br[0].get("values", [])) != 1:
                 self._fail_span(o, f"{self.vars[o['targets'][0]]['name']}: a Boolean or Integer variable assigned in "
-                                   f"a when-clause is not supported yet (a discrete Real is)")
+                                   f"more than one branch (elsewhen) is not supported yet")
+            act = br[0].get("activation")
+            when = act.get("when") if isinstance(act, dict) else None
+            if when is not None and when.get("trigger") == when.get("guard"):
+                self.when_values.append((when["trigger"], o["targets"][0], br[0]["values"][0]))
+                continue
+            if act != "always":
+                self._fail_span(o, f"{self.vars[o['targets'][0]]['name']}: a Boolean or Integer variable assigned "
+                                   f"under a condition other than a when-clause's is not supported yet")
             out[o["targets"][0]] = br[0]["values"][0]["value"]
         self.always = out
         return out
@@ -976,6 +991,20 @@ class _Translation:
         settled = ca.substitute(settled, ca.vertcat(*ms), m_new)
         return ca.vertcat(x_new, settled)
 
+    def _sample(self, c: int, items: list, xs: list, ms: list, b: BlockBuilder) -> tuple:
+        """``(interval [s], start [s], update, name)`` of a when-clause on ``sample(start,
+        interval)`` (rumoca's periodic clock ``c``): a time event at ``start + k interval``."""
+        clock = self.st["clocks"][c]
+        lattice = (clock.get("kind") or {}).get("periodic", {}).get("lattice") if isinstance(clock, dict) else None
+        if not lattice or not lattice.get("period", {}).get("den") or not lattice.get("phase", {}).get("den"):
+            self._fail_span(clock if isinstance(clock, dict) else {}, "a clock other than sample(start, interval) "
+                                                                      "with constant arguments")
+        period = lattice["period"]["num"] / lattice["period"]["den"]
+        start = lattice["phase"]["num"] / lattice["phase"]["den"]
+        if not period > 0:
+            self._fail_span(clock, f"sample(): the interval must be positive (got {period:g} s)")
+        return period, start, self._update(items, xs, ms, b), f"sample({start:g}, {period:g})"
+
     def _assert(self, act: dict) -> bool:
         """Whether the event action is an assert: one on parameters only is checked here, at the
         parameters' defaults (a failing one refused with its line); one on variables is not
@@ -1004,9 +1033,10 @@ class _Translation:
         values, then its reinits (which may read them)."""
         new = {k: ca.SX.sym(f"new.{self.vars[k]['name']}") for k in self.mode_syms}
         env = dict(self.env)
-        env.update({("discrete_real", k): s for k, s in new.items()})
+        env.update({(self.vars[k]["role"], k): s for k, s in new.items()})
         g = dataclasses.replace(self.graph, env=env)
-        eqs = [g(it["residual"]) for kind, it in items if kind == "equation"]
+        eqs = [g(it["residual"]) if kind == "equation" else new[it["target"]] - g(it["value"])
+               for kind, it in items if kind in ("equation", "value")]
         for kind, it in items:
             if kind == "action" and it.get("guard") != it.get("trigger"):
                 self._fail_span(it, "elsewhen is not supported yet (one when-clause per condition)")

@@ -1,7 +1,8 @@
 """Modelica as users write it, translated into the event-aware Block (models/modelica.py,
 docs/explanation/modelica.md): initial equations, Boolean and Integer discrete variables,
 relations on time as time events, relations on states as state events, noEvent, one-element
-arrays and for-equations over them.  Each small model runs as a scene component and is compared
+arrays and for-equations over them, sample() as periodic time events, Boolean and Integer
+variables assigned in when-clauses.  Each small model runs as a scene component and is compared
 with its analytic solution; what is not translated yet is refused naming file, line and construct."""
 from __future__ import annotations
 
@@ -99,8 +100,57 @@ def test_a_for_equation_over_a_one_element_array(tmp_path):
     assert np.max(np.abs(tr["c.a"] - np.exp(-t / 0.25))) < 1e-6
 
 
+HOLD = """model Hold "sample and hold of sin(2 pi t)"
+  parameter Real f = 1;
+  discrete Real y(start = 0);
+equation
+  when sample(0, 0.1) then
+    y = sin(2 * 3.141592653589793 * f * time);
+  end when;
+end Hold;
+"""
+
+
+def test_sample_holds_the_value_at_each_sample_instant(tmp_path):
+    """y(t) = sin(2 pi t_k) with t_k = 0.1 floor(t / 0.1): the held value is the sine exactly at
+    the instants, which the communication steps of 0.03 s do not meet (ties left out)."""
+    b = translate(HOLD, "Hold", "Hold.mo")
+    assert [(s.period, s.offset) for s in b.sample_times] == [(0.1, 0.0)]
+    tr = simulate(tmp_path, HOLD, "Hold", 0.99, 0.03, ["y"])
+    t = np.asarray(tr["time"])
+    k = np.floor(t / 0.1 + 1e-9)
+    away = np.abs(t / 0.1 - np.round(t / 0.1)) > 1e-6
+    assert away.sum() > 25
+    assert np.max(np.abs(tr["c.y"][away] - np.sin(2 * np.pi * 0.1 * k[away]))) < 1e-12
+
+
+COUNT = """model Count "an Integer counter on sample(), a Boolean latched by a state event"
+  Real x(start = 0);
+  Integer n(start = 0);
+  Boolean hit(start = false);
+equation
+  der(x) = 1;
+  when sample(0.05, 0.1) then
+    n = pre(n) + 1;
+  end when;
+  when x > 0.33 then
+    hit = true;
+  end when;
+end Count;
+"""
+
+
+def test_integer_and_boolean_assigned_in_when_clauses(tmp_path):
+    """n counts the instants 0.05 + 0.1 k passed (k = 0, 1, ...); hit turns true where x = t
+    crosses 0.33 and stays true (the grid of 0.04 s meets neither)."""
+    tr = simulate(tmp_path, COUNT, "Count", 0.96, 0.04, ["n", "hit"])
+    t = np.asarray(tr["time"])
+    assert np.array_equal(np.asarray(tr["c.n"]), np.where(t < 0.05, 0, np.floor((t - 0.05) / 0.1) + 1))
+    assert np.array_equal(np.asarray(tr["c.hit"]), (t > 0.33).astype(float))
+
+
 @pytest.mark.parametrize("body, line, what", [
-    ("  when sample(0, 0.1) then\n    y = pre(y) + 1;\n  end when;", 6, "sample()"),
+    ("  when change(y) then\n    y = 1;\n  end when;", 6, "change()"),
     ("  when x > 1 then\n    y = 1;\n  elsewhen x < 0 then\n    y = 2;\n  end when;", 8, "elsewhen"),
     ("  when edge(x > 1) then\n    y = 1;\n  end when;", 6, "edge()"),
     ("  when initial() then\n    y = 1;\n  end when;", 6, "a when-condition other than one relation"),
