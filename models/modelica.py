@@ -100,7 +100,6 @@ _UNSUPPORTED = {
     "elsewhen": "elsewhen is not supported yet (write one when-clause per condition)",
     "external": "external functions are not supported",
     "assert": "assert() is not supported", "terminate": "terminate() is not supported",
-    "edge": "edge() is not supported yet (a when on a relation, reinit and pre are)",
     "change": "change() is not supported yet (a when on a relation, reinit and pre are)",
     "delay": "delay() is not supported",
     "String": "String variables are not supported (Real, and Integer/Boolean parameters)",
@@ -119,6 +118,18 @@ def _tokens(text: str):
         yield tok, text.count("\n", 0, m.start()) + 1
 
 
+def _a_name(toks: list) -> bool:
+    """Whether ``toks`` start with ``( name )`` (a dotted component reference)."""
+    if not toks or toks[0][0] != "(":
+        return False
+    for j, (tok, _) in enumerate(toks[1:], 1):
+        if tok == ")":
+            return j > 1
+        if tok != "." and not re.fullmatch(r"[A-Za-z_][A-Za-z0-9_]*", tok):
+            return False
+    return False
+
+
 def unsupported(text: str, filename: str) -> None:
     """Raise :class:`ModelicaError` at the first construct the translation refuses."""
     toks = list(_tokens(text))
@@ -132,6 +143,9 @@ def unsupported(text: str, filename: str) -> None:
         if tok == "algorithm" and not functions:
             raise ModelicaError(filename, line, "algorithm: algorithm sections of a model are not supported "
                                                 "(write equations; a function's algorithm is)")
+        if tok == "edge" and prev != "." and not _a_name(toks[k + 1:]):
+            raise ModelicaError(filename, line, "edge: edge() of an expression is not supported (edge(b) of a Boolean "
+                                                "variable b given by a relation is)")
         if tok in _UNSUPPORTED:
             if prev == ".":  # a component's member named like a keyword-free builtin (a.time)
                 continue
@@ -586,6 +600,13 @@ _POSITION_UNITS = ("m", "rad")
 _VELOCITY_UNITS = ("m/s", "rad/s")
 
 
+def refuse_unsupported(text: str, filename: str) -> None:
+    """The text checks :func:`translate` makes first (a caller that compiles before translating
+    makes them before compiling, so a refused construct is named by its line, not by rumoca)."""
+    bounded(text, filename)
+    unsupported(text, filename)
+
+
 def translate(text: str, model: str, filename: str = "model.mo", *, name: str | None = None,
               integrator: str = "auto", substeps: int = 1, roots: tuple[str, ...] = (),
               compiled: dict | None = None, scan: bool = True) -> Block:
@@ -601,8 +622,7 @@ def translate(text: str, model: str, filename: str = "model.mo", *, name: str | 
     if integrator not in INTEGRATORS:
         raise ModelicaError(filename, None, f"integrator {integrator!r}; expected one of {', '.join(INTEGRATORS)}")
     if scan:
-        bounded(text, filename)
-        unsupported(text, filename)
+        refuse_unsupported(text, filename)
     fe = compiled if compiled is not None else front_end(text, model, filename, roots)
     return _Translation(text, filename, fe["dae"]["storage"], fe["flat"], fe["name"],
                         name or model.split(".")[-1].lower()).block(integrator, substeps)
@@ -835,15 +855,21 @@ class _Translation:
         for trig, k, val in self.when_values:  # a Boolean or Integer assigned in a when-clause: v = value
             triggers.setdefault(trig, []).append(("value", {**val, "target": k}))
         fired = set()
-        periodic = []  # (period, start, update, name) of the when-clauses on sample()
+        periodic = []  # (period, start, update, name) of the when-clauses on sample() and initial()
         for trig, items in triggers.items():
             node = (conditions[trig].get("node") or {}) if trig < len(conditions) else {}
+            if node == "initial":  # when initial(): a time event at the run's start, t = 0
+                periodic.append((ONCE, 0.0, self._update(items, xs, ms, b), "when initial()"))
+                continue
             if set(node) == {"clock"}:
                 periodic.append(self._sample(node["clock"], items, xs, ms, b))
                 continue
-            if set(node) != {"relation"} or node["relation"] not in by_relation:
-                self._fail_span(items[0][1], "a when-condition other than one relation (initial(), sample(), edge(), "
-                                             "change(), and/or of relations)")
+            if set(node) == {"discrete"}:  # edge(b) of a Boolean b = relation: that relation becoming true
+                node = self._edge(node["discrete"], relations)
+            if set(node) != {"relation"} or node["relation"] not in by_relation or by_relation[node["relation"]] in fired:
+                self._fail_span(items[0][1], "a when-condition other than one relation, one sample() or one edge() "
+                                             "of a Boolean given by a relation (initial(), change(), and/or of "
+                                             "conditions, two when-clauses on one relation)")
             i = by_relation[node["relation"]]
             updates[i] = self._update(items, xs, ms, b)
             fired.add(i)
@@ -872,7 +898,7 @@ class _Translation:
                 self._fail_span(te if isinstance(te, dict) else {}, "a time event other than a fixed instant")
             samples.append(Sample(ONCE, inst["num"] / inst["den"], self._settled(xs, ms, None) if always else None,
                                   f"time event at {inst['num'] / inst['den']:g} s"))
-        for T, t0, g, name in periodic:  # sample(start, interval): start + k interval, k = 0, 1, ...
+        for T, t0, g, name in periodic:  # sample(start, interval): start + k interval, k = 0, 1, ...; initial()
             samples.append(Sample(T, t0, self._settled(xs, ms, g) if always else g, name))
         self.event_fields = {
             "modes": [Var(f"mode.{self.vars[k]['name']}", *self._doc(self.vars[k], "discrete variable"))
@@ -991,6 +1017,21 @@ class _Translation:
             settled = ca.substitute(settled, ca.vertcat(*xs), x_new)
         settled = ca.substitute(settled, ca.vertcat(*ms), m_new)
         return ca.vertcat(x_new, settled)
+
+    def _edge(self, i: int, relations: list) -> dict:
+        """``{"relation": r}`` when node ``i`` is ``edge(b)`` (rumoca: ``b and not pre(b)``) of a
+        Boolean ``b`` whose always-active equation is relation ``r``; ``{}`` otherwise."""
+        (kind, body), = self.nodes[i].items()
+        if kind != "binary" or body["operator"] != "and":
+            return {}
+        lhs, rhs = self.nodes[body["lhs"]], self.nodes[body["rhs"]]
+        k = (lhs.get("coordinate") or {}).get("discrete_value") if isinstance(lhs.get("coordinate"), dict) else None
+        inner = self.nodes[rhs["unary"]["operand"]] if rhs.get("unary", {}).get("operator") == "not" else {}
+        pre = inner.get("coordinate") if isinstance(inner.get("coordinate"), dict) else {}
+        if k is None or pre.get("pre_discrete_value") != k or k not in self.always:
+            return {}
+        found = [r for r, rel in enumerate(relations) if rel["expression"] == self.always[k]]
+        return {"relation": found[0]} if found else {}
 
     def _sample(self, c: int, items: list, xs: list, ms: list, b: BlockBuilder) -> tuple:
         """``(interval [s], start [s], update, name)`` of a when-clause on ``sample(start,

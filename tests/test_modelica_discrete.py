@@ -2,7 +2,7 @@
 docs/explanation/modelica.md): initial equations, Boolean and Integer discrete variables,
 relations on time as time events, relations on states as state events, noEvent, one-element
 arrays and for-equations over them, sample() as periodic time events, Boolean and Integer
-variables assigned in when-clauses.  Each small model runs as a scene component and is compared
+variables assigned in when-clauses, edge() of a Boolean given by a relation, when initial().  Each small model runs as a scene component and is compared
 with its analytic solution; what is not translated yet is refused naming file, line and construct."""
 from __future__ import annotations
 
@@ -149,11 +149,58 @@ def test_integer_and_boolean_assigned_in_when_clauses(tmp_path):
     assert np.array_equal(np.asarray(tr["c.hit"]), (t > 0.33).astype(float))
 
 
+EDGES = """model Edges "a counter of the rising crossings of sin(x), by edge()"
+  Real x(start = -1.05);
+  Boolean pos;
+  Integer n(start = 0);
+equation
+  der(x) = 1;
+  pos = sin(x) > 0;
+  when edge(pos) then
+    n = pre(n) + 1;
+  end when;
+end Edges;
+"""
+
+
+def test_edge_counts_the_positive_crossings(tmp_path):
+    """sin(t - 1.05) turns positive at t = 1.05 + 2 pi k: n counts those passed."""
+    tr = simulate(tmp_path, EDGES, "Edges", 20.0, 0.1, ["n"])
+    t = np.asarray(tr["time"])
+    exact = np.where(t < 1.05, 0, np.floor((t - 1.05) / (2 * np.pi)) + 1)
+    assert exact[-1] == 4 and np.array_equal(np.asarray(tr["c.n"]), exact)
+
+
+AT_START = """model AtStart "when initial(): the modes set once, at the start"
+  parameter Real a = 3;
+  Real x(start = 0);
+  discrete Real m(start = 0);
+  Integer n(start = 0);
+equation
+  der(x) = m;
+  when initial() then
+    m = 2 * a;
+    n = 5;
+  end when;
+end AtStart;
+"""
+
+
+def test_when_initial_sets_the_modes_at_the_start(tmp_path):
+    """m = 2a = 6 from t = 0 (not its start value 0), so x = 6 t; n = 5 throughout."""
+    b = translate(AT_START, "AtStart", "AtStart.mo")
+    assert [(s.offset, s.name) for s in b.sample_times] == [(0.0, "when initial()")]
+    tr = simulate(tmp_path, AT_START, "AtStart", 1.0, 0.1, ["x", "m", "n"])
+    t = np.asarray(tr["time"])
+    assert np.max(np.abs(tr["c.x"] - 6 * t)) < 1e-12
+    assert set(np.asarray(tr["c.m"])) == {6.0} and set(np.asarray(tr["c.n"])) == {5.0}
+
+
 @pytest.mark.parametrize("body, line, what", [
     ("  when change(y) then\n    y = 1;\n  end when;", 6, "change()"),
     ("  when x > 1 then\n    y = 1;\n  elsewhen x < 0 then\n    y = 2;\n  end when;", 8, "elsewhen"),
     ("  when edge(x > 1) then\n    y = 1;\n  end when;", 6, "edge()"),
-    ("  when initial() then\n    y = 1;\n  end when;", 6, "a when-condition other than one relation"),
+    ("  when {x > 1, x > 2} then\n    y = 1;\n  end when;", 6, "a when-condition other than one relation"),
 ])
 def test_what_is_not_translated_yet_names_file_line_and_construct(body, line, what):
     text = f'model E "e"\n  Real x(start = 0);\n  discrete Real y(start = 0);\nequation\n  der(x) = 1;\n{body}\nend E;\n'
