@@ -100,7 +100,6 @@ _UNSUPPORTED = {
     "elsewhen": "elsewhen is not supported yet (write one when-clause per condition)",
     "external": "external functions are not supported",
     "assert": "assert() is not supported", "terminate": "terminate() is not supported",
-    "change": "change() is not supported yet (a when on a relation, reinit and pre are)",
     "delay": "delay() is not supported",
     "String": "String variables are not supported (Real, and Integer/Boolean parameters)",
     "inner": "inner/outer is not supported", "outer": "inner/outer is not supported",
@@ -143,9 +142,9 @@ def unsupported(text: str, filename: str) -> None:
         if tok == "algorithm" and not functions:
             raise ModelicaError(filename, line, "algorithm: algorithm sections of a model are not supported "
                                                 "(write equations; a function's algorithm is)")
-        if tok == "edge" and prev != "." and not _a_name(toks[k + 1:]):
-            raise ModelicaError(filename, line, "edge: edge() of an expression is not supported (edge(b) of a Boolean "
-                                                "variable b given by a relation is)")
+        if tok in ("edge", "change") and prev != "." and not _a_name(toks[k + 1:]):
+            raise ModelicaError(filename, line, f"{tok}: {tok}() of an expression is not supported ({tok}(b) of a "
+                                                f"Boolean variable b given by a relation is)")
         if tok in _UNSUPPORTED:
             if prev == ".":  # a component's member named like a keyword-free builtin (a.time)
                 continue
@@ -864,14 +863,17 @@ class _Translation:
             if set(node) == {"clock"}:
                 periodic.append(self._sample(node["clock"], items, xs, ms, b))
                 continue
-            if set(node) == {"discrete"}:  # edge(b) of a Boolean b = relation: that relation becoming true
+            either = False
+            if set(node) == {"discrete"}:  # edge(b) or change(b) of a Boolean b = relation: that relation's crossing
                 node = self._edge(node["discrete"], relations)
+                either = node.pop("either", False)
             if set(node) != {"relation"} or node["relation"] not in by_relation or by_relation[node["relation"]] in fired:
-                self._fail_span(items[0][1], "a when-condition other than one relation, one sample() or one edge() "
-                                             "of a Boolean given by a relation (initial(), change(), and/or of "
+                self._fail_span(items[0][1], "a when-condition other than one relation, initial(), one sample() or "
+                                             "one edge()/change() of a Boolean given by a relation (and/or of "
                                              "conditions, two when-clauses on one relation)")
             i = by_relation[node["relation"]]
             updates[i] = self._update(items, xs, ms, b)
+            directions[i] = EITHER if either else directions[i]
             fired.add(i)
         for i in range(len(indicators)):
             if i not in fired:
@@ -1019,19 +1021,26 @@ class _Translation:
         return ca.vertcat(x_new, settled)
 
     def _edge(self, i: int, relations: list) -> dict:
-        """``{"relation": r}`` when node ``i`` is ``edge(b)`` (rumoca: ``b and not pre(b)``) of a
-        Boolean ``b`` whose always-active equation is relation ``r``; ``{}`` otherwise."""
+        """``{"relation": r}`` when node ``i`` is ``edge(b)`` (rumoca: ``b and not pre(b)``) or
+        ``change(b)`` (``b <> pre(b)``, then also ``"either": True``) of a Boolean ``b`` whose
+        always-active equation is relation ``r``; ``{}`` otherwise."""
+        def ref(j: int, kind: str):
+            c = self.nodes[j].get("coordinate")
+            return c.get(kind) if isinstance(c, dict) else None
+
         (kind, body), = self.nodes[i].items()
-        if kind != "binary" or body["operator"] != "and":
+        if kind != "binary" or body["operator"] not in ("and", "not_equal"):
             return {}
-        lhs, rhs = self.nodes[body["lhs"]], self.nodes[body["rhs"]]
-        k = (lhs.get("coordinate") or {}).get("discrete_value") if isinstance(lhs.get("coordinate"), dict) else None
-        inner = self.nodes[rhs["unary"]["operand"]] if rhs.get("unary", {}).get("operator") == "not" else {}
-        pre = inner.get("coordinate") if isinstance(inner.get("coordinate"), dict) else {}
-        if k is None or pre.get("pre_discrete_value") != k or k not in self.always:
+        k = ref(body["lhs"], "discrete_value")
+        if body["operator"] == "and":
+            rhs = self.nodes[body["rhs"]].get("unary") or {}
+            pre = ref(rhs["operand"], "pre_discrete_value") if rhs.get("operator") == "not" else None
+        else:
+            pre = ref(body["rhs"], "pre_discrete_value")
+        if k is None or pre != k or k not in self.always:
             return {}
         found = [r for r, rel in enumerate(relations) if rel["expression"] == self.always[k]]
-        return {"relation": found[0]} if found else {}
+        return {"relation": found[0], "either": body["operator"] == "not_equal"} if found else {}
 
     def _sample(self, c: int, items: list, xs: list, ms: list, b: BlockBuilder) -> tuple:
         """``(interval [s], start [s], update, name)`` of a when-clause on ``sample(start,

@@ -2,7 +2,8 @@
 docs/explanation/modelica.md): initial equations, Boolean and Integer discrete variables,
 relations on time as time events, relations on states as state events, noEvent, one-element
 arrays and for-equations over them, sample() as periodic time events, Boolean and Integer
-variables assigned in when-clauses, edge() of a Boolean given by a relation, when initial().  Each small model runs as a scene component and is compared
+variables assigned in when-clauses, edge() and change() of a Boolean given by a
+relation, when initial().  Each small model runs as a scene component and is compared
 with its analytic solution; what is not translated yet is refused naming file, line and construct."""
 from __future__ import annotations
 
@@ -194,6 +195,15 @@ def test_when_initial_sets_the_modes_at_the_start(tmp_path):
     t = np.asarray(tr["time"])
     assert np.max(np.abs(tr["c.x"] - 6 * t)) < 1e-12
     assert set(np.asarray(tr["c.m"])) == {6.0} and set(np.asarray(tr["c.n"])) == {5.0}
+
+
+def test_change_counts_the_crossings_both_ways(tmp_path):
+    """change(pos) with pos = sin(t - 1.05) > 0 fires at t = 1.05 + pi k: n counts those passed."""
+    text = EDGES.replace("edge(pos)", "change(pos)")
+    tr = simulate(tmp_path, text, "Edges", 20.0, 0.1, ["n"])
+    t = np.asarray(tr["time"])
+    exact = np.where(t < 1.05, 0, np.floor((t - 1.05) / np.pi) + 1)
+    assert exact[-1] == 7 and np.array_equal(np.asarray(tr["c.n"]), exact)
 
 
 @pytest.mark.parametrize("body, line, what", [
