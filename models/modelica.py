@@ -49,13 +49,15 @@ a wildcard, a number is a wildcard in a sum and a dimensionless factor in a prod
 
 Also taken: initial equations and ``fixed = true`` (:meth:`_Translation._initial`), Boolean and
 Integer variables of always-active equations (modes settled after every event), relations on
-time as time events, ``when sample(start, interval)`` as periodic time events, Boolean and
-Integer variables assigned in a when-clause (modes, like a discrete Real), one-element arrays
-and for-equations over them, asserts on parameters.
+time as time events, ``when sample(start, interval)`` as periodic time events, ``when
+initial()`` as a time event at the start, ``edge(b)``/``change(b)`` of a Boolean given by a
+relation (that relation's indicator), Boolean and Integer variables assigned in a when-clause
+(modes, like a discrete Real), one-element arrays and for-equations over them, asserts on
+parameters.
 
 Refused: algorithm sections of a model, statements other than assignments in functions,
-external functions, initial algorithms, terminate, ``edge``, ``change``, ``elsewhen``,
-``when initial()``, arrays of more than one element, ``delay``, String variables, inner/outer, stream connectors, arrays of
+external functions, initial algorithms, terminate, ``edge``/``change`` of anything else,
+``elsewhen``, arrays of more than one element, ``delay``, String variables, inner/outer, stream connectors, arrays of
 connectors.
 
 ``models/`` is maths only: :func:`translate` takes the model's text (and rumoca reads the roots
