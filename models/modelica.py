@@ -580,6 +580,15 @@ class _Units:
 _REL = {"less": "<", "less_equal": "<=", "greater": ">", "greater_equal": ">="}
 
 
+def _find(tree, key: str) -> list[dict]:
+    """Every value under ``key`` in the nested dicts and lists ``tree`` (rumoca's flat model)."""
+    if isinstance(tree, dict):
+        return ([tree[key]] if key in tree else []) + [f for v in tree.values() for f in _find(v, key)]
+    if isinstance(tree, list):
+        return [f for v in tree for f in _find(v, key)]
+    return []
+
+
 def _short(e: ca.SX, limit: int = 120) -> str:
     text = str(ca.simplify(e))
     return text if len(text) <= limit else text[:limit] + "..."
@@ -1180,6 +1189,12 @@ class _Translation:
         if node is None:
             self._err(v, f"parameter {v['name']!r} has no value")
         value = self.graph(node)
+        if v["name"] in self.clocked:  # fixed: the sample period is a number
+            if not value.is_constant():
+                self._err(v, f"{v['name']}: a parameter read by sample() must have a literal value (the interval "
+                             f"and start are fixed when the model is translated)")
+            self.env[("parameter", k)] = value
+            return
         if not value.is_constant() or self._scalar(v) != "real":
             # computed from others, or a Boolean/Integer (structural: it selects equations): not settable
             self.env[("parameter", k)] = value
@@ -1201,6 +1216,11 @@ class _Translation:
                 span = chain.get("span") or {}
                 raise ModelicaError(self.filename, self._offset_line(span.get("start")) if self.text else None,
                                     "elsewhen is not supported yet (write one when-clause per condition)")
+        self.clocked = set()  # the parameters sample()'s arguments read: rumoca fixes the period at their values
+        for chain in self.flat.get("when_chains") or []:
+            for call in _find(chain.get("first", {}).get("condition"), "BuiltinCall"):
+                if call.get("function") == "Sample":
+                    self.clocked.update(ref["name"]["name"] for ref in _find(call.get("args"), "VarRef"))
 
     def _residuals(self) -> list[tuple[ca.SX, int | None]]:
         out = []

@@ -125,6 +125,17 @@ def test_sample_holds_the_value_at_each_sample_instant(tmp_path):
     assert np.max(np.abs(tr["c.y"][away] - np.sin(2 * np.pi * 0.1 * k[away]))) < 1e-12
 
 
+def test_a_parameter_read_by_sample_is_fixed_not_settable():
+    """rumoca fixes the interval at the parameter's value, so the parameter is not exported as
+    settable (a scene could not change the period); one computed from others is refused."""
+    text = HOLD.replace("parameter Real f = 1;", "parameter Real f = 1;\n  parameter Real T = 0.1;")
+    b = translate(text.replace("sample(0, 0.1)", "sample(0, T)"), "Hold", "Hold.mo")
+    assert [v.name for v in b.params] == ["f"] and [s.period for s in b.sample_times] == [0.1]
+    computed = text.replace("T = 0.1", "T = 0.1 * f").replace("sample(0, 0.1)", "sample(0, T)")
+    with pytest.raises(ModelicaError, match=r"^Hold\.mo:3: T: a parameter read by sample\(\) must have a literal"):
+        translate(computed, "Hold", "Hold.mo")
+
+
 COUNT = """model Count "an Integer counter on sample(), a Boolean latched by a state event"
   Real x(start = 0);
   Integer n(start = 0);
