@@ -49,12 +49,15 @@ a wildcard, a number is a wildcard in a sum and a dimensionless factor in a prod
 
 Also taken: initial equations and ``fixed = true`` (:meth:`_Translation._initial`), Boolean and
 Integer variables of always-active equations (modes settled after every event), relations on
-time as time events, one-element arrays and for-equations over them, asserts on parameters.
+time as time events, ``when sample(start, interval)`` as periodic time events, ``when
+initial()`` as a time event at the start, ``edge(b)``/``change(b)`` of a Boolean given by a
+relation (that relation's indicator), Boolean and Integer variables assigned in a when-clause
+(modes, like a discrete Real), one-element arrays and for-equations over them, asserts on
+parameters.
 
 Refused: algorithm sections of a model, statements other than assignments in functions,
-external functions, initial algorithms, terminate, ``sample``, ``edge``, ``change``,
-``elsewhen``, ``when initial()``, Boolean/Integer variables assigned in a when-clause, arrays of
-more than one element, ``delay``, String variables, inner/outer, stream connectors, arrays of
+external functions, initial algorithms, terminate, ``edge``/``change`` of anything else,
+``elsewhen``, arrays of more than one element, ``delay``, String variables, inner/outer, stream connectors, arrays of
 connectors.
 
 ``models/`` is maths only: :func:`translate` takes the model's text (and rumoca reads the roots
@@ -99,9 +102,6 @@ _UNSUPPORTED = {
     "elsewhen": "elsewhen is not supported yet (write one when-clause per condition)",
     "external": "external functions are not supported",
     "assert": "assert() is not supported", "terminate": "terminate() is not supported",
-    "edge": "edge() is not supported yet (a when on a relation, reinit and pre are)",
-    "change": "change() is not supported yet (a when on a relation, reinit and pre are)",
-    "sample": "sample() is not supported yet (a when on a relation, reinit and pre are)",
     "delay": "delay() is not supported",
     "String": "String variables are not supported (Real, and Integer/Boolean parameters)",
     "inner": "inner/outer is not supported", "outer": "inner/outer is not supported",
@@ -119,6 +119,18 @@ def _tokens(text: str):
         yield tok, text.count("\n", 0, m.start()) + 1
 
 
+def _a_name(toks: list) -> bool:
+    """Whether ``toks`` start with ``( name )`` (a dotted component reference)."""
+    if not toks or toks[0][0] != "(":
+        return False
+    for j, (tok, _) in enumerate(toks[1:], 1):
+        if tok == ")":
+            return j > 1
+        if tok != "." and not re.fullmatch(r"[A-Za-z_][A-Za-z0-9_]*", tok):
+            return False
+    return False
+
+
 def unsupported(text: str, filename: str) -> None:
     """Raise :class:`ModelicaError` at the first construct the translation refuses."""
     toks = list(_tokens(text))
@@ -132,6 +144,9 @@ def unsupported(text: str, filename: str) -> None:
         if tok == "algorithm" and not functions:
             raise ModelicaError(filename, line, "algorithm: algorithm sections of a model are not supported "
                                                 "(write equations; a function's algorithm is)")
+        if tok in ("edge", "change") and prev != "." and not _a_name(toks[k + 1:]):
+            raise ModelicaError(filename, line, f"{tok}: {tok}() of an expression is not supported ({tok}(b) of a "
+                                                f"Boolean variable b given by a relation is)")
         if tok in _UNSUPPORTED:
             if prev == ".":  # a component's member named like a keyword-free builtin (a.time)
                 continue
@@ -565,6 +580,15 @@ class _Units:
 _REL = {"less": "<", "less_equal": "<=", "greater": ">", "greater_equal": ">="}
 
 
+def _find(tree, key: str) -> list[dict]:
+    """Every value under ``key`` in the nested dicts and lists ``tree`` (rumoca's flat model)."""
+    if isinstance(tree, dict):
+        return ([tree[key]] if key in tree else []) + [f for v in tree.values() for f in _find(v, key)]
+    if isinstance(tree, list):
+        return [f for v in tree for f in _find(v, key)]
+    return []
+
+
 def _short(e: ca.SX, limit: int = 120) -> str:
     text = str(ca.simplify(e))
     return text if len(text) <= limit else text[:limit] + "..."
@@ -586,6 +610,13 @@ _POSITION_UNITS = ("m", "rad")
 _VELOCITY_UNITS = ("m/s", "rad/s")
 
 
+def refuse_unsupported(text: str, filename: str) -> None:
+    """The text checks :func:`translate` makes first (a caller that compiles before translating
+    makes them before compiling, so a refused construct is named by its line, not by rumoca)."""
+    bounded(text, filename)
+    unsupported(text, filename)
+
+
 def translate(text: str, model: str, filename: str = "model.mo", *, name: str | None = None,
               integrator: str = "auto", substeps: int = 1, roots: tuple[str, ...] = (),
               compiled: dict | None = None, scan: bool = True) -> Block:
@@ -601,8 +632,7 @@ def translate(text: str, model: str, filename: str = "model.mo", *, name: str | 
     if integrator not in INTEGRATORS:
         raise ModelicaError(filename, None, f"integrator {integrator!r}; expected one of {', '.join(INTEGRATORS)}")
     if scan:
-        bounded(text, filename)
-        unsupported(text, filename)
+        refuse_unsupported(text, filename)
     fe = compiled if compiled is not None else front_end(text, model, filename, roots)
     return _Translation(text, filename, fe["dae"]["storage"], fe["flat"], fe["name"],
                         name or model.split(".")[-1].lower()).block(integrator, substeps)
@@ -797,15 +827,14 @@ class _Translation:
         solves its discrete equations for the modes' new values (``pre(v)`` the left values)."""
         st = self.st
         self.event_fields: dict = {}
-        for key, what in (("clocks", "sample() (a periodic clock)"), ("delays", "delay()"),
-                          ("previous_values", "previous()")):
+        for key, what in (("delays", "delay()"), ("previous_values", "previous()")):
             if st.get(key):
                 item = st[key][0]
                 self._fail_span(item if isinstance(item, dict) else {}, f"{what} is not supported yet")
         roots = [r["root"] for r in st.get("roots", [])]
         always = self._always()
         actions = [a for a in st.get("event_actions", []) if not self._assert(a)]
-        if not roots and not self.mode_syms and not st.get("time_events"):
+        if not roots and not self.mode_syms and not st.get("time_events") and not st.get("clocks"):
             return None
         relations = [r["relation"] for r in st.get("relations", [])]
         conditions = st.get("conditions", [])
@@ -833,14 +862,29 @@ class _Translation:
             if when is None:
                 self._fail_span(eq, "a discrete equation outside a when-clause")
             triggers.setdefault(when["trigger"], []).append(("equation", eq))
+        for trig, k, val in self.when_values:  # a Boolean or Integer assigned in a when-clause: v = value
+            triggers.setdefault(trig, []).append(("value", {**val, "target": k}))
         fired = set()
+        periodic = []  # (period, start, update, name) of the when-clauses on sample() and initial()
         for trig, items in triggers.items():
             node = (conditions[trig].get("node") or {}) if trig < len(conditions) else {}
-            if set(node) != {"relation"} or node["relation"] not in by_relation:
-                self._fail_span(items[0][1], "a when-condition other than one relation (initial(), sample(), edge(), "
-                                             "change(), and/or of relations)")
+            if node == "initial":  # when initial(): a time event at the run's start, t = 0
+                periodic.append((ONCE, 0.0, self._update(items, xs, ms, b), "when initial()"))
+                continue
+            if set(node) == {"clock"}:
+                periodic.append(self._sample(node["clock"], items, xs, ms, b))
+                continue
+            either = False
+            if set(node) == {"discrete"}:  # edge(b) or change(b) of a Boolean b = relation: that relation's crossing
+                node = self._edge(node["discrete"], relations)
+                either = node.pop("either", False)
+            if set(node) != {"relation"} or node["relation"] not in by_relation or by_relation[node["relation"]] in fired:
+                self._fail_span(items[0][1], "a when-condition other than one relation, initial(), one sample() or "
+                                             "one edge()/change() of a Boolean given by a relation (and/or of "
+                                             "conditions, two when-clauses on one relation)")
             i = by_relation[node["relation"]]
             updates[i] = self._update(items, xs, ms, b)
+            directions[i] = EITHER if either else directions[i]
             fired.add(i)
         for i in range(len(indicators)):
             if i not in fired:
@@ -848,6 +892,7 @@ class _Translation:
         if self.solved is not None:  # indicators and updates in states, inputs, parameters and modes only
             indicators = [ca.substitute(z, *self.solved) for z in indicators]
             updates = [None if g is None else ca.substitute(g, *self.solved) for g in updates]
+            periodic = [(T, t0, ca.substitute(g, *self.solved), name) for T, t0, g, name in periodic]
         samples = []
         if always:  # the modes' start values settled at the start state, t = 0 (inputs 0 until the initial event)
             m0 = self._settle(xs, ms)
@@ -866,6 +911,8 @@ class _Translation:
                 self._fail_span(te if isinstance(te, dict) else {}, "a time event other than a fixed instant")
             samples.append(Sample(ONCE, inst["num"] / inst["den"], self._settled(xs, ms, None) if always else None,
                                   f"time event at {inst['num'] / inst['den']:g} s"))
+        for T, t0, g, name in periodic:  # sample(start, interval): start + k interval, k = 0, 1, ...; initial()
+            samples.append(Sample(T, t0, self._settled(xs, ms, g) if always else g, name))
         self.event_fields = {
             "modes": [Var(f"mode.{self.vars[k]['name']}", *self._doc(self.vars[k], "discrete variable"))
                       for k in self.mode_syms],
@@ -941,12 +988,20 @@ class _Translation:
         """The always-active discrete equations of Boolean and Integer variables (``b = x > 1``):
         variable index -> the node of its value.  A when-assigned one is refused by its line."""
         out = {}
+        self.when_values: list[tuple[int, int, dict]] = []  # (trigger, variable, owner) of when-assigned ones
         for o in self.st.get("discrete_value_owners", []):
             br = o.get("branches", [])
-            if len(o["targets"]) != 1 or len(br) != 1 or br[0].get("activation") != "always" \
-                    or len(br[0].get("values", [])) != 1:
+            if len(o["targets"]) != 1 or len(br) != 1 or len(br[0].get("values", [])) != 1:
                 self._fail_span(o, f"{self.vars[o['targets'][0]]['name']}: a Boolean or Integer variable assigned in "
-                                   f"a when-clause is not supported yet (a discrete Real is)")
+                                   f"more than one branch (elsewhen) is not supported yet")
+            act = br[0].get("activation")
+            when = act.get("when") if isinstance(act, dict) else None
+            if when is not None and when.get("trigger") == when.get("guard"):
+                self.when_values.append((when["trigger"], o["targets"][0], br[0]["values"][0]))
+                continue
+            if act != "always":
+                self._fail_span(o, f"{self.vars[o['targets'][0]]['name']}: a Boolean or Integer variable assigned "
+                                   f"under a condition other than a when-clause's is not supported yet")
             out[o["targets"][0]] = br[0]["values"][0]["value"]
         self.always = out
         return out
@@ -976,6 +1031,42 @@ class _Translation:
         settled = ca.substitute(settled, ca.vertcat(*ms), m_new)
         return ca.vertcat(x_new, settled)
 
+    def _edge(self, i: int, relations: list) -> dict:
+        """``{"relation": r}`` when node ``i`` is ``edge(b)`` (rumoca: ``b and not pre(b)``) or
+        ``change(b)`` (``b <> pre(b)``, then also ``"either": True``) of a Boolean ``b`` whose
+        always-active equation is relation ``r``; ``{}`` otherwise."""
+        def ref(j: int, kind: str):
+            c = self.nodes[j].get("coordinate")
+            return c.get(kind) if isinstance(c, dict) else None
+
+        (kind, body), = self.nodes[i].items()
+        if kind != "binary" or body["operator"] not in ("and", "not_equal"):
+            return {}
+        k = ref(body["lhs"], "discrete_value")
+        if body["operator"] == "and":
+            rhs = self.nodes[body["rhs"]].get("unary") or {}
+            pre = ref(rhs["operand"], "pre_discrete_value") if rhs.get("operator") == "not" else None
+        else:
+            pre = ref(body["rhs"], "pre_discrete_value")
+        if k is None or pre != k or k not in self.always:
+            return {}
+        found = [r for r, rel in enumerate(relations) if rel["expression"] == self.always[k]]
+        return {"relation": found[0], "either": body["operator"] == "not_equal"} if found else {}
+
+    def _sample(self, c: int, items: list, xs: list, ms: list, b: BlockBuilder) -> tuple:
+        """``(interval [s], start [s], update, name)`` of a when-clause on ``sample(start,
+        interval)`` (rumoca's periodic clock ``c``): a time event at ``start + k interval``."""
+        clock = self.st["clocks"][c]
+        lattice = (clock.get("kind") or {}).get("periodic", {}).get("lattice") if isinstance(clock, dict) else None
+        if not lattice or not lattice.get("period", {}).get("den") or not lattice.get("phase", {}).get("den"):
+            self._fail_span(clock if isinstance(clock, dict) else {}, "a clock other than sample(start, interval) "
+                                                                      "with constant arguments")
+        period = lattice["period"]["num"] / lattice["period"]["den"]
+        start = lattice["phase"]["num"] / lattice["phase"]["den"]
+        if not period > 0:
+            self._fail_span(clock, f"sample(): the interval must be positive (got {period:g} s)")
+        return period, start, self._update(items, xs, ms, b), f"sample({start:g}, {period:g})"
+
     def _assert(self, act: dict) -> bool:
         """Whether the event action is an assert: one on parameters only is checked here, at the
         parameters' defaults (a failing one refused with its line); one on variables is not
@@ -1004,9 +1095,10 @@ class _Translation:
         values, then its reinits (which may read them)."""
         new = {k: ca.SX.sym(f"new.{self.vars[k]['name']}") for k in self.mode_syms}
         env = dict(self.env)
-        env.update({("discrete_real", k): s for k, s in new.items()})
+        env.update({(self.vars[k]["role"], k): s for k, s in new.items()})
         g = dataclasses.replace(self.graph, env=env)
-        eqs = [g(it["residual"]) for kind, it in items if kind == "equation"]
+        eqs = [g(it["residual"]) if kind == "equation" else new[it["target"]] - g(it["value"])
+               for kind, it in items if kind in ("equation", "value")]
         for kind, it in items:
             if kind == "action" and it.get("guard") != it.get("trigger"):
                 self._fail_span(it, "elsewhen is not supported yet (one when-clause per condition)")
@@ -1097,6 +1189,12 @@ class _Translation:
         if node is None:
             self._err(v, f"parameter {v['name']!r} has no value")
         value = self.graph(node)
+        if v["name"] in self.clocked:  # fixed: the sample period is a number
+            if not value.is_constant():
+                self._err(v, f"{v['name']}: a parameter read by sample() must have a literal value (the interval "
+                             f"and start are fixed when the model is translated)")
+            self.env[("parameter", k)] = value
+            return
         if not value.is_constant() or self._scalar(v) != "real":
             # computed from others, or a Boolean/Integer (structural: it selects equations): not settable
             self.env[("parameter", k)] = value
@@ -1118,6 +1216,11 @@ class _Translation:
                 span = chain.get("span") or {}
                 raise ModelicaError(self.filename, self._offset_line(span.get("start")) if self.text else None,
                                     "elsewhen is not supported yet (write one when-clause per condition)")
+        self.clocked = set()  # the parameters sample()'s arguments read: rumoca fixes the period at their values
+        for chain in self.flat.get("when_chains") or []:
+            for call in _find(chain.get("first", {}).get("condition"), "BuiltinCall"):
+                if call.get("function") == "Sample":
+                    self.clocked.update(ref["name"]["name"] for ref in _find(call.get("args"), "VarRef"))
 
     def _residuals(self) -> list[tuple[ca.SX, int | None]]:
         out = []

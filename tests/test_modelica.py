@@ -202,7 +202,7 @@ def test_external_functions_and_arrays_of_connectors_are_refused():
 
 
 def test_a_scene_with_a_broken_modelica_file_gets_one_line_naming_scene_file_and_mo_line(tmp_path):
-    (tmp_path / "Bad.mo").write_text(BASE.format(decl="", term="", eqs="\n  when sample(0, 1) then reinit(x, 0); end when;"))
+    (tmp_path / "Bad.mo").write_text(BASE.format(decl="", term="", eqs="\n  when x > 1 then terminate(\"stop\"); end when;"))
     (tmp_path / "scene.yaml").write_text(textwrap.dedent("""\
         stop_time: 0.1
         components:
@@ -212,7 +212,7 @@ def test_a_scene_with_a_broken_modelica_file_gets_one_line_naming_scene_file_and
     with pytest.raises(SceneError) as err:
         load(tmp_path / "scene.yaml")
     (msg,) = str(err.value).splitlines()
-    assert "scene.yaml:3" in msg and "Bad.mo:9: sample" in msg, msg
+    assert "scene.yaml:3" in msg and "Bad.mo:9: terminate" in msg, msg
 
 
 def test_a_missing_modelica_file_or_class_is_one_line(tmp_path):

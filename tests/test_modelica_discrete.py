@@ -1,7 +1,9 @@
 """Modelica as users write it, translated into the event-aware Block (models/modelica.py,
 docs/explanation/modelica.md): initial equations, Boolean and Integer discrete variables,
 relations on time as time events, relations on states as state events, noEvent, one-element
-arrays and for-equations over them.  Each small model runs as a scene component and is compared
+arrays and for-equations over them, sample() as periodic time events, Boolean and Integer
+variables assigned in when-clauses, edge() and change() of a Boolean given by a
+relation, when initial().  Each small model runs as a scene component and is compared
 with its analytic solution; what is not translated yet is refused naming file, line and construct."""
 from __future__ import annotations
 
@@ -99,11 +101,127 @@ def test_a_for_equation_over_a_one_element_array(tmp_path):
     assert np.max(np.abs(tr["c.a"] - np.exp(-t / 0.25))) < 1e-6
 
 
+HOLD = """model Hold "sample and hold of sin(2 pi t)"
+  parameter Real f = 1;
+  discrete Real y(start = 0);
+equation
+  when sample(0, 0.1) then
+    y = sin(2 * 3.141592653589793 * f * time);
+  end when;
+end Hold;
+"""
+
+
+def test_sample_holds_the_value_at_each_sample_instant(tmp_path):
+    """y(t) = sin(2 pi t_k) with t_k = 0.1 floor(t / 0.1): the held value is the sine exactly at
+    the instants, which the communication steps of 0.03 s do not meet (ties left out)."""
+    b = translate(HOLD, "Hold", "Hold.mo")
+    assert [(s.period, s.offset) for s in b.sample_times] == [(0.1, 0.0)]
+    tr = simulate(tmp_path, HOLD, "Hold", 0.99, 0.03, ["y"])
+    t = np.asarray(tr["time"])
+    k = np.floor(t / 0.1 + 1e-9)
+    away = np.abs(t / 0.1 - np.round(t / 0.1)) > 1e-6
+    assert away.sum() > 25
+    assert np.max(np.abs(tr["c.y"][away] - np.sin(2 * np.pi * 0.1 * k[away]))) < 1e-12
+
+
+def test_a_parameter_read_by_sample_is_fixed_not_settable():
+    """rumoca fixes the interval at the parameter's value, so the parameter is not exported as
+    settable (a scene could not change the period); one computed from others is refused."""
+    text = HOLD.replace("parameter Real f = 1;", "parameter Real f = 1;\n  parameter Real T = 0.1;")
+    b = translate(text.replace("sample(0, 0.1)", "sample(0, T)"), "Hold", "Hold.mo")
+    assert [v.name for v in b.params] == ["f"] and [s.period for s in b.sample_times] == [0.1]
+    computed = text.replace("T = 0.1", "T = 0.1 * f").replace("sample(0, 0.1)", "sample(0, T)")
+    with pytest.raises(ModelicaError, match=r"^Hold\.mo:3: T: a parameter read by sample\(\) must have a literal"):
+        translate(computed, "Hold", "Hold.mo")
+
+
+COUNT = """model Count "an Integer counter on sample(), a Boolean latched by a state event"
+  Real x(start = 0);
+  Integer n(start = 0);
+  Boolean hit(start = false);
+equation
+  der(x) = 1;
+  when sample(0.05, 0.1) then
+    n = pre(n) + 1;
+  end when;
+  when x > 0.33 then
+    hit = true;
+  end when;
+end Count;
+"""
+
+
+def test_integer_and_boolean_assigned_in_when_clauses(tmp_path):
+    """n counts the instants 0.05 + 0.1 k passed (k = 0, 1, ...); hit turns true where x = t
+    crosses 0.33 and stays true (the grid of 0.04 s meets neither)."""
+    tr = simulate(tmp_path, COUNT, "Count", 0.96, 0.04, ["n", "hit"])
+    t = np.asarray(tr["time"])
+    assert np.array_equal(np.asarray(tr["c.n"]), np.where(t < 0.05, 0, np.floor((t - 0.05) / 0.1) + 1))
+    assert np.array_equal(np.asarray(tr["c.hit"]), (t > 0.33).astype(float))
+
+
+EDGES = """model Edges "a counter of the rising crossings of sin(x), by edge()"
+  Real x(start = -1.05);
+  Boolean pos;
+  Integer n(start = 0);
+equation
+  der(x) = 1;
+  pos = sin(x) > 0;
+  when edge(pos) then
+    n = pre(n) + 1;
+  end when;
+end Edges;
+"""
+
+
+def test_edge_counts_the_positive_crossings(tmp_path):
+    """sin(t - 1.05) turns positive at t = 1.05 + 2 pi k: n counts those passed."""
+    tr = simulate(tmp_path, EDGES, "Edges", 20.0, 0.1, ["n"])
+    t = np.asarray(tr["time"])
+    exact = np.where(t < 1.05, 0, np.floor((t - 1.05) / (2 * np.pi)) + 1)
+    assert exact[-1] == 4 and np.array_equal(np.asarray(tr["c.n"]), exact)
+
+
+AT_START = """model AtStart "when initial(): the modes set once, at the start"
+  parameter Real a = 3;
+  Real x(start = 0);
+  discrete Real m(start = 0);
+  Integer n(start = 0);
+equation
+  der(x) = m;
+  when initial() then
+    m = 2 * a;
+    n = 5;
+  end when;
+end AtStart;
+"""
+
+
+def test_when_initial_sets_the_modes_at_the_start(tmp_path):
+    """m = 2a = 6 from t = 0 (not its start value 0), so x = 6 t; n = 5 throughout."""
+    b = translate(AT_START, "AtStart", "AtStart.mo")
+    assert [(s.offset, s.name) for s in b.sample_times] == [(0.0, "when initial()")]
+    tr = simulate(tmp_path, AT_START, "AtStart", 1.0, 0.1, ["x", "m", "n"])
+    t = np.asarray(tr["time"])
+    assert np.max(np.abs(tr["c.x"] - 6 * t)) < 1e-12
+    assert set(np.asarray(tr["c.m"])) == {6.0} and set(np.asarray(tr["c.n"])) == {5.0}
+
+
+def test_change_counts_the_crossings_both_ways(tmp_path):
+    """change(pos) with pos = sin(t - 1.05) > 0 fires at t = 1.05 + pi k: n counts those passed."""
+    text = EDGES.replace("edge(pos)", "change(pos)")
+    tr = simulate(tmp_path, text, "Edges", 20.0, 0.1, ["n"])
+    t = np.asarray(tr["time"])
+    exact = np.where(t < 1.05, 0, np.floor((t - 1.05) / np.pi) + 1)
+    assert exact[-1] == 7 and np.array_equal(np.asarray(tr["c.n"]), exact)
+
+
 @pytest.mark.parametrize("body, line, what", [
-    ("  when sample(0, 0.1) then\n    y = pre(y) + 1;\n  end when;", 6, "sample()"),
+    ("  when change(y) then\n    y = 1;\n  end when;", 6, "change()"),
     ("  when x > 1 then\n    y = 1;\n  elsewhen x < 0 then\n    y = 2;\n  end when;", 8, "elsewhen"),
     ("  when edge(x > 1) then\n    y = 1;\n  end when;", 6, "edge()"),
-    ("  when initial() then\n    y = 1;\n  end when;", 6, "a when-condition other than one relation"),
+    ("  when {x > 1, x > 2} then\n    y = 1;\n  end when;", 6, "a when-condition other than one relation"),
 ])
 def test_what_is_not_translated_yet_names_file_line_and_construct(body, line, what):
     text = f'model E "e"\n  Real x(start = 0);\n  discrete Real y(start = 0);\nequation\n  der(x) = 1;\n{body}\nend E;\n'

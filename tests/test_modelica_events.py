@@ -58,7 +58,7 @@ def test_a_relation_read_by_an_if_expression_restarts_the_step_where_it_switches
 
 
 @pytest.mark.parametrize("body, line, what", [
-    ("  when sample(0, 0.1) then\n    n = pre(n) + 1;\n  end when;", 6, "sample"),
+    ("  when x > 1 then\n    terminate(\"done\");\n  end when;", 7, "terminate"),
     ("  when x > 1 then\n    n = 1;\n  elsewhen x < 0 then\n    n = 2;\n  end when;", 8, "elsewhen"),
     ("  when edge(x > 1) then\n    n = 1;\n  end when;", 6, "edge"),
 ])

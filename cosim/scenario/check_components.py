@@ -498,7 +498,7 @@ class ComponentChecks(Checker):
         ``MODELICAPATH``): the class translated into a block (:func:`models.modelica.translate`)
         from the files it reads (:mod:`.modelica_sources`), which its recipe key covers."""
         from models.block import BlockError
-        from models.modelica import INTEGRATORS, translate
+        from models.modelica import INTEGRATORS, refuse_unsupported, translate
 
         from .modelica_sources import SourceError, modelica_class
 
@@ -555,8 +555,10 @@ class ComponentChecks(Checker):
         origin = mc.filename
 
         def block_of_text():
+            if not mc.library:  # the constructs refused by their line before rumoca compiles
+                refuse_unsupported(mc.text, mc.filename)
             return translate(mc.text, mc.model, mc.filename, name=mc.model.split(".")[-1].lower(),
-                             integrator=integrator, substeps=substeps, compiled=mc.compiled(), scan=not mc.library)
+                             integrator=integrator, substeps=substeps, compiled=mc.compiled(), scan=False)
 
         from fmus.index import installed_version
 
