@@ -3,11 +3,12 @@ the same scene at half the communication step (fixed-step algorithms; recording 
 instants) or a quarter of the tolerance and half the largest step (``adaptive``, ``ecco``), not paced.  A finer companion,
 not a coarser one: it stays where the run's error behaves as its order says (a coarser one may
 leave that regime, e.g. a slave's own RK4 near its stability limit, and make a good run look
-bad).  Where half the step would take a sampled block off its samples there is no companion and
-no estimate: the only companion left is coarser, and at twice the step a coupling may go unstable
-and measure itself (measured on pid_step with discrete PIDs at their 1 ms: 0.94 of range over the first 0.3 s).  A scene that needs an estimate
-gives the sampled block ``timing: events`` (its samples are time events, any step works).  Where
-only an odd number of nanoseconds forbids halving, the companion takes twice the step."""
+bad). Where half the step would take a sampled block off its samples there is no companion and no
+estimate: the only companion left is coarser, and at twice the step a coupling may go unstable and
+measure itself (measured on pid_step with discrete PIDs at their 1 ms: 0.94 of range over the first
+0.3 s). A scene that needs an estimate gives the sampled block ``timing: events`` (its samples are
+time events, any step works). Where only an odd number of nanoseconds forbids halving, the companion
+takes twice the step."""
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
