@@ -272,6 +272,7 @@ def _fidelity(args: argparse.Namespace) -> int:
     top = study.rows[0]
     print(f"{study.scene}: {len(study.rows)} fidelity combinations against the most detailed ({top.label})"
           + (f"; each run within master.tolerance {study.run_tolerance:g} of its own exact solution"
+             + (" where it has an error estimate" if any(r.unestimated for r in study.rows) else "")
              if study.run_tolerance else ""))
     print(f"{'combination':<62} {'status':>10} {'worst rel':>10} {'signal':<22} {'wall s':>8} {'speed-up':>8}")
     for r in study.rows:
@@ -281,7 +282,8 @@ def _fidelity(args: argparse.Namespace) -> int:
         speed = top.wall_s / r.wall_s if r.status == "ok" and r.wall_s > 0 else float("nan")
         print(f"{r.label:<62} {r.status:>10} {r.worst:>10.3e} {r.worst_signal:<22} {r.wall_s:>8.3f} {speed:>8.1f}"
               + (f"  ({r.reason})" if r.status != "ok" and r.reason else "")
-              + (f"  (compared without {', '.join(r.dropped)}: not recorded at these levels)" if r.dropped else ""))
+              + (f"  (compared without {', '.join(r.dropped)}: not recorded at these levels)" if r.dropped else "")
+              + (f"  (no error estimate of its own: {r.unestimated})" if r.unestimated else ""))
     best = study.cheapest_within(args.tol)
     print(f"cheapest within {args.tol:g}: {best.label} ({best.worst:.2e}, {top.wall_s / best.wall_s:.1f}x faster "
           f"than the most detailed)" if best else f"cheapest within {args.tol:g}: none")

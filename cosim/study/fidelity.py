@@ -47,6 +47,7 @@ class FidelityRow:
     worst_signal: str = ""
     wall_s: float = math.nan
     dropped: list[str] = field(default_factory=list)  # output patterns that match nothing at these levels
+    unestimated: str = ""  # why the run has no error estimate of its own (e.g. a sampled block), else ""
 
     @property
     def label(self) -> str:
@@ -190,6 +191,9 @@ def fidelity_study(scene_path: Path | str, overrides: Mapping[str, Any] | Sequen
             continue
         row.dropped = dropped
         row.status, row.reason, row.wall_s = res.status, res.reason, float(res.stats.get("wall_s", math.nan))
+        est = res.stats.get("estimate") or {}
+        if res.ok and est and est.get("worst") is None:
+            row.unestimated = str(est.get("method") or "no companion run")
         if reference is None:
             if not res.ok:
                 raise UserError(f"{path}: the most detailed combination ({row.label}) did not run: {res.reason}")
