@@ -95,6 +95,7 @@ def _page(path: Path, title: str, body: str, library_dir: Path | None = None) ->
     from ..outputs import write_text
 
     try:  # a new temporary file renamed into place: whole or nothing, never through a planted link
+        library.parent.mkdir(parents=True, exist_ok=True)  # a batch's library folder may not exist yet
         _library(library)
         write_text(path, page)
     except OSError as exc:
