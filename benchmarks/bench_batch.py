@@ -27,10 +27,19 @@ turns, so that a change of the machine's load hits them alike.
   the worker's time between runs plus its own share of each run, against the run; what is left
   of the whole batch's overhead is its fixed cost (checking the first scene, FMU look-up,
   starting the worker and loading its FMUs, the last row).
+- whole cost against stepping (issue 32 item 11): the 16 scenes at stop_time ``--cost-stop``
+  (1 s: 5,001 rows on pid_step's output grid) run here as a batch worker runs them (one core,
+  the trace written in the stepping thread, the FMUs loaded once and reset), with no file (the
+  rows kept in memory), with ``.npy`` traces (the batch default) and with CSV traces, taking
+  turns.  Stepping: the loop's ``wall_s`` with no file; a format's file cost: the whole run's
+  wall time with its trace and sidecar less the same without files (what writing them adds,
+  inside the loop and after it, the median over ``--repeat`` rounds of the difference measured
+  back to back); ratio (stepping + file cost) / stepping, the issue's measure (target 1.3x).
+  Per run: means over the 16 runs; the stepping is the best round's.
 - reuse: initialisation time per run (``init_s``: instantiate or reset, start values,
   initialisation) with instances kept and reset against loading the FMUs for every run.
 
-    python3 benchmarks/bench_batch.py [--repeat 3] [--stop 5.0]
+    python3 benchmarks/bench_batch.py [--repeat 3] [--stop 5.0] [--cost-stop 1.0] [--cost-only]
 """
 from __future__ import annotations
 
@@ -65,14 +74,14 @@ def batch_file(tmp: Path, stop: float) -> Path:
     return p
 
 
-def one(batch, tmp: Path, workers: int, reuse: bool = True) -> dict:
+def one(batch, tmp: Path, workers: int, reuse: bool = True, trace_format: str = "npy") -> dict:
     """A batch on ``workers`` local processes; with 1 worker also the time its worker spends
     between runs (``gaps``: from one run's start to the next's, minus the first run's own
     ``execute`` time, by the worker's clock)."""
     out = Path(tempfile.mkdtemp(dir=tmp))
     starts: list[tuple[float, str]] = []
     c0 = cpu()
-    res = run_batch(batch, out=out, executor=LocalExecutor(workers), reuse=reuse,
+    res = run_batch(batch, out=out, executor=LocalExecutor(workers), reuse=reuse, trace_format=trace_format,
                     on_start=lambda task, pid: starts.append((task.started_at, task.run_id)))
     c1 = cpu()
     assert res.ran == len(res.rows) and res.failed == 0, res.rows
@@ -80,9 +89,12 @@ def one(batch, tmp: Path, workers: int, reuse: bool = True) -> dict:
     wall_of = {r["run_id"]: r["wall_s"] for r in rows}
     gaps = [t1 - t0 - wall_of[rid] for (t0, rid), (t1, _) in zip(starts, starts[1:])] if workers == 1 else []
     run_s = sum(r["run_s"] for r in rows)
+    per = {"whole": sum(r["wall_s"] for r in rows) / len(rows), "run_s": run_s / len(rows),
+           "loop": sum(r["loop_s"] for r in rows) / len(rows)}
     return {"wall": res.wall_s, "execution": res.wall_s - res.prepare_s, "prepare": res.prepare_s,
             "worker": sum(r["wall_s"] for r in rows) - run_s, "run": run_s,
-            "init": sum(r["init_s"] for r in rows) / len(rows), "n": len(rows), "cpu": c1 - c0, "gaps": gaps}
+            "init": sum(r["init_s"] for r in rows) / len(rows), "n": len(rows), "cpu": c1 - c0, "gaps": gaps,
+            "per": per}
 
 
 def cpu() -> float:
@@ -109,16 +121,18 @@ class Plain:
             s.reuse = True
         return out
 
-    def __call__(self, tmp: Path, writer_thread: bool = False) -> dict:
+    def __call__(self, tmp: Path, writer_thread: bool = False, trace_format: str | None = "csv") -> dict:
         from cosim.trace import traces as trace
 
         trace.WRITER_THREAD = writer_thread
         try:
-            return self._loop(tmp)
+            return self._loop(tmp, trace_format)
         finally:
             trace.WRITER_THREAD = True
 
-    def _loop(self, tmp: Path) -> dict:
+    def _loop(self, tmp: Path, trace_format: str | None = "csv") -> dict:
+        """The runs writing their trace files in ``trace_format`` (``rpr-cosim run``'s default:
+        CSV), or with None no file (the rows kept in memory: the stepping alone)."""
         from cosim.run.execute import run
 
         out = Path(tempfile.mkdtemp(dir=tmp))
@@ -127,7 +141,8 @@ class Plain:
         slaves = self.slaves()
         for i, scene in enumerate(self.scenes):
             t1 = time.perf_counter()
-            res = run(scene, out_dir=out / str(i), slaves=slaves)
+            res = run(scene, out_dir=out / str(i) if trace_format else None, slaves=slaves,
+                      trace_format=trace_format or "csv")
             assert res.ok, res.reason
             loop += res.stats["wall_s"]
             trace += time.perf_counter() - t1 - res.stats["wall_s"] - res.stats["init_s"]
@@ -228,10 +243,28 @@ def fixed_cost(b: dict, plain: dict) -> float:
     return (b["wall"] - plain["wall"]) - b["n"] * (statistics.median(b["gaps"]) + b["worker"] / b["n"])
 
 
+def cost(plain: Plain, tmp: Path, repeat: int, stop: float) -> None:
+    """Whole cost of a batch's run against its stepping, ``.npy`` and CSV traces (module docstring)."""
+    import statistics
+
+    m = best({"none": lambda: plain(tmp, trace_format=None), "npy": lambda: plain(tmp, trace_format="npy"),
+              "csv": lambda: plain(tmp, trace_format="csv")}, repeat, rounds := [])
+    n = m["none"]["n"]
+    step, bare = 1e3 * m["none"]["loop"] / n, 1e3 * m["none"]["wall"] / n
+    for fmt in ("npy", "csv"):
+        files = 1e3 * statistics.median(r[fmt]["wall"] - r["none"]["wall"] for r in rounds) / n
+        print(f"whole cost / stepping of a batch run, {stop:g} s pid_step runs, one core, {fmt} traces: "
+              f"{(step + files) / step:.2f}x (target 1.3x): {step:.1f} ms of stepping + {files:.1f} ms of trace files; "
+              f"the loop with its trace rows {1e3 * m[fmt]['loop'] / n:.1f} ms; the whole run() {bare:.1f} ms with no "
+              f"file, {1e3 * m[fmt]['wall'] / n:.1f} ms with them (initialisation, error estimate, sidecar)")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--repeat", type=int, default=3)
     ap.add_argument("--stop", type=float, default=5.0, help="stop_time of the runs [s]")
+    ap.add_argument("--cost-stop", type=float, default=1.0, help="stop_time of the whole-cost runs [s]")
+    ap.add_argument("--cost-only", action="store_true", help="only the whole cost against stepping")
     args = ap.parse_args()
     print("overhead per run = (wall time of the whole batch on 1 worker - the same runs one after another "
           "by cosim.run.run in one process, instances kept) / runs")
@@ -243,6 +276,9 @@ def main() -> None:
         t0 = time.perf_counter()
         one(batch, tmp, 2)  # warm-up: FMUs
         print(f"warm-up batch: {time.perf_counter() - t0:.2f} s")
+        cost(Plain(load_batch(batch_file(tmp, args.cost_stop))), tmp, args.repeat, args.cost_stop)
+        if args.cost_only:
+            return
         plain, plain_short = Plain(batch), Plain(short)
         m = best({"1": lambda: one(batch, tmp, 1), "2": lambda: one(batch, tmp, 2),
                   "plain": lambda: plain(tmp), "threaded": lambda: plain(tmp, writer_thread=True),

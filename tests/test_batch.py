@@ -140,8 +140,8 @@ metrics:
     assert bad["outcome"] == "failed" and bad["mech.platform.phi:max"] is None
     assert "pid1 returned DISCARD" in bad["reason"] and "the state became non-finite" in bad["reason"]
     assert bad["steps"] == 124  # t = 1.24 s
-    partial = data_lines(run_trace_path(tmp_path / "out", bad["run_id"]))
-    assert len(partial) - 1 == 125  # header, then t = 0 .. 1.24 s
+    partial = np.load(run_trace_path(tmp_path / "out", bad["run_id"]))
+    assert len(partial) == 125 and partial[-1, 0] == pytest.approx(1.24)  # t = 0 .. 1.24 s
     assert by_step[1e-3]["outcome"] == "ok" and by_step[1e-3]["steps"] == 1500
     # at 2 ms (twice the derivative filter's 1 ms) RK4 is stable but far off: the run's own error
     # estimate ends it "unstable" after its whole span (against the monolithic reference its
@@ -228,9 +228,11 @@ grid:
     plain = run(SCENE, ["stop_time=0.05", "components.pid1.options.integrator=rk4", "master.algorithm=gauss_seidel",
                          "master.tolerance=none"],
                 out_dir=tmp_path / "plain")
-    rk4 = data_lines(run_trace_path(tmp_path / "out", by_kernel["rk4"]["run_id"]))
-    exact = data_lines(run_trace_path(tmp_path / "out", by_kernel["exact"]["run_id"]))
-    assert rk4 == data_lines(plain.trace_path) and rk4 != exact
+    from cosim.trace.traces import read_trace
+
+    rk4 = read_trace(run_trace_path(tmp_path / "out", by_kernel["rk4"]["run_id"])).data.tobytes()
+    exact = read_trace(run_trace_path(tmp_path / "out", by_kernel["exact"]["run_id"])).data.tobytes()
+    assert rk4 == read_trace(plain.trace_path).data.tobytes() and rk4 != exact  # .npy against the plain run's CSV
 
 
 def test_a_worker_killed_mid_run_is_replaced_and_the_run_completes(tmp_path):
