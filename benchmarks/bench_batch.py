@@ -27,10 +27,19 @@ turns, so that a change of the machine's load hits them alike.
   the worker's time between runs plus its own share of each run, against the run; what is left
   of the whole batch's overhead is its fixed cost (checking the first scene, FMU look-up,
   starting the worker and loading its FMUs, the last row).
+- whole cost against stepping (issue 32 item 11): the 16 scenes at stop_time ``--cost-stop``
+  (1 s: 1,001 rows of 25 columns on pid_step's 1 ms output grid; 5 s: 5,001) run here as a
+  batch worker runs them (one core, the trace written in the stepping thread, the FMUs loaded
+  once and reset), with ``.npy``
+  traces (the batch default) and with CSV traces, taking turns.  Each run's trace writer is
+  timed (:class:`Timed`, wall clock: start, rows, finish with sidecar and placing); the
+  stepping is the loop's ``wall_s`` of the same runs with no file (rows in memory), in the
+  same pass; ratio (stepping + files) / stepping, the issue's measure (target 1.3x), median
+  over ``--repeat`` passes of the 16 runs.
 - reuse: initialisation time per run (``init_s``: instantiate or reset, start values,
   initialisation) with instances kept and reset against loading the FMUs for every run.
 
-    python3 benchmarks/bench_batch.py [--repeat 3] [--stop 5.0]
+    python3 benchmarks/bench_batch.py [--repeat 3] [--stop 5.0] [--cost-stop 1.0] [--cost-only]
 """
 from __future__ import annotations
 
@@ -65,14 +74,14 @@ def batch_file(tmp: Path, stop: float) -> Path:
     return p
 
 
-def one(batch, tmp: Path, workers: int, reuse: bool = True) -> dict:
+def one(batch, tmp: Path, workers: int, reuse: bool = True, trace_format: str = "npy") -> dict:
     """A batch on ``workers`` local processes; with 1 worker also the time its worker spends
     between runs (``gaps``: from one run's start to the next's, minus the first run's own
     ``execute`` time, by the worker's clock)."""
     out = Path(tempfile.mkdtemp(dir=tmp))
     starts: list[tuple[float, str]] = []
     c0 = cpu()
-    res = run_batch(batch, out=out, executor=LocalExecutor(workers), reuse=reuse,
+    res = run_batch(batch, out=out, executor=LocalExecutor(workers), reuse=reuse, trace_format=trace_format,
                     on_start=lambda task, pid: starts.append((task.started_at, task.run_id)))
     c1 = cpu()
     assert res.ran == len(res.rows) and res.failed == 0, res.rows
@@ -80,9 +89,12 @@ def one(batch, tmp: Path, workers: int, reuse: bool = True) -> dict:
     wall_of = {r["run_id"]: r["wall_s"] for r in rows}
     gaps = [t1 - t0 - wall_of[rid] for (t0, rid), (t1, _) in zip(starts, starts[1:])] if workers == 1 else []
     run_s = sum(r["run_s"] for r in rows)
+    per = {"whole": sum(r["wall_s"] for r in rows) / len(rows), "run_s": run_s / len(rows),
+           "loop": sum(r["loop_s"] for r in rows) / len(rows)}
     return {"wall": res.wall_s, "execution": res.wall_s - res.prepare_s, "prepare": res.prepare_s,
             "worker": sum(r["wall_s"] for r in rows) - run_s, "run": run_s,
-            "init": sum(r["init_s"] for r in rows) / len(rows), "n": len(rows), "cpu": c1 - c0, "gaps": gaps}
+            "init": sum(r["init_s"] for r in rows) / len(rows), "n": len(rows), "cpu": c1 - c0, "gaps": gaps,
+            "per": per}
 
 
 def cpu() -> float:
@@ -109,31 +121,34 @@ class Plain:
             s.reuse = True
         return out
 
-    def __call__(self, tmp: Path, writer_thread: bool = False) -> dict:
+    def __call__(self, tmp: Path, writer_thread: bool = False, trace_format: str | None = "csv") -> dict:
         from cosim.trace import traces as trace
 
         trace.WRITER_THREAD = writer_thread
         try:
-            return self._loop(tmp)
+            return self._loop(tmp, trace_format)
         finally:
             trace.WRITER_THREAD = True
 
-    def _loop(self, tmp: Path) -> dict:
+    def _loop(self, tmp: Path, trace_format: str | None = "csv") -> dict:
+        """The runs writing their trace files in ``trace_format`` (``rpr-cosim run``'s default:
+        CSV), or with None no file (the rows kept in memory: the stepping alone)."""
         from cosim.run.execute import run
 
         out = Path(tempfile.mkdtemp(dir=tmp))
-        c0, t0, m0 = cpu(), time.perf_counter(), time.thread_time()
+        c0, t0, m0 = cpu(), time.perf_counter(), time.perf_counter()
         loop = trace = 0.0
         slaves = self.slaves()
         for i, scene in enumerate(self.scenes):
             t1 = time.perf_counter()
-            res = run(scene, out_dir=out / str(i), slaves=slaves)
+            res = run(scene, out_dir=out / str(i) if trace_format else None, slaves=slaves,
+                      trace_format=trace_format or "csv")
             assert res.ok, res.reason
             loop += res.stats["wall_s"]
             trace += time.perf_counter() - t1 - res.stats["wall_s"] - res.stats["init_s"]
         n = len(self.scenes)
         return {"wall": time.perf_counter() - t0, "n": n, "loop": loop, "trace": trace, "cpu": cpu() - c0,
-                "main_cpu": time.thread_time() - m0}
+                "main_cpu": time.perf_counter() - m0}
 
 
 def independent(plain: Plain, tmp: Path, procs: int) -> dict:
@@ -228,10 +243,84 @@ def fixed_cost(b: dict, plain: dict) -> float:
     return (b["wall"] - plain["wall"]) - b["n"] * (statistics.median(b["gaps"]) + b["worker"] / b["n"])
 
 
+class Timed:
+    """A run's trace writer, timed by the wall clock: the time spent inside it (``files``: start,
+    rows, text, finish with the sidecar and placing)."""
+
+    def __init__(self, inner) -> None:
+        self.inner, self.files, self.rows, self.stepping, self._mark = inner, 0.0, 0.0, 0.0, None
+
+    def __getattr__(self, name):
+        return getattr(self.inner, name)
+
+    def _timed(self, fn, *args):
+        t0 = time.perf_counter()
+        try:
+            return fn(*args)
+        finally:
+            self.files += time.perf_counter() - t0
+
+    def start(self, columns, meta) -> None:
+        self._timed(self.inner.start, columns, meta)
+        self._mark, self._inside = time.perf_counter(), self.files
+
+    def record(self, rows) -> None:
+        before = self.files
+        self._timed(self.inner.record, rows)
+        self.rows += self.files - before
+
+    def record_text(self, t, column, value) -> None:
+        self._timed(self.inner.record_text, t, column, value)
+
+    def finish(self, status, reason, stats) -> None:
+        if self._mark is not None:
+            self.stepping = time.perf_counter() - self._mark - (self.files - self._inside)
+        self._timed(self.inner.finish, status, reason, stats)
+
+
+def cost(plain: Plain, tmp: Path, repeat: int, stop: float) -> None:
+    """Whole cost of a batch's run against its stepping, ``.npy`` and CSV traces (module docstring)."""
+    import statistics
+
+    from cosim.run import execute
+
+    made: list[Timed] = []
+    original = execute.trace_writer
+
+    def timed_writer(*args, **kwargs):
+        made.append(Timed(original(*args, **kwargs)))
+        return made[-1]
+
+    execute.trace_writer = timed_writer
+    try:
+        ratios: dict[str, list[float]] = {"npy": [], "csv": []}
+        parts: dict[str, list[tuple[float, float]]] = {"npy": [], "csv": []}
+        for _ in range(repeat):
+            bare = plain(tmp, trace_format=None)
+            step = bare["loop"] / bare["n"]
+            for fmt in ratios:
+                made.clear()
+                plain(tmp, trace_format=fmt)
+                files = sum(w.files for w in made) / len(made)
+                ratios[fmt].append((step + files) / step)
+                parts[fmt].append((step, files, sum(w.rows for w in made) / len(made)))
+    finally:
+        execute.trace_writer = original
+    for fmt, values in ratios.items():
+        step, files, rows = (statistics.median(p[k] for p in parts[fmt]) for k in (0, 1, 2))
+        print(f"whole cost / stepping of a batch run, {stop:g} s pid_step runs, one core, {fmt} traces: "
+              f"{statistics.median(values):.2f}x (median of {len(values)} passes of 16 runs; {min(values):.2f}-"
+              f"{max(values):.2f}x; target 1.3x): {1e3 * step:.1f} ms stepping + {1e3 * files:.1f} ms writing the "
+              f"trace and sidecar per run (of which the rows {1e3 * rows:.1f} ms; the rest: opening, the sidecar with "
+              f"the whole scene, placing)")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--repeat", type=int, default=3)
     ap.add_argument("--stop", type=float, default=5.0, help="stop_time of the runs [s]")
+    ap.add_argument("--cost-stop", type=float, default=1.0, help="stop_time of the whole-cost runs [s]")
+    ap.add_argument("--cost-only", action="store_true", help="only the whole cost against stepping")
     args = ap.parse_args()
     print("overhead per run = (wall time of the whole batch on 1 worker - the same runs one after another "
           "by cosim.run.run in one process, instances kept) / runs")
@@ -243,6 +332,9 @@ def main() -> None:
         t0 = time.perf_counter()
         one(batch, tmp, 2)  # warm-up: FMUs
         print(f"warm-up batch: {time.perf_counter() - t0:.2f} s")
+        cost(Plain(load_batch(batch_file(tmp, args.cost_stop))), tmp, args.repeat, args.cost_stop)
+        if args.cost_only:
+            return
         plain, plain_short = Plain(batch), Plain(short)
         m = best({"1": lambda: one(batch, tmp, 1), "2": lambda: one(batch, tmp, 2),
                   "plain": lambda: plain(tmp), "threaded": lambda: plain(tmp, writer_thread=True),

@@ -417,8 +417,33 @@ def _json_file(path: Path):
 
 #: What a run named N writes into its output directory besides its trace: the files of one run's
 #: set (``N`` + each ending).  A rerun replaces the whole set or keeps it whole (:func:`place`).
-RUN_SET_ENDINGS = (".csv", ".parquet", ".json", ".png", ".gif", ".html", "_reference.csv", "_reference.parquet",
-                   "_reference.json", "_vs_reference.png")
+RUN_SET_ENDINGS = (".csv", ".parquet", ".npy", ".json", ".png", ".gif", ".html", "_reference.csv",
+                   "_reference.parquet", "_reference.npy", "_reference.json", "_vs_reference.png")
+#: Suffixes of trace files (:data:`cosim.trace.traces.TRACE_FORMATS`).
+TRACE_SUFFIXES = (".csv", ".parquet", ".npy")
+#: Bytes of an ``.npy`` trace's header (magic, version, length, the header dict padded with
+#: blanks): fixed, so that the row count can be written over it when the run ends.
+NPY_HEADER_BYTES = 128
+
+
+def npy_header(rows: int, cols: int) -> bytes:
+    """The header of an ``.npy`` trace (NumPy format 1.0) of ``rows`` x ``cols`` float64 values,
+    little-endian, C order, :data:`NPY_HEADER_BYTES` long."""
+    text = f"{{'descr': '<f8', 'fortran_order': False, 'shape': ({int(rows)}, {int(cols)}), }}"
+    room = NPY_HEADER_BYTES - 10
+    return b"\x93NUMPY\x01\x00" + room.to_bytes(2, "little") + text.ljust(room - 1).encode("latin1") + b"\n"
+
+
+def trim_npy(path: Path, cols: int) -> int:
+    """Cut an ``.npy`` trace left by a dead run to whole rows of ``cols`` values and write their
+    count into its header; returns the rows kept."""
+    size = path.stat().st_size
+    rows = max(0, size - NPY_HEADER_BYTES) // (8 * max(1, cols))
+    with os.fdopen(os.open(path, os.O_RDWR | os.O_NOFOLLOW), "rb+") as fh:
+        fh.truncate(NPY_HEADER_BYTES + 8 * cols * rows)
+        fh.seek(0)
+        fh.write(npy_header(rows, cols))
+    return rows
 
 
 def run_set(out_dir: Path, stem: str) -> list[Path]:
@@ -445,7 +470,7 @@ def place(part: Path, final: Path, status: str, *, part_sidecar: Path | None = N
     if earlier:
         side = sidecar if sidecar is not None else final.with_suffix(".json")
         old_status = _status_of(side) if side.exists() else ""
-        trace = next((p for p in earlier if p.suffix in (".csv", ".parquet") and p.stem == stem), final)
+        trace = next((p for p in earlier if p.suffix in TRACE_SUFFIXES and p.stem == stem), final)
         others = len([p for p in earlier if p not in (trace, final.with_suffix(".json"))])
         if old_status == "ok":
             for old in run_set(folder, f"{stem}.prev"):
@@ -512,14 +537,17 @@ def _settle_side(out_dir: Path, side: Path, data: dict, status: str, reason: str
     rows kept and :func:`place`'s note."""
     trace_name = data.get("trace") or ""
     if not isinstance(trace_name, str) or Path(trace_name).name != trace_name or trace_name.startswith(".") \
-            or Path(trace_name).suffix not in (".csv", ".parquet"):
+            or Path(trace_name).suffix not in TRACE_SUFFIXES:
         trace_name = ""  # a name read from a sidecar is data: only a plain trace name beside it counts
     final_side = final_path(side) if side.name.endswith(".part") else side
     csv_final = out_dir / trace_name if trace_name else final_side.with_suffix(".csv")
     csv_part = part_path(csv_final)
     csv_now = csv_part if csv_part.exists() else csv_final
     rows = 0
-    if csv_now.exists() and csv_final.suffix == ".csv":  # a Parquet trace without its footer stays as it is
+    columns = data.get("columns")
+    if csv_now.exists() and csv_final.suffix == ".npy" and isinstance(columns, list) and columns:
+        rows = trim_npy(csv_now, len(columns))
+    elif csv_now.exists() and csv_final.suffix == ".csv":  # a Parquet trace without its footer stays as it is
         trim_to_whole_rows(csv_now)
         with os.fdopen(os.open(csv_now, os.O_RDONLY | os.O_NOFOLLOW), "rb") as fh:
             commented = fh.read(1) == b"#"

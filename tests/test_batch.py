@@ -13,6 +13,7 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from cosim.batch import load_batch, run_batch
@@ -45,8 +46,11 @@ def write(tmp_path: Path, text: str, name: str = "b.yaml") -> Path:
     return p
 
 
-def data_lines(path: Path) -> list[str]:
-    """The CSV rows of a trace (its comment lines carry times and dates)."""
+def data_lines(path: Path) -> list:
+    """The rows of a trace: a CSV's lines (its comment lines carry times and dates), an ``.npy``
+    trace's bytes after its header (numpy.load reads its header independently)."""
+    if path.suffix == ".npy":
+        return [np.load(path).tobytes()]
     return [ln for ln in path.read_text().splitlines() if not ln.startswith("#")]
 
 
@@ -72,7 +76,7 @@ def test_grid_on_local_processes_and_dask_agree(local_grid, tmp_path, dask_sched
     assert {r["Kp"] for r in a.values()} == {20, 30, 40, 50} and all(r["steps"] == 200 for r in a.values())
     for rid in a:
         ta, tb = run_trace_path(out, rid), run_trace_path(tmp_path / "dask", rid)
-        assert ta.name == tb.name == "pid_step.csv"
+        assert ta.name == tb.name == "pid_step.npy"  # the batch default
         assert data_lines(ta) == data_lines(tb)
         assert (ta.parent / "pid_step.json").is_file() and (tb.parent / "pid_step.json").is_file()
 
@@ -136,8 +140,8 @@ metrics:
     assert bad["outcome"] == "failed" and bad["mech.platform.phi:max"] is None
     assert "pid1 returned DISCARD" in bad["reason"] and "the state became non-finite" in bad["reason"]
     assert bad["steps"] == 124  # t = 1.24 s
-    partial = data_lines(run_trace_path(tmp_path / "out", bad["run_id"]))
-    assert len(partial) - 1 == 125  # header, then t = 0 .. 1.24 s
+    partial = np.load(run_trace_path(tmp_path / "out", bad["run_id"]))
+    assert len(partial) == 125 and partial[-1, 0] == pytest.approx(1.24)  # t = 0 .. 1.24 s
     assert by_step[1e-3]["outcome"] == "ok" and by_step[1e-3]["steps"] == 1500
     # at 2 ms (twice the derivative filter's 1 ms) RK4 is stable but far off: the run's own error
     # estimate ends it "unstable" after its whole span (against the monolithic reference its
@@ -224,9 +228,11 @@ grid:
     plain = run(SCENE, ["stop_time=0.05", "components.pid1.options.integrator=rk4", "master.algorithm=gauss_seidel",
                          "master.tolerance=none"],
                 out_dir=tmp_path / "plain")
-    rk4 = data_lines(run_trace_path(tmp_path / "out", by_kernel["rk4"]["run_id"]))
-    exact = data_lines(run_trace_path(tmp_path / "out", by_kernel["exact"]["run_id"]))
-    assert rk4 == data_lines(plain.trace_path) and rk4 != exact
+    from cosim.trace.traces import read_trace
+
+    rk4 = read_trace(run_trace_path(tmp_path / "out", by_kernel["rk4"]["run_id"])).data.tobytes()
+    exact = read_trace(run_trace_path(tmp_path / "out", by_kernel["exact"]["run_id"])).data.tobytes()
+    assert rk4 == read_trace(plain.trace_path).data.tobytes() and rk4 != exact  # .npy against the plain run's CSV
 
 
 def test_a_worker_killed_mid_run_is_replaced_and_the_run_completes(tmp_path):
@@ -333,3 +339,36 @@ metrics:
     a = {r["index"]: (r["run_id"], r["m_p"], r["b"], r["mech.platform.phi:max"]) for r in one.rows}
     b = {r["index"]: (r["run_id"], r["m_p"], r["b"], r["mech.platform.phi:max"]) for r in two.rows}
     assert a == b and len(a) == 4 and len({v[1] for v in a.values()}) == 4
+
+
+def test_a_batchs_npy_traces_read_back_bit_for_bit_equal_to_its_csv_traces(tmp_path):
+    """The default (``.npy``) and ``--format csv`` batches of the same grid: every run's trace read
+    back the same to the bit (the CSV's shortest round-trip text against float64 bytes), the
+    ``.npy`` also as NumPy itself reads it with the column names of the sidecar (the documented
+    pandas recipe), and the same results table."""
+    import json
+
+    import pandas as pd
+
+    from cosim.trace.traces import read_trace
+
+    text = GRID24.replace("values: [20, 30, 40, 50]", "values: [20, 40]").replace("values: [10, 20, 30]", "values: [10]")
+    path = write(tmp_path, text)
+    assert main(["batch", str(path), "--workers", "1", "--out", str(tmp_path / "npy"), "--no-plots"]) == 0
+    assert main(["batch", str(path), "--workers", "1", "--out", str(tmp_path / "csv"), "--no-plots",
+                 "--format", "csv"]) == 0
+    a, b = stable(read_rows(tmp_path / "npy" / "results.csv")[1]), stable(read_rows(tmp_path / "csv" / "results.csv")[1])
+    assert len(a) == 4 and a == b
+    for rid in a:
+        pn, pc = run_trace_path(tmp_path / "npy", rid), run_trace_path(tmp_path / "csv", rid)
+        assert (pn.name, pc.name) == ("pid_step.npy", "pid_step.csv")
+        tn, tc = read_trace(pn), read_trace(pc)
+        assert tn.columns == tc.columns and tn.data.shape == tc.data.shape == (201, len(tc.columns))
+        assert tn.data.view(np.uint64).tobytes() == tc.data.view(np.uint64).tobytes()
+        assert (tn.status, tn.stats["steps_done"], tn.meta["units"]) == (tc.status, tc.stats["steps_done"], tc.meta["units"])
+        columns = json.loads(pn.with_suffix(".json").read_text())["columns"]
+        df = pd.DataFrame(np.load(pn), columns=columns)
+        pd.testing.assert_frame_equal(df, pd.read_csv(pc), check_exact=True)
+    # compare OUT/ REF reads the batch's .npy traces against a CSV one
+    ref = run_trace_path(tmp_path / "csv", next(iter(a)))
+    assert main(["compare", str(tmp_path / "npy"), str(ref), "--only", "mech.platform.*"]) == 0

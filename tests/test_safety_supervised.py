@@ -14,6 +14,7 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from cosim.run.execute import run
@@ -45,13 +46,15 @@ def data_rows(path: Path) -> int:
 def assert_settled(out: Path, status: str, reason: str) -> dict:
     side = json.loads((out / "hostile.json").read_text())
     assert side["status"] == status and reason in side["reason"], side["reason"]
-    assert side["rows"] == data_rows(out / "hostile.csv")
-    trace = read_trace(out / "hostile.csv")
+    path = out / side["trace"]  # hostile.csv of a run, hostile.npy of a batch (its default)
+    # the rows kept, counted independently: a CSV's lines, NumPy's reading of the .npy's header
+    assert side["rows"] == (data_rows(path) if path.suffix == ".csv" else len(np.load(path)))
+    trace = read_trace(path)
     assert trace.status == status and len(trace.data) == side["rows"]
     if len(trace.data):  # every kept row is a whole row of the right width, times on the 1 ms grid
         assert trace.data.shape[1] == 3
         assert abs(trace.time[-1] - (len(trace.data) - 1) * 1e-3) < 1e-12
-    assert sorted(p.name for p in out.iterdir()) == ["hostile.csv", "hostile.json"]  # no .part, no lock
+    assert sorted(p.name for p in out.iterdir()) == sorted([path.name, "hostile.json"])  # no .part, no lock
     return side
 
 
@@ -167,8 +170,8 @@ def test_a_batch_run_that_crashes_or_hangs_is_its_row_and_the_others_run(tmp_pat
         assert float(rows[str(tau)]["a.y:max"]) == pytest.approx(1 - (1 - 1e-3 / tau) ** 500, rel=1e-9)
     crashed = out / "runs" / rows["0.2"]["run_id"]
     side = json.loads((crashed / "hostile.json").read_text())
-    assert side["status"] == "crashed" and side["rows"] == data_rows(crashed / "hostile.csv")
-    assert sorted(p.name for p in crashed.iterdir()) == ["hostile.csv", "hostile.json"]
+    assert side["status"] == "crashed" and side["rows"] == len(np.load(crashed / "hostile.npy"))  # the batch default
+    assert sorted(p.name for p in crashed.iterdir()) == ["hostile.json", "hostile.npy"]
     res = cli(["batch", spec, "--out", tmp_path / "hung", "--workers", "2"],
               {"RPR_HOSTILE": "doStep@100:hang_noterm/0.3", "RPR_COSIM_CALL_TIMEOUT": "1"})
     assert res.returncode == 0, res.stderr

@@ -55,7 +55,7 @@ def test_error_at_irregular_instants_equals_interpolating_a_fine_reference(two_m
     (two CVODES solutions at rtol 1e-10 on different output grids differ by ~1e-9, the errors are
     ~1e-5 of ranges ~1; the fine reference's interpolation error is ~1e-10)."""
     row = _rows(two_mass_study, "adaptive")[1]
-    trace = read_trace(two_mass_study.out / "runs" / row.run_id / "two_mass.csv")
+    trace = read_trace(two_mass_study.out / "runs" / row.run_id / "two_mass.npy")
     assert len(np.unique(np.round(np.diff(trace.time), 12))) > 10  # irregular instants
     fine = reference(TWO_MASS, {"stop_time": STOP, "master.step": 1e-5, "master.output_interval": 1e-5}).trace
     grid = reference(TWO_MASS, {"stop_time": STOP, "master.step": two_mass_study.record,
@@ -117,7 +117,7 @@ def test_cli_study_resumes_in_its_output_directory(tmp_path, capsys):
     first = capsys.readouterr()
     assert "adaptive/linear" in first.out and "rtol 1e-02" in first.out and "slope of error over rtol" in first.out
     assert len((tmp_path / "two_mass_precision.csv").read_text().splitlines()) == 4
-    traces = sorted((tmp_path / "runs").glob("*/two_mass.csv"))
+    traces = sorted((tmp_path / "runs").glob("*/two_mass.npy"))
     assert len(traces) == 3
     written = [p.stat().st_mtime_ns for p in traces]
     assert main(argv) == 0

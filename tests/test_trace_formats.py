@@ -28,7 +28,7 @@ def runs(tmp_path_factory):
     """The same run written in each format: {format: RunResult}."""
     base = tmp_path_factory.mktemp("formats")
     return {fmt: run(SCENE, SHORT, out_dir=base / fmt, trace_format=fmt)
-            for fmt in ("csv", "parquet", "commented-csv")}
+            for fmt in ("csv", "parquet", "commented-csv", "npy")}
 
 
 def test_a_plain_trace_opens_with_pandas_and_no_options_and_equals_the_parquet_form(runs):
@@ -70,9 +70,41 @@ def test_read_trace_gives_the_same_trace_from_every_format(runs):
     assert runs["commented-csv"].trace_path.read_text().startswith("# rpr-cosim trace 1")
 
 
+def test_an_npy_trace_is_what_numpy_reads_with_the_sidecars_columns_bit_for_bit(runs):
+    res, plain = runs["npy"], runs["csv"]
+    assert res.trace_path.suffix == ".npy"
+    arr = np.load(res.trace_path)  # NumPy's own reader, not ours
+    side = json.loads(res.trace_path.with_suffix(".json").read_text())
+    assert arr.dtype == np.float64 and arr.shape == (301, len(side["columns"])) and side["rows"] == 301
+    df = pd.DataFrame(arr, columns=side["columns"])
+    pd.testing.assert_frame_equal(df, pd.read_csv(plain.trace_path), check_exact=True)
+    assert arr.view(np.uint64).tobytes() == read_trace(plain.trace_path).data.view(np.uint64).tobytes()
+
+
+def test_an_npy_trace_cut_by_a_dead_run_keeps_its_whole_rows(tmp_path):
+    """A writer that never finished (its process died) with half a row at the end: reading
+    settles it as killed, cut to whole rows with their count in the header."""
+    from cosim.trace.traces import NpyTrace
+
+    rows = np.arange(40, dtype=float).reshape(10, 4) / 7
+    w = NpyTrace(tmp_path / "t.npy")
+    w.start(["time", "a", "b", "c"], {})
+    w.record(rows)
+    with open(w.part, "ab") as fh:
+        fh.write(b"\x01" * 12)  # a row cut short
+    from cosim.outputs import settle_stale
+
+    assert "10 whole rows kept" in settle_stale(tmp_path)[0]  # what a later run in this directory does
+    tr = read_trace(tmp_path / "t.npy")
+    assert tr.status == "killed" and tr.columns == ["time", "a", "b", "c"]
+    np.testing.assert_array_equal(tr.data, rows)
+    np.testing.assert_array_equal(np.load(tmp_path / "t.npy"), rows)
+
+
 def test_compare_reads_every_format(runs, capsys):
-    a, b, c = (str(runs[f].trace_path) for f in ("parquet", "csv", "commented-csv"))
+    a, b, c, d = (str(runs[f].trace_path) for f in ("parquet", "csv", "commented-csv", "npy"))
     assert main(["compare", a, b, "--tol", "1e-12"]) == 0
+    assert main(["compare", d, b, "--tol", "1e-12"]) == 0
     assert main(["compare", c, a, "--tol", "1e-12"]) == 0
     out = capsys.readouterr().out
     assert "mech.platform.phi" in out

@@ -474,7 +474,7 @@ def run_report_from_files(trace_path: Path, path: Path | None = None, *, referen
     trace_path = Path(trace_path)
     trace = read_trace(trace_path)
     if reference is None:
-        for suffix in (".csv", ".parquet"):
+        for suffix in (".csv", ".parquet", ".npy"):
             cand = trace_path.with_name(f"{trace_path.stem}_reference{suffix}")
             if cand.is_file():
                 reference = cand

@@ -305,7 +305,7 @@ def run_trace_path(out: Path, run_id: str) -> Path | None:
     """The co-simulation trace of a run (not its reference), confined to ``out/runs``
     (:func:`run_dir`)."""
     d = run_dir(out, run_id)
-    found = sorted(p for p in (*d.glob("*.csv"), *d.glob("*.parquet"))
+    found = sorted(p for p in (*d.glob("*.csv"), *d.glob("*.parquet"), *d.glob("*.npy"))
                    if not p.stem.endswith("_reference") and not p.stem.endswith(".prev")) if d.is_dir() else []
     found = [p for p in found if not p.is_symlink() and p.resolve().parent == d.resolve()]
     return found[0] if found else None

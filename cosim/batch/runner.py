@@ -5,8 +5,8 @@ Output directory (default ``runs/<batch name>``)::
 
     results.csv           one row per finished run (:mod:`cosim.batch.results`)
     batch.json            what the batch is: file, base scene, axes, metrics, columns
-    runs/<run id>/        each run's trace <scene>.csv and sidecar <scene>.json (and
-                          <scene>_reference.csv with a monolithic reference)
+    runs/<run id>/        each run's trace <scene>.npy (``--format csv``: <scene>.csv) and sidecar
+                          <scene>.json (and <scene>_reference.npy with a monolithic reference)
     plots/                the summary's charts (:mod:`cosim.batch.report`)
 
 A run directory without a row is an unfinished attempt (the batch was interrupted while it ran);
@@ -261,7 +261,7 @@ def _write_files(run_dir: Path, files: dict[str, bytes]) -> None:
 def run_batch(batch: Batch, *, out: Path | None = None, executor=None, cache_dir: Path | None = None,
               reuse: bool = True, progress=None, log: Callable[[str], None] | None = None,
               on_start: Callable[[Task, int], None] | None = None, catalog=None,
-              trace_format: str = "csv") -> BatchOutcome:
+              trace_format: str = "npy") -> BatchOutcome:
     """Run ``batch`` into ``out`` (default ``runs/<batch name>``) on ``executor`` (default: local
     processes, one per core), resuming: runs whose rows exist are skipped.
 
@@ -270,8 +270,9 @@ def run_batch(batch: Batch, *, out: Path | None = None, executor=None, cache_dir
     :class:`cosim.batch.report.Progress` (or None); ``log`` gets one-line notes (FMU builds);
     ``on_start(task, pid)`` is called when a local worker starts a run.  A KeyboardInterrupt
     stops the workers and propagates; every finished run is in the table.  ``trace_format``:
-    each run's trace file (:data:`cosim.trace.traces.TRACE_FORMATS`); with ``"parquet"`` the
-    table is also written as ``results.parquet`` at the end.
+    each run's trace file (:data:`cosim.trace.traces.TRACE_FORMATS`; default ``"npy"``, float64
+    bytes that cost no formatting; ``"csv"`` for text); with ``"parquet"`` the table is also
+    written as ``results.parquet`` at the end.
     """
     from ..trace.traces import trace_suffix
 

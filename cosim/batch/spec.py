@@ -51,7 +51,7 @@ import numpy as np
 from ..errors import RUN_ERRORS
 from ..scenario import TOP_KEYS as SCENE_KEYS
 from ..scenario import Problem, SceneError, YList, YMap, apply_overrides, load_raw, read_yaml, suggest, validate
-from ..outputs import name_problem, stem_name
+from ..outputs import TRACE_SUFFIXES, name_problem, stem_name
 from ..scenario.loading import NO_AUTO_FIDELITY
 from ..scenario.overrides import expand_path
 from .metrics import MEASURES, NEEDS_TARGET, MetricSpec
@@ -387,7 +387,8 @@ def _reference(ck: _Checker, tree: YMap, base: Path) -> str | Path | None:
     if isinstance(node, YMap) and set(node) == {"trace"} and isinstance(node["trace"], str):
         p = base / node["trace"]
         if not p.is_file():
-            near = suggest(Path(node["trace"]).name, [q.name for q in p.parent.glob("*.csv")]) if p.parent.is_dir() else ""
+            near = suggest(Path(node["trace"]).name, [q.name for q in p.parent.glob("*") if q.suffix in TRACE_SUFFIXES]) \
+                if p.parent.is_dir() else ""
             ck.err(node.loc("trace"), f"reference trace {node['trace']!r} not found (looked in {p.parent}){near}")
             return None
         return p

@@ -32,7 +32,7 @@ from ..errors import RUN_ERRORS, UserError
 from ..scenario import Scene
 from ..scenario.guards import guard_needs
 from ..slaves.fmu import FmuSlave
-from ..trace.traces import Trace
+from ..trace.traces import Trace, trace_suffix
 from .metrics import MetricSpec, compute
 
 
@@ -50,7 +50,7 @@ class Task:
     attempt: int = 1
     blobs: dict[str, bytes] | None = None  # FMUs first needed by this run (not in Shared.blobs)
     started_at: float | None = None  # time.perf_counter() on its local worker when it started
-    trace_format: str = "csv"  # cosim.trace.traces.TRACE_FORMATS
+    trace_format: str = "npy"  # cosim.trace.traces.TRACE_FORMATS; the batch default: binary, nothing to format
 
 
 @dataclass
@@ -255,7 +255,8 @@ def settle_files(task: Task, status: str, reason: str) -> None:
     from ..outputs import safe_name, settle_if_stale, settle_run
 
     try:
-        settle_run(os.path.join(task.out_dir, f"{safe_name(task.scene.name)}.csv"), status, reason)
+        settle_run(os.path.join(task.out_dir, f"{safe_name(task.scene.name)}{trace_suffix(task.trace_format)}"),
+                   status, reason)
         settle_if_stale(task.out_dir)  # the dead process's lock file goes too
     except (OSError, UserError):  # the row says it all the same
         pass

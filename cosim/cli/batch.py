@@ -2,12 +2,14 @@
 
     rpr-cosim batch BATCH.yaml [--workers N] [--scheduler ADDRESS | --dask] [--out DIR]
                                [--sort COLUMN] [--descending] [--no-plots] [--check]
-                               [--format csv|commented-csv|parquet] [--report]
+                               [--format npy|csv|commented-csv|parquet] [--report]
 
 Runs go to local worker processes (one per core by default), to a Dask cluster at ADDRESS, or to
 a Dask LocalCluster of N workers (``--dask``).  Results: ``DIR/results.csv`` (one row per run),
 ``DIR/runs/<run id>/`` (each run's trace), ``DIR/plots/`` (default ``DIR`` = ``runs/<batch>``);
-``--format parquet`` also ``DIR/results.parquet`` and Parquet traces; ``--report`` writes
+traces are ``.npy`` (float64 rows, column names in the sidecar; nothing to format, so a run costs
+what its stepping costs), ``--format csv`` writes CSV traces, ``--format parquet`` Parquet traces
+and also ``DIR/results.parquet``; ``--report`` writes
 ``DIR/report.html`` (and each run's ``runs/<run id>/report.html``).
 Running the same command again skips the runs already in the table, so an interrupted batch
 resumes where it stopped.  A batch file with problems prints one line per problem and exits
@@ -40,7 +42,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--no-reuse", action="store_true", help="load every FMU again for each run instead of "
                                                            "resetting the instances a worker keeps")
     p.add_argument("--check", action="store_true", help="only validate the batch and list its runs")
-    add_trace_format(p, "each run's trace format (default plain csv); parquet also writes results.parquet")
+    add_trace_format(p, "each run's trace format (default npy: float64 rows, numpy.load reads them, column names "
+                        "in the sidecar; csv for text); parquet also writes results.parquet", default="npy")
     add_report(p, "also write report.html: the sortable results table and charts, each point linked to "
                   "its run's own report")
     add_cache(p)

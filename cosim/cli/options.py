@@ -13,7 +13,7 @@ from pathlib import Path
 #: ``--cache``'s help where the verb names the default.
 CACHE_HELP = "FMU cache directory (default $RPR_COSIM_CACHE or ~/.cache/rpr-cosim/fmus)"
 #: The trace file formats a run writes (:mod:`cosim.trace`).
-TRACE_FORMATS = ["csv", "commented-csv", "parquet"]
+TRACE_FORMATS = ["csv", "commented-csv", "parquet", "npy"]
 
 Handler = Callable[[argparse.Namespace], int]
 
@@ -56,9 +56,9 @@ def add_cache(p: argparse.ArgumentParser, help: str = CACHE_HELP) -> None:
     p.add_argument("--cache", type=Path, help=help)
 
 
-def add_trace_format(p: argparse.ArgumentParser, help: str) -> None:
-    """``--format`` of the trace files, into ``args.trace_format`` (default csv)."""
-    p.add_argument("--format", dest="trace_format", choices=TRACE_FORMATS, default="csv", help=help)
+def add_trace_format(p: argparse.ArgumentParser, help: str, default: str = "csv") -> None:
+    """``--format`` of the trace files, into ``args.trace_format``."""
+    p.add_argument("--format", dest="trace_format", choices=TRACE_FORMATS, default=default, help=help)
 
 
 def add_report(p: argparse.ArgumentParser, help: str) -> None:

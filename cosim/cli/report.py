@@ -37,7 +37,7 @@ def _report(args: argparse.Namespace) -> int:
 
 
 def _traces_in(d: Path) -> list[Path]:
-    return sorted(p for p in (*d.glob("*.csv"), *d.glob("*.parquet"))
+    return sorted(p for p in (*d.glob("*.csv"), *d.glob("*.parquet"), *d.glob("*.npy"))
                   if not p.stem.endswith("_reference") and not p.stem.endswith(".prev") and _is_trace(p))
 
 

@@ -1,7 +1,7 @@
 """``rpr-cosim run``: run a scene and report.
 
     rpr-cosim run SCENE.yaml [--set PATH=VALUE ...] [--out DIR] [--plot] [--animate] [--check]
-                             [--format csv|commented-csv|parquet] [--report]
+                             [--format csv|commented-csv|parquet|npy] [--report]
 
 The trace streams to ``DIR/<scene>.csv`` (default ``DIR`` = ``runs/<scene>``; a plain CSV, or
 ``<scene>.parquet``) with a sidecar ``<scene>.json``; ``--report`` writes ``<scene>.html``; a progress bar goes to stderr for long runs and a summary table (per-slave
@@ -34,7 +34,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "co-simulation's error against it (catalog components only)")
     p.add_argument("--check", action="store_true", help="only validate the scene and print what it contains")
     add_trace_format(p, "trace file format: a plain CSV (default), a CSV with the metadata in '# key: value' "
-                        "comment lines, or Parquet (<scene>.parquet, metadata in its schema)")
+                        "comment lines, Parquet (<scene>.parquet, metadata in its schema) or NumPy (<scene>.npy, "
+                        "float64 rows, column names in the sidecar)")
     add_report(p, "also write <scene>.html: an interactive report (plots, animation, statistics) that opens "
                   "offline in a browser")
     p.add_argument("--engine", choices=["auto", "compiled", "python"], help="override master.engine")
@@ -105,6 +106,7 @@ def _load_and_run(args: argparse.Namespace) -> int:
 def _run_locked(args: argparse.Namespace, scene, out: Path) -> int:
     from ..run.execute import run
     from ..run.progress import progress_bar
+    from ..trace.traces import trace_suffix
 
     try:
         res = run(scene, out_dir=out, cache_dir=args.cache, engine=args.engine, progress=progress_bar(),
@@ -112,7 +114,7 @@ def _run_locked(args: argparse.Namespace, scene, out: Path) -> int:
                   max_trace_bytes=args.max_trace, trace_format=args.trace_format, call_timeout=args.call_timeout)
     except KeyboardInterrupt as exc:
         say(f"rpr-cosim run: {interrupted(exc)}; the partial trace and the reason "
-            f"are in {out / (scene.name + ('.parquet' if args.trace_format == 'parquet' else '.csv'))}")
+            f"are in {out / (scene.name + trace_suffix(args.trace_format))}")
         raise
     _summary(res)
     _products(args, scene, res, out)

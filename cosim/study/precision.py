@@ -434,7 +434,7 @@ def _measure(row: PrecisionRow, result: dict | None, out: Path, name: str, scene
     row.status, row.reason, row.run_id = result["outcome"], result["reason"] or "", result["run_id"]
     from ..batch.report import run_trace_path
 
-    path = run_trace_path(out, row.run_id) or out / "runs" / row.run_id / f"{safe_name(name)}.csv"
+    path = run_trace_path(out, row.run_id) or out / "runs" / row.run_id / f"{safe_name(name)}.npy"
     stats = {}
     sidecar = path.with_suffix(".json")
     if sidecar.is_file():

@@ -5,7 +5,7 @@ An observer (:class:`cosim.trace.observer.Observer`) gets ``start(columns, meta)
 variables named ``component.variable``), then ``finish(status, reason, stats)`` exactly once, also
 after a failure or an interrupt.
 
-Trace files come in three formats (:data:`TRACE_FORMATS`), all streamed as the run goes, with a
+Trace files come in four formats (:data:`TRACE_FORMATS`), all streamed as the run goes, with a
 sidecar ``<name>.json`` holding the metadata (scene hash, algorithm, step, package versions, the
 scene's units) and, rewritten at the end, the outcome (status, reason, statistics), so an
 interrupted or failed run leaves its partial trace and the reason on disk:
@@ -18,6 +18,10 @@ interrupted or failed run leaves its partial trace and the reason on disk:
   ``# text: [t, "component.variable", "value"]`` among the rows (the format of earlier versions).
 - ``parquet`` (:class:`ParquetTrace`, pyarrow): one float64 column per variable, written by row
   groups, the metadata and the outcome in the Parquet schema's key-value metadata.
+- ``npy`` (:class:`NpyTrace`, the batch default): the rows as they are recorded, float64 bytes
+  after a NumPy ``.npy`` header (``numpy.load(path)`` gives the array, column 0 time [s]), the
+  column names under ``"columns"`` of the sidecar; no text to format, so a run costs what
+  its stepping costs (benchmarks/bench_batch.py).
 
 :func:`read_trace` reads every one of them back (and CSVs from other tools).
 """
@@ -43,7 +47,9 @@ from ..errors import UserError
 
 FORMAT = "rpr-cosim trace 1"
 #: The trace file formats a run can write (see the module docstring); the first is the default.
-TRACE_FORMATS = ("csv", "commented-csv", "parquet")
+TRACE_FORMATS = ("csv", "commented-csv", "parquet", "npy")
+#: File suffix of each trace format.
+_SUFFIX = {"csv": ".csv", "commented-csv": ".csv", "parquet": ".parquet", "npy": ".npy"}
 #: Key of the rpr-cosim metadata in a Parquet trace's schema (JSON); the outcome is under
 #: ``PARQUET_OUTCOME_KEY``, added when the run ends.
 PARQUET_META_KEY = b"rpr-cosim"
@@ -54,7 +60,7 @@ def trace_suffix(fmt: str) -> str:
     """The file suffix of a trace written in ``fmt`` (one of :data:`TRACE_FORMATS`)."""
     if fmt not in TRACE_FORMATS:
         raise UserError(f"trace format {fmt!r}: expected one of {', '.join(TRACE_FORMATS)}")
-    return ".parquet" if fmt == "parquet" else ".csv"
+    return _SUFFIX[fmt]
 
 
 def trace_writer(path: Path, fmt: str = "csv", **kwargs) -> "CsvTrace":
@@ -62,6 +68,8 @@ def trace_writer(path: Path, fmt: str = "csv", **kwargs) -> "CsvTrace":
     trace_suffix(fmt)
     if fmt == "parquet":
         return ParquetTrace(path, **kwargs)
+    if fmt == "npy":
+        return NpyTrace(path, **kwargs)
     return CsvTrace(path, commented=fmt == "commented-csv", **kwargs)
 
 
@@ -521,6 +529,82 @@ class ParquetTrace(CsvTrace):
         self._finish_sidecar(status, reason, rows, stats)
 
 
+class NpyTrace(CsvTrace):
+    """Writes the rows to ``path`` as a NumPy ``.npy`` file: a header of
+    :data:`cosim.outputs.NPY_HEADER_BYTES` bytes (format 1.0, ``<f8``, C order, the shape
+    ``(rows, columns)``), then each recorded row's float64 values, little-endian, column 0 time
+    [s].  The column names are the sidecar's ``"columns"`` (with the metadata and outcome, as for
+    a plain CSV); String and Binary values go to the sidecar's ``"text"``.
+
+    The rows are written as they come, in the caller's thread (copying bytes, nothing to format).
+    The header says 0 rows until :meth:`finish` writes the count over it; a run killed before
+    that leaves whole rows that :func:`read_trace` reads by the file's size, and that
+    :mod:`cosim.outputs` (settling a dead run) counts into the header.  Temporary names, placing
+    and the sidecar are :class:`CsvTrace`'s."""
+
+    def __init__(self, path: Path, **kwargs) -> None:
+        kwargs.pop("commented", None)
+        super().__init__(path, **kwargs)
+
+    def start(self, columns, meta) -> None:
+        from ..outputs import create_new, npy_header
+
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self.meta = dict(meta, format=FORMAT, versions=package_versions(),
+                         started=time.strftime("%Y-%m-%dT%H:%M:%S%z"), trace=self.path.name)
+        self.columns = list(columns)
+        self.extra["columns"] = self.columns  # in every sidecar written, the final one too
+        self._fd = create_new(self.part)
+        try:
+            self._write(npy_header(0, len(self.columns)))
+            self._write_sidecar({"status": "running", "reason": "", "pid": os.getpid()}, reserve=True)
+        except OSError as exc:
+            os.close(self._fd)
+            self._fd = None
+            self.part.unlink(missing_ok=True)
+            self.sidecar_part.unlink(missing_ok=True)
+            raise TraceWriteError(f"cannot write the trace {self.path}: {exc.strerror or exc}") from None
+        self._inline = True
+
+    def record(self, rows) -> None:
+        from ..interrupts import deferred
+
+        self._raise_if_failed()
+        if not len(rows) or self._error is not None:
+            return
+        block = np.ascontiguousarray(rows, dtype="<f8")
+        try:
+            with deferred():  # whole rows, or cut back to the last one
+                self._write(block.tobytes())
+            self.rows += len(block)
+        except BaseException as exc:
+            self._error = exc
+        self._raise_if_failed()
+
+    def _count_rows(self) -> int:
+        from ..outputs import NPY_HEADER_BYTES
+
+        return max(0, self.part.stat().st_size - NPY_HEADER_BYTES) // (8 * len(self.columns))
+
+    def _finish(self, status, reason, stats) -> None:
+        if self._fd is None:
+            return
+        from ..outputs import npy_header
+
+        rows = self.rows
+        if self._error is not None:
+            rows = self._count_rows()
+            status, reason, stats = self._failed(status, reason, stats, f" ({rows} whole rows kept)")
+        self.status, self.reason = status, reason
+        try:
+            os.pwrite(self._fd, npy_header(rows, len(self.columns)), 0)
+        except OSError:
+            pass  # the header keeps 0 rows: read_trace counts the whole rows by the file's size
+        os.close(self._fd)
+        self._fd = None
+        self._finish_sidecar(status, reason, rows, stats)
+
+
 #: Sidecar keys that are the outcome or bookkeeping, not metadata of the trace.
 _SIDECAR_OUTCOME = ("status", "reason", "rows", "statistics", "text", "pid", "columns", "scene_data")
 
@@ -575,7 +659,7 @@ def read_trace(path: Path) -> Trace:
             pass
         return _read_parquet(path)
     with open_regular(path, "trace", env=TRACE_ENV) as fh:
-        columns, data, meta, text = _read_csv(fh, path)
+        columns, data, meta, text = _read_npy(fh, path) if path.suffix == ".npy" else _read_csv(fh, path)
     if not meta:  # a plain CSV: its metadata and outcome are in the sidecar, when there is one
         side = _sidecar(path)
         if side.get("trace") == path.name or side.get("format") == FORMAT:
@@ -730,6 +814,31 @@ def _row(raw: bytes, lineno: int, n: int, path: Path) -> list[float]:
     if len(row) != n:
         raise UserError(f"{path}:{lineno}: expected {n} numbers separated by commas")
     return row
+
+
+def _read_npy(fh, path: Path) -> tuple[list[str], np.ndarray, dict, dict]:
+    """An ``.npy`` trace (:class:`NpyTrace`): the array and the column names of its sidecar
+    (metadata and outcome are read from the sidecar by :func:`read_trace`).  Whole rows after the
+    header are read, also when the header's count is short (a run that died)."""
+    from numpy.lib import format as npf
+
+    side = _sidecar(path)
+    columns = side.get("columns")
+    if not (isinstance(columns, list) and columns and all(isinstance(c, str) for c in columns)):
+        raise UserError(f"{path}: an .npy trace needs its sidecar {path.with_suffix('.json').name} with the "
+                        f"column names under \"columns\" (a list of strings)")
+    try:
+        version = npf.read_magic(fh)
+        shape, fortran, dtype = (npf.read_array_header_1_0 if version == (1, 0) else npf.read_array_header_2_0)(fh)
+    except ValueError as exc:
+        raise UserError(f"{path}: not a readable .npy file ({exc})") from None
+    if dtype != np.dtype("<f8") or fortran or len(shape) != 2 or shape[1] != len(columns):
+        raise UserError(f"{path}: expected a 2-D little-endian float64 array in C order with {len(columns)} "
+                        f"columns (the sidecar's), found {dtype.str} {'Fortran' if fortran else 'C'} order shape {shape}")
+    offset = fh.tell()
+    rows = (os.fstat(fh.fileno()).st_size - offset) // (8 * len(columns))
+    data = np.fromfile(fh, dtype="<f8", count=rows * len(columns)).reshape(rows, len(columns))
+    return list(columns), data.astype(float, copy=False), {}, {}
 
 
 def _read_parquet(path: Path) -> Trace:
