@@ -1,4 +1,4 @@
-// The thesis's DC motor with rack and pinion (SPEC §6, Table 6.7) assembled from classes of the
+// The thesis's DC motor with rack and pinion (docs/explanation/thesis.md §6, Table 6.7) assembled from classes of the
 // Modelica Standard Library 4.1.0: the armature circuit from Modelica.Electrical.Analog, the
 // rotor's viscous friction and the rack and pinion from Modelica.Mechanics.Rotational.  The same
 // parameters as models/blocks/motor.py (fidelity "full", rotor "lumped"): inertia-free, its
