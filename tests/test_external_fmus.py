@@ -768,8 +768,8 @@ def test_a_batch_loads_external_fmus_anew_for_each_run(data, tmp_path):
     batch = points_batch(scene, [({"stop": t}, {"master.estimate": False, "stop_time": t}) for t in (0.05, 0.06, 0.07)],
                          name="same3")
     outcome = run_batch(batch, out=tmp_path / "b", executor=LocalExecutor(workers=1))
-    traces = sorted((tmp_path / "b").rglob("*.csv"))
-    traces = [read_trace(p) for p in traces if p.name != "results.csv"]
+    traces = sorted((tmp_path / "b").rglob("*.npy"))  # a batch's traces (its default format)
+    traces = [read_trace(p) for p in traces]
     assert len(traces) == 3 and outcome is not None
     n = min(len(t.data) for t in traces)
     for t in traces[1:]:
