@@ -222,3 +222,15 @@ def test_odd_yaml_is_one_line_not_a_traceback(tmp_path, text, message):
         with pytest.raises((SceneError, BatchError)) as err:
             load(path) if kind == "scene" else load_batch(path)
         assert message in str(err.value), str(err.value)
+
+
+@pytest.mark.parametrize("raw", ["many", "0", "-3", "1e999"])
+def test_a_run_limit_that_is_no_whole_number_is_one_line(tmp_path, monkeypatch, capsys, raw):
+    """A malformed $RPR_COSIM_MAX_RUNS is the user's mistake: one line naming it, exit 2."""
+    from cosim.cli import main
+
+    path = batch_file(tmp_path, "grid:\n  stop_time: [1, 2, 3]\n")
+    monkeypatch.setenv("RPR_COSIM_MAX_RUNS", raw)
+    assert main(["batch", str(path), "--out", str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err and "$RPR_COSIM_MAX_RUNS: expected a whole number of runs" in err[-1] and "Traceback" not in "\n".join(err)

@@ -48,7 +48,7 @@ from typing import Any
 
 import numpy as np
 
-from ..errors import RUN_ERRORS
+from ..errors import RUN_ERRORS, UserError
 from ..scenario import TOP_KEYS as SCENE_KEYS
 from ..scenario import Problem, SceneError, YList, YMap, apply_overrides, load_raw, read_yaml, suggest, validate
 from ..outputs import TRACE_SUFFIXES, name_problem, stem_name
