@@ -1,7 +1,8 @@
 """Command-line entry point ``rpr-cosim`` (also ``python -m cosim``).
 
-Each verb lives in its own module exposing ``register(subparsers)``; the verb's handler takes the
-parsed arguments and returns an exit code.  A user mistake raises :class:`UserError` (or one of
+Every verb's arguments are declared in :mod:`cosim.cli.grammar`; its handler lives in a module of
+its own (``run_verb``, ``fmu_verb``...), imported only when the verb runs, and takes the parsed
+arguments and returns an exit code.  A user mistake raises :class:`UserError` (or one of
 the domain errors of :func:`cosim.errors.user_error_types`) and is printed as one line, never as
 a traceback.
 Options that several verbs share are declared once in :mod:`cosim.cli.options`; what the verbs
@@ -13,15 +14,11 @@ from __future__ import annotations
 import argparse
 import importlib
 import sys
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 
 from ..errors import user_error_types
+from .grammar import add_verbs
 from .verb import interrupted
-
-#: Modules that contribute verbs, in the order they appear in ``--help``.
-VERB_MODULES = ("cosim.cli.analyze", "cosim.cli.fmu", "cosim.cli.run", "cosim.cli.compare", "cosim.cli.fit",
-                "cosim.cli.study", "cosim.cli.ssp", "cosim.cli.board", "cosim.cli.batch", "cosim.cli.report",
-                "cosim.cli.design", "cosim.cli.task")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -29,15 +26,15 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--version", action="version", version=f"rpr-cosim {version()}")
     sub = parser.add_subparsers(dest="verb", metavar="VERB")
     sub.required = True
-    for name in VERB_MODULES:
-        try:
-            mod = importlib.import_module(name)
-        except ModuleNotFoundError as exc:
-            if exc.name == name:
-                continue  # verb not installed in this build
-            raise
-        mod.register(sub)
+    add_verbs(sub)
     return parser
+
+
+def handler(name: str) -> Callable[[argparse.Namespace], int]:
+    """The verb handler ``name`` (``"run_verb:_run"``), its module imported now: a verb loads
+    only what it runs."""
+    module, _, function = name.partition(":")
+    return getattr(importlib.import_module(f"{__name__}.{module}"), function)
 
 
 def version() -> str:
@@ -63,7 +60,7 @@ def main(argv: Sequence[str] | None = None) -> int:
 
     try:
         with signals_as_interrupts():
-            return int(args.handler(args) or 0)
+            return int(handler(args.handler)(args) or 0)
     except KeyboardInterrupt as exc:
         print(f"rpr-cosim: {interrupted(exc)}", file=sys.stderr)
         return exit_code(exc)

@@ -7,7 +7,6 @@ where the meaning differs from one verb to another.
 from __future__ import annotations
 
 import argparse
-from collections.abc import Callable
 from pathlib import Path
 
 #: ``--cache``'s help where the verb names the default.
@@ -15,7 +14,9 @@ CACHE_HELP = "FMU cache directory (default $RPR_COSIM_CACHE or ~/.cache/rpr-cosi
 #: The trace file formats a run writes (:mod:`cosim.trace`).
 TRACE_FORMATS = ["csv", "commented-csv", "parquet", "npy"]
 
-Handler = Callable[[argparse.Namespace], int]
+#: A verb's handler, ``"<module>:<function>"`` of :mod:`cosim.cli` (``"run_verb:_run"``), taking the
+#: parsed arguments and returning an exit code; imported when the verb runs (:func:`cosim.cli.handler`).
+Handler = str
 
 
 def add_actions(sub: argparse._SubParsersAction, name: str, dest: str, metavar: str = "ACTION",
@@ -29,8 +30,8 @@ def add_actions(sub: argparse._SubParsersAction, name: str, dest: str, metavar: 
 
 
 def add_verb(sub: argparse._SubParsersAction, name: str, handler: Handler, **kw: str) -> argparse.ArgumentParser:
-    """The verb (or sub-action) ``name`` run by ``handler(args) -> exit code``; ``kw`` are its
-    ``help`` and ``description``."""
+    """The verb (or sub-action) ``name`` run by ``handler`` (``"run_verb:_run"``: ``_run(args) -> exit
+    code`` of :mod:`cosim.cli.run_verb`); ``kw`` are its ``help`` and ``description``."""
     p = sub.add_parser(name, **kw)
     p.set_defaults(handler=handler)
     return p

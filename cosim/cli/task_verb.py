@@ -17,21 +17,6 @@ import sys
 from pathlib import Path
 
 from ..errors import UserError
-from .options import add_actions, add_verb
-
-
-def register(sub: argparse._SubParsersAction) -> None:
-    actions = add_actions(sub, "task", "task_action", help="plan a task through waypoints and check it before it runs",
-                          description="Plan a motion through task-space waypoints (ruckig, toppra or a timed spline) "
-                                      "and check it against the workspace, singularities and the actuators.")
-    for name, handler, text in (("check", _check, "plan and check a task; exit 1 with a one-line refusal"),
-                                ("plan", _plan, "plan a task and write its samples as CSV")):
-        p = add_verb(actions, name, handler, help=text, description=text)
-        p.add_argument("task", type=Path, help="task file (YAML), e.g. scenarios/tasks/pick_and_place.yaml")
-        p.add_argument("--out", type=Path, default=None, metavar="DIR", help="output directory (default out/task)")
-        p.add_argument("--dt", default="1e-3", metavar="S", help="sampling period of the check and the CSV (default 1e-3 s)")
-        if name == "check":
-            p.add_argument("--plot", action="store_true", help="draw the path over the workspace and det J maps (PNG)")
 
 
 def _dt(text: str) -> float:

@@ -12,21 +12,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from .options import add_actions, add_cache, add_out, add_scene, add_sets, add_verb
 from .verb import load_scene, refuse, tagged
-
-
-def register(sub: argparse._SubParsersAction) -> None:
-    verbs = add_actions(sub, "ssp", "ssp_verb",
-                        help="export a scene as an SSP 1.0 archive (run one with 'run FILE.ssp')",
-                        description="Scenes as SSP 1.0 archives (System Structure and Parameterization).")
-    e = add_verb(verbs, "export", _export,
-                 help="write SCENE as FILE.ssp (FMUs, parameter set, connections, master)")
-    add_scene(e)
-    add_out(e, "archive to write (default <scene name>.ssp here)", "-o")
-    add_sets(e, "override a scene value before export; repeatable")
-    e.add_argument("--force", action="store_true", help="replace an existing archive")
-    add_cache(e)
 
 
 def _export(args: argparse.Namespace) -> int:

@@ -32,73 +32,7 @@ import argparse
 import math
 from pathlib import Path
 
-from .options import (add_actions, add_cache, add_only, add_out, add_report, add_scene, add_sets, add_tol,
-                      add_variants, add_verb)
 from .verb import load_scene, say
-
-CATALOG_SCENE_HELP = "scene file of catalog components, e.g. scenarios/pid_step.yaml"
-STUDY_CACHE_HELP = "FMU cache directory"
-
-
-def register(sub: argparse._SubParsersAction) -> None:
-    studies = add_actions(sub, "study", "study", "STUDY",
-                          help="measured studies of master algorithms (stability maps)",
-                          description="Studies that run a scene many times and chart the outcome.")
-    s = add_verb(studies, "stability", _stability,
-                 help="stable/unstable map over communication step x one scene parameter",
-                 description="Run the scene over a log grid of communication steps and values of one "
-                             "parameter, for each master algorithm variant, and chart where it is stable.")
-    add_scene(s, "scene file, e.g. scenarios/two_mass.yaml")
-    s.add_argument("--vary", required=True, metavar="PATH=LO:HI",
-                   help="scene parameter and its range (log axis), e.g. components.mass2.params.kc=1:1e4")
-    s.add_argument("--steps", default="1e-3:0.5", metavar="LO:HI", help="communication steps [s] (log axis; "
-                                                                         "default 1e-3:0.5)")
-    s.add_argument("--n", type=int, default=12, metavar="N", help="grid points per axis (default 12)")
-    add_variants(s, "algorithm variant, e.g. jacobi/hold or gauss_seidel/linear; repeatable "
-                    "(default: jacobi and gauss_seidel, hold and linear)")
-    add_out(s, "output directory (default runs/<scene>_stability)")
-    add_report(s, "also write <scene>_stability.html: the map with hover values, opening offline")
-    add_cache(s, STUDY_CACHE_HELP)
-    q = add_verb(studies, "precision", _precision,
-                 help="error against cost (work-precision) of master algorithm variants",
-                 description="Run the scene for every algorithm variant, fixed-step ones over the "
-                             "communication step and variable-step ones (adaptive, ecco) over their "
-                             "tolerance, measure each run against the scene's monolithic reference (max "
-                             "error relative to each signal's range) and its cost (wall time of the "
-                             "stepping loop, doSteps, rejected steps, rollbacks), print the table and draw "
-                             "the work-precision chart; the peer master ecospy is a point where it is "
-                             "installed.  Runs go through the batch runner: resumable in --out.")
-    add_scene(q, CATALOG_SCENE_HELP)
-    q.add_argument("--steps", metavar="H,H,...", help="communication steps [s], each halving the previous "
-                                                      "(default: 4x the scene's step down to 1/8 of it)")
-    q.add_argument("--rtols", metavar="R,R,...", help="tolerances (option rtol) of the variable-step algorithms "
-                                                      "(default: 1e-2,1e-3,1e-4,1e-5)")
-    add_variants(q, "algorithm variant, e.g. gauss_seidel/linear or adaptive; repeatable (default: every "
-                    "fixed-step algorithm with hold and linear, every variable-step one with its own linear "
-                    "inputs; a variant the scene refuses is a row with the reason)")
-    q.add_argument("--stop", type=float, metavar="T", help="simulated time per run [s] (default: the scene's)")
-    add_only(q)
-    add_sets(q, "override a scene value in every run, e.g. components.mech.rate=4 (multirate)")
-    add_tol(q, "report the cheapest run whose worst relative error is within REL (default 1e-3)")
-    q.add_argument("--workers", type=int, default=1, metavar="N",
-                   help="runs at once on local processes (default 1: the wall times are the cost measured, and "
-                        "runs sharing cores slow each other)")
-    q.add_argument("--no-peer", dest="peer", action="store_false", help="no ecospy point")
-    add_report(q, "also write <scene>_precision.html: the work-precision chart with hover values, opening offline")
-    add_out(q, "output directory, runs kept in runs/ and reused when the study is repeated (default "
-               "runs/<scene>_precision)")
-    add_cache(q, STUDY_CACHE_HELP)
-    f = add_verb(studies, "fidelity", _fidelity,
-                 help="error and cost of every fidelity combination; the cheapest within --tol",
-                 description="Run the scene with every combination of its models' fidelity levels, "
-                             "measure each against the most detailed combination and its cost, and name the "
-                             "cheapest combination within the tolerance.")
-    add_scene(f, CATALOG_SCENE_HELP)
-    add_tol(f, "largest error relative to each signal's range (default 1e-3)")
-    add_only(f)
-    add_sets(f, "override a scene value first, e.g. stop_time=1")
-    add_cache(f, STUDY_CACHE_HELP)
-
 
 def _variants(texts: list[str]) -> list[tuple[str, str]]:
     """Algorithm variants to study: fixed-step algorithms only (a variable-step one chooses its own

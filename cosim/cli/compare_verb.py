@@ -29,35 +29,7 @@ from __future__ import annotations
 
 import argparse
 import sys
-from pathlib import Path
 
-from .options import add_only, add_tol, add_verb
-
-
-def register(sub: argparse._SubParsersAction) -> None:
-    p = add_verb(sub, "compare", _compare,
-                 help="differences between two traces (e.g. co-simulation vs reference or rig)",
-                 description="Compare two rpr-cosim traces variable by variable.")
-    p.add_argument("test", type=Path, help="trace under test (CSV written by rpr-cosim), or the output directory "
-                                           "of a batch: then every run of it is compared with REFERENCE")
-    p.add_argument("reference", type=Path, help="reference trace, interpolated onto the first one's instants")
-    add_only(p, "compare only variables matching this glob, e.g. 'mech.platform.*'; repeatable", "PATTERN")
-    p.add_argument("--plot", type=Path, metavar="FILE", help="also write a PNG of the worst variables")
-    add_tol(p, "exit with code 1 when a relative error (max |diff| / range) exceeds REL", default=None)
-    p.add_argument("--most", type=int, default=None, metavar="N", help="show the N worst variables only")
-    p.add_argument("--allow-failed", action="store_true",
-                   help="compare even when a trace's run did not end 'ok' (failed, out_of_limits or unstable by a "
-                        "guard, interrupted, unfinished)")
-    p.add_argument("--allow-partial", action="store_true",
-                   help="compare even when the traces overlap over less than either trace's time span")
-    p.add_argument("--events", action="append", default=None, metavar="SIGNAL",
-                   help="an event counter or time-of-the-last-event signal: match the events, report their time "
-                        "error and measure values between events; repeatable")
-    p.add_argument("--event-tol", type=float, default=None, metavar="S",
-                   help="with --tol: the largest event-time error [s] (default: REL times the test's span)")
-    p.add_argument("--allow-different-scenes", action="store_true",
-                   help="compare even when the sidecars' scene hashes differ in what is simulated (components, "
-                        "parameters, connections, inputs); differences in the master's settings are always allowed")
 
 
 def _compare(args: argparse.Namespace) -> int:

@@ -16,34 +16,7 @@ import argparse
 from pathlib import Path
 
 from ..outputs import confined
-from .options import add_cache, add_out, add_report, add_scene, add_sets, add_trace_format, add_verb
 from .verb import interrupted, load_scene, refuse, say, tagged
-
-
-def register(sub: argparse._SubParsersAction) -> None:
-    p = add_verb(sub, "run", _run, help="run a scene (YAML) as an FMI co-simulation",
-                 description="Run a scene: build its FMUs (cached), step them with the scene's master "
-                             "algorithm, stream the trace to CSV and print a summary.")
-    add_scene(p)
-    add_sets(p, "override a scene value, e.g. master.step=5e-4 or components.pid1.params.Kp=40; repeatable")
-    add_out(p, "output directory (default runs/<scene name>)")
-    p.add_argument("--plot", action="store_true", help="also write <scene>.png with the recorded outputs")
-    p.add_argument("--animate", action="store_true", help="also write <scene>.gif of the platform and legs")
-    p.add_argument("--reference", action="store_true",
-                   help="also integrate the scene as one ODE (CVODES) into <scene>_reference.csv and report the "
-                        "co-simulation's error against it (catalog components only)")
-    p.add_argument("--check", action="store_true", help="only validate the scene and print what it contains")
-    add_trace_format(p, "trace file format: a plain CSV (default), a CSV with the metadata in '# key: value' "
-                        "comment lines, Parquet (<scene>.parquet, metadata in its schema) or NumPy (<scene>.npy, "
-                        "float64 rows, column names in the sidecar)")
-    add_report(p, "also write <scene>.html: an interactive report (plots, animation, statistics) that opens "
-                  "offline in a browser")
-    p.add_argument("--engine", choices=["auto", "compiled", "python"], help="override master.engine")
-    add_cache(p)
-    p.add_argument("--call-timeout", metavar="SECONDS", type=float, default=None,
-                   help="end the run as 'hung' when one FMI call takes longer (default $RPR_COSIM_CALL_TIMEOUT or 60)")
-    p.add_argument("--max-trace", metavar="SIZE", default=None,
-                   help="refuse a run whose trace would be larger, e.g. 20GB (default $RPR_COSIM_MAX_TRACE or 4GB)")
 
 
 def _run(args: argparse.Namespace) -> int:

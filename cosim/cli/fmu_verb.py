@@ -18,48 +18,7 @@ import sys
 from pathlib import Path
 
 from ..errors import UserError
-from .options import add_actions, add_cache, add_out, add_sets, add_verb
 from .verb import tagged
-
-
-def register(sub: argparse._SubParsersAction) -> None:
-    verbs = add_actions(sub, "fmu", "fmu_verb", help="build co-simulation FMUs and list the FMU cache",
-                        description="Build FMI 2.0/3.0 co-simulation FMUs from the model catalog, list the "
-                                    "catalog and the cache, and validate any FMU.")
-    b = add_verb(verbs, "build", _build, help="build (or fetch from the cache) one FMU",
-                 description="Build one catalog model as a co-simulation FMU: CasADi generates its C, gcc "
-                             "compiles it, and the result is cached by content (a second build of the same "
-                             "block compiles nothing; a damaged cache entry is rebuilt).  Prints the FMU's "
-                             "path on stdout.")
-    b.add_argument("model", help="catalog model, e.g. mechanism, dc_motor, pid, pose_setpoint; or a user's block: "
-                                 "FILE.mo:CLASS or FILE.py:MODEL[/FIDELITY]")
-    b.add_argument("--fidelity", help="fidelity level (default: the model's first)")
-    add_sets(b, "parameter override or construction option; repeatable", metavar="NAME=VALUE")
-    b.add_argument("--fmi", choices=["2", "3"], default="2", help="FMI version (default 2)")
-    add_out(b, "also copy the FMU into this directory")
-    add_cache(b, "cache directory (default $RPR_COSIM_CACHE or ~/.cache/rpr-cosim/fmus)")
-    ls = add_verb(verbs, "list", _list, help="show the model catalog and the cached FMUs",
-                  description="List the catalog's models with their fidelities, and every FMU in the cache "
-                              "with its FMI version, integrator, states and build time.")
-    add_cache(ls, "cache directory")
-    ck = add_verb(verbs, "check", _check, help="validate an FMU's modelDescription.xml (FMPy's checks)",
-                  description="Validate any FMU: the archive (a zip whose members stay inside it) and its "
-                              "modelDescription.xml against the FMI schema and FMPy's rules.  Prints one "
-                              "line per problem; the exit code is their number (at most 100).")
-    ck.add_argument("fmu", type=Path, help="the .fmu file")
-    ck.add_argument("--behaviour", action="store_true",
-                    help="also run the FMU (two instances, state get/set/free, the noSetFMUStatePriorToCurrentPoint "
-                         "flag, reset, determinism, directional derivatives, setters, stop time) and print each "
-                         "departure from the FMI standard, and the workarounds a run applies")
-    sh = add_verb(verbs, "show", _show, help="interface, parameters (units, defaults, bounds), states and integrator "
-                                             "of a catalog model or an FMU file")
-    sh.add_argument("what", nargs="?", help="MODEL[/FIDELITY] (e.g. pid/continuous), FILE.fmu, or a user's block: "
-                                            "FILE.mo:CLASS or FILE.py:MODEL[/FIDELITY]")
-    sh.add_argument("--markdown", nargs="?", const="-", metavar="FILE",
-                    help="write the same as a Markdown page (to FILE, default stdout)")
-    sh.add_argument("--readme", nargs="?", const="README.md", type=Path, metavar="README",
-                    help="rewrite the generated model section (between its BEGIN/END markers) of a Markdown file "
-                         "from the catalog; the documentation site's model catalog is generated at build time")
 
 
 def _blocks():

@@ -17,7 +17,6 @@ and writes a trace (:mod:`hardware.record`) to replay and fit (``rpr-cosim fit``
 """
 from __future__ import annotations
 
-import argparse
 import ctypes
 import os
 import re
@@ -30,74 +29,6 @@ import threading
 from pathlib import Path
 
 from ..errors import UserError
-from .options import add_actions, add_out, add_verb
-
-
-def register(sub: argparse._SubParsersAction) -> None:
-    verbs = add_actions(sub, "board", "board_verb",
-                        help="the rig's I/O daemon (BeagleBone), its key, its build, and the virtual board",
-                        description="Hardware in the loop: the BeagleBone I/O daemon and the virtual board.")
-    k = add_verb(verbs, "keygen", _keygen, help="make a new shared key file (owner-only permissions)")
-    k.add_argument("file", type=Path)
-    b = add_verb(verbs, "build", _build, help="write the daemon binary for this machine or the BeagleBone (armhf)")
-    _add_target(b, "host (this machine) or armhf (BeagleBone Black, statically linked; default host)")
-    add_out(b, "file to write (default ./rpr-board-TARGET)")
-    for name, handler, text in (("serve", _serve, "run the I/O daemon on the board's pins"),
-                                ("virtual", _virtual, "run the daemon on a fake sysfs tree with a simulated rig "
-                                                      "behind it")):
-        s = add_verb(verbs, name, handler, help=text)
-        s.add_argument("--key", type=Path, required=True, help="shared key file (rpr-cosim board keygen)")
-        s.add_argument("--listen", default="127.0.0.1:5005", metavar="ADDR:PORT",
-                       help="UDP address (default 127.0.0.1:5005, loopback only; port 0 picks a free one)")
-        s.add_argument("--rate", type=float, default=1000.0, metavar="HZ", help="daemon ticks per second (1000)")
-        s.add_argument("--duration", type=float, default=None, metavar="S", help="stop after S seconds")
-        s.add_argument("--rt-priority", type=int, default=0, metavar="P",
-                       help="run under SCHED_FIFO at priority P (1..99; needs root or CAP_SYS_NICE): keeps a 1 kHz "
-                            "loop on time on a busy machine")
-        s.add_argument("-v", "--verbose", action="store_true", help="log sessions and faults")
-        _add_target(s, "the daemon's build: host, or armhf under qemu-user (tests, benchmarks; default host)")
-        if name == "serve":
-            s.add_argument("--root", type=Path, default=Path("/"), help="sysfs root (default /; a fake tree in tests)")
-            s.add_argument("--gpio", default="auto", choices=("auto", "sysfs", "chardev"),
-                           help="DIR lines through the GPIO character device or sysfs (default auto: the character "
-                                "device when the board has one)")
-            s.add_argument("--travel", default=None, metavar="LO,HI",
-                           help="calibrated ends of the stroke [ADC counts] for the end and range checks")
-        else:
-            s.add_argument("--tree", type=Path, default=None, help="create the fake tree here (default: a temp dir, "
-                                                                   "removed at exit)")
-            _add_plant(s, "rig")
-            for flag, what in (("--stuck", "sensor of leg N frozen"), ("--unplug", "pot of leg N unplugged"),
-                               ("--driver-fault", "driver of leg N gives no voltage")):
-                s.add_argument(flag, type=int, action="append", default=[], metavar="N", choices=(1, 2, 3), help=what)
-
-
-    r = add_verb(verbs, "record", _record, help="record the virtual board's plant driven by a test voltage "
-                                                "(synthetic time, known true parameters): a trace to replay and fit")
-    add_out(r, "trace to write (default runs/record/rig_recording.csv)")
-    r.add_argument("--seconds", type=float, default=5.0, metavar="S", help="length of the recording (default 5 s)")
-    r.add_argument("--rate", type=float, default=1000.0, metavar="HZ", help="samples per second (default 1000)")
-    r.add_argument("--current-noise", type=float, default=0.0, metavar="A",
-                   help="noise of the motor currents (std dev [A]; fidelity motor)")
-    _add_plant(r, "motor")
-
-
-def _add_plant(s: argparse.ArgumentParser, fidelity: str) -> None:
-    """The virtual plant's options: its model, true parameters, pots, noise and latency."""
-    s.add_argument("--fidelity", default=fidelity, choices=("rig", "motor"),
-                   help=f"the actuator block: rig (first-order speed lag) or motor (a DC motor per leg; default "
-                        f"{fidelity})")
-    s.add_argument("--actuator", default="fa200", choices=("fa200", "x"), help="preset of the rig fidelity")
-    s.add_argument("--set", dest="sets", action="append", default=[], metavar="NAME=VALUE",
-                   help="a true parameter of the plant's block, e.g. R=4.8 or components.rig.params.R=4.8 "
-                        "(repeatable; rpr-cosim fmu show linear_actuator --fidelity motor lists them)")
-    s.add_argument("--calibration", action="append", default=[], metavar="LEG:ZERO:FULL",
-                   help="leg 1..3 (or 'all') pot: ADC counts at zero stroke and at 0.635 m (repeatable)")
-    s.add_argument("--start", default="0.31086,0.35586,0.20428", metavar="L1,L2,L3",
-                   help="leg lengths at the start [m] (default: Table 6.12's start pose)")
-    s.add_argument("--noise", type=float, default=0.0, metavar="COUNTS", help="ADC noise (std dev, counts)")
-    s.add_argument("--latency", type=float, default=0.0, metavar="S", help="sensor latency [s]")
-    s.add_argument("--seed", type=int, default=0, help="seed of the noise")
 
 
 def _plant_options(args, **extra):
@@ -147,11 +78,6 @@ def _record(args) -> int:
         raise UserError(str(exc)) from None
     print(f"rpr-cosim board record: {path} ({args.seconds:g} s at {args.rate:g} Hz, {args.fidelity} plant)")
     return 0
-
-
-def _add_target(p: argparse.ArgumentParser, help: str) -> None:
-    """``--target``: the daemon's build, for this machine (host) or the BeagleBone (armhf)."""
-    p.add_argument("--target", default="host", choices=("host", "armhf"), help=help)
 
 
 def _keygen(args) -> int:

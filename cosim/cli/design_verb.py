@@ -11,26 +11,8 @@ from __future__ import annotations
 
 import argparse
 import sys
-from pathlib import Path
 
 from ..errors import UserError
-from .options import add_verb
-
-
-def register(sub: argparse._SubParsersAction) -> None:
-    p = add_verb(sub, "design", run, help="the thesis's Chapter 8 design checks, from its inputs and a task's loads",
-                 description="Chapter 8's static design calculations (bearing forces, bending and equivalent moments, "
-                             "permissible stress, minimum shaft diameter, clamp force, actuator force/speed/power) "
-                             "from the thesis's inputs and from the loads of tasks (--task) or recorded runs (--trace).")
-    p.add_argument("--task", action="append", default=[], type=Path, metavar="FILE",
-                   help="a task file (see `rpr-cosim task`); repeatable")
-    p.add_argument("--trace", action="append", default=[], type=Path, metavar="FILE",
-                   help="a run's trace recording <mech>.leg[1..3].f and .s; repeatable")
-    p.add_argument("--drive", default=None, metavar="NAME",
-                   help="actuator rating to compare with: table67 (the simulated motor) or fa200 (the rig); "
-                        "default: the first task's, else table67")
-    p.add_argument("--out", type=Path, default=Path("out/design"), metavar="DIR", help="output directory (default out/design)")
-    p.add_argument("--plot", action="store_true", help="save each case's loads over time against their limits (PNG)")
 
 
 def run(args: argparse.Namespace) -> int:

@@ -20,33 +20,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from .options import add_cache, add_out, add_report, add_trace_format, add_verb
 from .verb import refuse, say, tagged
-
-
-def register(sub: argparse._SubParsersAction) -> None:
-    p = add_verb(sub, "batch", _batch, help="run a sweep or Monte Carlo batch of a scene (local processes or Dask)",
-                 description="Run every variant of a scene that a batch file describes, in parallel, "
-                             "into one results table; rerunning resumes.")
-    p.add_argument("batch", type=Path, help="batch file, e.g. scenarios/batch_pid_gains.yaml")
-    p.add_argument("--workers", type=int, metavar="N", help="worker processes (default: one per core)")
-    p.add_argument("--scheduler", metavar="ADDRESS", help="run on the Dask cluster of this scheduler, "
-                                                           "e.g. tcp://10.0.0.5:8786")
-    p.add_argument("--dask", action="store_true", help="start a Dask LocalCluster of --workers processes")
-    add_out(p, "output directory (default runs/<batch name>)")
-    p.add_argument("--sort", metavar="COLUMN", help="sort the printed table by this column (default: "
-                                                    "report.sort, or the first metric)")
-    p.add_argument("--descending", action="store_true", help="largest first")
-    p.add_argument("--most", type=int, default=20, metavar="N", help="print N rows at most (default 20)")
-    p.add_argument("--no-plots", action="store_true", help="do not write the charts")
-    p.add_argument("--no-reuse", action="store_true", help="load every FMU again for each run instead of "
-                                                           "resetting the instances a worker keeps")
-    p.add_argument("--check", action="store_true", help="only validate the batch and list its runs")
-    add_trace_format(p, "each run's trace format (default npy: float64 rows, numpy.load reads them, column names "
-                        "in the sidecar; csv for text); parquet also writes results.parquet", default="npy")
-    add_report(p, "also write report.html: the sortable results table and charts, each point linked to "
-                  "its run's own report")
-    add_cache(p)
 
 
 def _batch(args: argparse.Namespace) -> int:
@@ -125,7 +99,7 @@ def _summary(batch, res, args) -> None:
     if args.trace_format == "parquet":
         print(f"results: {res.out / 'results.parquet'}")
     if args.report and res.rows:
-        from .report import write_report
+        from .report_verb import write_report
 
         say(f"report: {write_report(res.out)}")
     if not args.no_plots and res.rows:

@@ -18,31 +18,8 @@ import time
 from pathlib import Path
 
 from ..errors import UserError
-from .options import add_verb
 
 STUDIES = ("configs", "platform-size", "all", "none")
-DEFAULT_MONTE_CARLO = 100_000
-
-
-def register(sub: argparse._SubParsersAction) -> None:
-    p = add_verb(
-        sub, "analyze", run,
-        help="workspace, singularity and DSI maps; the thesis's configuration and platform studies",
-        description="Constant-orientation workspace, det J and DSI maps (PNG), singularity curves, and the "
-                    "thesis's Table 4.5 (four configurations) and Table 4.9 (platform size) as text and CSV.")
-    p.add_argument("--config", default="cross_leg", metavar="NAME",
-                   help="design(s) to map: config1..config4, classic, cross_leg, a comma-separated list, or 'all' (default cross_leg)")
-    p.add_argument("--grid", default=None, metavar="N",
-                   help="grid side N >= 2 over [-60, 60) cm (default: the thesis's, 500 or 800 for config3; "
-                        "120 for the platform-size study)")
-    p.add_argument("--phi", default="0", metavar="RAD", help="platform orientation in rad (default 0)")
-    p.add_argument("--study", default="configs", metavar="STUDY",
-                   help="configs (Table 4.5), platform-size (Table 4.9, Figs 4.10-4.11), all, or none "
-                        "(default configs)")
-    p.add_argument("--monte-carlo", default=str(DEFAULT_MONTE_CARLO), metavar="N",
-                   help=f"Monte Carlo samples for the workspace area, 0 to skip (default {DEFAULT_MONTE_CARLO})")
-    p.add_argument("--seed", default="0", metavar="S", help="random seed of the Monte Carlo estimate (default 0)")
-    p.add_argument("--out", default="out/analysis", metavar="DIR", help="output directory (default ./out/analysis)")
 
 
 def _whole(option: str, text: str, lo: int, hi: int | None = None) -> int:

@@ -18,28 +18,7 @@ import argparse
 import json
 from pathlib import Path
 
-from .options import add_out, add_scene, add_sets, add_verb
 from .verb import refuse, say, tagged
-
-
-def register(sub: argparse._SubParsersAction) -> None:
-    p = add_verb(sub, "fit", _fit, help="estimate a scene's parameters from a recording (least squares, "
-                                        "confidence intervals), write the calibrated scene and check it",
-                 description="Fit parameters of a scene to recorded data and check the calibrated co-simulation.")
-    add_scene(p, "scene whose parameters are fitted (its recorded outputs are matched with the data's columns)")
-    p.add_argument("--data", type=Path, required=True, metavar="FILE",
-                   help="the recording: CSV or Parquet with a 'time' column [s] and the scene's output names")
-    p.add_argument("--params", required=True, metavar="LIST",
-                   help="comma-separated COMPONENT.PARAMETER names, globs allowed: 'motor*.R,rig.leg[*].raw_zero'")
-    p.add_argument("--signals", metavar="LIST", help="comma-separated signals to fit (default: every recorded "
-                                                     "output of the scene that the data has)")
-    add_sets(p, "scene override before the fit, as for run (repeatable); kept in the calibrated scene")
-    add_out(p, "output directory (default runs/<scene>_fit)")
-    p.add_argument("--max-evaluations", type=int, default=100, metavar="N", help="residual evaluations at most "
-                                                                                  "(default 100)")
-    p.add_argument("--substeps", type=int, default=None, metavar="N",
-                   help="RK4 substeps per data interval (default: from the model's fastest eigenvalue)")
-    p.add_argument("--no-check", action="store_true", help="do not run the co-simulations that check the fit")
 
 
 def _split(text: str | None) -> list[str]:

@@ -15,19 +15,6 @@ import argparse
 import re
 from pathlib import Path
 
-from .options import add_verb
-
-
-def register(sub: argparse._SubParsersAction) -> None:
-    p = add_verb(sub, "report", _report,
-                 help="write an interactive HTML report of a run, batch or study (opens offline)",
-                 description="Write one self-contained HTML file (Plotly embedded) for what a run, batch or "
-                             "study wrote: zoomable linked plots with units, the animation, the statistics; "
-                             "for a batch the sortable table and clickable charts; for a study its chart.")
-    p.add_argument("out", type=Path, help="a trace file, a run's directory, a batch's directory or a study's table")
-    p.add_argument("-o", "--output", type=Path, help="the HTML file to write (default beside what it reports)")
-    p.add_argument("--runs", action="store_true", help="for a batch, also write each run's own report (up to about 2 MB "
-                                                        "each, sharing the batch's Plotly library) and link it from the batch's")
 
 
 def _report(args: argparse.Namespace) -> int:
