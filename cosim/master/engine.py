@@ -12,12 +12,16 @@ import numpy as np
 from ..errors import UserError
 from . import adaptive_engine, fastloop, iterative_engine
 from .algorithm import Algorithm
+from .algorithms.jacobi_extrapolated import WEIGHTS
 from .native import SlaveArray, builds
 from .stepper import FixedStepper
 from .system import CoupledSystem
 
-#: :attr:`Algorithm.native_code` of the fixed-step loop's algorithms (0 Jacobi, 1 Gauss-Seidel) and of iterative
-ITERATIVE = 2
+#: :attr:`Algorithm.native_code` of the fixed-step loop's algorithms (0 Jacobi, 1 Gauss-Seidel, 3 Jacobi with
+#: extrapolated inputs) and of iterative
+ITERATIVE, EXTRAPOLATED = 2, 3
+#: jacobi_extrapolated's weights as the kernel reads them: row m for m past values (zeros after)
+WEIGHTS_3x3 = [list(w) + [0.0] * (3 - len(w)) for w in WEIGHTS]
 
 ENGINES = ("auto", "compiled", "python")
 
@@ -25,25 +29,34 @@ ENGINES = ("auto", "compiled", "python")
 @dataclass(frozen=True)
 class CompiledLoop:
     """What an algorithm's compiled loop is and needs: its library's loader (None: the algorithm
-    has none), FMU state get/set (``rollback``), a start at time 0 (``from_zero``)."""
+    has none), FMU state get/set (``rollback``), a start at time 0 (``from_zero``); ``general``:
+    it also runs transformed connections, typed variables and slaves without C entry points
+    (callback slaves, :mod:`cosim.master.callbacks`)."""
 
     algorithm: str
     library: Callable[[], ctypes.CDLL] | None
     rollback: bool = False
     from_zero: bool = False
+    general: bool = False
 
 
 def fixed_loop(cls: type[Algorithm]) -> CompiledLoop:
     """The compiled loop of the fixed-step algorithm ``cls`` (by its :attr:`native_code`)."""
-    library = None if cls.native_code is None else (
-        iterative_engine.library if cls.native_code == ITERATIVE else fastloop.library)
-    return CompiledLoop(cls.name, library, cls.needs_rollback, from_zero=True)
+    if cls.native_code is None:
+        return CompiledLoop(cls.name, None)
+    if cls.native_code == ITERATIVE:
+        return CompiledLoop(cls.name, iterative_engine.library, cls.needs_rollback, from_zero=True)
+    return CompiledLoop(cls.name, fastloop.library, general=True)
 
 
 def _why_not(system: CoupledSystem, loop: CompiledLoop, start_ns: int) -> str:
     """Why ``loop`` cannot run ``system`` ('' when it can)."""
     if loop.library is None:
         return "has no loop"
+    if any(s.event_mode for s in system.slaves):
+        return "does not end its steps at events; FMI 3.0 event-mode components run in the Python loop"
+    if loop.general:
+        return ""
     if system.transformed:
         return ("copies connections as they are; connections with a linear transformation (factor, offset) run "
                 "in the Python loop")
@@ -51,8 +64,6 @@ def _why_not(system: CoupledSystem, loop: CompiledLoop, start_ns: int) -> str:
         return "carries scalar Float64 variables only; this scene connects or records other types or arrays"
     if loop.from_zero and start_ns:
         return "runs from start_time 0"
-    if any(s.event_mode for s in system.slaves):
-        return "does not end its steps at events; FMI 3.0 event-mode components run in the Python loop"
     entries = [(s.name, s.native()) for s in system.slaves]
     missing = [name for name, ne in entries if ne is None]
     if missing:
@@ -87,7 +98,8 @@ class _Compiled:
     def __init__(self, alg: Algorithm):
         self.lib = fastloop.library()
         sysm = alg.system
-        self.arr = arr = SlaveArray(sysm)
+        self.arr = arr = SlaveArray(sysm, callbacks=True)
+        self.weights = np.array(WEIGHTS_3x3 if alg.native_code == EXTRAPOLATED else [], dtype=np.float64)
         for i in range(len(arr)):
             c = arr[i]
             if alg.interpolating[i]:
@@ -98,6 +110,8 @@ class _Compiled:
             c.rate, c.sub_ns = alg.rates[i], alg.step_ns // alg.rates[i]
             if alg.rates[i] > 1 and alg.interpolating[i]:
                 c.base = arr.buffer(np.empty(c.n_in))
+            if alg.native_code == EXTRAPOLATED and c.n_in and i not in alg.exchange:
+                c.past = arr.buffer(np.zeros(2 * c.n_in))
         self.order = np.array(alg.order, dtype=np.int32)
         self.rec_idx = sysm.record_idx
         self.alg = alg
@@ -112,7 +126,8 @@ class _Compiled:
         alg, sysm = self.alg, self.alg.system
         self.master_ns.value = 0
         done = self.lib.rpr_run(self.arr.arr, len(self.arr), self.order.ctypes.data, alg.native_code,
-                                sysm.v.ctypes.data, alg.k, nsteps, alg.step_ns, int(alg.timing),
+                                self.weights.ctypes.data if self.weights.size else None,
+                                sysm.v.ctypes.data, alg.k, nsteps, alg.start_ns, alg.step_ns, int(alg.timing),
                                 self.rec_idx.ctypes.data if self.rec_idx.size else None, len(self.rec_idx),
                                 rec_every, rec.ctypes.data, ctypes.byref(self.n_rows),
                                 ctypes.byref(self.fail_slave), ctypes.byref(self.fail_status),
@@ -121,6 +136,7 @@ class _Compiled:
             alg.calls[i], alg.slave_ns[i] = c.calls, c.ns
         alg.master_ns += self.master_ns.value
         alg.k += int(done)
+        self.arr.reraise()  # a callback slave's exception (a model's error, Ctrl-C), raised here
         t_fail = alg.t
         rows = int(self.n_rows.value)
         i, st = self.fail_slave.value, self.fail_status.value
