@@ -93,6 +93,8 @@ SLAVE = Record("rpr_slave", (
     ("const int32_t *", "feed", "iterative: their positions among its outputs"),
     ("int32_t", "memoryless", "Jacobi: evaluated within the exchange, after every output is read"),
     ("int32_t", "n_past", "jacobi_extrapolated: gathered inputs remembered so far (0 to 2)"),
+    ("int32_t", "callback", "1: a callback slave (cosim.master.callbacks), its set and get called even with no "
+                            "Float64 value (they convert its typed ports)"),
     ("const double *", "in_factor", "per input, the factor of its connection's linear transformation (0: none)"),
     ("const double *", "in_offset", "per input, the offset of its connection's linear transformation"),
     ("double *", "past", "jacobi_extrapolated: the gathered inputs at t_k-1, then at t_k-2 (0: not extrapolated)"),

@@ -31,7 +31,7 @@ static inline void extrapolate(rpr_slave *s, double *in, const double *W) {
 static inline int push(rpr_slave *s, double *v, double inv_h, const double *W) {
     int j, st;
     double *in = v + s->in_off;
-    if (!s->n_in) return 0;
+    if (!s->n_in) return set_inputs(s, in);  /* a callback slave's typed inputs */
     gather(s, v, in);
     if (s->past) extrapolate(s, in, W);
     if (!s->interp) return set_inputs(s, in);
@@ -52,7 +52,8 @@ static inline int exchange(rpr_slave *s, double *v) {
     int st;
     double *in = v + s->in_off;
     gather(s, v, in);
-    if (s->n_in) { st = set_inputs(s, in); if (st > ST_WARNING) return st; }
+    st = set_inputs(s, in);
+    if (st > ST_WARNING) return st;
     return get_outputs(s, v);
 }
 

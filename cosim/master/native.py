@@ -92,6 +92,7 @@ class SlaveArray:
                 cb = self.callbacks[i] = CallbackSlave(s)
                 ne = NativeEntry(False, 0, cb.address("do_step"), cb.address("get"), cb.address("set"),
                                  cb.address("set_der"), get_boolean_status=cb.address("bool_status"))
+                self.arr[i].callback = 1
             self.entries.append(ne)
             c = self.arr[i]
             c.fmi3, c.n_in, c.n_out = int(ne.fmi3), len(system.in_vrs[i]), len(system.out_vrs[i])
