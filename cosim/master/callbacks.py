@@ -42,15 +42,20 @@ class CallbackSlave:
         self.error = self.error or exc
         return int(Status.FATAL)
 
+    @staticmethod
+    def _status(st) -> int:
+        """A method's status as C reads it (None, which the Python loop takes as not failing: OK)."""
+        return 0 if st is None else int(st)
+
     def _call(self, method) -> int:
         try:
-            return int(method())
+            return self._status(method())
         except BaseException as exc:  # noqa: BLE001 - raised again by reraise()
             return self._keep(exc)
 
     def _do_step(self, _inst, t: float, h: float, _no_prior) -> int:
         try:
-            return int(self.slave.do_step(t, h))
+            return self._status(self.slave.do_step(t, h))
         except BaseException as exc:  # noqa: BLE001 - raised again by reraise()
             return self._keep(exc)
 
