@@ -30,14 +30,13 @@ ENGINES = ("auto", "compiled", "python")
 @dataclass(frozen=True)
 class CompiledLoop:
     """What an algorithm's compiled loop is and needs: its library's loader (None: the algorithm
-    has none), FMU state get/set (``rollback``), a start at time 0 (``from_zero``); ``general``:
+    has none), FMU state get/set (``rollback``); ``general``:
     it also runs transformed connections, typed variables and slaves without C entry points
     (callback slaves, :mod:`cosim.master.callbacks`)."""
 
     algorithm: str
     library: Callable[[], ctypes.CDLL] | None
     rollback: bool = False
-    from_zero: bool = False
     general: bool = False
 
 
@@ -46,11 +45,11 @@ def fixed_loop(cls: type[Algorithm]) -> CompiledLoop:
     if cls.native_code is None:
         return CompiledLoop(cls.name, None)
     if cls.native_code == ITERATIVE:
-        return CompiledLoop(cls.name, iterative_engine.library, cls.needs_rollback, from_zero=True)
+        return CompiledLoop(cls.name, iterative_engine.library, cls.needs_rollback)
     return CompiledLoop(cls.name, fastloop.library, general=True)
 
 
-def _why_not(system: CoupledSystem, loop: CompiledLoop, start_ns: int) -> str:
+def _why_not(system: CoupledSystem, loop: CompiledLoop) -> str:
     """Why ``loop`` cannot run ``system`` ('' when it can)."""
     if loop.library is None:
         return "has no loop"
@@ -63,8 +62,6 @@ def _why_not(system: CoupledSystem, loop: CompiledLoop, start_ns: int) -> str:
                 "in the Python loop")
     if system.typed.active:
         return "carries scalar Float64 variables only; this scene connects or records other types or arrays"
-    if loop.from_zero and start_ns:
-        return "runs from start_time 0"
     entries = [(s.name, s.native()) for s in system.slaves]
     missing = [name for name, ne in entries if ne is None]
     if missing:
@@ -75,7 +72,7 @@ def _why_not(system: CoupledSystem, loop: CompiledLoop, start_ns: int) -> str:
     return ""
 
 
-def choose_engine(system: CoupledSystem, engine: str, loop: CompiledLoop, start_ns: int = 0) -> str:
+def choose_engine(system: CoupledSystem, engine: str, loop: CompiledLoop) -> str:
     """``"compiled"`` or ``"python"`` for ``engine`` in auto | compiled | python: auto takes the
     compiled loop where it can run the scene and builds here, compiled refuses with the reason a
     scene it cannot run."""
@@ -83,7 +80,7 @@ def choose_engine(system: CoupledSystem, engine: str, loop: CompiledLoop, start_
         raise UserError(f"master.engine must be auto, compiled or python, got {engine!r}")
     if engine == "python":
         return "python"
-    why = _why_not(system, loop, start_ns)
+    why = _why_not(system, loop)
     if engine == "compiled":
         if why:
             raise UserError(f"master.engine: compiled for {loop.algorithm} {why}; use master.engine auto or python")
@@ -158,7 +155,7 @@ def fixed_stepper(system: CoupledSystem, *, cls: type[Algorithm], step_ns: int, 
     auto | compiled | python, see :func:`choose_engine`); ``kw`` go to the algorithm (``record``:
     a fixed-step run's steps are its grid)."""
     alg = cls(system, step_ns, **kw, **({"options": options} if cls.options else {}))
-    name = choose_engine(system, engine, fixed_loop(cls), alg.start_ns)
+    name = choose_engine(system, engine, fixed_loop(cls))
     runner = None
     if name == "compiled":
         runner = (iterative_engine.CompiledIterative(alg) if cls.native_code == ITERATIVE else _Compiled(alg)).run

@@ -280,7 +280,8 @@ ITER_RUN = Entry("rpr_iter_run", (
     ("rpr_slave *", "S", "the slaves"), ("int32_t", "n", "their count"),
     ("const int32_t *", "order", "the stepping order"), ("double *", "v", "the value vector"),
     ("int64_t", "nv", "its length"), ("it_ctl *", "c", "the iteration"), ("int64_t", "k0", "the first step's index"),
-    ("int64_t", "nsteps", "steps to take at most"), ("int64_t", "step_ns", "the step [ns]"), *_IO,
+    ("int64_t", "nsteps", "steps to take at most"), ("int64_t", "start_ns", "the start time [ns]"),
+    ("int64_t", "step_ns", "the step [ns]"), *_IO,
     ("int64_t", "rec_every", "record every this many steps"), ("double *", "rec", "the rows recorded"),
     ("int64_t *", "n_rows", "out: rows recorded"),
     ("int64_t", "budget_ns", "return after this much wall time (0: no limit)")))
