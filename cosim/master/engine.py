@@ -30,14 +30,17 @@ ENGINES = ("auto", "compiled", "python")
 @dataclass(frozen=True)
 class CompiledLoop:
     """What an algorithm's compiled loop is and needs: its library's loader (None: the algorithm
-    has none), FMU state get/set (``rollback``); ``general``:
-    it also runs transformed connections, typed variables and slaves without C entry points
-    (callback slaves, :mod:`cosim.master.callbacks`)."""
+    has none), FMU state get/set (``rollback``); ``callbacks``: it runs slaves without C entry
+    points (callback slaves, :mod:`cosim.master.callbacks`); ``typed``: typed ports too (their
+    slaves called back, their text changes noted); ``transforms``: it applies the connections'
+    linear transformations."""
 
     algorithm: str
     library: Callable[[], ctypes.CDLL] | None
     rollback: bool = False
-    general: bool = False
+    callbacks: bool = False
+    typed: bool = False
+    transforms: bool = False
 
 
 def fixed_loop(cls: type[Algorithm]) -> CompiledLoop:
@@ -46,7 +49,7 @@ def fixed_loop(cls: type[Algorithm]) -> CompiledLoop:
         return CompiledLoop(cls.name, None)
     if cls.native_code == ITERATIVE:
         return CompiledLoop(cls.name, iterative_engine.library, cls.needs_rollback)
-    return CompiledLoop(cls.name, fastloop.library, general=True)
+    return CompiledLoop(cls.name, fastloop.library, callbacks=True, typed=True, transforms=True)
 
 
 def _why_not(system: CoupledSystem, loop: CompiledLoop) -> str:
@@ -55,13 +58,13 @@ def _why_not(system: CoupledSystem, loop: CompiledLoop) -> str:
         return "has no loop"
     if any(s.event_mode for s in system.slaves):
         return "does not end its steps at events; FMI 3.0 event-mode components run in the Python loop"
-    if loop.general:
-        return ""
-    if system.transformed:
+    if system.transformed and not loop.transforms:
         return ("copies connections as they are; connections with a linear transformation (factor, offset) run "
                 "in the Python loop")
-    if system.typed.active:
+    if system.typed.active and not loop.typed:
         return "carries scalar Float64 variables only; this scene connects or records other types or arrays"
+    if loop.callbacks:  # any slave: FMUs directly, the others through callbacks
+        return ""
     entries = [(s.name, s.native()) for s in system.slaves]
     missing = [name for name, ne in entries if ne is None]
     if missing:
@@ -165,7 +168,8 @@ def fixed_stepper(system: CoupledSystem, *, cls: type[Algorithm], step_ns: int, 
 def variable_loop(name: str, stepper_cls: type) -> CompiledLoop:
     """The compiled loop of a variable-step stepper class (:mod:`cosim.master.adaptive_engine`)."""
     library = adaptive_engine.library if adaptive_engine.has_compiled(stepper_cls) else None
-    return CompiledLoop(name, library, stepper_cls.needs_rollback)
+    # without rollback (ecco) any slave runs, through callbacks; with it, FMUs with state get/set only
+    return CompiledLoop(name, library, stepper_cls.needs_rollback, callbacks=not stepper_cls.needs_rollback)
 
 
 __all__ = ["CompiledLoop", "ENGINES", "ITERATIVE", "choose_engine", "fixed_loop", "fixed_stepper", "variable_loop"]
