@@ -57,7 +57,7 @@ class _CompiledVariable:
         self.py = stepper  # the Python stepper: its setup, statistics and messages
         sysm = stepper.system
         self.lib = library()
-        self.arr = arr = SlaveArray(sysm, states=states, callbacks=not states)  # ecco: any slave
+        self.arr = arr = SlaveArray(sysm, states=states, callbacks=True)
         for i in range(len(arr)):
             c = arr[i]
             n_in = c.n_in

@@ -3,7 +3,9 @@ values the master does not move itself (typed ports: non-Float64 or array variab
 in the slave's ``push``/``pull`` by :class:`cosim.slaves.typedio.TypedPorts`).
 
 Each is a ctypes ``CFUNCTYPE`` trampoline in an FMI 2.0 shape (:func:`fmus.fmi_functions.prototype`)
-around the slave's own method, so a compiled loop calls it like any FMU.  The buffers the loop
+around the slave's own method (``save_state``/``restore_state`` behind the FMU state calls, for
+a slave that :attr:`~cosim.slaves.slave.Slave.can_rollback`), so a compiled loop calls it like
+any FMU.  The buffers the loop
 passes are the ones the slave is bound to (``system.in_buf``, ``out_buf`` and the slope buffers
 are views of the value vector the loop writes into), so a trampoline does not read its value
 references and arrays.  A ctypes callback cannot raise through C: an exception (a model's error,
@@ -23,6 +25,8 @@ _GET = prototype("fmi2GetReal", raw=True)
 _SET = prototype("fmi2SetReal", raw=True)
 _SET_DER = prototype("fmi2SetRealInputDerivatives", raw=True)
 _BOOL_STATUS = prototype("fmi2GetBooleanStatus", raw=True)
+_GET_STATE = prototype("fmi2GetFMUstate", raw=True)
+_SET_STATE = prototype("fmi2SetFMUstate", raw=True)
 
 
 class CallbackSlave:
@@ -37,6 +41,9 @@ class CallbackSlave:
         self.set = _SET(lambda _inst, _vr, _n, _values: self._call(slave.push))
         self.set_der = _SET_DER(lambda _inst, _vr, _n, _orders, _values: self._call(slave.push_slopes))
         self.bool_status = _BOOL_STATUS(self._asked_to_stop)
+        # its one saved state (Slave.save_state / restore_state): the FMU state pointer is not used
+        self.get_state = _GET_STATE(lambda _inst, _state: self._call(slave.save_state))
+        self.set_state = _SET_STATE(lambda _inst, _state: self._call(slave.restore_state))
 
     def _keep(self, exc: BaseException) -> int:
         self.error = self.error or exc
@@ -67,7 +74,8 @@ class CallbackSlave:
         return int(Status.OK)
 
     def address(self, name: str) -> int:
-        """The C address of trampoline ``name`` (do_step, get, set, set_der, bool_status)."""
+        """The C address of trampoline ``name`` (do_step, get, set, set_der, bool_status, get_state,
+        set_state)."""
         return ctypes.cast(getattr(self, name), ctypes.c_void_p).value
 
     def reraise(self) -> None:

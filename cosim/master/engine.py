@@ -14,7 +14,7 @@ from ..errors import UserError
 from . import adaptive_engine, fastloop, iterative_engine
 from .algorithm import Algorithm
 from .algorithms.jacobi_extrapolated import WEIGHTS
-from .native import SlaveArray, builds
+from .native import SlaveArray, builds, called_back
 from .stepper import FixedStepper
 from .system import CoupledSystem
 
@@ -63,13 +63,13 @@ def _why_not(system: CoupledSystem, loop: CompiledLoop) -> str:
                 "in the Python loop")
     if system.typed.active and not loop.typed:
         return "carries scalar Float64 variables only; this scene connects or records other types or arrays"
-    if loop.callbacks:  # any slave: FMUs directly, the others through callbacks
-        return ""
-    entries = [(s.name, s.native()) for s in system.slaves]
-    missing = [name for name, ne in entries if ne is None]
+    entries = [(s, None if called_back(system, i) else s.native()) for i, s in enumerate(system.slaves)]
+    missing = [s.name for s, ne in entries if ne is None and not loop.callbacks]
     if missing:
         return f"needs FMU slaves with C entry points ({', '.join(missing)} has none)"
-    stateless = [name for name, ne in entries if loop.rollback and not (ne.get_state and ne.set_state)]
+    # a callback slave rolls back through its own save_state/restore_state
+    stateless = [s.name for s, ne in entries
+                 if loop.rollback and not (s.can_rollback if ne is None else ne.get_state and ne.set_state)]
     if stateless:
         return f"needs FMU state get/set ({', '.join(stateless)} has none)"
     return ""
@@ -168,8 +168,7 @@ def fixed_stepper(system: CoupledSystem, *, cls: type[Algorithm], step_ns: int, 
 def variable_loop(name: str, stepper_cls: type) -> CompiledLoop:
     """The compiled loop of a variable-step stepper class (:mod:`cosim.master.adaptive_engine`)."""
     library = adaptive_engine.library if adaptive_engine.has_compiled(stepper_cls) else None
-    # without rollback (ecco) any slave runs, through callbacks; with it, FMUs with state get/set only
-    return CompiledLoop(name, library, stepper_cls.needs_rollback, callbacks=not stepper_cls.needs_rollback)
+    return CompiledLoop(name, library, stepper_cls.needs_rollback, callbacks=True)
 
 
 __all__ = ["CompiledLoop", "ENGINES", "ITERATIVE", "choose_engine", "fixed_loop", "fixed_stepper", "variable_loop"]

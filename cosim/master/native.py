@@ -68,6 +68,12 @@ def builds(library: Callable[[], ctypes.CDLL]) -> bool:
     return True
 
 
+def called_back(system, i: int) -> bool:
+    """Whether slave ``i`` of ``system`` is stepped through callbacks (:mod:`cosim.master.callbacks`):
+    it has no C entry points, or typed ports its push/pull convert."""
+    return bool(system.typed.reads[i] or system.typed.inputs[i]) or system.slaves[i].native() is None
+
+
 class SlaveArray:
     """The :class:`CSlave` array of a system's slaves with their entry points and layout filled in
     (:meth:`cosim.slaves.slave.Slave.native`, the system's value-vector offsets and value
@@ -84,14 +90,14 @@ class SlaveArray:
         self._keep: list = []
         self.states = (ctypes.c_void_p * n)()  # the FMU states (states=True), freed by free_states()
         for i, s in enumerate(system.slaves):
-            typed = bool(system.typed.reads[i] or system.typed.inputs[i])
-            ne = None if typed else s.native()
+            ne = None if called_back(system, i) else s.native()
             if ne is None:
                 if not callbacks:
                     raise UserError(f"{s.name} has no C entry points; use master.engine: python")
                 cb = self.callbacks[i] = CallbackSlave(s)
+                state = (cb.address("get_state"), cb.address("set_state")) if s.can_rollback else (0, 0)
                 ne = NativeEntry(False, 0, cb.address("do_step"), cb.address("get"), cb.address("set"),
-                                 cb.address("set_der"), get_boolean_status=cb.address("bool_status"))
+                                 cb.address("set_der"), *state, get_boolean_status=cb.address("bool_status"))
                 self.arr[i].callback = 1
             self.entries.append(ne)
             c = self.arr[i]
@@ -146,4 +152,4 @@ class SlaveArray:
                 self.states[i] = None
 
 
-__all__ = ["CSlave", "SLAVE_FIELDS", "SlaveArray", "builds", "compile_loop", "kernel_files"]
+__all__ = ["CSlave", "SLAVE_FIELDS", "SlaveArray", "builds", "called_back", "compile_loop", "kernel_files"]
