@@ -223,6 +223,9 @@ ITERATIVE_CASES = {
                                         "master.inputs": "hold"}),
     "two_mass_linear": ("two_mass.yaml", {"components.mass2.params.kc": KC, "stop_time": 1.0, "master.step": H, "master.tolerance": "none",
                                           "master.inputs": "linear"}),
+    # a start time other than 0: the kernel's times are start + k h as the Python loop's
+    "two_mass_late_start": ("two_mass.yaml", {"components.mass2.params.kc": KC, "start_time": 0.5, "stop_time": 1.5,
+                                              "master.step": H, "master.tolerance": "none", "master.inputs": "linear"}),
     "two_mass_fixed_point": ("two_mass.yaml", {"components.mass2.params.kc": KC, "stop_time": 1.0, "master.step": H, "master.tolerance": "none",
                                                "master.options": {"method": "fixed_point", "omega": 0.5}}),
     # a stiffer spring at a longer step: the Jacobian is built in the first step (directional
@@ -260,8 +263,11 @@ def iterative_both(request):
 
 
 def test_iterative_compiled_engine_ran(iterative_both):
-    _, py, c = iterative_both
+    name, py, c = iterative_both
     assert (py.stats["engine"], c.stats["engine"]) == ("python", "compiled")
+    if name == "two_mass_late_start":  # its rows on start + k h, in integer nanoseconds
+        n = round((1.5 - 0.5) / H)
+        assert np.array_equal(c.trace.time, np.array([(500_000_000 + k * 5_000_000) / 1e9 for k in range(n + 1)]))
 
 
 def test_iterative_same_values_bit_for_bit(iterative_both):

@@ -301,7 +301,7 @@ outputs: ["sp.leg[1].s", ctl.y, ctl.setpoint]
 
 
 @pytest.mark.parametrize("through_ssp", [False, True])
-def test_scene_transformation_runs_in_the_python_loop(through_ssp, cache, tmp_path):
+def test_scene_transformation_runs_in_the_compiled_loop(through_ssp, cache, tmp_path):
     (tmp_path / "scaled.yaml").write_text(TRANSFORM_SCENE)
     sc = load(tmp_path / "scaled.yaml")
     assert (sc.connections[0].factor, sc.connections[0].offset) == (2.0, 0.005)
@@ -309,7 +309,7 @@ def test_scene_transformation_runs_in_the_python_loop(through_ssp, cache, tmp_pa
         sc = load(export(sc, tmp_path / "scaled.ssp", cache_dir=cache))
         assert (sc.connections[0].factor, sc.connections[0].offset) == (2.0, 0.005)
     res = run(sc, cache_dir=cache)
-    assert res.ok and res.stats["engine"] == "python"
+    assert res.ok and res.stats["engine"] == "compiled"
     s, y = res.trace["sp.leg[1].s"], res.trace["ctl.y"]
     assert np.allclose(y[1:], 500.0 * (2.0 * s[:-1] + 0.005 - 0.1), rtol=1e-12)
     assert np.allclose(res.trace["ctl.setpoint"][1:], 2.0 * s[:-1] + 0.005, rtol=1e-12)
@@ -326,10 +326,14 @@ def test_scene_transformation_mistakes_are_named(text, expected, tmp_path):
     assert str(err.value).count("\n") == 0 and expected in str(err.value) and "bad.yaml:7" in str(err.value)
 
 
-def test_compiled_engine_refuses_a_transformation(cache, tmp_path):
+def test_a_transformation_gives_the_same_trace_in_both_engines(cache, tmp_path):
+    """The compiled loop applies factor and offset as the Python loop does (v * factor + offset):
+    the same trace, bit for bit."""
     (tmp_path / "scaled.yaml").write_text(TRANSFORM_SCENE)
-    with pytest.raises(UserError, match="linear transformation"):
-        run(tmp_path / "scaled.yaml", cache_dir=cache, engine="compiled")
+    py = run(tmp_path / "scaled.yaml", cache_dir=cache, engine="python")
+    cc = run(tmp_path / "scaled.yaml", cache_dir=cache, engine="compiled")
+    assert (py.stats["engine"], cc.stats["engine"]) == ("python", "compiled") and cc.ok
+    assert np.array_equal(py.trace.time, cc.trace.time) and np.array_equal(py.trace.data, cc.trace.data)
 
 
 def test_cli_export_prints_the_path_and_keeps_an_existing_archive(cache, tmp_path, capsys):

@@ -14,8 +14,9 @@ Package map (the public names are re-exported here: ``from cosim.master import X
 ``entries``     the native kernels' records, end codes and entry points, declared once (the generated
                 C header and the ctypes bindings)
 ``native``      compiling a kernel (C files beside their modules on ``native.h``) and the slave structs;
-                the kernels: ``fastloop`` (Jacobi, Gauss-Seidel), ``adaptive_engine`` (adaptive,
-                ecco), ``iterative_engine``; ``dense``: the Newton step's linear algebra
+                the kernels: ``fastloop`` (Jacobi, Gauss-Seidel, jacobi_extrapolated),
+                ``adaptive_engine`` (adaptive, ecco), ``iterative_engine``; ``callbacks``: C entry
+                points around a Python slave's methods; ``dense``: the Newton step's linear algebra
 ``stepper``     the one driver loop :func:`~cosim.master.stepper.drive` over the :class:`Stepper` contract
                 (pacing, stop requests, events, guards, step observers, traces, text events,
                 progress), :class:`StepInfo`, :class:`StepResult`
@@ -79,7 +80,8 @@ other slaves complete the step from ``t_k``, the outputs are read, the point ``t
 (on the output grid or not) and the run ends with status "stopped", reason "stopped by C at t".
 
 Types: the value vector carries scalar Float64 variables; other FMI types and arrays go through
-:class:`cosim.slaves.typedio.TypedPorts` inside each slave's push/pull (same conventions, Python loop).
+:class:`cosim.slaves.typedio.TypedPorts` inside each slave's push/pull (same conventions; the
+fixed-step compiled loop calls such a slave through :mod:`cosim.master.callbacks`).
 """
 from __future__ import annotations
 

@@ -57,7 +57,7 @@ class _CompiledVariable:
         self.py = stepper  # the Python stepper: its setup, statistics and messages
         sysm = stepper.system
         self.lib = library()
-        self.arr = arr = SlaveArray(sysm, states=states)
+        self.arr = arr = SlaveArray(sysm, states=states, callbacks=True)
         for i in range(len(arr)):
             c = arr[i]
             n_in = c.n_in
@@ -150,6 +150,7 @@ class CompiledAdaptive(_CompiledVariable):
             self.v_saved.ctypes.data, self.lo.ctypes.data, self.hi.ctypes.data, ctypes.byref(ctl),
             self.rec_idx.ctypes.data if self.rec_idx.size else None, len(self.rec_idx), rec.ctypes.data,
             self.h_rec.ctypes.data, len(rec), CALL_BUDGET_NS))
+        self.arr.reraise()  # a callback slave's exception, raised here
         self.py.stats.steps.extend((self.h_rec[:ctl.accepted - before] / 1e9).tolist())
         if ctl.status:
             self._ended(ctl.status, ctl.bad_slave, ctl.bad_status, ctl.last_err)
@@ -204,6 +205,7 @@ class CompiledEcco(_CompiledVariable):
             self.arr.arr, len(self.arr), self.order.ctypes.data, sysm.v.ctypes.data, ctypes.byref(ctl),
             self.rec_idx.ctypes.data if self.rec_idx.size else None, len(self.rec_idx), rec.ctypes.data,
             self.h_rec.ctypes.data, len(rec), CALL_BUDGET_NS))
+        self.arr.reraise()  # a callback slave's exception, raised here
         self.py.stats.steps.extend((self.h_rec[:ctl.accepted - before] / 1e9).tolist())
         if ctl.status:
             self._ended(ctl.status, ctl.bad_slave, ctl.bad_status, ctl.end_scaled, ctl.at_floor)

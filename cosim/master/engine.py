@@ -1,5 +1,6 @@
-"""Engines, who runs an algorithm's steps: a compiled loop (for FMU slaves and algorithms that
-have one) or the Python loop; the choice between them is made here, once for every algorithm
+"""Engines, who runs an algorithm's steps: a compiled loop (for the algorithms that have one: FMUs
+directly, Python slaves through callbacks, except in iterative's; :class:`CompiledLoop` says what
+each runs) or the Python loop; the choice between them is made here, once for every algorithm
 (:func:`choose_engine`)."""
 from __future__ import annotations
 
@@ -12,12 +13,16 @@ import numpy as np
 from ..errors import UserError
 from . import adaptive_engine, fastloop, iterative_engine
 from .algorithm import Algorithm
-from .native import SlaveArray, builds
+from .algorithms.jacobi_extrapolated import WEIGHTS
+from .native import SlaveArray, builds, called_back
 from .stepper import FixedStepper
 from .system import CoupledSystem
 
-#: :attr:`Algorithm.native_code` of the fixed-step loop's algorithms (0 Jacobi, 1 Gauss-Seidel) and of iterative
-ITERATIVE = 2
+#: :attr:`Algorithm.native_code` of the fixed-step loop's algorithms (0 Jacobi, 1 Gauss-Seidel, 3 Jacobi with
+#: extrapolated inputs) and of iterative
+ITERATIVE, EXTRAPOLATED = 2, 3
+#: jacobi_extrapolated's weights as the kernel reads them: row m for m past values (zeros after)
+WEIGHTS_3x3 = [list(w) + [0.0] * (3 - len(w)) for w in WEIGHTS]
 
 ENGINES = ("auto", "compiled", "python")
 
@@ -25,45 +30,52 @@ ENGINES = ("auto", "compiled", "python")
 @dataclass(frozen=True)
 class CompiledLoop:
     """What an algorithm's compiled loop is and needs: its library's loader (None: the algorithm
-    has none), FMU state get/set (``rollback``), a start at time 0 (``from_zero``)."""
+    has none), FMU state get/set (``rollback``); ``callbacks``: it runs slaves without C entry
+    points (callback slaves, :mod:`cosim.master.callbacks`); ``typed``: typed ports too (their
+    slaves called back, their text changes noted); ``transforms``: it applies the connections'
+    linear transformations."""
 
     algorithm: str
     library: Callable[[], ctypes.CDLL] | None
     rollback: bool = False
-    from_zero: bool = False
+    callbacks: bool = False
+    typed: bool = False
+    transforms: bool = False
 
 
 def fixed_loop(cls: type[Algorithm]) -> CompiledLoop:
     """The compiled loop of the fixed-step algorithm ``cls`` (by its :attr:`native_code`)."""
-    library = None if cls.native_code is None else (
-        iterative_engine.library if cls.native_code == ITERATIVE else fastloop.library)
-    return CompiledLoop(cls.name, library, cls.needs_rollback, from_zero=True)
+    if cls.native_code is None:
+        return CompiledLoop(cls.name, None)
+    if cls.native_code == ITERATIVE:
+        return CompiledLoop(cls.name, iterative_engine.library, cls.needs_rollback)
+    return CompiledLoop(cls.name, fastloop.library, callbacks=True, typed=True, transforms=True)
 
 
-def _why_not(system: CoupledSystem, loop: CompiledLoop, start_ns: int) -> str:
+def _why_not(system: CoupledSystem, loop: CompiledLoop) -> str:
     """Why ``loop`` cannot run ``system`` ('' when it can)."""
     if loop.library is None:
         return "has no loop"
-    if system.transformed:
-        return ("copies connections as they are; connections with a linear transformation (factor, offset) run "
-                "in the Python loop")
-    if system.typed.active:
-        return "carries scalar Float64 variables only; this scene connects or records other types or arrays"
-    if loop.from_zero and start_ns:
-        return "runs from start_time 0"
     if any(s.event_mode for s in system.slaves):
         return "does not end its steps at events; FMI 3.0 event-mode components run in the Python loop"
-    entries = [(s.name, s.native()) for s in system.slaves]
-    missing = [name for name, ne in entries if ne is None]
+    if system.transformed and not loop.transforms:
+        return ("copies connections as they are; connections with a linear transformation (factor, offset) run "
+                "in the Python loop")
+    if system.typed.active and not loop.typed:
+        return "carries scalar Float64 variables only; this scene connects or records other types or arrays"
+    entries = [(s, None if called_back(system, i) else s.native()) for i, s in enumerate(system.slaves)]
+    missing = [s.name for s, ne in entries if ne is None and not loop.callbacks]
     if missing:
         return f"needs FMU slaves with C entry points ({', '.join(missing)} has none)"
-    stateless = [name for name, ne in entries if loop.rollback and not (ne.get_state and ne.set_state)]
+    # a callback slave rolls back through its own save_state/restore_state
+    stateless = [s.name for s, ne in entries
+                 if loop.rollback and not (s.can_rollback if ne is None else ne.get_state and ne.set_state)]
     if stateless:
         return f"needs FMU state get/set ({', '.join(stateless)} has none)"
     return ""
 
 
-def choose_engine(system: CoupledSystem, engine: str, loop: CompiledLoop, start_ns: int = 0) -> str:
+def choose_engine(system: CoupledSystem, engine: str, loop: CompiledLoop) -> str:
     """``"compiled"`` or ``"python"`` for ``engine`` in auto | compiled | python: auto takes the
     compiled loop where it can run the scene and builds here, compiled refuses with the reason a
     scene it cannot run."""
@@ -71,7 +83,7 @@ def choose_engine(system: CoupledSystem, engine: str, loop: CompiledLoop, start_
         raise UserError(f"master.engine must be auto, compiled or python, got {engine!r}")
     if engine == "python":
         return "python"
-    why = _why_not(system, loop, start_ns)
+    why = _why_not(system, loop)
     if engine == "compiled":
         if why:
             raise UserError(f"master.engine: compiled for {loop.algorithm} {why}; use master.engine auto or python")
@@ -87,7 +99,8 @@ class _Compiled:
     def __init__(self, alg: Algorithm):
         self.lib = fastloop.library()
         sysm = alg.system
-        self.arr = arr = SlaveArray(sysm)
+        self.arr = arr = SlaveArray(sysm, callbacks=True)
+        self.weights = np.array(WEIGHTS_3x3 if alg.native_code == EXTRAPOLATED else [], dtype=np.float64)
         for i in range(len(arr)):
             c = arr[i]
             if alg.interpolating[i]:
@@ -98,6 +111,8 @@ class _Compiled:
             c.rate, c.sub_ns = alg.rates[i], alg.step_ns // alg.rates[i]
             if alg.rates[i] > 1 and alg.interpolating[i]:
                 c.base = arr.buffer(np.empty(c.n_in))
+            if alg.native_code == EXTRAPOLATED and c.n_in and i not in alg.exchange:
+                c.past = arr.buffer(np.zeros(2 * c.n_in))
         self.order = np.array(alg.order, dtype=np.int32)
         self.rec_idx = sysm.record_idx
         self.alg = alg
@@ -112,7 +127,8 @@ class _Compiled:
         alg, sysm = self.alg, self.alg.system
         self.master_ns.value = 0
         done = self.lib.rpr_run(self.arr.arr, len(self.arr), self.order.ctypes.data, alg.native_code,
-                                sysm.v.ctypes.data, alg.k, nsteps, alg.step_ns, int(alg.timing),
+                                self.weights.ctypes.data if self.weights.size else None,
+                                sysm.v.ctypes.data, alg.k, nsteps, alg.start_ns, alg.step_ns, int(alg.timing),
                                 self.rec_idx.ctypes.data if self.rec_idx.size else None, len(self.rec_idx),
                                 rec_every, rec.ctypes.data, ctypes.byref(self.n_rows),
                                 ctypes.byref(self.fail_slave), ctypes.byref(self.fail_status),
@@ -121,6 +137,7 @@ class _Compiled:
             alg.calls[i], alg.slave_ns[i] = c.calls, c.ns
         alg.master_ns += self.master_ns.value
         alg.k += int(done)
+        self.arr.reraise()  # a callback slave's exception (a model's error, Ctrl-C), raised here
         t_fail = alg.t
         rows = int(self.n_rows.value)
         i, st = self.fail_slave.value, self.fail_status.value
@@ -141,7 +158,7 @@ def fixed_stepper(system: CoupledSystem, *, cls: type[Algorithm], step_ns: int, 
     auto | compiled | python, see :func:`choose_engine`); ``kw`` go to the algorithm (``record``:
     a fixed-step run's steps are its grid)."""
     alg = cls(system, step_ns, **kw, **({"options": options} if cls.options else {}))
-    name = choose_engine(system, engine, fixed_loop(cls), alg.start_ns)
+    name = choose_engine(system, engine, fixed_loop(cls))
     runner = None
     if name == "compiled":
         runner = (iterative_engine.CompiledIterative(alg) if cls.native_code == ITERATIVE else _Compiled(alg)).run
@@ -151,7 +168,7 @@ def fixed_stepper(system: CoupledSystem, *, cls: type[Algorithm], step_ns: int, 
 def variable_loop(name: str, stepper_cls: type) -> CompiledLoop:
     """The compiled loop of a variable-step stepper class (:mod:`cosim.master.adaptive_engine`)."""
     library = adaptive_engine.library if adaptive_engine.has_compiled(stepper_cls) else None
-    return CompiledLoop(name, library, stepper_cls.needs_rollback)
+    return CompiledLoop(name, library, stepper_cls.needs_rollback, callbacks=True)
 
 
 __all__ = ["CompiledLoop", "ENGINES", "ITERATIVE", "choose_engine", "fixed_loop", "fixed_stepper", "variable_loop"]

@@ -92,6 +92,12 @@ SLAVE = Record("rpr_slave", (
     ("int32_t", "n_feed", "iterative: its outputs that feed some input"),
     ("const int32_t *", "feed", "iterative: their positions among its outputs"),
     ("int32_t", "memoryless", "Jacobi: evaluated within the exchange, after every output is read"),
+    ("int32_t", "n_past", "jacobi_extrapolated: gathered inputs remembered so far (0 to 2)"),
+    ("int32_t", "callback", "1: a callback slave (cosim.master.callbacks), its set and get called even with no "
+                            "Float64 value (they convert its typed ports)"),
+    ("const double *", "in_factor", "per input, the factor of its connection's linear transformation (0: none)"),
+    ("const double *", "in_offset", "per input, the offset of its connection's linear transformation"),
+    ("double *", "past", "jacobi_extrapolated: the gathered inputs at t_k-1, then at t_k-2 (0: not extrapolated)"),
     ("int64_t", "calls", "doStep calls"),
     ("int64_t", "ns", "wall time in this slave's calls [ns] (with timing)"),
 ))
@@ -241,9 +247,13 @@ _IO = (("const int64_t *", "rec_idx", "the recorded values' indices in v"), ("in
 
 RUN = Entry("rpr_run", (
     ("rpr_slave *", "S", "the slaves"), ("int32_t", "n", "their count"),
-    ("const int32_t *", "order", "the stepping order"), ("int32_t", "algorithm", "0 Jacobi, 1 Gauss-Seidel"),
+    ("const int32_t *", "order", "the stepping order"),
+    ("int32_t", "algorithm", "0 Jacobi, 1 Gauss-Seidel, 3 Jacobi with extrapolated inputs"),
+    ("const double *", "weights", "algorithm 3: the held input's weights of u_k, u_k-1, u_k-2 by past values "
+                                  "(3 x 3; 0 otherwise)"),
     ("double *", "v", "the value vector"), ("int64_t", "k0", "the first step's index"),
-    ("int64_t", "nsteps", "steps to take at most"), ("int64_t", "step_ns", "the step [ns]"),
+    ("int64_t", "nsteps", "steps to take at most"), ("int64_t", "start_ns", "the start time [ns]"),
+    ("int64_t", "step_ns", "the step [ns]"),
     ("int32_t", "timing", "time the slaves' calls"), *_IO,
     ("int64_t", "rec_every", "record every this many steps"), ("double *", "rec", "the rows recorded"),
     ("int64_t *", "n_rows", "out: rows recorded"), ("int32_t *", "fail_slave", "out: the failing slave or -1"),
@@ -270,7 +280,8 @@ ITER_RUN = Entry("rpr_iter_run", (
     ("rpr_slave *", "S", "the slaves"), ("int32_t", "n", "their count"),
     ("const int32_t *", "order", "the stepping order"), ("double *", "v", "the value vector"),
     ("int64_t", "nv", "its length"), ("it_ctl *", "c", "the iteration"), ("int64_t", "k0", "the first step's index"),
-    ("int64_t", "nsteps", "steps to take at most"), ("int64_t", "step_ns", "the step [ns]"), *_IO,
+    ("int64_t", "nsteps", "steps to take at most"), ("int64_t", "start_ns", "the start time [ns]"),
+    ("int64_t", "step_ns", "the step [ns]"), *_IO,
     ("int64_t", "rec_every", "record every this many steps"), ("double *", "rec", "the rows recorded"),
     ("int64_t *", "n_rows", "out: rows recorded"),
     ("int64_t", "budget_ns", "return after this much wall time (0: no limit)")))

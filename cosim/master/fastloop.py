@@ -4,8 +4,10 @@ A small C function (``fastloop.c`` beside this module, its entry point declared 
 :data:`cosim.master.entries.RUN`), compiled on demand (:func:`cosim.master.native.compile_loop`:
 cached on disk by source and compiler; never committed), steps FMUs through their
 ``fmi2DoStep``/``fmi2GetReal``/``fmi2SetReal`` (or FMI 3.0 ``Float64``) entry points, which it
-receives as function pointers.  It implements exactly the algorithms of :mod:`cosim.master`
-(see there for the conventions); the Python loop is the reference it is tested against.
+receives as function pointers; a slave without them (a Python slave) or with typed ports is
+called through trampolines around its own methods (:mod:`cosim.master.callbacks`).  It
+implements exactly the algorithms of :mod:`cosim.master` (see there for the conventions) and
+jacobi_extrapolated; the Python loop is the reference it is tested against.
 
 All values live in one float64 vector ``v`` owned by the master: each slave reads its bound
 variables into ``v[out_off : out_off + n_out]`` and takes its connected inputs from

@@ -276,7 +276,7 @@ static int solve_step(rpr_slave *S, int32_t n, const int32_t *order, it_ctl *c, 
 /* Up to nsteps macro steps from step index k0 (as rpr_run: rows every rec_every-th step; returns
    the steps completed; c->status says why it ended early) */
 int64_t rpr_iter_run(rpr_slave *S, int32_t n, const int32_t *order, double *v, int64_t nv, it_ctl *c, int64_t k0,
-                     int64_t nsteps, int64_t step_ns, const int64_t *rec_idx, int32_t n_rec, int64_t rec_every,
+                     int64_t nsteps, int64_t start_ns, int64_t step_ns, const int64_t *rec_idx, int32_t n_rec, int64_t rec_every,
                      double *rec, int64_t *n_rows, int64_t budget_ns) {
     int64_t k, done = 0, rows = 0, t_start = (c->timing || budget_ns > 0) ? now_ns() : 0, slave_ns0 = slaves_ns(S, n);
     int32_t i, j, bad, bad_st, pos;
@@ -284,7 +284,7 @@ int64_t rpr_iter_run(rpr_slave *S, int32_t n, const int32_t *order, double *v, i
     c->status = IT_OK;
     c->bad_slave = -1;
     for (k = k0; k < k0 + nsteps; ++k) {
-        double t = (double)(k * step_ns) / 1e9;
+        double t = (double)(start_ns + k * step_ns) / 1e9;
         int res = solve_step(S, n, order, c, v, nv, t, h, &c->passes[done], &bad, &bad_st);
         if (res == IT_FAILED && bad_st == ST_STOP_REQUESTED) {
             /* Algorithm.complete_after_stop: the stopping slave's outputs, the rest of the pass */
@@ -303,7 +303,7 @@ int64_t rpr_iter_run(rpr_slave *S, int32_t n, const int32_t *order, double *v, i
         for (i = 0; i < n; ++i)   /* Iterative._accept */
             if (S[i].has_last && S[i].n_in) for (j = 0; j < S[i].n_in; ++j) S[i].start_in[j] = S[i].last_in[j];
         ++done;
-        if ((k + 1) % rec_every == 0) record_row(rec + rows++ * (n_rec + 1), (k + 1) * step_ns, v, rec_idx, n_rec);
+        if ((k + 1) % rec_every == 0) record_row(rec + rows++ * (n_rec + 1), start_ns + (k + 1) * step_ns, v, rec_idx, n_rec);
         if (budget_ns > 0 && (done & 15) == 0 && now_ns() - t_start > budget_ns) break;
     }
     *n_rows = rows;

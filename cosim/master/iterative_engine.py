@@ -125,7 +125,7 @@ class CompiledIterative:
         t_fail = alg.t
         done = int(self.lib.rpr_iter_run(
             self.arr.arr, len(self.arr), self.order.ctypes.data, sysm.v.ctypes.data, len(sysm.v),
-            ctypes.byref(ctl), alg.k, nsteps, alg.step_ns,
+            ctypes.byref(ctl), alg.k, nsteps, alg.start_ns, alg.step_ns,
             self.rec_idx.ctypes.data if self.rec_idx.size else None, len(self.rec_idx), rec_every, rec.ctypes.data,
             ctypes.byref(self.n_rows), self.budget_ns))
         code = int(ctl.status)

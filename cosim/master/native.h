@@ -48,7 +48,7 @@ static inline int stop_asked(rpr_slave *s) {
 
 /* set the slave's inputs from in[] (its place in v) */
 static inline int set_inputs(rpr_slave *s, const double *in) {
-    if (!s->n_in) return 0;
+    if (!s->n_in && !s->callback) return 0;
     if (s->fmi3) return FMI(s->inst, C_SET, ((fmi3SetFloat64_t)s->set)(s->inst, s->in_vr, (size_t)s->n_in, in,
                                                                         (size_t)s->n_in));
     return FMI(s->inst, C_SET, ((fmi2SetReal_t)s->set)(s->inst, s->in_vr, (size_t)s->n_in, in));
@@ -62,7 +62,7 @@ static inline int set_slopes(rpr_slave *s) {
 
 /* read the slave's outputs into v */
 static inline int get_outputs(rpr_slave *s, double *v) {
-    if (!s->n_out) return 0;
+    if (!s->n_out && !s->callback) return 0;
     if (s->fmi3) return FMI(s->inst, C_GET, ((fmi3GetFloat64_t)s->get)(s->inst, s->out_vr, (size_t)s->n_out,
                                                                         v + s->out_off, (size_t)s->n_out));
     return FMI(s->inst, C_GET, ((fmi2GetReal_t)s->get)(s->inst, s->out_vr, (size_t)s->n_out, v + s->out_off));

@@ -22,6 +22,8 @@ from fmus.native import NoCompiler, load
 
 from ..errors import UserError
 from ..slaves import crumb
+from ..slaves.slave import NativeEntry
+from .callbacks import CallbackSlave
 from .entries import SET_CRUMB, SLAVE, Entry, bind, header, struct
 
 #: The slave struct's fields (C type, name, what it is), declared in :data:`cosim.master.entries.SLAVE`.
@@ -66,21 +68,37 @@ def builds(library: Callable[[], ctypes.CDLL]) -> bool:
     return True
 
 
+def called_back(system, i: int) -> bool:
+    """Whether slave ``i`` of ``system`` is stepped through callbacks (:mod:`cosim.master.callbacks`):
+    it has no C entry points, or typed ports its push/pull convert."""
+    return bool(system.typed.reads[i] or system.typed.inputs[i]) or system.slaves[i].native() is None
+
+
 class SlaveArray:
     """The :class:`CSlave` array of a system's slaves with their entry points and layout filled in
     (:meth:`cosim.slaves.slave.Slave.native`, the system's value-vector offsets and value
     references); the numpy arrays the structs point into are kept alive here (:meth:`keep`)."""
 
-    def __init__(self, system, *, states: bool = False):
+    def __init__(self, system, *, states: bool = False, callbacks: bool = False):
+        """``callbacks``: a slave without C entry points, or with typed ports, is called through
+        :class:`cosim.master.callbacks.CallbackSlave` (else such a slave raises :class:`UserError`)."""
         n = len(system.slaves)
         self.arr = (CSlave * n)()
-        self.entries = []
+        self.entries: list[NativeEntry] = []
+        #: per slave, its trampolines when it is a callback slave (else None)
+        self.callbacks: list[CallbackSlave | None] = [None] * n
         self._keep: list = []
         self.states = (ctypes.c_void_p * n)()  # the FMU states (states=True), freed by free_states()
         for i, s in enumerate(system.slaves):
-            ne = s.native()
+            ne = None if called_back(system, i) else s.native()
             if ne is None:
-                raise UserError(f"{s.name} has no C entry points; use master.engine: python")
+                if not callbacks:
+                    raise UserError(f"{s.name} has no C entry points; use master.engine: python")
+                cb = self.callbacks[i] = CallbackSlave(s)
+                state = (cb.address("get_state"), cb.address("set_state")) if s.can_rollback else (0, 0)
+                ne = NativeEntry(False, 0, cb.address("do_step"), cb.address("get"), cb.address("set"),
+                                 cb.address("set_der"), *state, get_boolean_status=cb.address("bool_status"))
+                self.arr[i].callback = 1
             self.entries.append(ne)
             c = self.arr[i]
             c.fmi3, c.n_in, c.n_out = int(ne.fmi3), len(system.in_vrs[i]), len(system.out_vrs[i])
@@ -90,6 +108,8 @@ class SlaveArray:
             c.inst, c.do_step, c.get, c.set = ne.instance, ne.do_step, ne.get_real, ne.set_real
             c.bool_status, c.last_time = ne.get_boolean_status, ne.last_time
             c.memoryless = int(s.description.memoryless)
+            if system.in_affine[i] is not None:  # its inputs through their connections' transformations
+                c.in_factor, c.in_offset = self.buffer(system.in_affine[i][0]), self.buffer(system.in_affine[i][1])
             if states:
                 c.get_state, c.set_state = ne.get_state, ne.set_state
                 c.state = ctypes.addressof(self.states) + i * ctypes.sizeof(ctypes.c_void_p)
@@ -97,6 +117,12 @@ class SlaveArray:
             c.in_vr = system.in_vrs[i].ctypes.data if c.n_in else None
             c.in_src = system.in_src[i].ctypes.data if c.n_in else None
             c.out_vr = system.out_vrs[i].ctypes.data if c.n_out else None
+
+    def reraise(self) -> None:
+        """Raise the exception a callback slave's trampoline caught during the last call, if any."""
+        for cb in self.callbacks:
+            if cb is not None:
+                cb.reraise()
 
     def keep(self, *arrays: np.ndarray) -> None:
         """Keep ``arrays`` alive as long as the structs that point into them."""
@@ -126,4 +152,4 @@ class SlaveArray:
                 self.states[i] = None
 
 
-__all__ = ["CSlave", "SLAVE_FIELDS", "SlaveArray", "builds", "compile_loop", "kernel_files"]
+__all__ = ["CSlave", "SLAVE_FIELDS", "SlaveArray", "builds", "called_back", "compile_loop", "kernel_files"]

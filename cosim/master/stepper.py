@@ -220,7 +220,25 @@ class FixedStepper(Stepper):
         n = min(max_steps, self.n_steps - self.alg.k)
         if self.runner is None:
             return self.python_block(rec, n)
-        return self.runner(n, self.record_every, rec)
+        if not self.system.typed.texts:
+            return self.runner(n, self.record_every, rec)
+        return self._text_block(rec, n)
+
+    def _text_block(self, rec: np.ndarray, n: int) -> int:
+        """The compiled loop's ``n`` steps up to one recorded point at a time, the recorded text
+        variables' changes noted at each (as :meth:`Stepper.python_block` notes them)."""
+        alg, rows, end = self.alg, 0, self.alg.k + n
+        while alg.k < end and alg.status == "running":
+            k = alg.k
+            got = self.runner(min(end, (k // self.record_every + 1) * self.record_every) - k, self.record_every,
+                              rec[rows:])
+            if got:
+                self.text_events += [(float(rec[rows + got - 1, 0]), c, x)
+                                     for c, x in self.system.typed.text_changes()]
+            rows += got
+            if alg.k == k:
+                break
+        return rows
 
     def step(self) -> bool:
         ok = self.alg.step()

@@ -47,7 +47,7 @@ class JacobiExtrapolated(Jacobi):
     they are.  Inputs held (``inputs: hold``); one rate; FMI 3.0 events inside the steps."""
 
     name = "jacobi_extrapolated"
-    native_code = None  # the Python loop only (a compiled kernel would be code 3 in fastloop.c)
+    native_code = 3  # fastloop.c: Jacobi's push with extrapolate()
     multirate = False
     ends_steps_at_events = False
     event_policy = ("events are handled inside each component's steps and reach the others at the next "
