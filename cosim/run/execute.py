@@ -623,8 +623,9 @@ def event_modes(scene: Scene) -> list[str]:
 
 def held_values(scene: Scene) -> list[str]:
     """The held values of the scene's sampled components (their discrete variables, and the outputs
-    of a sampler without states that no input feeds through), as recorded column names: an ADC's code and read-back length, a PWM duty; the estimate compares the
-    quantised ones to one quantum (:func:`cosim.master.estimate.one_count_apart`)."""
+    of a sampler without states that no input feeds through), as recorded column names: an ADC's
+    code and read-back length, a PWM duty; the estimate compares the quantised ones to one quantum
+    (:func:`cosim.master.estimate.one_count_apart`)."""
     out = []
     for name, c in scene.components.items():
         d, b = c.description, c.block
