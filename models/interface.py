@@ -7,7 +7,7 @@ from __future__ import annotations
 import difflib
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Literal
 
 
@@ -56,12 +56,15 @@ class Var:
 class Flange:
     """A power port: ``effort`` and ``flow`` name variables of the block (force [N] and
     velocity [m/s], or torque and angular velocity).  ``causality`` says which of the pair the
-    block computes: ``"flow_out"`` (effort in, flow out) or ``"effort_out"``."""
+    block computes: ``"flow_out"`` (effort in, flow out) or ``"effort_out"``.  ``why``: why the
+    block cannot take the other causality, where it was derived (a Modelica flange whose other
+    choice leaves an index problem); "" where it was not asked or can.  Not part of equality."""
 
     name: str
     effort: str
     flow: str
     causality: Literal["flow_out", "effort_out"] = "flow_out"
+    why: str = field(default="", compare=False)
 
 
 @dataclass(frozen=True)

@@ -1292,26 +1292,21 @@ class _Translation:
         the solved unknowns (key -> expression) and the choice per flange.  Where no choice
         does, the states tied by a constraint (an index-2 system, e.g. two masses joined rigidly,
         or a spring's relative position that fixes a mass's one) are reduced first
-        (:meth:`_reduce_index`)."""
+        (:meth:`_reduce_index`).  A flange whose other causality the equations do not allow gets
+        the reason in ``fl["why"]`` (the bond check names it when a partner needs that other one)."""
         options = []
         for fl in flanges:  # effort_out: the potential is given (an input); flow_out: the flow is given
             options.append([("effort_out", ("algebraic", fl["potential"])), ("flow_out", ("algebraic", fl["flow"]))])
         choices = list(product(*options)) if flanges else [()]
         for reduce in (False, True):
             for choice in choices:
-                given = {key for _, key in choice}
-                keys = [k for k in unknown if k not in given]
-                rows = list(residuals)
-                if reduce:
-                    rows, keys = self._reduce_index(b, rows, keys, unknown)
-                    if rows is None:
-                        continue
-                res = ca.vertcat(*[r for r, _ in rows]) if rows else ca.SX(0, 1)
-                if len(keys) != res.numel():
+                found = self._determined(b, residuals, unknown, choice, reduce)
+                if found is None:
                     continue
-                w = ca.vertcat(*[unknown[k] for k in keys]) if keys else ca.SX(0, 1)
-                if keys and ca.sprank(ca.jacobian_sparsity(res, w)) < len(keys):
-                    continue
+                rows, keys, res = found
+                for i, fl in enumerate(flanges):
+                    other = next(o for o in options[i] if o != choice[i])
+                    fl["why"] = self._refused(b, residuals, unknown, choice[:i] + (other,) + choice[i + 1:], flanges)
                 subst = self._inputs_for(b, flanges, choice, unknown)
                 r = ca.substitute(res, ca.vertcat(*subst.keys()), ca.vertcat(*subst.values())) if subst else res
                 return self._sorted_solve(r, keys, unknown, rows), choice
@@ -1322,17 +1317,56 @@ class _Translation:
                                                  f"one of their two variables given)"
                                                  + (f"; {self.index_problem}" if self.index_problem else ""))
 
+    def _determined(self, b: BlockBuilder, residuals, unknown: dict, choice, reduce: bool, rates: dict | None = None):
+        """``(rows, keys, residual)`` when the equations determine the unknowns with each flange's
+        variable of ``choice`` given (states tied by constraints demoted first when ``reduce``,
+        which adds them to ``unknown``; ``rates``: given positions whose rates are known too, see
+        :meth:`_reduce_index`), else None."""
+        given = {key for _, key in choice}
+        keys = [k for k in unknown if k not in given]
+        rows = list(residuals)
+        if reduce:
+            rows, keys = self._reduce_index(b, rows, keys, unknown, rates)
+            if rows is None:
+                return None
+        res = ca.vertcat(*[r for r, _ in rows]) if rows else ca.SX(0, 1)
+        if len(keys) != res.numel():
+            return None
+        w = ca.vertcat(*[unknown[k] for k in keys]) if keys else ca.SX(0, 1)
+        if keys and ca.sprank(ca.jacobian_sparsity(res, w)) < len(keys):
+            return None
+        return rows, keys, res
+
+    def _refused(self, b: BlockBuilder, residuals, unknown: dict, choice, flanges: list[dict]) -> str:
+        """Why the equations do not determine the unknowns under ``choice`` ("" when they do):
+        the index problem :meth:`_reduce_index` names, else the count.  A position flange taking
+        the rate counts as a position whose derivative is that rate (the constraint on it
+        differentiated once)."""
+        rates = {unknown[key].name(): (unknown[key], ca.SX.sym(f"{fl['name']}.v"))
+                 for fl, (c, key) in zip(flanges, choice) if c == "effort_out" and fl["position"]}
+        kept = self.index_problem
+        self.index_problem = ""
+        try:
+            if any(self._determined(b, residuals, dict(unknown), choice, r, rates) is not None for r in (False, True)):
+                return ""
+            return self.index_problem or "the equations would not determine the model's variables"
+        finally:
+            self.index_problem = kept
+
     index_problem = ""
     _PRIORITY = {"Never": 0, "Avoid": 1, "Default": 2, "Prefer": 3, "Always": 4}
 
-    def _reduce_index(self, b: BlockBuilder, rows: list, keys: list, unknown: dict):
+    def _reduce_index(self, b: BlockBuilder, rows: list, keys: list, unknown: dict, rates: dict | None = None):
         """Demote states tied by constraints until the equations determine the unknowns: a row
         that the equations leave free of unknowns, ``g(x) = 0``, makes one of its states (the
         one without a fixed start, then the lowest ``stateSelect``, the last declared) an unknown, and its time
         derivative ``dg/dx . der(x) = 0`` is added (the dummy-derivative method on the
-        constraint as the equations give it).  Returns ``(rows, keys)``, or ``(None, None)``
-        with :attr:`index_problem` saying why not (a constraint through an input, whose
-        derivative the block does not have)."""
+        constraint as the equations give it).  ``rates``: symbol name -> (position, its rate) of
+        given positions whose rate is known (a position flange taking its partner's velocity):
+        a constraint may tie a state to them, and its derivative reads the rate.  Returns
+        ``(rows, keys)``, or ``(None, None)`` with :attr:`index_problem` saying why not (a
+        constraint through an input, whose derivative the block does not have)."""
+        rates = rates or {}
         keys = list(keys)
         rows = list(rows)
         states = [key[1] for key in unknown if key[0] == "derivative"]
@@ -1350,7 +1384,7 @@ class _Translation:
             own = {self.env[("state", j)].name() for j in states} | {sym.name() for _, sym in b._params} | \
                 {sym.name() for sym in self.mode_syms.values()} | {self.time.name()}
             own |= {self.env[("parameter", j)].name() for j in range(len(self.vars))
-                    if ("parameter", j) in self.env and self.env[("parameter", j)].is_symbolic()}
+                    if ("parameter", j) in self.env and self.env[("parameter", j)].is_symbolic()} | set(rates)
             inputs = [s for s in ca.symvar(g) if s.name() not in own]
             if inputs or not tied:
                 self.index_problem = (f"the states are tied by the constraint 0 = {_short(g)}"
@@ -1362,8 +1396,8 @@ class _Translation:
                 self.vars[j]["attributes"].get("state_select") or "Default", 2), -j))
             unknown[("state", k)] = self.env[("state", k)]
             keys.append(("state", k))
-            xs = ca.vertcat(*[self.env[("state", j)] for j in states])
-            xd = ca.vertcat(*[unknown[("derivative", j)] for j in states])
+            xs = ca.vertcat(*[self.env[("state", j)] for j in states], *[pos for pos, _ in rates.values()])
+            xd = ca.vertcat(*[unknown[("derivative", j)] for j in states], *[rate for _, rate in rates.values()])
             rows.append((ca.jtimes(g, xs, xd), line))
         return None, None
 
@@ -1488,12 +1522,15 @@ class _Translation:
     def _flange(self, b: BlockBuilder, fl: dict, causality: str, value: dict) -> None:
         pv, fv = self.vars[fl["potential"]], self.vars[fl["flow"]]
         name = fl["name"]
+        if fl.get("why"):
+            takes = "the velocity" if causality == "flow_out" else "the force"
+            fl["why"] = f"taking {takes} in leaves an index problem: {fl['why']}"
         if causality == "effort_out":  # potential in, effort (force on the partner = -f) out
             unit, text = self._doc(fv, "connector variable")
             b.output(fv["name"], -value[fl["flow"]], unit, f"on the partner: -{fv['name']} of the model, whose flow "
                                                            f"variable is the {text}")
             flow = f"{name}.v" if fl["position"] else pv["name"]
-            b.flange(name, fv["name"], flow, "effort_out")
+            b.flange(name, fv["name"], flow, "effort_out", why=fl.get("why", ""))
         else:  # effort in, potential (or its rate) out
             unit, text = self._doc(pv, "connector variable")
             if fl["position"]:
@@ -1506,10 +1543,10 @@ class _Translation:
                     else ca.SX(0.0)
                 b.output(f"{name}.v", rate, "m/s" if unit == "m" else "rad/s", f"rate of {text}")
                 b.output(pv["name"], s, unit, text)
-                b.flange(name, fv["name"], f"{name}.v", "flow_out")
+                b.flange(name, fv["name"], f"{name}.v", "flow_out", why=fl.get("why", ""))
             else:
                 b.output(pv["name"], value[fl["potential"]], unit, text)
-                b.flange(name, fv["name"], pv["name"], "flow_out")
+                b.flange(name, fv["name"], pv["name"], "flow_out", why=fl.get("why", ""))
 
 
 __all__ = ["translate", "front_end", "unsupported", "ModelicaError", "DAE_SCHEMA", "INTEGRATORS"]

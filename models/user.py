@@ -105,14 +105,15 @@ class BlockBuilder:
         an internal variable, exported as an FMI local (recordable, not connectable)."""
         self._outputs.append((Var(name, unit, description, local), ca.SX(expr)))
 
-    def flange(self, name: str, effort: str, flow: str, causality: str) -> None:
+    def flange(self, name: str, effort: str, flow: str, causality: str, why: str = "") -> None:
         """A power port made of an input and an output of this block: ``effort`` (force [N] or
         torque [N.m]) and ``flow`` (velocity [m/s] or angular velocity [rad/s]); ``causality``
-        ``"effort_out"`` (flow in, effort out) or ``"flow_out"`` (effort in, flow out)."""
+        ``"effort_out"`` (flow in, effort out) or ``"flow_out"`` (effort in, flow out); ``why``:
+        why the block cannot take the other causality (one line), if it cannot."""
         if causality not in ("effort_out", "flow_out"):
             raise BlockError(f"block {self.name}: flange {name!r} causality {causality!r}; expected effort_out "
                              f"or flow_out")
-        self._flanges.append(Flange(name, effort, flow, causality))  # type: ignore[arg-type]
+        self._flanges.append(Flange(name, effort, flow, causality, why))  # type: ignore[arg-type]
 
     def rating(self, variable: str, low: float, high: float, kind: str = "rated", source: str = "") -> None:
         """Operating limits of an input or output, enforced by the run-time guards."""

@@ -307,6 +307,20 @@ def test_stiction_breaks_away_where_a_ramp_force_passes_fs_and_slides_by_coulomb
     assert x == pytest.approx((t ** 3 - 1.5 ** 3) / 3 - 2.25 * (t - 1.5) - (t - 1.5) ** 2, rel=1e-9)
 
 
+def test_the_smooth_friction_law_creeps_at_its_analytic_velocity(cache):
+    """stick_slip_smooth's friction (sliding_mass, smooth) against the law solved by hand: with
+    Fc = Fs (no Stribeck dip) and no viscous term, a constant 1.5 N against Fs = 3 N is balanced at
+    Fs tanh(v / v_eps) = f, v = v_eps artanh(1/2) (a creep, not a stick); the friction force is -f."""
+    path = build_fmu(make("sliding_mass", "smooth", m=1.0, Fc=3.0, Fs=3.0, b=0.0), cache_dir=cache)
+    s = Slave(path).start(f=1.5)
+    t, h = 0.0, 1e-3
+    while t < 0.05 - 1e-12:
+        s.fmu.doStep(t, h)
+        t += h
+    v, friction = s.get("v", "friction")
+    assert v == pytest.approx(1e-3 * np.arctanh(0.5), rel=1e-6) and friction == pytest.approx(-1.5, rel=1e-6)
+
+
 def test_a_sliding_mass_sticks_where_its_velocity_reaches_zero(cache):
     """Sliding at 1 m/s against Fc = 2 N with f = 1 N (< Fs): it decelerates at 1 m/s2 and sticks
     at t = 1 s, 0.5 m on, and stays (the surface then holds the 1 N)."""

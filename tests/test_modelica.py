@@ -307,3 +307,66 @@ def test_lag_without_units_runs_against_its_analytic_response(tmp_path):
     T = 0.5
     exact = (np.cos(t) + T * np.sin(t)) / (1 + T * T) - np.exp(-t / T) / (1 + T * T)
     assert np.abs(y - exact).max() < 1e-3 * np.ptp(exact)
+
+
+SLIDING_MASS = '''model SlidingMass "a mass whose flange is its own position"
+  connector Flange "a translational flange, as the MSL's"
+    Real s(unit = "m") "position";
+    flow Real f(unit = "N") "force on the component";
+  end Flange;
+  parameter Real m(unit = "kg") = 2 "mass";
+  parameter Real d(unit = "N.s/m") = 0 "damping to the ground";
+  Real s(unit = "m", start = 0, fixed = true) "position";
+  Real v(unit = "m/s", start = 0, fixed = true) "velocity";
+  Flange flange "where the drive acts";
+equation
+  flange.s = s;
+  der(s) = v;
+  m * der(v) = flange.f - d * v;
+end SlidingMass;
+'''
+DAMPER_ON_FLANGE = '''model GroundDamper "a damper from a position flange to the ground"
+  connector Flange "a translational flange, as the MSL's"
+    Real s(unit = "m") "position";
+    flow Real f(unit = "N") "force on the component";
+  end Flange;
+  parameter Real d(unit = "N.s/m") = 3 "damping";
+  Real x(unit = "m", start = 0, fixed = true) "position";
+  Flange flange "the driven end";
+equation
+  flange.s = x;
+  d * der(x) = flange.f;
+end GroundDamper;
+'''
+
+
+def test_a_position_flange_on_a_mass_against_a_velocity_source_is_refused_naming_the_index_problem(tmp_path):
+    """A top-level position flange fixed to a mass: taking the partner's velocity in, the position
+    constraint differentiated once ties the mass's velocity state to it, and its force would need
+    the partner's acceleration (index 3), which a bond does not carry.  The flange is derived
+    flow_out (force in; m dv/dt = f - d v by hand), and a bond to the mechanism's leg, which
+    imposes its velocity, is refused in one line that names the constraint.  A damper on a
+    position flange has no such problem (its constraint differentiated once gives the force)."""
+    b = translate(SLIDING_MASS, "SlidingMass", "SlidingMass.mo")
+    (fl,) = b.flanges
+    assert (fl.causality, fl.effort, fl.flow) == ("flow_out", "flange.f", "flange.v")
+    assert fl.why.startswith("taking the velocity in leaves an index problem") and "0 = (flange.v-state.v)" in fl.why
+    fn, names = b.functions(), [v.name for v in b.states]
+    dx = dict(zip(names, np.array(fn["ode"]([0.1, 0.4], [1.5], [2.0, 0.5])).ravel()))
+    assert dx == {"state.s": pytest.approx(0.4), "state.v": pytest.approx((1.5 - 0.5 * 0.4) / 2.0)}
+    assert translate(DAMPER_ON_FLANGE, "GroundDamper", "GroundDamper.mo").flanges[0].why == ""
+    (tmp_path / "SlidingMass.mo").write_text(SLIDING_MASS)
+    (tmp_path / "scene.yaml").write_text(textwrap.dedent("""\
+        stop_time: 0.1
+        components:
+          mech: {model: mechanism, fidelity: rigid}
+          m: {modelica: SlidingMass.mo, model: SlidingMass}
+        connections:
+          - m.flange <-> mech.leg[1]
+        master: {algorithm: gauss_seidel, step: 1e-3}
+        """))
+    with pytest.raises(SceneError) as err:
+        load(tmp_path / "scene.yaml")
+    (msg,) = str(err.value).splitlines()
+    assert "both flanges compute the flow (flow_out)" in msg and "m.flange cannot: taking the velocity in leaves an " \
+        "index problem: the states are tied by the constraint 0 = (flange.v-state.v)" in msg, msg

@@ -54,6 +54,9 @@ EVENT_TIME_SPAN = 0.1
 #: A discrete variable that changes at more than this share of the recorded rows is a sampled
 #: value (an external FMU's held output), not a mode whose changes are events to match.
 SAMPLED_SHARE = 0.1
+#: A held sampled value is a quantiser's output when it takes at least this many levels over the
+#: run, every change a whole number of its smallest one (an ADC code, the length read back from it).
+QUANTISED_LEVELS = 10
 
 
 def event_time_tolerance(tolerance: float | None) -> float | None:
@@ -229,8 +232,45 @@ def match_modes(t: np.ndarray, x: np.ndarray, tc: np.ndarray, xc: np.ndarray, na
     return out
 
 
+def quantum(col: np.ndarray) -> float | None:
+    """The quantum of a held sampled value (an ADC code, the length read back from it): its
+    smallest change between rows when every change is a whole number of it and the value spans at
+    least :data:`QUANTISED_LEVELS` of them; None for anything else (a held PWM voltage that
+    follows a controller, a two-level flag)."""
+    col = col[np.isfinite(col)]
+    steps = np.abs(np.diff(col))
+    steps = steps[steps > 1e-12 * max(1.0, float(np.abs(col).max(initial=0.0)))]
+    if not len(steps):
+        return None
+    q = float(steps.min())
+    whole = np.allclose(steps / q, np.rint(steps / q), rtol=0.0, atol=1e-6)
+    return q if whole and float(col.max() - col.min()) >= QUANTISED_LEVELS * q else None
+
+
+def one_count_apart(at: np.ndarray, diff: np.ndarray, sparse_x: np.ndarray, dense_x: np.ndarray,
+                    held: Sequence[int], spacing: float) -> tuple[np.ndarray, int]:
+    """Mask of the instants ``at`` where the held sampled values (columns ``held``) are compared:
+    outside ``[t - 2 spacing, t + 2 spacing]`` around each instant where a quantised one
+    (:func:`quantum`) differs by exactly one quantum between the run and its companion (``diff``
+    at ``at``: a level crossed at a neighbouring sample, or a leg resting on a level whose code
+    dithers: where the quantiser's input sits on a level at a sample, no step settles which code
+    it reads), and the count of such instants.  A difference of two quanta or more is never left out."""
+    flips = np.zeros(len(at), dtype=bool)
+    for j in held:
+        q = quantum(sparse_x[:, j])
+        qc = quantum(dense_x[:, j])
+        q = q if q is not None and qc is not None and math.isclose(q, qc, rel_tol=1e-6) else None
+        if q is not None:
+            flips |= np.abs(diff[:, j] / q - 1.0) < 1e-6
+    keep = np.ones(len(at), dtype=bool)
+    for te in at[flips]:
+        keep &= np.abs(at - te) > 2 * spacing
+    return keep, int(flips.sum())
+
+
 def richardson(t: np.ndarray, x: np.ndarray, tc: np.ndarray, xc: np.ndarray, names: Sequence[str],
-               div: float, method: str, events: Sequence[float] = (), modes: Sequence[int] = ()) -> ErrorEstimate:
+               div: float, method: str, events: Sequence[float] = (), modes: Sequence[int] = (),
+               held: Sequence[int] = ()) -> ErrorEstimate:
     """The estimate from a run (instants ``t``, values ``x``, one column per name) and its companion
     (``tc``, ``xc``): their largest difference over ``div`` per signal, relative to the run's range.
     They are compared at the instants of the sparser one inside both spans, the denser one
@@ -240,7 +280,8 @@ def richardson(t: np.ndarray, x: np.ndarray, tc: np.ndarray, xc: np.ndarray, nam
     events and the instants either trace records twice) the instants within two of the sparser
     trace's steps are left out (:func:`outside_events`).  ``modes``: the columns of recorded modes;
     their events are matched (:func:`match_modes`), the event-time error estimated and the values
-    around each matched pair left out."""
+    around each matched pair left out.  ``held``: the columns of sampled components' held values;
+    they are compared to one quantum of the quantised ones (:func:`one_count_apart`)."""
     lo, hi = max(t[0], tc[0]), min(t[-1], tc[-1])
     if len(t) < 2 or len(tc) < 2 or hi <= lo:
         return ErrorEstimate(None, method=f"{method}: the run and its companion share no time span")
@@ -268,6 +309,15 @@ def richardson(t: np.ndarray, x: np.ndarray, tc: np.ndarray, xc: np.ndarray, nam
         doubt = interpolation_doubt(dt, dx, at, interp)
         diff = np.abs(interp - sparse_x[keep])
         diff = np.where(np.isfinite(diff), np.maximum(diff - doubt, DOUBT_KEEPS * diff), diff)
+    if len(held):
+        with np.errstate(all="ignore"):
+            exact = np.abs(interp - sparse_x[keep])  # a quantum is judged on the values, not less the doubt
+        compared, flips = one_count_apart(at, exact, sparse_x[keep], dense_x[uniq], held,
+                                          float(np.max(np.diff(sparse_t))))
+        if flips:
+            diff[np.ix_(~compared, list(held))] = 0.0
+            method = (f"{method}; held sampled values compared outside {flips} instants where a quantised one is "
+                      f"one quantum apart")
     errors: dict[str, float] = {}
     worst, signal, when = -1.0, "", math.nan
     for j, name in enumerate(names):
@@ -339,12 +389,14 @@ class EstimatingObserver(Observer):
     (:func:`judge`) and finishes the inner observers with that status, the estimate in the
     statistics (``estimate``), the counted events (``events.counted``, :func:`event_counts`) and ``extra``
     statistics (e.g. the master's choice).  ``modes``: the recorded columns that are modes of
-    components with state events (their changes are the events the estimate matches)."""
+    components with state events (their changes are the events the estimate matches); ``held``:
+    the recorded held values of sampled components (compared to one quantum, :func:`richardson`)."""
 
     def __init__(self, inner: Sequence, companion: tuple[np.ndarray, np.ndarray] | None, div: float, method: str,
-                 tolerance: float | None, extra: dict | None = None, modes: Sequence[str] = ()):
+                 tolerance: float | None, extra: dict | None = None, modes: Sequence[str] = (),
+                 held: Sequence[str] = ()):
         self.inner, self.companion, self.div, self.method = list(inner), companion, div, method
-        self.modes = list(modes)
+        self.modes, self.held = list(modes), list(held)
         self.tolerance, self.extra = tolerance, dict(extra or {})
         self.rows: list[np.ndarray] = []
         self.columns: list[str] = []
@@ -383,7 +435,8 @@ class EstimatingObserver(Observer):
         tc, xc = self.companion
         names = self.columns[1:]
         modes = [j for j, n in enumerate(names) if n in set(self.modes)]
-        return richardson(data[:, 0], data[:, 1:], tc, xc, names, self.div, self.method, self.events, modes)
+        held = [j for j, n in enumerate(names) if n in set(self.held)]
+        return richardson(data[:, 0], data[:, 1:], tc, xc, names, self.div, self.method, self.events, modes, held)
 
     def finish(self, status, reason, stats) -> None:
         for figures in ((stats or {}).get("model_exchange") or {}).values():  # events inside ME components' steps

@@ -621,6 +621,24 @@ def event_modes(scene: Scene) -> list[str]:
     return out
 
 
+def held_values(scene: Scene) -> list[str]:
+    """The held values of the scene's sampled components (their discrete variables, and the outputs
+    of a sampler without states that no input feeds through), as recorded column names: an ADC's
+    code and read-back length, a PWM duty; the estimate compares the quantised ones to one quantum
+    (:func:`cosim.master.estimate.one_count_apart`)."""
+    out = []
+    for name, c in scene.components.items():
+        d, b = c.description, c.block
+        if not (d.sample_period or (b is not None and getattr(b, "sample_times", None))):
+            continue
+        out += [f"{name}.{v.name}" for v in d.variables.values()
+                if v.variability == "discrete" and v.causality in ("local", "output")]
+        if b is not None and not b.states:  # a sampler's outputs that no input feeds through: its held values
+            through = b.feedthrough()
+            out += [f"{name}.{v.name}" for v in b.outputs if not through.get(v.name)]
+    return out
+
+
 def _order(scene: Scene) -> list[int] | None:
     index = {n: i for i, n in enumerate(scene.components)}
     return [index[n] for n in scene.master.order] if scene.master.order else None
@@ -650,7 +668,8 @@ def _once(scene: Scene, stepping: Stepping, request: RunRequest, slaves: Sequenc
     if guard:
         guard.bind(system.record_names + system.watch_names)
     memory, inner, trace_path = scene_observers(scene, request.out_dir, trace_format=request.trace_format)
-    estimator = EstimatingObserver(inner, ctrace, div, method, scene.master.tolerance, extra, event_modes(scene))
+    estimator = EstimatingObserver(inner, ctrace, div, method, scene.master.tolerance, extra, event_modes(scene),
+                                   held_values(scene))
     meta = _run_meta(scene, request.overrides)
     try:
         stats = simulate_scene(scene, system, [estimator], engine, Watched(request.progress, meta, guard)).as_dict()

@@ -192,8 +192,9 @@ class ConnectionChecks(Checker):
                     continue
                 if fa.causality == fb.causality:
                     what = "effort" if fa.causality == "effort_out" else "flow"
+                    why = "".join(f"; {cn}.{fn} cannot: {fl.why}" for (cn, fn), fl in ((a, fa), (b, fb)) if fl.why)
                     self.err(where, f"bond {lhs} <-> {rhs}: both flanges compute the {what} ({fa.causality}); "
-                                    f"one side must take it as input")
+                                    f"one side must take it as input{why}")
                     continue
                 eff, flo = ((a, fa), (b, fb)) if fa.causality == "effort_out" else ((b, fb), (a, fa))
                 label = f"{lhs} <-> {rhs}"
