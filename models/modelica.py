@@ -99,7 +99,6 @@ class ModelicaError(BlockError):
 
 # --- what is refused, found in the text ----------------------------------------------------------
 _UNSUPPORTED = {
-    "elsewhen": "elsewhen is not supported yet (write one when-clause per condition)",
     "external": "external functions are not supported",
     "assert": "assert() is not supported", "terminate": "terminate() is not supported",
     "delay": "delay() is not supported",
@@ -834,10 +833,12 @@ class _Translation:
         roots = [r["root"] for r in st.get("roots", [])]
         always = self._always()
         actions = [a for a in st.get("event_actions", []) if not self._assert(a)]
-        if not roots and not self.mode_syms and not st.get("time_events") and not st.get("clocks"):
+        if not roots and not self.mode_syms and not st.get("time_events") and not st.get("clocks") and \
+                not self.chains:
             return None
         relations = [r["relation"] for r in st.get("relations", [])]
         conditions = st.get("conditions", [])
+        chains = self._chain_modes(conditions, relations)
         xs = [sym for _, sym, _ in b._states]
         ms = list(self.mode_syms.values())
         indicators, directions, names, updates = [], [], [], []
@@ -866,7 +867,10 @@ class _Translation:
             triggers.setdefault(trig, []).append(("value", {**val, "target": k}))
         fired = set()
         periodic = []  # (period, start, update, name) of the when-clauses on sample() and initial()
+        in_chain = {c for chain in chains for c, _, _ in chain}
         for trig, items in triggers.items():
+            if trig in in_chain:
+                continue
             node = (conditions[trig].get("node") or {}) if trig < len(conditions) else {}
             if node == "initial":  # when initial(): a time event at the run's start, t = 0
                 periodic.append((ONCE, 0.0, self._update(items, xs, ms, b), "when initial()"))
@@ -886,6 +890,18 @@ class _Translation:
             updates[i] = self._update(items, xs, ms, b)
             directions[i] = EITHER if either else directions[i]
             fired.add(i)
+        for chain in chains:  # when/elsewhen: the first branch whose condition becomes true wins
+            for c, _, _ in chain:
+                i = by_relation.get((conditions[c].get("node") or {}).get("relation"))
+                if i is None or i in fired:
+                    self._fail_span(conditions[c], "an elsewhen branch's condition other than one relation on "
+                                                   "states, inputs or parameters (or a relation another "
+                                                   "when-clause uses too)")
+                fired.add(i)
+            g = self._chain_update(chain, triggers, xs, ms, b)
+            for c, _, _ in chain:
+                i = by_relation[conditions[c]["node"]["relation"]]
+                updates[i], directions[i] = g, EITHER  # either way: the condition's truth is a mode
         for i in range(len(indicators)):
             if i not in fired:
                 directions[i] = EITHER  # a relation read by an if-expression: the step restarts where it switches
@@ -902,6 +918,8 @@ class _Translation:
             m0 = ca.substitute(m0, ca.vertcat(self.time, *us), ca.SX.zeros(1 + len(us)))
             m0 = ca.substitute(m0, ca.vertcat(*ms), ca.vertcat(*self.mode_starts))
             self.mode_starts = [m0[j] for j in range(m0.numel())]
+        if chains:  # a condition's mode starts at its truth at the start (a when fires where it becomes true)
+            self._chain_starts(chains, xs, ms, b)
         if always:  # every event ends by settling the always-active discrete equations
             updates = [self._settled(xs, ms, g) for g in updates]
             samples.append(Sample(ONCE, 0.0, self._settled(xs, ms, None), "initial"))
@@ -914,12 +932,75 @@ class _Translation:
         for T, t0, g, name in periodic:  # sample(start, interval): start + k interval, k = 0, 1, ...; initial()
             samples.append(Sample(T, t0, self._settled(xs, ms, g) if always else g, name))
         self.event_fields = {
-            "modes": [Var(f"mode.{self.vars[k]['name']}", *self._doc(self.vars[k], "discrete variable"))
+            "modes": [self.condition_vars[k] if k < 0 else
+                      Var(f"mode.{self.vars[k]['name']}", *self._doc(self.vars[k], "discrete variable"))
                       for k in self.mode_syms],
             "m": ca.vertcat(*ms) if ms else ca.SX(0, 1), "mode_start": self.mode_starts, "t": self.time,
             "indicators": ca.vertcat(*indicators) if indicators else ca.SX(0, 1), "directions": directions,
             "event_names": names, "updates": updates, "sample_times": samples}
         return self.event_fields
+
+    def _chain_modes(self, conditions: list, relations: list) -> list[list[tuple]]:
+        """The when/elsewhen chains as ``[(condition, truth, mode)]`` per branch: each branch's
+        condition (rumoca's, found by its source span), its truth (0/1 in ``t, x, u, p, m`` and the
+        solved variables) and a mode holding that truth's left value (``pre`` of the condition),
+        added to :attr:`mode_syms` under a negative key."""
+        self.condition_vars: dict[int, Var] = {}
+        by_span = {}
+        for c, cond in enumerate(conditions):
+            span = (cond.get("provenance") or {}).get("span") or {}
+            by_span.setdefault((span.get("source"), span.get("start")), c)
+        out = []
+        for j, spans in enumerate(self.chains):
+            chain = []
+            for k, span in enumerate(spans):
+                c = by_span.get(span)
+                node = (conditions[c].get("node") or {}) if c is not None else {}
+                if c is None or set(node) != {"relation"}:
+                    raise ModelicaError(self.filename, self._offset_line(span[1]),
+                                        "an elsewhen branch's condition other than one relation on states, "
+                                        "inputs or parameters (initial(), sample(), edge() or and/or in a chain)")
+                truth = self.graph(relations[node["relation"]]["expression"])
+                key = -(len(self.condition_vars) + 1)
+                name = f"mode.when{j + 1}.c{k + 1}"
+                sym = ca.SX.sym(name)
+                self.mode_syms[key] = sym
+                self.mode_starts.append(ca.SX(0.0))  # set by _chain_starts
+                line = self._offset_line(span[1])
+                self.condition_vars[key] = Var(name, "", f"the truth (0/1) of branch {k + 1}'s condition of the "
+                                                         f"when/elsewhen at line {line}: {_short(truth, 60)}")
+                chain.append((c, truth, sym))
+            out.append(chain)
+        return out
+
+    def _chain_update(self, chain: list, triggers: dict, xs: list, ms: list, b: BlockBuilder) -> ca.SX:
+        """``[x+; m+]`` of a when/elsewhen chain at any of its conditions' crossings: the first
+        branch whose condition becomes true (true now, false before: its mode) applies its
+        equations and reinits, the others nothing; every condition's mode takes its truth now."""
+        ident = ca.vertcat(*xs, *ms)
+        g = ident
+        for c, truth, sym in reversed(chain):
+            items = triggers.get(c, [])
+            branch = self._update(items, xs, ms, b) if items else ident
+            g = ca.if_else(ca.logic_and(truth, ca.logic_not(sym)), branch, g)
+        rows = [g[r] for r in range(g.numel())]
+        for _, truth, sym in chain:
+            rows[len(xs) + [j for j, m in enumerate(ms) if m is sym or ca.is_equal(m, sym)][0]] = truth
+        return ca.vertcat(*rows)
+
+    def _chain_starts(self, chains: list, xs: list, ms: list, b: BlockBuilder) -> None:
+        """Each condition mode's start: its condition's truth at the start state, ``t = 0``
+        (inputs 0), so a condition true from the start does not fire (as a when-clause's)."""
+        keys = list(self.mode_syms)
+        for chain in chains:
+            for _, truth, sym in chain:
+                v = ca.substitute(truth, *self.solved) if self.solved is not None else truth
+                if xs:
+                    v = ca.substitute(v, ca.vertcat(*xs), ca.vertcat(*[ca.SX(s0) for _, _, s0 in b._states]))
+                us = [u for _, u in b._inputs]
+                v = ca.substitute(v, ca.vertcat(self.time, *us), ca.SX.zeros(1 + len(us)))
+                v = ca.substitute(v, ca.vertcat(*ms), ca.vertcat(*self.mode_starts))
+                self.mode_starts[keys.index([k for k in keys if self.mode_syms[k] is sym][0])] = v
 
     @property
     def param_names(self) -> set[str]:
@@ -991,9 +1072,17 @@ class _Translation:
         self.when_values: list[tuple[int, int, dict]] = []  # (trigger, variable, owner) of when-assigned ones
         for o in self.st.get("discrete_value_owners", []):
             br = o.get("branches", [])
+            whens = [(b.get("activation") or {}).get("when") if isinstance(b.get("activation"), dict) else None
+                     for b in br]
+            if len(o["targets"]) == 1 and len(br) > 1 and all(w is not None and w.get("trigger") == w.get("guard")
+                                                              and len(b.get("values", [])) == 1
+                                                              for w, b in zip(whens, br)):
+                # assigned in the branches of a when/elsewhen chain (or of several when-clauses)
+                self.when_values += [(w["trigger"], o["targets"][0], b["values"][0]) for w, b in zip(whens, br)]
+                continue
             if len(o["targets"]) != 1 or len(br) != 1 or len(br[0].get("values", [])) != 1:
                 self._fail_span(o, f"{self.vars[o['targets'][0]]['name']}: a Boolean or Integer variable assigned in "
-                                   f"more than one branch (elsewhen) is not supported yet")
+                                   f"more than one branch (an if-equation) is not supported yet")
             act = br[0].get("activation")
             when = act.get("when") if isinstance(act, dict) else None
             if when is not None and when.get("trigger") == when.get("guard"):
@@ -1093,9 +1182,10 @@ class _Translation:
     def _update(self, items: list, xs: list, ms: list, b: BlockBuilder) -> ca.SX:
         """``[x+; m+]`` of one when-clause: its discrete equations solved for the modes' new
         values, then its reinits (which may read them)."""
-        new = {k: ca.SX.sym(f"new.{self.vars[k]['name']}") for k in self.mode_syms}
+        new = {k: ca.SX.sym(f"new.{self.vars[k]['name'] if k >= 0 else self.mode_syms[k].name()}")
+               for k in self.mode_syms}
         env = dict(self.env)
-        env.update({(self.vars[k]["role"], k): s for k, s in new.items()})
+        env.update({(self.vars[k]["role"], k): s for k, s in new.items() if k >= 0})
         g = dataclasses.replace(self.graph, env=env)
         eqs = [g(it["residual"]) if kind == "equation" else new[it["target"]] - g(it["value"])
                for kind, it in items if kind in ("equation", "value")]
@@ -1211,16 +1301,22 @@ class _Translation:
         for key, what in (("algorithms", "an algorithm section"), ("initial_algorithms", "an initial algorithm")):
             if self.flat.get(key):
                 raise ModelicaError(self.filename, None, f"the model contains {what}, which is not supported")
-        for chain in self.flat.get("when_chains") or []:
-            if chain.get("else_when"):
-                span = chain.get("span") or {}
-                raise ModelicaError(self.filename, self._offset_line(span.get("start")) if self.text else None,
-                                    "elsewhen is not supported yet (write one when-clause per condition)")
+        self.chains: list[list[tuple]] = []  # the when/elsewhen chains: each branch's condition span (source, start)
         self.clocked = set()  # the parameters sample()'s arguments read: rumoca fixes the period at their values
         for chain in self.flat.get("when_chains") or []:
-            for call in _find(chain.get("first", {}).get("condition"), "BuiltinCall"):
-                if call.get("function") == "Sample":
-                    self.clocked.update(ref["name"]["name"] for ref in _find(call.get("args"), "VarRef"))
+            branches = [chain.get("first", {})] + list(chain.get("else_when") or [])
+            if len(branches) > 1:
+                spans = []
+                for br in branches:
+                    cond = br.get("condition") or {}
+                    body = next(iter(cond.values())) if isinstance(cond, dict) and cond else {}
+                    span = body.get("span") if isinstance(body, dict) else None
+                    spans.append(((span or {}).get("source"), (span or {}).get("start")))
+                self.chains.append(spans)
+            for br in branches:
+                for call in _find(br.get("condition"), "BuiltinCall"):
+                    if call.get("function") == "Sample":
+                        self.clocked.update(ref["name"]["name"] for ref in _find(call.get("args"), "VarRef"))
 
     def _residuals(self) -> list[tuple[ca.SX, int | None]]:
         out = []

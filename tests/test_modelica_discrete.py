@@ -217,9 +217,56 @@ def test_change_counts_the_crossings_both_ways(tmp_path):
     assert exact[-1] == 7 and np.array_equal(np.asarray(tr["c.n"]), exact)
 
 
+CHAIN3 = """model Chain3 "a when/elsewhen chain of three relations on x = 1.5 sin(t)"
+  Real x(start = 0);
+  Real v(start = 1.5);
+  Integer hist(start = 0) "the branches fired, one digit each";
+  discrete Real t_last(start = -1);
+equation
+  der(x) = v;
+  der(v) = -x;
+  when x > 1 then
+    hist = 10 * pre(hist) + 1;
+    t_last = time;
+  elsewhen abs(x) > 1 then
+    hist = 10 * pre(hist) + 2;
+    t_last = time;
+  elsewhen x > 0.5 then
+    hist = 10 * pre(hist) + 3;
+    t_last = time;
+  end when;
+end Chain3;
+"""
+
+
+def test_elsewhen_the_first_branch_whose_condition_becomes_true_wins(tmp_path):
+    """x = 1.5 sin t.  Hand-computed, with a = asin(2/3), b = asin(1/3): branch 3 (x > 0.5) at
+    b; at a both x > 1 and |x| > 1 become true at the same instant, and branch 1 wins (branch 3's
+    condition, true already, does not block it); at pi + a only |x| > 1 becomes true (x < -1):
+    branch 2; then 3 at 2 pi + b, 1 at 2 pi + a, 2 at 3 pi + a.  ``hist`` appends each fired
+    branch's digit, ``t_last`` holds the last firing's time (the error is the integration error
+    of x, 6e-8, over |dx/dt| >= 0.5)."""
+    b = translate(CHAIN3, "Chain3", "Chain3.mo")
+    assert [v.name for v in b.modes][-3:] == ["mode.when1.c1", "mode.when1.c2", "mode.when1.c3"]
+    tr = simulate(tmp_path, CHAIN3, "Chain3", 10.5, 0.1, ["x", "hist", "t_last"])
+    t = np.asarray(tr["time"])
+    a, s = np.arcsin(2 / 3), np.arcsin(1 / 3)
+    events = [(s, 3), (a, 1), (np.pi + a, 2), (2 * np.pi + s, 3), (2 * np.pi + a, 1), (3 * np.pi + a, 2)]
+    hist, t_last = np.zeros_like(t), np.full_like(t, -1.0)
+    for te, digit in events:
+        later = t > te
+        hist[later] = 10 * hist[later] + digit
+        t_last[later] = te
+    near = np.min(np.abs(t[:, None] - np.array([te for te, _ in events])[None, :]), axis=1) < 1e-6
+    assert hist[-1] == 312312
+    assert np.array_equal(np.asarray(tr["c.hist"])[~near], hist[~near])
+    assert np.max(np.abs(np.asarray(tr["c.t_last"])[~near] - t_last[~near])) < 1e-6
+
+
 @pytest.mark.parametrize("body, line, what", [
     ("  when change(y) then\n    y = 1;\n  end when;", 6, "change()"),
-    ("  when x > 1 then\n    y = 1;\n  elsewhen x < 0 then\n    y = 2;\n  end when;", 8, "elsewhen"),
+    ("  when x > 1 then\n    y = 1;\n  elsewhen sample(0, 0.1) then\n    y = 2;\n  end when;", 8,
+     "an elsewhen branch's condition other than one relation"),
     ("  when edge(x > 1) then\n    y = 1;\n  end when;", 6, "edge()"),
     ("  when {x > 1, x > 2} then\n    y = 1;\n  end when;", 6, "a when-condition other than one relation"),
 ])
