@@ -322,9 +322,24 @@ def _classes(text: str) -> list[str]:
 
 
 # --- the DAE expression graph as CasADi -----------------------------------------------------------
+def _times(a: ca.SX, b: ca.SX) -> ca.SX:
+    """Modelica's ``*``: a scalar scales; vector * vector is the dot product, matrix * vector,
+    vector * matrix and matrix * matrix the matrix products (vectors are columns here)."""
+    if a.numel() == 1 or b.numel() == 1:
+        return a * b
+    if a.shape[1] == 1 and b.shape[1] == 1:
+        return ca.dot(a, b)
+    if a.shape[1] == 1:
+        return ca.mtimes(a.T, b).T
+    return ca.mtimes(a, b)
+
+
 _BINARY = {
-    "add": lambda a, b: a + b, "subtract": lambda a, b: a - b, "multiply": lambda a, b: a * b,
+    "add": lambda a, b: a + b, "subtract": lambda a, b: a - b, "multiply": _times,
     "divide": lambda a, b: a / b, "power": lambda a, b: a ** b,
+    "elementwise_add": lambda a, b: a + b, "elementwise_subtract": lambda a, b: a - b,
+    "elementwise_multiply": lambda a, b: a * b, "elementwise_divide": lambda a, b: a / b,
+    "elementwise_power": lambda a, b: a ** b,
     "greater": lambda a, b: a > b, "less": lambda a, b: a < b, "greater_equal": lambda a, b: a >= b,
     "less_equal": lambda a, b: a <= b, "greater_or_equal": lambda a, b: a >= b,
     "less_or_equal": lambda a, b: a <= b, "equal": lambda a, b: a == b, "not_equal": lambda a, b: a != b,
@@ -339,9 +354,10 @@ _BUILTIN = {
     "smooth": lambda order, a: a, "no_event": lambda a: a, "homotopy": lambda actual, simplified: actual,
 }
 
-#: Array built-in functions, taken on one-element arrays (the only arrays translated yet).
-_ONE_ELEMENT = ("ones", "zeros", "fill", "sum", "product", "scalar", "vector", "size", "promoted_cat1",
-                "promoted_cat2")
+#: Array built-in functions (vectors are SX columns, matrices SX matrices; at most two dimensions).
+_ARRAY_BUILTINS = ("ones", "zeros", "fill", "sum", "product", "scalar", "vector", "size", "promoted_cat1",
+                   "promoted_cat2", "cat", "transpose", "identity", "diagonal", "cross", "linspace", "ndims",
+                   "outer_product")
 
 
 @dataclass
@@ -397,20 +413,8 @@ class _Graph:
                 self._refuse(i, f"operator {body['operator']} is not supported")
             return op(self(body["operand"]))
         args = [self(self.operands[self.starts[i] + k]) for k in range(body.get("operand_count", 0))]
-        if kind == "builtin" and body["builtin"] in _ONE_ELEMENT:  # array builtins on one-element arrays
-            name = body["builtin"]
-            if name in ("ones", "zeros", "fill"):
-                sizes = args if name != "fill" else args[1:]
-                if any(not n.is_constant() or float(ca.evalf(n)) != 1.0 for n in sizes):
-                    self._refuse(i, f"{name}() of more than one element is not supported yet (one-element arrays only)")
-                return {"ones": ca.SX(1.0), "zeros": ca.SX(0.0)}.get(name, args[0])
-            if name == "size":  # every array translated has one element
-                return ca.SX(1.0)
-            if name.startswith("promoted_cat"):  # a concatenation: a column (a value only for size computations)
-                return ca.vertcat(*args)
-            if len(args) != 1:
-                self._refuse(i, f"{name}() of {len(args)} arrays is not supported yet (one-element arrays only)")
-            return args[0]  # sum, product, scalar, vector, a concatenation of one one-element array
+        if kind == "builtin" and body["builtin"] in _ARRAY_BUILTINS:
+            return self._array_builtin(i, body["builtin"], args)
         if kind == "builtin" and body["builtin"] in ("min", "max") and len(args) == 1:
             return (ca.mmin if body["builtin"] == "min" else ca.mmax)(args[0])  # min/max of an array
         if kind == "builtin":
@@ -418,36 +422,140 @@ class _Graph:
             if fn is None:
                 self._refuse(i, f"the function {body['builtin']}() is not supported")
             return fn(*args)
-        if kind == "array":  # only arrays of one element are taken: such an array is its element
-            if len(args) != 1:
-                self._refuse(i, f"an array of {len(args)} elements is not supported yet (scalars and "
-                                f"one-element arrays only)")
-            return args[0]
-        if kind == "index":  # of a one-element array (see array): the element
-            return self(body["base"])
+        if kind == "array":  # {a, b, c}: a column; {{..}, {..}}: a matrix, one row per element
+            if all(a.numel() == 1 for a in args):
+                return ca.vertcat(*args)
+            if all(a.shape == args[0].shape and a.shape[1] == 1 for a in args):
+                return ca.horzcat(*args).T
+            self._refuse(i, "an array of more than two dimensions is not supported")
+        if kind == "index":
+            return self._index(i, self(body["base"]), [self(n) for n in self._subscripts(i, body)])
         if kind == "conditional":  # (c1, v1, c2, v2, ..., else)
             value = args[-1]
             for k in range(len(args) - 3, -1, -2):
                 value = ca.if_else(args[k], args[k + 1], value)
             return value
         if kind == "call" and body.get("derivative") is None:
-            params, out = self._inline(i, body["function"], body.get("output", 0))
+            params, out = self._inline(i, body["function"], body.get("output", 0), tuple(a.shape for a in args))
             if len(params) != len(args):
                 self._refuse(i, f"a call of {self.functions[body['function']]['name']} with {len(args)} arguments "
                                 f"(it takes {len(params)})")
-            return ca.substitute(out, ca.vertcat(*params), ca.vertcat(*args)) if params else out
+            return ca.substitute(out, ca.vertcat(*[ca.vec(p) for p in params]),
+                                 ca.vertcat(*[ca.vec(a) for a in args])) if params else out
         self._refuse(i, f"the expression kind {kind!r} is not supported")
 
-    def _inline(self, i: int, f: int, output: int) -> tuple[list[ca.SX], ca.SX]:
+    def _subtree_start(self, j: int) -> int:
+        """The first node of node ``j``'s subtree (the nodes are stored children first)."""
+        (kind, body), = self.nodes[j].items()
+        kids = []
+        if kind == "binary":
+            kids = [body["lhs"], body["rhs"]]
+        elif kind == "unary":
+            kids = [body["operand"]]
+        elif kind == "index":
+            kids = [body["base"]]
+        elif isinstance(body, dict) and body.get("operand_count"):
+            kids = [self.operands[self.starts[j] + k] for k in range(body["operand_count"])]
+        return min([j] + [self._subtree_start(c) for c in kids])
+
+    def _subscripts(self, i: int, body: dict) -> list[int]:
+        """The subscript nodes of index node ``i``: the subtrees between its base and itself."""
+        roots, j = [], i - 1
+        for _ in range(body.get("subscript_count", 0)):
+            roots.append(j)
+            j = self._subtree_start(j) - 1
+        if j != body["base"]:
+            self._refuse(i, "a subscript of a form not understood here (a constant or a for-loop index expected)")
+        return roots[::-1]
+
+    def _index(self, i: int, base: ca.SX, subs: list[ca.SX]) -> ca.SX:
+        """``base[subs]`` (1-based constant subscripts; one subscript of a matrix is its row)."""
+        idx = []
+        for s in subs:
+            if not s.is_constant():
+                self._refuse(i, "a subscript that is not a constant or a for-loop index is not supported")
+            idx.append(int(round(float(ca.evalf(s)))) - 1)
+        if base.numel() == 1 and all(k == 0 for k in idx):
+            return base  # a one-element array is its element
+        shape = [base.shape[0]] if base.shape[1] == 1 else ([base.shape[1]] if base.shape[0] == 1 else list(base.shape))
+        if len(idx) > len(shape) or any(not 0 <= k < n for k, n in zip(idx, shape)):
+            self._refuse(i, f"subscript [{', '.join(str(k + 1) for k in idx)}] out of the array's range "
+                            f"[{', '.join(map(str, shape))}]")
+        if len(shape) == 1:
+            return base[idx[0]]
+        if len(idx) == 1:
+            return base[idx[0], :].T
+        return base[idx[0], idx[1]]
+
+    def _array_builtin(self, i: int, name: str, args: list[ca.SX]) -> ca.SX:
+        """The array built-in functions on SX columns (vectors) and matrices."""
+        def count(n: ca.SX) -> int:
+            if not n.is_constant():
+                self._refuse(i, f"{name}(): a size that is not a constant")
+            return int(round(float(ca.evalf(n))))
+
+        if name in ("ones", "zeros", "fill"):
+            sizes = [count(n) for n in (args if name != "fill" else args[1:])]
+            if len(sizes) > 2:
+                self._refuse(i, f"{name}() of more than two dimensions is not supported")
+            shape = (sizes + [1])[:2]
+            value = {"ones": ca.SX(1.0), "zeros": ca.SX(0.0)}.get(name, args[0] if args else ca.SX(0.0))
+            return ca.repmat(value, *shape) if value.numel() == 1 else self._refuse(i, "fill() of an array")
+        if name == "size":
+            a = args[0]
+            shape = [a.shape[0]] if a.shape[1] == 1 else list(a.shape)
+            if len(args) == 1:
+                return ca.vertcat(*[ca.SX(float(n)) for n in shape]) if len(shape) > 1 else ca.SX(float(shape[0]))
+            d = count(args[1])
+            return ca.SX(float(shape[d - 1] if d <= len(shape) else 1))
+        if name == "ndims":
+            return ca.SX(1.0 if args[0].shape[1] == 1 else 2.0)
+        if name == "promoted_cat1":
+            return ca.vertcat(*args)
+        if name == "promoted_cat2":
+            return ca.horzcat(*args)
+        if name == "cat":
+            d = count(args[0])
+            return ca.vertcat(*args[1:]) if d == 1 else ca.horzcat(*args[1:])
+        if name == "transpose":
+            return args[0].T
+        if name == "identity":
+            return ca.SX.eye(count(args[0]))
+        if name == "diagonal":
+            return ca.diag(args[0])
+        if name == "cross":
+            return ca.cross(args[0], args[1])
+        if name == "outer_product":
+            return ca.mtimes(args[0], args[1].T)
+        if name == "linspace":
+            n = count(args[2])
+            return ca.vertcat(*[args[0] + (args[1] - args[0]) * k / (n - 1) for k in range(n)])
+        if len(args) != 1:
+            self._refuse(i, f"{name}() of {len(args)} arguments is not supported")
+        a = args[0]
+        if name == "sum":
+            return ca.sum1(ca.sum2(a))
+        if name == "product":
+            out = ca.SX(1.0)
+            for k in range(a.numel()):
+                out = out * a[k]
+            return out
+        if name == "scalar":
+            return a[0]
+        return ca.vec(a.T)  # vector(): the elements in row-major order, a column
+
+    def _inline(self, i: int, f: int, output: int, shapes: tuple = ()) -> tuple[list[ca.SX], ca.SX]:
         """Output ``output`` of the DAE's function ``f`` as an expression of its parameters'
-        symbols: its algorithm (assignments in order) evaluated symbolically."""
-        key = (f, output)
+        symbols (shaped as the call's arguments, ``shapes``): its algorithm (assignments in
+        order) evaluated symbolically."""
+        key = (f, output, shapes)
         if key in self.inlined:
             return self.inlined[key]
         fn = self.functions[f]
         if fn.get("external") is not None:
             self._refuse(i, f"{fn['name']} is an external function, which is not supported")
-        params = [ca.SX.sym(f"{fn['name']}.{p['name']}") for p in fn["parameters"]]
+        params = [ca.SX.sym(f"{fn['name']}.{p['name']}", *(shapes[k] if k < len(shapes) else (1, 1)))
+                  for k, p in enumerate(fn["parameters"])]
         names = [v["name"] for v in fn["outputs"] + fn.get("locals", [])]
         values: list[ca.SX | None] = [None] * len(names)
         env = dict(self.env)
@@ -588,6 +696,11 @@ def _find(tree, key: str) -> list[dict]:
     return []
 
 
+def _elements(e: ca.SX) -> list[ca.SX]:
+    """The elements of an array expression in row-major order (a scalar: itself)."""
+    return [e[r, c] for r in range(e.shape[0]) for c in range(e.shape[1])]
+
+
 def _short(e: ca.SX, limit: int = 120) -> str:
     text = str(ca.simplify(e))
     return text if len(text) <= limit else text[:limit] + "..."
@@ -647,7 +760,7 @@ class _Translation:
     def __init__(self, text: str, filename: str, st: dict, flat: dict, model_name: str, name: str):
         self.text, self.filename, self.st, self.flat, self.name = text, filename, st, flat, name
         self.description = (flat.get("model_description") or "").strip() or f"Modelica model {model_name}"
-        self.vars = st["variables"]
+        self.vars = [dict(v) for v in st["variables"]]  # array variables are expanded (_expand_arrays): a copy
         ex = st["expressions"]
         self.nodes, self.prov = ex["nodes"], ex["provenance"]
         self.env: dict = {}
@@ -679,7 +792,7 @@ class _Translation:
     def _constant(self, node: int | None, v: dict, what: str) -> float | None:
         if node is None:
             return None
-        e = self.graph(node)
+        e = self._attr_value(node)
         if not e.is_constant():
             self._err(v, f"{v['name']}: {what} must be a number")
         return float(ca.evalf(e))
@@ -688,13 +801,11 @@ class _Translation:
     def block(self, integrator: str, substeps: int) -> Block:
         self._refuse_flat()
         b = BlockBuilder(self.name, self.description, fidelity="modelica")
+        self._expand_arrays()
         roles: dict[str, list[int]] = {}
         for k, v in enumerate(self.vars):
-            roles.setdefault(v["role"], []).append(k)
-            dims = self._dims(v)
-            if math.prod(dims) != 1:
-                self._err(v, f"{v['name']}: an array of {'x'.join(map(str, dims))} elements is not supported yet "
-                             f"(scalars and one-element arrays only)")
+            if k not in self.elements:  # an array: its elements are the variables
+                roles.setdefault(v["role"], []).append(k)
         bad = sorted(set(roles) - {"parameter", "input", "output", "state", "algebraic", "discrete_real",
                                    "discrete_value", "constant"})
         if bad:
@@ -706,13 +817,14 @@ class _Translation:
         for k in roles.get("input", []):
             v = self.vars[k]
             self.env[("input", k)] = b.input(v["name"], *self._doc(v, "input"))
+        self._assemble()
         states = roles.get("state", [])
         unknown: dict[tuple, ca.SX] = {}
         for k in states:
             v = self.vars[k]
             unit, text = self._doc(v, "state")
             start = v["attributes"].get("start")
-            s0 = self.graph(start) if start is not None else ca.SX(0.0)
+            s0 = self._attr_value(start) if start is not None else ca.SX(0.0)
             if ca.depends_on(s0, ca.vertcat(*[self.env[("input", j)] for j in roles.get("input", [])])) \
                     if roles.get("input") else False:
                 self._err(v, f"{v['name']}: the start value may depend on parameters only")
@@ -721,6 +833,7 @@ class _Translation:
         for k in roles.get("output", []) + roles.get("algebraic", []):
             unknown[("algebraic", k)] = ca.SX.sym(self.vars[k]["name"])  # outputs are algebraic coordinates too
         self.env.update(unknown)
+        self._assemble()
         flanges = self._connectors()
         residuals = self._residuals()
         solved, chosen = self._solve(b, residuals, unknown, flanges)
@@ -752,7 +865,59 @@ class _Translation:
         self._clock(b)
         return self._finish(b, integrator, substeps, events)
 
+    def _expand_arrays(self) -> None:
+        """Each array variable of more than one element as one scalar variable per element,
+        appended to :attr:`vars` (named ``x[2]``, ``A[1,2]``; the attributes' values are taken
+        element by element, :meth:`_attr_value`); :attr:`elements` maps an array's index to its
+        elements' (row-major order), whose symbols :meth:`_assemble` gathers into the array's."""
+        self.elements: dict[int, list[int]] = {}
+        for k, v in enumerate(list(self.vars)):
+            dims = self._dims(v)
+            if math.prod(dims) == 1:
+                continue
+            if any(d < 1 for d in dims) or len(dims) > 2:
+                self._err(v, f"{v['name']}: an array of dimensions [{', '.join(map(str, dims))}] is not supported "
+                             f"(vectors and matrices of known sizes)")
+            if v["role"] not in ("parameter", "constant", "input", "output", "state", "algebraic", "discrete_real",
+                                 "discrete_value"):
+                continue  # refused by its role
+            self.elements[k] = []
+            for j, sub in enumerate(product(*[range(1, d + 1) for d in dims])):
+                attrs = {a: (("element", node, j, tuple(dims)) if a in ("start", "binding", "min", "max")
+                             and isinstance(node, int) else node) for a, node in v["attributes"].items()}
+                self.elements[k].append(len(self.vars))
+                self.vars.append({**v, "name": f"{v['name']}[{','.join(map(str, sub))}]", "attributes": attrs,
+                                  "element_of": (k, j)})
+
+    def _attr_value(self, node) -> ca.SX:
+        """The value of an attribute (``start``, ``binding``, ``min``, ``max``): its node's, or,
+        for an array's element, that element of it (a scalar applies to every element)."""
+        if not isinstance(node, tuple):
+            return self.graph(node)
+        _, n, j, dims = node
+        value = self.graph(n)
+        if value.numel() == 1:
+            return value
+        if value.numel() != math.prod(dims):
+            raise ModelicaError(self.filename, self._node_line(n), f"an array value of {value.numel()} elements "
+                                                                   f"for {math.prod(dims)}")
+        return value[j] if len(dims) == 1 else value[divmod(j, dims[1])]
+
+    def _assemble(self) -> None:
+        """The symbols of each array variable, gathered from its elements' (a column for a
+        vector, a matrix otherwise), for every coordinate kind its elements have."""
+        for k, elems in self.elements.items():
+            dims = self._dims(self.vars[k])
+            kinds = {key[0] for e in elems[:1] for key in self.env if len(key) == 2 and key[1] == e}
+            for kind in kinds:
+                if (kind, k) in self.env or not all((kind, e) in self.env for e in elems):
+                    continue
+                col = ca.vertcat(*[self.env[(kind, e)] for e in elems])
+                self.env[(kind, k)] = col if len(dims) == 1 else ca.reshape(col, dims[1], dims[0]).T
+
     def _dims(self, v: dict) -> list[int]:
+        if "element_of" in v:
+            return []
         types = self.st.get("value_types") or []
         k = v.get("value_type")
         dims = types[k].get("dimensions", []) if isinstance(k, int) and k < len(types) else []
@@ -796,7 +961,7 @@ class _Translation:
             kind = v["role"]  # discrete_real, or discrete_value (a Boolean or Integer held as a real)
             self.env[(kind, k)] = self.env[(f"pre_{kind}", k)] = sym
             start = v["attributes"].get("start")
-            self.mode_starts.append(self.graph(start) if start is not None else ca.SX(0.0))
+            self.mode_starts.append(self._attr_value(start) if start is not None else ca.SX(0.0))
             self.mode_syms[k] = sym
 
     def _clock(self, b: BlockBuilder) -> None:
@@ -1023,7 +1188,7 @@ class _Translation:
         for k, v in enumerate(self.vars):
             if v["role"] in ("algebraic", "output") and self._fixed(k) and v["attributes"].get("start") is not None \
                     and k in value:
-                rows.append(value[k] - self.graph(v["attributes"]["start"]))
+                rows.append(value[k] - self._attr_value(v["attributes"]["start"]))
         if not rows:
             return
         xs = {self.env[("state", k)].name(): k for k in states}
@@ -1263,6 +1428,8 @@ class _Translation:
             for k in pending:
                 try:
                     self._parameter(b, k)
+                    if "element_of" in self.vars[k]:
+                        self._assemble()
                 except ModelicaError as exc:
                     if "parameter is not supported here" not in exc.message and \
                             "constant is not supported here" not in exc.message:
@@ -1278,7 +1445,7 @@ class _Translation:
         node = a.get("binding") if a.get("binding") is not None else a.get("start")
         if node is None:
             self._err(v, f"parameter {v['name']!r} has no value")
-        value = self.graph(node)
+        value = self._attr_value(node)
         if v["name"] in self.clocked:  # fixed: the sample period is a number
             if not value.is_constant():
                 self._err(v, f"{v['name']}: a parameter read by sample() must have a literal value (the interval "
@@ -1335,10 +1502,7 @@ class _Translation:
             if kind != "residual":
                 raise ModelicaError(self.filename, line, f"an equation of kind {kind!r} is not supported")
             self.units(body["residual"])  # raises at a unit mismatch
-            e = self.graph(body["residual"])
-            if e.numel() != 1:
-                raise ModelicaError(self.filename, line, "array equations are not supported (write scalars)")
-            out.append((e, line))
+            out += [(e, line) for e in _elements(self.graph(body["residual"]))]
         return out
 
     def _for_equation(self, body: dict, line: int | None) -> list[ca.SX]:
@@ -1348,13 +1512,15 @@ class _Translation:
         dom = domains[body["domain"]] if body.get("domain") is not None and body["domain"] < len(domains) else None
         if dom is None or dom.get("parent") is not None:
             raise ModelicaError(self.filename, line, "a nested for-equation is not supported yet")
+        if body.get("scalar_view") == "RowMajorProjection":  # an array equation: every element of its body
+            return [e for node in body["bodies"] for e in _elements(self.graph(node))]
         binders = dom["domain"]["binders"]
         ranges = [range(bd["lower"], bd["upper"] + 1, bd.get("step") or 1) for bd in binders]
         out = []
         for values in product(*ranges):
             env = {**self.env, **{("binder", (body["domain"], k)): ca.SX(float(v)) for k, v in enumerate(values)}}
             g = dataclasses.replace(self.graph, env=env)
-            out += [g(node) for node in body["bodies"]]
+            out += [e for node in body["bodies"] for e in _elements(g(node))]
         return out
 
     # connectors

@@ -277,8 +277,43 @@ def test_what_is_not_translated_yet_names_file_line_and_construct(body, line, wh
     assert str(err.value).startswith("E.mo:") and what in str(err.value), str(err.value)
 
 
-def test_an_array_of_several_elements_is_refused_naming_it():
-    text = 'model A "a"\n  Real a[3](each start = 1);\nequation\n  der(a) = -a;\nend A;\n'
+DECAY3 = """model Decay3 "three decays: a for-equation over arrays, a matrix product"
+  parameter Real k[3] = {1, 2, 3};
+  parameter Real A[2, 3] = [1, 2, 3; 4, 5, 6];
+  Real x[3](each start = 1);
+  Real y[2];
+  Real total;
+equation
+  for i in 1:3 loop
+    der(x[i]) = -k[i] * x[i];
+  end for;
+  y = A * x;
+  total = sum(x);
+end Decay3;
+"""
+
+
+def test_arrays_and_for_equations_over_them(tmp_path):
+    """x[i] = exp(-k[i] t) (k = 1, 2, 3), y = A x, total = sum(x): each element recorded by its
+    Modelica name (``x[2]``, ``y[1]``) and compared with the analytic solution; the array
+    parameters' elements are settable parameters (``k[2]``)."""
+    b = translate(DECAY3, "Decay3", "Decay3.mo")
+    assert [v.name for v in b.params] == ["k[1]", "k[2]", "k[3]", "A[1,1]", "A[1,2]", "A[1,3]", "A[2,1]",
+                                          "A[2,2]", "A[2,3]"]
+    assert [v.name for v in b.states] == ["state.x[1]", "state.x[2]", "state.x[3]"]
+    tr = simulate(tmp_path, DECAY3, "Decay3", 2.0, 0.01, ["x[1]", "x[2]", "x[3]", "y[1]", "y[2]", "total"])
+    t = np.asarray(tr["time"])
+    x = np.exp(-np.outer(t, [1.0, 2.0, 3.0]))
+    for i in range(3):
+        assert np.max(np.abs(tr[f"c.x[{i + 1}]"] - x[:, i])) < 1e-6
+    A = np.array([[1.0, 2.0, 3.0], [4.0, 5.0, 6.0]])
+    for r in range(2):
+        assert np.max(np.abs(tr[f"c.y[{r + 1}]"] - x @ A[r])) < 1e-5
+    assert np.max(np.abs(tr["c.total"] - x.sum(axis=1))) < 1e-5
+
+
+def test_an_array_of_three_dimensions_is_refused_naming_it():
+    text = 'model A "a"\n  Real a[2, 2, 2](each start = 1);\nequation\n  der(a) = -a;\nend A;\n'
     with pytest.raises(ModelicaError) as err:
         translate(text, "A", "A.mo")
-    assert str(err.value).startswith("A.mo:2: a: an array of 3 elements is not supported yet"), str(err.value)
+    assert str(err.value).startswith("A.mo:2: a: an array of dimensions [2, 2, 2] is not supported"), str(err.value)
