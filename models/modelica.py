@@ -140,9 +140,9 @@ def unsupported(text: str, filename: str) -> None:
             functions.append(toks[k + 1][0])
         elif prev == "end" and functions and tok == functions[-1]:
             functions.pop()
-        if tok == "algorithm" and not functions:
-            raise ModelicaError(filename, line, "algorithm: algorithm sections of a model are not supported "
-                                                "(write equations; a function's algorithm is)")
+        if tok == "algorithm" and prev == "initial" and not functions:
+            raise ModelicaError(filename, line, "initial algorithm: initial algorithms are not supported "
+                                                "(write initial equations)")
         if tok in ("edge", "change") and prev != "." and not _a_name(toks[k + 1:]):
             raise ModelicaError(filename, line, f"{tok}: {tok}() of an expression is not supported ({tok}(b) of a "
                                                 f"Boolean variable b given by a relation is)")
@@ -197,6 +197,9 @@ def _compile(text: str, model: str, filename: str, roots: tuple[str, ...] = ()):
         for d in getattr(exc, "diagnostics", []) or []:
             if line is None and d.line and d.line > 1:
                 line = d.line
+        if line is None and "algorithm" in msg:  # rumoca's refusal of a model's algorithm names no line
+            line = _first_line(text, "algorithm")
+            first = f"algorithm: {first}"
         if line is None:
             unresolved = _UNRESOLVED.search(msg)
             if unresolved:
@@ -373,6 +376,7 @@ class _Graph:
     names: dict  # variable index -> name (for messages)
 
     functions: list = dataclasses.field(default_factory=list)  # the DAE's functions (inlined at calls)
+    domains: list = dataclasses.field(default_factory=list)  # the DAE's index domains (for-loops, comprehensions)
 
     def __post_init__(self):
         self.memo: dict[int, ca.SX] = {}
@@ -399,6 +403,8 @@ class _Graph:
                 key = ("function_parameter", (key[1]["function"], key[1]["ordinal"]))
             elif key[0] == "binder":
                 key = ("binder", (key[1]["domain"], key[1]["ordinal"]))
+            elif key[0] == "function_variable" and isinstance(key[1], dict):
+                key = ("function_variable", (key[1].get("function"), key[1].get("ordinal")))
             if key not in self.env:
                 self._refuse(i, f"{key[0].replace('_', ' ')} is not supported here")
             return self.env[key]
@@ -430,6 +436,21 @@ class _Graph:
             self._refuse(i, "an array of more than two dimensions is not supported")
         if kind == "index":
             return self._index(i, self(body["base"]), [self(n) for n in self._subscripts(i, body)])
+        if kind == "function_value":  # a function variable as its definition_ordinal-th assignment left it
+            key = ("function_value", (body["function"], body["value"], body["definition_ordinal"]))
+            if key not in self.env:
+                self._refuse(i, "a function variable read before it is assigned")
+            return self.env[key]
+        if kind == "comprehension":  # {body for i in lo:hi}: a column of the body at each binder value
+            dom = self.domains[body["domain"]]["domain"]["binders"]
+            if len(dom) != 1:
+                self._refuse(i, "a comprehension over more than one index is not supported")
+            bd = dom[0]
+            out = []
+            for v in range(bd["lower"], bd["upper"] + 1, bd.get("step") or 1):
+                g = dataclasses.replace(self, env={**self.env, ("binder", (body["domain"], 0)): ca.SX(float(v))})
+                out.append(g(body["body"]))
+            return ca.vertcat(*out)
         if kind == "conditional":  # (c1, v1, c2, v2, ..., else)
             value = args[-1]
             for k in range(len(args) - 3, -1, -2):
@@ -560,14 +581,22 @@ class _Graph:
         values: list[ca.SX | None] = [None] * len(names)
         env = dict(self.env)
         env.update({("function_parameter", (f, k)): s for k, s in enumerate(params)})
+        count = 0  # the assignments made so far: a read names its definition by this ordinal
         for stmt in fn.get("statements", []):
             (skind, sbody), = stmt.items()
-            if skind != "assignment":
+            if skind == "assignment":
+                group = [sbody]
+            elif skind == "assignment_group":  # an if-statement rumoca lowered: each target an if-expression
+                group = sbody.get("assignments", [])
+            else:
                 self._refuse(i, f"{fn['name']}: a {skind.replace('_', ' ')} statement in its algorithm is not "
-                                f"supported (assignments only)")
+                                f"supported (assignments, for-loops and if-statements rumoca lowers into them)")
             sub = dataclasses.replace(self, env={**env, **{("function_variable", (f, k)): v
                                                             for k, v in enumerate(values) if v is not None}})
-            values[sbody["target"]] = sub(sbody["rhs"])
+            new = [(a["target"], sub(a["rhs"])) for a in group]
+            for target, value in new:
+                values[target] = env[("function_value", (f, target, count))] = value
+                count += 1
         if values[output] is None:
             self._refuse(i, f"{fn['name']}: its output {names[output]} is never assigned")
         self.inlined[key] = (params, values[output])
@@ -765,7 +794,8 @@ class _Translation:
         self.nodes, self.prov = ex["nodes"], ex["provenance"]
         self.env: dict = {}
         self.graph = _Graph(self.nodes, ex["operands"], _operand_starts(self.nodes), self.env, self._node_line,
-                            filename, {k: v["name"] for k, v in enumerate(self.vars)}, st.get("functions") or [])
+                            filename, {k: v["name"] for k, v in enumerate(self.vars)}, st.get("functions") or [],
+                            st.get("domains") or [])
         self.time = ca.SX.sym("t")  # the model's time (see _clock)
         self.mode_syms = {}
         self.event_fields: dict = {}
@@ -1465,7 +1495,7 @@ class _Translation:
 
     def _refuse_flat(self) -> None:
         """What the token scan cannot see (e.g. a construct reached through an extends)."""
-        for key, what in (("algorithms", "an algorithm section"), ("initial_algorithms", "an initial algorithm")):
+        for key, what in (("initial_algorithms", "an initial algorithm"),):  # a model's algorithm: rumoca lowers it
             if self.flat.get(key):
                 raise ModelicaError(self.filename, None, f"the model contains {what}, which is not supported")
         self.chains: list[list[tuple]] = []  # the when/elsewhen chains: each branch's condition span (source, start)

@@ -317,3 +317,81 @@ def test_an_array_of_three_dimensions_is_refused_naming_it():
     with pytest.raises(ModelicaError) as err:
         translate(text, "A", "A.mo")
     assert str(err.value).startswith("A.mo:2: a: an array of dimensions [2, 2, 2] is not supported"), str(err.value)
+
+
+FUNCTIONS = """model Fn "functions with algorithm sections: reassignment, a for-loop, if-statements"
+  function g
+    input Real u;
+    output Real y;
+  protected
+    Real a;
+  algorithm
+    a := u;
+    a := a * 2;
+    y := a + 1;
+    if u > 10 then
+      y := 0;
+    end if;
+  end g;
+  function f
+    input Real u;
+    output Real y;
+  protected
+    Real acc;
+  algorithm
+    acc := 0;
+    for i in 1:3 loop
+      acc := acc + i * u;
+    end for;
+    if u > 0 then
+      y := acc;
+    else
+      y := -acc;
+    end if;
+  end f;
+  Real x(start = 1);
+  Real w;
+  Real z;
+equation
+  der(x) = -f(x);
+  w = g(x);
+  z = g(20 + x);
+end Fn;
+"""
+
+
+def test_functions_with_algorithm_sections(tmp_path):
+    """f(u) = |1 u + 2 u + 3 u| (the for-loop, the if-statement), so x = exp(-6 t); g(u) = 2 u + 1
+    for u <= 10 (two assignments to a, then y), 0 above: w = 2 x + 1, z = g(20 + x) = 0."""
+    tr = simulate(tmp_path, FUNCTIONS, "Fn", 1.0, 0.01, ["x", "w", "z"])
+    t = np.asarray(tr["time"])
+    x = np.exp(-6 * t)
+    assert np.max(np.abs(tr["c.x"] - x)) < 1e-6
+    assert np.max(np.abs(tr["c.w"] - (2 * x + 1))) < 2e-6
+    assert np.max(np.abs(tr["c.z"])) == 0.0
+
+
+def test_records_and_extends_across_files(tmp_path):
+    """A model extending a class of a sibling file and holding a record of a third: x = 3 exp(-k
+    g.a g.b t) with k = 2 from the base, g.b = 0.5 modified (the record's default 4)."""
+    (tmp_path / "Base.mo").write_text('partial model Base "a base"\n  parameter Real k = 2;\n'
+                                      '  Real x(start = 3);\nend Base;\n')
+    (tmp_path / "Gains.mo").write_text('record Gains "two gains"\n  Real a = 1.5;\n  Real b = 4;\nend Gains;\n')
+    text = ('model Use "uses both"\n  extends Base;\n  parameter Gains g(b = 0.5);\nequation\n'
+            '  der(x) = -k * g.a * g.b * x;\nend Use;\n')
+    tr = simulate(tmp_path, text, "Use", 1.0, 0.01, ["x"])
+    t = np.asarray(tr["time"])
+    assert np.max(np.abs(tr["c.x"] - 3 * np.exp(-1.5 * t))) < 1e-6
+
+
+def test_an_algorithm_section_of_a_model(tmp_path):
+    """rumoca lowers a model's algorithm with one output into an equation: y = 2 x + 1 with
+    x = exp(-t); one of several outputs it refuses, named by the section's line."""
+    text = ('model Alg "an algorithm section"\n  Real x(start = 1);\n  Real y;\nalgorithm\n  y := 2 * x;\n'
+            '  y := y + 1;\nequation\n  der(x) = -x;\nend Alg;\n')
+    tr = simulate(tmp_path, text, "Alg", 1.0, 0.01, ["y"])
+    t = np.asarray(tr["time"])
+    assert np.max(np.abs(tr["c.y"] - (2 * np.exp(-t) + 1))) < 1e-6
+    two = text.replace("  Real y;\n", "  Real y;\n  Real z;\n").replace("  y := y + 1;\n", "  y := y + 1;\n  z := y;\n")
+    with pytest.raises(ModelicaError, match=r"^Alg\.mo:5: algorithm: .*multi-output algorithm"):
+        translate(two, "Alg", "Alg.mo")
