@@ -100,7 +100,7 @@ class ModelicaError(BlockError):
 # --- what is refused, found in the text ----------------------------------------------------------
 _UNSUPPORTED = {
     "external": "external functions are not supported",
-    "assert": "assert() is not supported", "terminate": "terminate() is not supported",
+    "terminate": "terminate() is not supported",
     "delay": "delay() is not supported",
     "String": "String variables are not supported (Real, and Integer/Boolean parameters)",
     "inner": "inner/outer is not supported", "outer": "inner/outer is not supported",
@@ -1027,13 +1027,15 @@ class _Translation:
                 self._fail_span(item if isinstance(item, dict) else {}, f"{what} is not supported yet")
         roots = [r["root"] for r in st.get("roots", [])]
         always = self._always()
+        self.assertions: list[tuple] = []
         actions = [a for a in st.get("event_actions", []) if not self._assert(a)]
         if not roots and not self.mode_syms and not st.get("time_events") and not st.get("clocks") and \
-                not self.chains:
+                not self.chains and not self.assertions:
             return None
         relations = [r["relation"] for r in st.get("relations", [])]
         conditions = st.get("conditions", [])
         chains = self._chain_modes(conditions, relations)
+        self._assertion_modes(b)
         xs = [sym for _, sym, _ in b._states]
         ms = list(self.mode_syms.values())
         indicators, directions, names, updates = [], [], [], []
@@ -1050,6 +1052,12 @@ class _Translation:
             names.append(f"{_short(self.graph(body['lhs']), 40)} {_REL[body['operator']]} "
                          f"{_short(self.graph(body['rhs']), 40)}")
             updates.append(None)
+        for cond, level, message, line, zero in self.assertions:  # a warning's relation: located like the others
+            if zero is not None:
+                indicators.append(zero)
+                directions.append(EITHER)
+                names.append(f"assert at line {line}")
+                updates.append(None)
         triggers: dict[int, list] = {}
         for act in actions:
             triggers.setdefault(act["trigger"], []).append(("action", act))
@@ -1126,6 +1134,14 @@ class _Translation:
                                   f"time event at {inst['num'] / inst['den']:g} s"))
         for T, t0, g, name in periodic:  # sample(start, interval): start + k interval, k = 0, 1, ...; initial()
             samples.append(Sample(T, t0, self._settled(xs, ms, g) if always else g, name))
+        if self.assert_modes:  # every event ends by latching the assertions; they start at their start value
+            updates = [self._latched(xs, ms, g) for g in updates]
+            for smp in samples:
+                smp.update = self._latched(xs, ms, smp.update)
+            keys = list(self.mode_syms)
+            for sym, cond in self.assert_modes:
+                j = [k for k, m in enumerate(ms) if m is sym][0]
+                self.mode_starts[j] = 1 - self._at_start(cond, xs, ms, b)
         self.event_fields = {
             "modes": [self.condition_vars[k] if k < 0 else
                       Var(f"mode.{self.vars[k]['name']}", *self._doc(self.vars[k], "discrete variable"))
@@ -1189,13 +1205,18 @@ class _Translation:
         keys = list(self.mode_syms)
         for chain in chains:
             for _, truth, sym in chain:
-                v = ca.substitute(truth, *self.solved) if self.solved is not None else truth
-                if xs:
-                    v = ca.substitute(v, ca.vertcat(*xs), ca.vertcat(*[ca.SX(s0) for _, _, s0 in b._states]))
-                us = [u for _, u in b._inputs]
-                v = ca.substitute(v, ca.vertcat(self.time, *us), ca.SX.zeros(1 + len(us)))
-                v = ca.substitute(v, ca.vertcat(*ms), ca.vertcat(*self.mode_starts))
-                self.mode_starts[keys.index([k for k in keys if self.mode_syms[k] is sym][0])] = v
+                self.mode_starts[keys.index([k for k in keys if self.mode_syms[k] is sym][0])] = \
+                    self._at_start(truth, xs, ms, b)
+
+    def _at_start(self, e: ca.SX, xs: list, ms: list, b: BlockBuilder) -> ca.SX:
+        """``e`` at the start: the states' and modes' start values, ``t = 0``, inputs 0 (an
+        expression of the parameters)."""
+        v = ca.substitute(e, *self.solved) if self.solved is not None else e
+        if xs:
+            v = ca.substitute(v, ca.vertcat(*xs), ca.vertcat(*[ca.SX(s0) for _, _, s0 in b._states]))
+        us = [u for _, u in b._inputs]
+        v = ca.substitute(v, ca.vertcat(self.time, *us), ca.SX.zeros(1 + len(us)))
+        return ca.substitute(v, ca.vertcat(*ms), ca.vertcat(*self.mode_starts)) if ms else v
 
     @property
     def param_names(self) -> set[str]:
@@ -1352,27 +1373,85 @@ class _Translation:
         return period, start, self._update(items, xs, ms, b), f"sample({start:g}, {period:g})"
 
     def _assert(self, act: dict) -> bool:
-        """Whether the event action is an assert: one on parameters only is checked here, at the
-        parameters' defaults (a failing one refused with its line); one on variables is not
-        checked during a run (said in the docs)."""
+        """Whether the event action is an assertion (``assert(c, msg)``, at level error or
+        warning).  One on parameters only is checked here, at the parameters' defaults (a failing
+        one refused with its line); one on variables is kept in :attr:`assertions` as
+        ``(condition, level, message, line)``, checked during the run (:meth:`_assertion_modes`)."""
         kind = act.get("kind") or {}
-        if "assert" not in kind:
+        if "assert" not in kind and "warning" not in kind:
             return False
-        guard = (self.st["conditions"][act["guard"]].get("node") or {}) if act.get("guard") is not None else {}
-        node = (self.st["conditions"][guard["not"]].get("node") or {}).get("discrete") \
-            if isinstance(guard, dict) and "not" in guard else None
-        if node is None:
-            return True
-        cond = self.graph(node)
+        conditions = self.st["conditions"]
+        zero = None  # a warning's relation as an indicator (rumoca wraps its condition in noEvent)
+        if "warning" in kind:
+            level, node = "warning", kind["warning"].get("condition")
+            cond = self.graph(node) if node is not None else None
+            inner = self.nodes[node] if node is not None else {}
+            if (inner.get("builtin") or {}).get("builtin") == "no_event":
+                rel = self.nodes[self.graph.operands[self.graph.starts[node]]].get("binary") or {}
+                if rel.get("operator") in _REL:
+                    zero = self.graph(rel["lhs"]) - self.graph(rel["rhs"])
+        else:
+            level = "error"
+            guard = (conditions[act["guard"]].get("node") or {}) if act.get("guard") is not None else {}
+            inner = (conditions[guard["not"]].get("node") or {}) if isinstance(guard, dict) and "not" in guard else {}
+            cond = None
+            if "discrete" in inner:
+                cond = self.graph(inner["discrete"])
+            elif "relation" in inner:
+                cond = self.graph(self.st["relations"][inner["relation"]]["relation"]["expression"])
+        if cond is None:
+            self._fail_span(act, "an assert whose condition is not understood here")
         if self.solved is not None:
             cond = ca.substitute(cond, *self.solved)
         params = [sym for sym in ca.symvar(cond) if sym.name() in self.param_names]
+        line = self._offset_line(((act.get("provenance") or {}).get("span") or {}).get("start"))
+        msg_node = kind[level if level == "warning" else "assert"].get("message")
+        lit = (self.nodes[msg_node].get("literal") or {}) if isinstance(msg_node, int) else {}
+        message = lit.get("string") if isinstance(lit, dict) and "string" in lit else "(its message is not a literal)"
         if len(params) == len(ca.symvar(cond)):
             value = ca.Function("a", [ca.vertcat(*params) if params else ca.SX(0, 1)], [cond])(
                 [self.param_values[s.name()] for s in params])
-            if float(value) == 0.0:
-                self._fail_span(act, "an assert on the parameters fails at their values")
+            if float(value) == 0.0 and level == "error":
+                self._fail_span(act, f"an assert on the parameters fails at their values: {message}")
+            return True
+        self.assertions.append((cond, level, message, line, zero))
         return True
+
+    def _assertion_modes(self, b: BlockBuilder) -> None:
+        """Each assertion on variables as a latched mode ``assert.<line>`` (0 while its
+        condition has held, 1 once it failed at an event or the start: its relations are
+        indicators, so a crossing is located inside the step), recorded as a local output.  At
+        level error it is rated [-0.5, 0.5] with the assertion's message as the rating's source,
+        so the run-time guard (``guards.rated``) ends the run ``out_of_limits`` quoting it; at
+        level warning it is only recorded."""
+        self.assert_modes: list[tuple[ca.SX, ca.SX]] = []  # (mode, condition)
+        taken: set[str] = set()
+        for cond, level, message, line, _ in self.assertions:
+            name = f"assert.line{line}" if f"assert.line{line}" not in taken else f"assert.line{line}_{len(taken)}"
+            taken.add(name)
+            sym = ca.SX.sym(f"mode.{name}")
+            key = -(len(self.condition_vars) + 1)
+            self.mode_syms[key] = sym
+            self.mode_starts.append(ca.SX(0.0))  # set in _events: 1 - the condition at the start
+            where = f"{self.filename}:{line}" if line else self.filename
+            text = f"assert at {where}: \"{message}\" (level {level})"
+            self.condition_vars[key] = Var(f"mode.{name}", "", f"1 once the {text} failed, else 0")
+            b.output(name, sym, "", f"1 once the {text} failed, else 0 (latched)", local=True)
+            if level == "error":
+                b.rating(name, -0.5, 0.5, "rated", text)
+            self.assert_modes.append((sym, cond))
+
+    def _latched(self, xs: list, ms: list, g: ca.SX | None) -> ca.SX:
+        """The update ``g`` (None: the identity) followed by the assertions' latches, each
+        ``max(m, 1 - condition)`` at the updated state."""
+        nx = len(xs)
+        g = ca.vertcat(*xs, *ms) if g is None else g
+        rows = [g[r] for r in range(g.numel())]
+        for sym, cond in self.assert_modes:
+            c = ca.substitute(cond, ca.vertcat(*xs, *ms), g) if xs or ms else cond
+            j = nx + [k for k, m in enumerate(ms) if m is sym][0]
+            rows[j] = ca.fmax(rows[j], 1 - c)
+        return ca.vertcat(*rows)
 
     def _update(self, items: list, xs: list, ms: list, b: BlockBuilder) -> ca.SX:
         """``[x+; m+]`` of one when-clause: its discrete equations solved for the modes' new

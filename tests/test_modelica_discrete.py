@@ -395,3 +395,37 @@ def test_an_algorithm_section_of_a_model(tmp_path):
     two = text.replace("  Real y;\n", "  Real y;\n  Real z;\n").replace("  y := y + 1;\n", "  y := y + 1;\n  z := y;\n")
     with pytest.raises(ModelicaError, match=r"^Alg\.mo:5: algorithm: .*multi-output algorithm"):
         translate(two, "Alg", "Alg.mo")
+
+
+ASSERTS = """model As "assertions on a variable, x = exp(-t)"
+  Real x(start = 1);
+equation
+  der(x) = -x;
+  assert(x > 0.5, "x fell below 0.5");
+  assert(x > 0.8, "x below 0.8", AssertionLevel.warning);
+end As;
+"""
+
+
+def _run_asserts(tmp_path, stop: float):
+    (tmp_path / "As.mo").write_text(ASSERTS)
+    scene = tmp_path / "scene.yaml"
+    scene.write_text(f"stop_time: {stop}\ncomponents:\n  c: {{modelica: As.mo, model: As}}\nconnections: []\n"
+                     f"master: {{algorithm: jacobi, step: 0.01, estimate: false}}\n"
+                     f"outputs: ['c.x', 'c.assert.line5', 'c.assert.line6']\n")
+    return run(scene, [], out_dir=tmp_path / f"out{stop}")
+
+
+def test_assertions_on_variables_are_checked_during_the_run(tmp_path):
+    """The warning (x > 0.8) fails at t = ln 1.25 = 0.223 s: recorded as its latch from the first
+    row after (0.23 s), the run goes on and ends ok at 0.6 s; the error (x > 0.5) fails at
+    t = ln 2 = 0.693 s: the run ends out_of_limits at the first row after (0.70 s), quoting the
+    assertion's file, line and message."""
+    res = _run_asserts(tmp_path, 0.6)
+    assert res.ok, res.reason
+    t = np.asarray(res.trace["time"])
+    assert np.array_equal(np.asarray(res.trace["c.assert.line6"]), (t > np.log(1.25)).astype(float))
+    assert set(np.asarray(res.trace["c.assert.line5"])) == {0.0}
+    res = _run_asserts(tmp_path, 1.0)
+    assert res.status == "out_of_limits"
+    assert 'assert at As.mo:5: "x fell below 0.5"' in res.reason and "t = 0.7 s" in res.reason, res.reason
