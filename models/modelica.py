@@ -73,6 +73,7 @@ from fractions import Fraction
 from itertools import product
 
 import casadi as ca
+import numpy as np
 
 from . import units
 from .block import EITHER, FALLING, RISING, Block, BlockError, Sample, Var
@@ -377,6 +378,7 @@ class _Graph:
 
     functions: list = dataclasses.field(default_factory=list)  # the DAE's functions (inlined at calls)
     domains: list = dataclasses.field(default_factory=list)  # the DAE's index domains (for-loops, comprehensions)
+    structural: object = None  # e -> e at the parameters' values (an array size is fixed when translated)
 
     def __post_init__(self):
         self.memo: dict[int, ca.SX] = {}
@@ -436,6 +438,21 @@ class _Graph:
             self._refuse(i, "an array of more than two dimensions is not supported")
         if kind == "index":
             return self._index(i, self(body["base"]), [self(n) for n in self._subscripts(i, body)])
+        if kind == "runtime_quotient_owner":  # mod(), div(), rem() (integer division)
+            a, b = self(body["lhs"]), self(body["rhs"])
+            q = ca.sign(a / b) * ca.floor(ca.fabs(a / b))  # div: truncated towards zero
+            ops = {"mod": lambda: a - ca.floor(a / b) * b, "div": lambda: q, "rem": lambda: a - q * b}
+            if body.get("builtin") not in ops:
+                self._refuse(i, f"the function {body.get('builtin')}() is not supported")
+            return ops[body["builtin"]]()
+        if kind == "range":  # start:step:stop of constants: a column
+            ends = [self(body[k]) if body.get(k) is not None else ca.SX(1.0)
+                    for k in ("start_expression", "explicit_step_expression", "stop_expression")]
+            if not all(e.is_constant() for e in ends):
+                self._refuse(i, "a range whose bounds are not constants is not supported")
+            a, h, b = (float(ca.evalf(e)) for e in ends)
+            n = int(math.floor((b - a) / h + 1e-9)) + 1 if h else 0
+            return ca.vertcat(*[ca.SX(a + h * k) for k in range(max(n, 0))]) if n > 0 else ca.SX(0, 1)
         if kind == "function_value":  # a function variable as its definition_ordinal-th assignment left it
             key = ("function_value", (body["function"], body["value"], body["definition_ordinal"]))
             if key not in self.env:
@@ -475,6 +492,11 @@ class _Graph:
             kids = [body["operand"]]
         elif kind == "index":
             kids = [body["base"]]
+        elif kind == "runtime_quotient_owner":
+            kids = [body["lhs"], body["rhs"]]
+        elif kind == "range":
+            kids = [body[k] for k in ("start_expression", "explicit_step_expression", "stop_expression")
+                    if body.get(k) is not None]
         elif isinstance(body, dict) and body.get("operand_count"):
             kids = [self.operands[self.starts[j] + k] for k in range(body["operand_count"])]
         return min([j] + [self._subtree_start(c) for c in kids])
@@ -495,7 +517,17 @@ class _Graph:
         for s in subs:
             if not s.is_constant():
                 self._refuse(i, "a subscript that is not a constant or a for-loop index is not supported")
-            idx.append(int(round(float(ca.evalf(s)))) - 1)
+            idx.append(int(round(float(ca.evalf(s)))) - 1 if s.numel() == 1 else
+                       [int(round(v)) - 1 for v in np.asarray(ca.evalf(s)).ravel()])
+        if any(isinstance(k, list) for k in idx):  # a range subscript: the elements it selects
+            shape = [base.shape[0]] if base.shape[1] == 1 else list(base.shape)
+            lists = [k if isinstance(k, list) else [k] for k in idx]
+            if len(lists) != len(shape) or any(not 0 <= k < n for ks, n in zip(lists, shape) for k in ks):
+                self._refuse(i, "a range subscript out of the array's range")
+            if len(shape) == 1:
+                return ca.vertcat(*[base[k] for k in lists[0]])
+            out = ca.vertcat(*[ca.horzcat(*[base[r, c] for c in lists[1]]) for r in lists[0]])
+            return out if len(lists[0]) > 1 and len(lists[1]) > 1 else ca.vec(out)
         if base.numel() == 1 and all(k == 0 for k in idx):
             return base  # a one-element array is its element
         shape = [base.shape[0]] if base.shape[1] == 1 else ([base.shape[1]] if base.shape[0] == 1 else list(base.shape))
@@ -511,6 +543,8 @@ class _Graph:
     def _array_builtin(self, i: int, name: str, args: list[ca.SX]) -> ca.SX:
         """The array built-in functions on SX columns (vectors) and matrices."""
         def count(n: ca.SX) -> int:
+            if not n.is_constant() and self.structural is not None:
+                n = self.structural(n)
             if not n.is_constant():
                 self._refuse(i, f"{name}(): a size that is not a constant")
             return int(round(float(ca.evalf(n))))
@@ -801,6 +835,8 @@ class _Translation:
         self.event_fields: dict = {}
         self.solved = None
         self.param_values: dict[str, float] = {}
+        self.param_syms: list[ca.SX] = []
+        self.graph.structural = self._at_defaults
         self.always: dict[int, int] = {}
         self.units = _Units(self.graph, {k: (v["attributes"].get("unit") or "") for k, v in enumerate(self.vars)})
 
@@ -905,7 +941,7 @@ class _Translation:
             dims = self._dims(v)
             if math.prod(dims) == 1:
                 continue
-            if any(d < 1 for d in dims) or len(dims) > 2:
+            if any(d < 0 for d in dims) or len(dims) > 2:
                 self._err(v, f"{v['name']}: an array of dimensions [{', '.join(map(str, dims))}] is not supported "
                              f"(vectors and matrices of known sizes)")
             if v["role"] not in ("parameter", "constant", "input", "output", "state", "algebraic", "discrete_real",
@@ -938,6 +974,11 @@ class _Translation:
         vector, a matrix otherwise), for every coordinate kind its elements have."""
         for k, elems in self.elements.items():
             dims = self._dims(self.vars[k])
+            if not elems:  # an empty array (MSL filters of order 0): an empty column or matrix of every kind
+                role = self.vars[k]["role"]
+                for kind in (role, f"pre_{role}", "derivative", "parameter", "algebraic"):
+                    self.env.setdefault((kind, k), ca.SX(*(dims + [1])[:2]) if len(dims) == 1 else ca.SX(*dims))
+                continue
             kinds = {key[0] for e in elems[:1] for key in self.env if len(key) == 2 and key[1] == e}
             for kind in kinds:
                 if (kind, k) in self.env or not all((kind, e) in self.env for e in elems):
@@ -1217,6 +1258,13 @@ class _Translation:
         us = [u for _, u in b._inputs]
         v = ca.substitute(v, ca.vertcat(self.time, *us), ca.SX.zeros(1 + len(us)))
         return ca.substitute(v, ca.vertcat(*ms), ca.vertcat(*self.mode_starts)) if ms else v
+
+    def _at_defaults(self, e: ca.SX) -> ca.SX:
+        """``e`` at the parameters' default values (for an array's size, which rumoca fixed)."""
+        if not self.param_syms:
+            return e
+        return ca.substitute(e, ca.vertcat(*self.param_syms),
+                             ca.vertcat(*[ca.SX(self.param_values[p.name()]) for p in self.param_syms]))
 
     @property
     def param_names(self) -> set[str]:
@@ -1532,6 +1580,7 @@ class _Translation:
         """The parameters and constants, each after those its value reads (in rounds: a binding
         may name one declared later)."""
         pending = list(keys)
+        self._assemble()  # the empty arrays
         while pending:
             left = []
             for k in pending:
@@ -1552,6 +1601,8 @@ class _Translation:
         v = self.vars[k]
         a = v["attributes"]
         node = a.get("binding") if a.get("binding") is not None else a.get("start")
+        if self._scalar(v) == "string":  # a String parameter (a file or table name): not a number, not exported
+            return
         if node is None:
             self._err(v, f"parameter {v['name']!r} has no value")
         value = self._attr_value(node)
@@ -1559,6 +1610,11 @@ class _Translation:
             if not value.is_constant():
                 self._err(v, f"{v['name']}: a parameter read by sample() must have a literal value (the interval "
                              f"and start are fixed when the model is translated)")
+            self.env[("parameter", k)] = value
+            return
+        if value.numel() != 1:  # an array value rumoca gives a one-element (or empty) declaration
+            if value.numel() > 1:
+                self._err(v, f"{v['name']}: a value of {value.numel()} elements for a scalar")
             self.env[("parameter", k)] = value
             return
         if not value.is_constant() or self._scalar(v) != "real":
@@ -1571,6 +1627,7 @@ class _Translation:
         self.env[("parameter", k)] = b.param(v["name"], default, unit, text,
                                              lower=-math.inf if lo is None else lo, upper=math.inf if hi is None else hi)
         self.param_values[self.env[("parameter", k)].name()] = default
+        self.param_syms.append(self.env[("parameter", k)])
 
     def _refuse_flat(self) -> None:
         """What the token scan cannot see (e.g. a construct reached through an extends)."""
