@@ -52,13 +52,19 @@ Integer variables of always-active equations (modes settled after every event), 
 time as time events, ``when sample(start, interval)`` as periodic time events, ``when
 initial()`` as a time event at the start, ``edge(b)``/``change(b)`` of a Boolean given by a
 relation (that relation's indicator), Boolean and Integer variables assigned in a when-clause
-(modes, like a discrete Real), one-element arrays and for-equations over them, asserts on
-parameters.
+(modes, like a discrete Real), ``elsewhen`` chains of relations (each condition's truth a mode;
+the first branch whose condition becomes true wins), arrays (vectors and matrices: one variable
+per element, ``x[2]``, ``A[1,2]``) with for-equations and array equations over them, functions
+whose for-loops and if-statements rumoca lowers into assignments, a model's algorithm section
+with one output (rumoca lowers it into an equation), asserts on parameters (checked at their
+values) and on variables (a latched mode each; at level error rated, so the run-time guard ends
+the run quoting the assertion).
 
-Refused: algorithm sections of a model, statements other than assignments in functions,
-external functions, initial algorithms, terminate, ``edge``/``change`` of anything else,
-``elsewhen``, arrays of more than one element, ``delay``, String variables, inner/outer, stream connectors, arrays of
-connectors.
+Refused: algorithm sections of several outputs (rumoca's refusal, with the section's line),
+statements rumoca does not lower in functions, external functions, initial algorithms,
+terminate, ``edge``/``change`` of anything else, an ``elsewhen`` branch on anything but a
+relation, arrays of more than two dimensions, colon subscripts (``A[:, 2]``), ``delay``, String
+variables, inner/outer, stream connectors, arrays of connectors.
 
 ``models/`` is maths only: :func:`translate` takes the model's text (and rumoca reads the roots
 it is given); choosing and reading files is the caller's (:mod:`cosim.scenario`).
