@@ -885,6 +885,9 @@ class _Translation:
             self._err(v, f"{v['name']}: a {bad[0].replace('_', ' ')} variable is not supported (continuous Real only)")
         self._parameters(b, roles.get("constant", []) + roles.get("parameter", []))
         self.env[("time", 0)] = self.time  # replaced at the end: a clock state in ode/out, the block's t in events
+        for c, cond in enumerate(self.st.get("conditions", [])):  # initial() read by an equation: false in the run
+            if cond.get("node") == "initial":
+                self.env[("condition", c)] = ca.SX(0.0)
         self._modes(roles.get("discrete_real", []) + roles.get("discrete_value", []))
         for k in roles.get("input", []):
             v = self.vars[k]
