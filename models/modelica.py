@@ -147,9 +147,6 @@ def unsupported(text: str, filename: str) -> None:
             functions.append(toks[k + 1][0])
         elif prev == "end" and functions and tok == functions[-1]:
             functions.pop()
-        if tok == "algorithm" and prev == "initial" and not functions:
-            raise ModelicaError(filename, line, "initial algorithm: initial algorithms are not supported "
-                                                "(write initial equations)")
         if tok in ("edge", "change") and prev != "." and not _a_name(toks[k + 1:]):
             raise ModelicaError(filename, line, f"{tok}: {tok}() of an expression is not supported ({tok}(b) of a "
                                                 f"Boolean variable b given by a relation is)")
@@ -361,6 +358,8 @@ _BUILTIN = {
     "atan2": ca.atan2, "sinh": ca.sinh, "cosh": ca.cosh, "tanh": ca.tanh, "exp": ca.exp, "log": ca.log,
     "log10": lambda a: ca.log(a) / math.log(10.0), "sqrt": ca.sqrt, "abs": ca.fabs, "sign": ca.sign,
     "min": ca.fmin, "max": ca.fmax, "floor": ca.floor, "ceil": ca.ceil,
+    "integer": ca.floor, "mod": lambda a, b: a - ca.floor(a / b) * b, "div": lambda a, b: ca.sign(a / b) * ca.floor(ca.fabs(a / b)),
+    "rem": lambda a, b: a - ca.sign(a / b) * ca.floor(ca.fabs(a / b)) * b,
     "smooth": lambda order, a: a, "no_event": lambda a: a, "homotopy": lambda actual, simplified: actual,
 }
 
@@ -1043,6 +1042,14 @@ class _Translation:
             start = v["attributes"].get("start")
             self.mode_starts.append(self._attr_value(start) if start is not None else ca.SX(0.0))
             self.mode_syms[k] = sym
+        keys = list(self.mode_syms)
+        for item in self.st.get("initial_discrete_values", []):  # an initial algorithm's assignments, in order
+            if item["target"] not in self.mode_syms:
+                self._fail_span(item, f"initial algorithm: {self.vars[item['target']]['name']} is not a discrete "
+                                      f"variable (an initial algorithm may set those only)")
+            value = self.graph(item["value"])  # of parameters (states have no value yet: refused by the graph)
+            value = ca.substitute(value, ca.vertcat(*self.mode_syms.values()), ca.vertcat(*self.mode_starts))
+            self.mode_starts[keys.index(item["target"])] = value
 
     def _clock(self, b: BlockBuilder) -> None:
         """``time`` in the continuous equations becomes a clock state (d/dt = 1 from 0 at the
@@ -1184,6 +1191,8 @@ class _Translation:
                                   f"time event at {inst['num'] / inst['den']:g} s"))
         for T, t0, g, name in periodic:  # sample(start, interval): start + k interval, k = 0, 1, ...; initial()
             samples.append(Sample(T, t0, self._settled(xs, ms, g) if always else g, name))
+        if not indicators and not samples:  # modes without events (set by an initial algorithm): one identity event
+            samples.append(Sample(ONCE, 0.0, None, "initial"))
         if self.assert_modes:  # every event ends by latching the assertions; they start at their start value
             updates = [self._latched(xs, ms, g) for g in updates]
             for smp in samples:
@@ -1640,9 +1649,6 @@ class _Translation:
 
     def _refuse_flat(self) -> None:
         """What the token scan cannot see (e.g. a construct reached through an extends)."""
-        for key, what in (("initial_algorithms", "an initial algorithm"),):  # a model's algorithm: rumoca lowers it
-            if self.flat.get(key):
-                raise ModelicaError(self.filename, None, f"the model contains {what}, which is not supported")
         self.chains: list[list[tuple]] = []  # the when/elsewhen chains: each branch's condition span (source, start)
         self.clocked = set()  # the parameters sample()'s arguments read: rumoca fixes the period at their values
         for chain in self.flat.get("when_chains") or []:

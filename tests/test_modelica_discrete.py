@@ -429,3 +429,13 @@ def test_assertions_on_variables_are_checked_during_the_run(tmp_path):
     res = _run_asserts(tmp_path, 1.0)
     assert res.status == "out_of_limits"
     assert 'assert at As.mo:5: "x fell below 0.5"' in res.reason and "t = 0.7 s" in res.reason, res.reason
+
+
+def test_an_initial_algorithm_sets_discrete_start_values(tmp_path):
+    """t0 := 2 a in an initial algorithm (a = 3), then the initial equation x = t0: x = 6 exp(-t)."""
+    text = ('model Ia "an initial algorithm"\n  parameter Real a = 3;\n  Real x;\n  discrete Real t0;\n'
+            'initial algorithm\n  t0 := 2 * a;\nequation\n  der(x) = -x;\ninitial equation\n  x = t0;\nend Ia;\n')
+    tr = simulate(tmp_path, text, "Ia", 1.0, 0.01, ["x", "t0"])
+    t = np.asarray(tr["time"])
+    assert np.max(np.abs(tr["c.x"] - 6 * np.exp(-t))) < 1e-5
+    assert set(np.asarray(tr["c.t0"])) == {6.0}
