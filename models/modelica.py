@@ -61,8 +61,8 @@ values) and on variables (a latched mode each; at level error rated, so the run-
 the run quoting the assertion).
 
 Refused: algorithm sections of several outputs (rumoca's refusal, with the section's line),
-statements rumoca does not lower in functions, external functions, initial algorithms,
-terminate, ``edge``/``change`` of anything else, an ``elsewhen`` branch on anything but a
+statements rumoca does not lower in functions, external functions, initial algorithms that set
+other than discrete variables, terminate, ``edge``/``change`` of anything else, an ``elsewhen`` branch on anything but a
 relation, arrays of more than two dimensions, colon subscripts (``A[:, 2]``), ``delay``, String
 variables, inner/outer, stream connectors, arrays of connectors.
 
