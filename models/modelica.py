@@ -52,13 +52,19 @@ Integer variables of always-active equations (modes settled after every event), 
 time as time events, ``when sample(start, interval)`` as periodic time events, ``when
 initial()`` as a time event at the start, ``edge(b)``/``change(b)`` of a Boolean given by a
 relation (that relation's indicator), Boolean and Integer variables assigned in a when-clause
-(modes, like a discrete Real), one-element arrays and for-equations over them, asserts on
-parameters.
+(modes, like a discrete Real), ``elsewhen`` chains of relations (each condition's truth a mode;
+the first branch whose condition becomes true wins), arrays (vectors and matrices: one variable
+per element, ``x[2]``, ``A[1,2]``) with for-equations and array equations over them, functions
+whose for-loops and if-statements rumoca lowers into assignments, a model's algorithm section
+with one output (rumoca lowers it into an equation), asserts on parameters (checked at their
+values) and on variables (a latched mode each; at level error rated, so the run-time guard ends
+the run quoting the assertion).
 
-Refused: algorithm sections of a model, statements other than assignments in functions,
-external functions, initial algorithms, terminate, ``edge``/``change`` of anything else,
-``elsewhen``, arrays of more than one element, ``delay``, String variables, inner/outer, stream connectors, arrays of
-connectors.
+Refused: algorithm sections of several outputs (rumoca's refusal, with the section's line),
+statements rumoca does not lower in functions, external functions, initial algorithms that set
+other than discrete variables, terminate, ``edge``/``change`` of anything else, an ``elsewhen`` branch on anything but a
+relation, arrays of more than two dimensions, colon subscripts (``A[:, 2]``), ``delay``, String
+variables, inner/outer, stream connectors, arrays of connectors.
 
 ``models/`` is maths only: :func:`translate` takes the model's text (and rumoca reads the roots
 it is given); choosing and reading files is the caller's (:mod:`cosim.scenario`).
@@ -73,6 +79,7 @@ from fractions import Fraction
 from itertools import product
 
 import casadi as ca
+import numpy as np
 
 from . import units
 from .block import EITHER, FALLING, RISING, Block, BlockError, Sample, Var
@@ -99,9 +106,8 @@ class ModelicaError(BlockError):
 
 # --- what is refused, found in the text ----------------------------------------------------------
 _UNSUPPORTED = {
-    "elsewhen": "elsewhen is not supported yet (write one when-clause per condition)",
     "external": "external functions are not supported",
-    "assert": "assert() is not supported", "terminate": "terminate() is not supported",
+    "terminate": "terminate() is not supported",
     "delay": "delay() is not supported",
     "String": "String variables are not supported (Real, and Integer/Boolean parameters)",
     "inner": "inner/outer is not supported", "outer": "inner/outer is not supported",
@@ -141,9 +147,6 @@ def unsupported(text: str, filename: str) -> None:
             functions.append(toks[k + 1][0])
         elif prev == "end" and functions and tok == functions[-1]:
             functions.pop()
-        if tok == "algorithm" and not functions:
-            raise ModelicaError(filename, line, "algorithm: algorithm sections of a model are not supported "
-                                                "(write equations; a function's algorithm is)")
         if tok in ("edge", "change") and prev != "." and not _a_name(toks[k + 1:]):
             raise ModelicaError(filename, line, f"{tok}: {tok}() of an expression is not supported ({tok}(b) of a "
                                                 f"Boolean variable b given by a relation is)")
@@ -198,6 +201,9 @@ def _compile(text: str, model: str, filename: str, roots: tuple[str, ...] = ()):
         for d in getattr(exc, "diagnostics", []) or []:
             if line is None and d.line and d.line > 1:
                 line = d.line
+        if line is None and "algorithm" in msg:  # rumoca's refusal of a model's algorithm names no line
+            line = _first_line(text, "algorithm")
+            first = f"algorithm: {first}"
         if line is None:
             unresolved = _UNRESOLVED.search(msg)
             if unresolved:
@@ -323,9 +329,24 @@ def _classes(text: str) -> list[str]:
 
 
 # --- the DAE expression graph as CasADi -----------------------------------------------------------
+def _times(a: ca.SX, b: ca.SX) -> ca.SX:
+    """Modelica's ``*``: a scalar scales; vector * vector is the dot product, matrix * vector,
+    vector * matrix and matrix * matrix the matrix products (vectors are columns here)."""
+    if a.numel() == 1 or b.numel() == 1:
+        return a * b
+    if a.shape[1] == 1 and b.shape[1] == 1:
+        return ca.dot(a, b)
+    if a.shape[1] == 1:
+        return ca.mtimes(a.T, b).T
+    return ca.mtimes(a, b)
+
+
 _BINARY = {
-    "add": lambda a, b: a + b, "subtract": lambda a, b: a - b, "multiply": lambda a, b: a * b,
+    "add": lambda a, b: a + b, "subtract": lambda a, b: a - b, "multiply": _times,
     "divide": lambda a, b: a / b, "power": lambda a, b: a ** b,
+    "elementwise_add": lambda a, b: a + b, "elementwise_subtract": lambda a, b: a - b,
+    "elementwise_multiply": lambda a, b: a * b, "elementwise_divide": lambda a, b: a / b,
+    "elementwise_power": lambda a, b: a ** b,
     "greater": lambda a, b: a > b, "less": lambda a, b: a < b, "greater_equal": lambda a, b: a >= b,
     "less_equal": lambda a, b: a <= b, "greater_or_equal": lambda a, b: a >= b,
     "less_or_equal": lambda a, b: a <= b, "equal": lambda a, b: a == b, "not_equal": lambda a, b: a != b,
@@ -337,12 +358,15 @@ _BUILTIN = {
     "atan2": ca.atan2, "sinh": ca.sinh, "cosh": ca.cosh, "tanh": ca.tanh, "exp": ca.exp, "log": ca.log,
     "log10": lambda a: ca.log(a) / math.log(10.0), "sqrt": ca.sqrt, "abs": ca.fabs, "sign": ca.sign,
     "min": ca.fmin, "max": ca.fmax, "floor": ca.floor, "ceil": ca.ceil,
+    "integer": ca.floor, "mod": lambda a, b: a - ca.floor(a / b) * b, "div": lambda a, b: ca.sign(a / b) * ca.floor(ca.fabs(a / b)),
+    "rem": lambda a, b: a - ca.sign(a / b) * ca.floor(ca.fabs(a / b)) * b,
     "smooth": lambda order, a: a, "no_event": lambda a: a, "homotopy": lambda actual, simplified: actual,
 }
 
-#: Array built-in functions, taken on one-element arrays (the only arrays translated yet).
-_ONE_ELEMENT = ("ones", "zeros", "fill", "sum", "product", "scalar", "vector", "size", "promoted_cat1",
-                "promoted_cat2")
+#: Array built-in functions (vectors are SX columns, matrices SX matrices; at most two dimensions).
+_ARRAY_BUILTINS = ("ones", "zeros", "fill", "sum", "product", "scalar", "vector", "size", "promoted_cat1",
+                   "promoted_cat2", "cat", "transpose", "identity", "diagonal", "cross", "linspace", "ndims",
+                   "outer_product")
 
 
 @dataclass
@@ -358,6 +382,8 @@ class _Graph:
     names: dict  # variable index -> name (for messages)
 
     functions: list = dataclasses.field(default_factory=list)  # the DAE's functions (inlined at calls)
+    domains: list = dataclasses.field(default_factory=list)  # the DAE's index domains (for-loops, comprehensions)
+    structural: object = None  # e -> e at the parameters' values (an array size is fixed when translated)
 
     def __post_init__(self):
         self.memo: dict[int, ca.SX] = {}
@@ -384,6 +410,8 @@ class _Graph:
                 key = ("function_parameter", (key[1]["function"], key[1]["ordinal"]))
             elif key[0] == "binder":
                 key = ("binder", (key[1]["domain"], key[1]["ordinal"]))
+            elif key[0] == "function_variable" and isinstance(key[1], dict):
+                key = ("function_variable", (key[1].get("function"), key[1].get("ordinal")))
             if key not in self.env:
                 self._refuse(i, f"{key[0].replace('_', ' ')} is not supported here")
             return self.env[key]
@@ -398,20 +426,8 @@ class _Graph:
                 self._refuse(i, f"operator {body['operator']} is not supported")
             return op(self(body["operand"]))
         args = [self(self.operands[self.starts[i] + k]) for k in range(body.get("operand_count", 0))]
-        if kind == "builtin" and body["builtin"] in _ONE_ELEMENT:  # array builtins on one-element arrays
-            name = body["builtin"]
-            if name in ("ones", "zeros", "fill"):
-                sizes = args if name != "fill" else args[1:]
-                if any(not n.is_constant() or float(ca.evalf(n)) != 1.0 for n in sizes):
-                    self._refuse(i, f"{name}() of more than one element is not supported yet (one-element arrays only)")
-                return {"ones": ca.SX(1.0), "zeros": ca.SX(0.0)}.get(name, args[0])
-            if name == "size":  # every array translated has one element
-                return ca.SX(1.0)
-            if name.startswith("promoted_cat"):  # a concatenation: a column (a value only for size computations)
-                return ca.vertcat(*args)
-            if len(args) != 1:
-                self._refuse(i, f"{name}() of {len(args)} arrays is not supported yet (one-element arrays only)")
-            return args[0]  # sum, product, scalar, vector, a concatenation of one one-element array
+        if kind == "builtin" and body["builtin"] in _ARRAY_BUILTINS:
+            return self._array_builtin(i, body["builtin"], args)
         if kind == "builtin" and body["builtin"] in ("min", "max") and len(args) == 1:
             return (ca.mmin if body["builtin"] == "min" else ca.mmax)(args[0])  # min/max of an array
         if kind == "builtin":
@@ -419,48 +435,207 @@ class _Graph:
             if fn is None:
                 self._refuse(i, f"the function {body['builtin']}() is not supported")
             return fn(*args)
-        if kind == "array":  # only arrays of one element are taken: such an array is its element
-            if len(args) != 1:
-                self._refuse(i, f"an array of {len(args)} elements is not supported yet (scalars and "
-                                f"one-element arrays only)")
-            return args[0]
-        if kind == "index":  # of a one-element array (see array): the element
-            return self(body["base"])
+        if kind == "array":  # {a, b, c}: a column; {{..}, {..}}: a matrix, one row per element
+            if all(a.numel() == 1 for a in args):
+                return ca.vertcat(*args)
+            if all(a.shape == args[0].shape and a.shape[1] == 1 for a in args):
+                return ca.horzcat(*args).T
+            self._refuse(i, "an array of more than two dimensions is not supported")
+        if kind == "index":
+            return self._index(i, self(body["base"]), [self(n) for n in self._subscripts(i, body)])
+        if kind == "runtime_quotient_owner":  # mod(), div(), rem() (integer division)
+            a, b = self(body["lhs"]), self(body["rhs"])
+            q = ca.sign(a / b) * ca.floor(ca.fabs(a / b))  # div: truncated towards zero
+            ops = {"mod": lambda: a - ca.floor(a / b) * b, "div": lambda: q, "rem": lambda: a - q * b}
+            if body.get("builtin") not in ops:
+                self._refuse(i, f"the function {body.get('builtin')}() is not supported")
+            return ops[body["builtin"]]()
+        if kind == "range":  # start:step:stop of constants: a column
+            ends = [self(body[k]) if body.get(k) is not None else ca.SX(1.0)
+                    for k in ("start_expression", "explicit_step_expression", "stop_expression")]
+            if not all(e.is_constant() for e in ends):
+                self._refuse(i, "a range whose bounds are not constants is not supported")
+            a, h, b = (float(ca.evalf(e)) for e in ends)
+            n = int(math.floor((b - a) / h + 1e-9)) + 1 if h else 0
+            return ca.vertcat(*[ca.SX(a + h * k) for k in range(max(n, 0))]) if n > 0 else ca.SX(0, 1)
+        if kind == "function_value":  # a function variable as its definition_ordinal-th assignment left it
+            key = ("function_value", (body["function"], body["value"], body["definition_ordinal"]))
+            if key not in self.env:
+                self._refuse(i, "a function variable read before it is assigned")
+            return self.env[key]
+        if kind == "comprehension":  # {body for i in lo:hi}: a column of the body at each binder value
+            dom = self.domains[body["domain"]]["domain"]["binders"]
+            if len(dom) != 1:
+                self._refuse(i, "a comprehension over more than one index is not supported")
+            bd = dom[0]
+            out = []
+            for v in range(bd["lower"], bd["upper"] + 1, bd.get("step") or 1):
+                g = dataclasses.replace(self, env={**self.env, ("binder", (body["domain"], 0)): ca.SX(float(v))})
+                out.append(g(body["body"]))
+            return ca.vertcat(*out)
         if kind == "conditional":  # (c1, v1, c2, v2, ..., else)
             value = args[-1]
             for k in range(len(args) - 3, -1, -2):
                 value = ca.if_else(args[k], args[k + 1], value)
             return value
         if kind == "call" and body.get("derivative") is None:
-            params, out = self._inline(i, body["function"], body.get("output", 0))
+            params, out = self._inline(i, body["function"], body.get("output", 0), tuple(a.shape for a in args))
             if len(params) != len(args):
                 self._refuse(i, f"a call of {self.functions[body['function']]['name']} with {len(args)} arguments "
                                 f"(it takes {len(params)})")
-            return ca.substitute(out, ca.vertcat(*params), ca.vertcat(*args)) if params else out
+            return ca.substitute(out, ca.vertcat(*[ca.vec(p) for p in params]),
+                                 ca.vertcat(*[ca.vec(a) for a in args])) if params else out
         self._refuse(i, f"the expression kind {kind!r} is not supported")
 
-    def _inline(self, i: int, f: int, output: int) -> tuple[list[ca.SX], ca.SX]:
+    def _subtree_start(self, j: int) -> int:
+        """The first node of node ``j``'s subtree (the nodes are stored children first)."""
+        (kind, body), = self.nodes[j].items()
+        kids = []
+        if kind == "binary":
+            kids = [body["lhs"], body["rhs"]]
+        elif kind == "unary":
+            kids = [body["operand"]]
+        elif kind == "index":
+            kids = [body["base"]]
+        elif kind == "runtime_quotient_owner":
+            kids = [body["lhs"], body["rhs"]]
+        elif kind == "range":
+            kids = [body[k] for k in ("start_expression", "explicit_step_expression", "stop_expression")
+                    if body.get(k) is not None]
+        elif isinstance(body, dict) and body.get("operand_count"):
+            kids = [self.operands[self.starts[j] + k] for k in range(body["operand_count"])]
+        return min([j] + [self._subtree_start(c) for c in kids])
+
+    def _subscripts(self, i: int, body: dict) -> list[int]:
+        """The subscript nodes of index node ``i``: the subtrees between its base and itself."""
+        roots, j = [], i - 1
+        for _ in range(body.get("subscript_count", 0)):
+            roots.append(j)
+            j = self._subtree_start(j) - 1
+        if j != body["base"]:
+            self._refuse(i, "a subscript of a form not understood here (a constant or a for-loop index expected)")
+        return roots[::-1]
+
+    def _index(self, i: int, base: ca.SX, subs: list[ca.SX]) -> ca.SX:
+        """``base[subs]`` (1-based constant subscripts; one subscript of a matrix is its row)."""
+        idx = []
+        for s in subs:
+            if not s.is_constant():
+                self._refuse(i, "a subscript that is not a constant or a for-loop index is not supported")
+            idx.append(int(round(float(ca.evalf(s)))) - 1 if s.numel() == 1 else
+                       [int(round(v)) - 1 for v in np.asarray(ca.evalf(s)).ravel()])
+        if any(isinstance(k, list) for k in idx):  # a range subscript: the elements it selects
+            shape = [base.shape[0]] if base.shape[1] == 1 else list(base.shape)
+            lists = [k if isinstance(k, list) else [k] for k in idx]
+            if len(lists) != len(shape) or any(not 0 <= k < n for ks, n in zip(lists, shape) for k in ks):
+                self._refuse(i, "a range subscript out of the array's range")
+            if len(shape) == 1:
+                return ca.vertcat(*[base[k] for k in lists[0]])
+            out = ca.vertcat(*[ca.horzcat(*[base[r, c] for c in lists[1]]) for r in lists[0]])
+            return out if len(lists[0]) > 1 and len(lists[1]) > 1 else ca.vec(out)
+        if base.numel() == 1 and all(k == 0 for k in idx):
+            return base  # a one-element array is its element
+        shape = [base.shape[0]] if base.shape[1] == 1 else ([base.shape[1]] if base.shape[0] == 1 else list(base.shape))
+        if len(idx) > len(shape) or any(not 0 <= k < n for k, n in zip(idx, shape)):
+            self._refuse(i, f"subscript [{', '.join(str(k + 1) for k in idx)}] out of the array's range "
+                            f"[{', '.join(map(str, shape))}]")
+        if len(shape) == 1:
+            return base[idx[0]]
+        if len(idx) == 1:
+            return base[idx[0], :].T
+        return base[idx[0], idx[1]]
+
+    def _array_builtin(self, i: int, name: str, args: list[ca.SX]) -> ca.SX:
+        """The array built-in functions on SX columns (vectors) and matrices."""
+        def count(n: ca.SX) -> int:
+            if not n.is_constant() and self.structural is not None:
+                n = self.structural(n)
+            if not n.is_constant():
+                self._refuse(i, f"{name}(): a size that is not a constant")
+            return int(round(float(ca.evalf(n))))
+
+        if name in ("ones", "zeros", "fill"):
+            sizes = [count(n) for n in (args if name != "fill" else args[1:])]
+            if len(sizes) > 2:
+                self._refuse(i, f"{name}() of more than two dimensions is not supported")
+            shape = (sizes + [1])[:2]
+            value = {"ones": ca.SX(1.0), "zeros": ca.SX(0.0)}.get(name, args[0] if args else ca.SX(0.0))
+            return ca.repmat(value, *shape) if value.numel() == 1 else self._refuse(i, "fill() of an array")
+        if name == "size":
+            a = args[0]
+            shape = [a.shape[0]] if a.shape[1] == 1 else list(a.shape)
+            if len(args) == 1:
+                return ca.vertcat(*[ca.SX(float(n)) for n in shape]) if len(shape) > 1 else ca.SX(float(shape[0]))
+            d = count(args[1])
+            return ca.SX(float(shape[d - 1] if d <= len(shape) else 1))
+        if name == "ndims":
+            return ca.SX(1.0 if args[0].shape[1] == 1 else 2.0)
+        if name == "promoted_cat1":
+            return ca.vertcat(*args)
+        if name == "promoted_cat2":
+            return ca.horzcat(*args)
+        if name == "cat":
+            d = count(args[0])
+            return ca.vertcat(*args[1:]) if d == 1 else ca.horzcat(*args[1:])
+        if name == "transpose":
+            return args[0].T
+        if name == "identity":
+            return ca.SX.eye(count(args[0]))
+        if name == "diagonal":
+            return ca.diag(args[0])
+        if name == "cross":
+            return ca.cross(args[0], args[1])
+        if name == "outer_product":
+            return ca.mtimes(args[0], args[1].T)
+        if name == "linspace":
+            n = count(args[2])
+            return ca.vertcat(*[args[0] + (args[1] - args[0]) * k / (n - 1) for k in range(n)])
+        if len(args) != 1:
+            self._refuse(i, f"{name}() of {len(args)} arguments is not supported")
+        a = args[0]
+        if name == "sum":
+            return ca.sum1(ca.sum2(a))
+        if name == "product":
+            out = ca.SX(1.0)
+            for k in range(a.numel()):
+                out = out * a[k]
+            return out
+        if name == "scalar":
+            return a[0]
+        return ca.vec(a.T)  # vector(): the elements in row-major order, a column
+
+    def _inline(self, i: int, f: int, output: int, shapes: tuple = ()) -> tuple[list[ca.SX], ca.SX]:
         """Output ``output`` of the DAE's function ``f`` as an expression of its parameters'
-        symbols: its algorithm (assignments in order) evaluated symbolically."""
-        key = (f, output)
+        symbols (shaped as the call's arguments, ``shapes``): its algorithm (assignments in
+        order) evaluated symbolically."""
+        key = (f, output, shapes)
         if key in self.inlined:
             return self.inlined[key]
         fn = self.functions[f]
         if fn.get("external") is not None:
             self._refuse(i, f"{fn['name']} is an external function, which is not supported")
-        params = [ca.SX.sym(f"{fn['name']}.{p['name']}") for p in fn["parameters"]]
+        params = [ca.SX.sym(f"{fn['name']}.{p['name']}", *(shapes[k] if k < len(shapes) else (1, 1)))
+                  for k, p in enumerate(fn["parameters"])]
         names = [v["name"] for v in fn["outputs"] + fn.get("locals", [])]
         values: list[ca.SX | None] = [None] * len(names)
         env = dict(self.env)
         env.update({("function_parameter", (f, k)): s for k, s in enumerate(params)})
+        count = 0  # the assignments made so far: a read names its definition by this ordinal
         for stmt in fn.get("statements", []):
             (skind, sbody), = stmt.items()
-            if skind != "assignment":
+            if skind == "assignment":
+                group = [sbody]
+            elif skind == "assignment_group":  # an if-statement rumoca lowered: each target an if-expression
+                group = sbody.get("assignments", [])
+            else:
                 self._refuse(i, f"{fn['name']}: a {skind.replace('_', ' ')} statement in its algorithm is not "
-                                f"supported (assignments only)")
+                                f"supported (assignments, for-loops and if-statements rumoca lowers into them)")
             sub = dataclasses.replace(self, env={**env, **{("function_variable", (f, k)): v
                                                             for k, v in enumerate(values) if v is not None}})
-            values[sbody["target"]] = sub(sbody["rhs"])
+            new = [(a["target"], sub(a["rhs"])) for a in group]
+            for target, value in new:
+                values[target] = env[("function_value", (f, target, count))] = value
+                count += 1
         if values[output] is None:
             self._refuse(i, f"{fn['name']}: its output {names[output]} is never assigned")
         self.inlined[key] = (params, values[output])
@@ -589,6 +764,11 @@ def _find(tree, key: str) -> list[dict]:
     return []
 
 
+def _elements(e: ca.SX) -> list[ca.SX]:
+    """The elements of an array expression in row-major order (a scalar: itself)."""
+    return [e[r, c] for r in range(e.shape[0]) for c in range(e.shape[1])]
+
+
 def _short(e: ca.SX, limit: int = 120) -> str:
     text = str(ca.simplify(e))
     return text if len(text) <= limit else text[:limit] + "..."
@@ -648,17 +828,20 @@ class _Translation:
     def __init__(self, text: str, filename: str, st: dict, flat: dict, model_name: str, name: str):
         self.text, self.filename, self.st, self.flat, self.name = text, filename, st, flat, name
         self.description = (flat.get("model_description") or "").strip() or f"Modelica model {model_name}"
-        self.vars = st["variables"]
+        self.vars = [dict(v) for v in st["variables"]]  # array variables are expanded (_expand_arrays): a copy
         ex = st["expressions"]
         self.nodes, self.prov = ex["nodes"], ex["provenance"]
         self.env: dict = {}
         self.graph = _Graph(self.nodes, ex["operands"], _operand_starts(self.nodes), self.env, self._node_line,
-                            filename, {k: v["name"] for k, v in enumerate(self.vars)}, st.get("functions") or [])
+                            filename, {k: v["name"] for k, v in enumerate(self.vars)}, st.get("functions") or [],
+                            st.get("domains") or [])
         self.time = ca.SX.sym("t")  # the model's time (see _clock)
         self.mode_syms = {}
         self.event_fields: dict = {}
         self.solved = None
         self.param_values: dict[str, float] = {}
+        self.param_syms: list[ca.SX] = []
+        self.graph.structural = self._at_defaults
         self.always: dict[int, int] = {}
         self.units = _Units(self.graph, {k: (v["attributes"].get("unit") or "") for k, v in enumerate(self.vars)})
 
@@ -680,7 +863,7 @@ class _Translation:
     def _constant(self, node: int | None, v: dict, what: str) -> float | None:
         if node is None:
             return None
-        e = self.graph(node)
+        e = self._attr_value(node)
         if not e.is_constant():
             self._err(v, f"{v['name']}: {what} must be a number")
         return float(ca.evalf(e))
@@ -689,13 +872,11 @@ class _Translation:
     def block(self, integrator: str, substeps: int) -> Block:
         self._refuse_flat()
         b = BlockBuilder(self.name, self.description, fidelity="modelica")
+        self._expand_arrays()
         roles: dict[str, list[int]] = {}
         for k, v in enumerate(self.vars):
-            roles.setdefault(v["role"], []).append(k)
-            dims = self._dims(v)
-            if math.prod(dims) != 1:
-                self._err(v, f"{v['name']}: an array of {'x'.join(map(str, dims))} elements is not supported yet "
-                             f"(scalars and one-element arrays only)")
+            if k not in self.elements:  # an array: its elements are the variables
+                roles.setdefault(v["role"], []).append(k)
         bad = sorted(set(roles) - {"parameter", "input", "output", "state", "algebraic", "discrete_real",
                                    "discrete_value", "constant"})
         if bad:
@@ -703,17 +884,21 @@ class _Translation:
             self._err(v, f"{v['name']}: a {bad[0].replace('_', ' ')} variable is not supported (continuous Real only)")
         self._parameters(b, roles.get("constant", []) + roles.get("parameter", []))
         self.env[("time", 0)] = self.time  # replaced at the end: a clock state in ode/out, the block's t in events
+        for c, cond in enumerate(self.st.get("conditions", [])):  # initial() read by an equation: false in the run
+            if cond.get("node") == "initial":
+                self.env[("condition", c)] = ca.SX(0.0)
         self._modes(roles.get("discrete_real", []) + roles.get("discrete_value", []))
         for k in roles.get("input", []):
             v = self.vars[k]
             self.env[("input", k)] = b.input(v["name"], *self._doc(v, "input"))
+        self._assemble()
         states = roles.get("state", [])
         unknown: dict[tuple, ca.SX] = {}
         for k in states:
             v = self.vars[k]
             unit, text = self._doc(v, "state")
             start = v["attributes"].get("start")
-            s0 = self.graph(start) if start is not None else ca.SX(0.0)
+            s0 = self._attr_value(start) if start is not None else ca.SX(0.0)
             if ca.depends_on(s0, ca.vertcat(*[self.env[("input", j)] for j in roles.get("input", [])])) \
                     if roles.get("input") else False:
                 self._err(v, f"{v['name']}: the start value may depend on parameters only")
@@ -722,6 +907,7 @@ class _Translation:
         for k in roles.get("output", []) + roles.get("algebraic", []):
             unknown[("algebraic", k)] = ca.SX.sym(self.vars[k]["name"])  # outputs are algebraic coordinates too
         self.env.update(unknown)
+        self._assemble()
         flanges = self._connectors()
         residuals = self._residuals()
         solved, chosen = self._solve(b, residuals, unknown, flanges)
@@ -753,7 +939,64 @@ class _Translation:
         self._clock(b)
         return self._finish(b, integrator, substeps, events)
 
+    def _expand_arrays(self) -> None:
+        """Each array variable of more than one element as one scalar variable per element,
+        appended to :attr:`vars` (named ``x[2]``, ``A[1,2]``; the attributes' values are taken
+        element by element, :meth:`_attr_value`); :attr:`elements` maps an array's index to its
+        elements' (row-major order), whose symbols :meth:`_assemble` gathers into the array's."""
+        self.elements: dict[int, list[int]] = {}
+        for k, v in enumerate(list(self.vars)):
+            dims = self._dims(v)
+            if math.prod(dims) == 1:
+                continue
+            if any(d < 0 for d in dims) or len(dims) > 2:
+                self._err(v, f"{v['name']}: an array of dimensions [{', '.join(map(str, dims))}] is not supported "
+                             f"(vectors and matrices of known sizes)")
+            if v["role"] not in ("parameter", "constant", "input", "output", "state", "algebraic", "discrete_real",
+                                 "discrete_value"):
+                continue  # refused by its role
+            self.elements[k] = []
+            for j, sub in enumerate(product(*[range(1, d + 1) for d in dims])):
+                attrs = {a: (("element", node, j, tuple(dims)) if a in ("start", "binding", "min", "max")
+                             and isinstance(node, int) else node) for a, node in v["attributes"].items()}
+                self.elements[k].append(len(self.vars))
+                self.vars.append({**v, "name": f"{v['name']}[{','.join(map(str, sub))}]", "attributes": attrs,
+                                  "element_of": (k, j)})
+
+    def _attr_value(self, node) -> ca.SX:
+        """The value of an attribute (``start``, ``binding``, ``min``, ``max``): its node's, or,
+        for an array's element, that element of it (a scalar applies to every element)."""
+        if not isinstance(node, tuple):
+            return self.graph(node)
+        _, n, j, dims = node
+        value = self.graph(n)
+        if value.numel() == 1:
+            return value
+        if value.numel() != math.prod(dims):
+            raise ModelicaError(self.filename, self._node_line(n), f"an array value of {value.numel()} elements "
+                                                                   f"for {math.prod(dims)}")
+        return value[j] if len(dims) == 1 else value[divmod(j, dims[1])]
+
+    def _assemble(self) -> None:
+        """The symbols of each array variable, gathered from its elements' (a column for a
+        vector, a matrix otherwise), for every coordinate kind its elements have."""
+        for k, elems in self.elements.items():
+            dims = self._dims(self.vars[k])
+            if not elems:  # an empty array (MSL filters of order 0): an empty column or matrix of every kind
+                role = self.vars[k]["role"]
+                for kind in (role, f"pre_{role}", "derivative", "parameter", "algebraic"):
+                    self.env.setdefault((kind, k), ca.SX(*(dims + [1])[:2]) if len(dims) == 1 else ca.SX(*dims))
+                continue
+            kinds = {key[0] for e in elems[:1] for key in self.env if len(key) == 2 and key[1] == e}
+            for kind in kinds:
+                if (kind, k) in self.env or not all((kind, e) in self.env for e in elems):
+                    continue
+                col = ca.vertcat(*[self.env[(kind, e)] for e in elems])
+                self.env[(kind, k)] = col if len(dims) == 1 else ca.reshape(col, dims[1], dims[0]).T
+
     def _dims(self, v: dict) -> list[int]:
+        if "element_of" in v:
+            return []
         types = self.st.get("value_types") or []
         k = v.get("value_type")
         dims = types[k].get("dimensions", []) if isinstance(k, int) and k < len(types) else []
@@ -797,8 +1040,16 @@ class _Translation:
             kind = v["role"]  # discrete_real, or discrete_value (a Boolean or Integer held as a real)
             self.env[(kind, k)] = self.env[(f"pre_{kind}", k)] = sym
             start = v["attributes"].get("start")
-            self.mode_starts.append(self.graph(start) if start is not None else ca.SX(0.0))
+            self.mode_starts.append(self._attr_value(start) if start is not None else ca.SX(0.0))
             self.mode_syms[k] = sym
+        keys = list(self.mode_syms)
+        for item in self.st.get("initial_discrete_values", []):  # an initial algorithm's assignments, in order
+            if item["target"] not in self.mode_syms:
+                self._fail_span(item, f"initial algorithm: {self.vars[item['target']]['name']} is not a discrete "
+                                      f"variable (an initial algorithm may set those only)")
+            value = self.graph(item["value"])  # of parameters (states have no value yet: refused by the graph)
+            value = ca.substitute(value, ca.vertcat(*self.mode_syms.values()), ca.vertcat(*self.mode_starts))
+            self.mode_starts[keys.index(item["target"])] = value
 
     def _clock(self, b: BlockBuilder) -> None:
         """``time`` in the continuous equations becomes a clock state (d/dt = 1 from 0 at the
@@ -833,11 +1084,15 @@ class _Translation:
                 self._fail_span(item if isinstance(item, dict) else {}, f"{what} is not supported yet")
         roots = [r["root"] for r in st.get("roots", [])]
         always = self._always()
+        self.assertions: list[tuple] = []
         actions = [a for a in st.get("event_actions", []) if not self._assert(a)]
-        if not roots and not self.mode_syms and not st.get("time_events") and not st.get("clocks"):
+        if not roots and not self.mode_syms and not st.get("time_events") and not st.get("clocks") and \
+                not self.chains and not self.assertions:
             return None
         relations = [r["relation"] for r in st.get("relations", [])]
         conditions = st.get("conditions", [])
+        chains = self._chain_modes(conditions, relations)
+        self._assertion_modes(b)
         xs = [sym for _, sym, _ in b._states]
         ms = list(self.mode_syms.values())
         indicators, directions, names, updates = [], [], [], []
@@ -854,6 +1109,12 @@ class _Translation:
             names.append(f"{_short(self.graph(body['lhs']), 40)} {_REL[body['operator']]} "
                          f"{_short(self.graph(body['rhs']), 40)}")
             updates.append(None)
+        for cond, level, message, line, zero in self.assertions:  # a warning's relation: located like the others
+            if zero is not None:
+                indicators.append(zero)
+                directions.append(EITHER)
+                names.append(f"assert at line {line}")
+                updates.append(None)
         triggers: dict[int, list] = {}
         for act in actions:
             triggers.setdefault(act["trigger"], []).append(("action", act))
@@ -866,7 +1127,10 @@ class _Translation:
             triggers.setdefault(trig, []).append(("value", {**val, "target": k}))
         fired = set()
         periodic = []  # (period, start, update, name) of the when-clauses on sample() and initial()
+        in_chain = {c for chain in chains for c, _, _ in chain}
         for trig, items in triggers.items():
+            if trig in in_chain:
+                continue
             node = (conditions[trig].get("node") or {}) if trig < len(conditions) else {}
             if node == "initial":  # when initial(): a time event at the run's start, t = 0
                 periodic.append((ONCE, 0.0, self._update(items, xs, ms, b), "when initial()"))
@@ -886,6 +1150,18 @@ class _Translation:
             updates[i] = self._update(items, xs, ms, b)
             directions[i] = EITHER if either else directions[i]
             fired.add(i)
+        for chain in chains:  # when/elsewhen: the first branch whose condition becomes true wins
+            for c, _, _ in chain:
+                i = by_relation.get((conditions[c].get("node") or {}).get("relation"))
+                if i is None or i in fired:
+                    self._fail_span(conditions[c], "an elsewhen branch's condition other than one relation on "
+                                                   "states, inputs or parameters (or a relation another "
+                                                   "when-clause uses too)")
+                fired.add(i)
+            g = self._chain_update(chain, triggers, xs, ms, b)
+            for c, _, _ in chain:
+                i = by_relation[conditions[c]["node"]["relation"]]
+                updates[i], directions[i] = g, EITHER  # either way: the condition's truth is a mode
         for i in range(len(indicators)):
             if i not in fired:
                 directions[i] = EITHER  # a relation read by an if-expression: the step restarts where it switches
@@ -902,6 +1178,8 @@ class _Translation:
             m0 = ca.substitute(m0, ca.vertcat(self.time, *us), ca.SX.zeros(1 + len(us)))
             m0 = ca.substitute(m0, ca.vertcat(*ms), ca.vertcat(*self.mode_starts))
             self.mode_starts = [m0[j] for j in range(m0.numel())]
+        if chains:  # a condition's mode starts at its truth at the start (a when fires where it becomes true)
+            self._chain_starts(chains, xs, ms, b)
         if always:  # every event ends by settling the always-active discrete equations
             updates = [self._settled(xs, ms, g) for g in updates]
             samples.append(Sample(ONCE, 0.0, self._settled(xs, ms, None), "initial"))
@@ -913,13 +1191,98 @@ class _Translation:
                                   f"time event at {inst['num'] / inst['den']:g} s"))
         for T, t0, g, name in periodic:  # sample(start, interval): start + k interval, k = 0, 1, ...; initial()
             samples.append(Sample(T, t0, self._settled(xs, ms, g) if always else g, name))
+        if not indicators and not samples:  # modes without events (set by an initial algorithm): one identity event
+            samples.append(Sample(ONCE, 0.0, None, "initial"))
+        if self.assert_modes:  # every event ends by latching the assertions; they start at their start value
+            updates = [self._latched(xs, ms, g) for g in updates]
+            for smp in samples:
+                smp.update = self._latched(xs, ms, smp.update)
+            keys = list(self.mode_syms)
+            for sym, cond in self.assert_modes:
+                j = [k for k, m in enumerate(ms) if m is sym][0]
+                self.mode_starts[j] = 1 - self._at_start(cond, xs, ms, b)
         self.event_fields = {
-            "modes": [Var(f"mode.{self.vars[k]['name']}", *self._doc(self.vars[k], "discrete variable"))
+            "modes": [self.condition_vars[k] if k < 0 else
+                      Var(f"mode.{self.vars[k]['name']}", *self._doc(self.vars[k], "discrete variable"))
                       for k in self.mode_syms],
             "m": ca.vertcat(*ms) if ms else ca.SX(0, 1), "mode_start": self.mode_starts, "t": self.time,
             "indicators": ca.vertcat(*indicators) if indicators else ca.SX(0, 1), "directions": directions,
             "event_names": names, "updates": updates, "sample_times": samples}
         return self.event_fields
+
+    def _chain_modes(self, conditions: list, relations: list) -> list[list[tuple]]:
+        """The when/elsewhen chains as ``[(condition, truth, mode)]`` per branch: each branch's
+        condition (rumoca's, found by its source span), its truth (0/1 in ``t, x, u, p, m`` and the
+        solved variables) and a mode holding that truth's left value (``pre`` of the condition),
+        added to :attr:`mode_syms` under a negative key."""
+        self.condition_vars: dict[int, Var] = {}
+        by_span = {}
+        for c, cond in enumerate(conditions):
+            span = (cond.get("provenance") or {}).get("span") or {}
+            by_span.setdefault((span.get("source"), span.get("start")), c)
+        out = []
+        for j, spans in enumerate(self.chains):
+            chain = []
+            for k, span in enumerate(spans):
+                c = by_span.get(span)
+                node = (conditions[c].get("node") or {}) if c is not None else {}
+                if c is None or set(node) != {"relation"}:
+                    raise ModelicaError(self.filename, self._offset_line(span[1]),
+                                        "an elsewhen branch's condition other than one relation on states, "
+                                        "inputs or parameters (initial(), sample(), edge() or and/or in a chain)")
+                truth = self.graph(relations[node["relation"]]["expression"])
+                key = -(len(self.condition_vars) + 1)
+                name = f"mode.when{j + 1}.c{k + 1}"
+                sym = ca.SX.sym(name)
+                self.mode_syms[key] = sym
+                self.mode_starts.append(ca.SX(0.0))  # set by _chain_starts
+                line = self._offset_line(span[1])
+                self.condition_vars[key] = Var(name, "", f"the truth (0/1) of branch {k + 1}'s condition of the "
+                                                         f"when/elsewhen at line {line}: {_short(truth, 60)}")
+                chain.append((c, truth, sym))
+            out.append(chain)
+        return out
+
+    def _chain_update(self, chain: list, triggers: dict, xs: list, ms: list, b: BlockBuilder) -> ca.SX:
+        """``[x+; m+]`` of a when/elsewhen chain at any of its conditions' crossings: the first
+        branch whose condition becomes true (true now, false before: its mode) applies its
+        equations and reinits, the others nothing; every condition's mode takes its truth now."""
+        ident = ca.vertcat(*xs, *ms)
+        g = ident
+        for c, truth, sym in reversed(chain):
+            items = triggers.get(c, [])
+            branch = self._update(items, xs, ms, b) if items else ident
+            g = ca.if_else(ca.logic_and(truth, ca.logic_not(sym)), branch, g)
+        rows = [g[r] for r in range(g.numel())]
+        for _, truth, sym in chain:
+            rows[len(xs) + [j for j, m in enumerate(ms) if m is sym or ca.is_equal(m, sym)][0]] = truth
+        return ca.vertcat(*rows)
+
+    def _chain_starts(self, chains: list, xs: list, ms: list, b: BlockBuilder) -> None:
+        """Each condition mode's start: its condition's truth at the start state, ``t = 0``
+        (inputs 0), so a condition true from the start does not fire (as a when-clause's)."""
+        keys = list(self.mode_syms)
+        for chain in chains:
+            for _, truth, sym in chain:
+                self.mode_starts[keys.index([k for k in keys if self.mode_syms[k] is sym][0])] = \
+                    self._at_start(truth, xs, ms, b)
+
+    def _at_start(self, e: ca.SX, xs: list, ms: list, b: BlockBuilder) -> ca.SX:
+        """``e`` at the start: the states' and modes' start values, ``t = 0``, inputs 0 (an
+        expression of the parameters)."""
+        v = ca.substitute(e, *self.solved) if self.solved is not None else e
+        if xs:
+            v = ca.substitute(v, ca.vertcat(*xs), ca.vertcat(*[ca.SX(s0) for _, _, s0 in b._states]))
+        us = [u for _, u in b._inputs]
+        v = ca.substitute(v, ca.vertcat(self.time, *us), ca.SX.zeros(1 + len(us)))
+        return ca.substitute(v, ca.vertcat(*ms), ca.vertcat(*self.mode_starts)) if ms else v
+
+    def _at_defaults(self, e: ca.SX) -> ca.SX:
+        """``e`` at the parameters' default values (for an array's size, which rumoca fixed)."""
+        if not self.param_syms:
+            return e
+        return ca.substitute(e, ca.vertcat(*self.param_syms),
+                             ca.vertcat(*[ca.SX(self.param_values[p.name()]) for p in self.param_syms]))
 
     @property
     def param_names(self) -> set[str]:
@@ -942,7 +1305,7 @@ class _Translation:
         for k, v in enumerate(self.vars):
             if v["role"] in ("algebraic", "output") and self._fixed(k) and v["attributes"].get("start") is not None \
                     and k in value:
-                rows.append(value[k] - self.graph(v["attributes"]["start"]))
+                rows.append(value[k] - self._attr_value(v["attributes"]["start"]))
         if not rows:
             return
         xs = {self.env[("state", k)].name(): k for k in states}
@@ -991,9 +1354,17 @@ class _Translation:
         self.when_values: list[tuple[int, int, dict]] = []  # (trigger, variable, owner) of when-assigned ones
         for o in self.st.get("discrete_value_owners", []):
             br = o.get("branches", [])
+            whens = [(b.get("activation") or {}).get("when") if isinstance(b.get("activation"), dict) else None
+                     for b in br]
+            if len(o["targets"]) == 1 and len(br) > 1 and all(w is not None and w.get("trigger") == w.get("guard")
+                                                              and len(b.get("values", [])) == 1
+                                                              for w, b in zip(whens, br)):
+                # assigned in the branches of a when/elsewhen chain (or of several when-clauses)
+                self.when_values += [(w["trigger"], o["targets"][0], b["values"][0]) for w, b in zip(whens, br)]
+                continue
             if len(o["targets"]) != 1 or len(br) != 1 or len(br[0].get("values", [])) != 1:
                 self._fail_span(o, f"{self.vars[o['targets'][0]]['name']}: a Boolean or Integer variable assigned in "
-                                   f"more than one branch (elsewhen) is not supported yet")
+                                   f"more than one branch (an if-equation) is not supported yet")
             act = br[0].get("activation")
             when = act.get("when") if isinstance(act, dict) else None
             if when is not None and when.get("trigger") == when.get("guard"):
@@ -1068,34 +1439,93 @@ class _Translation:
         return period, start, self._update(items, xs, ms, b), f"sample({start:g}, {period:g})"
 
     def _assert(self, act: dict) -> bool:
-        """Whether the event action is an assert: one on parameters only is checked here, at the
-        parameters' defaults (a failing one refused with its line); one on variables is not
-        checked during a run (said in the docs)."""
+        """Whether the event action is an assertion (``assert(c, msg)``, at level error or
+        warning).  One on parameters only is checked here, at the parameters' defaults (a failing
+        one refused with its line); one on variables is kept in :attr:`assertions` as
+        ``(condition, level, message, line)``, checked during the run (:meth:`_assertion_modes`)."""
         kind = act.get("kind") or {}
-        if "assert" not in kind:
+        if "assert" not in kind and "warning" not in kind:
             return False
-        guard = (self.st["conditions"][act["guard"]].get("node") or {}) if act.get("guard") is not None else {}
-        node = (self.st["conditions"][guard["not"]].get("node") or {}).get("discrete") \
-            if isinstance(guard, dict) and "not" in guard else None
-        if node is None:
-            return True
-        cond = self.graph(node)
+        conditions = self.st["conditions"]
+        zero = None  # a warning's relation as an indicator (rumoca wraps its condition in noEvent)
+        if "warning" in kind:
+            level, node = "warning", kind["warning"].get("condition")
+            cond = self.graph(node) if node is not None else None
+            inner = self.nodes[node] if node is not None else {}
+            if (inner.get("builtin") or {}).get("builtin") == "no_event":
+                rel = self.nodes[self.graph.operands[self.graph.starts[node]]].get("binary") or {}
+                if rel.get("operator") in _REL:
+                    zero = self.graph(rel["lhs"]) - self.graph(rel["rhs"])
+        else:
+            level = "error"
+            guard = (conditions[act["guard"]].get("node") or {}) if act.get("guard") is not None else {}
+            inner = (conditions[guard["not"]].get("node") or {}) if isinstance(guard, dict) and "not" in guard else {}
+            cond = None
+            if "discrete" in inner:
+                cond = self.graph(inner["discrete"])
+            elif "relation" in inner:
+                cond = self.graph(self.st["relations"][inner["relation"]]["relation"]["expression"])
+        if cond is None:
+            self._fail_span(act, "an assert whose condition is not understood here")
         if self.solved is not None:
             cond = ca.substitute(cond, *self.solved)
         params = [sym for sym in ca.symvar(cond) if sym.name() in self.param_names]
+        line = self._offset_line(((act.get("provenance") or {}).get("span") or {}).get("start"))
+        msg_node = kind[level if level == "warning" else "assert"].get("message")
+        lit = (self.nodes[msg_node].get("literal") or {}) if isinstance(msg_node, int) else {}
+        message = lit.get("string") if isinstance(lit, dict) and "string" in lit else "(its message is not a literal)"
         if len(params) == len(ca.symvar(cond)):
             value = ca.Function("a", [ca.vertcat(*params) if params else ca.SX(0, 1)], [cond])(
                 [self.param_values[s.name()] for s in params])
-            if float(value) == 0.0:
-                self._fail_span(act, "an assert on the parameters fails at their values")
+            if float(value) == 0.0 and level == "error":
+                self._fail_span(act, f"an assert on the parameters fails at their values: {message}")
+            return True
+        self.assertions.append((cond, level, message, line, zero))
         return True
+
+    def _assertion_modes(self, b: BlockBuilder) -> None:
+        """Each assertion on variables as a latched mode ``assert.<line>`` (0 while its
+        condition has held, 1 once it failed at an event or the start: its relations are
+        indicators, so a crossing is located inside the step), recorded as a local output.  At
+        level error it is rated [-0.5, 0.5] with the assertion's message as the rating's source,
+        so the run-time guard (``guards.rated``) ends the run ``out_of_limits`` quoting it; at
+        level warning it is only recorded."""
+        self.assert_modes: list[tuple[ca.SX, ca.SX]] = []  # (mode, condition)
+        taken: set[str] = set()
+        for cond, level, message, line, _ in self.assertions:
+            name = f"assert.line{line}" if f"assert.line{line}" not in taken else f"assert.line{line}_{len(taken)}"
+            taken.add(name)
+            sym = ca.SX.sym(f"mode.{name}")
+            key = -(len(self.condition_vars) + 1)
+            self.mode_syms[key] = sym
+            self.mode_starts.append(ca.SX(0.0))  # set in _events: 1 - the condition at the start
+            where = f"{self.filename}:{line}" if line else self.filename
+            text = f"assert at {where}: \"{message}\" (level {level})"
+            self.condition_vars[key] = Var(f"mode.{name}", "", f"1 once the {text} failed, else 0")
+            b.output(name, sym, "", f"1 once the {text} failed, else 0 (latched)", local=True)
+            if level == "error":
+                b.rating(name, -0.5, 0.5, "rated", text)
+            self.assert_modes.append((sym, cond))
+
+    def _latched(self, xs: list, ms: list, g: ca.SX | None) -> ca.SX:
+        """The update ``g`` (None: the identity) followed by the assertions' latches, each
+        ``max(m, 1 - condition)`` at the updated state."""
+        nx = len(xs)
+        g = ca.vertcat(*xs, *ms) if g is None else g
+        rows = [g[r] for r in range(g.numel())]
+        for sym, cond in self.assert_modes:
+            c = ca.substitute(cond, ca.vertcat(*xs, *ms), g) if xs or ms else cond
+            j = nx + [k for k, m in enumerate(ms) if m is sym][0]
+            rows[j] = ca.fmax(rows[j], 1 - c)
+        return ca.vertcat(*rows)
 
     def _update(self, items: list, xs: list, ms: list, b: BlockBuilder) -> ca.SX:
         """``[x+; m+]`` of one when-clause: its discrete equations solved for the modes' new
         values, then its reinits (which may read them)."""
-        new = {k: ca.SX.sym(f"new.{self.vars[k]['name']}") for k in self.mode_syms}
+        new = {k: ca.SX.sym(f"new.{self.vars[k]['name'] if k >= 0 else self.mode_syms[k].name()}")
+               for k in self.mode_syms}
         env = dict(self.env)
-        env.update({(self.vars[k]["role"], k): s for k, s in new.items()})
+        env.update({(self.vars[k]["role"], k): s for k, s in new.items() if k >= 0})
         g = dataclasses.replace(self.graph, env=env)
         eqs = [g(it["residual"]) if kind == "equation" else new[it["target"]] - g(it["value"])
                for kind, it in items if kind in ("equation", "value")]
@@ -1168,11 +1598,14 @@ class _Translation:
         """The parameters and constants, each after those its value reads (in rounds: a binding
         may name one declared later)."""
         pending = list(keys)
+        self._assemble()  # the empty arrays
         while pending:
             left = []
             for k in pending:
                 try:
                     self._parameter(b, k)
+                    if "element_of" in self.vars[k]:
+                        self._assemble()
                 except ModelicaError as exc:
                     if "parameter is not supported here" not in exc.message and \
                             "constant is not supported here" not in exc.message:
@@ -1186,13 +1619,20 @@ class _Translation:
         v = self.vars[k]
         a = v["attributes"]
         node = a.get("binding") if a.get("binding") is not None else a.get("start")
+        if self._scalar(v) == "string":  # a String parameter (a file or table name): not a number, not exported
+            return
         if node is None:
             self._err(v, f"parameter {v['name']!r} has no value")
-        value = self.graph(node)
+        value = self._attr_value(node)
         if v["name"] in self.clocked:  # fixed: the sample period is a number
             if not value.is_constant():
                 self._err(v, f"{v['name']}: a parameter read by sample() must have a literal value (the interval "
                              f"and start are fixed when the model is translated)")
+            self.env[("parameter", k)] = value
+            return
+        if value.numel() != 1:  # an array value rumoca gives a one-element (or empty) declaration
+            if value.numel() > 1:
+                self._err(v, f"{v['name']}: a value of {value.numel()} elements for a scalar")
             self.env[("parameter", k)] = value
             return
         if not value.is_constant() or self._scalar(v) != "real":
@@ -1205,22 +1645,26 @@ class _Translation:
         self.env[("parameter", k)] = b.param(v["name"], default, unit, text,
                                              lower=-math.inf if lo is None else lo, upper=math.inf if hi is None else hi)
         self.param_values[self.env[("parameter", k)].name()] = default
+        self.param_syms.append(self.env[("parameter", k)])
 
     def _refuse_flat(self) -> None:
         """What the token scan cannot see (e.g. a construct reached through an extends)."""
-        for key, what in (("algorithms", "an algorithm section"), ("initial_algorithms", "an initial algorithm")):
-            if self.flat.get(key):
-                raise ModelicaError(self.filename, None, f"the model contains {what}, which is not supported")
-        for chain in self.flat.get("when_chains") or []:
-            if chain.get("else_when"):
-                span = chain.get("span") or {}
-                raise ModelicaError(self.filename, self._offset_line(span.get("start")) if self.text else None,
-                                    "elsewhen is not supported yet (write one when-clause per condition)")
+        self.chains: list[list[tuple]] = []  # the when/elsewhen chains: each branch's condition span (source, start)
         self.clocked = set()  # the parameters sample()'s arguments read: rumoca fixes the period at their values
         for chain in self.flat.get("when_chains") or []:
-            for call in _find(chain.get("first", {}).get("condition"), "BuiltinCall"):
-                if call.get("function") == "Sample":
-                    self.clocked.update(ref["name"]["name"] for ref in _find(call.get("args"), "VarRef"))
+            branches = [chain.get("first", {})] + list(chain.get("else_when") or [])
+            if len(branches) > 1:
+                spans = []
+                for br in branches:
+                    cond = br.get("condition") or {}
+                    body = next(iter(cond.values())) if isinstance(cond, dict) and cond else {}
+                    span = body.get("span") if isinstance(body, dict) else None
+                    spans.append(((span or {}).get("source"), (span or {}).get("start")))
+                self.chains.append(spans)
+            for br in branches:
+                for call in _find(br.get("condition"), "BuiltinCall"):
+                    if call.get("function") == "Sample":
+                        self.clocked.update(ref["name"]["name"] for ref in _find(call.get("args"), "VarRef"))
 
     def _residuals(self) -> list[tuple[ca.SX, int | None]]:
         out = []
@@ -1239,10 +1683,7 @@ class _Translation:
             if kind != "residual":
                 raise ModelicaError(self.filename, line, f"an equation of kind {kind!r} is not supported")
             self.units(body["residual"])  # raises at a unit mismatch
-            e = self.graph(body["residual"])
-            if e.numel() != 1:
-                raise ModelicaError(self.filename, line, "array equations are not supported (write scalars)")
-            out.append((e, line))
+            out += [(e, line) for e in _elements(self.graph(body["residual"]))]
         return out
 
     def _for_equation(self, body: dict, line: int | None) -> list[ca.SX]:
@@ -1252,13 +1693,15 @@ class _Translation:
         dom = domains[body["domain"]] if body.get("domain") is not None and body["domain"] < len(domains) else None
         if dom is None or dom.get("parent") is not None:
             raise ModelicaError(self.filename, line, "a nested for-equation is not supported yet")
+        if body.get("scalar_view") == "RowMajorProjection":  # an array equation: every element of its body
+            return [e for node in body["bodies"] for e in _elements(self.graph(node))]
         binders = dom["domain"]["binders"]
         ranges = [range(bd["lower"], bd["upper"] + 1, bd.get("step") or 1) for bd in binders]
         out = []
         for values in product(*ranges):
             env = {**self.env, **{("binder", (body["domain"], k)): ca.SX(float(v)) for k, v in enumerate(values)}}
             g = dataclasses.replace(self.graph, env=env)
-            out += [g(node) for node in body["bodies"]]
+            out += [e for node in body["bodies"] for e in _elements(g(node))]
         return out
 
     # connectors

@@ -173,7 +173,8 @@ end M;
 @pytest.mark.parametrize("decl, term, eqs, line, what", [
     ("", " +", "", 8, "unexpected"),
     ("", " + zz", "", 8, "zz"),
-    ("\n  Real q(unit = \"V\") \"q\";", "", "\nalgorithm\n  q := x;", 10, "algorithm"),
+    ("\n  Real q(unit = \"V\") \"q\"; Real r(unit = \"V\") \"r\";", "", "\nalgorithm\n  q := x;\n  r := q;", 10,
+     "algorithm: todae failed"),
     ("", " + time", "", 8, "time"),
     ("", "", "\n  y = 2 * x;", None, "unbalanced model: 3 equations, 2 unknowns"),
     ("", " + T", "", 8, "unit mismatch in '+': [kg.m2.s-3.A-1] against T [s]"),

@@ -217,9 +217,56 @@ def test_change_counts_the_crossings_both_ways(tmp_path):
     assert exact[-1] == 7 and np.array_equal(np.asarray(tr["c.n"]), exact)
 
 
+CHAIN3 = """model Chain3 "a when/elsewhen chain of three relations on x = 1.5 sin(t)"
+  Real x(start = 0);
+  Real v(start = 1.5);
+  Integer hist(start = 0) "the branches fired, one digit each";
+  discrete Real t_last(start = -1);
+equation
+  der(x) = v;
+  der(v) = -x;
+  when x > 1 then
+    hist = 10 * pre(hist) + 1;
+    t_last = time;
+  elsewhen abs(x) > 1 then
+    hist = 10 * pre(hist) + 2;
+    t_last = time;
+  elsewhen x > 0.5 then
+    hist = 10 * pre(hist) + 3;
+    t_last = time;
+  end when;
+end Chain3;
+"""
+
+
+def test_elsewhen_the_first_branch_whose_condition_becomes_true_wins(tmp_path):
+    """x = 1.5 sin t.  Hand-computed, with a = asin(2/3), b = asin(1/3): branch 3 (x > 0.5) at
+    b; at a both x > 1 and |x| > 1 become true at the same instant, and branch 1 wins (branch 3's
+    condition, true already, does not block it); at pi + a only |x| > 1 becomes true (x < -1):
+    branch 2; then 3 at 2 pi + b, 1 at 2 pi + a, 2 at 3 pi + a.  ``hist`` appends each fired
+    branch's digit, ``t_last`` holds the last firing's time (the error is the integration error
+    of x, 6e-8, over |dx/dt| >= 0.5)."""
+    b = translate(CHAIN3, "Chain3", "Chain3.mo")
+    assert [v.name for v in b.modes][-3:] == ["mode.when1.c1", "mode.when1.c2", "mode.when1.c3"]
+    tr = simulate(tmp_path, CHAIN3, "Chain3", 10.5, 0.1, ["x", "hist", "t_last"])
+    t = np.asarray(tr["time"])
+    a, s = np.arcsin(2 / 3), np.arcsin(1 / 3)
+    events = [(s, 3), (a, 1), (np.pi + a, 2), (2 * np.pi + s, 3), (2 * np.pi + a, 1), (3 * np.pi + a, 2)]
+    hist, t_last = np.zeros_like(t), np.full_like(t, -1.0)
+    for te, digit in events:
+        later = t > te
+        hist[later] = 10 * hist[later] + digit
+        t_last[later] = te
+    near = np.min(np.abs(t[:, None] - np.array([te for te, _ in events])[None, :]), axis=1) < 1e-6
+    assert hist[-1] == 312312
+    assert np.array_equal(np.asarray(tr["c.hist"])[~near], hist[~near])
+    assert np.max(np.abs(np.asarray(tr["c.t_last"])[~near] - t_last[~near])) < 1e-6
+
+
 @pytest.mark.parametrize("body, line, what", [
     ("  when change(y) then\n    y = 1;\n  end when;", 6, "change()"),
-    ("  when x > 1 then\n    y = 1;\n  elsewhen x < 0 then\n    y = 2;\n  end when;", 8, "elsewhen"),
+    ("  when x > 1 then\n    y = 1;\n  elsewhen sample(0, 0.1) then\n    y = 2;\n  end when;", 8,
+     "an elsewhen branch's condition other than one relation"),
     ("  when edge(x > 1) then\n    y = 1;\n  end when;", 6, "edge()"),
     ("  when {x > 1, x > 2} then\n    y = 1;\n  end when;", 6, "a when-condition other than one relation"),
 ])
@@ -230,8 +277,165 @@ def test_what_is_not_translated_yet_names_file_line_and_construct(body, line, wh
     assert str(err.value).startswith("E.mo:") and what in str(err.value), str(err.value)
 
 
-def test_an_array_of_several_elements_is_refused_naming_it():
-    text = 'model A "a"\n  Real a[3](each start = 1);\nequation\n  der(a) = -a;\nend A;\n'
+DECAY3 = """model Decay3 "three decays: a for-equation over arrays, a matrix product"
+  parameter Real k[3] = {1, 2, 3};
+  parameter Real A[2, 3] = [1, 2, 3; 4, 5, 6];
+  Real x[3](each start = 1);
+  Real y[2];
+  Real total;
+equation
+  for i in 1:3 loop
+    der(x[i]) = -k[i] * x[i];
+  end for;
+  y = A * x;
+  total = sum(x);
+end Decay3;
+"""
+
+
+def test_arrays_and_for_equations_over_them(tmp_path):
+    """x[i] = exp(-k[i] t) (k = 1, 2, 3), y = A x, total = sum(x): each element recorded by its
+    Modelica name (``x[2]``, ``y[1]``) and compared with the analytic solution; the array
+    parameters' elements are settable parameters (``k[2]``)."""
+    b = translate(DECAY3, "Decay3", "Decay3.mo")
+    assert [v.name for v in b.params] == ["k[1]", "k[2]", "k[3]", "A[1,1]", "A[1,2]", "A[1,3]", "A[2,1]",
+                                          "A[2,2]", "A[2,3]"]
+    assert [v.name for v in b.states] == ["state.x[1]", "state.x[2]", "state.x[3]"]
+    tr = simulate(tmp_path, DECAY3, "Decay3", 2.0, 0.01, ["x[1]", "x[2]", "x[3]", "y[1]", "y[2]", "total"])
+    t = np.asarray(tr["time"])
+    x = np.exp(-np.outer(t, [1.0, 2.0, 3.0]))
+    for i in range(3):
+        assert np.max(np.abs(tr[f"c.x[{i + 1}]"] - x[:, i])) < 1e-6
+    A = np.array([[1.0, 2.0, 3.0], [4.0, 5.0, 6.0]])
+    for r in range(2):
+        assert np.max(np.abs(tr[f"c.y[{r + 1}]"] - x @ A[r])) < 1e-5
+    assert np.max(np.abs(tr["c.total"] - x.sum(axis=1))) < 1e-5
+
+
+def test_an_array_of_three_dimensions_is_refused_naming_it():
+    text = 'model A "a"\n  Real a[2, 2, 2](each start = 1);\nequation\n  der(a) = -a;\nend A;\n'
     with pytest.raises(ModelicaError) as err:
         translate(text, "A", "A.mo")
-    assert str(err.value).startswith("A.mo:2: a: an array of 3 elements is not supported yet"), str(err.value)
+    assert str(err.value).startswith("A.mo:2: a: an array of dimensions [2, 2, 2] is not supported"), str(err.value)
+
+
+FUNCTIONS = """model Fn "functions with algorithm sections: reassignment, a for-loop, if-statements"
+  function g
+    input Real u;
+    output Real y;
+  protected
+    Real a;
+  algorithm
+    a := u;
+    a := a * 2;
+    y := a + 1;
+    if u > 10 then
+      y := 0;
+    end if;
+  end g;
+  function f
+    input Real u;
+    output Real y;
+  protected
+    Real acc;
+  algorithm
+    acc := 0;
+    for i in 1:3 loop
+      acc := acc + i * u;
+    end for;
+    if u > 0 then
+      y := acc;
+    else
+      y := -acc;
+    end if;
+  end f;
+  Real x(start = 1);
+  Real w;
+  Real z;
+equation
+  der(x) = -f(x);
+  w = g(x);
+  z = g(20 + x);
+end Fn;
+"""
+
+
+def test_functions_with_algorithm_sections(tmp_path):
+    """f(u) = |1 u + 2 u + 3 u| (the for-loop, the if-statement), so x = exp(-6 t); g(u) = 2 u + 1
+    for u <= 10 (two assignments to a, then y), 0 above: w = 2 x + 1, z = g(20 + x) = 0."""
+    tr = simulate(tmp_path, FUNCTIONS, "Fn", 1.0, 0.01, ["x", "w", "z"])
+    t = np.asarray(tr["time"])
+    x = np.exp(-6 * t)
+    assert np.max(np.abs(tr["c.x"] - x)) < 1e-6
+    assert np.max(np.abs(tr["c.w"] - (2 * x + 1))) < 2e-6
+    assert np.max(np.abs(tr["c.z"])) == 0.0
+
+
+def test_records_and_extends_across_files(tmp_path):
+    """A model extending a class of a sibling file and holding a record of a third: x = 3 exp(-k
+    g.a g.b t) with k = 2 from the base, g.b = 0.5 modified (the record's default 4)."""
+    (tmp_path / "Base.mo").write_text('partial model Base "a base"\n  parameter Real k = 2;\n'
+                                      '  Real x(start = 3);\nend Base;\n')
+    (tmp_path / "Gains.mo").write_text('record Gains "two gains"\n  Real a = 1.5;\n  Real b = 4;\nend Gains;\n')
+    text = ('model Use "uses both"\n  extends Base;\n  parameter Gains g(b = 0.5);\nequation\n'
+            '  der(x) = -k * g.a * g.b * x;\nend Use;\n')
+    tr = simulate(tmp_path, text, "Use", 1.0, 0.01, ["x"])
+    t = np.asarray(tr["time"])
+    assert np.max(np.abs(tr["c.x"] - 3 * np.exp(-1.5 * t))) < 1e-6
+
+
+def test_an_algorithm_section_of_a_model(tmp_path):
+    """rumoca lowers a model's algorithm with one output into an equation: y = 2 x + 1 with
+    x = exp(-t); one of several outputs it refuses, named by the section's line."""
+    text = ('model Alg "an algorithm section"\n  Real x(start = 1);\n  Real y;\nalgorithm\n  y := 2 * x;\n'
+            '  y := y + 1;\nequation\n  der(x) = -x;\nend Alg;\n')
+    tr = simulate(tmp_path, text, "Alg", 1.0, 0.01, ["y"])
+    t = np.asarray(tr["time"])
+    assert np.max(np.abs(tr["c.y"] - (2 * np.exp(-t) + 1))) < 1e-6
+    two = text.replace("  Real y;\n", "  Real y;\n  Real z;\n").replace("  y := y + 1;\n", "  y := y + 1;\n  z := y;\n")
+    with pytest.raises(ModelicaError, match=r"^Alg\.mo:5: algorithm: .*multi-output algorithm"):
+        translate(two, "Alg", "Alg.mo")
+
+
+ASSERTS = """model As "assertions on a variable, x = exp(-t)"
+  Real x(start = 1);
+equation
+  der(x) = -x;
+  assert(x > 0.5, "x fell below 0.5");
+  assert(x > 0.8, "x below 0.8", AssertionLevel.warning);
+end As;
+"""
+
+
+def _run_asserts(tmp_path, stop: float):
+    (tmp_path / "As.mo").write_text(ASSERTS)
+    scene = tmp_path / "scene.yaml"
+    scene.write_text(f"stop_time: {stop}\ncomponents:\n  c: {{modelica: As.mo, model: As}}\nconnections: []\n"
+                     f"master: {{algorithm: jacobi, step: 0.01, estimate: false}}\n"
+                     f"outputs: ['c.x', 'c.assert.line5', 'c.assert.line6']\n")
+    return run(scene, [], out_dir=tmp_path / f"out{stop}")
+
+
+def test_assertions_on_variables_are_checked_during_the_run(tmp_path):
+    """The warning (x > 0.8) fails at t = ln 1.25 = 0.223 s: recorded as its latch from the first
+    row after (0.23 s), the run goes on and ends ok at 0.6 s; the error (x > 0.5) fails at
+    t = ln 2 = 0.693 s: the run ends out_of_limits at the first row after (0.70 s), quoting the
+    assertion's file, line and message."""
+    res = _run_asserts(tmp_path, 0.6)
+    assert res.ok, res.reason
+    t = np.asarray(res.trace["time"])
+    assert np.array_equal(np.asarray(res.trace["c.assert.line6"]), (t > np.log(1.25)).astype(float))
+    assert set(np.asarray(res.trace["c.assert.line5"])) == {0.0}
+    res = _run_asserts(tmp_path, 1.0)
+    assert res.status == "out_of_limits"
+    assert 'assert at As.mo:5: "x fell below 0.5"' in res.reason and "t = 0.7 s" in res.reason, res.reason
+
+
+def test_an_initial_algorithm_sets_discrete_start_values(tmp_path):
+    """t0 := 2 a in an initial algorithm (a = 3), then the initial equation x = t0: x = 6 exp(-t)."""
+    text = ('model Ia "an initial algorithm"\n  parameter Real a = 3;\n  Real x;\n  discrete Real t0;\n'
+            'initial algorithm\n  t0 := 2 * a;\nequation\n  der(x) = -x;\ninitial equation\n  x = t0;\nend Ia;\n')
+    tr = simulate(tmp_path, text, "Ia", 1.0, 0.01, ["x", "t0"])
+    t = np.asarray(tr["time"])
+    assert np.max(np.abs(tr["c.x"] - 6 * np.exp(-t))) < 1e-5
+    assert set(np.asarray(tr["c.t0"])) == {6.0}

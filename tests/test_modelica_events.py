@@ -59,7 +59,8 @@ def test_a_relation_read_by_an_if_expression_restarts_the_step_where_it_switches
 
 @pytest.mark.parametrize("body, line, what", [
     ("  when x > 1 then\n    terminate(\"done\");\n  end when;", 7, "terminate"),
-    ("  when x > 1 then\n    n = 1;\n  elsewhen x < 0 then\n    n = 2;\n  end when;", 8, "elsewhen"),
+    ("  when x > 1 then\n    n = 1;\n  elsewhen initial() then\n    n = 2;\n  end when;", 8,
+     "an elsewhen branch's condition"),
     ("  when edge(x > 1) then\n    n = 1;\n  end when;", 6, "edge"),
 ])
 def test_what_is_not_translated_yet_names_file_line_and_construct(body, line, what):
