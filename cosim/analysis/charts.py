@@ -84,7 +84,8 @@ def plot_run(trace: Trace, path: Path, title: str, *, units: Mapping[str, str] |
             colour[name] = c  # a setpoint takes the colour of the signal it commands
             ax.plot(trace.time, trace[name], lw=1, ls="--" if dashed else "-", color=c,
                     label=f"{name} (setpoint)" if dashed else name)
-        ax.set_title(panel.title, fontsize=9)
+        # y given: matplotlib does not measure the tick labels once more to place a title this short
+        ax.set_title(panel.title, fontsize=9, y=1.0)
         ax.set_ylabel(panel.ylabel, fontsize=8)
         ax.grid(alpha=0.3)
         if len(panel.lines) > 1:
@@ -123,9 +124,10 @@ def comparison_figure(test: Trace, ref: Trace, diffs, *, labels: tuple[str, str]
         unit = units.get(n, "") or "1"
         ax.plot(ref.time, ref[n], color="0.6", lw=2.5, label=labels[1])
         ax.plot(t, a[:, j], color="C0", lw=1.0, label=labels[0])
-        ax.set_title(n, fontsize=9)
+        ax.set_title(n, fontsize=9, y=1.0)  # short: placed without measuring the tick labels (as above)
         ax.set_ylabel(f"[{unit}]", fontsize=8)
         ad.plot(t, a[:, j] - b[:, j], color="C3", lw=1.0)
+        # a long title: matplotlib lifts it above the y axis's offset text (1e-7) where they would overlap
         ad.set_title(f"{labels[0]} - {labels[1]}: max {d.max_abs:.2e} {unit} ({d.relative:.1e} of range)", fontsize=9)
         ad.set_ylabel(f"error [{unit}]", fontsize=8)
         for x in (ax, ad):
