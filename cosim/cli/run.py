@@ -278,6 +278,12 @@ def _reference(scene, res, out: Path, plot: bool, trace_format: str, figures: _F
           f"{ref.status}{' (' + ref.reason + ')' if ref.reason else ''}, {st['wall_s']:.2f} s; trace: {ref.trace_path}")
     if len(ref.trace.data) and len(res.trace.data):
         diffs = compare(res.trace, ref.trace)
+        if plot:  # asked for first: it is drawn while the table is printed
+            from ..scenario.units import units_of
+
+            final = confined(out, f"{scene.name}_vs_reference.png")
+            figures.add("plot", f"the plot {final.name}", plot_comparison, res.trace, ref.trace, diffs, final,
+                        labels=(scene.master.algorithm, "reference"), units=units_of(scene, res.fmus))
         for label, r in (("co-simulation", res), ("reference", ref)):
             if r.status != "ok":
                 print(f"note: the {label} ended {r.status!r} at t = {r.trace.time[-1]:g} s ({r.reason}); the errors "
@@ -289,12 +295,6 @@ def _reference(scene, res, out: Path, plot: bool, trace_format: str, figures: _F
             print(f"note: the reference has {n_events} events; the errors above are max-norms across them (a jump "
                   f"placed a hair apart reads as an error its size): `rpr-cosim compare TEST REFERENCE --events "
                   f"SIGNAL` measures the event times and the values between events (docs/explanation/events.md)")
-        if plot:
-            from ..scenario.units import units_of
-
-            final = confined(out, f"{scene.name}_vs_reference.png")
-            figures.add("plot", f"the plot {final.name}", plot_comparison, res.trace, ref.trace, diffs, final,
-                        labels=(scene.master.algorithm, "reference"), units=units_of(scene, res.fmus))
     return ref
 
 
