@@ -13,6 +13,7 @@ took 11 s redrawn whole through ``FuncAnimation`` and ``PillowWriter``).
 """
 from __future__ import annotations
 
+import functools
 from pathlib import Path
 
 import numpy as np
@@ -133,16 +134,23 @@ def _frames(fig, ax, moving, draw, n: int) -> list:
 def _captions(frames: list, fig, ax, texts: list[str]) -> None:
     """Each frame's caption (time, leg lengths, angle) written by Pillow in matplotlib's monospace
     font at the axes' top left: text is the costly part of an Agg render (three quarters of it)."""
-    from matplotlib import font_manager
-    from PIL import ImageDraw, ImageFont
+    from PIL import ImageDraw
 
-    size = round(8 * fig.dpi / 72)
-    font = ImageFont.truetype(font_manager.findfont(font_manager.FontProperties(family="monospace")), size)
+    font = caption_font(round(8 * fig.dpi / 72))
     x, y = ax.transAxes.transform((0.02, 0.98))
     height = frames[0].size[1]
     for im, caption in zip(frames, texts):
         ImageDraw.Draw(im).multiline_text((round(x), round(height - y)), caption, fill=(0, 0, 0), font=font,
                                           spacing=2)
+
+
+@functools.lru_cache(maxsize=4)
+def caption_font(size: int):
+    """matplotlib's monospace font as a Pillow font of ``size`` pixels."""
+    from matplotlib import font_manager
+    from PIL import ImageFont
+
+    return ImageFont.truetype(font_manager.findfont(font_manager.FontProperties(family="monospace")), size)
 
 
 def _write_gif(frames: list, path: Path, fps: int) -> None:
