@@ -91,6 +91,24 @@ def test_figures_drawn_beside_are_the_bytes_drawn_here(tmp_path):
     assert written[0].read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and written[2].read_bytes()[:6] == b"GIF89a"
 
 
+@pytest.mark.parametrize("cut", [1, 2, 4])
+def test_a_comparison_drawn_in_parts_is_the_file_drawn_whole(tmp_path, cut):
+    """The main job's last figure is drawn in two halves at once and joined: the same PNG, byte
+    for byte, as :func:`charts.plot_comparison` writes (five rows, cut after row ``cut``)."""
+    t = np.linspace(0.0, 2.0, 801)
+    names = [f"m.v{k}" for k in range(5)]
+    test = Trace(["time", *names], np.column_stack([t, *[np.sin((k + 1) * t) for k in range(5)]]))
+    ref = Trace(["time", *names], np.column_stack([t, *[np.sin((k + 1) * t) + 1e-7 * k * t for k in range(5)]]))
+    diffs = compare(test, ref)
+    kw = {"labels": ("gauss_seidel", "reference"), "units": {n: "N.m" for n in names}}
+    whole = charts.plot_comparison(test, ref, diffs, tmp_path / "whole.png", **kw)
+    rows = charts.comparison_rows(diffs)
+    with Drawer() as drawer:
+        jobs = [drawer.submit(charts.comparison_part, test, ref, diffs, r, **kw) for r in (range(cut), range(cut, rows))]
+        joined = charts.join_comparison([drawer.result(j) for j in jobs], tmp_path / "joined.png")
+    assert rows == 5 and joined.read_bytes() == whole.read_bytes()
+
+
 def test_a_failed_figure_is_one_line_and_the_others_are_drawn(tmp_path):
     with Drawer(warm=None) as drawer:
         bad = drawer.submit(_fails, "no canvas\nfor this figure")
@@ -158,6 +176,12 @@ def test_a_failed_plot_keeps_the_run_and_says_why(tmp_path, cache, capsys, monke
     names = sorted(p.name for p in tmp_path.iterdir())
     assert "pid_step.png" not in names and not [n for n in names if ".part" in n]
     assert {"pid_step.gif", "pid_step_vs_reference.png"} <= set(names)
+    # the comparison, drawn in two halves beside the run, is the file drawn here from the two traces
+    monkeypatch.undo()
+    test, ref = read_trace(tmp_path / "pid_step.csv"), read_trace(tmp_path / "pid_step_reference.csv")
+    here = charts.plot_comparison(test, ref, compare(test, ref), tmp_path / "here" / "cmp.png",
+                                  labels=(test.meta["algorithm"], "reference"), units=test.meta["units"])
+    assert here.read_bytes() == (tmp_path / "pid_step_vs_reference.png").read_bytes()
 
 
 def test_ctrl_c_while_the_figures_are_drawn_stops_every_process(tmp_path, cache):

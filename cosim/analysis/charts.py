@@ -8,6 +8,8 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import numpy as np
+
 from ..trace.traces import Trace
 
 
@@ -104,9 +106,10 @@ def plot_run(trace: Trace, path: Path, title: str, *, units: Mapping[str, str] |
 
 
 def comparison_figure(test: Trace, ref: Trace, diffs, *, labels: tuple[str, str] = ("test", "reference"),
-                      most: int = 8, units: Mapping[str, str] | None = None):
+                      most: int = 8, units: Mapping[str, str] | None = None, rows: range | None = None):
     """The figure of :func:`plot_comparison` (for the ``most`` worst variables: both traces
-    overlaid on the left, their difference on the right, each y axis in the variable's unit)."""
+    overlaid on the left, their difference on the right, each y axis in the variable's unit);
+    ``rows``: only these rows' axes, where the whole figure has them (:func:`comparison_part`)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -118,9 +121,18 @@ def comparison_figure(test: Trace, ref: Trace, diffs, *, labels: tuple[str, str]
     worst = sorted(diffs, key=lambda d: -d.relative)[:most]
     names = [d.name for d in worst]
     t, a, b = aligned(test, ref, names)
-    fig, axes = plt.subplots(len(names), 2, figsize=(11, 1.9 * len(names) + 0.8), sharex=True, squeeze=False)
-    for j, (n, d) in enumerate(zip(names, worst)):
-        ax, ad = axes[j]
+    rows = range(len(names)) if rows is None else rows
+    fig = plt.figure(figsize=(11, 1.9 * len(names) + 0.8))
+    # fixed margins in inches: constrained layout measured every tick label again (2/3 of pid_step's plot)
+    w, h = fig.get_size_inches()
+    grid = fig.add_gridspec(len(names), 2, left=0.95 / w, right=1 - 0.15 / w, bottom=0.5 / h, top=1 - 0.35 / h,
+                            hspace=0.5, wspace=0.22)
+    first = None
+    for j in rows:
+        n, d = names[j], worst[j]
+        ax = fig.add_subplot(grid[j, 0], sharex=first)
+        first = first or ax
+        ad = fig.add_subplot(grid[j, 1], sharex=first)
         unit = units.get(n, "") or "1"
         ax.plot(ref.time, ref[n], color="0.6", lw=2.5, label=labels[1])
         ax.plot(t, a[:, j], color="C0", lw=1.0, label=labels[0])
@@ -132,13 +144,13 @@ def comparison_figure(test: Trace, ref: Trace, diffs, *, labels: tuple[str, str]
         ad.set_ylabel(f"error [{unit}]", fontsize=8)
         for x in (ax, ad):
             x.grid(alpha=0.3)
-    axes[0, 0].legend(fontsize=8)
-    for x in axes[-1]:
-        x.set_xlabel("time [s]")
-    # fixed margins in inches: constrained layout measured every tick label again (2/3 of pid_step's plot)
-    w, h = fig.get_size_inches()
-    fig.subplots_adjust(left=0.95 / w, right=1 - 0.15 / w, bottom=0.5 / h, top=1 - 0.35 / h, hspace=0.5,
-                        wspace=0.22)
+            if j == len(names) - 1:
+                x.set_xlabel("time [s]")
+            else:  # one time axis for the column: its tick labels under the last row only
+                x.xaxis.set_tick_params(which="both", labelbottom=False)
+                x.xaxis.offsetText.set_visible(False)
+        if j == 0:
+            ax.legend(fontsize=8)
     return fig
 
 
@@ -148,8 +160,56 @@ def plot_comparison(test: Trace, ref: Trace, diffs, path: Path, *, labels: tuple
     return _save(comparison_figure(test, ref, diffs, labels=labels, most=most, units=units), path)
 
 
+def comparison_rows(diffs, most: int = 8) -> int:
+    """How many rows :func:`comparison_figure` has."""
+    return min(most, len(diffs))
+
+
+def comparison_part(test: Trace, ref: Trace, diffs, rows: range, *, labels: tuple[str, str] = ("test", "reference"),
+                    most: int = 8, units: Mapping[str, str] | None = None) -> tuple[np.ndarray, int, str]:
+    """Rows ``rows`` of :func:`plot_comparison`'s figure rendered at its size and resolution, for
+    :func:`join_comparison`: (RGBA pixels, the pixel row 10 px below the axes of the row above
+    ``rows`` (0 for the first), the PNG's Software text).  Two parts drawn in two processes
+    halve the time of the last figure of the main job."""
+    import matplotlib
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+
+    fig = comparison_figure(test, ref, diffs, labels=labels, most=most, units=units, rows=rows)
+    fig.set_dpi(DPI)
+    canvas = FigureCanvasAgg(fig)
+    canvas.draw()
+    split = 0
+    if rows.start:
+        above = fig.axes[0].get_subplotspec().get_gridspec()[rows.start - 1, 0].get_position(fig)
+        split = round((1 - above.y0) * fig.bbox.height) + 10  # below the x ticks (no labels), above the titles
+    return np.asarray(canvas.buffer_rgba()).copy(), split, f"Matplotlib version{matplotlib.__version__}, https://matplotlib.org/"
+
+
+def join_comparison(parts: Sequence[tuple[np.ndarray, int, str]], path: Path) -> Path:
+    """The PNG of :func:`plot_comparison` from its :func:`comparison_part` (in row order): each
+    part's pixels from its split row to the next part's; the file is the one ``plot_comparison``
+    writes (same pixels, same PNG text and resolution)."""
+    from PIL import Image, PngImagePlugin
+
+    from ..outputs import staged
+
+    bounds = [p[1] for p in parts[1:]]
+    rgba = np.concatenate([p[0][lo:hi] for p, lo, hi in zip(parts, [0, *bounds], [*bounds, None])])
+    info = PngImagePlugin.PngInfo()
+    info.add_text("Software", parts[0][2])
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with staged(path) as part:
+        Image.fromarray(rgba).save(part, format="png", pnginfo=info, dpi=(DPI, DPI))
+    return path
+
+
+#: Resolution of the PNGs [dots per inch].
+DPI = 90
+
+
 def _save(fig, path: Path) -> Path:
-    return save_figure(fig, path, dpi=90)
+    return save_figure(fig, path, dpi=DPI)
 
 
 def save_figure(fig, path: Path, *, dpi: int | str = 90) -> Path:

@@ -13,7 +13,7 @@ interrupted keeps its partial trace and exits with code 1; a run that a componen
 from __future__ import annotations
 
 import argparse
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
@@ -149,20 +149,31 @@ class _Figures:
 
     def __init__(self, drawer, scene, res):
         self.drawer, self.scene, self.res = drawer, scene, res
-        self.asked: list[tuple[str, str, int | None, str]] = []  # (label, what, job, why refused)
+        # (label, what, jobs, join, why refused): the figure is join(results of jobs), or jobs[0]'s result
+        self.asked: list[tuple[str, str, list[int], Callable | None, str]] = []
+
+    @property
+    def parallel(self) -> bool:
+        """Whether the figures are drawn in processes of their own."""
+        return self.drawer is not None and self.drawer.parallel
 
     def add(self, label: str, what: str, fn, *args, **kwargs) -> None:
         """Ask for a figure (``label`` "plot" or "animation", ``what`` "the plot x.png") drawn by
         ``fn(*args, **kwargs)``, which returns its path."""
+        self.add_parts(label, what, None, [(fn, args, kwargs)])
+
+    def add_parts(self, label: str, what: str, join: Callable | None, parts: list[tuple]) -> None:
+        """Ask for a figure drawn in parts, each ``(fn, args, kwargs)``, at the same time;
+        ``join(results)`` writes it and returns its path."""
         if self.drawer is None:
             from ..analysis.drawing import Drawer
 
             self.drawer = Drawer(parallel=False)
-        self.asked.append((label, what, self.drawer.submit(fn, *args, **kwargs), ""))
+        self.asked.append((label, what, [self.drawer.submit(fn, *a, **kw) for fn, a, kw in parts], join, ""))
 
     def refuse(self, what: str, why: str) -> None:
         """A figure that cannot be drawn from this run (found before drawing), said by :meth:`collect`."""
-        self.asked.append(("", what, None, why))
+        self.asked.append(("", what, [], None, why))
 
     def collect(self) -> int:
         """Wait for every figure and print where it is, or one line saying why it is not (the
@@ -171,13 +182,14 @@ class _Figures:
         from ..analysis.drawing import DrawError
 
         code = 0
-        for label, what, job, why in self.asked:
+        for label, what, jobs, join, why in self.asked:
             try:
-                if job is None:
+                if not jobs:
                     code = max(code, 2)
                     raise DrawError(why)
-                say(f"{label}: {self.drawer.result(job)}")
-            except DrawError as exc:
+                results = [self.drawer.result(j) for j in jobs]
+                say(f"{label}: {join(results) if join else results[0]}")
+            except (DrawError, OSError) as exc:
                 code = max(code, 1)
                 kept = f"; the run's trace {self.res.trace_path.name} is complete" if self.res.trace_path else ""
                 say(f"rpr-cosim run: {what} was not written: {exc}{kept}")
@@ -195,7 +207,7 @@ class _Figures:
             with signals_as_interrupts():
                 yield
         except KeyboardInterrupt as exc:
-            drawing = [what for _, what, job, _ in self.asked if job is not None and not self.drawer.finished(job)]
+            drawing = [what for _, what, jobs, _, _ in self.asked if not all(self.drawer.finished(j) for j in jobs)]
             if self.drawer is not None:
                 self.drawer.stop()
             if drawing:
@@ -263,7 +275,6 @@ def _report(scene, res, ref, out: Path) -> Path | str:
 def _reference(scene, res, out: Path, plot: bool, trace_format: str, figures: _Figures):
     """Run the monolithic reference and print the co-simulation's error against it (and ask
     ``figures`` for its plot)."""
-    from ..analysis.charts import plot_comparison
     from ..analysis.compare import compare, format_table
     from ..run.reference import reference
     from ..run.progress import progress_bar
@@ -279,11 +290,7 @@ def _reference(scene, res, out: Path, plot: bool, trace_format: str, figures: _F
     if len(ref.trace.data) and len(res.trace.data):
         diffs = compare(res.trace, ref.trace)
         if plot:  # asked for first: it is drawn while the table is printed
-            from ..scenario.units import units_of
-
-            final = confined(out, f"{scene.name}_vs_reference.png")
-            figures.add("plot", f"the plot {final.name}", plot_comparison, res.trace, ref.trace, diffs, final,
-                        labels=(scene.master.algorithm, "reference"), units=units_of(scene, res.fmus))
+            _plot_comparison(figures, confined(out, f"{scene.name}_vs_reference.png"), res, ref.trace, diffs)
         for label, r in (("co-simulation", res), ("reference", ref)):
             if r.status != "ok":
                 print(f"note: the {label} ended {r.status!r} at t = {r.trace.time[-1]:g} s ({r.reason}); the errors "
@@ -296,6 +303,25 @@ def _reference(scene, res, out: Path, plot: bool, trace_format: str, figures: _F
                   f"placed a hair apart reads as an error its size): `rpr-cosim compare TEST REFERENCE --events "
                   f"SIGNAL` measures the event times and the values between events (docs/explanation/events.md)")
     return ref
+
+
+def _plot_comparison(figures: _Figures, path: Path, res, ref, diffs) -> None:
+    """Ask for the plot of the run against its reference; in two halves drawn at the same time
+    when the figures have processes of their own (the last figure of the main job)."""
+    from functools import partial
+
+    from ..analysis import charts
+    from ..scenario.units import units_of
+
+    what, kw = f"the plot {path.name}", {"labels": (res.scene.master.algorithm, "reference"),
+                                          "units": units_of(res.scene, res.fmus)}
+    rows = charts.comparison_rows(diffs)
+    if not figures.parallel or rows < 2:
+        figures.add("plot", what, charts.plot_comparison, res.trace, ref, diffs, path, **kw)
+        return
+    halves = (range(0, rows // 2), range(rows // 2, rows))
+    figures.add_parts("plot", what, partial(charts.join_comparison, path=path),
+                      [(charts.comparison_part, (res.trace, ref, diffs, h), kw) for h in halves])
 
 
 def _motion_checks(scene, args: argparse.Namespace) -> bool:
