@@ -63,7 +63,12 @@ class Drawer:
         parent = os.getpid()
         sys.stdout.flush()
         sys.stderr.flush()
-        pid = os.fork()
+        try:
+            pid = os.fork()
+        except OSError:  # no process to spare: each figure drawn here, when asked for
+            ours.close()
+            theirs.close()
+            return
         if pid == 0:  # pragma: no cover - runs in the drawing process, which never returns
             code = 1
             try:
