@@ -10,7 +10,8 @@ The commands run with Python's bytecode cache on (in a temporary ``PYTHONPYCACHE
 by the warm-up run), as an installed package has it, also when ``PYTHONDONTWRITEBYTECODE`` is set
 here: compiling the project's modules in every process would add the same half second to both.
 
-Target: the main job at most 3x the plain run (it was 13.2 s against 0.63 s, 21x, the GIF 11 s of it).
+Target: the main job at most 3x the plain run (it was 13.2 s against 0.63 s, 21x, the GIF 11 s of it;
+3.2-4.5x on 2026-12-05, docs/reference/results.md).
 
 Usage: ``python benchmarks/bench_main_job.py [--scene scenarios/pid_step.yaml] [--repeat 3]``
 """
