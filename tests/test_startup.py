@@ -57,3 +57,15 @@ def test_a_run_with_cached_fmus_imports_no_symbolic_or_plotting_package(cache, t
     second, heavy = _cli_in_probe(argv + ["--out", str(tmp_path / "second")], cache)
     assert second == 0
     assert heavy == [], f"a cached run imported {heavy}"
+
+
+def test_the_run_chart_and_animation_are_drawn_outside_the_command_process(cache, tmp_path):
+    """``run --plot --animate`` (issue 32, item 11): matplotlib is imported by the drawing process
+    (cosim/analysis/drawing.py), which imports it while the run steps, never by the command's
+    own process; the chart and the GIF are written."""
+    argv = ["run", str(ROOT / "scenarios" / "pid_step.yaml"), "--set", "stop_time=0.01", "--plot", "--animate",
+            "--out", str(tmp_path)]
+    code, heavy = _cli_in_probe(argv, cache)
+    assert code == 0 and "matplotlib" not in heavy, heavy
+    assert (tmp_path / "pid_step.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert (tmp_path / "pid_step.gif").read_bytes()[:6] == b"GIF89a"

@@ -13,6 +13,7 @@ took 11 s redrawn whole through ``FuncAnimation`` and ``PillowWriter``).
 """
 from __future__ import annotations
 
+import functools
 from pathlib import Path
 
 import numpy as np
@@ -66,13 +67,14 @@ def animate(trace: Trace, path: Path, *, manipulator: Manipulator | None = None,
     pts = np.vstack([A, B.reshape(-1, 2)])
     lo, hi = pts.min(axis=0), pts.max(axis=0)
     pad = 0.08 * float(np.max(hi - lo))
-    fig, ax = plt.subplots(figsize=(5.2, 5.2), dpi=80, layout="constrained")
+    fig, ax = plt.subplots(figsize=(5.2, 5.2), dpi=80)
+    fig.subplots_adjust(left=0.8 / 5.2, right=1 - 0.15 / 5.2, bottom=0.55 / 5.2, top=1 - 0.35 / 5.2)
     ax.set_aspect("equal")
     ax.set_xlim(lo[0] - pad, hi[0] + pad)
     ax.set_ylim(lo[1] - pad, hi[1] + pad)
     ax.set_xlabel("x [m]")
     ax.set_ylabel("y [m]")
-    ax.set_title(title or f"{comp}: platform and legs")
+    ax.set_title(title or f"{comp}: platform and legs", y=1.0)
     ax.plot(*np.vstack([A, A[:1]]).T, ls=":", c="0.6", lw=1)
     ax.plot(A[:, 0], A[:, 1], "ks", ms=6)
     for i, a in enumerate(A):
@@ -116,8 +118,7 @@ def _frames(fig, ax, moving, draw, n: int) -> list:
     from PIL import Image
 
     canvas = fig.canvas
-    canvas.draw()  # the layout and everything that does not move, once
-    fig.set_layout_engine("none")
+    canvas.draw()  # everything that does not move, once
     background = canvas.copy_from_bbox(fig.bbox)
     frames = []
     for k in range(n):
@@ -126,23 +127,30 @@ def _frames(fig, ax, moving, draw, n: int) -> list:
         for artist in moving:
             ax.draw_artist(artist)
         canvas.blit(fig.bbox)
-        frames.append(Image.fromarray(np.asarray(canvas.buffer_rgba())[..., :3].copy()))
+        frames.append(Image.fromarray(np.asarray(canvas.buffer_rgba())).convert("RGB"))  # Pillow copies fastest
     return frames
 
 
 def _captions(frames: list, fig, ax, texts: list[str]) -> None:
     """Each frame's caption (time, leg lengths, angle) written by Pillow in matplotlib's monospace
     font at the axes' top left: text is the costly part of an Agg render (three quarters of it)."""
-    from matplotlib import font_manager
-    from PIL import ImageDraw, ImageFont
+    from PIL import ImageDraw
 
-    size = round(8 * fig.dpi / 72)
-    font = ImageFont.truetype(font_manager.findfont(font_manager.FontProperties(family="monospace")), size)
+    font = caption_font(round(8 * fig.dpi / 72))
     x, y = ax.transAxes.transform((0.02, 0.98))
     height = frames[0].size[1]
     for im, caption in zip(frames, texts):
         ImageDraw.Draw(im).multiline_text((round(x), round(height - y)), caption, fill=(0, 0, 0), font=font,
                                           spacing=2)
+
+
+@functools.lru_cache(maxsize=4)
+def caption_font(size: int):
+    """matplotlib's monospace font as a Pillow font of ``size`` pixels."""
+    from matplotlib import font_manager
+    from PIL import ImageFont
+
+    return ImageFont.truetype(font_manager.findfont(font_manager.FontProperties(family="monospace")), size)
 
 
 def _write_gif(frames: list, path: Path, fps: int) -> None:

@@ -8,6 +8,8 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import numpy as np
+
 from ..trace.traces import Trace
 
 
@@ -84,7 +86,8 @@ def plot_run(trace: Trace, path: Path, title: str, *, units: Mapping[str, str] |
             colour[name] = c  # a setpoint takes the colour of the signal it commands
             ax.plot(trace.time, trace[name], lw=1, ls="--" if dashed else "-", color=c,
                     label=f"{name} (setpoint)" if dashed else name)
-        ax.set_title(panel.title, fontsize=9)
+        # y given: matplotlib does not measure the tick labels once more to place a title this short
+        ax.set_title(panel.title, fontsize=9, y=1.0)
         ax.set_ylabel(panel.ylabel, fontsize=8)
         ax.grid(alpha=0.3)
         if len(panel.lines) > 1:
@@ -103,9 +106,10 @@ def plot_run(trace: Trace, path: Path, title: str, *, units: Mapping[str, str] |
 
 
 def comparison_figure(test: Trace, ref: Trace, diffs, *, labels: tuple[str, str] = ("test", "reference"),
-                      most: int = 8, units: Mapping[str, str] | None = None):
+                      most: int = 8, units: Mapping[str, str] | None = None, rows: range | None = None):
     """The figure of :func:`plot_comparison` (for the ``most`` worst variables: both traces
-    overlaid on the left, their difference on the right, each y axis in the variable's unit)."""
+    overlaid on the left, their difference on the right, each y axis in the variable's unit);
+    ``rows``: only these rows' axes, where the whole figure has them (:func:`comparison_part`)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -117,26 +121,36 @@ def comparison_figure(test: Trace, ref: Trace, diffs, *, labels: tuple[str, str]
     worst = sorted(diffs, key=lambda d: -d.relative)[:most]
     names = [d.name for d in worst]
     t, a, b = aligned(test, ref, names)
-    fig, axes = plt.subplots(len(names), 2, figsize=(11, 1.9 * len(names) + 0.8), sharex=True, squeeze=False)
-    for j, (n, d) in enumerate(zip(names, worst)):
-        ax, ad = axes[j]
+    rows = range(len(names)) if rows is None else rows
+    fig = plt.figure(figsize=(11, 1.9 * len(names) + 0.8))
+    # fixed margins in inches: constrained layout measured every tick label again (2/3 of pid_step's plot)
+    w, h = fig.get_size_inches()
+    grid = fig.add_gridspec(len(names), 2, left=0.95 / w, right=1 - 0.15 / w, bottom=0.5 / h, top=1 - 0.35 / h,
+                            hspace=0.5, wspace=0.22)
+    first = None
+    for j in rows:
+        n, d = names[j], worst[j]
+        ax = fig.add_subplot(grid[j, 0], sharex=first)
+        first = first or ax
+        ad = fig.add_subplot(grid[j, 1], sharex=first)
         unit = units.get(n, "") or "1"
         ax.plot(ref.time, ref[n], color="0.6", lw=2.5, label=labels[1])
         ax.plot(t, a[:, j], color="C0", lw=1.0, label=labels[0])
-        ax.set_title(n, fontsize=9)
+        ax.set_title(n, fontsize=9, y=1.0)  # short: placed without measuring the tick labels (as above)
         ax.set_ylabel(f"[{unit}]", fontsize=8)
         ad.plot(t, a[:, j] - b[:, j], color="C3", lw=1.0)
+        # a long title: matplotlib lifts it above the y axis's offset text (1e-7) where they would overlap
         ad.set_title(f"{labels[0]} - {labels[1]}: max {d.max_abs:.2e} {unit} ({d.relative:.1e} of range)", fontsize=9)
         ad.set_ylabel(f"error [{unit}]", fontsize=8)
         for x in (ax, ad):
             x.grid(alpha=0.3)
-    axes[0, 0].legend(fontsize=8)
-    for x in axes[-1]:
-        x.set_xlabel("time [s]")
-    # fixed margins in inches: constrained layout measured every tick label again (2/3 of pid_step's plot)
-    w, h = fig.get_size_inches()
-    fig.subplots_adjust(left=0.95 / w, right=1 - 0.15 / w, bottom=0.5 / h, top=1 - 0.35 / h, hspace=0.5,
-                        wspace=0.22)
+            if j == len(names) - 1:
+                x.set_xlabel("time [s]")
+            else:  # one time axis for the column: its tick labels under the last row only
+                x.xaxis.set_tick_params(which="both", labelbottom=False)
+                x.xaxis.offsetText.set_visible(False)
+        if j == 0:
+            ax.legend(fontsize=8)
     return fig
 
 
@@ -146,8 +160,56 @@ def plot_comparison(test: Trace, ref: Trace, diffs, path: Path, *, labels: tuple
     return _save(comparison_figure(test, ref, diffs, labels=labels, most=most, units=units), path)
 
 
+def comparison_rows(diffs, most: int = 8) -> int:
+    """How many rows :func:`comparison_figure` has."""
+    return min(most, len(diffs))
+
+
+def comparison_part(test: Trace, ref: Trace, diffs, rows: range, *, labels: tuple[str, str] = ("test", "reference"),
+                    most: int = 8, units: Mapping[str, str] | None = None) -> tuple[np.ndarray, int, str]:
+    """Rows ``rows`` of :func:`plot_comparison`'s figure rendered at its size and resolution, for
+    :func:`join_comparison`: (RGBA pixels, the pixel row 10 px below the axes of the row above
+    ``rows`` (0 for the first), the PNG's Software text).  Two parts drawn in two processes
+    halve the time of the last figure of the main job."""
+    import matplotlib
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+
+    fig = comparison_figure(test, ref, diffs, labels=labels, most=most, units=units, rows=rows)
+    fig.set_dpi(DPI)
+    canvas = FigureCanvasAgg(fig)
+    canvas.draw()
+    split = 0
+    if rows.start:
+        above = fig.axes[0].get_subplotspec().get_gridspec()[rows.start - 1, 0].get_position(fig)
+        split = round((1 - above.y0) * fig.bbox.height) + 10  # below the x ticks (no labels), above the titles
+    return np.asarray(canvas.buffer_rgba()).copy(), split, f"Matplotlib version{matplotlib.__version__}, https://matplotlib.org/"
+
+
+def join_comparison(parts: Sequence[tuple[np.ndarray, int, str]], path: Path) -> Path:
+    """The PNG of :func:`plot_comparison` from its :func:`comparison_part` (in row order): each
+    part's pixels from its split row to the next part's; the file is the one ``plot_comparison``
+    writes (same pixels, same PNG text and resolution)."""
+    from PIL import Image, PngImagePlugin
+
+    from ..outputs import staged
+
+    bounds = [p[1] for p in parts[1:]]
+    rgba = np.concatenate([p[0][lo:hi] for p, lo, hi in zip(parts, [0, *bounds], [*bounds, None])])
+    info = PngImagePlugin.PngInfo()
+    info.add_text("Software", parts[0][2])
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with staged(path) as part:
+        Image.fromarray(rgba).save(part, format="png", pnginfo=info, dpi=(DPI, DPI))
+    return path
+
+
+#: Resolution of the PNGs [dots per inch].
+DPI = 90
+
+
 def _save(fig, path: Path) -> Path:
-    return save_figure(fig, path, dpi=90)
+    return save_figure(fig, path, dpi=DPI)
 
 
 def save_figure(fig, path: Path, *, dpi: int | str = 90) -> Path:

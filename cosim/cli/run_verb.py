@@ -6,13 +6,17 @@
 The trace streams to ``DIR/<scene>.csv`` (default ``DIR`` = ``runs/<scene>``; a plain CSV, or
 ``<scene>.parquet``) with a sidecar ``<scene>.json``; ``--report`` writes ``<scene>.html``; a progress bar goes to stderr for long runs and a summary table (per-slave
 steps and time, real-time factor, final values) to stdout.  A scene with problems prints one
-line per problem (``file:line: error: ...``) and exits with code 2; a run that fails or is
+line per problem (``file:line: error: ...``) and exits with code 2; ``--plot`` and ``--animate``
+draw in processes of their own (:mod:`cosim.analysis.drawing`), started with the command, and a
+figure that fails is one line and exit code 1, the run's files kept; a run that fails or is
 interrupted keeps its partial trace and exits with code 1; a run that a component asked to stop
 (FMI terminate request) ends with its last point recorded, "stopped by C at t", and code 0.
 """
 from __future__ import annotations
 
 import argparse
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 from ..outputs import confined
@@ -27,16 +31,23 @@ def _run(args: argparse.Namespace) -> int:
     before = os.environ.get(ENV_VAR)
     if args.cache:  # the scene's catalog components are looked up in this cache's recipe index too
         os.environ[ENV_VAR] = str(args.cache)
+    drawer = None
+    if (args.plot or args.animate) and not args.check:
+        from ..analysis.drawing import Drawer
+
+        drawer = Drawer()  # imports matplotlib in a process of its own while the scene loads and runs
     try:
-        return _load_and_run(args)
+        return _load_and_run(args, drawer)
     finally:  # in-process callers (tests, scripts) keep their environment
+        if drawer is not None:
+            drawer.close()
         if before is None:
             os.environ.pop(ENV_VAR, None)
         else:
             os.environ[ENV_VAR] = before
 
 
-def _load_and_run(args: argparse.Namespace) -> int:
+def _load_and_run(args: argparse.Namespace, drawer=None) -> int:
     from ..scenario import SceneError
 
     try:
@@ -73,10 +84,10 @@ def _load_and_run(args: argparse.Namespace) -> int:
     out = args.out or Path("runs") / safe_name(scene.name)
     check_out_dir(out)
     with OutputLock(out, log=tagged("run")):
-        return _run_locked(args, scene, out)
+        return _run_locked(args, scene, out, drawer)
 
 
-def _run_locked(args: argparse.Namespace, scene, out: Path) -> int:
+def _run_locked(args: argparse.Namespace, scene, out: Path, drawer=None) -> int:
     from ..run.execute import run
     from ..run.progress import progress_bar
     from ..trace.traces import trace_suffix
@@ -90,56 +101,128 @@ def _run_locked(args: argparse.Namespace, scene, out: Path) -> int:
             f"are in {out / (scene.name + trace_suffix(args.trace_format))}")
         raise
     _summary(res)
-    _products(args, scene, res, out)
-    ref = _reference(scene, res, out, args.plot, args.trace_format) if args.reference else None
+    figures = _Figures(drawer, scene, res)
+    with figures.interruptible():
+        _products(args, scene, res, out, figures)
+        ref = _reference(scene, res, out, args.plot, args.trace_format, figures) if args.reference else None
+        failed = figures.collect()
     if args.report:
         say(f"report: {_report(scene, res, ref, out)}")
     if res.status == "stopped":  # a component asked to end the simulation: a normal end (FMI)
         say(f"rpr-cosim run: {res.reason}")
-        return 0
+        return failed
     if not res.ok:
         say(f"rpr-cosim run: {res.status}: {res.reason}")
         return 1
-    return 0
+    return failed
 
 
-def _products(args: argparse.Namespace, scene, res, out: Path) -> None:
-    """The plot and the animation of a run (each written under a temporary name and moved into
-    place when complete, :func:`cosim.outputs.staged`); a signal while they are written leaves an
-    earlier complete file as it was and gives the run's sidecar the status "interrupted"."""
-    from ..interrupts import signals_as_interrupts
-    from ..outputs import amend_status
+class _Figures:
+    """The run's figures, drawn beside what follows the run by a :class:`cosim.analysis.drawing.
+    Drawer` (in this process without one): each asked for by :meth:`add`, then all collected by
+    :meth:`collect`, which names each file once written, or says in one line why it is not."""
 
-    doing = ""
-    try:
-        with signals_as_interrupts():
-            if args.plot and len(res.trace.data):
-                from ..analysis.charts import plot_run, setpoint_pairs
-                from ..scenario.units import units_of
+    def __init__(self, drawer, scene, res):
+        self.drawer, self.scene, self.res = drawer, scene, res
+        # (label, what, jobs, join, why refused): the figure is join(results of jobs), or jobs[0]'s result
+        self.asked: list[tuple[str, str, list[int], Callable | None, str]] = []
 
-                final = confined(out, f"{scene.name}.png")
-                doing = f"the plot {final.name}"
-                plot_run(res.trace, final, scene.name, units=units_of(scene, res.fmus), pairs=setpoint_pairs(scene))
-                say(f"plot: {final}")
-            if args.animate and len(res.trace.data):
-                from ..analysis.animate import animate, pose_component
-                from ..scenario.geometry import manipulator_for
+    @property
+    def parallel(self) -> bool:
+        """Whether the figures are drawn in processes of their own."""
+        return self.drawer is not None and self.drawer.parallel
 
-                comp = pose_component(res.trace)
-                c = scene.components.get(comp)
-                m = manipulator_for(c.options, c.params) if c is not None else None
-                final = confined(out, f"{scene.name}.gif")
-                doing = f"the animation {final.name}"
-                animate(res.trace, final, manipulator=m, component=comp, title=scene.name)
-                say(f"animation: {final}")
-    except KeyboardInterrupt as exc:
-        if res.trace_path is not None:
-            amend_status(res.trace_path, "interrupted",
-                         f"interrupted by {exc or 'the user'} while writing {doing} (the run itself ended "
-                         f"{res.status}; the earlier good run's files, complete, are kept as {scene.name}.prev.*)")
-        say(f"rpr-cosim run: {interrupted(exc)} while writing {doing}; "
-            f"{res.trace_path.with_suffix('.json') if res.trace_path else 'the run'} says so")
-        raise
+    def add(self, label: str, what: str, fn, *args, **kwargs) -> None:
+        """Ask for a figure (``label`` "plot" or "animation", ``what`` "the plot x.png") drawn by
+        ``fn(*args, **kwargs)``, which returns its path."""
+        self.add_parts(label, what, None, [(fn, args, kwargs)])
+
+    def add_parts(self, label: str, what: str, join: Callable | None, parts: list[tuple]) -> None:
+        """Ask for a figure drawn in parts, each ``(fn, args, kwargs)``, at the same time;
+        ``join(results)`` writes it and returns its path."""
+        if self.drawer is None:
+            from ..analysis.drawing import Drawer
+
+            self.drawer = Drawer(parallel=False)
+        self.asked.append((label, what, [self.drawer.submit(fn, *a, **kw) for fn, a, kw in parts], join, ""))
+
+    def refuse(self, what: str, why: str) -> None:
+        """A figure that cannot be drawn from this run (found before drawing), said by :meth:`collect`."""
+        self.asked.append(("", what, [], None, why))
+
+    def collect(self) -> int:
+        """Wait for every figure and print where it is, or one line saying why it is not (the
+        run's trace and sidecar stay as they are); returns 2 when a figure was refused for its
+        input, 1 when one failed, else 0."""
+        from ..analysis.drawing import DrawError
+
+        code = 0
+        for label, what, jobs, join, why in self.asked:
+            try:
+                if not jobs:
+                    code = max(code, 2)
+                    raise DrawError(why)
+                results = [self.drawer.result(j) for j in jobs]
+                say(f"{label}: {join(results) if join else results[0]}")
+            except (DrawError, OSError) as exc:
+                code = max(code, 1)
+                kept = f"; the run's trace {self.res.trace_path.name} is complete" if self.res.trace_path else ""
+                say(f"rpr-cosim run: {what} was not written: {exc}{kept}")
+        self.asked.clear()
+        return code
+
+    @contextmanager
+    def interruptible(self) -> Iterator[None]:
+        """A signal while figures are being drawn stops them (an earlier complete file stays as it
+        was) and gives the run's sidecar the status "interrupted", naming the figures."""
+        from ..interrupts import signals_as_interrupts
+        from ..outputs import amend_status
+
+        try:
+            with signals_as_interrupts():
+                yield
+        except KeyboardInterrupt as exc:
+            drawing = [what for _, what, jobs, _, _ in self.asked if not all(self.drawer.finished(j) for j in jobs)]
+            if self.drawer is not None:
+                self.drawer.stop()
+            if drawing:
+                doing, res = " and ".join(drawing), self.res
+                if res.trace_path is not None:
+                    amend_status(res.trace_path, "interrupted",
+                                 f"interrupted by {exc or 'the user'} while writing {doing} (the run itself ended "
+                                 f"{res.status}; the earlier good run's files, complete, are kept as "
+                                 f"{self.scene.name}.prev.*)")
+                say(f"rpr-cosim run: {interrupted(exc)} while writing {doing}; "
+                    f"{res.trace_path.with_suffix('.json') if res.trace_path else 'the run'} says so")
+            raise
+
+
+def _products(args: argparse.Namespace, scene, res, out: Path, figures: _Figures) -> None:
+    """Ask for the plot and the animation of a run (each written under a temporary name and moved
+    into place when complete, :func:`cosim.outputs.staged`)."""
+    from ..errors import UserError
+
+    if args.plot and len(res.trace.data):
+        from ..analysis.charts import plot_run, setpoint_pairs
+        from ..scenario.units import units_of
+
+        final = confined(out, f"{scene.name}.png")
+        figures.add("plot", f"the plot {final.name}", plot_run, res.trace, final, scene.name,
+                    units=units_of(scene, res.fmus), pairs=setpoint_pairs(scene))
+    if args.animate and len(res.trace.data):
+        from ..analysis.animate import animate, pose_component
+        from ..scenario.geometry import manipulator_for
+
+        final = confined(out, f"{scene.name}.gif")
+        try:
+            comp = pose_component(res.trace)
+            c = scene.components.get(comp)
+            m = manipulator_for(c.options, c.params) if c is not None else None
+        except UserError as exc:
+            figures.refuse(f"the animation {final.name}", str(exc))
+            return
+        figures.add("animation", f"the animation {final.name}", animate, res.trace, final, manipulator=m,
+                    component=comp, title=scene.name)
 
 
 def _report(scene, res, ref, out: Path) -> Path | str:
@@ -164,9 +247,9 @@ def _report(scene, res, ref, out: Path) -> Path | str:
                       reference=ref.trace if ref is not None else None, manipulator=m)
 
 
-def _reference(scene, res, out: Path, plot: bool, trace_format: str = "csv"):
-    """Run the monolithic reference and print (and plot) the co-simulation's error against it."""
-    from ..analysis.charts import plot_comparison
+def _reference(scene, res, out: Path, plot: bool, trace_format: str, figures: _Figures):
+    """Run the monolithic reference and print the co-simulation's error against it (and ask
+    ``figures`` for its plot)."""
     from ..analysis.compare import compare, format_table
     from ..run.reference import reference
     from ..run.progress import progress_bar
@@ -181,6 +264,8 @@ def _reference(scene, res, out: Path, plot: bool, trace_format: str = "csv"):
           f"{ref.status}{' (' + ref.reason + ')' if ref.reason else ''}, {st['wall_s']:.2f} s; trace: {ref.trace_path}")
     if len(ref.trace.data) and len(res.trace.data):
         diffs = compare(res.trace, ref.trace)
+        if plot:  # asked for first: it is drawn while the table is printed
+            _plot_comparison(figures, confined(out, f"{scene.name}_vs_reference.png"), res, ref.trace, diffs)
         for label, r in (("co-simulation", res), ("reference", ref)):
             if r.status != "ok":
                 print(f"note: the {label} ended {r.status!r} at t = {r.trace.time[-1]:g} s ({r.reason}); the errors "
@@ -192,11 +277,26 @@ def _reference(scene, res, out: Path, plot: bool, trace_format: str = "csv"):
             print(f"note: the reference has {n_events} events; the errors above are max-norms across them (a jump "
                   f"placed a hair apart reads as an error its size): `rpr-cosim compare TEST REFERENCE --events "
                   f"SIGNAL` measures the event times and the values between events (docs/explanation/events.md)")
-        if plot:
-            from ..scenario.units import units_of
-
-            say(f"plot: {plot_comparison(res.trace, ref.trace, diffs, confined(out, f'{scene.name}_vs_reference.png'), labels=(scene.master.algorithm, 'reference'), units=units_of(scene, res.fmus))}")
     return ref
+
+
+def _plot_comparison(figures: _Figures, path: Path, res, ref, diffs) -> None:
+    """Ask for the plot of the run against its reference; in two halves drawn at the same time
+    when the figures have processes of their own (the last figure of the main job)."""
+    from functools import partial
+
+    from ..analysis import charts
+    from ..scenario.units import units_of
+
+    what, kw = f"the plot {path.name}", {"labels": (res.scene.master.algorithm, "reference"),
+                                          "units": units_of(res.scene, res.fmus)}
+    rows = charts.comparison_rows(diffs)
+    if not figures.parallel or rows < 2:
+        figures.add("plot", what, charts.plot_comparison, res.trace, ref, diffs, path, **kw)
+        return
+    halves = (range(0, rows // 2), range(rows // 2, rows))
+    figures.add_parts("plot", what, partial(charts.join_comparison, path=path),
+                      [(charts.comparison_part, (res.trace, ref, diffs, h), kw) for h in halves])
 
 
 def _motion_checks(scene, args: argparse.Namespace) -> bool:
