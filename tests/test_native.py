@@ -76,7 +76,7 @@ def _mirror_layout(record, mirror) -> list[int]:
     return [getattr(mirror, n).offset for _, n, _ in record.fields] + [ctypes.sizeof(mirror)]
 
 
-@pytest.mark.parametrize("name", ["rpr_crumb_t", "rpr_slave", "ad_ctl", "ec_ctl", "it_ctl"])
+@pytest.mark.parametrize("name", ["rpr_crumb_t", "rpr_slave", "fx_ctl", "ad_ctl", "ec_ctl", "it_ctl"])
 def test_every_record_mirror_has_the_c_layout(tmp_path, name):
     """offsetof() of every field and sizeof() from the compiler reading the generated header,
     against the ctypes mirror the bindings use (the crumb: against the record the supervisor reads)."""

@@ -282,6 +282,7 @@ class Algorithm(MasterAlgorithm, EventIteration, Outcome, ABC):
         self.late_events: list[dict] = []  # an event a slave that cannot roll back had already stepped past
         self._ahead: set[int] = set()  # slaves at the grid point already while the others finish a cut step
         self._reached: dict[int, float] = {}  # the time [s] each slave reached in the current event step
+        self._events_in_step = 0  # events in the current macro step (chattering beyond MAX_EVENTS_PER_STEP)
 
     def _setup_rates(self, rates: Sequence[int] | None) -> None:
         """:attr:`rates`: doSteps per macro step of each slave (:mod:`cosim.master.multirate`)."""
@@ -417,11 +418,9 @@ class Algorithm(MasterAlgorithm, EventIteration, Outcome, ABC):
                 self.pending_event = StepResult(self.t_ns, True, asking[0], "event")
             return True
         t_e, who = early[0]
-        self._events_in_step = getattr(self, "_events_in_step", 0) + 1
+        self._events_in_step += 1
         if self._events_in_step > MAX_EVENTS_PER_STEP:
-            self.status, self.failed_slave = "failed", who
-            self.message = (f"{slaves[who].name}: more than {MAX_EVENTS_PER_STEP} events in the step from t = "
-                            f"{self.time_at(self.k):.9g} s (chattering); the last at t = {t_e:.9g} s")
+            self.chattering(who, t_e)
             return False
         for j in range(len(slaves)):
             if j == who or j in self._ahead or (j in ends and ends[j][0] <= t_e + tol) or \
@@ -435,8 +434,7 @@ class Algorithm(MasterAlgorithm, EventIteration, Outcome, ABC):
                     return False
             else:
                 self._ahead.add(j)
-                self.late_events.append({"component": slaves[j].name, "t": t_e, "event_of": slaves[who].name,
-                                         "reached": self._reached.get(j, t + h)})
+                self.late(j, who, t_e, self._reached.get(j, t + h))
         for j in range(len(slaves)):
             st = self._io(j, self._pull[j])
             if st in FAILING:
@@ -445,6 +443,20 @@ class Algorithm(MasterAlgorithm, EventIteration, Outcome, ABC):
         self.t_event = t_e
         self.pending_event = StepResult(self.t_ns, True, who, "event")
         return True
+
+    def chattering(self, who: int, t_e: float) -> None:
+        """End the run: slave ``who`` had more than :data:`MAX_EVENTS_PER_STEP` events in the
+        current macro step, the last at ``t_e`` [s] (both engines)."""
+        self.status, self.failed_slave = "failed", who
+        self.message = (f"{self.system.slaves[who].name}: more than {MAX_EVENTS_PER_STEP} events in the step from "
+                        f"t = {self.time_at(self.k):.9g} s (chattering); the last at t = {t_e:.9g} s")
+
+    def late(self, j: int, who: int, t_e: float, reached: float) -> None:
+        """Note that slave ``j``, which cannot roll back, had stepped to ``reached`` [s] past slave
+        ``who``'s event at ``t_e`` [s] (:attr:`late_events`; both engines)."""
+        slaves = self.system.slaves
+        self.late_events.append({"component": slaves[j].name, "t": t_e, "event_of": slaves[who].name,
+                                 "reached": reached})
 
     def _events_in_order(self, t: float, h: float) -> tuple[int, int] | None:
         """A Gauss-Seidel step with event-mode slaves: in :attr:`order`, each slave from the

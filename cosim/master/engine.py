@@ -12,10 +12,11 @@ import numpy as np
 
 from ..errors import UserError
 from . import adaptive_engine, fastloop, iterative_engine
-from .algorithm import Algorithm
+from .entries import FIXED_CONTROL, FixedEnd, struct
+from .algorithm import MAX_EVENTS_PER_STEP, Algorithm, MasterAlgorithm
 from .algorithms.jacobi_extrapolated import WEIGHTS
 from .native import SlaveArray, builds, called_back
-from .stepper import FixedStepper
+from .stepper import FixedStepper, StepResult
 from .system import CoupledSystem
 
 #: :attr:`Algorithm.native_code` of the fixed-step loop's algorithms (0 Jacobi, 1 Gauss-Seidel, 3 Jacobi with
@@ -33,7 +34,7 @@ class CompiledLoop:
     has none), FMU state get/set (``rollback``); ``callbacks``: it runs slaves without C entry
     points (callback slaves, :mod:`cosim.master.callbacks`); ``typed``: typed ports too (their
     slaves called back, their text changes noted); ``transforms``: it applies the connections'
-    linear transformations."""
+    linear transformations; ``events``: it ends its steps at FMI 3.0 events."""
 
     algorithm: str
     library: Callable[[], ctypes.CDLL] | None
@@ -41,6 +42,8 @@ class CompiledLoop:
     callbacks: bool = False
     typed: bool = False
     transforms: bool = False
+    #: it ends steps at FMI 3.0 event-mode components' events (the event iteration runs in Python between calls)
+    events: bool = False
 
 
 def fixed_loop(cls: type[Algorithm]) -> CompiledLoop:
@@ -49,14 +52,14 @@ def fixed_loop(cls: type[Algorithm]) -> CompiledLoop:
         return CompiledLoop(cls.name, None)
     if cls.native_code == ITERATIVE:
         return CompiledLoop(cls.name, iterative_engine.library, cls.needs_rollback)
-    return CompiledLoop(cls.name, fastloop.library, callbacks=True, typed=True, transforms=True)
+    return CompiledLoop(cls.name, fastloop.library, callbacks=True, typed=True, transforms=True, events=True)
 
 
 def _why_not(system: CoupledSystem, loop: CompiledLoop) -> str:
     """Why ``loop`` cannot run ``system`` ('' when it can)."""
     if loop.library is None:
         return "has no loop"
-    if any(s.event_mode for s in system.slaves):
+    if any(s.event_mode for s in system.slaves) and not loop.events:
         return "does not end its steps at events; FMI 3.0 event-mode components run in the Python loop"
     if system.transformed and not loop.transforms:
         return ("copies connections as they are; connections with a linear transformation (factor, offset) run "
@@ -73,6 +76,15 @@ def _why_not(system: CoupledSystem, loop: CompiledLoop) -> str:
     if stateless:
         return f"needs FMU state get/set ({', '.join(stateless)} has none)"
     return ""
+
+
+def ends_steps_at_events(cls: type[MasterAlgorithm], engine: str) -> bool:
+    """Whether a run of ``cls`` on ``engine`` (auto | compiled | python) ends its steps at FMI 3.0
+    events, so that its event-mode FMUs are instantiated in event mode: the algorithm does, and
+    its compiled loop too when that loop is asked for."""
+    if not cls.ends_steps_at_events:
+        return False
+    return engine != "compiled" or (not cls.variable_step and issubclass(cls, Algorithm) and fixed_loop(cls).events)
 
 
 def choose_engine(system: CoupledSystem, engine: str, loop: CompiledLoop) -> str:
@@ -113,6 +125,7 @@ class _Compiled:
                 c.base = arr.buffer(np.empty(c.n_in))
             if alg.native_code == EXTRAPOLATED and c.n_in and i not in alg.exchange:
                 c.past = arr.buffer(np.zeros(2 * c.n_in))
+        self.ctl = self._events(alg) if alg.event_slaves else None
         self.order = np.array(alg.order, dtype=np.int32)
         self.rec_idx = sysm.record_idx
         self.alg = alg
@@ -123,24 +136,54 @@ class _Compiled:
         #: wall time after which one call returns early [ns]: signals are handled between calls
         self.budget_ns = fastloop.CALL_BUDGET_NS
 
+    def _events(self, alg: Algorithm):
+        """The event state (``fx_ctl``) and the slaves' event fields: the event-mode slaves' step
+        reports (:meth:`cosim.slaves.slave.Slave.event_slots`), the FMU state calls of those that
+        roll back (an FMU's own state slot, as its ``save_state`` uses)."""
+        arr, slaves = self.arr, alg.system.slaves
+        for i in alg.event_slaves:
+            c = arr[i]
+            c.event_mode = 1
+            c.step_flags, c.last_time, c.planned_end = slaves[i].event_slots()
+        for i, s in enumerate(slaves):
+            ne, c = arr.entries[i], arr[i]
+            if s.can_rollback and ne.get_state and ne.set_state:
+                c.get_state, c.set_state = ne.get_state, ne.set_state
+                # a callback slave's trampolines keep their own state: the slot is only a non-null pointer
+                c.state = (ctypes.addressof(arr.states) + i * ctypes.sizeof(ctypes.c_void_p)
+                           if arr.callbacks[i] is not None else s.state_slot())
+        ctl = struct(FIXED_CONTROL)()
+        ctl.n_event, ctl.max_events = len(alg.event_slaves), MAX_EVENTS_PER_STEP
+        return ctl
+
     def run(self, nsteps: int, rec_every: int, rec: np.ndarray) -> int:
-        alg, sysm = self.alg, self.alg.system
+        alg, sysm, ctl = self.alg, self.alg.system, self.ctl
         self.master_ns.value = 0
+        if ctl is not None:
+            ctl.has_t_event, ctl.t_event = alg.t_event is not None, alg.t_event or 0.0
+            ctl.events_in_step = alg._events_in_step
         done = self.lib.rpr_run(self.arr.arr, len(self.arr), self.order.ctypes.data, alg.native_code,
                                 self.weights.ctypes.data if self.weights.size else None,
                                 sysm.v.ctypes.data, alg.k, nsteps, alg.start_ns, alg.step_ns, int(alg.timing),
                                 self.rec_idx.ctypes.data if self.rec_idx.size else None, len(self.rec_idx),
                                 rec_every, rec.ctypes.data, ctypes.byref(self.n_rows),
                                 ctypes.byref(self.fail_slave), ctypes.byref(self.fail_status),
-                                ctypes.byref(self.master_ns), self.budget_ns)
+                                ctypes.byref(self.master_ns), self.budget_ns,
+                                None if ctl is None else ctypes.byref(ctl))
         for i, c in enumerate(self.arr.arr):
             alg.calls[i], alg.slave_ns[i] = c.calls, c.ns
         alg.master_ns += self.master_ns.value
         alg.k += int(done)
         self.arr.reraise()  # a callback slave's exception (a model's error, Ctrl-C), raised here
-        t_fail = alg.t
         rows = int(self.n_rows.value)
         i, st = self.fail_slave.value, self.fail_status.value
+        if ctl is not None and self._after_events(ctl):  # an event or an end of the event step
+            if alg.pending_event is not None:  # its row, the left limit
+                rec[rows, 0] = alg.t
+                np.take(sysm.v, sysm.record_idx, out=rec[rows, 1:])
+                rows += 1
+            return rows
+        t_fail = alg.t
         if i >= 0 and alg.stop_requested(i, st):
             alg.complete_after_stop(i, t_fail)
             if alg.status == "stopped":  # the last point, on the output grid or not
@@ -150,6 +193,27 @@ class _Compiled:
         elif i >= 0:
             alg._fail(i, st, t_fail)
         return rows
+
+
+    def _after_events(self, ctl) -> bool:
+        """The algorithm's event state after a call (as its Python event step leaves it); True when
+        the call ended at an event or ended the run (else the common ending follows)."""
+        alg, arr = self.alg, self.arr
+        alg.t_event = ctl.t_event if ctl.has_t_event else None
+        alg._events_in_step = ctl.events_in_step
+        ahead = {j for j in range(len(arr)) if arr[j].ahead}
+        end = FixedEnd(ctl.status)
+        if end == FixedEnd.EVENT:
+            for j in sorted(ahead - alg._ahead):
+                alg.late(j, ctl.who, ctl.t_e, arr[j].reached)
+        alg._ahead = ahead
+        if end in (FixedEnd.EVENT, FixedEnd.GRID_EVENT):
+            alg.pending_event = StepResult(alg.t_ns, True, ctl.who, "event")
+        elif end == FixedEnd.CHATTERING:
+            alg.chattering(ctl.who, ctl.t_e)
+        elif end == FixedEnd.FAILED:
+            alg._fail(self.fail_slave.value, self.fail_status.value, alg.t)
+        return end != FixedEnd.RUNNING
 
 
 def fixed_stepper(system: CoupledSystem, *, cls: type[Algorithm], step_ns: int, n_steps: int, record_every: int,
@@ -171,4 +235,4 @@ def variable_loop(name: str, stepper_cls: type) -> CompiledLoop:
     return CompiledLoop(name, library, stepper_cls.needs_rollback, callbacks=True)
 
 
-__all__ = ["CompiledLoop", "ENGINES", "ITERATIVE", "choose_engine", "fixed_loop", "fixed_stepper", "variable_loop"]
+__all__ = ["CompiledLoop", "ENGINES", "ITERATIVE", "choose_engine", "ends_steps_at_events", "fixed_loop", "fixed_stepper", "variable_loop"]

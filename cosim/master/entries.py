@@ -98,6 +98,12 @@ SLAVE = Record("rpr_slave", (
     ("const double *", "in_factor", "per input, the factor of its connection's linear transformation (0: none)"),
     ("const double *", "in_offset", "per input, the offset of its connection's linear transformation"),
     ("double *", "past", "jacobi_extrapolated: the gathered inputs at t_k-1, then at t_k-2 (0: not extrapolated)"),
+    ("int32_t", "event_mode", "FMI 3.0 event mode: its doStep may return early at an event (fixed step: rpr_run)"),
+    ("int32_t", "ahead", "event step: at the grid point already while the others finish a step an event cut"),
+    ("bool *", "step_flags", "event mode: eventHandlingNeeded, terminateSimulation, earlyReturn of its last doStep "
+                             "(the slave's own)"),
+    ("double *", "planned_end", "event mode: t + h of its last doStep [s] (the slave's own)"),
+    ("double", "reached", "event step: the time it reached [s]"),
     ("int64_t", "calls", "doStep calls"),
     ("int64_t", "ns", "wall time in this slave's calls [ns] (with timing)"),
 ))
@@ -185,10 +191,33 @@ ITERATIVE_CONTROL = Record("it_ctl", (
     _STATS,
 ))
 
+#: The fixed-step loop's event state across calls (``fx_ctl``, FMI 3.0 event mode; docs/explanation/events.md).
+FIXED_CONTROL = Record("fx_ctl", (
+    ("int32_t", "n_event", "slaves in FMI 3.0 event mode (0: no event step)"),
+    ("int32_t", "has_t_event", "1: the current point is an event that cut the step (t_event), not the grid point"),
+    ("double", "t_event", "that event's time [s]"),
+    ("int32_t", "events_in_step", "events in the current macro step so far"),
+    ("int32_t", "max_events", "events in one macro step beyond which the run ends (chattering)"),
+    ("int32_t", "status", "why the call returned (FixedEnd)"),
+    ("int32_t", "who", "the event's slave (FX_EVENT, FX_GRID_EVENT, FX_CHATTERING)"),
+    ("double", "t_e", "the event's time [s] (FX_EVENT, FX_CHATTERING)"),
+))
+
 CRUMB = Record("rpr_crumb_t", crumb.RECORD_FIELDS)
 
 #: Every record of the generated header, in dependency order.
-RECORDS = (CRUMB, SLAVE, ADAPTIVE_CONTROL, ECCO_CONTROL, ITERATIVE_CONTROL)
+RECORDS = (CRUMB, SLAVE, FIXED_CONTROL, ADAPTIVE_CONTROL, ECCO_CONTROL, ITERATIVE_CONTROL)
+
+
+class FixedEnd(IntEnum):
+    """Why the fixed-step loop (Jacobi, Gauss-Seidel) returned (``fx_ctl.status``) besides its
+    step count; a failing call is ``fail_slave`` >= 0 with RUNNING or FAILED."""
+
+    RUNNING = 0  # the steps asked for, the wall-time budget, or a failing call (its stop request handled after)
+    EVENT = 1  # a step cut at the earliest early return of an event-mode slave, at t_e (the left limit)
+    GRID_EVENT = 2  # a step completed at the grid point, where slave `who` asks for event handling
+    CHATTERING = 3  # more than max_events events in one macro step
+    FAILED = 4  # a call failed after the step was cut (a rollback or reading the outputs): the run fails
 
 
 class AdaptiveEnd(IntEnum):
@@ -225,7 +254,7 @@ class IterativeEnd(IntEnum):
 
 
 #: The C enums of the header: (prefix, enum).  FMI statuses come as ST_<name>.
-ENUMS: tuple[tuple[str, type[IntEnum]], ...] = (("ST_", Status), ("AD_", AdaptiveEnd), ("EC_", EccoEnd),
+ENUMS: tuple[tuple[str, type[IntEnum]], ...] = (("ST_", Status), ("FX_", FixedEnd), ("AD_", AdaptiveEnd), ("EC_", EccoEnd),
                                                  ("IT_", IterativeEnd))
 
 
@@ -258,7 +287,8 @@ RUN = Entry("rpr_run", (
     ("int64_t", "rec_every", "record every this many steps"), ("double *", "rec", "the rows recorded"),
     ("int64_t *", "n_rows", "out: rows recorded"), ("int32_t *", "fail_slave", "out: the failing slave or -1"),
     ("int32_t *", "fail_status", "out: its status"), ("int64_t *", "master_ns", "in/out: the loop's own time [ns]"),
-    ("int64_t", "budget_ns", "return after this much wall time (0: no limit)")))
+    ("int64_t", "budget_ns", "return after this much wall time (0: no limit)"),
+    ("fx_ctl *", "c", "FMI 3.0 event mode: the event state (NULL: no event-mode slave)")))
 
 ADAPT_RUN = Entry("rpr_adapt_run", (
     ("rpr_slave *", "S", "the slaves"), ("int32_t", "n", "their count"),
@@ -342,5 +372,5 @@ def bind(lib: ctypes.CDLL, entries: Sequence[Entry]) -> None:
 
 
 __all__ = ["ADAPTIVE_CONTROL", "ADAPT_RUN", "AdaptiveEnd", "CRUMB", "ECCO_CONTROL", "ECCO_RUN", "ENTRIES", "ENUMS",
-           "EccoEnd", "Entry", "ITERATIVE_CONTROL", "ITER_RUN", "IterativeEnd", "RECORDS", "RUN", "Record", "SLAVE",
+           "EccoEnd", "Entry", "FIXED_CONTROL", "FixedEnd", "ITERATIVE_CONTROL", "ITER_RUN", "IterativeEnd", "RECORDS", "RUN", "Record", "SLAVE",
            "bind", "ctypes_struct", "header", "struct"]

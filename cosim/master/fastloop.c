@@ -83,6 +83,158 @@ static inline int advance(rpr_slave *s, double *v, int64_t t_ns, double t, doubl
     return st;
 }
 
+/* ---- FMI 3.0 event mode (Algorithm._event_step, docs/explanation/events.md) ---------------------------- */
+
+/* one slave's call timed into its wall time (Algorithm._io / _advance) */
+#define TIMED(i, expr) do { int64_t t0_ = timing ? now_ns() : 0; st = (expr); \
+    if (timing) S[i].ns += now_ns() - t0_; } while (0)
+#define FAIL(who, status) do { *fail_slave = (who); *fail_status = (status); return FX_RUNNING; } while (0)
+
+/* doStep of slave i in an event step: a slave at the grid point already (ahead) waits there, its
+   call counted as the Python loop counts it */
+static inline int step_ev(rpr_slave *s, double *v, int64_t t_ns, double t, double h) {
+    if (s->ahead) { s->calls++; return ST_OK; }
+    return advance(s, v, t_ns, t, h);
+}
+
+static inline int can_save(const rpr_slave *s) { return s->get_state && s->set_state && s->state; }
+
+/* Gauss-Seidel's event step (Algorithm._events_in_order): in order, each slave from the freshest
+   outputs; once an event-mode slave returned early, the slaves after it step only to its time */
+static int events_in_order(rpr_slave *S, int32_t n, const int32_t *order, double *v, int64_t t_ns, double t,
+                           double h, int32_t timing, int32_t *fail_slave, int32_t *fail_status) {
+    double reached = t + h, tol = 1e-12 * (1.0 + fabs(t + h));
+    int32_t c, i;
+    int st;
+    for (c = 0; c < n; ++c) {
+        double hi;
+        i = order[c];
+        TIMED(i, push(&S[i], v, 1.0 / h, NULL));
+        if (st > ST_WARNING) FAIL(i, st);
+        hi = py_min(h, reached - t);
+        if (hi > tol) {  /* (an event at t itself: nothing to step) */
+            TIMED(i, step_ev(&S[i], v, t_ns, t, hi));
+            if (st > ST_WARNING) FAIL(i, st);
+        }
+        S[i].reached = t + hi;
+        if (S[i].event_mode && !S[i].ahead) reached = py_min(reached, step_end(&S[i]));
+        TIMED(i, get_outputs(&S[i], v));
+        if (st > ST_WARNING) FAIL(i, st);
+    }
+    return FX_RUNNING;
+}
+
+/* Jacobi's event step (Algorithm._events_first): every input from the outputs at t, the event-mode
+   slaves step first, the others only to the earliest time one of them reached */
+static int events_first(rpr_slave *S, int32_t n, const int32_t *order, double *v, int64_t t_ns, double t,
+                        double h, int32_t timing, int32_t *fail_slave, int32_t *fail_status) {
+    double reached = t + h;
+    int32_t c, i, have = 0;
+    int st;
+    for (i = 0; i < n; ++i) {
+        TIMED(i, push(&S[i], v, 1.0 / h, NULL));
+        if (st > ST_WARNING) FAIL(i, st);
+    }
+    for (i = 0; i < n; ++i) {
+        if (!S[i].event_mode || S[i].ahead) continue;
+        TIMED(i, advance(&S[i], v, t_ns, t, h));
+        if (st > ST_WARNING) FAIL(i, st);
+    }
+    for (i = 0; i < n; ++i) {  /* Python's min over the list of the first ones (t + h when none) */
+        if (!S[i].event_mode || S[i].ahead) continue;
+        if (!have || step_end(&S[i]) < reached) reached = step_end(&S[i]);
+        have = 1;
+    }
+    for (i = 0; i < n; ++i) {
+        double hi;
+        if (S[i].event_mode && !S[i].ahead) continue;
+        hi = py_min(h, reached - t);
+        if (hi > 1e-12 * (1.0 + fabs(t + h))) {
+            TIMED(i, step_ev(&S[i], v, t_ns, t, hi));
+            if (st > ST_WARNING) FAIL(i, st);
+        }
+        S[i].reached = t + hi;
+    }
+    for (i = 0; i < n; ++i) {
+        TIMED(i, get_outputs(&S[i], v));
+        if (st > ST_WARNING) FAIL(i, st);
+    }
+    for (c = 0; c < n; ++c) {  /* memoryless slaves, in order (Algorithm._exchange) */
+        i = order[c];
+        if (!S[i].memoryless) continue;
+        TIMED(i, exchange(&S[i], v));
+        if (st > ST_WARNING) FAIL(i, st);
+    }
+    return FX_RUNNING;
+}
+
+/* One step with event-mode slaves (Algorithm._event_step) from the current point (the grid point
+   k, or the event c->t_event that cut step k) to the next grid point, cut at the earliest early
+   return.  FX_RUNNING: the step reached the grid point (or a call failed: *fail_slave >= 0, the
+   Python side handles a stop request); FX_GRID_EVENT: it did, and slave c->who asks for event
+   handling there; FX_EVENT: it was cut at c->t_e by c->who (the slaves that stepped past rolled
+   back and stepped to it, or, when they cannot roll back, marked ahead); FX_CHATTERING, FX_FAILED. */
+static int event_step(rpr_slave *S, int32_t n, const int32_t *order, int32_t algorithm, double *v, int64_t k,
+                      int64_t start_ns, int64_t step_ns, int32_t timing, fx_ctl *c, int32_t *fail_slave,
+                      int32_t *fail_status) {
+    int64_t t_ns = start_ns + k * step_ns;
+    double t_end = (double)(start_ns + (k + 1) * step_ns) / 1e9;
+    double t = c->has_t_event ? c->t_event : (double)t_ns / 1e9;
+    double h = c->has_t_event ? t_end - t : (double)step_ns / 1e9, tol, t_e = 0.0;
+    int32_t i, j, who = -1, seq = algorithm == 1;
+    /* what may step past an event: under Gauss-Seidel any slave, under Jacobi the event-mode ones */
+    int32_t save = c->n_event > 1 || (seq && n > 1);
+    int st;
+#define SAVED(s) (save && (seq || (s)->event_mode) && can_save(s) && !(s)->ahead)
+    for (i = 0; i < n; ++i) {
+        if (!SAVED(&S[i])) continue;
+        st = save_state(&S[i]);
+        if (failing(st)) { *fail_slave = i; *fail_status = st; return FX_FAILED; }
+    }
+    for (i = 0; i < n; ++i) S[i].reached = t + h;
+    st = seq ? events_in_order(S, n, order, v, t_ns, t, h, timing, fail_slave, fail_status)
+             : events_first(S, n, order, v, t_ns, t, h, timing, fail_slave, fail_status);
+    if (*fail_slave >= 0) return st;
+    tol = 1e-12 * (1.0 + fabs(t_end));
+    for (i = 0; i < n; ++i) {  /* the earliest early return (the first slave of equal ones) */
+        double r;
+        if (!S[i].event_mode || S[i].ahead) continue;
+        r = step_end(&S[i]);
+        if (r < t + h - tol && (who < 0 || r < t_e)) { who = i; t_e = r; }
+    }
+    if (who < 0) {  /* the grid point: an event-mode slave may ask for event handling there */
+        c->who = -1;
+        for (i = 0; i < n && c->who < 0; ++i)
+            if (S[i].event_mode && !S[i].ahead && event_asked(&S[i])) c->who = i;
+        for (i = 0; i < n; ++i) S[i].ahead = 0;
+        c->has_t_event = 0;
+        c->events_in_step = 0;
+        return c->who >= 0 ? FX_GRID_EVENT : FX_RUNNING;
+    }
+    c->who = who;
+    c->t_e = t_e;
+    if (++c->events_in_step > c->max_events) return FX_CHATTERING;
+    for (j = 0; j < n; ++j) {
+        rpr_slave *s = &S[j];
+        if (j == who || s->ahead || (s->event_mode ? step_end(s) : s->reached) <= t_e + tol) continue;
+        if (SAVED(s)) {  /* stepped past the event: back (its inputs with it), and to the event time */
+            st = restore_state(s);
+            if (!failing(st)) TIMED(j, advance(s, v, t_ns, t, t_e - t));
+            if (failing(st)) { *fail_slave = j; *fail_status = st; return FX_FAILED; }
+        } else {
+            s->ahead = 1;  /* late: it gets the event at the grid point (s->reached for the note) */
+        }
+    }
+#undef SAVED
+    for (j = 0; j < n; ++j) {
+        TIMED(j, get_outputs(&S[j], v));
+        if (failing(st)) { *fail_slave = j; *fail_status = st; return FX_FAILED; }
+    }
+    c->has_t_event = 1;
+    c->t_event = t_e;
+    return FX_EVENT;
+}
+
 #define CHECK(expr, who) do { int st_ = (expr); if (st_ > ST_WARNING) { *fail_slave = (who); \
     *fail_status = st_; goto out; } } while (0)
 #define TICK(i) do { if (timing) { int64_t t_ = now_ns(); S[i].ns += t_ - tprev; tprev = t_; } } while (0)
@@ -91,12 +243,14 @@ static inline int advance(rpr_slave *s, double *v, int64_t t_ns, double t, doubl
    Jacobi (memoryless slaves then evaluated in `order`), 1 = Gauss-Seidel (slaves in `order`),
    3 = Jacobi with each slave's inputs extrapolated (`weights`; the slaves with `past`).  After
    every `rec_every`-th step a row (t, v[rec_idx]...) is appended to rec.  Returns the number of
-   steps completed; on a failure *fail_slave >= 0.  With budget_ns > 0 it also returns (early, no
-   failure) once that much wall time has passed, so that Python can handle signals between calls. */
+   steps completed; on a failure *fail_slave >= 0.  With event-mode slaves (ev: their state across
+   calls) each step is event_step's, and a call also returns at an event (ev->status).  With
+   budget_ns > 0 it also returns (early, no failure) once that much wall time has passed, so that
+   Python can handle signals between calls. */
 int64_t rpr_run(rpr_slave *S, int32_t n, const int32_t *order, int32_t algorithm, const double *weights, double *v,
                 int64_t k0, int64_t nsteps, int64_t start_ns, int64_t step_ns, int32_t timing,
                 const int64_t *rec_idx, int32_t n_rec, int64_t rec_every, double *rec, int64_t *n_rows,
-                int32_t *fail_slave, int32_t *fail_status, int64_t *master_ns, int64_t budget_ns) {
+                int32_t *fail_slave, int32_t *fail_status, int64_t *master_ns, int64_t budget_ns, fx_ctl *ev) {
     int64_t k, done = 0, rows = 0, t_start = (timing || budget_ns > 0) ? now_ns() : 0, tprev = t_start;
     int64_t slave_ns0 = 0, slave_ns1 = 0;
     int32_t i, c;
@@ -104,10 +258,21 @@ int64_t rpr_run(rpr_slave *S, int32_t n, const int32_t *order, int32_t algorithm
     for (i = 0; i < n; ++i) slave_ns0 += S[i].ns;
     *fail_slave = -1;
     *fail_status = 0;
+    if (ev) ev->status = FX_RUNNING;
     for (k = k0; k < k0 + nsteps; ++k) {
         int64_t t_ns = start_ns + k * step_ns;
         double t = (double)t_ns / 1e9;
         if (timing) tprev = now_ns();  /* time since the last slave call is the master's own */
+        if (ev) {  /* event mode: a step ends at an event (the event iteration runs in Python) */
+            ev->status = event_step(S, n, order, algorithm, v, k, start_ns, step_ns, timing, ev, fail_slave,
+                                    fail_status);
+            if (*fail_slave >= 0 || (ev->status != FX_RUNNING && ev->status != FX_GRID_EVENT)) goto out;
+            ++done;
+            if (ev->status == FX_GRID_EVENT) goto out;  /* its row, the left limit, written by Python */
+            if ((k + 1) % rec_every == 0) record_row(rec + rows++ * (n_rec + 1), t_ns + step_ns, v, rec_idx, n_rec);
+            if (budget_ns > 0 && (done & 15) == 0 && now_ns() - t_start > budget_ns) break;
+            continue;
+        }
         if (algorithm != 1) {
             for (i = 0; i < n; ++i) { CHECK(push(&S[i], v, inv_h, weights), i); TICK(i); }
             for (i = 0; i < n; ++i) { CHECK(advance(&S[i], v, t_ns, t, h), i); TICK(i); }

@@ -74,18 +74,24 @@ static inline int do_step(rpr_slave *s, double t, double h) {
     int st;
     s->calls++;
     if (s->fmi3) {
-        bool ev = 0, term = 0, early = 0;
+        bool own[3] = {0, 0, 0}, *f = s->step_flags ? s->step_flags : own;  /* event, terminate, early return */
         double last = t;
-        st = FMI_T(s->inst, C_DO_STEP, t, ((fmi3DoStep_t)s->do_step)(s->inst, t, h, s->no_prior != 0, &ev, &term,
-                                                                      &early, &last));
+        if (s->planned_end) *s->planned_end = t + h;
+        st = FMI_T(s->inst, C_DO_STEP, t, ((fmi3DoStep_t)s->do_step)(s->inst, t, h, s->no_prior != 0, &f[0], &f[1],
+                                                                      &f[2], &last));
         if (s->last_time) *s->last_time = last;
-        if (st <= ST_WARNING && term) return ST_STOP_REQUESTED;
+        if (st <= ST_WARNING && f[1]) return ST_STOP_REQUESTED;
         return st;
     }
     st = FMI_T(s->inst, C_DO_STEP, t, ((fmi2DoStep_t)s->do_step)(s->inst, t, h, s->no_prior != 0));
     if (st == ST_DISCARD && stop_asked(s)) return ST_STOP_REQUESTED;
     return st;
 }
+
+/* After a doStep in event mode: the time the slave reached [s] (its last successful time after an
+   early return, else the step's end; Slave.step_end) and whether it asks for event handling */
+static inline double step_end(const rpr_slave *s) { return s->step_flags[2] ? *s->last_time : *s->planned_end; }
+static inline int event_asked(const rpr_slave *s) { return s->step_flags[0] != 0; }
 
 /* The recorded row of communication point t_ns [ns]: t [s], then v[rec_idx[0..n_rec)]. */
 static inline void record_row(double *row, int64_t t_ns, const double *v, const int64_t *rec_idx, int32_t n_rec) {

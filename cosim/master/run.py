@@ -9,7 +9,7 @@ from collections.abc import Callable, Sequence
 from ..errors import UserError
 from .algorithm import algorithm, option_values
 from .lifecycle import RunStats, VariableStats, initialize, settled
-from .engine import fixed_stepper
+from .engine import ends_steps_at_events, fixed_stepper
 from .stepper import drive, record_start
 from .system import CoupledSystem
 
@@ -61,9 +61,9 @@ def simulate(system: CoupledSystem, algorithm_name: str, *, step_ns: int, n_step
     for i, s_ in enumerate(system.slaves):  # FMI noSetFMUStatePriorToCurrentPoint: true unless the algorithm may restore states
         s_.forward_only = not cls.needs_rollback
         # FMI 3.0 event mode and early return where the FMU has them and the algorithm ends steps at events
-        # (in the Python loop: a scene that asks for the compiled loop leaves the events inside doStep)
+        # (on the engine asked for: adaptive's and iterative's compiled loops leave the events inside doStep)
         # (a variable-step master cuts its step at an event by rolling every slave back: all must roll back)
-        s_.event_mode = bool(cls.ends_steps_at_events and (inputs == "hold" or variable) and engine != "compiled"
+        s_.event_mode = bool(ends_steps_at_events(cls, engine) and (inputs == "hold" or variable)
                              and getattr(s_, "fmi3", False)
                              and s_.description.has_event_mode and not (rates and rates[i] != 1)
                              and not (variable and not all(x.can_rollback for x in system.slaves)))

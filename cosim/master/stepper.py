@@ -220,9 +220,14 @@ class FixedStepper(Stepper):
         n = min(max_steps, self.n_steps - self.alg.k)
         if self.runner is None:
             return self.python_block(rec, n)
-        if not self.system.typed.texts:
-            return self.runner(n, self.record_every, rec)
-        return self._text_block(rec, n)
+        rows = self.runner(n, self.record_every, rec) if not self.system.typed.texts else self._text_block(rec, n)
+        self._take_event()
+        return rows
+
+    def _take_event(self) -> None:
+        """A step that ended at an event (its row the left limit): the event for the driver loop."""
+        if self.alg.pending_event is not None:
+            self.event, self.alg.pending_event = self.alg.pending_event, None
 
     def _text_block(self, rec: np.ndarray, n: int) -> int:
         """The compiled loop's ``n`` steps up to one recorded point at a time, the recorded text
@@ -236,14 +241,13 @@ class FixedStepper(Stepper):
                 self.text_events += [(float(rec[rows + got - 1, 0]), c, x)
                                      for c, x in self.system.typed.text_changes()]
             rows += got
-            if alg.k == k:
+            if alg.k == k or alg.pending_event is not None:
                 break
         return rows
 
     def step(self) -> bool:
         ok = self.alg.step()
-        if self.alg.pending_event is not None:  # the step ended at an event: its row is the left limit
-            self.event, self.alg.pending_event = self.alg.pending_event, None
+        self._take_event()
         return ok
 
     def recorded(self, ok: bool) -> bool:

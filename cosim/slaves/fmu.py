@@ -281,17 +281,19 @@ class _Fmi3(FmiVersion):
         step = _DoStep3(_addr(dll.fmi3DoStep))
         slave._get = _Get3(_addr(dll.fmi3GetFloat64))
         slave._set = _Set3(_addr(dll.fmi3SetFloat64))
-        flags = [c_bool(), c_bool(), c_bool()]  # eventHandlingNeeded, terminateSimulation, earlyReturn
+        # eventHandlingNeeded, terminateSimulation, earlyReturn: one array, which a compiled loop writes too
+        flags = (c_bool * 3)()
         slave._last_t = c_double()
-        p_flags, p_last, inst = [ctypes.byref(f) for f in flags], ctypes.byref(slave._last_t), slave._inst
-        terminate = flags[1]
-        slave._step_flags, slave._planned_end = flags, 0.0
+        p_flags = [ctypes.byref(c_bool.from_buffer(flags, k * ctypes.sizeof(c_bool))) for k in range(3)]
+        p_last, inst = ctypes.byref(slave._last_t), slave._inst
+        slave._step_flags, slave._planned_end = flags, c_double()
+        planned = slave._planned_end
 
         def do_step(t: float, h: float) -> int:
             # noSetFMUStatePriorToCurrentPoint: promised unless the algorithm may restore a state
-            slave._planned_end = t + h
+            planned.value = t + h
             st = step(inst, t, h, slave.no_prior, *p_flags, p_last)
-            if st < 2 and terminate.value:
+            if st < 2 and flags[1]:
                 return Status.STOP_REQUESTED
             return st
 
@@ -552,8 +554,14 @@ class FmuSlave(Slave):
     def step_end(self) -> tuple[float, bool]:
         if not (self.event_mode and self.fmi3):
             return Slave.step_end(self)
-        event, _, early = (f.value for f in self._step_flags)
-        return (self._last_t.value if early else self._planned_end), bool(event)
+        event, _, early = self._step_flags
+        return (self._last_t.value if early else self._planned_end.value), bool(event)
+
+    def event_slots(self) -> tuple[int, int, int] | None:
+        if not (self.event_mode and self.fmi3):
+            return None
+        return (ctypes.addressof(self._step_flags), ctypes.addressof(self._last_t),
+                ctypes.addressof(self._planned_end))
 
     def enter_event_mode(self) -> int:
         return self._status_of("fmi3EnterEventMode", self.fmu.enterEventMode)

@@ -150,6 +150,13 @@ class Slave(ABC):
         needs handling)."""
         raise RuntimeError(f"{self.name}: this slave has no event mode")
 
+    def event_slots(self) -> tuple[int, int, int] | None:
+        """Where its doSteps in event mode leave what :meth:`step_end` reads, for a compiled loop:
+        the addresses of its flags (three C bools: eventHandlingNeeded, terminateSimulation,
+        earlyReturn), of its last successful time and of its step's planned end (C doubles [s]);
+        None when it has no event mode."""
+        return None
+
     def enter_event_mode(self) -> int:
         """Enter event mode at the current time; returns a :class:`Status`."""
         raise RuntimeError(f"{self.name}: this slave has no event mode")

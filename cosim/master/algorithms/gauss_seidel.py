@@ -20,8 +20,7 @@ class GaussSeidel(Algorithm):
                     "time; one stepped past it is rolled back to it, or, when it cannot roll back, gets it at the next "
                     "communication point, listed in the sidecar), "
                     "event iteration across the coupling, two trace rows at each event, then the rest of the step; "
-                    "other components handle their events inside their steps (Python loop; the compiled loop leaves "
-                    "all events inside)")
+                    "other components handle their events inside their steps")
 
     def _step_impl(self, t, h):
         gather, push, do, pull, acc, calls = (self._gather, self._push, self._do, self._pull, self.slave_ns,

@@ -19,7 +19,7 @@ class Jacobi(Algorithm):
     event_policy = ("a step ends at the earliest event of an FMI 3.0 event-mode component for the whole coupling "
                     "(the event-mode components step first, the others only to that time), event iteration across "
                     "the coupling, two trace rows at each event, then the rest of the step; other components handle "
-                    "their events inside their steps (Python loop; the compiled loop leaves all events inside)")
+                    "their events inside their steps")
     #: needs no stepping order: a cycle of direct feedthrough runs with the one-step coupling delay
     delays_algebraic_loops = True
 

@@ -1,0 +1,111 @@
+"""FMI 3.0 event mode in the fixed-step kernel (cosim/master/fastloop.c, ``event_step``): a step
+ends at the earliest early return of an event-mode FMU, the kernel returns ``FX_EVENT``, the one
+``EventIteration`` runs in Python and the kernel goes on with the rest of the step.  Each scene
+against the Python loop bit for bit (times, values, events, late events, doStep counts, the
+ending and its message), beside the independent checks of tests/test_event_mode.py (FMPy event
+for event, the coupled FMU at the event's time) that run on this kernel now."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from cosim.run.execute import run
+from cosim.scenario import from_dict
+
+FIXED = ("jacobi", "gauss_seidel")
+
+
+def both(scene: dict, **master) -> tuple:
+    """The scene's run on the Python loop and on the kernel (``engine: compiled``)."""
+    out = []
+    for engine in ("python", "compiled"):
+        res = run(from_dict({**scene, "master": {"step": 0.01, "estimate": False, **master, "engine": engine}}))
+        assert res.stats["engine"] == engine
+        out.append(res)
+    return tuple(out)
+
+
+def assert_same(py, cc) -> None:
+    assert (py.status, py.reason) == (cc.status, cc.reason)
+    assert np.array_equal(py.trace.time, cc.trace.time)
+    assert np.array_equal(py.trace.data, cc.trace.data, equal_nan=True)
+    assert py.stats.get("events") == cc.stats.get("events")
+    calls = lambda r: {k: x["do_step_calls"] for k, x in r.stats["slaves"].items()}  # noqa: E731
+    assert calls(py) == calls(cc)
+
+
+@pytest.mark.parametrize("algorithm", FIXED)
+@pytest.mark.parametrize("model,step,outputs", [("BouncingBall", 0.01, ["h", "v"]), ("Stair", 0.2, ["counter"])])
+def test_one_event_mode_fmu_equals_the_python_loop(reference_fmus, algorithm, model, step, outputs):
+    scene = {"name": "ev", "components": {"m": {"fmu": str(reference_fmus[f"3.0/{model}"])}},
+             "outputs": [f"m.{o}" for o in outputs]}
+    py, cc = both(scene, algorithm=algorithm, step=step)
+    assert_same(py, cc)
+    assert cc.stats["events"]["handled"] == {"BouncingBall": 24, "Stair": 9}[model]
+
+
+@pytest.mark.parametrize("algorithm", FIXED)
+def test_a_coupled_fmu_rolled_back_to_the_event_equals_the_python_loop(reference_fmus, algorithm):
+    """Feedthrough, fed by the ball, stepped past a bounce (Gauss-Seidel) is restored through its
+    FMU state and stepped to the bounce; under Jacobi it steps only to the bounce."""
+    comps = {"ball": {"fmu": str(reference_fmus["3.0/BouncingBall"])},
+             "f": {"fmu": str(reference_fmus["3.0/Feedthrough"])}}
+    scene = {"name": "pair", "components": comps, "connections": ["ball.v -> f.Float64_continuous_input"],
+             "stop_time": 1.2, "outputs": ["ball.v", "f.Float64_continuous_output"]}
+    py, cc = both(scene, algorithm=algorithm)
+    assert_same(py, cc)
+    assert cc.status == "ok" and cc.stats["events"]["handled"] == 4
+
+
+@pytest.mark.parametrize("order", [["f", "ball"], ["ball", "f"]])
+def test_a_component_that_cannot_roll_back_is_late_as_in_the_python_loop(reference_fmus, order):
+    comps = {"ball": {"fmu": str(reference_fmus["3.0/BouncingBall"])},
+             "f": {"fmu": str(reference_fmus["3.0/VanDerPol"]), "rollback": False}}
+    scene = {"name": "late", "components": comps, "stop_time": 0.6, "outputs": ["ball.h", "f.x0"]}
+    py, cc = both(scene, algorithm="gauss_seidel", order=order)
+    assert_same(py, cc)
+    late = cc.stats["events"]["late"]
+    assert [(e["component"], e["event_of"]) for e in late] == ([("f", "ball")] if order[0] == "f" else [])
+
+
+@pytest.mark.parametrize("algorithm", FIXED)
+def test_two_event_mode_fmus_roll_back_to_the_earlier_event(reference_fmus, algorithm):
+    """Two balls dropped from different heights: each bounce cuts the step for both; the one that
+    stepped past the other's bounce is restored through its FMU state (under Jacobi as well: two
+    event-mode components step first)."""
+    ball = str(reference_fmus["3.0/BouncingBall"])
+    comps = {"a": {"fmu": ball}, "b": {"fmu": ball, "start": {"h": 0.6}}}
+    scene = {"name": "two", "components": comps, "stop_time": 1.5, "outputs": ["a.h", "a.v", "b.h", "b.v"]}
+    py, cc = both(scene, algorithm=algorithm)
+    assert_same(py, cc)
+    t = cc.trace.time
+    assert cc.stats["events"]["handled"] == int((np.diff(t) == 0).sum()) >= 4
+
+
+@pytest.mark.parametrize("fault,step,status", [(2, 0.05, "failed"), (3, 0.01, "event_iteration_failed"),
+                                               (1, 0.01, "unstable")])
+def test_a_misbehaving_event_mode_fmu_ends_the_kernels_run_as_the_python_loops(lag_fmus, fault, step, status):
+    """tests/data/me_lag as an FMI 3.0 event-mode FMU: chattering (more than 1000 events in a step:
+    the kernel's FX_CHATTERING, the message written once), an event iteration that does not settle,
+    a NaN state the guard stops."""
+    scene = {"name": "hostile", "components": {"a": {"fmu": str(lag_fmus["3cs"]), "params": {"fault": fault},
+                                                     "start": {"x": 1.0}}},
+             "stop_time": 1.0, "outputs": ["a.x"]}
+    py, cc = both(scene, algorithm="jacobi", step=step)
+    assert_same(py, cc)
+    assert cc.status == status
+
+
+def test_events_in_a_coupled_loop_of_event_mode_fmus_equal_the_python_loop(lag_fmus):
+    """Two event-mode lags in a loop (tests/data/me_lag's FMI3cs), fault 2 in one: an event at each of
+    its solver steps from 0.5 s, the other rolled back to each (Gauss-Seidel) or stepped only to it
+    (Jacobi)."""
+    fmu = str(lag_fmus["3cs"])
+    comps = {"a": {"fmu": fmu, "params": {"k": 1.0, "g": -1.0, "fault": 2}, "start": {"x": 1.0}},
+             "b": {"fmu": fmu, "params": {"k": 2.0, "g": 1.0}}}
+    scene = {"name": "loop", "components": comps, "connections": ["a.x -> b.u", "b.x -> a.u"], "stop_time": 0.52,
+             "outputs": ["a.x", "b.x"]}
+    for algorithm in FIXED:
+        py, cc = both(scene, algorithm=algorithm)
+        assert_same(py, cc)
+        assert cc.status == "ok" and cc.stats["events"]["handled"] > 100
