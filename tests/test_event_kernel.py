@@ -109,3 +109,27 @@ def test_events_in_a_coupled_loop_of_event_mode_fmus_equal_the_python_loop(lag_f
         py, cc = both(scene, algorithm=algorithm)
         assert_same(py, cc)
         assert cc.status == "ok" and cc.stats["events"]["handled"] > 100
+
+
+@pytest.mark.parametrize("algorithm", FIXED)
+def test_a_callback_fmu_rolls_back_through_its_own_state_as_in_the_python_loop(reference_fmus, algorithm):
+    """Feedthrough with its Int32 output recorded is a callback slave (typed ports); stepped before
+    the ball, it passes each bounce and is restored through the trampolines around its own
+    save_state/restore_state, then stepped to the bounce."""
+    comps = {"ft": {"fmu": str(reference_fmus["3.0/Feedthrough"]), "start": {"Int32_input": 7}},
+             "ball": {"fmu": str(reference_fmus["3.0/BouncingBall"])}}
+    scene = {"name": "typed", "components": comps, "connections": ["ball.v -> ft.Float64_continuous_input"],
+             "stop_time": 1.2, "outputs": ["ball.v", "ft.Float64_continuous_output", "ft.Int32_output"]}
+    py, cc = both(scene, algorithm=algorithm, order=["ft", "ball"])
+    assert_same(py, cc)
+    assert cc.status == "ok" and cc.stats["events"]["late"] == [] and np.all(cc.trace["ft.Int32_output"] == 7)
+
+
+@pytest.mark.parametrize("algorithm", FIXED)
+def test_a_multirate_component_beside_an_event_mode_fmu_equals_the_python_loop(reference_fmus, algorithm):
+    comps = {"ball": {"fmu": str(reference_fmus["3.0/BouncingBall"])},
+             "f": {"fmu": str(reference_fmus["3.0/VanDerPol"]), "rate": 2}}
+    scene = {"name": "rates", "components": comps, "stop_time": 0.6, "outputs": ["ball.h", "f.x0"]}
+    py, cc = both(scene, algorithm=algorithm)
+    assert_same(py, cc)
+    assert cc.stats["events"]["handled"] >= 1

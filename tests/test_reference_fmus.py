@@ -139,14 +139,18 @@ def test_single_fmu_matches_fmpy(reference_fmus, model, fmi, algorithm):
 
 @pytest.mark.parametrize("model", ["BouncingBall", "VanDerPol"])
 def test_compiled_loop_takes_float64_only_fmus(reference_fmus, model):
-    """A Float64-only scene keeps the compiled loop, and it matches FMPy too."""
+    """A Float64-only scene keeps the compiled loop, and it matches FMPy too (BouncingBall in event
+    mode, its steps ended at its events, as FMPy with event mode and early return)."""
     path = reference_fmus[f"3.0/{model}"]
     step = CASES[model][0]
     res = run(from_dict({"name": "ref", "stop_time": 1.0, "master": {"step": step, "engine": "compiled"},
                          "components": {"m": {"fmu": str(path)}}}))
     assert res.stats["engine"] == "compiled"
+    events = bool(getattr(fmpy.read_model_description(str(path)).coSimulation, "hasEventMode", False))
+    assert events == (model == "BouncingBall")
     ref = fmpy.simulate_fmu(str(path), fmi_type="CoSimulation", output_interval=step, stop_time=1.0,
-                            output=[n.split(".", 1)[1] for n in res.trace.names])
+                            output=[n.split(".", 1)[1] for n in res.trace.names], use_event_mode=events,
+                            early_return_allowed=events)
     _assert_equal_traces(res.trace, ref["time"], _columns(ref, "m"), res.trace.names)
 
 
@@ -203,12 +207,22 @@ def test_stop_request_cli_exit_code_and_sidecar(reference_fmus, tmp_path, fmi):
 @pytest.mark.parametrize("fmi", ["2.0", "3.0"])
 def test_stop_request_in_the_compiled_loop(reference_fmus, fmi):
     """Nothing typed recorded: Stair runs in the compiled loop, which hands the stop request (FMI 3.0
-    terminateSimulation, FMI 2.0 Discard + fmi2Terminated) back; the end point t = 9 s is recorded."""
-    res = run(from_dict({"name": "stair", "outputs": [], "master": {"engine": "compiled", "output_interval": 2.0},
-                         "components": {"s": {"fmu": str(reference_fmus[f"{fmi}/Stair"])}}}))
+    terminateSimulation, FMI 2.0 Discard + fmi2Terminated) back; the end point t = 9 s is recorded.
+    FMI 3.0 Stair without event mode (``inputs: linear``: event mode needs held inputs) asks in its
+    doStep; in event mode (the default) it returns early at each step of its counter, the loop
+    writes two rows there, and asks to stop in the event iteration at 9 s."""
+    master = {"engine": "compiled", "output_interval": 2.0}
+    scene = {"name": "stair", "outputs": [], "components": {"s": {"fmu": str(reference_fmus[f"{fmi}/Stair"])}}}
+    res = run(from_dict({**scene, "master": {**master, **({"inputs": "linear"} if fmi == "3.0" else {})}}))
     assert res.stats["engine"] == "compiled"
     assert res.status == "stopped" and res.reason.startswith("stopped by s at t = 9 s"), res.reason
     np.testing.assert_allclose(res.trace.time, [0, 2, 4, 6, 8, 9], rtol=0, atol=ATOL)
+    if fmi == "3.0":
+        res = run(from_dict({**scene, "master": master}))
+        assert res.stats["engine"] == "compiled" and res.stats["events"]["handled"] == 9
+        assert res.status == "stopped" and res.reason == ("stopped by s at t = 9 s: it asked to terminate the "
+                                                          "simulation in its event iteration"), res.reason
+        np.testing.assert_allclose(res.trace.time, [0] + [t for t in range(1, 10) for _ in (0, 1)], rtol=0, atol=ATOL)
 
 
 def test_string_and_binary_are_recorded_as_text_in_the_csv(reference_fmus, tmp_path):
