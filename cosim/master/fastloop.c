@@ -1,5 +1,6 @@
 /* The compiled inner loop of the fixed-step master, Jacobi and Gauss-Seidel (cosim/master/fastloop.py).
-   The Python oracle it is checked against bit for bit: tests/oracles.py. */
+   The Python loop it is checked against bit for bit: Jacobi._step_impl, GaussSeidel._step_impl and, with
+   FMI 3.0 event mode, Algorithm._event_step (tests/test_general_kernel.py, tests/test_event_kernel.py). */
 #include "native.h"
 
 /* the slave's inputs from their sources in v, each through its connection's linear

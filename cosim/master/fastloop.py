@@ -7,7 +7,9 @@ cached on disk by source and compiler; never committed), steps FMUs through thei
 receives as function pointers; a slave without them (a Python slave) or with typed ports is
 called through trampolines around its own methods (:mod:`cosim.master.callbacks`).  It
 implements exactly the algorithms of :mod:`cosim.master` (see there for the conventions) and
-jacobi_extrapolated; the Python loop is the reference it is tested against.
+jacobi_extrapolated, FMI 3.0 event mode included (a step ended at an event, the call returned
+there for the event iteration in Python: ``fx_ctl``, :class:`cosim.master.entries.FixedEnd`);
+the Python loop is the reference it is tested against.
 
 All values live in one float64 vector ``v`` owned by the master: each slave reads its bound
 variables into ``v[out_off : out_off + n_out]`` and takes its connected inputs from
