@@ -133,3 +133,31 @@ def test_a_multirate_component_beside_an_event_mode_fmu_equals_the_python_loop(r
     py, cc = both(scene, algorithm=algorithm)
     assert_same(py, cc)
     assert cc.stats["events"]["handled"] >= 1
+
+
+@pytest.mark.parametrize("algorithm", FIXED)
+def test_our_fmu_checks_the_kernels_calling_sequence_and_bounces_at_the_analytic_times(reference_fmus, cache,
+                                                                                      algorithm):
+    """The catalog's pendulum against a stop as an FMI 3.0 event-mode FMU (ours check the calling
+    sequence: a communication point that does not follow the previous one, or a step after a
+    restored state that does not start at its time, returns Error) beside BouncingBall: each
+    one's event cuts the other's step, the one that stepped past it restored through its FMU
+    state.  The run is ok, equals the Python loop bit for bit, and the pendulum's impacts are at
+    their analytic times among the events."""
+    from test_events import analytic_impacts
+
+    from fmus import build_fmu
+    from models.blocks import make
+
+    pendulum = build_fmu(make("pendulum", "stop"), fmi_version="3.0", cache_dir=cache)
+    comps = {"p": {"fmu": str(pendulum)}, "ball": {"fmu": str(reference_fmus["3.0/BouncingBall"])}}
+    scene = {"name": "bounce", "components": comps, "stop_time": 2.5, "outputs": ["p.state.theta", "ball.h"]}
+    py, cc = both(scene, algorithm=algorithm)
+    assert_same(py, cc)
+    assert cc.status == "ok", cc.reason
+    t = cc.trace.time
+    events = t[1:][np.diff(t) == 0]
+    impacts = analytic_impacts(5)
+    impacts = impacts[impacts < 2.5]
+    assert len(impacts) >= 3 and len(events) > len(impacts) and cc.stats["events"]["late"] == []
+    assert np.all(np.min(np.abs(events[None, :] - impacts[:, None]), axis=1) < 1e-9)
