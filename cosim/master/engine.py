@@ -12,9 +12,9 @@ import numpy as np
 
 from ..errors import UserError
 from . import adaptive_engine, fastloop, iterative_engine
-from .entries import FIXED_CONTROL, FixedEnd, struct
 from .algorithm import MAX_EVENTS_PER_STEP, Algorithm, MasterAlgorithm
 from .algorithms.jacobi_extrapolated import WEIGHTS
+from .entries import FIXED_CONTROL, FixedEnd, struct
 from .native import SlaveArray, builds, called_back
 from .stepper import FixedStepper, StepResult
 from .system import CoupledSystem
@@ -105,8 +105,9 @@ def choose_engine(system: CoupledSystem, engine: str, loop: CompiledLoop) -> str
 
 class _Compiled:
     """Runs Jacobi's or Gauss-Seidel's steps in the compiled loop (:mod:`cosim.master.fastloop`):
-    ``run(nsteps, rec_every, rec) -> rows``, updating the algorithm's step count, status and
-    counters as its own loop would."""
+    ``run(nsteps, rec_every, rec) -> rows``, updating the algorithm's step count, status,
+    counters and event state (a call that ends at an event leaves it pending, its row the left
+    limit) as its own loop would."""
 
     def __init__(self, alg: Algorithm):
         self.lib = fastloop.library()
@@ -194,7 +195,6 @@ class _Compiled:
             alg._fail(i, st, t_fail)
         return rows
 
-
     def _after_events(self, ctl) -> bool:
         """The algorithm's event state after a call (as its Python event step leaves it); True when
         the call ended at an event or ended the run (else the common ending follows)."""
@@ -235,4 +235,5 @@ def variable_loop(name: str, stepper_cls: type) -> CompiledLoop:
     return CompiledLoop(name, library, stepper_cls.needs_rollback, callbacks=True)
 
 
-__all__ = ["CompiledLoop", "ENGINES", "ITERATIVE", "choose_engine", "ends_steps_at_events", "fixed_loop", "fixed_stepper", "variable_loop"]
+__all__ = ["CompiledLoop", "ENGINES", "ITERATIVE", "choose_engine", "ends_steps_at_events", "fixed_loop",
+           "fixed_stepper", "variable_loop"]

@@ -254,8 +254,8 @@ class IterativeEnd(IntEnum):
 
 
 #: The C enums of the header: (prefix, enum).  FMI statuses come as ST_<name>.
-ENUMS: tuple[tuple[str, type[IntEnum]], ...] = (("ST_", Status), ("FX_", FixedEnd), ("AD_", AdaptiveEnd), ("EC_", EccoEnd),
-                                                 ("IT_", IterativeEnd))
+ENUMS: tuple[tuple[str, type[IntEnum]], ...] = (("ST_", Status), ("FX_", FixedEnd), ("AD_", AdaptiveEnd),
+                                                 ("EC_", EccoEnd), ("IT_", IterativeEnd))
 
 
 @dataclass(frozen=True)
@@ -372,5 +372,5 @@ def bind(lib: ctypes.CDLL, entries: Sequence[Entry]) -> None:
 
 
 __all__ = ["ADAPTIVE_CONTROL", "ADAPT_RUN", "AdaptiveEnd", "CRUMB", "ECCO_CONTROL", "ECCO_RUN", "ENTRIES", "ENUMS",
-           "EccoEnd", "Entry", "FIXED_CONTROL", "FixedEnd", "ITERATIVE_CONTROL", "ITER_RUN", "IterativeEnd", "RECORDS", "RUN", "Record", "SLAVE",
-           "bind", "ctypes_struct", "header", "struct"]
+           "EccoEnd", "Entry", "FIXED_CONTROL", "FixedEnd", "ITERATIVE_CONTROL", "ITER_RUN", "IterativeEnd",
+           "RECORDS", "RUN", "Record", "SLAVE", "bind", "ctypes_struct", "header", "struct"]
