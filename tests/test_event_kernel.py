@@ -161,3 +161,20 @@ def test_our_fmu_checks_the_kernels_calling_sequence_and_bounces_at_the_analytic
     impacts = impacts[impacts < 2.5]
     assert len(impacts) >= 3 and len(events) > len(impacts) and cc.stats["events"]["late"] == []
     assert np.all(np.min(np.abs(events[None, :] - impacts[:, None]), axis=1) < 1e-9)
+
+
+@pytest.mark.parametrize("algorithm", FIXED)
+def test_an_output_interval_longer_than_the_step_keeps_every_event_row_as_in_the_python_loop(reference_fmus,
+                                                                                            algorithm):
+    """Rows every 5th step, and two at each event whatever the grid (the kernel records the grid
+    rows, Python the event's left limit)."""
+    comps = {"ball": {"fmu": str(reference_fmus["3.0/BouncingBall"])},
+             "f": {"fmu": str(reference_fmus["3.0/Feedthrough"])}}
+    scene = {"name": "grid", "components": comps, "connections": ["ball.v -> f.Float64_continuous_input"],
+             "stop_time": 2.0, "outputs": ["ball.v", "f.Float64_continuous_output"]}
+    py, cc = both(scene, algorithm=algorithm, output_interval=0.05)
+    assert_same(py, cc)
+    t = cc.trace.time
+    grid = t[np.abs(t * 20 - np.round(t * 20)) < 1e-9]
+    assert np.array_equal(np.unique(grid), np.round(np.arange(0, 2.0001, 0.05), 9))
+    assert int((np.diff(t) == 0).sum()) == cc.stats["events"]["handled"] >= 4
