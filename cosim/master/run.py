@@ -63,9 +63,11 @@ def simulate(system: CoupledSystem, algorithm_name: str, *, step_ns: int, n_step
         # FMI 3.0 event mode and early return where the FMU has them and the algorithm ends steps at events
         # (on the engine asked for: adaptive's and iterative's compiled loops leave the events inside doStep)
         # (a variable-step master cuts its step at an event by rolling every slave back: all must roll back)
+        # (a multirate component's sub-steps run on the macro step's own sub-instants and cannot end at an
+        # event: in a scene with one, every component keeps its events inside doStep)
         s_.event_mode = bool(ends_steps_at_events(cls, engine) and (inputs == "hold" or variable)
                              and getattr(s_, "fmi3", False)
-                             and s_.description.has_event_mode and not (rates and rates[i] != 1)
+                             and s_.description.has_event_mode and not (rates and any(r != 1 for r in rates))
                              and not (variable and not all(x.can_rollback for x in system.slaves)))
     if any(s_.event_mode for s_ in system.slaves) and (len(system.slaves) > 1 or variable):
         for s_ in system.slaves:  # an early return rolls the others back to the event time
