@@ -16,6 +16,19 @@ Indicators: ``x - hi`` and ``lo - x`` (rising; exactly 0 while resting on that s
 fires), and the push (falling) while resting, the constant 1 while free: switching it on fires
 it only if the push is already gone, switching it off (its own event) takes it upwards, which
 a falling indicator ignores.
+
+:func:`clamp_stops` is the other law, for a body whose rate ``r`` is a drive's (a lead screw's
+rod, moved at the rate its motor turns): the stop holds the body, not the drive, so nothing is
+reset.  Modes ``hold``, ``impacts`` (arrivals), ``t_arrival`` and ``t_release`` (clocks: the time
+of the last arrival and the last release):
+
+- free (``hold = 0``): ``dx/dt = r``;
+- arrival, located where ``x`` reaches ``hi`` rising (or ``lo`` falling): ``x+ = hi``,
+  ``hold = +1``; the drive's own states run on;
+- resting (``hold = +-1``): ``dx/dt = 0``; it leaves (``hold = 0``) where the drive's rate ``r``
+  turns away from the stop (falls through 0 on the upper stop, rises through 0 on the lower).
+
+The same indicators as above, with ``r`` (towards the stop) in place of the push.
 """
 from __future__ import annotations
 
@@ -37,6 +50,7 @@ class StopEvents:
     directions: list[int] = field(default_factory=list)
     names: list[str] = field(default_factory=list)
     changes: list[dict] = field(default_factory=list)  # per indicator: symbol name -> new value
+    t: ca.SX | None = None  # the time symbol, where an update reads the time (a clock)
 
     def block_kw(self, x: ca.SX, m_extra: list[ca.SX] | None = None) -> dict:
         """``Block.build`` keywords: modes, indicators, directions, names and full updates of
@@ -46,7 +60,7 @@ class StopEvents:
         updates = [ca.vertcat(*[ch.get(s.name(), s) for s in syms]) for ch in self.changes]
         return dict(modes=self.modes, m=ca.vertcat(*ms), mode_start=self.mode_start,
                     indicators=ca.vertcat(*self.indicators), directions=self.directions, event_names=self.names,
-                    updates=updates)
+                    updates=updates, **({"t": self.t} if self.t is not None else {}))
 
 
 def end_stops(ev: StopEvents, prefix: str, x: ca.SX, v: ca.SX, accel: ca.SX, lo, hi, e, v_rest,
@@ -76,3 +90,27 @@ def end_stops(ev: StopEvents, prefix: str, x: ca.SX, v: ca.SX, accel: ca.SX, lo,
     dx = ca.if_else(free, v, 0.0)
     dv = ca.if_else(free, accel, 0.0)
     return dx, dv, {"hold": hold, "impacts": impacts, "v_impact": v_imp}
+
+
+def clamp_stops(ev: StopEvents, prefix: str, x: ca.SX, rate: ca.SX, lo, hi, t: ca.SX,
+                unit: str = "m") -> tuple[ca.SX, dict[str, ca.SX]]:
+    """Add a clamping stop pair at ``lo``/``hi`` on the body ``x`` moved at the drive's rate
+    ``rate`` to ``ev`` (module docstring); returns ``(dx/dt, modes)`` with the modes by short
+    name (``hold``, ``impacts``, ``t_arrival``, ``t_release``).  ``x`` must be a state entry,
+    ``t`` the block's time symbol."""
+    hold, impacts = ca.SX.sym(f"{prefix}hold"), ca.SX.sym(f"{prefix}impacts")
+    t_in, t_out = ca.SX.sym(f"{prefix}t_arrival"), ca.SX.sym(f"{prefix}t_release")
+    ev.modes += [Var(f"mode.{prefix}hold", "1", "0 free, +1 resting on the upper stop, -1 on the lower"),
+                 Var(f"mode.{prefix}impacts", "1", "arrivals at the stops so far"),
+                 Var(f"mode.{prefix}t_arrival", "s", "time of the last arrival at a stop"),
+                 Var(f"mode.{prefix}t_release", "s", "time of the last release from a stop")]
+    ev.m += [hold, impacts, t_in, t_out]
+    ev.mode_start += [0.0, 0.0, 0.0, 0.0]
+    ev.t = t
+    ev.indicators += [x - hi, lo - x, ca.if_else(hold == 1, rate, ca.if_else(hold == -1, -rate, 1.0))]
+    ev.directions += [RISING, RISING, FALLING]
+    ev.names += [f"{prefix}upper_stop", f"{prefix}lower_stop", f"{prefix}leaves_stop"]
+    for side, stop in ((1, hi), (-1, lo)):
+        ev.changes.append({x.name(): ca.SX(stop), hold.name(): float(side), impacts.name(): impacts + 1, t_in.name(): t})
+    ev.changes.append({hold.name(): ca.SX(0.0), t_out.name(): t})
+    return ca.if_else(hold == 0, rate, 0.0), {"hold": hold, "impacts": impacts, "t_arrival": t_in, "t_release": t_out}
