@@ -120,3 +120,18 @@ def test_clamp_and_impact_without_restitution_agree_while_the_rod_rests(cache):
     assert clamp.get("mode.hold") == [1.0] and clamp.get("stroke") == [HI]  # still held
     clamp.run_to(1.3, -12.0)
     assert clamp.get("mode.t_release")[0] == pytest.approx(t_rev + release(v_at(0.0, V_NL, t_rev), -V_NL), abs=1e-10)
+
+
+@pytest.mark.parametrize("end_stops", ["clamp", "impact"])
+def test_a_leg_started_on_a_stop_rests_there_or_leaves_it(end_stops, cache):
+    """Started on a stop (its arrival indicator exactly 0, which never fires: without the start
+    mode a drive pushing outwards carried the rod through the stop): pushed into it, the rod
+    rests there; pulled away, it leaves at once along the free lag from rest."""
+    for x0, u, side in ((HI, 12.0, 1.0), (HI, -12.0, 0.0), (0.0, -12.0, -1.0), (0.0, 12.0, 0.0)):
+        a = Actuator(cache, end_stops, "rk4", x0)
+        assert a.get("mode.hold") == [1.0 if x0 else -1.0]
+        a.run_to(0.3, u)
+        stroke, hold = a.get("stroke", "mode.hold")
+        assert hold == side, (x0, u)
+        want = x0 if side else x0 + travel(0.0, V_NL * u / 12, 0.3)
+        assert stroke == pytest.approx(want, abs=1e-10), (x0, u)

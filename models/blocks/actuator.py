@@ -81,16 +81,22 @@ def _stop_params(ps: ParamSet) -> dict[str, ca.SX]:
             "v_rest": ps.add("v_rest", 1e-6, "m/s", "rebound speed below which the rod rests on a stop", lower=0.0)}
 
 
-def _leg(p: dict, u, f_load, x, v, ev: StopEvents, clamp: bool, t: ca.SX, prefix: str = ""):
-    """(dx/dt, dv/dt, v at the rod, impacts) of one actuator, its end stops located events
-    (:mod:`._stops`): clamped (``clamp``) or impacts."""
+def _leg(p: dict, u, f_load, x, v, x0, ev: StopEvents, clamp: bool, t: ca.SX, prefix: str = ""):
+    """(dx/dt, dv/dt, v at the rod, impacts) of one actuator starting at the stroke ``x0``, its
+    end stops located events (:mod:`._stops`): clamped (``clamp``) or impacts."""
     u_sat = ca.fmin(p["v_rated"], ca.fmax(-p["v_rated"], u))
     v_free = p["v_nl"] * u_sat / p["v_rated"] - p["v_nl"] * f_load / p["f_stall"]
     if clamp:
-        dx, modes = clamp_stops(ev, prefix, x, v, 0.0, p["stroke_max"], t)
+        dx, modes = clamp_stops(ev, prefix, x, v, 0.0, p["stroke_max"], t, x0=x0)
         return dx, (v_free - v) / p["tau"], dx, modes["impacts"]
-    dx, dv, modes = end_stops(ev, prefix, x, v, (v_free - v) / p["tau"], 0.0, p["stroke_max"], p["e"], p["v_rest"])
+    dx, dv, modes = end_stops(ev, prefix, x, v, (v_free - v) / p["tau"], 0.0, p["stroke_max"], p["e"], p["v_rest"],
+                              x0=x0)
     return dx, dv, dx, modes["impacts"]
+
+
+def _stroke_start(p: dict, s0) -> ca.SX:
+    """The stroke at the start [m]: the leg length ``s0`` within the stroke."""
+    return ca.fmin(p["stroke_max"], ca.fmax(0, s0 - p["s_offset"]))
 
 
 def rig(actuator: str = "fa200", integrator: str = "rk4", substeps: int = 1, end_stops: str = "clamp") -> Block:
@@ -107,7 +113,7 @@ def rig(actuator: str = "fa200", integrator: str = "rk4", substeps: int = 1, end
     ode, out, states, inputs, outputs, start = [], [], [], [], [], []
     for k, i in enumerate((1, 2, 3)):
         x, v = xs[2 * k], xs[2 * k + 1]
-        dx, dv, v_rod, n = _leg(p, u[k], 0.0, x, v, ev, clamp, t, f"leg[{i}].")
+        dx, dv, v_rod, n = _leg(p, u[k], 0.0, x, v, _stroke_start(p, s0[k]), ev, clamp, t, f"leg[{i}].")
         counts.append(n)
         ode += [dx, dv]
         out += [p["s_offset"] + x, x, v_rod]
@@ -115,7 +121,7 @@ def rig(actuator: str = "fa200", integrator: str = "rk4", substeps: int = 1, end
         states += [Var(f"state.leg[{i}].stroke", "m", f"leg {i} stroke"), Var(f"state.leg[{i}].v", "m/s", f"leg {i} speed")]
         outputs += [Var(f"leg[{i}].s", "m", f"leg {i} length"), Var(f"leg[{i}].stroke", "m", f"leg {i} stroke"),
                     Var(f"leg[{i}].v", "m/s", f"leg {i} extension rate")]
-        start += [ca.fmin(p["stroke_max"], ca.fmax(0, s0[k] - p["s_offset"])), ca.SX(0)]
+        start += [_stroke_start(p, s0[k]), ca.SX(0)]
     out += counts
     outputs += [Var(f"leg[{i}].impacts", "1", f"leg {i}: arrivals at an end stop so far") for i in (1, 2, 3)]
     return Block.build("linear_actuator", description=f"three {actuator} linear actuators (the rig, thesis.md §7)",
@@ -134,7 +140,7 @@ def single(actuator: str = "fa200", integrator: str = "rk4", substeps: int = 1, 
         p.update(_stop_params(ps))
     u = ca.SX.sym("u", 2)
     xs = ca.SX.sym("x", 2)
-    dx, dv, v_rod, n = _leg(p, u[0], u[1], xs[0], xs[1], ev, clamp, ca.SX.sym("t"))
+    dx, dv, v_rod, n = _leg(p, u[0], u[1], xs[0], xs[1], _stroke_start(p, s0), ev, clamp, ca.SX.sym("t"))
     outputs = [Var("s", "m", "leg length"), Var("stroke", "m", "stroke"), Var("v", "m/s", "extension rate"),
                Var("impacts", "1", "arrivals at an end stop so far")]
     out = [p["s_offset"] + xs[0], xs[0], v_rod, n]
@@ -143,7 +149,7 @@ def single(actuator: str = "fa200", integrator: str = "rk4", substeps: int = 1, 
         inputs=[Var("u", "V", "driver voltage"), Var("f_load", "N", "load force opposing extension")],
         outputs=outputs, states=[Var("state.stroke", "m", "stroke"), Var("state.v", "m/s", "speed")], p=ps.vector(),
         u=u, x=xs, ode=ca.vertcat(dx, dv), out=ca.vertcat(*out),
-        start=ca.vertcat(ca.fmin(p["stroke_max"], ca.fmax(0, s0 - p["s_offset"])), 0), integrator=integrator,
+        start=ca.vertcat(_stroke_start(p, s0), 0), integrator=integrator,
         substeps=substeps, fidelity="single", **ev.block_kw(xs))
 
 
