@@ -6,16 +6,17 @@ event scenes against their smooth variants at equal tolerance.
    an impact minus the median of those that do not is the cost of one event (location on the
    dense output, the retaken step, the update and the restart), printed also as a multiple of
    one plain ``doStep`` of the same FMU.
-2. **Scenes at equal tolerance.**  ``rig_end_stop`` (located impacts) against
-   ``rig_end_stop_clamp`` (the stops clamped in the right-hand side) and ``stick_slip`` (stick and
-   slip modes) against ``stick_slip_smooth`` (tanh/Stribeck law), each run as it runs by default:
+2. **Scenes at equal tolerance.**  ``rig_end_stop`` (located impacts, restitution 0) beside
+   ``rig_end_stop_clamp`` (the rig's default clamped stops, located too) and ``stick_slip`` (stick
+   and slip modes) against ``stick_slip_smooth`` (tanh/Stribeck law), each run as it runs by default:
    its error estimate on and within the tolerance 1e-3 of range (the master choosing its settings
    where the scene names no algorithm; ``stick_slip_smooth`` steps 0.1 ms where ``stick_slip``
    steps 0.5 ms).  Wall time of the stepping loop and of the whole run (pilots and companion),
    best of ``--repeat``, of its monolithic reference, and the worst error of its signals against
    its own reference (between events: windows of the event-time error plus one output interval).
 
-Usage: ``python3 benchmarks/bench_events.py [--steps N] [--repeat R] [--skip-scenes]``
+Usage: ``python3 benchmarks/bench_events.py [--steps N] [--repeat R] [--skip-scenes] [--skip-event-cost]
+[--scene NAME ...]``
 """
 from __future__ import annotations
 
@@ -86,7 +87,7 @@ def one_event(steps: int, repeat: int) -> None:
               f"one event {(m_ev - m_plain) * 1e6:7.2f} us ({(m_ev - m_plain) / m_plain:.1f} doSteps)")
 
 
-def scenes(repeat: int) -> None:
+def scenes(repeat: int, only: list[str] | None = None) -> None:
     from cosim.analysis.compare import (compare, compare_between_events, times_from_clock, times_from_counter,
                                         windows)
     from cosim.run.execute import run
@@ -97,12 +98,18 @@ def scenes(repeat: int) -> None:
           f"wall time best of {repeat}: the stepping loop and the whole run (pilots and companion included); worst "
           "error of the listed signals against each one's own monolithic reference, relative to range, between "
           "events for the event scenes")
-    pairs = (("rig_end_stop", "rig_end_stop_clamp", ["rig.leg*.s", "pid*.y"],
-              lambda tr: [times_from_counter(tr, f"rig.leg[{i}].impacts") for i in (1, 2, 3)]),
-             ("stick_slip", "stick_slip_smooth", ["mass.x", "mass.v", "mass.friction", "pid.y"],
-              lambda tr: [times_from_clock(tr, "mass.t_stick"), times_from_clock(tr, "mass.t_slip")]))
-    for events_scene, smooth_scene, signals, times in pairs:
-        for name in (events_scene, smooth_scene):
+
+    def arrivals(tr):
+        return [times_from_counter(tr, f"rig.leg[{i}].impacts") for i in (1, 2, 3)]
+
+    def switches(tr):
+        return [times_from_clock(tr, "mass.t_stick"), times_from_clock(tr, "mass.t_slip")]
+
+    legs, mass = ["rig.leg*.s", "pid*.y"], ["mass.x", "mass.v", "mass.friction", "pid.y"]
+    table = (("rig_end_stop", legs, arrivals), ("rig_end_stop_clamp", legs, arrivals), ("stick_slip", mass, switches),
+             ("stick_slip_smooth", mass, None))
+    for name, signals, times in table:
+        if not only or name in only:
             path = ROOT / "scenarios" / f"{name}.yaml"
             run(path)  # build the FMUs (cached) before timing
             best = None
@@ -116,7 +123,7 @@ def scenes(repeat: int) -> None:
             t0 = time.perf_counter()
             ref = reference(path)
             t_ref = time.perf_counter() - t0
-            if name == events_scene:
+            if times is not None:
                 w = windows(list(zip(times(res.trace), times(ref.trace))), 1e-3)
                 diffs = compare_between_events(res.trace, ref.trace, w, signals)
             else:
@@ -138,10 +145,13 @@ def main() -> None:
     ap.add_argument("--steps", type=int, default=2000)
     ap.add_argument("--repeat", type=int, default=3)
     ap.add_argument("--skip-scenes", action="store_true")
+    ap.add_argument("--skip-event-cost", action="store_true", help="skip part 1 (the cost of one event)")
+    ap.add_argument("--scene", action="append", help="part 2 for this scene only (repeatable)")
     args = ap.parse_args()
-    one_event(args.steps, args.repeat)
+    if not args.skip_event_cost:
+        one_event(args.steps, args.repeat)
     if not args.skip_scenes:
-        scenes(args.repeat)
+        scenes(args.repeat, args.scene)
 
 
 if __name__ == "__main__":

@@ -29,7 +29,8 @@ Wire = tuple[str, str, str, str]
 @dataclass
 class Composite:
     """``dx/dt = ode(x)`` with ``x`` the blocks' states stacked in block order from ``x0``;
-    ``signals[(block, name)]`` is every input and output of every block as an expression of ``x``.
+    ``signals[(block, name)]`` is every input, output, state and mode of every block as an expression of ``x``
+    (and ``m``).
     With an algebraic loop (``compose(..., loops=True)``), ``z`` are the cut inputs (start guess
     ``z0``), ``0 = alg`` closes the loop, and ``ode`` and ``signals`` depend on ``z`` too."""
 
@@ -156,6 +157,8 @@ def compose(blocks: Mapping[str, Block], params: Mapping[str, np.ndarray | ca.SX
         inputs_now[n] = u
         signals.update({(n, v.name): u[j] for j, v in enumerate(b.inputs)})
         signals.update({(n, v.name): y[j] for j, v in enumerate(b.outputs)})
+        signals.update({(n, v.name): xs[n][j] for j, v in enumerate(b.states)})  # recordable as in the FMU
+        signals.update({(n, v.name): ms[n][j] for j, v in enumerate(b.modes)})
         nx = b.x.numel()
         slices[n] = slice(k, k + nx)
         k += nx

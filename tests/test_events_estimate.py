@@ -211,3 +211,117 @@ def test_the_sampled_rig_step_estimate_agrees_with_the_event_reference(cache, tm
     near = np.array([np.any(np.abs(apart - x) <= 2e-3 + 1e-9) for x in t])
     assert np.abs(va - vb)[~near].max() < 1e-3 * 12.0  # elsewhere within the tolerance of the 12 V range
     assert all(est["errors"][n] == 0.0 for n in codes + volts)
+
+
+# --- the rig's default end stops (clamp): arrivals and releases located, the estimate honest -----
+END_STOP_CLAMP = ROOT / "scenarios" / "rig_end_stop_clamp.yaml"
+
+
+def _between(res, ref, clocks: list[str] | None = None) -> dict[str, float]:
+    """Each leg's and voltage's error [of range] against the reference, outside a window around
+    the arrivals (counters) or the arrivals and releases (``clocks``)."""
+    from cosim.analysis.compare import compare_between_events, times_from_clock, times_from_counter, windows
+
+    if clocks:
+        pairs = [(times_from_clock(res.trace, n), times_from_clock(ref.trace, n)) for n in clocks]
+    else:
+        pairs = [(times_from_counter(res.trace, f"rig.leg[{i}].impacts"),
+                  times_from_counter(ref.trace, f"rig.leg[{i}].impacts")) for i in (1, 2, 3)]
+    return {d.name: d.relative for d in compare_between_events(res.trace, ref.trace, windows(pairs, 1e-3),
+                                                               ["rig.leg*.s", "pid*.y"])}
+
+
+def test_the_clamped_end_stop_estimate_sees_its_error(cache, tmp_path):
+    """rig_end_stop_clamp (the rig's default stops, the arrival located inside the rig FMU's step;
+    once a kink inside the steps: estimated 1.6e-5, truly 1.5e-3): "ok", its estimate within 1.5x
+    of its worst error against the event reference (LSODA), that error within the tolerance, one
+    arrival of leg 2, as the reference locates."""
+    from cosim.run.execute import run
+    from cosim.run.reference import reference
+
+    res = run(END_STOP_CLAMP, cache_dir=cache, out_dir=tmp_path)
+    assert res.status == "ok", res.reason
+    ref = reference(END_STOP_CLAMP)
+    assert ref.status == "ok", ref.reason
+    assert [e["event"] for e in ref.stats["events"]["list"]] == ["rig.leg[2].upper_stop"]
+    assert res.stats["events"]["counted"]["rig"] == {"leg[1].impacts": 0, "leg[2].impacts": 1, "leg[3].impacts": 0}
+    assert res.trace["rig.leg[2].s"].max() == pytest.approx(0.36, abs=1e-12)  # on the stop, never past it
+    true = _between(res, ref)
+    worst, est = max(true.values()), res.stats["estimate"]["worst"]
+    assert worst < 1e-3 and worst / 1.5 <= est <= 1.5 * worst, (est, true)
+
+
+def test_the_clamp_and_impacts_without_restitution_agree_while_the_leg_rests(cache, tmp_path):
+    """rig_end_stop (impacts, e = 0) and rig_end_stop_clamp: leg 2 rests on its stop from its
+    arrival to the end, where both laws hold the rod (they differ only in the motor speed, which no
+    output shows): the references locate the same arrival and record the same legs and voltages;
+    the co-simulations are equal too."""
+    from cosim.analysis.compare import compare
+    from cosim.run.execute import run
+    from cosim.run.reference import reference
+
+    impact = ROOT / "scenarios" / "rig_end_stop.yaml"
+    refs = [reference(s) for s in (END_STOP_CLAMP, impact)]
+    t = [[e["time"] for e in r.stats["events"]["list"]] for r in refs]
+    assert len(t[0]) == len(t[1]) == 1 and t[0][0] == pytest.approx(t[1][0], abs=1e-9)
+    assert max(d.relative for d in compare(refs[0].trace, refs[1].trace, ["rig.leg*.s", "pid*.y"])) < 1e-9
+    runs = [run(s, cache_dir=cache, out_dir=tmp_path / s.stem) for s in (END_STOP_CLAMP, impact)]
+    assert max(d.max_abs for d in compare(runs[0].trace, runs[1].trace, ["rig.leg*.s", "pid*.y"])) < 1e-12
+
+
+RELEASES = """
+name: rig_stop_sine
+stop_time: 4.0
+components:
+  target: {model: pose_setpoint, options: {profile: sine}}
+  pid1: {model: pid, params: {Kp: 2000, Ki: 0, Kd: 0, u_max: 12}}
+  pid2: {model: pid, params: {Kp: 2000, Ki: 0, Kd: 0, u_max: 12}}
+  pid3: {model: pid, params: {Kp: 2000, Ki: 0, Kd: 0, u_max: 12}}
+  rig:
+    model: linear_actuator
+    params:
+      stroke_max: 0.26
+      leg[1].s0: 0.31086
+      leg[2].s0: 0.35586
+      leg[3].s0: 0.20428
+connections:
+""" + "".join(f"  - target.leg[{i}].s -> pid{i}.setpoint\n  - rig.leg[{i}].s -> pid{i}.measurement\n"
+              f"  - pid{i}.y -> rig.leg[{i}].u\n" for i in (1, 2, 3)) + """
+master: {step: 1e-3, inputs: hold, output_interval: 1e-3}
+outputs:
+  - rig.leg[*].s
+  - target.leg[*].s
+  - pid*.y
+  - rig.leg[*].impacts
+  - rig.mode.leg[2].t_arrival
+  - rig.mode.leg[2].t_release
+"""
+
+
+def test_clamped_stops_arrive_and_release_in_a_loop_as_the_reference_does(cache, tmp_path):
+    """Chapter 7's sine path on the rig with its stroke shortened to 0.26 m and the default stops:
+    leg 2 arrives at its upper stop three times and leaves it twice (its P voltage reverses, the
+    motor speed decays through zero).  The run ("ok") and the event reference place every arrival
+    and release within 1e-5 s of each other and agree within 1e-4 of range between them; the
+    run's estimate is within 1.5x of each signal's true error, its event time within 2x."""
+    from cosim.analysis.compare import match_events, times_from_clock
+    from cosim.run.execute import run
+    from cosim.run.reference import reference
+
+    scene = tmp_path / "rig_stop_sine.yaml"
+    scene.write_text(RELEASES)
+    res, ref = run(scene, cache_dir=cache, out_dir=tmp_path), reference(scene)
+    assert res.status == "ok" and ref.status == "ok", (res.reason, ref.reason)
+    kinds = [e["event"] for e in ref.stats["events"]["list"]]
+    assert kinds == ["rig.leg[2].upper_stop", "rig.leg[2].leaves_stop"] * 2 + ["rig.leg[2].upper_stop"]
+    clocks = ["rig.mode.leg[2].t_arrival", "rig.mode.leg[2].t_release"]
+    timing = [match_events(n, times_from_clock(res.trace, n), times_from_clock(ref.trace, n)) for n in clocks]
+    assert [m.matched for m in timing] == [3, 2] and all(not m.missing for m in timing)
+    dt = max(m.max_error for m in timing)
+    assert dt < 1e-5
+    est = res.stats["estimate"]
+    assert est["events"]["matched"] >= 5 and dt / 2 <= est["events"]["time_error"] <= 2 * dt
+    true = _between(res, ref, clocks)
+    assert max(true.values()) < 1e-4
+    for name, e in true.items():
+        assert e / 1.5 <= est["errors"][name] <= 1.5 * e, (name, est["errors"][name], e)

@@ -173,3 +173,14 @@ def test_fit_of_pid_step_motors_against_cvodes(tmp_path):
     assert pb.substeps == math.ceil(1e-3 * 0.574 / 0.251e-3 / 0.5) == 5
     res = solve(pb)
     assert np.allclose(res.theta, 0.7, rtol=1e-3), res.theta
+
+
+def test_a_scene_with_events_is_refused_in_one_line(recording):
+    """The rig fidelity's end stops are located events (modes): the fit's RK4 trajectory integrates
+    continuous models only, and says so."""
+    scene = load(SCENE, [f"components.rec.replay={recording}", f"stop_time={SECONDS}", "components.rig.fidelity=rig",
+                         "outputs=rig.leg[1].s"])
+    with pytest.raises(UserError) as exc:
+        build(scene, recording, ["rig.v_nl"])
+    assert "rig has events (modes, located crossings); the fit integrates continuous models only" in str(exc.value)
+    assert "\n" not in str(exc.value)

@@ -12,7 +12,6 @@ import pytest
 from hardware import daemon, faketree, protocol as P, virtual
 from hardware.convert import Calibration
 from models.blocks import make
-from models.integrators import Stepper
 
 MS = 1_000_000
 V_NL, TAU = 0.02032, 0.02  # FA-200-L-12 (SPEC §7) and the block's assumed time constant
@@ -24,17 +23,40 @@ def step_response(u: float, t: float) -> float:
     return V_NL * u / 12 * (t - TAU * (1 - math.exp(-t / TAU)))
 
 
+def _fmu_states(blk, u: list[float], steps: int, cache, states: list[str], **params: float) -> list[float]:
+    """The states ``states`` of the block's FMU (its end stops located inside doStep) after
+    ``steps`` steps of 1 ms with the inputs ``u`` held."""
+    from fmpy import extract, read_model_description
+    from fmpy.fmi2 import FMU2Slave
+
+    from fmus import build_fmu
+
+    path = build_fmu(blk, cache_dir=cache)
+    md = read_model_description(str(path))
+    vr = {v.name: v.valueReference for v in md.modelVariables}
+    fmu = FMU2Slave(guid=md.guid, unzipDirectory=extract(str(path)), modelIdentifier=md.coSimulation.modelIdentifier,
+                    instanceName="actuator")
+    fmu.instantiate()
+    fmu.setReal([vr[k] for k in params], list(params.values()))
+    fmu.setupExperiment(startTime=0.0)
+    fmu.enterInitializationMode()
+    fmu.setReal([v.valueReference for v in md.modelVariables if v.causality == "input"], u)
+    fmu.exitInitializationMode()
+    for k in range(steps):
+        fmu.doStep(k * 1e-3, 1e-3)  # raises on an error
+    out = fmu.getReal([vr[n] for n in states])
+    fmu.terminate()
+    fmu.freeInstance()
+    return out
+
+
 @pytest.mark.parametrize("fidelity, u", [("single", 12.0), ("single", -6.0), ("rig", 3.0)])
-def test_actuator_block_step_response(fidelity, u):
+def test_actuator_block_step_response(fidelity, u, cache):
     blk = make("linear_actuator", fidelity)
-    st = Stepper(blk)
-    p = blk.param_defaults
-    x = np.asarray(st.start(p), dtype=float).reshape(-1)
-    x0 = x[0]
+    names = ["state.stroke", "state.v"] if fidelity == "single" else ["state.leg[1].stroke", "state.leg[1].v"]
     uu = [u, 0.0] if fidelity == "single" else [u, u, u]
-    for _ in range(700):
-        x, ok = st.step(x, uu, p, 1e-3)
-        assert ok
+    x0 = _fmu_states(blk, uu, 0, cache, names)[0]
+    x = _fmu_states(blk, uu, 700, cache, names)
     assert x[0] - x0 == pytest.approx(step_response(u, 0.7), rel=1e-6)
     assert x[1] == pytest.approx(V_NL * u / 12 * (1 - math.exp(-0.7 / TAU)), rel=1e-6)
 
@@ -43,17 +65,13 @@ def test_actuator_block_step_response(fidelity, u):
 def test_actuator_presets_initial_acceleration(preset, accel):
     # the X actuator's one published figure: 15 g from rest at the rated voltage (thesis 8.1.7)
     blk = make("linear_actuator", "single", actuator=preset)
-    xdot = blk.functions()["ode"]([0.1, 0.0], [12.0, 0.0], blk.param_defaults)
+    xdot = blk.functions()["ode"]([0.1, 0.0], [12.0, 0.0], blk.param_defaults, [0.0] * blk.m.numel())
     assert float(xdot[1]) == pytest.approx(accel, rel=1e-9)
 
 
-def test_end_stop_holds_the_stroke():
-    blk = make("linear_actuator", "single", s0=0.59)  # 9 mm from the end of the 0.5 m stroke
-    st = Stepper(blk)
-    p = blk.param_defaults
-    x = np.asarray(st.start(p), dtype=float).reshape(-1)
-    for _ in range(2000):
-        x, _ = st.step(x, [12.0, 0.0], p, 1e-3)
+def test_end_stop_holds_the_stroke(cache):
+    blk = make("linear_actuator", "single")  # s0 = 0.59 m: 9 mm from the end of the 0.5 m stroke
+    x = _fmu_states(blk, [12.0, 0.0], 2000, cache, ["state.stroke"], s0=0.59)
     assert x[0] == pytest.approx(0.5, abs=V_NL * 1e-3)
 
 

@@ -223,6 +223,10 @@ def build(scene: Scene, data_path: Path | str, patterns: Sequence[str], *, signa
         cols = sorted({cn.src_var for cn in scene.connections if cn.src == cname})
         sources[cname] = _source(rep, cols)
         feeds += [(cname, col) for col in cols]
+    evented = [n for n, c in scene.components.items() if getattr(c.block, "has_events", False)]
+    if evented:
+        raise UserError(f"scene {scene.name}: {', '.join(evented)} has events (modes, located crossings); the fit "
+                        f"integrates continuous models only (the rig's 'motor' fidelity is one)")
     comp = composite(scene, symbols=symbols, sources=sources)
     if comp.z.numel():
         raise UserError(f"scene {scene.name}: an algebraic loop ({', '.join(f'{b}.{i}' for b, i in comp.cuts)}); "

@@ -148,12 +148,20 @@ def integrate(comp: Composite, signals: ca.Function, grid: np.ndarray, tol: Tole
         def jac(tt, y, m=m):
             return np.array(model.jac(tt, y, m))
 
-        funcs, armed = [], []
+        funcs, armed, last = [], [], {}
+
+        def zs(tt, y, m=m) -> np.ndarray:
+            """The indicators at ``(tt, y)``, evaluated once for all (SciPy asks each in turn)."""
+            key = (tt, y.tobytes())
+            if last.get("key") != key:
+                last["key"], last["z"] = key, model.zval(tt, y, m)
+            return last["z"]
+
         for i, e in enumerate(model.indicators):
             # SciPy counts an indicator resting at zero (an end stop held, a stuck mass's idle
             # indicator) as a crossing: each directed one is watched EPS_Z on its far side
-            def g(tt, y, i=i, m=m, shift=EPS_Z * e.direction):
-                return float(model.z(tt, y, m)[i]) - shift
+            def g(tt, y, i=i, shift=EPS_Z * e.direction):
+                return float(zs(tt, y)[i]) - shift
             g.terminal, g.direction = True, float(e.direction)
             funcs.append(g)
             armed.append(i)

@@ -81,8 +81,9 @@ def _entries() -> dict[str, dict[str, _Entry]]:
                                       "the thesis's 'X' actuator", choices=tuple(actuator.ACTUATORS))
     channels = Option("channels", 1, "number of channels (legs), 1 to 64",
                       check=lambda v: positive_int(v) or (None if v <= 64 else "must be at most 64"))
-    stops = Option("end_stops", "clamp", "end stops: 'clamp' (rate zeroed at the ends) or 'impact' (arrivals located "
-                                         "as events, restitution e, rest on the stop)", choices=actuator.END_STOPS)
+    stops = Option("end_stops", "clamp", "end stops, located as events: 'clamp' (the rod held on the stop, the motor "
+                                         "speed running on) or 'impact' (restitution e, "
+                                         "rest on the stop)", choices=actuator.END_STOPS)
     return {
         "mechanism": {
             "rigid": _Entry(mechanism.rigid, (CONFIG, integrator_option("rk4"), SUBSTEPS)),

@@ -23,12 +23,22 @@ Actuator presets (construction option ``actuator``):
 
 Stroke: legs of 0.1 .. 0.6 m (thesis.md §1): ``s_offset`` = 0.1 m, ``stroke_max`` = 0.5 m.
 
-End stops (construction option ``end_stops``): ``"clamp"`` (the default) stops the rod at the
-ends by zeroing its rate inside the right-hand side, while the motor speed state runs on;
-``"impact"`` locates the rod's arrival at a stop inside the FMU's step (:mod:`._stops`): an
-impact with restitution ``e`` (default 0: a lead screw does not bounce), then the rod rests on
-the stop (speed 0) until the drive pulls it away (``v_free`` changes sign).  Per leg it adds the
-outputs ``leg[i].impacts`` (``impacts`` for ``"single"``).
+End stops (construction option ``end_stops``), both located inside the FMU's step as events
+(:mod:`._stops`):
+
+- ``"clamp"`` (the default): the stop holds the rod, not the motor.  The rod's arrival at ``0``
+  or ``stroke_max`` is an event (``x+`` on the stop, mode ``hold = +-1``); while it rests there
+  its rate is zero (``dx/dt = 0``) and the motor speed ``v`` runs on (``tau dv/dt = v_free - v``:
+  it winds up to ``v_free``); it leaves, an event too, where ``v`` turns away from the stop
+  (changes sign).  Modes per leg: ``hold``, ``impacts`` (arrivals), ``t_arrival``, ``t_release``.
+- ``"impact"``: an impact with restitution ``e`` (default 0: a lead screw does not bounce),
+  ``v+ = -e v-``; with ``e`` = 0 the speed is reset to 0 and held there while the rod rests on
+  the stop, until the drive pulls it away (``v_free`` changes sign).  Modes per leg: ``hold``,
+  ``impacts``, ``v_impact``.
+
+While a leg rests, both give the same stroke and rod rate; they differ in the motor speed and
+so in the release (the clamp's wound-up ``v`` must first decay to zero).  Per leg both add the
+output ``leg[i].impacts`` (``impacts`` for ``"single"``): arrivals at a stop so far.
 
 Fidelities: ``"rig"``, the three legs of the rig in one block (inputs ``leg[i].u``, outputs
 ``leg[i].s``, ``leg[i].stroke``, ``leg[i].v``: the interface of the hardware FMU, so a scene swaps
@@ -41,7 +51,7 @@ import casadi as ca
 
 from ..block import Block, Var
 from ._common import INF, ParamSet
-from ._stops import StopEvents, end_stops
+from ._stops import StopEvents, clamp_stops, end_stops
 
 ACTUATORS = {
     "fa200": {"v_rated": 12.0, "v_nl": 0.02032, "f_stall": 890.0, "tau": 0.02},
@@ -71,25 +81,30 @@ def _stop_params(ps: ParamSet) -> dict[str, ca.SX]:
             "v_rest": ps.add("v_rest", 1e-6, "m/s", "rebound speed below which the rod rests on a stop", lower=0.0)}
 
 
-def _leg(p: dict, u, f_load, x, v, ev: StopEvents | None = None, prefix: str = ""):
-    """(dx/dt, dv/dt, v at the rod[, impacts]) of one actuator; with ``ev``, its end stops are
-    located events (:mod:`._stops`), else clamped."""
+def _leg(p: dict, u, f_load, x, v, x0, ev: StopEvents, clamp: bool, t: ca.SX, prefix: str = ""):
+    """(dx/dt, dv/dt, v at the rod, impacts) of one actuator starting at the stroke ``x0``, its
+    end stops located events (:mod:`._stops`): clamped (``clamp``) or impacts."""
     u_sat = ca.fmin(p["v_rated"], ca.fmax(-p["v_rated"], u))
     v_free = p["v_nl"] * u_sat / p["v_rated"] - p["v_nl"] * f_load / p["f_stall"]
-    if ev is not None:
-        dx, dv, modes = end_stops(ev, prefix, x, v, (v_free - v) / p["tau"], 0.0, p["stroke_max"], p["e"], p["v_rest"])
-        return dx, dv, dx, modes["impacts"]
-    at_end = ca.logic_or(ca.logic_and(x >= p["stroke_max"], v > 0), ca.logic_and(x <= 0, v < 0))
-    v_rod = ca.if_else(at_end, 0, v)
-    return v_rod, (v_free - v) / p["tau"], v_rod
+    if clamp:
+        dx, modes = clamp_stops(ev, prefix, x, v, 0.0, p["stroke_max"], t, x0=x0)
+        return dx, (v_free - v) / p["tau"], dx, modes["impacts"]
+    dx, dv, modes = end_stops(ev, prefix, x, v, (v_free - v) / p["tau"], 0.0, p["stroke_max"], p["e"], p["v_rest"],
+                              x0=x0)
+    return dx, dv, dx, modes["impacts"]
+
+
+def _stroke_start(p: dict, s0) -> ca.SX:
+    """The stroke at the start [m]: the leg length ``s0`` within the stroke."""
+    return ca.fmin(p["stroke_max"], ca.fmax(0, s0 - p["s_offset"]))
 
 
 def rig(actuator: str = "fa200", integrator: str = "rk4", substeps: int = 1, end_stops: str = "clamp") -> Block:
     """Three actuators, one per leg (module docstring)."""
     ps = ParamSet()
     p = _common(ps, actuator)
-    ev = StopEvents() if end_stops == "impact" else None
-    if ev is not None:
+    ev, clamp, t = StopEvents(), end_stops == "clamp", ca.SX.sym("t")
+    if not clamp:
         p.update(_stop_params(ps))
     counts = []
     s0 = [ps.add(f"leg[{i}].s0", S_OFFSET + STROKE / 2, "m", f"leg {i} length at the start", lower=0.0) for i in (1, 2, 3)]
@@ -98,24 +113,21 @@ def rig(actuator: str = "fa200", integrator: str = "rk4", substeps: int = 1, end
     ode, out, states, inputs, outputs, start = [], [], [], [], [], []
     for k, i in enumerate((1, 2, 3)):
         x, v = xs[2 * k], xs[2 * k + 1]
-        dx, dv, v_rod, *n = _leg(p, u[k], 0.0, x, v, ev, f"leg[{i}].")
-        counts += n
+        dx, dv, v_rod, n = _leg(p, u[k], 0.0, x, v, _stroke_start(p, s0[k]), ev, clamp, t, f"leg[{i}].")
+        counts.append(n)
         ode += [dx, dv]
         out += [p["s_offset"] + x, x, v_rod]
         inputs.append(Var(f"leg[{i}].u", "V", f"leg {i} driver voltage"))
         states += [Var(f"state.leg[{i}].stroke", "m", f"leg {i} stroke"), Var(f"state.leg[{i}].v", "m/s", f"leg {i} speed")]
         outputs += [Var(f"leg[{i}].s", "m", f"leg {i} length"), Var(f"leg[{i}].stroke", "m", f"leg {i} stroke"),
                     Var(f"leg[{i}].v", "m/s", f"leg {i} extension rate")]
-        start += [ca.fmin(p["stroke_max"], ca.fmax(0, s0[k] - p["s_offset"])), ca.SX(0)]
-    events = {}
-    if ev is not None:
-        out += counts
-        outputs += [Var(f"leg[{i}].impacts", "1", f"leg {i}: arrivals at an end stop so far") for i in (1, 2, 3)]
-        events = ev.block_kw(xs)
+        start += [_stroke_start(p, s0[k]), ca.SX(0)]
+    out += counts
+    outputs += [Var(f"leg[{i}].impacts", "1", f"leg {i}: arrivals at an end stop so far") for i in (1, 2, 3)]
     return Block.build("linear_actuator", description=f"three {actuator} linear actuators (the rig, thesis.md §7)",
                        params=ps.params, inputs=inputs, outputs=outputs, states=states, p=ps.vector(), u=u, x=xs,
                        ode=ca.vertcat(*ode), out=ca.vertcat(*out), start=ca.vertcat(*start), integrator=integrator,
-                       substeps=substeps, fidelity="rig", **events)
+                       substeps=substeps, fidelity="rig", **ev.block_kw(xs))
 
 
 def single(actuator: str = "fa200", integrator: str = "rk4", substeps: int = 1, end_stops: str = "clamp") -> Block:
@@ -123,26 +135,22 @@ def single(actuator: str = "fa200", integrator: str = "rk4", substeps: int = 1, 
     ps = ParamSet()
     p = _common(ps, actuator)
     s0 = ps.add("s0", S_OFFSET + STROKE / 2, "m", "leg length at the start", lower=0.0)
-    ev = StopEvents() if end_stops == "impact" else None
-    if ev is not None:
+    ev, clamp = StopEvents(), end_stops == "clamp"
+    if not clamp:
         p.update(_stop_params(ps))
     u = ca.SX.sym("u", 2)
     xs = ca.SX.sym("x", 2)
-    dx, dv, v_rod, *n = _leg(p, u[0], u[1], xs[0], xs[1], ev)
-    outputs = [Var("s", "m", "leg length"), Var("stroke", "m", "stroke"), Var("v", "m/s", "extension rate")]
-    out = [p["s_offset"] + xs[0], xs[0], v_rod]
-    events = {}
-    if ev is not None:
-        outputs.append(Var("impacts", "1", "arrivals at an end stop so far"))
-        out += n
-        events = ev.block_kw(xs)
+    dx, dv, v_rod, n = _leg(p, u[0], u[1], xs[0], xs[1], _stroke_start(p, s0), ev, clamp, ca.SX.sym("t"))
+    outputs = [Var("s", "m", "leg length"), Var("stroke", "m", "stroke"), Var("v", "m/s", "extension rate"),
+               Var("impacts", "1", "arrivals at an end stop so far")]
+    out = [p["s_offset"] + xs[0], xs[0], v_rod, n]
     return Block.build(
         "linear_actuator", description=f"{actuator} linear actuator (thesis.md §7)", params=ps.params,
         inputs=[Var("u", "V", "driver voltage"), Var("f_load", "N", "load force opposing extension")],
         outputs=outputs, states=[Var("state.stroke", "m", "stroke"), Var("state.v", "m/s", "speed")], p=ps.vector(),
         u=u, x=xs, ode=ca.vertcat(dx, dv), out=ca.vertcat(*out),
-        start=ca.vertcat(ca.fmin(p["stroke_max"], ca.fmax(0, s0 - p["s_offset"])), 0), integrator=integrator,
-        substeps=substeps, fidelity="single", **events)
+        start=ca.vertcat(_stroke_start(p, s0), 0), integrator=integrator,
+        substeps=substeps, fidelity="single", **ev.block_kw(xs))
 
 
 #: The "motor" fidelity's defaults: a small 12 V DC motor behind the FA-200's gear and lead screw,
