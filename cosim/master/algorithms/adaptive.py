@@ -406,9 +406,19 @@ class VariableStepper(Stepper):
         return max_steps
 
     def block(self, rec: np.ndarray, max_steps: int) -> int:
-        if self.compiled is not None:
+        if self.compiled is None:
+            return self.python_block(rec, max_steps)
+        if not self.system.typed.texts:
             return self.compiled.run(rec[:max_steps])
-        return self.python_block(rec, max_steps)
+        rows = 0  # recorded text variables: one accepted step per call, their changes noted at each row
+        for _ in range(max_steps):
+            got = self.compiled.run(rec[rows:rows + 1])
+            rows += got
+            if got:
+                self.text_events += [(float(rec[rows - 1, 0]), c, x) for c, x in self.system.typed.text_changes()]
+            if self.done():
+                break
+        return rows
 
     def step(self) -> bool:
         ok = self.py.step()
