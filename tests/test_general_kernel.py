@@ -7,16 +7,19 @@ start gives the same values), the hand-computed transformation."""
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
 import scipy.linalg
 
 from cosim.master import CoupledSystem, Link, simulate
+from cosim.run.execute import run as run_scene
 from cosim.slaves.linear import LinearSlave
 from cosim.slaves.slave import Status
 from cosim.trace.traces import MemoryTrace
 
+SCENARIOS = Path(__file__).resolve().parents[1] / "scenarios"
 FIXED = ("jacobi", "gauss_seidel", "jacobi_extrapolated")
 A_, B_, C_ = 1.0, 3.0, 0.8
 
@@ -133,7 +136,6 @@ def test_typed_ports_run_in_the_kernel_as_in_the_python_loop(reference_fmus, fmi
     """Feedthrough with Int32, Boolean and String outputs recorded: that FMU
     becomes a callback slave (its typed part converted in Python), VanDerPol stays a direct FMU;
     the compiled trace, text included, equals the Python loop's."""
-    from cosim.run.execute import run as run_scene
     from cosim.scenario import from_dict
 
     def scene(engine: str):
@@ -192,3 +194,113 @@ def test_adaptive_rolls_python_slaves_back_in_its_kernel_as_in_the_python_loop()
     assert np.array_equal(py.time, cc.time) and np.array_equal(py.data, cc.data)
     ref = scipy.linalg.expm(np.array([[-A_, C_], [1.0, -B_]])) @ np.array([1.0, -0.4])
     assert cc.time[-1] == 1.0 and abs(cc.data[-1, 1] - ref[0]) < 1e-2 * abs(ref[0])
+
+
+# --- the variable-step kernel (adaptive_engine.c): transformed connections and typed ports -----------
+
+def bonded_trio(factor: float, offset: float) -> CoupledSystem:
+    """The bonded pair and a third lag c fed by a's output through a transformation:
+    x_c' = -x_c + (factor y_a + offset)."""
+    sysm = bonded_pair()
+    c = LinearSlave("c", [[-1.0]], [[1.0]], [[1.0]], x0=[0.2])
+    return CoupledSystem([*sysm.slaves, c], [*sysm.links, Link(0, "y[1]", 2, "u[1]", factor=factor, offset=offset)],
+                         [(0, "y[1]"), (1, "x[1]"), (2, "x[1]"), (2, "u[1]")])
+
+
+def _exact_trio(f: float, o: float, t: float) -> np.ndarray:
+    """The exact states (x_a, x_b, x_c) of :func:`bonded_trio` at ``t`` [s] (the offset as a fourth,
+    constant state)."""
+    M = np.zeros((4, 4))
+    M[:3, :3] = [[-A_, C_, 0.0], [1.0, -B_, 0.0], [f, 0.0, -1.0]]
+    M[2, 3] = o
+    return (scipy.linalg.expm(M * t) @ np.array([1.0, -0.4, 0.2, 1.0]))[:3]
+
+
+@pytest.mark.parametrize("alg", ["adaptive", "ecco"])
+@pytest.mark.parametrize("factor, offset", [(0.37, 0.0), (-1.5, 0.25)])
+def test_variable_step_kernel_runs_transformed_connections_as_the_python_loop(alg, factor, offset):
+    """A connection with a factor and an offset no longer sends adaptive or ecco to their Python
+    loops: the kernel gives the same steps and values bit for bit, the recorded input of c is the
+    transformation of a's output at the same row, and the states are within 1 % of the exact
+    solution at t = 1 s."""
+    opts = {"rtol": 1e-3} if alg == "adaptive" else None
+    kw = dict(n=5, step_ns=200_000_000, options=opts)
+    py, s1 = run(bonded_trio(factor, offset), alg, "python", **kw)
+    cc, s2 = run(bonded_trio(factor, offset), alg, "compiled", **kw)
+    assert (s1.engine, s2.engine) == ("python", "compiled") and s2.status == "ok", s2.reason
+    assert s1.adaptive == s2.adaptive and s2.adaptive["accepted_steps"] > 5
+    assert np.array_equal(py.time, cc.time) and np.array_equal(py.data, cc.data)
+    assert np.array_equal(cc.data[1:, 4], cc.data[1:, 1] * factor + offset)  # a steps before c (Gauss-Seidel)
+    ref = _exact_trio(factor, offset, 1.0)
+    assert cc.time[-1] == 1.0
+    assert np.all(np.abs(cc.data[-1, [1, 2, 3]] - ref) < 1e-2 * np.abs(ref)), (cc.data[-1], ref)
+
+
+@pytest.mark.parametrize("alg", ["adaptive", "ecco"])
+def test_variable_step_kernel_applies_the_transformation_to_linear_inputs(alg):
+    """FMUs that follow their inputs' slopes (pid_step, a motor's voltage through 0.8 u + 0.1):
+    the kernel transforms the input and its slope as the Python loop does, bit for bit, with the
+    same accepted and rejected steps."""
+    from cosim.scenario import load
+
+    sets = {"master.algorithm": alg, "stop_time": 0.05, **({"components.mech.rollback": False} if alg == "ecco" else {})}
+    sc = load(SCENARIOS / "pid_step.yaml", sets)
+    text = Path(sc.path).read_text().replace("pid1.y -> motor1.u", "pid1.y -> motor1.u * 0.8 + 0.1")
+    py, cc = (_scene_text_run(text, sets, engine) for engine in ("python", "compiled"))
+    assert (py.stats["engine"], cc.stats["engine"]) == ("python", "compiled") and cc.status == "ok", cc.reason
+    assert np.array_equal(py.trace.data, cc.trace.data)
+    keys = ("accepted_steps", "rejected_steps", "rollbacks", "smallest_step", "largest_step")
+    assert {k: py.stats.get(k) for k in keys} == {k: cc.stats.get(k) for k in keys}
+    plain = run_scene(SCENARIOS / "pid_step.yaml", sets, engine="compiled")
+    assert not np.array_equal(plain.trace["motor1.i"], cc.trace["motor1.i"])  # the transformation acts
+
+
+@pytest.mark.parametrize("fmi", ["2.0", "3.0"])
+def test_typed_ports_run_in_the_adaptive_kernel_as_in_the_python_loop(reference_fmus, fmi):
+    """adaptive with Feedthrough's Int32, Boolean and String outputs recorded (a callback slave,
+    rolled back through its own save_state/restore_state): the compiled trace, text included,
+    equals the Python loop's, with the same rejections."""
+    from cosim.scenario import from_dict
+
+    def scene(engine: str):
+        return from_dict({"name": "typed", "stop_time": 0.5, "components": {
+            "vdp": {"fmu": str(reference_fmus[f"{fmi}/VanDerPol"])},
+            "ft": {"fmu": str(reference_fmus[f"{fmi}/Feedthrough"]), "start": {"String_input": "abc", "Int32_input": 7}}},
+            "connections": ["vdp.x0 -> ft.Float64_continuous_input"],
+            "master": {"algorithm": "adaptive", "output_interval": 0.05, "engine": engine},
+            "outputs": ["vdp.x0", "ft.Float64_continuous_output", "ft.Int32_output", "ft.Boolean_output",
+                        "ft.String_output"]})
+    py, cc = run_scene(scene("python")), run_scene(scene("compiled"))
+    assert (py.stats["engine"], cc.stats["engine"]) == ("python", "compiled") and cc.status == "ok", cc.reason
+    assert np.array_equal(py.trace.time, cc.trace.time) and np.array_equal(py.trace.data, cc.trace.data)
+    assert py.stats["rejected_steps"] == cc.stats["rejected_steps"]
+    assert py.trace.text == cc.trace.text and cc.trace.text["ft.String_output"] == [(0.0, "abc")]
+    assert np.all(cc.trace["ft.Int32_output"] == 7)
+    assert np.array_equal(cc.trace["ft.Float64_continuous_output"], cc.trace["vdp.x0"])  # feedthrough, unchanged
+
+
+def test_typed_ports_run_in_the_ecco_kernel_as_in_the_python_loop(reference_fmus):
+    """ecco on pid_step with a Feedthrough FMU (typed outputs recorded) on a PID's output: bit for bit."""
+    from cosim.scenario import load
+
+    sets = {"master.algorithm": "ecco", "stop_time": 0.02, "components.mech.rollback": False}
+    sc = load(SCENARIOS / "pid_step.yaml", sets)
+    text = Path(sc.path).read_text().replace(
+        "components:\n", f"components:\n  ft: {{fmu: {reference_fmus['3.0/Feedthrough']}, "
+                         "start: {String_input: abc, Int32_input: 7}}\n", 1).replace(
+        "connections:\n", "connections:\n  - pid1.y -> ft.Float64_continuous_input\n", 1).replace(
+        "outputs:\n", "outputs:\n  - ft.Int32_output\n  - ft.String_output\n  - ft.Float64_continuous_output\n", 1)
+    py, cc = (_scene_text_run(text, sets, engine) for engine in ("python", "compiled"))
+    assert (py.stats["engine"], cc.stats["engine"]) == ("python", "compiled") and cc.status == "ok", cc.reason
+    assert np.array_equal(py.trace.data, cc.trace.data) and py.trace.text == cc.trace.text
+    assert cc.trace.text["ft.String_output"] == [(0.0, "abc")]
+    assert np.array_equal(cc.trace["ft.Float64_continuous_output"], cc.trace["pid1.y"])
+
+
+def _scene_text_run(text: str, sets: dict, engine: str):
+    import tempfile
+
+    with tempfile.TemporaryDirectory() as tmp:
+        p = Path(tmp) / "s.yaml"
+        p.write_text(text)
+        return run_scene(p, sets, engine=engine)
