@@ -48,7 +48,8 @@ def fixed_loop(cls: type[Algorithm]) -> CompiledLoop:
     if cls.native_code is None:
         return CompiledLoop(cls.name, None)
     if cls.native_code == ITERATIVE:
-        return CompiledLoop(cls.name, iterative_engine.library, cls.needs_rollback)
+        return CompiledLoop(cls.name, iterative_engine.library, cls.needs_rollback, callbacks=True, typed=True,
+                            transforms=True)
     return CompiledLoop(cls.name, fastloop.library, callbacks=True, typed=True, transforms=True)
 
 
