@@ -1,6 +1,6 @@
 """Engines, who runs an algorithm's steps: a compiled loop (for the algorithms that have one: FMUs
-directly, Python slaves through callbacks, except in iterative's; :class:`CompiledLoop` says what
-each runs) or the Python loop; the choice between them is made here, once for every algorithm
+directly, Python slaves and typed ports through callbacks; :class:`CompiledLoop` says what each
+runs) or the Python loop; the choice between them is made here, once for every algorithm
 (:func:`choose_engine`)."""
 from __future__ import annotations
 
