@@ -131,22 +131,27 @@ def test_a_python_slaves_stop_request_ends_the_run_as_in_the_python_loop(alg):
     assert cc.time[-1] == pytest.approx(0.06, abs=1e-12)
 
 
+def typed_run(reference_fmus, fmi: str, master: dict, engine: str):
+    """VanDerPol feeding Reference FMU Feedthrough, whose Int32, Boolean and String outputs are
+    recorded (so Feedthrough is a callback slave, its typed part converted in Python), run with
+    ``master`` on ``engine``."""
+    from cosim.scenario import from_dict
+
+    return run_scene(from_dict({"name": "typed", "stop_time": 0.5, "components": {
+        "vdp": {"fmu": str(reference_fmus[f"{fmi}/VanDerPol"])},
+        "ft": {"fmu": str(reference_fmus[f"{fmi}/Feedthrough"]), "start": {"String_input": "abc", "Int32_input": 7}}},
+        "connections": ["vdp.x0 -> ft.Float64_continuous_input"], "master": {**master, "engine": engine},
+        "outputs": ["vdp.x0", "ft.Float64_continuous_output", "ft.Int32_output", "ft.Boolean_output",
+                    "ft.String_output"]}))
+
+
 @pytest.mark.parametrize("fmi", ["2.0", "3.0"])
 def test_typed_ports_run_in_the_kernel_as_in_the_python_loop(reference_fmus, fmi):
     """Feedthrough with Int32, Boolean and String outputs recorded: that FMU
     becomes a callback slave (its typed part converted in Python), VanDerPol stays a direct FMU;
     the compiled trace, text included, equals the Python loop's."""
-    from cosim.scenario import from_dict
-
-    def scene(engine: str):
-        return from_dict({"name": "typed", "stop_time": 0.5, "components": {
-            "vdp": {"fmu": str(reference_fmus[f"{fmi}/VanDerPol"])},
-            "ft": {"fmu": str(reference_fmus[f"{fmi}/Feedthrough"]), "start": {"String_input": "abc", "Int32_input": 7}}},
-            "connections": ["vdp.x0 -> ft.Float64_continuous_input"],
-            "master": {"algorithm": "gauss_seidel", "step": 0.01, "order": ["vdp", "ft"], "engine": engine},
-            "outputs": ["vdp.x0", "ft.Float64_continuous_output", "ft.Int32_output", "ft.Boolean_output",
-                        "ft.String_output"]})
-    py, cc = run_scene(scene("python")), run_scene(scene("compiled"))
+    py, cc = (typed_run(reference_fmus, fmi, {"algorithm": "gauss_seidel", "step": 0.01, "order": ["vdp", "ft"]}, e)
+              for e in ("python", "compiled"))
     assert (py.stats["engine"], cc.stats["engine"]) == ("python", "compiled") and cc.status == "ok", cc.reason
     assert np.array_equal(py.trace.time, cc.trace.time) and np.array_equal(py.trace.data, cc.trace.data)
     assert py.trace.text == cc.trace.text and cc.trace.text
@@ -243,7 +248,9 @@ def test_variable_step_kernel_applies_the_transformation_to_linear_inputs(alg):
     same accepted and rejected steps."""
     from cosim.scenario import load
 
-    sets = {"master.algorithm": alg, "stop_time": 0.05, **({"components.mech.rollback": False} if alg == "ecco" else {})}
+    sets = {"master.algorithm": alg, "stop_time": 0.05}
+    if alg == "ecco":
+        sets["components.mech.rollback"] = False
     sc = load(SCENARIOS / "pid_step.yaml", sets)
     text = Path(sc.path).read_text().replace("pid1.y -> motor1.u", "pid1.y -> motor1.u * 0.8 + 0.1")
     py, cc = (_scene_text_run(text, sets, engine) for engine in ("python", "compiled"))
@@ -260,17 +267,8 @@ def test_typed_ports_run_in_the_adaptive_kernel_as_in_the_python_loop(reference_
     """adaptive with Feedthrough's Int32, Boolean and String outputs recorded (a callback slave,
     rolled back through its own save_state/restore_state): the compiled trace, text included,
     equals the Python loop's, with the same rejections."""
-    from cosim.scenario import from_dict
-
-    def scene(engine: str):
-        return from_dict({"name": "typed", "stop_time": 0.5, "components": {
-            "vdp": {"fmu": str(reference_fmus[f"{fmi}/VanDerPol"])},
-            "ft": {"fmu": str(reference_fmus[f"{fmi}/Feedthrough"]), "start": {"String_input": "abc", "Int32_input": 7}}},
-            "connections": ["vdp.x0 -> ft.Float64_continuous_input"],
-            "master": {"algorithm": "adaptive", "output_interval": 0.05, "engine": engine},
-            "outputs": ["vdp.x0", "ft.Float64_continuous_output", "ft.Int32_output", "ft.Boolean_output",
-                        "ft.String_output"]})
-    py, cc = run_scene(scene("python")), run_scene(scene("compiled"))
+    py, cc = (typed_run(reference_fmus, fmi, {"algorithm": "adaptive", "output_interval": 0.05}, e)
+              for e in ("python", "compiled"))
     assert (py.stats["engine"], cc.stats["engine"]) == ("python", "compiled") and cc.status == "ok", cc.reason
     assert np.array_equal(py.trace.time, cc.trace.time) and np.array_equal(py.trace.data, cc.trace.data)
     assert py.stats["rejected_steps"] == cc.stats["rejected_steps"]
@@ -432,16 +430,8 @@ def test_iterative_kernel_runs_a_transformed_fmu_loop_as_the_python_loop():
 
 @pytest.mark.parametrize("fmi", ["2.0", "3.0"])
 def test_typed_ports_run_in_the_iterative_kernel_as_in_the_python_loop(reference_fmus, fmi):
-    from cosim.scenario import from_dict
-
-    def scene(engine: str):
-        return from_dict({"name": "typed", "stop_time": 0.5, "components": {
-            "vdp": {"fmu": str(reference_fmus[f"{fmi}/VanDerPol"])},
-            "ft": {"fmu": str(reference_fmus[f"{fmi}/Feedthrough"]), "start": {"String_input": "abc", "Int32_input": 7}}},
-            "connections": ["vdp.x0 -> ft.Float64_continuous_input"],
-            "master": {"algorithm": "iterative", "step": 0.01, "inputs": "linear", "engine": engine},
-            "outputs": ["vdp.x0", "ft.Float64_continuous_output", "ft.Int32_output", "ft.String_output"]})
-    py, cc = run_scene(scene("python")), run_scene(scene("compiled"))
+    py, cc = (typed_run(reference_fmus, fmi, {"algorithm": "iterative", "step": 0.01, "inputs": "linear"}, e)
+              for e in ("python", "compiled"))
     assert (py.stats["engine"], cc.stats["engine"]) == ("python", "compiled") and cc.status == "ok", cc.reason
     assert np.array_equal(py.trace.time, cc.trace.time) and np.array_equal(py.trace.data, cc.trace.data)
     assert py.trace.text == cc.trace.text and cc.trace.text["ft.String_output"] == [(0.0, "abc")]

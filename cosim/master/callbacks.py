@@ -48,6 +48,9 @@ class CallbackSlave:
         # its one saved state (Slave.save_state / restore_state): the FMU state pointer is not used
         self.get_state = _GET_STATE(lambda _inst, _state: self._call(slave.save_state))
         self.set_state = _SET_STATE(lambda _inst, _state: self._call(slave.restore_state))
+        # the directional derivative (directional()): value references to names, the last Jacobian
+        self._names: tuple[dict[int, str], dict[int, str]] = ({}, {})
+        self._jac: tuple[tuple[list[str], list[str]], np.ndarray | None] | None = None
 
     def _keep(self, exc: BaseException) -> int:
         self.error = self.error or exc
@@ -82,24 +85,18 @@ class CallbackSlave:
         :meth:`~cosim.slaves.slave.Slave.output_jacobian` (``outputs``, ``inputs``: the names of the
         value references the loop passes).  It returns ``CallbackStatus.NO_DERIVATIVES`` when the
         slave provides none (the loop then takes finite differences, as the Python loop does)."""
-        self._names, self._jac = (outputs, inputs), None
+        self._names = (outputs, inputs)
         self.dir_der = _DIR_DER(self._directional)
         return self.address("dir_der")
 
     def _directional(self, _inst, unknown, n_unknown, known, n_known, seed, sens) -> int:
         """``sens = J seed`` of the outputs ``unknown`` by the inputs ``known`` (exactly ``J[:, k]``
-        for the unit seed ``e_k``).  The Jacobian is computed at the first column's seed (the loop
-        asks column by column from the first) and read for the others, so the slave computes it
-        once per local Jacobian, as in the Python loop."""
+        for the unit seed ``e_k``)."""
         try:
-            u = [self._names[0][r] for r in (ctypes.c_uint32 * n_unknown).from_address(unknown)]
-            k = [self._names[1][r] for r in (ctypes.c_uint32 * n_known).from_address(known)]
             s = np.ctypeslib.as_array((ctypes.c_double * n_known).from_address(seed))
-            key = (u, k)
-            if self._jac is None or self._jac[0] != key or (s[0] == 1.0 and not s[1:].any()):
-                jac = self.slave.output_jacobian(u, k)
-                self._jac = (key, None if jac is None else np.asarray(jac, dtype=float).reshape(len(u), len(k)))
-            jac = self._jac[1]
+            jac = self._jacobian([self._names[0][r] for r in (ctypes.c_uint32 * n_unknown).from_address(unknown)],
+                                 [self._names[1][r] for r in (ctypes.c_uint32 * n_known).from_address(known)],
+                                 s[0] == 1.0 and not s[1:].any())
             if jac is None:
                 return int(CallbackStatus.NO_DERIVATIVES)
             out = np.ctypeslib.as_array((ctypes.c_double * n_unknown).from_address(sens))
@@ -110,6 +107,16 @@ class CallbackSlave:
         except BaseException as exc:  # noqa: BLE001 - raised again by reraise()
             return self._keep(exc)
         return int(Status.OK)
+
+    def _jacobian(self, outputs: list[str], inputs: list[str], first: bool) -> np.ndarray | None:
+        """The slave's output Jacobian, computed at the first column's seed (``first``: the loop asks
+        column by column from the first) and kept for the others, so that the slave computes it
+        once per local Jacobian, as in the Python loop; None when it provides none."""
+        key = (outputs, inputs)
+        if first or self._jac is None or self._jac[0] != key:
+            jac = self.slave.output_jacobian(outputs, inputs)
+            self._jac = (key, None if jac is None else np.asarray(jac, dtype=float).reshape(len(outputs), len(inputs)))
+        return self._jac[1]
 
     def address(self, name: str) -> int:
         """The C address of trampoline ``name`` (do_step, get, set, set_der, bool_status, get_state,

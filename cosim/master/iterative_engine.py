@@ -57,9 +57,11 @@ class CompiledIterative:
             # an FMU's own state slot (freed with the instance); a callback slave keeps its state itself
             c.state = arr.state_slot(i) if cb is not None else s.state_slot()
             c.get_state, c.set_state = arr.entries[i].get_state, arr.entries[i].set_state
-            if alg.opt["jacobian"] == "auto":
-                c.dir_der = arr.entries[i].directional_derivative if cb is None else cb.directional(
-                    dict(zip(sysm.out_vrs[i].tolist(), sysm.reads[i])), dict(zip(sysm.in_vrs[i].tolist(), sysm.inputs[i])))
+            if alg.opt["jacobian"] == "auto" and cb is None:
+                c.dir_der = arr.entries[i].directional_derivative
+            elif alg.opt["jacobian"] == "auto":  # the slave's output_jacobian, by its variables' names
+                c.dir_der = cb.directional(dict(zip(sysm.out_vrs[i].tolist(), sysm.reads[i])),
+                                           dict(zip(sysm.in_vrs[i].tolist(), sysm.inputs[i])))
             n_in = c.n_in
             if n_in:
                 cut = np.full(n_in, -1, dtype=np.int64)
