@@ -40,6 +40,14 @@ static int run_slave(rpr_slave *s, it_ctl *c, double *v, double t, double h, con
 
 static inline int ended(int st) { return failing(st) || st == ST_STOP_REQUESTED; }
 
+/* the non-cut inputs of ends through their connections' transformations (Iterative._ends: the
+   sources' values as CoupledSystem.source_values gives them; a cut input's z is one already);
+   a function of its own, so that pass() stays as it is without transformations */
+static void transform_ends(const rpr_slave *s, double *ends) {
+    int32_t j;
+    for (j = 0; j < s->n_in; ++j) if (s->cut[j] < 0) ends[j] = through(s, j, ends[j]);
+}
+
 /* Iterative._pass from order position start; the failing slave (or -1), *bad_st its status */
 static int32_t pass(rpr_slave *S, int32_t n, const int32_t *order, int32_t start, it_ctl *c, double *v, double t,
                     double h, const double *z, int32_t *bad_st) {
@@ -56,7 +64,8 @@ static int32_t pass(rpr_slave *S, int32_t n, const int32_t *order, int32_t start
             }
             continue;
         }
-        for (j = 0; j < s->n_in; ++j) c->ends[j] = s->cut[j] >= 0 ? z[s->cut[j]] : through(s, j, v[s->in_src[j]]);
+        for (j = 0; j < s->n_in; ++j) c->ends[j] = s->cut[j] >= 0 ? z[s->cut[j]] : v[s->in_src[j]];
+        if (s->in_factor) transform_ends(s, c->ends);
         if (s->has_last) {
             int same = 1;
             for (j = 0; j < s->n_in; ++j) if (!(c->ends[j] == s->last_in[j])) { same = 0; break; }
