@@ -347,6 +347,6 @@ def bind(lib: ctypes.CDLL, entries: Sequence[Entry]) -> None:
         fn.restype = None if e.returns == "void" else argtype(e.returns)
 
 
-__all__ = ["ADAPTIVE_CONTROL", "ADAPT_RUN", "AdaptiveEnd", "CRUMB", "CallbackStatus", "ECCO_CONTROL", "ECCO_RUN", "ENTRIES", "ENUMS",
-           "EccoEnd", "Entry", "ITERATIVE_CONTROL", "ITER_RUN", "IterativeEnd", "RECORDS", "RUN", "Record", "SLAVE",
-           "bind", "ctypes_struct", "header", "struct"]
+__all__ = ["ADAPTIVE_CONTROL", "ADAPT_RUN", "AdaptiveEnd", "CRUMB", "CallbackStatus", "ECCO_CONTROL", "ECCO_RUN",
+           "ENTRIES", "ENUMS", "EccoEnd", "Entry", "ITERATIVE_CONTROL", "ITER_RUN", "IterativeEnd", "RECORDS", "RUN",
+           "Record", "SLAVE", "bind", "ctypes_struct", "header", "struct"]
