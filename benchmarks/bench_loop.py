@@ -13,7 +13,13 @@ the main branch before the change), ``--rounds`` times, each round in fresh proc
 - the guards' check [us per row] of pid_step's rows in blocks of 64, 1024 and 5001 rows (all four
   guards, bench_guards.py's last section), best of 5 x 50 checks.
 
-    python3 benchmarks/bench_loop.py --against ../main [--rounds 4]
+With ``--kernels``, instead: the compiled variable-step and iterative kernels' cost on all-FMU
+scenes [us CPU per coupling pass (iterative) or accepted step (ecco, adaptive)], each the CPU time
+of the scene's ``simulate`` (in process, no supervision) to its stop time minus that to a
+hundredth of it, best of 5: iterative on two_mass (kc 1000 N/m, 5 ms, 100 s) and force_loop (40 s),
+ecco on pid_step with the mechanism non-rollback (5 s), adaptive on pid_step (3 s).
+
+    python3 benchmarks/bench_loop.py --against ../main [--rounds 4] [--kernels]
 """
 from __future__ import annotations
 
@@ -79,10 +85,55 @@ def measure(root: Path) -> dict[str, float]:
     return out
 
 
-def in_tree(tree: Path) -> dict[str, float]:
-    """:func:`measure` of ``tree`` in a fresh process (this file's code, that tree's modules)."""
+KERNEL_CASES = (  # (figure, scene, overrides, stop time [s], the statistic counted)
+    ("iterative, two_mass [us per pass]", "two_mass.yaml",
+     {"master.algorithm": "iterative", "components.mass2.params.kc": 1000.0, "master.step": 0.005}, 100.0,
+     "iterations_total"),
+    ("iterative, force_loop [us per pass]", "force_loop.yaml", {"master.algorithm": "iterative"}, 40.0,
+     "iterations_total"),
+    ("ecco, pid_step [us per step]", "pid_step.yaml", {"master.algorithm": "ecco", "components.mech.rollback": False},
+     5.0, "accepted_steps"),
+    ("adaptive, pid_step [us per step]", "pid_step.yaml", {"master.algorithm": "adaptive"}, 3.0, "accepted_steps"),
+)
+
+
+def measure_kernels(root: Path) -> dict[str, float]:
+    """The ``--kernels`` figures (module docstring) of the checkout ``root``, in this process."""
+    sys.path[:0] = [str(root)]
+    from cosim.run.execute import build_components, couple, simulate_scene  # noqa: E402
+    from cosim.scenario import load  # noqa: E402
+    from cosim.scenario.recipes import slave_description  # noqa: E402
+    from cosim.slaves.fmu import FmuSlave  # noqa: E402
+
+    def cpu(scene_file: str, sets: dict, stop: float, count: str) -> tuple[float, float]:
+        scene = load(root / "scenarios" / scene_file, {**sets, "stop_time": stop})
+        paths = build_components(scene)
+        slaves = [FmuSlave(n, paths[n], c.description if c.kind == "fmu" else slave_description(c, paths[n]))
+                  for n, c in scene.components.items()]
+        try:
+            t0 = time.process_time()
+            st = simulate_scene(scene, couple(scene, slaves), [], "compiled", None)
+            dt = time.process_time() - t0
+        finally:
+            for s in slaves:
+                s.release()
+        assert st.engine == "compiled", st.engine
+        return dt, st.as_dict()[count]
+
+    out = {}
+    for label, scene_file, sets, stop, count in KERNEL_CASES:
+        long_, n_long = min(cpu(scene_file, sets, stop, count) for _ in range(5))
+        short, n_short = min(cpu(scene_file, sets, stop / 100, count) for _ in range(5))
+        out[label] = 1e6 * (long_ - short) / (n_long - n_short)
+    return out
+
+
+def in_tree(tree: Path, kernels: bool = False) -> dict[str, float]:
+    """:func:`measure` (``kernels``: :func:`measure_kernels`) of ``tree`` in a fresh process (this
+    file's code, that tree's modules)."""
+    fn = "measure_kernels" if kernels else "measure"
     code = (f"import json, runpy; m = runpy.run_path({str(Path(__file__).resolve())!r}, run_name='bench_loop'); "
-            f"print(json.dumps(m['measure'](__import__('pathlib').Path({str(tree)!r}))))")
+            f"print(json.dumps(m[{fn!r}](__import__('pathlib').Path({str(tree)!r}))))")
     res = subprocess.run([sys.executable, "-c", code], cwd=tree, capture_output=True, text=True,
                          env={**os.environ, "PYTHONPATH": str(tree)})
     if res.returncode != 0:
@@ -94,12 +145,13 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--against", type=Path, required=True, help="another checkout (e.g. the main branch)")
     ap.add_argument("--rounds", type=int, default=4)
+    ap.add_argument("--kernels", action="store_true", help="the variable-step and iterative kernels instead")
     args = ap.parse_args()
     here, there = ROOT, args.against.resolve()
     runs: dict[str, list[dict[str, float]]] = {"this tree": [], "against": []}
     for _ in range(args.rounds):
-        runs["against"].append(in_tree(there))
-        runs["this tree"].append(in_tree(here))
+        runs["against"].append(in_tree(there, args.kernels))
+        runs["this tree"].append(in_tree(here, args.kernels))
     print(f"CPU time, {args.rounds} alternating rounds; this tree {here}, against {there}:")
     print(f"  {'figure':<52} {'against (best, median)':>24} {'this tree (best, median)':>26} {'best ratio':>10}")
     for key in runs["against"][0]:

@@ -68,23 +68,23 @@ def test_same_statistics_and_ending(both):
 
 
 def test_compiled_engine_refuses_what_it_cannot_run():
-    """engine compiled with a scene the C loop cannot carry (a connection with a factor) is one
-    clear error, not a silent fallback."""
-    from cosim.scenario import load
+    """engine compiled with a scene the C loop cannot carry (an FMI 3.0 event-mode component: the
+    kernel does not end its steps at events) is one clear error, not a silent fallback; auto takes
+    the Python loop.  (A connection with a factor, once refused, runs in the kernel:
+    tests/test_general_kernel.py.)"""
+    from cosim.master import CoupledSystem, Link
+    from cosim.master.algorithms.adaptive import AdaptiveStepper
+    from cosim.master.engine import choose_engine, variable_loop
+    from cosim.slaves.linear import LinearSlave
 
-    sc = load(SCENARIOS / "pid_step.yaml", {"master.algorithm": "adaptive", "stop_time": 0.01})
-    text = Path(sc.path).read_text().replace("pid1.y -> motor1.u", "pid1.y -> motor1.u * 1.5")
-    with pytest.raises(UserError, match="compiled for adaptive"):
-        _scene_text_run(text, sc)
-
-
-def _scene_text_run(text: str, sc):
-    import tempfile
-
-    with tempfile.TemporaryDirectory() as tmp:
-        p = Path(tmp) / "s.yaml"
-        p.write_text(text)
-        return run(p, {"master.algorithm": "adaptive", "stop_time": 0.01}, engine="compiled")
+    a, b = LinearSlave("a", [[-1.0]], [[1.0]], [[1.0]]), LinearSlave("b", [[-3.0]], [[1.0]], [[1.0]])
+    system = CoupledSystem([a, b], [Link(0, "y[1]", 1, "u[1]", factor=1.5), Link(1, "y[1]", 0, "u[1]")])
+    loop = variable_loop("adaptive", AdaptiveStepper)
+    assert choose_engine(system, "compiled", loop) == "compiled"
+    a.event_mode = True
+    with pytest.raises(UserError, match="compiled for adaptive does not end its steps at events"):
+        choose_engine(system, "compiled", loop)
+    assert choose_engine(system, "auto", loop) == "python"
 
 
 @pytest.mark.parametrize("fmi", ["2.0", "3.0"])

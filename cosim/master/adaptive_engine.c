@@ -12,7 +12,8 @@ static int slave_step(rpr_slave *s, double *v, double t, double h) {
 
 /* One Gauss-Seidel step of h from t with linear inputs (AdaptiveStepper._attempt's stepping):
    each input interpolated from a source that stepped before, extrapolated from the last two
-   points otherwise (s->guess: the extrapolation to t+h); returns -1, or the failing slave with
+   points otherwise (s->guess: the extrapolation to t+h, in the source's units), then through the
+   connection's transformation; returns -1, or the failing slave with
    *bad_st its status. */
 static int32_t gs_step(rpr_slave *S, int32_t n, const int32_t *order, double *v, double h_prev, int32_t timing,
                        double t, double h, int32_t *bad_st) {
@@ -32,6 +33,10 @@ static int32_t gs_step(rpr_slave *S, int32_t n, const int32_t *order, double *v,
             } else {
                 in[j] = now;
                 s->guess[j] = now;
+            }
+            if (s->in_factor) {   /* the input (and its slope) through its connection's transformation */
+                in[j] = through(s, j, in[j]);
+                if (s->interp) s->slope[j] = s->slope[j] * s->in_factor[j];
             }
         }
         st = slave_step(s, v, t, h);

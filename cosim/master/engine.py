@@ -1,6 +1,6 @@
 """Engines, who runs an algorithm's steps: a compiled loop (for the algorithms that have one: FMUs
-directly, Python slaves through callbacks, except in iterative's; :class:`CompiledLoop` says what
-each runs) or the Python loop; the choice between them is made here, once for every algorithm
+directly, Python slaves and typed ports through callbacks; :class:`CompiledLoop` says what each
+runs) or the Python loop; the choice between them is made here, once for every algorithm
 (:func:`choose_engine`)."""
 from __future__ import annotations
 
@@ -51,7 +51,8 @@ def fixed_loop(cls: type[Algorithm]) -> CompiledLoop:
     if cls.native_code is None:
         return CompiledLoop(cls.name, None)
     if cls.native_code == ITERATIVE:
-        return CompiledLoop(cls.name, iterative_engine.library, cls.needs_rollback)
+        return CompiledLoop(cls.name, iterative_engine.library, cls.needs_rollback, callbacks=True, typed=True,
+                            transforms=True)
     return CompiledLoop(cls.name, fastloop.library, callbacks=True, typed=True, transforms=True, events=True)
 
 
@@ -232,7 +233,7 @@ def fixed_stepper(system: CoupledSystem, *, cls: type[Algorithm], step_ns: int, 
 def variable_loop(name: str, stepper_cls: type) -> CompiledLoop:
     """The compiled loop of a variable-step stepper class (:mod:`cosim.master.adaptive_engine`)."""
     library = adaptive_engine.library if adaptive_engine.has_compiled(stepper_cls) else None
-    return CompiledLoop(name, library, stepper_cls.needs_rollback, callbacks=True)
+    return CompiledLoop(name, library, stepper_cls.needs_rollback, callbacks=True, typed=True, transforms=True)
 
 
 __all__ = ["CompiledLoop", "ENGINES", "ITERATIVE", "choose_engine", "ends_steps_at_events", "fixed_loop",

@@ -253,9 +253,15 @@ class IterativeEnd(IntEnum):
     DIRECTIONAL = 7  # a directional derivative failed
 
 
+class CallbackStatus(IntEnum):
+    """What a callback slave's trampoline returns besides an FMI status (cosim.master.callbacks)."""
+
+    NO_DERIVATIVES = -1  # the directional derivative: the slave provides none (output_jacobian is None)
+
+
 #: The C enums of the header: (prefix, enum).  FMI statuses come as ST_<name>.
 ENUMS: tuple[tuple[str, type[IntEnum]], ...] = (("ST_", Status), ("FX_", FixedEnd), ("AD_", AdaptiveEnd),
-                                                 ("EC_", EccoEnd), ("IT_", IterativeEnd))
+                                                 ("EC_", EccoEnd), ("IT_", IterativeEnd), ("CB_", CallbackStatus))
 
 
 @dataclass(frozen=True)
@@ -371,6 +377,6 @@ def bind(lib: ctypes.CDLL, entries: Sequence[Entry]) -> None:
         fn.restype = None if e.returns == "void" else argtype(e.returns)
 
 
-__all__ = ["ADAPTIVE_CONTROL", "ADAPT_RUN", "AdaptiveEnd", "CRUMB", "ECCO_CONTROL", "ECCO_RUN", "ENTRIES", "ENUMS",
-           "EccoEnd", "Entry", "FIXED_CONTROL", "FixedEnd", "ITERATIVE_CONTROL", "ITER_RUN", "IterativeEnd",
-           "RECORDS", "RUN", "Record", "SLAVE", "bind", "ctypes_struct", "header", "struct"]
+__all__ = ["ADAPTIVE_CONTROL", "ADAPT_RUN", "AdaptiveEnd", "CRUMB", "CallbackStatus", "ECCO_CONTROL", "ECCO_RUN",
+           "ENTRIES", "ENUMS", "EccoEnd", "Entry", "FIXED_CONTROL", "FixedEnd", "ITERATIVE_CONTROL", "ITER_RUN",
+           "IterativeEnd", "RECORDS", "RUN", "Record", "SLAVE", "bind", "ctypes_struct", "header", "struct"]

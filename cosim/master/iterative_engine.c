@@ -40,6 +40,14 @@ static int run_slave(rpr_slave *s, it_ctl *c, double *v, double t, double h, con
 
 static inline int ended(int st) { return failing(st) || st == ST_STOP_REQUESTED; }
 
+/* the non-cut inputs of ends through their connections' transformations (Iterative._ends: the
+   sources' values as CoupledSystem.source_values gives them; a cut input's z is one already);
+   a function of its own, so that pass() stays as it is without transformations */
+static void transform_ends(const rpr_slave *s, double *ends) {
+    int32_t j;
+    for (j = 0; j < s->n_in; ++j) if (s->cut[j] < 0) ends[j] = through(s, j, ends[j]);
+}
+
 /* Iterative._pass from order position start; the failing slave (or -1), *bad_st its status */
 static int32_t pass(rpr_slave *S, int32_t n, const int32_t *order, int32_t start, it_ctl *c, double *v, double t,
                     double h, const double *z, int32_t *bad_st) {
@@ -57,6 +65,7 @@ static int32_t pass(rpr_slave *S, int32_t n, const int32_t *order, int32_t start
             continue;
         }
         for (j = 0; j < s->n_in; ++j) c->ends[j] = s->cut[j] >= 0 ? z[s->cut[j]] : v[s->in_src[j]];
+        if (s->in_factor) transform_ends(s, c->ends);
         if (s->has_last) {
             int same = 1;
             for (j = 0; j < s->n_in; ++j) if (!(c->ends[j] == s->last_in[j])) { same = 0; break; }
@@ -79,8 +88,10 @@ static double dot_strided(const double *a, int64_t sa, const double *b, int64_t 
     return acc;
 }
 
-/* Iterative._local_jacobian (step): L (n_feed x ncols, row-major) of slave s; -1 or the failing
-   slave's status in *bad_st (a finite-difference step that failed) */
+/* Iterative._local_jacobian (step): L (n_feed x ncols, row-major) of slave s from its directional
+   derivatives (column by column), else (none: no dir_der, or a callback slave's answers
+   CB_NO_DERIVATIVES) from finite differences of its step; -1 or the failing slave's status in
+   *bad_st (a finite-difference step that failed) */
 static int local_jacobian(rpr_slave *s, it_ctl *c, double *v, double t, double h, int32_t ncols, int32_t *bad_st) {
     int32_t q, k, j;
     if (c->jac_auto && s->dir_der) {
@@ -88,7 +99,7 @@ static int local_jacobian(rpr_slave *s, it_ctl *c, double *v, double t, double h
         int st = 0;
         for (q = 0; q < s->n_feed; ++q) c->unknown[q] = s->out_vr[s->feed[q]];
         for (k = 0; k < ncols; ++k) c->known[k] = s->in_vr[c->cols[k]];
-        for (k = 0; k < ncols && !failing(st); ++k) {
+        for (k = 0; k < ncols && !failing(st) && st != CB_NO_DERIVATIVES; ++k) {
             for (j = 0; j < ncols; ++j) c->seed[j] = j == k ? 1.0 : 0.0;
             if (s->fmi3)
                 st = ((fmi3GetDirectionalDerivative_t)s->dir_der)(s->inst, c->unknown, (size_t)s->n_feed, c->known,
@@ -101,8 +112,7 @@ static int local_jacobian(rpr_slave *s, it_ctl *c, double *v, double t, double h
         }
         if (c->timing) s->ns += now_ns() - t0;
         if (failing(st)) { c->status = IT_DIRECTIONAL; *bad_st = st; return -1; }
-        c->directional++;
-        return 0;
+        if (st != CB_NO_DERIVATIVES) { c->directional++; return 0; }
     }
     for (j = 0; j < s->n_in; ++j) c->base_in[j] = s->last_in[j];
     for (q = 0; q < s->n_feed; ++q) c->base_out[q] = v[s->out_off + s->feed[q]];
@@ -137,8 +147,10 @@ static int32_t jacobian(rpr_slave *S, int32_t n, const int32_t *order, it_ctl *c
         for (j = 0; j < s->n_in * m; ++j) c->du[j] = 0.0;
         for (j = 0; j < s->n_in; ++j) {
             if (s->cut[j] >= 0) c->du[j * m + s->cut[j]] = 1.0;
-            else if (c->dv_has[s->in_src[j]])
-                for (b = 0; b < m; ++b) c->du[j * m + b] = c->dv[s->in_src[j] * m + b] * 1.0;
+            else if (c->dv_has[s->in_src[j]]) {   /* through the connection's factor */
+                double f = s->in_factor ? s->in_factor[j] : 1.0;
+                for (b = 0; b < m; ++b) c->du[j * m + b] = c->dv[s->in_src[j] * m + b] * f;
+            }
         }
         for (j = 0; j < s->n_in; ++j) {
             for (b = 0; b < m; ++b) if (c->du[j * m + b] != 0.0) break;

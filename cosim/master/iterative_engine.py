@@ -48,16 +48,20 @@ class CompiledIterative:
         self.alg = alg
         sysm = alg.system
         m, nv = len(alg.cuts), len(sysm.v)
-        self.arr = arr = SlaveArray(sysm)
+        self.arr = arr = SlaveArray(sysm, callbacks=True)
         max_in = max([len(b) for b in sysm.in_buf] + [1])
         max_out = max([len(b) for b in sysm.out_buf] + [1])
         max_feed = max([len(f) for f in alg.feeding] + [1])
         for i, s in enumerate(sysm.slaves):
-            c = arr[i]
-            c.state = s.state_slot()  # the slave's own FMU state: freed with the instance
+            c, cb = arr[i], arr.callbacks[i]
+            # an FMU's own state slot (freed with the instance); a callback slave keeps its state itself
+            c.state = arr.state_slot(i) if cb is not None else s.state_slot()
             c.get_state, c.set_state = arr.entries[i].get_state, arr.entries[i].set_state
-            if alg.opt["jacobian"] == "auto":
+            if alg.opt["jacobian"] == "auto" and cb is None:
                 c.dir_der = arr.entries[i].directional_derivative
+            elif alg.opt["jacobian"] == "auto":  # the slave's output_jacobian, by its variables' names
+                c.dir_der = cb.directional(dict(zip(sysm.out_vrs[i].tolist(), sysm.reads[i])),
+                                           dict(zip(sysm.in_vrs[i].tolist(), sysm.inputs[i])))
             n_in = c.n_in
             if n_in:
                 cut = np.full(n_in, -1, dtype=np.int64)
@@ -136,6 +140,7 @@ class CompiledIterative:
         alg.rollbacks, alg.jacobians, alg.directional = int(ctl.rollbacks), int(ctl.jacobians), int(ctl.directional)
         alg.broyden, alg.fd_steps = int(ctl.broyden), int(ctl.fd_steps)
         alg.master_ns += ctl.master_ns
+        self.arr.reraise()  # a callback slave's exception (a model's error, Ctrl-C), raised here
         rows = int(self.n_rows.value)
         if code == IterativeEnd.STOPPED:
             alg.k += done - 1

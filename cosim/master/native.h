@@ -46,6 +46,12 @@ static inline int stop_asked(rpr_slave *s) {
     return b != 0;
 }
 
+/* input j of slave s from its source's value x, through its connection's linear transformation
+   where the slave has one (CoupledSystem.gather: x * factor + offset) */
+static inline double through(const rpr_slave *s, int32_t j, double x) {
+    return s->in_factor ? x * s->in_factor[j] + s->in_offset[j] : x;
+}
+
 /* set the slave's inputs from in[] (its place in v) */
 static inline int set_inputs(rpr_slave *s, const double *in) {
     if (!s->n_in && !s->callback) return 0;

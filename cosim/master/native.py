@@ -112,11 +112,15 @@ class SlaveArray:
                 c.in_factor, c.in_offset = self.buffer(system.in_affine[i][0]), self.buffer(system.in_affine[i][1])
             if states:
                 c.get_state, c.set_state = ne.get_state, ne.set_state
-                c.state = ctypes.addressof(self.states) + i * ctypes.sizeof(ctypes.c_void_p)
+                c.state = self.state_slot(i)
             self.keep(system.in_vrs[i], system.in_src[i], system.out_vrs[i])
             c.in_vr = system.in_vrs[i].ctypes.data if c.n_in else None
             c.in_src = system.in_src[i].ctypes.data if c.n_in else None
             c.out_vr = system.out_vrs[i].ctypes.data if c.n_out else None
+
+    def state_slot(self, i: int) -> int:
+        """The address of slave ``i``'s FMU-state pointer in this array (see :meth:`free_states`)."""
+        return ctypes.addressof(self.states) + i * ctypes.sizeof(ctypes.c_void_p)
 
     def reraise(self) -> None:
         """Raise the exception a callback slave's trampoline caught during the last call, if any."""
@@ -147,7 +151,7 @@ class SlaveArray:
         for i, ne in enumerate(self.entries):
             if self.states[i] and ne.free_state:
                 proto = prototype("fmi3FreeFMUState" if ne.fmi3 else "fmi2FreeFMUstate")
-                slot = ctypes.c_void_p.from_address(ctypes.addressof(self.states) + i * ctypes.sizeof(ctypes.c_void_p))
+                slot = ctypes.c_void_p.from_address(self.state_slot(i))
                 proto(ne.free_state)(ne.instance, ctypes.byref(slot))
                 self.states[i] = None
 

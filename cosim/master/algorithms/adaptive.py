@@ -42,11 +42,12 @@ right limit, and the inputs' extrapolation history is moved by the jump.
 
 Statistics: accepted and rejected steps, rollbacks, smallest and largest step, steps cut at events.
 
-Engines: :class:`AdaptiveStepper` here is the reference implementation (Python loop); where every
-slave is an FMU with C entry points and state get/set (``master.engine`` auto or compiled),
-:mod:`cosim.master.adaptive_engine` runs the same accepted-step loop in C, step for step and bit
-for bit the same (``tests/test_adaptive_engine.py``); likewise for ecco's stepper
-(``tests/test_native.py``).
+Engines: :class:`AdaptiveStepper` here is the reference implementation (Python loop); for every
+scene without an FMI 3.0 event-mode component (``master.engine`` auto or compiled),
+:mod:`cosim.master.adaptive_engine` runs the same accepted-step loop in C (FMUs directly, Python
+slaves and typed ports through callbacks, transformed connections), step for step and bit for bit
+the same (``tests/test_adaptive_engine.py``, ``tests/test_general_kernel.py``); likewise for
+ecco's stepper (``tests/test_native.py``).
 """
 from __future__ import annotations
 
@@ -406,9 +407,19 @@ class VariableStepper(Stepper):
         return max_steps
 
     def block(self, rec: np.ndarray, max_steps: int) -> int:
-        if self.compiled is not None:
+        if self.compiled is None:
+            return self.python_block(rec, max_steps)
+        if not self.system.typed.texts:
             return self.compiled.run(rec[:max_steps])
-        return self.python_block(rec, max_steps)
+        rows = 0  # recorded text variables: one accepted step per call, their changes noted at each row
+        for _ in range(max_steps):
+            got = self.compiled.run(rec[rows:rows + 1])
+            rows += got
+            if got:
+                self.text_events += [(float(rec[rows - 1, 0]), c, x) for c, x in self.system.typed.text_changes()]
+            if self.done():
+                break
+        return rows
 
     def step(self) -> bool:
         ok = self.py.step()
