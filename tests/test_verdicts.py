@@ -169,3 +169,21 @@ def test_study_fidelity_on_pid_step_picks_what_the_monolithic_references_confirm
     truth = max(d.relative for d in compare(ours.trace, most.trace))
     assert truth <= tol  # the choice is within the tolerance by the monolithic ruler too ...
     assert abs(best.worst - truth) <= 0.1 * truth  # ... and the study measured the same fidelity error
+
+
+def test_a_fidelity_study_whose_answer_is_the_most_detailed_says_how_far_the_nearest_is():
+    """The tutorial's ``study fidelity pid_step --tol 1e-4``: no cheaper combination is within the
+    tolerance (the rigid mechanism is 3.8e-2 of mech.platform.vy's range off the multibody one),
+    so the answer names the nearest cheaper one and its error instead of "1.0x faster"."""
+    from cosim.cli.study_verb import _fidelity_answer
+    from cosim.study.fidelity import FidelityRow, FidelityStudy
+
+    rows = [FidelityRow({"mechanism": "multibody"}, "ok", worst=0.0, wall_s=3.0),
+            FidelityRow({"mechanism": "rigid"}, "ok", worst=3.8e-2, worst_signal="mech.platform.vy", wall_s=0.25),
+            FidelityRow({"mechanism": "kinematic"}, "invalid", "no parameter 'x0'")]
+    study = FidelityStudy("pid_step", {"mechanism": ["multibody", "rigid", "kinematic"]}, rows)
+    tight = _fidelity_answer(study, 1e-4)
+    assert "the most detailed, mechanism=multibody" in tight and "faster" not in tight
+    assert "the nearest, mechanism=rigid, is 3.80e-02 of range off on mech.platform.vy" in tight
+    assert _fidelity_answer(study, 0.05) == ("cheapest within 0.05: mechanism=rigid (3.80e-02, 12.0x faster than "
+                                             "the most detailed)")
