@@ -56,6 +56,40 @@ def test_batch_trace_plots_carry_the_unit(tmp_path, monkeypatch):
     assert seen["fig"].axes[0].get_ylabel() == "m.x [m]"
 
 
+def test_batch_metric_charts_carry_the_units_of_their_axes_and_metrics(tmp_path, monkeypatch):
+    """The tutorial's batch: Kp and Kd in the PID block's units, overshoot in %, settling time in
+    s, a value measure in its signal's unit (the metrics' table, cosim/batch/metrics.py), on the
+    PNG charts and on the HTML report's titles."""
+    from cosim.analysis.report import metric_figures
+    from cosim.batch import load_batch, report
+    from cosim.batch.spec import axis_units
+    from models import blocks
+
+    gains = {p.name: p.unit for p in blocks.make("pid", "continuous").params}
+    batch = load_batch(SCENES / "batch_pid_gains.yaml")
+    assert axis_units(batch) == {"Kp": gains["Kp"], "Kd": gains["Kd"]} and gains["Kp"] == "V/m"
+    for rid, k in (("a1", 1.0), ("b2", 2.0)):
+        ob = trace_writer(tmp_path / "runs" / rid / "s.csv")
+        ob.start(["time", "m.x"], {"units": {"m.x": "m"}})
+        ob.record(np.array([[0.0, 0.0], [1.0, k]]))
+        ob.finish("ok", "", {})
+    rows = [{"run_id": "a1", "outcome": "ok", "Kp": 1, "Kd": 1, "m.x:overshoot": 5.0, "m.x:max": 1.0},
+            {"run_id": "b2", "outcome": "ok", "Kp": 2, "Kd": 1, "m.x:overshoot": 7.0, "m.x:max": 2.0}]
+    units = {**axis_units(batch), **report.metric_units(tmp_path, rows, ["m.x:overshoot", "m.x:settling_time",
+                                                                          "m.x:max"])}
+    assert units == {"Kp": "V/m", "Kd": "V.s/m", "m.x:overshoot": "%", "m.x:settling_time": "s", "m.x:max": "m"}
+    seen = []
+    monkeypatch.setattr(report, "_save", lambda fig, plt, path: seen.append(fig))
+    report.plot_heatmap(rows, "m.x:overshoot", "Kp", "Kd", tmp_path / "h.png", units=units)
+    report.plot_lines(rows, "m.x:max", "Kp", "Kd", ["Kp", "Kd"], tmp_path / "l.png", units=units)
+    heat, lines = seen
+    assert heat.axes[0].get_xlabel() == "Kp [V/m]" and heat.axes[0].get_ylabel() == "Kd [V.s/m]"
+    assert heat.axes[1].get_ylabel() == "m.x:overshoot [%]"  # the colour bar
+    assert lines.axes[0].get_xlabel() == "Kp [V/m]" and lines.axes[0].get_ylabel() == "m.x:max [m]"
+    fig = metric_figures(rows, ["Kp", "Kd"], ["m.x:overshoot"], units)[0]
+    assert fig.layout.xaxis.title.text == "Kp [V/m]" and fig.data[0].colorbar.title.text == "m.x:overshoot [%]"
+
+
 def test_a_misspelt_component_in_a_set_path_gets_the_closest_name(capsys):
     code = main(["run", str(SCENES / "pid_step.yaml"), "--set", "components.pdi1.params.Kp=40", "--check"])
     err = capsys.readouterr().err

@@ -555,16 +555,22 @@ def _number(v) -> float:
         return float("nan")
 
 
-def metric_figures(rows: Sequence[Mapping], axes: Sequence[str], metrics: Sequence[str]) -> list:
+def metric_figures(rows: Sequence[Mapping], axes: Sequence[str], metrics: Sequence[str],
+                   units: Mapping[str, str] | None = None) -> list:
     """For each metric: a heat map over the first two numeric axes (failed runs blank), a line
     per value of the second axis over one axis, or a histogram without axes; every point carries
-    its run id (``customdata``) for the click."""
+    its run id (``customdata``) for the click.  ``units``: axis or metric -> unit, on the titles."""
     import plotly.graph_objects as go
 
     figs = []
     numeric = [a for a in axes if all(math.isfinite(_number(r.get(a))) for r in rows)]
+
+    def titled(name: str) -> str:
+        unit = (units or {}).get(name, "")
+        return label(name) + (f" [{label(unit)}]" if unit else "")
+
     for metric in metrics:
-        shown = label(metric)
+        shown = titled(metric)
         if len(numeric) >= 2:
             xa, ya = numeric[0], numeric[1]
             xs, ys = sorted({_number(r[xa]) for r in rows}), sorted({_number(r[ya]) for r in rows})
@@ -579,7 +585,7 @@ def metric_figures(rows: Sequence[Mapping], axes: Sequence[str], metrics: Sequen
                                        colorbar={"title": {"text": shown, "side": "right"}},
                                        hovertemplate=f"{label(xa)} = %{{x}}<br>{label(ya)} = %{{y}}<br>{shown} = "
                                                      "%{z:.4g}<br>run %{customdata}<extra></extra>"))
-            fig.update_layout(xaxis_title=label(xa), yaxis_title=label(ya))
+            fig.update_layout(xaxis_title=titled(xa), yaxis_title=titled(ya))
         elif numeric:
             xa = numeric[0]
             ok = sorted((r for r in rows if r.get("outcome") == "ok"), key=lambda r: _number(r[xa]))
@@ -587,7 +593,7 @@ def metric_figures(rows: Sequence[Mapping], axes: Sequence[str], metrics: Sequen
                                        customdata=[r["run_id"] for r in ok], mode="lines+markers",
                                        hovertemplate=f"{label(xa)} = %{{x:.4g}}<br>{shown} = %{{y:.4g}}<br>run "
                                                      "%{customdata}<extra></extra>"))
-            fig.update_layout(xaxis_title=label(xa), yaxis_title=shown)
+            fig.update_layout(xaxis_title=titled(xa), yaxis_title=shown)
         else:
             ok = [r for r in rows if r.get("outcome") == "ok"]
             fig = go.Figure(go.Scatter(x=list(range(len(ok))), y=[_number(r.get(metric)) for r in ok],
@@ -602,10 +608,11 @@ def metric_figures(rows: Sequence[Mapping], axes: Sequence[str], metrics: Sequen
 def batch_report(path: Path, rows: Sequence[Mapping], columns: Sequence[str], axes: Sequence[str],
                  metrics: Sequence[str], traces: Mapping[str, Path], *, title: str = "",
                  signals: Sequence[str] = (), run_reports: Mapping[str, str] | None = None,
-                 max_points: int = 800, max_runs: int = 400) -> Path:
+                 max_points: int = 800, max_runs: int = 400, units: Mapping[str, str] | None = None) -> Path:
     """Write a batch's report (module docstring) to ``path``: ``rows`` of its results table,
     ``traces`` run id -> trace file (read for the click view, ``signals`` of each, default the
-    metrics' signals), ``run_reports`` run id -> link of that run's own report."""
+    metrics' signals), ``run_reports`` run id -> link of that run's own report, ``units`` axis
+    or metric -> unit."""
     import plotly.graph_objects as go
 
     shown = list(signals) or list(dict.fromkeys(m.split(":")[0] for m in metrics))
@@ -628,7 +635,7 @@ def batch_report(path: Path, rows: Sequence[Mapping], columns: Sequence[str], ax
     parts = [f"<p>{len(rows)} runs, {n_ok} ok, {len(rows) - n_ok} not ok. Click a point of a chart or a row of "
              f"the table to see that run's traces below; click a header to sort.</p>"]
     first = True
-    for k, fig in enumerate(metric_figures(rows, axes, metrics)):
+    for k, fig in enumerate(metric_figures(rows, axes, metrics, units)):
         parts.append(_figure_html(fig, f"metric-{k}", first))
         first = False
     traces_fig = go.Figure()
