@@ -92,6 +92,19 @@ def test_study_precision_marks_rows_over_the_tolerance(tmp_path, cache, capsys):
                  "--out", str(tmp_path / "study"), "--cache", str(cache)])
     assert code == 0
     import csv
+    import re
+
+    # every heading and label the study prints has a glossary entry (issue 32, item 8)
+    printed = capsys.readouterr().out.splitlines()
+    header = next(ln for ln in printed if ln.startswith("variant "))
+    labels = ["variant", "step/tol", "status", "worst rel", "RMS rel", "signal", "wall s", "doSteps", "rejected",
+              "rollbacks"]
+    assert " ".join(header.split()) == " ".join(labels)
+    labels += [m.group(1) for ln in printed if (m := re.match(r"^(observed order|cheapest within) ", ln))]
+    assert {"observed order", "cheapest within"} <= set(labels)
+    glossary = (Path(__file__).resolve().parents[1] / "docs" / "reference" / "glossary.md").read_text()
+    entries = " | ".join(re.findall(r"\*\*(.+?)\*\*", glossary))
+    assert [w for w in labels if w not in entries] == []
 
     rows = list(csv.DictReader(open(tmp_path / "study" / "two_mass_free_precision.csv")))
     assert rows and all(r["status"] in ("ok", "inaccurate") for r in rows)
