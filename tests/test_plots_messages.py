@@ -37,6 +37,12 @@ def test_a_chart_of_many_panels_is_one_taller_page(tmp_path, monkeypatch):
     charts.plot_run(tr, tmp_path / "many.png", "many", units={n: "m" for n in names})
     axes = [ax for ax in seen["fig"].axes if ax.get_visible()]
     assert len(axes) == 30 and all(ax.get_ylabel() == "[m]" for ax in axes)
+    fig = seen["fig"]  # the page's title clear of the first row's titles (it sat on them on a tall page)
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+
+    renderer = FigureCanvasAgg(fig).get_renderer()
+    top = fig._suptitle.get_window_extent(renderer)
+    assert not any(top.overlaps(ax.title.get_window_extent(renderer)) for ax in axes)
     assert (tmp_path / "many.png").stat().st_size > 0
 
 

@@ -96,10 +96,10 @@ def plot_run(trace: Trace, path: Path, title: str, *, units: Mapping[str, str] |
         ax.set_visible(False)
     for ax in axes[-1]:
         ax.set_xlabel("time [s]")
-    fig.suptitle(title)
     # fixed margins in inches instead of tight_layout, which renders every tick label once more
-    # to measure it (a third of pid_step's 2.3 s plot)
+    # to measure it (a third of pid_step's 2.3 s plot); the title 0.1 in below the top, at any height
     w, h = fig.get_size_inches()
+    fig.suptitle(title, y=1 - 0.1 / h, va="top")
     fig.subplots_adjust(left=0.95 / w, right=1 - 0.15 / w, bottom=0.5 / h, top=1 - 0.55 / h, hspace=0.45,
                         wspace=0.2 * ncol)
     return _save(fig, path)
