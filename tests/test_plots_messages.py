@@ -103,6 +103,28 @@ def test_a_misspelt_component_in_a_set_path_gets_the_closest_name(capsys):
     assert "needs 'model:'" not in err and "Traceback" not in err
 
 
+@pytest.mark.parametrize("pattern, hint", [("pdi*", "pid*"), ("motr?", "motor?"), ("mtor[12]", "motor[12]"),
+                                           ("zz*", None)])
+def test_a_misspelt_wildcard_in_a_set_path_or_a_batch_axis_gets_a_pattern_that_matches(tmp_path, capsys, pattern, hint):
+    """Issue 32, item 8, a wildcard too (``--set 'components.pdi*.params.Kp=40'``, a batch axis):
+    the mended pattern is offered only where it matches components of the scene."""
+    import fnmatch
+
+    names = ["target", "pid1", "pid2", "pid3", "motor1", "motor2", "motor3", "mech"]
+    if hint:
+        assert any(fnmatch.fnmatchcase(n, hint) for n in names)  # the suggestion is one that works
+    code = main(["run", str(SCENES / "pid_step.yaml"), "--set", f"components.{pattern}.params.Kp=40", "--check"])
+    err = capsys.readouterr().err
+    assert code == 2 and f"{pattern!r} in 'components.{pattern}.params.Kp' matches no component" in err
+    assert (f"did you mean {hint!r}?" in err) if hint else ("did you mean" not in err)
+    batch = tmp_path / "b.yaml"
+    batch.write_text(f"name: b\nscene: {SCENES / 'pid_step.yaml'}\ngrid:\n"
+                     f"  Kp: {{path: \"components.{pattern}.params.Kp\", values: [20, 40]}}\n")
+    assert main(["batch", str(batch), "--check"]) == 2
+    err = capsys.readouterr().err
+    assert f"{batch}:4: error:" in err and ((f"did you mean {hint!r}?" in err) if hint else ("did you mean" not in err))
+
+
 def test_a_new_component_set_whole_is_still_allowed():
     scene = load(SCENES / "pid_step.yaml", ["components.extra={model: pid}", "components.extra.params.Kp=3"])
     assert scene.components["extra"].params["Kp"] == 3
