@@ -200,3 +200,19 @@ def test_a_fidelity_study_whose_answer_is_the_most_detailed_says_how_far_the_nea
     assert "the nearest, mechanism=rigid, is 3.80e-02 of range off on mech.platform.vy" in tight
     assert _fidelity_answer(study, 0.05) == ("cheapest within 0.05: mechanism=rigid (3.80e-02, 12.0x faster than "
                                              "the most detailed)")
+
+
+def test_a_fidelity_study_with_a_misspelt_only_stops_after_the_first_run(cache, monkeypatch):
+    """``study fidelity --only 'mehc.platform.*'``: the closest pattern, after the most detailed
+    combination's run and before any other (it came after all 18)."""
+    from cosim.errors import UserError
+    from cosim.study import fidelity
+
+    runs = []
+    real = fidelity.compare
+    monkeypatch.setattr(fidelity, "compare", lambda *a, **k: runs.append(1) or real(*a, **k))
+    scene = Path(__file__).resolve().parents[1] / "scenarios" / "pid_step.yaml"
+    with pytest.raises(UserError, match=r"did you mean 'mech\.platform\.\*'"):
+        fidelity.fidelity_study(scene, {"stop_time": 0.01, "components.pid*.fidelity": "auto"}, only_auto=True,
+                                only=["mehc.platform.*"], cache_dir=cache)
+    assert runs == []  # no second combination was compared
