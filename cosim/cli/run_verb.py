@@ -430,7 +430,8 @@ def _summary(res) -> None:
     if rt:
         print(f"  real time: lateness p50 {1e6 * rt['lateness_p50_s']:.0f} us, p99 {1e6 * rt['lateness_p99_s']:.0f} us, "
               f"max {1e6 * rt['lateness_max_s']:.0f} us; {rt['missed_deadlines']} missed deadlines of "
-              f"{rt['paced_steps']} paced steps" + (f" ({rt['priority']})" if rt.get("priority") else ""))
+              f"{rt['paced_steps']} paced steps" + (f"; scheduling priority: {rt['priority']}" if rt.get("priority")
+                                                     else ""))
         for name, fig in rt.get("slaves", {}).items():
             shown = ", ".join(f"{k} {1e6 * v:.0f} us" if k.startswith(("tick", "cpu")) else f"{k} {v:g}"
                               for k, v in fig.items())
