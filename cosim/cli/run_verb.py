@@ -319,8 +319,11 @@ def _motion_checks(scene, args: argparse.Namespace) -> bool:
 def _describe(scene) -> None:
     from ..slaves.plan import component_line
 
-    print(f"scene {scene.name}: {len(scene.components)} components, {len(scene.connections)} connections "
-          f"({len(scene.bonds)} bonds), "
+    def count(n: int, word: str) -> str:
+        return f"{n} {word}" + ("" if n == 1 else "s")
+
+    print(f"scene {scene.name}: {count(len(scene.components), 'component')}, "
+          f"{count(len(scene.connections), 'connection')} ({count(len(scene.bonds), 'bond')}), "
           + (f"step {scene.master.step:g} s (algorithm chosen below)" if scene.master.auto else
              f"{scene.master.algorithm} at {scene.master.step:g} s") + ", "
           f"stop {scene.stop_time:g} s ({scene.n_steps} steps)")
