@@ -125,6 +125,7 @@ def test_a_lone_fmu_whose_pilot_estimates_nothing_keeps_the_scenes_step(referenc
     assert res.status == "ok", res.reason
     choice = res.stats["choice"]
     assert choice["settings"]["step"] == 1e-3 and res.stats["steps_done"] == 5000
+    assert "a single component" in choice["why"], choice  # not "no feedback between the components"
     assert all(p["estimate"] == 0 and p["step"] == 1e-3 for p in choice["pilots"])
     ref = fmpy.simulate_fmu(str(path), fmi_type="CoSimulation", output_interval=1e-3, stop_time=5.0,
                             output=["x0", "x1"])
