@@ -203,7 +203,7 @@ def axis_units(batch: Batch) -> dict[str, str]:
     description), seconds for the times and steps; absent where none is known."""
     out: dict[str, str] = {}
     try:
-        scene = validate(batch.base_tree, batch.scene_path)
+        scene = validate(apply_overrides(batch.base_tree, batch.fixed), batch.scene_path)
     except (SceneError, UserError):  # a chart's label only: without the scene, no unit
         return out
     for axis in batch.axes:
