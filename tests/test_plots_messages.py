@@ -94,6 +94,13 @@ def test_batch_metric_charts_carry_the_units_of_their_axes_and_metrics(tmp_path,
     assert lines.axes[0].get_xlabel() == "Kp [V/m]" and lines.axes[0].get_ylabel() == "m.x:max [m]"
     fig = metric_figures(rows, ["Kp", "Kd"], ["m.x:overshoot"], units)[0]
     assert fig.layout.xaxis.title.text == "Kp [V/m]" and fig.data[0].colorbar.title.text == "m.x:overshoot [%]"
+    # the batch's description keeps each axis's unit for `rpr-cosim report` (batch.json)
+    import json
+
+    from cosim.batch.runner import _describe
+
+    (tmp_path / "batch.json").write_text(json.dumps(_describe(batch, [])))
+    assert report.batch_meta(tmp_path)["axis_units"] == {"Kp": "V/m", "Kd": "V.s/m"}
 
 
 def test_a_misspelt_component_in_a_set_path_gets_the_closest_name(capsys):
