@@ -201,8 +201,8 @@ class Comparability:
                        f"compare the overlap only")
         if not allow_different_scenes and self.different_scenes:
             ha, hb = self.hashes
-            out.append(f"the runs are of different scenes (scene hash {ha[:12]} against {hb[:12]}): {self._scene_why()}; use "
-                       f"--allow-different-scenes to compare them anyway")
+            out.append(f"the runs are of different scenes (scene hash {ha[:12]} against {hb[:12]}): "
+                       f"{self._scene_why()}; use --allow-different-scenes to compare them anyway")
         return out
 
     def _scene_why(self) -> str:

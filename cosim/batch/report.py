@@ -195,6 +195,8 @@ def _axis_values(rows: Sequence[dict], axis: str) -> list:
 
 #: Measures whose unit is their own, not the signal's (:mod:`cosim.batch.metrics`).
 _MEASURE_UNITS = {"overshoot": "%", "settling_time": "s"}
+
+
 def _labelled(name: str | None, units: dict[str, str] | None) -> str | None:
     """``name [unit]`` where ``units`` knows the unit, else ``name``."""
     unit = (units or {}).get(name or "", "")
