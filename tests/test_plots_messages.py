@@ -303,3 +303,25 @@ def test_a_misspelt_component_in_a_connection_or_an_output_gets_the_closest_name
     err = capsys.readouterr().err
     assert "unknown component 'pdi1' in 'pdi1.measurement'; did you mean 'pid1'?" in err
     assert "'mehc.platform.*'" in err and "did you mean 'mech.platform." in err
+
+
+def test_a_comparison_chart_says_how_many_of_the_variables_it_draws(tmp_path):
+    """Issue 32, item 7: `run --reference` draws the 8 worst variables of pid_step's 24; the page
+    says so (it dropped the other 16 without a word), clear of the first row's titles."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+
+    from cosim.analysis.compare import compare
+
+    names = [f"m{k}.x" for k in range(10)]
+    t = np.linspace(0, 1, 101)
+    test = Trace(["time", *names], np.column_stack([t, *[np.sin(t) * (1 + 1e-3 * k) for k in range(10)]]))
+    ref = Trace(["time", *names], np.column_stack([t, *[np.sin(t) for _ in range(10)]]))
+    diffs = compare(test, ref)
+    fig = charts.comparison_figure(test, ref, diffs, labels=("run", "reference"), units={n: "m" for n in names})
+    title = fig._suptitle.get_text()
+    assert "the 8 worst of 10 variables" in title and "every one in the printed table" in title
+    renderer = FigureCanvasAgg(fig).get_renderer()
+    top = fig._suptitle.get_window_extent(renderer)
+    assert not any(top.overlaps(ax.title.get_window_extent(renderer)) for ax in fig.axes)
+    few = charts.comparison_figure(test, ref, diffs[:3], most=8)
+    assert "all 3 variables" in few._suptitle.get_text()
