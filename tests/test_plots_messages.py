@@ -60,6 +60,11 @@ def test_batch_trace_plots_carry_the_unit(tmp_path, monkeypatch):
     rows = [{"run_id": "a1", "outcome": "ok"}, {"run_id": "b2", "outcome": "ok"}]
     report.plot_traces(tmp_path, rows, "m.x", "all", None, [], tmp_path / "p.png")
     assert seen["fig"].axes[0].get_ylabel() == "m.x [m]"
+    assert seen["fig"].axes[0].get_title() == "m.x: 2 runs"
+    monkeypatch.setattr(report, "MAX_TRACES", 1)  # beyond the chart's limit, its title says how many it drew
+    seen.clear()
+    report.plot_traces(tmp_path, rows, "m.x", "all", None, [], tmp_path / "p.png")
+    assert seen["fig"].axes[0].get_title() == "m.x: the first 1 of 2 runs" and len(seen["fig"].axes[0].lines) == 1
 
 
 def test_batch_metric_charts_carry_the_units_of_their_axes_and_metrics(tmp_path, monkeypatch):

@@ -342,6 +342,10 @@ def run_trace_path(out: Path, run_id: str) -> Path | None:
     return found[0] if found else None
 
 
+#: At most this many runs' traces on one chart (its title says so beyond).
+MAX_TRACES = 200
+
+
 def plot_traces(out: Path, rows, signal: str, runs: Any, sort: str | None, axes: Sequence[str], path: Path) -> Path:
     """``signal`` of the chosen runs overlaid: ``runs`` is a count (first by ``sort``), 'all' or ids."""
     from ..trace.traces import read_trace
@@ -354,7 +358,7 @@ def plot_traces(out: Path, rows, signal: str, runs: Any, sort: str | None, axes:
         chosen = ordered if runs == "all" else ordered[:int(runs)]
     fig, ax = plt.subplots(figsize=(8, 4.5), layout="constrained")
     units: set[str] = set()
-    for r in chosen[:200]:
+    for r in chosen[:MAX_TRACES]:
         p = run_trace_path(out, r["run_id"])
         if p is None:
             continue
@@ -369,7 +373,8 @@ def plot_traces(out: Path, rows, signal: str, runs: Any, sort: str | None, axes:
     ax.set_xlabel("time [s]")
     ax.set_ylabel(f"{signal} [{', '.join(sorted(units)) or '1'}]")  # the unit the runs' sidecars give
     ax.grid(alpha=0.3)
-    ax.set_title(f"{signal}: {len(chosen)} runs" + (f" (first by {sort})" if sort and runs != "all" and not isinstance(runs, list) else ""),
+    shown = f"{len(chosen)} runs" if len(chosen) <= MAX_TRACES else f"the first {MAX_TRACES} of {len(chosen)} runs"
+    ax.set_title(f"{signal}: {shown}" + (f" (first by {sort})" if sort and runs != "all" and not isinstance(runs, list) else ""),
                  fontsize=10)
     return _save(fig, plt, path)
 
