@@ -330,3 +330,19 @@ def test_a_comparison_chart_says_how_many_of_the_variables_it_draws(tmp_path):
     assert not any(top.overlaps(ax.title.get_window_extent(renderer)) for ax in fig.axes)
     few = charts.comparison_figure(test, ref, diffs[:3], most=8)
     assert "all 3 variables" in few._suptitle.get_text()
+
+
+def test_the_report_animation_draws_the_joint_labels_whole():
+    """The run report's animation cut "A2" at the plot's right edge (the range ends 8 % beyond the
+    joints): the labels are drawn beyond the axes into a margin wide enough for them."""
+    from cosim.analysis.report import animation_figure
+
+    t = np.linspace(0.0, 1.0, 11)
+    tr = Trace(["time", "mech.platform.x", "mech.platform.y", "mech.platform.phi"],
+               np.column_stack([t, -0.15 - 0.05 * t, -0.15 + 0.0 * t, 0.2 * t]))
+    fig = animation_figure(tr)
+    joints = next(d for d in fig.data if d.name == "fixed joints")
+    assert list(joints.text[:3]) == ["A1", "A2", "A3"] and joints.textposition == "top right"
+    right_most = max(joints.x)
+    assert fig.layout.xaxis.range[1] < right_most + 0.05  # the label would reach past the range ...
+    assert joints.cliponaxis is False and fig.layout.margin.r >= 25  # ... and is drawn there, whole

@@ -214,7 +214,8 @@ def animation_figure(trace: Trace, manipulator=None, component: str | None = Non
     base = go.Scatter(x=[*A[:, 0], A[0, 0]], y=[*A[:, 1], A[0, 1]], mode="markers+lines+text",
                       text=["A1", "A2", "A3", ""], textposition="top right", marker={"symbol": "square", "size": 9,
                                                                                    "color": "black"},
-                      line={"dash": "dot", "color": "#999"}, name="fixed joints", hoverinfo="skip")
+                      line={"dash": "dot", "color": "#999"}, name="fixed joints", hoverinfo="skip",
+                      cliponaxis=False)  # a joint's label at the range's edge is drawn whole, in the margin
     frames = [go.Frame(data=state(k), name=f"{t[i]:.4g}", traces=[1, 2, 3, 4, 5]) for k, i in enumerate(idx)]
     fig = go.Figure(data=[base, *state(0)], frames=frames)
     steps = [{"args": [[f.name], {"frame": {"duration": 0, "redraw": False}, "mode": "immediate"}],
@@ -225,7 +226,7 @@ def animation_figure(trace: Trace, manipulator=None, component: str | None = Non
                "yref": "paper", "y": 1.0, "yanchor": "bottom", "pad": {"b": 8}}, template="plotly_white",
         xaxis={"range": [lo[0] - pad, hi[0] + pad], "title": "x [m]"},
         yaxis={"range": [lo[1] - pad, hi[1] + pad], "title": "y [m]", "scaleanchor": "x", "scaleratio": 1},
-        height=540, showlegend=False, margin={"l": 50, "r": 10, "t": 70, "b": 40},
+        height=540, showlegend=False, margin={"l": 50, "r": 30, "t": 70, "b": 40},
         updatemenus=[{"type": "buttons", "x": 0, "y": -0.12, "xanchor": "left", "buttons": [
             {"label": "play", "method": "animate",
              "args": [None, {"frame": {"duration": 60, "redraw": False}, "fromcurrent": True}]},
