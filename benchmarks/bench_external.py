@@ -8,7 +8,7 @@ every 10 ms over the stop time, as a fraction of the reference's range.  Runs, o
 in one process (libcosimpy in a child process: it prints the FMUs' banners):
 
 * libcosimpy ECCO as the file configures it, and libcosimpy fixed step at 1e-4 s and 2e-4 s
-* ours: the default algorithm (gauss_seidel, compiled loop) at 1e-4 s and 2e-4 s, jacobi at 1e-4 s
+* ours: the master's choice for the YAML scene (gauss_seidel, compiled loop) at 1e-4 s and 2e-4 s, jacobi at 1e-4 s
   (libcosim's fixed-step convention), and ecco from the OSP file
 
     python3 benchmarks/bench_external.py [--stop 10]
@@ -96,7 +96,7 @@ def main() -> None:
         rows = [("libcosimpy ECCO (the file's configuration)", libcosim(tmp, args.stop, None)),
                 ("libcosimpy fixed step 1e-4 s", libcosim(tmp, args.stop, 1e-4)),
                 ("libcosimpy fixed step 2e-4 s", libcosim(tmp, args.stop, 2e-4)),
-                ("ours gauss_seidel 1e-4 s (default algorithm)", ours(tmp, args.stop, "gauss_seidel", 1e-4)),
+                ("ours gauss_seidel 1e-4 s (the master's choice)", ours(tmp, args.stop, "gauss_seidel", 1e-4)),
                 ("ours gauss_seidel 2e-4 s", ours(tmp, args.stop, "gauss_seidel", 2e-4)),
                 ("ours jacobi 1e-4 s", ours(tmp, args.stop, "jacobi", 1e-4)),
                 ("ours ecco (the file's configuration)", ours(tmp, args.stop, None, 1e-4))]

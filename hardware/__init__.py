@@ -1,4 +1,4 @@
-"""The rig of thesis Chapter 8 (SPEC §7): BeagleBone Black I/O behind a safe UDP daemon.
+"""The rig of thesis Chapter 8 (docs/explanation/thesis.md §7): BeagleBone Black I/O behind a safe UDP daemon.
 
 - :mod:`.pins` — the pin map as data and its sysfs files under a configurable root;
 - :mod:`.convert` — volts to PWM duty/DIR, ADC counts to stroke (calibrated);

@@ -1,4 +1,4 @@
-"""Calibrated conversions between the master's quantities and the board's (SPEC §7).
+"""Calibrated conversions between the master's quantities and the board's (docs/explanation/thesis.md §7).
 
 Drive: a Cytron driver on a 12 V supply takes PWM + DIR.  A command of ``v`` volts becomes a duty
 ``|v| / v_supply`` of the PWM period (20 kHz: 50 000 ns) and DIR low for ``v >= 0`` (extend),

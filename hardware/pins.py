@@ -1,4 +1,4 @@
-"""The BeagleBone Black pin map of the rig (SPEC §7, thesis Table 8.2) as data, and the sysfs
+"""The BeagleBone Black pin map of the rig (docs/explanation/thesis.md §7, thesis Table 8.2) as data, and the sysfs
 files behind it, resolved under a configurable ``root`` ("/" on the board, a temporary fake
 tree in tests).  The daemon is compiled with this map (``board_config.h``) and resolves it the
 same way in C (``hardware/c/board_io.c``); :func:`resolve` here is how the virtual board's plant
@@ -45,7 +45,7 @@ class LegPins:
     header: str = ""  # the P9 pins, for people wiring the rig
 
 
-#: SPEC §7: legs 1..3.
+#: docs/explanation/thesis.md §7: legs 1..3.
 RIG_PINS: tuple[LegPins, ...] = (
     LegPins("48302200", 0, "gpio0_30", 4, "PWM P9-14 (EHRPWM1A), DIR P9-11, pot P9-33 (AIN4)"),
     LegPins("48302200", 1, "gpio1_28", 6, "PWM P9-16 (EHRPWM1B), DIR P9-12, pot P9-35 (AIN6)"),

@@ -37,6 +37,12 @@ def test_a_chart_of_many_panels_is_one_taller_page(tmp_path, monkeypatch):
     charts.plot_run(tr, tmp_path / "many.png", "many", units={n: "m" for n in names})
     axes = [ax for ax in seen["fig"].axes if ax.get_visible()]
     assert len(axes) == 30 and all(ax.get_ylabel() == "[m]" for ax in axes)
+    fig = seen["fig"]  # the page's title clear of the first row's titles (it sat on them on a tall page)
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+
+    renderer = FigureCanvasAgg(fig).get_renderer()
+    top = fig._suptitle.get_window_extent(renderer)
+    assert not any(top.overlaps(ax.title.get_window_extent(renderer)) for ax in axes)
     assert (tmp_path / "many.png").stat().st_size > 0
 
 
@@ -54,6 +60,52 @@ def test_batch_trace_plots_carry_the_unit(tmp_path, monkeypatch):
     rows = [{"run_id": "a1", "outcome": "ok"}, {"run_id": "b2", "outcome": "ok"}]
     report.plot_traces(tmp_path, rows, "m.x", "all", None, [], tmp_path / "p.png")
     assert seen["fig"].axes[0].get_ylabel() == "m.x [m]"
+    assert seen["fig"].axes[0].get_title() == "m.x: 2 runs"
+    monkeypatch.setattr(report, "MAX_TRACES", 1)  # beyond the chart's limit, its title says how many it drew
+    seen.clear()
+    report.plot_traces(tmp_path, rows, "m.x", "all", None, [], tmp_path / "p.png")
+    assert seen["fig"].axes[0].get_title() == "m.x: the first 1 of 2 runs" and len(seen["fig"].axes[0].lines) == 1
+
+
+def test_batch_metric_charts_carry_the_units_of_their_axes_and_metrics(tmp_path, monkeypatch):
+    """The tutorial's batch: Kp and Kd in the PID block's units, overshoot in %, settling time in
+    s, a value measure in its signal's unit (the metrics' table, cosim/batch/metrics.py), on the
+    PNG charts and on the HTML report's titles."""
+    from cosim.analysis.report import metric_figures
+    from cosim.batch import load_batch, report
+    from cosim.batch.spec import axis_units
+    from models import blocks
+
+    gains = {p.name: p.unit for p in blocks.make("pid", "continuous").params}
+    batch = load_batch(SCENES / "batch_pid_gains.yaml")
+    assert axis_units(batch) == {"Kp": gains["Kp"], "Kd": gains["Kd"]} and gains["Kp"] == "V/m"
+    for rid, k in (("a1", 1.0), ("b2", 2.0)):
+        ob = trace_writer(tmp_path / "runs" / rid / "s.csv")
+        ob.start(["time", "m.x"], {"units": {"m.x": "m"}})
+        ob.record(np.array([[0.0, 0.0], [1.0, k]]))
+        ob.finish("ok", "", {})
+    rows = [{"run_id": "a1", "outcome": "ok", "Kp": 1, "Kd": 1, "m.x:overshoot": 5.0, "m.x:max": 1.0},
+            {"run_id": "b2", "outcome": "ok", "Kp": 2, "Kd": 1, "m.x:overshoot": 7.0, "m.x:max": 2.0}]
+    units = {**axis_units(batch), **report.metric_units(tmp_path, rows, ["m.x:overshoot", "m.x:settling_time",
+                                                                          "m.x:max"])}
+    assert units == {"Kp": "V/m", "Kd": "V.s/m", "m.x:overshoot": "%", "m.x:settling_time": "s", "m.x:max": "m"}
+    seen = []
+    monkeypatch.setattr(report, "_save", lambda fig, plt, path: seen.append(fig))
+    report.plot_heatmap(rows, "m.x:overshoot", "Kp", "Kd", tmp_path / "h.png", units=units)
+    report.plot_lines(rows, "m.x:max", "Kp", "Kd", ["Kp", "Kd"], tmp_path / "l.png", units=units)
+    heat, lines = seen
+    assert heat.axes[0].get_xlabel() == "Kp [V/m]" and heat.axes[0].get_ylabel() == "Kd [V.s/m]"
+    assert heat.axes[1].get_ylabel() == "m.x:overshoot [%]"  # the colour bar
+    assert lines.axes[0].get_xlabel() == "Kp [V/m]" and lines.axes[0].get_ylabel() == "m.x:max [m]"
+    fig = metric_figures(rows, ["Kp", "Kd"], ["m.x:overshoot"], units)[0]
+    assert fig.layout.xaxis.title.text == "Kp [V/m]" and fig.data[0].colorbar.title.text == "m.x:overshoot [%]"
+    # the batch's description keeps each axis's unit for `rpr-cosim report` (batch.json)
+    import json
+
+    from cosim.batch.runner import _describe
+
+    (tmp_path / "batch.json").write_text(json.dumps(_describe(batch, [])))
+    assert report.batch_meta(tmp_path)["axis_units"] == {"Kp": "V/m", "Kd": "V.s/m"}
 
 
 def test_a_misspelt_component_in_a_set_path_gets_the_closest_name(capsys):
@@ -61,6 +113,28 @@ def test_a_misspelt_component_in_a_set_path_gets_the_closest_name(capsys):
     err = capsys.readouterr().err
     assert code == 2 and "the scene has no component 'pdi1'; did you mean 'pid1'?" in err
     assert "needs 'model:'" not in err and "Traceback" not in err
+
+
+@pytest.mark.parametrize("pattern, hint", [("pdi*", "pid*"), ("motr?", "motor?"), ("mtor[12]", "motor[12]"),
+                                           ("zz*", None)])
+def test_a_misspelt_wildcard_in_a_set_path_or_a_batch_axis_gets_a_pattern_that_matches(tmp_path, capsys, pattern, hint):
+    """Issue 32, item 8, a wildcard too (``--set 'components.pdi*.params.Kp=40'``, a batch axis):
+    the mended pattern is offered only where it matches components of the scene."""
+    import fnmatch
+
+    names = ["target", "pid1", "pid2", "pid3", "motor1", "motor2", "motor3", "mech"]
+    if hint:
+        assert any(fnmatch.fnmatchcase(n, hint) for n in names)  # the suggestion is one that works
+    code = main(["run", str(SCENES / "pid_step.yaml"), "--set", f"components.{pattern}.params.Kp=40", "--check"])
+    err = capsys.readouterr().err
+    assert code == 2 and f"{pattern!r} in 'components.{pattern}.params.Kp' matches no component" in err
+    assert (f"did you mean {hint!r}?" in err) if hint else ("did you mean" not in err)
+    batch = tmp_path / "b.yaml"
+    batch.write_text(f"name: b\nscene: {SCENES / 'pid_step.yaml'}\ngrid:\n"
+                     f"  Kp: {{path: \"components.{pattern}.params.Kp\", values: [20, 40]}}\n")
+    assert main(["batch", str(batch), "--check"]) == 2
+    err = capsys.readouterr().err
+    assert f"{batch}:4: error:" in err and ((f"did you mean {hint!r}?" in err) if hint else ("did you mean" not in err))
 
 
 def test_a_new_component_set_whole_is_still_allowed():
@@ -234,3 +308,41 @@ def test_a_misspelt_component_in_a_connection_or_an_output_gets_the_closest_name
     err = capsys.readouterr().err
     assert "unknown component 'pdi1' in 'pdi1.measurement'; did you mean 'pid1'?" in err
     assert "'mehc.platform.*'" in err and "did you mean 'mech.platform." in err
+
+
+def test_a_comparison_chart_says_how_many_of_the_variables_it_draws(tmp_path):
+    """Issue 32, item 7: `run --reference` draws the 8 worst variables of pid_step's 24; the page
+    says so (it dropped the other 16 without a word), clear of the first row's titles."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+
+    from cosim.analysis.compare import compare
+
+    names = [f"m{k}.x" for k in range(10)]
+    t = np.linspace(0, 1, 101)
+    test = Trace(["time", *names], np.column_stack([t, *[np.sin(t) * (1 + 1e-3 * k) for k in range(10)]]))
+    ref = Trace(["time", *names], np.column_stack([t, *[np.sin(t) for _ in range(10)]]))
+    diffs = compare(test, ref)
+    fig = charts.comparison_figure(test, ref, diffs, labels=("run", "reference"), units={n: "m" for n in names})
+    title = fig._suptitle.get_text()
+    assert "the 8 worst of 10 variables" in title and "every one in the printed table" in title
+    renderer = FigureCanvasAgg(fig).get_renderer()
+    top = fig._suptitle.get_window_extent(renderer)
+    assert not any(top.overlaps(ax.title.get_window_extent(renderer)) for ax in fig.axes)
+    few = charts.comparison_figure(test, ref, diffs[:3], most=8)
+    assert "all 3 variables" in few._suptitle.get_text()
+
+
+def test_the_report_animation_draws_the_joint_labels_whole():
+    """The run report's animation cut "A2" at the plot's right edge (the range ends 8 % beyond the
+    joints): the labels are drawn beyond the axes into a margin wide enough for them."""
+    from cosim.analysis.report import animation_figure
+
+    t = np.linspace(0.0, 1.0, 11)
+    tr = Trace(["time", "mech.platform.x", "mech.platform.y", "mech.platform.phi"],
+               np.column_stack([t, -0.15 - 0.05 * t, -0.15 + 0.0 * t, 0.2 * t]))
+    fig = animation_figure(tr)
+    joints = next(d for d in fig.data if d.name == "fixed joints")
+    assert list(joints.text[:3]) == ["A1", "A2", "A3"] and joints.textposition == "top right"
+    right_most = max(joints.x)
+    assert fig.layout.xaxis.range[1] < right_most + 0.05  # the label would reach past the range ...
+    assert joints.cliponaxis is False and fig.layout.margin.r >= 25  # ... and is drawn there, whole

@@ -134,3 +134,20 @@ def test_rollback_algorithms_are_refused_with_a_slave_that_cannot_roll_back(tmp_
             M.simulate(system, "test_needs_rollback", step_ns=H, n_steps=10)
     finally:
         M.ALGORITHMS.pop("test_needs_rollback")
+
+
+def test_a_paced_runs_summary_labels_its_priority_and_the_glossary_has_each_term(tmp_path, capsys):
+    """The summary's real-time line said "122 missed deadlines of 4000 paced steps (not requested)",
+    as if the misses were not requested: the scheduling priority is named, and each label of the
+    line is a glossary entry (issue 32, item 8)."""
+    import re
+
+    from cosim.cli import main
+
+    assert main(["run", str(SCENES / "rig_step.yaml"), "--set", "stop_time=0.2", "--set",
+                 "master.realtime={max_misses: 100000}", "--out", str(tmp_path)]) == 0
+    line = next(ln for ln in capsys.readouterr().out.splitlines() if ln.startswith("  real time: "))
+    assert re.search(r"missed deadlines of 200 paced steps; scheduling priority: not requested$", line), line
+    glossary = (SCENES.parent / "docs" / "reference" / "glossary.md").read_text()
+    entries = re.findall(r"\*\*(.+?)\*\*", glossary)
+    assert {"lateness", "missed deadlines", "scheduling priority"} <= set(entries)

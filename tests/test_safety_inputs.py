@@ -347,6 +347,8 @@ def test_compare_names_the_entries_of_different_scenes(runs, capsys):
     assert "the runs are of different scenes" in err and "components.mass2.params.kc = 100.0 against 50" in err
     assert cli.main(["compare", str(runs["short"]), str(runs["kc"]), "--tol", "10"]) == 1
     assert cli.main(["compare", str(runs["short"]), str(runs["kc"]), "--allow-different-scenes"]) == 0
+    out = capsys.readouterr().out  # allowed, still named: a comparison of another scene never passes unsaid
+    assert "note: different scenes, compared as asked" in out and "params.kc = 100.0 against 50" in out
     assert cli.main(["compare", str(runs["short"]), str(runs["step"])]) == 0  # the same scene, another step
     assert "the same scene run differently: master.step = 0.001 against 0.005" in capsys.readouterr().out
 

@@ -310,6 +310,6 @@ def test_cli_check_validates_and_describes_without_running(tmp_path):
     res = subprocess.run([sys.executable, "-m", "cosim", "run", str(p), "--check"], cwd=ROOT, capture_output=True,
                          text=True, timeout=120)
     assert res.returncode == 0, res.stderr
-    assert "scene small: 4 components, 5 connections (1 bonds), gauss_seidel at 0.001 s, stop 1 s (1000 steps)" in res.stdout
+    assert "scene small: 4 components, 5 connections (1 bond), gauss_seidel at 0.001 s, stop 1 s (1000 steps)" in res.stdout
     assert "motor1.flange.f -> mech.leg[1].f   [bond motor1.flange <-> mech.leg[1]]" in res.stdout
     assert res.stderr.count("warning: input mech.leg[") == 2

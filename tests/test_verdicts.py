@@ -92,6 +92,19 @@ def test_study_precision_marks_rows_over_the_tolerance(tmp_path, cache, capsys):
                  "--out", str(tmp_path / "study"), "--cache", str(cache)])
     assert code == 0
     import csv
+    import re
+
+    # every heading and label the study prints has a glossary entry (issue 32, item 8)
+    printed = capsys.readouterr().out.splitlines()
+    header = next(ln for ln in printed if ln.startswith("variant "))
+    labels = ["variant", "step/tol", "status", "worst rel", "RMS rel", "signal", "wall s", "doSteps", "rejected",
+              "rollbacks"]
+    assert " ".join(header.split()) == " ".join(labels)
+    labels += [m.group(1) for ln in printed if (m := re.match(r"^(observed order|cheapest within) ", ln))]
+    assert {"observed order", "cheapest within"} <= set(labels)
+    glossary = (Path(__file__).resolve().parents[1] / "docs" / "reference" / "glossary.md").read_text()
+    entries = " | ".join(re.findall(r"\*\*(.+?)\*\*", glossary))
+    assert [w for w in labels if w not in entries] == []
 
     rows = list(csv.DictReader(open(tmp_path / "study" / "two_mass_free_precision.csv")))
     assert rows and all(r["status"] in ("ok", "inaccurate") for r in rows)
@@ -112,6 +125,7 @@ def test_a_lone_fmu_whose_pilot_estimates_nothing_keeps_the_scenes_step(referenc
     assert res.status == "ok", res.reason
     choice = res.stats["choice"]
     assert choice["settings"]["step"] == 1e-3 and res.stats["steps_done"] == 5000
+    assert "a single component" in choice["why"], choice  # not "no feedback between the components"
     assert all(p["estimate"] == 0 and p["step"] == 1e-3 for p in choice["pilots"])
     ref = fmpy.simulate_fmu(str(path), fmi_type="CoSimulation", output_interval=1e-3, stop_time=5.0,
                             output=["x0", "x1"])
@@ -169,3 +183,37 @@ def test_study_fidelity_on_pid_step_picks_what_the_monolithic_references_confirm
     truth = max(d.relative for d in compare(ours.trace, most.trace))
     assert truth <= tol  # the choice is within the tolerance by the monolithic ruler too ...
     assert abs(best.worst - truth) <= 0.1 * truth  # ... and the study measured the same fidelity error
+
+
+def test_a_fidelity_study_whose_answer_is_the_most_detailed_says_how_far_the_nearest_is():
+    """The tutorial's ``study fidelity pid_step --tol 1e-4``: no cheaper combination is within the
+    tolerance (the rigid mechanism is 3.8e-2 of mech.platform.vy's range off the multibody one),
+    so the answer names the nearest cheaper one and its error instead of "1.0x faster"."""
+    from cosim.cli.study_verb import _fidelity_answer
+    from cosim.study.fidelity import FidelityRow, FidelityStudy
+
+    rows = [FidelityRow({"mechanism": "multibody"}, "ok", worst=0.0, wall_s=3.0),
+            FidelityRow({"mechanism": "rigid"}, "ok", worst=3.8e-2, worst_signal="mech.platform.vy", wall_s=0.25),
+            FidelityRow({"mechanism": "kinematic"}, "invalid", "no parameter 'x0'")]
+    study = FidelityStudy("pid_step", {"mechanism": ["multibody", "rigid", "kinematic"]}, rows)
+    tight = _fidelity_answer(study, 1e-4)
+    assert "the most detailed, mechanism=multibody" in tight and "faster" not in tight
+    assert "the nearest, mechanism=rigid, is 3.80e-02 of range off on mech.platform.vy" in tight
+    assert _fidelity_answer(study, 0.05) == ("cheapest within 0.05: mechanism=rigid (3.80e-02, 12.0x faster than "
+                                             "the most detailed)")
+
+
+def test_a_fidelity_study_with_a_misspelt_only_stops_after_the_first_run(cache, monkeypatch):
+    """``study fidelity --only 'mehc.platform.*'``: the closest pattern, after the most detailed
+    combination's run and before any other (it came after all 18)."""
+    from cosim.errors import UserError
+    from cosim.study import fidelity
+
+    runs = []
+    real = fidelity.compare
+    monkeypatch.setattr(fidelity, "compare", lambda *a, **k: runs.append(1) or real(*a, **k))
+    scene = Path(__file__).resolve().parents[1] / "scenarios" / "pid_step.yaml"
+    with pytest.raises(UserError, match=r"did you mean 'mech\.platform\.\*'"):
+        fidelity.fidelity_study(scene, {"stop_time": 0.01, "components.pid*.fidelity": "auto"}, only_auto=True,
+                                only=["mehc.platform.*"], cache_dir=cache)
+    assert runs == []  # no second combination was compared

@@ -96,10 +96,10 @@ def plot_run(trace: Trace, path: Path, title: str, *, units: Mapping[str, str] |
         ax.set_visible(False)
     for ax in axes[-1]:
         ax.set_xlabel("time [s]")
-    fig.suptitle(title)
     # fixed margins in inches instead of tight_layout, which renders every tick label once more
-    # to measure it (a third of pid_step's 2.3 s plot)
+    # to measure it (a third of pid_step's 2.3 s plot); the title 0.1 in below the top, at any height
     w, h = fig.get_size_inches()
+    fig.suptitle(title, y=1 - 0.1 / h, va="top")
     fig.subplots_adjust(left=0.95 / w, right=1 - 0.15 / w, bottom=0.5 / h, top=1 - 0.55 / h, hspace=0.45,
                         wspace=0.2 * ncol)
     return _save(fig, path)
@@ -122,10 +122,14 @@ def comparison_figure(test: Trace, ref: Trace, diffs, *, labels: tuple[str, str]
     names = [d.name for d in worst]
     t, a, b = aligned(test, ref, names)
     rows = range(len(names)) if rows is None else rows
-    fig = plt.figure(figsize=(11, 1.9 * len(names) + 0.8))
+    fig = plt.figure(figsize=(11, 1.9 * len(names) + 1.1))
     # fixed margins in inches: constrained layout measured every tick label again (2/3 of pid_step's plot)
     w, h = fig.get_size_inches()
-    grid = fig.add_gridspec(len(names), 2, left=0.95 / w, right=1 - 0.15 / w, bottom=0.5 / h, top=1 - 0.35 / h,
+    fig.suptitle((f"the {len(names)} worst of {len(diffs)} variables by largest difference relative to range "
+                  f"(every one in the printed table)") if len(names) < len(diffs) else
+                 f"all {len(diffs)} variables, by largest difference relative to range", y=1 - 0.1 / h, va="top",
+                 fontsize=10)
+    grid = fig.add_gridspec(len(names), 2, left=0.95 / w, right=1 - 0.15 / w, bottom=0.5 / h, top=1 - 0.65 / h,
                             hspace=0.5, wspace=0.22)
     first = None
     for j in rows:

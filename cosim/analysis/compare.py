@@ -201,15 +201,18 @@ class Comparability:
                        f"compare the overlap only")
         if not allow_different_scenes and self.different_scenes:
             ha, hb = self.hashes
-            why = ("; ".join(self.scene_diffs[:6]) + (f"; ... ({len(self.scene_diffs)} in all)"
-                                                      if len(self.scene_diffs) > 6 else "")) \
-                if self.scene_diffs else "the sidecars do not record the scenes"
-            out.append(f"the runs are of different scenes (scene hash {ha[:12]} against {hb[:12]}): {why}; use "
-                       f"--allow-different-scenes to compare them anyway")
+            out.append(f"the runs are of different scenes (scene hash {ha[:12]} against {hb[:12]}): "
+                       f"{self._scene_why()}; use --allow-different-scenes to compare them anyway")
         return out
 
-    def notes(self) -> list[str]:
-        """Informative lines: unmatched variables, an unknown status."""
+    def _scene_why(self) -> str:
+        return ("; ".join(self.scene_diffs[:6]) + (f"; ... ({len(self.scene_diffs)} in all)"
+                                                   if len(self.scene_diffs) > 6 else "")) \
+            if self.scene_diffs else "the sidecars do not record the scenes"
+
+    def notes(self, *, allow_different_scenes: bool = False) -> list[str]:
+        """Informative lines: unmatched variables, an unknown status, different scenes compared as
+        asked (``allow_different_scenes``), how one scene was run differently."""
         out = []
         for label, names in ((self.labels[0], self.only_test), (self.labels[1], self.only_ref)):
             if names:
@@ -220,8 +223,13 @@ class Comparability:
                 out.append(f"{label}: no run status recorded (not an rpr-cosim trace?); its validity is not checked")
             elif status == "stopped":
                 out.append(f"{label}: the run ended at a component's request ({reason})")
+        if allow_different_scenes and self.different_scenes:
+            ha, hb = self.hashes
+            out.append(f"different scenes, compared as asked (scene hash {ha[:12]} against {hb[:12]}): "
+                       f"{self._scene_why()}")
         if self.run_diffs and self.hashes[0] != self.hashes[1]:
-            out.append("the same scene run differently: " + "; ".join(self.run_diffs[:6])
+            out.append(("and run differently: " if self.different_scenes else "the same scene run differently: ")
+                       + "; ".join(self.run_diffs[:6])
                        + (f"; ... ({len(self.run_diffs)} in all)" if len(self.run_diffs) > 6 else ""))
         return out
 

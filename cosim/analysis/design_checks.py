@@ -25,7 +25,7 @@ from models.trajectory import Drive
 
 from .design import Table
 
-#: The printed values of Chapter 8 (SPEC §8) and the digits they are printed to.
+#: The printed values of Chapter 8 (docs/explanation/design-checks.md) and the digits they are printed to.
 PRINTED = {
     "F1": (504.92, 2), "F2": (404.92, 2), "M_max": (26.32, 2), "M_e": (26.36, 2),
     "sigma_allowed": (210.0, 0), "d_min": (10.9, 1), "clamp": (166.67, 2),

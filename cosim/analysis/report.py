@@ -214,7 +214,8 @@ def animation_figure(trace: Trace, manipulator=None, component: str | None = Non
     base = go.Scatter(x=[*A[:, 0], A[0, 0]], y=[*A[:, 1], A[0, 1]], mode="markers+lines+text",
                       text=["A1", "A2", "A3", ""], textposition="top right", marker={"symbol": "square", "size": 9,
                                                                                    "color": "black"},
-                      line={"dash": "dot", "color": "#999"}, name="fixed joints", hoverinfo="skip")
+                      line={"dash": "dot", "color": "#999"}, name="fixed joints", hoverinfo="skip",
+                      cliponaxis=False)  # a joint's label at the range's edge is drawn whole, in the margin
     frames = [go.Frame(data=state(k), name=f"{t[i]:.4g}", traces=[1, 2, 3, 4, 5]) for k, i in enumerate(idx)]
     fig = go.Figure(data=[base, *state(0)], frames=frames)
     steps = [{"args": [[f.name], {"frame": {"duration": 0, "redraw": False}, "mode": "immediate"}],
@@ -225,7 +226,7 @@ def animation_figure(trace: Trace, manipulator=None, component: str | None = Non
                "yref": "paper", "y": 1.0, "yanchor": "bottom", "pad": {"b": 8}}, template="plotly_white",
         xaxis={"range": [lo[0] - pad, hi[0] + pad], "title": "x [m]"},
         yaxis={"range": [lo[1] - pad, hi[1] + pad], "title": "y [m]", "scaleanchor": "x", "scaleratio": 1},
-        height=540, showlegend=False, margin={"l": 50, "r": 10, "t": 70, "b": 40},
+        height=540, showlegend=False, margin={"l": 50, "r": 30, "t": 70, "b": 40},
         updatemenus=[{"type": "buttons", "x": 0, "y": -0.12, "xanchor": "left", "buttons": [
             {"label": "play", "method": "animate",
              "args": [None, {"frame": {"duration": 60, "redraw": False}, "fromcurrent": True}]},
@@ -555,16 +556,22 @@ def _number(v) -> float:
         return float("nan")
 
 
-def metric_figures(rows: Sequence[Mapping], axes: Sequence[str], metrics: Sequence[str]) -> list:
+def metric_figures(rows: Sequence[Mapping], axes: Sequence[str], metrics: Sequence[str],
+                   units: Mapping[str, str] | None = None) -> list:
     """For each metric: a heat map over the first two numeric axes (failed runs blank), a line
     per value of the second axis over one axis, or a histogram without axes; every point carries
-    its run id (``customdata``) for the click."""
+    its run id (``customdata``) for the click.  ``units``: axis or metric -> unit, on the titles."""
     import plotly.graph_objects as go
 
     figs = []
     numeric = [a for a in axes if all(math.isfinite(_number(r.get(a))) for r in rows)]
+
+    def titled(name: str) -> str:
+        unit = (units or {}).get(name, "")
+        return label(name) + (f" [{label(unit)}]" if unit else "")
+
     for metric in metrics:
-        shown = label(metric)
+        shown = titled(metric)
         if len(numeric) >= 2:
             xa, ya = numeric[0], numeric[1]
             xs, ys = sorted({_number(r[xa]) for r in rows}), sorted({_number(r[ya]) for r in rows})
@@ -579,7 +586,7 @@ def metric_figures(rows: Sequence[Mapping], axes: Sequence[str], metrics: Sequen
                                        colorbar={"title": {"text": shown, "side": "right"}},
                                        hovertemplate=f"{label(xa)} = %{{x}}<br>{label(ya)} = %{{y}}<br>{shown} = "
                                                      "%{z:.4g}<br>run %{customdata}<extra></extra>"))
-            fig.update_layout(xaxis_title=label(xa), yaxis_title=label(ya))
+            fig.update_layout(xaxis_title=titled(xa), yaxis_title=titled(ya))
         elif numeric:
             xa = numeric[0]
             ok = sorted((r for r in rows if r.get("outcome") == "ok"), key=lambda r: _number(r[xa]))
@@ -587,7 +594,7 @@ def metric_figures(rows: Sequence[Mapping], axes: Sequence[str], metrics: Sequen
                                        customdata=[r["run_id"] for r in ok], mode="lines+markers",
                                        hovertemplate=f"{label(xa)} = %{{x:.4g}}<br>{shown} = %{{y:.4g}}<br>run "
                                                      "%{customdata}<extra></extra>"))
-            fig.update_layout(xaxis_title=label(xa), yaxis_title=shown)
+            fig.update_layout(xaxis_title=titled(xa), yaxis_title=shown)
         else:
             ok = [r for r in rows if r.get("outcome") == "ok"]
             fig = go.Figure(go.Scatter(x=list(range(len(ok))), y=[_number(r.get(metric)) for r in ok],
@@ -602,10 +609,11 @@ def metric_figures(rows: Sequence[Mapping], axes: Sequence[str], metrics: Sequen
 def batch_report(path: Path, rows: Sequence[Mapping], columns: Sequence[str], axes: Sequence[str],
                  metrics: Sequence[str], traces: Mapping[str, Path], *, title: str = "",
                  signals: Sequence[str] = (), run_reports: Mapping[str, str] | None = None,
-                 max_points: int = 800, max_runs: int = 400) -> Path:
+                 max_points: int = 800, max_runs: int = 400, units: Mapping[str, str] | None = None) -> Path:
     """Write a batch's report (module docstring) to ``path``: ``rows`` of its results table,
     ``traces`` run id -> trace file (read for the click view, ``signals`` of each, default the
-    metrics' signals), ``run_reports`` run id -> link of that run's own report."""
+    metrics' signals), ``run_reports`` run id -> link of that run's own report, ``units`` axis
+    or metric -> unit."""
     import plotly.graph_objects as go
 
     shown = list(signals) or list(dict.fromkeys(m.split(":")[0] for m in metrics))
@@ -628,7 +636,7 @@ def batch_report(path: Path, rows: Sequence[Mapping], columns: Sequence[str], ax
     parts = [f"<p>{len(rows)} runs, {n_ok} ok, {len(rows) - n_ok} not ok. Click a point of a chart or a row of "
              f"the table to see that run's traces below; click a header to sort.</p>"]
     first = True
-    for k, fig in enumerate(metric_figures(rows, axes, metrics)):
+    for k, fig in enumerate(metric_figures(rows, axes, metrics, units)):
         parts.append(_figure_html(fig, f"metric-{k}", first))
         first = False
     traces_fig = go.Figure()

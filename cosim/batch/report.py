@@ -21,7 +21,7 @@ import numpy as np
 
 from ..analysis.tables import text_table
 from ..errors import UserError
-from .spec import Batch, PlotSpec
+from .spec import Batch, PlotSpec, axis_units
 
 
 # --- progress ------------------------------------------------------------------------------------
@@ -193,10 +193,40 @@ def _axis_values(rows: Sequence[dict], axis: str) -> list:
     return sorted(vals) if numeric else vals
 
 
+#: Measures whose unit is their own, not the signal's (:mod:`cosim.batch.metrics`).
+_MEASURE_UNITS = {"overshoot": "%", "settling_time": "s"}
+
+
+def _labelled(name: str | None, units: dict[str, str] | None) -> str | None:
+    """``name [unit]`` where ``units`` knows the unit, else ``name``."""
+    unit = (units or {}).get(name or "", "")
+    return f"{name} [{unit}]" if name and unit else name
+
+
+def metric_units(out: Path, rows: Sequence[dict], columns: Sequence[str]) -> dict[str, str]:
+    """Metric column (``signal:measure``) -> its unit: the measure's own (% for overshoot, s for
+    settling time) or the signal's, as the first ok run's sidecar records it."""
+    from ..trace.traces import read_trace
+
+    signal_units: dict[str, str] = {}
+    for r in rows:
+        p = run_trace_path(out, r["run_id"]) if r.get("outcome") == "ok" and r.get("run_id") else None
+        if p is not None:
+            signal_units = dict(read_trace(p).meta.get("units") or {})
+            break
+    found = {}
+    for col in columns:
+        signal, _, measure = col.rpartition(":")
+        unit = _MEASURE_UNITS.get(measure) or signal_units.get(signal, "")
+        if unit:
+            found[col] = unit
+    return found
+
+
 def plot_lines(rows, metric: str, x: str, lines: str | None, others: Sequence[str], path: Path, *,
-               scatter: bool = False) -> Path:
+               scatter: bool = False, units: dict[str, str] | None = None) -> Path:
     """``metric`` against axis ``x``, one line per value of ``lines`` (and of the ``others``
-    axes); points only (``scatter``) for a random axis."""
+    axes); points only (``scatter``) for a random axis; ``units``: axis or metric -> unit."""
     plt = _plt()
     ok = [r for r in rows if r.get("outcome") == "ok"]
     xs = _axis_values(ok, x)
@@ -214,8 +244,8 @@ def plot_lines(rows, metric: str, x: str, lines: str | None, others: Sequence[st
                 ms=4, label=label)
     if not numeric:
         ax.set_xticks(range(len(xs)), [str(v) for v in xs])
-    ax.set_xlabel(x)
-    ax.set_ylabel(metric)
+    ax.set_xlabel(_labelled(x, units))
+    ax.set_ylabel(_labelled(metric, units))
     ax.grid(alpha=0.3)
     if len(groups) > 1:
         ax.legend(fontsize=8, ncols=2 if len(groups) > 6 else 1)
@@ -223,8 +253,9 @@ def plot_lines(rows, metric: str, x: str, lines: str | None, others: Sequence[st
     return _save(fig, plt, path)
 
 
-def plot_heatmap(rows, metric: str, x: str, y: str, path: Path) -> Path:
-    """``metric`` over axes ``x`` (columns) and ``y`` (rows); the mean when other axes vary."""
+def plot_heatmap(rows, metric: str, x: str, y: str, path: Path, *, units: dict[str, str] | None = None) -> Path:
+    """``metric`` over axes ``x`` (columns) and ``y`` (rows); the mean when other axes vary;
+    ``units``: axis or metric -> unit."""
     plt = _plt()
     xs, ys = _axis_values(rows, x), _axis_values(rows, y)
     cells: dict[tuple, list] = {}
@@ -258,14 +289,14 @@ def plot_heatmap(rows, metric: str, x: str, y: str, path: Path) -> Path:
                     color="white" if np.isfinite(grid[j, i]) and grid[j, i] < mid else "black")
     ax.set_xticks(range(len(xs)), [_fmt(v) for v in xs])
     ax.set_yticks(range(len(ys)), [_fmt(v) for v in ys])
-    ax.set_xlabel(x)
-    ax.set_ylabel(y)
-    fig.colorbar(im, ax=ax, label=metric, extend="max" if len(fin) and hi < fin.max() else "neither")
+    ax.set_xlabel(_labelled(x, units))
+    ax.set_ylabel(_labelled(y, units))
+    fig.colorbar(im, ax=ax, label=_labelled(metric, units), extend="max" if len(fin) and hi < fin.max() else "neither")
     ax.set_title(metric + (" (x: failed, inf: not settled)" if failed or inf.any() else ""), fontsize=9)
     return _save(fig, plt, path)
 
 
-def plot_hist(rows, metric: str, path: Path) -> Path:
+def plot_hist(rows, metric: str, path: Path, *, units: dict[str, str] | None = None) -> Path:
     """The distribution of ``metric`` over the ok runs, with its mean and 5-95 % range."""
     plt = _plt()
     s = spread(rows, metric)
@@ -277,7 +308,7 @@ def plot_hist(rows, metric: str, path: Path) -> Path:
             ax.axvline(s[k], color="C3", ls=style, lw=1.2, label=f"{k} {s[k]:.3g}")
         ax.legend(fontsize=8)
         ax.set_title(f"{metric}: {s['n']} runs, mean {s['mean']:.3g}, std {s['std']:.3g}", fontsize=10)
-    ax.set_xlabel(metric)
+    ax.set_xlabel(_labelled(metric, units))
     ax.set_ylabel("runs")
     ax.grid(alpha=0.3)
     return _save(fig, plt, path)
@@ -311,6 +342,10 @@ def run_trace_path(out: Path, run_id: str) -> Path | None:
     return found[0] if found else None
 
 
+#: At most this many runs' traces on one chart (its title says so beyond).
+MAX_TRACES = 200
+
+
 def plot_traces(out: Path, rows, signal: str, runs: Any, sort: str | None, axes: Sequence[str], path: Path) -> Path:
     """``signal`` of the chosen runs overlaid: ``runs`` is a count (first by ``sort``), 'all' or ids."""
     from ..trace.traces import read_trace
@@ -323,7 +358,7 @@ def plot_traces(out: Path, rows, signal: str, runs: Any, sort: str | None, axes:
         chosen = ordered if runs == "all" else ordered[:int(runs)]
     fig, ax = plt.subplots(figsize=(8, 4.5), layout="constrained")
     units: set[str] = set()
-    for r in chosen[:200]:
+    for r in chosen[:MAX_TRACES]:
         p = run_trace_path(out, r["run_id"])
         if p is None:
             continue
@@ -338,7 +373,8 @@ def plot_traces(out: Path, rows, signal: str, runs: Any, sort: str | None, axes:
     ax.set_xlabel("time [s]")
     ax.set_ylabel(f"{signal} [{', '.join(sorted(units)) or '1'}]")  # the unit the runs' sidecars give
     ax.grid(alpha=0.3)
-    ax.set_title(f"{signal}: {len(chosen)} runs" + (f" (first by {sort})" if sort and runs != "all" and not isinstance(runs, list) else ""),
+    shown = f"{len(chosen)} runs" if len(chosen) <= MAX_TRACES else f"the first {MAX_TRACES} of {len(chosen)} runs"
+    ax.set_title(f"{signal}: {shown}" + (f" (first by {sort})" if sort and runs != "all" and not isinstance(runs, list) else ""),
                  fontsize=10)
     return _save(fig, plt, path)
 
@@ -370,16 +406,18 @@ def make_plots(batch: Batch, out: Path, rows: Sequence[dict], sort: str | None) 
     axes = [a.name for a in batch.axes]
     swept = [a.name for a in [*batch.grid, *batch.zip]]
     random = {a.name for a in batch.random}
+    specs = batch.plots or default_plots(batch)
+    units = {**axis_units(batch), **metric_units(out, rows, [p.metric for p in specs if p.metric])}
     made = []
-    for p in batch.plots or default_plots(batch):
+    for p in specs:
         d = Path(out) / "plots"
         if p.kind == "lines":
             made.append(plot_lines(rows, p.metric, p.x, p.y, swept, d / f"lines_{_safe(p.metric)}_vs_{_safe(p.x)}.png",
-                                   scatter=p.x in random))
+                                   scatter=p.x in random, units=units))
         elif p.kind == "heatmap":
-            made.append(plot_heatmap(rows, p.metric, p.x, p.y, d / f"heatmap_{_safe(p.metric)}.png"))
+            made.append(plot_heatmap(rows, p.metric, p.x, p.y, d / f"heatmap_{_safe(p.metric)}.png", units=units))
         elif p.kind == "hist":
-            made.append(plot_hist(rows, p.metric, d / f"hist_{_safe(p.metric)}.png"))
+            made.append(plot_hist(rows, p.metric, d / f"hist_{_safe(p.metric)}.png", units=units))
         else:
             made.append(plot_traces(out, rows, p.signal, p.runs, sort, swept or axes, d / f"traces_{_safe(p.signal)}.png"))
     return made
@@ -413,7 +451,8 @@ def compare_batch(out: Path, reference, patterns: Sequence[str] | None = None) -
 
 def batch_meta(out: Path) -> dict:
     """``batch.json`` of the batch in ``out``, bounded and typed (:mod:`cosim.readers`):
-    ``{"batch": name, "axes": [axis names], "metrics": [metric columns]}`` (empty without one)."""
+    ``{"batch": name, "axes": [axis names], "metrics": [metric columns], "axis_units": {axis
+    name: unit}}`` (empty without one)."""
     from ..readers import read_json
 
     path = Path(out) / "batch.json"
@@ -427,7 +466,8 @@ def batch_meta(out: Path) -> dict:
                                                   for i in items):
             raise UserError(f"{path}: '{key}' must be a list of objects with a string '{field_}'")
         names[key] = [i[field_] for i in items]
-    return {"batch": str(data.get("batch", Path(out).name)), **names}
+    units = {i["name"]: i["unit"] for i in data.get("axes") or [] if isinstance(i.get("unit"), str) and i["unit"]}
+    return {"batch": str(data.get("batch", Path(out).name)), **names, "axis_units": units}
 
 
 def format_batch_comparison(axes: Sequence[str], found: Sequence[tuple[dict, list]], *, most: int | None = None) -> str:

@@ -34,7 +34,7 @@ from ..scenario import Problem, Scene, SceneError, apply_overrides, plain, valid
 from ..scenario.overrides import override_texts
 from .axes import Point, count, points
 from .results import ResultsTable, base_columns
-from .spec import Batch, BatchError
+from .spec import Batch, BatchError, axis_units
 from .worker import Outcome, Shared, Task, transportable
 
 
@@ -211,9 +211,10 @@ def build_fmus(runs: Sequence[Planned], *, cache_dir: Path | None = None,
 
 
 def _describe(batch: Batch, columns: list[str]) -> dict:
+    units = axis_units(batch)
     return {"batch": batch.name, "file": str(batch.path), "scene": str(batch.scene_path),
             "description": batch.description, "set": batch.fixed,
-            "axes": [{"name": a.name, "paths": list(a.paths), "kind": k,
+            "axes": [{"name": a.name, "paths": list(a.paths), "kind": k, "unit": units.get(a.name, ""),
                       **({"values": list(a.values)} if a.dist is None else
                          {"dist": a.dist.kind, "params": [a.dist.a, a.dist.b]})}
                      for k, group in (("grid", batch.grid), ("zip", batch.zip), ("random", batch.random))

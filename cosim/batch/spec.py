@@ -194,6 +194,31 @@ class Batch:
         return n * (self.samples if self.random else 1)
 
 
+#: Scene paths that are times [s].
+_TIME_PATHS = ("stop_time", "start_time", "master.step", "master.output_interval")
+
+
+def axis_units(batch: Batch) -> dict[str, str]:
+    """Axis name -> the unit of the scene value it sets: a component parameter's unit (from its
+    description), seconds for the times and steps; absent where none is known."""
+    out: dict[str, str] = {}
+    try:
+        scene = validate(apply_overrides(batch.base_tree, batch.fixed), batch.scene_path)
+    except (SceneError, UserError):  # a chart's label only: without the scene, no unit
+        return out
+    for axis in batch.axes:
+        path = axis.paths[0] if axis.paths else ""
+        parts = path.split(".")
+        if path in _TIME_PATHS:
+            out[axis.name] = "s"
+        elif len(parts) == 4 and parts[0] == "components" and parts[2] == "params":
+            comp = scene.components.get(parts[1])
+            var = comp.description.variables.get(parts[3]) if comp is not None and comp.description else None
+            if var is not None and var.unit:
+                out[axis.name] = var.unit
+    return out
+
+
 # --- checking -----------------------------------------------------------------------------------
 def _is_number(v: Any) -> bool:
     return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)

@@ -66,7 +66,7 @@ def _compare(args: argparse.Namespace) -> int:
         worst = max(diffs, key=lambda d: d.relative)
         print(f"estimated worst error {est['worst']:.2g} of range ({est['signal']}), measured {worst.relative:.2g} "
               f"({worst.name})")
-    for note in checks.notes():
+    for note in checks.notes(allow_different_scenes=args.allow_different_scenes):
         print(f"note: {note}")
     if args.plot:
         units = {**ref.meta.get("units", {}), **test.meta.get("units", {})}  # recorded by rpr-cosim runs

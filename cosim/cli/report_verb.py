@@ -111,7 +111,7 @@ def _batch(out: Path, output: Path, runs: bool = False) -> Path:
     import os
 
     from ..analysis.report import batch_report
-    from ..batch.report import batch_meta, run_trace_path
+    from ..batch.report import batch_meta, metric_units, run_trace_path
     from ..batch.results import read_rows
     from ..outputs import confined
 
@@ -129,5 +129,6 @@ def _batch(out: Path, output: Path, runs: bool = False) -> Path:
         if html_file.is_file():
             rel = os.path.relpath(html_file, output.parent)
             reports[rid] = rel if not rel.startswith("..") else html_file.absolute().as_uri()
+    units = {**meta["axis_units"], **metric_units(out, rows, meta["metrics"])}
     return batch_report(output, rows, columns, meta["axes"], meta["metrics"], traces,
-                        title=f"batch {meta['batch']}", run_reports=reports)
+                        title=f"batch {meta['batch']}", run_reports=reports, units=units)

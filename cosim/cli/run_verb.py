@@ -319,8 +319,11 @@ def _motion_checks(scene, args: argparse.Namespace) -> bool:
 def _describe(scene) -> None:
     from ..slaves.plan import component_line
 
-    print(f"scene {scene.name}: {len(scene.components)} components, {len(scene.connections)} connections "
-          f"({len(scene.bonds)} bonds), "
+    def count(n: int, word: str) -> str:
+        return f"{n} {word}" + ("" if n == 1 else "s")
+
+    print(f"scene {scene.name}: {count(len(scene.components), 'component')}, "
+          f"{count(len(scene.connections), 'connection')} ({count(len(scene.bonds), 'bond')}), "
           + (f"step {scene.master.step:g} s (algorithm chosen below)" if scene.master.auto else
              f"{scene.master.algorithm} at {scene.master.step:g} s") + ", "
           f"stop {scene.stop_time:g} s ({scene.n_steps} steps)")
@@ -430,7 +433,8 @@ def _summary(res) -> None:
     if rt:
         print(f"  real time: lateness p50 {1e6 * rt['lateness_p50_s']:.0f} us, p99 {1e6 * rt['lateness_p99_s']:.0f} us, "
               f"max {1e6 * rt['lateness_max_s']:.0f} us; {rt['missed_deadlines']} missed deadlines of "
-              f"{rt['paced_steps']} paced steps" + (f" ({rt['priority']})" if rt.get("priority") else ""))
+              f"{rt['paced_steps']} paced steps" + (f"; scheduling priority: {rt['priority']}" if rt.get("priority")
+                                                     else ""))
         for name, fig in rt.get("slaves", {}).items():
             shown = ", ".join(f"{k} {1e6 * v:.0f} us" if k.startswith(("tick", "cpu")) else f"{k} {v:g}"
                               for k, v in fig.items())

@@ -218,7 +218,21 @@ def _fidelity(args: argparse.Namespace) -> int:
               + (f"  ({r.reason})" if r.status != "ok" and r.reason else "")
               + (f"  (compared without {', '.join(r.dropped)}: not recorded at these levels)" if r.dropped else "")
               + (f"  (no error estimate of its own: {r.unestimated})" if r.unestimated else ""))
-    best = study.cheapest_within(args.tol)
-    print(f"cheapest within {args.tol:g}: {best.label} ({best.worst:.2e}, {top.wall_s / best.wall_s:.1f}x faster "
-          f"than the most detailed)" if best else f"cheapest within {args.tol:g}: none")
+    print(_fidelity_answer(study, args.tol))
     return 0
+
+
+def _fidelity_answer(study, tol: float) -> str:
+    """The study's last line: the cheapest combination within ``tol``; where that is the most
+    detailed itself, the nearest cheaper one and how far off it is."""
+    top, best = study.rows[0], study.cheapest_within(tol)
+    if best is None:
+        return f"cheapest within {tol:g}: none"
+    if best is not top:
+        return (f"cheapest within {tol:g}: {best.label} ({best.worst:.2e}, {top.wall_s / best.wall_s:.1f}x faster "
+                f"than the most detailed)")
+    others = [r for r in study.rows[1:] if r.status == "ok" and r.worst == r.worst]
+    near = min(others, key=lambda r: r.worst, default=None)
+    return (f"cheapest within {tol:g}: the most detailed, {top.label}: no cheaper combination is within it"
+            + (f" (the nearest, {near.label}, is {near.worst:.2e} of range off on {near.worst_signal})"
+               if near else ""))

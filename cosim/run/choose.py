@@ -4,6 +4,7 @@
 * an algebraic loop: ``iterative`` (it solves the loop within each step), at a fixed step;
 * real-time pacing, a sampled block (a discrete PID), or slaves at several rates: ``gauss_seidel``
   at a fixed step (on whole samples);
+* a single component: ``gauss_seidel`` at a fixed step (nothing to couple);
 * no feedback between the components (a chain): ``gauss_seidel`` at a fixed step (adaptive's
   error control measures extrapolated inputs, and in a chain no input is extrapolated);
 * every slave can roll back: ``adaptive``, at an ``rtol`` that meets the tolerance;
@@ -129,6 +130,8 @@ def _kind(scene: Scene) -> tuple[str, str]:
     rates = [c.name for c in comps if c.rate > 1]
     if rates:
         return "gauss_seidel", f"{', '.join(rates)} step{'s' if len(rates) == 1 else ''} at several rates per step"
+    if len(scene.components) == 1:
+        return "gauss_seidel", "a single component: no coupling for a step to control; a fixed step"
     if not fixed and find_algebraic_loop((c.src, c.dst) for c in scene.connections) is None:
         return "gauss_seidel", ("no feedback between the components: in Gauss-Seidel order every input comes from a "
                                 "source that has stepped, a coupling error adaptive's control does not measure; a "

@@ -5,7 +5,7 @@ Four guards watch every recorded row of a run (at ``master.output_interval``), o
 
 ``stroke``
     a leg length ``leg[i].s`` of a mechanism (or of a setpoint) outside its actuator's stroke
-    ``[Lmin, Lmax]`` (SPEC §1: 0.10-0.60 m; the block's :class:`~models.block.Rating` of kind
+    ``[Lmin, Lmax]`` (docs/explanation/thesis.md §1: 0.10-0.60 m; the block's :class:`~models.block.Rating` of kind
     ``"stroke"``).  There are no modelled end stops: the run is stopped "out of stroke" with the
     leg, the time and the value.
 ``rated``

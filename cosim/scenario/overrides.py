@@ -5,6 +5,7 @@ A path is the dotted keys of the scene (``master.step``, ``components.pid1.param
 (``components.pid*.params.Kp=40``), the same paths a batch axis takes (:func:`expand_path`)."""
 from __future__ import annotations
 
+import difflib
 import fnmatch
 from collections.abc import Mapping, Sequence
 from typing import Any
@@ -54,6 +55,21 @@ def _split_path(path: str) -> list[str]:
     return parts
 
 
+def _suggest_pattern(pattern: str, components: Sequence[str]) -> str:
+    """``"; did you mean 'pid*'?"`` for a wildcard ``pattern`` that matches nothing: its literal
+    start (before the first wildcard) replaced by the closest start of a component name (one
+    letter more or less allowed), where the pattern so mended matches a component."""
+    cut = min(pattern.index(c) for c in "*?[" if c in pattern)
+    head, tail = pattern[:cut], pattern[cut:]
+    for n in (len(head), len(head) + 1, len(head) - 1) if head else ():  # the same length first
+        starts = sorted({c[:n] for c in components if 0 < n <= len(c)})
+        for start in difflib.get_close_matches(head, starts, n=3, cutoff=0.5):
+            mended = start + tail
+            if any(fnmatch.fnmatchcase(c, mended) for c in components):
+                return f"; did you mean {mended!r}?"
+    return ""
+
+
 def expand_path(path: str, components: Sequence[str]) -> tuple[list[str], str]:
     """The scene paths of ``path`` (a '*', '?' or '[' in the component name matches every
     component it fits) and an error message ('' when fine).  ``--set`` and batch axes use it."""
@@ -66,7 +82,8 @@ def expand_path(path: str, components: Sequence[str]) -> tuple[list[str], str]:
     if any(c in name for c in "*?["):
         hits = [c for c in components if fnmatch.fnmatchcase(c, name)]
         if not hits:
-            return [], f"{name!r} in {path!r} matches no component of the scene (components: {', '.join(components)})"
+            return [], (f"{name!r} in {path!r} matches no component of the scene{_suggest_pattern(name, components)} "
+                        f"(components: {', '.join(components)})")
         return [".".join(["components", h, *parts[2:]]) for h in hits], ""
     if name not in components:
         return [], f"unknown component {name!r} in {path!r}{suggest(name, components)}"

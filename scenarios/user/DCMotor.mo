@@ -1,4 +1,4 @@
-// The thesis's DC motor with rack and pinion (SPEC §6, Table 6.7) written in Modelica:
+// The thesis's DC motor with rack and pinion (docs/explanation/thesis.md §6, Table 6.7) written in Modelica:
 // the same equations as models/blocks/motor.py (fidelity "full", rotor "lumped").
 package Motors
   type Voltage = Real(unit = "V");

@@ -1,5 +1,5 @@
 // A rack-and-pinion gear with viscous and smoothed Coulomb friction between a DC motor's shaft
-// and a leg, and the thesis's DC motor (SPEC §6, Table 6.7) with a rotational shaft: the
+// and a leg, and the thesis's DC motor (docs/explanation/thesis.md §6, Table 6.7) with a rotational shaft: the
 // components of scenarios/gear_step.yaml.  Types as Modelica.Units.SI declares them.
 package Drive
   type Voltage = Real(unit = "V");
@@ -19,7 +19,7 @@ package Drive
     flow Force f "force on the component";
   end Flange;
 
-  model Motor "DC motor (SPEC §6), inertia-free: its rotor inertia is the gear's"
+  model Motor "DC motor (the thesis, Table 6.7), inertia-free: its rotor inertia is the gear's"
     parameter Real R(unit = "Ohm", min = 0) = 0.574 "armature resistance (Table 6.7)";
     parameter Real kt(unit = "N.m/A", min = 0) = 0.0658572178311291 "torque constant = back-EMF constant";
     parameter Real L(unit = "H", min = 0) = 0.251e-3 "armature inductance (Table 6.7)";

@@ -1,6 +1,6 @@
 """A computed-torque controller of the 3-RPR written as a user block (models.user.BlockBuilder).
 
-The controller inverts the virtual-work model of the rigid mechanism (SPEC §4,
+The controller inverts the virtual-work model of the rigid mechanism (docs/explanation/thesis.md §4,
 models.virtual_work.actuator_forces): with the platform pose error ``e = q_ref - q`` it commands
 the acceleration ``a = qdd_ref + Kd (qd_ref - qd) + Kp e`` and returns the leg forces that
 produce it, ``tau = J^-T (M(q) a + h(q, qd))``.  Where its model equals the plant, the closed
