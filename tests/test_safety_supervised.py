@@ -291,3 +291,25 @@ def test_a_stepping_child_serves_requests_until_it_dies_and_says_how():
     assert other.call(1) == 2
     other.close()
     assert not other.alive
+
+
+def test_a_result_written_just_before_the_child_exits_is_not_lost(monkeypatch):
+    """The race of a loaded machine: the child writes its result and exits between the parent's
+    poll of the pipe (nothing yet) and its check of the child's exit; the parent must still read
+    the result (it once reported 'the run's process exited (code 0) without finishing the run')."""
+    import select as select_module
+
+    from cosim.run import supervise
+
+    real = select_module.select
+    calls = {"n": 0}
+
+    def late_select(r, w, x, timeout=None):
+        calls["n"] += 1
+        if calls["n"] == 1 and timeout:  # the first poll: the child finishes meanwhile
+            time.sleep(1.0)
+            return [], [], []
+        return real(r, w, x, timeout)
+
+    monkeypatch.setattr(supervise.select, "select", late_select)
+    assert supervise.supervised(lambda say: 41 + 1) == 42

@@ -235,6 +235,17 @@ def supervised(work: Callable[[Callable[[str], None]], T], *, timeout_s: float |
         buf.close()
 
 
+def _drain(rfd: int) -> bytes:
+    """What is in the pipe ``rfd`` now, without waiting for more (its writer may have exited)."""
+    out = bytearray()
+    while select.select([rfd], [], [], 0)[0]:
+        data = os.read(rfd, 1 << 20)
+        if not data:
+            break
+        out += data
+    return bytes(out)
+
+
 def _watch(pid: int, rfd: int, buf, timeout: float, complete: Callable[[bytearray], bool] | None = None
            ) -> tuple[bytes, int | None, Interrupted | None]:
     """What child ``pid`` writes on ``rfd``, read until EOF (or until ``complete(data)``), while
@@ -256,8 +267,9 @@ def _watch(pid: int, rfd: int, buf, timeout: float, complete: Callable[[bytearra
                     continue
                 break  # EOF: the child closed its end (exited, normally or not)
             done, st = os.waitpid(pid, os.WNOHANG)
-            if done:  # exited while something else (a process it started) keeps the pipe open
-                status = st
+            if done:  # exited (what it wrote after the select above is still in the pipe), or a
+                status = st  # process it started keeps the pipe open
+                chunks += _drain(rfd)
                 break
             now = time.monotonic()
             if deadline is not None:
