@@ -68,3 +68,28 @@ def test_what_is_not_translated_yet_names_file_line_and_construct(body, line, wh
     with pytest.raises(ModelicaError) as err:
         translate(text, "E", "E.mo")
     assert str(err.value).startswith(f"E.mo:{line}: {what}"), str(err.value)
+
+
+def test_a_modelica_ball_without_modes_has_an_event_reference(tmp_path):
+    """The issue's bouncing ball (`when h < 0 then reinit(v, -e*pre(v))`, no discrete variable):
+    the event reference (`run --reference`) took modes for granted; its impact times against the
+    analytic ones (free fall, then flights of 2 v_k / g with v_k = e^k sqrt(2 g h0))."""
+    from cosim.run.reference import reference
+
+    (tmp_path / "Ball.mo").write_text(
+        "model Ball\n  parameter Real e = 0.8;\n  parameter Real g = 9.81;\n  Real h(start = 1, fixed = true);\n"
+        "  Real v(start = 0, fixed = true);\nequation\n  der(h) = v;\n  der(v) = -g;\n"
+        "  when h < 0 then\n    reinit(v, -e*pre(v));\n  end when;\nend Ball;\n")
+    (tmp_path / "ball.yaml").write_text(
+        "name: ball\nstop_time: 2\ncomponents:\n  b: {modelica: Ball.mo, model: Ball}\nconnections: []\n"
+        "master: {algorithm: jacobi, step: 1e-2}\noutputs: [b.h, b.v]\n")
+    ref = reference(tmp_path / "ball.yaml")
+    assert ref.status == "ok", ref.reason
+    v0 = np.sqrt(2 * 9.81)
+    analytic = np.cumsum([v0 / 9.81] + [2 * 0.8 ** k * v0 / 9.81 for k in (1, 2)])
+    times = np.array([e["time"] for e in ref.stats["events"]["list"]])
+    assert len(times) == 3 and np.max(np.abs(times - analytic)) < 1e-8, times - analytic
+    cosim = run(tmp_path / "ball.yaml", [], out_dir=tmp_path / "out")
+    once = np.diff(ref.trace.time, prepend=-1.0) > 0  # one row per instant (the grid's rows are among them)
+    on_grid = np.interp(cosim.trace.time, ref.trace.time[once], ref.trace["b.h"][once])
+    assert cosim.ok and np.max(np.abs(cosim.trace["b.h"] - on_grid)) < 1e-9

@@ -91,8 +91,9 @@ def _run(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--plot", action="store_true", help="also write <scene>.png with the recorded outputs")
     p.add_argument("--animate", action="store_true", help="also write <scene>.gif of the platform and legs")
     p.add_argument("--reference", action="store_true",
-                   help="also integrate the scene as one ODE (CVODES) into <scene>_reference.csv and report the "
-                        "co-simulation's error against it (catalog components only)")
+                   help="also integrate the scene as one ODE (CVODES; SciPy's LSODA from event to event where "
+                        "components have events) into <scene>_reference.csv and report the co-simulation's error "
+                        "against it (catalog and Modelica components, not external FMUs)")
     p.add_argument("--check", action="store_true", help="only validate the scene and print what it contains")
     add_trace_format(p, "trace file format: a plain CSV (default), a CSV with the metadata in '# key: value' "
                         "comment lines, Parquet (<scene>.parquet, metadata in its schema) or NumPy (<scene>.npy, "

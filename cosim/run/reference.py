@@ -8,8 +8,9 @@ input continuously, so the difference between the two traces is the error of the
 algorithm and its step (plus the reference's tolerance).  The reference records the same
 variables at the same instants as the scene and writes the same trace format.
 
-Only catalog components with continuous dynamics can join: an external FMU is a black box and a
-sampled (discrete) block has no ODE; both are refused with the component's name.
+Only components with equations can join (catalog blocks, Modelica classes): an external FMU is a
+black box and a sampled (discrete) block has no ODE; both are refused with the component's name.
+A scene whose blocks have events goes to :mod:`.event_reference` (SciPy, event to event).
 """
 from __future__ import annotations
 
