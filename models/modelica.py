@@ -1143,7 +1143,8 @@ class _Translation:
                 node = self._edge(node["discrete"], relations)
                 either = node.pop("either", False)
             if set(node) != {"relation"} or node["relation"] not in by_relation or by_relation[node["relation"]] in fired:
-                self._fail_span(items[0][1], "a when-condition other than one relation, initial(), one sample() or "
+                where = conditions[trig] if trig < len(conditions) and conditions[trig].get("provenance") else items[0][1]
+                self._fail_span(where, "a when-condition other than one relation, initial(), one sample() or "
                                              "one edge()/change() of a Boolean given by a relation (and/or of "
                                              "conditions, two when-clauses on one relation)")
             i = by_relation[node["relation"]]

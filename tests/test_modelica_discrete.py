@@ -274,7 +274,7 @@ def test_what_is_not_translated_yet_names_file_line_and_construct(body, line, wh
     text = f'model E "e"\n  Real x(start = 0);\n  discrete Real y(start = 0);\nequation\n  der(x) = 1;\n{body}\nend E;\n'
     with pytest.raises(ModelicaError) as err:
         translate(text, "E", "E.mo")
-    assert str(err.value).startswith("E.mo:") and what in str(err.value), str(err.value)
+    assert str(err.value).startswith(f"E.mo:{line}:") and what in str(err.value), str(err.value)
 
 
 DECAY3 = """model Decay3 "three decays: a for-equation over arrays, a matrix product"
