@@ -62,6 +62,8 @@ def test_a_relation_read_by_an_if_expression_restarts_the_step_where_it_switches
     ("  when x > 1 then\n    n = 1;\n  elsewhen initial() then\n    n = 2;\n  end when;", 8,
      "an elsewhen branch's condition"),
     ("  when edge(x > 1) then\n    n = 1;\n  end when;", 6, "edge"),
+    ("  when x > 1 and x < 3 then\n    n = 1;\n  end when;", 6, "a when-condition other than one relation"),  # the when's line
+    ("  when {x > 1, x < -1} then\n    n = 1;\n  end when;", 6, "a when-condition other than one relation"),
 ])
 def test_what_is_not_translated_yet_names_file_line_and_construct(body, line, what):
     text = f'model E "e"\n  Real x(start = 0);\n  discrete Real n(start = 0);\nequation\n  der(x) = 1;\n{body}\nend E;\n'
@@ -93,3 +95,25 @@ def test_a_modelica_ball_without_modes_has_an_event_reference(tmp_path):
     once = np.diff(ref.trace.time, prepend=-1.0) > 0  # one row per instant (the grid's rows are among them)
     on_grid = np.interp(cosim.trace.time, ref.trace.time[once], ref.trace["b.h"][once])
     assert cosim.ok and np.max(np.abs(cosim.trace["b.h"] - on_grid)) < 1e-9
+
+
+def test_the_reference_of_a_relation_on_time_at_its_start_time_ends(tmp_path):
+    """The MSL sources' `if time < startTime` with startTime = 0 (the Oscillator's sines) is an
+    undirected indicator at zero at the start: the event reference fired it at t = 0 again and
+    again until its wall-time cap.  Against the analytic x = 1 - cos t (y = sin t from t = 0.5 s
+    in a second relation, which must fire once there)."""
+    from cosim.run.reference import reference
+
+    (tmp_path / "Src.mo").write_text(
+        "model Src\n  parameter Real startTime = 0;\n  parameter Real w = 1;\n  parameter Real t1 = 0.5;\n  Real x(start = 0, fixed = true);\n"
+        "  Real z(start = 0, fixed = true);\nequation\n  der(x) = if time < startTime then 0 else sin(w * time);\n"
+        "  der(z) = if time < t1 then 0 else 1;\nend Src;\n")
+    (tmp_path / "src.yaml").write_text(
+        "name: src\nstop_time: 1\ncomponents:\n  s: {modelica: Src.mo, model: Src}\nconnections: []\n"
+        "master: {algorithm: jacobi, step: 1e-2}\noutputs: [s.x, s.z]\n")
+    ref = reference(tmp_path / "src.yaml", max_wall_s=60)
+    assert ref.status == "ok", ref.reason
+    t = ref.trace.time
+    assert np.max(np.abs(ref.trace["s.x"] - (1 - np.cos(t)))) < 1e-6
+    assert np.max(np.abs(ref.trace["s.z"] - np.maximum(t - 0.5, 0))) < 1e-6
+    assert ref.stats["events"]["count"] <= 2  # t1 once (startTime's, at zero at the start, at most once)

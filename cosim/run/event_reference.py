@@ -31,6 +31,10 @@ MAX_ROUNDS, MAX_EVENTS = 100, 200_000
 #: How far past zero [the indicator's unit] a directed indicator is watched: a crossing is found
 #: where it reaches +-EPS_Z (a time error of EPS_Z / |dz/dt|, 1e-12 s at 0.1 unit/s).
 EPS_Z = 1e-13
+#: The look-ahead [s] that gives an undirected indicator its side at a segment's start (the FMU
+#: core's rule: the sign of ``z + dz/dt * LOOK_AHEAD``, so one at zero, or a rounding error off it,
+#: takes the side it is moving to).
+LOOK_AHEAD = 1e-9
 #: The SciPy solver (stiff and non-stiff alike, with the CasADi Jacobian).
 SOLVER = "LSODA"
 
@@ -80,6 +84,16 @@ class _Model:
 
     def zval(self, t, x, m) -> np.ndarray:
         return np.array(self.z(t, x, m)).ravel()
+
+    def shifts(self, t, x, m) -> list[float]:
+        """How far past zero each indicator is watched from ``(t, x, m)``: a directed one EPS_Z on
+        its far side; an undirected one EPS_Z beyond zero from the side it takes (look-ahead), so
+        one that starts at zero (``time - startTime`` at the start time, one that has just fired)
+        does not fire again at once."""
+        ahead = self.zval(t + LOOK_AHEAD, x + LOOK_AHEAD * np.array(self.ode(t, x, m)).ravel(), m)
+        z = self.zval(t, x, m)
+        side = np.where(ahead != 0, np.sign(ahead), np.where(z != 0, np.sign(z), 1.0))
+        return [EPS_Z * e.direction if e.direction else -EPS_Z * float(side[i]) for i, e in enumerate(self.indicators)]
 
     def update(self, e, t, x, m) -> tuple[np.ndarray, np.ndarray]:
         xn, mn = self.updates[id(e)](t, x, m)
@@ -149,10 +163,11 @@ def integrate(comp: Composite, signals: ca.Function, grid: np.ndarray, tol: Tole
             return np.array(model.jac(tt, y, m))
 
         funcs, armed = [], []
+        shifts = model.shifts(t, x, m)
         for i, e in enumerate(model.indicators):
             # SciPy counts an indicator resting at zero (an end stop held, a stuck mass's idle
-            # indicator) as a crossing: each directed one is watched EPS_Z on its far side
-            def g(tt, y, i=i, m=m, shift=EPS_Z * e.direction):
+            # indicator, time - startTime at the start) as a crossing: each is watched EPS_Z past it
+            def g(tt, y, i=i, m=m, shift=shifts[i]):
                 return float(model.z(tt, y, m)[i]) - shift
             g.terminal, g.direction = True, float(e.direction)
             funcs.append(g)
