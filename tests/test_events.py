@@ -484,6 +484,12 @@ def test_compare_cli_measures_event_times_and_values_between_events(tmp_path, ca
     text = capsys.readouterr().out
     assert "events mass.t_stick: 9 matched" in text and "(values between events)" in text
     assert main(["compare", test, ref, "--tol", "1e-3", "--events", "mass.t_slip", "--event-tol", "1e-6"]) == 1
+    # without --event-tol the runs' own event time tolerance, tol x 0.1 s (not tol x the span, 3 s)
+    gate = ["compare", test, ref, "--only", "mass.x", "--events", "mass.t_stick", "--events", "mass.t_slip", "--tol"]
+    assert main(gate + ["1e-3"]) == 0  # switches within 1e-4 s
+    capsys.readouterr()
+    assert main(gate + ["4e-4"]) == 1  # values within 4e-4, switches (5.7e-5 s) beyond 4e-5 s
+    assert "beyond the event time tolerance 4e-05 s" in capsys.readouterr().err
 
 
 def test_the_estimate_leaves_out_the_instants_around_events():

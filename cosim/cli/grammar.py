@@ -128,7 +128,8 @@ def _compare(sub: argparse._SubParsersAction) -> None:
                    help="an event counter or time-of-the-last-event signal: match the events, report their time "
                         "error and measure values between events; repeatable")
     p.add_argument("--event-tol", type=float, default=None, metavar="S",
-                   help="with --tol: the largest event-time error [s] (default: REL times the test's span)")
+                   help="with --tol: the largest event-time error [s] (default: the runs' event time tolerance, REL "
+                        "times 0.1 s)")
     p.add_argument("--allow-different-scenes", action="store_true",
                    help="compare even when the sidecars' scene hashes differ in what is simulated (components, "
                         "parameters, connections, inputs); differences in the master's settings are always allowed")
