@@ -52,7 +52,8 @@ _MODEL = re.compile(r"^\s*(?:encapsulated\s+)?(partial\s+)?(model|package|block|
 
 
 def examples(msl: Path) -> list[str]:
-    """The examples (non-partial models) of :data:`PACKAGES`, in the library's order."""
+    """The examples (non-partial models) of :data:`PACKAGES` and of their example sub-packages
+    (``Blocks.Examples.Noise``; not the ``Utilities`` helpers), in the library's order."""
     out = []
     for pkg in PACKAGES:
         main = class_file(pkg, [msl])
@@ -66,16 +67,19 @@ def examples(msl: Path) -> list[str]:
             text = _NOISE.sub(" ", main.read_text())
             start = re.search(rf"\bpackage\s+{pkg.split('.')[-1]}\b", text).start()
             end = re.search(rf"\bend\s+{pkg.split('.')[-1]}\s*;", text).end()
-            body, depth = text[start:end], 0
+            body, stack = text[start:end], []  # the enclosing classes: (kind, name)
             for m in re.finditer(r"\b(?:(end)\s+([A-Za-z_]\w*)\s*;|(partial\s+)?(model|package|block|record|function|"
                                  r"connector|type|class)\s+([A-Za-z_]\w*)(\s*=)?)", body):
                 if m.group(1):
-                    depth -= m.group(2) not in ("if", "for", "when", "while")
+                    if m.group(2) not in ("if", "for", "when", "while") and stack:
+                        stack.pop()
                     continue
+                inside = [n for _, n in stack[1:]]  # the sub-packages of Examples (Noise), not helpers
+                if (m.group(4) == "model" and not m.group(3) and all(k == "package" for k, _ in stack)
+                        and not any(n.endswith("Utilities") for n in inside)):
+                    out.append(".".join([pkg, *inside, m.group(5)]))
                 if m.group(6) is None:
-                    depth += 1
-                if depth == 2 and m.group(4) == "model" and not m.group(3):
-                    out.append(f"{pkg}.{m.group(5)}")
+                    stack.append((m.group(4), m.group(5)))
     return out
 
 
