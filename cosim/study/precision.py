@@ -59,9 +59,9 @@ from pathlib import Path
 
 import numpy as np
 
-from ..analysis.compare import Difference, compare, compare_between_events
+from ..analysis.compare import Difference, compare, compare_modes
 from ..errors import RUN_ERRORS, UserError
-from ..master.estimate import FLAT, INACCURATE, event_time_tolerance, match_modes
+from ..master.estimate import FLAT, INACCURATE, event_time_tolerance
 from ..run.execute import event_modes
 from ..scenario import load
 from .fidelity import resolve_auto
@@ -299,20 +299,12 @@ def measure(row: PrecisionRow, trace: Trace, against: Trace, only: Sequence[str]
             modes: Sequence[str] = ()) -> None:
     """Fill ``row``'s errors of ``trace`` against the reference ``against``: the max-norm per
     signal, or, where ``modes`` (recorded event modes) change, the event-time error and the value
-    error between events (module docstring)."""
-    names = [m for m in modes if m in trace.columns and m in against.columns]
-    ev = None
-    if names and len(trace.time) > 1:
-        interval = float(np.max(np.diff(trace.time)))
-        x = np.column_stack([np.asarray(trace[n], dtype=float) for n in names])
-        xc = np.column_stack([np.asarray(against[n], dtype=float) for n in names])
-        ev = match_modes(trace.time, x, against.time, xc, names, range(len(names)), 1.0, interval)
-    if ev is None or not (ev.matched or ev.missing):
-        _fill_errors(row, relative_errors(compare(trace, against, only), scale))
-        return
-    _fill_errors(row, relative_errors(compare_between_events(trace, against, ev.windows, only), scale))
-    row.event_time = ev.time_error if ev.time_error is not None else math.nan
-    row.missing_events = ", ".join(f"{n} (run {a}, reference {b})" for n, (a, b) in ev.missing.items())
+    error between events (module docstring, :func:`cosim.analysis.compare.compare_modes`)."""
+    diffs, ev = compare_modes(trace, against, modes, only)
+    _fill_errors(row, relative_errors(diffs, scale))
+    if ev is not None:
+        row.event_time = ev.time_error if ev.time_error is not None else math.nan
+        row.missing_events = ", ".join(f"{n} (run {a}, reference {b})" for n, (a, b) in ev.missing.items())
 
 
 def _fill_errors(row: PrecisionRow, errors: dict[str, float]) -> None:
