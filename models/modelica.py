@@ -654,12 +654,15 @@ class _Units:
     """The unit check of the DAE's expressions: every sum, comparison, min/max and branch of an
     if-expression must add like units, and the built-in functions' arguments be dimensionless.
     A variable without a unit (or with a symbol :mod:`models.units` does not know) and a number
-    in a sum are wildcards; a number in a product is a dimensionless factor."""
+    in a sum are wildcards; a number in a product is a dimensionless factor.  ``time`` is in
+    seconds where the model declares a unit anywhere; in a model that declares none (units are
+    optional) it is a wildcard too, so ``sin(time)`` is not refused for a unit nobody wrote."""
 
     def __init__(self, graph: _Graph, var_units: dict[int, str]):
         self.g = graph
         self.units = {k: units.parse(u) for k, u in var_units.items()}
         self.declared = var_units
+        self.time = units.parse("s") if any(var_units.values()) else None
         self.memo: dict[int, tuple] = {}
 
     def __call__(self, i: int):
@@ -675,7 +678,7 @@ class _Units:
             return None, True, "a number"
         if kind == "coordinate":
             if body == "time":
-                return units.parse("s"), False, "time [s]"
+                return self.time, False, "time [s]" if self.time is not None else "time"
             (what, k), = body.items()
             if what not in ("parameter", "input", "output", "state", "derivative", "algebraic"):
                 return None, False, "?"
