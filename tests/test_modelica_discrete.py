@@ -75,6 +75,8 @@ def test_boolean_and_integer_discrete_variables_switch_at_their_events(tmp_path)
     b = translate(SWITCH, "Switch", "Switch.mo")
     assert [v.name for v in b.modes] == ["mode.on", "mode.n"]
     assert [s.offset for s in b.sample_times] == [0.0, 0.5]  # the initial event, the time event
+    assert b.event_names == ["state.x > 0.9"]  # noEvent(s > 10) is no indicator (without it: a second one)
+    assert translate(SWITCH.replace("noEvent(s > 10)", "s > 10"), "Switch", "Switch.mo").event_names[1] == "state.s > 10"
     tr = simulate(tmp_path, SWITCH, "Switch", 2.0, 0.04, ["x", "on", "n", "s"])
     t = np.asarray(tr["time"])
     exact = np.where(t < 0.5, 0.0, np.where(t < 1.4, t - 0.5, 0.9 + 3 * (t - 1.4)))
