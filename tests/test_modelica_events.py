@@ -117,3 +117,41 @@ def test_the_reference_of_a_relation_on_time_at_its_start_time_ends(tmp_path):
     assert np.max(np.abs(ref.trace["s.x"] - (1 - np.cos(t)))) < 1e-6
     assert np.max(np.abs(ref.trace["s.z"] - np.maximum(t - 0.5, 0))) < 1e-6
     assert ref.stats["events"]["count"] <= 2  # t1 once (startTime's, at zero at the start, at most once)
+
+
+@pytest.mark.parametrize("integrator, tol", [("exact", 1e-11), ("radau", 1e-8), ("rk4", 1e-5)])
+def test_a_crossing_inside_one_long_step_fires_once(tmp_path, integrator, tol):
+    """x' = 1 - x from 0 crosses 0.5 at ln 2 inside one 0.1 s step (a linear model: exact by default,
+    one internal step).  The dense output there is 1e-8 s off the integrator's own crossing; the
+    core applied the update on the near side and the when-clause fired a second time (n = 2).  Now
+    once, at ln 2 to the method's accuracy, and x stays on 1 - exp(-t)."""
+    (tmp_path / "L.mo").write_text(
+        "model L\n  Real x(start = 0, fixed = true);\n  discrete Real t1(start = 0);\n  discrete Real n(start = 0);\n"
+        "equation\n  der(x) = 1 - x;\n  when x > 0.5 then\n    t1 = time;\n    n = pre(n) + 1;\n  end when;\nend L;\n")
+    (tmp_path / "l.yaml").write_text(
+        "stop_time: 1\ncomponents:\n  c: {modelica: L.mo, model: L, options: {integrator: %s}}\n"
+        "master: {algorithm: jacobi, step: 0.1, estimate: false}\noutputs: [c.x, c.t1, c.n]\n" % integrator)
+    res = run(tmp_path / "l.yaml", [], out_dir=tmp_path / "out")
+    assert res.ok, res.reason
+    assert res.trace["c.n"][-1] == 1.0
+    assert abs(res.trace["c.t1"][-1] - np.log(2)) < tol
+    if integrator == "exact":
+        assert np.max(np.abs(res.trace["c.x"] - (1 - np.exp(-res.trace["time"])))) < 1e-12
+
+
+def test_the_reference_fires_a_when_on_a_rising_state_once(tmp_path):
+    """The event reference of the same model: after `when x > 0.5` fired, x goes on rising past the
+    indicator's watch (EPS_Z on its far side), which fired it again and again at ln 2 (n = 19390
+    when the wall-time cap stopped it).  Once, at ln 2 (1e-9 s), x on 1 - exp(-t)."""
+    from cosim.run.reference import reference
+
+    (tmp_path / "L.mo").write_text(
+        "model L\n  Real x(start = 0, fixed = true);\n  discrete Real t1(start = 0);\n  discrete Real n(start = 0);\n"
+        "equation\n  der(x) = 1 - x;\n  when x > 0.5 then\n    t1 = time;\n    n = pre(n) + 1;\n  end when;\nend L;\n")
+    (tmp_path / "l.yaml").write_text("stop_time: 1\ncomponents:\n  c: {modelica: L.mo, model: L}\n"
+                                     "master: {algorithm: jacobi, step: 0.1}\noutputs: [c.x, c.t1, c.n]\n")
+    ref = reference(tmp_path / "l.yaml", max_wall_s=60)
+    assert ref.status == "ok", ref.reason
+    assert ref.stats["events"]["count"] == 1 and ref.trace["c.n"][-1] == 1.0
+    assert abs(ref.trace["c.t1"][-1] - np.log(2)) < 1e-9
+    assert np.max(np.abs(ref.trace["c.x"] - (1 - np.exp(-ref.trace.time)))) < 1e-8

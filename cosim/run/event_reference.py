@@ -85,15 +85,27 @@ class _Model:
     def zval(self, t, x, m) -> np.ndarray:
         return np.array(self.z(t, x, m)).ravel()
 
-    def shifts(self, t, x, m) -> list[float]:
-        """How far past zero each indicator is watched from ``(t, x, m)``: a directed one EPS_Z on
-        its far side; an undirected one EPS_Z beyond zero from the side it takes (look-ahead), so
-        one that starts at zero (``time - startTime`` at the start time, one that has just fired)
-        does not fire again at once."""
+    def watches(self, t, x, m) -> list[tuple[float, int, bool]]:
+        """How each indicator is watched from ``(t, x, m)``: ``(shift, direction, rearm)``, the
+        function ``z - shift`` crossing zero in ``direction``.  Each takes its side by look-ahead
+        (the FMU core's rule).  An undirected one is watched EPS_Z beyond zero from its side, so one
+        that starts at zero (``time - startTime`` at the start time, one that has just fired) does
+        not fire again at once; a directed one on its near side (or resting at zero) EPS_Z on its
+        far side; a directed one already on its far side (``when x > 0.5`` just fired, x still
+        rising) is only watched for its return EPS_Z on the near side (``rearm``: no event, the
+        segment restarts with it armed), where watching it on the far side fired it again and again."""
         ahead = self.zval(t + LOOK_AHEAD, x + LOOK_AHEAD * np.array(self.ode(t, x, m)).ravel(), m)
         z = self.zval(t, x, m)
-        side = np.where(ahead != 0, np.sign(ahead), np.where(z != 0, np.sign(z), 1.0))
-        return [EPS_Z * e.direction if e.direction else -EPS_Z * float(side[i]) for i, e in enumerate(self.indicators)]
+        side = np.where(ahead != 0, np.sign(ahead), np.sign(z))
+        out = []
+        for i, e in enumerate(self.indicators):
+            if not e.direction:
+                out.append((-EPS_Z * float(side[i] or 1.0), 0, False))
+            elif z[i] * e.direction > 0 or (z[i] == 0 and ahead[i] * e.direction > 0):  # across, or leaving 0 across
+                out.append((-EPS_Z * e.direction, -e.direction, True))
+            else:
+                out.append((EPS_Z * e.direction, e.direction, False))
+        return out
 
     def update(self, e, t, x, m) -> tuple[np.ndarray, np.ndarray]:
         xn, mn = self.updates[id(e)](t, x, m)
@@ -163,13 +175,13 @@ def integrate(comp: Composite, signals: ca.Function, grid: np.ndarray, tol: Tole
             return np.array(model.jac(tt, y, m))
 
         funcs, armed = [], []
-        shifts = model.shifts(t, x, m)
+        watches = model.watches(t, x, m)
         for i, e in enumerate(model.indicators):
             # SciPy counts an indicator resting at zero (an end stop held, a stuck mass's idle
             # indicator, time - startTime at the start) as a crossing: each is watched EPS_Z past it
-            def g(tt, y, i=i, m=m, shift=shifts[i]):
+            def g(tt, y, i=i, m=m, shift=watches[i][0]):
                 return float(model.z(tt, y, m)[i]) - shift
-            g.terminal, g.direction = True, float(e.direction)
+            g.terminal, g.direction = True, float(watches[i][1])
             funcs.append(g)
             armed.append(i)
         if seg_end <= t:
@@ -191,7 +203,13 @@ def integrate(comp: Composite, signals: ca.Function, grid: np.ndarray, tol: Tole
                     return log, float(sol_t[keep][-1])
                 j0 = armed.index(min(hits)[1])
                 x_left = np.array(sol.y_events[j0][0], dtype=float)
-                fired = [model.indicators[i] for tt, i in hits if tt <= te + 1e-14 * max(1.0, abs(te))]
+                fired = [model.indicators[i] for tt, i in hits if tt <= te + 1e-14 * max(1.0, abs(te))
+                         and not watches[i][2]]
+                if not fired:  # only indicators back on their near side: re-armed, no event
+                    while done < len(grid) and grid[done] < te:
+                        done += 1
+                    t, x = te, x_left
+                    continue
                 x_new, m_new = _iterate(model, fired, te, x_left, m, log)
                 if log.total > MAX_EVENTS:
                     raise EventReferenceError(f"chattering: more than {MAX_EVENTS:,} events by t = {te:g} s")
