@@ -155,3 +155,26 @@ def test_the_reference_fires_a_when_on_a_rising_state_once(tmp_path):
     assert ref.stats["events"]["count"] == 1 and ref.trace["c.n"][-1] == 1.0
     assert abs(ref.trace["c.t1"][-1] - np.log(2)) < 1e-9
     assert np.max(np.abs(ref.trace["c.x"] - (1 - np.exp(-ref.trace.time)))) < 1e-8
+
+
+def test_a_zeno_ball_fails_in_the_run_and_in_its_reference_at_the_zeno_time(tmp_path):
+    """The bouncing ball (e = 0.8, from 1 m) bounces infinitely often before
+    t_z = sqrt(2 h / g) + 2 e sqrt(2 g h) / (g (1 - e)) = 4.0637 s.  The run fails there naming the
+    chattering; so must the event reference, which had let the ball fall through the floor and
+    ended "ok" (h = -4.3 m at 5 s)."""
+    from cosim.run.reference import reference
+
+    (tmp_path / "Ball.mo").write_text(
+        "model Ball\n  parameter Real e = 0.8;\n  parameter Real g = 9.81;\n  Real h(start = 1, fixed = true);\n"
+        "  Real v(start = 0, fixed = true);\nequation\n  der(h) = v;\n  der(v) = -g;\n"
+        "  when h < 0 then\n    reinit(v, -e*pre(v));\n  end when;\nend Ball;\n")
+    (tmp_path / "ball.yaml").write_text(
+        "name: ball\nstop_time: 5\ncomponents:\n  b: {modelica: Ball.mo, model: Ball}\nconnections: []\n"
+        "master: {algorithm: jacobi, step: 1e-2}\noutputs: [b.h, b.v]\n")
+    t_z = np.sqrt(2 / 9.81) + 2 * 0.8 * np.sqrt(2 * 9.81) / (9.81 * 0.2)
+    cosim = run(tmp_path / "ball.yaml", [], out_dir=tmp_path / "out")
+    assert cosim.status == "failed" and "chattering" in cosim.reason and abs(cosim.trace.time[-1] - t_z) < 0.011
+    ref = reference(tmp_path / "ball.yaml", max_wall_s=120)
+    assert ref.status == "failed" and "Zeno" in ref.reason, ref.reason
+    assert abs(ref.trace.time[-1] - t_z) < 1e-6 and ref.stats["simulated_s"] == ref.trace.time[-1]
+    assert ref.trace["b.h"].min() > -1e-9  # never through the floor

@@ -90,10 +90,13 @@ class _Model:
         function ``z - shift`` crossing zero in ``direction``.  Each takes its side by look-ahead
         (the FMU core's rule).  An undirected one is watched EPS_Z beyond zero from its side, so one
         that starts at zero (``time - startTime`` at the start time, one that has just fired) does
-        not fire again at once; a directed one on its near side (or resting at zero) EPS_Z on its
-        far side; a directed one already on its far side (``when x > 0.5`` just fired, x still
-        rising) is only watched for its return EPS_Z on the near side (``rearm``: no event, the
-        segment restarts with it armed), where watching it on the far side fired it again and again."""
+        not fire again at once; a directed one EPS_Z on its far side, unless it is there already and
+        moving on across (``when x > 0.5`` just fired, x still rising): that one is only watched
+        for its return EPS_Z on the near side (``rearm``: no event, the segment restarts with it
+        armed), where watching it on the far side fired it again and again.  One across that
+        moves back (a bounce's reset) stays armed: SciPy fires a watch starting at zero only if
+        it moves in the watch's direction, and a rebound too small to leave the watch level is
+        a Zeno sequence that must fail, not fall through the floor."""
         ahead = self.zval(t + LOOK_AHEAD, x + LOOK_AHEAD * np.array(self.ode(t, x, m)).ravel(), m)
         z = self.zval(t, x, m)
         side = np.where(ahead != 0, np.sign(ahead), np.sign(z))
@@ -101,7 +104,7 @@ class _Model:
         for i, e in enumerate(self.indicators):
             if not e.direction:
                 out.append((-EPS_Z * float(side[i] or 1.0), 0, False))
-            elif z[i] * e.direction > 0 or (z[i] == 0 and ahead[i] * e.direction > 0):  # across, or leaving 0 across
+            elif z[i] * e.direction >= 0 and (ahead[i] - z[i]) * e.direction > 0:  # across and moving on across
                 out.append((-EPS_Z * e.direction, -e.direction, True))
             else:
                 out.append((EPS_Z * e.direction, e.direction, False))
@@ -188,8 +191,13 @@ def integrate(comp: Composite, signals: ca.Function, grid: np.ndarray, tol: Tole
             t = seg_end
         else:
             t_eval = np.unique(np.append(outs, seg_end))
-            sol = solve_ivp(rhs, (t, seg_end), x, method=SOLVER, t_eval=t_eval, events=funcs or None,
-                            rtol=rtol, atol=atol, jac=jac if SOLVER in ("LSODA", "Radau", "BDF") else None)
+            try:
+                sol = solve_ivp(rhs, (t, seg_end), x, method=SOLVER, t_eval=t_eval, events=funcs or None,
+                                rtol=rtol, atol=atol, jac=jac if SOLVER in ("LSODA", "Radau", "BDF") else None)
+            except ValueError as exc:  # SciPy's root bracket lost (brentq): an indicator hovering at its watch
+                raise EventReferenceError(
+                    f"the event location failed after t = {t:.17g} s ({exc}; {log.total} events so far): events at "
+                    f"ever shorter intervals (a Zeno sequence) or an indicator hovering at zero") from None
             if sol.status < 0:
                 raise EventReferenceError(f"{SOLVER} failed after t = {t:g} s: {sol.message}")
             sol_t = np.asarray(sol.t, dtype=float).ravel()

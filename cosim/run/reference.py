@@ -368,12 +368,16 @@ def _event_reference(scene: Scene, comp: Composite, req: ReferenceRequest) -> Ru
     for ob in observers:
         ob.start(["time", *scene.outputs], meta)
 
+    last = [0.0]  # the time of the last row recorded [s]: where a failed reference got to
+
     def record(rows: np.ndarray) -> bool:
         keep = guard.check(rows) if guard else None
         if keep is not None:
             rows = rows[:keep]
         for ob in observers:
             ob.record(rows[:, :n_rec])
+        if len(rows):
+            last[0] = float(rows[-1, 0])
         return keep is None
 
     t0 = time.perf_counter()
@@ -383,7 +387,7 @@ def _event_reference(scene: Scene, comp: Composite, req: ReferenceRequest) -> Ru
     except TimeoutError as exc:
         status, reason = "failed", f"the reference reached its wall-time cap of {max_wall_s:g} s at {exc}"
     except EventReferenceError as exc:
-        status, reason = "failed", str(exc)
+        status, reason, reached = "failed", str(exc), last[0]
     except TraceWriteError as exc:
         status, reason = "failed", f"TraceWriteError: {exc}"
     wall = time.perf_counter() - t0
