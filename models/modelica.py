@@ -1100,18 +1100,22 @@ class _Translation:
         ms = list(self.mode_syms.values())
         indicators, directions, names, updates = [], [], [], []
         by_relation: dict[int, int] = {}
-        for root in roots:
-            rel = relations[root["relation"]]
+
+        def indicator(r: int) -> None:  # relation r as an indicator lhs - rhs (falling for <, <=)
+            rel = relations[r]
             (kind, body), = self.nodes[rel["expression"]].items()
             if kind != "binary" or body["operator"] not in ("less", "less_equal", "greater", "greater_equal"):
                 self._fail_node(rel["expression"], "a relation other than <, <=, >, >= as an event")
             z = self.graph(body["lhs"]) - self.graph(body["rhs"])
-            by_relation[root["relation"]] = len(indicators)
+            by_relation[r] = len(indicators)
             indicators.append(z)
             directions.append(FALLING if body["operator"] in ("less", "less_equal") else RISING)
             names.append(f"{_short(self.graph(body['lhs']), 40)} {_REL[body['operator']]} "
                          f"{_short(self.graph(body['rhs']), 40)}")
             updates.append(None)
+
+        for root in roots:
+            indicator(root["relation"])
         for cond, level, message, line, zero in self.assertions:  # a warning's relation: located like the others
             if zero is not None:
                 indicators.append(zero)
@@ -1145,6 +1149,10 @@ class _Translation:
             if set(node) == {"discrete"}:  # edge(b) or change(b) of a Boolean b = relation: that relation's crossing
                 node = self._edge(node["discrete"], relations)
                 either = node.pop("either", False)
+            if set(node) == {"relation"} and node["relation"] not in by_relation and 0 <= node["relation"] < len(relations):
+                # a relation rumoca made a time event (when time > 0.5): located as an indicator in time,
+                # so a parameter in it stays settable
+                indicator(node["relation"])
             if set(node) != {"relation"} or node["relation"] not in by_relation or by_relation[node["relation"]] in fired:
                 where = conditions[trig] if trig < len(conditions) and conditions[trig].get("provenance") else items[0][1]
                 self._fail_span(where, "a when-condition other than one relation, initial(), one sample() or "

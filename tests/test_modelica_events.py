@@ -178,3 +178,47 @@ def test_a_zeno_ball_fails_in_the_run_and_in_its_reference_at_the_zeno_time(tmp_
     assert ref.status == "failed" and "Zeno" in ref.reason, ref.reason
     assert abs(ref.trace.time[-1] - t_z) < 1e-6 and ref.stats["simulated_s"] == ref.trace.time[-1]
     assert ref.trace["b.h"].min() > -1e-9  # never through the floor
+
+
+W = """model W
+  parameter Real T0 = 0.55;
+  Real x(start = 0, fixed = true);
+  Real y(start = 0, fixed = true);
+equation
+  der(x) = 1;
+  der(y) = 1;
+  when sample(0, 0.3) then
+    reinit(x, 0);
+  end when;
+  when time > T0 then
+    reinit(y, 10);
+  end when;
+end W;
+"""
+
+
+@pytest.mark.parametrize("T0", [0.55, 0.42])
+def test_a_when_on_time_fires_at_its_instant_and_its_parameter_is_settable(tmp_path, T0):
+    """`when time > T0 then reinit(y, 10)` (rumoca makes the relation a time event) was refused as
+    "a when-condition other than one relation"; now an indicator in time, so T0 stays a settable
+    parameter: y = t, then 10 + t - T0.  The event reference of the same scene (a sample every
+    0.3 s against a 0.1 s grid: 3 x 0.1 rounds past 0.3, which solve_ivp refused as outside its
+    span) agrees, and x restarts from 0 at every sample."""
+    from cosim.run.reference import reference
+
+    (tmp_path / "W.mo").write_text(W)
+    (tmp_path / "w.yaml").write_text(
+        f"stop_time: 1\ncomponents:\n  c: {{modelica: W.mo, model: W, params: {{T0: {T0}}}}}\n"
+        "master: {algorithm: jacobi, step: 0.1, estimate: false}\noutputs: [c.x, c.y]\n")
+    res = run(tmp_path / "w.yaml", [], out_dir=tmp_path / "out")
+    assert res.ok, res.reason
+    t = res.trace["time"]
+    assert np.max(np.abs(res.trace["c.y"] - np.where(t < T0, t, 10 + t - T0))) < 1e-9
+    ref = reference(tmp_path / "w.yaml")
+    assert ref.status == "ok", ref.reason
+    times = [round(e["time"], 9) for e in ref.stats["events"]["list"] if "T0" in e["event"]]
+    assert times == [T0]
+    once = (np.diff(ref.trace.time, append=2.0) > 0) & (np.abs(ref.trace.time - T0) > 1e-9)  # right limits, off the jump
+    tr = ref.trace.time[once]
+    assert np.max(np.abs(ref.trace["c.y"][once] - np.where(tr < T0, tr, 10 + tr - T0))) < 1e-9
+    assert np.max(np.abs(ref.trace["c.x"][once] - (tr - 0.3 * np.floor(tr / 0.3 + 1e-9)))) < 1e-9

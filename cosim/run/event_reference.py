@@ -104,7 +104,7 @@ class _Model:
         for i, e in enumerate(self.indicators):
             if not e.direction:
                 out.append((-EPS_Z * float(side[i] or 1.0), 0, False))
-            elif z[i] * e.direction >= 0 and (ahead[i] - z[i]) * e.direction > 0:  # across and moving on across
+            elif z[i] * e.direction > 0 and (ahead[i] - z[i]) * e.direction > 0:  # across and moving on across
                 out.append((-EPS_Z * e.direction, -e.direction, True))
             else:
                 out.append((EPS_Z * e.direction, e.direction, False))
@@ -169,7 +169,9 @@ def integrate(comp: Composite, signals: ca.Function, grid: np.ndarray, tol: Tole
             raise TimeoutError(f"t = {t:g} s")
         t_sample = min((e.offset + next_k[id(e)] * e.period for e in model.samples), default=math.inf)
         seg_end = min(t_end, t_sample)
-        outs = grid[done:][grid[done:] <= seg_end + 1e-15]
+        # the grid's instants in the segment; one a rounding past its end (3 x 0.1 against a sample
+        # at 0.3) is taken at the end, which solve_ivp's t_eval must not pass
+        outs = np.minimum(grid[done:][grid[done:] <= seg_end + 1e-15], seg_end)
 
         def rhs(tt, y, m=m):
             return np.array(model.ode(tt, y, m)).ravel()
@@ -195,6 +197,8 @@ def integrate(comp: Composite, signals: ca.Function, grid: np.ndarray, tol: Tole
                 sol = solve_ivp(rhs, (t, seg_end), x, method=SOLVER, t_eval=t_eval, events=funcs or None,
                                 rtol=rtol, atol=atol, jac=jac if SOLVER in ("LSODA", "Radau", "BDF") else None)
             except ValueError as exc:  # SciPy's root bracket lost (brentq): an indicator hovering at its watch
+                if "different signs" not in str(exc):
+                    raise
                 raise EventReferenceError(
                     f"the event location failed after t = {t:.17g} s ({exc}; {log.total} events so far): events at "
                     f"ever shorter intervals (a Zeno sequence) or an indicator hovering at zero") from None
