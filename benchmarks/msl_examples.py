@@ -9,9 +9,9 @@ each example the script writes a one-component scene (``modelica: <example>``, t
 
 1. *check*: compiles the class with rumoca (a failure there is rumoca's, with its message), then
    loads the scene (our translation: a failure there is ours, with the construct);
-2. *run* (``--run``): builds the FMU and runs it; with reference results
-   (``--results``), compares the comparison signals (worst error relative to range; passing is
-   within 1e-3).
+2. *run* (``--run``): builds the FMU and runs it with its error estimate over the recorded
+   states (passing is within 1e-3 of range by it); with reference results (``--results``),
+   compares the comparison signals (worst error relative to range; passing is within 1e-3).
 
 Each example runs in a forked child with a time limit (``--timeout``, 600 s: a longer one is a
 failure "timeout"), so one hang does not stop the survey.  It prints a Markdown table (``--out
@@ -21,6 +21,7 @@ FILE`` writes it too) and the timings.  Usage: ``python3 benchmarks/msl_examples
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import pickle
 import re
@@ -52,7 +53,8 @@ _MODEL = re.compile(r"^\s*(?:encapsulated\s+)?(partial\s+)?(model|package|block|
 
 
 def examples(msl: Path) -> list[str]:
-    """The examples (non-partial models) of :data:`PACKAGES`, in the library's order."""
+    """The examples (non-partial models) of :data:`PACKAGES` and of their example sub-packages
+    (``Blocks.Examples.Noise``; not the ``Utilities`` helpers), in the library's order."""
     out = []
     for pkg in PACKAGES:
         main = class_file(pkg, [msl])
@@ -66,16 +68,19 @@ def examples(msl: Path) -> list[str]:
             text = _NOISE.sub(" ", main.read_text())
             start = re.search(rf"\bpackage\s+{pkg.split('.')[-1]}\b", text).start()
             end = re.search(rf"\bend\s+{pkg.split('.')[-1]}\s*;", text).end()
-            body, depth = text[start:end], 0
+            body, stack = text[start:end], []  # the enclosing classes: (kind, name)
             for m in re.finditer(r"\b(?:(end)\s+([A-Za-z_]\w*)\s*;|(partial\s+)?(model|package|block|record|function|"
                                  r"connector|type|class)\s+([A-Za-z_]\w*)(\s*=)?)", body):
                 if m.group(1):
-                    depth -= m.group(2) not in ("if", "for", "when", "while")
+                    if m.group(2) not in ("if", "for", "when", "while") and stack:
+                        stack.pop()
                     continue
+                inside = [n for _, n in stack[1:]]  # the sub-packages of Examples (Noise), not helpers
+                if (m.group(4) == "model" and not m.group(3) and all(k == "package" for k, _ in stack)
+                        and not any(n.endswith("Utilities") for n in inside)):
+                    out.append(".".join([pkg, *inside, m.group(5)]))
                 if m.group(6) is None:
-                    depth += 1
-                if depth == 2 and m.group(4) == "model" and not m.group(3):
-                    out.append(f"{pkg}.{m.group(5)}")
+                    stack.append((m.group(4), m.group(5)))
     return out
 
 
@@ -119,7 +124,7 @@ def one(msl: Path, results: Path | None, example: str, folder: Path, do_run: boo
     scene = folder / "scene.yaml"
     options = f", options: {{substeps: {SUBSTEPS[example]}}}" if example in SUBSTEPS else ""
     scene.write_text(f"stop_time: {stop}\nmodelica_path: [{msl}]\ncomponents:\n  c: {{modelica: {example}{options}}}\n"
-                     f"master: {{algorithm: jacobi, step: {interval}, estimate: false}}\n"
+                     f"master: {{algorithm: jacobi, step: {interval}}}\n"
                      + (f"outputs: [{', '.join('c.' + s for s in signals)}]\n" if signals else ""))
     t0 = time.perf_counter()
     try:
@@ -127,9 +132,13 @@ def one(msl: Path, results: Path | None, example: str, folder: Path, do_run: boo
     except ModelicaError as exc:
         return "fails", "rumoca", reason(exc), time.perf_counter() - t0
     try:
-        load(scene)
+        loaded = load(scene)
     except SceneError as exc:
         return "fails", "ours", reason(exc), time.perf_counter() - t0
+    if not signals:  # no reference result: record the states, so the run's error estimate judges it
+        states = [v for v in loaded.components["c"].description.variables if v.startswith("state.") and v != "state.time"]
+        if states:
+            scene.write_text(scene.read_text() + f"outputs: [{', '.join(json.dumps('c.' + v) for v in states)}]\n")
     if not do_run:
         return "translates", "", "", time.perf_counter() - t0
     try:
@@ -139,7 +148,12 @@ def one(msl: Path, results: Path | None, example: str, folder: Path, do_run: boo
     if not res.ok:
         return "fails", "ours", f"run: {res.reason}"[:220].replace("|", "\\|"), time.perf_counter() - t0
     if not signals:
-        return "passes", "", f"runs to {stop:g} s (no reference result here)", time.perf_counter() - t0
+        est = (res.stats.get("estimate") or {}).get("worst")
+        if est is not None and est > TOLERANCE:
+            return "fails", "ours", f"runs to {stop:g} s, estimated {est:.1e} of range, beyond {TOLERANCE:g} " \
+                                    f"(no reference result here)", time.perf_counter() - t0
+        said = f", estimated {est:.1e} of range" if est is not None else ", no error estimate (no states)"
+        return "passes", "", f"runs to {stop:g} s{said} (no reference result here)", time.perf_counter() - t0
     import pandas as pd
 
     ref = pd.read_csv(ref_dir / f"{example.split('.')[-1]}.csv")

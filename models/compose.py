@@ -57,9 +57,9 @@ class Composite:
 
     def signal_function(self, names: Sequence[tuple[str, str]]) -> ca.Function:
         """``x -> [signals...]`` (``(x, z) -> ...`` with an algebraic loop, ``(x, m) -> ...`` with
-        modes) for the given ``(block, name)`` pairs."""
+        events, ``m`` empty where no block has modes) for the given ``(block, name)`` pairs."""
         args = [self.x, self.z] if self.z.numel() else [self.x]
-        if self.m.numel():
+        if self.has_events:
             args.append(self.m)
         return ca.Function("signals", args, [ca.vertcat(*[self.signals[n] for n in names])])
 

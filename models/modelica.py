@@ -654,12 +654,15 @@ class _Units:
     """The unit check of the DAE's expressions: every sum, comparison, min/max and branch of an
     if-expression must add like units, and the built-in functions' arguments be dimensionless.
     A variable without a unit (or with a symbol :mod:`models.units` does not know) and a number
-    in a sum are wildcards; a number in a product is a dimensionless factor."""
+    in a sum are wildcards; a number in a product is a dimensionless factor.  ``time`` is in
+    seconds where the model declares a unit anywhere; in a model that declares none (units are
+    optional) it is a wildcard too, so ``sin(time)`` is not refused for a unit nobody wrote."""
 
     def __init__(self, graph: _Graph, var_units: dict[int, str]):
         self.g = graph
         self.units = {k: units.parse(u) for k, u in var_units.items()}
         self.declared = var_units
+        self.time = units.parse("s") if any(var_units.values()) else None
         self.memo: dict[int, tuple] = {}
 
     def __call__(self, i: int):
@@ -675,7 +678,7 @@ class _Units:
             return None, True, "a number"
         if kind == "coordinate":
             if body == "time":
-                return units.parse("s"), False, "time [s]"
+                return self.time, False, "time [s]" if self.time is not None else "time"
             (what, k), = body.items()
             if what not in ("parameter", "input", "output", "state", "derivative", "algebraic"):
                 return None, False, "?"
@@ -1097,18 +1100,22 @@ class _Translation:
         ms = list(self.mode_syms.values())
         indicators, directions, names, updates = [], [], [], []
         by_relation: dict[int, int] = {}
-        for root in roots:
-            rel = relations[root["relation"]]
+
+        def indicator(r: int) -> None:  # relation r as an indicator lhs - rhs (falling for <, <=)
+            rel = relations[r]
             (kind, body), = self.nodes[rel["expression"]].items()
             if kind != "binary" or body["operator"] not in ("less", "less_equal", "greater", "greater_equal"):
                 self._fail_node(rel["expression"], "a relation other than <, <=, >, >= as an event")
             z = self.graph(body["lhs"]) - self.graph(body["rhs"])
-            by_relation[root["relation"]] = len(indicators)
+            by_relation[r] = len(indicators)
             indicators.append(z)
             directions.append(FALLING if body["operator"] in ("less", "less_equal") else RISING)
             names.append(f"{_short(self.graph(body['lhs']), 40)} {_REL[body['operator']]} "
                          f"{_short(self.graph(body['rhs']), 40)}")
             updates.append(None)
+
+        for root in roots:
+            indicator(root["relation"])
         for cond, level, message, line, zero in self.assertions:  # a warning's relation: located like the others
             if zero is not None:
                 indicators.append(zero)
@@ -1142,8 +1149,13 @@ class _Translation:
             if set(node) == {"discrete"}:  # edge(b) or change(b) of a Boolean b = relation: that relation's crossing
                 node = self._edge(node["discrete"], relations)
                 either = node.pop("either", False)
+            if set(node) == {"relation"} and node["relation"] not in by_relation and 0 <= node["relation"] < len(relations):
+                # a relation rumoca made a time event (when time > 0.5): located as an indicator in time,
+                # so a parameter in it stays settable
+                indicator(node["relation"])
             if set(node) != {"relation"} or node["relation"] not in by_relation or by_relation[node["relation"]] in fired:
-                self._fail_span(items[0][1], "a when-condition other than one relation, initial(), one sample() or "
+                where = conditions[trig] if trig < len(conditions) and conditions[trig].get("provenance") else items[0][1]
+                self._fail_span(where, "a when-condition other than one relation, initial(), one sample() or "
                                              "one edge()/change() of a Boolean given by a relation (and/or of "
                                              "conditions, two when-clauses on one relation)")
             i = by_relation[node["relation"]]

@@ -3,6 +3,8 @@ located inside doStep against analytic event times, rollback with modes, bounded
 and chattering, time events."""
 from __future__ import annotations
 
+import re
+
 from pathlib import Path
 
 import casadi as ca
@@ -477,13 +479,21 @@ def test_compare_cli_measures_event_times_and_values_between_events(tmp_path, ca
     assert main(["run", str(ROOT / "scenarios" / "stick_slip.yaml"), "--reference", "--out", str(out),
                  "--cache", str(cache)]) == 0
     test, ref = str(out / "stick_slip.csv"), str(out / "stick_slip_reference.csv")
-    capsys.readouterr()
+    said = capsys.readouterr().out  # run --reference gives the two numbers itself (the modes' changes matched)
+    assert re.search(r"events: \d\d mode changes matched, largest time error [0-9.e-]+ s \(mass\.t_s", said), said
+    assert "co-simulation against the reference (values between events):" in said
     assert main(["compare", test, ref, "--only", "mass.x", "--only", "mass.friction", "--tol", "1e-3"]) == 1
     assert main(["compare", test, ref, "--only", "mass.x", "--only", "mass.friction", "--tol", "1e-3",
                  "--events", "mass.t_stick", "--events", "mass.t_slip", "--event-tol", "1e-4"]) == 0
     text = capsys.readouterr().out
     assert "events mass.t_stick: 9 matched" in text and "(values between events)" in text
     assert main(["compare", test, ref, "--tol", "1e-3", "--events", "mass.t_slip", "--event-tol", "1e-6"]) == 1
+    # without --event-tol the runs' own event time tolerance, tol x 0.1 s (not tol x the span, 3 s)
+    gate = ["compare", test, ref, "--only", "mass.x", "--events", "mass.t_stick", "--events", "mass.t_slip", "--tol"]
+    assert main(gate + ["1e-3"]) == 0  # switches within 1e-4 s
+    capsys.readouterr()
+    assert main(gate + ["4e-4"]) == 1  # values within 4e-4, switches (5.7e-5 s) beyond 4e-5 s
+    assert "beyond the event time tolerance 4e-05 s" in capsys.readouterr().err
 
 
 def test_the_estimate_leaves_out_the_instants_around_events():
@@ -550,3 +560,25 @@ def test_rig_step_with_sampled_adc_and_pwm_settles_within_one_count(cache):
         assert abs(tr[f"rig.leg[{i}].s"][-1] - tr[f"target.leg[{i}].s"][-1]) < count
         steps = np.diff(tr[f"adc.y[{i}]"]) / count  # the read-back length moves in whole counts
         assert np.allclose(steps, np.rint(steps), atol=1e-6)
+
+
+def test_the_precision_study_of_an_event_scene_measures_between_events(stick_slip_runs, cache, tmp_path):
+    """`study precision` on stick_slip: each row's errors are the two numbers (the value error
+    between events, the event-time error), not the max-norm across the switches that called every
+    run "inaccurate, 1.0 of range on mass.stuck".  The scene's own run (Gauss-Seidel, 0.5 ms,
+    linear) against the same measure taken apart: `compare --events` on the clocks."""
+    from cosim.analysis.compare import compare_events
+    from cosim.study.precision import precision_study
+
+    st = precision_study(ROOT / "scenarios" / "stick_slip.yaml", [("gauss_seidel", "linear"), ("gauss_seidel", "hold")],
+                         [1e-3, 5e-4], out=tmp_path / "study", cache_dir=cache, peer=False)
+    rows = {(r.inputs, r.step): r for r in st.rows}
+    scene_row = rows[("linear", 5e-4)]
+    assert scene_row.status == "ok" and scene_row.missing_events == "", scene_row.reason
+    cosim, ref = stick_slip_runs
+    timings, diffs = compare_events(cosim.trace, ref.trace, ["mass.t_stick", "mass.t_slip"])
+    assert scene_row.event_time == pytest.approx(max(t.max_error for t in timings), rel=1e-6)
+    assert scene_row.event_time < 1e-4 and scene_row.worst < 1e-3
+    assert scene_row.worst == pytest.approx(max(d.relative for d in diffs), rel=0.05)  # windows of the modes, not the clocks
+    assert st.cheapest_within(1e-3) is scene_row
+    assert rows[("hold", 1e-3)].status == "inaccurate" and rows[("hold", 1e-3)].event_time > 1e-2  # the drifting cycle

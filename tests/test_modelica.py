@@ -289,6 +289,21 @@ def test_units_and_descriptions_are_optional_and_an_unknown_unit_is_said():
                                                                     "checked)")
 
 
+def test_time_in_a_model_without_units_is_not_refused_for_a_unit_nobody_wrote(tmp_path):
+    """`der(x) = sin(time)` with no unit anywhere (Modelica makes units optional): translated, and
+    its run against x = 1 - cos t; where the model declares units, time is in seconds and the
+    same line is refused naming it."""
+    plain = 'model S\n  Real x(start = 0, fixed = true);\nequation\n  der(x) = sin(time);\nend S;\n'
+    (tmp_path / "S.mo").write_text(plain)
+    (tmp_path / "s.yaml").write_text("stop_time: 2.0\ncomponents:\n  s: {modelica: S.mo, model: S}\n"
+                                     "master: {algorithm: jacobi, step: 1e-2}\noutputs: [s.x]\n")
+    res = run(tmp_path / "s.yaml", [], out_dir=tmp_path / "out")
+    assert res.ok, res.reason
+    assert np.abs(res.trace["s.x"] - (1 - np.cos(res.trace["time"]))).max() < 1e-8
+    with pytest.raises(ModelicaError, match=r"S\.mo:4: the argument of sin\(\) is time \[s\]"):
+        translate(plain.replace("Real x(", 'Real x(unit = "m", '), "S", "S.mo")
+
+
 def test_lag_without_units_runs_against_its_analytic_response(tmp_path):
     """Lag.mo (no unit, no description) driven by a free catalog oscillator x = cos t: the lag's
     output against the closed-form response of T y' = cos t - y, y(0) = 0."""

@@ -75,6 +75,8 @@ def test_boolean_and_integer_discrete_variables_switch_at_their_events(tmp_path)
     b = translate(SWITCH, "Switch", "Switch.mo")
     assert [v.name for v in b.modes] == ["mode.on", "mode.n"]
     assert [s.offset for s in b.sample_times] == [0.0, 0.5]  # the initial event, the time event
+    assert b.event_names == ["state.x > 0.9"]  # noEvent(s > 10) is no indicator (without it: a second one)
+    assert translate(SWITCH.replace("noEvent(s > 10)", "s > 10"), "Switch", "Switch.mo").event_names[1] == "state.s > 10"
     tr = simulate(tmp_path, SWITCH, "Switch", 2.0, 0.04, ["x", "on", "n", "s"])
     t = np.asarray(tr["time"])
     exact = np.where(t < 0.5, 0.0, np.where(t < 1.4, t - 0.5, 0.9 + 3 * (t - 1.4)))
@@ -274,7 +276,7 @@ def test_what_is_not_translated_yet_names_file_line_and_construct(body, line, wh
     text = f'model E "e"\n  Real x(start = 0);\n  discrete Real y(start = 0);\nequation\n  der(x) = 1;\n{body}\nend E;\n'
     with pytest.raises(ModelicaError) as err:
         translate(text, "E", "E.mo")
-    assert str(err.value).startswith("E.mo:") and what in str(err.value), str(err.value)
+    assert str(err.value).startswith(f"E.mo:{line}:") and what in str(err.value), str(err.value)
 
 
 DECAY3 = """model Decay3 "three decays: a for-equation over arrays, a matrix product"

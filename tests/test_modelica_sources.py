@@ -112,6 +112,20 @@ def test_a_class_name_without_roots_or_a_missing_root_is_one_line(tmp_path, monk
         load(tmp_path / "scene.yaml")
     (line,) = str(err.value).splitlines()
     assert "scene.yaml:2" in line and "modelica_path: 'no_such_dir' is not a directory" in line, line
+    # connected to another component: still one line (pid_step_msl outside the main checkout said
+    # "unknown component 'motor1'" twice more, at the lines of its included scene)
+    (tmp_path / "scene.yaml").write_text(textwrap.dedent("""        stop_time: 0.1
+        modelica_path: [no_such_dir]
+        components:
+          c: {modelica: Modelica.Mechanics.Translational.Components.Mass}
+          f: {model: oscillator}
+        connections: [f.x -> c.u]
+        master: {algorithm: jacobi, step: 1e-3}
+        """))
+    with pytest.raises(SceneError) as err:
+        load(tmp_path / "scene.yaml")
+    (line,) = str(err.value).splitlines()
+    assert "modelica_path: 'no_such_dir' is not a directory" in line, line
 
 
 @needs_msl

@@ -27,7 +27,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import UserError
-from ..master.estimate import FLAT
+from ..master.estimate import FLAT, EventMatch, match_modes
 from ..trace.traces import Trace
 
 
@@ -435,3 +435,22 @@ def compare_events(test: Trace, ref: Trace, names: Sequence[str], patterns: Sequ
         t = test.time
         interval = float(np.max(np.diff(t))) if len(t) > 1 else 0.0
     return timings, compare_between_events(test, ref, windows(pairs, interval), patterns)
+
+
+def compare_modes(test: Trace, ref: Trace, modes: Sequence[str], patterns: Sequence[str] | None = None,
+                  ) -> tuple[list[Difference], EventMatch | None]:
+    """Both measures across events where the event signals are the recorded ``modes`` (discrete
+    variables, :func:`cosim.run.execute.event_modes`): the k-th change of each in ``test`` matched
+    with the k-th in ``ref`` (:func:`cosim.master.estimate.match_modes`, windows of the difference
+    plus the test's largest output interval) and the value error between events; the plain
+    :func:`compare` and None where none of them is in both traces or changes."""
+    names = [m for m in modes if m in test.columns and m in ref.columns]
+    ev = None
+    if names and len(test.time) > 1:
+        interval = float(np.max(np.diff(test.time)))
+        x = np.column_stack([np.asarray(test[n], dtype=float) for n in names])
+        xc = np.column_stack([np.asarray(ref[n], dtype=float) for n in names])
+        ev = match_modes(test.time, x, ref.time, xc, names, range(len(names)), 1.0, interval)
+    if ev is None or not (ev.matched or ev.missing):
+        return compare(test, ref, patterns), None
+    return compare_between_events(test, ref, ev.windows, patterns), ev

@@ -91,8 +91,9 @@ def _run(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--plot", action="store_true", help="also write <scene>.png with the recorded outputs")
     p.add_argument("--animate", action="store_true", help="also write <scene>.gif of the platform and legs")
     p.add_argument("--reference", action="store_true",
-                   help="also integrate the scene as one ODE (CVODES) into <scene>_reference.csv and report the "
-                        "co-simulation's error against it (catalog components only)")
+                   help="also integrate the scene as one ODE (CVODES; SciPy's LSODA from event to event where "
+                        "components have events) into <scene>_reference.csv and report the co-simulation's error "
+                        "against it (catalog and Modelica components, not external FMUs)")
     p.add_argument("--check", action="store_true", help="only validate the scene and print what it contains")
     add_trace_format(p, "trace file format: a plain CSV (default), a CSV with the metadata in '# key: value' "
                         "comment lines, Parquet (<scene>.parquet, metadata in its schema) or NumPy (<scene>.npy, "
@@ -127,7 +128,8 @@ def _compare(sub: argparse._SubParsersAction) -> None:
                    help="an event counter or time-of-the-last-event signal: match the events, report their time "
                         "error and measure values between events; repeatable")
     p.add_argument("--event-tol", type=float, default=None, metavar="S",
-                   help="with --tol: the largest event-time error [s] (default: REL times the test's span)")
+                   help="with --tol: the largest event-time error [s] (default: the runs' event time tolerance, REL "
+                        "times 0.1 s)")
     p.add_argument("--allow-different-scenes", action="store_true",
                    help="compare even when the sidecars' scene hashes differ in what is simulated (components, "
                         "parameters, connections, inputs); differences in the master's settings are always allowed")

@@ -250,7 +250,8 @@ def _report(scene, res, ref, out: Path) -> Path | str:
 def _reference(scene, res, out: Path, plot: bool, trace_format: str, figures: _Figures):
     """Run the monolithic reference and print the co-simulation's error against it (and ask
     ``figures`` for its plot)."""
-    from ..analysis.compare import compare, format_table
+    from ..analysis.compare import compare, compare_modes, format_table
+    from ..run.execute import event_modes
     from ..run.reference import reference
     from ..run.progress import progress_bar
 
@@ -263,17 +264,23 @@ def _reference(scene, res, out: Path, plot: bool, trace_format: str, figures: _F
     print(f"monolithic reference ({ref.trace.meta.get('method', 'CVODES')}, {ref.trace.meta.get('states')} states): "
           f"{ref.status}{' (' + ref.reason + ')' if ref.reason else ''}, {st['wall_s']:.2f} s; trace: {ref.trace_path}")
     if len(ref.trace.data) and len(res.trace.data):
-        diffs = compare(res.trace, ref.trace)
+        n_events = (st.get("events") or {}).get("count", 0)
+        diffs, ev = compare_modes(res.trace, ref.trace, event_modes(scene)) if n_events else (compare(res.trace, ref.trace), None)
         if plot:  # asked for first: it is drawn while the table is printed
             _plot_comparison(figures, confined(out, f"{scene.name}_vs_reference.png"), res, ref.trace, diffs)
         for label, r in (("co-simulation", res), ("reference", ref)):
             if r.status != "ok":
                 print(f"note: the {label} ended {r.status!r} at t = {r.trace.time[-1]:g} s ({r.reason}); the errors "
                       f"below cover the common span only")
-        print("co-simulation against the reference:")
+        if ev is not None:
+            missing = "; missing: " + ", ".join(f"{n} (co-simulation {a}, reference {b})" for n, (a, b) in
+                                                ev.missing.items()) if ev.missing else ""
+            worst = (f", largest time error {ev.time_error:.3g} s ({ev.signal}; a counter's or a flag's beyond "
+                     f"one recorded interval)") if ev.time_error is not None else ""
+            print(f"events: {ev.matched} mode change{'s' if ev.matched != 1 else ''} matched{worst}{missing}")
+        print("co-simulation against the reference" + (" (values between events):" if ev is not None else ":"))
         print(format_table(diffs, most=12, estimates=(res.stats.get("estimate") or {}).get("errors")))
-        n_events = (st.get("events") or {}).get("count", 0)
-        if n_events:
+        if n_events and ev is None:
             print(f"note: the reference has {n_events} events; the errors above are max-norms across them (a jump "
                   f"placed a hair apart reads as an error its size): `rpr-cosim compare TEST REFERENCE --events "
                   f"SIGNAL` measures the event times and the values between events (docs/explanation/events.md)")

@@ -167,12 +167,16 @@ def _precision(args: argparse.Namespace) -> int:
         plot_study(study, png_path)
     print(f"{study.scene}: {len(study.rows)} runs over {study.stop_time:g} s against the monolithic reference "
           f"({study.reference_wall_s:.3f} s)")
+    events = any(math.isfinite(r.event_time) or r.missing_events for r in study.rows)
     print(f"{'variant':<22} {'step/tol':>11} {'status':>10} {'worst rel':>10} {'RMS rel':>10} {'signal':<22} "
-          f"{'wall s':>8} {'doSteps':>8} {'rejected':>8} {'rollbacks':>9}")
+          f"{'wall s':>8} {'doSteps':>8} {'rejected':>8} {'rollbacks':>9}" + (f" {'event s':>9}" if events else ""))
     for r in study.rows:
         print(("* " if r.chosen else "") + f"{r.algorithm + '/' + r.inputs:<22} {r.label:>11} {r.status:>10} {r.worst:>10.3e} {r.rms:>10.3e} "
               f"{r.worst_signal:<22} {r.wall_s:>8.3f} {r.do_steps:>8} {r.rejected:>8} {r.rollbacks:>9}"
-              + (f"  ({r.reason})" if r.reason else ""))
+              + (f" {r.event_time:>9.2e}" if events else "") + (f"  ({r.reason})" if r.reason else ""))
+    if events:
+        print("event scene: 'worst rel' is the value error between events, 'event s' the largest event-time error of "
+              "the matched events (docs/explanation/events.md)")
     for v in study.variants():
         p = study.order(v)
         if math.isfinite(p):

@@ -31,6 +31,10 @@ MAX_ROUNDS, MAX_EVENTS = 100, 200_000
 #: How far past zero [the indicator's unit] a directed indicator is watched: a crossing is found
 #: where it reaches +-EPS_Z (a time error of EPS_Z / |dz/dt|, 1e-12 s at 0.1 unit/s).
 EPS_Z = 1e-13
+#: The look-ahead [s] that gives an undirected indicator its side at a segment's start (the FMU
+#: core's rule: the sign of ``z + dz/dt * LOOK_AHEAD``, so one at zero, or a rounding error off it,
+#: takes the side it is moving to).
+LOOK_AHEAD = 1e-9
 #: The SciPy solver (stiff and non-stiff alike, with the CasADi Jacobian).
 SOLVER = "LSODA"
 
@@ -80,6 +84,31 @@ class _Model:
 
     def zval(self, t, x, m) -> np.ndarray:
         return np.array(self.z(t, x, m)).ravel()
+
+    def watches(self, t, x, m) -> list[tuple[float, int, bool]]:
+        """How each indicator is watched from ``(t, x, m)``: ``(shift, direction, rearm)``, the
+        function ``z - shift`` crossing zero in ``direction``.  Each takes its side by look-ahead
+        (the FMU core's rule).  An undirected one is watched EPS_Z beyond zero from its side, so one
+        that starts at zero (``time - startTime`` at the start time, one that has just fired) does
+        not fire again at once; a directed one EPS_Z on its far side, unless it is there already and
+        moving on across (``when x > 0.5`` just fired, x still rising): that one is only watched
+        for its return EPS_Z on the near side (``rearm``: no event, the segment restarts with it
+        armed), where watching it on the far side fired it again and again.  One across that
+        moves back (a bounce's reset) stays armed: SciPy fires a watch starting at zero only if
+        it moves in the watch's direction, and a rebound too small to leave the watch level is
+        a Zeno sequence that must fail, not fall through the floor."""
+        ahead = self.zval(t + LOOK_AHEAD, x + LOOK_AHEAD * np.array(self.ode(t, x, m)).ravel(), m)
+        z = self.zval(t, x, m)
+        side = np.where(ahead != 0, np.sign(ahead), np.sign(z))
+        out = []
+        for i, e in enumerate(self.indicators):
+            if not e.direction:
+                out.append((-EPS_Z * float(side[i] or 1.0), 0, False))
+            elif z[i] * e.direction > 0 and (ahead[i] - z[i]) * e.direction > 0:  # across and moving on across
+                out.append((-EPS_Z * e.direction, -e.direction, True))
+            else:
+                out.append((EPS_Z * e.direction, e.direction, False))
+        return out
 
     def update(self, e, t, x, m) -> tuple[np.ndarray, np.ndarray]:
         xn, mn = self.updates[id(e)](t, x, m)
@@ -140,7 +169,9 @@ def integrate(comp: Composite, signals: ca.Function, grid: np.ndarray, tol: Tole
             raise TimeoutError(f"t = {t:g} s")
         t_sample = min((e.offset + next_k[id(e)] * e.period for e in model.samples), default=math.inf)
         seg_end = min(t_end, t_sample)
-        outs = grid[done:][grid[done:] <= seg_end + 1e-15]
+        # the grid's instants in the segment; one a rounding past its end (3 x 0.1 against a sample
+        # at 0.3) is taken at the end, which solve_ivp's t_eval must not pass
+        outs = np.minimum(grid[done:][grid[done:] <= seg_end + 1e-15], seg_end)
 
         def rhs(tt, y, m=m):
             return np.array(model.ode(tt, y, m)).ravel()
@@ -149,6 +180,7 @@ def integrate(comp: Composite, signals: ca.Function, grid: np.ndarray, tol: Tole
             return np.array(model.jac(tt, y, m))
 
         funcs, armed, last = [], [], {}
+        watches = model.watches(t, x, m)
 
         def zs(tt, y, m=m) -> np.ndarray:
             """The indicators at ``(tt, y)``, evaluated once for all (SciPy asks each in turn)."""
@@ -159,18 +191,25 @@ def integrate(comp: Composite, signals: ca.Function, grid: np.ndarray, tol: Tole
 
         for i, e in enumerate(model.indicators):
             # SciPy counts an indicator resting at zero (an end stop held, a stuck mass's idle
-            # indicator) as a crossing: each directed one is watched EPS_Z on its far side
-            def g(tt, y, i=i, shift=EPS_Z * e.direction):
+            # indicator, time - startTime at the start) as a crossing: each is watched EPS_Z past it
+            def g(tt, y, i=i, shift=watches[i][0]):
                 return float(zs(tt, y)[i]) - shift
-            g.terminal, g.direction = True, float(e.direction)
+            g.terminal, g.direction = True, float(watches[i][1])
             funcs.append(g)
             armed.append(i)
         if seg_end <= t:
             t = seg_end
         else:
             t_eval = np.unique(np.append(outs, seg_end))
-            sol = solve_ivp(rhs, (t, seg_end), x, method=SOLVER, t_eval=t_eval, events=funcs or None,
-                            rtol=rtol, atol=atol, jac=jac if SOLVER in ("LSODA", "Radau", "BDF") else None)
+            try:
+                sol = solve_ivp(rhs, (t, seg_end), x, method=SOLVER, t_eval=t_eval, events=funcs or None,
+                                rtol=rtol, atol=atol, jac=jac if SOLVER in ("LSODA", "Radau", "BDF") else None)
+            except ValueError as exc:  # SciPy's root bracket lost (brentq): an indicator hovering at its watch
+                if "different signs" not in str(exc):
+                    raise
+                raise EventReferenceError(
+                    f"the event location failed after t = {t:.17g} s ({exc}; {log.total} events so far): events at "
+                    f"ever shorter intervals (a Zeno sequence) or an indicator hovering at zero") from None
             if sol.status < 0:
                 raise EventReferenceError(f"{SOLVER} failed after t = {t:g} s: {sol.message}")
             sol_t = np.asarray(sol.t, dtype=float).ravel()
@@ -184,7 +223,13 @@ def integrate(comp: Composite, signals: ca.Function, grid: np.ndarray, tol: Tole
                     return log, float(sol_t[keep][-1])
                 j0 = armed.index(min(hits)[1])
                 x_left = np.array(sol.y_events[j0][0], dtype=float)
-                fired = [model.indicators[i] for tt, i in hits if tt <= te + 1e-14 * max(1.0, abs(te))]
+                fired = [model.indicators[i] for tt, i in hits if tt <= te + 1e-14 * max(1.0, abs(te))
+                         and not watches[i][2]]
+                if not fired:  # only indicators back on their near side: re-armed, no event
+                    while done < len(grid) and grid[done] < te:
+                        done += 1
+                    t, x = te, x_left
+                    continue
                 x_new, m_new = _iterate(model, fired, te, x_left, m, log)
                 if log.total > MAX_EVENTS:
                     raise EventReferenceError(f"chattering: more than {MAX_EVENTS:,} events by t = {te:g} s")

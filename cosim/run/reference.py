@@ -8,8 +8,9 @@ input continuously, so the difference between the two traces is the error of the
 algorithm and its step (plus the reference's tolerance).  The reference records the same
 variables at the same instants as the scene and writes the same trace format.
 
-Only catalog components with continuous dynamics can join: an external FMU is a black box and a
-sampled (discrete) block has no ODE; both are refused with the component's name.
+Only components with equations can join (catalog blocks, Modelica classes): an external FMU is a
+black box and a sampled (discrete) block has no ODE; both are refused with the component's name.
+A scene whose blocks have events goes to :mod:`.event_reference` (SciPy, event to event).
 """
 from __future__ import annotations
 
@@ -367,12 +368,16 @@ def _event_reference(scene: Scene, comp: Composite, req: ReferenceRequest) -> Ru
     for ob in observers:
         ob.start(["time", *scene.outputs], meta)
 
+    last = [0.0]  # the time of the last row recorded [s]: where a failed reference got to
+
     def record(rows: np.ndarray) -> bool:
         keep = guard.check(rows) if guard else None
         if keep is not None:
             rows = rows[:keep]
         for ob in observers:
             ob.record(rows[:, :n_rec])
+        if len(rows):
+            last[0] = float(rows[-1, 0])
         return keep is None
 
     t0 = time.perf_counter()
@@ -382,7 +387,7 @@ def _event_reference(scene: Scene, comp: Composite, req: ReferenceRequest) -> Ru
     except TimeoutError as exc:
         status, reason = "failed", f"the reference reached its wall-time cap of {max_wall_s:g} s at {exc}"
     except EventReferenceError as exc:
-        status, reason = "failed", str(exc)
+        status, reason, reached = "failed", str(exc), last[0]
     except TraceWriteError as exc:
         status, reason = "failed", f"TraceWriteError: {exc}"
     wall = time.perf_counter() - t0

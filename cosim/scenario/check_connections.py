@@ -30,7 +30,8 @@ class ConnectionChecks(Checker):
             self.err(where, f"{side} {text!r} must be component.variable (e.g. mech.leg[1].s)")
             return None
         if name not in comps:
-            self.err(where, f"unknown component {name!r} in {text!r}{suggest(name, comps)}")
+            if name not in self.refused:  # a refused component's problem is reported once, where it is declared
+                self.err(where, f"unknown component {name!r} in {text!r}{suggest(name, comps)}")
             return None
         return name, var
 

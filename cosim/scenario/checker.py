@@ -20,6 +20,9 @@ class Checker:
     def __init__(self, tree: YMap, path: Path | None, catalog):
         self.tree, self.path, self.catalog = tree, path, catalog
         self.problems: list[Problem] = []
+        #: components declared but refused (their problem already reported): a connection to one
+        #: is not reported again as an unknown component
+        self.refused: set[str] = set()
 
     def err(self, where: Loc, msg: str) -> None:
         self.problems.append(Problem(where[0], where[1], msg))

@@ -47,9 +47,12 @@ def validate(tree: YMap, path: Path | None = None, *, catalog=None, problems: li
                "the scene needs 'components:', a mapping of name -> {model: ...} or {fmu: ...}")
     else:
         for name, spec in node.items():
+            errors = sum(p.severity == "error" for p in ck.problems)
             c = ck.component(str(name), spec, node.loc(name))
             if c is not None:
                 comps[c.name] = c
+            elif sum(p.severity == "error" for p in ck.problems) > errors:  # refused, and said so
+                ck.refused.add(str(name))
     broken = isinstance(node, YMap) and len(comps) != len(node)
     conns, bonds = ck.connections(comps) if comps else ([], [])
     master = ck.master(comps)

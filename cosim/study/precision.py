@@ -14,7 +14,14 @@ CVODES at tight tolerances), then runs the co-simulation for every variant (algo
 
 A run's error, per recorded signal, is its largest deviation from the reference relative to that
 signal's range in the reference (max - min over the run, at least
-:data:`cosim.master.estimate.FLAT`, as ``master.tolerance`` and the estimate measure it); the row keeps every signal's, the worst one and the RMS over signals.  Its cost is the
+:data:`cosim.master.estimate.FLAT`, as ``master.tolerance`` and the estimate measure it); the row keeps every signal's, the worst one and the RMS over signals.
+In a scene with state events (its components' recorded modes, :func:`cosim.run.execute.event_modes`)
+the error is the run's own estimate's two numbers (docs/explanation/events.md): the event-time
+error of the k-th change of each mode against the reference's k-th (``event_time`` [s]), and the
+value error between events (outside a window of that difference plus one recorded interval around
+each), where a max-norm would read a switch a hair apart as an error the jump's size; a mode that
+changes a different number of times is a missing event.  Such a row is judged as a run is: inaccurate
+beyond 10x the tolerance, or beyond 10x the event time tolerance, or with a missing event.  Its cost is the
 wall time of the stepping loop (the run's own statistics: FMU builds, instantiation and the batch's
 overhead excluded, as the reference's excludes building its integrator), the doStep calls, and for
 the algorithms that have them the accepted and rejected steps and rollbacks.
@@ -52,9 +59,10 @@ from pathlib import Path
 
 import numpy as np
 
-from ..analysis.compare import Difference, compare
+from ..analysis.compare import Difference, compare, compare_modes
 from ..errors import RUN_ERRORS, UserError
-from ..master.estimate import FLAT, INACCURATE
+from ..master.estimate import FLAT, INACCURATE, event_time_tolerance
+from ..run.execute import event_modes
 from ..scenario import load
 from .fidelity import resolve_auto
 from ..trace.traces import Trace
@@ -93,6 +101,8 @@ class PrecisionRow:
     rollbacks: int = 0
     run_id: str = ""
     chosen: str = ""  # the tolerance default's choice (cosim.run.choose): what it picked, else ""
+    event_time: float = math.nan  # the largest event-time error [s] of the matched events (event scenes)
+    missing_events: str = ""  # the modes whose event counts differ from the reference's: "mode (run n, ref m)"
 
     @property
     def variable(self) -> bool:
@@ -130,8 +140,10 @@ class PrecisionStudy:
         return float(np.polyfit(h, e, 1)[0])
 
     def cheapest_within(self, tol: float) -> PrecisionRow | None:
-        """The fastest ok run whose worst relative error is at most ``tol``."""
-        ok = [r for r in self.rows if r.status == "ok" and r.worst <= tol and not r.chosen]
+        """The fastest ok run whose worst relative error is at most ``tol`` (and, in an event scene,
+        whose event-time error is within the event time tolerance at ``tol``)."""
+        ok = [r for r in self.rows if r.status == "ok" and r.worst <= tol and not r.chosen
+              and not r.event_time > event_time_tolerance(tol)]
         return min(ok, key=lambda r: r.wall_s) if ok else None
 
     def choice(self) -> PrecisionRow | None:
@@ -146,11 +158,13 @@ class PrecisionStudy:
             w = csv.writer(fh)
             w.writerow(["algorithm", "inputs", "step", "tolerance", "status", "worst_relative", "worst_signal",
                         "rms_relative", "wall_s", "do_steps", "accepted_steps", "rejected_steps", "rollbacks",
-                        "run_id", "reason", "chosen", *(f"rel:{s}" for s in signals)])
+                        "run_id", "reason", "chosen", "event_time_error_s", "missing_events",
+                        *(f"rel:{s}" for s in signals)])
             for r in self.rows:
                 w.writerow([r.algorithm, r.inputs, repr(r.step), "" if not r.variable else repr(r.tolerance),
                             r.status, f"{r.worst:.6g}", r.worst_signal, f"{r.rms:.6g}", f"{r.wall_s:.6g}",
                             r.do_steps, r.accepted, r.rejected, r.rollbacks, r.run_id, r.reason, r.chosen,
+                            "" if math.isnan(r.event_time) else f"{r.event_time:.6g}", r.missing_events,
                             *(f"{r.errors[s]:.6g}" if s in r.errors else "" for s in signals)])
 
 
@@ -268,10 +282,29 @@ def judge_row(row: PrecisionRow, tolerance: float | None) -> None:
         return
     if tolerance is None:
         row.reason = "no verdict: the scene's master.tolerance is none"
+    elif row.missing_events:
+        row.status = "inaccurate"
+        row.reason = f"{MEASURED}events against the reference: missing events: {row.missing_events}"
     elif row.worst > INACCURATE * tolerance:
         row.status = "inaccurate"
         row.reason = (f"{MEASURED}{row.worst_signal} against the reference is {row.worst:.3g} of its range, more "
                       f"than {INACCURATE:g}x the tolerance {tolerance:g}")
+    elif row.event_time > INACCURATE * event_time_tolerance(tolerance):
+        row.status = "inaccurate"
+        row.reason = (f"{MEASURED}event times against the reference is {row.event_time:.3g} s, more than "
+                      f"{INACCURATE:g}x the event time tolerance {event_time_tolerance(tolerance):g} s")
+
+
+def measure(row: PrecisionRow, trace: Trace, against: Trace, only: Sequence[str] | None, scale: dict[str, float],
+            modes: Sequence[str] = ()) -> None:
+    """Fill ``row``'s errors of ``trace`` against the reference ``against``: the max-norm per
+    signal, or, where ``modes`` (recorded event modes) change, the event-time error and the value
+    error between events (module docstring, :func:`cosim.analysis.compare.compare_modes`)."""
+    diffs, ev = compare_modes(trace, against, modes, only)
+    _fill_errors(row, relative_errors(diffs, scale))
+    if ev is not None:
+        row.event_time = ev.time_error if ev.time_error is not None else math.nan
+        row.missing_events = ", ".join(f"{n} (run {a}, reference {b})" for n, (a, b) in ev.missing.items())
 
 
 def _fill_errors(row: PrecisionRow, errors: dict[str, float]) -> None:
@@ -329,6 +362,7 @@ def precision_study(scene_path: Path | str, variants: Sequence[tuple[str, str]],
     # every row judged as a run's estimate judges it: the study's tolerance, else the scene's
     verdict_tol = tolerance if tolerance is not None and base.master.tolerance is not None else base.master.tolerance
     scale = reference_scale(ref.trace, ref.trace.names)
+    modes = event_modes(base)
     points = _plan(variants, steps, rtols, record)
     refused = {i: _refused(scene_path, {**common, **over}) for i, (_, over) in enumerate(points)}
     todo = [p for i, p in enumerate(points) if not refused[i]]
@@ -342,21 +376,21 @@ def precision_study(scene_path: Path | str, variants: Sequence[tuple[str, str]],
                                tolerance=math.nan if values["tolerance"] is None else values["tolerance"])
             if not refused[i]:
                 _measure(row, rows_by_values.get(_key(values)), where, base.name, scene_path,
-                         {**common, **over}, ref.trace, scale, only)
+                         {**common, **over}, ref.trace, scale, only, modes)
                 judge_row(row, verdict_tol)
             study.rows.append(row)
             if progress:
                 progress(_line(row))
     if peer:
         near = min(steps, key=lambda h: abs(math.log(h / base.master.step)))  # the scene's step, if studied
-        row = ecospy_row(scene_path, common, near, record, ref.trace, scale, only, cache_dir, log)
+        row = ecospy_row(scene_path, common, near, record, ref.trace, scale, only, cache_dir, log, modes)
         if row is not None:
             judge_row(row, verdict_tol)
             study.rows.append(row)
             if progress:
                 progress(_line(row))
-    row = choice_row(scene_path, common, tolerance, ref.trace, scale, only, cache_dir) if tolerance is not None \
-        else None
+    row = choice_row(scene_path, common, tolerance, ref.trace, scale, only, cache_dir, modes) \
+        if tolerance is not None else None
     if row is not None:
         judge_row(row, verdict_tol)
         study.rows.append(row)
@@ -367,7 +401,7 @@ def precision_study(scene_path: Path | str, variants: Sequence[tuple[str, str]],
 
 
 def choice_row(scene_path, common: dict, tolerance: float, ref: Trace, scale: dict[str, float],
-               only: Sequence[str] | None, cache_dir) -> PrecisionRow | None:
+               only: Sequence[str] | None, cache_dir, modes: Sequence[str] = ()) -> PrecisionRow | None:
     """The row of the scene run the way its tolerance default runs it (None when the scene names
     its algorithm: there is no choice), ``master.tolerance`` = ``tolerance``;
     the master chooses (:mod:`cosim.run.choose`) and the run is measured like every other row
@@ -396,7 +430,7 @@ def choice_row(scene_path, common: dict, tolerance: float, ref: Trace, scale: di
             row.status, row.reason = "failed", f"the reference at the run's instants failed: {at.reason}"
             return row
         against = at.trace
-    _fill_errors(row, relative_errors(compare(res.trace, against, only), scale))
+    measure(row, res.trace, against, only, scale, modes)
     return row
 
 
@@ -422,7 +456,7 @@ def _run_points(scene_path, points, common, out: Path, name: str, cache_dir, wor
 
 
 def _measure(row: PrecisionRow, result: dict | None, out: Path, name: str, scene_path, over: dict, ref: Trace,
-             scale: dict[str, float], only: Sequence[str] | None) -> None:
+             scale: dict[str, float], only: Sequence[str] | None, modes: Sequence[str] = ()) -> None:
     """Fill ``row`` from its batch result and trace (module docstring)."""
     from ..outputs import safe_name
     from ..run.reference import reference
@@ -457,7 +491,7 @@ def _measure(row: PrecisionRow, result: dict | None, out: Path, name: str, scene
             row.status, row.reason = "failed", f"the reference at the run's instants failed: {at.reason}"
             return
         against = at.trace
-    _fill_errors(row, relative_errors(compare(trace, against, only), scale))
+    measure(row, trace, against, only, scale, modes)
 
 
 # --- the peer master ---------------------------------------------------------------------------------
@@ -510,7 +544,8 @@ def without_feedthrough(scene, paths: dict[str, Path]) -> list[str]:
 
 
 def ecospy_row(scene_path, common: dict, step: float, record: float, ref: Trace, scale: dict[str, float],
-               only: Sequence[str] | None, cache_dir, log: Callable[[str], None] | None) -> PrecisionRow | None:
+               only: Sequence[str] | None, cache_dir, log: Callable[[str], None] | None,
+               modes: Sequence[str] = ()) -> PrecisionRow | None:
     """The ecospy point (module docstring), or None with one line to ``log`` where it does not import."""
     try:
         import ecospy  # noqa: F401
@@ -532,7 +567,7 @@ def ecospy_row(scene_path, common: dict, step: float, record: float, ref: Trace,
         trace, row.wall_s, row.do_steps = ecospy_trace(scene, paths, record, names)
         row.accepted = round(scene.stop_time / step)
         row.status = "ok"
-        _fill_errors(row, relative_errors(compare(trace, ref, only), scale))
+        measure(row, trace, ref, only, scale, modes)
         row.reason = f"compared: {len(row.errors)} outputs without direct feedthrough"
     except RUN_ERRORS as exc:
         row.reason = str(exc)

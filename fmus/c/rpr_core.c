@@ -717,13 +717,17 @@ static int events_do_step(RprInstance *c, double t, double h) {
             if (s_at[i] < best) best = s_at[i];
         }
         if (status != RPR_OK) break;
-        {   /* the state at the event from the integrator itself, on the far side of each firing indicator */
-            double s = best, nudge = event_tol(t + tau);
-            int tries, far = 0, n2 = 0;
+        {   /* the state at the event from the integrator itself, on the far side of each firing indicator:
+               at the located time where the integrator agrees with the dense output; else (the dense
+               output's error, e.g. one long exact or Radau step) the bracket from there to dt (across:
+               the step fired there) is found by doubling steps and narrowed by bisection on the
+               integrator's own state, so the update never applies on the near side (it would fire again) */
+            double s = best, lo = 0.0, hi = dt, tol = event_tol(t + tau), nudge = tol;
+            int tries, far = 0, across = 0, n2 = 0;
             for (k = 0; k < nf; ++k)
-                if (s_at[fired[k]] <= best + event_tol(t + tau)) fired[n2++] = fired[k];
+                if (s_at[fired[k]] <= best + tol) fired[n2++] = fired[k];
             nf = n2;
-            for (tries = 0; tries < 12 && !far; ++tries) {
+            for (tries = 0; tries < 300; ++tries) {
                 if (s >= dt) { memcpy(c->xe, xb, sizeof(double) * RPR_NX); s = dt; }
                 else if (internal_step(c, xa, ua, s, c->xe, &err)) { status = RPR_DISCARD; break; }
                 inputs_at(c, tau + s, ub);
@@ -731,7 +735,11 @@ static int events_do_step(RprInstance *c, double t, double h) {
                 far = 1;
                 for (k = 0; k < nf; ++k)
                     if (c->z[fired[k]] * before[fired[k]] > 0) far = 0;
-                if (!far) { s += nudge; nudge *= 2.0; }
+                if (far) { hi = s; across = 1; } else lo = s;
+                if (far && (tries == 0 || hi - lo <= tol)) break;
+                if (across && hi - lo <= tol) s = hi; /* the bracket is closed: back to its far end's state */
+                else if (!across) { s = lo + nudge; nudge *= 2.0; }
+                else s = 0.5 * (lo + hi);
             }
             if (status != RPR_OK) break;
             tau += s;
