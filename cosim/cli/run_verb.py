@@ -83,11 +83,67 @@ def _load_and_run(args: argparse.Namespace, drawer=None) -> int:
     check_trace_size(scene, args.max_trace)
     out = args.out or Path("runs") / safe_name(scene.name)
     check_out_dir(out)
-    with OutputLock(out, log=tagged("run")):
-        return _run_locked(args, scene, out, drawer)
+    early = _EarlyReference(scene) if args.reference else None
+    try:
+        with OutputLock(out, log=tagged("run")):
+            return _run_locked(args, scene, out, drawer, early)
+    finally:
+        if early is not None:
+            early.stop()
 
 
-def _run_locked(args: argparse.Namespace, scene, out: Path, drawer=None) -> int:
+class _EarlyReference:
+    """The scene's monolithic reference, integrated in a child forked as the run starts (the
+    scene loaded, its blocks shared), on the scene's output grid, while the run steps; the run's
+    own reference once the run ended if it asks for the same (:func:`cosim.run.reference.
+    same_request`: a variable-step run lands on the grid, the master's choice keeps it)."""
+
+    def __init__(self, scene):
+        from ..analysis.drawing import Forked, SharedProgress
+
+        self.scene, self.progress = scene, SharedProgress()
+        self.job = Forked(_reference_beside, scene, self.progress)
+
+    def result(self, scene, times, out: Path, trace_format: str):
+        """The reference asked of ``scene`` (as run) at ``times``, written into ``out``, or None
+        when the early one is another (it is then computed after the run, as asked) or failed
+        (computed again, which says why)."""
+        from ..analysis.drawing import DrawError
+        from ..run.progress import progress_bar
+        from ..run.reference import same_request, write_reference
+
+        if not same_request(self.scene, scene, times):
+            self.stop()
+            return None
+        bar = progress_bar()
+
+        def waiting() -> None:
+            done, total = self.progress.read()
+            if total:
+                bar(done, total)
+
+        try:
+            trace, said = self.job.result(waiting)
+        except DrawError:
+            return None
+        log = tagged("reference")
+        for line in said:
+            log(line)
+        return write_reference(scene, trace, out, trace_format=trace_format, log=log)
+
+    def stop(self) -> None:
+        self.job.stop()
+
+
+def _reference_beside(scene, progress) -> tuple:
+    """In the early reference's child: the reference in memory and what it logged."""
+    from ..run.reference import reference
+
+    said: list[str] = []
+    return reference(scene, progress=progress, log=said.append).trace, said
+
+
+def _run_locked(args: argparse.Namespace, scene, out: Path, drawer=None, early: _EarlyReference | None = None) -> int:
     from ..run.execute import run
     from ..run.progress import progress_bar
     from ..trace.traces import trace_suffix
@@ -104,7 +160,7 @@ def _run_locked(args: argparse.Namespace, scene, out: Path, drawer=None) -> int:
     figures = _Figures(drawer, scene, res)
     with figures.interruptible():
         _products(args, scene, res, out, figures)
-        ref = _reference(scene, res, out, args.plot, args.trace_format, figures) if args.reference else None
+        ref = _reference(res, out, args.plot, args.trace_format, figures, early) if args.reference else None
         failed = figures.collect()
     if args.report:
         say(f"report: {_report(scene, res, ref, out)}")
@@ -247,18 +303,21 @@ def _report(scene, res, ref, out: Path) -> Path | str:
                       reference=ref.trace if ref is not None else None, manipulator=m)
 
 
-def _reference(scene, res, out: Path, plot: bool, trace_format: str, figures: _Figures):
-    """Run the monolithic reference and print the co-simulation's error against it (and ask
-    ``figures`` for its plot)."""
+def _reference(res, out: Path, plot: bool, trace_format: str, figures: _Figures,
+               early: _EarlyReference | None = None):
+    """The monolithic reference (the early one when it is the one asked for, else run now), and
+    the co-simulation's error against it printed (and its plot asked of ``figures``)."""
     from ..analysis.compare import compare, format_table
     from ..run.reference import reference
     from ..run.progress import progress_bar
 
     scene = res.scene  # as it ran (the master's choice)
     irregular = res.stats.get("smallest_step") is not None  # variable steps: the reference at the same instants
-    ref = reference(scene, out_dir=out, progress=progress_bar(), log=tagged("reference"),
-                    times=res.trace.time if irregular and len(res.trace.data) > 1 else None,
-                    trace_format=trace_format)
+    times = res.trace.time if irregular and len(res.trace.data) > 1 else None
+    ref = early.result(scene, times, out, trace_format) if early is not None else None
+    if ref is None:
+        ref = reference(scene, out_dir=out, progress=progress_bar(), log=tagged("reference"), times=times,
+                        trace_format=trace_format)
     st = ref.stats
     print(f"monolithic reference ({ref.trace.meta.get('method', 'CVODES')}, {ref.trace.meta.get('states')} states): "
           f"{ref.status}{' (' + ref.reason + ')' if ref.reason else ''}, {st['wall_s']:.2f} s; trace: {ref.trace_path}")
