@@ -249,16 +249,21 @@ def write_reference(scene: Scene, trace: Trace, out_dir: Path, *, trace_format: 
     check_out_dir(out_dir)
     with OutputLock(out_dir, log=log):
         memory, observers, trace_path = scene_observers(scene, out_dir, "_reference", trace_format)
+        status, reason, stats = trace.status, trace.reason, trace.stats
         for ob in observers:
             ob.start(trace.columns, trace.meta)
+        try:
+            for ob in observers:
+                ob.record(trace.data)
+        except TraceWriteError as exc:
+            status, reason = "failed", f"TraceWriteError: {exc}"
+            stats = dict(stats, status=status, reason=reason)
         for ob in observers:
-            ob.record(trace.data)
-        for ob in observers:
-            ob.finish(trace.status, trace.reason, trace.stats)
+            ob.finish(status, reason, stats)
         for ob in observers:
             if getattr(ob, "note", "") and log:
                 log(ob.note)
-    return RunResult(scene, trace.status, trace.reason, memory.trace, trace.stats, {}, trace_path, 0.0)
+    return RunResult(scene, status, reason, memory.trace, stats, {}, trace_path, 0.0)
 
 
 def _reference(scene: Scene, req: ReferenceRequest) -> RunResult:
