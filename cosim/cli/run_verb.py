@@ -56,7 +56,7 @@ def _load_and_run(args: argparse.Namespace, drawer=None) -> int:
         return refuse(exc, "run", args.scene)
     for w in scene.warnings:
         say(str(w))
-    from ..outputs import OutputLock, check_out_dir, safe_name
+    from ..outputs import OutputLock, check_out_dir, check_set, safe_name
     from ..run.execute import check_trace_size
 
     from ..errors import UserError
@@ -83,6 +83,7 @@ def _load_and_run(args: argparse.Namespace, drawer=None) -> int:
     check_trace_size(scene, args.max_trace)
     out = args.out or Path("runs") / safe_name(scene.name)
     check_out_dir(out)
+    check_set(out, safe_name(scene.name))  # before the pilots: a name the run cannot take is one line, nothing run
     early = _EarlyReference(scene) if args.reference else None
     try:
         with OutputLock(out, log=tagged("run")):
