@@ -8,7 +8,8 @@ The trace streams to ``DIR/<scene>.csv`` (default ``DIR`` = ``runs/<scene>``; a 
 steps and time, real-time factor, final values) to stdout.  A scene with problems prints one
 line per problem (``file:line: error: ...``) and exits with code 2; ``--plot`` and ``--animate``
 draw in processes of their own (:mod:`cosim.analysis.drawing`), started with the command, and a
-figure that fails is one line and exit code 1, the run's files kept; a run that fails or is
+figure that fails is one line and exit code 1, the run's files kept; ``--reference`` integrates
+in a child forked as the run starts, its files written after the run's; a run that fails or is
 interrupted keeps its partial trace and exits with code 1; a run that a component asked to stop
 (FMI terminate request) ends with its last point recorded, "stopped by C at t", and code 0.
 """
