@@ -121,7 +121,7 @@ def test_an_early_reference_stands_for_the_one_asked_only_on_the_same_scene_and_
     one that records more instants (events, accepted steps), another scene or other overrides."""
     from cosim.scenario import load
 
-    from cosim.run.reference import same_request
+    from cosim.run.reference_files import same_request
 
     pid = SCENES / "pid_step.yaml"
     scene = load(pid, ["stop_time=0.2"])

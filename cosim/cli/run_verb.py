@@ -97,7 +97,7 @@ def _load_and_run(args: argparse.Namespace, drawer=None) -> int:
 class _EarlyReference:
     """The scene's monolithic reference, integrated in a child forked as the run starts (the
     scene loaded, its blocks shared), on the scene's output grid, while the run steps; the run's
-    own reference once the run ended if it asks for the same (:func:`cosim.run.reference.
+    own reference once the run ended if it asks for the same (:func:`cosim.run.reference_files.
     same_request`: a variable-step run lands on the grid, the master's choice keeps it)."""
 
     def __init__(self, scene):
@@ -112,7 +112,7 @@ class _EarlyReference:
         failed (computed again, which says why)."""
         from ..analysis.drawing import DrawError
         from ..run.progress import progress_bar
-        from ..run.reference import same_request
+        from ..run.reference_files import same_request
 
         if not same_request(self.scene, scene, times):
             self.stop()
@@ -323,7 +323,7 @@ def _reference(res, out: Path, plot: bool, trace_format: str, figures: _Figures,
     """The monolithic reference (the early one when it is the one asked for, else run now), and
     the co-simulation's error against it printed (and its plot asked of ``figures``)."""
     from ..analysis.compare import compare, format_table
-    from ..run.reference import reference, write_reference
+    from ..run.reference_files import write_reference
     from ..run.progress import progress_bar
 
     scene = res.scene  # as it ran (the master's choice)
@@ -332,6 +332,8 @@ def _reference(res, out: Path, plot: bool, trace_format: str, figures: _Figures,
     early_trace = early.result(scene, times) if early is not None else None
     ref = None
     if early_trace is None:
+        from ..run.reference import reference  # CasADi: in this process only without the early reference
+
         ref = reference(scene, out_dir=out, progress=progress_bar(), log=tagged("reference"), times=times,
                         trace_format=trace_format)
     ref_trace = early_trace if early_trace is not None else ref.trace
