@@ -46,9 +46,9 @@ class DrawError(Exception):
 def warm_up() -> None:
     """What every figure needs, done once in the drawing process: matplotlib on Agg and pyplot
     imported, the default font loaded and a text laid out, the figures' own modules imported
-    (each child would import them again: the comparison's halves each spent 0.15 s of CPU on
-    :mod:`.compare` and what it imports).  A richer warm-up, a chart and a frame drawn, saved no
-    measurable time in the figures."""
+    (else imported when the first figure's arguments are unpickled, after the run: :mod:`.compare`
+    and what it imports are 0.15 s of CPU).  A richer warm-up, a chart and a frame drawn, saved
+    no measurable time in the figures."""
     import matplotlib
 
     matplotlib.use("Agg")
