@@ -11,7 +11,8 @@ by the warm-up run), as an installed package has it, also when ``PYTHONDONTWRITE
 here: compiling the project's modules in every process would add the same half second to both.
 
 Target: the main job at most 3x the plain run (it was 13.2 s against 0.63 s, 21x, the GIF 11 s of it;
-3.2-4.5x on 2026-12-05, docs/reference/results.md).
+3.2-4.5x on 2026-12-05; 2.3-2.7x with the machine's cores free on 2026-12-07, the ratio of the CPU
+times 3.7-4.1x, which a loaded machine's gives: docs/reference/results.md).
 
 The plain run and the main job alternate (plain, main job, plain, ...); the line gives the
 medians and the best of the repeats (the best is the one least disturbed by other jobs on a
