@@ -254,7 +254,7 @@ def test_a_failed_plot_keeps_the_run_and_says_why(tmp_path, cache, capsys, monke
     names = sorted(p.name for p in tmp_path.iterdir())
     assert "pid_step.png" not in names and not [n for n in names if ".part" in n]
     assert {"pid_step.gif", "pid_step_vs_reference.png"} <= set(names)
-    # the comparison, drawn in two halves beside the run, is the file drawn here from the two traces
+    # the comparison, drawn beside the run (whole or in halves), is the file drawn here from the two traces
     monkeypatch.undo()
     test, ref = read_trace(tmp_path / "pid_step.csv"), read_trace(tmp_path / "pid_step_reference.csv")
     here = charts.plot_comparison(test, ref, compare(test, ref), tmp_path / "here" / "cmp.png",
