@@ -426,6 +426,20 @@ TRACE_SUFFIXES = (".csv", ".parquet", ".npy")
 NPY_HEADER_BYTES = 128
 
 
+def check_set(out_dir: Path, stem: str) -> None:
+    """:class:`UserError` when a name of the run set ``stem`` (:data:`RUN_SET_ENDINGS`), or of
+    the ``.prev`` set an earlier run moves to, is a directory: the run could neither replace it
+    nor move it aside (:func:`place`), and would fail after writing its trace.  Checked before
+    the run writes anything."""
+    out_dir = Path(out_dir)
+    for s in (stem, f"{stem}.prev"):
+        for ending in RUN_SET_ENDINGS:
+            path = out_dir / f"{s}{ending}"
+            if path.is_dir() and not path.is_symlink():
+                raise UserError(f"{path} is a directory, where a run of {stem!r} keeps a file of its own; remove or "
+                                f"rename it, or choose another --out")
+
+
 def npy_header(rows: int, cols: int) -> bytes:
     """The header of an ``.npy`` trace (NumPy format 1.0) of ``rows`` x ``cols`` float64 values,
     little-endian, C order, :data:`NPY_HEADER_BYTES` long."""

@@ -19,7 +19,7 @@ import pytest
 from cosim.analysis import charts
 from cosim.analysis.animate import animate
 from cosim.analysis.compare import compare
-from cosim.analysis.drawing import DrawError, Drawer
+from cosim.analysis.drawing import DrawError, Drawer, Forked, SharedProgress
 from cosim.cli import main
 from cosim.outputs import staged
 from cosim.trace.traces import Trace, read_trace
@@ -160,6 +160,84 @@ def _broken_chart(trace, path, title, **kwargs):
     raise RuntimeError(f"the canvas for {Path(path).name} could not be allocated")
 
 
+def _counts(progress: SharedProgress, n: int) -> int:
+    for k in range(1, n + 1):
+        progress(k, n)
+        time.sleep(0.02)
+    return os.getpid()
+
+
+def test_a_forked_job_runs_beside_and_reports_its_progress():
+    """:class:`Forked` runs its call in a child (another pid) at once; ``result`` gives its value,
+    calling ``waiting`` meanwhile, where the child's :class:`SharedProgress` is read."""
+    progress, seen = SharedProgress(), []
+    job = Forked(_counts, progress, 20)
+    pid = job._pid
+    value = job.result(lambda: seen.append(progress.read()))
+    assert value == pid != os.getpid() and _gone(pid)
+    assert seen and all(total in (0, 20) and 0 <= done <= 20 for done, total in seen)
+    assert progress.read() == (20, 20) and any(0 < done < 20 for done, _ in seen)
+    job.stop()  # after the end: nothing to do
+
+
+def test_a_forked_job_that_fails_is_one_line_and_stop_leaves_no_process(tmp_path):
+    with pytest.raises(DrawError, match="^ValueError: no reference for this scene$"):
+        Forked(_fails, "no reference\nfor this scene").result()
+    with pytest.raises(DrawError, match="^the drawing process was killed by SIGKILL$"):
+        Forked(_dies).result()
+    slow = Forked(time.sleep, 60)
+    pid = slow._pid
+    os.kill(pid, signal.SIGINT)  # Ctrl-C is the command's
+    time.sleep(0.1)
+    assert not _gone(pid)
+    t0 = time.monotonic()
+    slow.stop()
+    assert _gone(pid) and time.monotonic() - t0 < 5
+
+
+def _reference_where(real, pid_file: Path, fail_beside: bool):
+    def reference(scene, *args, **kwargs):
+        with open(pid_file, "a") as fh:
+            fh.write(f"{os.getpid()}\n")
+        if fail_beside and os.getpid() != int(pid_file.with_suffix(".parent").read_text()):
+            raise RuntimeError("no memory for the early reference")
+        return real(scene, *args, **kwargs)
+    return reference
+
+
+@pytest.mark.parametrize("fail_beside", [False, True])
+def test_the_reference_integrates_beside_the_run_and_writes_what_it_would_after(tmp_path, cache, monkeypatch,
+                                                                             capsys, fail_beside):
+    """``run --reference``: the reference is integrated in a child forked as the run starts, and
+    the command writes the files the reference of the run as it ran (the master's choice, its
+    instants) writes itself, to the byte; when the child fails the reference is integrated after
+    the run, the same files."""
+    import cosim.run.reference as ref_module
+
+    pid_file = tmp_path / "pids.txt"
+    pid_file.with_suffix(".parent").write_text(str(os.getpid()))
+    monkeypatch.setattr(ref_module, "reference", _reference_where(ref_module.reference, pid_file, fail_beside))
+    out = tmp_path / "out"
+    code = main(["run", str(PID), "--set", "stop_time=0.3", "--reference", "--out", str(out), "--cache", str(cache)])
+    assert code == 0, capsys.readouterr().err
+    pids = [int(p) for p in pid_file.read_text().split()]
+    assert pids[0] != os.getpid() and pids[1:] == ([os.getpid()] if fail_beside else [])
+    monkeypatch.undo()
+    test = read_trace(out / "pid_step.csv")
+    assert test.meta["algorithm"] == "adaptive"  # variable steps landing on the grid: the run's instants
+    from cosim.run.execute import run
+    from cosim.scenario import load
+
+    ran = run(load(PID, ["stop_time=0.3"]), cache_dir=cache)
+    assert np.array_equal(ran.trace.time, test.time)
+    here = ref_module.reference(ran.scene, out_dir=tmp_path / "here", times=ran.trace.time)
+    assert (out / "pid_step_reference.csv").read_bytes() == here.trace_path.read_bytes()
+    sides = [json.loads((d / "pid_step_reference.json").read_text()) for d in (out, tmp_path / "here")]
+    for side in sides:
+        del side["started"], side["statistics"]["wall_s"], side["statistics"]["real_time_factor"]
+    assert sides[0] == sides[1]
+
+
 def test_a_failed_plot_keeps_the_run_and_says_why(tmp_path, cache, capsys, monkeypatch):
     """The main job with a chart that fails: one line naming the file and the reason, exit code 1,
     the run's trace and sidecar as the run left them, the animation and comparison written."""
@@ -176,7 +254,7 @@ def test_a_failed_plot_keeps_the_run_and_says_why(tmp_path, cache, capsys, monke
     names = sorted(p.name for p in tmp_path.iterdir())
     assert "pid_step.png" not in names and not [n for n in names if ".part" in n]
     assert {"pid_step.gif", "pid_step_vs_reference.png"} <= set(names)
-    # the comparison, drawn in two halves beside the run, is the file drawn here from the two traces
+    # the comparison, drawn beside the run (whole or in halves), is the file drawn here from the two traces
     monkeypatch.undo()
     test, ref = read_trace(tmp_path / "pid_step.csv"), read_trace(tmp_path / "pid_step_reference.csv")
     here = charts.plot_comparison(test, ref, compare(test, ref), tmp_path / "here" / "cmp.png",
@@ -203,6 +281,33 @@ def test_ctrl_c_while_the_figures_are_drawn_stops_every_process(tmp_path, cache)
     assert not list(out.glob(".*part*"))
     side = json.loads((out / "pid_step.json").read_text())
     assert side["status"] == "interrupted" and "while writing the " in side["reason"], side["reason"]
+    time.sleep(0.2)
+    with pytest.raises(ProcessLookupError):
+        os.killpg(proc.pid, 0)
+
+
+def test_ctrl_c_during_the_run_stops_the_reference_beside_it(tmp_path, cache):
+    """Ctrl-C while the run steps and its reference integrates beside it: exit code 130, the
+    run's partial trace kept, no reference file, no process of the group left."""
+    out = tmp_path / "out"
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    proc = subprocess.Popen([sys.executable, "-m", "cosim", "run", str(PID), "--set", "stop_time=60", "--set",
+                             "master.algorithm=gauss_seidel", "--set", "master.step=1e-4", "--reference", "--out",
+                             str(out), "--cache", str(cache)], cwd=ROOT, env=env, stdout=subprocess.DEVNULL,
+                            stderr=subprocess.PIPE, text=True, start_new_session=True)
+    deadline = time.monotonic() + 120
+    while not (out / ".pid_step.csv.part").exists():
+        assert proc.poll() is None and time.monotonic() < deadline, proc.stderr.read()
+        time.sleep(0.01)
+    children = subprocess.run(["pgrep", "-g", str(proc.pid)], capture_output=True, text=True).stdout.split()
+    assert len(children) >= 2  # the command and its reference (and the run's supervised process)
+    time.sleep(0.3)
+    os.killpg(proc.pid, signal.SIGINT)
+    _, err = proc.communicate(timeout=60)
+    assert proc.returncode == 130, err
+    assert "Traceback" not in err
+    assert json.loads((out / "pid_step.json").read_text())["status"] == "interrupted"
+    assert not list(out.glob("*reference*")) and not list(out.glob(".*part*"))
     time.sleep(0.2)
     with pytest.raises(ProcessLookupError):
         os.killpg(proc.pid, 0)

@@ -96,6 +96,45 @@ def test_reference_writes_a_trace_the_reader_and_compare_accept(tmp_path, pid_re
     assert max(x.max_abs for x in d) < 1e-7
 
 
+def test_a_reference_is_the_same_to_the_bit_however_slow_the_machine(monkeypatch):
+    """The chunks of output instants per CVODES call (each call restarts the integrator, which
+    moves the result at 1e-8 of range) follow the solver's step count, not the wall time: a
+    clock that says every call took seconds (a loaded machine) gives the same bytes."""
+    import cosim.run.reference as ref_module
+
+    args = (SCENES / "pid_step.yaml", ["stop_time=0.3"])
+    quick = reference(*args)
+    ticks = iter(range(0, 10**9, 7))  # 7 s between any two readings of the clock
+    monkeypatch.setattr(ref_module.time, "perf_counter", lambda: float(next(ticks)))
+    slow = reference(*args, max_wall_s=1e9)
+    assert quick.status == slow.status == "ok"
+    assert quick.trace.data.tobytes() == slow.trace.data.tobytes()
+    # and a smaller chunk does move it (so the test above can fail)
+    monkeypatch.setattr(ref_module, "CHUNK", 25)
+    assert not np.array_equal(reference(*args, max_wall_s=1e9).trace.data, quick.trace.data)
+
+
+def test_an_early_reference_stands_for_the_one_asked_only_on_the_same_scene_and_instants():
+    """``same_request``: the reference integrated on a scene's output grid before its run (``run
+    --reference``) is the run's reference when the run asks for the same instants (a variable-step
+    run landing on the grid, up to rounding) of the same scene; not for a run that stopped early,
+    one that records more instants (events, accepted steps), another scene or other overrides."""
+    from cosim.scenario import load
+
+    from cosim.run.reference_files import same_request
+
+    pid = SCENES / "pid_step.yaml"
+    scene = load(pid, ["stop_time=0.2"])
+    grid = np.arange(201) * 1_000_000 / 1e9
+    assert same_request(scene, scene) and same_request(scene, scene, grid)
+    assert same_request(scene, scene, grid + 1e-16 * (np.arange(201) % 3))
+    assert not same_request(scene, scene, grid[:150])
+    assert not same_request(scene, scene, np.sort(np.r_[grid, 0.1005]))
+    assert not same_request(scene, load(pid, ["stop_time=0.3"]))
+    assert not same_request(scene, load(pid, ["stop_time=0.2", "components.pid1.params.Kp=40"]))
+    assert not same_request(scene, load(pid, ["stop_time=0.2", "master.output_interval=2e-3"]))
+
+
 def test_scene_with_a_sampled_or_external_component_has_no_reference(tmp_path):
     data = sine_scene()
     data["components"]["pid"] = {"model": "pid", "fidelity": "discrete"}

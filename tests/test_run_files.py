@@ -6,6 +6,8 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import pytest
+
 from cosim.cli import main
 from cosim.outputs import place, run_set
 
@@ -76,3 +78,19 @@ def test_a_rerun_replaces_an_earlier_set_that_was_not_ok_whole(tmp_path):
     assert _names(tmp_path) == ["x.csv", "x.json", "x.prev.csv", "x.prev.json", "x.prev.png", "xy.png"]
     assert (tmp_path / "x.prev.png").read_text() == "x.prev.png"  # the good set from before stays whole
     assert [p.name for p in run_set(tmp_path, "x")] == ["x.csv", "x.json"]
+
+
+@pytest.mark.parametrize("name", ["pid_step.png", "pid_step.prev.gif", "pid_step_reference.json"])
+def test_a_directory_under_a_name_of_the_set_is_one_line_and_nothing_is_written(tmp_path, cache, capsys, name):
+    """A directory where the run keeps one of its files (or moves an earlier one to) could be
+    neither replaced nor moved aside: the run is refused before it starts, in one line naming
+    it, and leaves nothing behind (no ``.part`` file)."""
+    out = tmp_path / "out"
+    (out / name).mkdir(parents=True)
+    code = main(["run", PID, *SHORT, "--plot", "--animate", "--reference", "--out", str(out), "--cache", str(cache)])
+    err = capsys.readouterr().err
+    assert code == 2, err
+    assert (f"rpr-cosim run: error: {out / name} is a directory, where a run of 'pid_step' keeps a file of its own; "
+            f"remove or rename it, or choose another --out") in err.splitlines()
+    assert "Traceback" not in err and "pilot" not in err  # refused before the pilot runs
+    assert sorted(p.name for p in out.iterdir()) == [name]

@@ -11,36 +11,51 @@ each other and as the reference (the machine's second core).
   :func:`cosim.outputs.staged`), then waits for them: no process is left behind, none a zombie.
 * A drawing process whose parent dies ends too (``PR_SET_PDEATHSIG``, and the closed pipe).
 * Without ``os.fork`` (Windows) each figure is drawn in this process when it is asked for.
+
+:class:`Forked` runs one function in a child forked from the command's own process (what it has
+loaded shared, e.g. the scene): the run's monolithic reference integrates there while the run
+steps (``run --reference``), its progress in a :class:`SharedProgress`.
 """
 from __future__ import annotations
 
 import ctypes
 import gc
+import mmap
 import os
 import pickle
+import select
 import signal
+import struct
 import sys
 import time
 from collections.abc import Callable
 from multiprocessing.connection import Pipe, wait
 from typing import Any
 
+import numpy  # noqa: F401 - imported before the drawing process is forked: once for both processes
+
 #: How long the drawing processes may take to end after SIGTERM before they are killed [s].
 GRACE_S = 5.0
 
 
 class DrawError(Exception):
-    """A figure that could not be drawn; ``str()`` is one line (the exception's type and message)."""
+    """A figure (or a :class:`Forked` job) that could not be made; ``str()`` is one line (the
+    exception's type and message)."""
 
 
 def warm_up() -> None:
     """What every figure needs, done once in the drawing process: matplotlib on Agg and pyplot
-    imported, the default font loaded and a text laid out (a richer warm-up, a chart and a frame
-    drawn, saved no measurable time in the figures)."""
+    imported, the default font loaded and a text laid out, the figures' own modules imported
+    (else imported when the first figure's arguments are unpickled, after the run: :mod:`.compare`
+    and what it imports are 0.15 s of CPU).  A richer warm-up, a chart and a frame drawn, saved
+    no measurable time in the figures."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    from PIL import GifImagePlugin, ImageDraw, PngImagePlugin  # noqa: F401 - the files' encoders
+
+    from . import animate, charts, compare  # noqa: F401 - the figures' code, shared by every child
 
     fig = plt.figure(figsize=(1, 1), dpi=10)
     fig.text(0.5, 0.5, "0.5 [m]")
@@ -159,6 +174,87 @@ class Drawer:
         self.close()
 
 
+class Forked:
+    """``fn(*args, **kwargs)`` started now in a child forked from this process, which shares
+    what this process has loaded: :meth:`result` waits for its value (or raises
+    :class:`DrawError`), :meth:`stop` ends it (also after it ended: then it only reaps it).  The
+    child ignores Ctrl-C (the command's) and ends on SIGTERM or with this process.  Without
+    ``os.fork`` (or a process to spare) the call runs in this process at :meth:`result`."""
+
+    def __init__(self, fn: Callable[..., Any], /, *args: Any, **kwargs: Any):
+        self._job: tuple | None = (fn, args, kwargs)
+        self._pid: int | None = None
+        self._outcome: tuple[str, Any] | None = None
+        if not hasattr(os, "fork"):
+            return
+        sys.stdout.flush()
+        sys.stderr.flush()
+        try:
+            self._rfd, self._pid = _fork_call(fn, args, kwargs, _beside_the_command)
+        except OSError:
+            return
+        self._job = None
+
+    def result(self, waiting: Callable[[], None] | None = None, every_s: float = 0.1) -> Any:
+        """The call's value once it ended (``waiting()`` every ``every_s`` seconds until then);
+        :class:`DrawError` when it failed."""
+        if self._outcome is None:
+            if self._pid is None:
+                fn, args, kwargs = self._job
+                self._outcome = _call(fn, args, kwargs)
+            else:
+                self._outcome = self._collect(waiting, every_s)
+        kind, value = self._outcome
+        if kind == "error":
+            raise DrawError(value)
+        return value
+
+    def _collect(self, waiting: Callable[[], None] | None, every_s: float) -> tuple[str, Any]:
+        data = bytearray()
+        while True:
+            if not data and waiting is not None and not select.select([self._rfd], [], [], every_s)[0]:
+                waiting()
+                continue
+            chunk = os.read(self._rfd, 1 << 20)
+            if not chunk:
+                break
+            data += chunk
+        os.close(self._rfd)
+        pid, self._pid = self._pid, None
+        return _outcome(bytes(data), os.waitpid(pid, 0)[1])
+
+    def stop(self) -> None:
+        """End the child now if it still runs, and wait for it."""
+        if self._pid is None:
+            return
+        pid, self._pid = self._pid, None
+        os.close(self._rfd)  # a child still writing its result gets EPIPE, or SIGTERM first
+        _end(pid)
+
+
+def _beside_the_command() -> None:
+    """In a :class:`Forked` child: Ctrl-C is the command's; SIGTERM ends the child."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    for s in (signal.SIGTERM, signal.SIGHUP):
+        signal.signal(s, _stopped)
+
+
+class SharedProgress:
+    """A ``progress(done, total)`` callback whose last values a forked child shares with its
+    parent (anonymous shared memory): the child calls it, the parent :meth:`read` s it."""
+
+    def __init__(self) -> None:
+        self._cell = mmap.mmap(-1, 16)
+
+    def __call__(self, done: int, total: int) -> None:
+        struct.pack_into("qq", self._cell, 0, int(done), int(total))
+
+    def read(self) -> tuple[int, int]:
+        """(done, total) as last reported; (0, 0) before the first report."""
+        done, total = struct.unpack_from("qq", self._cell, 0)
+        return done, total
+
+
 def _call(fn: Callable[..., Any], args: tuple, kwargs: dict) -> tuple[str, Any]:
     """("ok", value) or ("error", one line) of ``fn(*args, **kwargs)``."""
     try:
@@ -223,17 +319,27 @@ def _serve(conn, parent: int, warm: Callable[[], None] | None) -> None:
 def _start(msg: tuple, conn, children: dict) -> tuple[int, int]:
     """Fork the child that draws job ``msg`` = (job, fn, args, kwargs); returns (read end, pid)."""
     _, fn, args, kwargs = msg
+
+    def in_child() -> None:
+        conn.close()
+        for other in children:
+            os.close(other)
+        gc.disable()  # a short life: its memory goes with it, uncollected
+
+    return _fork_call(fn, args, kwargs, in_child)
+
+
+def _fork_call(fn: Callable[..., Any], args: tuple, kwargs: dict, in_child: Callable[[], None]) -> tuple[int, int]:
+    """Fork a child that runs ``in_child()`` then ``fn(*args, **kwargs)`` and writes its pickled
+    outcome (:func:`_call`) to a pipe, and ends with its parent; returns (read end, pid)."""
     rfd, wfd = os.pipe()
     me = os.getpid()
     pid = os.fork()
     if pid == 0:  # pragma: no cover - the child never returns
         try:
             os.close(rfd)
-            conn.close()
-            for other in children:
-                os.close(other)
             _die_with_parent(me)
-            gc.disable()  # a short life: its memory goes with it, uncollected
+            in_child()
             data = pickle.dumps(_call(fn, args, kwargs))
             with os.fdopen(wfd, "wb") as fh:
                 fh.write(data)

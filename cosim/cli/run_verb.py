@@ -8,7 +8,8 @@ The trace streams to ``DIR/<scene>.csv`` (default ``DIR`` = ``runs/<scene>``; a 
 steps and time, real-time factor, final values) to stdout.  A scene with problems prints one
 line per problem (``file:line: error: ...``) and exits with code 2; ``--plot`` and ``--animate``
 draw in processes of their own (:mod:`cosim.analysis.drawing`), started with the command, and a
-figure that fails is one line and exit code 1, the run's files kept; a run that fails or is
+figure that fails is one line and exit code 1, the run's files kept; ``--reference`` integrates
+in a child forked as the run starts, its files written after the run's; a run that fails or is
 interrupted keeps its partial trace and exits with code 1; a run that a component asked to stop
 (FMI terminate request) ends with its last point recorded, "stopped by C at t", and code 0.
 """
@@ -56,7 +57,7 @@ def _load_and_run(args: argparse.Namespace, drawer=None) -> int:
         return refuse(exc, "run", args.scene)
     for w in scene.warnings:
         say(str(w))
-    from ..outputs import OutputLock, check_out_dir, safe_name
+    from ..outputs import OutputLock, check_out_dir, check_set, safe_name
     from ..run.execute import check_trace_size
 
     from ..errors import UserError
@@ -83,11 +84,68 @@ def _load_and_run(args: argparse.Namespace, drawer=None) -> int:
     check_trace_size(scene, args.max_trace)
     out = args.out or Path("runs") / safe_name(scene.name)
     check_out_dir(out)
-    with OutputLock(out, log=tagged("run")):
-        return _run_locked(args, scene, out, drawer)
+    check_set(out, safe_name(scene.name))  # before the pilots: a name the run cannot take is one line, nothing run
+    early = _EarlyReference(scene) if args.reference else None
+    try:
+        with OutputLock(out, log=tagged("run")):
+            return _run_locked(args, scene, out, drawer, early)
+    finally:
+        if early is not None:
+            early.stop()
 
 
-def _run_locked(args: argparse.Namespace, scene, out: Path, drawer=None) -> int:
+class _EarlyReference:
+    """The scene's monolithic reference, integrated in a child forked as the run starts (the
+    scene loaded, its blocks shared), on the scene's output grid, while the run steps; the run's
+    own reference once the run ended if it asks for the same (:func:`cosim.run.reference_files.
+    same_request`: a variable-step run lands on the grid, the master's choice keeps it)."""
+
+    def __init__(self, scene):
+        from ..analysis.drawing import Forked, SharedProgress
+
+        self.scene, self.progress = scene, SharedProgress()
+        self.job = Forked(_reference_beside, scene, self.progress)
+
+    def result(self, scene, times):
+        """The reference asked of ``scene`` (as run) at ``times``, in memory (not yet written),
+        or None when the early one is another (it is then computed after the run, as asked) or
+        failed (computed again, which says why)."""
+        from ..analysis.drawing import DrawError
+        from ..run.progress import progress_bar
+        from ..run.reference_files import same_request
+
+        if not same_request(self.scene, scene, times):
+            self.stop()
+            return None
+        bar = progress_bar()
+
+        def waiting() -> None:
+            done, total = self.progress.read()
+            if total:
+                bar(done, total)
+
+        try:
+            trace, said = self.job.result(waiting)
+        except DrawError:
+            return None
+        log = tagged("reference")
+        for line in said:
+            log(line)
+        return trace
+
+    def stop(self) -> None:
+        self.job.stop()
+
+
+def _reference_beside(scene, progress) -> tuple:
+    """In the early reference's child: the reference in memory and what it logged."""
+    from ..run.reference import reference
+
+    said: list[str] = []
+    return reference(scene, progress=progress, log=said.append).trace, said
+
+
+def _run_locked(args: argparse.Namespace, scene, out: Path, drawer=None, early: _EarlyReference | None = None) -> int:
     from ..run.execute import run
     from ..run.progress import progress_bar
     from ..trace.traces import trace_suffix
@@ -104,7 +162,7 @@ def _run_locked(args: argparse.Namespace, scene, out: Path, drawer=None) -> int:
     figures = _Figures(drawer, scene, res)
     with figures.interruptible():
         _products(args, scene, res, out, figures)
-        ref = _reference(scene, res, out, args.plot, args.trace_format, figures) if args.reference else None
+        ref = _reference(res, out, args.plot, args.trace_format, figures, early) if args.reference else None
         failed = figures.collect()
     if args.report:
         say(f"report: {_report(scene, res, ref, out)}")
@@ -124,8 +182,18 @@ class _Figures:
 
     def __init__(self, drawer, scene, res):
         self.drawer, self.scene, self.res = drawer, scene, res
+        self._units: dict[str, str] | None = None
         # (label, what, jobs, join, why refused): the figure is join(results of jobs), or jobs[0]'s result
         self.asked: list[tuple[str, str, list[int], Callable | None, str]] = []
+
+    @property
+    def units(self) -> dict[str, str]:
+        """The run's units (:func:`cosim.scenario.units.units_of` its FMUs), read once for all figures."""
+        if self._units is None:
+            from ..scenario.units import units_of
+
+            self._units = units_of(self.res.scene, self.res.fmus)
+        return self._units
 
     @property
     def parallel(self) -> bool:
@@ -145,6 +213,10 @@ class _Figures:
 
             self.drawer = Drawer(parallel=False)
         self.asked.append((label, what, [self.drawer.submit(fn, *a, **kw) for fn, a, kw in parts], join, ""))
+
+    def drawing(self) -> bool:
+        """Whether a figure asked for is still being drawn (the drawing processes are busy)."""
+        return any(not self.drawer.finished(j) for _, _, jobs, _, _ in self.asked for j in jobs)
 
     def refuse(self, what: str, why: str) -> None:
         """A figure that cannot be drawn from this run (found before drawing), said by :meth:`collect`."""
@@ -204,11 +276,10 @@ def _products(args: argparse.Namespace, scene, res, out: Path, figures: _Figures
 
     if args.plot and len(res.trace.data):
         from ..analysis.charts import plot_run, setpoint_pairs
-        from ..scenario.units import units_of
 
         final = confined(out, f"{scene.name}.png")
         figures.add("plot", f"the plot {final.name}", plot_run, res.trace, final, scene.name,
-                    units=units_of(scene, res.fmus), pairs=setpoint_pairs(scene))
+                    units=figures.units, pairs=setpoint_pairs(scene))
     if args.animate and len(res.trace.data):
         from ..analysis.animate import animate, pose_component
         from ..scenario.geometry import manipulator_for
@@ -247,27 +318,37 @@ def _report(scene, res, ref, out: Path) -> Path | str:
                       reference=ref.trace if ref is not None else None, manipulator=m)
 
 
-def _reference(scene, res, out: Path, plot: bool, trace_format: str, figures: _Figures):
-    """Run the monolithic reference and print the co-simulation's error against it (and ask
-    ``figures`` for its plot)."""
+def _reference(res, out: Path, plot: bool, trace_format: str, figures: _Figures,
+               early: _EarlyReference | None = None):
+    """The monolithic reference (the early one when it is the one asked for, else run now), and
+    the co-simulation's error against it printed (and its plot asked of ``figures``)."""
     from ..analysis.compare import compare, compare_modes, format_table
     from ..run.execute import event_modes
-    from ..run.reference import reference
+    from ..run.reference_files import write_reference
     from ..run.progress import progress_bar
 
     scene = res.scene  # as it ran (the master's choice)
     irregular = res.stats.get("smallest_step") is not None  # variable steps: the reference at the same instants
-    ref = reference(scene, out_dir=out, progress=progress_bar(), log=tagged("reference"),
-                    times=res.trace.time if irregular and len(res.trace.data) > 1 else None,
-                    trace_format=trace_format)
+    times = res.trace.time if irregular and len(res.trace.data) > 1 else None
+    early_trace = early.result(scene, times) if early is not None else None
+    if early_trace is None:
+        from ..run.reference import reference  # CasADi: in this process only without the early reference
+
+        ref = reference(scene, out_dir=out, progress=progress_bar(), log=tagged("reference"), times=times,
+                        trace_format=trace_format)
+    else:
+        ref = write_reference(scene, early_trace, out, trace_format=trace_format, log=tagged("reference"))
     st = ref.stats
+    n_events = (st.get("events") or {}).get("count", 0)
+    diffs, ev = None, None
+    if len(ref.trace.data) and len(res.trace.data):
+        diffs, ev = (compare_modes(res.trace, ref.trace, event_modes(scene)) if n_events
+                     else (compare(res.trace, ref.trace), None))
+        if plot:  # asked for first: drawn while the table is printed
+            _plot_comparison(figures, confined(out, f"{scene.name}_vs_reference.png"), res, ref.trace, diffs)
     print(f"monolithic reference ({ref.trace.meta.get('method', 'CVODES')}, {ref.trace.meta.get('states')} states): "
           f"{ref.status}{' (' + ref.reason + ')' if ref.reason else ''}, {st['wall_s']:.2f} s; trace: {ref.trace_path}")
-    if len(ref.trace.data) and len(res.trace.data):
-        n_events = (st.get("events") or {}).get("count", 0)
-        diffs, ev = compare_modes(res.trace, ref.trace, event_modes(scene)) if n_events else (compare(res.trace, ref.trace), None)
-        if plot:  # asked for first: it is drawn while the table is printed
-            _plot_comparison(figures, confined(out, f"{scene.name}_vs_reference.png"), res, ref.trace, diffs)
+    if diffs is not None:
         for label, r in (("co-simulation", res), ("reference", ref)):
             if r.status != "ok":
                 print(f"note: the {label} ended {r.status!r} at t = {r.trace.time[-1]:g} s ({r.reason}); the errors "
@@ -289,16 +370,17 @@ def _reference(scene, res, out: Path, plot: bool, trace_format: str, figures: _F
 
 def _plot_comparison(figures: _Figures, path: Path, res, ref, diffs) -> None:
     """Ask for the plot of the run against its reference; in two halves drawn at the same time
-    when the figures have processes of their own (the last figure of the main job)."""
+    when the figures have processes of their own and none is busy (the reference came after the
+    other figures were drawn: this one is the last to wait for).  With the chart and the GIF
+    still being drawn (the reference integrated beside the run) it is drawn whole: the cores are
+    taken, and halves save no CPU (their PNG is encoded here, when they are joined)."""
     from functools import partial
 
     from ..analysis import charts
-    from ..scenario.units import units_of
 
-    what, kw = f"the plot {path.name}", {"labels": (res.scene.master.algorithm, "reference"),
-                                          "units": units_of(res.scene, res.fmus)}
+    what, kw = f"the plot {path.name}", {"labels": (res.scene.master.algorithm, "reference"), "units": figures.units}
     rows = charts.comparison_rows(diffs)
-    if not figures.parallel or rows < 2:
+    if not figures.parallel or rows < 2 or figures.drawing():
         figures.add("plot", what, charts.plot_comparison, res.trace, ref, diffs, path, **kw)
         return
     halves = (range(0, rows // 2), range(rows // 2, rows))

@@ -135,12 +135,13 @@ def scene_observers(scene: Scene, out_dir: Path | None, suffix: str = "",
     trace writer streaming to ``out_dir/<name><suffix>.csv`` (``.parquet`` for
     ``trace_format="parquet"``; see :data:`cosim.trace.traces.TRACE_FORMATS`), returned as the
     trace path."""
-    from ..outputs import check_ours, confined, safe_name
+    from ..outputs import check_ours, check_set, confined, safe_name
 
     memory = MemoryTrace()
     if out_dir is None:
         return memory, [memory], None
     path = confined(out_dir, f"{safe_name(scene.name)}{suffix}{trace_suffix(trace_format)}")
+    check_set(out_dir, f"{safe_name(scene.name)}{suffix}")
     check_ours(path)
     return memory, [memory, trace_writer(path, trace_format, extra={"scene_data": scene.data})], path
 
