@@ -270,6 +270,8 @@ class EccoStepper(AdaptiveStepper):
             name = Status(st).name if st in Status._value2member_map_ else str(st)
             self.end("failed", f"{sl.name} returned {name} in the step from t = {t:.9g} s (ecco does not roll back)"
                      + (f": {sl.last_message}" if sl.last_message else ""))
+        elif code in (EccoEnd.GET_STATE, EccoEnd.SET_STATE):  # (event mode: worded as adaptive's)
+            super()._end(code, bad, st)
         elif code == EccoEnd.NOT_FINITE:
             u0 = sysm.v[self._in_idx]
             self.end("unstable", f"the energy residual of bond {self.bonds[bad].name} is not finite in the step from "
