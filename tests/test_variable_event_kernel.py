@@ -103,3 +103,28 @@ def test_a_misbehaving_event_mode_fmu_ends_the_kernels_run_as_the_python_loops(l
     py, cc = both(_bonded(str(lag_fmus["3cs"]), 1.0, fault), algorithm=algorithm)
     assert_same(py, cc)
     assert cc.status == status
+
+
+@pytest.mark.parametrize("algorithm", VARIABLE)
+def test_every_step_recorded_keeps_the_event_rows_as_in_the_python_loop(lag_fmus, reference_fmus, algorithm):
+    """``record: steps`` (a row at every accepted step, no output grid): the left limit is the
+    step's own row, the right limit follows; the same rows as the Python loop."""
+    scene = _bonded(str(lag_fmus["3cs"]), 1.2, fault=0)
+    scene["components"]["ball"] = {"fmu": str(reference_fmus["3.0/BouncingBall"])}
+    scene["outputs"] += ["ball.h", "ball.v"]
+    py, cc = both(scene, algorithm=algorithm, record="steps")
+    assert_same(py, cc)
+    assert cc.status == "ok" and len(cc.trace.time) == cc.stats["accepted_steps"] + 1 + 4
+
+
+def test_a_callback_fmu_rolls_back_through_its_own_state_under_adaptive(reference_fmus):
+    """Feedthrough with its Int32 output recorded is a callback slave (typed ports); stepped before
+    the ball, it passes each bounce and is restored through the trampolines around its own
+    save_state/restore_state."""
+    comps = {"ft": {"fmu": str(reference_fmus["3.0/Feedthrough"]), "start": {"Int32_input": 7}},
+             "ball": {"fmu": str(reference_fmus["3.0/BouncingBall"])}}
+    scene = {"name": "typed", "components": comps, "connections": ["ball.v -> ft.Float64_continuous_input"],
+             "stop_time": 1.2, "outputs": ["ball.v", "ft.Float64_continuous_output", "ft.Int32_output"]}
+    py, cc = both(scene, algorithm="adaptive", order=["ft", "ball"])
+    assert_same(py, cc)
+    assert cc.status == "ok" and cc.stats["events"]["handled"] == 4 and np.all(cc.trace["ft.Int32_output"] == 7)
