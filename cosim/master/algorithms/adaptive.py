@@ -43,11 +43,12 @@ right limit, and the inputs' extrapolation history is moved by the jump.
 Statistics: accepted and rejected steps, rollbacks, smallest and largest step, steps cut at events.
 
 Engines: :class:`AdaptiveStepper` here is the reference implementation (Python loop); for every
-scene without an FMI 3.0 event-mode component (``master.engine`` auto or compiled),
-:mod:`cosim.master.adaptive_engine` runs the same accepted-step loop in C (FMUs directly, Python
-slaves and typed ports through callbacks, transformed connections), step for step and bit for bit
-the same (``tests/test_adaptive_engine.py``, ``tests/test_general_kernel.py``); likewise for
-ecco's stepper (``tests/test_native.py``).
+scene (``master.engine`` auto or compiled), :mod:`cosim.master.adaptive_engine` runs the same
+accepted-step loop in C (FMUs directly, Python slaves and typed ports through callbacks,
+transformed connections, FMI 3.0 events: the event iteration and :meth:`AdaptiveStepper.after_events`
+in Python between its calls), step for step and bit for bit the same
+(``tests/test_adaptive_engine.py``, ``tests/test_general_kernel.py``,
+``tests/test_variable_event_kernel.py``); likewise for ecco's stepper (``tests/test_native.py``).
 """
 from __future__ import annotations
 

@@ -41,9 +41,10 @@ residual summed over the run (signed: the energy the coupling created) and its a
 the energy carried [J], the net residual scaled like a step's (``|sum dE| / (atol + rtol * sum
 E)``) and the steps over tolerance.
 
-Engines: :class:`EccoStepper` is the reference (Python loop); without FMI 3.0 event-mode
-components, :class:`cosim.master.adaptive_engine.CompiledEcco` takes the same steps in C, bit for bit
-(``tests/test_native.py``, ``tests/test_general_kernel.py``).
+Engines: :class:`EccoStepper` is the reference (Python loop);
+:class:`cosim.master.adaptive_engine.CompiledEcco` takes the same steps in C, FMI 3.0 events
+included, bit for bit (``tests/test_native.py``, ``tests/test_general_kernel.py``,
+``tests/test_variable_event_kernel.py``).
 """
 from __future__ import annotations
 
