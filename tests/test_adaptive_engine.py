@@ -68,10 +68,13 @@ def test_same_statistics_and_ending(both):
 
 
 def test_compiled_engine_refuses_what_it_cannot_run():
-    """engine compiled with a scene the C loop cannot carry (an FMI 3.0 event-mode component: the
-    kernel does not end its steps at events) is one clear error, not a silent fallback; auto takes
-    the Python loop.  (A connection with a factor, once refused, runs in the kernel:
-    tests/test_general_kernel.py.)"""
+    """engine compiled with a scene the C loop cannot carry (an FMI 3.0 event-mode component for a
+    loop not declared to end its steps at events) is one clear error, not a silent fallback; auto
+    takes the Python loop.  The adaptive loop, declared so since it does
+    (tests/test_variable_event_kernel.py), takes it.  (A connection with a factor, once refused, runs
+    in the kernel: tests/test_general_kernel.py.)"""
+    from dataclasses import replace
+
     from cosim.master import CoupledSystem, Link
     from cosim.master.algorithms.adaptive import AdaptiveStepper
     from cosim.master.engine import choose_engine, variable_loop
@@ -82,9 +85,11 @@ def test_compiled_engine_refuses_what_it_cannot_run():
     loop = variable_loop("adaptive", AdaptiveStepper)
     assert choose_engine(system, "compiled", loop) == "compiled"
     a.event_mode = True
+    assert loop.events and choose_engine(system, "compiled", loop) == "compiled"
+    without = replace(loop, events=False)
     with pytest.raises(UserError, match="compiled for adaptive does not end its steps at events"):
-        choose_engine(system, "compiled", loop)
-    assert choose_engine(system, "auto", loop) == "python"
+        choose_engine(system, "compiled", without)
+    assert choose_engine(system, "auto", without) == "python"
 
 
 @pytest.mark.parametrize("fmi", ["2.0", "3.0"])

@@ -119,24 +119,73 @@ static void shift_history(rpr_slave *S, int32_t n, const double *v) {
     }
 }
 
+/* ---- FMI 3.0 event mode (AdaptiveStepper's events, docs/explanation/events.md) ---------------------- */
+
+/* After a step to t1_ns: the earliest time [ns] an event-mode slave returned early inside it
+   (AdaptiveStepper._early_return), or t1_ns when every one reached its end */
+static int64_t early_return(const rpr_slave *S, int32_t n, int64_t t1_ns) {
+    int64_t early = t1_ns;
+    int32_t i;
+    for (i = 0; i < n; ++i) {
+        if (!S[i].event_mode) continue;
+        {
+            int64_t e = round_ns(step_end(&S[i]) * 1e9);
+            if (e < early) early = e;
+        }
+    }
+    return early;
+}
+
+/* every slave back to its saved state and v to v_saved (a step retaken); the failing slave or -1 */
+static int32_t roll_back(rpr_slave *S, int32_t n, double *v, const double *v_saved, int64_t nv, int32_t *bad_st) {
+    int32_t i;
+    for (i = 0; i < n; ++i) {
+        int st = restore_state(&S[i]);
+        if (failing(st)) { *bad_st = st; return i; }
+    }
+    memcpy(v, v_saved, (size_t)nv * sizeof(double));
+    return -1;
+}
+
+/* every slave's state saved and v into v_saved; the failing slave or -1 */
+static int32_t save_all(rpr_slave *S, int32_t n, const double *v, double *v_saved, int64_t nv, int32_t *bad_st) {
+    int32_t i;
+    memcpy(v_saved, v, (size_t)nv * sizeof(double));
+    for (i = 0; i < n; ++i) {
+        int st = save_state(&S[i]);
+        if (failing(st)) { *bad_st = st; return i; }
+    }
+    return -1;
+}
+
+/* After an accepted step (AdaptiveStepper._note_event): 1 when an event-mode slave asks for event
+   handling at its end (Python counts it and runs the event iteration), else 0 with the count of
+   events in a row reset */
+static int event_at_end(const rpr_slave *S, int32_t n, int32_t *events_here) {
+    int32_t i;
+    for (i = 0; i < n; ++i)
+        if (S[i].event_mode && event_asked(&S[i])) return 1;
+    *events_here = 0;
+    return 0;
+}
+
 static int64_t rpr_adapt_loop(rpr_slave *S, int32_t n, const int32_t *order, double *v, int64_t nv,
                               double *v_saved, double *lo, double *hi, ad_ctl *c, const int64_t *rec_idx,
                               int32_t n_rec, double *rec, int64_t *h_rec, int64_t max_steps, int64_t budget_ns,
                               int64_t t_start) {
     int64_t rows = 0, steps = 0, h_ns = 0;
-    int32_t i, j, bad, bad_st;
+    int32_t j, bad, bad_st;
     double h = 0.0, err = 0.0, p;
     c->status = AD_RUNNING;
     while (c->t_ns < c->stop_ns && steps < max_steps) {
         double t = (double)c->t_ns / 1e9;
-        memcpy(v_saved, v, (size_t)nv * sizeof(double));
-        for (i = 0; i < n; ++i) {
-            int st = save_state(&S[i]);
-            if (failing(st)) { c->status = AD_GET_STATE; c->bad_slave = i; c->bad_status = st; return rows; }
-        }
+        int64_t cut = -1;   /* an event's time [ns] the step is retaken to (-1: none) */
+        int at_event;
+        bad = save_all(S, n, v, v_saved, nv, &bad_st);
+        if (bad >= 0) { c->status = AD_GET_STATE; c->bad_slave = bad; c->bad_status = bad_st; return rows; }
         for (;;) {
             double shrink;
-            h_ns = plan_ns(c->h, c->t_ns, c->start_ns, c->grid_ns, c->stop_ns);
+            h_ns = cut < 0 ? plan_ns(c->h, c->t_ns, c->start_ns, c->grid_ns, c->stop_ns) : cut - c->t_ns;
             h = (double)h_ns / 1e9;
             err = attempt(S, n, order, v, lo, hi, c, t, h, &bad, &bad_st);
             p = (c->any_interp && c->h_prev > 0) ? c->p_lin : c->p_hold;
@@ -144,15 +193,26 @@ static int64_t rpr_adapt_loop(rpr_slave *S, int32_t n, const int32_t *order, dou
                 c->status = AD_STOP_REQUESTED; c->bad_slave = bad; c->bad_status = bad_st;
                 return rows;
             }
+            if (bad < 0 && c->n_event) {
+                int64_t early = early_return(S, n, c->t_ns + h_ns);
+                if (early < c->t_ns + h_ns) {  /* an event inside the step: it ends there for every slave */
+                    if (early <= c->t_ns) { c->status = AD_NO_PROGRESS; c->t_e_ns = early; return rows; }
+                    cut = early;
+                    c->event_cuts++;
+                    bad = roll_back(S, n, v, v_saved, nv, &bad_st);
+                    if (bad >= 0) { c->status = AD_SET_STATE; c->bad_slave = bad; c->bad_status = bad_st; return rows; }
+                    continue;
+                }
+            }
             if (bad < 0 && (err <= 1.0 || c->h_prev == 0)) break;
+            cut = -1;   /* retried smaller: the event, if still inside, is found again */
             c->rejected++;
             if (bad >= 0) c->discards++;
-            for (i = 0; i < n; ++i) {
-                int st = restore_state(&S[i]);
-                if (failing(st)) { c->status = AD_SET_STATE; c->bad_slave = i; c->bad_status = st; return rows; }
+            {
+                int32_t st, who = roll_back(S, n, v, v_saved, nv, &st);
+                if (who >= 0) { c->status = AD_SET_STATE; c->bad_slave = who; c->bad_status = st; return rows; }
             }
             c->rollbacks++;
-            memcpy(v, v_saved, (size_t)nv * sizeof(double));
             shrink = !isfinite(err) ? c->fac_min : py_max(c->fac_min, c->safety * pow(err, -1.0 / p));
             if (h <= c->h_min * (1 + 1e-12)) {
                 c->status = AD_STEP_FLOOR; c->bad_slave = bad; c->bad_status = bad_st; c->last_err = err;
@@ -171,7 +231,8 @@ static int64_t rpr_adapt_loop(rpr_slave *S, int32_t n, const int32_t *order, dou
         }
         c->t_ns += h_ns;
         c->h_prev = h;
-        {
+        at_event = c->n_event && event_at_end(S, n, &c->events_here);
+        if (cut < 0) {   /* a step cut short at an event says nothing new of the error: keep the proposal */
             double e = py_max(err, 1e-10), fac;
             fac = c->safety * pow(e, -c->k_i / p) * pow(c->err_prev, c->k_p / p);
             c->err_prev = e;
@@ -180,6 +241,7 @@ static int64_t rpr_adapt_loop(rpr_slave *S, int32_t n, const int32_t *order, dou
         if (on_output(c->t_ns, c->start_ns, c->grid_ns, c->stop_ns))
             record_row(rec + (rows++) * (n_rec + 1), c->t_ns, v, rec_idx, n_rec);
         h_rec[steps++] = h_ns;
+        if (at_event) { c->status = AD_EVENT; return rows; }
         if (budget_ns > 0 && (steps & 15) == 0 && now_ns() - t_start > budget_ns) break;
     }
     return rows;
@@ -202,7 +264,8 @@ int64_t rpr_adapt_run(rpr_slave *S, int32_t n, const int32_t *order, double *v, 
 /* EccoStepper.step: steps (never retried) sized from the bonds' energy residual, up to max_steps
    steps, the stop time, the budget or an event for Python (c->status != 0); rows and h_rec as
    rpr_adapt_run's. */
-static int64_t rpr_ecco_loop(rpr_slave *S, int32_t n, const int32_t *order, double *v, ec_ctl *c,
+static int64_t rpr_ecco_loop(rpr_slave *S, int32_t n, const int32_t *order, double *v, int64_t nv, double *v_saved,
+                             ec_ctl *c,
                              const int64_t *rec_idx, int32_t n_rec, double *rec, int64_t *h_rec, int64_t max_steps,
                              int64_t budget_ns, int64_t t_start) {
     int64_t rows = 0, steps = 0;
@@ -210,16 +273,32 @@ static int64_t rpr_ecco_loop(rpr_slave *S, int32_t n, const int32_t *order, doub
     c->status = EC_RUNNING;
     while (c->t_ns < c->stop_ns && steps < max_steps) {
         double t = (double)c->t_ns / 1e9, h, hh, err, fac;
-        int64_t h_ns;
+        int64_t h_ns, cut = -1;   /* cut: an event's time [ns] the step was retaken to (-1: none) */
+        int at_event;
         if (c->ending) { c->status = EC_FLOOR_PATIENCE; c->bad_slave = c->end_bond; return rows; }
         h_ns = plan_ns(c->h, c->t_ns, c->start_ns, c->grid_ns, c->stop_ns);
-        h = (double)h_ns / 1e9;
         for (k = 0; k < 2 * c->n_bonds; ++k) c->y0[k] = v[c->out_idx[k]];
-        bad = gs_step(S, n, order, v, c->h_prev, c->timing, t, h, &bad_st);
-        if (bad >= 0) {
-            c->status = (bad_st == ST_STOP_REQUESTED || (bad_st == ST_DISCARD && stop_asked(&S[bad]))) ? EC_STOP_REQUESTED : EC_SLAVE_FAILED;
-            c->bad_slave = bad; c->bad_status = bad_st;
-            return rows;
+        if (c->n_event) {   /* (the run uses event mode only where every slave can roll back) */
+            bad = save_all(S, n, v, v_saved, nv, &bad_st);
+            if (bad >= 0) { c->status = EC_GET_STATE; c->bad_slave = bad; c->bad_status = bad_st; return rows; }
+        }
+        for (;;) {
+            int64_t early;
+            h = (double)h_ns / 1e9;
+            bad = gs_step(S, n, order, v, c->h_prev, c->timing, t, h, &bad_st);
+            if (bad >= 0) {
+                c->status = (bad_st == ST_STOP_REQUESTED || (bad_st == ST_DISCARD && stop_asked(&S[bad]))) ? EC_STOP_REQUESTED : EC_SLAVE_FAILED;
+                c->bad_slave = bad; c->bad_status = bad_st;
+                return rows;
+            }
+            early = c->n_event ? early_return(S, n, c->t_ns + h_ns) : c->t_ns + h_ns;
+            if (early >= c->t_ns + h_ns) break;
+            if (early <= c->t_ns) { c->status = EC_NO_PROGRESS; c->t_e_ns = early; return rows; }
+            cut = early;   /* an event inside the step: retaken to end there */
+            h_ns = early - c->t_ns;
+            c->event_cuts++;
+            bad = roll_back(S, n, v, v_saved, nv, &bad_st);
+            if (bad >= 0) { c->status = EC_SET_STATE; c->bad_slave = bad; c->bad_status = bad_st; return rows; }
         }
         hh = 0.5 * h;
         for (b = 0; b < c->n_bonds; ++b) {   /* bond_energy */
@@ -255,6 +334,14 @@ static int64_t rpr_ecco_loop(rpr_slave *S, int32_t n, const int32_t *order, doub
         shift_history(S, n, v);
         c->t_ns += h_ns;
         c->h_prev = h;
+        at_event = c->n_event && event_at_end(S, n, &c->events_here);
+        if (cut >= 0) {   /* a step cut short at an event: the controller keeps its proposal */
+            if (on_output(c->t_ns, c->start_ns, c->grid_ns, c->stop_ns))
+                record_row(rec + (rows++) * (n_rec + 1), c->t_ns, v, rec_idx, n_rec);
+            h_rec[steps++] = h_ns;
+            if (at_event) { c->status = EC_EVENT; return rows; }
+            continue;
+        }
         err = c->scaled[0];
         for (b = 1; b < c->n_bonds; ++b) err = c->scaled[b] > err ? c->scaled[b] : err;
         err = py_max(err, 1e-10);
@@ -270,15 +357,17 @@ static int64_t rpr_ecco_loop(rpr_slave *S, int32_t n, const int32_t *order, doub
         if (on_output(c->t_ns, c->start_ns, c->grid_ns, c->stop_ns))
             record_row(rec + (rows++) * (n_rec + 1), c->t_ns, v, rec_idx, n_rec);
         h_rec[steps++] = h_ns;
+        if (at_event) { c->status = EC_EVENT; return rows; }
         if (budget_ns > 0 && (steps & 15) == 0 && now_ns() - t_start > budget_ns) break;
     }
     return rows;
 }
 
-int64_t rpr_ecco_run(rpr_slave *S, int32_t n, const int32_t *order, double *v, ec_ctl *c, const int64_t *rec_idx,
-                     int32_t n_rec, double *rec, int64_t *h_rec, int64_t max_steps, int64_t budget_ns) {
+int64_t rpr_ecco_run(rpr_slave *S, int32_t n, const int32_t *order, double *v, int64_t nv, double *v_saved, ec_ctl *c,
+                     const int64_t *rec_idx, int32_t n_rec, double *rec, int64_t *h_rec, int64_t max_steps,
+                     int64_t budget_ns) {
     int64_t t_start = (budget_ns > 0 || c->timing) ? now_ns() : 0, slave_ns0 = slaves_ns(S, n), rows;
-    rows = rpr_ecco_loop(S, n, order, v, c, rec_idx, n_rec, rec, h_rec, max_steps, budget_ns, t_start);
+    rows = rpr_ecco_loop(S, n, order, v, nv, v_saved, c, rec_idx, n_rec, rec, h_rec, max_steps, budget_ns, t_start);
     if (c->timing) c->master_ns += (now_ns() - t_start) - (slaves_ns(S, n) - slave_ns0);
     return rows;
 }

@@ -12,8 +12,12 @@ Python's ``round``), which is what makes the two agree exactly.
 One call runs until it has taken ``max_steps`` accepted steps (recording those that land on an
 output point, the same rows as the Python loop), spent its wall-time budget (so that Python
 handles signals between calls), reached the stop time, or met something it leaves to Python: a
-stop request, the step floor, or a failing get/set of an FMU state.  FMI 3.0 event-mode components
-run in the Python loop (:func:`cosim.master.engine.choose_engine` says so).
+stop request, the step floor, a failing get/set of an FMU state, or an event.  With FMI 3.0
+event-mode components a step is cut at the earliest early return (every slave rolled back and the
+step retaken to the event, counted as a cut), and a call returns after an accepted step at whose
+end a component asks for event handling: the event iteration runs in Python
+(:class:`cosim.master.algorithm.EventIteration`), which moves the inputs' history by the jump
+(:meth:`AdaptiveStepper.after_events` on the same arrays the loop reads).
 
 ``ecco`` (:class:`CompiledEcco`, the loop of :class:`cosim.master.algorithms.ecco.EccoStepper`)
 takes the same Gauss-Seidel step with linear inputs, never rolled back, and sizes the next step
@@ -31,7 +35,7 @@ from functools import lru_cache
 
 import numpy as np
 
-from .entries import ADAPT_RUN, ADAPTIVE_CONTROL, ECCO_CONTROL, ECCO_RUN, struct
+from .entries import ADAPT_RUN, ADAPTIVE_CONTROL, ECCO_CONTROL, ECCO_RUN, AdaptiveEnd, EccoEnd, struct
 from .native import SlaveArray, compile_loop
 
 CControl = struct(ADAPTIVE_CONTROL)
@@ -57,18 +61,21 @@ class _CompiledVariable:
         self.py = stepper  # the Python stepper: its setup, statistics and messages
         sysm = stepper.system
         self.lib = library()
-        self.arr = arr = SlaveArray(sysm, states=states, callbacks=True)
+        self.arr = arr = SlaveArray(sysm, states=states or bool(stepper.event_slaves), callbacks=True)
+        for i in stepper.event_slaves:  # FMI 3.0 event mode: the slaves' own step reports (Slave.event_slots)
+            arr[i].event_mode = 1
+            arr[i].step_flags, arr[i].last_time, arr[i].planned_end = sysm.slaves[i].event_slots()
         for i in range(len(arr)):
             c = arr[i]
             n_in = c.n_in
             interp = bool(stepper.interp[i]) and n_in > 0
             c.interp, c.set_der = int(interp), arr.entries[i].set_input_derivatives if interp else 0
-            cur = np.ascontiguousarray(sysm.v[sysm.in_src[i]], dtype=np.float64)
             if n_in:
                 c.orders = arr.buffer(np.ones(n_in, dtype=np.int32), np.int32)
                 c.fresh = arr.buffer(stepper.fresh[i].astype(np.int8), np.int8)
-                c.cur, c.prev, c.guess = arr.buffer(cur), arr.buffer(cur.copy()), arr.buffer(np.zeros(n_in))
-                c.slope = arr.buffer(stepper.slopes[i])
+                # the stepper's own input history: its after_events moves it by an event's jump
+                c.cur, c.prev = arr.buffer(stepper.cur_src[i]), arr.buffer(stepper.prev_src[i])
+                c.guess, c.slope = arr.buffer(np.zeros(n_in)), arr.buffer(stepper.slopes[i])
         self.order = np.array(stepper.order, dtype=np.int32)
         self.rec_idx = np.ascontiguousarray(sysm.record_idx, dtype=np.int64)  # recorded, then watched (guards)
         self.h_rec = np.empty(0, dtype=np.int64)
@@ -97,6 +104,28 @@ class _CompiledVariable:
     def _rows(self, rec: np.ndarray) -> None:
         if len(self.h_rec) < len(rec):
             self.h_rec = np.empty(len(rec), dtype=np.int64)
+
+    def _events_in(self) -> None:
+        """Before a call: the count of events in a row, kept by the Python stepper."""
+        self.ctl.n_event = len(self.py.event_slaves)
+        self.ctl.events_here = self.py._events_here
+
+    def _returned(self, rec: np.ndarray, rows: int, code: int, event: int, no_progress: int) -> int:
+        """After a call that returned with end code ``code``: the Python stepper at the same point
+        (time, events in a row); at ``event`` its :meth:`_note_event` counts the event and makes
+        it pending (its row, the left limit, added when the step did not land on an output point),
+        at ``no_progress`` its :meth:`_no_progress` ends the run; returns the rows."""
+        py, ctl = self.py, self.ctl
+        py.t_ns, py._events_here = self.t_ns, int(ctl.events_here)
+        if code == event:
+            py._note_event()
+            if py.pending_event is not None and not py._on_output(py.t_ns):
+                rec[rows, 0] = py.t
+                np.take(py.system.v, py.system.record_idx, out=rec[rows, 1:])
+                rows += 1
+        elif code == no_progress:
+            py._no_progress(int(ctl.t_e_ns))
+        return rows
 
     def _ended(self, code: int, bad: int, st: int, value: float = math.nan, count: int = 0) -> None:
         """The loop returned with end code ``code``: the Python stepper, at the same point, ends
@@ -135,7 +164,7 @@ class CompiledAdaptive(_CompiledVariable):
     def stats(self):
         st, c = self.py.stats, self.ctl
         st.accepted, st.rejected, st.rollbacks, st.discards = c.accepted, c.rejected, c.rollbacks, c.discards
-        st.h_min_taken, st.h_max_taken = c.h_min_taken, c.h_max_taken
+        st.h_min_taken, st.h_max_taken, st.event_cuts = c.h_min_taken, c.h_max_taken, c.event_cuts
         return st
 
     def run(self, rec: np.ndarray) -> int:
@@ -145,6 +174,7 @@ class CompiledAdaptive(_CompiledVariable):
         sysm, ctl = self.py.system, self.ctl
         self._rows(rec)
         before = ctl.accepted
+        self._events_in()
         rows = int(self.lib.rpr_adapt_run(
             self.arr.arr, len(self.arr), self.order.ctypes.data, sysm.v.ctypes.data, len(sysm.v),
             self.v_saved.ctypes.data, self.lo.ctypes.data, self.hi.ctypes.data, ctypes.byref(ctl),
@@ -152,7 +182,8 @@ class CompiledAdaptive(_CompiledVariable):
             self.h_rec.ctypes.data, len(rec), CALL_BUDGET_NS))
         self.arr.reraise()  # a callback slave's exception, raised here
         self.py.stats.steps.extend((self.h_rec[:ctl.accepted - before] / 1e9).tolist())
-        if ctl.status:
+        rows = self._returned(rec, rows, ctl.status, AdaptiveEnd.EVENT, AdaptiveEnd.NO_PROGRESS)
+        if ctl.status not in (AdaptiveEnd.RUNNING, AdaptiveEnd.EVENT, AdaptiveEnd.NO_PROGRESS):
             self._ended(ctl.status, ctl.bad_slave, ctl.bad_status, ctl.last_err)
         return rows
 
@@ -166,6 +197,7 @@ class CompiledEcco(_CompiledVariable):
         super().__init__(stepper, states=False)
         opt, bonds = stepper.opt, stepper.bonds
         nb = len(bonds)
+        self.v_saved = np.empty_like(stepper.system.v)
         self.ctl = ctl = CEccoControl()
         ctl.t_ns, ctl.stop_ns, ctl.h, ctl.h_prev, ctl.err_prev = (stepper.t_ns, stepper.stop_ns, stepper.h,
                                                                    stepper.h_prev, stepper.err_prev)
@@ -190,6 +222,7 @@ class CompiledEcco(_CompiledVariable):
     def stats(self):
         st, c = self.py.stats, self.ctl
         st.accepted, st.h_min_taken, st.h_max_taken = c.accepted, c.h_min_taken, c.h_max_taken
+        st.event_cuts = c.event_cuts
         for k, b in enumerate(self.py.bonds):
             rec = st.bonds[b.name]
             for name, a in self.bond_stats.items():
@@ -201,13 +234,16 @@ class CompiledEcco(_CompiledVariable):
         sysm, ctl = self.py.system, self.ctl
         self._rows(rec)
         before = ctl.accepted
+        self._events_in()
         rows = int(self.lib.rpr_ecco_run(
-            self.arr.arr, len(self.arr), self.order.ctypes.data, sysm.v.ctypes.data, ctypes.byref(ctl),
+            self.arr.arr, len(self.arr), self.order.ctypes.data, sysm.v.ctypes.data, len(sysm.v),
+            self.v_saved.ctypes.data, ctypes.byref(ctl),
             self.rec_idx.ctypes.data if self.rec_idx.size else None, len(self.rec_idx), rec.ctypes.data,
             self.h_rec.ctypes.data, len(rec), CALL_BUDGET_NS))
         self.arr.reraise()  # a callback slave's exception, raised here
         self.py.stats.steps.extend((self.h_rec[:ctl.accepted - before] / 1e9).tolist())
-        if ctl.status:
+        rows = self._returned(rec, rows, ctl.status, EccoEnd.EVENT, EccoEnd.NO_PROGRESS)
+        if ctl.status not in (EccoEnd.RUNNING, EccoEnd.EVENT, EccoEnd.NO_PROGRESS):
             self._ended(ctl.status, ctl.bad_slave, ctl.bad_status, ctl.end_scaled, ctl.at_floor)
         return rows
 
@@ -215,11 +251,19 @@ class CompiledEcco(_CompiledVariable):
 #: The compiled loop of each stepper class, by the ``native_loop`` its class itself declares (a
 #: subclass that changes the stepping declares none and runs in Python).
 LOOPS = {"adaptive": CompiledAdaptive, "ecco": CompiledEcco}
+#: The loops that end their steps at FMI 3.0 events (a step cut at the earliest early return, every
+#: slave rolled back and the step retaken to it; the event iteration in Python between calls)
+EVENT_LOOPS = frozenset({"adaptive", "ecco"})
 
 
 def has_compiled(stepper_cls: type) -> bool:
     """Whether ``stepper_cls`` has a compiled loop here."""
     return stepper_cls.__dict__.get("native_loop") in LOOPS
+
+
+def ends_steps_at_events(stepper_cls: type) -> bool:
+    """Whether the compiled loop of ``stepper_cls`` ends its steps at FMI 3.0 events."""
+    return has_compiled(stepper_cls) and stepper_cls.__dict__["native_loop"] in EVENT_LOOPS
 
 
 def compiled_stepper(stepper, timing: bool = True) -> _CompiledVariable:

@@ -85,7 +85,11 @@ def ends_steps_at_events(cls: type[MasterAlgorithm], engine: str) -> bool:
     its compiled loop too when that loop is asked for."""
     if not cls.ends_steps_at_events:
         return False
-    return engine != "compiled" or (not cls.variable_step and issubclass(cls, Algorithm) and fixed_loop(cls).events)
+    if engine != "compiled":
+        return True
+    if cls.variable_step:
+        return cls.stepper is not None and adaptive_engine.ends_steps_at_events(cls.stepper)
+    return issubclass(cls, Algorithm) and fixed_loop(cls).events
 
 
 def choose_engine(system: CoupledSystem, engine: str, loop: CompiledLoop) -> str:
@@ -233,7 +237,8 @@ def fixed_stepper(system: CoupledSystem, *, cls: type[Algorithm], step_ns: int, 
 def variable_loop(name: str, stepper_cls: type) -> CompiledLoop:
     """The compiled loop of a variable-step stepper class (:mod:`cosim.master.adaptive_engine`)."""
     library = adaptive_engine.library if adaptive_engine.has_compiled(stepper_cls) else None
-    return CompiledLoop(name, library, stepper_cls.needs_rollback, callbacks=True, typed=True, transforms=True)
+    return CompiledLoop(name, library, stepper_cls.needs_rollback, callbacks=True, typed=True, transforms=True,
+                        events=adaptive_engine.ends_steps_at_events(stepper_cls))
 
 
 __all__ = ["CompiledLoop", "ENGINES", "ITERATIVE", "choose_engine", "ends_steps_at_events", "fixed_loop",

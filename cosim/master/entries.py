@@ -110,6 +110,16 @@ SLAVE = Record("rpr_slave", (
 
 _STATS = ("int64_t", "master_ns", "wall time in this loop outside the slaves' calls (with timing)")
 
+#: The variable-step loops' FMI 3.0 event state (docs/explanation/events.md): a step cut at the earliest early
+#: return, every slave rolled back and the step retaken to it; an accepted step at whose end a slave asks for
+#: event handling returns to Python (the event iteration).
+_VARIABLE_EVENTS = (
+    ("int32_t", "n_event", "slaves in FMI 3.0 event mode (0: none; then no step is cut)"),
+    ("int32_t", "events_here", "in/out: events in a row without a step between them (AdaptiveStepper._events_here)"),
+    ("int64_t", "event_cuts", "statistics: steps retaken to end at an event"),
+    ("int64_t", "t_e_ns", "NO_PROGRESS: the early return's time [ns], the step's start"),
+)
+
 #: The adaptive controller's state and the run's counters (``ad_ctl``).
 ADAPTIVE_CONTROL = Record("ad_ctl", (
     ("int64_t", "t_ns", "current point [ns]"), ("int64_t", "stop_ns", "stop time [ns]"),
@@ -127,6 +137,7 @@ ADAPTIVE_CONTROL = Record("ad_ctl", (
     ("int32_t", "status", "why a call returned early (AdaptiveEnd)"),
     ("int32_t", "bad_slave", "the slave of that status"), ("int32_t", "bad_status", "its FMI status"),
     ("double", "last_err", "the error at the step floor"),
+    *_VARIABLE_EVENTS,
     _STATS,
 ))
 
@@ -156,6 +167,7 @@ ECCO_CONTROL = Record("ec_ctl", (
     ("int32_t", "status", "why a call returned early (EccoEnd)"),
     ("int32_t", "bad_slave", "the slave of that status (the bond for EC_NOT_FINITE, EC_FLOOR_PATIENCE)"),
     ("int32_t", "bad_status", "its FMI status"),
+    *_VARIABLE_EVENTS,
     _STATS,
 ))
 
@@ -228,6 +240,8 @@ class AdaptiveEnd(IntEnum):
     STEP_FLOOR = 2  # a rejected step at h_min
     GET_STATE = 3  # saving an FMU state failed
     SET_STATE = 4  # restoring it failed
+    EVENT = 8  # an accepted step ended where an event-mode slave asks for event handling (its row the left limit)
+    NO_PROGRESS = 9  # an event-mode slave returned early at the step's start (t_e_ns): the run fails
 
 
 class EccoEnd(IntEnum):
@@ -235,9 +249,13 @@ class EccoEnd(IntEnum):
 
     RUNNING = 0
     STOP_REQUESTED = 1
+    GET_STATE = 3  # with event-mode slaves: saving an FMU state failed
+    SET_STATE = 4  # restoring it (to retake a step to an event) failed
     FLOOR_PATIENCE = 5  # over tolerance at h_min for floor_steps steps in a row
     SLAVE_FAILED = 6  # a Discard or error (ecco does not roll back)
     NOT_FINITE = 7  # a bond's residual is not finite
+    EVENT = 8  # as AdaptiveEnd.EVENT
+    NO_PROGRESS = 9  # as AdaptiveEnd.NO_PROGRESS
 
 
 class IterativeEnd(IntEnum):
@@ -308,6 +326,7 @@ ADAPT_RUN = Entry("rpr_adapt_run", (
 ECCO_RUN = Entry("rpr_ecco_run", (
     ("rpr_slave *", "S", "the slaves"), ("int32_t", "n", "their count"),
     ("const int32_t *", "order", "the stepping order"), ("double *", "v", "the value vector"),
+    ("int64_t", "nv", "its length"), ("double *", "v_saved", "work: v at the step's start (event mode)"),
     ("ec_ctl *", "c", "the controller"), *_IO, ("double *", "rec", "the rows recorded (at most one per step)"),
     ("int64_t *", "h_rec", "out: each accepted step [ns]"), ("int64_t", "max_steps", "steps at most"),
     ("int64_t", "budget_ns", "return after this much wall time (0: no limit)")))

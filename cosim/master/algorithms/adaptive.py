@@ -43,11 +43,12 @@ right limit, and the inputs' extrapolation history is moved by the jump.
 Statistics: accepted and rejected steps, rollbacks, smallest and largest step, steps cut at events.
 
 Engines: :class:`AdaptiveStepper` here is the reference implementation (Python loop); for every
-scene without an FMI 3.0 event-mode component (``master.engine`` auto or compiled),
-:mod:`cosim.master.adaptive_engine` runs the same accepted-step loop in C (FMUs directly, Python
-slaves and typed ports through callbacks, transformed connections), step for step and bit for bit
-the same (``tests/test_adaptive_engine.py``, ``tests/test_general_kernel.py``); likewise for
-ecco's stepper (``tests/test_native.py``).
+scene (``master.engine`` auto or compiled), :mod:`cosim.master.adaptive_engine` runs the same
+accepted-step loop in C (FMUs directly, Python slaves and typed ports through callbacks,
+transformed connections, FMI 3.0 events: the event iteration and :meth:`AdaptiveStepper.after_events`
+in Python between its calls), step for step and bit for bit the same
+(``tests/test_adaptive_engine.py``, ``tests/test_general_kernel.py``,
+``tests/test_variable_event_kernel.py``); likewise for ecco's stepper (``tests/test_native.py``).
 """
 from __future__ import annotations
 
@@ -410,21 +411,28 @@ class VariableStepper(Stepper):
         if self.compiled is None:
             return self.python_block(rec, max_steps)
         if not self.system.typed.texts:
-            return self.compiled.run(rec[:max_steps])
+            rows = self.compiled.run(rec[:max_steps])
+            self._take_event()
+            return rows
         rows = 0  # recorded text variables: one accepted step per call, their changes noted at each row
         for _ in range(max_steps):
             got = self.compiled.run(rec[rows:rows + 1])
             rows += got
             if got:
                 self.text_events += [(float(rec[rows - 1, 0]), c, x) for c, x in self.system.typed.text_changes()]
-            if self.done():
+            self._take_event()
+            if self.done() or self.event is not None:
                 break
         return rows
 
+    def _take_event(self) -> None:
+        """A step that ended at an event (its row the left limit): the event for the driver loop."""
+        if self.py.pending_event is not None:
+            self.event, self.py.pending_event = self.py.pending_event, None
+
     def step(self) -> bool:
         ok = self.py.step()
-        if self.py.pending_event is not None:  # the step ended at an event: its row is the left limit
-            self.event, self.py.pending_event = self.py.pending_event, None
+        self._take_event()
         return ok
 
     def recorded(self, ok: bool) -> bool:
@@ -505,6 +513,7 @@ class Adaptive(MasterAlgorithm):
     event_policy = ("an event of an FMI 3.0 event-mode component is a step boundary for the whole coupling: the "
                     "step is retaken to the event time (no rejection counted), then the event iteration")
     options = OPTIONS
+    stepper = AdaptiveStepper
     #: a rejected step is rolled back and retried: its steps cannot be paced on the wall clock
     paceable = False
     stepper_for = staticmethod(variable_stepper)

@@ -41,9 +41,10 @@ residual summed over the run (signed: the energy the coupling created) and its a
 the energy carried [J], the net residual scaled like a step's (``|sum dE| / (atol + rtol * sum
 E)``) and the steps over tolerance.
 
-Engines: :class:`EccoStepper` is the reference (Python loop); without FMI 3.0 event-mode
-components, :class:`cosim.master.adaptive_engine.CompiledEcco` takes the same steps in C, bit for bit
-(``tests/test_native.py``, ``tests/test_general_kernel.py``).
+Engines: :class:`EccoStepper` is the reference (Python loop);
+:class:`cosim.master.adaptive_engine.CompiledEcco` takes the same steps in C, FMI 3.0 events
+included, bit for bit (``tests/test_native.py``, ``tests/test_general_kernel.py``,
+``tests/test_variable_event_kernel.py``).
 """
 from __future__ import annotations
 
@@ -270,6 +271,8 @@ class EccoStepper(AdaptiveStepper):
             name = Status(st).name if st in Status._value2member_map_ else str(st)
             self.end("failed", f"{sl.name} returned {name} in the step from t = {t:.9g} s (ecco does not roll back)"
                      + (f": {sl.last_message}" if sl.last_message else ""))
+        elif code in (EccoEnd.GET_STATE, EccoEnd.SET_STATE):  # (event mode: worded as adaptive's)
+            super()._end(code, bad, st)
         elif code == EccoEnd.NOT_FINITE:
             u0 = sysm.v[self._in_idx]
             self.end("unstable", f"the energy residual of bond {self.bonds[bad].name} is not finite in the step from "
