@@ -4,6 +4,8 @@ apart (closed forms of the electrical and mechanical ODEs, SciPy's solve_ivp), f
 block's integrators.  The rotor runs unloaded: bond stiffness and damping 0, leg speed 0."""
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 from scipy.integrate import solve_ivp
@@ -115,3 +117,54 @@ def test_a_reversed_drive_reverses_the_slip_without_sticking(cache, integrator):
     stuck, sticks, t_slip, w = s.get("stuck", "sticks", "t_slip", "w")
     assert (stuck, sticks) == (0.0, 0.0) and w < 0
     assert t_slip == pytest.approx(t_rev, abs=1e-7)
+
+
+# --- the scene against its monolithic event reference and the first breakaway's closed form ----
+@pytest.fixture(scope="module")
+def motor_stiction_runs(cache):
+    from cosim.run.execute import run
+    from cosim.run.reference import reference
+
+    scene = Path(__file__).resolve().parents[1] / "scenarios" / "motor_stiction.yaml"
+    return run(scene, cache_dir=cache), reference(scene)
+
+
+def test_motor_stiction_scene_sticks_and_slips_at_the_reference_times(motor_stiction_runs):
+    from cosim.analysis.compare import match_events, times_from_clock
+
+    cosim, ref = motor_stiction_runs
+    assert cosim.ok and ref.status == "ok", (cosim.reason, ref.reason)
+    assert cosim.trace["motor.sticks"][-1] == ref.trace["motor.sticks"][-1] == 3  # it hunts
+    for kind in ("t_stick", "t_slip"):
+        timing = match_events(kind, times_from_clock(cosim.trace, f"motor.{kind}"),
+                              times_from_clock(ref.trace, f"motor.{kind}"))
+        assert timing.missing == () and timing.matched >= 3, timing
+        assert timing.max_error < 1e-4, timing
+
+
+def test_motor_stiction_scene_values_between_events_within_1e_3_of_range(motor_stiction_runs):
+    from cosim.analysis.compare import compare_between_events, times_from_clock, windows
+
+    cosim, ref = motor_stiction_runs
+    pairs = [(times_from_clock(cosim.trace, n), times_from_clock(ref.trace, n)) for n in ("motor.t_stick", "motor.t_slip")]
+    names = ["load.x", "load.v", "motor.w", "motor.i", "motor.friction", "pid.y"]
+    between = compare_between_events(cosim.trace, ref.trace, windows(pairs, 1e-3), names)
+    assert max(d.relative for d in between) < 1e-3, [(d.name, d.relative) for d in between]
+
+
+def test_motor_stiction_scene_breaks_away_where_the_current_ramp_reaches_ts(motor_stiction_runs):
+    """While stuck the carriage rests (no bond force), so the PID gives y = Kp e0 + Ki e0 t with
+    e0 = 10 mm, and L di/dt = y - R i: i = (a0/R)(1 - E) + (a1/R)(t - tau (1 - E)),
+    E = exp(-t/tau), tau = L/R; the rotor breaks away where kt i = Ts."""
+    from scipy.optimize import brentq
+
+    a0, a1, tau = 100 * 0.01, 1000 * 0.01, L / R
+
+    def current(t):
+        e = np.exp(-t / tau)
+        return a0 / R * (1 - e) + a1 / R * (t - tau * (1 - e))
+
+    t_b = brentq(lambda t: KT * current(t) - TS, 0.0, 1e-2, xtol=1e-15)
+    for res in motor_stiction_runs:
+        first = res.trace["motor.t_slip"][res.trace["motor.t_slip"] > 0][0]
+        assert first == pytest.approx(t_b, abs=1e-9)
