@@ -1,7 +1,9 @@
 """The DC motor's Coulomb friction with stiction (dc_motor, friction="stiction", issue 30): stick,
 breakaway and stick again located inside the FMU's step, against the motor's equations solved
 apart (closed forms of the electrical and mechanical ODEs, SciPy's solve_ivp), for each of the
-block's integrators.  The rotor runs unloaded: bond stiffness and damping 0, leg speed 0."""
+block's integrators (the rotor unloaded: bond stiffness and damping 0, leg speed 0); the
+motor_stiction scene against its monolithic event reference and the closed form of its first
+breakaway."""
 from __future__ import annotations
 
 from pathlib import Path

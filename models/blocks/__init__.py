@@ -8,7 +8,7 @@ the bad name, with the closest valid name as a suggestion.
 | model | fidelities (first = default) | module |
 |---|---|---|
 | ``mechanism`` | ``rigid``, ``multibody``, ``kinematic`` | :mod:`.mechanism` |
-| ``dc_motor`` | ``full``, ``quasistatic``, ``ideal`` | :mod:`.motor` |
+| ``dc_motor`` | ``full``, ``quasistatic``, ``ideal`` | :mod:`.motor` (option ``friction=stiction``: stick and slip modes) |
 | ``pid`` | ``continuous``, ``discrete`` | :mod:`.pid` |
 | ``pose_setpoint`` | ``default`` | :mod:`.setpoint` |
 | ``oscillator`` | ``linear`` | :mod:`.oscillator` (master-algorithm test scenes) |
