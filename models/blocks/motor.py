@@ -149,8 +149,8 @@ def _event_updates(events: dict, xs: list[ca.SX], w: ca.SX) -> dict:
 
 def _build(fidelity: str, rotor: str, integrator: str, substeps: int, friction: str = "viscous") -> Block:
     if friction == "stiction" and rotor != "state":
-        raise BlockError(f"dc_motor ({fidelity}): friction 'stiction' needs rotor 'state' (the rotor speed is the "
-                         f"state that sticks; with rotor 'lumped' it is the leg's)")
+        raise BlockError(f"dc_motor ({fidelity}): friction 'stiction' needs rotor 'state' (set that option too: "
+                         f"the rotor speed is the state that sticks; with rotor 'lumped' it is the leg's)")
     ps = ParamSet()
     electrical = fidelity in ("full", "quasistatic")
     p = _params(ps, electrical, rotor)
