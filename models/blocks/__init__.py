@@ -8,7 +8,7 @@ the bad name, with the closest valid name as a suggestion.
 | model | fidelities (first = default) | module |
 |---|---|---|
 | ``mechanism`` | ``rigid``, ``multibody``, ``kinematic`` | :mod:`.mechanism` |
-| ``dc_motor`` | ``full``, ``quasistatic``, ``ideal`` | :mod:`.motor` |
+| ``dc_motor`` | ``full``, ``quasistatic``, ``ideal`` | :mod:`.motor` (option ``friction=stiction``: stick and slip modes) |
 | ``pid`` | ``continuous``, ``discrete`` | :mod:`.pid` |
 | ``pose_setpoint`` | ``default`` | :mod:`.setpoint` |
 | ``oscillator`` | ``linear`` | :mod:`.oscillator` (master-algorithm test scenes) |
@@ -77,6 +77,9 @@ def _entries() -> dict[str, dict[str, _Entry]]:
     rotor = Option("rotor", "lumped", "rotor inertia: 'lumped' (DESIGN option (b), inertia-free motor; lump "
                                       "m_reflected into the mechanism's leg[i].m_act) or 'state' (option (a): rotor "
                                       "state and a stiff spring-damper bond)", choices=motor.ROTOR)
+    fric = Option("friction", "viscous", "rotor friction: 'viscous' (b w) or 'stiction' (Coulomb torque Tc and "
+                                         "breakaway torque Ts, stick and slip modes located as events; rotor "
+                                         "'state' only)", choices=motor.FRICTION)
     act = Option("actuator", "fa200", "actuator preset giving the parameter defaults: Firgelli FA-200-L-12 or "
                                       "the thesis's 'X' actuator", choices=tuple(actuator.ACTUATORS))
     channels = Option("channels", 1, "number of channels (legs), 1 to 64",
@@ -91,9 +94,9 @@ def _entries() -> dict[str, dict[str, _Entry]]:
             "kinematic": _Entry(mechanism.kinematic, (CONFIG,)),
         },
         "dc_motor": {
-            "full": _Entry(motor.full, (rotor, integrator_option("exact", LINEAR_INTEGRATORS), SUBSTEPS)),
+            "full": _Entry(motor.full, (rotor, integrator_option("exact", LINEAR_INTEGRATORS), SUBSTEPS, fric)),
             "quasistatic": _Entry(motor.quasistatic, (rotor, integrator_option("exact", LINEAR_INTEGRATORS),
-                                                      SUBSTEPS)),
+                                                      SUBSTEPS, fric)),
             "ideal": _Entry(motor.ideal, ()),
         },
         "pid": {

@@ -21,6 +21,26 @@ Rotor inertia ``J`` and viscous friction ``b`` (construction option ``rotor``):
   ``J dw/dt = kt i - b w - rack f`` (defaults: the thesis's parasitic 1e8 N/m and 2000 N s/m).
   Stiff at the interface: the case where co-simulation master algorithms differ.
 
+Rotor friction (construction option ``friction``, with ``rotor="state"`` only: a rotor whose speed
+is the leg's cannot stick):
+
+- ``"viscous"`` (default): ``b w`` only, the equations above.
+- ``"stiction"``: Coulomb friction with stiction, stick and slip as modes whose switches are located
+  events inside the FMU's step (docs/explanation/events.md).  The net drive torque on the rotor is
+  ``T = kt i - rack f`` (electromagnetic torque minus the load through the bond).  Stuck
+  (mode ``stuck`` = 1): ``w = 0``, ``dw/dt = 0`` while ``|T| <= Ts`` (the friction holds ``-T``);
+  it breaks away where ``T`` rises through ``Ts`` (slipping +1) or falls through ``-Ts``
+  (slipping -1).  Slipping in direction ``s`` (mode ``dir``): ``J dw/dt = T - s Tc - b w``; where
+  ``w`` reaches 0 the rotor sticks (``w+ = 0``) if ``|T| <= Ts``, else slips on in the direction
+  of ``T``.  Indicators: ``T - Ts``, ``-T - Ts`` (rising) while stuck, ``s w`` (falling) while
+  slipping (the law of ``sliding_mass``'s ``stiction``, :mod:`.friction`).  ``Ts >= Tc``.  The
+  defaults are assumptions (Table 6.7 gives the viscous ``b`` only): ``Tc`` = 0.02 N m, the torque
+  of a ~0.3 A no-load current (``kt`` 0.3 A), typical of a motor of this size and close to the
+  viscous torque at its 182 rad/s no-load speed (0.016 N m); ``Ts = 1.5 Tc`` = 0.03 N m, a usual
+  static-to-kinetic ratio.  The rotor then breaks away from rest at ``Ts R / kt`` = 0.26 V.
+  Extra outputs: ``friction`` (the friction torque on the rotor [N m]), ``stuck``, ``sticks``
+  (stick events so far), ``t_stick`` and ``t_slip`` (times of the last stick and breakaway).
+
 Torque constant.  Table 6.7 prints the gyrator as "145" without a unit.  Read as a speed constant
 of 145 rpm/V it gives ``kt = 60 / (2 pi 145) = 0.0659 N m/A``; 0.145 N m/A is the other
 candidate (thesis.md §6).  Both were run in the closed-loop scene of Table 6.10 (monolithic CasADi/CVODES
@@ -48,10 +68,13 @@ import math
 
 import casadi as ca
 
-from ..block import Block, Flange, Rating, Var
+from ..block import FALLING, RISING, Block, BlockError, Flange, Rating, Var
 from ._common import INF, ParamSet, solver_params
 
 ROTOR = ("lumped", "state")
+FRICTION = ("viscous", "stiction")
+#: Default Coulomb and breakaway torques [N m] of ``friction="stiction"`` (assumptions: docstring).
+TC_DEFAULT, TS_DEFAULT = 0.02, 0.03
 KT_RPM_PER_V = 60.0 / (2 * math.pi * 145.0)  # 145 rpm/V as N m/A (= V s/rad)
 
 #: Default torque constant [N m/A]: 145 rpm/V (module docstring: the closed-loop study).
@@ -87,7 +110,47 @@ def _params(ps: ParamSet, electrical: bool, rotor: str) -> dict[str, ca.SX]:
     return p
 
 
-def _build(fidelity: str, rotor: str, integrator: str, substeps: int) -> Block:
+def _stiction(ps: ParamSet, p: dict, w: ca.SX, net: ca.SX) -> tuple[ca.SX, list[Var], list[ca.SX], dict]:
+    """The stick and slip law of the module docstring on the rotor state ``w`` under the net drive
+    torque ``net``: ``(J dw/dt, outputs, output expressions, Block.build event keywords)``."""
+    tc = ps.add("Tc", TC_DEFAULT, "N.m", "Coulomb (kinetic) friction torque (assumed: module docstring)", lower=0.0)
+    ts = ps.add("Ts", TS_DEFAULT, "N.m", "breakaway (static) friction torque, >= Tc (assumed: module docstring)",
+                lower=0.0)
+    t = ca.SX.sym("t")
+    stuck, d, sticks = ca.SX.sym("stuck"), ca.SX.sym("dir"), ca.SX.sym("sticks")
+    t_stick, t_slip = ca.SX.sym("t_stick"), ca.SX.sym("t_slip")
+    slipping = stuck == 0
+    friction = ca.if_else(slipping, -d * tc - p["b"] * w, -net)
+    holds = ca.fabs(net) <= ts  # at w = 0 while slipping: stick, else slip on the way T drives
+    stop = (ca.if_else(holds, 0.0, w), [ca.if_else(holds, 1.0, 0.0), ca.if_else(holds, d, ca.sign(net)),
+                                        ca.if_else(holds, sticks + 1, sticks), ca.if_else(holds, t, t_stick),
+                                        ca.if_else(holds, t_slip, t)])
+    outputs = [Var("friction", "N.m", "friction torque on the rotor"), Var("stuck", "1", "1 while stuck, 0 slipping"),
+               Var("sticks", "1", "stick events so far"), Var("t_stick", "s", "time the rotor last stuck"),
+               Var("t_slip", "s", "time the rotor last broke away (or reversed)")]
+    events = dict(
+        modes=[Var("mode.stuck", "1", "1 while stuck"), Var("mode.dir", "1", "slipping direction, +1 or -1"),
+               Var("mode.sticks", "1", "stick events so far"), Var("mode.t_stick", "s", "time of the last stick"),
+               Var("mode.t_slip", "s", "time of the last breakaway")],
+        m=ca.vertcat(stuck, d, sticks, t_stick, t_slip), mode_start=[1.0, 1.0, 0.0, 0.0, 0.0], t=t,
+        indicators=ca.vertcat(ca.if_else(slipping, -1.0, net - ts), ca.if_else(slipping, -1.0, -net - ts),
+                              ca.if_else(slipping, d * w, 0.0)),
+        directions=[RISING, RISING, FALLING], event_names=["breakaway+", "breakaway-", "stick"],
+        updates=[(ca.SX(0.0), [0.0, 1.0, sticks, t_stick, t]), (ca.SX(0.0), [0.0, -1.0, sticks, t_stick, t]), stop])
+    return ca.if_else(slipping, net + friction, 0.0), outputs, [friction, stuck, sticks, t_stick, t_slip], events
+
+
+def _event_updates(events: dict, xs: list[ca.SX], w: ca.SX) -> dict:
+    """Full ``(x, m)`` updates from the stiction law's ``(w+, m+)`` pairs: the other states kept."""
+    events["updates"] = [ca.vertcat(*[new_w if ca.is_equal(s, w) else s for s in xs], *[ca.SX(v) for v in modes])
+                         for new_w, modes in events["updates"]]
+    return events
+
+
+def _build(fidelity: str, rotor: str, integrator: str, substeps: int, friction: str = "viscous") -> Block:
+    if friction == "stiction" and rotor != "state":
+        raise BlockError(f"dc_motor ({fidelity}): friction 'stiction' needs rotor 'state' (set that option too: "
+                         f"the rotor speed is the state that sticks; with rotor 'lumped' it is the leg's)")
     ps = ParamSet()
     electrical = fidelity in ("full", "quasistatic")
     p = _params(ps, electrical, rotor)
@@ -115,9 +178,14 @@ def _build(fidelity: str, rotor: str, integrator: str, substeps: int) -> Block:
     else:
         i = (volt - p["kt"] * w) / p["R"]
     torque = p["kt"] * i
+    extra_out, extra, events = [], [], {}
     if rotor == "state":
         f = p["k_bond"] * d_sym + p["c_bond"] * (p["rack"] * w - v)
-        dw = (torque - p["b"] * w - p["rack"] * f) / p["J"]
+        if friction == "stiction":
+            jdw, extra_out, extra, events = _stiction(ps, p, w_sym, torque - p["rack"] * f)
+        else:
+            jdw = torque - p["b"] * w - p["rack"] * f
+        dw = jdw / p["J"]
         dd = p["rack"] * w - v
     else:
         f = (torque - p["b"] * w) / p["rack"]
@@ -134,26 +202,30 @@ def _build(fidelity: str, rotor: str, integrator: str, substeps: int) -> Block:
                                                 "mechanism's leg[i].m_act"))
         out.append(p["J"] / p["rack"] ** 2)
     xs = ca.vertcat(*xs_list) if xs_list else ca.SX(0, 1)
+    if events:
+        events = _event_updates(events, xs_list, w_sym)
     solver_params(ps, integrator if xs_list else "none")
+    law = ", Coulomb friction with stiction" if friction == "stiction" else ""
     return Block.build(
-        "dc_motor", description=f"DC motor with rack and pinion ({fidelity}, rotor {rotor}; thesis Table 6.7)",
-        params=ps.params, inputs=list(INPUTS), outputs=outputs, states=states, p=ps.vector(), u=u, x=xs,
-        ode=ca.vertcat(*ode) if ode else ca.SX(0, 1), out=ca.vertcat(*out),
+        "dc_motor", description=f"DC motor with rack and pinion ({fidelity}, rotor {rotor}{law}; thesis Table 6.7)",
+        params=ps.params, inputs=list(INPUTS), outputs=outputs + extra_out, states=states, p=ps.vector(), u=u, x=xs,
+        ode=ca.vertcat(*ode) if ode else ca.SX(0, 1), out=ca.vertcat(*out, *extra),
         start=ca.vertcat(*[ca.SX(s) for s in start]) if start else ca.SX(0, 1),
         integrator=integrator if xs_list else "none", substeps=substeps, flanges=[FLANGE], fidelity=fidelity,
-        ratings=dict(RATINGS))
+        ratings=dict(RATINGS), **events)
 
 
-def full(rotor: str = "lumped", integrator: str = "exact", substeps: int = 1) -> Block:
+def full(rotor: str = "lumped", integrator: str = "exact", substeps: int = 1, friction: str = "viscous") -> Block:
     """Armature current state (pole ``-R/L`` ~ -2290 1/s: stiff).  The equations are linear, so
     the default integrator is ``exact`` (:func:`models.integrators.exact_kernel`): exact and
     stable at any step, cheaper than a Radau step (no Newton iteration)."""
-    return _build("full", rotor, integrator, substeps)
+    return _build("full", rotor, integrator, substeps, friction)
 
 
-def quasistatic(rotor: str = "lumped", integrator: str = "exact", substeps: int = 1) -> Block:
+def quasistatic(rotor: str = "lumped", integrator: str = "exact", substeps: int = 1,
+                friction: str = "viscous") -> Block:
     """``L = 0``: the current follows the voltage at once.  No state with ``rotor="lumped"``."""
-    return _build("quasistatic", rotor, integrator, substeps)
+    return _build("quasistatic", rotor, integrator, substeps, friction)
 
 
 def ideal() -> Block:
