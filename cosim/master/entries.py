@@ -115,7 +115,7 @@ _STATS = ("int64_t", "master_ns", "wall time in this loop outside the slaves' ca
 #: event handling returns to Python (the event iteration).
 _VARIABLE_EVENTS = (
     ("int32_t", "n_event", "slaves in FMI 3.0 event mode (0: none; then no step is cut)"),
-    ("int32_t", "events_here", "in/out: events in a row without a step between them (AdaptiveStepper._events_here)"),
+    ("int32_t", "events_here", "in/out: events in a row within one output interval (AdaptiveStepper._events_here)"),
     ("int64_t", "event_cuts", "statistics: steps retaken to end at an event"),
     ("int64_t", "t_e_ns", "NO_PROGRESS: the early return's time [ns], the step's start"),
 )

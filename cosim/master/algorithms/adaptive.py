@@ -129,7 +129,8 @@ class AdaptiveStepper(EventIteration, Outcome):
         self.bind_events(system)
         #: the last accepted step ended at an event (a StepResult for the run loop), else None
         self.pending_event: StepResult | None = None
-        self._events_here = 0  # events in a row without a step of positive length between them
+        self._events_here = 0  # events in a row within one output interval (one instant without a grid)
+        self._event_window = -1  # that interval's index (the instant [ns] without a grid)
         sysm, n = system, len(system.slaves)
         for s in sysm.slaves if self.needs_rollback else ():
             if not s.can_rollback:
@@ -330,11 +331,15 @@ class AdaptiveStepper(EventIteration, Outcome):
         if not asking:
             self._events_here = 0
             return
+        window = (self.t_ns - self.start_ns) // self.grid_ns if self.grid_ns else self.t_ns
+        if window != self._event_window:  # the first event of another output interval: a new count
+            self._events_here, self._event_window = 0, window
         self._events_here += 1
         if self._events_here > MAX_EVENTS_PER_STEP:
             self.failed_slave = asking[0]
+            span = "within one output interval" if self.grid_ns else "at one instant"
             self.end("failed", f"{self.system.slaves[asking[0]].name}: more than {MAX_EVENTS_PER_STEP} events in a row "
-                               f"without a step between them at t = {self.t:.9g} s (chattering)")
+                               f"{span}, at t = {self.t:.9g} s (chattering)")
             return
         self.pending_event = StepResult(self.t_ns, True, asking[0], "event")
 
