@@ -24,6 +24,12 @@ def _output_pattern(pat: str) -> re.Pattern:
                       .replace("\0", r"\[").replace("\1", r"\]"))
 
 
+def _matched(comp: Component) -> tuple[str, ...]:
+    """The causalities an ``outputs:`` pattern reaches in ``comp``: inputs and outputs, and of a
+    Modelica component also its locals (every variable by its Modelica name, ``osc.mass1.*``)."""
+    return ("output", "input", "local") if comp.fidelity == "modelica" else ("output", "input")
+
+
 class MasterChecks(Checker):
     """Checks of ``master:``, the times and ``outputs:``."""
 
@@ -295,7 +301,7 @@ class MasterChecks(Checker):
 
     def outputs(self, comps: dict[str, Component]) -> list[str]:
         node = self.tree.get("outputs")
-        signals = [f"{c.name}.{v}" for c in comps.values() for v in c.description.of("output", "input")
+        signals = [f"{c.name}.{v}" for c in comps.values() for v in c.description.of(*_matched(c))
                    if c.description.variables[v].type in TYPES]
         if node is None:
             return [f"{c.name}.{v}" for c in comps.values() for v in c.description.of("output")
