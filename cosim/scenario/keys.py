@@ -15,7 +15,7 @@ TOP = {
     "connections": "list of `src.output -> dst.input [* factor + offset] [as TYPE]` signals and "
                    "`a.port <-> b.port` power bonds",
     "master": "the master algorithm and its settings, see below",
-    "outputs": "the recorded variables: `component.variable` names or globs (`mech.platform.*`, `motor*.i`; a glob reaches inputs and outputs, and every variable of a Modelica component)",
+    "outputs": "the recorded variables: `component.variable` names or globs (`mech.platform.*`, `motor*.i`; a glob reaches inputs and outputs, and every variable of a Modelica component: `osc.mass1.*`, `osc.*`, where its component part matches the component's name)",
     "fidelity_tolerance": "tolerance of `fidelity: auto` (relative to range, default 1e-3)",
     "fidelity_signals": "globs of the signals `fidelity: auto` compares (default: every recorded signal)",
     "guards": "the physical guards (`stroke`, `rated`, `singularity`, `unstable`: stop | warn | off; "
