@@ -1094,7 +1094,14 @@ class _Translation:
             return None
         relations = [r["relation"] for r in st.get("relations", [])]
         conditions = st.get("conditions", [])
-        chains = self._chain_modes(conditions, relations)
+        # each relation's truth at an event, read on its far side (the discrete equations settled there)
+        self.far_sides = {}
+        for rel in relations:
+            try:
+                self.far_sides[rel["expression"]] = self._far_side(rel, b)
+            except ModelicaError:  # one not read out of its context (a function's): the settling reads none
+                continue
+        chains = self._chain_modes(conditions, relations, b)
         self._assertion_modes(b)
         xs = [sym for _, sym, _ in b._states]
         ms = list(self.mode_syms.values())
@@ -1222,7 +1229,7 @@ class _Translation:
             "event_names": names, "updates": updates, "sample_times": samples}
         return self.event_fields
 
-    def _chain_modes(self, conditions: list, relations: list) -> list[list[tuple]]:
+    def _chain_modes(self, conditions: list, relations: list, b: BlockBuilder) -> list[list[tuple]]:
         """The when/elsewhen chains as ``[(condition, truth, mode)]`` per branch: each branch's
         condition (rumoca's, found by its source span), its truth (0/1 in ``t, x, u, p, m`` and the
         solved variables) and a mode holding that truth's left value (``pre`` of the condition),
@@ -1242,7 +1249,7 @@ class _Translation:
                     raise ModelicaError(self.filename, self._offset_line(span[1]),
                                         "an elsewhen branch's condition other than one relation on states, "
                                         "inputs or parameters (initial(), sample(), edge() or and/or in a chain)")
-                truth = self.graph(relations[node["relation"]]["expression"])
+                truth = self._far_side(relations[node["relation"]], b)
                 key = -(len(self.condition_vars) + 1)
                 name = f"mode.when{j + 1}.c{k + 1}"
                 sym = ca.SX.sym(name)
@@ -1254,6 +1261,26 @@ class _Translation:
                 chain.append((c, truth, sym))
             out.append(chain)
         return out
+
+    def _far_side(self, relation: dict, b: BlockBuilder) -> ca.SX:
+        """A relation's truth (0/1) at an event, read on the side it moves to: where its indicator
+        ``z = lhs - rhs`` is exactly zero (the event located on the threshold, e.g. ``x > 1`` on
+        ``x = t`` at a grid instant ``t = 1``) the sign of ``dz/dt`` along the states' derivatives
+        decides (inputs' slopes are not seen), so the branch crossing there applies there and not at
+        the next event; where ``dz/dt`` is zero too, the relation as written.  Stateless, so two
+        conditions crossing at one instant read the same truth in each update."""
+        (kind, body), = self.nodes[relation["expression"]].items()
+        written = self.graph(relation["expression"])
+        if kind != "binary" or body["operator"] not in _REL:
+            return written
+        z = self.graph(body["lhs"]) - self.graph(body["rhs"])
+        if self.solved is not None:
+            z = ca.substitute(z, *self.solved)
+        xs = [sym for _, sym, _ in b._states]
+        rates = [b._ders.get(sym.name(), ca.SX(0.0)) for sym in xs]
+        zdot = ca.jtimes(z, ca.vertcat(self.time, *xs), ca.vertcat(1.0, *rates))
+        moving = zdot > 0 if body["operator"] in ("greater", "greater_equal") else zdot < 0
+        return ca.if_else(ca.logic_and(z == 0, zdot != 0), moving, written)
 
     def _chain_update(self, chain: list, triggers: dict, xs: list, ms: list, b: BlockBuilder) -> ca.SX:
         """``[x+; m+]`` of a when/elsewhen chain at any of its conditions' crossings: the first
@@ -1391,9 +1418,12 @@ class _Translation:
 
     def _settle(self, xs: list, ms: list) -> ca.SX:
         """The modes after solving the always-active discrete equations at ``(t, x, u, p, m)``
-        (a fixed point, reached in at most one round per such variable: they are acyclic)."""
+        (a fixed point, reached in at most one round per such variable: they are acyclic), each
+        relation read on its far side (:meth:`_far_side`)."""
         keys = list(self.mode_syms)
-        values = {k: self.graph(node) for k, node in self.always.items()}
+        g = dataclasses.replace(self.graph)
+        g.memo.update(self.far_sides)  # a relation on its threshold at the event: the side it moves to
+        values = {k: g(node) for k, node in self.always.items()}
         if self.solved is not None:
             values = {k: ca.substitute(v, *self.solved) for k, v in values.items()}
         m = ca.vertcat(*ms)

@@ -265,6 +265,64 @@ def test_elsewhen_the_first_branch_whose_condition_becomes_true_wins(tmp_path):
     assert np.max(np.abs(np.asarray(tr["c.t_last"])[~near] - t_last[~near])) < 1e-6
 
 
+ON_THE_THRESHOLD = """model OnTheThreshold "x = t - 2 meets each threshold at an instant exact in binary"
+  Real x(start = -2);
+  Integer hist(start = 0) "the branches fired, one digit each";
+  discrete Real t_last(start = -1);
+  Integer k(start = 0);
+  Integer n = if x > -0.625 then 3 else 1;
+equation
+  der(x) = 1;
+  when x > -1.125 then
+    hist = 10 * pre(hist) + 1;
+    t_last = time;
+  elsewhen x * x > 1 then
+    hist = 10 * pre(hist) + 2;
+    t_last = time;
+  elsewhen x > 1 then
+    hist = 10 * pre(hist) + 3;
+    t_last = time;
+  elsewhen x > 1.75 then
+    hist = 10 * pre(hist) + 4;
+    t_last = time;
+  end when;
+  when sample(0, 0.25) then
+    k = pre(k) + 1;
+  end when;
+end OnTheThreshold;
+"""
+
+
+@pytest.mark.parametrize("options", ["{}", "{integrator: rk4, substeps: 4}", "{integrator: radau, substeps: 2}"])
+def test_a_branch_whose_crossing_lands_on_its_threshold_applies_there(tmp_path, options):
+    """Each crossing's event state has its indicator exactly zero (exact) or a rounding either side
+    (radau): branch 1 at 0.875 (x = -1.125 inside a step, a substep boundary for rk4); at 3, a
+    communication point, x * x > 1 and x > 1 become true together and branch 2 wins (x * x > 1
+    fell false at 1, itself a communication point and a sample instant); branch 4 at 3.75, a
+    sample instant; n, always active, switches to 3 at 1.375.  Hand-computed; before, the relation read at a zero indicator kept its old
+    value and each branch applied at the chain's next event or never (hist 1 then 12 at 3.75,
+    and under radau the crossing at 3, 2e-16 after a sample, was lost; n stayed 1)."""
+    text = ON_THE_THRESHOLD
+    (tmp_path / "OnTheThreshold.mo").write_text(text)
+    scene = tmp_path / "scene.yaml"
+    scene.write_text(f"stop_time: 4.5\ncomponents:\n  c: {{modelica: OnTheThreshold.mo, model: OnTheThreshold, "
+                     f"options: {options}}}\nconnections: []\n"
+                     f"master: {{algorithm: jacobi, step: 0.5, estimate: false}}\noutputs: [c.hist, c.t_last, c.k, c.n]\n")
+    res = run(scene, [], out_dir=tmp_path / "out")
+    assert res.ok, res.reason
+    t = np.asarray(res.trace["time"])
+    events = [(0.875, 1), (3.0, 2), (3.75, 4)]
+    hist, t_last = np.zeros_like(t), np.full_like(t, -1.0)
+    for te, digit in events:
+        later = t > te
+        hist[later] = 10 * hist[later] + digit
+        t_last[later] = te
+    assert np.array_equal(np.asarray(res.trace["c.hist"])[t != 3.0], hist[t != 3.0])
+    assert np.max(np.abs(np.asarray(res.trace["c.t_last"])[t != 3.0] - t_last[t != 3.0])) < 1e-9
+    assert np.array_equal(np.asarray(res.trace["c.n"]), np.where(t > 1.375, 3.0, 1.0))
+    assert res.trace["c.k"][-1] == 18  # the samples at 0, 0.25, ..., 4.25 all taken
+
+
 @pytest.mark.parametrize("body, line, what", [
     ("  when change(y) then\n    y = 1;\n  end when;", 6, "change()"),
     ("  when x > 1 then\n    y = 1;\n  elsewhen sample(0, 0.1) then\n    y = 2;\n  end when;", 8,
