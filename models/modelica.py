@@ -800,9 +800,14 @@ def refuse_unsupported(text: str, filename: str) -> None:
     unsupported(text, filename)
 
 
+#: A flange's causality: ``effort_out`` computes the force from the partner's velocity,
+#: ``flow_out`` the velocity from the partner's force.
+CAUSALITIES = ("effort_out", "flow_out")
+
+
 def translate(text: str, model: str, filename: str = "model.mo", *, name: str | None = None,
               integrator: str = "auto", substeps: int = 1, roots: tuple[str, ...] = (),
-              compiled: dict | None = None, scan: bool = True) -> Block:
+              compiled: dict | None = None, scan: bool = True, causality: dict[str, str] | None = None) -> Block:
     """The :class:`Block` of Modelica ``model`` in ``text`` (``filename`` names it in messages).
 
     ``name`` is the block's name (default: the model's last name part, lower case);
@@ -811,14 +816,20 @@ def translate(text: str, model: str, filename: str = "model.mo", *, name: str | 
     uses; ``compiled`` is :func:`front_end`'s result when the caller has it (then rumoca is not
     run); ``scan`` refuses the unsupported constructs found in ``text`` by their line first (off
     for a library's file, whose other classes may use anything: the flattened class is checked
-    all the same).  Raises :class:`ModelicaError` (``file:line: what``)."""
+    all the same); ``causality`` states a flange's causality (flange name -> ``effort_out`` or
+    ``flow_out``) where the equations allow both (else the first they allow, ``effort_out``
+    first).  Raises :class:`ModelicaError` (``file:line: what``)."""
     if integrator not in INTEGRATORS:
         raise ModelicaError(filename, None, f"integrator {integrator!r}; expected one of {', '.join(INTEGRATORS)}")
     if scan:
         refuse_unsupported(text, filename)
     fe = compiled if compiled is not None else front_end(text, model, filename, roots)
-    return _Translation(text, filename, fe["dae"]["storage"], fe["flat"], fe["name"],
-                        name or model.split(".")[-1].lower()).block(integrator, substeps)
+    tr = _Translation(text, filename, fe["dae"]["storage"], fe["flat"], fe["name"], name or model.split(".")[-1].lower())
+    bad = [f"{k}: {v}" for k, v in (causality or {}).items() if v not in CAUSALITIES]
+    if bad:
+        raise ModelicaError(filename, None, f"causality {bad[0]!r}; expected one of {', '.join(CAUSALITIES)}")
+    tr.causality = dict(causality or {})
+    return tr.block(integrator, substeps)
 
 
 def _rumoca_version() -> str:
@@ -1779,9 +1790,15 @@ class _Translation:
         or a spring's relative position that fixes a mass's one) are reduced first
         (:meth:`_reduce_index`).  A flange whose other causality the equations do not allow gets
         the reason in ``fl["why"]`` (the bond check names it when a partner needs that other one)."""
-        options = []
+        both, options = [], []
         for fl in flanges:  # effort_out: the potential is given (an input); flow_out: the flow is given
-            options.append([("effort_out", ("algebraic", fl["potential"])), ("flow_out", ("algebraic", fl["flow"]))])
+            both.append([("effort_out", ("algebraic", fl["potential"])), ("flow_out", ("algebraic", fl["flow"]))])
+            stated = self.causality.get(fl["name"])  # a scene's choice
+            options.append([o for o in both[-1] if o[0] == stated] if stated else both[-1])
+        unknown_flanges = sorted(set(self.causality) - {fl["name"] for fl in flanges})
+        if unknown_flanges:
+            raise ModelicaError(self.filename, None, f"causality of {unknown_flanges[0]!r}: the model has no such "
+                                                     f"flange (flanges: {', '.join(fl['name'] for fl in flanges) or 'none'})")
         choices = list(product(*options)) if flanges else [()]
         for reduce in (False, True):
             for choice in choices:
@@ -1790,11 +1807,16 @@ class _Translation:
                     continue
                 rows, keys, res = found
                 for i, fl in enumerate(flanges):
-                    other = next(o for o in options[i] if o != choice[i])
+                    other = next(o for o in both[i] if o != choice[i])
                     fl["why"] = self._refused(b, residuals, unknown, choice[:i] + (other,) + choice[i + 1:], flanges)
                 subst = self._inputs_for(b, flanges, choice, unknown)
                 r = ca.substitute(res, ca.vertcat(*subst.keys()), ca.vertcat(*subst.values())) if subst else res
                 return self._sorted_solve(r, keys, unknown, rows), choice
+        if self.causality:  # the stated causality is refused with the reason, when the other would do
+            stated = tuple(opts[0] for opts in options)
+            why = self._refused(b, residuals, unknown, stated, flanges) or "they would not determine its variables"
+            names = ", ".join(f"{fl['name']}: {c}" for fl, (c, _) in zip(flanges, stated) if fl["name"] in self.causality)
+            raise ModelicaError(self.filename, None, f"causality {names}: the equations do not allow it: {why}")
         n_eq = len(residuals)
         raise ModelicaError(self.filename, None, f"the equations do not determine the model's variables: {n_eq} "
                                                  f"equations for {len(unknown) - len(flanges)} unknowns (states' "
@@ -1839,6 +1861,7 @@ class _Translation:
             self.index_problem = kept
 
     index_problem = ""
+    causality: dict = {}  # flange name -> the causality a scene states (translate's causality)
     _PRIORITY = {"Never": 0, "Avoid": 1, "Default": 2, "Prefer": 3, "Always": 4}
 
     def _reduce_index(self, b: BlockBuilder, rows: list, keys: list, unknown: dict, rates: dict | None = None):

@@ -30,7 +30,9 @@ COMPONENT = {
     "model": "a catalog model (`rpr-cosim fmu list`): mechanism, dc_motor, pid, pose_setpoint, ...",
     "fidelity": "the model's fidelity level (e.g. rigid, multibody, kinematic), or `auto` (the cheapest within "
                 "`fidelity_tolerance`)",
-    "options": "the model's build options (e.g. `config`, `integrator`, `substeps`)",
+    "options": "the model's build options (e.g. `config`, `integrator`, `substeps`; a Modelica component's "
+               "`causality: {FLANGE: effort_out | flow_out}` states which side of a bond computes the force where "
+               "the model allows both)",
     "params": "parameter values by name (units as `rpr-cosim fmu show` lists them; structural parameters of FMI 3.0 "
               "FMUs too)",
     "start": "start values of inputs and of variables with initial = exact or approx",
