@@ -499,3 +499,17 @@ def test_an_initial_algorithm_sets_discrete_start_values(tmp_path):
     t = np.asarray(tr["time"])
     assert np.max(np.abs(tr["c.x"] - 6 * np.exp(-t))) < 1e-5
     assert set(np.asarray(tr["c.t0"])) == {6.0}
+
+
+def test_a_relation_on_a_state_in_the_derivative_is_not_taken_for_a_linear_model(tmp_path):
+    """``der(x) = if x > 0.9 then 2 else 1`` has a Jacobian free of x (each branch is constant),
+    but it is not affine: the exact integrator took its value at x = 0 for every x, slope 1
+    throughout (x(2) = 2.0).  Now it integrates by Radau: x = t until 0.9, then 0.9 + 2 (t - 0.9),
+    x(2) = 3.1 (the step across the switch costs about h / 9: 1.1e-3 at h = 0.01)."""
+    text = "model Switching\n  Real x(start = 0);\nequation\n  der(x) = if x > 0.9 then 2 else 1;\nend Switching;\n"
+    assert translate(text, "Switching", "Switching.mo").integrator == "radau"
+    assert translate(text.replace("x > 0.9", "time > 0.9"), "Switching", "Switching.mo").integrator == "radau"
+    tr = simulate(tmp_path, text, "Switching", 2.0, 0.01, ["x"])
+    t, x = np.asarray(tr["time"]), np.asarray(tr["c.x"])
+    assert abs(x[-1] - 3.1) < 2e-3
+    assert np.max(np.abs(x - np.where(t < 0.9, t, 0.9 + 2 * (t - 0.9)))) < 2e-3
