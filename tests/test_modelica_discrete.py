@@ -13,6 +13,7 @@ import pytest
 pytest.importorskip("rumoca")
 
 from cosim.run.execute import run  # noqa: E402
+from cosim.run.reference import reference  # noqa: E402
 from models.modelica import ModelicaError, translate  # noqa: E402
 
 
@@ -321,6 +322,13 @@ def test_a_branch_whose_crossing_lands_on_its_threshold_applies_there(tmp_path, 
     assert np.max(np.abs(np.asarray(res.trace["c.t_last"])[t != 3.0] - t_last[t != 3.0])) < 1e-9
     assert np.array_equal(np.asarray(res.trace["c.n"]), np.where(t > 1.375, 3.0, 1.0))
     assert res.trace["c.k"][-1] == 18  # the samples at 0, 0.25, ..., 4.25 all taken
+    if options == "{}":  # the event reference too (it lost the crossings at the sample instants 3 and 3.75)
+        ref = reference(scene, [])
+        assert ref.ok, ref.reason
+        rt = np.asarray(ref.trace["time"])
+        later = rt > 3.75 + 1e-9
+        assert np.all(np.asarray(ref.trace["c.hist"])[later] == 124)
+        assert np.max(np.abs(np.asarray(ref.trace["c.t_last"])[later] - 3.75)) < 1e-9
 
 
 @pytest.mark.parametrize("body, line, what", [
