@@ -447,13 +447,45 @@ def radau_memory_kernel(block: Block, **newton) -> ca.Function:
     # (hF and hZ are kept in units of the communication step h: a call with another h starts afresh)
 
 
+#: CasADi operations whose value jumps where an operand crosses a value (relations, floor, ceil,
+#: sign): their derivative is zero, so a Jacobian free of ``x`` does not make an expression that
+#: reads ``x`` through them affine (``if x > 1 then 2 else 1``).
+_JUMPS = {ca.OP_LT, ca.OP_LE, ca.OP_EQ, ca.OP_NE, ca.OP_FLOOR, ca.OP_CEIL, ca.OP_SIGN}
+
+
+def _switches_on(expr: ca.SX, args: list[ca.SX], inputs: set[int]) -> bool:
+    """Whether ``expr`` (a function of ``args``) reads one of ``args[i]``, ``i`` in ``inputs``,
+    through a jump (:data:`_JUMPS`, or the condition of an if-expression)."""
+    f = ca.Function("switches", args, [expr])
+    dep: dict[int, bool] = {}
+    for k in range(f.n_instructions()):
+        op, ins, outs = f.instruction_id(k), f.instruction_input(k), f.instruction_output(k)
+        if op == ca.OP_INPUT:
+            dep[outs[0]] = ins[0] in inputs
+            continue
+        if op in (ca.OP_OUTPUT, ca.OP_CONST):
+            if op == ca.OP_CONST:
+                dep[outs[0]] = False
+            continue
+        read = [dep.get(i, False) for i in ins]
+        if (op in _JUMPS and any(read)) or (op == ca.OP_IF_ELSE_ZERO and read and read[0]):
+            return True
+        for o in outs:
+            dep[o] = any(read)
+    return False
+
+
 def affine_parts(block: Block) -> tuple[ca.SX, ca.SX, ca.SX] | None:
     """``(A, B, c)`` with ``ode = A x + B u + c`` when the block's ``ode`` is affine in ``x`` and
-    ``u`` (its Jacobians depend on the parameters only), else ``None``."""
+    ``u`` (its Jacobians depend on the parameters only, and no relation on ``x`` or ``u``
+    switches it), else ``None``."""
     xu = ca.vertcat(block.x, block.u)
     A = ca.jacobian(block.ode, block.x)
     B = ca.jacobian(block.ode, block.u)
     if ca.depends_on(A, xu) or ca.depends_on(B, xu):
+        return None
+    others = [v for v in ca.symvar(block.ode) if not ca.depends_on(v, xu)]  # parameters, modes
+    if _switches_on(block.ode, [xu, ca.vertcat(*others) if others else ca.SX(0, 1)], {0}):
         return None
     c = ca.substitute(block.ode, xu, ca.DM.zeros(xu.numel()))
     return A, B, c

@@ -800,9 +800,14 @@ def refuse_unsupported(text: str, filename: str) -> None:
     unsupported(text, filename)
 
 
+#: A flange's causality: ``effort_out`` computes the force from the partner's velocity,
+#: ``flow_out`` the velocity from the partner's force.
+CAUSALITIES = ("effort_out", "flow_out")
+
+
 def translate(text: str, model: str, filename: str = "model.mo", *, name: str | None = None,
               integrator: str = "auto", substeps: int = 1, roots: tuple[str, ...] = (),
-              compiled: dict | None = None, scan: bool = True) -> Block:
+              compiled: dict | None = None, scan: bool = True, causality: dict[str, str] | None = None) -> Block:
     """The :class:`Block` of Modelica ``model`` in ``text`` (``filename`` names it in messages).
 
     ``name`` is the block's name (default: the model's last name part, lower case);
@@ -811,14 +816,20 @@ def translate(text: str, model: str, filename: str = "model.mo", *, name: str | 
     uses; ``compiled`` is :func:`front_end`'s result when the caller has it (then rumoca is not
     run); ``scan`` refuses the unsupported constructs found in ``text`` by their line first (off
     for a library's file, whose other classes may use anything: the flattened class is checked
-    all the same).  Raises :class:`ModelicaError` (``file:line: what``)."""
+    all the same); ``causality`` states a flange's causality (flange name -> ``effort_out`` or
+    ``flow_out``) where the equations allow both (else the first they allow, ``effort_out``
+    first).  Raises :class:`ModelicaError` (``file:line: what``)."""
     if integrator not in INTEGRATORS:
         raise ModelicaError(filename, None, f"integrator {integrator!r}; expected one of {', '.join(INTEGRATORS)}")
     if scan:
         refuse_unsupported(text, filename)
     fe = compiled if compiled is not None else front_end(text, model, filename, roots)
-    return _Translation(text, filename, fe["dae"]["storage"], fe["flat"], fe["name"],
-                        name or model.split(".")[-1].lower()).block(integrator, substeps)
+    tr = _Translation(text, filename, fe["dae"]["storage"], fe["flat"], fe["name"], name or model.split(".")[-1].lower())
+    bad = [f"{k}: {v}" for k, v in (causality or {}).items() if v not in CAUSALITIES]
+    if bad:
+        raise ModelicaError(filename, None, f"causality {bad[0]!r}; expected one of {', '.join(CAUSALITIES)}")
+    tr.causality = dict(causality or {})
+    return tr.block(integrator, substeps)
 
 
 def _rumoca_version() -> str:
@@ -1094,7 +1105,14 @@ class _Translation:
             return None
         relations = [r["relation"] for r in st.get("relations", [])]
         conditions = st.get("conditions", [])
-        chains = self._chain_modes(conditions, relations)
+        # each relation's truth at an event, read on its far side (the discrete equations settled there)
+        self.far_sides = {}
+        for rel in relations:
+            try:
+                self.far_sides[rel["expression"]] = self._far_side(rel, b)
+            except ModelicaError:  # one not read out of its context (a function's): the settling reads none
+                continue
+        chains = self._chain_modes(conditions, relations, b)
         self._assertion_modes(b)
         xs = [sym for _, sym, _ in b._states]
         ms = list(self.mode_syms.values())
@@ -1222,7 +1240,7 @@ class _Translation:
             "event_names": names, "updates": updates, "sample_times": samples}
         return self.event_fields
 
-    def _chain_modes(self, conditions: list, relations: list) -> list[list[tuple]]:
+    def _chain_modes(self, conditions: list, relations: list, b: BlockBuilder) -> list[list[tuple]]:
         """The when/elsewhen chains as ``[(condition, truth, mode)]`` per branch: each branch's
         condition (rumoca's, found by its source span), its truth (0/1 in ``t, x, u, p, m`` and the
         solved variables) and a mode holding that truth's left value (``pre`` of the condition),
@@ -1242,7 +1260,7 @@ class _Translation:
                     raise ModelicaError(self.filename, self._offset_line(span[1]),
                                         "an elsewhen branch's condition other than one relation on states, "
                                         "inputs or parameters (initial(), sample(), edge() or and/or in a chain)")
-                truth = self.graph(relations[node["relation"]]["expression"])
+                truth = self._far_side(relations[node["relation"]], b)
                 key = -(len(self.condition_vars) + 1)
                 name = f"mode.when{j + 1}.c{k + 1}"
                 sym = ca.SX.sym(name)
@@ -1254,6 +1272,26 @@ class _Translation:
                 chain.append((c, truth, sym))
             out.append(chain)
         return out
+
+    def _far_side(self, relation: dict, b: BlockBuilder) -> ca.SX:
+        """A relation's truth (0/1) at an event, read on the side it moves to: where its indicator
+        ``z = lhs - rhs`` is exactly zero (the event located on the threshold, e.g. ``x > 1`` on
+        ``x = t`` at a grid instant ``t = 1``) the sign of ``dz/dt`` along the states' derivatives
+        decides (inputs' slopes are not seen), so the branch crossing there applies there and not at
+        the next event; where ``dz/dt`` is zero too, the relation as written.  Stateless, so two
+        conditions crossing at one instant read the same truth in each update."""
+        (kind, body), = self.nodes[relation["expression"]].items()
+        written = self.graph(relation["expression"])
+        if kind != "binary" or body["operator"] not in _REL:
+            return written
+        z = self.graph(body["lhs"]) - self.graph(body["rhs"])
+        if self.solved is not None:
+            z = ca.substitute(z, *self.solved)
+        xs = [sym for _, sym, _ in b._states]
+        rates = [b._ders.get(sym.name(), ca.SX(0.0)) for sym in xs]
+        zdot = ca.jtimes(z, ca.vertcat(self.time, *xs), ca.vertcat(1.0, *rates))
+        moving = zdot > 0 if body["operator"] in ("greater", "greater_equal") else zdot < 0
+        return ca.if_else(ca.logic_and(z == 0, zdot != 0), moving, written)
 
     def _chain_update(self, chain: list, triggers: dict, xs: list, ms: list, b: BlockBuilder) -> ca.SX:
         """``[x+; m+]`` of a when/elsewhen chain at any of its conditions' crossings: the first
@@ -1391,9 +1429,12 @@ class _Translation:
 
     def _settle(self, xs: list, ms: list) -> ca.SX:
         """The modes after solving the always-active discrete equations at ``(t, x, u, p, m)``
-        (a fixed point, reached in at most one round per such variable: they are acyclic)."""
+        (a fixed point, reached in at most one round per such variable: they are acyclic), each
+        relation read on its far side (:meth:`_far_side`)."""
         keys = list(self.mode_syms)
-        values = {k: self.graph(node) for k, node in self.always.items()}
+        g = dataclasses.replace(self.graph)
+        g.memo.update(self.far_sides)  # a relation on its threshold at the event: the side it moves to
+        values = {k: g(node) for k, node in self.always.items()}
         if self.solved is not None:
             values = {k: ca.substitute(v, *self.solved) for k, v in values.items()}
         m = ca.vertcat(*ms)
@@ -1749,9 +1790,15 @@ class _Translation:
         or a spring's relative position that fixes a mass's one) are reduced first
         (:meth:`_reduce_index`).  A flange whose other causality the equations do not allow gets
         the reason in ``fl["why"]`` (the bond check names it when a partner needs that other one)."""
-        options = []
+        both, options = [], []
         for fl in flanges:  # effort_out: the potential is given (an input); flow_out: the flow is given
-            options.append([("effort_out", ("algebraic", fl["potential"])), ("flow_out", ("algebraic", fl["flow"]))])
+            both.append([("effort_out", ("algebraic", fl["potential"])), ("flow_out", ("algebraic", fl["flow"]))])
+            stated = self.causality.get(fl["name"])  # a scene's choice
+            options.append([o for o in both[-1] if o[0] == stated] if stated else both[-1])
+        unknown_flanges = sorted(set(self.causality) - {fl["name"] for fl in flanges})
+        if unknown_flanges:
+            raise ModelicaError(self.filename, None, f"causality of {unknown_flanges[0]!r}: the model has no such "
+                                                     f"flange (flanges: {', '.join(fl['name'] for fl in flanges) or 'none'})")
         choices = list(product(*options)) if flanges else [()]
         for reduce in (False, True):
             for choice in choices:
@@ -1760,11 +1807,16 @@ class _Translation:
                     continue
                 rows, keys, res = found
                 for i, fl in enumerate(flanges):
-                    other = next(o for o in options[i] if o != choice[i])
+                    other = next(o for o in both[i] if o != choice[i])
                     fl["why"] = self._refused(b, residuals, unknown, choice[:i] + (other,) + choice[i + 1:], flanges)
                 subst = self._inputs_for(b, flanges, choice, unknown)
                 r = ca.substitute(res, ca.vertcat(*subst.keys()), ca.vertcat(*subst.values())) if subst else res
                 return self._sorted_solve(r, keys, unknown, rows), choice
+        if self.causality:  # the stated causality is refused with the reason, when the other would do
+            stated = tuple(opts[0] for opts in options)
+            why = self._refused(b, residuals, unknown, stated, flanges) or "they would not determine its variables"
+            names = ", ".join(f"{fl['name']}: {c}" for fl, (c, _) in zip(flanges, stated) if fl["name"] in self.causality)
+            raise ModelicaError(self.filename, None, f"causality {names}: the equations do not allow it: {why}")
         n_eq = len(residuals)
         raise ModelicaError(self.filename, None, f"the equations do not determine the model's variables: {n_eq} "
                                                  f"equations for {len(unknown) - len(flanges)} unknowns (states' "
@@ -1809,6 +1861,7 @@ class _Translation:
             self.index_problem = kept
 
     index_problem = ""
+    causality: dict = {}  # flange name -> the causality a scene states (translate's causality)
     _PRIORITY = {"Never": 0, "Avoid": 1, "Default": 2, "Prefer": 3, "Always": 4}
 
     def _reduce_index(self, b: BlockBuilder, rows: list, keys: list, unknown: dict, rates: dict | None = None):

@@ -13,6 +13,7 @@ import pytest
 pytest.importorskip("rumoca")
 
 from cosim.run.execute import run  # noqa: E402
+from cosim.run.reference import reference  # noqa: E402
 from models.modelica import ModelicaError, translate  # noqa: E402
 
 
@@ -265,6 +266,71 @@ def test_elsewhen_the_first_branch_whose_condition_becomes_true_wins(tmp_path):
     assert np.max(np.abs(np.asarray(tr["c.t_last"])[~near] - t_last[~near])) < 1e-6
 
 
+ON_THE_THRESHOLD = """model OnTheThreshold "x = t - 2 meets each threshold at an instant exact in binary"
+  Real x(start = -2);
+  Integer hist(start = 0) "the branches fired, one digit each";
+  discrete Real t_last(start = -1);
+  Integer k(start = 0);
+  Integer n = if x > -0.625 then 3 else 1;
+equation
+  der(x) = 1;
+  when x > -1.125 then
+    hist = 10 * pre(hist) + 1;
+    t_last = time;
+  elsewhen x * x > 1 then
+    hist = 10 * pre(hist) + 2;
+    t_last = time;
+  elsewhen x > 1 then
+    hist = 10 * pre(hist) + 3;
+    t_last = time;
+  elsewhen x > 1.75 then
+    hist = 10 * pre(hist) + 4;
+    t_last = time;
+  end when;
+  when sample(0, 0.25) then
+    k = pre(k) + 1;
+  end when;
+end OnTheThreshold;
+"""
+
+
+@pytest.mark.parametrize("options", ["{}", "{integrator: rk4, substeps: 4}", "{integrator: radau, substeps: 2}"])
+def test_a_branch_whose_crossing_lands_on_its_threshold_applies_there(tmp_path, options):
+    """Each crossing's event state has its indicator exactly zero (exact) or a rounding either side
+    (radau): branch 1 at 0.875 (x = -1.125 inside a step, a substep boundary for rk4); at 3, a
+    communication point, x * x > 1 and x > 1 become true together and branch 2 wins (x * x > 1
+    fell false at 1, itself a communication point and a sample instant); branch 4 at 3.75, a
+    sample instant; n, always active, switches to 3 at 1.375.  Hand-computed; before, the relation read at a zero indicator kept its old
+    value and each branch applied at the chain's next event or never (hist 1 then 12 at 3.75,
+    and under radau the crossing at 3, 2e-16 after a sample, was lost; n stayed 1)."""
+    text = ON_THE_THRESHOLD
+    (tmp_path / "OnTheThreshold.mo").write_text(text)
+    scene = tmp_path / "scene.yaml"
+    scene.write_text(f"stop_time: 4.5\ncomponents:\n  c: {{modelica: OnTheThreshold.mo, model: OnTheThreshold, "
+                     f"options: {options}}}\nconnections: []\n"
+                     f"master: {{algorithm: jacobi, step: 0.5, estimate: false}}\noutputs: [c.hist, c.t_last, c.k, c.n]\n")
+    res = run(scene, [], out_dir=tmp_path / "out")
+    assert res.ok, res.reason
+    t = np.asarray(res.trace["time"])
+    events = [(0.875, 1), (3.0, 2), (3.75, 4)]
+    hist, t_last = np.zeros_like(t), np.full_like(t, -1.0)
+    for te, digit in events:
+        later = t > te
+        hist[later] = 10 * hist[later] + digit
+        t_last[later] = te
+    assert np.array_equal(np.asarray(res.trace["c.hist"])[t != 3.0], hist[t != 3.0])
+    assert np.max(np.abs(np.asarray(res.trace["c.t_last"])[t != 3.0] - t_last[t != 3.0])) < 1e-9
+    assert np.array_equal(np.asarray(res.trace["c.n"]), np.where(t > 1.375, 3.0, 1.0))
+    assert res.trace["c.k"][-1] == 18  # the samples at 0, 0.25, ..., 4.25 all taken
+    if options == "{}":  # the event reference too (it lost the crossings at the sample instants 3 and 3.75)
+        ref = reference(scene, [])
+        assert ref.ok, ref.reason
+        rt = np.asarray(ref.trace["time"])
+        later = rt > 3.75 + 1e-9
+        assert np.all(np.asarray(ref.trace["c.hist"])[later] == 124)
+        assert np.max(np.abs(np.asarray(ref.trace["c.t_last"])[later] - 3.75)) < 1e-9
+
+
 @pytest.mark.parametrize("body, line, what", [
     ("  when change(y) then\n    y = 1;\n  end when;", 6, "change()"),
     ("  when x > 1 then\n    y = 1;\n  elsewhen sample(0, 0.1) then\n    y = 2;\n  end when;", 8,
@@ -441,3 +507,17 @@ def test_an_initial_algorithm_sets_discrete_start_values(tmp_path):
     t = np.asarray(tr["time"])
     assert np.max(np.abs(tr["c.x"] - 6 * np.exp(-t))) < 1e-5
     assert set(np.asarray(tr["c.t0"])) == {6.0}
+
+
+def test_a_relation_on_a_state_in_the_derivative_is_not_taken_for_a_linear_model(tmp_path):
+    """``der(x) = if x > 0.9 then 2 else 1`` has a Jacobian free of x (each branch is constant),
+    but it is not affine: the exact integrator took its value at x = 0 for every x, slope 1
+    throughout (x(2) = 2.0).  Now it integrates by Radau: x = t until 0.9, then 0.9 + 2 (t - 0.9),
+    x(2) = 3.1 (the step across the switch costs about h / 9: 1.1e-3 at h = 0.01)."""
+    text = "model Switching\n  Real x(start = 0);\nequation\n  der(x) = if x > 0.9 then 2 else 1;\nend Switching;\n"
+    assert translate(text, "Switching", "Switching.mo").integrator == "radau"
+    assert translate(text.replace("x > 0.9", "time > 0.9"), "Switching", "Switching.mo").integrator == "radau"
+    tr = simulate(tmp_path, text, "Switching", 2.0, 0.01, ["x"])
+    t, x = np.asarray(tr["time"]), np.asarray(tr["c.x"])
+    assert abs(x[-1] - 3.1) < 2e-3
+    assert np.max(np.abs(x - np.where(t < 0.9, t, 0.9 + 2 * (t - 0.9)))) < 2e-3

@@ -43,13 +43,15 @@ def reference(example: str) -> tuple[pd.DataFrame, list[str], float, float]:
 SUBSTEPS = {"Modelica.Blocks.Examples.PID_Controller": 4}
 
 
-def scene_of(example: str, folder: Path) -> Path:
+def scene_of(example: str, folder: Path, outputs: str | None = None, name: str = "scene") -> Path:
+    """The example as a scene's one component ``c`` at the reference's stop time and interval,
+    recording ``outputs`` (a YAML list; by default the comparison signals)."""
     ref, signals, stop, interval = reference(example)
-    path = folder / "scene.yaml"
+    path = folder / f"{name}.yaml"
     options = f", options: {{substeps: {SUBSTEPS[example]}}}" if example in SUBSTEPS else ""
     path.write_text(f"stop_time: {stop}\nmodelica_path: [{MSL}]\ncomponents:\n  c: {{modelica: {example}{options}}}\n"
                     f"master: {{algorithm: jacobi, step: {interval}}}\n"
-                    f"outputs: [{', '.join('c.' + s for s in signals)}]\n")
+                    f"outputs: {outputs or '[' + ', '.join('c.' + s for s in signals) + ']'}\n")
     return path
 
 
@@ -104,3 +106,23 @@ def test_an_msl_built_component_bonds_through_the_causality_its_equations_allow(
     assert dx["state.mass.v"] == pytest.approx((1.5 - 0.5 * v) / 2, rel=1e-14)
     y = dict(zip([o.name for o in b.outputs], np.array(fn["out"](x, [1.5], b.param_defaults)).ravel()))
     assert y["flange.v"] == pytest.approx(v) and y["mass.s"] == pytest.approx(-s_rel)  # fixed at 0, s_rel = 0 - s
+
+
+def test_an_outputs_pattern_reaches_a_modelica_components_inner_variables(tmp_path):
+    """``c.mass1.*`` records what listing mass1's variables by hand records (its Modelica names,
+    FMI locals), with equal values; ``c.spring?.f`` reaches both springs' forces.  The positions
+    against the Modelica Association's reference result besides."""
+    example = "Modelica.Mechanics.Translational.Examples.Oscillator"
+    by_hand = ["c.mass1.s", "c.mass1.flange_a.s", "c.mass1.flange_a.f", "c.mass1.flange_b.s",
+               "c.mass1.flange_b.f", "c.mass1.v", "c.mass1.a", "c.spring1.f", "c.spring2.f"]
+    runs = {}
+    for name, outputs in (("pattern", "[c.mass1.*, \"c.spring?.f\"]"), ("hand", f"[{', '.join(by_hand)}]")):
+        runs[name] = run(scene_of(example, tmp_path, outputs, name), [], out_dir=tmp_path / name)
+        assert runs[name].ok, runs[name].reason
+    recorded = [c for c in runs["pattern"].trace.columns if c != "time"]
+    assert sorted(recorded) == sorted(by_hand)
+    for c in by_hand:
+        np.testing.assert_array_equal(runs["pattern"].trace[c], runs["hand"].trace[c])
+    ref, _, _, _ = reference(example)
+    expected = np.interp(runs["pattern"].trace["time"], ref["time"], ref["mass1.s"])
+    assert np.abs(runs["pattern"].trace["c.mass1.s"] - expected).max() < TOLERANCE * np.ptp(ref["mass1.s"])

@@ -85,7 +85,7 @@ class _Model:
     def zval(self, t, x, m) -> np.ndarray:
         return np.array(self.z(t, x, m)).ravel()
 
-    def watches(self, t, x, m) -> list[tuple[float, int, bool]]:
+    def watches(self, t, x, m, kept: dict[int, float] | None = None) -> list[tuple[float, int, bool]]:
         """How each indicator is watched from ``(t, x, m)``: ``(shift, direction, rearm)``, the
         function ``z - shift`` crossing zero in ``direction``.  Each takes its side by look-ahead
         (the FMU core's rule).  An undirected one is watched EPS_Z beyond zero from its side, so one
@@ -96,10 +96,16 @@ class _Model:
         armed), where watching it on the far side fired it again and again.  One across that
         moves back (a bounce's reset) stays armed: SciPy fires a watch starting at zero only if
         it moves in the watch's direction, and a rebound too small to leave the watch level is
-        a Zeno sequence that must fail, not fall through the floor."""
+        a Zeno sequence that must fail, not fall through the floor.  ``kept``: the sides undirected
+        indicators were watched from in the segment before, kept by those within EPS_Z of zero that
+        did not fire where it ended (x - 1 = -2e-16 at a sample instant, rising: its look-ahead side
+        took it as crossed already, and its crossing was lost)."""
         ahead = self.zval(t + LOOK_AHEAD, x + LOOK_AHEAD * np.array(self.ode(t, x, m)).ravel(), m)
         z = self.zval(t, x, m)
         side = np.where(ahead != 0, np.sign(ahead), np.sign(z))
+        for i, s in (kept or {}).items():
+            if abs(z[i]) <= EPS_Z:
+                side[i] = s
         out = []
         for i, e in enumerate(self.indicators):
             if not e.direction:
@@ -163,7 +169,7 @@ def integrate(comp: Composite, signals: ca.Function, grid: np.ndarray, tol: Tole
     x, m = _iterate(model, fired, 0.0, x, m, log)
     if not record(rows(np.zeros(1), x.reshape(-1, 1), m)):
         return log, 0.0
-    t, done = 0.0, 1
+    t, done, kept = 0.0, 1, {}
     while t < t_end:
         if time.perf_counter() > deadline:
             raise TimeoutError(f"t = {t:g} s")
@@ -180,7 +186,8 @@ def integrate(comp: Composite, signals: ca.Function, grid: np.ndarray, tol: Tole
             return np.array(model.jac(tt, y, m))
 
         funcs, armed, last = [], [], {}
-        watches = model.watches(t, x, m)
+        watches = model.watches(t, x, m, kept)
+        kept = {i: -math.copysign(1.0, w[0]) for i, w in enumerate(watches) if not model.indicators[i].direction}
 
         def zs(tt, y, m=m) -> np.ndarray:
             """The indicators at ``(tt, y)``, evaluated once for all (SciPy asks each in turn)."""
@@ -230,6 +237,8 @@ def integrate(comp: Composite, signals: ca.Function, grid: np.ndarray, tol: Tole
                         done += 1
                     t, x = te, x_left
                     continue
+                for e in fired:  # these have crossed: their side is the one they move to
+                    kept.pop(model.indicators.index(e), None)
                 x_new, m_new = _iterate(model, fired, te, x_left, m, log)
                 if log.total > MAX_EVENTS:
                     raise EventReferenceError(f"chattering: more than {MAX_EVENTS:,} events by t = {te:g} s")

@@ -493,12 +493,12 @@ class ComponentChecks(Checker):
         return user.make(model, spec.get("fidelity"), **dict(spec.get("options", {})))
 
     def _modelica_component(self, name: str, spec: YMap, fmi: str) -> Component | None:
-        """``{modelica: FILE.mo, model: CLASS, options: {integrator, substeps}}`` or ``{modelica:
+        """``{modelica: FILE.mo, model: CLASS, options: {integrator, substeps, causality}}`` or ``{modelica:
         QUALIFIED.CLASS}`` (a class of the source roots: the scene's ``modelica_path:`` and
         ``MODELICAPATH``): the class translated into a block (:func:`models.modelica.translate`)
         from the files it reads (:mod:`.modelica_sources`), which its recipe key covers."""
         from models.block import BlockError
-        from models.modelica import INTEGRATORS, refuse_unsupported, translate
+        from models.modelica import CAUSALITIES, INTEGRATORS, refuse_unsupported, translate
 
         from .modelica_sources import SourceError, modelica_class
 
@@ -528,11 +528,21 @@ class ComponentChecks(Checker):
                             f"{_display(path.parent)}){near}")
             return None
         options = dict(spec.get("options", {}))
-        bad = [k for k in options if k not in ("integrator", "substeps")]
+        known = ["integrator", "substeps", "causality"]
+        bad = [k for k in options if k not in known]
         for k in bad:
             self.err(spec["options"].loc(k), f"component {name!r}: a Modelica component has no option {k!r}"
-                                             f"{suggest(str(k), ['integrator', 'substeps'])} (options: integrator, "
-                                             f"substeps)")
+                                             f"{suggest(str(k), known)} (options: {', '.join(known)})")
+        causality = options.get("causality", {})
+        if not isinstance(causality, dict) or not all(isinstance(k, str) and v in CAUSALITIES
+                                                      for k, v in causality.items()):
+            self.err(spec["options"].loc("causality"), f"component {name!r}: options.causality {causality!r}; "
+                                                       f"expected a mapping flange: {' or '.join(CAUSALITIES)} "
+                                                       f"(effort_out: the force from the partner's velocity; "
+                                                       f"flow_out: the velocity from the partner's force)")
+            return None
+        if causality:
+            options["causality"] = dict(causality)
         integrator, substeps = options.get("integrator", "auto"), options.get("substeps", 1)
         if integrator not in INTEGRATORS:
             self.err(spec["options"].loc("integrator"), f"component {name!r}: integrator {integrator!r}; expected "
@@ -558,7 +568,8 @@ class ComponentChecks(Checker):
             if not mc.library:  # the constructs refused by their line before rumoca compiles
                 refuse_unsupported(mc.text, mc.filename)
             return translate(mc.text, mc.model, mc.filename, name=mc.model.split(".")[-1].lower(),
-                             integrator=integrator, substeps=substeps, compiled=mc.compiled(), scan=False)
+                             integrator=integrator, substeps=substeps, compiled=mc.compiled(), scan=False,
+                             causality=causality)
 
         from fmus.index import installed_version
 

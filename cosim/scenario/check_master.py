@@ -24,6 +24,19 @@ def _output_pattern(pat: str) -> re.Pattern:
                       .replace("\0", r"\[").replace("\1", r"\]"))
 
 
+def _inner(comps: dict[str, Component], pat: str) -> list[str]:
+    """The locals of Modelica components (every variable by its Modelica name) an ``outputs:``
+    glob reaches: its component part (up to the first dot) matches the component's name and the
+    rest the variable's, so ``osc.mass1.*`` and ``osc.*`` reach them and ``motor*.i`` does not
+    reach ``motor1.state.i`` (a ``*`` does not cross the component's dot here)."""
+    head, dot, tail = pat.partition(".")
+    if not dot:
+        return []
+    comp_rx, var_rx = _output_pattern(head), _output_pattern(tail)
+    return [f"{c.name}.{v}" for c in comps.values() if c.fidelity == "modelica" and comp_rx.match(c.name)
+            for v in c.description.of("local") if c.description.variables[v].type in TYPES and var_rx.match(v)]
+
+
 class MasterChecks(Checker):
     """Checks of ``master:``, the times and ``outputs:``."""
 
@@ -317,7 +330,7 @@ class MasterChecks(Checker):
                 hits = [pat]
             else:
                 rx = _output_pattern(pat)
-                hits = [s for s in signals if rx.match(s)]
+                hits = [s for s in signals if rx.match(s)] + _inner(comps, pat)
             if not hits:
                 self.err(where, f"output pattern {pat!r} matches no input or output{suggest(pat, signals)}")
             out.extend(h for h in hits if h not in out)

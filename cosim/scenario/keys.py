@@ -15,7 +15,7 @@ TOP = {
     "connections": "list of `src.output -> dst.input [* factor + offset] [as TYPE]` signals and "
                    "`a.port <-> b.port` power bonds",
     "master": "the master algorithm and its settings, see below",
-    "outputs": "the recorded variables: `component.variable` names or globs (`mech.platform.*`, `motor*.i`)",
+    "outputs": "the recorded variables: `component.variable` names or globs (`mech.platform.*`, `motor*.i`; a glob reaches inputs and outputs, and every variable of a Modelica component: `osc.mass1.*`, `osc.*`, where its component part matches the component's name)",
     "fidelity_tolerance": "tolerance of `fidelity: auto` (relative to range, default 1e-3)",
     "fidelity_signals": "globs of the signals `fidelity: auto` compares (default: every recorded signal)",
     "guards": "the physical guards (`stroke`, `rated`, `singularity`, `unstable`: stop | warn | off; "
@@ -30,7 +30,9 @@ COMPONENT = {
     "model": "a catalog model (`rpr-cosim fmu list`): mechanism, dc_motor, pid, pose_setpoint, ...",
     "fidelity": "the model's fidelity level (e.g. rigid, multibody, kinematic), or `auto` (the cheapest within "
                 "`fidelity_tolerance`)",
-    "options": "the model's build options (e.g. `config`, `integrator`, `substeps`)",
+    "options": "the model's build options (e.g. `config`, `integrator`, `substeps`; a Modelica component's "
+               "`causality: {FLANGE: effort_out | flow_out}` states which side of a bond computes the force where "
+               "the model allows both)",
     "params": "parameter values by name (units as `rpr-cosim fmu show` lists them; structural parameters of FMI 3.0 "
               "FMUs too)",
     "start": "start values of inputs and of variables with initial = exact or approx",

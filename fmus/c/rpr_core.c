@@ -542,6 +542,8 @@ static void event_names_of(const int *fired, int nf, char *buf, size_t size) {
 static int event_iteration(RprInstance *c, double te, double *x, const double *u, int *fired, int nf) {
     int rounds = 0, j, i;
     char names[300];
+    unsigned char own[RPR_MAX1(RPR_NZ)]; /* the indicators that fired in this iteration */
+    memset(own, 0, sizeof own);
     while (nf > 0) {
         if (++rounds > RPR_EVENT_MAX_ROUNDS) {
             event_names_of(fired, nf, names, sizeof names);
@@ -549,6 +551,7 @@ static int event_iteration(RprInstance *c, double te, double *x, const double *u
                         te, RPR_EVENT_MAX_ROUNDS, names);
         }
         for (j = 0; j < nf; ++j) {
+            if (fired[j] < RPR_NZ) own[fired[j]] = 1;
             if (apply_update(c, fired[j], te, x, u)) return fail(c, "the update of event '%s' failed at t=%.17g s",
                                                                  rpr_event_names[fired[j]], te);
             c->ev.events++;
@@ -571,10 +574,14 @@ static int event_iteration(RprInstance *c, double te, double *x, const double *u
         for (i = 0; i < RPR_NZ; ++i)
             if (fires(rpr_direction[i], sgn(c->zt[i]), c->z[i])) fired[nf++] = i;
     }
-    /* each indicator's side just after the event: its value a look-ahead later, to first order */
+    /* each indicator's side just after the event: one that fired, or one left exactly at zero,
+       takes the side it moves to (its value a look-ahead later, to first order); any other keeps
+       its own side, so one a rounding short of its threshold at the event (x = 1 - 2e-16 at a
+       sample instant) is located when it crosses, not taken as crossed already (its crossing was
+       lost) */
     if (eval_zdot(c, te, x, u, c->zt)) return fail(c, "the event indicators' rates failed at t=%.17g s", te);
     for (i = 0; i < RPR_NZ; ++i) {
-        double zl = c->z[i] + c->zt[i] * look_ahead(te);
+        double zl = (own[i] || c->z[i] == 0.0) ? c->z[i] + c->zt[i] * look_ahead(te) : c->z[i];
         c->ev.zref[i] = sgn(zl);
         c->ev.zprev[i] = zl;
         c->ev.zlast[i] = c->z[i];
