@@ -23,7 +23,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from cosim.analysis.compare import compare  # noqa: E402
+from cosim.analysis.trace_diff import compare  # noqa: E402
 from cosim.run.reference import reference  # noqa: E402
 from cosim.run.execute import run  # noqa: E402
 

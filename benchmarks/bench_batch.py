@@ -114,7 +114,7 @@ class Plain:
         self.paths = build_components(self.scenes[0])
 
     def slaves(self) -> list:
-        from cosim.slaves.fmu import FmuSlave
+        from cosim.slaves.fmu_slave import FmuSlave
 
         out = [FmuSlave(name, self.paths[name]) for name in self.scenes[0].components]
         for s in out:

@@ -27,7 +27,7 @@ sys.path.insert(0, str(ROOT / "tests"))
 
 from conftest import REFERENCE_FMUS_SRC, _source_key, build_lag_fmus, build_reference_fmus  # noqa: E402
 
-from cosim.master.run import simulate  # noqa: E402
+from cosim.master.simulate import simulate  # noqa: E402
 from cosim.master.system import CoupledSystem, Link  # noqa: E402
 from cosim.slaves import FmuSlave, describe_fmu  # noqa: E402
 from cosim.trace.observer import Observer  # noqa: E402

@@ -88,7 +88,7 @@ def one_event(steps: int, repeat: int) -> None:
 
 
 def scenes(repeat: int, only: list[str] | None = None) -> None:
-    from cosim.analysis.compare import (compare, compare_between_events, times_from_clock, times_from_counter,
+    from cosim.analysis.trace_diff import (compare, compare_between_events, times_from_clock, times_from_counter,
                                         windows)
     from cosim.run.execute import run
     from cosim.run.reference import reference

@@ -1,4 +1,4 @@
-"""The physical guards (cosim.run.guards) on the shipped scenes: how far each scene stays from every
+"""The physical guards (cosim.run.row_guards) on the shipped scenes: how far each scene stays from every
 limit (largest |value| against its rating, leg range against the stroke, smallest |det J|), the
 stepping-loop wall time with the default guards against ``guards: off`` (interleaved, best of N),
 and the guard's own check time per block of rows.
@@ -17,8 +17,8 @@ sys.path.insert(0, str(ROOT))
 
 import numpy as np  # noqa: E402
 
-from cosim.scenario.guards import det_j
-from cosim.run.guards import scene_guard  # noqa: E402
+from cosim.scenario.guard_settings import det_j
+from cosim.run.row_guards import scene_guard  # noqa: E402
 from cosim.run.execute import run  # noqa: E402
 from cosim.scenario import load  # noqa: E402
 

@@ -24,7 +24,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "tests"))
 
-from cosim.analysis.compare import compare  # noqa: E402
+from cosim.analysis.trace_diff import compare  # noqa: E402
 from cosim.run.reference import reference  # noqa: E402
 from cosim.run.execute import run  # noqa: E402
 from cosim.study.stability import growth_per_step  # noqa: E402

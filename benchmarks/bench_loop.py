@@ -49,7 +49,7 @@ def measure(root: Path) -> dict[str, float]:
     import fmus  # noqa: E402
     from cosim.master import CoupledSystem, simulate  # noqa: E402
     from cosim.run.execute import run  # noqa: E402
-    from cosim.run.guards import scene_guard  # noqa: E402
+    from cosim.run.row_guards import scene_guard  # noqa: E402
     from cosim.scenario import load  # noqa: E402
 
     path = fmus.build_fmu(bm.lag_block())
@@ -103,7 +103,7 @@ def measure_kernels(root: Path) -> dict[str, float]:
     from cosim.run.execute import build_components, couple, simulate_scene  # noqa: E402
     from cosim.scenario import load  # noqa: E402
     from cosim.scenario.recipes import slave_description  # noqa: E402
-    from cosim.slaves.fmu import FmuSlave  # noqa: E402
+    from cosim.slaves.fmu_slave import FmuSlave  # noqa: E402
 
     def cpu(scene_file: str, sets: dict, stop: float, count: str) -> tuple[float, float]:
         scene = load(root / "scenarios" / scene_file, {**sets, "stop_time": stop})

@@ -36,7 +36,7 @@ sys.path.insert(0, str(ROOT))
 
 import fmus  # noqa: E402
 from cosim.master import CoupledSystem, Link, simulate  # noqa: E402
-from cosim.slaves.fmu import FmuSlave  # noqa: E402
+from cosim.slaves.fmu_slave import FmuSlave  # noqa: E402
 from models.block import Block, Param, Var  # noqa: E402
 
 

@@ -29,14 +29,14 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from cosim.analysis.compare import compare  # noqa: E402
+from cosim.analysis.trace_diff import compare  # noqa: E402
 from cosim.master import simulate  # noqa: E402
 from cosim.master.algorithm import register  # noqa: E402
 from cosim.master.algorithms.gauss_seidel import GaussSeidel  # noqa: E402
 from cosim.run.execute import build_components, couple, run  # noqa: E402
 from cosim.run.reference import reference  # noqa: E402
 from cosim.scenario import load  # noqa: E402
-from cosim.slaves.fmu import FmuSlave  # noqa: E402
+from cosim.slaves.fmu_slave import FmuSlave  # noqa: E402
 
 SCENARIOS = ROOT / "scenarios"
 POSE = ["mech.platform.x", "mech.platform.y", "mech.platform.phi"]

@@ -2,7 +2,7 @@
 
 For ``scenarios/pid_step.yaml`` (FMUs already cached) this prints
 
-1. export: wall time of ``cosim.scenario.ssp.export`` and the archive's size;
+1. export: wall time of ``cosim.scenario.ssp_archive.export`` and the archive's size;
 2. load: validating the scene from its YAML and from the archive (schema check, extraction into
    the FMU cache on the first load, description of each FMU);
 3. run: the whole scene (5 s, Jacobi, held inputs, 1 ms) from YAML and from the archive with our

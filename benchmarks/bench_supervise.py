@@ -36,7 +36,7 @@ sys.path.insert(0, str(ROOT / "tests"))
 
 from cosim.master import fastloop  # noqa: E402
 from cosim.master.entries import RUN  # noqa: E402
-from cosim.master.native import compile_loop  # noqa: E402
+from cosim.master.kernels import compile_loop  # noqa: E402
 from cosim.run.execute import run  # noqa: E402
 from cosim.slaves import crumb  # noqa: E402
 
@@ -64,7 +64,7 @@ def loop_ns_per_call(steps: int, repeat: int) -> tuple[float, float, int]:
     scene = hostile_scene(folder, build_hostile_fmu(folder), stop_time=steps * 1e-3)
     sets = ["master.output_interval=1"]
     os.environ["RPR_COSIM_SUPERVISE"] = "0"  # the loop alone, in this process
-    from fmus.native import FLAGS
+    from fmus.c_loader import FLAGS
 
     plain = compile_loop("fastloop.c", "rpr_loop_nocrumb", [RUN], (*FLAGS, "-DRPR_NO_CRUMB"))  # crumb.h's bare calls
     real = fastloop.library

@@ -32,7 +32,7 @@ sys.path.insert(0, str(ROOT))
 
 import numpy as np  # noqa: E402
 
-from cosim.analysis.compare import compare  # noqa: E402
+from cosim.analysis.trace_diff import compare  # noqa: E402
 from cosim.run.reference import reference  # noqa: E402
 from cosim.run.execute import run  # noqa: E402
 from cosim.trace.traces import Trace  # noqa: E402

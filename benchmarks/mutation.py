@@ -58,7 +58,7 @@ TARGETS: dict[str, list[str]] = {
     "cosim/master/algorithms/jacobi.py": ["tests/test_master.py"],
     "cosim/master/algorithms/gauss_seidel.py": ["tests/test_master.py"],
     "cosim/master/engine.py": ["tests/test_master.py"],
-    "cosim/master/run.py": ["tests/test_master.py"],
+    "cosim/master/simulate.py": ["tests/test_master.py"],
     "cosim/master/fastloop.py": ["tests/test_master.py"],
 }
 

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 from fmus.errors import BuildError
+from models.geometry import GeometryError
 
 
 class UserError(Exception):
@@ -16,6 +17,5 @@ RUN_ERRORS: tuple[type[BaseException], ...] = (UserError, BuildError)
 def user_error_types() -> tuple[type[BaseException], ...]:
     """Exception types the CLI reports as one line (domain validation errors included)."""
     from models.block import BlockError
-    from models.geometry import GeometryError
 
     return (UserError, BuildError, GeometryError, BlockError, FileNotFoundError)

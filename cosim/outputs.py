@@ -31,6 +31,7 @@ from contextlib import contextmanager
 from pathlib import Path
 
 from .errors import UserError
+from .readers import read_json
 
 #: Longest scene name accepted as a file name stem [characters].
 MAX_NAME = 100
@@ -407,7 +408,6 @@ def _status_of(sidecar: Path) -> str:
 def _json_file(path: Path):
     """The JSON of a sidecar or lock file, or None when it is missing, not a regular file, too
     large, too deeply nested or not JSON (:mod:`cosim.readers`)."""
-    from .readers import read_json
 
     try:
         return read_json(path, "sidecar")

@@ -3,7 +3,7 @@ they cannot drift from what the program accepts:
 
 - ``reference/cli.md``: every verb and sub-verb from its argparse parser (:func:`cosim.cli.build_parser`);
 - ``reference/scene-format.md``: the scene keys the checkers accept (:mod:`cosim.scenario.keys`),
-  the guard settings (:mod:`cosim.scenario.guards`) and the enumerated values;
+  the guard settings (:mod:`cosim.scenario.guard_settings`) and the enumerated values;
 - ``reference/batch-format.md``: the batch keys (:mod:`cosim.batch.spec`), distributions, plot
   kinds and measures (:mod:`cosim.batch.metrics`);
 - ``reference/models.md``: the model catalog, as ``rpr-cosim fmu show --markdown`` prints it
@@ -107,7 +107,7 @@ def scene_page() -> str:
     """The scene file's keys as the checkers declare them."""
     from cosim.master.algorithm import ALGORITHMS
     import cosim.master.algorithms  # noqa: F401  (registers every algorithm)
-    from cosim.scenario import guards, keys
+    from cosim.scenario import guard_settings, keys
 
     parts = ["# Scene format", "", GENERATED,
              "A scene is a YAML file (or an SSP archive). The checkers accept exactly the keys below; an unknown "
@@ -128,8 +128,8 @@ def scene_page() -> str:
              "The options of each algorithm are in the [algorithms reference](algorithms.md).", "",
              "## Guards (`guards: {...}` or `guards: off`)", "",
              _table(("setting", "default", "values"),
-                    [(f"`{k}`", f"`{v}`", ", ".join(f"`{a}`" for a in guards.ACTIONS) if k in guards.GUARDS
-                      else "a positive number") for k, v in guards.DEFAULTS.items()]), "",
+                    [(f"`{k}`", f"`{v}`", ", ".join(f"`{a}`" for a in guard_settings.ACTIONS) if k in guard_settings.GUARDS
+                      else "a positive number") for k, v in guard_settings.DEFAULTS.items()]), "",
              "What each guard watches is explained in [Physical guards](../explanation/guards.md).", "",
              "## Paths of `--set` and batch axes", "",
              "`rpr-cosim run SCENE --set PATH=VALUE` and a batch axis's `path` take the same paths: dotted keys "

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pytest
 
-from cosim.analysis.compare import compare
+from cosim.analysis.trace_diff import compare
 from cosim.cli import main
 from cosim.run.choose import kind
 from cosim.run.execute import run
@@ -252,11 +252,11 @@ def test_pilots_and_companions_on_the_runs_own_instances_change_nothing(tmp_path
     every run (``$RPR_COSIM_REUSE=0``), and each FMU is loaded once instead of once per run."""
     import numpy as np
 
-    from cosim.slaves import fmu
+    from cosim.slaves import fmu_slave
 
     loads = []
-    make = fmu._Fmi2.make
-    monkeypatch.setattr(fmu._Fmi2, "make", lambda self, slave, *a: loads.append(slave.name) or make(self, slave, *a))
+    make = fmu_slave._Fmi2.make
+    monkeypatch.setattr(fmu_slave._Fmi2, "make", lambda self, slave, *a: loads.append(slave.name) or make(self, slave, *a))
     monkeypatch.setenv("RPR_COSIM_SUPERVISE", "0")  # in this process, to count the loads
     path = _scene(tmp_path, "{step: 1e-2, output_interval: 1e-2}", rollback=rollback)
     res = {}

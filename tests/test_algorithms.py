@@ -133,7 +133,7 @@ def test_linear_slave_restores_its_saved_state_exactly():
 @pytest.fixture(scope="module")
 def two_mass_fmu_slaves():
     from cosim.run.execute import build_components
-    from cosim.slaves.fmu import FmuSlave
+    from cosim.slaves.fmu_slave import FmuSlave
 
     scene = load(SCENARIOS / "two_mass.yaml")
     paths = build_components(scene)
@@ -212,7 +212,7 @@ def test_adaptive_pid_step_within_a_thousandth_of_range_everywhere(pid_step_adap
     """Issue 10's acceptance: at the default tolerance every recorded variable stays within 1e-3
     of its range of the monolithic CVODES solution over the whole run, start transient included
     (measured at rtol 3e-5: worst 8.4e-4 on platform.y, whose range is only ~0.7 mm)."""
-    from cosim.analysis.compare import compare
+    from cosim.analysis.trace_diff import compare
 
     res, fine, coarse = pid_step_adaptive
     assert res.status == "ok", res.reason

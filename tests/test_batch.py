@@ -19,7 +19,7 @@ import pytest
 from cosim.batch import load_batch, run_batch
 from cosim.batch.executors import DaskExecutor, LocalExecutor
 from cosim.batch.results import read_rows
-from cosim.batch.report import run_trace_path
+from cosim.batch.overview import run_trace_path
 from cosim.cli import main
 
 ROOT = Path(__file__).resolve().parents[1]

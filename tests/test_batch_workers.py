@@ -13,7 +13,7 @@ import pytest
 
 from cosim.batch import load_batch, run_batch
 from cosim.batch.executors import LocalExecutor
-from cosim.batch.report import run_trace_path
+from cosim.batch.overview import run_trace_path
 from cosim.trace.traces import read_trace
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -10,7 +10,7 @@ import pytest
 
 from cosim.analysis import charts
 from cosim.cli import main
-from cosim.analysis.compare import compare
+from cosim.analysis.trace_diff import compare
 from cosim.run.execute import build_components
 from cosim.scenario import load
 from cosim.scenario.units import units_of

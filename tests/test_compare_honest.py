@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from cosim import cli
-from cosim.analysis.compare import comparability, run_status
+from cosim.analysis.trace_diff import comparability, run_status
 from cosim.trace.traces import CsvTrace, Trace, read_trace
 
 
@@ -139,7 +139,7 @@ def test_columns_that_could_not_be_matched_are_reported(tmp_path, good, capsys):
 
 
 def test_comparability_is_a_function_other_verbs_can_call(good):
-    """The checks live in cosim.analysis.compare, not in the CLI handler (a many-against-one compare calls them)."""
+    """The checks live in cosim.analysis.trace_diff, not in the CLI handler (a many-against-one compare calls them)."""
     ok = read_trace(good)
     short = Trace(ok.columns, ok.data[:50], status="out_of_limits", reason="guard")
     c = comparability(short, ok, labels=("short", "ref"))

@@ -18,7 +18,7 @@ import pytest
 
 from cosim.analysis import charts
 from cosim.analysis.animate import animate
-from cosim.analysis.compare import compare
+from cosim.analysis.trace_diff import compare
 from cosim.analysis.drawing import DrawError, Drawer, Forked, SharedProgress
 from cosim.cli import main
 from cosim.outputs import staged

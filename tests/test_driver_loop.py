@@ -19,7 +19,7 @@ from cosim.master import CoupledSystem, Link, simulate
 from cosim.run.execute import build_components, couple
 from cosim.scenario import load
 from cosim.scenario.recipes import slave_description
-from cosim.slaves.fmu import FmuSlave
+from cosim.slaves.fmu_slave import FmuSlave
 from cosim.slaves.linear import LinearSlave
 from cosim.trace.observer import Observer
 from cosim.trace.traces import MemoryTrace

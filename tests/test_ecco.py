@@ -52,7 +52,7 @@ def test_ecco_pid_step_pose_within_a_tenth_of_a_millimetre(pid_step_ecco, var):
     """Issue 10's acceptance: the platform position and the leg lengths (the joints' positions)
     within 1e-4 m of the monolithic CVODES solution over the whole run (measured: 4.1e-5 m on x,
     1.3e-4 rad on phi, i.e. 1.5e-5 m at the platform's joints)."""
-    from cosim.analysis.compare import compare
+    from cosim.analysis.trace_diff import compare
 
     res, ref = pid_step_ecco
     (d,) = compare(res.trace, ref, [f"mech.{var}"])

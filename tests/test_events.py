@@ -415,7 +415,7 @@ def stick_slip_runs(cache):
 
 
 def test_stick_slip_sticks_start_and_end_within_1e_4_s_of_the_reference(stick_slip_runs):
-    from cosim.analysis.compare import match_events, times_from_clock
+    from cosim.analysis.trace_diff import match_events, times_from_clock
 
     cosim, ref = stick_slip_runs
     assert cosim.ok and ref.status == "ok", (cosim.reason, ref.reason)
@@ -426,7 +426,7 @@ def test_stick_slip_sticks_start_and_end_within_1e_4_s_of_the_reference(stick_sl
 
 
 def test_stick_slip_values_between_events_within_1e_3_of_range(stick_slip_runs):
-    from cosim.analysis.compare import compare, compare_between_events, times_from_clock, windows
+    from cosim.analysis.trace_diff import compare, compare_between_events, times_from_clock, windows
 
     cosim, ref = stick_slip_runs
     pairs = [(times_from_clock(cosim.trace, n), times_from_clock(ref.trace, n)) for n in ("mass.t_stick", "mass.t_slip")]
@@ -454,7 +454,7 @@ def test_the_reference_finds_the_pendulum_impacts_itself():
 
 
 def test_end_stop_scene_against_its_reference_between_events(cache):
-    from cosim.analysis.compare import compare_between_events, match_events, times_from_counter, windows
+    from cosim.analysis.trace_diff import compare_between_events, match_events, times_from_counter, windows
     from cosim.run.execute import run
     from cosim.run.reference import reference
 
@@ -567,7 +567,7 @@ def test_the_precision_study_of_an_event_scene_measures_between_events(stick_sli
     between events, the event-time error), not the max-norm across the switches that called every
     run "inaccurate, 1.0 of range on mass.stuck".  The scene's own run (Gauss-Seidel, 0.5 ms,
     linear) against the same measure taken apart: `compare --events` on the clocks."""
-    from cosim.analysis.compare import compare_events
+    from cosim.analysis.trace_diff import compare_events
     from cosim.study.precision import precision_study
 
     st = precision_study(ROOT / "scenarios" / "stick_slip.yaml", [("gauss_seidel", "linear"), ("gauss_seidel", "hold")],

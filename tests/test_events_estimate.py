@@ -59,7 +59,7 @@ def stick_slip_reference():
 
 def _against_reference(res, ref) -> tuple[float, float]:
     """(largest switch time error [s], value error between switches [of range]) of a run."""
-    from cosim.analysis.compare import compare_between_events, match_events, times_from_clock, windows
+    from cosim.analysis.trace_diff import compare_between_events, match_events, times_from_clock, windows
 
     pairs = [(times_from_clock(res.trace, n), times_from_clock(ref.trace, n)) for n in ("mass.t_stick", "mass.t_slip")]
     timing = [match_events(n, a, b) for n, (a, b) in zip(("stick", "slip"), pairs)]
@@ -150,7 +150,7 @@ def test_the_smooth_friction_estimate_agrees_with_its_reference(step, cache, tmp
     signal's estimate is within a factor 1.5 of its error against the monolithic reference
     (CVODES); at stick_slip's 0.5 ms both read about 2e-2 of range on the friction force, and the
     run is "inaccurate", as it is."""
-    from cosim.analysis.compare import compare
+    from cosim.analysis.trace_diff import compare
     from cosim.run.execute import run
     from cosim.run.reference import reference
 
@@ -220,7 +220,7 @@ END_STOP_CLAMP = ROOT / "scenarios" / "rig_end_stop_clamp.yaml"
 def _between(res, ref, clocks: list[str] | None = None) -> dict[str, float]:
     """Each leg's and voltage's error [of range] against the reference, outside a window around
     the arrivals (counters) or the arrivals and releases (``clocks``)."""
-    from cosim.analysis.compare import compare_between_events, times_from_clock, times_from_counter, windows
+    from cosim.analysis.trace_diff import compare_between_events, times_from_clock, times_from_counter, windows
 
     if clocks:
         pairs = [(times_from_clock(res.trace, n), times_from_clock(ref.trace, n)) for n in clocks]
@@ -256,7 +256,7 @@ def test_the_clamp_and_impacts_without_restitution_agree_while_the_leg_rests(cac
     arrival to the end, where both laws hold the rod (they differ only in the motor speed, which no
     output shows): the references locate the same arrival and record the same legs and voltages;
     the co-simulations are equal too."""
-    from cosim.analysis.compare import compare
+    from cosim.analysis.trace_diff import compare
     from cosim.run.execute import run
     from cosim.run.reference import reference
 
@@ -304,7 +304,7 @@ def test_clamped_stops_arrive_and_release_in_a_loop_as_the_reference_does(cache,
     motor speed decays through zero).  The run ("ok") and the event reference place every arrival
     and release within 1e-5 s of each other and agree within 1e-4 of range between them; the
     run's estimate is within 1.5x of each signal's true error, its event time within 2x."""
-    from cosim.analysis.compare import match_events, times_from_clock
+    from cosim.analysis.trace_diff import match_events, times_from_clock
     from cosim.run.execute import run
     from cosim.run.reference import reference
 

@@ -335,11 +335,11 @@ def test_an_external_fmus_companion_run_loads_it_anew(data, monkeypatch):
     behavioural check does not see it), so a companion on a reset instance would start where the
     run ended and estimate 3e2 of the range at t = 0.  Loaded anew, the run is what it is with
     sharing off."""
-    from cosim.slaves import fmu
+    from cosim.slaves import fmu_slave
 
     loads = []
-    make = fmu._Fmi2.make
-    monkeypatch.setattr(fmu._Fmi2, "make", lambda self, slave, *a: loads.append(slave.name) or make(self, slave, *a))
+    make = fmu_slave._Fmi2.make
+    monkeypatch.setattr(fmu_slave._Fmi2, "make", lambda self, slave, *a: loads.append(slave.name) or make(self, slave, *a))
     monkeypatch.setenv("RPR_COSIM_SUPERVISE", "0")  # in this process, to count the loads
     scene, res = load(_truck(data.parent, stop=0.01)), {}
     for reuse in ("0", "1"):

@@ -1,4 +1,4 @@
-"""Physical guards (cosim.run.guards): the findings of issue 7 item 2 that reported "ok" for
+"""Physical guards (cosim.run.row_guards): the findings of issue 7 item 2 that reported "ok" for
 physically impossible runs, each reproduced and now stopped or refused with its reason; the
 shipped scene still "ok" under the default guards; the ``guards:`` section validated like the
 rest of a scene.  Leg lengths and singular poses are checked against SPEC §1's formulas written
@@ -16,8 +16,8 @@ import numpy as np
 import pytest
 
 from cosim import cli
-from cosim.scenario.guards import DEFAULTS, GuardSettings
-from cosim.run.guards import Guard, _Limit
+from cosim.scenario.guard_settings import DEFAULTS, GuardSettings
+from cosim.run.row_guards import Guard, _Limit
 from cosim.run.execute import run
 from cosim.scenario import SceneError, load
 

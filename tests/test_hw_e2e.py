@@ -27,7 +27,7 @@ import numpy as np
 import pytest
 
 from cosim import cli
-from cosim.analysis.compare import aligned
+from cosim.analysis.trace_diff import aligned
 from cosim.run.execute import run
 from hardware import daemon, protocol as P
 

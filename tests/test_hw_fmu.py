@@ -18,7 +18,7 @@ import pytest
 from fmpy.validation import validate_fmu
 
 from hardware import convert, daemon, faketree, pins, protocol as P
-from hardware.fmu import C_DIR, build_hil_fmu
+from hardware.hil_fmu import C_DIR, build_hil_fmu
 
 #: As on the rig, the board runs under SCHED_FIFO when it may (root): on a loaded machine a board
 #: at normal priority can be descheduled for longer than the FMU's 50 ms timeout.

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 import scipy.linalg
 
-from cosim.analysis.compare import compare
+from cosim.analysis.trace_diff import compare
 from cosim.errors import UserError
 from cosim.master import ALGORITHMS, CoupledSystem, Link, simulate
 from cosim.scenario import SceneError, load

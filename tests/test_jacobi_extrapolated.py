@@ -11,7 +11,7 @@ import math
 import numpy as np
 import pytest
 
-from cosim.analysis.compare import compare
+from cosim.analysis.trace_diff import compare
 from cosim.errors import UserError
 from cosim.master import ALGORITHMS
 from cosim.master.algorithms.jacobi_extrapolated import extrapolator

@@ -28,7 +28,7 @@ import scipy.linalg
 from cosim.errors import UserError
 from cosim.master import (ALGORITHMS, Algorithm, CoupledSystem, Link, algorithm, find_algebraic_loop,
                           gauss_seidel_order, register, simulate)
-from cosim.slaves.fmu import FmuSlave
+from cosim.slaves.fmu_slave import FmuSlave
 from cosim.slaves.linear import LinearSlave
 from cosim.slaves.slave import Status
 from cosim.trace.traces import CsvTrace, MemoryTrace, read_trace

@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from cosim.errors import UserError
-from cosim.master.run import simulate
+from cosim.master.simulate import simulate
 from cosim.master.system import CoupledSystem
 from cosim.run.execute import run
 from cosim.scenario import from_dict

@@ -132,7 +132,7 @@ def motor_stiction_runs(cache):
 
 
 def test_motor_stiction_scene_sticks_and_slips_at_the_reference_times(motor_stiction_runs):
-    from cosim.analysis.compare import match_events, times_from_clock
+    from cosim.analysis.trace_diff import match_events, times_from_clock
 
     cosim, ref = motor_stiction_runs
     assert cosim.ok and ref.status == "ok", (cosim.reason, ref.reason)
@@ -145,7 +145,7 @@ def test_motor_stiction_scene_sticks_and_slips_at_the_reference_times(motor_stic
 
 
 def test_motor_stiction_scene_values_between_events_within_1e_3_of_range(motor_stiction_runs):
-    from cosim.analysis.compare import compare_between_events, times_from_clock, windows
+    from cosim.analysis.trace_diff import compare_between_events, times_from_clock, windows
 
     cosim, ref = motor_stiction_runs
     pairs = [(times_from_clock(cosim.trace, n), times_from_clock(ref.trace, n)) for n in ("motor.t_stick", "motor.t_slip")]

@@ -14,7 +14,7 @@ import pytest
 pytest.importorskip("rumoca")
 
 import models.blocks as catalog  # noqa: E402
-from cosim.analysis.compare import compare  # noqa: E402
+from cosim.analysis.trace_diff import compare  # noqa: E402
 from cosim.run.execute import run  # noqa: E402
 from cosim.run.reference import reference  # noqa: E402
 

@@ -127,9 +127,9 @@ def test_an_entry_point_declared_otherwise_than_defined_does_not_compile(tmp_pat
     from dataclasses import replace
 
     from cosim.master.entries import RUN
-    from cosim.master.native import kernel_files
+    from cosim.master.kernels import kernel_files
     from fmus.compile import compiler
-    from fmus.native import FLAGS
+    from fmus.c_loader import FLAGS
 
     k = next(j for j, (t, _, _) in enumerate(RUN.args) if t == "int64_t")  # k0: int64_t -> int32_t
     wrong = replace(RUN, args=(*RUN.args[:k], ("int32_t", *RUN.args[k][1:]), *RUN.args[k + 1:]))
@@ -151,10 +151,10 @@ def test_an_entry_point_declared_otherwise_than_defined_does_not_compile(tmp_pat
 def test_kernels_compile_without_warnings(tmp_path):
     """Every kernel (and the trace writer's C) under -Wall -Wextra -Werror, from its own C file
     with the generated header."""
-    from cosim.master.native import kernel_files
+    from cosim.master.kernels import kernel_files
     from cosim.trace.text import C_FILE
     from fmus.compile import compiler
-    from fmus.native import FLAGS
+    from fmus.c_loader import FLAGS
 
     for main in ("fastloop.c", "adaptive_engine.c", "iterative_engine.c"):
         folder = tmp_path / main
@@ -348,11 +348,11 @@ def test_a_stop_request_ends_iterative_alike_in_both_engines(reference_fmus, fmi
 
 
 def test_run_time_c_is_compiled_once_per_source_and_flags(tmp_path, monkeypatch):
-    """fmus.native: a source compiled once into the cache (a second load reuses the file), a new
+    """fmus.c_loader: a source compiled once into the cache (a second load reuses the file), a new
     file for other flags, the compiler's own message for a source that does not compile, and a
     missing compiler named as such."""
     from fmus.errors import BuildError
-    from fmus.native import FLAGS, NoCompiler, library_path, load
+    from fmus.c_loader import FLAGS, NoCompiler, library_path, load
 
     monkeypatch.setenv("RPR_COSIM_CACHE", str(tmp_path / "fmus"))
     src = "double twice(double x) { return 2.0 * x; }\n"

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from cosim.analysis import charts
-from cosim.analysis.compare import common_names, matches
+from cosim.analysis.trace_diff import common_names, matches
 from cosim.cli import main
 from cosim.scenario import load
 from cosim.trace.traces import Trace, read_trace, trace_writer
@@ -47,7 +47,7 @@ def test_a_chart_of_many_panels_is_one_taller_page(tmp_path, monkeypatch):
 
 
 def test_batch_trace_plots_carry_the_unit(tmp_path, monkeypatch):
-    from cosim.batch import report
+    from cosim.batch import overview
 
     for rid, k in (("a1", 1.0), ("b2", 2.0)):
         ob = trace_writer(tmp_path / "runs" / rid / "s.csv")
@@ -56,14 +56,14 @@ def test_batch_trace_plots_carry_the_unit(tmp_path, monkeypatch):
         ob.finish("ok", "", {})
     assert read_trace(tmp_path / "runs" / "a1" / "s.csv").meta["units"] == {"m.x": "m"}
     seen = {}
-    monkeypatch.setattr(report, "_save", lambda fig, plt, path: seen.setdefault("fig", fig))
+    monkeypatch.setattr(overview, "_save", lambda fig, plt, path: seen.setdefault("fig", fig))
     rows = [{"run_id": "a1", "outcome": "ok"}, {"run_id": "b2", "outcome": "ok"}]
-    report.plot_traces(tmp_path, rows, "m.x", "all", None, [], tmp_path / "p.png")
+    overview.plot_traces(tmp_path, rows, "m.x", "all", None, [], tmp_path / "p.png")
     assert seen["fig"].axes[0].get_ylabel() == "m.x [m]"
     assert seen["fig"].axes[0].get_title() == "m.x: 2 runs"
-    monkeypatch.setattr(report, "MAX_TRACES", 1)  # beyond the chart's limit, its title says how many it drew
+    monkeypatch.setattr(overview, "MAX_TRACES", 1)  # beyond the chart's limit, its title says how many it drew
     seen.clear()
-    report.plot_traces(tmp_path, rows, "m.x", "all", None, [], tmp_path / "p.png")
+    overview.plot_traces(tmp_path, rows, "m.x", "all", None, [], tmp_path / "p.png")
     assert seen["fig"].axes[0].get_title() == "m.x: the first 1 of 2 runs" and len(seen["fig"].axes[0].lines) == 1
 
 
@@ -71,8 +71,8 @@ def test_batch_metric_charts_carry_the_units_of_their_axes_and_metrics(tmp_path,
     """The tutorial's batch: Kp and Kd in the PID block's units, overshoot in %, settling time in
     s, a value measure in its signal's unit (the metrics' table, cosim/batch/metrics.py), on the
     PNG charts and on the HTML report's titles."""
-    from cosim.analysis.report import metric_figures
-    from cosim.batch import load_batch, report
+    from cosim.analysis.html_report import metric_figures
+    from cosim.batch import load_batch, overview
     from cosim.batch.spec import axis_units
     from models import blocks
 
@@ -86,13 +86,13 @@ def test_batch_metric_charts_carry_the_units_of_their_axes_and_metrics(tmp_path,
         ob.finish("ok", "", {})
     rows = [{"run_id": "a1", "outcome": "ok", "Kp": 1, "Kd": 1, "m.x:overshoot": 5.0, "m.x:max": 1.0},
             {"run_id": "b2", "outcome": "ok", "Kp": 2, "Kd": 1, "m.x:overshoot": 7.0, "m.x:max": 2.0}]
-    units = {**axis_units(batch), **report.metric_units(tmp_path, rows, ["m.x:overshoot", "m.x:settling_time",
+    units = {**axis_units(batch), **overview.metric_units(tmp_path, rows, ["m.x:overshoot", "m.x:settling_time",
                                                                           "m.x:max"])}
     assert units == {"Kp": "V/m", "Kd": "V.s/m", "m.x:overshoot": "%", "m.x:settling_time": "s", "m.x:max": "m"}
     seen = []
-    monkeypatch.setattr(report, "_save", lambda fig, plt, path: seen.append(fig))
-    report.plot_heatmap(rows, "m.x:overshoot", "Kp", "Kd", tmp_path / "h.png", units=units)
-    report.plot_lines(rows, "m.x:max", "Kp", "Kd", ["Kp", "Kd"], tmp_path / "l.png", units=units)
+    monkeypatch.setattr(overview, "_save", lambda fig, plt, path: seen.append(fig))
+    overview.plot_heatmap(rows, "m.x:overshoot", "Kp", "Kd", tmp_path / "h.png", units=units)
+    overview.plot_lines(rows, "m.x:max", "Kp", "Kd", ["Kp", "Kd"], tmp_path / "l.png", units=units)
     heat, lines = seen
     assert heat.axes[0].get_xlabel() == "Kp [V/m]" and heat.axes[0].get_ylabel() == "Kd [V.s/m]"
     assert heat.axes[1].get_ylabel() == "m.x:overshoot [%]"  # the colour bar
@@ -105,7 +105,7 @@ def test_batch_metric_charts_carry_the_units_of_their_axes_and_metrics(tmp_path,
     from cosim.batch.runner import _describe
 
     (tmp_path / "batch.json").write_text(json.dumps(_describe(batch, [])))
-    assert report.batch_meta(tmp_path)["axis_units"] == {"Kp": "V/m", "Kd": "V.s/m"}
+    assert overview.batch_meta(tmp_path)["axis_units"] == {"Kp": "V/m", "Kd": "V.s/m"}
 
 
 def test_a_misspelt_component_in_a_set_path_gets_the_closest_name(capsys):
@@ -315,7 +315,7 @@ def test_a_comparison_chart_says_how_many_of_the_variables_it_draws(tmp_path):
     says so (it dropped the other 16 without a word), clear of the first row's titles."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
 
-    from cosim.analysis.compare import compare
+    from cosim.analysis.trace_diff import compare
 
     names = [f"m{k}.x" for k in range(10)]
     t = np.linspace(0, 1, 101)
@@ -335,7 +335,7 @@ def test_a_comparison_chart_says_how_many_of_the_variables_it_draws(tmp_path):
 def test_the_report_animation_draws_the_joint_labels_whole():
     """The run report's animation cut "A2" at the plot's right edge (the range ends 8 % beyond the
     joints): the labels are drawn beyond the axes into a margin wide enough for them."""
-    from cosim.analysis.report import animation_figure
+    from cosim.analysis.html_report import animation_figure
 
     t = np.linspace(0.0, 1.0, 11)
     tr = Trace(["time", "mech.platform.x", "mech.platform.y", "mech.platform.phi"],

@@ -5,7 +5,7 @@ from __future__ import annotations
 import io
 import time
 
-from cosim.batch.report import Progress
+from cosim.batch.overview import Progress
 from cosim.run.progress import progress_bar
 
 

@@ -13,7 +13,7 @@ from cosim.master import realtime
 from cosim.errors import UserError
 from cosim.run.execute import run
 from cosim.scenario import SceneError, load
-from cosim.slaves.fmu import FmuSlave
+from cosim.slaves.fmu_slave import FmuSlave
 
 SCENES = Path(__file__).resolve().parent.parent / "scenarios"
 H = 1_000_000  # 1 ms step [ns]
@@ -120,7 +120,7 @@ def test_paced_run_reports_lateness_and_rtf(tmp_path):
 
 
 def test_rollback_algorithms_are_refused_with_a_slave_that_cannot_roll_back(tmp_path):
-    from hardware.fmu import build_hil_fmu
+    from hardware.hil_fmu import build_hil_fmu
 
     fmu = build_hil_fmu()
 

@@ -1,4 +1,4 @@
-"""The monolithic reference of a scene (cosim.run.reference) and trace comparison (cosim.analysis.compare):
+"""The monolithic reference of a scene (cosim.run.reference) and trace comparison (cosim.analysis.trace_diff):
 against an analytic path, against the co-simulation converging at first order as the step
 shrinks (two independent formulations: FMUs under a master vs one ODE under CVODES), and the
 CLI's errors and outputs."""
@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from cosim import cli
-from cosim.analysis.compare import compare, format_table
+from cosim.analysis.trace_diff import compare, format_table
 from cosim.errors import UserError
 from cosim.run.reference import composite, reference
 from cosim.run.execute import run

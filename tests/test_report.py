@@ -117,7 +117,7 @@ window.addEventListener('load', function () {
 def test_a_run_report_draws_every_extreme_and_every_row_on_zoom(tmp_path):
     """Issue 32, item 10: 20,001 rows of a known signal with one-row spikes are drawn decimated
     (fewer points than rows, both spikes kept) and, zoomed to 0.5-0.6 s, every row of that span."""
-    from cosim.analysis.report import run_report
+    from cosim.analysis.html_report import run_report
     from cosim.trace.traces import Trace
 
     t = np.linspace(0.0, 2.0, 20001)

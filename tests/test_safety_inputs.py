@@ -365,7 +365,7 @@ def test_an_fmu_unpacked_past_the_file_size_limit_leaves_no_folder(tmp_path):
     tmp.mkdir()
     code = ("import resource, sys\n"
             "resource.setrlimit(resource.RLIMIT_FSIZE, (4_000_000, 4_000_000))\n"
-            "from cosim.slaves.fmu import unpack_fmu\nfrom cosim.errors import UserError\n"
+            "from cosim.slaves.fmu_slave import unpack_fmu\nfrom cosim.errors import UserError\n"
             f"try:\n    unpack_fmu({str(fmu)!r})\nexcept UserError as e:\n    print(e, file=sys.stderr); sys.exit(2)\n")
     res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60,
                          env={**os.environ, "PYTHONPATH": str(ROOT), "TMPDIR": str(tmp)})

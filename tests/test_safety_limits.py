@@ -148,7 +148,7 @@ def test_a_failed_unpack_leaves_no_temporary_folder(tmp_path, monkeypatch, cache
     import fmpy
 
     from cosim.run.execute import run
-    from cosim.slaves import fmu as fmu_module
+    from cosim.slaves import fmu_slave as fmu_module
 
     def full_disk(path, unzipdir, include=None):
         (Path(unzipdir) / "partial.bin").write_bytes(b"x" * 1000)

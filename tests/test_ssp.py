@@ -15,7 +15,7 @@ from cosim.cli import main
 from cosim.errors import UserError
 from cosim.run.execute import build_components, run
 from cosim.scenario import SceneError, load
-from cosim.scenario.ssp import SSD
+from cosim.scenario.ssp_archive import SSD
 from cosim.run.ssp_export import export
 
 ROOT = Path(__file__).resolve().parents[1]

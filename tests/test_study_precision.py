@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from cosim.cli import main
-from cosim.analysis.compare import compare
+from cosim.analysis.trace_diff import compare
 from cosim.run.reference import reference
 from cosim.run.execute import run
 from cosim.study.precision import precision_study

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from cosim.analysis.compare import compare
+from cosim.analysis.trace_diff import compare
 from cosim.cli import main
 from cosim.run.execute import run
 from cosim.run.reference import reference

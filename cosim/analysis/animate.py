@@ -22,6 +22,7 @@ from models.geometry import Manipulator, preset
 
 from ..errors import UserError
 from ..trace.traces import Trace
+from ..outputs import staged
 
 
 
@@ -98,7 +99,6 @@ def animate(trace: Trace, path: Path, *, manipulator: Manipulator | None = None,
         return (f"t = {t[idx[k]]:6.3f} s\n" + "\n".join(f"L{i + 1} = {L[k, i]:.4f} m" for i in range(3))
                 + f"\nphi = {q[2, k]:+.4f} rad")
 
-    from ..outputs import staged
 
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)

@@ -11,6 +11,8 @@ from pathlib import Path
 import numpy as np
 
 from ..trace.traces import Trace
+from .trace_diff import aligned
+from ..outputs import staged
 
 
 def setpoint_pairs(scene) -> dict[str, str]:
@@ -115,7 +117,6 @@ def comparison_figure(test: Trace, ref: Trace, diffs, *, labels: tuple[str, str]
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from .compare import aligned
 
     units = units or {}
     worst = sorted(diffs, key=lambda d: -d.relative)[:most]
@@ -195,7 +196,6 @@ def join_comparison(parts: Sequence[tuple[np.ndarray, int, str]], path: Path) ->
     writes (same pixels, same PNG text and resolution)."""
     from PIL import Image, PngImagePlugin
 
-    from ..outputs import staged
 
     bounds = [p[1] for p in parts[1:]]
     rgba = np.concatenate([p[0][lo:hi] for p, lo, hi in zip(parts, [0, *bounds], [*bounds, None])])
@@ -221,7 +221,6 @@ def save_figure(fig, path: Path, *, dpi: int | str = 90) -> Path:
     :func:`cosim.outputs.staged`, never through a link planted under that name) and close it."""
     import matplotlib.pyplot as plt
 
-    from ..outputs import staged
 
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)

@@ -23,7 +23,11 @@ from models import mechanical_design as D
 from models.geometry import Manipulator
 from models.trajectory import Drive
 
-from .design import Table
+from .design_views import Table
+from models.trajectory import TrajectoryError, leg_profile, sample_times
+from ..errors import UserError
+from .charts import save_figure
+from .design_views import _figure
 
 #: The printed values of Chapter 8 (docs/explanation/design-checks.md) and the digits they are printed to.
 PRINTED = {
@@ -46,9 +50,7 @@ class Loads:
 
 def loads_from_task(task, label: str, dt: float = 1e-3) -> Loads:
     """Loads along a planned task (:class:`models.task.Task`), sampled every ``dt`` [s]."""
-    from models.trajectory import TrajectoryError, leg_profile, sample_times
 
-    from ..errors import UserError
 
     try:
         traj = task.plan()
@@ -61,7 +63,6 @@ def loads_from_task(task, label: str, dt: float = 1e-3) -> Loads:
 
 def loads_from_trace(trace, label: str) -> Loads:
     """Loads from a recorded run: the first component with ``leg[1..3].f`` and ``.s`` columns."""
-    from ..errors import UserError
 
     for col in trace.columns:
         mt = re.fullmatch(r"(.+)\.leg\[1\]\.f", col)
@@ -167,8 +168,6 @@ def shaft_moment_limit(T: float = D.SHAFT_TORQUE, d: float = D.SHAFT_DIAMETER,
 
 def save_load_plot(loads: Loads, m: Manipulator, drive: Drive, path: Path) -> Path:
     """The shaft's largest bending moment and the leg forces over the motion, against their limits."""
-    from .charts import save_figure
-    from .design import _figure
 
     geo = D.ShaftGeometry()
     M = np.abs(loads.F) * (geo.a + geo.b - geo.s) + D.weight_moment(loads.L, m.Lmin, m.Lmax)

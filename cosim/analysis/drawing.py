@@ -55,7 +55,7 @@ def warm_up() -> None:
     import matplotlib.pyplot as plt
     from PIL import GifImagePlugin, ImageDraw, PngImagePlugin  # noqa: F401 - the files' encoders
 
-    from . import animate, charts, compare  # noqa: F401 - the figures' code, shared by every child
+    from . import animate, charts, trace_diff  # noqa: F401 - the figures' code, shared by every child
 
     fig = plt.figure(figsize=(1, 1), dpi=10)
     fig.text(0.5, 0.5, "0.5 [m]")

@@ -14,7 +14,11 @@ from models.trajectory import PiecewiseCubic, TrajectoryError, leg_profile, leg_
 
 from ..errors import UserError
 
-from .design import Table
+from .design_views import Table
+from ..outputs import staged
+from .charts import save_figure
+from .design_views import _figure
+from .task_file import task_from_mapping
 
 
 def summary_table(task: Task, traj: PiecewiseCubic) -> Table:
@@ -37,7 +41,6 @@ def summary_table(task: Task, traj: PiecewiseCubic) -> Table:
 
 def write_samples(task: Task, traj: PiecewiseCubic, path: Path, dt: float = 1e-3) -> Path:
     """The motion every ``dt`` [s]: time, pose, rates, accelerations, leg lengths, speeds, forces, voltages."""
-    from ..outputs import staged
 
     t = np.append(np.arange(traj.breaks[0], traj.breaks[-1], dt), traj.breaks[-1])
     q, qd, qdd = traj.evaluate(t)
@@ -57,8 +60,6 @@ def save_check_plot(task: Task, traj: PiecewiseCubic, result: CheckResult, path:
     check fails (else the start's), the singularity curves, the waypoints and the failure."""
     from matplotlib.collections import LineCollection
 
-    from .charts import save_figure
-    from .design import _figure
 
     m = task.manipulator
     refusal = result.refusal
@@ -98,7 +99,6 @@ def save_check_plot(task: Task, traj: PiecewiseCubic, result: CheckResult, path:
 def scene_motion_checks(scene) -> list[tuple[str, Task, PiecewiseCubic, CheckResult]]:
     """The motion check (:mod:`models.motion_check`) of every ``task_trajectory`` component of a
     scene, from its options (the task it plans): ``(component, task, motion, result)``."""
-    from .task_file import task_from_mapping
 
     out = []
     for name, comp in scene.components.items():

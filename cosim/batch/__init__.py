@@ -6,7 +6,7 @@ expand into runs (:mod:`cosim.batch.axes`), each a resolved scene whose hash is 
 every run executes :func:`cosim.run.run` in its own directory ``<out>/runs/<run id>/`` on a
 worker (:mod:`cosim.batch.worker`, :mod:`cosim.batch.executors`), which computes the metrics
 (:mod:`cosim.batch.metrics`) and returns one row for ``<out>/results.csv``
-(:mod:`cosim.batch.results`).  :mod:`cosim.batch.report` prints and plots the table.
+(:mod:`cosim.batch.results`).  :mod:`cosim.batch.overview` prints and plots the table.
 """
 from __future__ import annotations
 

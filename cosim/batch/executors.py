@@ -48,6 +48,10 @@ from multiprocessing.reduction import ForkingPickler
 from ..errors import UserError
 from ..slaves import crumb
 from .worker import STATE, Outcome, Shared, Task, execute, settle_files, worker_id
+from ..trace import traces as trace
+from . import preload
+from ..run.supervise import POLL_S, call_timeout
+from .worker import run_remote
 
 OnStart = Callable[[Task, int], None]
 OnDone = Callable[[Task, Outcome], None]
@@ -85,7 +89,6 @@ def _worker_main(conn, shared: Shared, parent_pid: int, writer_thread: bool = Tr
     """A local worker: runs tasks from ``conn`` until it receives None or the pipe closes;
     ``writer_thread`` False: each run writes its trace in its stepping thread; ``crumb_path``:
     the file its breadcrumb goes to (:mod:`cosim.slaves.crumb`), read by the batch process."""
-    from ..trace import traces as trace
 
     trace.WRITER_THREAD = writer_thread
     if crumb_path:
@@ -171,7 +174,6 @@ def _context(scenes: Sequence = (), shared: Shared | None = None):
     :func:`~cosim.batch.preload.warm`, so each worker inherits the imports, the compiled loop,
     the stepping orders and the unpacked FMUs), else from a ``forkserver`` that imported the
     warm-up (forking a process with other threads may copy a lock one of them holds)."""
-    from . import preload
 
     if "fork" in mp.get_all_start_methods() and threading.active_count() == 1:
         preload.warm(scenes)
@@ -230,7 +232,6 @@ class LocalExecutor:
         if not source.pull():
             return
         slots: list[_Slot] = []
-        from ..run.supervise import POLL_S, call_timeout
 
         timeout = call_timeout()
         try:
@@ -400,9 +401,7 @@ class DaskExecutor:
         from distributed import as_completed
         from distributed.scheduler import KilledWorker
 
-        from .worker import run_remote
 
-        from ..run.supervise import call_timeout
 
         tasks = list(tasks)
         if not tasks:

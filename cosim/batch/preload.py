@@ -10,6 +10,13 @@ inherits the result instead of paying it again.
 from __future__ import annotations
 
 from collections.abc import Iterable
+from .. import interrupts, outputs
+from ..analysis import charts
+from ..run import execute
+from ..trace.traces import package_versions
+from ..master import adaptive_engine, fastloop, gauss_seidel_order, iterative_engine
+from ..trace import text as tracetext
+from ..errors import UserError
 
 
 def warm_imports() -> None:
@@ -17,10 +24,6 @@ def warm_imports() -> None:
     import fmpy.fmi2  # noqa: F401
     import fmpy.fmi3  # noqa: F401
 
-    from .. import interrupts, outputs  # noqa: F401
-    from ..analysis import charts  # noqa: F401
-    from ..run import execute  # noqa: F401
-    from ..trace.traces import package_versions
 
     package_versions()
 
@@ -28,10 +31,6 @@ def warm_imports() -> None:
 def warm(scenes: Iterable = ()) -> None:
     """:func:`warm_imports`, the compiled master loops, and the stepping order of each scene's
     coupling (cached per process by :func:`cosim.master.gauss_seidel_order`)."""
-    from ..master import adaptive_engine, fastloop, iterative_engine
-    from ..trace import text as tracetext
-    from ..errors import UserError
-    from ..master import gauss_seidel_order
 
     warm_imports()
     for loop in (fastloop, adaptive_engine, iterative_engine):

@@ -29,6 +29,8 @@ from pathlib import Path
 from typing import Any
 
 from ..errors import UserError
+from ..readers import read_regular
+from ..outputs import create_new
 
 STAT_COLUMNS = ("steps", "simulated_s", "init_s", "loop_s", "real_time_factor", "run_s", "wall_s", "attempts",
                 "worker")
@@ -85,7 +87,6 @@ class ResultsTable:
                                 f"choose another --out")
             self._fd = os.open(self.path, os.O_WRONLY | os.O_APPEND | os.O_NOFOLLOW)
         else:
-            from ..outputs import create_new
 
             self._fd = create_new(self.path)
             self._write(self.columns)
@@ -133,7 +134,6 @@ def read_rows(path: Path) -> tuple[list[str], list[dict[str, Any]]]:
     path = Path(path)
     if not path.exists():
         raise UserError(f"{path}: no results table (run the batch first)")
-    from ..readers import read_regular
 
     try:
         text = read_regular(path, "results table").decode("utf-8")

@@ -7,7 +7,7 @@ Output directory (default ``runs/<batch name>``)::
     batch.json            what the batch is: file, base scene, axes, metrics, columns
     runs/<run id>/        each run's trace <scene>.npy (``--format csv``: <scene>.csv) and sidecar
                           <scene>.json (and <scene>_reference.npy with a monolithic reference)
-    plots/                the summary's charts (:mod:`cosim.batch.report`)
+    plots/                the summary's charts (:mod:`cosim.batch.overview`)
 
 A run directory without a row is an unfinished attempt (the batch was interrupted while it ran);
 it is cleared and the run is done again when the batch is resumed.  Nothing else writes into the
@@ -36,6 +36,13 @@ from .axes import Point, count, points
 from .results import ResultsTable, base_columns
 from .spec import Batch, BatchError, axis_units
 from .worker import Outcome, Shared, Task, transportable
+from ..scenario import suggest
+from ..trace.traces import read_trace, trace_suffix
+from .executors import LocalExecutor
+from fmus.index import IndexedBlock
+from ..scenario.recipes import component_fmu
+from ..readers import read_json
+from .results import write_parquet
 
 
 @dataclass
@@ -178,9 +185,7 @@ class FmuShelf:
         self.blobs: dict[str, bytes] = {}
 
     def add(self, run: Planned) -> dict[str, str]:
-        from fmus.index import IndexedBlock
 
-        from ..scenario.recipes import component_fmu
 
         m: dict[str, str] = {}
         for name, comp in run.scene.components.items():
@@ -235,8 +240,6 @@ def _check_reference(batch: Batch):
     """The reference trace of the batch (``{trace: file}``), checked against the metrics."""
     if not isinstance(batch.reference, Path):
         return None
-    from ..scenario import suggest
-    from ..trace.traces import read_trace
 
     ref = read_trace(batch.reference)
     for m in batch.metrics:
@@ -268,17 +271,15 @@ def run_batch(batch: Batch, *, out: Path | None = None, executor=None, cache_dir
 
     Runs are resolved as they are handed out (:class:`_Planner`): the first before anything runs,
     each next one while the workers run the previous ones.  ``progress`` is a
-    :class:`cosim.batch.report.Progress` (or None); ``log`` gets one-line notes (FMU builds);
+    :class:`cosim.batch.overview.Progress` (or None); ``log`` gets one-line notes (FMU builds);
     ``on_start(task, pid)`` is called when a local worker starts a run.  A KeyboardInterrupt
     stops the workers and propagates; every finished run is in the table.  ``trace_format``:
     each run's trace file (:data:`cosim.trace.traces.TRACE_FORMATS`; default ``"npy"``, float64
     bytes that cost no formatting; ``"csv"`` for text); with ``"parquet"`` the table is also
     written as ``results.parquet`` at the end.
     """
-    from ..trace.traces import trace_suffix
 
     trace_suffix(trace_format)
-    from .executors import LocalExecutor
 
     t0 = time.perf_counter()
     out = Path(out or Path("runs") / batch.name)
@@ -290,7 +291,6 @@ def run_batch(batch: Batch, *, out: Path | None = None, executor=None, cache_dir
         meta_path = out / "batch.json"
         key = _metrics_key(batch)
         if meta_path.is_file():
-            from ..readers import read_json
 
             old = read_json(meta_path, "batch description")
             old = old.get("metrics_key") if isinstance(old, dict) else None
@@ -368,7 +368,6 @@ def run_batch(batch: Batch, *, out: Path | None = None, executor=None, cache_dir
             res.skipped, res.duplicates = planner.skipped, planner.duplicates
             res.rows = [r for r in table.rows if r["run_id"] in planner.ids]
             if trace_format == "parquet":
-                from .results import write_parquet
 
                 write_parquet(out / "results.parquet", columns, table.rows,
                               {**_describe(batch, columns), "metrics_key": key})

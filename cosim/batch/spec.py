@@ -55,6 +55,7 @@ from ..outputs import TRACE_SUFFIXES, name_problem, stem_name
 from ..scenario.loading import NO_AUTO_FIDELITY
 from ..scenario.overrides import expand_path
 from .metrics import MEASURES, NEEDS_TARGET, MetricSpec
+from .results import base_columns
 
 Loc = tuple[str, int]
 
@@ -699,7 +700,6 @@ def load_batch(path: Path | str, *, catalog=None, auto_fidelity=None, max_runs_:
     names = [a.name for a in [*grid, *zipped, *rnd]]
     reference = _reference(ck, data, path.parent)
     metrics = _metrics(ck, data, "reference" in data)  # a bad reference is one problem, not one per metric
-    from .results import base_columns
 
     columns = base_columns(names, [m.column for m in metrics])
     sort, plots = _report(ck, data, columns, names, [m.column for m in metrics])

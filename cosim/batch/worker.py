@@ -30,10 +30,17 @@ from typing import Any
 
 from ..errors import RUN_ERRORS, UserError
 from ..scenario import Scene
-from ..scenario.guards import guard_needs
-from ..slaves.fmu import FmuSlave
+from ..scenario.guard_settings import guard_needs
+from ..slaves.fmu_slave import FmuSlave
 from ..trace.traces import Trace, trace_suffix
 from .metrics import MetricSpec, compute
+from ..outputs import pid_alive, safe_name, settle_if_stale, settle_run
+from ..scenario import from_dict
+from ..trace import traces
+from ..run import supervise
+from . import preload
+from ..slaves.description import describe_fmu
+from ..slaves.fmu_slave import forget_unpacked, unpack_fmu
 
 
 @dataclass
@@ -80,14 +87,13 @@ class Outcome:
 def transportable(scene: Scene) -> Scene:
     """``scene`` without its CasADi blocks (a worker runs FMUs, not blocks), small to send; what
     the run-time guards need of each block goes along as plain data (``Component.guard``,
-    :func:`cosim.scenario.guards.guard_needs`)."""
+    :func:`cosim.scenario.guard_settings.guard_needs`)."""
     comps = {n: dataclasses.replace(c, block=None, guard=guard_needs(c)) for n, c in scene.components.items()}
     return dataclasses.replace(scene, components=comps)
 
 
 def _sweep_dead_workers() -> None:
     """Remove the FMU folders of worker processes that were killed before they could."""
-    from ..outputs import pid_alive
 
     with os.scandir(tempfile.gettempdir()) as entries:  # a busy /tmp: scandir, not glob's fnmatch per entry
         found = [e.path for e in entries if e.name.startswith("rpr-batch-")]
@@ -125,8 +131,6 @@ class _State:
     def prepare(self, blobs: dict[str, bytes]) -> None:
         """In the batch process before it forks its workers: write, unpack and describe every
         FMU once, for the workers to inherit (:meth:`remove_files` when the batch ends)."""
-        from ..slaves.description import describe_fmu
-        from ..slaves.fmu import unpack_fmu
 
         for digest in blobs:
             path = self.fmu_path(digest, blobs)
@@ -143,7 +147,6 @@ class _State:
     def remove_files(self) -> None:
         """Remove the FMU files this process wrote and unpacked (at the end of a worker process,
         or of a batch that prepared them)."""
-        from ..slaves.fmu import forget_unpacked
 
         if self.dir is None:
             return
@@ -189,7 +192,6 @@ def _stats(stats: dict) -> dict[str, Any]:
 
 def _monolithic(scene: Scene, out_dir: Path, trace_format: str = "csv") -> tuple[Trace | None, str]:
     from ..run.reference import reference
-    from ..scenario import from_dict
 
     full = from_dict({**scene.data, "name": scene.name},
                      base_dir=scene.path.parent if scene.path else None)
@@ -252,7 +254,6 @@ def settle_files(task: Task, status: str, reason: str) -> None:
     that stepped it died while they said "running")."""
     if not task.out_dir:
         return
-    from ..outputs import safe_name, settle_if_stale, settle_run
 
     try:
         settle_run(os.path.join(task.out_dir, f"{safe_name(task.scene.name)}{trace_suffix(task.trace_format)}"),
@@ -304,7 +305,6 @@ def _serve_runs() -> Callable[[tuple], Outcome]:
 def _start_stepping() -> None:
     """In a new stepping child: its own instances and FMU folder, and each run's trace written
     in the stepping thread (a run is one core, as on a local worker)."""
-    from ..trace import traces
 
     STATE.detach()
     traces.WRITER_THREAD = False
@@ -312,7 +312,6 @@ def _start_stepping() -> None:
 
 def _server():
     """This thread's stepping child, started (again) when it has none alive."""
-    from ..run import supervise
 
     if _LOCAL.server is None or not _LOCAL.server.alive:
         _LOCAL.server = supervise.Server(_serve_runs(), on_start=_start_stepping, on_exit=STATE.remove_files)
@@ -335,8 +334,6 @@ def execute_supervised(task: Task, shared: Shared, call_timeout: float | None = 
     The child is forked once per thread, after this process did what it would otherwise repeat
     (the imports, the compiled loops, the FMUs written, described and unpacked), and keeps its
     FMU instances between runs (reset, as a local worker does)."""
-    from ..run import supervise
-    from . import preload
 
     t0 = time.perf_counter()
     preload.warm([task.scene])
@@ -374,7 +371,6 @@ def execute_supervised(task: Task, shared: Shared, call_timeout: float | None = 
 def run_remote(task: Task, shared: Shared, call_timeout: float | None = None) -> Outcome:
     """The function a Dask worker calls (importable by name on the workers): the run supervised
     (:func:`execute_supervised`) unless ``$RPR_COSIM_SUPERVISE=0`` on the worker."""
-    from ..run import supervise
 
     if not supervise.enabled():
         return execute(task, shared)

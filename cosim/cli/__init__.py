@@ -19,6 +19,7 @@ from collections.abc import Callable, Sequence
 from ..errors import user_error_types
 from .grammar import add_verbs
 from .verb import interrupted
+from ..interrupts import exit_code, signals_as_interrupts
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -56,7 +57,6 @@ def version() -> str:
 def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
-    from ..interrupts import exit_code, signals_as_interrupts
 
     try:
         with signals_as_interrupts():

@@ -18,6 +18,9 @@ import time
 from pathlib import Path
 
 from ..errors import UserError
+from models import analysis as A
+from models.geometry import PRESETS, preset
+from ..analysis import design_views as R
 
 STUDIES = ("configs", "platform-size", "all", "none")
 
@@ -44,10 +47,7 @@ def _angle(option: str, text: str) -> float:
 
 
 def run(args: argparse.Namespace) -> int:
-    from models import analysis as A
-    from models.geometry import PRESETS, preset
 
-    from ..analysis import design as R
 
     names: list[str] = []
     for name in (n.strip() for n in args.config.split(",")):

@@ -21,14 +21,15 @@ import argparse
 from pathlib import Path
 
 from .verb import refuse, say, tagged
+from ..batch import BatchError, load_batch, plan, run_batch
+from ..study.fidelity import resolve_auto
+from ..batch.executors import executor
+from ..batch.overview import Progress, format_results, format_spread, make_plots
+from ..errors import UserError
+from .report_verb import write_report
 
 
 def _batch(args: argparse.Namespace) -> int:
-    from ..batch import BatchError, load_batch, plan, run_batch
-    from ..study.fidelity import resolve_auto
-    from ..batch.executors import executor
-    from ..batch.report import Progress
-    from ..errors import UserError
 
     if args.workers is not None and args.workers < 1:
         raise UserError(f"--workers {args.workers}: expected 1 or more")
@@ -79,7 +80,6 @@ def _check(batch, plan) -> int:
 
 
 def _summary(batch, res, args) -> None:
-    from ..batch.report import format_results, format_spread, make_plots
 
     axes = [a.name for a in batch.axes]
     sort = args.sort or batch.sort or (batch.metric_columns[0] if batch.metric_columns else None)
@@ -99,7 +99,6 @@ def _summary(batch, res, args) -> None:
     if args.trace_format == "parquet":
         print(f"results: {res.out / 'results.parquet'}")
     if args.report and res.rows:
-        from .report_verb import write_report
 
         say(f"report: {write_report(res.out)}")
     if not args.no_plots and res.rows:

@@ -29,12 +29,14 @@ import threading
 from pathlib import Path
 
 from ..errors import UserError
+from hardware import daemon, faketree, protocol, virtual
+from hardware.convert import Calibration
+from hardware.record import record
+from fmus import BuildError
 
 
 def _plant_options(args, **extra):
     """The plant options of the command line (a UserError names a malformed one)."""
-    from hardware import virtual
-    from hardware.convert import Calibration
 
     try:
         start = tuple(float(x) for x in args.start.split(","))
@@ -68,7 +70,6 @@ def _plant_options(args, **extra):
 
 
 def _record(args) -> int:
-    from hardware.record import record
 
     opts = _plant_options(args)
     out = args.out or Path("runs") / "record" / "rig_recording.csv"
@@ -81,7 +82,6 @@ def _record(args) -> int:
 
 
 def _keygen(args) -> int:
-    from hardware import protocol
 
     try:
         protocol.write_key(args.file)
@@ -94,8 +94,6 @@ def _keygen(args) -> int:
 
 
 def _binary(target: str = "host") -> list[str]:
-    from fmus import BuildError
-    from hardware import daemon
 
     try:
         return daemon.command(target)
@@ -104,8 +102,6 @@ def _binary(target: str = "host") -> list[str]:
 
 
 def _build(args) -> int:
-    from fmus import BuildError
-    from hardware import daemon
 
     try:
         path = daemon.build(args.target)
@@ -124,7 +120,6 @@ def _build(args) -> int:
 
 def _common(args) -> list[str]:
     """Check the options (one-line errors) and return the daemon's own options."""
-    from hardware import protocol
 
     try:
         protocol.read_key(args.key)
@@ -203,7 +198,6 @@ def _plant_priority(prio: int) -> None:
 
 
 def _virtual(args) -> int:
-    from hardware import faketree, virtual
 
     opts = _common(args)
     opts_plant = _plant_options(args, stuck=tuple(args.stuck), unplugged=tuple(args.unplug),

@@ -30,15 +30,17 @@ from __future__ import annotations
 
 import argparse
 import sys
+from ..analysis.charts import plot_comparison
+from ..master.estimate import event_time_tolerance
+from ..errors import UserError
+from ..trace.traces import read_trace
+from ..batch.overview import compare_batch, format_batch_comparison
+from ..analysis.trace_diff import VALID, compare_events, run_status
 
 
 
 def _compare(args: argparse.Namespace) -> int:
-    from ..analysis.charts import plot_comparison
-    from ..analysis.compare import comparability, compare, format_table
-    from ..master.estimate import event_time_tolerance
-    from ..errors import UserError
-    from ..trace.traces import read_trace
+    from ..analysis.trace_diff import comparability, compare, format_table
 
     if args.tol is not None and not args.tol > 0:
         raise UserError(f"--tol {args.tol}: expected a positive relative tolerance, e.g. 1e-3")
@@ -52,7 +54,6 @@ def _compare(args: argparse.Namespace) -> int:
         raise UserError("refused: " + "; ".join(problems))
     timings = []
     if args.events:
-        from ..analysis.compare import compare_events
 
         timings, diffs = compare_events(test, ref, args.events, args.only)
     else:
@@ -95,10 +96,6 @@ def _compare(args: argparse.Namespace) -> int:
 
 def _compare_batch(args: argparse.Namespace) -> int:
     """Many against one: every finished run of a batch against one reference trace."""
-    from ..batch.report import compare_batch, format_batch_comparison
-    from ..analysis.compare import VALID, run_status
-    from ..errors import UserError
-    from ..trace.traces import read_trace
 
     ref = read_trace(args.reference)
     status, reason = run_status(ref, args.reference)

@@ -13,16 +13,16 @@ import argparse
 import sys
 
 from ..errors import UserError
+from models.geometry import preset
+from models.trajectory import DRIVES
+from ..analysis import design_checks as R
+from ..analysis.design_views import format_table, write_csv
+from ..analysis.task_file import load_task
+from ..trace.traces import read_trace
 
 
 def run(args: argparse.Namespace) -> int:
-    from models.geometry import preset
-    from models.trajectory import DRIVES
 
-    from ..analysis import design_checks as R
-    from ..analysis.design import format_table, write_csv
-    from ..analysis.task_file import load_task
-    from ..trace.traces import read_trace
 
     if args.drive is not None and args.drive not in DRIVES:
         raise UserError(f"--drive {args.drive!r}: expected one of {', '.join(DRIVES)}")

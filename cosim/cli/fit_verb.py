@@ -19,6 +19,13 @@ import json
 from pathlib import Path
 
 from .verb import refuse, say, tagged
+from ..errors import UserError
+from ..fit import build, solve
+from ..fit.confirm import check, lines as check_lines, plot
+from ..fit.overlay import write_overlay
+from ..fit.summary import as_dict, lines
+from ..outputs import OutputLock, check_out_dir, safe_name
+from ..scenario import SceneError, load
 
 
 def _split(text: str | None) -> list[str]:
@@ -27,13 +34,6 @@ def _split(text: str | None) -> list[str]:
 
 
 def _fit(args: argparse.Namespace) -> int:
-    from ..errors import UserError
-    from ..fit import build, solve
-    from ..fit.confirm import check, lines as check_lines, plot
-    from ..fit.overlay import write_overlay
-    from ..fit.report import as_dict, lines
-    from ..outputs import OutputLock, check_out_dir, safe_name
-    from ..scenario import SceneError, load
 
     try:
         scene = load(args.scene, args.sets)

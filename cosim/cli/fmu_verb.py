@@ -19,6 +19,12 @@ from pathlib import Path
 
 from ..errors import UserError
 from .verb import tagged
+import fmus
+from ..scenario.user_blocks import UserBlockError, user_block
+from ..slaves.archive import archive_problem
+from ..slaves.plan import run_plan
+from ..analysis import model_doc
+from ..slaves.behaviour import check_in_subprocess
 
 
 def _blocks():
@@ -79,7 +85,6 @@ def _build(args: argparse.Namespace) -> int:
 def _deliver(block, overrides: dict[str, int | float], args: argparse.Namespace) -> int:
     """Build ``block`` with its parameter ``overrides`` (or fetch it from the cache), copy the FMU
     to ``--out`` if asked; print its path."""
-    import fmus
 
     path = fmus.build_fmu(block, fmi_version=args.fmi + ".0", cache_dir=args.cache, params=overrides,
                           progress=tagged("fmu"))
@@ -94,7 +99,6 @@ def _deliver(block, overrides: dict[str, int | float], args: argparse.Namespace)
 
 def _build_user(args: argparse.Namespace) -> int:
     """``fmu build FILE.mo:CLASS`` / ``FILE.py:MODEL``: a user's block, built and cached like ours."""
-    from ..scenario.user_blocks import UserBlockError, user_block
 
     if args.fidelity is not None:
         raise UserError("--fidelity: name a Python block's fidelity as FILE.py:MODEL/FIDELITY; a Modelica class has one")
@@ -111,7 +115,6 @@ def _build_user(args: argparse.Namespace) -> int:
 
 
 def _list(args: argparse.Namespace) -> int:
-    import fmus
 
     try:
         catalog = _blocks().catalog()
@@ -135,7 +138,6 @@ def _list(args: argparse.Namespace) -> int:
 def _check(args: argparse.Namespace) -> int:
     from fmpy.validation import validate_fmu
 
-    from ..slaves.archive import archive_problem
 
     if not args.fmu.is_file():
         raise UserError(f"{args.fmu}: no such FMU file")
@@ -149,7 +151,6 @@ def _check(args: argparse.Namespace) -> int:
     for p in problems:
         print(p)
     n = len(problems)
-    from ..slaves.plan import run_plan
 
     try:
         plan, departures = run_plan(args.fmu)
@@ -161,7 +162,6 @@ def _check(args: argparse.Namespace) -> int:
         print(f"{args.fmu}: {line}")
     n += len(departures)
     if args.behaviour:
-        from ..slaves.behaviour import check_in_subprocess
 
         found = check_in_subprocess(args.fmu)
         for line in found["departures"]:
@@ -177,7 +177,6 @@ def _check(args: argparse.Namespace) -> int:
 
 
 def _show(args: argparse.Namespace) -> int:
-    from ..analysis import model_doc
 
     if args.readme is not None:
         changed = model_doc.update_readme(args.readme)

@@ -63,7 +63,7 @@ def add_trace_format(p: argparse.ArgumentParser, help: str, default: str = "csv"
 
 
 def add_report(p: argparse.ArgumentParser, help: str) -> None:
-    """``--report``: also write the interactive HTML report (:mod:`cosim.analysis.report`)."""
+    """``--report``: also write the interactive HTML report (:mod:`cosim.analysis.html_report`)."""
     p.add_argument("--report", action="store_true", help=help)
 
 

@@ -7,13 +7,20 @@ a run's directory (its one trace) -> the run's report beside the trace (``<name>
 directory (``results.csv`` and ``batch.json``) -> ``OUT/report.html`` (with ``--runs`` also each run's own
 report, ``runs/<run id>/<name>.html``, linked from the batch's); a study table
 (``<scene>_precision.csv``, ``<scene>_stability.csv``) or its directory -> ``<table>.html``.
-The file opens offline (Plotly embedded, :mod:`cosim.analysis.report`).
+The file opens offline (Plotly embedded, :mod:`cosim.analysis.html_report`).
 """
 from __future__ import annotations
 
 import argparse
 import re
 from pathlib import Path
+from ..errors import UserError
+from ..readers import read_json
+from ..outputs import confined
+from ..analysis.html_report import batch_report, run_report_from_files, study_report
+from ..scenario.geometry import manipulator_for
+from ..batch.overview import batch_meta, metric_units, run_trace_path
+from ..batch.results import read_rows
 
 
 
@@ -29,8 +36,6 @@ def _traces_in(d: Path) -> list[Path]:
 
 
 def _is_trace(p: Path) -> bool:
-    from ..errors import UserError
-    from ..readers import read_json
 
     try:
         data = read_json(p.with_suffix(".json"), "sidecar")
@@ -43,8 +48,6 @@ def write_report(out: Path, output: Path | None = None, *, runs: bool = False) -
     """The report of ``out`` (see the module docstring); returns the file written.  ``output``
     may be absolute or relative (to the working directory), whatever ``out`` is; a batch's own
     run reports (``runs``) are written only inside the batch's ``runs/`` folder."""
-    from ..errors import UserError
-    from ..outputs import confined
 
     out = Path(out)
     output = Path(output).absolute() if output is not None else None
@@ -55,7 +58,6 @@ def write_report(out: Path, output: Path | None = None, *, runs: bool = False) -
     tables = [out] if out.is_file() and re.search(r"_(precision|stability)\.csv$", out.name) else (
         sorted([*out.glob("*_precision.csv"), *out.glob("*_stability.csv")]) if out.is_dir() else [])
     if tables:
-        from ..analysis.report import study_report
 
         return study_report(tables[0], output or tables[0].with_suffix(".html"))
     if out.is_dir():
@@ -69,10 +71,7 @@ def write_report(out: Path, output: Path | None = None, *, runs: bool = False) -
 def run_file_report(trace_path: Path, output: Path | None = None, library_dir: Path | None = None) -> Path:
     """A run's report from its trace file and sidecar: units from the trace, setpoints from the
     recorded connections, the manipulator from the scene kept in the sidecar."""
-    from ..analysis.report import run_report_from_files
-    from ..scenario.geometry import manipulator_for
 
-    from ..readers import read_json
 
     trace_path = Path(trace_path)
     side_path = trace_path.with_suffix(".json")
@@ -106,14 +105,10 @@ def setpoints_of(connections: list[str]) -> dict[str, str]:
 
 def _batch(out: Path, output: Path, runs: bool = False) -> Path:
     """The batch's report; its run ids (data read from ``results.csv``) name directories inside
-    ``out/runs`` only (:func:`cosim.batch.report.run_dir`), checked for every row before anything
+    ``out/runs`` only (:func:`cosim.batch.overview.run_dir`), checked for every row before anything
     is written."""
     import os
 
-    from ..analysis.report import batch_report
-    from ..batch.report import batch_meta, metric_units, run_trace_path
-    from ..batch.results import read_rows
-    from ..outputs import confined
 
     columns, rows = read_rows(out / "results.csv")
     meta = batch_meta(out)

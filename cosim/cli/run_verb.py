@@ -22,19 +22,37 @@ from pathlib import Path
 
 from ..outputs import confined
 from .verb import interrupted, load_scene, refuse, say, tagged
+from fmus.cache import ENV_VAR
+from ..scenario import SceneError
+from ..outputs import OutputLock, amend_status, check_out_dir, check_set, safe_name
+from ..run.execute import check_trace_size, estimate, event_modes
+from ..errors import UserError
+from ..run.progress import progress_bar
+from ..trace.traces import trace_suffix
+from ..analysis.animate import animate, pose_component
+from ..analysis.charts import setpoint_pairs
+from ..analysis.html_report import run_report
+from ..scenario.geometry import manipulator_for
+from ..scenario.units import units_of
+from ..run.reference_files import same_request, write_reference
+from ..slaves.plan import component_line
+from ..run.choose import kind
+from ..master.algorithm import algorithm
+from ..master.estimate import INACCURATE
+from ..analysis.tables import text_table
+from ..analysis.drawing import DrawError, Drawer, Forked, SharedProgress
+from ..interrupts import signals_as_interrupts
 
 
 def _run(args: argparse.Namespace) -> int:
     import os
 
-    from fmus.cache import ENV_VAR
 
     before = os.environ.get(ENV_VAR)
     if args.cache:  # the scene's catalog components are looked up in this cache's recipe index too
         os.environ[ENV_VAR] = str(args.cache)
     drawer = None
     if (args.plot or args.animate) and not args.check:
-        from ..analysis.drawing import Drawer
 
         drawer = Drawer()  # imports matplotlib in a process of its own while the scene loads and runs
     try:
@@ -49,7 +67,6 @@ def _run(args: argparse.Namespace) -> int:
 
 
 def _load_and_run(args: argparse.Namespace, drawer=None) -> int:
-    from ..scenario import SceneError
 
     try:
         scene = load_scene(args)
@@ -57,11 +74,7 @@ def _load_and_run(args: argparse.Namespace, drawer=None) -> int:
         return refuse(exc, "run", args.scene)
     for w in scene.warnings:
         say(str(w))
-    from ..outputs import OutputLock, check_out_dir, check_set, safe_name
-    from ..run.execute import check_trace_size
 
-    from ..errors import UserError
-    from ..run.execute import estimate
 
     if args.check:
         _describe(scene)
@@ -101,7 +114,6 @@ class _EarlyReference:
     same_request`: a variable-step run lands on the grid, the master's choice keeps it)."""
 
     def __init__(self, scene):
-        from ..analysis.drawing import Forked, SharedProgress
 
         self.scene, self.progress = scene, SharedProgress()
         self.job = Forked(_reference_beside, scene, self.progress)
@@ -110,9 +122,6 @@ class _EarlyReference:
         """The reference asked of ``scene`` (as run) at ``times``, in memory (not yet written),
         or None when the early one is another (it is then computed after the run, as asked) or
         failed (computed again, which says why)."""
-        from ..analysis.drawing import DrawError
-        from ..run.progress import progress_bar
-        from ..run.reference_files import same_request
 
         if not same_request(self.scene, scene, times):
             self.stop()
@@ -147,8 +156,6 @@ def _reference_beside(scene, progress) -> tuple:
 
 def _run_locked(args: argparse.Namespace, scene, out: Path, drawer=None, early: _EarlyReference | None = None) -> int:
     from ..run.execute import run
-    from ..run.progress import progress_bar
-    from ..trace.traces import trace_suffix
 
     try:
         res = run(scene, out_dir=out, cache_dir=args.cache, engine=args.engine, progress=progress_bar(),
@@ -190,7 +197,6 @@ class _Figures:
     def units(self) -> dict[str, str]:
         """The run's units (:func:`cosim.scenario.units.units_of` its FMUs), read once for all figures."""
         if self._units is None:
-            from ..scenario.units import units_of
 
             self._units = units_of(self.res.scene, self.res.fmus)
         return self._units
@@ -209,7 +215,6 @@ class _Figures:
         """Ask for a figure drawn in parts, each ``(fn, args, kwargs)``, at the same time;
         ``join(results)`` writes it and returns its path."""
         if self.drawer is None:
-            from ..analysis.drawing import Drawer
 
             self.drawer = Drawer(parallel=False)
         self.asked.append((label, what, [self.drawer.submit(fn, *a, **kw) for fn, a, kw in parts], join, ""))
@@ -226,7 +231,6 @@ class _Figures:
         """Wait for every figure and print where it is, or one line saying why it is not (the
         run's trace and sidecar stay as they are); returns 2 when a figure was refused for its
         input, 1 when one failed, else 0."""
-        from ..analysis.drawing import DrawError
 
         code = 0
         for label, what, jobs, join, why in self.asked:
@@ -247,8 +251,6 @@ class _Figures:
     def interruptible(self) -> Iterator[None]:
         """A signal while figures are being drawn stops them (an earlier complete file stays as it
         was) and gives the run's sidecar the status "interrupted", naming the figures."""
-        from ..interrupts import signals_as_interrupts
-        from ..outputs import amend_status
 
         try:
             with signals_as_interrupts():
@@ -272,7 +274,6 @@ class _Figures:
 def _products(args: argparse.Namespace, scene, res, out: Path, figures: _Figures) -> None:
     """Ask for the plot and the animation of a run (each written under a temporary name and moved
     into place when complete, :func:`cosim.outputs.staged`)."""
-    from ..errors import UserError
 
     if args.plot and len(res.trace.data):
         from ..analysis.charts import plot_run, setpoint_pairs
@@ -281,8 +282,6 @@ def _products(args: argparse.Namespace, scene, res, out: Path, figures: _Figures
         figures.add("plot", f"the plot {final.name}", plot_run, res.trace, final, scene.name,
                     units=figures.units, pairs=setpoint_pairs(scene))
     if args.animate and len(res.trace.data):
-        from ..analysis.animate import animate, pose_component
-        from ..scenario.geometry import manipulator_for
 
         final = confined(out, f"{scene.name}.gif")
         try:
@@ -297,13 +296,7 @@ def _products(args: argparse.Namespace, scene, res, out: Path, figures: _Figures
 
 
 def _report(scene, res, ref, out: Path) -> Path | str:
-    """The run's interactive HTML report (:mod:`cosim.analysis.report`), beside its trace."""
-    from ..analysis.animate import pose_component
-    from ..analysis.charts import setpoint_pairs
-    from ..analysis.report import run_report
-    from ..errors import UserError
-    from ..scenario.geometry import manipulator_for
-    from ..scenario.units import units_of
+    """The run's interactive HTML report (:mod:`cosim.analysis.html_report`), beside its trace."""
 
     if not len(res.trace.data):
         return "none (the run recorded no rows)"
@@ -322,10 +315,7 @@ def _reference(res, out: Path, plot: bool, trace_format: str, figures: _Figures,
                early: _EarlyReference | None = None):
     """The monolithic reference (the early one when it is the one asked for, else run now), and
     the co-simulation's error against it printed (and its plot asked of ``figures``)."""
-    from ..analysis.compare import compare, compare_modes, format_table
-    from ..run.execute import event_modes
-    from ..run.reference_files import write_reference
-    from ..run.progress import progress_bar
+    from ..analysis.trace_diff import compare, compare_modes, format_table
 
     scene = res.scene  # as it ran (the master's choice)
     irregular = res.stats.get("smallest_step") is not None  # variable steps: the reference at the same instants
@@ -406,7 +396,6 @@ def _motion_checks(scene, args: argparse.Namespace) -> bool:
 
 
 def _describe(scene) -> None:
-    from ..slaves.plan import component_line
 
     def count(n: int, word: str) -> str:
         return f"{n} {word}" + ("" if n == 1 else "s")
@@ -440,7 +429,6 @@ def _describe_choice(scene) -> None:
         print(f"  master: {m.algorithm}, named by the scene{tol}")
         _describe_events(scene, m.algorithm)
         return
-    from ..run.choose import kind
 
     alg, why = kind(scene)
     what = "rtol" if alg in ("adaptive", "ecco") else "fixed step"
@@ -450,7 +438,6 @@ def _describe_choice(scene) -> None:
 
 def _describe_events(scene, name: str) -> None:
     """What the algorithm ``name`` does with the components' events (said when a component has any)."""
-    from ..master.algorithm import algorithm
 
     descs = [c.description for c in scene.components.values()]
     if any(d.has_events for d in descs):
@@ -459,7 +446,6 @@ def _describe_events(scene, name: str) -> None:
 
 def verdict(tolerance: float | None, worst: float, status: str) -> str:
     """What the run's estimate ``worst`` says against the scene's ``tolerance`` (one phrase)."""
-    from ..master.estimate import INACCURATE
 
     if status == "unstable":
         return "unstable (the estimate reaches half a signal's range)"
@@ -499,7 +485,6 @@ def _summary(res) -> None:
             print(f"  estimated worst error {est['worst']:.2g} of range, {est['signal']} (at t = {est['at']:.6g} s; "
                   f"{est['method']})")
             print(f"  verdict: {verdict(res.scene.master.tolerance, est['worst'], res.status)}")
-    from ..analysis.tables import text_table
 
     total = st["wall_s"] or 1.0
     cells = []

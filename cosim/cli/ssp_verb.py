@@ -13,11 +13,11 @@ import argparse
 from pathlib import Path
 
 from .verb import load_scene, refuse, tagged
+from ..run.ssp_export import export
+from ..scenario import SceneError
 
 
 def _export(args: argparse.Namespace) -> int:
-    from ..run.ssp_export import export
-    from ..scenario import SceneError
 
     try:
         scene = load_scene(args)

@@ -33,12 +33,19 @@ import math
 from pathlib import Path
 
 from .verb import load_scene, say
+from ..errors import UserError
+from ..master import ALGORITHMS
+from ..run.progress import progress_bar
+from ..study.stability import parse_range, plot_map, stability_map
+from ..outputs import OutputLock, check_out_dir, confined
+from ..batch.overview import Progress
+from ..study.precision import plot_study, precision_study
+from ..study.fidelity import fidelity_study
+from ..analysis.html_report import study_report
 
 def _variants(texts: list[str]) -> list[tuple[str, str]]:
     """Algorithm variants to study: fixed-step algorithms only (a variable-step one chooses its own
     steps, so a sweep over the step says nothing about it; ``tests/test_algorithms.py`` measures it)."""
-    from ..errors import UserError
-    from ..master import ALGORITHMS
 
     fixed = [name for name, cls in ALGORITHMS.items() if not getattr(cls, "variable_step", False)]
     if not texts:
@@ -58,8 +65,6 @@ def _precision_variants(texts: list[str]) -> list[tuple[str, str]]:
     """Variants of the precision study: every registered algorithm; a variable-step one takes its
     own inputs (linear: it interpolates and extrapolates them itself), so only ``ALG`` or
     ``ALG/linear`` names it."""
-    from ..errors import UserError
-    from ..master import ALGORITHMS
 
     variable = [n for n, cls in ALGORITHMS.items() if getattr(cls, "variable_step", False)]
     if not texts:
@@ -78,7 +83,6 @@ def _precision_variants(texts: list[str]) -> list[tuple[str, str]]:
 
 def _numbers(text: str, option: str, example: str) -> list[float]:
     """Comma-separated numbers of ``option``; a one-line UserError otherwise."""
-    from ..errors import UserError
 
     try:
         values = [float(x) for x in text.split(",")]
@@ -88,9 +92,6 @@ def _numbers(text: str, option: str, example: str) -> list[float]:
 
 
 def _stability(args: argparse.Namespace) -> int:
-    from ..errors import UserError
-    from ..run.progress import progress_bar
-    from ..study.stability import parse_range, plot_map, stability_map
 
     path, sep, rng = args.vary.partition("=")
     if not sep:
@@ -101,7 +102,6 @@ def _stability(args: argparse.Namespace) -> int:
     variants = _variants(args.variant)
     smap = stability_map(args.scene, path, values, steps, n_values=args.n, n_steps=args.n, variants=variants,
                          cache_dir=args.cache, progress=progress_bar())
-    from ..outputs import OutputLock, check_out_dir, confined
 
     out = args.out or Path("runs") / f"{smap.scene}_stability"
     check_out_dir(out)  # files stay under --out (cosim.outputs)
@@ -126,15 +126,11 @@ def _stability(args: argparse.Namespace) -> int:
 
 def _report(args: argparse.Namespace, table: Path) -> None:
     if args.report:
-        from ..analysis.report import study_report
 
         say(f"report: {study_report(table)}")
 
 
 def _precision(args: argparse.Namespace) -> int:
-    from ..batch.report import Progress
-    from ..errors import UserError
-    from ..study.precision import plot_study, precision_study
 
     steps = _numbers(args.steps, "--steps", "4e-3,2e-3,1e-3 (comma-separated steps in seconds)") \
         if args.steps else None
@@ -147,7 +143,6 @@ def _precision(args: argparse.Namespace) -> int:
         raise UserError(f"--tol {args.tol}: expected a positive relative tolerance")
     if not args.workers >= 1:
         raise UserError(f"--workers {args.workers}: expected at least 1 process")
-    from ..outputs import OutputLock, check_out_dir, confined
 
     name = load_scene(args).name  # the output directory is named after the scene
     out = args.out or Path("runs") / f"{name}_precision"
@@ -200,8 +195,6 @@ def _precision(args: argparse.Namespace) -> int:
 
 
 def _fidelity(args: argparse.Namespace) -> int:
-    from ..errors import UserError
-    from ..study.fidelity import fidelity_study
 
     if not args.tol > 0:
         raise UserError(f"--tol {args.tol}: expected a positive relative tolerance")

@@ -17,6 +17,10 @@ import sys
 from pathlib import Path
 
 from ..errors import UserError
+from models.trajectory import TrajectoryError
+from ..analysis.design_views import format_table
+from ..analysis.task_file import load_task
+from ..analysis.task_report import save_check_plot, summary_table, write_samples
 
 
 def _dt(text: str) -> float:
@@ -38,11 +42,7 @@ def _out(args) -> Path:
 
 
 def _check(args: argparse.Namespace) -> int:
-    from models.trajectory import TrajectoryError
 
-    from ..analysis.design import format_table
-    from ..analysis.task_file import load_task
-    from ..analysis.task_report import save_check_plot, summary_table
 
     dt = _dt(args.dt)
     task = load_task(args.task)
@@ -65,10 +65,7 @@ def _check(args: argparse.Namespace) -> int:
 
 
 def _plan(args: argparse.Namespace) -> int:
-    from models.trajectory import TrajectoryError
 
-    from ..analysis.task_file import load_task
-    from ..analysis.task_report import write_samples
 
     dt = _dt(args.dt)
     task = load_task(args.task)

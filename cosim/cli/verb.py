@@ -8,6 +8,8 @@ import argparse
 import sys
 from collections.abc import Callable
 from pathlib import Path
+from ..scenario import load
+from ..study.fidelity import resolve_auto
 
 
 def say(msg: object, flush: bool = False) -> None:
@@ -39,7 +41,5 @@ def refuse(exc: Exception, verb: str, path: Path, outcome: str = "nothing was ru
 def load_scene(args: argparse.Namespace):
     """The scene of ``args.scene`` with the ``--set`` overrides of ``args.sets`` (``fidelity: auto``
     resolved by the fidelity study); raises :class:`cosim.scenario.SceneError`."""
-    from ..scenario import load
-    from ..study.fidelity import resolve_auto
 
     return load(args.scene, args.sets, auto_fidelity=resolve_auto)

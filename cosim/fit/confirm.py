@@ -7,10 +7,11 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
-from ..analysis.compare import Difference, compare
+from ..analysis.trace_diff import Difference, compare
 from ..errors import UserError
 from ..run.execute import RunResult, run
 from ..trace.traces import Trace, read_trace
+from ..analysis.charts import plot_comparison
 
 
 @dataclass
@@ -23,7 +24,6 @@ class Check:
 
 def plot(check_: Check, path: Path) -> Path:
     """PNG of the run against the data, the worst signals first (as ``compare --plot``)."""
-    from ..analysis.charts import plot_comparison
 
     units = {**check_.data.meta.get("units", {}), **check_.run.trace.meta.get("units", {})}
     return plot_comparison(check_.run.trace, check_.data, check_.differences, path,

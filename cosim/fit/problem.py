@@ -35,6 +35,8 @@ from ..run.reference import composite
 from ..scenario import Scene
 from ..scenario.replay import Recording, read_recording
 from ..scenario.units import units_of
+from fmus.index import real_block
+from ..scenario.problems import suggest
 
 #: Largest ``h |lambda|`` of an RK4 substep (well inside its stability interval of 2.78).
 STIFF_LIMIT = 0.5
@@ -98,7 +100,6 @@ def unknowns(scene: Scene, patterns: Sequence[str]) -> list[Unknown]:
     """The parameters named by ``patterns`` (``component.parameter``, globs allowed in both parts:
     ``motor*.R``, ``rig.leg[*].raw_zero``), in scene order; a pattern that matches nothing is a
     :class:`UserError` naming it."""
-    from fmus.index import real_block
 
     found: dict[tuple[str, str], Unknown] = {}
     every: list[str] = []
@@ -119,7 +120,6 @@ def unknowns(scene: Scene, patterns: Sequence[str]) -> list[Unknown]:
                     value = float(c.params.get(p.name, p.default))
                     found.setdefault((cname, p.name), Unknown(cname, p.name, value, p.lower, p.upper, p.unit))
         if not hits:
-            from ..scenario.problems import suggest
 
             comps = [n for n, c in scene.components.items() if c.kind == "model"]
             hint = suggest(pat, sorted(set(every))) if every else ""
@@ -155,7 +155,6 @@ def _data(scene: Scene, path: Path, signals: Sequence[str] | None) -> tuple[Reco
     if signals:
         missing = [s for s in signals if s not in rec.names]
         if missing:
-            from ..scenario.problems import suggest
 
             raise UserError(f"{where}: no column {missing[0]!r}{suggest(missing[0], rec.names)} "
                             f"(columns: {', '.join(rec.names[:8])}{', ...' if len(rec.names) > 8 else ''})")

@@ -94,7 +94,7 @@ from .algorithms.jacobi import Jacobi
 from .engine import _Compiled, choose_engine, fixed_stepper
 from .graph import find_algebraic_loop, gauss_seidel_order, topological_order
 from .lifecycle import RunStats, initialize, interruption_reason, slave_table
-from .run import simulate
+from .simulate import simulate
 from .stepper import Outcome, StepInfo, StepResult, Stepper, drive
 from .system import CoupledSystem, Link
 

@@ -36,7 +36,7 @@ from functools import lru_cache
 import numpy as np
 
 from .entries import ADAPT_RUN, ADAPTIVE_CONTROL, ECCO_CONTROL, ECCO_RUN, AdaptiveEnd, EccoEnd, struct
-from .native import SlaveArray, compile_loop
+from .kernels import SlaveArray, compile_loop
 
 CControl = struct(ADAPTIVE_CONTROL)
 CEccoControl = struct(ECCO_CONTROL)
@@ -48,7 +48,7 @@ CALL_BUDGET_NS = 100_000_000
 
 @lru_cache(maxsize=1)
 def library() -> ctypes.CDLL:
-    """Compile (once, cached on disk: :func:`cosim.master.native.compile_loop`) and load the engine."""
+    """Compile (once, cached on disk: :func:`cosim.master.kernels.compile_loop`) and load the engine."""
     return compile_loop("adaptive_engine.c", "rpr_adapt", [ADAPT_RUN, ECCO_RUN])
 
 

@@ -17,6 +17,7 @@ from ..slaves.slave import FAILING, Status
 from .graph import gauss_seidel_order
 from .stepper import Outcome, StepResult
 from .system import CoupledSystem
+from .multirate import check_rates, substepper
 
 _ns = time.perf_counter_ns
 
@@ -286,7 +287,6 @@ class Algorithm(MasterAlgorithm, EventIteration, Outcome, ABC):
 
     def _setup_rates(self, rates: Sequence[int] | None) -> None:
         """:attr:`rates`: doSteps per macro step of each slave (:mod:`cosim.master.multirate`)."""
-        from .multirate import check_rates, substepper
 
         self.rates = check_rates(rates, self.step_ns, self.system.names)
         if any(r > 1 for r in self.rates) and not self.multirate:

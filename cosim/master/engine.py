@@ -15,7 +15,7 @@ from . import adaptive_engine, fastloop, iterative_engine
 from .algorithm import MAX_EVENTS_PER_STEP, Algorithm, MasterAlgorithm
 from .algorithms.jacobi_extrapolated import WEIGHTS
 from .entries import FIXED_CONTROL, FixedEnd, struct
-from .native import SlaveArray, builds, called_back
+from .kernels import SlaveArray, builds, called_back
 from .stepper import FixedStepper, StepResult
 from .system import CoupledSystem
 

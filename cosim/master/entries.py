@@ -6,7 +6,7 @@ every generated layout against the C compiler's ``offsetof``/``sizeof``.
 
 The kernels themselves are C files beside their modules: ``fastloop.c`` (Jacobi, Gauss-Seidel),
 ``adaptive_engine.c`` (adaptive, ecco), ``iterative_engine.c``, on the common ``native.h``
-(:mod:`cosim.master.native` compiles them).
+(:mod:`cosim.master.kernels` compiles them).
 """
 from __future__ import annotations
 

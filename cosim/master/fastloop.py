@@ -1,7 +1,7 @@
 """The compiled inner loop of the fixed-step master (Jacobi and Gauss-Seidel).
 
 A small C function (``fastloop.c`` beside this module, its entry point declared in
-:data:`cosim.master.entries.RUN`), compiled on demand (:func:`cosim.master.native.compile_loop`:
+:data:`cosim.master.entries.RUN`), compiled on demand (:func:`cosim.master.kernels.compile_loop`:
 cached on disk by source and compiler; never committed), steps FMUs through their
 ``fmi2DoStep``/``fmi2GetReal``/``fmi2SetReal`` (or FMI 3.0 ``Float64``) entry points, which it
 receives as function pointers; a slave without them (a Python slave) or with typed ports is
@@ -21,7 +21,7 @@ from ctypes import CDLL
 from functools import lru_cache
 
 from .entries import RUN
-from .native import builds, compile_loop
+from .kernels import builds, compile_loop
 
 #: Longest wall time of one call of the compiled loop [ns]; it returns to Python (where signals
 #: are handled) at least this often.

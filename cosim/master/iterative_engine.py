@@ -24,7 +24,8 @@ import numpy as np
 from ..errors import UserError
 from ..slaves.slave import Status
 from .entries import ITER_RUN, ITERATIVE_CONTROL, IterativeEnd, struct
-from .native import SlaveArray, compile_loop
+from .kernels import SlaveArray, compile_loop
+from .algorithms.iterative import FD_REL, GROWTH_LIMIT
 
 CControl = struct(ITERATIVE_CONTROL)
 
@@ -34,7 +35,7 @@ CALL_BUDGET_NS = 250_000_000
 
 @lru_cache(maxsize=1)
 def library() -> ctypes.CDLL:
-    """Compile (once, cached on disk: :func:`cosim.master.native.compile_loop`) and load the engine."""
+    """Compile (once, cached on disk: :func:`cosim.master.kernels.compile_loop`) and load the engine."""
     return compile_loop("iterative_engine.c", "rpr_iter", [ITER_RUN])
 
 
@@ -83,7 +84,6 @@ class CompiledIterative:
         ctl.jac_auto, ctl.linear = int(opt["jacobian"] == "auto"), int(alg.inputs == "linear")
         ctl.timing = int(alg.timing)
         ctl.omega, ctl.rtol, ctl.atol = opt["omega"], opt["rtol"], opt["atol"]
-        from .algorithms.iterative import FD_REL, GROWTH_LIMIT
 
         ctl.growth, ctl.fd_rel = GROWTH_LIMIT, FD_REL
         # the start's counts, counted on

@@ -1,4 +1,4 @@
-/* The native engine's common part (cosim/master/native.py): what every compiled master loop
+/* The native engine's common part (cosim/master/kernels.py): what every compiled master loop
    starts with.  The types (FMI function pointers, rpr_slave, the control structs, the end
    codes) and the entry points' prototypes are generated into rpr_decls.h from their one
    declaration in cosim/master/entries.py; here are the calls every loop makes on a slave: set

@@ -164,7 +164,7 @@ class Pacer:
 
 
 #: Outputs a slave names ``<prefix>*`` are its own real-time figures (the rig's hardware FMU:
-#: the board daemon's tick lateness and CPU per tick, :mod:`hardware.fmu`); a paced run reports
+#: the board daemon's tick lateness and CPU per tick, :mod:`hardware.hil_fmu`); a paced run reports
 #: their last values beside the master's own lateness.
 OWN_FIGURES_PREFIX = "board_"
 

@@ -35,6 +35,7 @@ import numpy as np
 
 from ..trace.observer import Observer
 from .system import CoupledSystem
+from .lifecycle import slave_table
 
 
 @dataclass
@@ -269,7 +270,6 @@ class FixedStepper(Stepper):
         return StepInfo(t0_ns / 1e9, (self.t_ns - t0_ns) / 1e9, self.system.v, slopes, self.system, alg.k)
 
     def fill(self, stats) -> None:
-        from .lifecycle import slave_table
 
         alg = self.alg
         if self.engine == "python":  # the compiled loop measures its own share itself

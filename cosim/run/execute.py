@@ -12,15 +12,25 @@ from typing import Any
 
 from ..errors import UserError
 from .companion import companion
-from .guards import scene_guard
+from .row_guards import scene_guard
 from .instances import Instances
 from ..master import ALGORITHMS, CoupledSystem, Link, simulate
 from ..master.estimate import EstimatingObserver
 from ..scenario import Scene, load
 from ..scenario.overrides import override_texts
-from ..slaves.fmu import FmuSlave
+from ..slaves.fmu_slave import FmuSlave
 from ..slaves.slave import Slave
 from ..trace.traces import MemoryTrace, Trace, trace_suffix, trace_writer
+from fmus.index import store_pending_replays
+from ..outputs import OutputLock, check_ours, check_out_dir, check_set, confined, safe_name, settle_run
+from ..scenario.units import units_of
+from ..interrupts import signals_as_interrupts
+from . import supervise
+from ..master import RunStats, interruption_reason
+from ..trace.traces import TraceWriteError, read_trace
+from ..scenario.recipes import component_fmu, slave_description
+from .choose import applied
+from ..slaves.fmu_slave import unpack_fmu
 
 
 def _quiet(message: str) -> None:
@@ -77,7 +87,7 @@ class RunRequest:
 @dataclass
 class RunResult:
     """Outcome of :func:`run`: ``status`` is ``"ok"``, ``"failed"``, ``"stopped"`` (a component
-    asked to end), ``"out_of_limits"`` or ``"unstable"`` (a guard, :mod:`cosim.run.guards`) or
+    asked to end), ``"out_of_limits"`` or ``"unstable"`` (a guard, :mod:`cosim.run.row_guards`) or
     ``"interrupted"``; ``reason`` says why a run
     ended early; ``trace`` holds what was recorded
     (also the partial trace of a failed run); ``stats`` the run statistics
@@ -106,11 +116,9 @@ def build_components(scene: Scene, *, cache_dir: Path | None = None,
         if comp.kind == "fmu":
             paths[name] = comp.fmu
             continue
-        from ..scenario.recipes import component_fmu
 
         paths[name] = component_fmu(comp, cache_dir=cache_dir,
                                     progress=(lambda msg, n=name: progress(f"{n}: {msg}")) if progress else None)
-    from fmus.index import store_pending_replays
 
     store_pending_replays()  # what the scene check computed, for the next process
     return paths
@@ -135,7 +143,6 @@ def scene_observers(scene: Scene, out_dir: Path | None, suffix: str = "",
     trace writer streaming to ``out_dir/<name><suffix>.csv`` (``.parquet`` for
     ``trace_format="parquet"``; see :data:`cosim.trace.traces.TRACE_FORMATS`), returned as the
     trace path."""
-    from ..outputs import check_ours, check_set, confined, safe_name
 
     memory = MemoryTrace()
     if out_dir is None:
@@ -148,7 +155,6 @@ def scene_observers(scene: Scene, out_dir: Path | None, suffix: str = "",
 
 def scene_meta(scene: Scene) -> dict:
     """Trace metadata identifying the scene a run comes from."""
-    from ..scenario.units import units_of
 
     units = units_of(scene)
     return {"scene": scene.name, "scene_file": str(scene.path) if scene.path else None, "scene_hash": scene.hash,
@@ -278,8 +284,6 @@ def run(scene: Scene | str | Path, overrides: Mapping[str, Any] | Sequence[str] 
     Files go only under ``out_dir`` (:mod:`cosim.outputs`): one run per directory at a time,
     the trace written under a temporary name and moved into place at the end.
     """
-    from ..interrupts import signals_as_interrupts
-    from ..outputs import OutputLock, check_out_dir
 
     request = RunRequest.of(overrides, request, options)
     out_dir = request.out_dir
@@ -297,14 +301,12 @@ def _as_chosen(res: RunResult) -> RunResult:
     the run's statistics carry: the stepping may have happened in a supervised child)."""
     choice = res.stats.get("choice") if isinstance(res.stats, dict) else None
     if choice and res.scene.master.auto:
-        from .choose import applied
 
         res.scene = applied(res.scene, choice)
     return res
 
 
 def _run(scene: Scene | str | Path, request: RunRequest, slaves: Sequence[Slave] | None) -> RunResult:
-    from . import supervise
 
     overrides, log = request.overrides, request.log
     if not isinstance(scene, Scene):
@@ -319,7 +321,6 @@ def _run(scene: Scene | str | Path, request: RunRequest, slaves: Sequence[Slave]
         paths = build_components(scene, cache_dir=request.cache_dir, progress=log)
         build_s = time.perf_counter() - t0
         if supervise.enabled():
-            from ..slaves.fmu import unpack_fmu
 
             for p in paths.values():  # here, so that this process removes the folders at exit whatever the child does
                 unpack_fmu(p)
@@ -340,7 +341,6 @@ def _supervised(scene: Scene, request: RunRequest, paths: dict, slaves: Sequence
     """:func:`_step` in a supervised child (:mod:`cosim.run.supervise`); a crash, a hung call or
     a child that had to be killed after a signal becomes the run's status (the signal is raised
     again once the files are settled)."""
-    from . import supervise
 
     timeout = supervise.call_timeout(request.call_timeout)
     try:
@@ -361,9 +361,6 @@ def _settle_failed(scene: Scene, out_dir: Path | None, paths: dict, build_s: flo
     afresh when it had written nothing yet."""
     import numpy as np
 
-    from ..master import RunStats
-    from ..outputs import confined, safe_name, settle_run
-    from ..trace.traces import read_trace
 
     stats = RunStats(scene.master.algorithm, "", scene.master.step, scene.n_steps, status=failed.status,
                      reason=failed.reason)
@@ -388,7 +385,6 @@ def _step(scene: Scene, request: RunRequest, paths: dict, slaves: Sequence[Slave
     master's choice, :mod:`cosim.run.choose`, for a scene that names no algorithm, and a companion
     run for the error estimate, :mod:`cosim.master.estimate`) and return (status, reason, trace,
     stats, trace path, seconds spent making the slaves)."""
-    from ..scenario.recipes import slave_description
 
     t0 = time.perf_counter()
     given = list(slaves) if slaves is not None else None
@@ -471,9 +467,7 @@ def _replay(pilot: RunResult, scene: Scene, request: RunRequest, extra: dict) ->
     the same span, with its companion, estimate and verdict) already is: its rows, status and
     statistics written to the run's observers (trace file, sidecar) with ``extra`` (the choice),
     instead of running it once more."""
-    from ..trace.traces import TraceWriteError
 
-    from ..master import interruption_reason
 
     memory, inner, trace_path = scene_observers(scene, request.out_dir, trace_format=request.trace_format)
     progress = request.progress
@@ -655,7 +649,6 @@ def _once(scene: Scene, stepping: Stepping, request: RunRequest, slaves: Sequenc
     estimate (a companion run on ``instances.take()`` first, when ``stepping.repeat`` is None: at
     ``companion_rtol`` when given, one of ``stepping.companions`` when it is the same, see
     :func:`_companion_trace`), judged by it (:func:`cosim.master.estimate.judge`)."""
-    from ..trace.traces import TraceWriteError
 
     instances, repeat, engine = stepping.instances, stepping.repeat, request.engine
     if repeat is None and not scene.master.estimate:

@@ -17,7 +17,7 @@ from __future__ import annotations
 import os
 from collections.abc import Callable, Sequence
 
-from ..slaves.fmu import FmuSlave
+from ..slaves.fmu_slave import FmuSlave
 from ..slaves.slave import Slave
 
 REUSE_ENV = "RPR_COSIM_REUSE"

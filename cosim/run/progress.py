@@ -4,7 +4,7 @@ On a terminal the bar is redrawn in place; written to a pipe or a file (a CI log
 it becomes whole lines, at most one every ``pipe_every_s`` seconds, with no carriage return and
 no escape sequence; in a Jupyter notebook it is tqdm's widget (``tqdm.auto``).  Runs use
 :func:`progress_bar` (a ``progress(done, total)`` callback), batches
-:class:`cosim.batch.report.Progress`, both through :func:`bar`.
+:class:`cosim.batch.overview.Progress`, both through :func:`bar`.
 """
 from __future__ import annotations
 

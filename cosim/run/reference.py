@@ -34,10 +34,14 @@ from models.compose import Composite, compose
 
 from ..errors import UserError
 from .execute import RunResult, scene_meta, scene_observers
-from .guards import scene_guard
+from .row_guards import scene_guard
 from .reference_files import output_instants as _output_instants
 from ..trace.traces import TraceWriteError
 from ..scenario import Scene, load
+from fmus.index import real_block
+from ..interrupts import signals_as_interrupts
+from ..outputs import OutputLock, check_out_dir
+from .event_reference import EventReferenceError, Tolerances, integrate
 
 #: CVODES tolerances of the reference (relative, absolute).
 RTOL, ATOL = 1e-10, 1e-12
@@ -137,7 +141,6 @@ def composite(scene: Scene, *, symbols: Mapping[tuple[str, str], ca.SX] | None =
         if comp.kind != "model" and name not in sources:
             raise UserError(f"component {name!r} is an external FMU ({comp.label}); a monolithic reference "
                             f"needs the equations of every component (catalog models only)")
-    from fmus.index import real_block  # the equations of a component indexed by recipe
 
     blocks = {n: sources[n][0] if n in sources else real_block(c.block) for n, c in scene.components.items()}
     params = {n: sources[n][1] if n in sources else _param_vector(blocks[n], c.params, n, symbols or {})
@@ -202,8 +205,6 @@ def reference(scene: Scene | str | Path, overrides=None, **options: Any) -> RunR
     runs are guarded themselves.  The keyword ``options`` are the fields of
     :class:`ReferenceRequest` (``out_dir``, ``rtol``, ``atol``, ``progress``, ``max_wall_s``,
     ``max_steps``, ``log``, ``times``, ``trace_format``, ``guarded``)."""
-    from ..interrupts import signals_as_interrupts
-    from ..outputs import OutputLock, check_out_dir
 
     req = ReferenceRequest(**options)
     if not isinstance(scene, Scene):
@@ -362,7 +363,6 @@ def _reference(scene: Scene, req: ReferenceRequest) -> RunResult:
 def _event_reference(scene: Scene, comp: Composite, req: ReferenceRequest) -> RunResult:
     """The reference of a scene whose blocks have events (:mod:`.event_reference`): the output grid
     plus two rows at each event; the sidecar's ``events`` lists them (time and block.event)."""
-    from .event_reference import EventReferenceError, Tolerances, integrate
 
     out_dir, rtol, atol, max_wall_s, log = req.out_dir, req.rtol, req.atol, req.max_wall_s, req.log
     times, trace_format, guarded = req.times, req.trace_format, req.guarded

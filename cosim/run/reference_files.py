@@ -13,6 +13,7 @@ from ..errors import UserError
 from ..scenario import Scene
 from ..trace.traces import Trace, TraceWriteError
 from .execute import RunResult, scene_meta, scene_observers
+from ..outputs import OutputLock, check_out_dir
 
 
 def output_instants(scene: Scene, times: Sequence[float] | None) -> tuple[np.ndarray, bool]:
@@ -46,7 +47,6 @@ def write_reference(scene: Scene, trace: Trace, out_dir: Path, *, trace_format: 
     """Write a reference computed without ``out_dir`` (``trace``, as :func:`reference` returned
     it: rows, metadata, status, statistics) into ``out_dir``: the files :func:`reference` writes
     there itself, under the same safety (:func:`cosim.outputs.place`)."""
-    from ..outputs import OutputLock, check_out_dir
 
     check_out_dir(out_dir)
     with OutputLock(out_dir, log=log):

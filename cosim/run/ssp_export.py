@@ -1,4 +1,4 @@
-"""A scene out as an SSP 1.0 archive (the format and the reader: :mod:`cosim.scenario.ssp`).
+"""A scene out as an SSP 1.0 archive (the format and the reader: :mod:`cosim.scenario.ssp_archive`).
 
 :func:`export` writes one FMU per distinct component binary under ``resources/`` (built on a cache
 miss), the scene's parameters and start values as one system-level parameter set
@@ -19,9 +19,10 @@ import zipfile
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
-from ..scenario.guards import guard_needs
-from ..scenario.ssp import (BOND_ANNOTATION, COMPONENT_ANNOTATION, FMU_TYPE, MASTER_ANNOTATION, NS, SSD, SspError,
+from ..scenario.guard_settings import guard_needs
+from ..scenario.ssp_archive import (BOND_ANNOTATION, COMPONENT_ANNOTATION, FMU_TYPE, MASTER_ANNOTATION, NS, SSD, SspError,
                             _num, _q, _units_xml, schema_errors)
+from .execute import build_components
 
 # --- export -----------------------------------------------------------------------------------
 def _ssv(name: str, values: Sequence[tuple[str, float, str]]):
@@ -134,7 +135,6 @@ def export(scene, dest: Path | str, *, cache_dir: Path | None = None, overwrite:
     FMUs come from the cache (built on a miss).  An existing ``dest`` is kept unless
     ``overwrite``; the archive is written beside it and renamed, so a failure leaves nothing.
     Raises :class:`SspError` when the result would not validate (a bug, named element and line)."""
-    from .execute import build_components
 
     dest = Path(dest)
     if dest.exists() and not overwrite:

@@ -40,6 +40,7 @@ from typing import Any, TypeVar
 from ..errors import UserError
 from ..interrupts import Interrupted
 from ..slaves import crumb
+from ..slaves import fmu_slave
 
 #: Default longest wall time of one FMI call before the run is declared hung [s].
 DEFAULT_TIMEOUT_S = 60.0
@@ -139,11 +140,10 @@ def _write_all(fd: int, data: bytes) -> None:
 def _end_child(code: int, inherited: set) -> None:
     """Remove the FMU folders this child unpacked (``os._exit`` skips the atexit hook that would),
     flush, and exit with ``code``."""
-    from ..slaves import fmu
 
     try:
-        for key in set(fmu._UNZIPPED) - inherited:
-            shutil.rmtree(fmu._UNZIPPED[key], ignore_errors=True)
+        for key in set(fmu_slave._UNZIPPED) - inherited:
+            shutil.rmtree(fmu_slave._UNZIPPED[key], ignore_errors=True)
         sys.stdout.flush()
         sys.stderr.flush()
     finally:
@@ -151,11 +151,10 @@ def _end_child(code: int, inherited: set) -> None:
 
 
 def _child(work: Callable[[Callable[[str], None]], Any], wfd: int, buf) -> None:
-    from ..slaves import fmu
 
     code = 0
     notes: list[str] = []
-    inherited = set(fmu._UNZIPPED)  # the parent's unpacked FMUs: the parent removes those
+    inherited = set(fmu_slave._UNZIPPED)  # the parent's unpacked FMUs: the parent removes those
     try:
         _become_child(buf)
         try:
@@ -314,7 +313,6 @@ class Server:
 
     def __init__(self, handle: Callable[[Any], Any], *, on_start: Callable[[], None] | None = None,
                  on_exit: Callable[[], None] | None = None):
-        from ..slaves import fmu
 
         self.buf = crumb.shared()
         self._handle, self._on_start, self._on_exit = handle, on_start, on_exit
@@ -326,7 +324,7 @@ class Server:
         if self.pid == 0:  # pragma: no cover - the child never returns
             os.close(self._down)
             os.close(self._up)
-            self._serve(down_r, up_w, set(fmu._UNZIPPED))
+            self._serve(down_r, up_w, set(fmu_slave._UNZIPPED))
         os.close(down_r)
         os.close(up_w)
         self._open = True

@@ -19,7 +19,7 @@ Format (every key but ``components`` and ``connections`` optional; lines startin
     master: {algorithm: gauss_seidel, step: 1e-3, order: [target, pid1, motor1, mech],
              engine: auto, output_interval: 1e-3}
     outputs: ["mech.platform.*", "mech.leg[*].f"]   # fnmatch over "component.variable"
-    guards: {stroke: stop, singularity: warn}       # physical guards (cosim.run.guards); all "stop" by default
+    guards: {stroke: stop, singularity: warn}       # physical guards (cosim.run.row_guards); all "stop" by default
 
 Component spec: ``model`` (a name of :func:`models.blocks.catalog`) with optional ``fidelity``
 and ``options`` (construction options of :func:`models.blocks.make`), or ``fmu`` (a path);

@@ -24,6 +24,16 @@ from .problems import Loc, suggest
 from .user_blocks import (ENTRY_POINT_GROUP, UserBlockError, UserCatalog, entry_point_catalog, load_module_file,
                           module_depends, module_table)
 from .yamlfile import YMap, _display
+from ..slaves.archive import check_archive
+from models.interface import Flange
+from ..slaves import probe
+from ..slaves.behaviour import check_in_subprocess
+from ..slaves.xmlcheck import check_xml
+from hardware.hil_fmu import build_hil_fmu
+from hardware.protocol import parse_address
+from .modelica_sources import ENV_VAR, SourceError, modelica_class, roots_from_env
+from .guard_settings import GuardNeeds
+from .recipes import indexed_component, indexed_user_component, recipe_of
 
 
 class ComponentChecks(Checker):
@@ -96,7 +106,6 @@ class ComponentChecks(Checker):
         for key in ("fidelity", "options"):
             if key in spec:
                 self.err(spec.loc(key), f"component {name!r}: '{key}' applies to catalog models, not to an FMU")
-        from ..slaves.archive import check_archive
 
         try:  # the archive's members and sizes before anything reads it
             check_archive(fpath)
@@ -120,7 +129,6 @@ class ComponentChecks(Checker):
             desc = dataclasses.replace(desc, solver_rtol=rtol)
         comp = Component(name, "fmu", desc, fmu=fpath.resolve(), fmi=desc.fmi_version or fmi, where=spec.where)
         if "guard_data" in spec:  # what the guards know of it (an rpr-cosim SSP's component annotation)
-            from .guards import GuardNeeds
 
             try:
                 comp.guard = GuardNeeds.from_dict(spec["guard_data"])
@@ -157,7 +165,6 @@ class ComponentChecks(Checker):
         of an effort (force, torque) and a flow (velocity) variable, one an input and the other an
         output (which one the FMU computes gives the flange's causality); bonded with
         ``'a.NAME <-> b.NAME'`` like a catalog model's flanges (ecco's energy residual uses them)."""
-        from models.interface import Flange
 
         node = spec.get("flanges")
         if node is None:
@@ -198,8 +205,6 @@ class ComponentChecks(Checker):
     def _behaviour(self, comp: Component, spec: YMap) -> None:
         """The behavioural check of an external FMU (:mod:`cosim.slaves.behaviour`, once per FMU hash):
         each departure a warning, each workaround applied to the component and noted."""
-        from ..slaves import probe
-        from ..slaves.behaviour import check_in_subprocess
 
         where = spec.loc("fmu")
         try:
@@ -232,8 +237,6 @@ class ComponentChecks(Checker):
     def _xml(self, name: str, fpath: Path, where: Loc) -> bool:
         """The FMU's modelDescription.xml checked (:mod:`cosim.slaves.xmlcheck`, once per FMU hash):
         errors refuse the component, recommendations are warnings.  False on an error."""
-        from ..slaves import probe
-        from ..slaves.xmlcheck import check_xml
 
         try:
             found, _ = probe.cached(fpath, "xml", lambda: [list(p) for p in check_xml(fpath)])
@@ -249,7 +252,6 @@ class ComponentChecks(Checker):
         mapping output -> inputs; unlisted outputs have none) wins; else the FMU's declared
         dependencies; else, for an FMU that declares none, the feedthrough measured on a scratch
         instance (:func:`cosim.slaves.probe.feedthrough`, cached by the FMU's hash), with a note."""
-        from ..slaves import probe
 
         desc = comp.description
         if "feedthrough" in spec:
@@ -300,15 +302,13 @@ class ComponentChecks(Checker):
         return ft if ok else None
 
     def _hardware_component(self, name: str, spec: YMap) -> Component | None:
-        """``{hardware: {address: HOST:PORT, key: FILE}}``: the hardware FMU (:mod:`hardware.fmu`),
+        """``{hardware: {address: HOST:PORT, key: FILE}}``: the hardware FMU (:mod:`hardware.hil_fmu`),
         built and cached with these start values; then an FMU component like any other."""
         node, where = spec["hardware"], spec.loc("hardware")
         if not isinstance(node, Mapping) or any(k not in ("address", "key") for k in node):
             self.err(where, f"component {name!r}: hardware must be a mapping {{address: HOST:PORT, key: FILE}}, "
                             f"got {node!r}")
             return None
-        from hardware.fmu import build_hil_fmu
-        from hardware.protocol import parse_address
 
         address, key = str(node.get("address", "127.0.0.1:5005")), str(node.get("key", "board.key"))
         try:
@@ -342,7 +342,6 @@ class ComponentChecks(Checker):
 
     def _model_component(self, name: str, spec: YMap, fmi: str) -> Component | None:
         if self.catalog is None:  # built before: from the FMU cache's recipe index, no block built
-            from .recipes import indexed_component, indexed_user_component
 
             comp = indexed_component(name, spec, fmi, Component)
             sources = self._blocks_sources() if comp is None and isinstance(spec.get("model"), str) else None
@@ -416,7 +415,6 @@ class ComponentChecks(Checker):
         comp = Component(name, "model", desc, model=model, fidelity=fidelity, options=options, fmi=fmi,
                          block=block, where=spec.where)
         if self.catalog is None:
-            from .recipes import recipe_of
 
             if user is None:
                 comp.recipe = recipe_of(spec, options, fixed, fmi)
@@ -500,7 +498,6 @@ class ComponentChecks(Checker):
         from models.block import BlockError
         from models.modelica import CAUSALITIES, INTEGRATORS, refuse_unsupported, translate
 
-        from .modelica_sources import SourceError, modelica_class
 
         where, rel, cls = spec.loc("modelica"), spec["modelica"], spec.get("model")
         if not isinstance(rel, str) or not rel.strip():
@@ -576,7 +573,6 @@ class ComponentChecks(Checker):
         key = f"modelica:{mc.model}"  # indexed with the digests of every file it reads and the front end's version
         sources = mc.recipe_sources(str(installed_version("rumoca", "rumoca")))
         if self.catalog is None:
-            from .recipes import indexed_user_component
 
             comp = indexed_user_component(name, spec, fmi, Component, key=key, model=mc.model, fidelity="modelica",
                                           options=options, sources=sources, origin=origin, rebuild=block_of_text)
@@ -591,7 +587,6 @@ class ComponentChecks(Checker):
         comp = Component(name, "model", describe_block(block, f"{mc.model}/modelica"), model=mc.model,
                          fidelity="modelica", options=options, fmi=fmi, block=block, where=spec.where, origin=origin)
         if self.catalog is None:
-            from .recipes import recipe_of
 
             comp.recipe = recipe_of(spec, options, {}, fmi, key=key, fidelity="modelica", sources=sources)
         self._values(comp, spec)
@@ -603,7 +598,6 @@ class ComponentChecks(Checker):
         reporting a root that is not a directory."""
         if getattr(self, "_modelica_roots", None) is not None:
             return self._modelica_roots
-        from .modelica_sources import ENV_VAR, roots_from_env
 
         node = self.tree.get("modelica_path", [])
         where = self.tree.loc("modelica_path") if "modelica_path" in self.tree else self.tree.where

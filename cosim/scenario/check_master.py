@@ -15,6 +15,9 @@ from .keys import DEFAULT_TOLERANCE, ENGINES, INPUT_MODES, MASTER_KEYS, RECORD_M
 from .model import Component, MasterSettings
 from .problems import suggest
 from .yamlfile import YList, YMap
+from ..master.multirate import rate_problem
+from ..master.realtime import RealtimeSettings
+from ..master.algorithm import option_values
 
 
 @lru_cache(maxsize=256)
@@ -184,7 +187,6 @@ class MasterChecks(Checker):
         """``components.X.rate`` (doSteps per macro step, :mod:`cosim.master.multirate`): a whole
         number >= 1 dividing ``master.step`` into whole nanoseconds, for an algorithm that steps
         slaves at several rates.  Sets each component's ``rate``; False when one is wrong (reported)."""
-        from ..master.multirate import rate_problem
 
         node, good = self.tree.get("components"), True
         for name, comp in comps.items():
@@ -208,7 +210,6 @@ class MasterChecks(Checker):
     def realtime(self, node: YMap):
         """``master.realtime``: true/false or {max_misses: N, spin: S, priority: P}; the settings,
         None (not paced) or False (invalid, reported)."""
-        from ..master.realtime import RealtimeSettings
 
         rt = node.get("realtime", False)
         if rt is False or rt is None:
@@ -238,7 +239,6 @@ class MasterChecks(Checker):
         if given and not declared:
             self.err(node.loc("options"), f"master algorithm {alg} has no options")
             return None
-        from ..master.algorithm import option_values
 
         try:
             return option_values(dict(given), declared)

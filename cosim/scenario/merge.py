@@ -10,6 +10,8 @@ from typing import Any
 
 from .problems import Problem, suggest
 from .yamlfile import YList, YMap, _display, read_yaml
+from .osp import is_osp, scene_tree as osp_tree
+from .ssp_archive import scene_tree
 
 
 def _components_as_map(node: Any, problems: list[Problem]) -> Any:
@@ -124,14 +126,11 @@ def load_raw(path: Path, problems: list[Problem], _chain: tuple[Path, ...] = ())
         cycle = " -> ".join(_display(p) for p in _chain + (rp,))
         problems.append(Problem(_display(path), 0, f"include cycle: {cycle}"))
         return None
-    if path.suffix.lower() == ".ssp":  # an SSP archive read as a scene tree (cosim.scenario.ssp)
-        from .ssp import scene_tree
+    if path.suffix.lower() == ".ssp":  # an SSP archive read as a scene tree (cosim.scenario.ssp_archive)
 
         return scene_tree(path, problems)
-    from .osp import is_osp
 
     if is_osp(path):  # libcosim's OspSystemStructure.xml read as a scene tree (cosim.scenario.osp)
-        from .osp import scene_tree as osp_tree
 
         return osp_tree(path, problems)
     data, found = read_yaml(path)

@@ -34,7 +34,7 @@ class Component:
     rate: int = 1  # doSteps per macro step (cosim.master.multirate)
     origin: str | None = None  # a user's block: where it is defined (a 'blocks:' file, an entry point, a .mo file)
     depends: dict[str, str] = field(default_factory=dict)  # a user's Python block: files its module imported -> SHA-256
-    guard: Any = None  # cosim.scenario.guards.GuardNeeds: what the run-time guards need, as plain data
+    guard: Any = None  # cosim.scenario.guard_settings.GuardNeeds: what the run-time guards need, as plain data
     replay: Any = None  # cosim.scenario.replay.Recording of a ``replay:`` component (an FMU with the table in it)
 
     @property
@@ -123,7 +123,7 @@ class Scene:
     warnings: list[Problem] = field(default_factory=list)
     start_time: float = 0.0  # [s] the scene's start_time, else the FMUs' default experiment, else 0
     start_ns: int = 0
-    guards: Any = None  # cosim.run.guards.GuardSettings (physical guards of a run)
+    guards: Any = None  # cosim.run.row_guards.GuardSettings (physical guards of a run)
     #: the overrides it was loaded with (``--set``, a batch axis, the Python API), as ``path=value``
     #: texts in the order applied (:func:`cosim.scenario.overrides.override_texts`); the sidecar's
     overrides: list[str] = field(default_factory=list)

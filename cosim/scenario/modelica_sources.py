@@ -29,6 +29,9 @@ import tempfile
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
+from ..errors import UserError
+from ..readers import byte_limit, read_regular
+from fmus.cache import cache_root, writable_root
 
 #: The environment variable OpenModelica reads for its library roots (colon-separated).
 ENV_VAR = "MODELICAPATH"
@@ -82,8 +85,6 @@ def read_text(path: Path) -> str:
     ``RPR_COSIM_MAX_MODELICA_BYTES`` may lower; :class:`SourceError` naming the file)."""
     from models.modelica import MAX_SOURCE_BYTES
 
-    from ..errors import UserError
-    from ..readers import byte_limit, read_regular
 
     try:
         return read_regular(path, "Modelica file", min(MAX_SOURCE_BYTES, byte_limit(MAX_BYTES_ENV, MAX_SOURCE_BYTES)),
@@ -314,7 +315,6 @@ _MEMO: dict[str, dict] = {}
 
 
 def _cache_dir(cache: Path | None) -> Path:
-    from fmus.cache import cache_root, writable_root
 
     return writable_root(cache_root(cache) / "modelica")
 

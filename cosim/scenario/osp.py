@@ -1,5 +1,5 @@
 """libcosim's system format: ``OspSystemStructure.xml`` read as a scene source (beside
-:mod:`cosim.scenario.ssp`), so ``rpr-cosim run OspSystemStructure.xml`` and ``include:`` of one
+:mod:`cosim.scenario.ssp_archive`), so ``rpr-cosim run OspSystemStructure.xml`` and ``include:`` of one
 validate and run it like any scene.
 
 What becomes what:
@@ -41,6 +41,12 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from .problems import Problem
+from ..errors import UserError
+from ..readers import open_regular
+from .yamlfile import YList, YMap, _display
+from ..master.algorithms.ecco import OPTIONS
+from ..slaves.description import describe_fmu
+from .problems import suggest
 
 ROOT_TAG = "OspSystemStructure"
 ALGORITHMS = {"fixedStep": "jacobi", "ecco": "ecco"}
@@ -150,8 +156,6 @@ def root_tag(path: Path) -> str | None:
         return None
     from lxml import etree
 
-    from ..errors import UserError
-    from ..readers import open_regular
 
     try:
         with open_regular(path, "XML file") as fh:
@@ -165,7 +169,6 @@ def root_tag(path: Path) -> str | None:
 
 class _Reader:
     def __init__(self, path: Path, problems: list[Problem]):
-        from .yamlfile import _display
 
         self.path, self.problems = Path(path), problems
         self.label = _display(self.path)
@@ -207,7 +210,6 @@ class _Reader:
 
     # ------------------------------------------------------------------------------------------
     def tree(self, root):
-        from .yamlfile import YList, YMap
 
         known = {"StartTime", "EndTime", "BaseStepSize", "Algorithm", "Simulators", "Functions", "Connections",
                  "EccoConfiguration"}
@@ -309,8 +311,6 @@ class _Reader:
 
     def ecco(self, el):
         """The EccoConfiguration as ecco options (:func:`ecco_options`), its notes added."""
-        from ..master.algorithms.ecco import OPTIONS
-        from .yamlfile import YMap
 
         if el is None:
             return None
@@ -337,9 +337,6 @@ class _Reader:
 
     # simulators ---------------------------------------------------------------------------------
     def simulator(self, el, steps: dict[str, float]) -> None:
-        from ..errors import UserError
-        from ..slaves.description import describe_fmu
-        from .yamlfile import YMap
 
         name, src = el.get("name"), el.get("source")
         if not name or not src:
@@ -376,8 +373,6 @@ class _Reader:
         self.comps[name] = (el, spec, desc, fmu)
 
     def initial_value(self, iv, comp: str, spec, desc) -> None:
-        from .problems import suggest
-        from .yamlfile import YMap
 
         var = iv.get("variable")
         v = desc.variables.get(var or "")
@@ -426,7 +421,6 @@ class _Reader:
     # connections ----------------------------------------------------------------------------------
     def endpoint(self, el) -> tuple[str, str, str] | None:
         """(simulator, variable, causality) of a <Variable simulator= name=/>."""
-        from .problems import suggest
 
         sim, var = el.get("simulator"), el.get("name")
         if sim not in self.comps:
@@ -496,7 +490,6 @@ class _Reader:
         self.add(conns, f"{s0}.{bond} <-> {d0}.{bond}", el0)
 
     def flange(self, comp: str, name: str, effort: str, flow: str, el) -> None:
-        from .yamlfile import YMap
 
         spec = self.comps[comp][1]
         if "flanges" not in spec:
@@ -661,7 +654,6 @@ class _Reader:
 
     def function_components(self, functions: dict[str, _Function]) -> list[tuple[str, object]]:
         """(name, spec) of the Sum and VectorSum components."""
-        from .yamlfile import YMap
 
         comps = []
         for f in functions.values():
@@ -719,7 +711,6 @@ class _Reader:
         if fname in self.broken_functions:
             return
         if fname not in functions:
-            from .problems import suggest
 
             self.err(sig, f"unknown function {fname!r}{suggest(str(fname), functions)} (functions: "
                           f"{', '.join(functions) or 'none'})")

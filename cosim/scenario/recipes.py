@@ -6,13 +6,16 @@ from __future__ import annotations
 from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any
+from fmus.index import IndexedBlock, Recipe, cached_fmu, lookup, real_block, record
+from ..slaves.description import SlaveDescription, Variable, describe_block, describe_fmu
+import fmus
+from models.interface import Flange
 
 
 def indexed_component(name: str, spec: Mapping, fmi: str, make_component: Callable[..., Any]) -> Any | None:
     """The component of ``spec`` (a catalog ``model:`` spec) from the index, made by
     ``make_component(name, kind, description, **fields)``; None on a miss or on anything the full
     validation has to report (a malformed spec)."""
-    from fmus.index import lookup
 
     model, fidelity = spec.get("model"), spec.get("fidelity")
     options, params = spec.get("options", {}), spec.get("params", {})
@@ -36,7 +39,6 @@ def indexed_user_component(name: str, spec: Mapping, fmi: str, make_component: C
     written, ``sources``) from
     the index, made by ``make_component``; None on a miss.  ``rebuild`` builds the real block
     when a run needs its equations."""
-    from fmus.index import lookup
 
     params = spec.get("params", {})
     if not isinstance(options, Mapping) or not isinstance(params, Mapping):
@@ -53,7 +55,6 @@ def indexed_user_component(name: str, spec: Mapping, fmi: str, make_component: C
 def _description(block, source: str):
     """:func:`cosim.slaves.describe_block` of an indexed block, made once per block and source
     (the index hands out one block per entry; descriptions are not modified after they are made)."""
-    from ..slaves.description import describe_block
 
     memo = block.__dict__.setdefault("_descriptions", {})
     if source not in memo:
@@ -65,7 +66,6 @@ def recipe_of(spec: Mapping, options: dict, fixed: dict, fmi: str, *, key: str |
               fidelity: str | None = None, sources: dict | None = None):
     """The :class:`fmus.index.Recipe` of a catalog component validated the full way (a user's
     block: its recipe model ``key``, ``fidelity`` and ``sources``)."""
-    from fmus.index import Recipe
 
     return Recipe(key or spec["model"], fidelity if key else spec.get("fidelity"), dict(options), dict(fixed), fmi,
                   dict(sources or {}))
@@ -75,7 +75,6 @@ def component_fmu(comp, *, cache_dir: Path | None = None, progress: Callable[[st
     """The FMU of catalog component ``comp``: the indexed one when it is intact, else built (or
     found by content) through :func:`fmus.build_fmu`, which says why it rebuilds a damaged FMU;
     a component of the default catalog is then (re)indexed."""
-    from fmus.index import IndexedBlock, cached_fmu, real_block, record
 
     say = progress or (lambda m: None)
     if isinstance(comp.block, IndexedBlock):
@@ -83,12 +82,10 @@ def component_fmu(comp, *, cache_dir: Path | None = None, progress: Callable[[st
         if path is not None:
             say(f"{path.stem}: FMI {comp.fmi} FMU up to date ({path}), from the recipe index")
             return path
-    import fmus
 
     block = real_block(comp.block)
     path = fmus.build_fmu(block, fmi_version=comp.fmi, cache_dir=cache_dir, progress=progress)
     if getattr(comp, "recipe", None) is not None:
-        from ..slaves.description import describe_fmu
 
         record(comp.recipe, comp.fidelity, block, path, cache_dir, description=description_data(describe_fmu(path)),
                depends=getattr(comp, "depends", None))
@@ -98,7 +95,6 @@ def component_fmu(comp, *, cache_dir: Path | None = None, progress: Callable[[st
 def slave_description(comp, fmu: Path):
     """The description of ``comp``'s FMU ``fmu`` without reading its modelDescription.xml: the
     indexed one when ``fmu`` is the FMU of the index entry (verified before), else None."""
-    from fmus.index import IndexedBlock
 
     if isinstance(comp.block, IndexedBlock) and Path(fmu) == comp.block.fmu and comp.block.fmu_description:
         return description_from_data(comp.block.fmu_description)
@@ -116,9 +112,7 @@ def description_data(desc) -> dict:
 
 def description_from_data(data: dict):
     """The :class:`cosim.slaves.SlaveDescription` written by :func:`description_data`."""
-    from models.interface import Flange
 
-    from ..slaves.description import SlaveDescription, Variable
 
     vs = {}
     for v in data["variables"]:

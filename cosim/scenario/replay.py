@@ -26,6 +26,10 @@ from .checker import Checker
 from .model import Component, Connection
 from .problems import suggest
 from .yamlfile import YMap, _display
+from ..trace.traces import read_trace
+from fmus.errors import BuildError
+from fmus.replay import build_replay_fmu
+from ..slaves.description import describe_fmu
 
 #: Keys of a replay component.
 REPLAY_KEYS = ("replay", "interpolation", "units", "description")
@@ -51,7 +55,6 @@ class Recording:
 
 def read_recording(path: Path | str, units: dict[str, str] | None = None, interpolation: str = "linear") -> Recording:
     """Read and check a recording (module docstring); raises :class:`UserError` naming the file."""
-    from ..trace.traces import read_trace
 
     path = Path(path)
     where = _display(path)
@@ -97,10 +100,7 @@ class ReplayChecks(Checker):
     """The checks of replay components (a mixin of the scene checker)."""
 
     def _replay_component(self, name: str, spec: YMap) -> Component | None:
-        from fmus.errors import BuildError
-        from fmus.replay import build_replay_fmu
 
-        from ..slaves.description import describe_fmu
 
         for k in spec:
             if k not in REPLAY_KEYS:

@@ -4,12 +4,12 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 from pathlib import Path
+from ..slaves.description import describe_fmu
 
 
 def units_of(scene, fmus: Mapping[str, Path] | None = None) -> dict[str, str]:
     """``component.variable`` -> unit, from each component's FMU (``fmus``: component -> FMU path,
     e.g. :attr:`RunResult.fmus`) or, without one, from the description the scene validated."""
-    from ..slaves.description import describe_fmu
 
     out: dict[str, str] = {}
     for name, comp in scene.components.items():

@@ -23,6 +23,8 @@ from pathlib import Path
 from typing import Any
 
 from fmus.index import SOURCE_ROOT, source_digest
+from ..errors import UserError
+from ..readers import byte_limit, read_regular
 
 ENTRY_POINT_GROUP = "rpr_cosim.blocks"
 
@@ -132,8 +134,6 @@ _DEPENDS: dict[str, dict[str, str]] = {}  # module name -> the files its import 
 def load_module_file(path: Path):
     """Import the Python file ``path`` as a module (a fresh one for every content); returns the
     module and the SHA-256 of its source.  :func:`module_depends` then lists the files it imported."""
-    from ..errors import UserError
-    from ..readers import read_regular
 
     try:
         data = read_regular(path, "blocks file")
@@ -229,8 +229,6 @@ def _module_digest(module) -> str:
 
 def read_modelica(path: Path) -> str:
     """The text of a Modelica file (:class:`UserBlockError` when it cannot be read)."""
-    from ..errors import UserError
-    from ..readers import byte_limit, read_regular
     from models.modelica import MAX_SOURCE_BYTES
 
     env = "RPR_COSIM_MAX_MODELICA_BYTES"  # may lower the front end's own bound, not raise it

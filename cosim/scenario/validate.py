@@ -17,6 +17,8 @@ from .replay import ReplayChecks
 from .overrides import plain
 from .problems import Problem, SceneError
 from .yamlfile import YMap
+from .guard_settings import check_scene, parse_settings
+from ..outputs import name_problem, stem_name
 
 
 class _Checker(ComponentChecks, ConnectionChecks, MasterChecks, ReplayChecks):
@@ -65,7 +67,6 @@ def validate(tree: YMap, path: Path | None = None, *, catalog=None, problems: li
         # a scene naming no algorithm may have a loop: the run then chooses iterative (cosim.run.choose)
         ck.algebraic_loops(comps, conns, "iterative" if master is not None and master.auto else
                            master.algorithm if master is not None else None)
-    from .guards import check_scene, parse_settings
 
     guards = parse_settings(tree.get("guards"), lambda _key: tree.loc("guards"), ck.err)
     if comps and not broken:
@@ -73,7 +74,6 @@ def validate(tree: YMap, path: Path | None = None, *, catalog=None, problems: li
     errors = [p for p in ck.problems if p.severity == "error"]
     if errors:
         raise SceneError(ck.problems)
-    from ..outputs import name_problem, stem_name
 
     name = tree.get("name") or stem_name(path.stem if path else "scene")
     if name_problem(name):

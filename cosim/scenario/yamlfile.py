@@ -9,6 +9,8 @@ from typing import Any
 import yaml
 
 from .problems import Loc, Problem
+from ..errors import UserError
+from ..readers import read_regular
 
 
 class YMap(dict):
@@ -163,8 +165,6 @@ def read_yaml(path: Path, what: str = "scene") -> tuple[Any, list[Problem]]:
     """Parse one YAML file (``what`` names it in messages) into YMap/YList; syntax errors and
     duplicate keys become problems."""
     name = _display(path)
-    from ..errors import UserError
-    from ..readers import read_regular
 
     try:
         raw = read_regular(Path(path), what)

@@ -7,7 +7,7 @@ time the master talks to it through the :class:`Slave` contract (:mod:`.slave`, 
 there).  Variables of other FMI types than scalar Float64: :mod:`.types` and :mod:`.typedio`.
 """
 from .description import SlaveDescription, Variable, describe_block, describe_fmu
-from .fmu import FmuSlave
+from .fmu_slave import FmuSlave
 from .linear import LinearSlave
 from .model_exchange import ModelExchangeSlave
 from .slave import FAILING, NativeEntry, Slave, Status

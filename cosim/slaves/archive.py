@@ -10,6 +10,7 @@ from pathlib import Path
 
 from ..errors import UserError
 from ..readers import byte_limit
+from ..readers import open_regular
 
 #: Defaults: most members and uncompressed bytes of one archive (a generated FMU of this project
 #: has ~10 members and ~1 MB; FMUs of other tools rarely exceed 100 MB).
@@ -33,7 +34,6 @@ def archive_problem(path: Path, kind: str = "FMU", root_file: str | None = "mode
     """Why ``path`` is not a ``kind`` archive one may open, or None: not a zip, a member whose
     name is absolute or climbs out with ``..``, a member listed twice, more members or
     uncompressed bytes than :func:`limits`, or no ``root_file`` at its root."""
-    from ..readers import open_regular
 
     try:  # a FIFO would block the zip reader, a device feed it without end
         with open_regular(path, f"{kind} archive", 1 << 62):

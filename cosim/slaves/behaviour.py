@@ -38,6 +38,7 @@ import subprocess
 import sys
 from ctypes import byref
 from pathlib import Path
+from ..errors import UserError
 
 STEPS = 5  # steps per short run
 REAL = ("Real", "Float64")
@@ -371,7 +372,6 @@ def check(path: Path) -> dict:
 
 def check_in_subprocess(path: Path, timeout: float = 120.0) -> dict:
     """:func:`check` in a child process (banners on stdout, crashes and hangs stay there)."""
-    from ..errors import UserError
 
     try:
         res = subprocess.run([sys.executable, "-m", "cosim.slaves.behaviour", str(path)], capture_output=True,

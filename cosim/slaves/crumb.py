@@ -116,7 +116,7 @@ _LIBRARIES: list = []  # compiled loops (ctypes.CDLL) whose FMI(...) macros writ
 def register_library(lib) -> None:
     """Point a compiled loop's ``rpr_set_crumb`` at the current record (now, and again at every
     :func:`attach`: a supervised child writes into the record its parent reads); its prototype
-    is bound by :func:`cosim.master.native.compile_loop`."""
+    is bound by :func:`cosim.master.kernels.compile_loop`."""
     lib.rpr_set_crumb(address())
     if lib not in _LIBRARIES:
         _LIBRARIES.append(lib)

@@ -10,6 +10,8 @@ from typing import TYPE_CHECKING
 from models.interface import Flange
 
 from ..errors import UserError
+from .types import canonical
+from .archive import check_archive
 
 if TYPE_CHECKING:
     from models.block import Block
@@ -143,7 +145,6 @@ def _interfaces(md) -> tuple[str, ...]:
 
 
 def _fmu_variable(v, fmi_version: str) -> Variable:
-    from .types import canonical
 
     start = None
     if v.start is not None and not v.dimensions:
@@ -222,7 +223,6 @@ def describe_fmu(path: Path, interface: str | None = None) -> SlaveDescription:
     supported interface."""
     import fmpy
 
-    from .archive import check_archive
 
     path = Path(path)
     if not path.is_file():

@@ -1,6 +1,6 @@
 """Model-exchange FMUs (FMI 2.0 and 3.0) as slaves: the FMU's continuous states are integrated
 between communication points by SUNDIALS CVODES inside a small compiled slave
-(``c/model_exchange.c``, built and cached by :mod:`fmus.native`), so a right-hand-side evaluation
+(``c/model_exchange.c``, built and cached by :mod:`fmus.c_loader`), so a right-hand-side evaluation
 costs two FMI calls from C and no Python.
 
 Between communication points the slave handles the FMU's events itself: state events (CVODES's
@@ -27,12 +27,12 @@ from pathlib import Path
 import numpy as np
 
 from fmus.errors import BuildError
-from fmus.native import NoCompiler, library_path
+from fmus.c_loader import NoCompiler, library_path
 
 from ..errors import UserError
 from . import crumb
 from .crumb import CALL, enter, leave
-from .fmu import FmuSlave, _addr, _Get2, _Get3, _Set2, _Set3
+from .fmu_slave import FmuSlave, _addr, _Get2, _Get3, _Set2, _Set3
 from .slave import FAILING, NativeEntry, Slave, Status
 
 #: CVODES's relative tolerance when neither the scene (``rtol:``) nor the FMU's DefaultExperiment

@@ -7,10 +7,10 @@ from pathlib import Path
 
 from ..errors import UserError
 from .description import INTERFACES, SlaveDescription, describe_fmu
+from .model_exchange import DEFAULT_RTOL, MAX_EVENTS_PER_STEP, available
 
 
 def _me_line(d: SlaveDescription) -> str:
-    from .model_exchange import DEFAULT_RTOL, MAX_EVENTS_PER_STEP, available
 
     events = []
     if d.event_indicators:
@@ -71,7 +71,6 @@ def component_line(d: SlaveDescription) -> str:
     component): a model-exchange FMU's solver, events and rollback."""
     if d.interface != "model exchange":
         return ""
-    from .model_exchange import DEFAULT_RTOL
 
     rtol = d.solver_rtol if d.solver_rtol is not None else min(DEFAULT_RTOL, d.default_experiment.get("tolerance",
                                                                                                        DEFAULT_RTOL))

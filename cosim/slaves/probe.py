@@ -14,13 +14,16 @@ from collections.abc import Callable
 from pathlib import Path
 
 from .description import SlaveDescription
+from fmus import cache_root
+from fmus.cache import file_digest
+from .fmu_slave import FmuSlave
+from ..errors import UserError
 
 #: bump to measure every FMU again after a change of what a check does
 VERSIONS = {"feedthrough": 1, "xml": 1, "behaviour": 4}
 
 
 def _cache_file(digest: str) -> Path:
-    from fmus import cache_root
 
     return cache_root(None) / "checks" / f"{digest}.json"
 
@@ -28,7 +31,6 @@ def _cache_file(digest: str) -> Path:
 def cached(path: Path, key: str, compute: Callable[[], object]) -> tuple[object, bool]:
     """``compute()`` for the FMU ``path``, from the cache when it holds it: (value, from_cache).
     The value must be JSON data.  A cache that cannot be written is skipped."""
-    from fmus.cache import file_digest
 
     digest = file_digest(path)
     file = _cache_file(digest)
@@ -71,7 +73,6 @@ def measure_feedthrough(path: Path, desc: SlaveDescription) -> dict[str, list[st
     point (after initialisation, before any step) each scalar input is perturbed in turn and the
     outputs that move are recorded; the input is put back before the next.  Outputs of other
     than scalar numeric type are assumed to depend on every input."""
-    from .fmu import FmuSlave
 
     ins = [v for v in desc.variables.values() if v.causality == "input" and v.type in _NUMERIC and not v.shape]
     outs = [v for v in desc.variables.values() if v.causality == "output"]
@@ -112,7 +113,6 @@ def undeclared_dependencies(desc: SlaveDescription) -> bool:
 
 def feedthrough(path: Path, desc: SlaveDescription) -> tuple[dict[str, list[str]], bool]:
     """The measured feedthrough of ``path`` (cached by hash) and whether it came from the cache."""
-    from ..errors import UserError
 
     def measure() -> dict[str, list[str]]:
         try:

@@ -28,8 +28,11 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from ..analysis.compare import common_names, compare
+from ..analysis.trace_diff import common_names, compare
 from ..errors import UserError
+from ..scenario import Problem, SceneError, apply_overrides, default_catalog, load_raw, validate
+from fmus.cache import cache_root
+from ..scenario.overrides import plain
 
 #: Default relative tolerance of ``fidelity: auto``.
 AUTO_TOLERANCE = 1e-3
@@ -78,7 +81,6 @@ def detail_order(catalog, model: str) -> list[str]:
 
 
 def _tree(path: Path) -> Any:
-    from ..scenario import Problem, SceneError, load_raw
 
     problems: list[Problem] = []
     tree = load_raw(Path(path), problems)
@@ -121,7 +123,6 @@ _UNMATCHED_OUTPUT = re.compile(r"^output pattern '(.+?)' matches no input or out
 def _validated(tree: Any, path: Path):
     """The scene of a combination's ``tree`` and the output patterns dropped for it (patterns
     that match nothing at its levels); :class:`SceneError` for any other problem."""
-    from ..scenario import SceneError, validate
 
     dropped: list[str] = []
     for _ in range(2):
@@ -149,7 +150,6 @@ def fidelity_study(scene_path: Path | str, overrides: Mapping[str, Any] | Sequen
     output pattern that matches nothing at its levels is dropped (the row says so) and the
     combination is compared over the signals both recorded."""
     from ..run.execute import run
-    from ..scenario import SceneError, apply_overrides, default_catalog
 
     path = Path(scene_path)
     catalog = default_catalog()
@@ -214,7 +214,6 @@ def fidelity_study(scene_path: Path | str, overrides: Mapping[str, Any] | Sequen
 # --- fidelity: auto ---------------------------------------------------------------------------
 def _auto_cache(cache_dir: Path | None) -> Path:
     """``$RPR_COSIM_FIDELITY_CACHE``, else ``fidelity/`` beside the FMU cache."""
-    from fmus.cache import cache_root
 
     env = os.environ.get("RPR_COSIM_FIDELITY_CACHE")
     root = Path(env) if env else (Path(cache_dir) if cache_dir else cache_root()).parent / "fidelity"
@@ -227,7 +226,6 @@ def resolve_auto(tree: Any, path: Path, *, cache_dir: Path | None = None,
     """Replace ``fidelity: auto`` by the cheapest levels within the scene's
     ``fidelity_tolerance`` (default :data:`AUTO_TOLERANCE`); returns the new tree and a one-line
     note of the choice.  The choice is cached by the hash of the scene's data."""
-    from ..scenario.overrides import plain
 
     tol = tree.get("fidelity_tolerance", AUTO_TOLERANCE)
     try:
@@ -269,7 +267,6 @@ def _study_tree(tree: Any, path: Path, cache_dir: Path | None, tolerance: float 
 
     import yaml
 
-    from ..scenario.overrides import plain
 
     with tempfile.TemporaryDirectory(prefix="rpr-fidelity-") as tmp:
         # written beside nothing: includes were already merged; FMU paths are made absolute

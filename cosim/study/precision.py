@@ -59,13 +59,24 @@ from pathlib import Path
 
 import numpy as np
 
-from ..analysis.compare import Difference, compare, compare_modes
+from ..analysis.trace_diff import Difference, compare, compare_modes
 from ..errors import RUN_ERRORS, UserError
 from ..master.estimate import FLAT, INACCURATE, event_time_tolerance
 from ..run.execute import event_modes
 from ..scenario import load
 from .fidelity import resolve_auto
 from ..trace.traces import Trace
+from ..master import ALGORITHMS
+from ..scenario import SceneError, parse_set
+from ..batch import points_batch, run_batch
+from ..batch.executors import LocalExecutor
+from ..outputs import safe_name, staged
+from ..trace.traces import read_trace
+from ..batch.overview import run_trace_path
+from ..slaves.description import describe_fmu
+from ..run.execute import build_components
+from ..analysis.charts import save_figure
+from ..readers import read_json
 
 ECOSPY = "ecospy"
 #: how the reason of a run judged by its estimate begins (cosim.master.estimate.judge)
@@ -151,7 +162,6 @@ class PrecisionStudy:
         return next((r for r in self.rows if r.chosen), None)
 
     def write_csv(self, path: Path) -> None:
-        from ..outputs import staged
 
         signals = list(dict.fromkeys(s for r in self.rows for s in r.errors))
         with staged(path) as part, open(part, "w", newline="") as fh:
@@ -179,7 +189,6 @@ DEFAULT_RTOLS = (1e-2, 1e-3, 1e-4, 1e-5)
 
 def is_variable_step(algorithm: str) -> bool:
     """True for an algorithm that chooses its own steps (``variable_step`` in the registry)."""
-    from ..master import ALGORITHMS
 
     return bool(getattr(ALGORITHMS.get(algorithm), "variable_step", False))
 
@@ -187,7 +196,6 @@ def is_variable_step(algorithm: str) -> bool:
 def check_rtols(algorithm: str, rtols: Sequence[float]) -> None:
     """Each of ``rtols`` must be within the bounds ``algorithm`` declares for its ``rtol`` option
     (one-line :class:`UserError` otherwise)."""
-    from ..master import ALGORITHMS
 
     declared = {o.name: o for o in getattr(ALGORITHMS[algorithm], "options", ())}
     if "rtol" not in declared:
@@ -236,7 +244,6 @@ def _plan(variants: Sequence[tuple[str, str]], steps: Sequence[float], rtols: Se
 
 def _refused(scene_path: Path | str, over: dict) -> str:
     """Why the scene with ``over`` does not load ("" when it does)."""
-    from ..scenario import SceneError
 
     try:
         load(scene_path, over, auto_fidelity=resolve_auto)
@@ -299,7 +306,7 @@ def measure(row: PrecisionRow, trace: Trace, against: Trace, only: Sequence[str]
             modes: Sequence[str] = ()) -> None:
     """Fill ``row``'s errors of ``trace`` against the reference ``against``: the max-norm per
     signal, or, where ``modes`` (recorded event modes) change, the event-time error and the value
-    error between events (module docstring, :func:`cosim.analysis.compare.compare_modes`)."""
+    error between events (module docstring, :func:`cosim.analysis.trace_diff.compare_modes`)."""
     diffs, ev = compare_modes(trace, against, modes, only)
     _fill_errors(row, relative_errors(diffs, scale))
     if ev is not None:
@@ -337,11 +344,10 @@ def precision_study(scene_path: Path | str, variants: Sequence[tuple[str, str]],
     ``overrides`` (``--set`` items) apply to every run and to the reference (e.g.
     ``components.mech.rate=4``).  The runs go to ``out`` (a temporary directory when None) on
     ``executor`` (default: ``workers`` local processes); ``batch_progress`` is a
-    :class:`cosim.batch.report.Progress`.  ``peer`` adds the ecospy row (``log`` gets the line
+    :class:`cosim.batch.overview.Progress`.  ``peer`` adds the ecospy row (``log`` gets the line
     saying why not, when ecospy does not import).  ``tolerance`` adds the row of the master's
     own choice for ``master.tolerance`` at that value (:func:`choice_row`)."""
     from ..run.reference import reference
-    from ..scenario import parse_set
 
     sets = dict(parse_set(s) for s in overrides or ())
     base = load(scene_path, sets, auto_fidelity=resolve_auto)
@@ -446,8 +452,6 @@ def _line(row: PrecisionRow) -> str:
 
 
 def _run_points(scene_path, points, common, out: Path, name: str, cache_dir, workers, executor, batch_progress, log):
-    from ..batch import points_batch, run_batch
-    from ..batch.executors import LocalExecutor
 
     batch = points_batch(scene_path, points, name=f"{name}_precision", fixed=common, auto_fidelity=resolve_auto,
                          description="rpr-cosim study precision")
@@ -458,21 +462,17 @@ def _run_points(scene_path, points, common, out: Path, name: str, cache_dir, wor
 def _measure(row: PrecisionRow, result: dict | None, out: Path, name: str, scene_path, over: dict, ref: Trace,
              scale: dict[str, float], only: Sequence[str] | None, modes: Sequence[str] = ()) -> None:
     """Fill ``row`` from its batch result and trace (module docstring)."""
-    from ..outputs import safe_name
     from ..run.reference import reference
-    from ..trace.traces import read_trace
 
     if result is None:
         row.reason = "the batch has no result for this run"
         return
     row.status, row.reason, row.run_id = result["outcome"], result["reason"] or "", result["run_id"]
-    from ..batch.report import run_trace_path
 
     path = run_trace_path(out, row.run_id) or out / "runs" / row.run_id / f"{safe_name(name)}.npy"
     stats = {}
     sidecar = path.with_suffix(".json")
     if sidecar.is_file():
-        from ..readers import read_json
 
         side = read_json(sidecar, "sidecar")
         stats = side.get("statistics") if isinstance(side, dict) and isinstance(side.get("statistics"), dict) else {}
@@ -530,7 +530,6 @@ def ecospy_trace(scene, paths: dict[str, Path], record: float, names: Sequence[s
 def without_feedthrough(scene, paths: dict[str, Path]) -> list[str]:
     """The scene's recorded signals that are outputs of their component without direct feedthrough
     (what ecospy reproduces: see the module docstring)."""
-    from ..slaves.description import describe_fmu
 
     desc = {n: describe_fmu(p) for n, p in paths.items()}
     out = []
@@ -554,7 +553,6 @@ def ecospy_row(scene_path, common: dict, step: float, record: float, ref: Trace,
             log(f"ecospy not available ({type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''}); "
                 f"no peer point (pip install ecospy, apt install libtbb12)")
         return None
-    from ..run.execute import build_components
 
     row = PrecisionRow(ECOSPY, "hold", step, "failed", "")
     try:
@@ -620,6 +618,5 @@ def plot_study(study: PrecisionStudy, path: Path) -> Path:
     ax.set_title(f"{study.scene}: work-precision over {study.stop_time:g} s")
     ax.grid(alpha=0.3, which="both")
     ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0))
-    from ..analysis.charts import save_figure
 
     return save_figure(fig, Path(path), dpi=110)

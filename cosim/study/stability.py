@@ -30,7 +30,12 @@ from ..errors import UserError
 from ..run.execute import build_components, run
 from ..scenario import Scene, load
 from .fidelity import resolve_auto
-from ..slaves.fmu import FmuSlave
+from ..slaves.fmu_slave import FmuSlave
+from fmus.index import real_block
+from models.coupling import Link, linearize, macro_map, spectral_radius
+from ..master import gauss_seidel_order
+from ..analysis.charts import save_figure
+from ..outputs import staged
 
 #: Default algorithm variants mapped: every fixed-step algorithm with both input treatments.
 DEFAULT_VARIANTS = (("jacobi", "hold"), ("jacobi", "linear"), ("gauss_seidel", "hold"), ("gauss_seidel", "linear"))
@@ -75,7 +80,6 @@ class StabilityMap:
 
     def write_csv(self, path: Path) -> None:
         """One row per cell: variant, step [s], parameter value, outcome, reason, growth, rho."""
-        from ..outputs import staged
 
         with staged(path) as part, open(part, "w", newline="") as fh:
             w = csv.writer(fh)
@@ -122,8 +126,6 @@ def parse_range(text: str, what: str) -> tuple[float, float]:
 
 def _analytic(scene: Scene, vary: str):
     """A function ``(value, step, algorithm, inputs, order) -> rho`` for a linear scene, or a note why not."""
-    from fmus.index import real_block
-    from models.coupling import Link, linearize, macro_map, spectral_radius
 
     names = list(scene.components)
     comps = list(scene.components.values())
@@ -207,7 +209,6 @@ def stability_map(scene_path: Path | str, vary: str, value_range: tuple[float, f
                     index = {n: i for i, n in enumerate(scene.components)}
                     order = [index[n] for n in scene.master.order] if scene.master.order else None
                     if order is None and alg == "gauss_seidel":
-                        from ..master import gauss_seidel_order
 
                         order = gauss_seidel_order(len(index), [(index[c.src], index[c.dst])
                                                                 for c in scene.connections])
@@ -243,7 +244,6 @@ def analytic_grid(scene_path: Path | str, vary: str, value_range: tuple[float, f
     rho_fn, _ = _analytic(scene, vary)
     if rho_fn is None:
         return None
-    from ..master import gauss_seidel_order
 
     index = {nm: i for i, nm in enumerate(scene.components)}
     order = ([index[nm] for nm in scene.master.order] if scene.master.order else
@@ -299,6 +299,5 @@ def plot_map(smap: StabilityMap, path: Path, scene_path: Path | str | None = Non
         handles.append(Line2D([], [], color="k", label="analytic boundary: spectral radius = 1"))
     fig.legend(handles=handles, loc="outside lower center", ncols=len(handles))
     fig.suptitle(f"{smap.scene}: stability over step and {smap.vary}")
-    from ..analysis.charts import save_figure
 
     return save_figure(fig, Path(path), dpi=110)

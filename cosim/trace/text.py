@@ -12,7 +12,7 @@ so the bytes are exactly those of ``",".join(map(repr, row))``.  Blocks with NaN
 (orjson writes ``null``) and installations without orjson take the ``repr`` path.
 
 The rewrite (rows apart, the two notations) is one pass of a few lines of C (:data:`C_FILE`,
-compiled once and cached like the master loop, :func:`fmus.native.load`): ~1 ns
+compiled once and cached like the master loop, :func:`fmus.c_loader.load`): ~1 ns
 per byte, where doing it with Python's bytes and regular expressions cost twice orjson's own
 time.  Without a C compiler the same rewrite runs in Python.
 """
@@ -25,6 +25,8 @@ from functools import lru_cache
 from pathlib import Path
 
 import numpy as np
+from fmus.errors import BuildError
+from fmus.c_loader import load
 
 try:
     import orjson
@@ -52,8 +54,6 @@ C_FILE = Path(__file__).with_name("csv_rows.c")
 @lru_cache(maxsize=1)
 def _c_rows():
     """The compiled :data:`C_FILE` function, or None without a working C compiler."""
-    from fmus.errors import BuildError
-    from fmus.native import load
 
     try:
         fn = load({C_FILE.name: C_FILE.read_text()}, "rpr_text").rpr_csv_rows

@@ -44,6 +44,9 @@ import numpy as np
 from .observer import Observer
 from .text import json_text, rows_text
 from ..errors import UserError
+from ..outputs import NPY_HEADER_BYTES, create_new, npy_header, part_path, place, settle_if_stale, write_text
+from ..readers import TRACE_ENV, loads_json, open_regular, read_json
+from ..interrupts import deferred, pending
 
 FORMAT = "rpr-cosim trace 1"
 #: The trace file formats a run can write (see the module docstring); the first is the default.
@@ -217,7 +220,6 @@ class CsvTrace(Observer):
     def __init__(self, path: Path, *, flush_every_s: float = 0.5, extra: dict | None = None,
                  max_queued_bytes: int = 1 << 20, commented: bool = False) -> None:
         """``extra``: data for the sidecar only (e.g. the whole scene), kept out of the CSV header."""
-        from ..outputs import part_path
 
         self.commented = bool(commented)
         self._text: list[list] = []  # String/Binary changes of a plain trace, for the sidecar
@@ -243,7 +245,6 @@ class CsvTrace(Observer):
         self.path.parent.mkdir(parents=True, exist_ok=True)
         self.meta = dict(meta, format=FORMAT, versions=package_versions(),
                          started=time.strftime("%Y-%m-%dT%H:%M:%S%z"), trace=self.path.name)
-        from ..outputs import create_new
 
         self._fd = create_new(self.part)  # never through a link planted under the part's name
         buf = io.StringIO()
@@ -306,7 +307,6 @@ class CsvTrace(Observer):
                                   f"{getattr(exc, 'strerror', None) or exc} ({self._count_rows()} whole rows kept)")
 
     def record(self, rows) -> None:
-        from ..interrupts import deferred, pending
 
         self._raise_if_failed()
         if not len(rows):
@@ -329,7 +329,6 @@ class CsvTrace(Observer):
 
     def _write_inline(self, rows) -> None:
         """Format and write ``rows`` now, in the caller's thread (see :data:`WRITER_THREAD`)."""
-        from ..interrupts import deferred
 
         try:
             with deferred():  # whole lines, or cut back to the last one
@@ -341,7 +340,6 @@ class CsvTrace(Observer):
         self._raise_if_failed()
 
     def record_text(self, t, column, value) -> None:
-        from ..interrupts import deferred
 
         if not self.commented:
             self._text.append([float(t), column, str(value)])
@@ -353,7 +351,6 @@ class CsvTrace(Observer):
                 self._queue.put(_comment("text", [float(t), column, str(value)]))
 
     def finish(self, status, reason, stats) -> None:
-        from ..interrupts import deferred
 
         with deferred():  # a signal now waits until the status is written and the files are in place
             self._finish(status, reason, stats)
@@ -401,7 +398,6 @@ class CsvTrace(Observer):
         if self._text:
             end["text"] = self._text
         self._write_sidecar(end)
-        from ..outputs import place
 
         self.note = place(self.part, self.path, status, part_sidecar=self.sidecar_part, sidecar=self.sidecar)
 
@@ -417,7 +413,6 @@ class CsvTrace(Observer):
         data = json_text(dict(self.meta, **self.extra, **extra), default=_json_default)
         if reserve:
             data += " " * self.SIDECAR_RESERVE + "\n"
-        from ..outputs import write_text
 
         try:
             write_text(self.sidecar_part, data)
@@ -463,7 +458,6 @@ class ParquetTrace(CsvTrace):
         self.columns = list(columns)
         self._schema = pa.schema([pa.field(c, pa.float64()) for c in self.columns],
                                  metadata={PARQUET_META_KEY: json.dumps(self.meta, default=_json_default)})
-        from ..outputs import create_new
 
         os.close(create_new(self.part))  # a link planted under the part's name is replaced, not followed
         try:
@@ -491,7 +485,6 @@ class ParquetTrace(CsvTrace):
         if not self._pending or self._writer is None:
             return
         import pyarrow as pa
-        from ..interrupts import deferred
 
         block = np.vstack(self._pending)
         self._pending, self._pending_rows = [], 0
@@ -547,7 +540,6 @@ class NpyTrace(CsvTrace):
         super().__init__(path, **kwargs)
 
     def start(self, columns, meta) -> None:
-        from ..outputs import create_new, npy_header
 
         self.path.parent.mkdir(parents=True, exist_ok=True)
         self.meta = dict(meta, format=FORMAT, versions=package_versions(),
@@ -567,7 +559,6 @@ class NpyTrace(CsvTrace):
         self._inline = True
 
     def record(self, rows) -> None:
-        from ..interrupts import deferred
 
         self._raise_if_failed()
         if not len(rows) or self._error is not None:
@@ -582,14 +573,12 @@ class NpyTrace(CsvTrace):
         self._raise_if_failed()
 
     def _count_rows(self) -> int:
-        from ..outputs import NPY_HEADER_BYTES
 
         return max(0, self.part.stat().st_size - NPY_HEADER_BYTES) // (8 * len(self.columns))
 
     def _finish(self, status, reason, stats) -> None:
         if self._fd is None:
             return
-        from ..outputs import npy_header
 
         rows = self.rows
         if self._error is not None:
@@ -647,8 +636,6 @@ def read_trace(path: Path) -> Trace:
     (default 4 GB, what a run may write), lines of at most :data:`MAX_LINE_BYTES`, read a block of rows at a time into one array grown in place (about
     0.45 byte of memory per byte of CSV), metadata lines depth-bounded JSON of the types of
     :data:`META_TYPES`; anything else is a one-line :class:`UserError`."""
-    from ..outputs import settle_if_stale
-    from ..readers import TRACE_ENV, open_regular
 
     path = Path(path)
     settle_if_stale(path.parent)  # a run killed in that directory: mark it and put its trace in place
@@ -703,7 +690,6 @@ def _read_csv(fh, path: Path) -> tuple[list[str], np.ndarray, dict, dict]:
     """Columns, rows, metadata and text events of a CSV trace read from the binary file ``fh``."""
     import warnings
 
-    from ..readers import loads_json
 
     meta: dict = {}
     text: dict[str, list[tuple[float, str]]] = {}
@@ -853,7 +839,6 @@ def _read_parquet(path: Path) -> Trace:
         raise UserError(f"{path}: reading Parquet needs pyarrow (pip install pyarrow)") from None
     except Exception as exc:  # pyarrow's ArrowInvalid and OSError: not (or not a whole) Parquet file
         raise UserError(f"{path}: not a readable Parquet trace ({exc})") from None
-    from ..readers import loads_json
 
     kv = pf.metadata.metadata or {}  # the file's key-value metadata: the schema's and the outcome added at the end
     meta = loads_json(kv[PARQUET_META_KEY], f"{path} (metadata)") if PARQUET_META_KEY in kv else {}
@@ -878,7 +863,6 @@ def _read_parquet(path: Path) -> Trace:
 def _sidecar(path: Path) -> dict:
     """The sidecar ``<path>.json`` of a trace, or {} when there is none (one that is there but
     not a regular file, too large, too deeply nested or not JSON: :class:`UserError`)."""
-    from ..readers import read_json
 
     side = path.with_suffix(".json")
     if not side.exists():

@@ -39,7 +39,7 @@
 #include "hil_config.h"
 #include "hmac_sha256.h"
 
-/* value references (modelDescription.xml is generated from hardware/fmu.py with the same table) */
+/* value references (modelDescription.xml is generated from hardware/hil_fmu.py with the same table) */
 enum {
     VR_U = 0,            /* 0..2  leg[i].u          input  [V]     */
     VR_S = 3,            /* 3..5  leg[i].s          output [m]     */

@@ -12,7 +12,7 @@
  * the FMU state (fmi*GetFMUstate) or, for an FMU that cannot save it, the time and continuous
  * states (set back through the ME interface); either way the solver restarts at the saved
  * point, and so does the step after a save (CVODES cannot save its history), so a repeated step
- * is the first one to the bit.  Compiled and cached by fmus.native (linked with -lsundials_cvodes and friends).
+ * is the first one to the bit.  Compiled and cached by fmus.c_loader (linked with -lsundials_cvodes and friends).
  */
 #include <dlfcn.h>
 #include <math.h>

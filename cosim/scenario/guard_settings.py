@@ -1,5 +1,5 @@
 """Physical guards, their settings and their scene-time checks (the run-time checks of every recorded
-row: :mod:`cosim.run.guards`).  A run of the robot's scenes is "ok" only if it stayed physical and within limits.
+row: :mod:`cosim.run.row_guards`).  A run of the robot's scenes is "ok" only if it stayed physical and within limits.
 
 Four guards watch every recorded row of a run (at ``master.output_interval``), on by default:
 
@@ -46,6 +46,11 @@ from functools import lru_cache
 from typing import Any
 
 import numpy as np
+from .yamlfile import YMap
+from .problems import suggest
+from .geometry import manipulator_for
+from fmus.index import replay
+from models.numeric import vectorize
 
 ACTIONS = ("stop", "warn", "off")
 GUARDS = ("stroke", "rated", "singularity", "unstable")
@@ -149,8 +154,6 @@ def guard_needs(comp) -> GuardNeeds | None:
 def parse_settings(node: Any, loc, err) -> GuardSettings:
     """Settings from a scene's ``guards:`` node (None: defaults; ``off``/``false``: all off);
     problems go to ``err(where, message)`` with ``loc(key)`` giving the line of a key."""
-    from .yamlfile import YMap
-    from .problems import suggest
 
     if node is None or node is True:
         return GuardSettings()
@@ -268,7 +271,6 @@ def _outputs_over_time(blk, t: np.ndarray, p: np.ndarray) -> np.ndarray:
     if hasattr(blk, "replay"):
         fn = blk.replay("out")
     else:
-        from models.numeric import vectorize
 
         fn = vectorize(blk.functions()["out"])
     return np.asarray(fn([t], [], list(p))[0], float).reshape(len(blk.outputs), len(t))
@@ -290,7 +292,6 @@ def _outside(v: np.ndarray, low: float, high: float) -> np.ndarray:
 def geometry(comp) -> np.ndarray:
     """The geometry vector (:data:`models.geometry.GEOMETRY_FIELDS`) of a mechanism or setpoint
     component: its ``config`` option and geometry parameters, shape (10, 1)."""
-    from .geometry import manipulator_for
 
     return manipulator_for(comp.options, comp.params).geometry_vector().reshape(-1, 1)
 
@@ -306,7 +307,6 @@ def det_j(comp, pose: np.ndarray, g: np.ndarray | None = None) -> np.ndarray:
 def _det_map():
     """The numpy replay of det J (:func:`models.kinematics.numpy_map`), kept in the FMU cache's
     index (:func:`fmus.index.replay`) so that a run needs no CasADi for it."""
-    from fmus.index import replay
 
     def build():
         from models import kinematics

@@ -16,6 +16,9 @@ from pathlib import Path
 import numpy as np
 
 from models import analysis as A
+from .tables import text_table
+from ..outputs import staged
+from .charts import save_figure
 
 Cell = str | float | int | None
 
@@ -49,7 +52,6 @@ def _fmt(value: Cell) -> str:
 
 def format_table(table: Table) -> str:
     """The table as aligned text: text columns left-aligned, numbers right-aligned."""
-    from .tables import text_table
 
     cells = [[_fmt(v) for v in row] for row in table.rows]
     numeric = [all(isinstance(row[k], (int, float)) and not isinstance(row[k], bool) for row in table.rows
@@ -60,7 +62,6 @@ def format_table(table: Table) -> str:
 def write_csv(table: Table, path: Path) -> Path:
     """Save the table as CSV with a header row (numbers at full precision), complete or not at
     all and never through a link (:func:`cosim.outputs.staged`)."""
-    from ..outputs import staged
 
     with staged(path) as part, open(part, "w", newline="") as fh:
         w = csv.writer(fh)
@@ -193,7 +194,6 @@ def save_map(result: WorkspaceResult, name: str, path: Path) -> Path:
     ax.set_xlabel("X position (cm)")
     ax.set_ylabel("Y position (cm)")
     ax.set_aspect("equal")
-    from .charts import save_figure
 
     save_figure(fig, path, dpi="figure")
     return path
@@ -223,7 +223,6 @@ def save_platform_figures(rows: Sequence[A.PlatformSizeRow], out: Path) -> list[
         ax.legend()
         fig.tight_layout()
         paths.append(out / fname)
-        from .charts import save_figure
 
         save_figure(fig, paths[-1], dpi="figure")
     return paths

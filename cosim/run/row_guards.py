@@ -1,11 +1,11 @@
 """The run-time guards: every recorded row of a run checked against the ratings, strokes and singularity of its
-catalog blocks (settings, defaults and scene-time checks: :mod:`cosim.scenario.guards`)."""
+catalog blocks (settings, defaults and scene-time checks: :mod:`cosim.scenario.guard_settings`)."""
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass, field
 import numpy as np
 
-from ..scenario.guards import (GROWTH, GUARDS, OUT_OF_LIMITS, UNSTABLE, _REL_TOL, GuardSettings, _singular,
+from ..scenario.guard_settings import (GROWTH, GUARDS, OUT_OF_LIMITS, UNSTABLE, _REL_TOL, GuardSettings, _singular,
                                _singular_text, det_j, guard_needs)
 
 
@@ -181,7 +181,7 @@ class Guard:
 def scene_guard(scene) -> Guard | None:
     """The guards of ``scene`` (None when all are off): the rated and stroke variables of its
     catalog components, the pose of each mechanism, and every connected output.  What a
-    component contributes comes from its :class:`cosim.scenario.guards.GuardNeeds` (plain data,
+    component contributes comes from its :class:`cosim.scenario.guard_settings.GuardNeeds` (plain data,
     made from its block, or carried to a batch worker or through an SSP archive without one);
     components without it (external FMUs) are watched by the unstable guard only, and the guards
     that then look at nothing say so (:meth:`Guard.applied`)."""

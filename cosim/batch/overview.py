@@ -22,6 +22,11 @@ import numpy as np
 from ..analysis.tables import text_table
 from ..errors import UserError
 from .spec import Batch, PlotSpec, axis_units
+from ..trace.traces import read_trace
+from ..analysis.charts import save_figure
+from .results import read_rows
+from ..readers import read_json
+from ..run.progress import bar
 
 
 # --- progress ------------------------------------------------------------------------------------
@@ -58,7 +63,6 @@ class Progress:
 
     def _bar(self):
         if self.bar is None:
-            from ..run.progress import bar
 
             self.bar = bar(self.total, "[batch]", unit="run", stream=self.stream, initial=self.done)
         return self.bar
@@ -206,7 +210,6 @@ def _labelled(name: str | None, units: dict[str, str] | None) -> str | None:
 def metric_units(out: Path, rows: Sequence[dict], columns: Sequence[str]) -> dict[str, str]:
     """Metric column (``signal:measure``) -> its unit: the measure's own (% for overshoot, s for
     settling time) or the signal's, as the first ok run's sidecar records it."""
-    from ..trace.traces import read_trace
 
     signal_units: dict[str, str] = {}
     for r in rows:
@@ -348,7 +351,6 @@ MAX_TRACES = 200
 
 def plot_traces(out: Path, rows, signal: str, runs: Any, sort: str | None, axes: Sequence[str], path: Path) -> Path:
     """``signal`` of the chosen runs overlaid: ``runs`` is a count (first by ``sort``), 'all' or ids."""
-    from ..trace.traces import read_trace
 
     plt = _plt()
     ordered = [r for r in sort_rows(rows, sort) if r.get("outcome") == "ok"]
@@ -380,7 +382,6 @@ def plot_traces(out: Path, rows, signal: str, runs: Any, sort: str | None, axes:
 
 
 def _save(fig, plt, path: Path) -> Path:
-    from ..analysis.charts import save_figure
 
     return save_figure(fig, path, dpi=90)
 
@@ -426,11 +427,9 @@ def make_plots(batch: Batch, out: Path, rows: Sequence[dict], sort: str | None) 
 # --- many against one ----------------------------------------------------------------------------
 def compare_batch(out: Path, reference, patterns: Sequence[str] | None = None) -> tuple[list[str], list[tuple[dict, list]]]:
     """Every ok run of the batch in ``out`` against one ``reference`` trace: the axes and, per
-    run, its row and its :class:`cosim.analysis.compare.Difference` list."""
+    run, its row and its :class:`cosim.analysis.trace_diff.Difference` list."""
 
-    from ..analysis.compare import compare
-    from ..trace.traces import read_trace
-    from .results import read_rows
+    from ..analysis.trace_diff import compare
 
     out = Path(out)
     _, rows = read_rows(out / "results.csv")
@@ -453,7 +452,6 @@ def batch_meta(out: Path) -> dict:
     """``batch.json`` of the batch in ``out``, bounded and typed (:mod:`cosim.readers`):
     ``{"batch": name, "axes": [axis names], "metrics": [metric columns], "axis_units": {axis
     name: unit}}`` (empty without one)."""
-    from ..readers import read_json
 
     path = Path(out) / "batch.json"
     data = read_json(path, "batch description") if path.exists() else {}

@@ -38,6 +38,10 @@ import numpy as np
 from ..trace.traces import Trace, read_trace
 from .charts import run_panels
 from .safe_html import href, label, script_json, text
+from ..errors import UserError
+from ..outputs import write_text
+from .animate import joints, pose_component
+from models.geometry import preset
 
 #: Colours of the lines of one panel (Plotly's default cycle).
 COLOURS = ("#1f77b4", "#ff7f0e", "#2ca02c", "#d62728", "#9467bd", "#8c564b", "#e377c2", "#7f7f7f",
@@ -91,8 +95,6 @@ def _page(path: Path, title: str, body: str, library_dir: Path | None = None) ->
     page = _PAGE.format(title=text(title), body=body, written=time.strftime("%Y-%m-%d %H:%M:%S %Z"),
                         plotly_version=plotly.__version__,
                         plotly_file=text(href(os.path.relpath(library, path.parent))))
-    from ..errors import UserError
-    from ..outputs import write_text
 
     try:  # a new temporary file renamed into place: whole or nothing, never through a planted link
         library.parent.mkdir(parents=True, exist_ok=True)  # a batch's library folder may not exist yet
@@ -107,7 +109,6 @@ def _library(path: Path) -> None:
     """Plotly's JavaScript at ``path``, written once (kept when it is already there, whole)."""
     from plotly.offline import get_plotlyjs
 
-    from ..outputs import write_text
 
     js = get_plotlyjs()
     if path.is_file() and not path.is_symlink() and path.stat().st_size == len(js.encode()):
@@ -186,8 +187,6 @@ def animation_figure(trace: Trace, manipulator=None, component: str | None = Non
     outside their stroke are red (see :mod:`cosim.analysis.animate`)."""
     import plotly.graph_objects as go
 
-    from .animate import joints, pose_component
-    from models.geometry import preset
 
     comp = component or pose_component(trace)
     m = manipulator or preset("cross_leg")
@@ -331,7 +330,6 @@ def run_report(trace: Trace, path: Path, *, title: str = "", units: Mapping[str,
     """Write the report of one run (module docstring) to ``path``; returns the path.  Plotly's
     library goes to ``library_dir`` (default beside the report: a batch's run reports share the
     batch's)."""
-    from ..errors import UserError
 
     if not len(trace.data):
         raise UserError(f"{path}: the run recorded no rows; nothing to report")
@@ -713,7 +711,6 @@ def stability_figure(rows: Sequence[Mapping[str, str]], vary: str):
 def study_report(table: Path, path: Path | None = None) -> Path:
     """Write the report of a study table (``<scene>_precision.csv`` or ``<scene>_stability.csv``)
     to ``path`` (default beside it, ``.html``)."""
-    from ..errors import UserError
 
     table = Path(table)
     rows = _read_csv_rows(table)

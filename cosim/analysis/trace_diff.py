@@ -29,6 +29,8 @@ import numpy as np
 from ..errors import UserError
 from ..master.estimate import FLAT, EventMatch, match_modes
 from ..trace.traces import Trace
+from .tables import text_table
+from ..readers import read_json
 
 
 @dataclass(frozen=True)
@@ -121,7 +123,6 @@ def run_status(trace: Trace, path: Path | None = None) -> tuple[str, str]:
     if trace.status:
         found.append((trace.status, trace.reason))
     if path is not None:
-        from ..readers import read_json
 
         sidecar = Path(path).with_suffix(".json")
         try:
@@ -268,7 +269,6 @@ def _scene_of(trace: Trace, path: Path | None) -> tuple[str, dict | None]:
     h = trace.meta.get("scene_hash")
     data = None
     if path is not None:
-        from ..readers import read_json
 
         side = Path(path).with_suffix(".json")
         try:
@@ -314,7 +314,6 @@ def format_table(diffs: Sequence[Difference], *, most: int | None = None,
     """A text table, largest relative error first (``most`` rows at most); with ``estimates`` (the
     first trace's own error estimate per signal, relative to its range, :mod:`cosim.master.estimate`)
     a column of them beside the measured relative error."""
-    from .tables import text_table
 
     rows = sorted(diffs, key=lambda d: -d.relative)[:most]
     est = estimates or {}

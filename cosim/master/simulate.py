@@ -12,6 +12,7 @@ from .lifecycle import RunStats, VariableStats, initialize, settled
 from .engine import ends_steps_at_events, fixed_stepper
 from .stepper import drive, record_start
 from .system import CoupledSystem
+from .realtime import Pacer, slave_figures
 
 
 def simulate(system: CoupledSystem, algorithm_name: str, *, step_ns: int, n_steps: int, record_every: int = 1,
@@ -39,7 +40,7 @@ def simulate(system: CoupledSystem, algorithm_name: str, *, step_ns: int, n_step
     What an observer's ``statistics()`` returns (not None) goes into the run statistics (the
     sidecar), under its ``name`` (default: its class name).
 
-    ``guard`` (:class:`cosim.run.guards.Guard`) sees every row first, with the system's watched
+    ``guard`` (:class:`cosim.run.row_guards.Guard`) sees every row first, with the system's watched
     variables after the recorded ones; when it trips, the rows after the offending one are
     dropped and the run ends with the guard's status and reason.
     """
@@ -102,7 +103,6 @@ def simulate(system: CoupledSystem, algorithm_name: str, *, step_ns: int, n_step
             if figures is not None:
                 stats.extra[obs.name] = figures
         if pacer is not None:
-            from .realtime import slave_figures
 
             stats.realtime = pacer.finish()
             if figures := slave_figures(system):  # e.g. the board daemon's own tick jitter and CPU
@@ -110,7 +110,6 @@ def simulate(system: CoupledSystem, algorithm_name: str, *, step_ns: int, n_step
 
     with settled(stats, system, observers, lambda: stepper.t if stepper else None, fill) as end:
         if realtime is not None:  # before initialisation: the pacer quiets the heap first
-            from .realtime import Pacer
 
             pacer = Pacer(step_ns, n_steps, realtime)
         t0 = time.perf_counter()

@@ -22,6 +22,9 @@ from . import crumb
 from .crumb import CALL, enter, leave
 from .description import SlaveDescription, describe_fmu
 from .slave import FAILING, NativeEntry, Slave, Status
+from ..outputs import pid_alive
+from .archive import check_archive
+from .types import TYPES, parse_start
 
 if TYPE_CHECKING:
     pass
@@ -61,7 +64,6 @@ def forget_unpacked(path: Path) -> None:
 
 def _sweep_dead_unzips() -> None:
     """Remove the FMU folders of processes that died without their atexit (SIGKILL)."""
-    from ..outputs import pid_alive
 
     for d in Path(tempfile.gettempdir()).glob("rpr-fmu-*-*"):
         pid = d.name.split("-")[2]
@@ -90,7 +92,6 @@ def _file_size_limit_as_error():
 def _unzip(path: Path) -> str:
     import fmpy
 
-    from .archive import check_archive
 
     key = (str(path.resolve()), path.stat().st_mtime)
     if key not in _UNZIPPED:
@@ -444,7 +445,6 @@ class FmuSlave(Slave):
         self._start = {k: v for k, v in values.items() if k not in structural}
 
     def _accessor(self, verb: str, type_name: str):
-        from .types import TYPES
 
         ft = TYPES[type_name]
         return getattr(self.fmu, verb + self.fmi.accessor(ft))
@@ -452,7 +452,6 @@ class FmuSlave(Slave):
     def set_values(self, name: str, value) -> None:
         """Set variable ``name`` (any type; an array as its values in row-major order); raises
         fmpy's exception on a failing status."""
-        from .types import TYPES, parse_start
 
         var = self.description.variables[name]
         ft = TYPES[var.type]
@@ -463,7 +462,6 @@ class FmuSlave(Slave):
         """A no-argument call of fmi2/3 ``Get``/``Set`` (``verb``) of numeric type ``type_name`` on
         ``vrs`` (``n_values`` values in all) and the numpy buffer it reads into or writes from (the
         FMI storage type: FMI 2.0 Boolean and Enumeration are int32); returns the FMI status."""
-        from .types import TYPES
 
         ctype, dtype = self.fmi.raw(type_name, TYPES[type_name])
         fname = f"fmi{self.fmi.major}{verb.capitalize()}{ctype}"

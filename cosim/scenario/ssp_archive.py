@@ -33,6 +33,14 @@ from typing import Any
 from fmus.cache import file_digest
 
 from ..errors import UserError
+from .problems import Problem, suggest
+from .yamlfile import YList, YMap, _display
+from ..slaves.archive import archive_problem
+from ..outputs import confined
+from ..slaves.description import describe_fmu
+from ..readers import loads_json
+from ..master.algorithms.ecco import OPTIONS
+from .osp import ECCO_ELEMENTS, ecco_options
 
 SSD = "SystemStructure.ssd"
 NS = {
@@ -166,7 +174,6 @@ class _Reader:
     """Reads one archive into a scene tree, collecting problems (file, line, message)."""
 
     def __init__(self, path: Path, problems: list, cache_dir: Path | None = None):
-        from .yamlfile import _display
 
         self.path, self.problems, self.cache_dir = Path(path), problems, cache_dir
         self.label = _display(self.path)
@@ -174,12 +181,10 @@ class _Reader:
         self.units: dict[str, Unit] = {}
 
     def err(self, line: int | None, msg: str, where: str | None = None) -> None:
-        from .problems import Problem
 
         self.problems.append(Problem(where or self.where_ssd, line or 0, msg))
 
     def warn(self, line: int | None, msg: str) -> None:
-        from .problems import Problem
 
         self.problems.append(Problem(self.where_ssd, line or 0, msg, "warning"))
 
@@ -190,7 +195,6 @@ class _Reader:
     def read(self):
         from lxml import etree
 
-        from ..slaves.archive import archive_problem
 
         problem = archive_problem(self.path, "SSP", None)
         if problem and not problem.startswith("not an SSP"):  # names and sizes before anything is read
@@ -227,7 +231,6 @@ class _Reader:
 
         if not hasattr(self, "digest"):
             self.digest = file_digest(self.path)[:16]
-        from ..outputs import confined
 
         dest = confined(cache_root(self.cache_dir) / "ssp" / self.digest, member)
         if not dest.is_file():
@@ -240,7 +243,6 @@ class _Reader:
 
     # the system ------------------------------------------------------------------------------------
     def tree(self, root):
-        from .yamlfile import YList, YMap
 
         system = root.find("ssd:System", NS)
         tree = YMap()
@@ -302,8 +304,6 @@ class _Reader:
         return ok
 
     def components(self, system):
-        from .yamlfile import YMap
-        from ..slaves.description import describe_fmu
 
         out: dict[str, tuple[Any, Any, Any]] = {}
         for el in system.findall("ssd:Elements/ssd:Component", NS):
@@ -361,8 +361,6 @@ class _Reader:
         text = model.get("guards") if model is not None else None
         if not text:
             return None
-        from ..errors import UserError
-        from ..readers import loads_json
 
         try:
             data = loads_json(text, "the guards annotation")
@@ -375,7 +373,6 @@ class _Reader:
         return data
 
     def check_connectors(self, el, name: str, desc) -> bool:
-        from .problems import suggest
 
         ok = True
         for c in el.findall("ssd:Connectors/ssd:Connector", NS):
@@ -457,8 +454,6 @@ class _Reader:
 
     def apply(self, values, comps, bind_el, owner: str | None) -> None:
         """Put each bound value into its component's ``params`` or ``start`` (by causality)."""
-        from .yamlfile import YMap
-        from .problems import suggest
 
         for name, value, unit, units, loc in values:
             if owner is None:
@@ -542,7 +537,6 @@ class _Reader:
     # master ------------------------------------------------------------------------------------------
     def master(self, root, comps):
         """(master mapping, outputs list or None, scene name or None) from our annotation or defaults."""
-        from .yamlfile import YList, YMap
 
         exp = root.find("ssd:DefaultExperiment", NS)
         ann = root.find(f"ssd:DefaultExperiment/ssd:Annotations/ssc:Annotation[@type='{MASTER_ANNOTATION}']/rpr:Master",
@@ -581,7 +575,6 @@ class _Reader:
     def osp_master(self, el):
         """libcosim's annotation: ``FixedStepAlgorithm baseStepSize`` -> jacobi at that step (libcosim's
         fixed step exchanges at t_k, then steps every slave); ``EccoAlgorithm`` -> ecco."""
-        from .yamlfile import YMap
 
         node = YMap()
         node.where = self.loc(el)
@@ -600,9 +593,6 @@ class _Reader:
             return node
         node.update({"algorithm": "jacobi" if alg is fixed else "ecco", "step": step})
         if alg is ecco:  # the EccoConfiguration of OspSystemStructure.xml as attributes (cosim.scenario.osp)
-            from ..master.algorithms.ecco import OPTIONS
-            from .osp import ECCO_ELEMENTS, ecco_options
-            from .problems import Problem
 
             given = {}
             for key in ECCO_ELEMENTS:
@@ -636,7 +626,6 @@ class _Reader:
 
 
 def _problem(loc: tuple[str, int], msg: str):
-    from .problems import Problem
 
     return Problem(loc[0], loc[1], msg)
 

@@ -6,7 +6,7 @@ A kernel is a C file beside its module (``fastloop.c``, ``adaptive_engine.c``,
 inputs and their slopes, step it, read its outputs) and the breadcrumb's ``crumb.h``
 (:mod:`cosim.slaves.crumb`); the types and prototypes they share with Python are generated into
 ``rpr_decls.h`` from their one declaration, :mod:`cosim.master.entries`.  Compiling goes through
-:func:`fmus.native.load` (one compiler choice, cached on disk).
+:func:`fmus.c_loader.load` (one compiler choice, cached on disk).
 """
 from __future__ import annotations
 
@@ -18,7 +18,7 @@ import numpy as np
 
 from fmus.errors import BuildError
 from fmus.fmi_functions import prototype
-from fmus.native import NoCompiler, load
+from fmus.c_loader import NoCompiler, load
 
 from ..errors import UserError
 from ..slaves import crumb
@@ -44,7 +44,7 @@ def kernel_files(main: str) -> dict[str, str]:
 def compile_loop(main: str, stem: str, entries: Sequence[Entry] = (), flags: tuple[str, ...] | None = None
                  ) -> ctypes.CDLL:
     """The kernel ``main`` (:func:`kernel_files`) compiled (once; cached on disk by
-    :func:`fmus.native.load`) and loaded, ``entries`` bound (:func:`cosim.master.entries.bind`).
+    :func:`fmus.c_loader.load`) and loaded, ``entries`` bound (:func:`cosim.master.entries.bind`).
     Raises :class:`UserError` when no C compiler works or the source does not compile."""
     try:
         lib = load(kernel_files(main), stem, *(() if flags is None else (flags,)))
@@ -103,7 +103,7 @@ class SlaveArray:
             c = self.arr[i]
             c.fmi3, c.n_in, c.n_out = int(ne.fmi3), len(system.in_vrs[i]), len(system.out_vrs[i])
             c.in_off, c.out_off = system.in_off[i], system.out_off[i]
-            # the slave's own promise (cosim.slaves.fmu: true unless the algorithm may restore a state)
+            # the slave's own promise (cosim.slaves.fmu_slave: true unless the algorithm may restore a state)
             c.no_prior, c.rate, c.sub_ns = int(s.no_prior), 1, 0
             c.inst, c.do_step, c.get, c.set = ne.instance, ne.do_step, ne.get_real, ne.set_real
             c.bool_status, c.last_time = ne.get_boolean_status, ne.last_time
