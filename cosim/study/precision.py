@@ -49,7 +49,6 @@ tolerance proportionally).
 from __future__ import annotations
 
 import csv
-import json
 import math
 import tempfile
 import time
@@ -59,7 +58,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..analysis.trace_diff import Difference, compare, compare_modes
+from ..analysis.trace_diff import Difference, compare_modes
 from ..errors import RUN_ERRORS, UserError
 from ..master.estimate import FLAT, INACCURATE, event_time_tolerance
 from ..run.execute import event_modes
