@@ -334,17 +334,21 @@ def _fork_call(fn: Callable[..., Any], args: tuple, kwargs: dict, in_child: Call
     outcome (:func:`_call`) to a pipe, and ends with its parent; returns (read end, pid)."""
     rfd, wfd = os.pipe()
     me = os.getpid()
+    held = {signal.SIGINT, signal.SIGTERM, signal.SIGHUP}  # held over the fork: the child's handlers first
+    mask = signal.pthread_sigmask(signal.SIG_BLOCK, held)
     pid = os.fork()
     if pid == 0:  # pragma: no cover - the child never returns
         try:
             os.close(rfd)
             _die_with_parent(me)
             in_child()
+            signal.pthread_sigmask(signal.SIG_SETMASK, mask)
             data = pickle.dumps(_call(fn, args, kwargs))
             with os.fdopen(wfd, "wb") as fh:
                 fh.write(data)
         finally:
             os._exit(0)
+    signal.pthread_sigmask(signal.SIG_SETMASK, mask)
     os.close(wfd)
     return rfd, pid
 
