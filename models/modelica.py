@@ -1028,6 +1028,8 @@ class _Translation:
             return
         holders = ca.vertcat(*[h for h, _ in self.frozen.values()])
         live = ca.vertcat(*[v for _, v in self.frozen.values()])
+        if self.solved is not None:  # in states, inputs, parameters and modes (the solved variables' values)
+            live = ca.substitute(live, *self.solved)
         held = ca.vertcat(*[self.relation_modes.get(r, v) for r, (_, v) in self.frozen.items()])
         for _ in range(len(self.frozen)):  # a relation inside another's operand
             live = ca.substitute(live, holders, live)

@@ -539,6 +539,22 @@ def test_a_relation_on_a_state_is_a_state_event(tmp_path, options):
     assert np.max(np.abs(t[after] - (x[after] - 0.9) / 2 - 0.9)) < 1e-9
 
 
+@pytest.mark.parametrize("options", ["{integrator: rk4}", "{}"])
+def test_a_relation_on_a_solved_variable_is_a_state_event(tmp_path, options):
+    """The same switch read through an algebraic variable (``y = 2 x``, ``y > 1.8``): its indicator
+    and mode are in the state (the solved variable substituted; before, the indicator named ``y``
+    and the block was refused, as MSL's ``Rotational.Examples.Backlash`` was)."""
+    text = SWITCHING.replace("  Real x(start = 0);", "  Real x(start = 0);\n  Real y;").replace(
+        "x > 0.9", "y > 1.8").replace("equation\n", "equation\n  y = 2 * x;\n")
+    block = translate(text, "Switching", "Switching.mo")
+    assert block.integrator == "exact" and block.m.numel() == 1
+    t, x = simulate_with(tmp_path, text, "Switching", 2.0, 0.01, options)
+    assert abs(x[-1] - 3.1) < 1e-9
+    assert np.max(np.abs(x - np.where(t <= 0.9, t, 0.9 + 2 * (t - 0.9)))) < 1e-9
+    after = t > 0.95
+    assert np.max(np.abs(t[after] - (x[after] - 0.9) / 2 - 0.9)) < 1e-9
+
+
 def test_a_relation_in_noevent_stays_live(tmp_path):
     """``noEvent(x > 0.9)`` is no event: no indicator, no mode, and the block is not taken for a
     linear one (Radau, which costs about h / 9 at the switching step)."""
