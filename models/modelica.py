@@ -995,7 +995,10 @@ class _Translation:
             (kind, body), = self.nodes[node].items()
             if r in excluded or kind != "binary" or body["operator"] not in _REL or node in self.graph.memo:
                 continue
-            live = self.graph._eval(node)
+            try:
+                live = self.graph._eval(node)
+            except ModelicaError:  # one not read out of its context (a function's): left live
+                continue
             syms = ca.symvar(live)
             if ca.depends_on(live, self.time) or all(s.name() in params for s in syms):
                 continue
