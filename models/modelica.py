@@ -33,7 +33,9 @@ What a model may contain (anything else is refused with ``file:line: construct``
   equations read it);
 - events (docs/explanation/events.md): discrete Real variables are modes (``pre`` their left
   value); ``when`` on a relation is an indicator with its update (``reinit`` and the clause's
-  discrete equations); a relation read by an if-expression is an indicator too;
+  discrete equations); a relation on states, inputs or variables read by the continuous
+  equations (outside ``noEvent``) is a state event: an indicator and a mode holding its truth,
+  which the equations read (:meth:`_Translation._frozen_relations`);
 - connectors with one potential and one ``flow`` variable: each becomes a power-bond flange
   (:class:`~models.block.Flange`).  The potential is a velocity (``m/s``, ``rad/s``) or a position
   (``m``, ``rad``; then our flange carries its rate).  Which of the pair is an input is decided by
@@ -922,6 +924,7 @@ class _Translation:
             unknown[("algebraic", k)] = ca.SX.sym(self.vars[k]["name"])  # outputs are algebraic coordinates too
         self.env.update(unknown)
         self._assemble()
+        self._frozen_relations()
         flanges = self._connectors()
         residuals = self._residuals()
         solved, chosen = self._solve(b, residuals, unknown, flanges)
@@ -951,7 +954,105 @@ class _Translation:
         self._initial(b, states, value)
         events = self._events(b)
         self._clock(b)
+        self._thaw(b, events)
         return self._finish(b, integrator, substeps, events)
+
+    def _frozen_relations(self) -> None:
+        """Each relation (outside ``noEvent``: rumoca lists those only) on states, inputs or
+        variables (not on ``time``, not a when-condition) read as a placeholder symbol, which
+        :meth:`_thaw` replaces by a mode holding its truth in ``ode``/``out`` (Modelica's state
+        event: the truth is frozen during integration and changes at a located crossing) and by
+        the live relation elsewhere (indicators, updates, start values)."""
+        self.frozen: dict[int, tuple[ca.SX, ca.SX]] = {}  # relation index -> (placeholder, live)
+        st = self.st
+        conditions = st.get("conditions", [])
+        if getattr(self, "chains", None):
+            return
+        triggers = [a.get(key) for a in st.get("event_actions", []) for key in ("trigger", "guard")]
+        for eq in st.get("discrete_real_equations", []):
+            when = (eq.get("activation") or {}).get("when") or {}
+            triggers += [when.get("trigger"), when.get("guard")]
+        for o in st.get("discrete_value_owners", []):
+            for br in o.get("branches", []):
+                act = br.get("activation")
+                when = (act.get("when") or {}) if isinstance(act, dict) else {}
+                triggers += [when.get("trigger"), when.get("guard")]
+        excluded: set[int] = set()
+        for c in triggers:
+            while isinstance(c, int) and 0 <= c < len(conditions):
+                node = conditions[c].get("node") or {}
+                if not isinstance(node, dict) or set(node) in ({"relation"}, {"not"}):
+                    if isinstance(node, dict) and "relation" in node:
+                        excluded.add(node["relation"])
+                    c = node.get("not") if isinstance(node, dict) else None
+                    continue
+                if "discrete" in node:  # edge()/change(): a relation behind a Boolean; not frozen here
+                    return
+                break
+        params = set(self.param_names)
+        for r, rel in enumerate(st.get("relations", [])):
+            node = rel["relation"]["expression"]
+            (kind, body), = self.nodes[node].items()
+            if r in excluded or kind != "binary" or body["operator"] not in _REL or node in self.graph.memo:
+                continue
+            try:
+                live = self.graph._eval(node)
+            except ModelicaError:  # one not read out of its context (a function's): left live
+                continue
+            syms = ca.symvar(live)
+            if ca.depends_on(live, self.time) or all(s.name() in params for s in syms):
+                continue
+            self.frozen[r] = (ca.SX.sym(f"relation{r + 1}"), live)
+            self.graph.memo[node] = self.frozen[r][0]
+
+    def _relation_modes(self, relations: list, b: BlockBuilder) -> dict[int, ca.SX]:
+        """A mode per frozen relation (:meth:`_frozen_relations`) that ``ode`` or ``out`` reads,
+        holding its truth (0/1); one read by discrete equations only is settled at events."""
+        out = {}
+        continuous = ca.vertcat(*b._ders.values(), *[e for _, e in b._outputs])
+        for r, (holder, _) in self.frozen.items():
+            if not ca.depends_on(continuous, holder):
+                continue
+            key = -(len(self.condition_vars) + 1)
+            sym = ca.SX.sym(f"mode.relation{r + 1}")
+            self.mode_syms[key] = sym
+            self.mode_starts.append(ca.SX(0.0))  # set in _events: the relation's truth at the start
+            (_, body), = self.nodes[relations[r]["expression"]].items()
+            what = (f"{_short(self.graph(body['lhs']), 40)} {_REL[body['operator']]} "
+                    f"{_short(self.graph(body['rhs']), 40)}")
+            self.condition_vars[key] = Var(sym.name(), "", f"the truth (0/1) of {what}, held between its crossings")
+            out[r] = sym
+        return out
+
+    def _thaw(self, b: BlockBuilder, events: dict | None) -> None:
+        """The frozen relations' placeholders replaced: by their modes in ``ode``/``out``, by the
+        live relations elsewhere."""
+        if not self.frozen:
+            return
+        holders = ca.vertcat(*[h for h, _ in self.frozen.values()])
+        live = ca.vertcat(*[v for _, v in self.frozen.values()])
+        if self.solved is not None:  # in states, inputs, parameters and modes (the solved variables' values)
+            live = ca.substitute(live, *self.solved)
+        held = ca.vertcat(*[self.relation_modes.get(r, v) for r, (_, v) in self.frozen.items()])
+        for _ in range(len(self.frozen)):  # a relation inside another's operand
+            live = ca.substitute(live, holders, live)
+            held = ca.substitute(held, holders, live)
+
+        def thaw(e, by=live):
+            return e if e is None or isinstance(e, (int, float)) else ca.substitute(ca.SX(e), holders, by)
+
+        b._ders = {k: thaw(e, held) for k, e in b._ders.items()}
+        b._outputs = [(v, thaw(e, held)) for v, e in b._outputs]
+        b._states = [(v, sym, thaw(s0)) for v, sym, s0 in b._states]
+        if not events:
+            return
+        events["indicators"] = thaw(events["indicators"])
+        events["updates"] = [thaw(g) for g in events["updates"]]
+        xs, ms = [sym for _, sym, _ in b._states], list(self.mode_syms.values())
+        # a start value read a relation's placeholder (a mode settled at the start): at the start state
+        events["mode_start"] = [self._at_start(thaw(m), xs, ms, b) for m in events["mode_start"]]
+        for smp in events.get("sample_times", []):
+            smp.update = thaw(smp.update)
 
     def _expand_arrays(self) -> None:
         """Each array variable of more than one element as one scalar variable per element,
@@ -1114,6 +1215,7 @@ class _Translation:
                 continue
         chains = self._chain_modes(conditions, relations, b)
         self._assertion_modes(b)
+        self.relation_modes = self._relation_modes(relations, b)
         xs = [sym for _, sym, _ in b._states]
         ms = list(self.mode_syms.values())
         indicators, directions, names, updates = [], [], [], []
@@ -1195,6 +1297,20 @@ class _Translation:
         for i in range(len(indicators)):
             if i not in fired:
                 directions[i] = EITHER  # a relation read by an if-expression: the step restarts where it switches
+        keys = list(self.mode_syms)
+        for r, sym in self.relation_modes.items():  # its mode takes the relation's truth at its crossing
+            j = [k for k, m in enumerate(ms) if m is sym][0]
+            self.mode_starts[keys.index([k for k in keys if self.mode_syms[k] is sym][0])] = \
+                self._at_start(self.frozen[r][1], xs, ms, b)
+            if r not in by_relation:
+                indicator(r)
+            i = by_relation[r]
+            if i in fired:
+                continue
+            directions[i] = EITHER
+            rows = [*xs, *ms]
+            rows[len(xs) + j] = self._far_side(relations[r], b)
+            updates[i] = ca.vertcat(*rows)
         if self.solved is not None:  # indicators and updates in states, inputs, parameters and modes only
             indicators = [ca.substitute(z, *self.solved) for z in indicators]
             updates = [None if g is None else ca.substitute(g, *self.solved) for g in updates]

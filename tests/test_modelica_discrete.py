@@ -509,15 +509,57 @@ def test_an_initial_algorithm_sets_discrete_start_values(tmp_path):
     assert set(np.asarray(tr["c.t0"])) == {6.0}
 
 
-def test_a_relation_on_a_state_in_the_derivative_is_not_taken_for_a_linear_model(tmp_path):
-    """``der(x) = if x > 0.9 then 2 else 1`` has a Jacobian free of x (each branch is constant),
-    but it is not affine: the exact integrator took its value at x = 0 for every x, slope 1
-    throughout (x(2) = 2.0).  Now it integrates by Radau: x = t until 0.9, then 0.9 + 2 (t - 0.9),
-    x(2) = 3.1 (the step across the switch costs about h / 9: 1.1e-3 at h = 0.01)."""
-    text = "model Switching\n  Real x(start = 0);\nequation\n  der(x) = if x > 0.9 then 2 else 1;\nend Switching;\n"
-    assert translate(text, "Switching", "Switching.mo").integrator == "radau"
-    assert translate(text.replace("x > 0.9", "time > 0.9"), "Switching", "Switching.mo").integrator == "radau"
-    tr = simulate(tmp_path, text, "Switching", 2.0, 0.01, ["x"])
-    t, x = np.asarray(tr["time"]), np.asarray(tr["c.x"])
-    assert abs(x[-1] - 3.1) < 2e-3
-    assert np.max(np.abs(x - np.where(t < 0.9, t, 0.9 + 2 * (t - 0.9)))) < 2e-3
+SWITCHING = "model Switching\n  Real x(start = 0);\nequation\n  der(x) = if x > 0.9 then 2 else 1;\nend Switching;\n"
+
+
+def simulate_with(tmp_path, text: str, model: str, stop: float, step: float, options: str):
+    (tmp_path / f"{model}.mo").write_text(text)
+    scene = tmp_path / "scene.yaml"
+    scene.write_text(f"stop_time: {stop}\ncomponents:\n  c: {{modelica: {model}.mo, model: {model}, options: {options}}}\n"
+                     f"connections: []\nmaster: {{algorithm: jacobi, step: {step}, estimate: false}}\noutputs: ['c.x']\n")
+    res = run(scene, [], out_dir=tmp_path / "out")
+    assert res.ok, res.reason
+    return np.asarray(res.trace["time"]), np.asarray(res.trace["c.x"])
+
+
+@pytest.mark.parametrize("options", ["{integrator: exact}", "{integrator: rk4}", "{integrator: radau}", "{}"])
+def test_a_relation_on_a_state_is_a_state_event(tmp_path, options):
+    """``der(x) = if x > 0.9 then 2 else 1`` (Modelica: the relation's truth is frozen between
+    crossings): x = t until 0.9, then 0.9 + 2 (t - 0.9), x(2) = 3.1.  The relation is a mode
+    flipped at its located crossing, so every integrator is exact between events (Radau across
+    the switch used to cost h / 9: 1.1e-3 at h = 0.01); the switch time, read back from x after
+    it (t - (x - 0.9) / 2), within 1e-9 s."""
+    block = translate(SWITCHING, "Switching", "Switching.mo")
+    assert block.integrator == "exact" and block.m.numel() == 1  # linear between events: its mode
+    assert block.indicators.numel() == 1
+    t, x = simulate_with(tmp_path, SWITCHING, "Switching", 2.0, 0.01, options)
+    assert abs(x[-1] - 3.1) < 1e-9
+    assert np.max(np.abs(x - np.where(t <= 0.9, t, 0.9 + 2 * (t - 0.9)))) < 1e-9
+    after = t > 0.95
+    assert np.max(np.abs(t[after] - (x[after] - 0.9) / 2 - 0.9)) < 1e-9
+
+
+@pytest.mark.parametrize("options", ["{integrator: rk4}", "{}"])
+def test_a_relation_on_a_solved_variable_is_a_state_event(tmp_path, options):
+    """The same switch read through an algebraic variable (``y = 2 x``, ``y > 1.8``): its indicator
+    and mode are in the state (the solved variable substituted; before, the indicator named ``y``
+    and the block was refused, as MSL's ``Rotational.Examples.Backlash`` was)."""
+    text = SWITCHING.replace("  Real x(start = 0);", "  Real x(start = 0);\n  Real y;").replace(
+        "x > 0.9", "y > 1.8").replace("equation\n", "equation\n  y = 2 * x;\n")
+    block = translate(text, "Switching", "Switching.mo")
+    assert block.integrator == "exact" and block.m.numel() == 1
+    t, x = simulate_with(tmp_path, text, "Switching", 2.0, 0.01, options)
+    assert abs(x[-1] - 3.1) < 1e-9
+    assert np.max(np.abs(x - np.where(t <= 0.9, t, 0.9 + 2 * (t - 0.9)))) < 1e-9
+    after = t > 0.95
+    assert np.max(np.abs(t[after] - (x[after] - 0.9) / 2 - 0.9)) < 1e-9
+
+
+def test_a_relation_in_noevent_stays_live(tmp_path):
+    """``noEvent(x > 0.9)`` is no event: no indicator, no mode, and the block is not taken for a
+    linear one (Radau, which costs about h / 9 at the switching step)."""
+    text = SWITCHING.replace("x > 0.9", "noEvent(x > 0.9)")
+    block = translate(text, "Switching", "Switching.mo")
+    assert block.integrator == "radau" and block.indicators.numel() == 0 and block.m.numel() == 0
+    t, x = simulate_with(tmp_path, text, "Switching", 2.0, 0.01, "{}")
+    assert 1e-9 < abs(x[-1] - 3.1) < 2e-3
