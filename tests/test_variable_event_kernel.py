@@ -11,32 +11,18 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from cosim.run.execute import run
-from cosim.scenario import from_dict
+from engine_pair import assert_same as assert_pair
+from engine_pair import both
 
 VARIABLE = ("adaptive", "ecco")
 
 
-def both(scene: dict, **master) -> tuple:
-    """The scene's run on the Python loop and on the kernel (``engine: compiled``)."""
-    out = []
-    for engine in ("python", "compiled"):
-        res = run(from_dict({**scene, "master": {"step": 0.01, "estimate": False, **master, "engine": engine}}))
-        assert res.stats["engine"] == engine
-        out.append(res)
-    return tuple(out)
-
-
 def assert_same(py, cc) -> None:
-    assert (py.status, py.reason) == (cc.status, cc.reason)
-    assert np.array_equal(py.trace.time, cc.trace.time)
-    assert np.array_equal(py.trace.data, cc.trace.data, equal_nan=True)
-    assert py.stats.get("events") == cc.stats.get("events")
+    """What tests/engine_pair.py compares, and the variable steps' statistics."""
+    assert_pair(py, cc)
     keys = ("accepted_steps", "rejected_steps", "rollbacks", "smallest_step", "largest_step", "discards",
             "steps_cut_at_events", "bonds")
     assert [py.stats.get(k) for k in keys] == [cc.stats.get(k) for k in keys]  # ecco: its bonds' figures
-    calls = lambda r: {k: x["do_step_calls"] for k, x in r.stats["slaves"].items()}  # noqa: E731
-    assert calls(py) == calls(cc)
 
 
 def _bonded(fmu: str, stop: float, fault: int = 2) -> dict:

@@ -122,15 +122,9 @@ def run_status(trace: Trace, path: Path | None = None) -> tuple[str, str]:
     found: list[tuple[str, str]] = []
     if trace.status:
         found.append((trace.status, trace.reason))
-    if path is not None:
-
-        sidecar = Path(path).with_suffix(".json")
-        try:
-            data = read_json(sidecar, "sidecar") if sidecar.is_file() else None
-        except UserError:
-            data = None
-        if isinstance(data, dict) and isinstance(data.get("status"), str):
-            found.append((data["status"], str(data.get("reason", ""))))
+    data = _sidecar(path)
+    if data is not None and isinstance(data.get("status"), str):
+        found.append((data["status"], str(data.get("reason", ""))))
     bad = [f for f in found if f[0] != "ok"]
     if bad:
         return bad[0]
@@ -264,20 +258,26 @@ def scene_differences(a: dict, b: dict) -> tuple[list[str], list[str]]:
     return what, how
 
 
+def _sidecar(path: Path | str | None) -> dict | None:
+    """The sidecar ``<path>.json`` of a trace as a mapping (None: no path, no file, unreadable)."""
+    if path is None:
+        return None
+    side = Path(path).with_suffix(".json")
+    try:
+        got = read_json(side, "sidecar") if side.is_file() else None
+    except UserError:
+        return None
+    return got if isinstance(got, dict) else None
+
+
 def _scene_of(trace: Trace, path: Path | None) -> tuple[str, dict | None]:
     """The scene hash of a trace and its sidecar's ``scene_data`` (None without one)."""
     h = trace.meta.get("scene_hash")
     data = None
-    if path is not None:
-
-        side = Path(path).with_suffix(".json")
-        try:
-            got = read_json(side, "sidecar") if side.is_file() else None
-        except UserError:
-            got = None
-        if isinstance(got, dict):
-            data = got.get("scene_data") if isinstance(got.get("scene_data"), dict) else None
-            h = h or got.get("scene_hash")
+    got = _sidecar(path)
+    if got is not None:
+        data = got.get("scene_data") if isinstance(got.get("scene_data"), dict) else None
+        h = h or got.get("scene_hash")
     return (h if isinstance(h, str) else ""), data
 
 
