@@ -313,3 +313,30 @@ def test_a_result_written_just_before_the_child_exits_is_not_lost(monkeypatch):
 
     monkeypatch.setattr(supervise.select, "select", late_select)
     assert supervise.supervised(lambda say: 41 + 1) == 42
+
+
+def test_a_thread_starting_its_stepping_child_leaves_another_threads_dead_child_to_that_thread(monkeypatch):
+    """Two stepping threads in one Dask worker: when thread A's child has just died (A has not yet
+    read its end), thread B starting its own child must not reap A's and close A's pipes under it
+    (A then read a closed descriptor: 'OSError: [Errno 9] Bad file descriptor' instead of the
+    crash's reason)."""
+    import threading
+    import time as time_module
+
+    from cosim.batch import worker
+
+    monkeypatch.setattr(worker, "_SERVERS", [])
+    monkeypatch.setattr(worker, "_LOCAL", worker._Local())
+    monkeypatch.setattr(worker, "_serve_runs", lambda: _handle)
+    monkeypatch.setattr(worker, "_start_stepping", lambda: None)
+    first = worker._server()  # thread A's child
+    os.kill(first.pid, signal.SIGKILL)
+    time_module.sleep(0.2)  # dead, not yet reaped: A is about to read its end
+    started = []
+    thread = threading.Thread(target=lambda: started.append(worker._server()))
+    thread.start()
+    thread.join()
+    assert started and started[0] is not first
+    assert first.is_open, "thread B reaped thread A's child and closed its pipes"
+    assert not first.alive  # A, checking its own child, finds it gone
+    worker.end_steppers()

@@ -274,14 +274,17 @@ class _Local(threading.local):
 
 _LOCAL = _Local()
 _SERVERS: list = []  # every stepping child this process started, ended at exit
+_SERVERS_LOCK = threading.Lock()
 
 
 def end_steppers() -> None:
     """End this process's stepping children (each thread starts a new one at its next run: one
     forked after a change of the environment an FMU reads sees the change)."""
-    for server in _SERVERS:
+    with _SERVERS_LOCK:
+        servers = list(_SERVERS)
+        _SERVERS.clear()
+    for server in servers:
         server.close()
-    _SERVERS.clear()
 
 
 atexit.register(end_steppers)
@@ -316,7 +319,8 @@ def _server():
     if _LOCAL.server is None or not _LOCAL.server.alive:
         _LOCAL.server = supervise.Server(_serve_runs(), on_start=_start_stepping, on_exit=STATE.remove_files)
         _LOCAL.token = None
-        _SERVERS[:] = [s for s in _SERVERS if s.alive] + [_LOCAL.server]
+        with _SERVERS_LOCK:  # another thread's child is that thread's to check (checking reaps it)
+            _SERVERS[:] = [s for s in _SERVERS if s.is_open] + [_LOCAL.server]
     return _LOCAL.server
 
 

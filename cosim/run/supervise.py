@@ -369,6 +369,12 @@ class Server:
             _end_child(code, inherited)
 
     @property
+    def is_open(self) -> bool:
+        """Whether this child has not been seen to end (no check of the child: safe from any
+        thread while another one calls it)."""
+        return self._open
+
+    @property
     def alive(self) -> bool:
         """Whether the child is there to serve (it may have been killed while idle)."""
         if self._open and os.waitpid(self.pid, os.WNOHANG)[0]:
