@@ -17,6 +17,11 @@ from pathlib import Path
 
 import pytest
 
+import oracles
+
+# the Python twins of the compiled kernels, as master.engine: oracle (tests/oracles)
+oracles.register()
+
 # One BLAS thread: the suite's matrices are tiny, and OpenBLAS's thread pool on a loaded two-core
 # machine made scipy.linalg.expm of a 2x2 matrix take ~20 ms instead of ~0.1 ms (measured).
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")

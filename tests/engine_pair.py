@@ -11,7 +11,7 @@ from cosim.scenario import from_dict
 def both(scene: dict, **master) -> tuple:
     """The scene's run on the Python loop and on the kernel (``engine: compiled``)."""
     out = []
-    for engine in ("python", "compiled"):
+    for engine in ("oracle", "compiled"):
         res = run(from_dict({**scene, "master": {"step": 0.01, "estimate": False, **master, "engine": engine}}))
         assert res.stats["engine"] == engine
         out.append(res)

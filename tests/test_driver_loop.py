@@ -74,9 +74,9 @@ def run_pid(sets: dict, engine: str, observers=()):
     return mem.trace, stats
 
 
-@pytest.mark.parametrize("algorithm, engine", [("gauss_seidel", "compiled"), ("gauss_seidel", "python"),
-                                               ("adaptive", "compiled"), ("adaptive", "python"),
-                                               ("ecco", "python")])
+@pytest.mark.parametrize("algorithm, engine", [("gauss_seidel", "compiled"), ("gauss_seidel", "oracle"),
+                                               ("adaptive", "compiled"), ("adaptive", "oracle"),
+                                               ("ecco", "oracle")])
 def test_a_step_observer_sees_every_step_and_changes_no_bit(algorithm, engine):
     sets = {"master.algorithm": algorithm, "master.record": "steps"}  # a row at every step, to compare with
     plain, _ = run_pid(sets, engine)

@@ -42,9 +42,9 @@ def run(system: CoupledSystem, alg: str, engine: str, n: int = 200, step_ns: int
 @pytest.mark.parametrize("factor, offset", [(1.0, 0.0), (0.37, 0.0), (-1.5, 0.25)])
 @pytest.mark.parametrize("start_ns", [0, 2_500_000_001])
 def test_python_slaves_transformed_and_late_start_equal_the_python_loop(alg, factor, offset, start_ns):
-    py, s1 = run(pair(factor, offset), alg, "python", start_ns=start_ns)
+    py, s1 = run(pair(factor, offset), alg, "oracle", start_ns=start_ns)
     cc, s2 = run(pair(factor, offset), alg, "compiled", start_ns=start_ns)
-    assert (s1.engine, s2.engine) == ("python", "compiled") and s2.status == "ok"
+    assert (s1.engine, s2.engine) == ("oracle", "compiled") and s2.status == "ok"
     assert np.array_equal(py.time, cc.time) and np.array_equal(py.data, cc.data)
     assert {k: x["do_step_calls"] for k, x in s1.slaves.items()} == {k: x["do_step_calls"] for k, x in s2.slaves.items()}
 
@@ -115,7 +115,7 @@ class Stopping(LinearSlave):
 
 @pytest.mark.parametrize("alg", FIXED)
 def test_a_python_slaves_exception_comes_out_of_the_kernel_as_it_would_from_the_python_loop(alg):
-    for engine in ("python", "compiled"):
+    for engine in ("oracle", "compiled"):
         system = pair(cls=Exploding)
         with pytest.raises(ZeroDivisionError, match="model error at t = 0.050"):
             run(system, alg, engine)
@@ -124,7 +124,7 @@ def test_a_python_slaves_exception_comes_out_of_the_kernel_as_it_would_from_the_
 
 @pytest.mark.parametrize("alg", FIXED)
 def test_a_python_slaves_stop_request_ends_the_run_as_in_the_python_loop(alg):
-    py, s1 = run(pair(cls=Stopping), alg, "python")
+    py, s1 = run(pair(cls=Stopping), alg, "oracle")
     cc, s2 = run(pair(cls=Stopping), alg, "compiled")
     assert s2.engine == "compiled" and s1.status == s2.status == "stopped" and s1.reason == s2.reason
     assert np.array_equal(py.time, cc.time) and np.array_equal(py.data, cc.data)
@@ -151,8 +151,8 @@ def test_typed_ports_run_in_the_kernel_as_in_the_python_loop(reference_fmus, fmi
     becomes a callback slave (its typed part converted in Python), VanDerPol stays a direct FMU;
     the compiled trace, text included, equals the Python loop's."""
     py, cc = (typed_run(reference_fmus, fmi, {"algorithm": "gauss_seidel", "step": 0.01, "order": ["vdp", "ft"]}, e)
-              for e in ("python", "compiled"))
-    assert (py.stats["engine"], cc.stats["engine"]) == ("python", "compiled") and cc.status == "ok", cc.reason
+              for e in ("oracle", "compiled"))
+    assert (py.stats["engine"], cc.stats["engine"]) == ("oracle", "compiled") and cc.status == "ok", cc.reason
     assert np.array_equal(py.trace.time, cc.trace.time) and np.array_equal(py.trace.data, cc.trace.data)
     assert py.trace.text == cc.trace.text and cc.trace.text
     assert np.all(cc.trace["ft.Int32_output"] == 7) and cc.trace.text["ft.String_output"] == [(0.0, "abc")]
@@ -170,9 +170,9 @@ def bonded_pair(cls=LinearSlave) -> CoupledSystem:
 def test_ecco_runs_python_slaves_in_its_kernel_as_in_the_python_loop():
     """ecco never rolls back: its kernel (adaptive_engine.c) calls Python slaves through callbacks,
     the same steps and values as its Python loop, and within 1 % of the exact solution at t = 1 s."""
-    py, s1 = run(bonded_pair(), "ecco", "python", n=100)
+    py, s1 = run(bonded_pair(), "ecco", "oracle", n=100)
     cc, s2 = run(bonded_pair(), "ecco", "compiled", n=100)
-    assert (s1.engine, s2.engine) == ("python", "compiled") and s2.status == "ok", s2.reason
+    assert (s1.engine, s2.engine) == ("oracle", "compiled") and s2.status == "ok", s2.reason
     assert np.array_equal(py.time, cc.time) and np.array_equal(py.data, cc.data)
     ref = scipy.linalg.expm(np.array([[-A_, C_], [1.0, -B_]])) @ np.array([1.0, -0.4])
     assert cc.time[-1] == 1.0
@@ -192,9 +192,9 @@ def test_adaptive_rolls_python_slaves_back_in_its_kernel_as_in_the_python_loop()
     accepted and rejected steps, the same values as its Python loop, and within its tolerance's
     reach of the exact solution at t = 1 s."""
     opts = {"rtol": 1e-3}  # a tolerance at which the first proposal is rejected (measured: one rollback)
-    py, s1 = run(bonded_pair(), "adaptive", "python", n=5, step_ns=200_000_000, options=opts)
+    py, s1 = run(bonded_pair(), "adaptive", "oracle", n=5, step_ns=200_000_000, options=opts)
     cc, s2 = run(bonded_pair(), "adaptive", "compiled", n=5, step_ns=200_000_000, options=opts)
-    assert (s1.engine, s2.engine) == ("python", "compiled") and s2.status == "ok", s2.reason
+    assert (s1.engine, s2.engine) == ("oracle", "compiled") and s2.status == "ok", s2.reason
     assert s2.adaptive["rollbacks"] > 0 and s1.adaptive == s2.adaptive
     assert np.array_equal(py.time, cc.time) and np.array_equal(py.data, cc.data)
     ref = scipy.linalg.expm(np.array([[-A_, C_], [1.0, -B_]])) @ np.array([1.0, -0.4])
@@ -230,9 +230,9 @@ def test_variable_step_kernel_runs_transformed_connections_as_the_python_loop(al
     solution at t = 1 s."""
     opts = {"rtol": 1e-3} if alg == "adaptive" else None
     kw = dict(n=5, step_ns=200_000_000, options=opts)
-    py, s1 = run(bonded_trio(factor, offset), alg, "python", **kw)
+    py, s1 = run(bonded_trio(factor, offset), alg, "oracle", **kw)
     cc, s2 = run(bonded_trio(factor, offset), alg, "compiled", **kw)
-    assert (s1.engine, s2.engine) == ("python", "compiled") and s2.status == "ok", s2.reason
+    assert (s1.engine, s2.engine) == ("oracle", "compiled") and s2.status == "ok", s2.reason
     assert s1.adaptive == s2.adaptive and s2.adaptive["accepted_steps"] > 5
     assert np.array_equal(py.time, cc.time) and np.array_equal(py.data, cc.data)
     assert np.array_equal(cc.data[1:, 4], cc.data[1:, 1] * factor + offset)  # a steps before c (Gauss-Seidel)
@@ -253,8 +253,8 @@ def test_variable_step_kernel_applies_the_transformation_to_linear_inputs(alg):
         sets["components.mech.rollback"] = False
     sc = load(SCENARIOS / "pid_step.yaml", sets)
     text = Path(sc.path).read_text().replace("pid1.y -> motor1.u", "pid1.y -> motor1.u * 0.8 + 0.1")
-    py, cc = (_scene_text_run(text, sets, engine) for engine in ("python", "compiled"))
-    assert (py.stats["engine"], cc.stats["engine"]) == ("python", "compiled") and cc.status == "ok", cc.reason
+    py, cc = (_scene_text_run(text, sets, engine) for engine in ("oracle", "compiled"))
+    assert (py.stats["engine"], cc.stats["engine"]) == ("oracle", "compiled") and cc.status == "ok", cc.reason
     assert np.array_equal(py.trace.data, cc.trace.data)
     keys = ("accepted_steps", "rejected_steps", "rollbacks", "smallest_step", "largest_step")
     assert {k: py.stats.get(k) for k in keys} == {k: cc.stats.get(k) for k in keys}
@@ -268,8 +268,8 @@ def test_typed_ports_run_in_the_adaptive_kernel_as_in_the_python_loop(reference_
     rolled back through its own save_state/restore_state): the compiled trace, text included,
     equals the Python loop's, with the same rejections."""
     py, cc = (typed_run(reference_fmus, fmi, {"algorithm": "adaptive", "output_interval": 0.05}, e)
-              for e in ("python", "compiled"))
-    assert (py.stats["engine"], cc.stats["engine"]) == ("python", "compiled") and cc.status == "ok", cc.reason
+              for e in ("oracle", "compiled"))
+    assert (py.stats["engine"], cc.stats["engine"]) == ("oracle", "compiled") and cc.status == "ok", cc.reason
     assert np.array_equal(py.trace.time, cc.trace.time) and np.array_equal(py.trace.data, cc.trace.data)
     assert py.stats["rejected_steps"] == cc.stats["rejected_steps"]
     assert py.trace.text == cc.trace.text and cc.trace.text["ft.String_output"] == [(0.0, "abc")]
@@ -288,8 +288,8 @@ def test_typed_ports_run_in_the_ecco_kernel_as_in_the_python_loop(reference_fmus
                          "start: {String_input: abc, Int32_input: 7}}\n", 1).replace(
         "connections:\n", "connections:\n  - pid1.y -> ft.Float64_continuous_input\n", 1).replace(
         "outputs:\n", "outputs:\n  - ft.Int32_output\n  - ft.String_output\n  - ft.Float64_continuous_output\n", 1)
-    py, cc = (_scene_text_run(text, sets, engine) for engine in ("python", "compiled"))
-    assert (py.stats["engine"], cc.stats["engine"]) == ("python", "compiled") and cc.status == "ok", cc.reason
+    py, cc = (_scene_text_run(text, sets, engine) for engine in ("oracle", "compiled"))
+    assert (py.stats["engine"], cc.stats["engine"]) == ("oracle", "compiled") and cc.status == "ok", cc.reason
     assert np.array_equal(py.trace.data, cc.trace.data) and py.trace.text == cc.trace.text
     assert cc.trace.text["ft.String_output"] == [(0.0, "abc")]
     assert np.array_equal(cc.trace["ft.Float64_continuous_output"], cc.trace["pid1.y"])
@@ -350,9 +350,9 @@ def test_iterative_kernel_runs_python_slaves_and_transformed_loops_as_the_python
     trampoline (the factor in the chain rule), or from finite differences of their steps; the
     same values bit for bit, the same passes, Jacobians and Broyden updates as the Python loop."""
     kw = dict(n=50, options=ITER_OPTIONS[method], inputs=inputs)
-    py, s1 = run(loop_pair(factor, offset), "iterative", "python", **kw)
+    py, s1 = run(loop_pair(factor, offset), "iterative", "oracle", **kw)
     cc, s2 = run(loop_pair(factor, offset), "iterative", "compiled", **kw)
-    assert (s1.engine, s2.engine) == ("python", "compiled") and s2.status == "ok", s2.reason
+    assert (s1.engine, s2.engine) == ("oracle", "compiled") and s2.status == "ok", s2.reason
     assert np.array_equal(py.time, cc.time) and np.array_equal(py.data, cc.data)
     assert {k: s1.extra[k] for k in ITER_KEYS} == {k: s2.extra[k] for k in ITER_KEYS}
     assert s2.extra["rollbacks"] > 0
@@ -390,7 +390,7 @@ class NoJacobian(LinearSlave):
 
 
 def test_iterative_kernel_falls_back_to_finite_differences_for_a_python_slave_without_jacobian():
-    py, s1 = run(loop_pair(0.8, 0.0, cls=NoJacobian), "iterative", "python", n=30)
+    py, s1 = run(loop_pair(0.8, 0.0, cls=NoJacobian), "iterative", "oracle", n=30)
     cc, s2 = run(loop_pair(0.8, 0.0, cls=NoJacobian), "iterative", "compiled", n=30)
     assert s2.extra["start_iterations"] == 1  # every Jacobian the kernel's
     assert s2.engine == "compiled" and s2.status == "ok", s2.reason
@@ -401,13 +401,13 @@ def test_iterative_kernel_falls_back_to_finite_differences_for_a_python_slave_wi
 
 def test_iterative_kernel_passes_a_python_slaves_exception_and_stop_request_on():
     steps = []
-    for engine in ("python", "compiled"):
+    for engine in ("oracle", "compiled"):
         system = loop_pair(1.0, 0.0, cls=Exploding)
         with pytest.raises(ZeroDivisionError, match="model error"):
             run(system, "iterative", engine, n=50)
         steps.append([getattr(s, "steps", 0) for s in system.slaves])
     assert steps[0] == steps[1] and max(steps[1]) == 6  # the kernel made no call after the failing one
-    py, s1 = run(loop_pair(1.0, 0.0, cls=Stopping), "iterative", "python", n=50)
+    py, s1 = run(loop_pair(1.0, 0.0, cls=Stopping), "iterative", "oracle", n=50)
     cc, s2 = run(loop_pair(1.0, 0.0, cls=Stopping), "iterative", "compiled", n=50)
     assert s2.engine == "compiled" and s1.status == s2.status == "stopped" and s1.reason == s2.reason
     assert np.array_equal(py.time, cc.time) and np.array_equal(py.data, cc.data)
@@ -421,8 +421,8 @@ def test_iterative_kernel_runs_a_transformed_fmu_loop_as_the_python_loop():
     sets = {"master.algorithm": "iterative", "stop_time": 0.05}
     sc = load(SCENARIOS / "force_loop.yaml", sets)
     text = Path(sc.path).read_text().replace("fc1.y -> motor1.u", "fc1.y -> motor1.u * 0.9 + 0.05")
-    py, cc = (_scene_text_run(text, sets, engine) for engine in ("python", "compiled"))
-    assert (py.stats["engine"], cc.stats["engine"]) == ("python", "compiled") and cc.status == "ok", cc.reason
+    py, cc = (_scene_text_run(text, sets, engine) for engine in ("oracle", "compiled"))
+    assert (py.stats["engine"], cc.stats["engine"]) == ("oracle", "compiled") and cc.status == "ok", cc.reason
     assert np.array_equal(py.trace.data, cc.trace.data)
     assert {k: py.stats[k] for k in ITER_KEYS} == {k: cc.stats[k] for k in ITER_KEYS}
     assert cc.stats["directional_derivatives"] > 0
@@ -431,8 +431,8 @@ def test_iterative_kernel_runs_a_transformed_fmu_loop_as_the_python_loop():
 @pytest.mark.parametrize("fmi", ["2.0", "3.0"])
 def test_typed_ports_run_in_the_iterative_kernel_as_in_the_python_loop(reference_fmus, fmi):
     py, cc = (typed_run(reference_fmus, fmi, {"algorithm": "iterative", "step": 0.01, "inputs": "linear"}, e)
-              for e in ("python", "compiled"))
-    assert (py.stats["engine"], cc.stats["engine"]) == ("python", "compiled") and cc.status == "ok", cc.reason
+              for e in ("oracle", "compiled"))
+    assert (py.stats["engine"], cc.stats["engine"]) == ("oracle", "compiled") and cc.status == "ok", cc.reason
     assert np.array_equal(py.trace.time, cc.trace.time) and np.array_equal(py.trace.data, cc.trace.data)
     assert py.trace.text == cc.trace.text and cc.trace.text["ft.String_output"] == [(0.0, "abc")]
     assert np.array_equal(cc.trace["ft.Float64_continuous_output"], cc.trace["vdp.x0"])

@@ -77,9 +77,9 @@ def check_sidecar(out: Path, guard: str, status: str, pattern: str) -> dict:
 
 # --- rpr-cosim run, every algorithm ----------------------------------------------------------------
 @pytest.mark.parametrize("guard", GUARDS)
-@pytest.mark.parametrize("algorithm, engine", [("gauss_seidel", "compiled"), ("jacobi", "python"),
-                                               ("adaptive", "compiled"), ("adaptive", "python"),
-                                               ("ecco", "python"), ("iterative", "python")])
+@pytest.mark.parametrize("algorithm, engine", [("gauss_seidel", "compiled"), ("jacobi", "oracle"),
+                                               ("adaptive", "compiled"), ("adaptive", "oracle"),
+                                               ("ecco", "oracle"), ("iterative", "oracle")])
 def test_run_is_guarded_with_every_algorithm(tmp_path, guard, algorithm, engine):
     sets, status, pattern = VARIANTS[guard]
     # a variable-step run records every accepted step here: on its 1 ms output grid a state that diverges

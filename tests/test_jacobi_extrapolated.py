@@ -14,7 +14,7 @@ import pytest
 from cosim.analysis.trace_diff import compare
 from cosim.errors import UserError
 from cosim.master import ALGORITHMS
-from cosim.master.algorithms.jacobi_extrapolated import extrapolator
+from oracles.fixed import extrapolator  # fastloop.c's extrapolation in Python (bit for bit: test_general_kernel.py)
 from cosim.run.execute import run
 from cosim.run.reference import reference
 

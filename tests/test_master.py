@@ -221,9 +221,9 @@ def fmu_system(paths, v_msd: str, v_gain: str) -> CoupledSystem:
 @pytest.mark.parametrize("alg", ["jacobi", "gauss_seidel"])
 @pytest.mark.parametrize("versions", [("2.0", "2.0"), ("3.0", "3.0"), ("2.0", "3.0")], ids=["fmi2", "fmi3", "mixed"])
 def test_compiled_loop_equals_the_python_loop_bit_for_bit(fmu_paths, alg, versions):
-    py, s1 = run(fmu_system(fmu_paths, *versions), alg, 1_000_000, 500, engine="python")
+    py, s1 = run(fmu_system(fmu_paths, *versions), alg, 1_000_000, 500, engine="oracle")
     cc, s2 = run(fmu_system(fmu_paths, *versions), alg, 1_000_000, 500, engine="compiled")
-    assert (s1.engine, s2.engine) == ("python", "compiled")
+    assert (s1.engine, s2.engine) == ("oracle", "compiled")
     assert np.array_equal(py.data, cc.data)
     assert s2.slaves["m"]["do_step_calls"] == 500 and s2.slaves["m"]["wall_s"] > 0
 
@@ -235,10 +235,10 @@ def test_compiled_loop_equals_the_python_loop_bit_for_bit(fmu_paths, alg, versio
 def test_compiled_multirate_equals_the_python_loop_bit_for_bit(fmu_paths, alg, inputs, rates, versions):
     """Slaves at several doSteps per macro step (cosim.master.multirate), inputs held or ramped at the
     sub-instants: the same trace in both engines, and each slave's doSteps counted."""
-    py, s1 = run(fmu_system(fmu_paths, *versions), alg, 1_000_000, 300, engine="python", inputs=inputs, rates=rates)
+    py, s1 = run(fmu_system(fmu_paths, *versions), alg, 1_000_000, 300, engine="oracle", inputs=inputs, rates=rates)
     cc, s2 = run(fmu_system(fmu_paths, *versions), alg, 1_000_000, 300, engine="compiled", inputs=inputs, rates=rates)
     one, _ = run(fmu_system(fmu_paths, *versions), alg, 1_000_000, 300, engine="compiled", inputs=inputs)
-    assert (s1.engine, s2.engine) == ("python", "compiled") and s2.status == "ok"
+    assert (s1.engine, s2.engine) == ("oracle", "compiled") and s2.status == "ok"
     assert np.array_equal(py.data, cc.data)
     assert not np.array_equal(cc.data, one.data)  # the sub-steps did change the result
     for s, r in zip(("m", "g"), rates):
@@ -249,7 +249,7 @@ def test_compiled_multirate_equals_the_python_loop_bit_for_bit(fmu_paths, alg, i
 def test_compiled_loop_records_every_nth_point_like_the_python_loop(fmu_paths, every):
     """Recording every n-th communication point: the same rows (t = 0, n h, 2 n h, ...) in both
     engines, and the same values as the every-point trace at those instants."""
-    py, _ = run(fmu_system(fmu_paths, "2.0", "2.0"), "gauss_seidel", 1_000_000, 100, engine="python",
+    py, _ = run(fmu_system(fmu_paths, "2.0", "2.0"), "gauss_seidel", 1_000_000, 100, engine="oracle",
                 record_every=every)
     cc, _ = run(fmu_system(fmu_paths, "2.0", "2.0"), "gauss_seidel", 1_000_000, 100, engine="compiled",
                 record_every=every)
@@ -311,7 +311,7 @@ def test_fmu_pair_with_linear_inputs_follows_the_conventions(fmu_paths, alg):
     the trajectory equals the hand-written recurrence, in both engines, and is far closer to the
     continuous closed loop than holding."""
     want = linear_input_solution(alg, 300)
-    for engine in ("python", "compiled"):
+    for engine in ("oracle", "compiled"):
         tr, st = run(fmu_system(fmu_paths, "2.0", "2.0"), alg, 1_000_000, 300, inputs="linear", engine=engine)
         assert st.engine == engine
         np.testing.assert_allclose(tr["m.body.s"], want, rtol=0, atol=1e-12)
@@ -322,7 +322,7 @@ def test_fmu_pair_with_linear_inputs_follows_the_conventions(fmu_paths, alg):
     assert np.abs(tr["m.body.s"] - exact).max() < np.abs(held["m.body.s"] - exact).max() / 20
 
 
-@pytest.mark.parametrize("engine", ["python", "compiled"])
+@pytest.mark.parametrize("engine", ["oracle", "compiled"])
 def test_a_slave_feeding_itself_extrapolates_its_own_output(fmu_paths, engine):
     """Gauss-Seidel, linear inputs, the msd's position wired to its own force (a spring of
     -1 N/m): the source has not stepped when the slave takes its input, so the input is
@@ -411,7 +411,7 @@ def ring_exact(order, n: int) -> np.ndarray:
     return np.array(rows)
 
 
-@pytest.mark.parametrize("engine", ["python", "compiled"])
+@pytest.mark.parametrize("engine", ["oracle", "compiled"])
 @pytest.mark.parametrize("order", [None, (3, 2, 1, 0), (2, 0, 3, 1)], ids=["default", "reversed", "shuffled"])
 def test_gauss_seidel_steps_slaves_in_its_order_not_the_declaration_order(affine_fmu, engine, order):
     """Four FMUs in a ring: every stepping order gives a different exact map.  The default order
@@ -448,9 +448,46 @@ def test_the_compiled_loop_builds_into_an_empty_cache(fresh_loop_library, tmp_pa
 
 def test_without_a_c_compiler_the_compiled_loop_says_so(fresh_loop_library, monkeypatch):
     monkeypatch.setenv("CC", "/nonexistent/cc")
-    with pytest.raises(UserError, match="needs a C compiler .*master.engine: python"):
+    with pytest.raises(UserError, match=r"needs a C compiler .*/nonexistent/cc.*No such file.*\$CC"):
         fresh_loop_library.library()
-    assert not fresh_loop_library.available()
+
+
+@pytest.mark.parametrize("alg", ["jacobi", "adaptive"])
+def test_without_a_c_compiler_a_run_says_so_before_it_starts(fresh_loop_library, monkeypatch, alg):
+    """No silent fallback to a Python loop: a run on a machine without a working C compiler (an
+    empty build cache, $CC naming none) ends at its start with one line naming the compiler, before
+    any slave is initialised."""
+    from cosim.master import adaptive_engine
+
+    monkeypatch.setenv("CC", "/nonexistent/cc")
+    adaptive_engine.library.cache_clear()
+
+    def initialize(*a, **kw):
+        raise AssertionError("the slaves were initialised before the compiler was checked")
+    monkeypatch.setattr(sys.modules["cosim.master.simulate"], "initialize", initialize)
+    system = pair(0.0)
+    try:
+        for engine in ("auto", "compiled"):
+            with pytest.raises(UserError) as err:
+                simulate(system, alg, step_ns=50_000_000, n_steps=4, engine=engine)
+            msg = str(err.value)
+            assert msg.startswith("a run needs a C compiler for its master loop, and none works here (/nonexistent/cc")
+            assert msg.endswith("install gcc or point $CC to a working C compiler") and "\n" not in msg
+    finally:
+        adaptive_engine.library.cache_clear()
+
+
+def test_master_engine_python_is_gone():
+    """``python`` is no longer an engine (the Python loops are test oracles): one line naming the key
+    and what it takes, from the Python API, a scene and the CLI."""
+    from cosim.master.engine import PYTHON_GONE
+
+    with pytest.raises(UserError) as err:
+        simulate(pair(0.0), "jacobi", step_ns=50_000_000, n_steps=4, engine="python")
+    assert str(err.value) == PYTHON_GONE
+    assert PYTHON_GONE.startswith("master.engine: python is gone") and "use auto or compiled" in PYTHON_GONE
+    with pytest.raises(UserError, match="master.engine must be one of auto, compiled, oracle, got 'fast'"):
+        simulate(pair(0.0), "jacobi", step_ns=50_000_000, n_steps=4, engine="fast")
 
 
 # --- structure ---------------------------------------------------------------------------------

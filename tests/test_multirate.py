@@ -78,7 +78,7 @@ def test_multirate_trace_is_the_substepped_macro_map(variant, rates):
     alg, inputs = variant
     cols, want = analytic(alg, inputs, rates)
     traces = {}
-    for engine in ("python", "compiled"):
+    for engine in ("oracle", "compiled"):
         res = run(SCENE, overrides(alg, inputs, rates), engine=engine)
         # the whole span ran; at 50 ms on kc = 100 N/m the coupling is far off the coupled solution,
         # which the run's own error estimate may say ("unstable"): this test is about the map
@@ -88,7 +88,7 @@ def test_multirate_trace_is_the_substepped_macro_map(variant, rates):
             assert res.stats["slaves"][name]["do_step_calls"] == r * round(STOP / STEP)
             assert res.stats["slaves"][name]["rate"] == r
         traces[engine] = res.trace
-    assert np.array_equal(traces["python"].data, traces["compiled"].data)
+    assert np.array_equal(traces["oracle"].data, traces["compiled"].data)
     got = np.column_stack([traces["compiled"][c] for c in cols])
     scale = np.abs(want).max(axis=0)
     np.testing.assert_allclose(got / scale, want / scale, rtol=0, atol=1e-12)
@@ -111,7 +111,7 @@ def test_sub_steps_are_taken_at_exact_nanosecond_instants(monkeypatch):
     monkeypatch.setattr(slaves_mod.FmuSlave, "do_step", spy)
     ov = {**overrides("gauss_seidel", "linear", {"mass2": 4}), "master.step": 0.1, "master.output_interval": 0.1,
           "stop_time": 3.0}
-    run(SCENE, ov, engine="python")
+    run(SCENE, ov, engine="oracle")
     # the run's own calls are the last ones (its error estimate's companion at half the step ran first)
     fast = [(t, h) for n, t, h in seen if n == "mass2"][-120:]
     assert [t for t, _ in fast] == [k * 25_000_000 / 1e9 for k in range(120)]

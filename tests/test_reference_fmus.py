@@ -394,7 +394,7 @@ def test_array_size_mismatch_and_wrong_as(reference_fmus):
     assert "'as Int32' must name the type of f.Int16_input, which is Int16" in str(err.value)
 
 
-@pytest.mark.parametrize("engine", ["python"])
+@pytest.mark.parametrize("engine", ["oracle"])
 def test_converted_connections_carry_values(reference_fmus, engine):
     """Stair's Int32 counter converted to Float64 and Int64 inputs of Feedthrough arrives unchanged,
     in the event iteration at its time events too (FMI 3.0 event mode: two rows at each)."""

@@ -45,8 +45,8 @@ def test_no_function_in_cosim_run_takes_more_than_six_parameters():
 
 
 def test_run_keywords_are_the_request_fields():
-    req = RunRequest.of(["stop_time=1"], None, {"engine": "python", "trace_format": "parquet", "log": None})
-    assert (req.override_list, req.engine, req.trace_format) == (["stop_time=1"], "python", "parquet")
+    req = RunRequest.of(["stop_time=1"], None, {"engine": "compiled", "trace_format": "parquet", "log": None})
+    assert (req.override_list, req.engine, req.trace_format) == (["stop_time=1"], "compiled", "parquet")
     assert req.log("quiet") is None  # log=None is the quiet log, as before
     # a base request with the keywords set over it; its overrides kept when none are given
     base = RunRequest(overrides={"stop_time": 2}, cache_dir=Path("c"))

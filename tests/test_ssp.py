@@ -330,9 +330,9 @@ def test_a_transformation_gives_the_same_trace_in_both_engines(cache, tmp_path):
     """The compiled loop applies factor and offset as the Python loop does (v * factor + offset):
     the same trace, bit for bit."""
     (tmp_path / "scaled.yaml").write_text(TRANSFORM_SCENE)
-    py = run(tmp_path / "scaled.yaml", cache_dir=cache, engine="python")
+    py = run(tmp_path / "scaled.yaml", cache_dir=cache, engine="oracle")
     cc = run(tmp_path / "scaled.yaml", cache_dir=cache, engine="compiled")
-    assert (py.stats["engine"], cc.stats["engine"]) == ("python", "compiled") and cc.ok
+    assert (py.stats["engine"], cc.stats["engine"]) == ("oracle", "compiled") and cc.ok
     assert np.array_equal(py.trace.time, cc.trace.time) and np.array_equal(py.trace.data, cc.trace.data)
 
 

@@ -23,11 +23,11 @@ def pair() -> CoupledSystem:
 
 
 class EventAt(FixedStepper):
-    """Jacobi's Python engine with an event of component a at step ``k_event``: the block ends
+    """Jacobi on its compiled loop with an event of component a at step ``k_event``: the block ends
     there, and the event iteration negates a's output (an update ``y+ = -y-``)."""
 
     def __init__(self, base: FixedStepper, k_event: int):
-        super().__init__(base.alg, None, base.n_steps, base.record_every)
+        super().__init__(base.alg, base.runner, base.n_steps, base.record_every, base.engine)
         self.k_event, self.fired, self.iterated = k_event, False, []
 
     def block(self, rec, max_steps):
@@ -66,7 +66,7 @@ def run(k_event: int | None, n_steps: int = 10):
     system = pair()
     initialize(system, [{}, {}], stop_time=n_steps * 0.1)
     stepper = fixed_stepper(system, cls=algorithm("jacobi"), step_ns=100_000_000, n_steps=n_steps, record_every=1,
-                            engine="python")
+                            engine="compiled")
     if k_event is not None:
         stepper = EventAt(stepper, k_event)
     mem, events = MemoryTrace(), Events()

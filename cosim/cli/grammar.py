@@ -100,7 +100,7 @@ def _run(sub: argparse._SubParsersAction) -> None:
                         "float64 rows, column names in the sidecar)")
     add_report(p, "also write <scene>.html: an interactive report (plots, animation, statistics) that opens "
                   "offline in a browser")
-    p.add_argument("--engine", choices=["auto", "compiled", "python"], help="override master.engine")
+    p.add_argument("--engine", metavar="{auto,compiled}", help="override master.engine")
     add_cache(p)
     p.add_argument("--call-timeout", metavar="SECONDS", type=float, default=None,
                    help="end the run as 'hung' when one FMI call takes longer (default $RPR_COSIM_CALL_TIMEOUT or 60)")

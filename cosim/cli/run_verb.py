@@ -38,6 +38,7 @@ from ..run.reference_files import same_request, write_reference
 from ..slaves.plan import component_line
 from ..run.choose import kind
 from ..master.algorithm import algorithm
+from ..master.engine import check_engine
 from ..master.estimate import INACCURATE
 from ..analysis.tables import text_table
 from ..analysis.drawing import DrawError, Drawer, Forked, SharedProgress
@@ -47,7 +48,8 @@ from ..interrupts import signals_as_interrupts
 def _run(args: argparse.Namespace) -> int:
     import os
 
-
+    if args.engine is not None:
+        check_engine(args.engine)  # python is gone: said before the scene loads
     before = os.environ.get(ENV_VAR)
     if args.cache:  # the scene's catalog components are looked up in this cache's recipe index too
         os.environ[ENV_VAR] = str(args.cache)

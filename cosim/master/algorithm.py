@@ -5,7 +5,6 @@ from __future__ import annotations
 import difflib
 import math
 import time
-from abc import ABC, abstractmethod
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import ClassVar
@@ -15,7 +14,7 @@ import numpy as np
 from ..errors import UserError
 from ..slaves.slave import FAILING, Status
 from .graph import gauss_seidel_order
-from .stepper import Outcome, StepResult
+from .stepper import Outcome
 from .system import CoupledSystem
 from .multirate import check_rates, substepper
 
@@ -232,11 +231,13 @@ class MasterAlgorithm:
     stepper: ClassVar[type | None] = None
 
 
-class Algorithm(MasterAlgorithm, EventIteration, Outcome, ABC):
-    """Base class of fixed-step master algorithms.  The public :meth:`step` advances one macro step and
-    keeps :attr:`status` (``"running"``, ``"failed"``, ``"stopped"``); a subclass implements
-    :meth:`_step_impl` and may name a compiled variant (:attr:`native_code`, see
-    :mod:`cosim.master.fastloop`).  Numerical failure comes back as a status and :attr:`message`, never
+class Algorithm(MasterAlgorithm, EventIteration, Outcome):
+    """Base class of fixed-step master algorithms: its state (step count, :attr:`status`,
+    counters, events), what every engine shares (the event iteration, the completion of a step
+    after a stop request, the endings' wording) and the compiled kernel that takes its steps
+    (:attr:`native_code`, see :mod:`cosim.master.fastloop`).  An algorithm without a kernel
+    implements :meth:`_step_impl` (and :meth:`_event_step`), its own Python loop, which the public
+    :meth:`step` runs.  Numerical failure comes back as a status and :attr:`message`, never
     as an exception; bad arguments raise at once."""
 
     #: slaves step one after another in :attr:`order` (later ones see earlier ones' new outputs)
@@ -282,7 +283,6 @@ class Algorithm(MasterAlgorithm, EventIteration, Outcome, ABC):
         self.events = 0  # events handled by the event iteration
         self.late_events: list[dict] = []  # an event a slave that cannot roll back had already stepped past
         self._ahead: set[int] = set()  # slaves at the grid point already while the others finish a cut step
-        self._reached: dict[int, float] = {}  # the time [s] each slave reached in the current event step
         self._events_in_step = 0  # events in the current macro step (chattering beyond MAX_EVENTS_PER_STEP)
 
     def _setup_rates(self, rates: Sequence[int] | None) -> None:
@@ -352,7 +352,8 @@ class Algorithm(MasterAlgorithm, EventIteration, Outcome, ABC):
         return (self.start_ns + k * self.step_ns) / 1e9
 
     def step(self) -> bool:
-        """One macro step ``t_k -> t_k+1``; False (with :attr:`status`, :attr:`message`) when the
+        """One macro step ``t_k -> t_k+1`` of an algorithm's own Python loop (:meth:`_step_impl`,
+        :meth:`_event_step`; :func:`cosim.master.stepper.python_runner` runs it); False (with :attr:`status`, :attr:`message`) when the
         run ends: a failure, a stop request (then the step is completed first, see
         :meth:`complete_after_stop`), or a status the step itself set (e.g. ``"unstable"``: an
         iteration that did not converge)."""
@@ -373,77 +374,6 @@ class Algorithm(MasterAlgorithm, EventIteration, Outcome, ABC):
         self._fail(bad[0], bad[1], t)
         return False
 
-    # FMI 3.0 event mode across the coupling (docs/explanation/events.md) --------------------------------
-    def _event_step(self) -> bool:
-        """:meth:`step` with event-mode slaves: from the current point (a grid point or an event) to
-        the next grid point, cut at the earliest time an event-mode slave returned early.  Jacobi
-        steps the event-mode slaves first and the others only to that time (:meth:`_events_first`);
-        Gauss-Seidel steps in its order, the slaves after an early return only to its time
-        (:meth:`_events_in_order`); a slave that stepped past the event is rolled back and stepped
-        to it, or (when it cannot roll back) noted in :attr:`late_events` and left at the grid
-        point until the others catch up."""
-        slaves = self.system.slaves
-        t, t_end = self.t, self.time_at(self.k + 1)
-        h = t_end - t if self.t_event is not None else self.h
-        # what may step past an event: under Gauss-Seidel any slave, under Jacobi only the event-mode ones
-        may_pass = [i for i in range(len(slaves)) if self.sequential or i in self.event_slaves]
-        saved = [i for i in may_pass if slaves[i].can_rollback and i not in self._ahead] \
-            if len(self.event_slaves) > 1 or (self.sequential and len(slaves) > 1) else []
-        for i in saved:
-            slaves[i].save_state()
-        self._reached.clear()
-        do = self._do
-        if self._ahead:  # they reached the grid point in the step an event cut: they wait there
-            self._do = [(lambda _t, _h: Status.OK) if i in self._ahead else f for i, f in enumerate(do)]
-        try:
-            bad = self._events_in_order(t, h) if self.sequential else self._events_first(t, h)
-        finally:
-            self._do = do
-        if self.status != "running":
-            return False
-        if bad is not None:
-            if self.stop_requested(*bad):
-                self.complete_after_stop(bad[0], t)
-                return False
-            self._fail(bad[0], bad[1], t)
-            return False
-        ends = {i: slaves[i].step_end() for i in self.event_slaves if i not in self._ahead}
-        tol = 1e-12 * (1.0 + abs(t_end))
-        early = sorted((r, i) for i, (r, _) in ends.items() if r < t + h - tol)
-        if not early:
-            self.k, self.t_event, self._events_in_step = self.k + 1, None, 0
-            self._ahead.clear()
-            asking = [i for i, (_, ev) in ends.items() if ev]
-            if asking:
-                self.pending_event = StepResult(self.t_ns, True, asking[0], "event")
-            return True
-        t_e, who = early[0]
-        self._events_in_step += 1
-        if self._events_in_step > MAX_EVENTS_PER_STEP:
-            self.chattering(who, t_e)
-            return False
-        for j in range(len(slaves)):
-            if j == who or j in self._ahead or (j in ends and ends[j][0] <= t_e + tol) or \
-                    (j not in ends and self._reached.get(j, t + h) <= t_e + tol):  # stepped only to t_e already
-                continue
-            if j in saved:  # stepped past the event: back (its inputs with it), and to the event time
-                slaves[j].restore_state()
-                st = self._advance(j, t, t_e - t)
-                if st in FAILING:
-                    self._fail(j, st, t)
-                    return False
-            else:
-                self._ahead.add(j)
-                self.late(j, who, t_e, self._reached.get(j, t + h))
-        for j in range(len(slaves)):
-            st = self._io(j, self._pull[j])
-            if st in FAILING:
-                self._fail(j, st, t)
-                return False
-        self.t_event = t_e
-        self.pending_event = StepResult(self.t_ns, True, who, "event")
-        return True
-
     def chattering(self, who: int, t_e: float) -> None:
         """End the run: slave ``who`` had more than :data:`MAX_EVENTS_PER_STEP` events in the
         current macro step, the last at ``t_e`` [s] (both engines)."""
@@ -457,61 +387,6 @@ class Algorithm(MasterAlgorithm, EventIteration, Outcome, ABC):
         slaves = self.system.slaves
         self.late_events.append({"component": slaves[j].name, "t": t_e, "event_of": slaves[who].name,
                                  "reached": reached})
-
-    def _events_in_order(self, t: float, h: float) -> tuple[int, int] | None:
-        """A Gauss-Seidel step with event-mode slaves: in :attr:`order`, each slave from the
-        freshest outputs; once an event-mode slave has returned early, the slaves after it step only
-        to that time (:attr:`_reached`), so only those before it can have stepped past the event
-        (the order puts event-mode slaves first where the coupling allows); ``(slave, status)`` of a
-        failing call, or None."""
-        slaves, reached, tol = self.system.slaves, t + h, 1e-12 * (1.0 + abs(t + h))
-        for i in self.order:
-            self._gather[i]()
-            st = self._io(i, self._push[i])
-            if st in FAILING:
-                return i, st
-            hi = min(h, reached - t)
-            if hi > tol:  # (an event at t itself: nothing to step)
-                st = self._advance(i, t, hi)
-                if st in FAILING or st == Status.STOP_REQUESTED:
-                    return i, st
-            self._reached[i] = t + hi
-            if i in self.event_slaves and i not in self._ahead:
-                reached = min(reached, slaves[i].step_end()[0])
-            st = self._io(i, self._pull[i])
-            if st in FAILING:
-                return i, st
-        return None
-
-    def _events_first(self, t: float, h: float) -> tuple[int, int] | None:
-        """A Jacobi step with event-mode slaves: every input from the outputs at ``t``, the
-        event-mode slaves step first, the others then only to the earliest time one of them
-        reached (no rollback needed, nothing late); ``(slave, status)`` of a failing call, or None."""
-        slaves, n = self.system.slaves, len(self.system.slaves)
-        for i in range(n):
-            self._gather[i]()
-            st = self._io(i, self._push[i])
-            if st in FAILING:
-                return i, st
-        first = [i for i in self.event_slaves if i not in self._ahead]
-        for i in first:
-            st = self._advance(i, t, h)
-            if st in FAILING or st == Status.STOP_REQUESTED:
-                return i, st
-        reached = min([slaves[i].step_end()[0] for i in first], default=t + h)
-        for i in range(n):
-            if i not in first:
-                hi = min(h, reached - t)
-                if hi > 1e-12 * (1.0 + abs(t + h)):  # (an event at t itself: nothing to step)
-                    st = self._advance(i, t, hi)
-                    if st in FAILING or st == Status.STOP_REQUESTED:
-                        return i, st
-                self._reached[i] = t + hi
-        for i in range(n):
-            st = self._io(i, self._pull[i])
-            if st in FAILING:
-                return i, st
-        return self._exchange() if self.exchange else None
 
     def stop_requested(self, i: int, status: int) -> bool:
         """Is ``status`` from slave ``i`` a request to end the simulation (FMI 3.0
@@ -549,10 +424,16 @@ class Algorithm(MasterAlgorithm, EventIteration, Outcome, ABC):
         ``(slave, status)`` of a failing call, or None."""
         raise NotImplementedError(f"{self.name} cannot complete a step after a stop request")
 
-    @abstractmethod
     def _step_impl(self, t: float, h: float) -> tuple[int, int] | None:
-        """Advance every slave from ``t`` by ``h``; return ``(slave index, status)`` of the first
-        failing call, or None."""
+        """An algorithm with a Python loop of its own (iterative; one registered without a kernel;
+        the test oracles): advance every slave from ``t`` by ``h``; return ``(slave index,
+        status)`` of the first failing call, or None."""
+        raise NotImplementedError(f"{self.name} steps in its compiled loop (cosim.master.engine)")
+
+    def _event_step(self) -> bool:
+        """:meth:`step` with FMI 3.0 event-mode slaves, in an algorithm's own Python loop (see
+        :meth:`_step_impl`): to the next grid point or the earliest event."""
+        raise NotImplementedError(f"{self.name} steps in its compiled loop (cosim.master.engine)")
 
     def _fail(self, i: int, status: int, t: float) -> None:
         sl = self.system.slaves[i]

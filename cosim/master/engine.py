@@ -1,12 +1,16 @@
-"""Engines, who runs an algorithm's steps: a compiled loop (for the algorithms that have one: FMUs
-directly, Python slaves and typed ports through callbacks; :class:`CompiledLoop` says what each
-runs) or the Python loop; the choice between them is made here, once for every algorithm
-(:func:`choose_engine`)."""
+"""Engines, who runs an algorithm's steps: its compiled loop (FMUs directly, Python slaves and
+typed ports through callbacks; :class:`CompiledLoop` says what each runs), or, for an algorithm
+whose Python loop is still product code (iterative's FMI 3.0 event-mode scenes, an algorithm
+registered without a kernel), that loop.  The choice is made here, once for every algorithm
+(:func:`choose_engine`).  A run needs a working C compiler (:func:`cosim.master.kernels.compile_loop`
+says which is missing); the Python twins of the kernels are test oracles (``tests/oracles``),
+plugged in through the one seam of :class:`Engine` (:func:`register_engine`)."""
 from __future__ import annotations
 
 import ctypes
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -15,8 +19,8 @@ from . import adaptive_engine, fastloop, iterative_engine
 from .algorithm import MAX_EVENTS_PER_STEP, Algorithm, MasterAlgorithm
 from .algorithms.jacobi_extrapolated import WEIGHTS
 from .entries import FIXED_CONTROL, FixedEnd, struct
-from .kernels import SlaveArray, builds, called_back
-from .stepper import FixedStepper, StepResult
+from .kernels import SlaveArray, called_back
+from .stepper import FixedStepper, Runner, StepResult, python_runner
 from .system import CoupledSystem
 
 #: :attr:`Algorithm.native_code` of the fixed-step loop's algorithms (0 Jacobi, 1 Gauss-Seidel, 3 Jacobi with
@@ -25,7 +29,51 @@ ITERATIVE, EXTRAPOLATED = 2, 3
 #: jacobi_extrapolated's weights as the kernel reads them: row m for m past values (zeros after)
 WEIGHTS_3x3 = [list(w) + [0.0] * (3 - len(w)) for w in WEIGHTS]
 
-ENGINES = ("auto", "compiled", "python")
+#: what ``master.engine`` may be: auto (the compiled loop; an algorithm's own Python loop where that
+#: is product code and the compiled one cannot run the scene) or compiled
+ENGINES = ("auto", "compiled")
+#: the answer to ``master.engine: python``
+PYTHON_GONE = ("master.engine: python is gone: the Python loops are test oracles now (tests/oracles) and a run "
+               "needs a C compiler; use auto or compiled")
+
+
+@dataclass(frozen=True)
+class Engine:
+    """An engine besides the compiled one, registered under its name (:func:`register_engine`;
+    the test oracles, ``tests/oracles``): the class it instantiates for a fixed-step algorithm
+    (``algorithm(cls)``) and for a variable-step stepping (``stepping(kind)``), the runner of a
+    fixed-step algorithm (``runner(alg)``: ``(n, record_every, rec) -> rows``, as
+    :class:`FixedStepper` takes the compiled one) and the loop of a variable-step stepping
+    (``loop(stepping)``: the interface of :class:`cosim.master.adaptive_engine.CompiledAdaptive`)."""
+
+    name: str
+    runner: Callable[[Algorithm], Runner]
+    loop: Callable[[Any], Any]
+    algorithm: Callable[[type], type] = lambda cls: cls
+    stepping: Callable[[type], type] = lambda kind: kind
+
+
+#: engines registered besides the compiled one, by name
+REGISTERED: dict[str, Engine] = {}
+
+
+def register_engine(engine: Engine) -> None:
+    """Make ``engine`` selectable by its name (``master.engine``, ``simulate(engine=...)``)."""
+    REGISTERED[engine.name] = engine
+
+
+def engine_names() -> tuple[str, ...]:
+    """The values ``master.engine`` takes here: :data:`ENGINES` and the registered engines."""
+    return ENGINES + tuple(REGISTERED)
+
+
+def check_engine(name: str) -> str:
+    """``name`` when it is an engine here; else :class:`UserError` (``python``: :data:`PYTHON_GONE`)."""
+    if name == "python":
+        raise UserError(PYTHON_GONE)
+    if name not in engine_names():
+        raise UserError(f"master.engine must be one of {', '.join(engine_names())}, got {name!r}")
+    return name
 
 
 @dataclass(frozen=True)
@@ -44,27 +92,29 @@ class CompiledLoop:
     transforms: bool = False
     #: it ends steps at FMI 3.0 event-mode components' events (the event iteration runs in Python between calls)
     events: bool = False
+    #: the algorithm's own Python loop is product code and runs what this loop cannot (iterative's
+    #: event-mode scenes; an algorithm registered without a kernel, :attr:`Algorithm.native_code` None)
+    python: bool = False
 
 
 def fixed_loop(cls: type[Algorithm]) -> CompiledLoop:
     """The compiled loop of the fixed-step algorithm ``cls`` (by its :attr:`native_code`)."""
     if cls.native_code is None:
-        return CompiledLoop(cls.name, None)
+        return CompiledLoop(cls.name, None, python=True)
     if cls.native_code == ITERATIVE:
         return CompiledLoop(cls.name, iterative_engine.library, cls.needs_rollback, callbacks=True, typed=True,
-                            transforms=True)
+                            transforms=True, python=True)
     return CompiledLoop(cls.name, fastloop.library, callbacks=True, typed=True, transforms=True, events=True)
 
 
 def _why_not(system: CoupledSystem, loop: CompiledLoop) -> str:
     """Why ``loop`` cannot run ``system`` ('' when it can)."""
     if loop.library is None:
-        return "has no loop"
+        return "has no compiled loop (no kernel)"
     if any(s.event_mode for s in system.slaves) and not loop.events:
-        return "does not end its steps at events; FMI 3.0 event-mode components run in the Python loop"
+        return "does not end its steps at events (this scene has FMI 3.0 event-mode components)"
     if system.transformed and not loop.transforms:
-        return ("copies connections as they are; connections with a linear transformation (factor, offset) run "
-                "in the Python loop")
+        return "copies connections as they are (this scene has connections with a linear transformation)"
     if system.typed.active and not loop.typed:
         return "carries scalar Float64 variables only; this scene connects or records other types or arrays"
     entries = [(s, None if called_back(system, i) else s.native()) for i, s in enumerate(system.slaves)]
@@ -80,7 +130,7 @@ def _why_not(system: CoupledSystem, loop: CompiledLoop) -> str:
 
 
 def ends_steps_at_events(cls: type[MasterAlgorithm], engine: str) -> bool:
-    """Whether a run of ``cls`` on ``engine`` (auto | compiled | python) ends its steps at FMI 3.0
+    """Whether a run of ``cls`` on ``engine`` (:func:`engine_names`) ends its steps at FMI 3.0
     events, so that its event-mode FMUs are instantiated in event mode: the algorithm does, and
     its compiled loop too when that loop is asked for."""
     if not cls.ends_steps_at_events:
@@ -92,20 +142,37 @@ def ends_steps_at_events(cls: type[MasterAlgorithm], engine: str) -> bool:
     return issubclass(cls, Algorithm) and fixed_loop(cls).events
 
 
+def needs_compiler(cls: type[MasterAlgorithm], engine: str) -> None:
+    """At a run's start: ``engine`` checked (:func:`check_engine`) and the compiled loop of ``cls``
+    built (on disk once), so that a machine without a working C compiler hears it before anything
+    runs (:class:`UserError` naming the compiler, :func:`cosim.master.kernels.compile_loop`)."""
+    check_engine(engine)
+    if engine in REGISTERED:
+        return
+    if cls.variable_step:
+        library = adaptive_engine.library if cls.stepper is None or adaptive_engine.has_compiled(cls.stepper) else None
+    else:
+        library = fixed_loop(cls).library if issubclass(cls, Algorithm) else None
+    if library is not None:
+        library()
+
+
 def choose_engine(system: CoupledSystem, engine: str, loop: CompiledLoop) -> str:
-    """``"compiled"`` or ``"python"`` for ``engine`` in auto | compiled | python: auto takes the
-    compiled loop where it can run the scene and builds here, compiled refuses with the reason a
-    scene it cannot run."""
-    if engine not in ENGINES:
-        raise UserError(f"master.engine must be auto, compiled or python, got {engine!r}")
-    if engine == "python":
-        return "python"
+    """Who runs ``loop``'s algorithm for ``engine`` (:func:`engine_names`): ``"compiled"``, a
+    registered engine by its name, or ``"python"``, the algorithm's own Python loop where that is
+    product code (:attr:`CompiledLoop.python`) and auto finds the compiled loop unable to run the
+    scene; compiled refuses such a scene with the reason.  A missing C compiler is a
+    :class:`UserError` here, never a fallback."""
+    check_engine(engine)
+    if engine in REGISTERED:
+        return engine
     why = _why_not(system, loop)
-    if engine == "compiled":
-        if why:
-            raise UserError(f"master.engine: compiled for {loop.algorithm} {why}; use master.engine auto or python")
-        return "compiled"  # a missing C compiler is said when the library is built
-    return "python" if why or not builds(loop.library) else "compiled"
+    if why and engine == "auto" and loop.python:
+        return "python"
+    if why:
+        raise UserError(f"master.engine: {engine} for {loop.algorithm} {why}")
+    loop.library()
+    return "compiled"
 
 
 class _Compiled:
@@ -224,14 +291,19 @@ class _Compiled:
 def fixed_stepper(system: CoupledSystem, *, cls: type[Algorithm], step_ns: int, n_steps: int, record_every: int,
                   engine: str = "auto", options: dict | None = None, record: str = "grid", **kw) -> FixedStepper:
     """A fixed-step algorithm ``cls`` over the initialised ``system`` on its engine (``engine``:
-    auto | compiled | python, see :func:`choose_engine`); ``kw`` go to the algorithm (``record``:
-    a fixed-step run's steps are its grid)."""
-    alg = cls(system, step_ns, **kw, **({"options": options} if cls.options else {}))
+    see :func:`choose_engine`); ``kw`` go to the algorithm (``record``: a fixed-step run's steps
+    are its grid)."""
     name = choose_engine(system, engine, fixed_loop(cls))
-    runner = None
-    if name == "compiled":
+    other = REGISTERED.get(name)
+    make = other.algorithm(cls) if other is not None else cls
+    alg = make(system, step_ns, **kw, **({"options": options} if cls.options else {}))
+    if other is not None:
+        runner = other.runner(alg)
+    elif name == "python":
+        runner = python_runner(alg)
+    else:
         runner = (iterative_engine.CompiledIterative(alg) if cls.native_code == ITERATIVE else _Compiled(alg)).run
-    return FixedStepper(alg, runner, n_steps, record_every)
+    return FixedStepper(alg, runner, n_steps, record_every, name)
 
 
 def variable_loop(name: str, stepper_cls: type) -> CompiledLoop:
@@ -241,5 +313,6 @@ def variable_loop(name: str, stepper_cls: type) -> CompiledLoop:
                         events=adaptive_engine.ends_steps_at_events(stepper_cls))
 
 
-__all__ = ["CompiledLoop", "ENGINES", "ITERATIVE", "choose_engine", "ends_steps_at_events", "fixed_loop",
-           "fixed_stepper", "variable_loop"]
+__all__ = ["CompiledLoop", "ENGINES", "Engine", "ITERATIVE", "PYTHON_GONE", "REGISTERED", "check_engine",
+           "choose_engine", "engine_names", "ends_steps_at_events", "fixed_loop", "fixed_stepper", "needs_compiler",
+           "register_engine", "variable_loop"]

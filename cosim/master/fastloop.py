@@ -8,8 +8,9 @@ receives as function pointers; a slave without them (a Python slave) or with typ
 called through trampolines around its own methods (:mod:`cosim.master.callbacks`).  It
 implements exactly the algorithms of :mod:`cosim.master` (see there for the conventions) and
 jacobi_extrapolated, FMI 3.0 event mode included (a step ended at an event, the call returned
-there for the event iteration in Python: ``fx_ctl``, :class:`cosim.master.entries.FixedEnd`);
-the Python loop is the reference it is tested against.
+there for the event iteration in Python: ``fx_ctl``, :class:`cosim.master.entries.FixedEnd`):
+the one implementation of their steps; the tests compare it, bit for bit, with its Python twin
+(the test oracle, ``tests/oracles/fixed.py``).
 
 All values live in one float64 vector ``v`` owned by the master: each slave reads its bound
 variables into ``v[out_off : out_off + n_out]`` and takes its connected inputs from
@@ -21,7 +22,7 @@ from ctypes import CDLL
 from functools import lru_cache
 
 from .entries import RUN
-from .kernels import builds, compile_loop
+from .kernels import compile_loop
 
 #: Longest wall time of one call of the compiled loop [ns]; it returns to Python (where signals
 #: are handled) at least this often.
@@ -30,11 +31,6 @@ CALL_BUDGET_NS = 250_000_000
 @lru_cache(maxsize=1)
 def library() -> CDLL:
     """Compile (once per source and compiler, cached on disk) and load the loop library.
-    Raises :class:`UserError` when no C compiler works."""
+    Raises :class:`UserError` naming the compiler when none works."""
     return compile_loop("fastloop.c", "rpr_loop", [RUN])
 
-
-def available() -> bool:
-    """True when the loop library can be built and loaded here (whether a run uses it is
-    :func:`cosim.master.engine.choose_engine`'s choice)."""
-    return builds(library)

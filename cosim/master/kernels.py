@@ -49,23 +49,13 @@ def compile_loop(main: str, stem: str, entries: Sequence[Entry] = (), flags: tup
     try:
         lib = load(kernel_files(main), stem, *(() if flags is None else (flags,)))
     except NoCompiler as exc:
-        raise UserError(f"the compiled master loop needs a C compiler ({exc}); "
-                        f"set master.engine: python to use the Python loop") from None
+        raise UserError(f"a run needs a C compiler for its master loop, and none works here ({exc}): install gcc "
+                        f"or point $CC to a working C compiler") from None
     except BuildError as exc:
         raise UserError(f"compiling the master loop failed: {exc}") from None
     bind(lib, (SET_CRUMB, *entries))
     crumb.register_library(lib)  # its FMI calls write this process's breadcrumb (cosim.slaves.crumb)
     return lib
-
-
-def builds(library: Callable[[], ctypes.CDLL]) -> bool:
-    """True when ``library()`` (a compiled loop's loader, e.g. :func:`cosim.master.fastloop.library`)
-    builds and loads here."""
-    try:
-        library()
-    except UserError:
-        return False
-    return True
 
 
 def called_back(system, i: int) -> bool:
@@ -93,7 +83,7 @@ class SlaveArray:
             ne = None if called_back(system, i) else s.native()
             if ne is None:
                 if not callbacks:
-                    raise UserError(f"{s.name} has no C entry points; use master.engine: python")
+                    raise UserError(f"{s.name} has no C entry points, and this loop calls none back")
                 cb = self.callbacks[i] = CallbackSlave(s)
                 state = (cb.address("get_state"), cb.address("set_state")) if s.can_rollback else (0, 0)
                 ne = NativeEntry(False, 0, cb.address("do_step"), cb.address("get"), cb.address("set"),
@@ -156,4 +146,4 @@ class SlaveArray:
                 self.states[i] = None
 
 
-__all__ = ["CSlave", "SLAVE_FIELDS", "SlaveArray", "builds", "called_back", "compile_loop", "kernel_files"]
+__all__ = ["CSlave", "SLAVE_FIELDS", "SlaveArray", "called_back", "compile_loop", "kernel_files"]

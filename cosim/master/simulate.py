@@ -9,7 +9,7 @@ from collections.abc import Callable, Sequence
 from ..errors import UserError
 from .algorithm import algorithm, option_values
 from .lifecycle import RunStats, VariableStats, initialize, settled
-from .engine import ends_steps_at_events, fixed_stepper
+from .engine import ends_steps_at_events, fixed_stepper, needs_compiler
 from .stepper import drive, record_start
 from .system import CoupledSystem
 from .realtime import Pacer, slave_figures
@@ -45,6 +45,7 @@ def simulate(system: CoupledSystem, algorithm_name: str, *, step_ns: int, n_step
     dropped and the run ends with the guard's status and reason.
     """
     cls = algorithm(algorithm_name)
+    needs_compiler(cls, engine)  # the engine named, and a C compiler for its loop, before anything runs
     variable = cls.variable_step
     multirate = {s.name: int(r) for s, r in zip(system.slaves, rates or ()) if r != 1}
     if multirate and not cls.multirate:

@@ -7,8 +7,9 @@ status; the loop runs what comes before a step, the step, then the observers.  A
 algorithm bound to its engine: a fixed-step algorithm on the grid ``t_k = start + k h``
 (:class:`FixedStepper`: Jacobi, Gauss-Seidel, iterative; the compiled loop runs a block of steps
 natively and returns its rows, a block counts as steps taken), or a variable-step one
-(:class:`cosim.master.algorithms.adaptive.VariableStepper`: adaptive, ecco).  The Python engine's
-block (one step at a time, a row at each recorded point) is written once, :meth:`Stepper.python_block`.
+(:class:`cosim.master.algorithms.adaptive.VariableStepper`: adaptive, ecco).  Both take their
+engine as one seam: a fixed-step stepper a runner (:data:`Runner`: the compiled loop, or an
+algorithm's own Python steps, :func:`python_runner`), a variable-step one a loop object.
 
 Per block of steps :func:`drive` does, once for every algorithm:
 
@@ -86,7 +87,8 @@ class Outcome:
 
 class Stepper(ABC):
     """What :func:`drive` steps (the module docstring): an algorithm bound to its engine
-    (``"compiled"`` or ``"python"``).  Its :attr:`status` and :attr:`message` are its
+    (its name: ``"compiled"``, ``"python"`` for an algorithm's own Python loop, or a registered engine's,
+    :class:`cosim.master.engine.Engine`).  Its :attr:`status` and :attr:`message` are its
     :class:`Outcome`'s.  The event contract points (:attr:`event`, :meth:`event_iteration`,
     :meth:`next_output_ns`) default to a run without events, every step on its own grid."""
 
@@ -148,31 +150,6 @@ class Stepper(ABC):
     def close(self) -> None:
         """Free what the engine holds before the slaves are freed (nothing by default)."""
 
-    def step(self) -> bool:
-        """The Python engine's one step (the algorithm's); False when the run ends."""
-        raise NotImplementedError(f"{type(self).__name__} has no Python step")
-
-    def recorded(self, ok: bool) -> bool:
-        """After a Python step (``ok``: it did not end the run): is its end point a recorded row?"""
-        return ok
-
-    def python_block(self, rec: np.ndarray, max_steps: int) -> int:
-        """The Python engine: up to ``max_steps`` :meth:`step` calls while the run goes on, a row
-        (time, the recorded values) at each :meth:`recorded` point, text changes noted there."""
-        v, idx, typed = self.system.v, self.system.record_idx, self.system.typed
-        rows = 0
-        for _ in range(max_steps):
-            ok = self.step()
-            if self.recorded(ok):
-                rec[rows, 0] = self.t
-                np.take(v, idx, out=rec[rows, 1:])
-                rows += 1
-                if typed.texts:
-                    self.text_events += [(self.t, c, x) for c, x in typed.text_changes()]
-            if not ok or self.done() or self.event is not None:
-                break
-        return rows
-
     # -- the event contract (docs/explanation/events.md); no component reports events yet ----------
     def event_iteration(self, event: StepResult) -> None:
         """At the event instant ``event.t_ns``, after its left-limit row: enter event mode in every
@@ -190,16 +167,41 @@ class Stepper(ABC):
         np.take(self.system.v, self.system.record_idx, out=out[1:])
 
 
+#: A fixed-step engine: ``runner(n, record_every, rec) -> rows`` takes up to ``n`` macro steps, writes
+#: a row (time, the recorded values) at every ``record_every``-th point, at an event (the left limit,
+#: the event left pending on the algorithm) and at a stop, and returns the rows' count.
+Runner = Callable[[int, int, np.ndarray], int]
+
+
+def python_runner(alg: Any) -> Runner:
+    """The runner of an algorithm's own Python steps (:meth:`cosim.master.algorithm.Algorithm.step`:
+    iterative's event-mode scenes, an algorithm without a kernel; the test oracles')."""
+    v, idx = alg.system.v, alg.system.record_idx
+
+    def run(n: int, record_every: int, rec: np.ndarray) -> int:
+        rows = 0
+        for _ in range(n):
+            ok = alg.step()
+            event = alg.pending_event is not None
+            if (ok and (alg.k % record_every == 0 and alg.t_event is None or event)) or alg.status == "stopped":
+                rec[rows, 0] = alg.t
+                np.take(v, idx, out=rec[rows, 1:])
+                rows += 1
+            if not ok or event:
+                break
+        return rows
+    return run
+
+
 class FixedStepper(Stepper):
-    """A fixed-step :class:`~cosim.master.algorithm.Algorithm` on its engine: ``runner(n,
-    record_every, rec) -> rows`` for the compiled one (:class:`cosim.master.engine.Compiled` or
-    :class:`cosim.master.iterative_engine.CompiledIterative`), :meth:`Stepper.python_block` over
-    :meth:`Algorithm.step` otherwise; ``n_steps`` macro steps, every ``record_every``-th point recorded."""
+    """A fixed-step :class:`~cosim.master.algorithm.Algorithm` on its engine ``engine`` (its name),
+    whose :data:`Runner` takes its steps (:class:`cosim.master.engine._Compiled`,
+    :class:`cosim.master.iterative_engine.CompiledIterative`, :func:`python_runner`); ``n_steps``
+    macro steps, every ``record_every``-th point recorded."""
 
     def __init__(self, alg: Any,  # a cosim.master.algorithm.Algorithm (which imports this module)
-                 runner: Callable[[int, int, np.ndarray], int] | None, n_steps: int,
-                 record_every: int):
-        super().__init__(alg.system, "python" if runner is None else "compiled", alg)
+                 runner: Runner, n_steps: int, record_every: int, engine: str = "compiled"):
+        super().__init__(alg.system, engine, alg)
         self.alg, self.runner = alg, runner
         self.n_steps, self.record_every = n_steps, record_every
 
@@ -219,8 +221,6 @@ class FixedStepper(Stepper):
 
     def block(self, rec: np.ndarray, max_steps: int) -> int:
         n = min(max_steps, self.n_steps - self.alg.k)
-        if self.runner is None:
-            return self.python_block(rec, n)
         rows = self.runner(n, self.record_every, rec) if not self.system.typed.texts else self._text_block(rec, n)
         self._take_event()
         return rows
@@ -231,8 +231,8 @@ class FixedStepper(Stepper):
             self.event, self.alg.pending_event = self.alg.pending_event, None
 
     def _text_block(self, rec: np.ndarray, n: int) -> int:
-        """The compiled loop's ``n`` steps up to one recorded point at a time, the recorded text
-        variables' changes noted at each (as :meth:`Stepper.python_block` notes them)."""
+        """The runner's ``n`` steps up to one recorded point at a time, the recorded text variables'
+        changes noted at each row that ends a call."""
         alg, rows, end = self.alg, 0, self.alg.k + n
         while alg.k < end and alg.status == "running":
             k = alg.k
@@ -245,15 +245,6 @@ class FixedStepper(Stepper):
             if alg.k == k or alg.pending_event is not None:
                 break
         return rows
-
-    def step(self) -> bool:
-        ok = self.alg.step()
-        self._take_event()
-        return ok
-
-    def recorded(self, ok: bool) -> bool:
-        return ((ok and (self.alg.k % self.record_every == 0 and self.alg.t_event is None or self.event is not None))
-                or self.alg.status == "stopped")
 
     def event_iteration(self, event: StepResult) -> None:
         self.alg.event_iteration(event)
@@ -272,7 +263,7 @@ class FixedStepper(Stepper):
     def fill(self, stats) -> None:
 
         alg = self.alg
-        if self.engine == "python":  # the compiled loop measures its own share itself
+        if self.engine != "compiled":  # the compiled loops measure their own share themselves
             alg.master_ns = max(0, int(self.stepping_s * 1e9) - sum(alg.slave_ns))
         stats.steps_done = alg.k
         stats.master_s = alg.master_ns / 1e9
@@ -372,4 +363,5 @@ def drive(stepper: Stepper, system: CoupledSystem, observers: Sequence[Observer]
     return time.perf_counter() - t_loop
 
 
-__all__ = ["FixedStepper", "Outcome", "StepInfo", "StepResult", "Stepper", "drive", "guarded", "record_start"]
+__all__ = ["FixedStepper", "Outcome", "Runner", "StepInfo", "StepResult", "Stepper", "drive", "guarded",
+           "python_runner", "record_start"]

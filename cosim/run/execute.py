@@ -265,7 +265,7 @@ def run(scene: Scene | str | Path, overrides: Mapping[str, Any] | Sequence[str] 
     cache_dir : FMU cache directory (default ``$RPR_COSIM_CACHE`` or ``~/.cache/rpr-cosim/fmus``).
     progress : called as ``progress(steps_done, steps_total)`` during the run.
     log : one-line messages about building FMUs.
-    engine : overrides ``master.engine`` (auto | compiled | python).
+    engine : overrides ``master.engine`` (auto | compiled).
     max_trace_bytes : refuse a run whose trace would be larger (default ``$RPR_COSIM_MAX_TRACE``
         or 4 GB; a number of bytes or a text such as ``"20GB"``).
     auto_fidelity : how ``fidelity: auto`` is resolved when loading (see :func:`cosim.scenario.load`;

@@ -18,6 +18,7 @@ from .yamlfile import YList, YMap
 from ..master.multirate import rate_problem
 from ..master.realtime import RealtimeSettings
 from ..master.algorithm import option_values
+from ..master.engine import PYTHON_GONE, engine_names
 
 
 @lru_cache(maxsize=256)
@@ -83,7 +84,10 @@ class MasterChecks(Checker):
         else:
             ok = False
         engine = node.get("engine", "auto")
-        if engine not in ENGINES:
+        if engine == "python":
+            self.err(node.loc("engine"), PYTHON_GONE)
+            ok = False
+        elif engine not in engine_names():
             self.err(node.loc("engine"), f"master.engine = {engine!r}{suggest(str(engine), ENGINES)}; "
                                          f"expected one of {', '.join(ENGINES)}")
             ok = False

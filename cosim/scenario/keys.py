@@ -66,7 +66,9 @@ MASTER = {
                  "reference); none named: the master chooses one from `tolerance` (docs/accuracy.md)",
     "step": "communication step [s] (for variable-step algorithms, the unit of stop_time only)",
     "order": "Gauss-Seidel stepping order: a list of component names (default: found from the connections)",
-    "engine": "auto (compiled loop where the scene allows), compiled or python",
+    "engine": "auto (default) or compiled: the algorithm's compiled loop (a run needs a C compiler; `python` is gone, "
+              "the Python loops are test oracles); auto also runs iterative's FMI 3.0 event-mode scenes in its "
+              "Python loop",
     "output_interval": "recording interval [s], a whole multiple of the step (default: the step); variable-step "
                        "algorithms land a step on every output point",
     "record": "grid (default): a row at every output point (output_interval) plus two per event; steps: a row at "
@@ -86,7 +88,8 @@ COMPONENT_KEYS = tuple(COMPONENT)
 MASTER_KEYS = tuple(MASTER)
 #: How a slave's inputs vary over a communication step (see :mod:`cosim.master`).
 INPUT_MODES = ("hold", "linear")
-ENGINES = ("auto", "compiled", "python")
+#: ``master.engine`` (as :data:`cosim.master.engine.ENGINES`; a test may register its oracle besides them)
+ENGINES = ("auto", "compiled")
 #: What a run records (``master.record``): the output grid, or every accepted step of a variable-step master.
 RECORD_MODES = ("grid", "steps")
 #: The accuracy a scene gets when it names no master algorithm (cosim.run.choose).

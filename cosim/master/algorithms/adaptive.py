@@ -42,29 +42,29 @@ right limit, and the inputs' extrapolation history is moved by the jump.
 
 Statistics: accepted and rejected steps, rollbacks, smallest and largest step, steps cut at events.
 
-Engines: :class:`AdaptiveStepper` here is the reference implementation (Python loop); for every
-scene (``master.engine`` auto or compiled), :mod:`cosim.master.adaptive_engine` runs the same
-accepted-step loop in C (FMUs directly, Python slaves and typed ports through callbacks,
-transformed connections, FMI 3.0 events: the event iteration and :meth:`AdaptiveStepper.after_events`
-in Python between its calls), step for step and bit for bit the same
+Engine: the steps are taken in C (``rpr_adapt_run`` in ``cosim/master/adaptive_engine.c``, bound
+by :mod:`cosim.master.adaptive_engine`: FMUs directly, Python slaves and typed ports through
+callbacks, transformed connections, FMI 3.0 events with the event iteration and
+:meth:`AdaptiveStepper.after_events` in Python between its calls); :class:`AdaptiveStepper` here
+holds the run's state, the endings' wording and the event handling both share.  Its Python twin,
+the test oracle the bit-for-bit tests compare the kernel with, is ``tests/oracles/variable.py``
 (``tests/test_adaptive_engine.py``, ``tests/test_general_kernel.py``,
-``tests/test_variable_event_kernel.py``); likewise for ecco's stepper (``tests/test_native.py``).
+``tests/test_variable_event_kernel.py``; likewise for ecco, ``tests/test_native.py``).
 """
 from __future__ import annotations
 
 import math
-import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from ...errors import UserError
-from ...slaves.slave import FAILING, Status
+from ...slaves.slave import Status
 from ..algorithm import MAX_EVENTS_PER_STEP, AlgorithmOption, EventIteration, MasterAlgorithm, option_values, register
 from ..graph import gauss_seidel_order
 from ..adaptive_engine import compiled_stepper
-from ..engine import choose_engine, variable_loop
+from ..engine import REGISTERED, choose_engine, variable_loop
 from ..entries import AdaptiveEnd
 from ..lifecycle import slave_table
 from ..stepper import Outcome, StepInfo, StepResult, Stepper
@@ -105,9 +105,10 @@ class AdaptiveStats:
 
 
 class AdaptiveStepper(EventIteration, Outcome):
-    """The stepping of :mod:`cosim.master.algorithms.adaptive` over an initialised, bound ``system``
-    (its Python engine; its compiled loop writes the same :class:`~cosim.master.stepper.Outcome`,
-    worded by the same :meth:`_end`).  ``grid_ns``: the output interval [ns] its steps land on
+    """The stepping of :mod:`cosim.master.algorithms.adaptive` over an initialised, bound ``system``:
+    its state (time, input history, ranges, controller, statistics) and :class:`~cosim.master.stepper.Outcome`,
+    which its loop (:class:`cosim.master.adaptive_engine.CompiledAdaptive`) writes and words by
+    :meth:`_end`.  ``grid_ns``: the output interval [ns] its steps land on
     (from ``start_ns``; 0: none, only the stop time)."""
 
     order_p_linear, order_p_hold = 3.0, 2.0  # mismatch O(h^2) / O(h), weighted by h
@@ -125,7 +126,6 @@ class AdaptiveStepper(EventIteration, Outcome):
         self.stop_ns = stop_ns
         self.t_ns = start_ns
         self.start_ns, self.grid_ns = start_ns, int(grid_ns)
-        self.landed = True  # the last accepted step ended on an output point (or the stop time)
         self.bind_events(system)
         #: the last accepted step ended at an event (a StepResult for the run loop), else None
         self.pending_event: StepResult | None = None
@@ -148,142 +148,14 @@ class AdaptiveStepper(EventIteration, Outcome):
         self.h = min(max(options["h_init"], options["h_min"]), options["h_max"])
         self.err_prev = 1.0
         self.stats = AdaptiveStats()
-        self.calls = [0] * n
-        self.slave_ns = [0] * n
-        self.master_ns: int | None = None  # the Python loop's own share is the wall time minus the slaves'
 
     @property
     def t(self) -> float:
         return self.t_ns / 1e9
 
-    def _attempt(self, h: float) -> tuple[float, int | None, int]:
-        """One Gauss-Seidel step of ``h``; returns (scaled error, failing slave or None, status)."""
-        sysm, opt = self.system, self.opt
-        t = self.t
-        err, weight = 0.0, h / opt["h_ref"] if "h_ref" in opt else 1.0  # (steppers without the weight: 1)
-        guesses: list[tuple[int, np.ndarray, np.ndarray]] = []  # (slave, source indices, guessed values)
-        for i in self.order:
-            s = sysm.slaves[i]
-            buf, src = sysm.in_buf[i], sysm.in_src[i]
-            if len(src):
-                now = sysm.v[src]
-                fresh = self.fresh[i]
-                if self.interp[i]:
-                    slope = self.slopes[i]
-                    # extrapolated: slope from the previous point; interpolated: towards the new value
-                    with np.errstate(invalid="ignore", divide="ignore"):
-                        ext = (self.cur_src[i] - self.prev_src[i]) / self.h_prev if self.h_prev > 0 else \
-                            np.zeros_like(now)
-                    slope[:] = np.where(fresh, (now - self.cur_src[i]) / h, ext)
-                    buf[:] = np.where(fresh, self.cur_src[i], now)
-                    guess = now + ext * h
-                else:
-                    buf[:] = now
-                    guess = now.copy()
-                aff = sysm.in_affine[i]
-                if aff is not None:  # the connections' dst = factor * src + offset
-                    buf *= aff[0]
-                    buf += aff[1]
-                    if self.interp[i]:
-                        self.slopes[i] *= aff[0]
-                if (~fresh).any():
-                    guesses.append((i, src[~fresh], guess[~fresh]))
-            t0 = time.perf_counter_ns()
-            st = s.push()
-            if st not in FAILING and self.interp[i] and len(src):
-                st = s.push_slopes()
-            if st not in FAILING:
-                st = s.do_step(t, h)
-                self.calls[i] += 1
-                if st not in FAILING and st != Status.STOP_REQUESTED:
-                    st = s.pull()
-            self.slave_ns[i] += time.perf_counter_ns() - t0
-            if st in FAILING or st == Status.STOP_REQUESTED:
-                return math.inf, i, st
-        for i, src, guess in guesses:
-            actual = sysm.v[src]
-            span = np.maximum(self.hi[src], actual) - np.minimum(self.lo[src], actual)
-            tol = opt["atol"] + opt["rtol"] * span
-            with np.errstate(invalid="ignore", divide="ignore"):
-                e = np.abs(actual - guess) * weight / tol
-            if e.size:
-                m = float(np.max(e))
-                err = max(err, m if math.isfinite(m) else math.inf)
-        return err, None, Status.OK
-
-    def _commit(self, h: float, h_ns: int) -> None:
-        """Book an accepted step of ``h`` (``h_ns``): statistics, input history, ranges, time."""
-        sysm = self.system
-        self.stats.accepted += 1
-        self.stats.h_min_taken = min(self.stats.h_min_taken, h)
-        self.stats.h_max_taken = max(self.stats.h_max_taken, h)
-        self.stats.steps.append(h)
-        for i, src in enumerate(sysm.in_src):
-            if len(src):
-                self.prev_src[i][:] = self.cur_src[i]
-                self.cur_src[i][:] = sysm.v[src]
-        np.maximum(self.hi, sysm.v, out=self.hi)
-        np.minimum(self.lo, sysm.v, out=self.lo)
-        self.t_ns += h_ns
-        self.h_prev = h
-        self.landed = self._on_output(self.t_ns)
-        if self.event_slaves:
-            self._note_event()
-
     def _on_output(self, t_ns: int) -> bool:
         """Is ``t_ns`` an output point (on the grid, or the stop time; every point without a grid)?"""
         return not self.grid_ns or t_ns >= self.stop_ns or (t_ns - self.start_ns) % self.grid_ns == 0
-
-    def step(self) -> bool:
-        """Advance by one accepted step (retrying smaller after rejections); False when the run
-        ends early (:attr:`status`, :attr:`message`)."""
-        sysm, opt = self.system, self.opt
-        v_saved = sysm.v.copy()
-        for s in sysm.slaves:
-            s.save_state()
-        cut: int | None = None  # an event's time [ns] the step is retaken to
-        while True:
-            h_ns = self._plan_ns() if cut is None else cut - self.t_ns
-            h = h_ns / 1e9
-            err, bad, st = self._attempt(h)
-            p = self.order_p_linear if any(self.interp) and self.h_prev > 0 else self.order_p_hold
-            if bad is not None and st == Status.STOP_REQUESTED:
-                self._end(AdaptiveEnd.STOP_REQUESTED, bad, st)
-                return False
-            if bad is None and self.event_slaves:
-                early = self._early_return(h_ns)
-                if early is not None:  # an event inside the step: it ends there for every slave (no rejection)
-                    if early <= self.t_ns:
-                        return self._no_progress(early)
-                    cut = early
-                    self.stats.event_cuts += 1
-                    for s in sysm.slaves:
-                        s.restore_state()
-                    np.copyto(sysm.v, v_saved)
-                    continue
-            if bad is None and (err <= 1.0 or self.h_prev == 0):  # the first step has no estimate
-                break
-            cut = None  # retried smaller: the event, if still inside, is found again
-            self.stats.rejected += 1
-            if bad is not None:
-                self.stats.discards += 1
-            for s in sysm.slaves:
-                s.restore_state()
-            self.stats.rollbacks += 1
-            np.copyto(sysm.v, v_saved)
-            shrink = opt["fac_min"] if not math.isfinite(err) else max(opt["fac_min"], opt["safety"] * err ** (-1 / p))
-            if h <= opt["h_min"] * (1 + 1e-12):
-                self._end(AdaptiveEnd.STEP_FLOOR, -1 if bad is None else bad, st, err)
-                return False
-            self.h = max(opt["h_min"], h * min(shrink, 0.9))
-        self._commit(h, h_ns)
-        if cut is not None:  # a step cut short at an event says nothing new of the error: keep the proposal
-            return True
-        e = max(err, 1e-10)
-        fac = opt["safety"] * e ** (-self.k_i / p) * self.err_prev ** (self.k_p / p)
-        self.err_prev = e
-        self._propose(h, h_ns, fac)
-        return True
 
     # -- the output grid (docs/explanation/events.md, "Trace rows") ------------------------------------
     def target_ns(self) -> int:
@@ -294,28 +166,7 @@ class AdaptiveStepper(EventIteration, Outcome):
         k = (self.t_ns - self.start_ns) // self.grid_ns + 1
         return min(self.start_ns + k * self.grid_ns, self.stop_ns)
 
-    def _plan_ns(self) -> int:
-        """The step [ns] from the current time for the controller's proposal :attr:`h`: the rest of
-        the way to the next output point when the proposal reaches it, else that way split into the
-        fewest equal steps no longer than the proposal (no sliver of a step before a point; whole
-        nanoseconds, the last one landing).  Without a grid, the proposal clipped to the stop time."""
-        want, left = round(self.h * 1e9), self.target_ns() - self.t_ns
-        if want >= left:
-            return max(1, left)
-        if not self.grid_ns:
-            return max(1, want)
-        n = -(-left // max(1, want))
-        return max(1, -(-left // n))
-
     # -- events: a step boundary (docs/explanation/events.md) -------------------------------------------
-    def _early_return(self, h_ns: int) -> int | None:
-        """The earliest time [ns] an event-mode slave returned early inside the step of ``h_ns``
-        just taken, or None when every one reached its end."""
-        t1 = self.t_ns + h_ns
-        ends = [round(self.system.slaves[i].step_end()[0] * 1e9) for i in self.event_slaves]
-        early = min(ends, default=t1)
-        return early if early < t1 else None
-
     def _no_progress(self, at_ns: int) -> bool:
         """An event-mode slave returned early at the step's start: the run ends (False)."""
         who = min(self.event_slaves, key=lambda i: self.system.slaves[i].step_end()[0])
@@ -357,8 +208,8 @@ class AdaptiveStepper(EventIteration, Outcome):
         np.minimum(self.lo, sysm.v, out=self.lo)
 
     def _end(self, code: int, bad: int = -1, st: int = 0, value: float = math.nan, count: int = 0) -> None:
-        """End the run for end code ``code`` (:class:`cosim.master.entries.AdaptiveEnd`), in the
-        Python loop and the compiled one alike: ``bad`` the slave it concerns (-1: none), ``st`` its
+        """End the run for end code ``code`` (:class:`cosim.master.entries.AdaptiveEnd`), as its
+        loop returned it: ``bad`` the slave it concerns (-1: none), ``st`` its
         FMI status, ``value`` the scaled error at the step floor.  A failed FMU state get/set is a
         UserError."""
         s = self.system.slaves[bad] if bad >= 0 else None
@@ -375,53 +226,41 @@ class AdaptiveStepper(EventIteration, Outcome):
             what = "getting" if code == AdaptiveEnd.GET_STATE else "setting"
             raise UserError(f"{s.name}: {what} the FMU state failed ({Status(st).name}){said}")
 
-    def _propose(self, h: float, h_ns: int, fac: float) -> None:
-        """The next step after an accepted step ``h`` (``h_ns``): ``h`` times the controller's
-        factor ``fac``, bounded by ``fac_min``/``fac_max`` and ``h_min``/``h_max``; a step cut
-        short to land on the stop time does not shrink the proposal."""
-        opt = self.opt
-        fac = min(opt["fac_max"], max(opt["fac_min"], fac))
-        if h_ns < round(self.h * 1e9):  # clipped to land on the stop time: keep the proposal
-            fac = max(fac, 1.0)
-        self.h = min(opt["h_max"], max(opt["h_min"], h * fac))
-
-
 class VariableStepper(Stepper):
-    """A variable-step stepper (:class:`AdaptiveStepper` or a subclass, or its compiled loop
-    :class:`cosim.master.adaptive_engine.CompiledAdaptive` / ``CompiledEcco``) as the driver loop
+    """A variable-step stepping (:class:`AdaptiveStepper` or a subclass) on its loop ``loop`` (the
+    compiled one, :class:`cosim.master.adaptive_engine.CompiledAdaptive` / ``CompiledEcco``, or a
+    registered engine's with their interface: ``run(rec) -> rows``, ``t_ns``, ``stats``, ``calls``,
+    ``slave_ns``, ``master_ns`` (None: not measured), ``close()``) as the driver loop
     (:func:`cosim.master.stepper.drive`) steps it: one recorded row per accepted step, with the
-    guards' watched values after the recorded ones.  Its outcome is the Python stepper's, which
-    the compiled loop writes too.  Rows: at every output point the steps land on (every accepted
-    step without a grid, ``master.record: steps``), and two at each event."""
+    guards' watched values after the recorded ones.  Its outcome is the stepping's, which the loop
+    writes.  Rows: at every output point the steps land on (every accepted step without a grid,
+    ``master.record: steps``), and two at each event."""
 
-    def __init__(self, stepping: AdaptiveStepper, compiled=None):
-        super().__init__(stepping.system, "python" if compiled is None else "compiled", stepping)
-        self.py, self.compiled = stepping, compiled
-        self.stepper = stepping if compiled is None else compiled  # whose t_ns, stats, calls count
+    def __init__(self, stepping: AdaptiveStepper, loop, engine: str = "compiled"):
+        super().__init__(stepping.system, engine, stepping)
+        self.py, self.loop = stepping, loop
         self.start_ns, self.stop_ns = stepping.t_ns, stepping.stop_ns
         self.dropped = 0  # accepted steps after the row where a guard ended the run
         self._t_cut: float | None = None  # where a guard ended the run [s]
 
     @property
     def t_ns(self) -> int:
-        return self.stepper.t_ns
+        return self.loop.t_ns
 
     def done(self) -> bool:
-        return self.stepper.t_ns >= self.stop_ns or self.status != "running"
+        return self.loop.t_ns >= self.stop_ns or self.status != "running"
 
     def rows_needed(self, max_steps: int) -> int:
         return max_steps
 
     def block(self, rec: np.ndarray, max_steps: int) -> int:
-        if self.compiled is None:
-            return self.python_block(rec, max_steps)
         if not self.system.typed.texts:
-            rows = self.compiled.run(rec[:max_steps])
+            rows = self.loop.run(rec[:max_steps])
             self._take_event()
             return rows
         rows = 0  # recorded text variables: one accepted step per call, their changes noted at each row
         for _ in range(max_steps):
-            got = self.compiled.run(rec[rows:rows + 1])
+            got = self.loop.run(rec[rows:rows + 1])
             rows += got
             if got:
                 self.text_events += [(float(rec[rows - 1, 0]), c, x) for c, x in self.system.typed.text_changes()]
@@ -435,14 +274,6 @@ class VariableStepper(Stepper):
         if self.py.pending_event is not None:
             self.event, self.py.pending_event = self.py.pending_event, None
 
-    def step(self) -> bool:
-        ok = self.py.step()
-        self._take_event()
-        return ok
-
-    def recorded(self, ok: bool) -> bool:
-        return ok and (self.py.landed or self.event is not None)
-
     def next_output_ns(self, t_ns: int) -> int | None:
         return self.py.target_ns() if self.py.grid_ns else None
 
@@ -455,17 +286,17 @@ class VariableStepper(Stepper):
         self._t_cut = t
 
     def progress(self) -> tuple[int, int]:
-        return self.stepper.t_ns - self.start_ns, self.stop_ns - self.start_ns
+        return self.loop.t_ns - self.start_ns, self.stop_ns - self.start_ns
 
     def step_info(self, t0_ns: int):
         py = self.py
         slopes = py.slopes if any(py.interp) else None
         return StepInfo(t0_ns / 1e9, (self.t_ns - t0_ns) / 1e9, self.system.v, slopes, self.system,
-                        self.stepper.stats.accepted)
+                        self.loop.stats.accepted)
 
     def fill(self, stats) -> None:
         """The run statistics (:class:`cosim.master.lifecycle.VariableStats`)."""
-        st = self.stepper
+        st = self.loop
         acc = st.stats
         if self._t_cut is not None:  # a guard dropped the rows after t_cut: the steps after it are not the run's
             ends = self.start_ns + np.cumsum(np.round(np.asarray(acc.steps) * 1e9))
@@ -484,8 +315,7 @@ class VariableStepper(Stepper):
         stats.master_s = own / 1e9 if own is not None else max(0.0, stats.wall_s - sum(st.slave_ns) / 1e9)
 
     def close(self) -> None:
-        if self.compiled is not None:
-            self.compiled.close()
+        self.loop.close()
 
 
 def variable_stepper(system, *, cls, step_ns: int, n_steps: int, order: Sequence[int] | None = None,
@@ -495,15 +325,17 @@ def variable_stepper(system, *, cls, step_ns: int, n_steps: int, order: Sequence
     :class:`AdaptiveStepper`) over the initialised ``system``, to ``start_ns + n_steps * step_ns``
     (the scene's stop time; ``step_ns`` is only the fixed-step master's step), landing on the
     output grid of ``record_every * step_ns`` (``record="steps"``: no grid, every accepted step
-    recorded).  ``engine``: auto, compiled or python (:func:`cosim.master.engine.choose_engine`)."""
+    recorded).  ``engine``: see :func:`cosim.master.engine.choose_engine`."""
     stop_ns = start_ns + n_steps * step_ns
     opts = option_values(options, cls.options)
     seq = list(order) if order is not None else gauss_seidel_order(len(system.slaves), system.slave_edges())
     kind = cls.stepper or AdaptiveStepper
     name = choose_engine(system, engine, variable_loop(cls.name, kind))
-    stepping = kind(system, seq, opts, start_ns, stop_ns, step_ns * record_every if record == "grid" else 0)
+    other = REGISTERED.get(name)
+    stepping = (other.stepping(kind) if other is not None else kind)(
+        system, seq, opts, start_ns, stop_ns, step_ns * record_every if record == "grid" else 0)
     stepping.event_policy = cls.event_policy
-    return VariableStepper(stepping, compiled_stepper(stepping) if name == "compiled" else None)
+    return VariableStepper(stepping, other.loop(stepping) if other is not None else compiled_stepper(stepping), name)
 
 
 @register

@@ -41,9 +41,10 @@ residual summed over the run (signed: the energy the coupling created) and its a
 the energy carried [J], the net residual scaled like a step's (``|sum dE| / (atol + rtol * sum
 E)``) and the steps over tolerance.
 
-Engines: :class:`EccoStepper` is the reference (Python loop);
-:class:`cosim.master.adaptive_engine.CompiledEcco` takes the same steps in C, FMI 3.0 events
-included, bit for bit (``tests/test_native.py``, ``tests/test_general_kernel.py``,
+Engine: the steps are taken in C (``rpr_ecco_run`` in ``cosim/master/adaptive_engine.c``, bound
+by :class:`cosim.master.adaptive_engine.CompiledEcco`), FMI 3.0 events included; :class:`EccoStepper`
+holds the run's state and the endings' wording.  Its Python twin, the test oracle, is
+``tests/oracles/variable.py`` (bit for bit: ``tests/test_native.py``, ``tests/test_general_kernel.py``,
 ``tests/test_variable_event_kernel.py``).
 """
 from __future__ import annotations
@@ -165,20 +166,10 @@ class EccoStats(AdaptiveStats):
                 "bonds": {n: b.as_dict() for n, b in self.bonds.items()}}
 
 
-def bond_energy(h: float, y0: np.ndarray, y1: np.ndarray, u0: np.ndarray, u1: np.ndarray
-                ) -> tuple[np.ndarray, np.ndarray]:
-    """Energy residual and energy carried [J] of bonds over a step of ``h`` [s]: ``y0``, ``y1``
-    (rows: bonds, columns: sides a, b) the outputs at the step's start and end, ``u0``, ``u1`` the
-    inputs each side saw there (see the module docstring)."""
-    p0, p1 = y0 * u0, y1 * u1
-    residual = 0.5 * h * ((p0[:, 0] - p0[:, 1]) + (p1[:, 0] - p1[:, 1]))
-    carried = 0.5 * h * np.maximum(np.abs(p0[:, 0]) + np.abs(p1[:, 0]), np.abs(p0[:, 1]) + np.abs(p1[:, 1]))
-    return residual, carried
-
-
 class EccoStepper(AdaptiveStepper):
-    """The stepping of :mod:`cosim.ecco`: adaptive's Gauss-Seidel step with linear inputs, never
-    rolled back, its size chosen from the bonds' energy residual."""
+    """The stepping of ``ecco`` (module docstring): adaptive's Gauss-Seidel step with linear inputs,
+    never rolled back, its size chosen from the bonds' energy residual; its bonds, statistics and
+    endings (the steps: :class:`cosim.master.adaptive_engine.CompiledEcco`)."""
 
     needs_rollback = False
     #: the compiled loop of exactly this class (:class:`cosim.master.adaptive_engine.CompiledEcco`)
@@ -197,70 +188,12 @@ class EccoStepper(AdaptiveStepper):
         self._out_idx = np.array([b.out_idx for b in self.bonds])  # (bonds, 2)
         self._in_idx = np.array([b.in_idx for b in self.bonds])
         self.err_prev = options["safety"]
-        self._at_floor = 0  # steps in a row at h_min over tolerance
-        #: such steps after which the run ends as unstable (option floor_steps; 0: never)
+        #: steps in a row over tolerance at h_min after which the run ends as unstable (option floor_steps; 0: never)
         self.patience = int(options.get("floor_steps", 100))
-        self._ending: tuple[int, float, int] | None = None  # the run ends before the next step: (bond, eps, steps)
-
-    def _seen_slopes(self) -> np.ndarray:
-        """Slopes [unit/s] of the bonds' inputs over the step just taken (0 where held)."""
-        return np.array([[self.slopes[s][k] if self.interp[s] else 0.0 for s, k in zip(b.side, b.slot)]
-                         for b in self.bonds])
-
-    def step(self) -> bool:
-        """Advance by one step (never retried); False when the run ends early."""
-        sysm, opt = self.system, self.opt
-        if self._ending is not None:
-            self._end(EccoEnd.FLOOR_PATIENCE, self._ending[0], 0, self._ending[1], self._ending[2])
-            return False
-        h_ns = self._plan_ns()
-        y0 = sysm.v[self._out_idx]
-        if self.event_slaves:  # (the run uses event mode only where every slave can roll back)
-            v_saved = sysm.v.copy()
-            for s in sysm.slaves:
-                s.save_state()
-        cut: int | None = None
-        while True:
-            h = h_ns / 1e9
-            _, bad, st = self._attempt(h)
-            if bad is not None:
-                asked = st == Status.STOP_REQUESTED or (st == Status.DISCARD and sysm.slaves[bad].asked_to_stop())
-                self._end(EccoEnd.STOP_REQUESTED if asked else EccoEnd.SLAVE_FAILED, bad, st)
-                return False
-            early = self._early_return(h_ns) if self.event_slaves else None
-            if early is None:
-                break
-            if early <= self.t_ns:
-                return self._no_progress(early)
-            cut, h_ns = early, early - self.t_ns  # an event inside the step: retaken to end there
-            self.stats.event_cuts += 1
-            for s in sysm.slaves:
-                s.restore_state()
-            np.copyto(sysm.v, v_saved)
-        u0 = sysm.v[self._in_idx]
-        residual, carried = bond_energy(h, y0, sysm.v[self._out_idx], u0, u0 + self._seen_slopes() * h)
-        scaled = np.abs(residual) / (opt["atol"] + opt["rtol"] * carried)
-        if not np.all(np.isfinite(scaled)):
-            self._end(EccoEnd.NOT_FINITE, int(np.argmin(np.isfinite(scaled))))
-            return False
-        for b, r, e, x in zip(self.bonds, residual, carried, scaled):
-            self.stats.bonds[b.name].add(float(r), float(e), float(x))
-        self._commit(h, h_ns)
-        if cut is not None:  # a step cut short at an event: the controller keeps its proposal
-            return True
-        err = max(float(np.max(scaled)), 1e-10)
-        self._at_floor = self._at_floor + 1 if err > 1.0 and h <= opt["h_min"] * (1 + 1e-12) else 0
-        if self.patience and self._at_floor >= self.patience:  # this step is taken and recorded; the run ends before the next
-            k = int(np.argmax(scaled))
-            self._ending = (k, float(scaled[k]), self._at_floor)
-        fac = (opt["safety"] / err) ** opt["k_i"] * (self.err_prev / err) ** opt["k_p"]
-        self.err_prev = err
-        self._propose(h, h_ns, fac)
-        return True
 
     def _end(self, code: int, bad: int = -1, st: int = 0, value: float = math.nan, count: int = 0) -> None:
-        """End the run for end code ``code`` (:class:`cosim.master.entries.EccoEnd`), in the Python
-        loop and the compiled one alike: ``bad`` the slave (the bond for NOT_FINITE and
+        """End the run for end code ``code`` (:class:`cosim.master.entries.EccoEnd`), as its loop
+        returned it: ``bad`` the slave (the bond for NOT_FINITE and
         FLOOR_PATIENCE), ``st`` its FMI status; at the floor ``value`` the bond's eps, ``count`` the
         steps over tolerance there."""
         sysm, t = self.system, self.t

@@ -1,9 +1,10 @@
 """Fixed-step Gauss-Seidel: slaves step one after another in a fixed order, each reading the
-freshest outputs (conventions in :mod:`cosim.master`; compiled variant code 1 in :mod:`cosim.master.fastloop`)."""
+freshest outputs (conventions in :mod:`cosim.master`; its steps: algorithm code 1 of ``fastloop.c``,
+:mod:`cosim.master.fastloop`; its Python twin, the test oracle, in ``tests/oracles/fixed.py``)."""
 from __future__ import annotations
 
-from ...slaves.slave import FAILING, Status
-from ..algorithm import Algorithm, _ns, register
+from ...slaves.slave import FAILING
+from ..algorithm import Algorithm, register
 
 
 @register
@@ -22,26 +23,8 @@ class GaussSeidel(Algorithm):
                     "event iteration across the coupling, two trace rows at each event, then the rest of the step; "
                     "other components handle their events inside their steps")
 
-    def _step_impl(self, t, h):
-        gather, push, do, pull, acc, calls = (self._gather, self._push, self._do, self._pull, self.slave_ns,
-                                               self.calls)
-        tp = _ns()
-        for i in self.order:
-            gather[i]()
-            st = push[i]()
-            if st not in FAILING:
-                st = do[i](t, h)
-                calls[i] += 1
-                if st not in FAILING and st != Status.STOP_REQUESTED:
-                    st = pull[i]()
-            tn = _ns()
-            acc[i] += tn - tp
-            tp = tn
-            if st in FAILING or st == Status.STOP_REQUESTED:
-                return i, st
-        return None
-
     def _finish_step(self, i, t, h):
+        """After slave ``i`` asked to stop (both engines): its outputs, then the slaves after it in order."""
         st = self._io(i, self._pull[i])
         if st in FAILING:
             return i, st

@@ -1,9 +1,10 @@
 """Fixed-step Jacobi: every slave takes its inputs from outputs read at ``t_k``, then all step
-(conventions in :mod:`cosim.master`; compiled variant code 0 in :mod:`cosim.master.fastloop`)."""
+(conventions in :mod:`cosim.master`; its steps: algorithm code 0 of ``fastloop.c``,
+:mod:`cosim.master.fastloop`; its Python twin, the test oracle, in ``tests/oracles/fixed.py``)."""
 from __future__ import annotations
 
-from ...slaves.slave import FAILING, Status
-from ..algorithm import Algorithm, _ns, register
+from ...slaves.slave import FAILING
+from ..algorithm import Algorithm, register
 
 
 @register
@@ -23,37 +24,8 @@ class Jacobi(Algorithm):
     #: needs no stepping order: a cycle of direct feedthrough runs with the one-step coupling delay
     delays_algebraic_loops = True
 
-    def _step_impl(self, t, h):
-        gather, push, do, pull, acc, calls = (self._gather, self._push, self._do, self._pull, self.slave_ns,
-                                               self.calls)
-        n = len(do)
-        tp = _ns()
-        for i in range(n):
-            gather[i]()
-            st = push[i]()
-            tn = _ns()
-            acc[i] += tn - tp
-            tp = tn
-            if st in FAILING:
-                return i, st
-        for i in range(n):
-            st = do[i](t, h)
-            calls[i] += 1
-            tn = _ns()
-            acc[i] += tn - tp
-            tp = tn
-            if st in FAILING or st == Status.STOP_REQUESTED:
-                return i, st
-        for i in range(n):
-            st = pull[i]()
-            tn = _ns()
-            acc[i] += tn - tp
-            tp = tn
-            if st in FAILING:
-                return i, st
-        return self._exchange() if self.exchange else None
-
     def _finish_step(self, i, t, h):
+        """After slave ``i`` asked to stop (both engines): the slaves after it step, every output is read."""
         for j in range(i + 1, len(self._do)):
             st = self._advance(j, t, h)
             if st in FAILING:

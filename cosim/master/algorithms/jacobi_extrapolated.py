@@ -8,12 +8,11 @@ second step and ``u_k`` at the first.  A held input equal to the step mean of th
 O(h^3) leaves a local error of O(h^3) in the states, so the coupling converges at order 2 where
 plain Jacobi (``inputs: hold``, the input's value at ``t_k``) converges at order 1, with no input
 derivatives: it also serves FMUs that cannot interpolate their inputs (``inputs: linear`` needs
-``canInterpolateInputs``)."""
+``canInterpolateInputs``).
+
+Its steps: algorithm code 3 of ``fastloop.c`` (the gathered inputs' last two values kept per slave,
+``past``); its Python twin, the test oracle, in ``tests/oracles/fixed.py``."""
 from __future__ import annotations
-
-from collections.abc import Callable
-
-import numpy as np
 
 from ...errors import UserError
 from ..algorithm import register
@@ -21,22 +20,6 @@ from .jacobi import Jacobi
 
 #: weights of u_k, u_k-1, u_k-2 in the held input, by how many past values there are (1, 2, 3)
 WEIGHTS = ((1.0,), (1.5, -0.5), (23 / 12, -16 / 12, 5 / 12))
-
-
-def extrapolator(buf: np.ndarray) -> Callable[[], None]:
-    """A function that replaces the freshly gathered inputs in ``buf`` (the values at ``t_k``) by
-    their extrapolated step mean and remembers the gathered ones: call it once per macro step."""
-    past: list[np.ndarray] = []  # the gathered values at t_k-1, t_k-2
-
-    def extrapolate() -> None:
-        now = buf.copy()
-        w = WEIGHTS[len(past)]
-        np.multiply(now, w[0], out=buf)
-        for wj, u in zip(w[1:], past):
-            np.add(buf, wj * u, out=buf)
-        past.insert(0, now)
-        del past[2:]
-    return extrapolate
 
 
 @register
@@ -58,14 +41,3 @@ class JacobiExtrapolated(Jacobi):
             raise UserError(f"master algorithm {self.name} extrapolates the inputs itself: use inputs: hold, "
                             f"not {kw['inputs']!r}")
         super().__init__(system, step_ns, **kw)
-        exchange = set(self.exchange)
-        for i in range(len(system.slaves)):
-            if i not in exchange and len(system.in_buf[i]):
-                self._gather[i] = self._extrapolating(self._gather[i], extrapolator(system.in_buf[i]))
-
-    @staticmethod
-    def _extrapolating(gather: Callable[[], None], extrapolate: Callable[[], None]) -> Callable[[], None]:
-        def gather_extrapolated() -> None:
-            gather()
-            extrapolate()
-        return gather_extrapolated
