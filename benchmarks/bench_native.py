@@ -28,6 +28,7 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "tests"))
 
 from cosim.analysis.trace_diff import compare  # noqa: E402
 from cosim.master import simulate  # noqa: E402
@@ -37,6 +38,9 @@ from cosim.run.execute import build_components, couple, run  # noqa: E402
 from cosim.run.reference import reference  # noqa: E402
 from cosim.scenario import load  # noqa: E402
 from cosim.slaves.fmu_slave import FmuSlave  # noqa: E402
+import oracles  # noqa: E402 - the Python twins of the kernels (tests/oracles), as engine 'oracle'
+
+oracles.register()
 
 SCENARIOS = ROOT / "scenarios"
 POSE = ["mech.platform.x", "mech.platform.y", "mech.platform.phi"]
@@ -83,7 +87,7 @@ def passes(stop_mass: float, stop_loop: float) -> None:
             gs_wall, gs_steps = _loop_pass_wall(path, sets)
         per_gs = gs_wall / gs_steps
         print(f"  {label}: compiled gauss_seidel {gs_steps} steps {gs_wall:.4f} s = {per_gs * 1e6:.2f} us/step")
-        for engine in ("python", "compiled"):
+        for engine in ("oracle", "compiled"):
             res = run(path, {**sets, "master.algorithm": "iterative"}, engine=engine)
             st = res.stats
             per = st["wall_s"] / st["iterations_total"]
@@ -110,7 +114,7 @@ def ecco(gs_steps: list[float]) -> None:
         points.append((err, res.stats["wall_s"]))
         print(f"  gauss_seidel {h:8.2e} s compiled: {res.stats['steps_done']:6d} steps {res.stats['wall_s']:7.3f} s "
               f"position error {err:9.2e} m")
-    for engine in ("python", "compiled"):
+    for engine in ("oracle", "compiled"):
         res = run(scene, {"master.algorithm": "ecco", "components.mech.rollback": False}, engine=engine)
         err, wall = _pos_error(res, ref), res.stats["wall_s"]
         peer = _interpolate(points, err)

@@ -29,6 +29,7 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "tests"))
 
 import numpy as np  # noqa: E402
 
@@ -36,6 +37,9 @@ from cosim.analysis.trace_diff import compare  # noqa: E402
 from cosim.run.reference import reference  # noqa: E402
 from cosim.run.execute import run  # noqa: E402
 from cosim.trace.traces import Trace  # noqa: E402
+import oracles  # noqa: E402 - the Python twins of the kernels (tests/oracles), as engine 'oracle'
+
+oracles.register()
 
 SCENE = ROOT / "scenarios" / "pid_step.yaml"
 FINE_UNTIL = 0.02  # [s] the reference every microsecond up to here
@@ -139,7 +143,7 @@ def main() -> None:
             res = fn()
             walls[key].append(res.stats["wall_s"])
             stats[key] = res.stats
-    slow = adaptive(rtol, args.stop, engine="python").stats
+    slow = adaptive(rtol, args.stop, engine="oracle").stats
     fa, ad = min(walls["fixed"]), min(walls["adaptive"])
     attempts = stats["adaptive"]["accepted_steps"] + stats["adaptive"]["rejected_steps"]
     n_fixed = stats["fixed"]["steps_done"]

@@ -92,6 +92,8 @@ class CompiledLoop:
     transforms: bool = False
     #: it ends steps at FMI 3.0 event-mode components' events (the event iteration runs in Python between calls)
     events: bool = False
+    #: its slave structs carry FMU states: a slave that rolls back only in Python is called back
+    states: bool = False
     #: the algorithm's own Python loop is product code and runs what this loop cannot (iterative's
     #: event-mode scenes; an algorithm registered without a kernel, :attr:`Algorithm.native_code` None)
     python: bool = False
@@ -117,7 +119,7 @@ def _why_not(system: CoupledSystem, loop: CompiledLoop) -> str:
         return "copies connections as they are (this scene has connections with a linear transformation)"
     if system.typed.active and not loop.typed:
         return "carries scalar Float64 variables only; this scene connects or records other types or arrays"
-    entries = [(s, None if called_back(system, i) else s.native()) for i, s in enumerate(system.slaves)]
+    entries = [(s, None if called_back(system, i, loop.states) else s.native()) for i, s in enumerate(system.slaves)]
     missing = [s.name for s, ne in entries if ne is None and not loop.callbacks]
     if missing:
         return f"needs FMU slaves with C entry points ({', '.join(missing)} has none)"
@@ -310,6 +312,7 @@ def variable_loop(name: str, stepper_cls: type) -> CompiledLoop:
     """The compiled loop of a variable-step stepper class (:mod:`cosim.master.adaptive_engine`)."""
     library = adaptive_engine.library if adaptive_engine.has_compiled(stepper_cls) else None
     return CompiledLoop(name, library, stepper_cls.needs_rollback, callbacks=True, typed=True, transforms=True,
+                        states=stepper_cls.needs_rollback,
                         events=adaptive_engine.ends_steps_at_events(stepper_cls))
 
 

@@ -58,10 +58,16 @@ def compile_loop(main: str, stem: str, entries: Sequence[Entry] = (), flags: tup
     return lib
 
 
-def called_back(system, i: int) -> bool:
+def called_back(system, i: int, states: bool = False) -> bool:
     """Whether slave ``i`` of ``system`` is stepped through callbacks (:mod:`cosim.master.callbacks`):
-    it has no C entry points, or typed ports its push/pull convert."""
-    return bool(system.typed.reads[i] or system.typed.inputs[i]) or system.slaves[i].native() is None
+    it has no C entry points, or typed ports its push/pull convert, or (``states``: the loop saves
+    and restores FMU states) it rolls back only in Python (a model-exchange slave through its
+    continuous states), so that its trampolines call its own ``save_state``/``restore_state``."""
+    s = system.slaves[i]
+    if system.typed.reads[i] or system.typed.inputs[i]:
+        return True
+    ne = s.native()
+    return ne is None or (states and s.can_rollback and not (ne.get_state and ne.set_state))
 
 
 class SlaveArray:
@@ -80,7 +86,7 @@ class SlaveArray:
         self._keep: list = []
         self.states = (ctypes.c_void_p * n)()  # the FMU states (states=True), freed by free_states()
         for i, s in enumerate(system.slaves):
-            ne = None if called_back(system, i) else s.native()
+            ne = None if called_back(system, i, states and callbacks) else s.native()
             if ne is None:
                 if not callbacks:
                     raise UserError(f"{s.name} has no C entry points, and this loop calls none back")
