@@ -153,36 +153,35 @@ class EventSteps:
         return self._exchange() if self.exchange else None
 
 
+def _parts(alg) -> tuple:
+    """An algorithm's per-slave calls and counters, as its step's loops use them."""
+    return alg._gather, alg._push, alg._do, alg._pull, alg.slave_ns, alg.calls
+
 
 class Jacobi(EventSteps, jacobi.Jacobi):
     """Jacobi's Python steps (algorithm code 0 of ``fastloop.c``)."""
 
     def _step_impl(self, t, h):
-        gather, push, do, pull, acc, calls = (self._gather, self._push, self._do, self._pull, self.slave_ns,
-                                               self.calls)
-        n = len(do)
-        tp = _ns()
+        gather, push, do, pull, acc, calls = _parts(self)
+        n, last = len(do), [_ns()]
+
+        def timed(i: int, st: int) -> int:  # the wall time since the last call, booked to slave i
+            tn = _ns()
+            acc[i] += tn - last[0]
+            last[0] = tn
+            return st
         for i in range(n):
             gather[i]()
-            st = push[i]()
-            tn = _ns()
-            acc[i] += tn - tp
-            tp = tn
+            st = timed(i, push[i]())
             if st in FAILING:
                 return i, st
         for i in range(n):
-            st = do[i](t, h)
+            st = timed(i, do[i](t, h))
             calls[i] += 1
-            tn = _ns()
-            acc[i] += tn - tp
-            tp = tn
             if st in FAILING or st == Status.STOP_REQUESTED:
                 return i, st
         for i in range(n):
-            st = pull[i]()
-            tn = _ns()
-            acc[i] += tn - tp
-            tp = tn
+            st = timed(i, pull[i]())
             if st in FAILING:
                 return i, st
         return self._exchange() if self.exchange else None
@@ -192,8 +191,7 @@ class GaussSeidel(EventSteps, gauss_seidel.GaussSeidel):
     """Gauss-Seidel's Python steps (algorithm code 1 of ``fastloop.c``)."""
 
     def _step_impl(self, t, h):
-        gather, push, do, pull, acc, calls = (self._gather, self._push, self._do, self._pull, self.slave_ns,
-                                               self.calls)
+        gather, push, do, pull, acc, calls = _parts(self)
         tp = _ns()
         for i in self.order:
             gather[i]()
