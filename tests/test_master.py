@@ -490,6 +490,22 @@ def test_master_engine_python_is_gone():
         simulate(pair(0.0), "jacobi", step_ns=50_000_000, n_steps=4, engine="fast")
 
 
+def test_master_engine_python_is_gone_from_the_cli_and_the_scene(tmp_path, capsys):
+    from cosim.cli import main
+    from cosim.master.engine import PYTHON_GONE
+    from cosim.scenario import SceneError, load
+
+    scene = Path(__file__).resolve().parents[1] / "scenarios" / "two_mass.yaml"
+    assert main(["run", str(scene), "--engine", "python", "--out", str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err
+    assert err == f"rpr-cosim run: error: {PYTHON_GONE}\n"  # one line, no traceback
+    text = tmp_path / "py.yaml"
+    text.write_text(scene.read_text().replace("master: {", "master: {engine: python, ", 1))
+    with pytest.raises(SceneError) as exc:
+        load(text)
+    assert "py.yaml:" in str(exc.value) and PYTHON_GONE in str(exc.value) and "Traceback" not in str(exc.value)
+
+
 # --- structure ---------------------------------------------------------------------------------
 @pytest.mark.parametrize("n,edges,order", [
     (3, [(0, 1), (1, 2)], [0, 1, 2]),

@@ -9,8 +9,11 @@ Package map (the public names are re-exported here: ``from cosim.master import X
                 :class:`Algorithm` base class, :data:`ALGORITHMS`, :func:`register`, :func:`algorithm`
 ``algorithms/`` one module per algorithm (``jacobi``, ``gauss_seidel``, ``adaptive``, ``ecco``,
                 ``iterative``), listed in :data:`cosim.master.algorithms.MODULES`
-``engine``      who runs the steps: a compiled loop or the Python loop, chosen in one place for every
-                algorithm (:func:`choose_engine`); :func:`fixed_stepper`
+``engine``      who runs the steps: the algorithm's compiled loop (a run needs a C compiler), or the
+                Python loop of an algorithm whose loop is still product code (iterative's event-mode
+                scenes, one registered without a kernel), chosen in one place for every algorithm
+                (:func:`choose_engine`); :func:`fixed_stepper`; the one seam a test oracle plugs into
+                (:class:`~cosim.master.engine.Engine`; the Python twins live in ``tests/oracles``)
 ``entries``     the native kernels' records, end codes and entry points, declared once (the generated
                 C header and the ctypes bindings)
 ``native``      compiling a kernel (C files beside their modules on ``native.h``) and the slave structs;
@@ -26,8 +29,10 @@ Package map (the public names are re-exported here: ``from cosim.master import X
 
 Structure (after libcosim and scipy.integrate): a :class:`CoupledSystem` lays the slaves'
 connected and recorded variables out in one float64 vector and precomputes every value
-reference and index; an :class:`Algorithm` owns the public :meth:`Algorithm.step` and its
-status, subclasses implement only :meth:`Algorithm._step_impl`; algorithms are found by name in
+reference and index; an :class:`Algorithm` owns its status, the event iteration and the
+completion after a stop request, and names its compiled kernel (:attr:`Algorithm.native_code`); an
+algorithm without a kernel implements :meth:`Algorithm._step_impl`, its own Python loop, which
+:meth:`Algorithm.step` runs; algorithms are found by name in
 :data:`ALGORITHMS`; every algorithm, fixed or variable step, runs as a *stepper* through the one
 driver loop (:mod:`cosim.master.stepper`: what comes before a step, the step, then the observers).
 Recording is the observers' business (:mod:`cosim.trace`), never the algorithm's.

@@ -2,7 +2,8 @@
 :data:`MODULES`, whose ``@register`` classes thereby enter :data:`cosim.master.ALGORITHMS`.
 
 A new algorithm is a module here holding a class decorated with :func:`cosim.master.register`: a
-fixed-step :class:`cosim.master.Algorithm` subclass (its ``_step_impl``), or a variable-step
+fixed-step :class:`cosim.master.Algorithm` subclass (its kernel's ``native_code``, or without a
+kernel its own ``_step_impl``; its Python twin as a test oracle in ``tests/oracles``), or a variable-step
 :class:`cosim.master.MasterAlgorithm` subclass naming its stepper (``stepper_for``, see
 :mod:`cosim.master.stepper`), plus its name in :data:`MODULES` (a test checks that every module
 of this package is listed)."""
