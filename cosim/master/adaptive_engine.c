@@ -72,7 +72,7 @@ static double attempt(rpr_slave *S, int32_t n, const int32_t *order, double *v, 
     return err;
 }
 
-/* AdaptiveStepper._propose, the one step-size rule of adaptive and ecco: the next step after an
+/* the one step-size rule of adaptive and ecco (its Python twin: _propose in tests/oracles/variable.py): the next step after an
    accepted step h (h_ns [ns]; h_tried the step it was to be) is h times the controller's factor
    fac, bounded by fac_min/fac_max and h_min/h_max; a step cut short to land on the stop time does
    not shrink the proposal */
@@ -83,7 +83,7 @@ static inline double propose(double h, int64_t h_ns, double h_tried, double fac,
     return py_min(h_max, py_max(h_min, h * fac));
 }
 
-/* AdaptiveStepper._plan_ns: the step [ns] from t_ns for the proposal h: the rest of the way to
+/* plan_ns (the oracle's _plan_ns): the step [ns] from t_ns for the proposal h: the rest of the way to
    the next output point (on the grid from start_ns; the stop time at most) when the proposal
    reaches it, else that way split into the fewest equal steps no longer than the proposal (ceiling
    divisions, the last step landing); without a grid, the proposal clipped to the stop time */
@@ -122,7 +122,7 @@ static void shift_history(rpr_slave *S, int32_t n, const double *v) {
 /* ---- FMI 3.0 event mode (AdaptiveStepper's events, docs/explanation/events.md) ---------------------- */
 
 /* After a step to t1_ns: the earliest time [ns] an event-mode slave returned early inside it
-   (AdaptiveStepper._early_return), or t1_ns when every one reached its end */
+   (the oracle's _early_return), or t1_ns when every one reached its end */
 static int64_t early_return(const rpr_slave *S, int32_t n, int64_t t1_ns) {
     int64_t early = t1_ns;
     int32_t i;
@@ -261,7 +261,7 @@ int64_t rpr_adapt_run(rpr_slave *S, int32_t n, const int32_t *order, double *v, 
     return rows;
 }
 
-/* EccoStepper.step: steps (never retried) sized from the bonds' energy residual, up to max_steps
+/* ecco's steps (the oracle's EccoStepper.step): steps (never retried) sized from the bonds' energy residual, up to max_steps
    steps, the stop time, the budget or an event for Python (c->status != 0); rows and h_rec as
    rpr_adapt_run's. */
 static int64_t rpr_ecco_loop(rpr_slave *S, int32_t n, const int32_t *order, double *v, int64_t nv, double *v_saved,

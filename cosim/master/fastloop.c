@@ -1,6 +1,7 @@
-/* The compiled inner loop of the fixed-step master, Jacobi and Gauss-Seidel (cosim/master/fastloop.py).
-   The Python loop it is checked against bit for bit: Jacobi._step_impl, GaussSeidel._step_impl and, with
-   FMI 3.0 event mode, Algorithm._event_step (tests/test_general_kernel.py, tests/test_event_kernel.py). */
+/* The compiled inner loop of the fixed-step master, Jacobi, Gauss-Seidel and Jacobi with extrapolated
+   inputs (cosim/master/fastloop.py): their one implementation.  Its Python twin, the test oracle it is
+   checked against bit for bit, is tests/oracles/fixed.py: Jacobi._step_impl, GaussSeidel._step_impl and,
+   with FMI 3.0 event mode, EventSteps._event_step (tests/test_general_kernel.py, tests/test_event_kernel.py). */
 #include "native.h"
 
 /* the slave's inputs from their sources in v, each through its connection's linear
@@ -100,7 +101,7 @@ static inline int step_ev(rpr_slave *s, double *v, int64_t t_ns, double t, doubl
 
 static inline int can_save(const rpr_slave *s) { return s->get_state && s->set_state && s->state; }
 
-/* Gauss-Seidel's event step (Algorithm._events_in_order): in order, each slave from the freshest
+/* Gauss-Seidel's event step (the oracle's _events_in_order): in order, each slave from the freshest
    outputs; once an event-mode slave returned early, the slaves after it step only to its time */
 static int events_in_order(rpr_slave *S, int32_t n, const int32_t *order, double *v, int64_t t_ns, double t,
                            double h, int32_t timing, int32_t *fail_slave, int32_t *fail_status) {
@@ -125,7 +126,7 @@ static int events_in_order(rpr_slave *S, int32_t n, const int32_t *order, double
     return FX_RUNNING;
 }
 
-/* Jacobi's event step (Algorithm._events_first): every input from the outputs at t, the event-mode
+/* Jacobi's event step (the oracle's _events_first): every input from the outputs at t, the event-mode
    slaves step first, the others only to the earliest time one of them reached */
 static int events_first(rpr_slave *S, int32_t n, const int32_t *order, double *v, int64_t t_ns, double t,
                         double h, int32_t timing, int32_t *fail_slave, int32_t *fail_status) {
