@@ -423,3 +423,20 @@ def test_fmu_check_flags_a_derivative_that_names_no_state(me_fmus, tmp_path, cap
     assert cli.main(["fmu", "check", str(dst)]) >= 1
     out = capsys.readouterr()
     assert "derivative 'der(x0)' names no state (no derivative= attribute)" in out.out
+
+
+@pytest.mark.parametrize("v", ["2", "3"])
+def test_the_adaptive_kernel_rolls_back_a_slave_without_fmu_state_as_the_oracle_does(me_fmus, v):
+    """A model-exchange FMU without FMU state rolls back through its continuous states, in Python:
+    the adaptive kernel calls it back (its trampolines around its own save/restore) and takes the
+    oracle's steps to the bit, rejections included."""
+    runs = {}
+    for engine in ("oracle", "compiled"):
+        res = run(_scene(me_fmus[f"{v}/VanDerPol_nostate"], 0.01, 5.0, ["x0", "x1"],
+                         {"algorithm": "adaptive", "step": 0.01, "engine": engine, "estimate": False}))
+        assert res.status == "ok" and res.stats["engine"] == engine, res.reason
+        runs[engine] = res
+    py, cc = runs["oracle"], runs["compiled"]
+    assert np.array_equal(py.trace.time, cc.trace.time) and np.array_equal(py.trace.data, cc.trace.data)
+    assert py.stats["accepted_steps"] == cc.stats["accepted_steps"] > 10
+    assert py.stats["rejected_steps"] == cc.stats["rejected_steps"]

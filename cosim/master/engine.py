@@ -172,7 +172,8 @@ def choose_engine(system: CoupledSystem, engine: str, loop: CompiledLoop) -> str
     if why and engine == "auto" and loop.python:
         return "python"
     if why:
-        raise UserError(f"master.engine: {engine} for {loop.algorithm} {why}")
+        hint = "; master.engine: auto runs it in the algorithm's Python loop" if loop.python else ""
+        raise UserError(f"master.engine: {engine} for {loop.algorithm} {why}{hint}")
     loop.library()
     return "compiled"
 

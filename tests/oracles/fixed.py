@@ -14,6 +14,7 @@ import numpy as np
 from cosim.master.algorithm import MAX_EVENTS_PER_STEP, _ns
 from cosim.master.algorithms import gauss_seidel, jacobi, jacobi_extrapolated
 from cosim.master.algorithms.jacobi_extrapolated import WEIGHTS
+from cosim.master.engine import ITERATIVE
 from cosim.master.stepper import StepResult
 from cosim.slaves.slave import FAILING, Status
 
@@ -252,5 +253,10 @@ ORACLES = {jacobi.Jacobi: Jacobi, gauss_seidel.GaussSeidel: GaussSeidel,
 
 
 def oracle_algorithm(cls: type) -> type:
-    """The class whose Python steps run ``cls`` (``cls`` itself when its Python loop is its own)."""
-    return ORACLES.get(cls, cls)
+    """The class whose Python steps run ``cls``: its oracle, or ``cls`` itself when its Python loop
+    is product code (iterative; an algorithm without a kernel)."""
+    if cls in ORACLES:
+        return ORACLES[cls]
+    if cls.native_code not in (None, ITERATIVE):
+        raise LookupError(f"no test oracle for {cls.name} (kernel code {cls.native_code}): add one to ORACLES")
+    return cls
