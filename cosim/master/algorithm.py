@@ -353,10 +353,10 @@ class Algorithm(MasterAlgorithm, EventIteration, Outcome):
 
     def step(self) -> bool:
         """One macro step ``t_k -> t_k+1`` of an algorithm's own Python loop (:meth:`_step_impl`,
-        :meth:`_event_step`; :func:`cosim.master.stepper.python_runner` runs it); False (with :attr:`status`, :attr:`message`) when the
-        run ends: a failure, a stop request (then the step is completed first, see
-        :meth:`complete_after_stop`), or a status the step itself set (e.g. ``"unstable"``: an
-        iteration that did not converge)."""
+        :meth:`_event_step`; :func:`cosim.master.stepper.python_runner` runs it); False (with
+        :attr:`status`, :attr:`message`) when the run ends: a failure, a stop request (then the
+        step is completed first, see :meth:`complete_after_stop`), or a status the step itself set
+        (e.g. ``"unstable"``: an iteration that did not converge)."""
         if self.status != "running":
             raise RuntimeError(f"{self.name}: cannot step a run that is {self.status}")
         if self.event_slaves:
