@@ -16,9 +16,13 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 
 from cosim.master import CoupledSystem, Link, simulate  # noqa: E402
 from cosim.slaves.linear import LinearSlave  # noqa: E402
+import oracles  # noqa: E402 - the Python twins of the kernels (tests/oracles), as engine 'oracle'
+
+oracles.register()
 
 
 def ring(n: int) -> CoupledSystem:
@@ -46,7 +50,7 @@ def main() -> None:
     print(f"ring of {a.slaves} Python LinearSlaves, {a.steps} steps, best of {a.repeat}; "
           f"wall time per macro step per slave [us] (initialisation included)")
     for alg in ("jacobi", "gauss_seidel"):
-        py = per_step_us(alg, "python", a.slaves, a.steps, a.repeat)
+        py = per_step_us(alg, "oracle", a.slaves, a.steps, a.repeat)
         cc = per_step_us(alg, "compiled", a.slaves, a.steps, a.repeat)
         print(f"  {alg:13s} Python loop {py:8.2f}   compiled loop, callback slaves {cc:8.2f}   ratio {py / cc:5.2f}")
 

@@ -11,7 +11,7 @@ as the master's own share.  Every master runs the same FMUs, the same connection
 number of steps (fixed-step Jacobi exchange semantics):
 
 - rpr-cosim, compiled loop (Jacobi and Gauss-Seidel; with and without per-slave timing)
-- rpr-cosim, Python reference loop
+- rpr-cosim, the Python oracle loop (tests/oracles, the kernel's bit-for-bit twin)
 - fmpy's Python loop: ``FMU2Slave.setReal / doStep / getReal`` per FMU per step
 - ecospy (C++ master, PyPI ``ecospy``; needs Debian's ``libtbb12``), ``step(n)``
 
@@ -38,6 +38,11 @@ import fmus  # noqa: E402
 from cosim.master import CoupledSystem, Link, simulate  # noqa: E402
 from cosim.slaves.fmu_slave import FmuSlave  # noqa: E402
 from models.block import Block, Param, Var  # noqa: E402
+
+sys.path.insert(0, str(ROOT / "tests"))
+import oracles  # noqa: E402 - the Python twins of the kernels (tests/oracles), as engine 'oracle'
+
+oracles.register()
 
 
 def lag_block() -> Block:
@@ -170,7 +175,7 @@ def main() -> None:
         "rpr-cosim compiled, Jacobi, no timing": lambda: bench_ours(path, n, steps, "jacobi", "compiled", False),
         "rpr-cosim compiled, Gauss-Seidel, linear": lambda: bench_ours(path, n, steps, "gauss_seidel", "compiled",
                                                                        inputs="linear"),
-        "rpr-cosim Python loop, Jacobi": lambda: bench_ours(path, n, max(1000, steps // 10), "jacobi", "python"),
+        "rpr-cosim Python oracle loop (tests/oracles), Jacobi": lambda: bench_ours(path, n, max(1000, steps // 10), "jacobi", "oracle"),
         "fmpy FMU2Slave loop": lambda: bench_fmpy(path, n, max(1000, steps // 10)),
         "ecospy": lambda: bench_ecospy(path, n, steps),
     }

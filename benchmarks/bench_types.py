@@ -24,6 +24,9 @@ from conftest import REFERENCE_FMUS_SRC, _source_key, build_reference_fmus  # no
 from cosim.run.execute import run  # noqa: E402
 from cosim.scenario import from_dict  # noqa: E402
 from fmus.cache import cache_root  # noqa: E402
+import oracles  # noqa: E402 - the Python twins of the kernels (tests/oracles), as engine 'oracle'
+
+oracles.register()
 
 
 def ours(fmu: Path, steps: int, outputs: list[str], engine: str) -> float:
@@ -56,8 +59,8 @@ def main() -> None:
     floats = [v.name for v in md.modelVariables if v.causality == "output" and v.type == "Float64"]
     rows = {
         f"Float64 outputs ({len(floats)}), compiled loop": lambda: ours(fmu, args.steps, [f"f.{n}" for n in floats], "compiled"),
-        f"Float64 outputs ({len(floats)}), Python loop": lambda: ours(fmu, args.steps, [f"f.{n}" for n in floats], "python"),
-        f"all numeric outputs ({len(numeric)}), Python loop": lambda: ours(fmu, args.steps, [f"f.{n}" for n in numeric], "python"),
+        f"Float64 outputs ({len(floats)}), Python oracle loop": lambda: ours(fmu, args.steps, [f"f.{n}" for n in floats], "oracle"),
+        f"all numeric outputs ({len(numeric)}), Python oracle loop": lambda: ours(fmu, args.steps, [f"f.{n}" for n in numeric], "oracle"),
         f"FMPy simulate_fmu, same {len(numeric)} outputs": lambda: fmpy_peer(fmu, args.steps, numeric),
     }
     best = {k: min(f() for _ in range(args.repeat)) for k, f in rows.items()}
