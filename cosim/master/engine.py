@@ -52,7 +52,7 @@ def fixed_loop(cls: type[Algorithm]) -> CompiledLoop:
         return CompiledLoop(cls.name, None)
     if cls.native_code == ITERATIVE:
         return CompiledLoop(cls.name, iterative_engine.library, cls.needs_rollback, callbacks=True, typed=True,
-                            transforms=True)
+                            transforms=True, events=True)
     return CompiledLoop(cls.name, fastloop.library, callbacks=True, typed=True, transforms=True, events=True)
 
 
@@ -229,8 +229,10 @@ def fixed_stepper(system: CoupledSystem, *, cls: type[Algorithm], step_ns: int, 
     alg = cls(system, step_ns, **kw, **({"options": options} if cls.options else {}))
     name = choose_engine(system, engine, fixed_loop(cls))
     runner = None
-    if name == "compiled":
+    if name == "compiled":  # (iterative's kernel takes its start-time iteration at once)
         runner = (iterative_engine.CompiledIterative(alg) if cls.native_code == ITERATIVE else _Compiled(alg)).run
+    elif cls.native_code == ITERATIVE:
+        alg.start()  # the Python loop's start-time iteration
     return FixedStepper(alg, runner, n_steps, record_every)
 
 

@@ -133,8 +133,16 @@ class Iterative(Algorithm):
         self.rollbacks = self.jacobians = self.directional = self.broyden = self.fd_steps = self.init_passes = 0
         self.J: np.ndarray | None = None
         self.z_prev: np.ndarray | None = None
-        self._solve(self.t, 0.0, step=False)
-        self._accept()
+
+    def start(self) -> None:
+        """The Python loop's start-time iteration (without stepping: the loop's values made
+        consistent before the first row); the compiled engine's is ``rpr_iter_start``
+        (:class:`cosim.master.iterative_engine.CompiledIterative`).  A failing call ends the run."""
+        bad = self._solve(self.t, 0.0, step=False)
+        if bad is not None:
+            self._fail(bad[0], bad[1], self.t)
+        elif self.status == "running":
+            self._accept()
 
     def _accept(self) -> None:
         """The inputs the slaves ended the step (or the start) with are their inputs at the new point."""
@@ -339,7 +347,7 @@ class Iterative(Algorithm):
                 err = float(np.max(e)) if m else 0.0
                 size = float(np.max(np.abs(r))) if m else 0.0
                 if not math.isfinite(err) or (r_first is not None and size > GROWTH_LIMIT * r_first):
-                    return self._unstable(it, step, t, e, "the coupling iteration diverged", err)
+                    return self._unstable(it, step, t, e, err, diverged=True)
                 if err <= 1.0:
                     self._record_passes(it, step)
                     if step:
@@ -347,8 +355,7 @@ class Iterative(Algorithm):
                     self.z = z.copy()
                     return None
                 if it == max_iter:
-                    return self._unstable(it, step, t, e, f"the coupling iteration did not converge within "
-                                                          f"max_iter = {max_iter} passes", err)
+                    return self._unstable(it, step, t, e, err, diverged=False)
                 r_first = size if r_first is None else r_first
                 if newton:
                     if self.J is None or (err_old is not None and err > 0.5 * err_old and not fresh_j):
@@ -378,8 +385,13 @@ class Iterative(Algorithm):
         else:
             self.init_passes += it
 
-    def _unstable(self, it: int, step: bool, t: float, e: np.ndarray, what: str, err: float) -> None:
+    def _unstable(self, it: int, step: bool, t: float, e: np.ndarray, err: float, diverged: bool) -> None:
+        """End the run as unstable: the iteration from ``t`` (a step, or without ``step`` the start
+        point) diverged or did not converge in ``it`` passes, scaled residuals ``e``, the largest
+        ``err`` (both engines)."""
         self._record_passes(it, step)
+        what = ("the coupling iteration diverged" if diverged else
+                f"the coupling iteration did not converge within max_iter = {int(self.opt['max_iter'])} passes")
         worst = self.cut_names[int(np.nanargmax(np.where(np.isfinite(e), e, np.inf)))] if len(e) else "?"
         where = f"in the step from t = {t:.9g} s (step {self.k})" if step else f"at the start time t = {t:.9g} s"
         self.status = "unstable"
@@ -405,11 +417,9 @@ class Iterative(Algorithm):
         early = sorted((r, i) for i, (r, _) in ends.items() if r < t_end - tol)
         if bad is None and self.status == "running" and early:
             t_e, who = early[0]
-            self._events_in_step = getattr(self, "_events_in_step", 0) + 1
-            if self._events_in_step > MAX_EVENTS_PER_STEP or t_e <= t:
-                self.status, self.failed_slave = "failed", who
-                self.message = (f"{slaves[who].name}: more than {MAX_EVENTS_PER_STEP} events in the step from t = "
-                                f"{self.time_at(self.k):.9g} s (chattering); the last at t = {t_e:.9g} s")
+            self._events_in_step += 1
+            if self._events_in_step > MAX_EVENTS_PER_STEP or t_e <= t:  # (an event at the step's start: no progress)
+                self.chattering(who, t_e)
                 return False
             for s in slaves:
                 s.restore_state()
