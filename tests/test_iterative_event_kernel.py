@@ -112,6 +112,19 @@ def test_a_misbehaving_event_mode_fmu_ends_the_kernels_run_as_the_python_loops(l
     assert cc.status == status and says in cc.reason, cc.reason
 
 
+@pytest.mark.parametrize("first", ["a", "b"])
+def test_of_two_events_at_the_same_time_the_first_components_is_taken(lag_fmus, first):
+    """Two identical lags with fault 2, uncoupled: their events fall at the same instants from 0.5 s;
+    the step ends at the first one's in the slaves' order (Python's sorted (time, slave)), which the
+    chattering message names."""
+    lag = {"fmu": str(lag_fmus["3cs"]), "params": {"fault": 2}, "start": {"x": 1.0}}
+    names = [first, "b" if first == "a" else "a"]
+    scene = {"name": "twins", "components": {n: dict(lag) for n in names}, "stop_time": 1.0, "outputs": ["a.x", "b.x"]}
+    py, cc = both(scene, algorithm="iterative", step=0.05)
+    assert_same(py, cc)
+    assert cc.status == "failed" and cc.reason.startswith(f"{first}: more than 1000 events"), cc.reason
+
+
 def test_a_callback_fmu_rolls_back_through_its_own_state_as_in_the_python_loop(reference_fmus):
     """Feedthrough with its Int32 output recorded is a callback slave (typed ports), stepped before
     the ball: restored through the trampolines around its own save_state/restore_state."""
@@ -235,14 +248,17 @@ def _loop(f: float, o: float) -> CoupledSystem:
                          [(0, "u[1]"), (1, "u[1]"), (0, "y[1]"), (1, "y[1]")])
 
 
+@pytest.mark.parametrize("inputs", ["hold", "linear"])
 @pytest.mark.parametrize("options", [{}, {"method": "fixed_point", "omega": 0.9},
                                      {"jacobian": "finite_difference"}])
-def test_the_kernels_start_iteration_equals_the_python_one_and_solves_the_loop(options):
+def test_the_kernels_start_iteration_equals_the_python_one_and_solves_the_loop(options, inputs):
     """The start-time iteration is the kernel's (``rpr_iter_start``, nothing stepped): the first row
-    bit for bit the Python loop's, as many passes and Jacobians; and, independently, the loop solved
-    by hand at t = 0: u_a = (c x_b + d_b (f x_a + o)) / (1 - d_a d_b f), u_b = f (x_a + d_a u_a) + o."""
+    bit for bit the Python loop's, as many passes and Jacobians, and the steps after it (linear
+    inputs start their line from the inputs it left); and, independently, the loop solved by hand
+    at t = 0: u_a = (c x_b + d_b (f x_a + o)) / (1 - d_a d_b f), u_b = f (x_a + d_a u_a) + o."""
     f, o = -1.5, 0.25
-    (py, s1), (cc, s2) = (_simulate(_loop(f, o), e, n=5, options=options) for e in ("python", "compiled"))
+    (py, s1), (cc, s2) = (_simulate(_loop(f, o), e, n=5, options=options, inputs=inputs)
+                          for e in ("python", "compiled"))
     assert s2.engine == "compiled" and s2.status == "ok", s2.reason
     assert np.array_equal(py.data[0], cc.data[0]) and np.array_equal(py.data, cc.data)
     assert {k: s1.extra[k] for k in ITER_KEYS} == {k: s2.extra[k] for k in ITER_KEYS}
