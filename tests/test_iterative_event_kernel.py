@@ -185,12 +185,14 @@ def test_a_python_slave_is_rolled_back_to_the_event_as_in_the_python_loop(refere
 
 
 @pytest.mark.parametrize("stop", [False, True])
-@pytest.mark.parametrize("at", [46, 47])
-def test_a_failing_or_stopping_python_slave_in_the_cut_step_ends_the_run_as_the_python_loop(reference_fmus, at,
-                                                                                             stop):
+@pytest.mark.parametrize("at,start,end", [(46, 0.45, 0.46), (47, 0.45, 0.453), (48, 0.453, 0.46)])
+def test_a_failing_or_stopping_python_slave_around_an_event_ends_the_run_as_the_python_loop(reference_fmus, at, start,
+                                                                                          end, stop):
     """The lag's 46th doStep is its first over the step the bounce cuts (from 0.45 s), its 47th the
-    one retaken to the bounce: an Error there fails the run (Algorithm._fail's message), a stop
-    request completes the step over the macro step (as Iterative._finish_step does)."""
+    one retaken to the bounce at 0.453 s, its 48th the rest of the step after it: an Error there
+    fails the run (Algorithm._fail's message, the step's start), a stop request completes the step
+    being iterated and ends the run where that step ends (the retaken one at the event, not
+    completed: Iterative.stopped_by), the row there."""
     out = []
     for engine in ("python", "compiled"):
         cls = type("F", (Failing,), {"at": at, "stop": stop})
@@ -198,9 +200,14 @@ def test_a_failing_or_stopping_python_slave_in_the_cut_step_ends_the_run_as_the_
     (py, s1), (cc, s2) = out
     assert s2.engine == "compiled" and (s1.status, s1.reason) == (s2.status, s2.reason)
     assert np.array_equal(py.time, cc.time) and np.array_equal(py.data, cc.data)
-    assert s2.status == ("stopped" if stop else "failed")
-    if not stop:
-        assert "lag returned ERROR in the step from t = 0.45 s (step 45)" in s2.reason, s2.reason
+    assert s1.steps_done == s2.steps_done == (46 if stop and end == 0.46 else 45)
+    if stop:
+        assert s2.status == "stopped" and s2.reason.startswith(f"stopped by lag at t = {end:g} s: it asked to "
+                                                               f"terminate the simulation in the step from t = "
+                                                               f"{start:g} s"), s2.reason
+        assert cc.time[-1] == pytest.approx(end, abs=1e-12) and cc.time[-2] < cc.time[-1]
+    else:
+        assert s2.status == "failed" and f"lag returned ERROR in the step from t = {start:g} s (step 45)" in s2.reason
 
 
 # --- independent checks -----------------------------------------------------------------------------------

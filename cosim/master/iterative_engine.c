@@ -322,17 +322,20 @@ static void keep_point(rpr_slave *S, int32_t n, it_ctl *c, double *v, int64_t nv
    point k, or the event ev->t_event that cut step k; *t_out) to the next grid point: every slave's
    state saved, the coupling iterated over the step; where an event-mode slave returned early, at
    the earliest such time t_e, every slave restored, the iteration's state put back and the
-   coupling iterated again over [t, t_e].  Returns solve_step's code; ev->status FX_RUNNING (the
-   grid point), FX_GRID_EVENT (and slave ev->who asks for event handling there), FX_EVENT (cut at
-   ev->t_e by ev->who) or FX_CHATTERING (more than ev->max_events events in the step, or no
-   progress: t_e at the step's start). */
+   coupling iterated again over [t, t_e] (*h_out: the step iterated last).  Returns solve_step's
+   code; ev->status FX_RUNNING (the grid point), FX_GRID_EVENT (and slave ev->who asks for event
+   handling there), FX_EVENT (cut at ev->t_e by ev->who; with a failing code, the retake failed)
+   or FX_CHATTERING (more than ev->max_events events in the step, or no progress: t_e at the
+   step's start). */
 static int event_step(rpr_slave *S, int32_t n, const int32_t *order, it_ctl *c, fx_ctl *ev, double *v, int64_t nv,
-                      int64_t k, int64_t start_ns, int64_t step_ns, double *t_out, int32_t *bad, int32_t *bad_st) {
+                      int64_t k, int64_t start_ns, int64_t step_ns, double *t_out, double *h_out, int32_t *bad,
+                      int32_t *bad_st) {
     double t_end = (double)(start_ns + (k + 1) * step_ns) / 1e9;
     double t = ev->has_t_event ? ev->t_event : (double)(start_ns + k * step_ns) / 1e9, tol, t_e = 0.0;
     int32_t i, who = -1;
     int res, st;
     *t_out = t;
+    *h_out = t_end - t;
     ev->status = FX_RUNNING;
     keep_point(S, n, c, v, nv, 1);
     for (i = 0; i < n; ++i) {
@@ -365,12 +368,13 @@ static int event_step(rpr_slave *S, int32_t n, const int32_t *order, it_ctl *c, 
         if (failing(st)) { *bad = i; *bad_st = st; return IT_RESTORE; }
     }
     keep_point(S, n, c, v, nv, 0);
+    *h_out = t_e - t;
+    ev->status = FX_EVENT;  /* (a stop request in the retake: the run ends at the event) */
     res = solve_step(S, n, order, c, v, nv, t, t_e - t, bad, bad_st);
     if (res != IT_OK) return res;
     accept(S, n);
     ev->has_t_event = 1;
     ev->t_event = t_e;
-    ev->status = FX_EVENT;
     return IT_OK;
 }
 
@@ -406,22 +410,21 @@ int64_t rpr_iter_run(rpr_slave *S, int32_t n, const int32_t *order, double *v, i
     c->step = 1;
     if (ev) ev->status = FX_RUNNING;
     for (k = k0; k < k0 + nsteps; ++k) {
-        double t = (double)(start_ns + k * step_ns) / 1e9;
+        double t = (double)(start_ns + k * step_ns) / 1e9, h_s = h;
         int res;
-        if (ev) res = event_step(S, n, order, c, ev, v, nv, k, start_ns, step_ns, &t, &bad, &bad_st);
+        if (ev) res = event_step(S, n, order, c, ev, v, nv, k, start_ns, step_ns, &t, &h_s, &bad, &bad_st);
         else if ((res = solve_step(S, n, order, c, v, nv, t, h, &bad, &bad_st)) == IT_OK) accept(S, n);
         if (res == IT_FAILED && bad_st == ST_STOP_REQUESTED) {
-            /* Algorithm.complete_after_stop: the stopping slave's outputs, the rest of the pass (over the
-               macro step h, as Iterative._finish_step is called) */
+            /* Algorithm.complete_after_stop: the stopping slave's outputs, the rest of the pass over the
+               step being iterated (Iterative._finish_step); the step is counted by Iterative.stopped_by */
             int st = get_outputs(&S[bad], v);
             c->bad_slave = bad; c->bad_status = bad_st;
             if (failing(st)) { c->status = IT_FAILED; c->bad_status = st; break; }
             for (pos = 0; order[pos] != bad; ++pos) {}
-            i = pass(S, n, order, pos + 1, c, v, t, h, c->zi, &bad_st);
+            i = pass(S, n, order, pos + 1, c, v, t, h_s, c->zi, &bad_st);
             if (i >= 0 && bad_st != ST_STOP_REQUESTED) { c->status = c->status ? c->status : IT_FAILED; c->bad_slave = i;
                                                c->bad_status = bad_st; break; }
             c->status = IT_STOPPED;
-            ++done;
             break;
         }
         if (res != IT_OK) { c->status = res; c->bad_slave = bad; c->bad_status = bad_st; break; }

@@ -202,15 +202,15 @@ class CompiledIterative:
             alg.t_event = ev.t_event if ev.has_t_event else None
             alg._events_in_step, end = ev.events_in_step, FixedEnd(ev.status)
         rows = int(self.n_rows.value)
-        if code == IterativeEnd.STOPPED:
-            alg.k += done - 1
+        alg.k += done
+        if code == IterativeEnd.STOPPED:  # the step completed, or (EVENT) the retake to the event
+            alg.stop_at = ev.t_e if end == FixedEnd.EVENT else None
             alg.stopped_by(ctl.bad_slave, alg.t)
             return rows + self._row(rec, rows)
-        alg.k += done
-        if end in (FixedEnd.EVENT, FixedEnd.GRID_EVENT):  # its row, the left limit
+        if code == IterativeEnd.OK and end in (FixedEnd.EVENT, FixedEnd.GRID_EVENT):  # its row, the left limit
             alg.pending_event = StepResult(alg.t_ns, True, int(ev.who), "event")
             return rows + self._row(rec, rows)
-        if end == FixedEnd.CHATTERING:
+        if code == IterativeEnd.OK and end == FixedEnd.CHATTERING:
             alg.chattering(int(ev.who), ev.t_e)
         self._ended(code, alg.t, step=True)
         return rows

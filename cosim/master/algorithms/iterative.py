@@ -133,6 +133,8 @@ class Iterative(Algorithm):
         self.rollbacks = self.jacobians = self.directional = self.broyden = self.fd_steps = self.init_passes = 0
         self.J: np.ndarray | None = None
         self.z_prev: np.ndarray | None = None
+        #: the event [s] a cut step is being retaken to (a stop request there ends the run at it), or None
+        self.stop_at: float | None = None
 
     def start(self) -> None:
         """The Python loop's start-time iteration (without stepping: the loop's values made
@@ -329,7 +331,7 @@ class Iterative(Algorithm):
         z = self.z.copy()
         if step and self.inputs == "linear" and self.z_prev is not None:
             z = 2.0 * self.z - self.z_prev
-        self._z_now = z
+        self._z_now, self._h_now = z, h
         newton = opt["method"] == "newton"
         r_old = z_old = None
         r_first = err_old = None
@@ -407,6 +409,7 @@ class Iterative(Algorithm):
         (the event ends the step for the whole coupling), then the event iteration."""
         slaves, sysm = self.system.slaves, self.system
         t, t_end = self.t, self.time_at(self.k + 1)
+        self.stop_at = None
         kept = (sysm.v.copy(), self.z.copy(), None if self.z_prev is None else self.z_prev.copy(),
                 None if self.J is None else self.J.copy(), [x.copy() for x in self.start_in])
         for s in slaves:
@@ -425,6 +428,7 @@ class Iterative(Algorithm):
                 s.restore_state()
             v, self.z, self.z_prev, self.J, self.start_in = kept
             np.copyto(sysm.v, v)
+            self.stop_at = t_e
             bad = self._step_impl(t, t_e - t)
             if bad is None and self.status == "running":
                 self.t_event = t_e
@@ -461,11 +465,21 @@ class Iterative(Algorithm):
         return bad
 
     def _finish_step(self, i: int, t: float, h: float) -> tuple[int, int] | None:
-        """A slave asked to stop during a pass: the rest of that pass completes the step."""
+        """A slave asked to stop during a pass: the rest of that pass completes the step (over the
+        step being iterated: the macro step ``h``, the rest of it after an event, or the part up to
+        the event a cut step is retaken to)."""
         st = self._io(i, self.system.slaves[i].pull)
         if st in FAILING:
             return i, st
-        return self._pass(t, h, self._z_now, True, start=self.order.index(i) + 1)
+        return self._pass(t, self._h_now, self._z_now, True, start=self.order.index(i) + 1)
+
+    def stopped_by(self, i: int, t: float) -> None:
+        """:meth:`Algorithm.stopped_by` at the point the stopped step reached: the next grid point,
+        or the event a cut step was retaken to (:attr:`stop_at`; the step is not completed)."""
+        at, self.t_event = self.stop_at, self.stop_at
+        super().stopped_by(i, t)
+        if at is not None:
+            self.k -= 1
 
     def statistics(self) -> dict:
         """Passes per step, rollbacks, Jacobians: added to the run statistics."""
