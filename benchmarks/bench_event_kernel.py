@@ -1,7 +1,8 @@
-"""FMI 3.0 event mode in the fixed-step kernel (cosim/master/fastloop.c, ``event_step``) against the
-Python loop: the Reference FMUs' BouncingBall driving Feedthrough (both in event mode: each bounce
-cuts the step for both, the one that stepped past it restored through its FMU state), 1 ms step,
-under Jacobi and Gauss-Seidel.  Wall time of the stepping loop (``wall_s`` of the run statistics),
+"""FMI 3.0 event mode in the fixed-step kernels (cosim/master/fastloop.c and iterative_engine.c,
+``event_step``) against the Python loop: the Reference FMUs' BouncingBall driving Feedthrough (both
+in event mode: each bounce cuts the step for both, the one that stepped past it restored through
+its FMU state; under iterative every one, and the coupling iterated again to the bounce), 1 ms
+step, under Jacobi, Gauss-Seidel and iterative.  Wall time of the stepping loop (``wall_s`` of the run statistics),
 best of ``--repeat``, and its share per macro step; the two engines' traces are checked equal.
 
     RPR_REFERENCE_FMUS_SRC=... python3 benchmarks/bench_event_kernel.py [--stop 5] [--repeat 3]
@@ -35,7 +36,7 @@ def main() -> None:
              "stop_time": args.stop, "outputs": ["ball.h", "ball.v", "f.Float64_continuous_output"]}
     steps = round(args.stop / 1e-3)
     print(f"BouncingBall -> Feedthrough, 1 ms step, {steps} steps; best of {args.repeat}, stepping loop wall time")
-    for algorithm in ("jacobi", "gauss_seidel"):
+    for algorithm in ("jacobi", "gauss_seidel", "iterative"):
         best, traces, events = {}, {}, 0
         for engine in ("python", "compiled"):
             for _ in range(args.repeat):

@@ -45,11 +45,11 @@ loop's values consistent before the first row is recorded.
 Statistics: passes (iterations) per step (mean and max), rollbacks (state restores), Jacobians
 built (from directional derivatives or finite differences) and Broyden updates.
 
-Engines: this class is the reference (Python loop); without FMI 3.0 event-mode components,
-:mod:`cosim.master.iterative_engine` takes the same steps in C (Python slaves and typed ports
-through callbacks, their :meth:`output_jacobian` behind the directional derivative), bit for bit
-(``tests/test_native.py``, ``tests/test_general_kernel.py``; the start-time iteration stays
-here).  Newton's small linear algebra is :mod:`cosim.master.dense` in both: a fixed order of
+Engines: this class is the reference (Python loop); :mod:`cosim.master.iterative_engine` takes
+the same steps in C (Python slaves and typed ports through callbacks, their
+:meth:`output_jacobian` behind the directional derivative; FMI 3.0 event-mode components; the
+start-time iteration), bit for bit (``tests/test_native.py``, ``tests/test_general_kernel.py``,
+``tests/test_iterative_event_kernel.py``).  Newton's small linear algebra is :mod:`cosim.master.dense` in both: a fixed order of
 operations that C repeats exactly.
 """
 from __future__ import annotations
