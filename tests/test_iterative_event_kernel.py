@@ -185,14 +185,16 @@ def test_a_python_slave_is_rolled_back_to_the_event_as_in_the_python_loop(refere
 
 
 @pytest.mark.parametrize("stop", [False, True])
-@pytest.mark.parametrize("at,start,end", [(46, 0.45, 0.46), (47, 0.45, 0.453), (48, 0.453, 0.46)])
+@pytest.mark.parametrize("at,start,end", [(46, 0.45, None), (47, 0.45, 0.453), (50, 0.454, 0.46)])
 def test_a_failing_or_stopping_python_slave_around_an_event_ends_the_run_as_the_python_loop(reference_fmus, at, start,
                                                                                           end, stop):
     """The lag's 46th doStep is its first over the step the bounce cuts (from 0.45 s), its 47th the
-    one retaken to the bounce at 0.453 s, its 48th the rest of the step after it: an Error there
-    fails the run (Algorithm._fail's message, the step's start), a stop request completes the step
-    being iterated and ends the run where that step ends (the retaken one at the event, not
-    completed: Iterative.stopped_by), the row there."""
+    one retaken to the bounce at 0.453 s, its 50th the rest of the step after the ball's second
+    early return at 0.454 s (its 48th and 49th: the step from the bounce, cut there).  An Error there
+    fails the run (Algorithm._fail's message, the step's start).  A stop request completes the
+    step being iterated and ends the run where that step ends (the retaken one at the event, not
+    completed: Iterative.stopped_by), the row there; in the 46th it goes with the step the bounce
+    cuts (the retake, where this lag does not ask again, decides: the run goes on)."""
     out = []
     for engine in ("python", "compiled"):
         cls = type("F", (Failing,), {"at": at, "stop": stop})
@@ -200,8 +202,11 @@ def test_a_failing_or_stopping_python_slave_around_an_event_ends_the_run_as_the_
     (py, s1), (cc, s2) = out
     assert s2.engine == "compiled" and (s1.status, s1.reason) == (s2.status, s2.reason)
     assert np.array_equal(py.time, cc.time) and np.array_equal(py.data, cc.data)
-    assert s1.steps_done == s2.steps_done == (46 if stop and end == 0.46 else 45)
-    if stop:
+    assert {k: s1.extra[k] for k in ITER_KEYS} == {k: s2.extra[k] for k in ITER_KEYS}
+    if stop and end is None:
+        assert s2.status == "ok" and s2.steps_done == 60 and s2.extra["events"]["handled"] == 2, s2.reason
+    elif stop:
+        assert s2.steps_done == (46 if end == 0.46 else 45)
         assert s2.status == "stopped" and s2.reason.startswith(f"stopped by lag at t = {end:g} s: it asked to "
                                                                f"terminate the simulation in the step from t = "
                                                                f"{start:g} s"), s2.reason

@@ -322,7 +322,8 @@ static void keep_point(rpr_slave *S, int32_t n, it_ctl *c, double *v, int64_t nv
    point k, or the event ev->t_event that cut step k; *t_out) to the next grid point: every slave's
    state saved, the coupling iterated over the step; where an event-mode slave returned early, at
    the earliest such time t_e, every slave restored, the iteration's state put back and the
-   coupling iterated again over [t, t_e] (*h_out: the step iterated last).  Returns solve_step's
+   coupling iterated again over [t, t_e] (*h_out: the step iterated last; a stop request in the
+   first iteration goes with the step when an event cuts it).  Returns solve_step's
    code; ev->status FX_RUNNING (the grid point), FX_GRID_EVENT (and slave ev->who asks for event
    handling there), FX_EVENT (cut at ev->t_e by ev->who; with a failing code, the retake failed)
    or FX_CHATTERING (more than ev->max_events events in the step, or no progress: t_e at the
@@ -343,15 +344,17 @@ static int event_step(rpr_slave *S, int32_t n, const int32_t *order, it_ctl *c, 
         if (failing(st)) { *bad = i; *bad_st = st; return IT_SAVE; }
     }
     res = solve_step(S, n, order, c, v, nv, t, t_end - t, bad, bad_st);
-    if (res != IT_OK) return res;
-    accept(S, n);
+    /* a stop request goes with a step an event cuts (the retake decides) */
+    if (res != IT_OK && !(res == IT_FAILED && *bad_st == ST_STOP_REQUESTED)) return res;
+    if (res == IT_OK) accept(S, n);
     tol = 1e-12 * (1.0 + fabs(t_end));
-    for (i = 0; i < n; ++i) {  /* the earliest early return (the first slave of equal ones) */
+    for (i = 0; i < n; ++i) {  /* the earliest early return (the first slave of equal ones) of those stepped */
         double r;
-        if (!S[i].event_mode) continue;
+        if (!S[i].event_mode || !S[i].has_last) continue;
         r = step_end(&S[i]);
         if (r < t_end - tol && (who < 0 || r < t_e)) { who = i; t_e = r; }
     }
+    if (who < 0 && res != IT_OK) return res;
     if (who < 0) {  /* the grid point: an event-mode slave may ask for event handling there */
         ev->has_t_event = 0;
         ev->events_in_step = 0;

@@ -406,7 +406,9 @@ class Iterative(Algorithm):
         """:meth:`Algorithm.step` with event-mode slaves: the iterated step from the current point
         (a grid point or an event) to the next grid point; where an event-mode slave returned early
         at ``t_e``, every slave is rolled back and the coupling iterated again over ``[t, t_e]``
-        (the event ends the step for the whole coupling), then the event iteration."""
+        (the event ends the step for the whole coupling), then the event iteration.  A stop
+        request in a step an event cuts (an event-mode slave stepped in it returned early) goes
+        with the step: the retake to the event decides."""
         slaves, sysm = self.system.slaves, self.system
         t, t_end = self.t, self.time_at(self.k + 1)
         self.stop_at = None
@@ -415,10 +417,11 @@ class Iterative(Algorithm):
         for s in slaves:
             s.save_state()
         bad = self._step_impl(t, t_end - t)
-        ends = {i: slaves[i].step_end() for i in self.event_slaves} if bad is None else {}
+        ends = {i: slaves[i].step_end() for i in self.event_slaves if self.last_in[i] is not None} \
+            if bad is None or self.stop_requested(*bad) else {}  # (the ones stepped in it)
         tol = 1e-12 * (1.0 + abs(t_end))
         early = sorted((r, i) for i, (r, _) in ends.items() if r < t_end - tol)
-        if bad is None and self.status == "running" and early:
+        if self.status == "running" and early:
             t_e, who = early[0]
             self._events_in_step += 1
             if self._events_in_step > MAX_EVENTS_PER_STEP or t_e <= t:  # (an event at the step's start: no progress)
