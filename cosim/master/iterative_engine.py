@@ -109,7 +109,7 @@ class CompiledIterative:
         for name in ("g", "r", "z_old", "r_old", "dz", "w", "z_kept", "z_prev_kept"):
             setattr(ctl, name, buf(np.zeros(max(m, 1))))
         ctl.A, ctl.J_kept = buf(np.zeros(max(m * m, m, 1))), buf(np.zeros(max(m * m, 1)))
-        ctl.v_kept, ctl.start_kept = buf(np.zeros(nv)), buf(np.zeros(max(sum(map(len, sysm.in_buf)), 1)))
+        ctl.v_kept, ctl.start_kept = buf(np.zeros(nv)), buf(np.zeros(max(sum(c.n_in for c in arr.arr), 1)))
         ctl.dv, ctl.dv_has = buf(np.zeros(nv * max(m, 1))), buf(np.zeros(nv, dtype=np.int8), np.int8)
         ctl.du, ctl.L = buf(np.zeros(max_in * max(m, 1))), buf(np.zeros(max_feed * max_in))
         ctl.cols = buf(np.zeros(max_in, dtype=np.int32), np.int32)
