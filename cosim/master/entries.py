@@ -414,4 +414,5 @@ def bind(lib: ctypes.CDLL, entries: Sequence[Entry]) -> None:
 
 __all__ = ["ADAPTIVE_CONTROL", "ADAPT_RUN", "AdaptiveEnd", "CRUMB", "CallbackStatus", "ECCO_CONTROL", "ECCO_RUN",
            "ENTRIES", "ENUMS", "EccoEnd", "Entry", "FIXED_CONTROL", "FixedEnd", "ITERATIVE_CONTROL", "ITER_RUN",
-           "ITER_START", "IterativeEnd", "RECORDS", "RUN", "Record", "SLAVE", "bind", "ctypes_struct", "header", "struct"]
+           "ITER_START", "IterativeEnd", "RECORDS", "RUN", "Record", "SLAVE", "bind", "ctypes_struct", "header",
+           "struct"]

@@ -49,8 +49,8 @@ Engines: this class is the reference (Python loop); :mod:`cosim.master.iterative
 the same steps in C (Python slaves and typed ports through callbacks, their
 :meth:`output_jacobian` behind the directional derivative; FMI 3.0 event-mode components; the
 start-time iteration), bit for bit (``tests/test_native.py``, ``tests/test_general_kernel.py``,
-``tests/test_iterative_event_kernel.py``).  Newton's small linear algebra is :mod:`cosim.master.dense` in both: a fixed order of
-operations that C repeats exactly.
+``tests/test_iterative_event_kernel.py``).  Newton's small linear algebra is
+:mod:`cosim.master.dense` in both: a fixed order of operations that C repeats exactly.
 """
 from __future__ import annotations
 
