@@ -289,3 +289,17 @@ def test_a_start_that_does_not_converge_ends_both_engines_alike():
     assert s1.status == s2.status == "unstable" and s1.reason == s2.reason, (s1.reason, s2.reason)
     assert "at the start time t = 0 s" in s2.reason and s2.engine == "compiled"
     assert np.array_equal(py.data, cc.data) and s1.extra["start_iterations"] == s2.extra["start_iterations"] == 1
+
+
+def test_engine_auto_runs_event_mode_scenes_in_the_kernel(reference_fmus):
+    """``master.engine`` auto (the default) and compiled choose the kernel for an event-mode scene,
+    its components in event mode (the sidecar lists them)."""
+    from cosim.run.execute import run
+    from cosim.scenario import from_dict
+
+    scene = _ball_feeding(reference_fmus, 0.5)
+    for engine in ("auto", "compiled"):
+        res = run(from_dict({**scene, "master": {"algorithm": "iterative", "step": 0.01, "estimate": False,
+                                                 "engine": engine}}))
+        assert res.status == "ok" and res.stats["engine"] == "compiled", res.reason
+        assert res.stats["events"]["event_mode"] == ["ball", "f"] and res.stats["events"]["handled"] == 2
