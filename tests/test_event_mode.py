@@ -48,11 +48,10 @@ def test_event_mode_equals_fmpy_event_for_event(reference_fmus, model, step, out
 def test_an_event_reaches_the_coupled_fmu_at_its_time(reference_fmus, algorithm):
     """BouncingBall's velocity drives Feedthrough: at each bounce the right-limit row has the new
     velocity in both (the event iteration exchanged it); Feedthrough, stepped past the bounce, was
-    rolled back to it.  Without event mode (iterative's compiled loop leaves events inside doStep;
-    held inputs are needed for event mode, so Jacobi and Gauss-Seidel, whose compiled loop ends its
-    steps at events too, run without it with ``inputs: linear``) the bounce reaches Feedthrough a
-    step later.  Adaptive's compiled loop ends its steps at events as well: its run is the Python
-    loop's, bit for bit."""
+    rolled back to it.  Without event mode (held inputs are needed for event mode, so the fixed-step
+    algorithms, whose compiled loops end their steps at events too, run without it with ``inputs:
+    linear``) the bounce reaches Feedthrough a step later.  Adaptive's compiled loop ends its steps
+    at events as well: its run is the Python loop's, bit for bit."""
     comps = {"ball": {"fmu": str(reference_fmus["3.0/BouncingBall"])},
              "f": {"fmu": str(reference_fmus["3.0/Feedthrough"])}}
     scene = {"name": "pair", "components": comps, "connections": ["ball.v -> f.Float64_continuous_input"],
@@ -71,9 +70,8 @@ def test_an_event_reaches_the_coupled_fmu_at_its_time(reference_fmus, algorithm)
         assert res.stats["engine"] == "compiled" and py.stats["engine"] == "oracle"
         assert np.array_equal(py.trace.time, t) and np.array_equal(py.trace.data, res.trace.data)
         return
-    fixed = algorithm in ("jacobi", "gauss_seidel")
     plain = run(from_dict({**scene, "master": {"algorithm": algorithm, "step": 0.01, "estimate": False,
-                                               **({"inputs": "linear"} if fixed else {"engine": "compiled"})}}))
+                                               "inputs": "linear"}}))
     tp, vp, yp = plain.trace.time, plain.trace["ball.v"], plain.trace["f.Float64_continuous_output"]
     first = int(np.argmax(vp > 0))  # the first row after the first bounce
     assert len(_events(tp)) == 0 and tp[first] == pytest.approx(0.46)

@@ -105,7 +105,7 @@ def fixed_loop(cls: type[Algorithm]) -> CompiledLoop:
         return CompiledLoop(cls.name, None, python=True)
     if cls.native_code == ITERATIVE:
         return CompiledLoop(cls.name, iterative_engine.library, cls.needs_rollback, callbacks=True, typed=True,
-                            transforms=True, python=True)
+                            transforms=True, events=True)
     return CompiledLoop(cls.name, fastloop.library, callbacks=True, typed=True, transforms=True, events=True)
 
 
@@ -304,8 +304,10 @@ def fixed_stepper(system: CoupledSystem, *, cls: type[Algorithm], step_ns: int, 
         runner = other.runner(alg)
     elif name == "python":
         runner = python_runner(alg)
-    else:
+    else:  # (iterative's kernel takes its start-time iteration at once)
         runner = (iterative_engine.CompiledIterative(alg) if cls.native_code == ITERATIVE else _Compiled(alg)).run
+    if name != "compiled" and cls.native_code == ITERATIVE:
+        alg.start()  # the Python loop's start-time iteration
     return FixedStepper(alg, runner, n_steps, record_every, name)
 
 

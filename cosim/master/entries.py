@@ -200,10 +200,18 @@ ITERATIVE_CONTROL = Record("it_ctl", (
     ("int32_t", "status", "why a call returned early (IterativeEnd)"),
     ("int32_t", "bad_slave", "the slave of that status"), ("int32_t", "bad_status", "its FMI status"),
     ("int32_t", "fail_it", "passes of the step that did not converge"), ("double", "fail_err", "its residual"),
+    ("int32_t", "step", "1: steps are taken; 0: the start point (inputs set, outputs read, nothing stepped)"),
+    ("int32_t", "n_passes", "out: the passes recorded in c->passes by this call"),
+    # FMI 3.0 event mode (Iterative._event_step): the iteration's state at a step's start, for a retake to an event
+    ("double *", "v_kept", "event step: v at the step's start (nv)"), ("double *", "z_kept", "z there (m)"),
+    ("double *", "z_prev_kept", "z_prev there (m)"), ("double *", "J_kept", "J there (m x m)"),
+    ("double *", "start_kept", "every slave's inputs there, one after the other"),
+    ("int32_t", "has_z_prev_kept", "has_z_prev there"), ("int32_t", "has_J_kept", "has_J there"),
     _STATS,
 ))
 
-#: The fixed-step loop's event state across calls (``fx_ctl``, FMI 3.0 event mode; docs/explanation/events.md).
+#: The fixed-step loops' event state across calls (``fx_ctl``, FMI 3.0 event mode; docs/explanation/events.md):
+#: ``rpr_run``'s (Jacobi, Gauss-Seidel) and ``rpr_iter_run``'s (iterative).
 FIXED_CONTROL = Record("fx_ctl", (
     ("int32_t", "n_event", "slaves in FMI 3.0 event mode (0: no event step)"),
     ("int32_t", "has_t_event", "1: the current point is an event that cut the step (t_event), not the grid point"),
@@ -222,13 +230,14 @@ RECORDS = (CRUMB, SLAVE, FIXED_CONTROL, ADAPTIVE_CONTROL, ECCO_CONTROL, ITERATIV
 
 
 class FixedEnd(IntEnum):
-    """Why the fixed-step loop (Jacobi, Gauss-Seidel) returned (``fx_ctl.status``) besides its
-    step count; a failing call is ``fail_slave`` >= 0 with RUNNING or FAILED."""
+    """Why a fixed-step loop returned (``fx_ctl.status``) besides its step count: Jacobi's and
+    Gauss-Seidel's (``rpr_run``: a failing call is ``fail_slave`` >= 0 with RUNNING or FAILED) and
+    iterative's (``rpr_iter_run``: EVENT, GRID_EVENT, CHATTERING; a failure is ``it_ctl.status``)."""
 
     RUNNING = 0  # the steps asked for, the wall-time budget, or a failing call (its stop request handled after)
     EVENT = 1  # a step cut at the earliest early return of an event-mode slave, at t_e (the left limit)
     GRID_EVENT = 2  # a step completed at the grid point, where slave `who` asks for event handling
-    CHATTERING = 3  # more than max_events events in one macro step
+    CHATTERING = 3  # more than max_events events in one macro step (iterative: or an event at the step's start)
     FAILED = 4  # a call failed after the step was cut (a rollback or reading the outputs): the run fails
 
 
@@ -339,11 +348,18 @@ ITER_RUN = Entry("rpr_iter_run", (
     ("int64_t", "step_ns", "the step [ns]"), *_IO,
     ("int64_t", "rec_every", "record every this many steps"), ("double *", "rec", "the rows recorded"),
     ("int64_t *", "n_rows", "out: rows recorded"),
-    ("int64_t", "budget_ns", "return after this much wall time (0: no limit)")))
+    ("int64_t", "budget_ns", "return after this much wall time (0: no limit)"),
+    ("fx_ctl *", "ev", "FMI 3.0 event mode: the event state (NULL: no event-mode slave)")))
+
+ITER_START = Entry("rpr_iter_start", (
+    ("rpr_slave *", "S", "the slaves"), ("int32_t", "n", "their count"),
+    ("const int32_t *", "order", "the stepping order"), ("double *", "v", "the value vector"),
+    ("int64_t", "nv", "its length"), ("it_ctl *", "c", "the iteration"), ("double", "t", "the start time [s]")),
+    returns="int32_t")
 
 SET_CRUMB = Entry("rpr_set_crumb", (("void *", "p", "the crumb record (NULL: a private one)"),), returns="void")
 
-ENTRIES = (SET_CRUMB, RUN, ADAPT_RUN, ECCO_RUN, ITER_RUN)
+ENTRIES = (SET_CRUMB, RUN, ADAPT_RUN, ECCO_RUN, ITER_RUN, ITER_START)
 
 #: The FMI calls the kernels make (their function-pointer typedefs go into the header).
 FMI_CALLS = ("fmi2DoStep", "fmi2GetReal", "fmi2SetReal", "fmi2SetRealInputDerivatives", "fmi2GetFMUstate",
@@ -398,4 +414,5 @@ def bind(lib: ctypes.CDLL, entries: Sequence[Entry]) -> None:
 
 __all__ = ["ADAPTIVE_CONTROL", "ADAPT_RUN", "AdaptiveEnd", "CRUMB", "CallbackStatus", "ECCO_CONTROL", "ECCO_RUN",
            "ENTRIES", "ENUMS", "EccoEnd", "Entry", "FIXED_CONTROL", "FixedEnd", "ITERATIVE_CONTROL", "ITER_RUN",
-           "IterativeEnd", "RECORDS", "RUN", "Record", "SLAVE", "bind", "ctypes_struct", "header", "struct"]
+           "ITER_START", "IterativeEnd", "RECORDS", "RUN", "Record", "SLAVE", "bind", "ctypes_struct", "header",
+           "struct"]

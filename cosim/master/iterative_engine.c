@@ -1,19 +1,22 @@
-/* The compiled engine of master.algorithm: iterative (cosim/master/iterative_engine.py). */
+/* The compiled engine of master.algorithm: iterative (cosim/master/iterative_engine.py).  The Python
+   loop it is checked against bit for bit: Iterative._solve, with FMI 3.0 event mode Iterative._event_step
+   (tests/test_native.py, tests/test_general_kernel.py, tests/test_iterative_event_kernel.py). */
 #include "native.h"
 
 /* Iterative._run_slave: from its saved state at t (restored if it ran in this step) with inputs
-   ending at ends (NULL: it has none); outputs read into v.  c->status set for a state error. */
+   ending at ends (NULL: it has none); outputs read into v.  c->step 0 (the start time): only its
+   inputs set and its outputs read.  c->status set for a state error. */
 static int run_slave(rpr_slave *s, it_ctl *c, double *v, double t, double h, const double *ends) {
     int st = 0, j;
     double *buf = v + s->in_off;
     int64_t t0 = c->timing ? now_ns() : 0;
-    if (s->has_last) {
+    if (c->step && s->has_last) {
         st = restore_state(s);
         if (failing(st)) { c->status = IT_RESTORE; return st; }
         c->rollbacks++;
     }
     if (ends) {
-        if (s->interp) {
+        if (c->step && s->interp) {
             for (j = 0; j < s->n_in; ++j) buf[j] = s->start_in[j];
             for (j = 0; j < s->n_in; ++j) s->slope[j] = ends[j] - s->start_in[j];
             for (j = 0; j < s->n_in; ++j) s->slope[j] /= h;
@@ -24,7 +27,7 @@ static int run_slave(rpr_slave *s, it_ctl *c, double *v, double t, double h, con
             st = set_inputs(s, buf);
         }
     }
-    if (!failing(st)) {
+    if (!failing(st) && c->step) {
         st = do_step(s, t, h);
         if (!failing(st) && st != ST_STOP_REQUESTED && ends && s->interp) {
             for (j = 0; j < s->n_in; ++j) buf[j] = ends[j];  /* the outputs at t+h see the inputs at t+h */
@@ -58,7 +61,7 @@ static int32_t pass(rpr_slave *S, int32_t n, const int32_t *order, int32_t start
         i = order[k];
         s = &S[i];
         if (!s->n_in) {
-            if (!s->has_last) {
+            if (c->step && !s->has_last) {
                 st = run_slave(s, c, v, t, h, NULL);
                 if (ended(st) || c->status) { *bad_st = st; return i; }
             }
@@ -125,7 +128,7 @@ static int local_jacobian(rpr_slave *s, it_ctl *c, double *v, double t, double h
         d = c->fd_rel * py_max(1.0, fabs(c->ends[col]));
         c->ends[col] += d;
         st = run_slave(s, c, v, t, h, c->ends);
-        c->fd_steps++;
+        c->fd_steps += c->step;
         if (ended(st) || c->status) { *bad_st = st; return -1; }
         for (q = 0; q < s->n_feed; ++q) c->L[q * ncols + k] = (v[s->out_off + s->feed[q]] - c->base_out[q]) / d;
     }
@@ -215,23 +218,26 @@ static inline double nan_max(const double *a, int32_t m, int absolute) {   /* nu
     return best;
 }
 
-/* Iterative._solve (step): IT_OK, IT_FAILED/IT_STOPPED-to-be (a slave: *bad), IT_DIVERGED,
-   IT_NOT_CONVERGED, or a state error (c->status) */
+/* Iterative._solve from t over h (c->step 0: the start point, nothing stepped): IT_OK, IT_FAILED (a
+   slave's call: *bad, *bad_st, a stop request among them), IT_DIVERGED, IT_NOT_CONVERGED (c->fail_it,
+   c->fail_err), or a state error (c->status).  The passes of a step that ended otherwise than
+   unstable go to c->passes[c->n_passes++] (Iterative._record_passes; the unstable one's are
+   recorded with its message, Iterative._unstable; a failing Jacobian's nowhere, as in Python). */
 static int solve_step(rpr_slave *S, int32_t n, const int32_t *order, it_ctl *c, double *v, int64_t nv, double t,
-                      double h, int32_t *passes, int32_t *bad, int32_t *bad_st) {
+                      double h, int32_t *bad, int32_t *bad_st) {
     int32_t m = c->m, i, a, b, it, fresh_j = 0, has_old = 0, has_first = 0;
     double r_first = 0.0, err_old = 0.0;
     for (i = 0; i < n; ++i) S[i].has_last = 0;
-    for (i = 0; i < n; ++i) {
+    for (i = 0; i < n && c->step; ++i) {
         if (!S[i].n_in) continue;
         { int st = save_state(&S[i]); if (failing(st)) { *bad = i; *bad_st = st; return IT_SAVE; } }
     }
     for (a = 0; a < m; ++a) c->zi[a] = c->z[a];
-    if (c->linear && c->has_z_prev) for (a = 0; a < m; ++a) c->zi[a] = 2.0 * c->z[a] - c->z_prev[a];
+    if (c->step && c->linear && c->has_z_prev) for (a = 0; a < m; ++a) c->zi[a] = 2.0 * c->z[a] - c->z_prev[a];
     for (it = 1; it <= c->max_iter; ++it) {
         double err, size;
         *bad = pass(S, n, order, 0, c, v, t, h, c->zi, bad_st);
-        if (*bad >= 0) { *passes = it; return c->status ? c->status : IT_FAILED; }
+        if (*bad >= 0) { c->passes[c->n_passes++] = it; return c->status ? c->status : IT_FAILED; }
         for (a = 0; a < m; ++a) {
             double z = c->zi[a], g = v[c->cut_src[a]] * c->cut_factor[a] + c->cut_offset[a];
             c->g[a] = g;
@@ -241,21 +247,24 @@ static int solve_step(rpr_slave *S, int32_t n, const int32_t *order, it_ctl *c, 
         err = m ? nan_max(c->e, m, 0) : 0.0;
         size = m ? nan_max(c->r, m, 1) : 0.0;
         if (!isfinite(err) || (has_first && size > c->growth * r_first)) {
-            *passes = it; c->fail_it = it; c->fail_err = err;
+            c->fail_it = it; c->fail_err = err;
             return IT_DIVERGED;
         }
         if (err <= 1.0) {
-            *passes = it;
-            for (a = 0; a < m; ++a) { c->z_prev[a] = c->z[a]; c->z[a] = c->zi[a]; }
-            c->has_z_prev = 1;
+            c->passes[c->n_passes++] = it;
+            if (c->step) {
+                for (a = 0; a < m; ++a) c->z_prev[a] = c->z[a];
+                c->has_z_prev = 1;
+            }
+            for (a = 0; a < m; ++a) c->z[a] = c->zi[a];
             return IT_OK;
         }
-        if (it == c->max_iter) { *passes = it; c->fail_it = it; c->fail_err = err; return IT_NOT_CONVERGED; }
+        if (it == c->max_iter) { c->fail_it = it; c->fail_err = err; return IT_NOT_CONVERGED; }
         if (!has_first) { r_first = size; has_first = 1; }
         if (c->newton) {
             if (!c->has_J || (has_old && err > 0.5 * err_old && !fresh_j)) {
                 *bad = jacobian(S, n, order, c, v, nv, t, h, bad_st);
-                if (*bad >= 0) { *passes = -1; return c->status ? c->status : IT_FAILED; }
+                if (*bad >= 0) return c->status ? c->status : IT_FAILED;
                 c->has_J = 1;
                 fresh_j = 1;
             } else if (has_old) {   /* Broyden */
@@ -285,36 +294,146 @@ static int solve_step(rpr_slave *S, int32_t n, const int32_t *order, it_ctl *c, 
     return IT_NOT_CONVERGED;  /* not reached: max_iter >= 1 */
 }
 
+/* Iterative._accept: the inputs the slaves ended the step (or the start) with are their inputs at
+   the new point */
+static void accept(rpr_slave *S, int32_t n) {
+    int32_t i, j;
+    for (i = 0; i < n; ++i)
+        if (S[i].has_last && S[i].n_in) for (j = 0; j < S[i].n_in; ++j) S[i].start_in[j] = S[i].last_in[j];
+}
+
+/* The iteration's state at a step's start, kept for a retake to an event (keep 1) or put back (0):
+   v, z, z_prev, J and every slave's inputs at t (Iterative._event_step's `kept`) */
+static void keep_point(rpr_slave *S, int32_t n, it_ctl *c, double *v, int64_t nv, int keep) {
+    int32_t m = c->m, i, j;
+    int64_t x, off = 0;
+#define KEEP(a, b) do { if (keep) (b) = (a); else (a) = (b); } while (0)
+    for (x = 0; x < nv; ++x) KEEP(v[x], c->v_kept[x]);
+    for (x = 0; x < m; ++x) { KEEP(c->z[x], c->z_kept[x]); KEEP(c->z_prev[x], c->z_prev_kept[x]); }
+    for (x = 0; x < (int64_t)m * m; ++x) KEEP(c->J[x], c->J_kept[x]);
+    KEEP(c->has_z_prev, c->has_z_prev_kept);
+    KEEP(c->has_J, c->has_J_kept);
+    for (i = 0; i < n; ++i)
+        for (j = 0; j < S[i].n_in; ++j, ++off) KEEP(S[i].start_in[j], c->start_kept[off]);
+#undef KEEP
+}
+
+/* One step with FMI 3.0 event-mode slaves (Iterative._event_step) from the current point (grid
+   point k, or the event ev->t_event that cut step k; *t_out) to the next grid point: every slave's
+   state saved, the coupling iterated over the step; where an event-mode slave returned early, at
+   the earliest such time t_e, every slave restored, the iteration's state put back and the
+   coupling iterated again over [t, t_e] (*h_out: the step iterated last; a stop request in the
+   first iteration goes with the step when an event cuts it).  Returns solve_step's
+   code; ev->status FX_RUNNING (the grid point), FX_GRID_EVENT (and slave ev->who asks for event
+   handling there), FX_EVENT (cut at ev->t_e by ev->who; with a failing code, the retake failed)
+   or FX_CHATTERING (more than ev->max_events events in the step, or no progress: t_e at the
+   step's start). */
+static int event_step(rpr_slave *S, int32_t n, const int32_t *order, it_ctl *c, fx_ctl *ev, double *v, int64_t nv,
+                      int64_t k, int64_t start_ns, int64_t step_ns, double *t_out, double *h_out, int32_t *bad,
+                      int32_t *bad_st) {
+    double t_end = (double)(start_ns + (k + 1) * step_ns) / 1e9;
+    double t = ev->has_t_event ? ev->t_event : (double)(start_ns + k * step_ns) / 1e9, tol, t_e = 0.0;
+    int32_t i, who = -1;
+    int res, st;
+    *t_out = t;
+    *h_out = t_end - t;
+    ev->status = FX_RUNNING;
+    keep_point(S, n, c, v, nv, 1);
+    for (i = 0; i < n; ++i) {
+        st = save_state(&S[i]);
+        if (failing(st)) { *bad = i; *bad_st = st; return IT_SAVE; }
+    }
+    res = solve_step(S, n, order, c, v, nv, t, t_end - t, bad, bad_st);
+    /* a stop request goes with a step an event cuts (the retake decides) */
+    if (res != IT_OK && !(res == IT_FAILED && *bad_st == ST_STOP_REQUESTED)) return res;
+    if (res == IT_OK) accept(S, n);
+    tol = 1e-12 * (1.0 + fabs(t_end));
+    for (i = 0; i < n; ++i) {  /* the earliest early return (the first slave of equal ones) of those stepped */
+        double r;
+        if (!S[i].event_mode || !S[i].has_last) continue;
+        r = step_end(&S[i]);
+        if (r < t_end - tol && (who < 0 || r < t_e)) { who = i; t_e = r; }
+    }
+    if (who < 0 && res != IT_OK) return res;
+    if (who < 0) {  /* the grid point: an event-mode slave may ask for event handling there */
+        ev->has_t_event = 0;
+        ev->events_in_step = 0;
+        ev->who = -1;
+        for (i = 0; i < n && ev->who < 0; ++i) if (S[i].event_mode && event_asked(&S[i])) ev->who = i;
+        ev->status = ev->who >= 0 ? FX_GRID_EVENT : FX_RUNNING;
+        return IT_OK;
+    }
+    ev->who = who;
+    ev->t_e = t_e;
+    if (++ev->events_in_step > ev->max_events || t_e <= t) { ev->status = FX_CHATTERING; return IT_OK; }
+    for (i = 0; i < n; ++i) {
+        st = restore_state(&S[i]);
+        if (failing(st)) { *bad = i; *bad_st = st; return IT_RESTORE; }
+    }
+    keep_point(S, n, c, v, nv, 0);
+    *h_out = t_e - t;
+    ev->status = FX_EVENT;  /* (a stop request in the retake: the run ends at the event) */
+    res = solve_step(S, n, order, c, v, nv, t, t_e - t, bad, bad_st);
+    if (res != IT_OK) return res;
+    accept(S, n);
+    ev->has_t_event = 1;
+    ev->t_event = t_e;
+    return IT_OK;
+}
+
+/* The start point (Iterative.start): the coupling iterated at t without stepping (h = 0); solve_step's
+   code (a failing slave in c->bad_slave, c->bad_status) */
+int32_t rpr_iter_start(rpr_slave *S, int32_t n, const int32_t *order, double *v, int64_t nv, it_ctl *c, double t) {
+    int32_t bad = -1, bad_st = 0;
+    int res;
+    c->status = IT_OK;
+    c->n_passes = 0;
+    c->step = 0;
+    res = solve_step(S, n, order, c, v, nv, t, 0.0, &bad, &bad_st);
+    c->step = 1;
+    if (res == IT_OK) accept(S, n);
+    c->bad_slave = bad;
+    c->bad_status = bad_st;
+    return res;
+}
+
 /* Up to nsteps macro steps from step index k0 (as rpr_run: rows every rec_every-th step; returns
-   the steps completed; c->status says why it ended early) */
+   the steps completed; c->status says why it ended early).  With event-mode slaves (ev: their
+   state across calls) each step is event_step's, and a call also returns at an event (ev->status;
+   the event iteration runs in Python). */
 int64_t rpr_iter_run(rpr_slave *S, int32_t n, const int32_t *order, double *v, int64_t nv, it_ctl *c, int64_t k0,
                      int64_t nsteps, int64_t start_ns, int64_t step_ns, const int64_t *rec_idx, int32_t n_rec, int64_t rec_every,
-                     double *rec, int64_t *n_rows, int64_t budget_ns) {
+                     double *rec, int64_t *n_rows, int64_t budget_ns, fx_ctl *ev) {
     int64_t k, done = 0, rows = 0, t_start = (c->timing || budget_ns > 0) ? now_ns() : 0, slave_ns0 = slaves_ns(S, n);
-    int32_t i, j, bad, bad_st, pos;
+    int32_t i, bad, bad_st, pos;
     double h = (double)step_ns / 1e9;
     c->status = IT_OK;
     c->bad_slave = -1;
+    c->n_passes = 0;
+    c->step = 1;
+    if (ev) ev->status = FX_RUNNING;
     for (k = k0; k < k0 + nsteps; ++k) {
-        double t = (double)(start_ns + k * step_ns) / 1e9;
-        int res = solve_step(S, n, order, c, v, nv, t, h, &c->passes[done], &bad, &bad_st);
+        double t = (double)(start_ns + k * step_ns) / 1e9, h_s = h;
+        int res;
+        if (ev) res = event_step(S, n, order, c, ev, v, nv, k, start_ns, step_ns, &t, &h_s, &bad, &bad_st);
+        else if ((res = solve_step(S, n, order, c, v, nv, t, h, &bad, &bad_st)) == IT_OK) accept(S, n);
         if (res == IT_FAILED && bad_st == ST_STOP_REQUESTED) {
-            /* Algorithm.complete_after_stop: the stopping slave's outputs, the rest of the pass */
+            /* Algorithm.complete_after_stop: the stopping slave's outputs, the rest of the pass over the
+               step being iterated (Iterative._finish_step); the step is counted by Iterative.stopped_by */
             int st = get_outputs(&S[bad], v);
             c->bad_slave = bad; c->bad_status = bad_st;
             if (failing(st)) { c->status = IT_FAILED; c->bad_status = st; break; }
             for (pos = 0; order[pos] != bad; ++pos) {}
-            i = pass(S, n, order, pos + 1, c, v, t, h, c->zi, &bad_st);
+            i = pass(S, n, order, pos + 1, c, v, t, h_s, c->zi, &bad_st);
             if (i >= 0 && bad_st != ST_STOP_REQUESTED) { c->status = c->status ? c->status : IT_FAILED; c->bad_slave = i;
                                                c->bad_status = bad_st; break; }
             c->status = IT_STOPPED;
-            ++done;
             break;
         }
         if (res != IT_OK) { c->status = res; c->bad_slave = bad; c->bad_status = bad_st; break; }
-        for (i = 0; i < n; ++i)   /* Iterative._accept */
-            if (S[i].has_last && S[i].n_in) for (j = 0; j < S[i].n_in; ++j) S[i].start_in[j] = S[i].last_in[j];
+        if (ev && (ev->status == FX_EVENT || ev->status == FX_CHATTERING)) break;  /* k stays: a cut step */
         ++done;
+        if (ev && ev->status == FX_GRID_EVENT) break;  /* its row, the left limit, written by Python */
         if ((k + 1) % rec_every == 0) record_row(rec + rows++ * (n_rec + 1), start_ns + (k + 1) * step_ns, v, rec_idx, n_rec);
         if (budget_ns > 0 && (done & 15) == 0 && now_ns() - t_start > budget_ns) break;
     }

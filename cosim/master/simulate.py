@@ -63,7 +63,7 @@ def simulate(system: CoupledSystem, algorithm_name: str, *, step_ns: int, n_step
     for i, s_ in enumerate(system.slaves):  # FMI noSetFMUStatePriorToCurrentPoint: true unless the algorithm may restore states
         s_.forward_only = not cls.needs_rollback
         # FMI 3.0 event mode and early return where the FMU has them and the algorithm ends steps at events
-        # (on the engine asked for: iterative's compiled loop leaves the events inside doStep)
+        # (on the engine asked for: every compiled loop of such an algorithm ends its steps at events too)
         # (a variable-step master cuts its step at an event by rolling every slave back: all must roll back)
         # (a multirate component's sub-steps run on the macro step's own sub-instants and cannot end at an
         # event: in a scene with one, every component keeps its events inside doStep)

@@ -45,12 +45,12 @@ loop's values consistent before the first row is recorded.
 Statistics: passes (iterations) per step (mean and max), rollbacks (state restores), Jacobians
 built (from directional derivatives or finite differences) and Broyden updates.
 
-Engines: this class is the reference (Python loop); without FMI 3.0 event-mode components,
-:mod:`cosim.master.iterative_engine` takes the same steps in C (Python slaves and typed ports
-through callbacks, their :meth:`output_jacobian` behind the directional derivative), bit for bit
-(``tests/test_native.py``, ``tests/test_general_kernel.py``; the start-time iteration stays
-here).  Newton's small linear algebra is :mod:`cosim.master.dense` in both: a fixed order of
-operations that C repeats exactly.
+Engines: this class is the reference (Python loop); :mod:`cosim.master.iterative_engine` takes
+the same steps in C (Python slaves and typed ports through callbacks, their
+:meth:`output_jacobian` behind the directional derivative; FMI 3.0 event-mode components; the
+start-time iteration), bit for bit (``tests/test_native.py``, ``tests/test_general_kernel.py``,
+``tests/test_iterative_event_kernel.py``).  Newton's small linear algebra is
+:mod:`cosim.master.dense` in both: a fixed order of operations that C repeats exactly.
 """
 from __future__ import annotations
 
@@ -133,8 +133,18 @@ class Iterative(Algorithm):
         self.rollbacks = self.jacobians = self.directional = self.broyden = self.fd_steps = self.init_passes = 0
         self.J: np.ndarray | None = None
         self.z_prev: np.ndarray | None = None
-        self._solve(self.t, 0.0, step=False)
-        self._accept()
+        #: the event [s] a cut step is being retaken to (a stop request there ends the run at it), or None
+        self.stop_at: float | None = None
+
+    def start(self) -> None:
+        """The Python loop's start-time iteration (without stepping: the loop's values made
+        consistent before the first row); the compiled engine's is ``rpr_iter_start``
+        (:class:`cosim.master.iterative_engine.CompiledIterative`).  A failing call ends the run."""
+        bad = self._solve(self.t, 0.0, step=False)
+        if bad is not None:
+            self._fail(bad[0], bad[1], self.t)
+        elif self.status == "running":
+            self._accept()
 
     def _accept(self) -> None:
         """The inputs the slaves ended the step (or the start) with are their inputs at the new point."""
@@ -321,7 +331,7 @@ class Iterative(Algorithm):
         z = self.z.copy()
         if step and self.inputs == "linear" and self.z_prev is not None:
             z = 2.0 * self.z - self.z_prev
-        self._z_now = z
+        self._z_now, self._h_now = z, h
         newton = opt["method"] == "newton"
         r_old = z_old = None
         r_first = err_old = None
@@ -339,7 +349,7 @@ class Iterative(Algorithm):
                 err = float(np.max(e)) if m else 0.0
                 size = float(np.max(np.abs(r))) if m else 0.0
                 if not math.isfinite(err) or (r_first is not None and size > GROWTH_LIMIT * r_first):
-                    return self._unstable(it, step, t, e, "the coupling iteration diverged", err)
+                    return self._unstable(it, step, t, e, err, diverged=True)
                 if err <= 1.0:
                     self._record_passes(it, step)
                     if step:
@@ -347,8 +357,7 @@ class Iterative(Algorithm):
                     self.z = z.copy()
                     return None
                 if it == max_iter:
-                    return self._unstable(it, step, t, e, f"the coupling iteration did not converge within "
-                                                          f"max_iter = {max_iter} passes", err)
+                    return self._unstable(it, step, t, e, err, diverged=False)
                 r_first = size if r_first is None else r_first
                 if newton:
                     if self.J is None or (err_old is not None and err > 0.5 * err_old and not fresh_j):
@@ -378,8 +387,13 @@ class Iterative(Algorithm):
         else:
             self.init_passes += it
 
-    def _unstable(self, it: int, step: bool, t: float, e: np.ndarray, what: str, err: float) -> None:
+    def _unstable(self, it: int, step: bool, t: float, e: np.ndarray, err: float, diverged: bool) -> None:
+        """End the run as unstable: the iteration from ``t`` (a step, or without ``step`` the start
+        point) diverged or did not converge in ``it`` passes, scaled residuals ``e``, the largest
+        ``err`` (both engines)."""
         self._record_passes(it, step)
+        what = ("the coupling iteration diverged" if diverged else
+                f"the coupling iteration did not converge within max_iter = {int(self.opt['max_iter'])} passes")
         worst = self.cut_names[int(np.nanargmax(np.where(np.isfinite(e), e, np.inf)))] if len(e) else "?"
         where = f"in the step from t = {t:.9g} s (step {self.k})" if step else f"at the start time t = {t:.9g} s"
         self.status = "unstable"
@@ -392,29 +406,32 @@ class Iterative(Algorithm):
         """:meth:`Algorithm.step` with event-mode slaves: the iterated step from the current point
         (a grid point or an event) to the next grid point; where an event-mode slave returned early
         at ``t_e``, every slave is rolled back and the coupling iterated again over ``[t, t_e]``
-        (the event ends the step for the whole coupling), then the event iteration."""
+        (the event ends the step for the whole coupling), then the event iteration.  A stop
+        request in a step an event cuts (an event-mode slave stepped in it returned early) goes
+        with the step: the retake to the event decides."""
         slaves, sysm = self.system.slaves, self.system
         t, t_end = self.t, self.time_at(self.k + 1)
+        self.stop_at = None
         kept = (sysm.v.copy(), self.z.copy(), None if self.z_prev is None else self.z_prev.copy(),
                 None if self.J is None else self.J.copy(), [x.copy() for x in self.start_in])
         for s in slaves:
             s.save_state()
         bad = self._step_impl(t, t_end - t)
-        ends = {i: slaves[i].step_end() for i in self.event_slaves} if bad is None else {}
+        ends = {i: slaves[i].step_end() for i in self.event_slaves if self.last_in[i] is not None} \
+            if bad is None or self.stop_requested(*bad) else {}  # (the ones stepped in it)
         tol = 1e-12 * (1.0 + abs(t_end))
         early = sorted((r, i) for i, (r, _) in ends.items() if r < t_end - tol)
-        if bad is None and self.status == "running" and early:
+        if self.status == "running" and early:
             t_e, who = early[0]
-            self._events_in_step = getattr(self, "_events_in_step", 0) + 1
-            if self._events_in_step > MAX_EVENTS_PER_STEP or t_e <= t:
-                self.status, self.failed_slave = "failed", who
-                self.message = (f"{slaves[who].name}: more than {MAX_EVENTS_PER_STEP} events in the step from t = "
-                                f"{self.time_at(self.k):.9g} s (chattering); the last at t = {t_e:.9g} s")
+            self._events_in_step += 1
+            if self._events_in_step > MAX_EVENTS_PER_STEP or t_e <= t:  # (an event at the step's start: no progress)
+                self.chattering(who, t_e)
                 return False
             for s in slaves:
                 s.restore_state()
             v, self.z, self.z_prev, self.J, self.start_in = kept
             np.copyto(sysm.v, v)
+            self.stop_at = t_e
             bad = self._step_impl(t, t_e - t)
             if bad is None and self.status == "running":
                 self.t_event = t_e
@@ -451,11 +468,21 @@ class Iterative(Algorithm):
         return bad
 
     def _finish_step(self, i: int, t: float, h: float) -> tuple[int, int] | None:
-        """A slave asked to stop during a pass: the rest of that pass completes the step."""
+        """A slave asked to stop during a pass: the rest of that pass completes the step (over the
+        step being iterated: the macro step ``h``, the rest of it after an event, or the part up to
+        the event a cut step is retaken to)."""
         st = self._io(i, self.system.slaves[i].pull)
         if st in FAILING:
             return i, st
-        return self._pass(t, h, self._z_now, True, start=self.order.index(i) + 1)
+        return self._pass(t, self._h_now, self._z_now, True, start=self.order.index(i) + 1)
+
+    def stopped_by(self, i: int, t: float) -> None:
+        """:meth:`Algorithm.stopped_by` at the point the stopped step reached: the next grid point,
+        or the event a cut step was retaken to (:attr:`stop_at`; the step is not completed)."""
+        at, self.t_event = self.stop_at, self.stop_at
+        super().stopped_by(i, t)
+        if at is not None:
+            self.k -= 1
 
     def statistics(self) -> dict:
         """Passes per step, rollbacks, Jacobians: added to the run statistics."""
