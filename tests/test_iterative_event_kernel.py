@@ -29,7 +29,7 @@ def assert_same(py, cc) -> None:
     """What tests/engine_pair.py compares, and the iteration's statistics."""
     assert_pair(py, cc)
     assert [py.stats.get(k) for k in ITER_KEYS] == [cc.stats.get(k) for k in ITER_KEYS]
-    assert py.stats["engine"] == "python" and cc.stats["engine"] == "compiled"
+    assert py.stats["engine"] == "oracle" and cc.stats["engine"] == "compiled"
 
 
 def _events(t: np.ndarray) -> np.ndarray:
@@ -174,9 +174,9 @@ def _simulate(system: CoupledSystem, engine: str, n: int = 60, **kw):
 
 
 def test_a_python_slave_is_rolled_back_to_the_event_as_in_the_python_loop(reference_fmus):
-    runs = [_simulate(_ball_and_lag(str(reference_fmus["3.0/BouncingBall"])), e) for e in ("python", "compiled")]
+    runs = [_simulate(_ball_and_lag(str(reference_fmus["3.0/BouncingBall"])), e) for e in ("oracle", "compiled")]
     (py, s1), (cc, s2) = runs
-    assert (s1.engine, s2.engine, s2.status) == ("python", "compiled", "ok"), s2.reason
+    assert (s1.engine, s2.engine, s2.status) == ("oracle", "compiled", "ok"), s2.reason
     assert np.array_equal(py.time, cc.time) and np.array_equal(py.data, cc.data)
     # the bounce, and the FMU's second early return a step of its own later (as under FMPy)
     assert list(_events(cc.time)) == pytest.approx([0.453, 0.454]) and s2.extra["events"]["handled"] == 2
@@ -196,7 +196,7 @@ def test_a_failing_or_stopping_python_slave_around_an_event_ends_the_run_as_the_
     completed: Iterative.stopped_by), the row there; in the 46th it goes with the step the bounce
     cuts (the retake, where this lag does not ask again, decides: the run goes on)."""
     out = []
-    for engine in ("python", "compiled"):
+    for engine in ("oracle", "compiled"):
         cls = type("F", (Failing,), {"at": at, "stop": stop})
         out.append(_simulate(_ball_and_lag(str(reference_fmus["3.0/BouncingBall"]), cls), engine))
     (py, s1), (cc, s2) = out
@@ -270,7 +270,7 @@ def test_the_kernels_start_iteration_equals_the_python_one_and_solves_the_loop(o
     at t = 0: u_a = (c x_b + d_b (f x_a + o)) / (1 - d_a d_b f), u_b = f (x_a + d_a u_a) + o."""
     f, o = -1.5, 0.25
     (py, s1), (cc, s2) = (_simulate(_loop(f, o), e, n=5, options=options, inputs=inputs)
-                          for e in ("python", "compiled"))
+                          for e in ("oracle", "compiled"))
     assert s2.engine == "compiled" and s2.status == "ok", s2.reason
     assert np.array_equal(py.data[0], cc.data[0]) and np.array_equal(py.data, cc.data)
     assert {k: s1.extra[k] for k in ITER_KEYS} == {k: s2.extra[k] for k in ITER_KEYS}
@@ -284,7 +284,7 @@ def test_a_start_that_does_not_converge_ends_both_engines_alike():
     """One fixed-point pass allowed: the inconsistent start ends the run as unstable, worded once
     (Iterative._unstable: 'at the start time')."""
     runs = [_simulate(_loop(-1.5, 0.25), e, n=5, options={"method": "fixed_point", "max_iter": 1})
-            for e in ("python", "compiled")]
+            for e in ("oracle", "compiled")]
     (py, s1), (cc, s2) = runs
     assert s1.status == s2.status == "unstable" and s1.reason == s2.reason, (s1.reason, s2.reason)
     assert "at the start time t = 0 s" in s2.reason and s2.engine == "compiled"

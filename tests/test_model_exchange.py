@@ -261,7 +261,7 @@ def test_fmu_check_of_both_interfaces_names_the_default_and_the_other(reference_
     assert cli.main(["fmu", "check", str(reference_fmus["3.0/Stair"])]) == 0
     out = capsys.readouterr().out
     assert "co-simulation: stepped by doStep" in out
-    assert "declares event mode: under jacobi and gauss_seidel (either engine)" in out
+    assert "declares event mode: under jacobi, gauss_seidel, adaptive, ecco and iterative" in out
     assert "[a scene gets this one]" in out.split("model exchange:")[0]
     assert "[interface: model_exchange]" in out.split("model exchange:")[1]
 

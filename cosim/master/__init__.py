@@ -10,8 +10,7 @@ Package map (the public names are re-exported here: ``from cosim.master import X
 ``algorithms/`` one module per algorithm (``jacobi``, ``gauss_seidel``, ``adaptive``, ``ecco``,
                 ``iterative``), listed in :data:`cosim.master.algorithms.MODULES`
 ``engine``      who runs the steps: the algorithm's compiled loop (a run needs a C compiler), or the
-                Python loop of an algorithm whose loop is still product code (iterative's event-mode
-                scenes, one registered without a kernel), chosen in one place for every algorithm
+                Python loop of an algorithm registered without a kernel, chosen in one place for every algorithm
                 (:func:`choose_engine`); :func:`fixed_stepper`; the one seam a test oracle plugs into
                 (:class:`~cosim.master.engine.Engine`; the Python twins live in ``tests/oracles``)
 ``entries``     the native kernels' records, end codes and entry points, declared once (the generated

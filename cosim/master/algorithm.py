@@ -425,8 +425,8 @@ class Algorithm(MasterAlgorithm, EventIteration, Outcome):
         raise NotImplementedError(f"{self.name} cannot complete a step after a stop request")
 
     def _step_impl(self, t: float, h: float) -> tuple[int, int] | None:
-        """An algorithm with a Python loop of its own (iterative; one registered without a kernel;
-        the test oracles): advance every slave from ``t`` by ``h``; return ``(slave index,
+        """An algorithm with a Python loop of its own (one registered without a kernel; the test
+        oracles): advance every slave from ``t`` by ``h``; return ``(slave index,
         status)`` of the first failing call, or None."""
         raise NotImplementedError(f"{self.name} steps in its compiled loop (cosim.master.engine)")
 

@@ -1,7 +1,6 @@
 """Engines, who runs an algorithm's steps: its compiled loop (FMUs directly, Python slaves and
 typed ports through callbacks; :class:`CompiledLoop` says what each runs), or, for an algorithm
-whose Python loop is still product code (iterative's FMI 3.0 event-mode scenes, an algorithm
-registered without a kernel), that loop.  The choice is made here, once for every algorithm
+registered without a kernel (the Python extension point), its own Python loop.  The choice is made here, once for every algorithm
 (:func:`choose_engine`).  A run needs a working C compiler (:func:`cosim.master.kernels.compile_loop`
 says which is missing); the Python twins of the kernels are test oracles (``tests/oracles``),
 plugged in through the one seam of :class:`Engine` (:func:`register_engine`)."""
@@ -94,8 +93,8 @@ class CompiledLoop:
     events: bool = False
     #: its slave structs carry FMU states: a slave that rolls back only in Python is called back
     states: bool = False
-    #: the algorithm's own Python loop is product code and runs what this loop cannot (iterative's
-    #: event-mode scenes; an algorithm registered without a kernel, :attr:`Algorithm.native_code` None)
+    #: the algorithm's own Python loop is product code and runs the scene (an algorithm registered
+    #: without a kernel, :attr:`Algorithm.native_code` None: the Python extension point)
     python: bool = False
 
 
@@ -105,7 +104,7 @@ def fixed_loop(cls: type[Algorithm]) -> CompiledLoop:
         return CompiledLoop(cls.name, None, python=True)
     if cls.native_code == ITERATIVE:
         return CompiledLoop(cls.name, iterative_engine.library, cls.needs_rollback, callbacks=True, typed=True,
-                            transforms=True, events=True)
+                            transforms=True, events=True, states=True)
     return CompiledLoop(cls.name, fastloop.library, callbacks=True, typed=True, transforms=True, events=True)
 
 
@@ -306,8 +305,6 @@ def fixed_stepper(system: CoupledSystem, *, cls: type[Algorithm], step_ns: int, 
         runner = python_runner(alg)
     else:  # (iterative's kernel takes its start-time iteration at once)
         runner = (iterative_engine.CompiledIterative(alg) if cls.native_code == ITERATIVE else _Compiled(alg)).run
-    if name != "compiled" and cls.native_code == ITERATIVE:
-        alg.start()  # the Python loop's start-time iteration
     return FixedStepper(alg, runner, n_steps, record_every, name)
 
 

@@ -202,7 +202,7 @@ ITERATIVE_CONTROL = Record("it_ctl", (
     ("int32_t", "fail_it", "passes of the step that did not converge"), ("double", "fail_err", "its residual"),
     ("int32_t", "step", "1: steps are taken; 0: the start point (inputs set, outputs read, nothing stepped)"),
     ("int32_t", "n_passes", "out: the passes recorded in c->passes by this call"),
-    # FMI 3.0 event mode (Iterative._event_step): the iteration's state at a step's start, for a retake to an event
+    # FMI 3.0 event mode (the oracle's Iterative._event_step): the iteration's state at a step's start, for a retake to an event
     ("double *", "v_kept", "event step: v at the step's start (nv)"), ("double *", "z_kept", "z there (m)"),
     ("double *", "z_prev_kept", "z_prev there (m)"), ("double *", "J_kept", "J there (m x m)"),
     ("double *", "start_kept", "every slave's inputs there, one after the other"),

@@ -1,5 +1,6 @@
-/* The compiled engine of master.algorithm: iterative (cosim/master/iterative_engine.py).  The Python
-   loop it is checked against bit for bit: Iterative._solve, with FMI 3.0 event mode Iterative._event_step
+/* The compiled engine of master.algorithm: iterative (cosim/master/iterative_engine.py), its one
+   implementation.  Its Python twin, checked against bit for bit, is the test oracle
+   tests/oracles/iterative.py: Iterative._solve, with FMI 3.0 event mode Iterative._event_step
    (tests/test_native.py, tests/test_general_kernel.py, tests/test_iterative_event_kernel.py). */
 #include "native.h"
 

@@ -1,7 +1,8 @@
 """The compiled engine of ``master.algorithm: iterative``: its macro steps in C.
 
-The same steps as :class:`cosim.master.algorithms.iterative.Iterative` (the Python loop stays the
-reference; ``tests/test_native.py`` checks that both give the same values bit for bit, the same
+The steps of :class:`cosim.master.algorithms.iterative.Iterative`, their one implementation (the
+Python twin is the test oracle ``tests/oracles/iterative.py``; ``tests/test_native.py`` checks
+that both give the same values bit for bit, the same
 passes per step, rollbacks, Jacobians and Broyden updates, and the same endings): save every
 slave's FMU state, passes over the Gauss-Seidel order with each slave restored and re-stepped
 only when its inputs changed, the residual of the cut connections, and the fixed-point or
@@ -13,7 +14,7 @@ iteration without stepping, as :meth:`Iterative.start` does it).
 One call runs up to ``nsteps`` macro steps (returning early after its wall-time budget) and
 hands back a failure, a stop request (after completing the step, as the Python loop does) or a
 step that did not converge, with what the Python side needs to word it alike.  With FMI 3.0
-event-mode components each step is :meth:`Iterative._event_step`'s (``event_step`` in C): the
+event-mode components each step is the oracle's ``Iterative._event_step`` (``tests/oracles/iterative.py``) in C: the
 step cut at the earliest early return, every slave restored and the coupling iterated again to
 the event; the call returns there (``FixedEnd.EVENT``, the event state in ``fx_ctl`` as the
 Jacobi/Gauss-Seidel kernel keeps it), the one event iteration runs in Python
@@ -59,7 +60,9 @@ class CompiledIterative:
         self.alg = alg
         sysm = alg.system
         m, nv = len(alg.cuts), len(sysm.v)
-        self.arr = arr = SlaveArray(sysm, callbacks=True)
+        # (states: a slave that rolls back only in Python, a model-exchange FMU through its
+        # continuous states, is called back around its own save_state/restore_state)
+        self.arr = arr = SlaveArray(sysm, callbacks=True, states=True)
         max_in = max([len(b) for b in sysm.in_buf] + [1])
         max_out = max([len(b) for b in sysm.out_buf] + [1])
         max_feed = max([len(f) for f in alg.feeding] + [1])

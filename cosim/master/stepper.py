@@ -175,7 +175,7 @@ Runner = Callable[[int, int, np.ndarray], int]
 
 def python_runner(alg: Any) -> Runner:
     """The runner of an algorithm's own Python steps (:meth:`cosim.master.algorithm.Algorithm.step`:
-    iterative's event-mode scenes, an algorithm without a kernel; the test oracles')."""
+    an algorithm without a kernel; the test oracles')."""
     v, idx = alg.system.v, alg.system.record_idx
 
     def run(n: int, record_every: int, rec: np.ndarray) -> int:

@@ -67,8 +67,7 @@ MASTER = {
     "step": "communication step [s] (for variable-step algorithms, the unit of stop_time only)",
     "order": "Gauss-Seidel stepping order: a list of component names (default: found from the connections)",
     "engine": "auto (default) or compiled: the algorithm's compiled loop (a run needs a C compiler; `python` is gone, "
-              "the Python loops are test oracles); auto also runs iterative's FMI 3.0 event-mode scenes in its "
-              "Python loop",
+              "the Python loops are test oracles); compiled also refuses, with the reason, a scene its loop cannot run",
     "output_interval": "recording interval [s], a whole multiple of the step (default: the step); variable-step "
                        "algorithms land a step on every output point",
     "record": "grid (default): a row at every output point (output_interval) plus two per event; steps: a row at "

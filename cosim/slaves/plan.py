@@ -55,10 +55,9 @@ def _cs_line(d: SlaveDescription, md) -> str:
     line = f"co-simulation: stepped by doStep at the communication points; {rollback}"
     if md.fmiVersion.startswith("3"):
         if getattr(cs, "hasEventMode", False):
-            line += ("; declares event mode: under jacobi and gauss_seidel (either engine) and adaptive, ecco and "
-                     "iterative (Python loop) it is instantiated with event mode and early return, its events end "
-                     "the step for the whole coupling (event iteration, two trace rows); jacobi_extrapolated and the "
-                     "compiled loops of adaptive, ecco and iterative leave its events inside its doStep")
+            line += ("; declares event mode: under jacobi, gauss_seidel, adaptive, ecco and iterative it is "
+                     "instantiated with event mode and early return, its events end the step for the whole coupling "
+                     "(event iteration, two trace rows); jacobi_extrapolated leaves its events inside its doStep")
         else:
             line += "; no event mode: its events are handled inside its doStep"
     else:

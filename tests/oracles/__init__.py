@@ -6,8 +6,8 @@ maps, peers, the monolithic reference) that a design error shared by both cannot
 :data:`ORACLE` plugs them into the product's one seam, an engine (:class:`cosim.master.engine.Engine`:
 the class a run instantiates, a fixed-step runner, a variable-step loop); ``tests/conftest.py``
 registers it, so that ``master.engine: oracle`` (a scene, ``run(engine="oracle")``,
-``simulate(engine="oracle")``) runs the twins.  An algorithm whose Python loop is still product
-code (``iterative``; one registered without a kernel) runs that loop under ``oracle``."""
+``simulate(engine="oracle")``) runs the twins.  An algorithm registered without a kernel (its
+Python loop is product code, the extension point) runs that loop under ``oracle``."""
 from __future__ import annotations
 
 from cosim.master.engine import Engine, register_engine

@@ -12,11 +12,12 @@ from collections.abc import Callable
 import numpy as np
 
 from cosim.master.algorithm import MAX_EVENTS_PER_STEP, _ns
-from cosim.master.algorithms import gauss_seidel, jacobi, jacobi_extrapolated
+from cosim.master.algorithms import gauss_seidel, iterative, jacobi, jacobi_extrapolated
 from cosim.master.algorithms.jacobi_extrapolated import WEIGHTS
-from cosim.master.engine import ITERATIVE
 from cosim.master.stepper import StepResult
 from cosim.slaves.slave import FAILING, Status
+
+from .iterative import Iterative
 
 
 class EventSteps:
@@ -249,14 +250,14 @@ class JacobiExtrapolated(EventSteps, jacobi_extrapolated.JacobiExtrapolated):
 
 #: the oracle class of each product algorithm with a kernel (the others run their own Python loop)
 ORACLES = {jacobi.Jacobi: Jacobi, gauss_seidel.GaussSeidel: GaussSeidel,
-           jacobi_extrapolated.JacobiExtrapolated: JacobiExtrapolated}
+           jacobi_extrapolated.JacobiExtrapolated: JacobiExtrapolated, iterative.Iterative: Iterative}
 
 
 def oracle_algorithm(cls: type) -> type:
     """The class whose Python steps run ``cls``: its oracle, or ``cls`` itself when its Python loop
-    is product code (iterative; an algorithm without a kernel)."""
+    is product code (an algorithm registered without a kernel)."""
     if cls in ORACLES:
         return ORACLES[cls]
-    if cls.native_code not in (None, ITERATIVE):
+    if cls.native_code is not None:
         raise LookupError(f"no test oracle for {cls.name} (kernel code {cls.native_code}): add one to ORACLES")
     return cls
