@@ -395,19 +395,23 @@ class Algorithm(MasterAlgorithm, EventIteration, Outcome):
             status == Status.DISCARD and self.system.slaves[i].asked_to_stop())
 
     def complete_after_stop(self, i: int, t: float) -> None:
-        """Slave ``i`` asked to stop in the step from ``t``: the other slaves complete that step
-        (so every output belongs to ``t_k+1``), then the run ends as ``stopped`` at ``t_k+1``, a point
-        the run loop records."""
+        """Slave ``i`` asked to stop in the step from ``t`` (a step without event-mode slaves: an
+        event step completes itself and calls :meth:`stopped_by`): the other slaves complete that
+        step (so every output belongs to ``t_k+1``), then the run ends as ``stopped`` at ``t_k+1``,
+        a point the run loop records."""
         bad = self._finish_step(i, t, self.h)
         if bad is not None and not self.stop_requested(*bad):
             self._fail(bad[0], bad[1], t)
             return
         self.stopped_by(i, t)
 
-    def stopped_by(self, i: int, t: float) -> None:
-        """Slave ``i`` asked to stop in the step from ``t`` and the others completed that step: the
-        run ends as ``stopped`` at ``t_k+1`` (also after a compiled loop completed the step)."""
-        self.k += 1
+    def stopped_by(self, i: int, t: float, at: float | None = None) -> None:
+        """Slave ``i`` asked to stop in the step from ``t`` [s] and the others completed that step:
+        the run ends as ``stopped`` where the step ended, ``t_k+1`` or, ``at``, the event [s] that
+        cut it (every engine; docs/explanation/events.md)."""
+        if at is None:
+            self.k += 1
+        self.t_event = at
         sl = self.system.slaves[i]
         detail = sl.stop_detail()
         self.status, self.failed_slave = "stopped", i

@@ -234,6 +234,7 @@ class _Compiled:
     def run(self, nsteps: int, rec_every: int, rec: np.ndarray) -> int:
         alg, sysm, ctl = self.alg, self.alg.system, self.ctl
         self.master_ns.value = 0
+        t_call = alg.t  # the first step's start (the later ones start on the grid)
         if ctl is not None:
             ctl.has_t_event, ctl.t_event = alg.t_event is not None, alg.t_event or 0.0
             ctl.events_in_step = alg._events_in_step
@@ -252,8 +253,8 @@ class _Compiled:
         self.arr.reraise()  # a callback slave's exception (a model's error, Ctrl-C), raised here
         rows = int(self.n_rows.value)
         i, st = self.fail_slave.value, self.fail_status.value
-        if ctl is not None and self._after_events(ctl):  # an event or an end of the event step
-            if alg.pending_event is not None:  # its row, the left limit
+        if ctl is not None and self._after_events(ctl, t_call if done == 0 else alg.time_at(alg.k)):
+            if alg.pending_event is not None or alg.status == "stopped":  # its row (at an event the left limit)
                 rec[rows, 0] = alg.t
                 np.take(sysm.v, sysm.record_idx, out=rec[rows, 1:])
                 rows += 1
@@ -269,15 +270,16 @@ class _Compiled:
             alg._fail(i, st, t_fail)
         return rows
 
-    def _after_events(self, ctl) -> bool:
-        """The algorithm's event state after a call (as its Python event step leaves it); True when
-        the call ended at an event or ended the run (else the common ending follows)."""
+    def _after_events(self, ctl, start: float) -> bool:
+        """The algorithm's event state after a call (as its Python event step leaves it; ``start``:
+        the last step's start [s]); True when the call ended at an event or ended the run (else the
+        common ending follows)."""
         alg, arr = self.alg, self.arr
         alg.t_event = ctl.t_event if ctl.has_t_event else None
         alg._events_in_step = ctl.events_in_step
         ahead = {j for j in range(len(arr)) if arr[j].ahead}
         end = FixedEnd(ctl.status)
-        if end == FixedEnd.EVENT:
+        if end in (FixedEnd.EVENT, FixedEnd.STOPPED):  # (at the grid point none is ahead)
             for j in sorted(ahead - alg._ahead):
                 alg.late(j, ctl.who, ctl.t_e, arr[j].reached)
         alg._ahead = ahead
@@ -287,6 +289,8 @@ class _Compiled:
             alg.chattering(ctl.who, ctl.t_e)
         elif end == FixedEnd.FAILED:
             alg._fail(self.fail_slave.value, self.fail_status.value, alg.t)
+        elif end == FixedEnd.STOPPED:  # the step ended at the grid point or its event (t_event)
+            alg.stopped_by(next(j for j in range(len(arr)) if arr[j].stop), start, alg.t_event)
         return end != FixedEnd.RUNNING
 
 

@@ -100,6 +100,8 @@ SLAVE = Record("rpr_slave", (
     ("double *", "past", "jacobi_extrapolated: the gathered inputs at t_k-1, then at t_k-2 (0: not extrapolated)"),
     ("int32_t", "event_mode", "FMI 3.0 event mode: its doStep may return early at an event (fixed step: rpr_run)"),
     ("int32_t", "ahead", "event step: at the grid point already while the others finish a step an event cut"),
+    ("int32_t", "stop", "event step: it asked to stop the simulation in this step (a request whose doStep is rolled "
+                        "back goes with it)"),
     ("bool *", "step_flags", "event mode: eventHandlingNeeded, terminateSimulation, earlyReturn of its last doStep "
                              "(the slave's own)"),
     ("double *", "planned_end", "event mode: t + h of its last doStep [s] (the slave's own)"),
@@ -239,6 +241,7 @@ class FixedEnd(IntEnum):
     GRID_EVENT = 2  # a step completed at the grid point, where slave `who` asks for event handling
     CHATTERING = 3  # more than max_events events in one macro step (iterative: or an event at the step's start)
     FAILED = 4  # a call failed after the step was cut (a rollback or reading the outputs): the run fails
+    STOPPED = 5  # a slave asked to stop in a step (its `stop`): the step completed, to the grid point or cut at t_e
 
 
 class AdaptiveEnd(IntEnum):

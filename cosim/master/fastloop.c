@@ -101,6 +101,13 @@ static inline int step_ev(rpr_slave *s, double *v, int64_t t_ns, double t, doubl
 
 static inline int can_save(const rpr_slave *s) { return s->get_state && s->set_state && s->state; }
 
+/* a slave's stop request stands in this event step: the step ends as any, then the run (FX_STOPPED) */
+static inline int stop_stands(const rpr_slave *S, int32_t n) {
+    int32_t i;
+    for (i = 0; i < n; ++i) if (S[i].stop) return 1;
+    return 0;
+}
+
 /* Gauss-Seidel's event step (the oracle's _events_in_order): in order, each slave from the freshest
    outputs; once an event-mode slave returned early, the slaves after it step only to its time */
 static int events_in_order(rpr_slave *S, int32_t n, const int32_t *order, double *v, int64_t t_ns, double t,
@@ -116,7 +123,8 @@ static int events_in_order(rpr_slave *S, int32_t n, const int32_t *order, double
         hi = py_min(h, reached - t);
         if (hi > tol) {  /* (an event at t itself: nothing to step) */
             TIMED(i, step_ev(&S[i], v, t_ns, t, hi));
-            if (st > ST_WARNING) FAIL(i, st);
+            if (st == ST_STOP_REQUESTED) S[i].stop = 1;  /* the step goes on: it ends the run where it ends */
+            else if (st > ST_WARNING) FAIL(i, st);
         }
         S[i].reached = t + hi;
         if (S[i].event_mode && !S[i].ahead) reached = py_min(reached, step_end(&S[i]));
@@ -140,7 +148,8 @@ static int events_first(rpr_slave *S, int32_t n, const int32_t *order, double *v
     for (i = 0; i < n; ++i) {
         if (!S[i].event_mode || S[i].ahead) continue;
         TIMED(i, advance(&S[i], v, t_ns, t, h));
-        if (st > ST_WARNING) FAIL(i, st);
+        if (st == ST_STOP_REQUESTED) S[i].stop = 1;  /* the step goes on: it ends the run where it ends */
+        else if (st > ST_WARNING) FAIL(i, st);
     }
     for (i = 0; i < n; ++i) {  /* Python's min over the list of the first ones (t + h when none) */
         if (!S[i].event_mode || S[i].ahead) continue;
@@ -153,7 +162,8 @@ static int events_first(rpr_slave *S, int32_t n, const int32_t *order, double *v
         hi = py_min(h, reached - t);
         if (hi > 1e-12 * (1.0 + fabs(t + h))) {
             TIMED(i, step_ev(&S[i], v, t_ns, t, hi));
-            if (st > ST_WARNING) FAIL(i, st);
+            if (st == ST_STOP_REQUESTED) S[i].stop = 1;
+            else if (st > ST_WARNING) FAIL(i, st);
         }
         S[i].reached = t + hi;
     }
@@ -175,7 +185,10 @@ static int events_first(rpr_slave *S, int32_t n, const int32_t *order, double *v
    return.  FX_RUNNING: the step reached the grid point (or a call failed: *fail_slave >= 0, the
    Python side handles a stop request); FX_GRID_EVENT: it did, and slave c->who asks for event
    handling there; FX_EVENT: it was cut at c->t_e by c->who (the slaves that stepped past rolled
-   back and stepped to it, or, when they cannot roll back, marked ahead); FX_CHATTERING, FX_FAILED. */
+   back and stepped to it, or, when they cannot roll back, marked ahead); FX_CHATTERING, FX_FAILED;
+   FX_STOPPED: a slave asked to stop in the step (its `stop`; one whose doStep was rolled back asks again
+   in the retake or not at all), the step ended as above at the grid point or at c->t_e (has_t_event),
+   where the run ends. */
 static int event_step(rpr_slave *S, int32_t n, const int32_t *order, int32_t algorithm, double *v, int64_t k,
                       int64_t start_ns, int64_t step_ns, int32_t timing, fx_ctl *c, int32_t *fail_slave,
                       int32_t *fail_status) {
@@ -193,7 +206,7 @@ static int event_step(rpr_slave *S, int32_t n, const int32_t *order, int32_t alg
         st = save_state(&S[i]);
         if (failing(st)) { *fail_slave = i; *fail_status = st; return FX_FAILED; }
     }
-    for (i = 0; i < n; ++i) S[i].reached = t + h;
+    for (i = 0; i < n; ++i) { S[i].reached = t + h; S[i].stop = 0; }
     st = seq ? events_in_order(S, n, order, v, t_ns, t, h, timing, fail_slave, fail_status)
              : events_first(S, n, order, v, t_ns, t, h, timing, fail_slave, fail_status);
     if (*fail_slave >= 0) return st;
@@ -211,7 +224,7 @@ static int event_step(rpr_slave *S, int32_t n, const int32_t *order, int32_t alg
         for (i = 0; i < n; ++i) S[i].ahead = 0;
         c->has_t_event = 0;
         c->events_in_step = 0;
-        return c->who >= 0 ? FX_GRID_EVENT : FX_RUNNING;
+        return stop_stands(S, n) ? FX_STOPPED : c->who >= 0 ? FX_GRID_EVENT : FX_RUNNING;
     }
     c->who = who;
     c->t_e = t_e;
@@ -221,8 +234,10 @@ static int event_step(rpr_slave *S, int32_t n, const int32_t *order, int32_t alg
         if (j == who || s->ahead || (s->event_mode ? step_end(s) : s->reached) <= t_e + tol) continue;
         if (SAVED(s)) {  /* stepped past the event: back (its inputs with it), and to the event time */
             st = restore_state(s);
+            s->stop = 0;  /* its stop request goes with the step rolled back: the retake decides */
             if (!failing(st)) TIMED(j, advance(s, v, t_ns, t, t_e - t));
-            if (failing(st)) { *fail_slave = j; *fail_status = st; return FX_FAILED; }
+            if (st == ST_STOP_REQUESTED) s->stop = 1;
+            else if (failing(st)) { *fail_slave = j; *fail_status = st; return FX_FAILED; }
         } else {
             s->ahead = 1;  /* late: it gets the event at the grid point (s->reached for the note) */
         }
@@ -234,7 +249,7 @@ static int event_step(rpr_slave *S, int32_t n, const int32_t *order, int32_t alg
     }
     c->has_t_event = 1;
     c->t_event = t_e;
-    return FX_EVENT;
+    return stop_stands(S, n) ? FX_STOPPED : FX_EVENT;
 }
 
 #define CHECK(expr, who) do { int st_ = (expr); if (st_ > ST_WARNING) { *fail_slave = (who); \
@@ -268,6 +283,7 @@ int64_t rpr_run(rpr_slave *S, int32_t n, const int32_t *order, int32_t algorithm
         if (ev) {  /* event mode: a step ends at an event (the event iteration runs in Python) */
             ev->status = event_step(S, n, order, algorithm, v, k, start_ns, step_ns, timing, ev, fail_slave,
                                     fail_status);
+            /* (FX_STOPPED: the step is not counted, Python ends the run where it ended) */
             if (*fail_slave >= 0 || (ev->status != FX_RUNNING && ev->status != FX_GRID_EVENT)) goto out;
             ++done;
             if (ev->status == FX_GRID_EVENT) goto out;  /* its row, the left limit, written by Python */

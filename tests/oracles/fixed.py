@@ -27,6 +27,7 @@ class EventSteps:
     def __init__(self, *args, **kw):
         super().__init__(*args, **kw)
         self._reached: dict[int, float] = {}  # the time [s] each slave reached in the current event step
+        self._stops: set[int] = set()  # slaves whose request to stop stands in the current event step
 
     def _event_step(self) -> bool:
         """:meth:`step` with event-mode slaves: from the current point (a grid point or an event) to
@@ -35,7 +36,9 @@ class EventSteps:
         Gauss-Seidel steps in its order, the slaves after an early return only to its time
         (:meth:`_events_in_order`); a slave that stepped past the event is rolled back and stepped
         to it, or (when it cannot roll back) noted in :attr:`late_events` and left at the grid
-        point until the others catch up."""
+        point until the others catch up.  A stop request does not cut the step: it ends as any, at
+        the grid point or the event, and the run ends there (a request whose doStep is rolled back
+        goes with it, the retake decides)."""
         slaves = self.system.slaves
         t, t_end = self.t, self.time_at(self.k + 1)
         h = t_end - t if self.t_event is not None else self.h
@@ -46,6 +49,7 @@ class EventSteps:
         for i in saved:
             slaves[i].save_state()
         self._reached.clear()
+        self._stops.clear()
         do = self._do
         if self._ahead:  # they reached the grid point in the step an event cut: they wait there
             self._do = [(lambda _t, _h: Status.OK) if i in self._ahead else f for i, f in enumerate(do)]
@@ -56,17 +60,18 @@ class EventSteps:
         if self.status != "running":
             return False
         if bad is not None:
-            if self.stop_requested(*bad):
-                self.complete_after_stop(bad[0], t)
-                return False
             self._fail(bad[0], bad[1], t)
             return False
         ends = {i: slaves[i].step_end() for i in self.event_slaves if i not in self._ahead}
         tol = 1e-12 * (1.0 + abs(t_end))
         early = sorted((r, i) for i, (r, _) in ends.items() if r < t + h - tol)
         if not early:
-            self.k, self.t_event, self._events_in_step = self.k + 1, None, 0
+            self._events_in_step = 0
             self._ahead.clear()
+            if self._stops:
+                self.stopped_by(min(self._stops), t)
+                return False
+            self.k, self.t_event = self.k + 1, None
             asking = [i for i, (_, ev) in ends.items() if ev]
             if asking:
                 self.pending_event = StepResult(self.t_ns, True, asking[0], "event")
@@ -82,8 +87,11 @@ class EventSteps:
                 continue
             if j in saved:  # stepped past the event: back (its inputs with it), and to the event time
                 slaves[j].restore_state()
+                self._stops.discard(j)
                 st = self._advance(j, t, t_e - t)
-                if st in FAILING:
+                if self.stop_requested(j, st):
+                    self._stops.add(j)
+                elif st in FAILING:
                     self._fail(j, st, t)
                     return False
             else:
@@ -94,10 +102,21 @@ class EventSteps:
             if st in FAILING:
                 self._fail(j, st, t)
                 return False
+        if self._stops:
+            self.stopped_by(min(self._stops), t, t_e)
+            return False
         self.t_event = t_e
         self.pending_event = StepResult(self.t_ns, True, who, "event")
         return True
 
+
+    def _fails_step(self, i: int, st: int) -> bool:
+        """True when slave ``i``'s doStep status ``st`` fails the step; a stop request is noted
+        (:attr:`_stops`) and the step goes on."""
+        if self.stop_requested(i, st):
+            self._stops.add(i)
+            return False
+        return st in FAILING
 
     def _events_in_order(self, t: float, h: float) -> tuple[int, int] | None:
         """A Gauss-Seidel step with event-mode slaves: in :attr:`order`, each slave from the
@@ -114,7 +133,7 @@ class EventSteps:
             hi = min(h, reached - t)
             if hi > tol:  # (an event at t itself: nothing to step)
                 st = self._advance(i, t, hi)
-                if st in FAILING or st == Status.STOP_REQUESTED:
+                if self._fails_step(i, st):
                     return i, st
             self._reached[i] = t + hi
             if i in self.event_slaves and i not in self._ahead:
@@ -137,7 +156,7 @@ class EventSteps:
         first = [i for i in self.event_slaves if i not in self._ahead]
         for i in first:
             st = self._advance(i, t, h)
-            if st in FAILING or st == Status.STOP_REQUESTED:
+            if self._fails_step(i, st):
                 return i, st
         reached = min([slaves[i].step_end()[0] for i in first], default=t + h)
         for i in range(n):
@@ -145,7 +164,7 @@ class EventSteps:
                 hi = min(h, reached - t)
                 if hi > 1e-12 * (1.0 + abs(t + h)):  # (an event at t itself: nothing to step)
                     st = self._advance(i, t, hi)
-                    if st in FAILING or st == Status.STOP_REQUESTED:
+                    if self._fails_step(i, st):
                         return i, st
                 self._reached[i] = t + hi
         for i in range(n):

@@ -214,10 +214,7 @@ class Iterative(Algorithm):
     def stopped_by(self, i: int, t: float) -> None:
         """:meth:`Algorithm.stopped_by` at the point the stopped step reached: the next grid point,
         or the event a cut step was retaken to (:attr:`stop_at`; the step is not completed)."""
-        at, self.t_event = self.stop_at, self.stop_at
-        super().stopped_by(i, t)
-        if at is not None:
-            self.k -= 1
+        super().stopped_by(i, t, self.stop_at)
 
     def statistics(self) -> dict:
         """Passes per step, rollbacks, Jacobians: added to the run statistics."""
