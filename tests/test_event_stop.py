@@ -1,5 +1,5 @@
 """A stop request (FMI 3.0 terminateSimulation) in a step of jacobi and gauss_seidel with an FMI 3.0
-event-mode component (docs/explanation/events.md, "A stop request in an event step"): the step ends
+event-mode component (docs/explanation/events.md, "A stop request in a step"): the step ends
 as any step, at the grid point or at the event that cut it, and the run ends there.  BouncingBall
 (the Reference FMUs) bounces at 0.453 s and returns early once more at 0.454 s (as under FMPy); a
 Python lag fed by its velocity asks to stop in its ``at``-th doStep, a Python clock (x = t, exact)
