@@ -182,9 +182,8 @@ static int events_first(rpr_slave *S, int32_t n, const int32_t *order, double *v
 
 /* One step with event-mode slaves (Algorithm._event_step) from the current point (the grid point
    k, or the event c->t_event that cut step k) to the next grid point, cut at the earliest early
-   return.  FX_RUNNING: the step reached the grid point (or a call failed: *fail_slave >= 0, the
-   Python side handles a stop request); FX_GRID_EVENT: it did, and slave c->who asks for event
-   handling there; FX_EVENT: it was cut at c->t_e by c->who (the slaves that stepped past rolled
+   return.  FX_RUNNING: the step reached the grid point (or a call failed: *fail_slave >= 0);
+   FX_GRID_EVENT: it did, and slave c->who asks for event handling there; FX_EVENT: it was cut at c->t_e by c->who (the slaves that stepped past rolled
    back and stepped to it, or, when they cannot roll back, marked ahead); FX_CHATTERING, FX_FAILED;
    FX_STOPPED: a slave asked to stop in the step (its `stop`; one whose doStep was rolled back asks again
    in the retake or not at all), the step ended as above at the grid point or at c->t_e (has_t_event),

@@ -109,7 +109,6 @@ class EventSteps:
         self.pending_event = StepResult(self.t_ns, True, who, "event")
         return True
 
-
     def _fails_step(self, i: int, st: int) -> bool:
         """True when slave ``i``'s doStep status ``st`` fails the step; a stop request is noted
         (:attr:`_stops`) and the step goes on."""
@@ -117,6 +116,7 @@ class EventSteps:
             self._stops.add(i)
             return False
         return st in FAILING
+
 
     def _events_in_order(self, t: float, h: float) -> tuple[int, int] | None:
         """A Gauss-Seidel step with event-mode slaves: in :attr:`order`, each slave from the
