@@ -51,11 +51,12 @@ class StoppingBall(FmuSlave):
         return Status.STOP_REQUESTED if self.steps == self.at else st
 
 
-def _system(ball: str, at: int = 0, ball_first: bool = True, ball_at: int = 0) -> CoupledSystem:
-    """The ball's velocity into a lag (x' = -2 x + u) asking to stop in its ``at``-th doStep (0:
-    never), and a clock (x1 = t); ``ball_first``: the ball is slave 0 (else the lag is, and the
-    ball 1); ``ball_at``: the ball asks to stop in that doStep."""
-    lag = type("Lag", (Stopping,), {"at": at})("lag", [[-2.0]], [[1.0]], [[1.0]], x0=[0.0])
+def _system(ball: str, at: int = 0, ball_first: bool = True, ball_at: int = 0,
+            lag_cls: type = Stopping) -> CoupledSystem:
+    """The ball's velocity into a lag (x' = -2 x + u, a ``lag_cls``) asking to stop in its
+    ``at``-th doStep (0: never), and a clock (x1 = t); ``ball_first``: the ball is slave 0 (else
+    the lag is, and the ball 1); ``ball_at``: the ball asks to stop in that doStep."""
+    lag = type("Lag", (lag_cls,), {"at": at})("lag", [[-2.0]], [[1.0]], [[1.0]], x0=[0.0])
     clock = LinearSlave("clock", [[0.0, 1.0], [0.0, 0.0]], [[0.0], [0.0]], [[1.0, 0.0]], x0=[0.0, 1.0])
     b = type("Ball", (StoppingBall,), {"at": ball_at})("ball", ball) if ball_at else FmuSlave("ball", ball)
     slaves = [b, lag, clock] if ball_first else [lag, b, clock]
@@ -83,10 +84,11 @@ def _both(make, algorithm: str, **kw):
     return cc, s2
 
 
-def _assert_prefix_of_the_free_run(ball: str, algorithm: str, cc, end: float, **kw) -> None:
-    """The stopped run's rows are the run without a stop request up to its row at ``end`` (at an
-    event: the left limit), bit for bit, and the clock there reads ``end``."""
-    free, fs = _run(_system(ball, **kw), algorithm, "compiled")
+def _assert_prefix_of_the_free_run(ball: str, algorithm: str, cc, end: float, order=None, **kw) -> None:
+    """The stopped run's rows are the run without a stop request (``kw``: its system, ``order``:
+    the stepping order) up to its row at ``end`` (at an event: the left limit), bit for bit, and
+    the clock there reads ``end``."""
+    free, fs = _run(_system(ball, **kw), algorithm, "compiled", order=order)
     assert fs.status == "ok", fs.reason
     m = int(np.flatnonzero(np.isclose(free.time, end, rtol=0, atol=1e-12))[0]) + 1
     assert np.array_equal(cc.time, free.time[:m]) and np.array_equal(cc.data, free.data[:m])
@@ -108,7 +110,7 @@ def test_a_stop_request_ends_the_run_where_its_step_ends(reference_fmus, algorit
         f"stopped by lag at t = {end:g} s: it asked to terminate the simulation in the step from t = {start:g} s"), \
         st.reason
     assert cc.time[-1] == pytest.approx(end, rel=0, abs=1e-12) and cc.time[-2] < cc.time[-1]  # one row: left limit
-    assert st.steps_done == round(np.floor(end * 100 + 1e-6))  # grid steps completed (a cut one is not)
+    assert st.steps_done == round(end * 1e9) // STEP_NS  # grid steps completed (a cut one is not)
     assert _calls(st) == {"ball": at, "lag": at, "clock": at}  # each component once in every step taken
     _assert_prefix_of_the_free_run(ball, algorithm, cc, end, ball_first=ball_first)
 
@@ -130,9 +132,7 @@ def test_a_stop_request_rolled_back_with_its_step_goes_with_it(reference_fmus, a
     assert st.reason.startswith("stopped by lag at t = 0.453 s: it asked to terminate the simulation in the step "
                                 "from t = 0.45 s"), st.reason
     assert _calls(st) == {"ball": 46, "lag": 47, "clock": 46}  # the lag's retake, nothing else twice
-    m = int(np.flatnonzero(np.isclose(free.time, 0.453, rtol=0, atol=1e-12))[0]) + 1
-    assert np.array_equal(cc.time, free.time[:m]) and np.array_equal(cc.data, free.data[:m])
-    assert cc["clock.x[1]"][-1] == pytest.approx(0.453, rel=0, abs=1e-12)
+    _assert_prefix_of_the_free_run(ball, "gauss_seidel", cc, 0.453, order=[1, 0, 2])
 
 
 @pytest.mark.parametrize("algorithm", FIXED)
@@ -148,3 +148,24 @@ def test_a_stop_request_of_the_event_mode_component_ends_the_run_where_its_step_
         st.reason
     assert _calls(st) == {"ball": at, "lag": at, "clock": at}
     _assert_prefix_of_the_free_run(ball, algorithm, cc, end)
+
+
+class Fixed(Stopping):
+    """The lag without rollback (as hardware or an FMU without state)."""
+
+    can_rollback = property(lambda self: False)
+
+
+def test_a_late_component_stays_at_the_grid_point_and_is_noted_when_the_run_ends_at_the_event(reference_fmus):
+    """Gauss-Seidel in the order lag, ball, clock, the lag unable to roll back: it steps over the
+    whole step from 0.45 s and asks to stop there (its 46th doStep); the bounce cuts the step at
+    0.453 s, where the run ends (the ball and the clock there), the lag late at 0.46 s and noted so,
+    as at any event."""
+    ball = str(reference_fmus["3.0/BouncingBall"])
+    cc, st = _both(lambda: _system(ball, 46, lag_cls=Fixed), "gauss_seidel", order=[1, 0, 2])
+    assert st.status == "stopped" and st.reason.startswith(
+        "stopped by lag at t = 0.453 s: it asked to terminate the simulation in the step from t = 0.45 s"), st.reason
+    assert [(e["component"], e["event_of"], e["t"], e["reached"]) for e in st.extra["events"]["late"]] == \
+        [("lag", "ball", pytest.approx(0.453, abs=1e-12), pytest.approx(0.46, abs=1e-12))]
+    assert _calls(st) == {"ball": 46, "lag": 46, "clock": 46}
+    _assert_prefix_of_the_free_run(ball, "gauss_seidel", cc, 0.453, order=[1, 0, 2], lag_cls=Fixed)
