@@ -102,7 +102,7 @@ def _assert_prefix_of_the_free_run(ball: str, algorithm: str, cc, end: float, or
 def test_a_stop_request_ends_the_run_where_its_step_ends(reference_fmus, algorithm, ball_first, at):
     """The run ends where the step the lag asked in ends, every component there (the clock reads
     the row's time), the row stamped with it, the message naming it and the step's start; no
-    component stepped twice or past it (jacobi with the lag as slave 0 stepped the ball twice)."""
+    component stepped twice or past it, whichever is slave 0."""
     ball = str(reference_fmus["3.0/BouncingBall"])
     start, end = STOPS[at]
     cc, st = _both(lambda: _system(ball, at, ball_first), algorithm)
