@@ -599,6 +599,16 @@ def test_every_algorithm_module_is_listed_and_registers_its_class():
     assert on_disk <= owners
 
 
+def test_an_algorithm_without_kernel_or_python_step_is_refused_when_registered():
+    """The extension point's contract: no compiled loop and no _step_impl is said at @register,
+    naming the class, not as a NotImplementedError at the run's first step."""
+    with pytest.raises(TypeError, match=r"'test_nothing' \(.*Nothing\) has no compiled loop .* no _step_impl"):
+        @register
+        class Nothing(Algorithm):
+            name = "test_nothing"
+    assert "test_nothing" not in ALGORITHMS
+
+
 def test_a_registered_algorithm_runs_through_the_same_loop():
     """The extension point: a subclass implementing only _step_impl (here Gauss-Seidel in the
     reverse order) is found by name and produces the map its convention implies."""

@@ -484,7 +484,12 @@ ALGORITHMS: dict[str, type[MasterAlgorithm]] = {}
 
 
 def register(cls: type[MasterAlgorithm]) -> type[MasterAlgorithm]:
-    """Class decorator: make an algorithm available by its ``name``."""
+    """Class decorator: make an algorithm available by its ``name``.  A fixed-step algorithm
+    without a kernel (:attr:`Algorithm.native_code` None) must step in Python: a class that does
+    not define :meth:`Algorithm._step_impl` is a :class:`TypeError` here, not at its first step."""
+    if issubclass(cls, Algorithm) and cls.native_code is None and cls._step_impl is Algorithm._step_impl:
+        raise TypeError(f"master algorithm {cls.name!r} ({cls.__qualname__}) has no compiled loop "
+                        f"(native_code None) and no _step_impl: define _step_impl(t, h), its Python step")
     ALGORITHMS[cls.name] = cls
     return cls
 
