@@ -149,6 +149,6 @@ def dask_scheduler():
     distributed = pytest.importorskip("distributed")
     with dask.config.set({"distributed.scheduler.allowed-failures": 1}):
         cluster = distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
-                                           dashboard_address=None)
+                                           host="127.0.0.1", dashboard_address="127.0.0.1:0")
     yield cluster.scheduler_address
     cluster.close()

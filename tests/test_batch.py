@@ -372,3 +372,32 @@ def test_a_batchs_npy_traces_read_back_bit_for_bit_equal_to_its_csv_traces(tmp_p
     # compare OUT/ REF reads the batch's .npy traces against a CSV one
     ref = run_trace_path(tmp_path / "csv", next(iter(a)))
     assert main(["compare", str(tmp_path / "npy"), str(ref), "--only", "mech.platform.*"]) == 0
+
+
+
+def _listening() -> set[tuple[str, int]]:
+    """The (IP address, port) pairs this process listens on (TCP)."""
+    import psutil
+
+    return {(c.laddr.ip, c.laddr.port) for c in psutil.Process().net_connections("tcp") if c.status == "LISTEN"}
+
+
+def test_the_local_dask_cluster_listens_on_loopback_only():
+    """A Dask scheduler runs what it is sent: the cluster a batch starts for itself (no
+    --scheduler) must not listen beyond this machine, nor take the dashboard's fixed port 8787
+    (it used to listen on every interface, scheduler and dashboard alike)."""
+    pytest.importorskip("distributed")
+    pytest.importorskip("psutil")
+    from cosim.batch.executors import DaskExecutor
+
+    before = _listening()
+    client, cluster = DaskExecutor(workers=1)._client()
+    try:
+        new = _listening() - before
+        workers = client.run(_listening)
+        assert new and {ip for ip, _ in new} == {"127.0.0.1"}, new
+        assert {ip for pairs in workers.values() for ip, _ in pairs} == {"127.0.0.1"}, workers
+        assert cluster.scheduler_address.startswith("tcp://127.0.0.1:") and 8787 not in {p for _, p in new}
+    finally:
+        client.close()
+        cluster.close()

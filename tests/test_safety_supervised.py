@@ -245,7 +245,7 @@ def test_a_dask_worker_with_two_threads_supervises_each_threads_runs(tmp_path, h
                     f"metrics:\n  a.y: [max]\n")
     with dask.config.set({"distributed.scheduler.allowed-failures": 1}):
         cluster = distributed.LocalCluster(n_workers=1, threads_per_worker=2, processes=True,
-                                           dashboard_address="127.0.0.1:0")  # the session cluster has 8787
+                                           host="127.0.0.1", dashboard_address="127.0.0.1:0")
     try:
         with distributed.Client(cluster.scheduler_address) as client:
             before = client.run(os.getpid)

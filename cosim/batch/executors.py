@@ -393,8 +393,9 @@ class DaskExecutor:
                 raise UserError(f"--scheduler {self.scheduler}: cannot reach the Dask scheduler ({exc})") from None
             return client, None
         with dask.config.set({"distributed.scheduler.allowed-failures": 1}):
+            # loopback only: a scheduler runs what it is sent, and the dashboard takes a free port
             cluster = LocalCluster(n_workers=self.workers or os.cpu_count() or 1, threads_per_worker=1,
-                                   processes=True, dashboard_address=None)
+                                   processes=True, host="127.0.0.1", dashboard_address="127.0.0.1:0")
         return Client(cluster), cluster
 
     def run(self, tasks: Iterable[Task], shared: Shared, on_done: OnDone, on_start: OnStart | None = None) -> None:
